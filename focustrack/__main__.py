@@ -1,0 +1,3 @@
+from focustrack.cli import main
+
+raise SystemExit(main())

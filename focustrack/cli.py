@@ -1,0 +1,57 @@
+"""The `focustrack` command: one entry point, a subcommand per job.
+
+Each subcommand lives in its own module, which provides
+``add_arguments(parser: argparse.ArgumentParser) -> None`` and
+``run(args: argparse.Namespace) -> int``. Only the chosen module is imported,
+so `focustrack bench accuracy` does not pay for starting Zenoh or FastAPI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "bench accuracy": (
+        "focustrack.bench.accuracy",
+        "replay focus maps through every strategy; accuracy, images and scan time",
+    ),
+    "bench focus": ("focustrack.bench.focus", "focus-metric accuracy and speed"),
+    "bench api": ("focustrack.bench.api", "estimator REST latency and throughput"),
+    "bench instrument": (
+        "focustrack.bench.instrument",
+        "render and publish speed of the simulated microscope",
+    ),
+    "serve instrument": (
+        "focustrack.services.instrument_sim.service",
+        "the simulated microscope on Zenoh",
+    ),
+    "serve focus": ("focustrack.services.focus.service", "the focus service (Zenoh and REST)"),
+    "serve estimator": ("focustrack.services.estimator.service", "the estimator REST service"),
+    "scan": ("focustrack.services.scheduler.scan", "scan one slide through the services"),
+    "demo": ("focustrack.services.scheduler.demo", "embedded stack: scan a simulated slide"),
+}
+
+
+def _usage() -> str:
+    width = max(len(name) for name in COMMANDS)
+    lines = ["usage: focustrack COMMAND [options]", "", "commands:"]
+    lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
+    lines += ["", "`focustrack COMMAND --help` shows the options of one command."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    for n_words in (2, 1):
+        name = " ".join(argv[:n_words])
+        if name in COMMANDS:
+            module_name, text = COMMANDS[name]
+            module = importlib.import_module(module_name)
+            parser = argparse.ArgumentParser(prog=f"focustrack {name}", description=text)
+            module.add_arguments(parser)
+            return module.run(parser.parse_args(argv[n_words:]))
+    print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
+    return 0 if not argv or argv[0] in ("-h", "--help") else 2

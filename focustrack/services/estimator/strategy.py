@@ -1,0 +1,271 @@
+"""What every scan strategy is: a plan that says where to look next and learns from what it saw.
+
+A strategy answers two calls, whatever it is inside (a Kalman filter, tile
+skipping, a survey followed by an interpolated map):
+
+- `next_acquisition()` -> the next tile and the z-range to acquire there, or
+  None when the scan is complete;
+- `record(acquisition, measurement)` -> what the measurement did to the
+  estimate (prior, posterior, innovation, NIS, accepted).
+
+The benchmark, the estimator service and the scheduler all drive strategies
+through these two calls only, so every strategy is costed and served alike.
+Strategies are deterministic: replaying the same measurements rebuilds the
+same state (the estimator service relies on that to survive restarts).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+
+from focustrack.geometry import ScanGrid
+
+
+class FocusFlag(StrEnum):
+    """Quality flags of a best-focus measurement (set by the focus service)."""
+
+    EDGE_LOW = "edge_low"  # peak at the low-z end of the range: extend downwards
+    EDGE_HIGH = "edge_high"  # peak at the high-z end: extend upwards
+    FLAT = "flat"  # no contrast (empty field): no measurement
+    MULTI_PEAK = "multi_peak"  # more than one peak: measurement is less certain
+
+
+#: Flags that mean the stack holds no usable best focus.
+NOT_AN_OBSERVATION = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH, FocusFlag.FLAT})
+
+
+class Purpose(StrEnum):
+    SCAN = "scan"  # image the tile (and measure its focus where the strategy asks)
+    SURVEY = "survey"  # a survey point of a focus-map strategy, before the scan
+    RETRY = "retry"  # the same tile again, after an edge peak or a flat curve
+
+
+@dataclass(frozen=True)
+class ZRange:
+    """Frames at low_um, low_um + step_um, ..., high_um (n_frames of them), in um."""
+
+    low_um: float
+    step_um: float
+    n_frames: int
+
+    def __post_init__(self) -> None:
+        if self.n_frames < 1:
+            raise ValueError(f"a z-range needs at least one frame, got {self.n_frames}")
+        if not self.step_um > 0:
+            raise ValueError(f"z step must be positive, got {self.step_um} um")
+
+    @classmethod
+    def centred(cls, center_um: float, n_frames: int, step_um: float) -> ZRange:
+        return cls(center_um - (n_frames - 1) / 2.0 * step_um, step_um, n_frames)
+
+    @property
+    def high_um(self) -> float:
+        return self.low_um + (self.n_frames - 1) * self.step_um
+
+    @property
+    def center_um(self) -> float:
+        return (self.low_um + self.high_um) / 2.0
+
+    def z_um(self) -> np.ndarray:
+        """The z of every frame, shape (n_frames,), in um."""
+        return self.low_um + self.step_um * np.arange(self.n_frames)
+
+    def contains(self, z_um: float) -> bool:
+        """True when a peak at `z_um` would lie inside the stack (not at its edge)."""
+        return self.low_um <= z_um <= self.high_um
+
+
+@dataclass(frozen=True)
+class ZRangePolicy:
+    """How wide a stack to take: +/- k_sigma predicted sigmas, within [min_frames, max_frames].
+
+    The predicted sigma is that of the innovation (prediction and measurement
+    noise together), because the measured peak, not the truth, must land in
+    the stack. A retry after an edge peak takes the next `max_frames`-wide
+    block beyond the edge that was hit.
+    """
+
+    k_sigma: float = 2.5
+    z_step_um: float = 0.5
+    min_frames: int = 5
+    max_frames: int = 41
+
+    def __post_init__(self) -> None:
+        if not (self.k_sigma > 0 and self.z_step_um > 0):
+            raise ValueError("k_sigma and z_step_um must be positive")
+        if not 2 <= self.min_frames <= self.max_frames:
+            raise ValueError(
+                f"need 2 <= min_frames <= max_frames, got {self.min_frames}, {self.max_frames}"
+            )
+
+    def around(self, center_um: float, sigma_um: float) -> ZRange:
+        """A stack centred on a prediction with innovation sigma `sigma_um`."""
+        n_frames = 2 * math.ceil(self.k_sigma * sigma_um / self.z_step_um) + 1
+        n_frames = min(max(n_frames, self.min_frames), self.max_frames)
+        return ZRange.centred(center_um, n_frames, self.z_step_um)
+
+    def wide(self, center_um: float) -> ZRange:
+        """The widest stack the policy allows (autofocus without a prediction)."""
+        return ZRange.centred(center_um, self.max_frames, self.z_step_um)
+
+    def beyond(self, previous: ZRange, flag: FocusFlag) -> ZRange:
+        """The stack to take after `previous` ended in an edge peak (or a flat curve)."""
+        n_frames = self.max_frames
+        if flag is FocusFlag.EDGE_HIGH:
+            return ZRange(previous.high_um + self.z_step_um, self.z_step_um, n_frames)
+        if flag is FocusFlag.EDGE_LOW:
+            return ZRange(previous.low_um - n_frames * self.z_step_um, self.z_step_um, n_frames)
+        return ZRange.centred(previous.center_um, n_frames, self.z_step_um)
+
+    @staticmethod
+    def single(z_um: float, step_um: float) -> ZRange:
+        """One frame at `z_um` (imaging a tile whose focus is already decided)."""
+        return ZRange(z_um, step_um, 1)
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """What to acquire next: a tile and a z-range, and what the strategy expects of it."""
+
+    index: int  # sequence number of this acquisition within the slide's scan
+    row: int
+    col: int
+    z: ZRange
+    purpose: Purpose
+    measure: bool  # True: a best focus is expected back; False: only image the tile
+    predicted_um: float | None = None  # the prior of this tile's focus, where there is one
+    predicted_sigma_um: float | None = None  # the prior's standard deviation
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The result of an acquisition: the best focus found in it, or why there is none."""
+
+    z_um: float | None
+    sigma_um: float | None = None
+    flags: frozenset[FocusFlag] = frozenset()
+
+    def __post_init__(self) -> None:
+        if self.z_um is not None and not math.isfinite(self.z_um):
+            raise ValueError(f"measured z must be finite, got {self.z_um}")
+        if self.sigma_um is not None and not (math.isfinite(self.sigma_um) and self.sigma_um > 0):
+            raise ValueError(f"measurement sigma must be positive and finite, got {self.sigma_um}")
+
+    @property
+    def is_observation(self) -> bool:
+        return self.z_um is not None and not (self.flags & NOT_AN_OBSERVATION)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one measurement did to the estimate of its tile (heights in um)."""
+
+    row: int
+    col: int
+    accepted: bool  # used as an observation (False: edge, flat, gated out or image only)
+    prior_um: float | None = None
+    prior_sigma_um: float | None = None
+    posterior_um: float | None = None
+    posterior_sigma_um: float | None = None
+    innovation_um: float | None = None
+    nis: float | None = None  # normalised innovation squared
+
+
+@dataclass
+class FocusMap:
+    """The estimates of every tile, each (rows, cols) in um, NaN where there is none yet.
+
+    `z_used_um` is the height the tile was imaged at (the frame kept for the
+    mosaic); it is what the in-focus fraction is judged on.
+    """
+
+    prior_um: np.ndarray
+    prior_sigma_um: np.ndarray
+    posterior_um: np.ndarray
+    posterior_sigma_um: np.ndarray
+    z_used_um: np.ndarray
+    smoothed_um: np.ndarray | None = None
+    smoothed_sigma_um: np.ndarray | None = None
+
+    @classmethod
+    def empty(cls, grid: ScanGrid) -> FocusMap:
+        def nan() -> np.ndarray:
+            return np.full(grid.shape, np.nan)
+
+        return cls(nan(), nan(), nan(), nan(), nan())
+
+
+@dataclass(frozen=True)
+class SlideSettings:
+    """What every strategy is told about the slide, whatever its kind."""
+
+    grid: ScanGrid
+    start_z_um: float = 0.0  # the height to start from (for example the previous slide's)
+    start_sigma_um: float = 10.0  # how uncertain that start is
+    dof_um: float = 1.0  # depth of field of the objective
+    noise_sigma_um: float = 1.5  # default std of a best-focus measurement (R = noise**2)
+    policy: ZRangePolicy = field(default_factory=ZRangePolicy)
+
+
+class Strategy(ABC):
+    """A scan strategy: a plan (`_plan`) and what it learns from each measurement (`_take`).
+
+    Subclasses set `name`, take their own parameters as keyword arguments after
+    the settings, and implement `_plan` and `_take`; this base class keeps the
+    pending acquisition and its sequence number, so asking twice for the next
+    acquisition returns the same one and a measurement is only taken for it.
+    """
+
+    name: str
+
+    def __init__(self, settings: SlideSettings) -> None:
+        self.settings = settings
+        self.grid = settings.grid
+        self.map = FocusMap.empty(settings.grid)
+        self.n_recorded = 0
+        self._pending: Acquisition | None = None
+
+    def next_acquisition(self) -> Acquisition | None:
+        """The next acquisition to make, or None when every tile has been imaged."""
+        if self._pending is None:
+            self._pending = self._plan()
+        return self._pending
+
+    def record(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        """Take the measurement made for `acquisition`, which must be the pending one."""
+        pending = self.next_acquisition()
+        if pending is None:
+            raise ValueError("the scan is complete: no acquisition is pending")
+        if acquisition != pending:
+            raise ValueError(
+                f"measurement is for acquisition {acquisition.index} at tile "
+                f"({acquisition.row}, {acquisition.col}), but the pending one is "
+                f"{pending.index} at ({pending.row}, {pending.col})"
+            )
+        outcome = self._take(pending, measurement)
+        self._pending = None
+        self.n_recorded += 1
+        return outcome
+
+    def focus_map(self) -> FocusMap:
+        """The estimates so far (the final map once `next_acquisition` returns None)."""
+        return self.map
+
+    def _acquisition(
+        self, row: int, col: int, z: ZRange, purpose: Purpose, *, measure: bool, **prediction
+    ) -> Acquisition:
+        """A new acquisition, numbered in sequence; for `_plan` to return."""
+        return Acquisition(self.n_recorded, row, col, z, purpose, measure, **prediction)
+
+    @abstractmethod
+    def _plan(self) -> Acquisition | None:
+        """Decide the next acquisition (None when the scan is complete)."""
+
+    @abstractmethod
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        """Learn from the measurement of the pending acquisition; update `self.map`."""
