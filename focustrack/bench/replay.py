@@ -1,0 +1,129 @@
+"""Replay a focus map through a strategy: the engine of `focustrack bench accuracy`.
+
+Pure: no I/O. A strategy is driven through its two calls exactly as the
+estimator service and the scheduler drive it; the instrument and the focus
+service are stood in for by a measured map:
+
+- the best focus found in a stack on tile (row, col) is `measured_um[row, col]`
+  (the truth plus the focus method's error), the same value every time the tile
+  is measured, so every strategy sees the same measurements;
+- if that peak lies outside the acquired z-range, the stack has no peak inside:
+  the measurement is an edge flag pointing towards it, and the strategy must
+  re-acquire (and pay for it);
+- a single-frame acquisition only images the tile (no measurement).
+
+Cost follows `focustrack.timing.TimingModel`: the XY move from the previous
+acquisition's tile, then the stack's frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from focustrack.geometry import Tile
+from focustrack.services.estimator.strategy import (
+    Acquisition,
+    FocusFlag,
+    FocusMap,
+    Measurement,
+    Outcome,
+    Strategy,
+)
+from focustrack.timing import TimingModel
+
+
+def simulated_measurement(acquisition: Acquisition, measured_um: float) -> Measurement:
+    """What a focus service would report for `acquisition` if the peak is at `measured_um`."""
+    if not acquisition.measure:
+        return Measurement(z_um=None)
+    if measured_um < acquisition.z.low_um:
+        return Measurement(z_um=None, flags=frozenset({FocusFlag.EDGE_LOW}))
+    if measured_um > acquisition.z.high_um:
+        return Measurement(z_um=None, flags=frozenset({FocusFlag.EDGE_HIGH}))
+    return Measurement(z_um=float(measured_um))
+
+
+@dataclass
+class Replay:
+    """One strategy's scan of one map."""
+
+    truth_um: np.ndarray  # (rows, cols)
+    focus_map: FocusMap
+    outcomes: list[Outcome]
+    n_images: int
+    scan_time_s: float
+
+
+def replay(
+    strategy: Strategy,
+    truth_um: np.ndarray,
+    measured_um: np.ndarray,
+    timing: TimingModel | None = None,
+) -> Replay:
+    """Run `strategy` to completion on one map; `truth_um` and `measured_um` are (rows, cols)."""
+    timing = timing or TimingModel()
+    grid = strategy.grid
+    if truth_um.shape != grid.shape or measured_um.shape != grid.shape:
+        raise ValueError(
+            f"map shapes {truth_um.shape} / {measured_um.shape} differ from grid {grid.shape}"
+        )
+    max_acquisitions = 50 * grid.n_tiles  # a strategy that never finishes is a bug, not a slow scan
+    outcomes: list[Outcome] = []
+    n_images, scan_time_s = 0, 0.0
+    here: Tile | None = None
+    while (acquisition := strategy.next_acquisition()) is not None:
+        if len(outcomes) >= max_acquisitions:
+            raise RuntimeError(f"{strategy.name} did not finish in {max_acquisitions} acquisitions")
+        tile = Tile(acquisition.row, acquisition.col)
+        if here is not None:
+            scan_time_s += timing.move_s(grid.distance_um(here, tile))
+        here = tile
+        n_images += acquisition.z.n_frames
+        scan_time_s += timing.stack_s(acquisition.z.n_frames)
+        measurement = simulated_measurement(acquisition, measured_um[tile.row, tile.col])
+        outcomes.append(strategy.record(acquisition, measurement))
+    return Replay(truth_um, strategy.focus_map(), outcomes, n_images, scan_time_s)
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Accuracy and cost of a strategy over several maps (errors pooled over all tiles).
+
+    `*_std_um` is the standard deviation of the signed error (as in the thesis'
+    tables); prior fields are None for strategies that make no prediction.
+    """
+
+    prior_mae_um: float | None
+    prior_std_um: float | None
+    post_mae_um: float
+    post_std_um: float
+    images_per_tile: float
+    scan_time_s: float  # mean per map
+    in_focus_fraction: float
+
+
+def _error_stats(estimates: list[np.ndarray], truths: list[np.ndarray]) -> tuple[float, float]:
+    error = np.concatenate([(e - t).ravel() for e, t in zip(estimates, truths, strict=True)])
+    return float(np.mean(np.abs(error))), float(np.std(error))
+
+
+def score(replays: list[Replay], dof_um: float) -> Scores:
+    """Pool one strategy's replays into its scores (in focus: |z used - truth| <= dof/2)."""
+    truths = [r.truth_um for r in replays]
+    priors = [r.focus_map.prior_um for r in replays]
+    has_prior = all(np.all(np.isfinite(p)) for p in priors)
+    prior_mae, prior_std = _error_stats(priors, truths) if has_prior else (None, None)
+    post_mae, post_std = _error_stats([r.focus_map.posterior_um for r in replays], truths)
+    used_error = np.concatenate([(r.focus_map.z_used_um - r.truth_um).ravel() for r in replays])
+    n_tiles = sum(r.truth_um.size for r in replays)
+    return Scores(
+        prior_mae_um=prior_mae,
+        prior_std_um=prior_std,
+        post_mae_um=post_mae,
+        post_std_um=post_std,
+        images_per_tile=sum(r.n_images for r in replays) / n_tiles,
+        scan_time_s=float(np.mean([r.scan_time_s for r in replays])),
+        in_focus_fraction=float(np.mean(np.abs(used_error) <= dof_um / 2.0)),
+    )
