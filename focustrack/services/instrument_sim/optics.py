@@ -1,0 +1,189 @@
+"""Defocus blur of a brightfield microscope, from NA, wavelength, magnification and camera pixel.
+
+Imaging is incoherent (condenser aperture filled), so a defocused frame is the
+in-focus intensity convolved with the defocused point spread function. The PSF
+follows from the pupil (radius NA / lambda) with the Fresnel defocus phase
+``exp(-i pi lambda dz rho^2 / n)`` (the paraxial form of the angular-spectrum
+transfer function ``exp(i 2 pi dz sqrt((n / lambda)^2 - rho^2))``, Zhong et al.
+eq. 3). Fresnel, because the depth-of-field formula below is paraxial too: at NA
+0.85 the exact phase defocuses the pupil edge 31% faster and would shorten the
+wave-optical depth of field by about a quarter. The pupil is round, so PSF and
+OTF are radial and two Hankel transforms, precomputed as matrices, give the OTF of
+any defocus in well under a millisecond:
+
+    a(r)  = 2 pi int_0^{NA/lambda} P(rho) exp(i phi(rho, dz)) J0(2 pi rho r) rho d rho
+    h(r)  = |a(r)|^2
+    H(q)  = 2 pi int_0^inf h(r) J0(2 pi q r) r dr / (same at q = 0)
+
+A frame is then one inverse FFT of the (cached) in-focus spectrum times the OTF.
+The FFTs are OpenCV's, on its packed "CCS" layout of real spectra: about twice as
+fast as numpy's `irfft2`; `ccs_frequency_indices` says which frequency every
+element of that layout holds.
+
+Depth of field (Rayleigh quarter-wave criterion plus one camera pixel of
+geometric blur): ``lambda n / NA^2 + n e / (M NA)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import cv2
+import numpy as np
+from scipy import special
+
+#: Channel order of every rendered image.
+CHANNELS = "RGB"
+
+
+@dataclass(frozen=True)
+class Optics:
+    """Objective and camera geometry. Lengths in um.
+
+    Defaults: a 60x / 0.85 dry objective with a 6.5 um-pixel camera (0.108 um
+    per pixel in the specimen), wavelengths at the centres of the camera's RGB
+    filters; the green one is the reference for the depth of field.
+    """
+
+    numerical_aperture: float = 0.85
+    magnification: float = 60.0
+    refractive_index: float = 1.0
+    camera_pixel_um: float = 6.5
+    wavelengths_um: tuple[float, float, float] = (0.61, 0.55, 0.47)  # R, G, B
+    max_defocus_um: float = 20.0  # PSF support sized for this defocus; beyond, blur saturates
+
+    def __post_init__(self) -> None:
+        if not 0 < self.numerical_aperture < self.refractive_index:
+            raise ValueError(
+                f"NA must lie in (0, n={self.refractive_index}), got {self.numerical_aperture}"
+            )
+        if not (self.magnification > 0 and self.camera_pixel_um > 0):
+            raise ValueError("magnification and camera pixel must be positive")
+        if len(self.wavelengths_um) != len(CHANNELS) or min(self.wavelengths_um) <= 0:
+            raise ValueError(f"need {len(CHANNELS)} positive wavelengths (um)")
+
+    @property
+    def pixel_size_um(self) -> float:
+        """Camera pixel projected into the specimen plane."""
+        return self.camera_pixel_um / self.magnification
+
+    @property
+    def reference_wavelength_um(self) -> float:
+        return self.wavelengths_um[1]
+
+    @property
+    def depth_of_field_um(self) -> float:
+        """lambda n / NA^2 + n e / (M NA), at the reference (green) wavelength."""
+        na, n = self.numerical_aperture, self.refractive_index
+        wave_um = self.reference_wavelength_um * n / na**2
+        geometric_um = n * self.camera_pixel_um / (self.magnification * na)
+        return wave_um + geometric_um
+
+
+class DefocusOTF:
+    """Radial incoherent OTF of one wavelength against defocus, by two Hankel-transform matrices.
+
+    `profile(dz_um)` returns the OTF at spatial frequencies `q_per_um`
+    (shape (n_q,), from 0 to the cutoff 2 NA / lambda), with one extra 0 for
+    frequencies beyond the cutoff.
+    """
+
+    def __init__(
+        self,
+        optics: Optics,
+        wavelength_um: float,
+        *,
+        n_rho: int = 256,
+        n_q: int = 512,
+        dr_um: float = 0.05,
+    ) -> None:
+        na, n = optics.numerical_aperture, optics.refractive_index
+        self.wavelength_um = wavelength_um
+        self._max_dz_um = optics.max_defocus_um
+        rho_cut = na / wavelength_um
+        d_rho = rho_cut / n_rho
+        rho = (np.arange(n_rho) + 0.5) * d_rho  # midpoint rule over the pupil
+        # PSF support: the geometric blur radius dz tan(theta) at max defocus, plus the Airy core.
+        tan_theta = na / np.sqrt(n * n - na * na)
+        r_max_um = optics.max_defocus_um * tan_theta + 10.0 * wavelength_um / na
+        r = (np.arange(int(np.ceil(r_max_um / dr_um))) + 0.5) * dr_um
+        self.q_per_um = np.linspace(0.0, 2.0 * rho_cut, n_q)
+        self.dq_per_um = float(self.q_per_um[1])
+        # a = A @ pupil field; H = B @ h (unnormalised); rows of B are frequencies q. float32:
+        # the OTF stays within 0.5% of a 4x finer float64 quadrature, at a quarter of the cost.
+        kernel_a = special.j0(2.0 * np.pi * np.outer(r, rho)) * (2.0 * np.pi * rho * d_rho)
+        kernel_b = special.j0(2.0 * np.pi * np.outer(self.q_per_um, r)) * (2.0 * np.pi * r * dr_um)
+        self._A = kernel_a.astype(np.float32)
+        self._B = kernel_b.astype(np.float32)
+        self._phase_per_um = (-np.pi * wavelength_um * rho**2 / n).astype(np.float32)
+
+    def profile(self, dz_um: float) -> np.ndarray:
+        """OTF at `q_per_um` for defocus `dz_um`, normalised to 1 at q = 0, plus a trailing 0.
+
+        float32, shape (n_q + 1,). Defocus beyond `max_defocus_um` is clipped to it.
+        """
+        phase = self._phase_per_um * np.float32(np.clip(dz_um, -self._max_dz_um, self._max_dz_um))
+        amplitude_re = self._A @ np.cos(phase)
+        amplitude_im = self._A @ np.sin(phase)
+        otf = self._B @ (amplitude_re**2 + amplitude_im**2)
+        return np.append(otf / otf[0], np.float32(0.0))
+
+
+def ccs_frequency_indices(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(|v|, u): the frequency indices held by each element of OpenCV's CCS spectrum layout.
+
+    For a real (height, width) image with even sides, `cv2.dft` packs the
+    spectrum into a real (height, width) array: columns 1..width-2 hold Re/Im
+    pairs of u = (c + 1) // 2 at row frequency v = r; the first and last
+    columns hold u = 0 and u = width / 2, with v = (r + 1) // 2 packed down the
+    rows. Both are int arrays of `shape`; v is folded to |v| <= height / 2.
+    """
+    height, width = shape
+    if height % 2 or width % 2 or height < 2 or width < 2:
+        raise ValueError(f"frame sides must be even and >= 2, got {shape}")
+    rows = np.arange(height)[:, None]
+    cols = np.arange(width)[None, :]
+    u = np.broadcast_to((cols + 1) // 2, shape).copy()
+    v = np.broadcast_to(np.minimum(rows, height - rows), shape).copy()
+    edge = np.zeros(width, dtype=bool)
+    edge[[0, width - 1]] = True
+    v[:, edge] = ((rows + 1) // 2) * np.ones((1, 2), dtype=int)
+    return v, u
+
+
+@dataclass(frozen=True)
+class FrameGeometry:
+    """Frequency maps of a frame size, in CCS layout, shared by every tile of that size."""
+
+    height: int
+    width: int
+    pixel_size_um: float
+
+    @cached_property
+    def radius_per_um(self) -> np.ndarray:
+        """Spatial frequency (cycles/um) of each CCS element, shape (height, width)."""
+        v, u = ccs_frequency_indices((self.height, self.width))
+        return np.hypot(v / self.height, u / self.width) / self.pixel_size_um
+
+    @cached_property
+    def pixel_mtf(self) -> np.ndarray:
+        """Transfer function of square pixels integrating their area (fill factor 1)."""
+        v, u = ccs_frequency_indices((self.height, self.width))
+        return (np.sinc(v / self.height) * np.sinc(u / self.width)).astype(np.float32)
+
+    def bins(self, otf: DefocusOTF) -> np.ndarray:
+        """Index into `otf.profile(...)` for each CCS element (nearest q; last = beyond cutoff)."""
+        index = np.rint(self.radius_per_um / otf.dq_per_um).astype(np.intp)
+        return np.minimum(index, len(otf.q_per_um))
+
+
+def spectrum(plane: np.ndarray) -> np.ndarray:
+    """CCS spectrum (float32, same shape) of a real float32 image plane."""
+    return cv2.dft(np.ascontiguousarray(plane, dtype=np.float32))
+
+
+def blurred(spectrum_ccs: np.ndarray, otf_map: np.ndarray, scale: float) -> np.ndarray:
+    """The image plane whose CCS spectrum is `spectrum_ccs * otf_map`, times `scale`."""
+    product = cv2.multiply(spectrum_ccs, otf_map, scale=scale / spectrum_ccs.size)
+    return cv2.idft(product, flags=cv2.DFT_REAL_OUTPUT)

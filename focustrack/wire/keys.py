@@ -1,0 +1,108 @@
+"""The Zenoh key space of focustrack (documented for other languages in proto/README.md).
+
+- ``focustrack/v1/instrument/{instrument}/acquire``: queryable; AcquireRequest in,
+  AcquireReply out (error replies carry an Error).
+- ``focustrack/v1/instrument/{instrument}/info``: queryable; InstrumentInfo out.
+- ``focustrack/v1/zstack/{slide}/{row}/{col}``: the instrument publishes each stack
+  (raw pixels as payload, ZStackHeader as attachment).
+- ``focustrack/v1/focus/{slide}/{row}/{col}``: the focus service publishes a FocusResult.
+- ``focustrack/v1/eval/truth/{instrument}/{slide}``: queryable; SlideTruth out. Ground
+  truth for evaluation code only, under its own prefix so that no scanner reads it by
+  accident (a scanner subscribes to nothing under ``focustrack/v1/eval``).
+- ``focustrack/v1/bench/{name}``: the instrument benchmark's own traffic.
+
+Names (instrument, slide) are single key chunks: letters, digits, ``_``, ``-``, ``.``.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import NamedTuple
+
+PREFIX = "focustrack/v1"
+
+_NAME = re.compile(r"[A-Za-z0-9_.-]+")
+
+
+class TileKey(NamedTuple):
+    """The slide and tile named by a z-stack or focus-result key."""
+
+    slide: str
+    row: int
+    col: int
+
+
+def check_name(name: str, what: str = "name") -> str:
+    """`name` if it can be one key chunk; ValueError saying why not otherwise."""
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise ValueError(
+            f"{what} {name!r} is not a valid key chunk (use letters, digits, '_', '-', '.')"
+        )
+    return name
+
+
+def _tile(slide: str, row: int, col: int) -> str:
+    if row < 0 or col < 0:
+        raise ValueError(f"tile ({row}, {col}) must have non-negative row and col")
+    return f"{check_name(slide, 'slide')}/{int(row)}/{int(col)}"
+
+
+def acquire_key(instrument: str) -> str:
+    return f"{PREFIX}/instrument/{check_name(instrument, 'instrument')}/acquire"
+
+
+def info_key(instrument: str) -> str:
+    return f"{PREFIX}/instrument/{check_name(instrument, 'instrument')}/info"
+
+
+def zstack_key(slide: str, row: int, col: int) -> str:
+    return f"{PREFIX}/zstack/{_tile(slide, row, col)}"
+
+
+def focus_key(slide: str, row: int, col: int) -> str:
+    return f"{PREFIX}/focus/{_tile(slide, row, col)}"
+
+
+def truth_key(instrument: str, slide: str) -> str:
+    instrument = check_name(instrument, "instrument")
+    return f"{PREFIX}/eval/truth/{instrument}/{check_name(slide, 'slide')}"
+
+
+def truth_pattern(instrument: str) -> str:
+    """Key expression of the truth queryable of an instrument (all its slides)."""
+    return f"{PREFIX}/eval/truth/{check_name(instrument, 'instrument')}/*"
+
+
+def bench_key(name: str) -> str:
+    """``focustrack/v1/bench/{name}``: traffic of `focustrack bench instrument` only."""
+    return f"{PREFIX}/bench/{check_name(name, 'bench key')}"
+
+
+def zstack_pattern(slide: str | None = None) -> str:
+    """Key expression matching the stacks of one slide (or of every slide when None)."""
+    return f"{PREFIX}/zstack/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
+
+
+def focus_pattern(slide: str | None = None) -> str:
+    """Key expression matching the focus results of one slide (or of every slide when None)."""
+    return f"{PREFIX}/focus/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
+
+
+def _parse_tile_key(key: str, kind: str) -> TileKey:
+    parts = str(key).split("/")
+    if len(parts) != 6 or "/".join(parts[:3]) != f"{PREFIX}/{kind}":
+        raise ValueError(f"{key!r} is not a {PREFIX}/{kind}/{{slide}}/{{row}}/{{col}} key")
+    slide, row, col = parts[3:]
+    if not (row.isdigit() and col.isdigit()):
+        raise ValueError(f"{key!r}: row and col must be non-negative integers")
+    return TileKey(check_name(slide, "slide"), int(row), int(col))
+
+
+def parse_zstack_key(key: str) -> TileKey:
+    """(slide, row, col) of a ``focustrack/v1/zstack/{slide}/{row}/{col}`` key."""
+    return _parse_tile_key(key, "zstack")
+
+
+def parse_focus_key(key: str) -> TileKey:
+    """(slide, row, col) of a ``focustrack/v1/focus/{slide}/{row}/{col}`` key."""
+    return _parse_tile_key(key, "focus")

@@ -1,0 +1,117 @@
+"""Open a Zenoh session for a service: endpoints from the command line, no multicast scouting.
+
+Topology: one process listens (by default the instrument, an embedded peer on
+``tcp/127.0.0.1:7447``, or a Zenoh router in deployments); the others connect to
+it. A session that only connects runs in client mode, so the listener routes its
+traffic: two peers that only connect would not see each other (checked with
+zenoh 1.10), while clients do.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+from collections.abc import Sequence
+
+import zenoh
+
+#: Where the embedded peer listens unless told otherwise.
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+MODES = ("peer", "client", "router")
+
+#: How long opening a session waits for a connect endpoint to come up.
+CONNECT_TIMEOUT_S = 30.0
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for tests and embedded stacks)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def loopback_endpoint(port: int | None = None) -> str:
+    """``tcp/127.0.0.1:PORT``, on a free port when `port` is None."""
+    return f"tcp/127.0.0.1:{free_port() if port is None else port}"
+
+
+def session_config(
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    mode: str | None = None,
+    connect_timeout_s: float = CONNECT_TIMEOUT_S,
+) -> zenoh.Config:
+    """A Zenoh config with these endpoints and multicast scouting off.
+
+    `mode` defaults to "peer" when listening and "client" when only connecting.
+    Opening keeps retrying the connect endpoints for `connect_timeout_s`, so
+    services may start in any order.
+    """
+    if not connect and not listen:
+        raise ValueError("a Zenoh session needs at least one --connect or --listen endpoint")
+    mode = mode or ("peer" if listen else "client")
+    if mode not in MODES:
+        raise ValueError(f"unknown Zenoh mode {mode!r}; use one of {', '.join(MODES)}")
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    config.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
+    config.insert_json5("connect/retry", "{period_init_ms: 250, period_max_ms: 2000}")
+    return config
+
+
+def open_session(
+    connect: Sequence[str] = (),
+    listen: Sequence[str] = (),
+    mode: str | None = None,
+    connect_timeout_s: float = CONNECT_TIMEOUT_S,
+) -> zenoh.Session:
+    """Open a session (see `session_config`); close it with `session.close()` or `with`.
+
+    Raises zenoh.ZError when no connect endpoint answers within `connect_timeout_s`.
+    """
+    return zenoh.open(session_config(connect, listen, mode, connect_timeout_s))
+
+
+def add_zenoh_arguments(
+    parser: argparse.ArgumentParser,
+    *,
+    default_listen: Sequence[str] = (),
+    default_connect: Sequence[str] = (),
+) -> None:
+    """Add ``--connect``, ``--listen`` and ``--mode``; the defaults apply when neither is given."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument(
+        "--connect",
+        nargs="*",
+        metavar="ENDPOINT",
+        help=f"endpoints to connect to, e.g. {DEFAULT_ENDPOINT} "
+        f"(default: {' '.join(default_connect) or 'none'})",
+    )
+    group.add_argument(
+        "--listen",
+        nargs="*",
+        metavar="ENDPOINT",
+        help=f"endpoints to listen on (default: {' '.join(default_listen) or 'none'})",
+    )
+    group.add_argument(
+        "--mode",
+        choices=MODES,
+        help="Zenoh mode (default: peer when listening, client when only connecting)",
+    )
+    parser.set_defaults(
+        zenoh_default_connect=list(default_connect), zenoh_default_listen=list(default_listen)
+    )
+
+
+def session_from_args(args: argparse.Namespace) -> zenoh.Session:
+    """Open the session described by the options of `add_zenoh_arguments`."""
+    if args.connect is None and args.listen is None:
+        connect, listen = args.zenoh_default_connect, args.zenoh_default_listen
+    else:
+        connect, listen = args.connect or [], args.listen or []
+    return open_session(connect, listen, args.mode)
