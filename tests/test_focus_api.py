@@ -1,0 +1,155 @@
+"""The focus REST API: results, and a 4xx naming the problem for every kind of bad input."""
+
+from __future__ import annotations
+
+import io
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+import tifffile
+import uvicorn
+from fastapi.testclient import TestClient
+
+from focustrack.bench.focus import synthetic_stack
+from focustrack.services.focus.app import create_app
+from focustrack.wire.session import free_port
+
+Z_UM = np.arange(-3.0, 3.01, 0.5)
+TRUTH_UM = 0.3
+
+
+@pytest.fixture(scope="module")
+def client() -> TestClient:
+    return TestClient(create_app(max_upload_bytes=4_000_000))
+
+
+@pytest.fixture(scope="module")
+def frames() -> np.ndarray:
+    return synthetic_stack(np.random.default_rng(5), Z_UM, TRUTH_UM, size_px=96)
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+def tiff_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, array)
+    return buffer.getvalue()
+
+
+def post_stack(client, data: bytes, z: str, **form: str) -> httpx.Response:
+    return client.post(
+        "/v1/focus/stack", files={"stack": ("stack.bin", data)}, data={"z_um": z, **form}
+    )
+
+
+def z_text(z: np.ndarray = Z_UM) -> str:
+    return ",".join(f"{value:g}" for value in z)
+
+
+def test_healthz(client: TestClient) -> None:
+    response = client.get("/healthz")
+    assert response.status_code == 200 and response.json()["status"] == "ok"
+
+
+@pytest.mark.parametrize("encode", [npy_bytes, tiff_bytes])
+def test_stack_as_npy_or_tiff(client: TestClient, frames: np.ndarray, encode) -> None:
+    response = post_stack(client, encode(frames), z_text())
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
+    assert 0 < body["sigma_um"] < 0.5 and body["flags"] == []
+    assert body["metric"] == "normalised_variance" and len(body["scores"]) == Z_UM.size
+
+
+def test_stack_options_and_json_z(client: TestClient, frames: np.ndarray) -> None:
+    rgb = np.stack([frames // 2, frames, frames // 3], axis=-1)
+    response = post_stack(
+        client, npy_bytes(rgb), str(Z_UM.tolist()), metric="tenengrad", channel="1"
+    )
+    assert response.status_code == 200, response.text
+    assert response.json()["metric"] == "tenengrad"
+    assert response.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
+
+
+def test_curve(client: TestClient) -> None:
+    scores = (1 + 4 * np.exp(-0.5 * ((Z_UM - 0.7) / 0.8) ** 2)).tolist()
+    response = client.post("/v1/focus/curve", json={"z_um": Z_UM.tolist(), "scores": scores})
+    assert response.status_code == 200, response.text
+    assert response.json()["best_z_um"] == pytest.approx(0.7, abs=0.05)
+    edge = client.post("/v1/focus/curve", json={"z_um": [0, 1, 2], "scores": [1, 2, 3]})
+    assert edge.status_code == 200 and edge.json()["flags"] == ["edge_high"]
+
+
+@pytest.mark.parametrize(
+    ("body", "status", "needle"),
+    [
+        ({"z_um": [0, 1, 2, 3], "scores": [1, 2, 1]}, 422, "4 z values but 3 scores"),
+        ({"z_um": [0, 1], "scores": [1, 2]}, 422, "at least 3"),
+        ({"z_um": [0, 1, 1], "scores": [1, 2, 1]}, 422, "distinct"),
+        ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "mode": "sideways"}, 422, "mode"),
+    ],
+)
+def test_bad_curves(client: TestClient, body: dict, status: int, needle: str) -> None:
+    response = client.post("/v1/focus/curve", json=body)
+    assert response.status_code == status and needle in response.text, response.text
+
+
+def test_non_finite_curve_is_refused(client: TestClient) -> None:
+    text = '{"z_um": [0, 1, 2], "scores": [1, NaN, 1]}'
+    response = client.post(
+        "/v1/focus/curve", content=text, headers={"content-type": "application/json"}
+    )
+    assert response.status_code == 422 and "finite" in response.text, response.text
+
+
+def test_bad_stacks(client: TestClient, frames: np.ndarray) -> None:
+    def check(data: bytes, z: str, status: int, needle: str, **form: str) -> None:
+        response = post_stack(client, data, z, **form)
+        assert response.status_code == status, response.text
+        assert needle in response.json()["detail"], response.text
+
+    check(npy_bytes(frames), z_text(Z_UM[:-1]), 422, "13 frames but 12 z values")
+    check(npy_bytes(frames[0]), z_text(Z_UM[:1]), 422, "single")
+    check(npy_bytes(frames[:2]), z_text(Z_UM[:2]), 422, "at least 3")
+    nan = frames.astype(np.float32)
+    nan[3, 5, 5] = np.nan
+    check(npy_bytes(nan), z_text(), 422, "finite")
+    check(npy_bytes(frames), "0,1,x", 422, "z_um must be")
+    check(npy_bytes(frames), z_text(), 422, "unknown focus metric", metric="nope")
+    check(b"GIF89a not a stack", z_text(), 415, "TIFF or a .npy")
+    check(b"\x93NUMPY broken", z_text(), 422, ".npy file cannot be read")
+    big = np.zeros((20, 400, 400), np.uint16)  # 6.4 MB > the 4 MB limit of this app
+    check(npy_bytes(big), z_text(np.arange(20.0)), 413, "exceeds")
+
+
+def test_real_uvicorn_server(frames: np.ndarray) -> None:
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(), port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        for _ in range(100):
+            if server.started:
+                break
+            time.sleep(0.05)
+        base = f"http://127.0.0.1:{port}"
+        assert httpx.get(f"{base}/healthz").json()["status"] == "ok"
+        response = httpx.post(
+            f"{base}/v1/focus/stack",
+            files={"stack": ("stack.tif", tiff_bytes(frames))},
+            data={"z_um": z_text()},
+            timeout=30,
+        )
+        assert response.status_code == 200, response.text
+        assert response.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
+        assert "/v1/focus/stack" in httpx.get(f"{base}/openapi.json").json()["paths"]
+    finally:
+        server.should_exit = True
+        thread.join(10)

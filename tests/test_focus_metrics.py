@@ -1,0 +1,83 @@
+"""Focus metrics and preprocessing: metrics prefer focus; the pyramid is the Gaussian it claims."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from focustrack.bench.focus import synthetic_stack
+from focustrack.services.focus.metrics import DEFAULT_METRIC, METRICS, get_metric
+from focustrack.services.focus.preprocess import (
+    Preprocess,
+    lowpass,
+    lowpass_sigma_for_optics,
+    select_channel,
+)
+
+
+@pytest.fixture(scope="module")
+def stack() -> np.ndarray:
+    """Frames at defocus -2, 0, +2 um of a cell field, (3, 128, 128) uint16."""
+    return synthetic_stack(np.random.default_rng(1), np.array([-2.0, 0.0, 2.0]), 0.0, size_px=128)
+
+
+@pytest.mark.parametrize("name", list(METRICS))
+def test_every_metric_is_largest_in_focus(stack: np.ndarray, name: str) -> None:
+    metric, preprocess = get_metric(name), Preprocess(lowpass_sigma_px=1.7)
+    scores = [metric(preprocess(frame)) for frame in stack]
+    assert scores[1] > scores[0] and scores[1] > scores[2], scores
+
+
+def test_default_metric_is_normalised_variance_and_unknown_names_are_refused() -> None:
+    assert DEFAULT_METRIC == "normalised_variance"
+    with pytest.raises(ValueError, match="unknown focus metric 'nope'"):
+        get_metric("nope")
+
+
+def test_normalised_variance_ignores_the_illumination_level() -> None:
+    image = np.random.default_rng(2).uniform(50, 150, (64, 64)).astype(np.float32)
+    nv = get_metric("normalised_variance")
+    # NV = var / mean: scaling intensity by k scales it by k (not k**2 as the variance)
+    assert nv(3 * image) == pytest.approx(3 * nv(image), rel=1e-4)
+
+
+@pytest.mark.parametrize(("sigma_px", "levels"), [(0.0, 0), (0.9, 0), (1.0, 1), (2.0, 1), (2.3, 2)])
+def test_pyramid_levels_stay_inside_the_requested_lowpass(sigma_px: float, levels: int) -> None:
+    assert Preprocess(lowpass_sigma_px=sigma_px).pyramid_levels == levels
+
+
+def test_pyramid_lowpass_removes_as_much_noise_as_the_full_gaussian() -> None:
+    noise = np.random.default_rng(3).normal(0, 1, (512, 512)).astype(np.float32)
+    sigma = 3.0
+    pyramid = lowpass(noise, sigma, Preprocess(lowpass_sigma_px=sigma).pyramid_levels)
+    full = cv2.GaussianBlur(noise, (0, 0), sigma)
+    assert pyramid.shape == (128, 128)  # two pyrDowns
+    # white noise variance after a Gaussian of sigma: 1 / (4 pi sigma**2)
+    assert pyramid.var() == pytest.approx(full.var(), rel=0.25)
+    assert full.var() == pytest.approx(1 / (4 * np.pi * sigma**2), rel=0.15)
+
+
+def test_channel_choice_green_by_default_and_most_contrast_when_asked() -> None:
+    rng = np.random.default_rng(4)
+    frame = np.full((32, 32, 3), 100, np.uint8)
+    frame[..., 2] = rng.integers(0, 255, (32, 32))  # only blue has contrast
+    assert np.array_equal(select_channel(frame, 1), frame[..., 1])
+    assert np.array_equal(select_channel(frame, None), frame[..., 2])
+    with pytest.raises(ValueError, match="channel 5"):
+        select_channel(frame, 5)
+
+
+def test_roi_and_bad_settings() -> None:
+    frame = np.arange(100 * 80, dtype=np.uint16).reshape(100, 80)
+    out = Preprocess(roi=(10, 20, 40, 30), lowpass_sigma_px=0)(frame)
+    assert out.shape == (40, 30) and out[0, 0] == frame[10, 20]
+    with pytest.raises(ValueError, match="does not fit"):
+        Preprocess(roi=(90, 0, 40, 30))(frame)
+    with pytest.raises(ValueError, match="low-pass sigma"):
+        Preprocess(lowpass_sigma_px=-1)
+
+
+def test_lowpass_matched_to_the_optics() -> None:
+    # thesis: 0.04 um pixels, NA 0.85, 0.70 um: PSF sigma 0.173 um = 4.3 px
+    assert lowpass_sigma_for_optics(0.04, 0.85) == pytest.approx(0.21 * 0.70 / 0.85 / 0.04)

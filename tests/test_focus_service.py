@@ -1,0 +1,142 @@
+"""The focus service on real Zenoh (loopback): a published z-stack comes back as a FocusResult."""
+
+from __future__ import annotations
+
+import os
+import queue
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import httpx
+import numpy as np
+import pytest
+import zenoh
+
+from focustrack.bench.focus import synthetic_stack
+from focustrack.services.focus.pipeline import FocusSettings
+from focustrack.services.focus.service import ZenohFocusWorker
+from focustrack.v1 import common_pb2, focus_pb2, instrument_pb2
+from focustrack.wire import keys
+from focustrack.wire.codec import ZSTACK_ENCODING, encode_zstack
+from focustrack.wire.session import free_port, loopback_endpoint, open_session
+
+Z_UM = np.arange(-3.0, 3.01, 0.5)
+TRUTH_UM = -0.4
+
+
+@pytest.fixture
+def instrument() -> Iterator[tuple[zenoh.Session, str]]:
+    """The listening peer (the instrument's side) and its endpoint."""
+    endpoint = loopback_endpoint()
+    session = open_session(listen=[endpoint])
+    yield session, endpoint
+    session.close()
+
+
+def publish_stack(session: zenoh.Session, pixels: np.ndarray, z_um, sequence: int) -> None:
+    header = instrument_pb2.ZStackHeader(
+        instrument="sim",
+        slide="s1",
+        row=2,
+        col=3,
+        sequence=sequence,
+        z_um=list(z_um),
+        pixel_size_um=0.1,
+        channel_order="L",
+        bit_depth=12,
+    )
+    payload, attachment = encode_zstack(header, pixels)
+    session.put(
+        keys.zstack_key("s1", 2, 3),
+        payload,
+        attachment=attachment,
+        encoding=ZSTACK_ENCODING,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
+
+
+def collect(session: zenoh.Session) -> tuple[zenoh.Subscriber, queue.Queue]:
+    results: queue.Queue = queue.Queue()
+    subscriber = session.declare_subscriber(
+        keys.focus_pattern("s1"),
+        lambda sample: results.put(
+            (str(sample.key_expr), focus_pb2.FocusResult.FromString(sample.payload.to_bytes()))
+        ),
+    )
+    return subscriber, results
+
+
+def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(instrument) -> None:
+    publisher, endpoint = instrument
+    service = open_session(connect=[endpoint])
+    worker = ZenohFocusWorker(service, FocusSettings(), na=0.85)
+    subscriber, results = collect(publisher)
+    try:
+        time.sleep(0.5)  # let the subscriptions reach each other
+        frames = synthetic_stack(np.random.default_rng(3), Z_UM, TRUTH_UM, size_px=96)
+        publish_stack(publisher, frames[..., None], Z_UM, sequence=7)
+        key, result = results.get(timeout=20)
+        assert key == "focustrack/v1/focus/s1/2/3"
+        assert (result.slide, result.row, result.col, result.sequence) == ("s1", 2, 3, 7)
+        assert result.instrument == "sim" and result.metric == "normalised_variance"
+        assert result.HasField("best_z_um") and result.HasField("sigma_um")
+        assert result.best_z_um == pytest.approx(TRUTH_UM, abs=0.15)
+        assert list(result.z_um) == pytest.approx(Z_UM.tolist()) and len(result.scores) == 13
+        assert not result.HasField("error") and result.compute_time_s > 0
+
+        # two frames only: not a stack the service can read; the reply says so
+        publish_stack(publisher, frames[:2, ..., None], Z_UM[:2], sequence=8)
+        _, refused = results.get(timeout=20)
+        assert refused.sequence == 8 and not refused.HasField("best_z_um")
+        assert refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+        assert "at least 3" in refused.error.message
+    finally:
+        subscriber.undeclare()
+        worker.close()
+        service.close()
+    assert worker.n_published == 2
+
+
+def test_focustrack_serve_focus_runs_zenoh_and_http_in_one_process(instrument) -> None:
+    publisher, endpoint = instrument
+    port = free_port()
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "focustrack",
+            "serve",
+            "focus",
+            "--port",
+            str(port),
+            "--connect",
+            endpoint,
+        ],
+        env=os.environ | {"PYTHONUNBUFFERED": "1"},
+    )
+    subscriber, results = collect(publisher)
+    try:
+        for _ in range(200):
+            assert process.poll() is None, "the focus service exited"
+            try:
+                if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
+                    break
+            except httpx.TransportError:
+                time.sleep(0.1)
+        else:
+            pytest.fail("the focus service did not answer on HTTP")
+        curve = httpx.post(
+            f"http://127.0.0.1:{port}/v1/focus/curve",
+            json={"z_um": [0, 1, 2, 3, 4], "scores": [1, 2, 4, 2, 1]},
+        )
+        assert curve.status_code == 200 and curve.json()["best_z_um"] == pytest.approx(2.0)
+        frames = synthetic_stack(np.random.default_rng(4), Z_UM, TRUTH_UM, size_px=96)
+        publish_stack(publisher, frames[..., None], Z_UM, sequence=1)
+        _, result = results.get(timeout=20)
+        assert result.best_z_um == pytest.approx(TRUTH_UM, abs=0.15)
+    finally:
+        subscriber.undeclare()
+        process.terminate()
+        process.wait(10)
