@@ -1,0 +1,521 @@
+"""The estimator's REST API in process (ASGI transport): behaviour, validation, concurrency.
+
+Every slide scanned here is checked against the same strategy replayed locally
+on the same measurements (`focustrack.bench.replay`): the service must not
+change a single number.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import sqlite3
+from collections.abc import Coroutine, Iterator
+from pathlib import Path
+from typing import Any, TypeVar
+
+import httpx
+import numpy as np
+import pytest
+from fastapi import FastAPI
+
+from focustrack.bench.replay import replay, simulated_measurement
+from focustrack.geometry import ScanGrid
+from focustrack.services.estimator import registry
+from focustrack.services.estimator.app import Settings, create_app
+from focustrack.services.estimator.client import (
+    acquisition_of_next,
+    focus_map_of_npy,
+    measurement_body,
+    slide_config,
+)
+from focustrack.services.estimator.slides import MAP_LAYERS
+from focustrack.services.estimator.strategy import FocusMap, SlideSettings
+from focustrack.surfaces import SurfaceSpec, generate_surfaces
+
+ROWS, COLS = 6, 5
+SETTINGS = SlideSettings(ScanGrid(ROWS, COLS, pitch_um=150.0, origin_x_um=1000.0))
+
+
+T = TypeVar("T")
+
+
+def run(coroutine: Coroutine[Any, Any, T]) -> T:
+    return asyncio.run(coroutine)
+
+
+def maps(seed: int, rows: int = ROWS, cols: int = COLS) -> tuple[np.ndarray, np.ndarray]:
+    """A true surface and its measurements (truth + 1.5 um noise), each (rows, cols) in um."""
+    truth = generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed)[0]
+    return truth, truth + np.random.default_rng(seed).normal(0.0, 1.5, truth.shape)
+
+
+def local_map(strategy: str, settings: SlideSettings, seed: int) -> FocusMap:
+    truth, measured = maps(seed, *settings.grid.shape)
+    return replay(registry.create(strategy, settings), truth, measured).focus_map
+
+
+def assert_same_maps(served: FocusMap, local: FocusMap) -> None:
+    for name in ("prior_um", "prior_sigma_um", "posterior_um", "posterior_sigma_um", "z_used_um"):
+        np.testing.assert_array_equal(getattr(served, name), getattr(local, name), err_msg=name)
+
+
+@pytest.fixture
+def app(tmp_path: Path) -> Iterator[FastAPI]:
+    app = create_app(Settings(str(tmp_path / "estimator.sqlite")))
+    yield app
+    app.state.slides.store.close()
+
+
+def client(app: FastAPI, token: str | None = None) -> httpx.AsyncClient:
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    return httpx.AsyncClient(
+        transport=httpx.ASGITransport(app), base_url="http://estimator", headers=headers
+    )
+
+
+async def create(http: httpx.AsyncClient, strategy: str = "kf-wiener0", **changes: Any) -> str:
+    response = await http.post("/v1/slides", json={**slide_config(strategy, SETTINGS), **changes})
+    assert response.status_code == 201, response.text
+    return response.json()["id"]
+
+
+async def scan(
+    http: httpx.AsyncClient, slide_id: str, measured_um: np.ndarray, limit: int | None = None
+) -> int:
+    """Drive a slide through /next and /measurements (at most `limit` pairs); the pair count."""
+    n_pairs = 0
+    while limit is None or n_pairs < limit:
+        response = await http.get(f"/v1/slides/{slide_id}/next")
+        assert response.status_code == 200, response.text
+        acquisition = acquisition_of_next(response.json())
+        if acquisition is None:
+            break
+        measurement = simulated_measurement(
+            acquisition, measured_um[acquisition.row, acquisition.col]
+        )
+        body = measurement_body(acquisition, measurement)
+        response = await http.post(f"/v1/slides/{slide_id}/measurements", json=body)
+        assert response.status_code == 200, response.text
+        n_pairs += 1
+    return n_pairs
+
+
+async def served_map(http: httpx.AsyncClient, slide_id: str) -> FocusMap:
+    response = await http.get(f"/v1/slides/{slide_id}/map", params={"format": "npy"})
+    assert response.status_code == 200
+    return focus_map_of_npy(response.content)
+
+
+def test_create_list_get_delete(app: FastAPI) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            first = await create(http, "kf-wiener1-dir", params={"q": 0.01}, label="slide 7")
+            second = await create(http, "survey-delaunay")
+            listed = (await http.get("/v1/slides")).json()
+            assert [s["id"] for s in listed] == [first, second]
+            slide = (await http.get(f"/v1/slides/{first}")).json()
+            # Omitted parameters are resolved to the strategy's defaults, and stored.
+            assert slide["config"]["params"] == {
+                **registry.parameters("kf-wiener1-dir"),
+                "q": 0.01,
+            }
+            assert slide["config"]["label"] == "slide 7"
+            assert (slide["n_acquisitions"], slide["done"]) == (0, False)
+            assert (await http.delete(f"/v1/slides/{first}")).status_code == 204
+            assert (await http.get(f"/v1/slides/{first}")).status_code == 404
+            assert (await http.get(f"/v1/slides/{first}/next")).status_code == 404
+            assert (await http.delete(f"/v1/slides/{first}")).status_code == 404
+            assert [s["id"] for s in (await http.get("/v1/slides")).json()] == [second]
+
+    run(go())
+
+
+def test_next_is_stable_and_placed_on_the_stage(app: FastAPI) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http)
+            _, measured = maps(1)
+            await scan(http, slide_id, measured, limit=7)  # row 1, going right to left
+            first = (await http.get(f"/v1/slides/{slide_id}/next")).json()
+            assert (await http.get(f"/v1/slides/{slide_id}/next")).json() == first
+            assert first["sequence"] == 7
+            assert (first["row"], first["col"]) == (1, COLS - 1 - (7 - COLS))
+            assert first["stage_x_um"] == 1000.0 + 150.0 * first["col"]
+            assert first["stage_y_um"] == 150.0 * first["row"]
+            assert first["z_low_um"] < first["predicted_z_um"] < first["z_high_um"]
+            assert first["z_high_um"] - first["z_low_um"] == pytest.approx(
+                (first["n_frames"] - 1) * first["z_step_um"]
+            )
+            assert first["purpose"] == "scan" and first["measure"] is True
+
+    run(go())
+
+
+def test_idempotent_repost_and_conflicting_values(app: FastAPI) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http)
+            url = f"/v1/slides/{slide_id}/measurements"
+            body = {"row": 0, "col": 0, "sequence": 0, "z_um": 1.25, "sigma_um": 1.0}
+            first = await http.post(url, json=body)
+            again = await http.post(url, json=body)
+            assert first.status_code == again.status_code == 200
+            assert first.json() == again.json()
+            outcome = first.json()
+            assert outcome["accepted"] and outcome["innovation_um"] == 1.25
+            assert outcome["prior_um"] == 0.0 and outcome["prior_sigma_um"] == 10.0
+            assert outcome["nis"] == pytest.approx(1.25**2 / (10.0**2 + 1.0**2))
+            slide = (await http.get(f"/v1/slides/{slide_id}")).json()
+            assert slide["n_acquisitions"] == 1  # the re-post recorded nothing
+
+            changed = await http.post(url, json={**body, "z_um": 1.5})
+            assert changed.status_code == 409 and "already recorded" in changed.json()["detail"]
+            moved = await http.post(url, json={**body, "col": 1})
+            assert moved.status_code == 409
+
+    run(go())
+
+
+def _slide_body(**changes: Any) -> dict[str, Any]:
+    return {**slide_config("kf-wiener0", SETTINGS), **changes}
+
+
+def _grid(**changes: Any) -> dict[str, Any]:
+    return {"rows": ROWS, "cols": COLS, **changes}
+
+
+# (case, method, path under the slide or None for /v1/slides, body, status, text in the detail)
+INVALID = [
+    ("unknown strategy", "post", None, _slide_body(strategy="kf-nope"), 422, "unknown strategy"),
+    ("unknown parameter", "post", None, _slide_body(params={"qq": 1.0}), 422, "qq"),
+    ("parameter type", "post", None, _slide_body(params={"q": "big"}), 422, "must be a float"),
+    ("bool for int", "post", None, _slide_body(params={"max_retries": True}), 422, "int"),
+    ("unknown field", "post", None, _slide_body(colour="red"), 422, "colour"),
+    ("grid too large", "post", None, _slide_body(grid=_grid(rows=1000, cols=1000)), 422, "tiles"),
+    ("empty grid", "post", None, _slide_body(grid=_grid(rows=0)), 422, "rows"),
+    ("negative pitch", "post", None, _slide_body(grid=_grid(pitch_um=-1)), 422, "pitch_um"),
+    (
+        "frames order",
+        "post",
+        None,
+        _slide_body(z_range={"min_frames": 9, "max_frames": 5}),
+        422,
+        "min_frames",
+    ),
+    ("negative start sigma", "post", None, _slide_body(start_sigma_um=-2), 422, "start_sigma"),
+    ("outside grid", "post", "measurements", {"row": 9, "col": 0, "sequence": 0, "z_um": 1}, 422,
+     "outside"),
+    ("tile not asked for", "post", "measurements", {"row": 0, "col": 3, "sequence": 0, "z_um": 1},
+     409, "not asked for"),
+    ("sequence not asked for", "post", "measurements",
+     {"row": 0, "col": 0, "sequence": 5, "z_um": 1}, 409, "pending one is 0"),
+    ("negative sigma", "post", "measurements",
+     {"row": 0, "col": 0, "sequence": 0, "z_um": 1, "sigma_um": -0.5}, 422, "sigma_um"),
+    ("zero sigma", "post", "measurements",
+     {"row": 0, "col": 0, "sequence": 0, "z_um": 1, "sigma_um": 0}, 422, "sigma_um"),
+    ("unknown flag", "post", "measurements",
+     {"row": 0, "col": 0, "sequence": 0, "z_um": 1, "flags": ["blurry"]}, 422, "flags"),
+    ("missing z", "post", "measurements", {"row": 0, "col": 0, "sequence": 0}, 422, "z_um"),
+    ("huge z", "post", "measurements", {"row": 0, "col": 0, "sequence": 0, "z_um": 1e300}, 422,
+     "z_um"),
+    ("unknown map format", "get", "map?format=tiff", None, 422, "format"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("method", "where", "body", "status", "text"),
+    [case[1:] for case in INVALID],
+    ids=[case[0] for case in INVALID],
+)
+def test_bad_input_gets_a_4xx_naming_the_problem(
+    app: FastAPI, method: str, where: str | None, body: Any, status: int, text: str
+) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http)
+            url = "/v1/slides" if where is None else f"/v1/slides/{slide_id}/{where}"
+            response = await http.request(method.upper(), url, json=body)
+            assert response.status_code == status, response.text
+            assert text in str(response.json()["detail"])
+
+    run(go())
+
+
+@pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity"])
+def test_non_finite_numbers_are_refused(app: FastAPI, literal: str) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http)
+            content = f'{{"row": 0, "col": 0, "sequence": 0, "z_um": {literal}}}'
+            response = await http.post(
+                f"/v1/slides/{slide_id}/measurements",
+                content=content,
+                headers={"Content-Type": "application/json"},
+            )
+            assert response.status_code == 422
+            assert response.json()["detail"][0]["loc"] == ["body", "z_um"]
+            assert "finite" in response.json()["detail"][0]["msg"]
+
+    run(go())
+
+
+def test_unknown_slide_and_oversized_body(app: FastAPI) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            response = await http.get("/v1/slides/0123abcd/next")
+            assert response.status_code == 404 and "0123abcd" in response.json()["detail"]
+            oversized = {**_slide_body(), "label": "x" * 100, "params": {}}
+            oversized["pad"] = "x" * 100_000
+            response = await http.post("/v1/slides", json=oversized)
+            assert response.status_code == 413 and "exceeds" in response.json()["detail"]
+
+            async def chunks() -> Any:  # no Content-Length: counted as it streams in
+                for _ in range(100):
+                    yield b" " * 1024
+
+            response = await http.post(
+                "/v1/slides", content=chunks(), headers={"Content-Type": "application/json"}
+            )
+            assert response.status_code == 413 and "exceeds" in response.json()["detail"]
+
+    run(go())
+
+
+def test_edge_peak_asks_again_beyond_the_edge(app: FastAPI) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http, z_range={"min_frames": 5, "max_frames": 11})
+            first = (await http.get(f"/v1/slides/{slide_id}/next")).json()
+            body = {"row": 0, "col": 0, "sequence": 0, "z_um": None, "flags": ["edge_high"]}
+            outcome = (await http.post(f"/v1/slides/{slide_id}/measurements", json=body)).json()
+            assert outcome["accepted"] is False and outcome["posterior_um"] is None
+            retry = (await http.get(f"/v1/slides/{slide_id}/next")).json()
+            assert (retry["row"], retry["col"], retry["sequence"]) == (0, 0, 1)
+            assert retry["purpose"] == "retry"
+            assert retry["z_low_um"] > first["z_high_um"]  # the next block, above the edge
+            diagnostics = (await http.get(f"/v1/slides/{slide_id}/diagnostics")).json()
+            assert (diagnostics["n_measured"], diagnostics["n_rejected"]) == (1, 1)
+
+    run(go())
+
+
+def test_finished_scan_says_done_and_refuses_more(app: FastAPI) -> None:
+    settings = SlideSettings(ScanGrid(2, 2))
+
+    async def go() -> None:
+        async with client(app) as http:
+            response = await http.post("/v1/slides", json=slide_config("tile-skip", settings))
+            slide_id = response.json()["id"]
+            _, measured = maps(3, 2, 2)
+            await scan(http, slide_id, measured)
+            assert (await http.get(f"/v1/slides/{slide_id}/next")).json() == {
+                **{key: None for key in (await http.get("/openapi.json")).json()["components"][
+                    "schemas"]["Next"]["properties"]},
+                "done": True,
+            }  # fmt: skip
+            slide = (await http.get(f"/v1/slides/{slide_id}")).json()
+            assert slide["done"] is True
+            body = {"row": 0, "col": 0, "sequence": slide["n_acquisitions"], "z_um": 0.0}
+            response = await http.post(f"/v1/slides/{slide_id}/measurements", json=body)
+            assert response.status_code == 409 and "complete" in response.json()["detail"]
+
+    run(go())
+
+
+def test_concurrent_requests_on_one_slide_are_serialised(app: FastAPI) -> None:
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http)
+            url = f"/v1/slides/{slide_id}/measurements"
+            body = {"row": 0, "col": 0, "sequence": 0, "z_um": 0.5}
+            same = await asyncio.gather(*(http.post(url, json=body) for _ in range(20)))
+            assert {r.status_code for r in same} == {200}
+            assert len({r.text for r in same}) == 1
+            # Twenty different values for the next acquisition: exactly one is recorded.
+            nxt = (await http.get(f"/v1/slides/{slide_id}/next")).json()
+            bodies = [
+                {"row": nxt["row"], "col": nxt["col"], "sequence": 1, "z_um": 0.1 * i}
+                for i in range(20)
+            ]
+            racing = await asyncio.gather(*(http.post(url, json=b) for b in bodies))
+            assert sorted(r.status_code for r in racing) == [200] + [409] * 19
+            slide = (await http.get(f"/v1/slides/{slide_id}")).json()
+            assert slide["n_acquisitions"] == 2
+        events = app.state.slides.store.events(slide_id)
+        assert [e.sequence for e in events] == [0, 1]
+
+    run(go())
+
+
+STRATEGIES = ["kf-wiener0", "kf-wiener1-dir", "kf-gm1", "tile-skip", "survey-delaunay"]
+
+
+def test_many_slides_scanned_concurrently_match_local_replays(app: FastAPI) -> None:
+    slides = [(STRATEGIES[i % len(STRATEGIES)], 100 + i) for i in range(20)]
+
+    async def go() -> list[FocusMap]:
+        async with client(app) as http:
+            ids = await asyncio.gather(*(create(http, name) for name, _ in slides))
+            await asyncio.gather(
+                *(scan(http, i, maps(seed)[1]) for i, (_, seed) in zip(ids, slides, strict=True))
+            )
+            return [await served_map(http, slide_id) for slide_id in ids]
+
+    for served, (name, seed) in zip(run(go()), slides, strict=True):
+        assert_same_maps(served, local_map(name, SETTINGS, seed))
+
+
+def test_a_new_app_on_the_same_store_continues_every_slide(tmp_path: Path) -> None:
+    path = str(tmp_path / "estimator.sqlite")
+    names = ["kf-wiener1-dir", "survey-bilinear"]
+    measured = {name: maps(7 + i)[1] for i, name in enumerate(names)}
+
+    async def first_half() -> dict[str, tuple[str, dict]]:
+        app = create_app(Settings(path))
+        async with client(app) as http:
+            state = {}
+            for name in names:
+                slide_id = await create(http, name)
+                await scan(http, slide_id, measured[name], limit=17)
+                state[name] = (slide_id, (await http.get(f"/v1/slides/{slide_id}/next")).json())
+        app.state.slides.store.close()
+        return state
+
+    async def second_half(state: dict[str, tuple[str, dict]]) -> dict[str, FocusMap]:
+        app = create_app(Settings(path))
+        async with client(app) as http:
+            result = {}
+            for name, (slide_id, pending) in state.items():
+                assert (await http.get(f"/v1/slides/{slide_id}/next")).json() == pending
+                await scan(http, slide_id, measured[name])
+                result[name] = await served_map(http, slide_id)
+        app.state.slides.store.close()
+        return result
+
+    for i, (name, served) in enumerate(run(second_half(run(first_half()))).items()):
+        assert_same_maps(served, local_map(name, SETTINGS, 7 + i))
+
+
+def test_a_log_that_no_longer_replays_is_reported(tmp_path: Path) -> None:
+    path = tmp_path / "estimator.sqlite"
+
+    async def start() -> str:
+        app = create_app(Settings(str(path)))
+        async with client(app) as http:
+            slide_id = await create(http)
+            await scan(http, slide_id, maps(2)[1], limit=3)
+        app.state.slides.store.close()
+        return slide_id
+
+    slide_id = run(start())
+    with sqlite3.connect(path) as db:  # as if the strategy had changed since
+        db.execute(
+            "UPDATE events SET outcome = replace(outcome, '\"accepted\": true', "
+            "'\"accepted\": false') WHERE sequence = 1"
+        )
+
+    async def restart() -> httpx.Response:
+        app = create_app(Settings(str(path)))
+        async with client(app) as http:
+            response = await http.get(f"/v1/slides/{slide_id}/next")
+        app.state.slides.store.close()
+        return response
+
+    response = run(restart())
+    assert response.status_code == 500
+    assert "outcome 1 no longer replays" in response.json()["detail"]
+
+
+def test_map_formats_agree(app: FastAPI) -> None:
+    async def go() -> dict[str, httpx.Response]:
+        async with client(app) as http:
+            slide_id = await create(http)
+            await scan(http, slide_id, maps(4)[1])
+            url = f"/v1/slides/{slide_id}/map"
+            return {
+                f: await http.get(url, params={"format": f}) for f in ("json", "csv", "npy", "png")
+            }
+
+    replies = run(go())
+    local = local_map("kf-wiener0", SETTINGS, 4)
+    as_json = replies["json"].json()
+    np.testing.assert_array_equal(np.array(as_json["posterior_um"]), local.posterior_um)
+    assert as_json["smoothed_um"] is None and (as_json["rows"], as_json["cols"]) == (ROWS, COLS)
+
+    assert replies["csv"].headers["content-type"].startswith("text/csv")
+    table = np.genfromtxt(io.StringIO(replies["csv"].text), delimiter=",", names=True)
+    assert table.shape == (ROWS * COLS,)
+    np.testing.assert_array_equal(table["posterior_um"].reshape(ROWS, COLS), local.posterior_um)
+    np.testing.assert_array_equal(table["stage_x_um"][:COLS], 1000.0 + 150.0 * np.arange(COLS))
+
+    served = focus_map_of_npy(replies["npy"].content)
+    assert_same_maps(served, local)
+    assert np.load(io.BytesIO(replies["npy"].content)).dtype.names == MAP_LAYERS
+
+    assert replies["png"].headers["content-type"] == "image/png"
+    assert replies["png"].content.startswith(b"\x89PNG\r\n\x1a\n")
+
+
+def test_diagnostics_summarise_the_innovations(app: FastAPI) -> None:
+    async def go() -> dict[str, Any]:
+        async with client(app) as http:
+            slide_id = await create(http)
+            await scan(http, slide_id, maps(5)[1])
+            return (await http.get(f"/v1/slides/{slide_id}/diagnostics")).json()
+
+    diagnostics = run(go())
+    innovations = diagnostics["innovations"]
+    assert diagnostics["n_accepted"] == innovations["n"] == ROWS * COLS
+    assert diagnostics["n_acquisitions"] == diagnostics["n_accepted"] + diagnostics["n_rejected"]
+    assert innovations["autocorrelation"][0] == pytest.approx(1.0)
+    assert innovations["nis_low"] < 1.0 < innovations["nis_high"]
+    assert 0.0 < innovations["mean_nis"] < 10.0
+    assert diagnostics["innovations_note"] is None
+
+
+def test_bearer_token_when_configured(tmp_path: Path) -> None:
+    app = create_app(Settings(str(tmp_path / "estimator.sqlite"), token="s3cret"))
+
+    async def go() -> None:
+        async with client(app) as http:
+            refused = await http.get("/v1/slides")
+            assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
+            wrong = await http.get("/v1/slides", headers={"Authorization": "Bearer nope"})
+            assert wrong.status_code == 401
+            assert (await http.get("/healthz")).status_code == 200
+        async with client(app, token="s3cret") as http:
+            assert (await http.get("/v1/slides")).status_code == 200
+
+    run(go())
+    app.state.slides.store.close()
+
+
+def test_metrics_count_requests_measurements_and_rejections(app: FastAPI) -> None:
+    async def go() -> str:
+        async with client(app) as http:
+            slide_id = await create(http)
+            url = f"/v1/slides/{slide_id}/measurements"
+            await http.post(url, json={"row": 0, "col": 0, "sequence": 0, "z_um": None,
+                                       "flags": ["flat"]})  # fmt: skip
+            await http.post(url, json={"row": 0, "col": 0, "sequence": 1, "z_um": 0.3})
+            await http.post(url, json={"row": 0, "col": 0, "sequence": 1, "z_um": 0.3})  # again
+            await http.get("/v1/slides/nope")
+            return (await http.get("/metrics")).text
+
+    text = run(go())
+    lines = set(text.splitlines())
+    assert "focustrack_estimator_measurements_total 2.0" in lines
+    assert "focustrack_estimator_rejections_total 1.0" in lines
+    assert "focustrack_estimator_slides 1.0" in lines
+    assert (
+        'focustrack_estimator_requests_total{method="POST",'
+        'route="/v1/slides/{slide_id}/measurements",status="200"} 3.0'
+    ) in lines
+    assert (
+        'focustrack_estimator_requests_total{method="GET",route="/v1/slides/{slide_id}",'
+        'status="404"} 1.0'
+    ) in lines
+    assert any(
+        line.startswith("focustrack_estimator_filter_duration_seconds_count") for line in lines
+    )
