@@ -18,6 +18,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.accuracy",
         "replay focus maps through every strategy; accuracy, images and scan time",
     ),
+    "bench tune": (
+        "focustrack.bench.tune",
+        "choose the Kalman strategies' defaults on training seeds",
+    ),
     "bench focus": ("focustrack.bench.focus", "focus-metric accuracy and speed"),
     "bench api": ("focustrack.bench.api", "estimator REST latency and throughput"),
     "bench instrument": (

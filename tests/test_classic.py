@@ -126,7 +126,7 @@ def test_an_edge_peak_is_chased_and_a_hopeless_tile_given_up() -> None:
     outcome = strategy.record(first, Measurement(None, flags=frozenset({FocusFlag.EDGE_LOW})))
     retry = strategy.next_acquisition()
     assert not outcome.accepted and retry is not None and retry.purpose is Purpose.RETRY
-    assert (retry.row, retry.col) == (0, 0) and retry.z.high_um < first.z.low_um
+    assert (retry.row, retry.col) == (0, 0) and retry.z.low_um < first.z.low_um < retry.z.high_um
 
     # Far beyond any stack: after MAX_RETRIES blocks the tile is imaged at the start height.
     truth = np.array([[1000.0, 1000.0]])

@@ -293,7 +293,7 @@ def test_edge_peak_asks_again_beyond_the_edge(app: FastAPI) -> None:
             retry = (await http.get(f"/v1/slides/{slide_id}/next")).json()
             assert (retry["row"], retry["col"], retry["sequence"]) == (0, 0, 1)
             assert retry["purpose"] == "retry"
-            assert retry["z_low_um"] > first["z_high_um"]  # the next block, above the edge
+            assert retry["z_low_um"] < first["z_high_um"] < retry["z_high_um"]  # past the edge
             diagnostics = (await http.get(f"/v1/slides/{slide_id}/diagnostics")).json()
             assert (diagnostics["n_measured"], diagnostics["n_rejected"]) == (1, 1)
 

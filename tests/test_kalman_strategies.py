@@ -83,12 +83,12 @@ def test_edge_flag_retries_the_same_tile_beyond_the_edge_without_predicting() ->
     assert not outcome.accepted
     retry = strategy.next_acquisition()
     assert (retry.row, retry.col, retry.purpose) == (0, 0, Purpose.RETRY)
-    assert retry.z.low_um > first.z.high_um
+    assert retry.z.low_um < first.z.high_um < retry.z.high_um  # continues past the edge
     assert retry.predicted_um == first.predicted_um  # no second predict
     assert retry.predicted_sigma_um == first.predicted_sigma_um
-    strategy.record(retry, Measurement(z_um=retry.z.low_um + 3.0))
+    strategy.record(retry, Measurement(z_um=retry.z.high_um - 1.0))
     gain = 10.0**2 / (10.0**2 + 1.5**2)  # start sigma 10 um, measurement noise 1.5 um
-    assert strategy.map.posterior_um[0, 0] == pytest.approx(gain * (retry.z.low_um + 3.0))
+    assert strategy.map.posterior_um[0, 0] == pytest.approx(gain * (retry.z.high_um - 1.0))
     following = strategy.next_acquisition()
     assert (following.row, following.col, following.purpose) == (0, 1, Purpose.SCAN)
 

@@ -142,11 +142,12 @@ class KalmanStrategy(Strategy):
         )
 
     def _retry_range(self) -> ZRange:
-        """The stack after peakless ones: over the gap two of them bracket, else beyond the last.
+        """The stack after peakless ones: between two that bracket the peak, else beyond the last.
 
-        A peak just beyond an edge can fall between that stack and the next
-        (one saw only its rising flank, the other its falling one); the peak is
-        then between the highest EDGE_HIGH stack and the lowest EDGE_LOW stack.
+        A peak near the boundary of two stacks can leave each with only one
+        flank (one says EDGE_HIGH, the other EDGE_LOW); the peak then lies
+        between the highest EDGE_HIGH edge and the lowest EDGE_LOW edge, which
+        may overlap by the frames the stacks share.
         """
         policy = self.settings.policy
         above_um = max(
@@ -156,9 +157,9 @@ class KalmanStrategy(Strategy):
         below_um = min(
             (z.low_um for z, flag in self._misses if flag is FocusFlag.EDGE_LOW), default=math.inf
         )
-        if -math.inf < above_um < below_um < math.inf:
-            half_gap_um = (below_um - above_um) / 2.0
-            return policy.around(above_um + half_gap_um, half_gap_um / policy.k_sigma)
+        if math.isfinite(above_um) and math.isfinite(below_um):
+            half_width_um = abs(below_um - above_um) / 2.0 + policy.z_step_um
+            return policy.around((above_um + below_um) / 2.0, half_width_um / policy.k_sigma)
         return policy.beyond(*self._misses[-1])
 
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
@@ -290,9 +291,9 @@ def kf_gm1(
 def kf_gm2(
     settings: SlideSettings,
     *,
-    sigma: float = 0.1,
-    beta_per_tile: float = 50.0,
-    q_height_um2: float = 0.1,
+    sigma: float = 0.01,
+    beta_per_tile: float = 100.0,
+    q_height_um2: float = 0.2,
     slope_sigma_um_per_tile: float = 0.5,
     max_retries: int = 3,
 ) -> KalmanStrategy:

@@ -13,7 +13,8 @@ from typing import Annotated, Self
 
 from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
 
-from focustrack.services.estimator.strategy import FocusFlag, Purpose
+from focustrack.geometry import ScanGrid
+from focustrack.services.estimator.strategy import FocusFlag, Purpose, SlideSettings
 
 #: Largest grid side and tile count a slide may have (a 25 x 75 mm slide at 100 um tiles
 #: is 250 x 750 = 187 500 tiles; the strategies keep per-tile maps in memory).
@@ -54,13 +55,18 @@ class Grid(_Model):
         return self
 
 
+#: The domain's defaults, so the API and the benchmark default alike.
+_DEFAULTS = SlideSettings(grid=ScanGrid(1, 1))
+_POLICY = _DEFAULTS.policy
+
+
 class ZRangePolicy(_Model):
     """How wide a stack to take: +/- k_sigma predicted sigmas, within [min, max] frames."""
 
-    k_sigma: float = Field(2.5, gt=0, le=100)
-    z_step_um: float = Field(0.5, ge=1e-3, le=1e3)
-    min_frames: int = Field(5, ge=2, le=MAX_FRAMES)
-    max_frames: int = Field(41, ge=2, le=MAX_FRAMES)
+    k_sigma: float = Field(_POLICY.k_sigma, gt=0, le=100)
+    z_step_um: float = Field(_POLICY.z_step_um, ge=1e-3, le=1e3)
+    min_frames: int = Field(_POLICY.min_frames, ge=2, le=MAX_FRAMES)
+    max_frames: int = Field(_POLICY.max_frames, ge=2, le=MAX_FRAMES)
 
     @model_validator(mode="after")
     def _ordered(self) -> Self:
@@ -86,10 +92,10 @@ class SlideCreate(_Model):
         description="The strategy's parameters by name; omitted ones take their defaults",
     )
     grid: Grid
-    start_z_um: Height = 0.0
-    start_sigma_um: Length = 10.0
-    dof_um: Length = 1.0
-    noise_sigma_um: Length = 1.5
+    start_z_um: Height = _DEFAULTS.start_z_um
+    start_sigma_um: Length = _DEFAULTS.start_sigma_um
+    dof_um: Length = _DEFAULTS.dof_um
+    noise_sigma_um: Length = _DEFAULTS.noise_sigma_um
     z_range: ZRangePolicy = Field(default_factory=ZRangePolicy)
     label: str | None = Field(None, max_length=200, description="Free text for the lab software")
 

@@ -86,11 +86,10 @@ class ZRangePolicy:
 
     The predicted sigma is that of the innovation (prediction and measurement
     noise together), because the measured peak, not the truth, must land in
-    the stack. A retry after an edge peak takes the next `max_frames`-wide
-    block beyond the edge that was hit.
+    the stack. A retry after an edge peak continues beyond the edge (`beyond`).
     """
 
-    k_sigma: float = 2.5
+    k_sigma: float = 2.0  # tuned on training seeds (docs/estimators.md)
     z_step_um: float = 0.5
     min_frames: int = 5
     max_frames: int = 41
@@ -114,13 +113,21 @@ class ZRangePolicy:
         return ZRange.centred(center_um, self.max_frames, self.z_step_um)
 
     def beyond(self, previous: ZRange, flag: FocusFlag) -> ZRange:
-        """The stack to take after `previous` ended in an edge peak (or a flat curve)."""
-        n_frames = self.max_frames
+        """The stack to take after `previous` ended in an edge peak (or a flat curve).
+
+        As wide as `previous` (at least `min_frames`), continuing past the edge
+        that was hit and overlapping it by two frames, so that a peak on the old
+        edge frame lies inside the new stack with both its flanks. A flat curve
+        gets the widest stack, centred where the last one was.
+        """
+        n_frames = max(previous.n_frames, self.min_frames)
+        overlap_um = self.z_step_um
         if flag is FocusFlag.EDGE_HIGH:
-            return ZRange(previous.high_um + self.z_step_um, self.z_step_um, n_frames)
+            return ZRange(previous.high_um - overlap_um, self.z_step_um, n_frames)
         if flag is FocusFlag.EDGE_LOW:
-            return ZRange(previous.low_um - n_frames * self.z_step_um, self.z_step_um, n_frames)
-        return ZRange.centred(previous.center_um, n_frames, self.z_step_um)
+            high_um = previous.low_um + overlap_um
+            return ZRange(high_um - (n_frames - 1) * self.z_step_um, self.z_step_um, n_frames)
+        return self.wide(previous.center_um)
 
     @staticmethod
     def single(z_um: float, step_um: float) -> ZRange:
