@@ -1,0 +1,596 @@
+"""2-D estimators: use the row above, not only the path behind (docs/spatial.md).
+
+In a serpentine scan the tile above the current one was measured a whole row
+ago; a 1-D filter along the path has mostly forgotten it. The strategies here
+carry the previous row(s) in their state:
+
+- `nshp-wiener0`, `nshp-wiener1` (`NshpFilter`): the thesis' Non-Symmetric
+  Half-Plane filter (ch. 4, eq. 4-1 to 4-4, Algorithm 3) with the two causes of
+  its failure (section 4-2-4) removed. The state holds heights only, so the
+  y-gradient is implied by measured heights instead of carried as a state that
+  is never observed; and the state's every element is corrected with the full
+  Kalman gain and propagated with its full covariance, so the prediction uses
+  the neighbours' estimates with their correct (cross-)covariances rather than
+  as if they were noise-free inputs (no "K[slc] = 0", Algorithm 3 line 13).
+- `kf-2d` (`RowBankFilter`): a strip processor (Woods and Radewan's term)
+  whose state is a whole row of heights and their y-slopes; row to row the
+  field evolves as a Matern-3/2 process in y with process noise correlated
+  across columns, plus a plane (offset and tilts) as constant states, so the
+  model is a separable Gaussian process that the filter computes exactly. The
+  field's size and length and the tilt's scale are not assumed: a bank of
+  such filters over a grid of (sigma, length, tilt) runs in parallel and is
+  averaged with the posterior probability of each member, from the likelihood
+  of its innovations (estimated online, per slide).
+- `gp-oracle` (`GpOracle`): Gaussian-process regression with the generator's
+  exact covariance (`focustrack.surfaces.surface_covariance`): the
+  Bayes-optimal linear estimator, which no scanner can run; the floor the
+  others are measured against.
+
+All walk the serpentine alike (`SerpentineFilter`): the prior of a tile sets
+a stack of +/- k innovation sigmas; a stack without a peak (an edge peak or a
+flat curve) is followed by another (`retry_range`), up to `max_retries`, after
+which the prior stands; the tile is imaged at the frame of its last stack
+nearest the posterior.
+Heights are in um, lengths in tiles.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.linalg
+
+from focustrack.geometry import Tile
+from focustrack.services.estimator.sqrt_filter import SqrtKalmanFilter, psd_factor
+from focustrack.services.estimator.strategy import (
+    Acquisition,
+    FocusFlag,
+    Measurement,
+    Outcome,
+    Purpose,
+    SlideSettings,
+    Strategy,
+    ZRange,
+    ZRangePolicy,
+)
+from focustrack.surfaces import SurfaceSpec, surface_covariance
+
+_EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
+
+
+@dataclass(frozen=True)
+class Gaussian:
+    """A height estimate: mean in um and variance in um^2."""
+
+    mean_um: float
+    var_um2: float
+
+    @property
+    def sigma_um(self) -> float:
+        return math.sqrt(max(self.var_um2, 0.0))
+
+
+def retry_range(policy: ZRangePolicy, misses: list[tuple[ZRange, FocusFlag]]) -> ZRange:
+    """The stack after peakless ones on a tile: between two that bracket the peak, else beyond.
+
+    An EDGE_HIGH stack below an EDGE_LOW one brackets the peak: the next stack
+    spans the gap between them (and the frames they share); otherwise it
+    continues beyond the last (`policy.beyond`). The same rule as
+    `KalmanStrategy._retry_range`: one copy should move next to
+    `ZRangePolicy.beyond` (see docs/spatial.md).
+    """
+    above_um = max((z.high_um for z, f in misses if f is FocusFlag.EDGE_HIGH), default=-math.inf)
+    below_um = min((z.low_um for z, f in misses if f is FocusFlag.EDGE_LOW), default=math.inf)
+    if math.isfinite(above_um) and math.isfinite(below_um):
+        half_width_um = abs(below_um - above_um) / 2.0 + policy.z_step_um
+        return policy.around((above_um + below_um) / 2.0, half_width_um / policy.k_sigma)
+    return policy.beyond(*misses[-1])
+
+
+class SerpentineFilter(Strategy):
+    """A recursive estimator walking the serpentine, one prediction and one correction a tile.
+
+    Subclasses implement `_predict` (the prior of the next tile) and `_correct`
+    (take its measurement, or None when the tile gave none). `_finish` runs once
+    after the last tile.
+    """
+
+    def __init__(self, settings: SlideSettings, *, max_retries: int) -> None:
+        super().__init__(settings)
+        if max_retries < 0:
+            raise ValueError(f"max_retries must not be negative, got {max_retries}")
+        self.max_retries = max_retries
+        self._position = 0  # serpentine index of the current tile
+        self._prior: Gaussian | None = None  # the current tile's prior, once predicted
+        self._misses: list[tuple[ZRange, FocusFlag]] = []  # edge-peak stacks on the current tile
+
+    @abstractmethod
+    def _predict(self, tile: Tile) -> Gaussian:
+        """Advance the state to `tile` (the next in serpentine order); return its prior."""
+
+    @abstractmethod
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        """Take the measurement of `tile` (None: no measurement); return its posterior."""
+
+    def _finish(self) -> None:
+        """Called once when every tile has been imaged (for final-map work)."""
+
+    def _plan(self) -> Acquisition | None:
+        if self._position == self.grid.n_tiles:
+            return None
+        tile = self.grid.serpentine[self._position]
+        if self._prior is None:
+            self._prior = self._predict(tile)
+            self.map.prior_um[tile.row, tile.col] = self._prior.mean_um
+            self.map.prior_sigma_um[tile.row, tile.col] = self._prior.sigma_um
+        prior = self._prior
+        if not self._misses:
+            # The measured peak must land in the stack: size it by the innovation sigma.
+            innovation_sigma_um = math.sqrt(prior.var_um2 + self.settings.noise_sigma_um**2)
+            z, purpose = (
+                self.settings.policy.around(prior.mean_um, innovation_sigma_um),
+                Purpose.SCAN,
+            )
+        else:
+            z, purpose = retry_range(self.settings.policy, self._misses), Purpose.RETRY
+        return self._acquisition(
+            tile.row,
+            tile.col,
+            z,
+            purpose,
+            measure=True,
+            predicted_um=prior.mean_um,
+            predicted_sigma_um=prior.sigma_um,
+        )
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        tile = Tile(acquisition.row, acquisition.col)
+        prior = self._prior
+        assert prior is not None  # set by _plan for the pending acquisition
+        if not measurement.is_observation and len(self._misses) < self.max_retries:
+            # An edge peak or a flat curve: acquire again (`retry_range`).
+            edges = measurement.flags & _EDGES
+            flag = next(iter(edges)) if len(edges) == 1 else FocusFlag.FLAT
+            self._misses.append((acquisition.z, flag))
+            return Outcome(
+                tile.row, tile.col, accepted=False, prior_um=prior.mean_um,
+                prior_sigma_um=prior.sigma_um,
+            )  # fmt: skip
+
+        innovation_um = nis = None
+        if measurement.is_observation and measurement.z_um is not None:
+            R_um2 = (measurement.sigma_um or self.settings.noise_sigma_um) ** 2
+            posterior = self._correct(tile, prior, measurement.z_um, R_um2)
+            innovation_um = measurement.z_um - prior.mean_um
+            nis = innovation_um**2 / (prior.var_um2 + R_um2)
+        else:  # no peak within max_retries: the prior stands
+            posterior = self._correct(tile, prior, None, 0.0)
+        frames_um = acquisition.z.z_um()
+        self.map.posterior_um[tile.row, tile.col] = posterior.mean_um
+        self.map.posterior_sigma_um[tile.row, tile.col] = posterior.sigma_um
+        self.map.z_used_um[tile.row, tile.col] = frames_um[
+            np.argmin(np.abs(frames_um - posterior.mean_um))
+        ]
+        self._position += 1
+        self._prior, self._misses = None, []
+        if self._position == self.grid.n_tiles:
+            self._finish()
+        return Outcome(
+            tile.row,
+            tile.col,
+            accepted=innovation_um is not None,
+            prior_um=prior.mean_um,
+            prior_sigma_um=prior.sigma_um,
+            posterior_um=posterior.mean_um,
+            posterior_sigma_um=posterior.sigma_um,
+            innovation_um=innovation_um,
+            nis=nis,
+        )
+
+
+# --- NSHP ------------------------------------------------------------------------------
+
+
+def nshp_weights(offsets: np.ndarray, order: int) -> np.ndarray:
+    """Prediction weights of the support heights for the tile at offset (0, 0).
+
+    `offsets` (n, 2) holds each support tile's (d_row, d_col) from the predicted
+    tile. Order 0: the inverse-distance weighted mean of the support heights
+    (the thesis' weights, section 4-1). Order 1: the inverse-distance weighted
+    least-squares plane through them, evaluated at the tile, so the local
+    x- and y-slopes come from measured heights (where the support spans only
+    one row or column, that direction's slope is left out). Weights sum to one.
+    """
+    if order not in (0, 1):
+        raise ValueError(f"NSHP order must be 0 or 1, got {order}")
+    inverse_distance = 1.0 / np.hypot(offsets[:, 0], offsets[:, 1])
+    columns = [np.ones(len(offsets))]
+    if order == 1:
+        columns += [offsets[:, k] for k in (0, 1) if np.ptp(offsets[:, k]) > 0]
+    X = np.stack(columns, axis=1)
+    if np.linalg.matrix_rank(X) < X.shape[1]:
+        X = X[:, :1]
+    XtW = X.T * inverse_distance
+    # weights w with w @ heights = e0' (X' W X)^-1 X' W heights (the fitted plane at (0, 0))
+    return np.linalg.solve(XtW @ X, XtW)[0]
+
+
+class NshpFilter(SerpentineFilter):
+    """The NSHP Kalman filter over heights (thesis ch. 4), with the full-state correction.
+
+    State: the heights of the tiles of the current row and the `support` rows
+    above (those a later tile's support can still reach). Each step appends the
+    new tile with the support prediction height = sum(w * neighbours) + noise of
+    variance `q_um2` (eq. 4-2 and 4-4, as a growing state instead of a shift
+    register) and drops the row no longer reachable. Support (eq. 4-1, fig. 4-2,
+    M = `support`): the M tiles behind on the current row, and M rows above from
+    M columns back to M columns ahead, mirrored on rows scanned right to left.
+    """
+
+    def __init__(
+        self,
+        settings: SlideSettings,
+        *,
+        name: str,
+        order: int,
+        support: int,
+        q_um2: float,
+        max_retries: int,
+    ) -> None:
+        super().__init__(settings, max_retries=max_retries)
+        if support < 1 or q_um2 <= 0:
+            raise ValueError(f"need support >= 1 and q_um2 > 0, got {support}, {q_um2}")
+        self.name = name
+        self.order, self.support, self.q_um2 = order, support, q_um2
+        self._tiles: list[Tile] = []  # the tile of each state element
+        self._kf = SqrtKalmanFilter(dim_x=1, dim_z=1)
+
+    def _support(self, tile: Tile) -> list[Tile]:
+        """The already-scanned NSHP neighbours of `tile` (eq. 4-1 with M1 = M2 = M)."""
+        M = self.support
+        behind = -1 if tile.row % 2 == 0 else 1  # serpentine: even rows go left to right
+        candidates = [Tile(tile.row, tile.col + behind * k) for k in range(1, M + 1)]
+        candidates += [
+            Tile(tile.row - k, tile.col + d) for k in range(1, M + 1) for d in range(-M, M + 1)
+        ]
+        return [t for t in candidates if self.grid.contains(t.row, t.col)]
+
+    def _predict(self, tile: Tile) -> Gaussian:
+        if not self._tiles:
+            self._kf.x = np.array([[self.settings.start_z_um]])
+            self._kf.P = np.array([[self.settings.start_sigma_um**2]])
+        else:
+            index = {t: i for i, t in enumerate(self._tiles)}
+            support = self._support(tile)
+            kept = [i for i, t in enumerate(self._tiles) if t.row >= tile.row - self.support]
+            offsets = np.array([(t.row - tile.row, t.col - tile.col) for t in support], float)
+            F = np.zeros((len(kept) + 1, len(self._tiles)))
+            F[np.arange(len(kept)), kept] = 1.0
+            F[-1, [index[t] for t in support]] = nshp_weights(offsets, self.order)
+            Q_sqrt = np.zeros((len(kept) + 1, 1))  # noise enters the new tile only
+            Q_sqrt[-1, 0] = math.sqrt(self.q_um2)
+            self._kf.predict(F=F, Q_sqrt=Q_sqrt)
+            self._tiles = [self._tiles[i] for i in kept]
+        self._tiles.append(tile)
+        return Gaussian(self._kf.x[-1, 0], float(np.sum(self._kf.P_sqrt[-1] ** 2)))
+
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        if z_um is None:
+            return prior
+        H = np.zeros((1, len(self._tiles)))
+        H[0, -1] = 1.0
+        # Full gain on every element (the thesis zeroed it outside the support): the rows
+        # above are corrected by this tile too, as the joint Gaussian requires.
+        self._kf.update(z_um, R=R_um2, H=H)
+        return Gaussian(self._kf.x[-1, 0], float(np.sum(self._kf.P_sqrt[-1] ** 2)))
+
+
+# --- kf-2d: a bank of row-state (strip) filters ------------------------------------------
+
+
+#: State elements of the plane in `RowModel`: offset (um), tilt along x and y (um/tile).
+N_PLANE = 3
+
+
+def matern32(distance: np.ndarray, length: float) -> np.ndarray:
+    """Matern-3/2 correlation at `distance` for length scale `length` (same units)."""
+    a = math.sqrt(3.0) * np.abs(distance) / length
+    return (1.0 + a) * np.exp(-a)
+
+
+@dataclass(frozen=True)
+class RowModel:
+    """A separable Gaussian field sigma^2 k(dy) k(dx), Matern-3/2 in both, plus a plane.
+
+    As a state-space model over rows (a strip processor): the state is
+    [offset, tilt_x, tilt_y, (f, df/dy) of column 0, (f, df/dy) of column 1, ...]
+    (the plane's three coefficients are constant over the slide); from one row
+    to the next each column's (f, df/dy) follows the exact discretisation of the
+    Matern-3/2 stochastic differential equation (a 2-state Markov process in y),
+    with process noise correlated across columns by k(dx). The filter over this
+    state is exact Gaussian-process regression for the separable covariance
+    plus a plane with a Gaussian prior (universal kriging when that prior is vague).
+    """
+
+    sigma_um: float
+    length_tiles: float
+    tilt_sigma_um_per_tile: float  # prior std of each tilt coefficient
+    cols: int
+
+    @cached_property
+    def _lam(self) -> float:
+        return math.sqrt(3.0) / self.length_tiles
+
+    @cached_property
+    def _column_corr(self) -> np.ndarray:
+        c = np.arange(self.cols)
+        return matern32(c[:, None] - c[None, :], self.length_tiles)
+
+    @cached_property
+    def _stationary_y(self) -> np.ndarray:
+        """Stationary covariance of (f, df/dy) of one column per unit sigma^2."""
+        return np.diag([1.0, self._lam**2])
+
+    @cached_property
+    def _step_y(self) -> np.ndarray:
+        """exp(A) of the Matern-3/2 SDE matrix A = [[0, 1], [-lam^2, -2 lam]] (one row)."""
+        lam = self._lam
+        return math.exp(-lam) * np.array([[1.0 + lam, 1.0], [-(lam**2), 1.0 - lam]])
+
+    @cached_property
+    def F(self) -> np.ndarray:  # noqa: N802 (the equations' names)
+        """Row-to-row transition, (N_PLANE + 2 cols) square."""
+        return scipy.linalg.block_diag(np.eye(N_PLANE), np.kron(np.eye(self.cols), self._step_y))
+
+    @cached_property
+    def Q(self) -> np.ndarray:  # noqa: N802 (the equations' names)
+        """Row-to-row process noise (um^2): stationary minus propagated, correlated across x."""
+        A, P = self._step_y, self._stationary_y
+        noise_y = P - A @ P @ A.T
+        field = self.sigma_um**2 * np.kron(self._column_corr, noise_y)
+        return scipy.linalg.block_diag(np.zeros((N_PLANE, N_PLANE)), field)
+
+    @cached_property
+    def Q_sqrt(self) -> np.ndarray:  # noqa: N802 (the equations' names)
+        """A factor of Q, computed once (Q is rank-deficient: the plane has no noise)."""
+        return psd_factor(self.Q)
+
+    def initial(self, offset_sigma_um: float) -> np.ndarray:
+        """Covariance of the first row's state: the plane and the stationary field."""
+        tilt_var = self.tilt_sigma_um_per_tile**2
+        plane = np.diag([offset_sigma_um**2, tilt_var, tilt_var])
+        field = self.sigma_um**2 * np.kron(self._column_corr, self._stationary_y)
+        return scipy.linalg.block_diag(plane, field)
+
+
+class RowBankFilter(SerpentineFilter):
+    """`kf-2d`: strip filters for every (sigma, length, tilt) of a grid, averaged by likelihood.
+
+    Member i's weight is proportional to the likelihood of all innovations so
+    far under its model (Bayesian model averaging over fixed models, the
+    multiple-model adaptive estimator without switching); the tile's prior and
+    posterior are the weighted mixture's mean and variance.
+    """
+
+    name = "kf-2d"
+
+    def __init__(
+        self,
+        settings: SlideSettings,
+        *,
+        sigmas_um: tuple[float, ...],
+        lengths_tiles: tuple[float, ...],
+        tilt_sigmas_um_per_tile: tuple[float, ...],
+        max_retries: int,
+    ) -> None:
+        super().__init__(settings, max_retries=max_retries)
+        grid_values = (*sigmas_um, *lengths_tiles, *tilt_sigmas_um_per_tile)
+        if not (sigmas_um and lengths_tiles and tilt_sigmas_um_per_tile) or min(grid_values) <= 0:
+            raise ValueError(
+                "the bank's sigmas, lengths and tilt sigmas must be given and positive"
+            )
+        cols = self.grid.cols
+        self.models = [
+            RowModel(sigma, length, tilt, cols)
+            for sigma in sigmas_um
+            for length in lengths_tiles
+            for tilt in tilt_sigmas_um_per_tile
+        ]
+        self._filters = []
+        for model in self.models:
+            kf = SqrtKalmanFilter(dim_x=N_PLANE + 2 * cols, dim_z=1)
+            kf.x[0, 0] = settings.start_z_um
+            kf.P = model.initial(settings.start_sigma_um)
+            self._filters.append(kf)
+        self.log_weights = np.zeros(len(self.models))  # log posterior model probabilities
+        self._row = 0
+
+    @property
+    def weights(self) -> np.ndarray:
+        """Posterior probability of each member model, shape (len(models),)."""
+        w = np.exp(self.log_weights - self.log_weights.max())
+        return w / w.sum()
+
+    def _h(self, tile: Tile) -> np.ndarray:
+        """Measurement row: a tile's height is the plane at its centre plus its column's field."""
+        H = np.zeros((1, N_PLANE + 2 * self.grid.cols))
+        H[0, :N_PLANE] = (
+            1.0,
+            tile.col - (self.grid.cols - 1) / 2.0,
+            tile.row - (self.grid.rows - 1) / 2.0,
+        )
+        H[0, N_PLANE + 2 * tile.col] = 1.0
+        return H
+
+    def _mixture(self, tile: Tile) -> Gaussian:
+        H = self._h(tile)
+        means = np.array([(H @ kf.x).item() for kf in self._filters])
+        variances = np.array([np.sum((H @ kf.P_sqrt) ** 2) for kf in self._filters])
+        w = self.weights
+        mean = float(w @ means)
+        return Gaussian(mean, float(w @ (variances + (means - mean) ** 2)))
+
+    def _predict(self, tile: Tile) -> Gaussian:
+        if tile.row != self._row:  # a new row: propagate every column one row down
+            for model, kf in zip(self.models, self._filters, strict=True):
+                kf.predict(F=model.F, Q_sqrt=model.Q_sqrt)
+            self._row = tile.row
+        return self._mixture(tile)
+
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        if z_um is None:
+            return prior
+        H = self._h(tile)
+        for i, kf in enumerate(self._filters):
+            kf.update(z_um, R=R_um2, H=H)
+            self.log_weights[i] += kf.log_likelihood
+        self.log_weights -= self.log_weights.max()
+        return self._mixture(tile)
+
+
+# --- gp-oracle ---------------------------------------------------------------------------
+
+
+class GpOracle(SerpentineFilter):
+    """Gaussian-process regression with the generator's exact covariance (not for scanners).
+
+    The prior of each tile is the GP posterior given every earlier measurement;
+    once the scan is complete the map (posterior) is the GP posterior given all
+    of them. The mean is `settings.start_z_um` (the generator's is zero). The
+    Cholesky factor of the measured tiles' covariance (plus their R) grows by
+    one row per measurement, so each prior costs one triangular solve.
+    """
+
+    name = "gp-oracle"
+
+    def __init__(self, settings: SlideSettings, spec: SurfaceSpec, *, max_retries: int) -> None:
+        super().__init__(settings, max_retries=max_retries)
+        if (spec.rows, spec.cols) != self.grid.shape:
+            raise ValueError(f"surface spec is {spec.rows}x{spec.cols}, grid is {self.grid.shape}")
+        rows, cols = np.divmod(np.arange(self.grid.n_tiles), self.grid.cols)
+        self._K = surface_covariance(spec, rows, cols)  # (n_tiles, n_tiles), flat index r*cols+c
+        self._observed: list[int] = []  # flat indices of measured tiles, in measurement order
+        self._L = np.zeros_like(self._K)  # Cholesky factor of K[obs, obs] + diag(R)
+        self._white = np.zeros(self.grid.n_tiles)  # L^-1 (z_obs - mean)
+        self._cross = np.zeros(0)  # L^-1 K[obs, tile] of the current tile
+
+    def _flat(self, tile: Tile) -> int:
+        return tile.row * self.grid.cols + tile.col
+
+    def _predict(self, tile: Tile) -> Gaussian:
+        t, k = self._flat(tile), len(self._observed)
+        self._cross = scipy.linalg.solve_triangular(
+            self._L[:k, :k], self._K[self._observed, t], lower=True
+        )
+        mean = self.settings.start_z_um + self._cross @ self._white[:k]
+        return Gaussian(float(mean), float(self._K[t, t] - self._cross @ self._cross))
+
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        if z_um is None:
+            return prior
+        k, innovation_var = len(self._observed), prior.var_um2 + R_um2
+        self._L[k, :k] = self._cross
+        self._L[k, k] = math.sqrt(innovation_var)
+        self._white[k] = (z_um - prior.mean_um) / self._L[k, k]
+        self._observed.append(self._flat(tile))
+        gain = prior.var_um2 / innovation_var
+        return Gaussian(prior.mean_um + gain * (z_um - prior.mean_um), prior.var_um2 * (1.0 - gain))
+
+    def _finish(self) -> None:
+        """The final map: every tile's GP posterior given all measurements."""
+        k = len(self._observed)
+        cross = scipy.linalg.solve_triangular(
+            self._L[:k, :k], self._K[self._observed, :], lower=True
+        )  # (k, n_tiles)
+        mean = self.settings.start_z_um + cross.T @ self._white[:k]
+        var = np.diag(self._K) - np.sum(cross**2, axis=0)
+        self.map.posterior_um = mean.reshape(self.grid.shape)
+        self.map.posterior_sigma_um = np.sqrt(np.clip(var, 0.0, None)).reshape(self.grid.shape)
+
+
+# --- factories ---------------------------------------------------------------------------
+# Defaults chosen on training seeds 0..9 (docs/spatial.md), never on the reported maps.
+
+_SPEC = SurfaceSpec()
+
+
+def nshp_wiener0(
+    settings: SlideSettings, *, support: int = 1, q_um2: float = 0.5, max_retries: int = 3
+) -> NshpFilter:
+    """NSHP filter, order 0: the weighted mean of the support heights, plus noise."""
+    return NshpFilter(
+        settings, name="nshp-wiener0", order=0, support=support, q_um2=q_um2,
+        max_retries=max_retries,
+    )  # fmt: skip
+
+
+def nshp_wiener1(
+    settings: SlideSettings, *, support: int = 2, q_um2: float = 0.03, max_retries: int = 3
+) -> NshpFilter:
+    """NSHP filter, order 1: the support's weighted plane extrapolated to the tile, plus noise."""
+    return NshpFilter(
+        settings, name="nshp-wiener1", order=1, support=support, q_um2=q_um2,
+        max_retries=max_retries,
+    )  # fmt: skip
+
+
+def kf_2d(
+    settings: SlideSettings,
+    *,
+    sigmas_um: tuple[float, ...] = (0.7, 1.4, 2.8),
+    lengths_tiles: tuple[float, ...] = (4.0, 8.0, 16.0),
+    tilt_sigmas_um_per_tile: tuple[float, ...] = (0.3, 1.5),
+    max_retries: int = 3,
+) -> RowBankFilter:
+    """The best 2-D estimator: the strip-filter bank, learning the slide's field and tilt.
+
+    The bank is every (sigma, length, tilt sigma) of the three grids: 18 filters.
+    """
+    return RowBankFilter(
+        settings, sigmas_um=tuple(sigmas_um), lengths_tiles=tuple(lengths_tiles),
+        tilt_sigmas_um_per_tile=tuple(tilt_sigmas_um_per_tile), max_retries=max_retries,
+    )  # fmt: skip
+
+
+def gp_oracle(
+    settings: SlideSettings,
+    *,
+    rows: int | None = None,
+    cols: int | None = None,
+    field_sigma_um: float = _SPEC.field_sigma_um,
+    range_tiles: float = _SPEC.range_tiles,
+    tilt_sigma_um_per_tile: float = _SPEC.tilt_sigma_um_per_tile,
+    bend_sigma_um: float = _SPEC.bend_sigma_um,
+    step_um: float = _SPEC.step_um,
+    smooth_sigma_tiles: float = _SPEC.smooth_sigma_tiles,
+    max_retries: int = 3,
+) -> GpOracle:
+    """The oracle for surfaces of this `SurfaceSpec` (rows, cols: the grid's when None).
+
+    With `step_um` != 0 the surfaces are not Gaussian; the oracle then uses the
+    covariance of the Gaussian part only (`surface_covariance`).
+    """
+    spec = SurfaceSpec(
+        rows=settings.grid.rows if rows is None else rows,
+        cols=settings.grid.cols if cols is None else cols,
+        field_sigma_um=field_sigma_um,
+        range_tiles=range_tiles,
+        tilt_sigma_um_per_tile=tilt_sigma_um_per_tile,
+        bend_sigma_um=bend_sigma_um,
+        step_um=step_um,
+        smooth_sigma_tiles=smooth_sigma_tiles,
+    )
+    return GpOracle(settings, spec, max_retries=max_retries)
+
+
+STRATEGIES: dict[str, Callable[..., Strategy]] = {
+    "kf-2d": kf_2d,
+    "nshp-wiener0": nshp_wiener0,
+    "nshp-wiener1": nshp_wiener1,
+    "gp-oracle": gp_oracle,
+}

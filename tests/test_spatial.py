@@ -1,0 +1,169 @@
+"""2-D strategies: complete scans, the row above is used, the oracle is exact GP regression."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from focustrack.bench.replay import replay
+from focustrack.geometry import ScanGrid
+from focustrack.services.estimator.spatial import STRATEGIES, gp_oracle, kf_2d, nshp_weights
+from focustrack.services.estimator.strategy import (
+    FocusFlag,
+    Measurement,
+    Purpose,
+    SlideSettings,
+)
+from focustrack.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
+
+NOISE_UM = 1.5
+
+
+def _maps(rows: int, cols: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    truth_um = generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed)[0]
+    noise_um = np.random.default_rng([seed, 7]).normal(0.0, NOISE_UM, truth_um.shape)
+    return truth_um, truth_um + noise_um
+
+
+@pytest.mark.parametrize("name", sorted(STRATEGIES))
+def test_scan_completes_and_is_deterministic(name: str) -> None:
+    truth_um, measured_um = _maps(6, 5, seed=11)
+    settings = SlideSettings(grid=ScanGrid(6, 5))
+    first = replay(STRATEGIES[name](settings), truth_um, measured_um)
+    second = replay(STRATEGIES[name](settings), truth_um, measured_um)
+    fm = first.focus_map
+    for array in (fm.prior_um, fm.prior_sigma_um, fm.posterior_um, fm.z_used_um):
+        assert np.all(np.isfinite(array))
+    assert sum(o.accepted for o in first.outcomes) == 30  # every tile measured once
+    assert np.mean(np.abs(fm.posterior_um - truth_um)) < NOISE_UM  # it filters the noise
+    for a, b in zip(
+        (fm.prior_um, fm.posterior_um, fm.z_used_um),
+        (second.focus_map.prior_um, second.focus_map.posterior_um, second.focus_map.z_used_um),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", sorted(STRATEGIES))
+def test_edge_peak_is_reacquired_beyond_the_edge(name: str) -> None:
+    truth_um, _ = _maps(4, 4, seed=5)
+    measured_um = truth_um.copy()
+    measured_um[1, 2] += 8.0  # above a stack centred on the prediction
+    result = replay(STRATEGIES[name](SlideSettings(grid=ScanGrid(4, 4))), truth_um, measured_um)
+    on_tile = [o for o in result.outcomes if (o.row, o.col) == (1, 2)]
+    assert len(on_tile) > 1 and not on_tile[0].accepted and on_tile[-1].accepted
+    assert on_tile[-1].innovation_um is not None and on_tile[-1].innovation_um > 5.0
+
+
+def test_measurement_sigma_is_used_as_r() -> None:
+    """A measurement with a large sigma moves the estimate less than one with a small sigma."""
+    settings = SlideSettings(grid=ScanGrid(3, 3), start_sigma_um=5.0)
+    posteriors = []
+    for sigma_um in (0.1, 10.0):
+        strategy = kf_2d(settings)
+        acquisition = strategy.next_acquisition()
+        assert acquisition is not None and acquisition.purpose is Purpose.SCAN
+        outcome = strategy.record(acquisition, Measurement(z_um=2.0, sigma_um=sigma_um))
+        posteriors.append(outcome.posterior_um)
+    assert posteriors[0] == pytest.approx(2.0, abs=0.05)
+    assert abs(posteriors[1]) < 1.0
+
+
+def test_flat_curves_are_retried_then_the_prior_stands() -> None:
+    strategy = STRATEGIES["nshp-wiener0"](SlideSettings(grid=ScanGrid(2, 2)), max_retries=2)
+    flat = Measurement(None, flags=frozenset({FocusFlag.FLAT}))
+    outcomes = []
+    for _ in range(3):
+        acquisition = strategy.next_acquisition()
+        assert acquisition is not None and (acquisition.row, acquisition.col) == (0, 0)
+        outcomes.append(strategy.record(acquisition, flat))
+    assert [o.accepted for o in outcomes] == [False, False, False]
+    assert outcomes[-1].posterior_um == outcomes[-1].prior_um
+    following = strategy.next_acquisition()
+    assert following is not None and (following.row, following.col) == (0, 1)
+
+
+def _random_walk_prior_mae(truth_um: np.ndarray, measured_um: np.ndarray, q_um2: float) -> float:
+    """Prior MAE of a scalar random-walk Kalman filter along the serpentine (the 1-D baseline)."""
+    grid = ScanGrid(*truth_um.shape)
+    mean_um, var_um2, errors = 0.0, 100.0, []
+    for tile in grid.serpentine:
+        errors.append(abs(mean_um - truth_um[tile.row, tile.col]))
+        gain = var_um2 / (var_um2 + NOISE_UM**2)
+        mean_um += gain * (measured_um[tile.row, tile.col] - mean_um)
+        var_um2 = (1.0 - gain) * var_um2 + q_um2
+    return float(np.mean(errors))
+
+
+def test_kf_2d_uses_the_row_above() -> None:
+    """On a slide tilted along y only, the rows above tell the height of the next row.
+
+    A 1-D random walk along the path must re-learn each row's height from the
+    row's own noisy measurements; kf-2d carries the previous row (and the
+    y-slope learnt from the rows) across. The baseline gets its best q in hindsight.
+    """
+    rows, cols = 12, 12
+    row_height_um = 1.5 * np.arange(rows)
+    truth_um = np.repeat(row_height_um[:, None], cols, axis=1)
+    kf_2d_mae, baseline_mae = [], []
+    for seed in range(3):
+        noise_um = np.random.default_rng(seed).normal(0.0, NOISE_UM, truth_um.shape)
+        measured_um = truth_um + noise_um
+        settings = SlideSettings(grid=ScanGrid(rows, cols), noise_sigma_um=NOISE_UM)
+        result = replay(kf_2d(settings), truth_um, measured_um)
+        kf_2d_mae.append(np.mean(np.abs(result.focus_map.prior_um - truth_um)))
+        baseline_mae.append(
+            min(
+                _random_walk_prior_mae(truth_um, measured_um, q) for q in (0.03, 0.1, 0.3, 1.0, 3.0)
+            )
+        )
+    assert np.mean(kf_2d_mae) < 0.8 * np.mean(baseline_mae)
+
+
+def test_gp_oracle_equals_direct_gaussian_process_regression() -> None:
+    rows, cols = 4, 5
+    spec = SurfaceSpec(rows=rows, cols=cols)
+    truth_um, measured_um = _maps(rows, cols, seed=3)
+    settings = SlideSettings(grid=ScanGrid(rows, cols), start_z_um=0.5)
+    result = replay(gp_oracle(settings), truth_um, measured_um)
+
+    order = settings.grid.serpentine
+    r = np.array([t.row for t in order])
+    c = np.array([t.col for t in order])
+    K = surface_covariance(spec, r, c)
+    z = measured_um[r, c] - 0.5
+    for i, tile in enumerate(order):
+        if i == 0:
+            mean, var = 0.0, K[0, 0]
+        else:
+            A = K[:i, :i] + NOISE_UM**2 * np.eye(i)
+            mean = K[i, :i] @ np.linalg.solve(A, z[:i])
+            var = K[i, i] - K[i, :i] @ np.linalg.solve(A, K[:i, i])
+        assert result.focus_map.prior_um[tile.row, tile.col] == pytest.approx(mean + 0.5, abs=1e-9)
+        assert result.focus_map.prior_sigma_um[tile.row, tile.col] == pytest.approx(
+            math.sqrt(var), abs=1e-9
+        )
+    A = K + NOISE_UM**2 * np.eye(len(z))
+    final = 0.5 + K @ np.linalg.solve(A, z)
+    np.testing.assert_allclose(result.focus_map.posterior_um[r, c], final, atol=1e-9)
+
+
+def test_gp_oracle_rejects_a_spec_of_another_size() -> None:
+    with pytest.raises(ValueError, match="grid"):
+        gp_oracle(SlideSettings(grid=ScanGrid(4, 4)), rows=20, cols=20)
+
+
+def test_nshp_weights_reproduce_constants_and_planes() -> None:
+    offsets = np.array([(0, -1), (-1, -1), (-1, 0), (-1, 1)], dtype=float)
+    plane = 2.0 + 0.3 * offsets[:, 0] - 0.7 * offsets[:, 1]  # height at (0, 0) is 2.0
+    for order in (0, 1):
+        w = nshp_weights(offsets, order)
+        assert w.sum() == pytest.approx(1.0)
+        assert w @ np.full(4, 5.0) == pytest.approx(5.0)
+    assert nshp_weights(offsets, 1) @ plane == pytest.approx(2.0)
+    in_row = np.array([(0, -1), (0, -2)], dtype=float)  # no y-spread: the x-line only
+    assert nshp_weights(in_row, 1) @ np.array([1.0, 0.0]) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="order"):
+        nshp_weights(offsets, 2)
