@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 
 ## The main job: a demo scan of a simulated slide.
 demo: $(STAMP)
-	$(BIN)/focustrack bench accuracy --maps 16 --size 20 --seed 1000 --plots out/accuracy
+	$(BIN)/focustrack demo --out out/demo --json out/demo/demo.json
 
 ## Lint, format check and the whole test suite.
 test: $(STAMP)
