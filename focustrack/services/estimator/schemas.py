@@ -27,7 +27,8 @@ MAX_FRAMES = 1001
 
 Height = Annotated[float, Field(ge=-MAX_ABS_UM, le=MAX_ABS_UM)]
 Length = Annotated[float, Field(gt=0, le=MAX_ABS_UM)]
-ParamValue = bool | int | float | str
+#: A strategy parameter: a scalar, a list of numbers (a bank's grid), or None (the default).
+ParamValue = bool | int | float | str | list[float] | None
 #: Not strict: flags arrive as JSON strings, and strict mode takes only enum members.
 Flag = Annotated[FocusFlag, Strict(False)]
 

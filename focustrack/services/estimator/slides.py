@@ -109,6 +109,13 @@ def resolve_params(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
 
 
 def _coerce(strategy: str, name: str, value: Any, default: Any) -> Any:
+    if value is None or default is None:  # None asks for the default; a None default takes any
+        return default if value is None else value
+    numbers = isinstance(value, list) and all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value
+    )
+    if isinstance(default, tuple) and numbers:
+        return tuple(float(v) for v in value)
     kind = type(default)
     if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
         return float(value)
