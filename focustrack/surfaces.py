@@ -62,6 +62,9 @@ FAMILIES: dict[str, dict[str, float]] = {
     "steps": {"step_um": 4.0},
     "tilted": {"tilt_sigma_um_per_tile": 1.0, "field_sigma_um": 0.5},
     "rough": {"field_sigma_um": 2.0, "range_tiles": 8.0},
+    # Standard surfaces; the benchmark adds measurement outliers (dust, a parasite in
+    # another plane) to 5% of their tiles (`focustrack.bench.accuracy.OUTLIERS`).
+    "outliers": {},
 }
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from focustrack.bench.accuracy import Outliers, add_outliers
 from focustrack.cli import main
 from focustrack.services.estimator import registry
 from focustrack.surfaces import family_spec, generate_surfaces
@@ -19,6 +20,7 @@ REQUIRED = [
     "kf-gm1",
     "kf-gm2",
     "kf-wiener1-dir",
+    "kf-mmae",
     "af-every-tile",
     "tile-skip",
     "survey-bilinear",
@@ -47,20 +49,30 @@ def test_generated_maps_json_table_and_plots(
     assert _bench("--maps", 2, "--size", 10, "--seed", 3, "--json", out, "--plots", tmp_path) == 0
     report = json.loads(out.read_text())
     strategies = report["strategies"]
-    assert set(REQUIRED) <= set(strategies) and set(strategies) == set(registry.STRATEGIES)
+    smoothed = {name for name in strategies if name.endswith("-rts")}
+    assert set(REQUIRED) <= set(strategies)
+    assert set(strategies) - smoothed == set(registry.STRATEGIES)
+    # Every 1-D Kalman strategy fills the smoothed layers: a -rts row each.
+    assert {f"{name}-rts" for name in REQUIRED if name.startswith("kf-")} <= smoothed
     for name, fields in strategies.items():
         assert set(fields) == FIELDS, name
         assert fields["post_mae_um"] > 0 and 0 <= fields["in_focus_fraction"] <= 1
         assert fields["images_per_tile"] >= 1 and fields["scan_time_s"] > 0
-        has_prior = name.startswith("kf-")
+        has_prior = not name.startswith(("af-", "tile-", "survey-"))
         assert (fields["prior_mae_um"] is not None) == has_prior, name
         assert (fields["prior_std_um"] is not None) == has_prior, name
+    for name in smoothed:  # the same scan: only the final map differs
+        filtered = strategies[name.removesuffix("-rts")]
+        for field in ("prior_mae_um", "images_per_tile", "scan_time_s", "in_focus_fraction"):
+            assert strategies[name][field] == filtered[field], (name, field)
+        assert strategies[name]["post_mae_um"] != filtered["post_mae_um"]
     assert strategies["af-every-tile"]["images_per_tile"] == 41.0
     assert report["families"]["standard"]["strategies"] == strategies
 
     printed = capsys.readouterr().out
     assert "standard: 2 maps of 10x10, seed 3" in printed
     assert all(name in printed for name in REQUIRED)
+    assert "kf-wiener0-rts" in printed and "RTS-smoothed" in printed
     assert (tmp_path / "errors_standard.png").stat().st_size > 0
     assert (tmp_path / "summary_standard.png").stat().st_size > 0
 
@@ -74,6 +86,31 @@ def test_families_are_reported_apart(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert set(report["strategies"]) == {"af-every-tile", "tile-skip"}
     printed = capsys.readouterr().out
     assert "standard: 2 maps of 8x8" in printed and "steps: 2 maps of 8x8" in printed
+
+
+def test_several_families_after_one_flag_with_outliers_and_oracle_ratios(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "accuracy.json"
+    args = ["--maps", 2, "--size", 8, "--family", "standard", "outliers", "--json", out]
+    names = ["kf-wiener0", "gp-oracle"] if "gp-oracle" in registry.STRATEGIES else ["kf-wiener0"]
+    assert _bench(*args, "--strategies", *names) == 0
+    families = json.loads(out.read_text())["families"]
+    assert set(families) == {"standard", "outliers"}
+    standard = families["standard"]["strategies"]["kf-wiener0"]
+    outliers = families["outliers"]["strategies"]["kf-wiener0"]
+    assert outliers["prior_mae_um"] > standard["prior_mae_um"]  # same surfaces, worse data
+    printed = capsys.readouterr().out
+    assert ("prior/oracle" in printed) == ("gp-oracle" in names)
+
+
+def test_outliers_hit_about_the_given_fraction_of_tiles() -> None:
+    measured = np.zeros((4, 20, 20))
+    corrupted = add_outliers(measured, Outliers(0.05, 3.0, 8.0), seed=1)
+    hit = np.abs(corrupted) > 0
+    assert 0.03 < hit.mean() < 0.07
+    assert np.all((np.abs(corrupted[hit]) >= 3.0) & (np.abs(corrupted[hit]) <= 8.0))
+    assert np.array_equal(corrupted, add_outliers(measured, Outliers(0.05, 3.0, 8.0), seed=1))
 
 
 def test_a_users_truth_and_measured_maps_are_replayed_as_given(tmp_path: Path) -> None:
@@ -117,6 +154,7 @@ def test_a_users_map_stack_with_simulated_noise(tmp_path: Path) -> None:
         (["--noise-um", "0"], "must be positive"),
         (["--maps", "0"], "--maps >= 1"),
         (["--size", "3", "--strategies", "survey-spline"], "at least 4 survey points per axis"),
+        (["--truth-map", "TRUTH", "--strategies", "gp-oracle"], "needs generated maps"),
     ],
 )
 def test_bad_input_is_a_clear_error(

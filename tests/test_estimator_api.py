@@ -441,7 +441,8 @@ def test_map_formats_agree(app: FastAPI) -> None:
     local = local_map("kf-wiener0", SETTINGS, 4)
     as_json = replies["json"].json()
     np.testing.assert_array_equal(np.array(as_json["posterior_um"]), local.posterior_um)
-    assert as_json["smoothed_um"] is None and (as_json["rows"], as_json["cols"]) == (ROWS, COLS)
+    np.testing.assert_allclose(np.array(as_json["smoothed_um"]), local.smoothed_um)
+    assert (as_json["rows"], as_json["cols"]) == (ROWS, COLS)
 
     assert replies["csv"].headers["content-type"].startswith("text/csv")
     table = np.genfromtxt(io.StringIO(replies["csv"].text), delimiter=",", names=True)

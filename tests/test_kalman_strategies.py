@@ -240,3 +240,32 @@ def test_bad_parameters_are_clear_errors() -> None:
         STRATEGIES["kf-gm1"](settings, beta_per_tile=2.0)
     with pytest.raises(ValueError, match="q"):
         STRATEGIES["kf-wiener1"](settings, q=-1.0)
+
+
+@pytest.mark.parametrize("name", sorted(STRATEGIES))
+def test_square_root_form_agrees_with_the_covariance_form(name: str) -> None:
+    truth = generate_surfaces(SurfaceSpec(rows=8, cols=9), 1, seed=7)[0]
+    measured = noisy(truth, 1.5, seed=7)
+    settings = SlideSettings(ScanGrid(8, 9))
+    plain = replay(STRATEGIES[name](settings), truth, measured).focus_map
+    root = replay(STRATEGIES[name](settings, sqrt=True), truth, measured).focus_map
+    for layer in (
+        "prior_um",
+        "prior_sigma_um",
+        "posterior_um",
+        "posterior_sigma_um",
+        "smoothed_um",
+    ):
+        np.testing.assert_allclose(getattr(root, layer), getattr(plain, layer), atol=1e-7)
+    np.testing.assert_allclose(root.z_used_um, plain.z_used_um, atol=1e-7)
+
+
+def test_partitioned_update_runs_in_the_square_root_form_too() -> None:
+    truth = generate_surfaces(SurfaceSpec(rows=6, cols=6), 1, seed=8)[0]
+    measured = noisy(truth, 1.5, seed=8)
+    settings = SlideSettings(ScanGrid(6, 6))
+    maps = [
+        replay(STRATEGIES["kf-wiener1-dir"](settings, partitioned=True, sqrt=sqrt), truth, measured)
+        for sqrt in (False, True)
+    ]
+    np.testing.assert_allclose(maps[1].focus_map.posterior_um, maps[0].focus_map.posterior_um)

@@ -23,7 +23,7 @@ import argparse
 import json
 import re
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +33,16 @@ from focustrack.bench.replay import Replay, Scores, replay, score
 from focustrack.geometry import ScanGrid
 from focustrack.services.estimator import registry
 from focustrack.services.estimator.strategy import SlideSettings
-from focustrack.surfaces import FAMILIES, family_spec, generate_surfaces, load_map
+from focustrack.surfaces import FAMILIES, SurfaceSpec, family_spec, generate_surfaces, load_map
 
 DEFAULT_FAMILY = "standard"
+
+#: The Bayes-optimal reference (when registered): given the family's SurfaceSpec as its
+#: parameters, and every strategy's MAE is also printed as a ratio to its MAE.
+ORACLE = "gp-oracle"
+
+#: Suffix of the rows scored on a strategy's RTS-smoothed final map.
+SMOOTHED_SUFFIX = "-rts"
 
 
 @dataclass(frozen=True)
@@ -47,6 +54,7 @@ class MapSet:
     truth_um: np.ndarray
     measured_um: np.ndarray
     start_z_um: np.ndarray  # (n_maps,): where each map's scan starts
+    spec: SurfaceSpec | None = None  # the generator's spec (None for a user's maps)
 
     @property
     def n_maps(self) -> int:
@@ -66,6 +74,34 @@ def add_measurement_noise(truth_um: np.ndarray, noise_um: float, seed: int) -> n
     return truth_um + noise_um * np.stack(noise)
 
 
+@dataclass(frozen=True)
+class Outliers:
+    """Gross measurement errors: a `fraction` of tiles off by `low_um`..`high_um`, either sign.
+
+    What dust or a parasite lying in another plane does to a best-focus search:
+    the peak it finds is several um from the specimen's, whatever the noise.
+    """
+
+    fraction: float
+    low_um: float
+    high_um: float
+
+
+#: Map families whose measurements also carry outliers (their surfaces are in FAMILIES).
+OUTLIERS: dict[str, Outliers] = {"outliers": Outliers(fraction=0.05, low_um=3.0, high_um=8.0)}
+
+
+def add_outliers(measured_um: np.ndarray, outliers: Outliers, seed: int) -> np.ndarray:
+    """Measured maps (n_maps, rows, cols) with outliers; map i's drawn from (seed, i, 2)."""
+    corrupted = measured_um.copy()
+    for index, measured in enumerate(corrupted):
+        rng = np.random.default_rng([seed, index, 2])
+        hit = rng.random(measured.shape) < outliers.fraction
+        size_um = rng.uniform(outliers.low_um, outliers.high_um, measured.shape)
+        measured += np.where(hit, rng.choice([-1.0, 1.0], measured.shape) * size_um, 0.0)
+    return corrupted
+
+
 def generated_map_sets(
     families: list[str], n_maps: int, size: int, seed: int, noise_um: float
 ) -> list[MapSet]:
@@ -73,13 +109,17 @@ def generated_map_sets(
     sets = []
     for family in families:
         truth_um = generate_surfaces(family_spec(family, size, size), n_maps, seed)
+        measured_um = add_measurement_noise(truth_um, noise_um, seed)
+        if family in OUTLIERS:
+            measured_um = add_outliers(measured_um, OUTLIERS[family], seed)
         sets.append(
             MapSet(
                 name=family,
                 title=f"{family}: {n_maps} maps of {size}x{size}, seed {seed}",
                 truth_um=truth_um,
-                measured_um=add_measurement_noise(truth_um, noise_um, seed),
+                measured_um=measured_um,
                 start_z_um=np.zeros(n_maps),
+                spec=family_spec(family, size, size),
             )
         )
     return sets
@@ -133,6 +173,7 @@ def replay_all(
             by_name: dict[str, list[Replay]] = {}
             for name in names:
                 bar.set_postfix_str(f"{map_set.name} {name}")
+                params = asdict(map_set.spec) if name == ORACLE and map_set.spec else None
                 by_name[name] = []
                 for truth_um, measured_um, start_z_um in zip(
                     map_set.truth_um, map_set.measured_um, map_set.start_z_um, strict=True
@@ -144,29 +185,75 @@ def replay_all(
                         noise_sigma_um=noise_um,
                     )
                     by_name[name].append(
-                        replay(registry.create(name, settings), truth_um, measured_um)
+                        replay(registry.create(name, settings, params), truth_um, measured_um)
                     )
                     bar.update()
             results[map_set.name] = by_name
     return results
 
 
+def score_with_smoothed(replays: dict[str, list[Replay]], dof_um: float) -> dict[str, Scores]:
+    """Scores by strategy name, plus a row NAME-rts for every strategy whose maps are smoothed.
+
+    The -rts row is scored on the RTS-smoothed final map in place of the
+    posterior; its prior, cost and in-focus fraction are the strategy's own
+    (the scan is the same; smoothing only improves the map afterwards).
+    """
+    scores = {}
+    for name, runs in replays.items():
+        scores[name] = score(runs, dof_um)
+        if runs and all(run.focus_map.smoothed_um is not None for run in runs):
+            smoothed = [
+                replace(
+                    run, focus_map=replace(run.focus_map, posterior_um=run.focus_map.smoothed_um)
+                )
+                for run in runs
+            ]
+            scores[name + SMOOTHED_SUFFIX] = score(smoothed, dof_um)
+    return scores
+
+
 def format_table(title: str, scores: dict[str, Scores]) -> str:
-    """A table of the scores, one strategy a row, errors in um (a dash where no prior)."""
+    """A table of the scores, one strategy a row, errors in um (a dash where no prior).
+
+    With the oracle among the scores, two more columns give each MAE as a
+    ratio to the oracle's; footnotes say what the -rts rows are.
+    """
 
     def number(value: float | None, digits: int) -> str:
         return "-" if value is None else f"{value:.{digits}f}"
 
+    def ratio(value: float | None, reference: float | None) -> str:
+        return "-" if value is None or not reference else f"{value / reference:.2f}"
+
+    oracle = scores.get(ORACLE)
     header = (
-        f"{'strategy':<18}{'prior MAE':>10}{'prior std':>10}{'post MAE':>10}{'post std':>10}"
+        f"{'strategy':<20}{'prior MAE':>10}{'prior std':>10}{'post MAE':>10}{'post std':>10}"
         f"{'images/tile':>13}{'scan time s':>13}{'in focus':>10}"
+        + (f"{'prior/oracle':>14}{'post/oracle':>13}" if oracle else "")
     )
     lines = [title, header, "-" * len(header)]
     for name, s in scores.items():
-        lines.append(
-            f"{name:<18}{number(s.prior_mae_um, 3):>10}{number(s.prior_std_um, 3):>10}"
+        line = (
+            f"{name:<20}{number(s.prior_mae_um, 3):>10}{number(s.prior_std_um, 3):>10}"
             f"{s.post_mae_um:>10.3f}{s.post_std_um:>10.3f}{s.images_per_tile:>13.2f}"
             f"{s.scan_time_s:>13.1f}{s.in_focus_fraction:>10.1%}"
+        )
+        if oracle:
+            line += (
+                f"{ratio(s.prior_mae_um, oracle.prior_mae_um):>14}"
+                f"{ratio(s.post_mae_um, oracle.post_mae_um):>13}"
+            )
+        lines.append(line)
+    if any(name.endswith(SMOOTHED_SUFFIX) for name in scores):
+        lines.append(
+            f"NAME{SMOOTHED_SUFFIX}: post MAE/std of NAME's RTS-smoothed final map; its prior, "
+            "cost and in-focus fraction are NAME's (the same scan)."
+        )
+    if oracle:
+        lines.append(
+            f"{ORACLE}: Bayes-optimal, knows the generator's covariance (no scanner can run it); "
+            "ratios are MAE / its MAE."
         )
     return "\n".join(lines)
 
@@ -250,9 +337,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     generated.add_argument("--size", type=int, default=None, help="tiles per side (default 20)")
     generated.add_argument(
         "--family",
-        action="append",
+        action="extend",
+        nargs="+",
         choices=sorted(FAMILIES),
-        help=f"map family; repeat for several, each reported apart (default {DEFAULT_FAMILY})",
+        help=f"map family or families (several, or repeated), each reported apart "
+        f"(default {DEFAULT_FAMILY})",
     )
     user = parser.add_argument_group("a user's maps")
     user.add_argument(
@@ -324,6 +413,10 @@ def run(args: argparse.Namespace) -> int:
                 f"known: {', '.join(registry.STRATEGIES)}"
             )
         map_sets = _map_sets(args)
+        if ORACLE in names and any(map_set.spec is None for map_set in map_sets):
+            if args.strategies:
+                raise ValueError(f"{ORACLE} needs generated maps: it is given their SurfaceSpec")
+            names.remove(ORACLE)  # not asked for by name: run every other strategy
         for map_set in map_sets:  # a strategy that cannot scan these maps fails now, not midway
             grid = ScanGrid(*map_set.truth_um.shape[1:])
             for name in names:
@@ -336,7 +429,7 @@ def run(args: argparse.Namespace) -> int:
     families: dict[str, object] = {}
     for map_set in map_sets:
         replays = results[map_set.name]
-        scores = {name: score(runs, args.dof_um) for name, runs in replays.items()}
+        scores = score_with_smoothed(replays, args.dof_um)
         print()
         conditions = f"noise {args.noise_um} um, depth of field {args.dof_um} um"
         print(format_table(f"{map_set.title}; {conditions}", scores))
@@ -349,10 +442,10 @@ def run(args: argparse.Namespace) -> int:
             for path in write_plots(args.plots, map_set, replays, scores):
                 print(f"wrote {path}")
     # Top-level scores pool every map replayed (the one family's, when there is one).
-    pooled = {
-        name: score([r for by_name in results.values() for r in by_name[name]], args.dof_um)
-        for name in names
-    }
+    pooled = score_with_smoothed(
+        {name: [r for by_name in results.values() for r in by_name[name]] for name in names},
+        args.dof_um,
+    )
     report = {
         "strategies": _scores_json(pooled),
         "families": families,

@@ -1,9 +1,12 @@
 """Tune the Kalman strategies' parameters and the stack width on TRAINING maps.
 
-The defaults of `focustrack.services.estimator.kalman_strategies` come from
-here: maps generated from seeds 0..4 (16 maps each, `SurfaceSpec()` defaults),
-measured with Gaussian noise; the benchmark reports on other seeds (1000+), so
-no default is ever tuned on a map it is judged on.
+The defaults of `focustrack.services.estimator.kalman_strategies` (and of the
+model bank, `bank.kf_mmae`) come from here: maps generated from seeds 0..4 (16
+maps each, of the `--families` asked for: `standard`, the `SurfaceSpec()`
+defaults, unless told otherwise), measured with Gaussian noise (and outliers
+for the `outliers` family); the benchmark reports on other seeds (1000+), so no
+default is ever tuned on a map it is judged on. The objective pools every
+family's maps, so one default serves them all.
 
 Two stages:
 1. accuracy: a coordinate search over each strategy's parameter grid
@@ -31,12 +34,12 @@ from typing import Any
 
 import numpy as np
 
+from focustrack.bench.accuracy import OUTLIERS, add_outliers
 from focustrack.bench.replay import Scores, replay, score
 from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.kalman_strategies import STRATEGIES
-from focustrack.services.estimator.registry import parameters
+from focustrack.services.estimator.registry import STRATEGIES, parameters
 from focustrack.services.estimator.strategy import SlideSettings, ZRangePolicy
-from focustrack.surfaces import SurfaceSpec, generate_surfaces
+from focustrack.surfaces import FAMILIES, family_spec, generate_surfaces
 
 _Q_HEIGHT_UM2 = [0.0, 0.01, 0.03, 0.1, 0.2, 0.3]
 
@@ -63,6 +66,12 @@ SEARCH_SPACE: dict[str, dict[str, list[Any]]] = {
         "q_height_um2": _Q_HEIGHT_UM2,
         "partitioned": [True, False],
     },
+    "kf-mmae": {
+        "q_spread": [3.0, 10.0, 30.0],
+        "q_height_um2": [0.03, 0.1, 0.3],
+        "gate_nis": [0.0, 9.0, 16.0, 25.0],
+        "nis_clip": [4.0, 9.0],
+    },
 }
 
 K_SIGMAS = (1.5, 1.75, 2.0, 2.25, 2.5, 3.0)
@@ -76,14 +85,25 @@ class TrainingSet:
     measured_um: np.ndarray
 
 
-def training_set(seeds: Iterable[int], maps_per_seed: int, noise_um: float) -> TrainingSet:
-    """`maps_per_seed` default surfaces per seed, plus Gaussian noise of `noise_um` (std, um)."""
+def training_set(
+    seeds: Iterable[int],
+    maps_per_seed: int,
+    noise_um: float,
+    families: Iterable[str] = ("standard",),
+) -> TrainingSet:
+    """`maps_per_seed` surfaces per seed and family, plus Gaussian noise of `noise_um` (std, um).
+
+    Maps of the `outliers` family get its outliers too (`accuracy.OUTLIERS`).
+    """
     truths, measured = [], []
-    for seed in seeds:
-        truth = generate_surfaces(SurfaceSpec(), maps_per_seed, seed)
-        noise = np.random.default_rng(seed).normal(0.0, noise_um, truth.shape)
-        truths.append(truth)
-        measured.append(truth + noise)
+    for family in families:
+        for seed in seeds:
+            truth = generate_surfaces(family_spec(family), maps_per_seed, seed)
+            noisy = truth + np.random.default_rng(seed).normal(0.0, noise_um, truth.shape)
+            if family in OUTLIERS:
+                noisy = add_outliers(noisy, OUTLIERS[family], seed)
+            truths.append(truth)
+            measured.append(noisy)
     return TrainingSet(np.concatenate(truths), np.concatenate(measured))
 
 
@@ -175,6 +195,7 @@ def tune(
     maps_per_seed: int = 16,
     noise_um: float = 1.5,
     names: Iterable[str] = tuple(SEARCH_SPACE),
+    families: Iterable[str] = ("standard",),
     k_sigmas: Iterable[float] = K_SIGMAS,
     workers: int | None = None,
     log: Callable[[str], None] = print,
@@ -183,10 +204,11 @@ def tune(
 
     "k_sigma" maps each k of the sweep to the Scores at the tuned parameters.
     """
-    data = training_set(seeds, maps_per_seed, noise_um)
+    families = list(families)
+    data = training_set(seeds, maps_per_seed, noise_um, families)
     log(
-        f"training set: {data.truth_um.shape[0]} maps of {data.truth_um.shape[1:]} tiles, "
-        f"noise {noise_um} um"
+        f"training set: {data.truth_um.shape[0]} maps of {data.truth_um.shape[1:]} tiles "
+        f"({', '.join(families)}), noise {noise_um} um"
     )
     results: dict[str, dict[str, Any]] = {}
     with ProcessPoolExecutor(
@@ -260,13 +282,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--strategies", nargs="+", default=list(SEARCH_SPACE), choices=list(SEARCH_SPACE)
     )
+    parser.add_argument(
+        "--families",
+        nargs="+",
+        default=["standard"],
+        choices=sorted(FAMILIES),
+        help="map families of the training set, pooled (default standard)",
+    )
     parser.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
     parser.add_argument("--plots", type=Path, default=None, help="write k_sigma.png here")
 
 
 def run(args: argparse.Namespace) -> int:
     results = tune(
-        range(args.seeds), args.maps_per_seed, args.noise_um, args.strategies, workers=args.workers
+        range(args.seeds),
+        args.maps_per_seed,
+        args.noise_um,
+        args.strategies,
+        args.families,
+        workers=args.workers,
     )
     if args.plots:
         args.plots.mkdir(parents=True, exist_ok=True)

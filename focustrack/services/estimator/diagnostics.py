@@ -99,3 +99,15 @@ def innovation_diagnostics(
         ljung_box_q=ljung_box_q,
         ljung_box_p=float(stats.chi2.sf(ljung_box_q, max_lag)),
     )
+
+
+def nis_gate(probability: float) -> float:
+    """The NIS a consistent filter's scalar innovation stays below with `probability`.
+
+    The chi-square (one degree of freedom) quantile, for `KalmanStrategy`'s
+    `gate_nis`: 0.999 gives 10.8, and one measurement in a thousand is rejected
+    wrongly.
+    """
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f"gate probability must be in (0, 1), got {probability}")
+    return float(stats.chi2.ppf(probability, 1))

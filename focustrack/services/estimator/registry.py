@@ -12,11 +12,13 @@ import inspect
 from collections.abc import Callable
 from typing import Any
 
-from focustrack.services.estimator import classic, kalman_strategies
+from focustrack.services.estimator import bank, classic, kalman_strategies, spatial
 from focustrack.services.estimator.strategy import SlideSettings, Strategy
 
 STRATEGIES: dict[str, Callable[..., Strategy]] = {
     **kalman_strategies.STRATEGIES,
+    **bank.STRATEGIES,
+    **spatial.STRATEGIES,
     **classic.STRATEGIES,
 }
 

@@ -376,13 +376,17 @@ class SlideDiagnostics:
 
 
 def diagnose(history: list[Logged]) -> SlideDiagnostics:
-    """Diagnostics from the logged outcomes' innovations and NIS (S = innovation^2 / NIS)."""
+    """Diagnostics from the accepted outcomes' innovations and NIS (S = innovation^2 / NIS).
+
+    Gated-out measurements are counted as rejected but left out of the innovation
+    statistics, which describe the filter's consistency on what it used.
+    """
     n_measured = sum(logged.acquisition.measure for logged in history)
     n_accepted = sum(logged.outcome.accepted for logged in history)
     innovation_um, variance_um2 = [], []
     for logged in history:
         outcome = logged.outcome
-        if outcome.innovation_um is None or outcome.nis is None:
+        if not outcome.accepted or outcome.innovation_um is None or outcome.nis is None:
             continue
         innovation_um.append(outcome.innovation_um)
         # NIS = 0 only for a zero innovation, whose normalised value is 0 whatever S is.
