@@ -498,7 +498,7 @@ def test_metrics_count_requests_measurements_and_rejections(app: FastAPI) -> Non
             slide_id = await create(http)
             url = f"/v1/slides/{slide_id}/measurements"
             await http.post(url, json={"row": 0, "col": 0, "sequence": 0, "z_um": None,
-                                       "flags": ["flat"]})  # fmt: skip
+                                       "flags": ["edge_high"]})  # fmt: skip
             await http.post(url, json={"row": 0, "col": 0, "sequence": 1, "z_um": 0.3})
             await http.post(url, json={"row": 0, "col": 0, "sequence": 1, "z_um": 0.3})  # again
             await http.get("/v1/slides/nope")

@@ -93,14 +93,33 @@ def test_edge_flag_retries_the_same_tile_beyond_the_edge_without_predicting() ->
     assert (following.row, following.col, following.purpose) == (0, 1, Purpose.SCAN)
 
 
-def test_flat_curve_retries_a_wide_stack_in_place() -> None:
+FLAT = Measurement(z_um=None, flags=frozenset({FocusFlag.FLAT}))
+
+
+def test_flat_curve_retries_a_wide_stack_in_place_once() -> None:
+    strategy = first_strategy()
+    strategy.record(strategy.next_acquisition(), Measurement(z_um=0.0))
+    narrow = strategy.next_acquisition()
+    assert narrow.z.n_frames < strategy.settings.policy.max_frames
+    strategy.record(narrow, FLAT)
+    wide = strategy.next_acquisition()
+    assert (wide.row, wide.col, wide.purpose) == (narrow.row, narrow.col, Purpose.RETRY)
+    assert wide.z.center_um == pytest.approx(narrow.z.center_um)
+    assert wide.z.n_frames == strategy.settings.policy.max_frames
+    outcome = strategy.record(wide, FLAT)  # flat in the widest stack too: give the tile up
+    assert outcome.posterior_um == outcome.prior_um
+    assert strategy.gave_up[narrow.row, narrow.col]
+    assert strategy.next_acquisition().purpose is Purpose.SCAN
+
+
+def test_an_empty_field_is_given_up_without_a_retry() -> None:
     strategy = first_strategy()
     first = strategy.next_acquisition()
-    strategy.record(first, Measurement(z_um=None, flags=frozenset({FocusFlag.FLAT})))
-    retry = strategy.next_acquisition()
-    assert retry.purpose is Purpose.RETRY
-    assert retry.z.center_um == pytest.approx(first.z.center_um)
-    assert retry.z.n_frames == strategy.settings.policy.max_frames
+    empty = Measurement(z_um=None, flags=frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
+    outcome = strategy.record(first, empty)
+    assert not outcome.accepted and outcome.posterior_um == outcome.prior_um
+    following = strategy.next_acquisition()
+    assert (following.row, following.col, following.purpose) == (0, 1, Purpose.SCAN)
 
 
 def test_peak_between_two_stacks_is_looked_for_in_the_gap() -> None:

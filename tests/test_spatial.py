@@ -71,14 +71,14 @@ def test_measurement_sigma_is_used_as_r() -> None:
     assert abs(posteriors[1]) < 1.0
 
 
-def test_flat_curves_are_retried_then_the_prior_stands() -> None:
+def test_peakless_stacks_are_retried_then_the_prior_stands() -> None:
     strategy = STRATEGIES["nshp-wiener0"](SlideSettings(grid=ScanGrid(2, 2)), max_retries=2)
-    flat = Measurement(None, flags=frozenset({FocusFlag.FLAT}))
+    edge = Measurement(None, flags=frozenset({FocusFlag.EDGE_HIGH}))
     outcomes = []
     for _ in range(3):
         acquisition = strategy.next_acquisition()
         assert acquisition is not None and (acquisition.row, acquisition.col) == (0, 0)
-        outcomes.append(strategy.record(acquisition, flat))
+        outcomes.append(strategy.record(acquisition, edge))
     assert [o.accepted for o in outcomes] == [False, False, False]
     assert outcomes[-1].posterior_um == outcomes[-1].prior_um
     following = strategy.next_acquisition()

@@ -19,8 +19,9 @@ artefact of where the range was anchored, not of the method. The comparison with
 filters then measures what prediction adds: narrower stacks and filtered noise.
 
 An edge peak (the measured focus lies outside the stack) asks for the next wide block beyond
-that edge (`ZRangePolicy.beyond`), up to `MAX_RETRIES` times; a flat curve or running out of
-retries gives up on the tile, which is then imaged at the last measured height.
+that edge, up to `MAX_RETRIES` times (`PeakSearch`, shared with the Kalman strategies); a flat
+curve in a wide stack, an empty field or running out of retries gives up on the tile, which is
+then imaged at the last measured height.
 
 Defaults were chosen on training seeds 0..9 (16 standard 20x20 maps each, 1.5 um noise; never
 on reported maps): the fewest survey points whose posterior MAE is within 1% of the lowest.
@@ -49,20 +50,17 @@ from scipy.spatial import Delaunay, QhullError
 from focustrack.geometry import Tile
 from focustrack.services.estimator.strategy import (
     Acquisition,
-    FocusFlag,
     Measurement,
     Outcome,
+    PeakSearch,
     Purpose,
     SlideSettings,
     Strategy,
-    ZRange,
 )
 
 #: Wide blocks to try beyond an edge before giving up on a tile (each block spans
 #: `policy.max_frames` frames: 20 um with the default policy).
 MAX_RETRIES = 8
-
-_EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
 
 
 class _Autofocusing(Strategy):
@@ -71,30 +69,28 @@ class _Autofocusing(Strategy):
     def __init__(self, settings: SlideSettings) -> None:
         super().__init__(settings)
         self.last_z_um = settings.start_z_um  # centre of the next wide stack, in um
-        self._retry: ZRange | None = None  # the next stack on the tile being focused, if any
-        self._n_retries = 0
+        self._search = PeakSearch(settings.policy, MAX_RETRIES)  # on the tile being focused
 
     def _focus_stack(self, tile: Tile, purpose: Purpose) -> Acquisition:
         """The next stack of the autofocus on `tile`: the wide stack, or the pending retry."""
-        if self._retry is not None:
-            return self._acquisition(tile.row, tile.col, self._retry, Purpose.RETRY, measure=True)
+        if self._search:
+            z = self._search.next_range()
+            return self._acquisition(tile.row, tile.col, z, Purpose.RETRY, measure=True)
         z = self.settings.policy.wide(self.last_z_um)
         return self._acquisition(tile.row, tile.col, z, purpose, measure=True)
 
     def _focus_done(self, acquisition: Acquisition, measurement: Measurement) -> bool:
-        """Take an autofocus stack's result; False while a retry beyond an edge is due.
+        """Take an autofocus stack's result; False while another stack is due (`PeakSearch`).
 
-        A measured peak becomes `last_z_um`; after a flat curve, or `MAX_RETRIES`
-        edge peaks, the tile keeps the previous `last_z_um`.
+        A measured peak becomes `last_z_um`; when the search ends without one
+        (a flat curve in a wide stack, an empty field, `MAX_RETRIES` edge peaks),
+        the tile keeps the previous `last_z_um`.
         """
-        edges = measurement.flags & _EDGES
         if measurement.is_observation and measurement.z_um is not None:
             self.last_z_um = measurement.z_um
-        elif edges and self._n_retries < MAX_RETRIES:
-            self._retry = self.settings.policy.beyond(acquisition.z, min(edges))
-            self._n_retries += 1
+        elif self._search.failed(acquisition.z, measurement):
             return False
-        self._retry, self._n_retries = None, 0
+        self._search.clear()
         return True
 
     def _set_measured(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:

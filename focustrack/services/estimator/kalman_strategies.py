@@ -15,8 +15,8 @@ Two layers:
   (`ZRangePolicy.around`, sigma = sqrt(H P H^T + R)); the best focus found in
   it updates the estimator. A peak at the edge of the stack (or a flat curve)
   is no measurement: the same tile is acquired again beyond that edge
-  (`ZRangePolicy.beyond`), with no second predict, and after `max_retries`
-  retries the tile is given up (imaged at its prediction, marked in
+  (`PeakSearch`), with no second predict; when the search ends without a
+  peak the tile is given up (imaged at its prediction, marked in
   `gave_up`) so that a scan always ends. A tile is imaged
   (`FocusMap.z_used_um`) at the frame nearest its posterior among all the
   stacks taken on it.
@@ -53,17 +53,15 @@ from focustrack.services.estimator.models import (
 from focustrack.services.estimator.sqrt_filter import SqrtKalmanFilter
 from focustrack.services.estimator.strategy import (
     Acquisition,
-    FocusFlag,
     FocusMap,
     Measurement,
     Outcome,
+    PeakSearch,
     Purpose,
     SlideSettings,
     Strategy,
     ZRange,
 )
-
-_EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
 
 #: How many measurements the configured default R counts as when `adapt_r` estimates it.
 R_PRIOR_COUNT = 20
@@ -247,8 +245,6 @@ class KalmanStrategy(Strategy):
         adapt_r: bool = False,
     ) -> None:
         super().__init__(settings)
-        if max_retries < 0:
-            raise ValueError(f"max_retries must not be negative, got {max_retries}")
         if gate_nis < 0 or gate_patience < 0:
             raise ValueError(
                 f"gate_nis and gate_patience must not be negative, got {gate_nis}, {gate_patience}"
@@ -268,7 +264,7 @@ class KalmanStrategy(Strategy):
         self._r_count = R_PRIOR_COUNT
         self._r_min_um2 = 1e-2 * settings.noise_sigma_um**2
         self._position = 0  # index of the current tile in serpentine order
-        self._misses: list[tuple[ZRange, FocusFlag]] = []  # peakless stacks on the current tile
+        self._search = PeakSearch(settings.policy, max_retries)  # on the current tile
         self._innovation_um: list[float] = []
         self._innovation_var_um2: list[float] = []
         self._smoothed_at = -1  # tiles finished when the smoothed layers were last filled
@@ -321,7 +317,7 @@ class KalmanStrategy(Strategy):
         mean_um, var_um2 = self.estimator.height
         self.map.prior_um[row, col] = mean_um
         self.map.prior_sigma_um[row, col] = math.sqrt(var_um2)
-        self._misses = []
+        self._search.clear()
 
     def _plan(self) -> Acquisition | None:
         if self._position >= self.grid.n_tiles:
@@ -329,11 +325,11 @@ class KalmanStrategy(Strategy):
         row, col = self._tile
         prior_um, prior_sigma_um = self._prior
         policy = self.settings.policy
-        if not self._misses:
+        if not self._search:
             innovation_sigma_um = math.sqrt(prior_sigma_um**2 + self.default_r_um2)
             z, purpose = policy.around(prior_um, innovation_sigma_um), Purpose.SCAN
         else:
-            z, purpose = self._retry_range(), Purpose.RETRY
+            z, purpose = self._search.next_range(), Purpose.RETRY
         return self._acquisition(
             row,
             col,
@@ -343,27 +339,6 @@ class KalmanStrategy(Strategy):
             predicted_um=prior_um,
             predicted_sigma_um=prior_sigma_um,
         )
-
-    def _retry_range(self) -> ZRange:
-        """The stack after peakless ones: between two that bracket the peak, else beyond the last.
-
-        A peak near the boundary of two stacks can leave each with only one
-        flank (one says EDGE_HIGH, the other EDGE_LOW); the peak then lies
-        between the highest EDGE_HIGH edge and the lowest EDGE_LOW edge, which
-        may overlap by the frames the stacks share.
-        """
-        policy = self.settings.policy
-        above_um = max(
-            (z.high_um for z, flag in self._misses if flag is FocusFlag.EDGE_HIGH),
-            default=-math.inf,
-        )
-        below_um = min(
-            (z.low_um for z, flag in self._misses if flag is FocusFlag.EDGE_LOW), default=math.inf
-        )
-        if math.isfinite(above_um) and math.isfinite(below_um):
-            half_width_um = abs(below_um - above_um) / 2.0 + policy.z_step_um
-            return policy.around((above_um + below_um) / 2.0, half_width_um / policy.k_sigma)
-        return policy.beyond(*self._misses[-1])
 
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
         row, col = self._tile
@@ -420,11 +395,9 @@ class KalmanStrategy(Strategy):
     def _no_peak(
         self, stack: ZRange, measurement: Measurement, prior_um: float, prior_sigma_um: float
     ) -> Outcome:
-        """An edge peak or a flat curve: retry (see `_retry_range`), or give the tile up."""
+        """No peak in the stack: take another (`PeakSearch`), or give the tile up."""
         row, col = self._tile
-        edges = measurement.flags & _EDGES
-        self._misses.append((stack, next(iter(edges)) if len(edges) == 1 else FocusFlag.FLAT))
-        if len(self._misses) > self.max_retries:
+        if not self._search.failed(stack, measurement):
             # The first stack was centred on the prediction: image the tile there.
             self.gave_up[row, col] = True
             self.estimator.skip()
@@ -445,7 +418,7 @@ class KalmanStrategy(Strategy):
     ) -> None:
         """Record the tile's estimate, image it at the acquired frame nearest it, move on."""
         row, col = self._tile
-        stacks = [stack for stack, _ in self._misses] + ([last_stack] if last_stack else [])
+        stacks = self._search.stacks + ([last_stack] if last_stack else [])
         frames_um = np.concatenate([stack.z_um() for stack in stacks])
         self.map.posterior_um[row, col] = posterior_um
         self.map.posterior_sigma_um[row, col] = sigma_um

@@ -31,12 +31,16 @@ class FocusFlag(StrEnum):
 
     EDGE_LOW = "edge_low"  # peak at the low-z end of the range: extend downwards
     EDGE_HIGH = "edge_high"  # peak at the high-z end: extend upwards
-    FLAT = "flat"  # no contrast (empty field): no measurement
+    FLAT = "flat"  # no peak in the curve (no contrast): no measurement
+    EMPTY = "empty"  # with FLAT: nothing in view in any frame, so no other stack would help
     MULTI_PEAK = "multi_peak"  # more than one peak: measurement is less certain
 
 
 #: Flags that mean the stack holds no usable best focus.
-NOT_AN_OBSERVATION = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH, FocusFlag.FLAT})
+NOT_AN_OBSERVATION = frozenset(
+    {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH, FocusFlag.FLAT, FocusFlag.EMPTY}
+)
+_EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
 
 
 class Purpose(StrEnum):
@@ -166,6 +170,67 @@ class Measurement:
     @property
     def is_observation(self) -> bool:
         return self.z_um is not None and not (self.flags & NOT_AN_OBSERVATION)
+
+
+class PeakSearch:
+    """The search for one tile's focus peak: the stacks that found none, and the next to take.
+
+    After a stack without a peak:
+    - an edge peak continues past that edge (`ZRangePolicy.beyond`); two stacks
+      that each saw one flank (an EDGE_HIGH stack below an EDGE_LOW one)
+      bracket the peak, and the next stack spans what lies between them and
+      the frames they share;
+    - a flat curve gets the widest stack once, centred where the last one was;
+      a flat curve in a widest stack ends the search;
+    - an empty field (nothing in view) ends the search at once;
+    - so does a failure after `max_retries` retries: a scan must always end.
+    A strategy that gives a tile up images it where it predicted its focus.
+    """
+
+    def __init__(self, policy: ZRangePolicy, max_retries: int) -> None:
+        if max_retries < 0:
+            raise ValueError(f"max_retries must not be negative, got {max_retries}")
+        self.policy = policy
+        self.max_retries = max_retries
+        self.misses: list[tuple[ZRange, FocusFlag]] = []
+
+    def __bool__(self) -> bool:
+        """True once a stack of this tile has found no peak."""
+        return bool(self.misses)
+
+    @property
+    def stacks(self) -> list[ZRange]:
+        """The peakless stacks of this tile, in the order they were taken."""
+        return [stack for stack, _ in self.misses]
+
+    def clear(self) -> None:
+        """Start the search of a new tile."""
+        self.misses = []
+
+    def failed(self, stack: ZRange, measurement: Measurement) -> bool:
+        """Note that `stack` found no peak; True: take another (`next_range`); False: give up."""
+        edges = measurement.flags & _EDGES
+        flag = next(iter(edges)) if len(edges) == 1 else FocusFlag.FLAT
+        self.misses.append((stack, flag))
+        if FocusFlag.EMPTY in measurement.flags:
+            return False
+        if flag is FocusFlag.FLAT and stack.n_frames >= self.policy.max_frames:
+            return False
+        return len(self.misses) <= self.max_retries
+
+    def next_range(self) -> ZRange:
+        """The stack to take after the peakless ones."""
+        above_um = max(
+            (z.high_um for z, f in self.misses if f is FocusFlag.EDGE_HIGH), default=-math.inf
+        )
+        below_um = min(
+            (z.low_um for z, f in self.misses if f is FocusFlag.EDGE_LOW), default=math.inf
+        )
+        if math.isfinite(above_um) and math.isfinite(below_um):
+            half_width_um = abs(below_um - above_um) / 2.0 + self.policy.z_step_um
+            centre_um = (above_um + below_um) / 2.0
+            return self.policy.around(centre_um, half_width_um / self.policy.k_sigma)
+        return self.policy.beyond(*self.misses[-1])
 
 
 @dataclass(frozen=True)
