@@ -13,7 +13,7 @@ import tifffile
 import uvicorn
 from fastapi.testclient import TestClient
 
-from focustrack.bench.focus import synthetic_stack
+from focustrack.bench.focus import render_stack
 from focustrack.services.focus.app import create_app
 from focustrack.wire.session import free_port
 
@@ -28,7 +28,8 @@ def client() -> TestClient:
 
 @pytest.fixture(scope="module")
 def frames() -> np.ndarray:
-    return synthetic_stack(np.random.default_rng(5), Z_UM, TRUTH_UM, size_px=96)
+    """A simulated smear's stack, green channel: (13, 96, 96) uint16."""
+    return render_stack("full", 96, Z_UM, TRUTH_UM, seed=5)[..., 1]
 
 
 def npy_bytes(array: np.ndarray) -> bytes:

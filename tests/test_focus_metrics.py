@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from focustrack.bench.focus import synthetic_stack
+from focustrack.bench.focus import render_stack
 from focustrack.services.focus.metrics import DEFAULT_METRIC, METRICS, get_metric
 from focustrack.services.focus.preprocess import (
     Preprocess,
@@ -18,8 +18,8 @@ from focustrack.services.focus.preprocess import (
 
 @pytest.fixture(scope="module")
 def stack() -> np.ndarray:
-    """Frames at defocus -2, 0, +2 um of a cell field, (3, 128, 128) uint16."""
-    return synthetic_stack(np.random.default_rng(1), np.array([-2.0, 0.0, 2.0]), 0.0, size_px=128)
+    """Frames at defocus -2, 0, +2 um of a simulated smear (green), (3, 128, 128) uint16."""
+    return render_stack("full", 128, np.array([-2.0, 0.0, 2.0]), 0.0, seed=2)[..., 1]
 
 
 @pytest.mark.parametrize("name", list(METRICS))

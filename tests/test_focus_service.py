@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from focustrack.bench.focus import synthetic_stack
+from focustrack.bench.focus import render_stack
 from focustrack.services.focus.pipeline import FocusSettings
 from focustrack.services.focus.service import ZenohFocusWorker
 from focustrack.v1 import common_pb2, focus_pb2, instrument_pb2
@@ -75,7 +75,7 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(instrument) -> No
     subscriber, results = collect(publisher)
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
-        frames = synthetic_stack(np.random.default_rng(3), Z_UM, TRUTH_UM, size_px=96)
+        frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=3)[..., 1]
         publish_stack(publisher, frames[..., None], Z_UM, sequence=7)
         key, result = results.get(timeout=20)
         assert key == "focustrack/v1/focus/s1/2/3"
@@ -132,7 +132,7 @@ def test_focustrack_serve_focus_runs_zenoh_and_http_in_one_process(instrument) -
             json={"z_um": [0, 1, 2, 3, 4], "scores": [1, 2, 4, 2, 1]},
         )
         assert curve.status_code == 200 and curve.json()["best_z_um"] == pytest.approx(2.0)
-        frames = synthetic_stack(np.random.default_rng(4), Z_UM, TRUTH_UM, size_px=96)
+        frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=4)[..., 1]
         publish_stack(publisher, frames[..., None], Z_UM, sequence=1)
         _, result = results.get(timeout=20)
         assert result.best_z_um == pytest.approx(TRUTH_UM, abs=0.15)

@@ -54,9 +54,13 @@ def vollath_f4(image: np.ndarray) -> float:
 
     Noise-robust (white noise is uncorrelated at lags 1 and 2 alike, so it
     cancels), which is why Sun et al. 2004 rank it near the top for brightfield.
+    Computed on I - mean(I): the same autocorrelation difference on an unbounded
+    image, but on a finite one the mean would multiply the frame's edge terms
+    (mean(I(x+1) - I(x+2)) telescopes to them), whose noise then swamps the peak.
     """
-    h = image[:, :-2] * (image[:, 1:-1] - image[:, 2:])
-    v = image[:-2, :] * (image[1:-1, :] - image[2:, :])
+    centred = cv2.subtract(image, cv2.mean(image)[0])
+    h = centred[:, :-2] * (centred[:, 1:-1] - centred[:, 2:])
+    v = centred[:-2, :] * (centred[1:-1, :] - centred[2:, :])
     return float(cv2.mean(h)[0] + cv2.mean(v)[0])
 
 

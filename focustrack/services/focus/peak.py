@@ -1,26 +1,35 @@
 """Best focus from a focus curve: a sub-step peak, an honest standard deviation, and flags.
 
 The peak is refined below the z step by a Gaussian fitted around the best
-frame: a least-squares parabola in log(score), whose vertex is the Gaussian's
-centre (exact for a Gaussian peak; Caruana's method when three frames are
-used). The window holds the frames within half the peak's height above the
-curve's floor, at least the best frame and its two neighbours, at most three
-each side: on a peak that spans few frames the three-point fit has the least
-model bias, on a broad one more frames average the noise.
+frame: a weighted least-squares parabola in log(score), whose vertex is the
+Gaussian's centre (exact for a Gaussian peak; Caruana's method with three
+frames). Which frames: the three around the best, widened one frame each side
+at a time (up to seven) for as long as the wider fit's vertex agrees with every
+narrower one's within `PeakSettings.consistency_sigmas` of their noise
+(Lepski's rule): on a clean, skewed peak the three-point fit has the least bias,
+on a noisy one more frames average the noise.
 
-Its standard deviation has two parts, added in quadrature:
+Its standard deviation has four parts, added in quadrature:
 - noise: the score noise (estimated from the curve itself, as the robust
-  spread of its third differences: `score_noise`)
-  propagated through the weighted fit to the vertex z0 = -b1 / (2 b2) by the
-  delta method;
-- model: the error of fitting a Gaussian to a peak of another shape with the
-  frames at an arbitrary phase: in z steps, a floor plus a part that grows
-  as the peak narrows (`PeakSettings.model_sigma_steps / width`), measured
-  on noise-free curves.
-A curve with more than one peak adds the variance of the choice between
-them. The constants are calibrated on simulated stacks so that the z-scores
-(error / sigma) have a spread near one (`focustrack bench focus` reports
-it; docs/focus.md gives the figures).
+  spread of its third differences: `score_noise`) propagated through the
+  weighted fit to the vertex z0 = -b1 / (2 b2) by the delta method;
+- sampling: a floor of `model_floor_steps` z steps (a Gaussian fitted to a
+  peak of another shape, sampled at an arbitrary phase);
+- window: how far the chosen fit's vertex lies from that of the next window
+  (one frame wider, or narrower where none is wider): a peak that is not a
+  Gaussian, or one on a sloping background, moves with the window;
+- asymmetry: a focus curve on a sloping background (dust on another plane adds
+  contrast that grows towards it) is lopsided, and a Gaussian of variance
+  w**2 on a log-background of slope c peaks c w**2 away from its centre. c is
+  read from the curve as the odd part of log(score) about z0, over the frames
+  mirrored within the curve: |c| w**2.
+A curve with more than one peak adds the variance of the choice between them.
+
+Calibration (docs/focus.md): the constants were fitted on instrument-simulator
+stacks of seeds 100-102 (`focustrack bench focus --seed 100` ...: all field
+kinds, frame sizes, exposures and stack shapes) so that the z-scores (error /
+sigma) of the metrics have a spread near one; the benchmark reports them on
+seed 1.
 """
 
 from __future__ import annotations
@@ -34,9 +43,8 @@ from scipy.signal import find_peaks
 
 from focustrack.services.estimator.strategy import FocusFlag
 
-_MAD_TO_SIGMA = 1.4826
-#: Std of a uniform error over one step: the argmax alone, without any refinement.
-_QUANTISATION_STEPS = 1.0 / math.sqrt(12.0)
+#: Std of a normal distribution per unit of its median absolute deviation.
+MAD_TO_SIGMA = 1.4826
 
 
 class PeakMode(StrEnum):
@@ -57,21 +65,19 @@ class PeakSettings:
         (where the curve is long enough for a clean noise estimate: `score_noise`).
     multi_peak_share: a second local maximum at least this share of the curve's range
         high (prominence) makes the curve multi-peaked.
-    noise_scale: the calibration of the noise part of sigma (module docstring).
-    model_sigma_steps: the model part of sigma, in z steps, for a peak whose half width at
-        half maximum is one step; it scales as 1 / width (narrower peaks are
-        sampled by fewer frames), up to the quantisation limit 1 / sqrt(12) step.
-    model_floor_steps: the model error, in z steps, that remains however wide the peak
-        (an asymmetric window, a curve that is not a Gaussian), added in quadrature.
+    max_reach: the fit uses at most this many frames each side of the best one.
+    consistency_sigmas: a wider fit is kept while its vertex lies within this many noise
+        sigmas of every narrower fit's vertex (module docstring).
+    model_floor_steps: the sampling part of sigma, in z steps (module docstring).
     """
 
     mode: PeakMode = PeakMode.MAX
     min_contrast: float = 0.01
     min_snr: float = 10.0
     multi_peak_share: float = 0.25
-    noise_scale: float = 1.0
-    model_sigma_steps: float = 0.06
-    model_floor_steps: float = 0.07
+    max_reach: int = 3
+    consistency_sigmas: float = 2.0  # fitted on simulator seeds 100-102 (docs/focus.md)
+    model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
 
 
 @dataclass(frozen=True)
@@ -134,7 +140,7 @@ def score_noise(scores: np.ndarray) -> tuple[float, bool]:
     clean = np.count_nonzero(away) >= 2
     if clean:
         d3 = d3[away]
-    return _MAD_TO_SIGMA * float(np.median(np.abs(d3))) / math.sqrt(20.0), bool(clean)
+    return MAD_TO_SIGMA * float(np.median(np.abs(d3))) / math.sqrt(20.0), bool(clean)
 
 
 def find_peak(
@@ -173,21 +179,20 @@ def _find_max(z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings
     return PeakFit(z0, sigma, frozenset(flags))
 
 
-def _fit_vertex(
-    z: np.ndarray, s: np.ndarray, best: int, noise: float, settings: PeakSettings
-) -> tuple[float, float]:
-    """Vertex z (um) of a Gaussian (log-parabola) fit around interior frame `best`; its sigma."""
-    floor = float(s.min())
-    half = floor + 0.5 * (float(s[best]) - floor)
-    reach = 1
-    while (
-        reach < 3
-        and best - reach - 1 >= 0
-        and best + reach + 1 < z.size
-        and s[best - reach - 1] >= half
-        and s[best + reach + 1] >= half
-    ):
-        reach += 1
+@dataclass(frozen=True)
+class _Vertex:
+    """A log-parabola fit around the best frame: vertex z (um), its noise std (um) and the
+    variance (um**2) of the fitted Gaussian (0 for a fit of the scores themselves)."""
+
+    z_um: float
+    noise_sigma_um: float
+    width_var_um2: float
+
+
+def _fit_window(
+    z: np.ndarray, s: np.ndarray, best: int, reach: int, noise: float
+) -> _Vertex | None:
+    """Fit frames best - reach .. best + reach; None when they hold no peak (b2 >= 0)."""
     window = slice(best - reach, best + reach + 1)
     dz = z[window] - z[best]  # centred on the best frame: a well-conditioned fit
     values = s[window]
@@ -199,20 +204,60 @@ def _fit_vertex(
     XtW = X.T * weights
     normal_inv = np.linalg.inv(XtW @ X)
     _, b1, b2 = normal_inv @ (XtW @ y)
-    step_um = float(np.median(np.diff(z)))
-    if not b2 < 0:  # not a peak in the window (a plateau): the best frame, a step of doubt
-        return float(z[best]), step_um
-    z0 = float(z[best] - b1 / (2.0 * b2))
+    if not b2 < 0:
+        return None
     # the vertex stays within the window: outside it the fit is extrapolation
-    z0 = min(max(z0, float(z[window][0])), float(z[window][-1]))
+    z0 = min(max(float(z[best] - b1 / (2.0 * b2)), float(z[window][0])), float(z[window][-1]))
     grad = np.array([0.0, -1.0 / (2.0 * b2), b1 / (2.0 * b2**2)])
     # weighted least squares with Var(y_i) = noise**2 / weights_i: Cov(b) = noise**2 (X'WX)^-1
-    cov_b = noise**2 * normal_inv
-    var_noise = float(grad @ cov_b @ grad) * settings.noise_scale**2
-    # half width at half maximum of the fitted Gaussian: exp(b2 dz**2) = 1/2
-    hwhm_steps = math.sqrt(math.log(2.0) / -b2) / step_um
-    model_steps = min(
-        math.hypot(settings.model_floor_steps, settings.model_sigma_steps / hwhm_steps),
-        _QUANTISATION_STEPS,
+    noise_var = float(grad @ (noise**2 * normal_inv) @ grad)
+    # log(Gaussian) = -dz**2 / (2 w**2) + ...: w**2 = -1 / (2 b2) (no width without the log)
+    return _Vertex(z0, math.sqrt(noise_var), -1.0 / (2.0 * b2) if use_log else 0.0)
+
+
+def _fit_vertex(
+    z: np.ndarray, s: np.ndarray, best: int, noise: float, settings: PeakSettings
+) -> tuple[float, float]:
+    """Vertex z (um) of the Gaussian fit around interior frame `best`, and its sigma (um)."""
+    step_um = float(np.median(np.diff(z)))
+    fits: list[_Vertex] = []
+    for reach in range(1, min(best, z.size - 1 - best, settings.max_reach) + 1):
+        fit = _fit_window(z, s, best, reach, noise)
+        if fit is None:
+            break
+        fits.append(fit)
+    if not fits:  # not a peak even over three frames (a plateau): the best frame, a step of doubt
+        return float(z[best]), step_um
+    chosen, limit = 0, settings.consistency_sigmas
+    for wider in range(1, len(fits)):
+        if any(abs(fits[wider].z_um - f.z_um) > limit * f.noise_sigma_um for f in fits[:wider]):
+            break
+        chosen = wider
+    fit = fits[chosen]
+    neighbour = fits[chosen + 1] if chosen + 1 < len(fits) else fits[chosen - 1] if chosen else None
+    window_um = abs(neighbour.z_um - fit.z_um) if neighbour else 0.0
+    asymmetry_um = _log_slope_about(z, s, fit.z_um) * fit.width_var_um2
+    variance = (
+        fit.noise_sigma_um**2
+        + (settings.model_floor_steps * step_um) ** 2
+        + window_um**2
+        + asymmetry_um**2
     )
-    return z0, math.sqrt(var_noise + (model_steps * step_um) ** 2)
+    return fit.z_um, math.sqrt(variance)
+
+
+def _log_slope_about(z: np.ndarray, s: np.ndarray, z0: float) -> float:
+    """|c| (1/um): the odd part of log(score) about z0, fitted as c d over mirrored offsets d.
+
+    Uses the frames whose mirror image about z0 lies inside the curve (scores
+    interpolated there); 0 where there are none or a score is not positive.
+    """
+    if not np.all(s > 0):
+        return 0.0
+    log_s = np.log(s)
+    offsets = np.abs(z - z0)
+    offsets = offsets[(offsets > 0) & (offsets <= min(z0 - z[0], z[-1] - z0))]
+    if offsets.size == 0:
+        return 0.0
+    odd = (np.interp(z0 + offsets, z, log_s) - np.interp(z0 - offsets, z, log_s)) / 2.0
+    return abs(float(np.sum(odd * offsets) / np.sum(offsets**2)))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -10,8 +11,9 @@ import numpy as np
 
 from focustrack.services.estimator.strategy import FocusFlag, Measurement
 from focustrack.services.focus.metrics import DEFAULT_METRIC, get_metric
-from focustrack.services.focus.peak import PeakSettings, find_peak, validate_curve
+from focustrack.services.focus.peak import PeakFit, PeakSettings, find_peak, validate_curve
 from focustrack.services.focus.preprocess import Preprocess
+from focustrack.services.focus.structure import structure_snr
 
 
 @dataclass(frozen=True)
@@ -21,6 +23,9 @@ class FocusSettings:
     preprocess: Preprocess = field(default_factory=Preprocess)
     metric: str = DEFAULT_METRIC
     peak: PeakSettings = field(default_factory=PeakSettings)
+    #: A stack whose through-focus change stands less than this many noise spreads
+    #: above its pixel noise holds nothing to focus on: flat (`structure.structure_snr`).
+    min_structure_snr: float = 10.0
 
     def __post_init__(self) -> None:
         get_metric(self.metric)  # fail early on an unknown name
@@ -59,19 +64,61 @@ class FocusResult:
         }
 
 
+@dataclass(frozen=True)
+class StackScan:
+    """The scores of a stack (n,) and the frames the structure test compares.
+
+    sharpest, blurriest: preprocessed frames (h, w) float32 of the highest and
+    lowest score; blurriest_raw: the raw 2-D crop (channel, ROI) of the latter.
+    """
+
+    scores: np.ndarray
+    sharpest: np.ndarray
+    blurriest: np.ndarray
+    blurriest_raw: np.ndarray
+
+
+def scan_stack(frames: np.ndarray, settings: FocusSettings) -> StackScan:
+    """Preprocess and score every frame of a stack (n, H, W) or (n, H, W, C), n >= 1."""
+    metric, preprocess = get_metric(settings.metric), settings.preprocess
+    scores = np.empty(len(frames), dtype=np.float64)
+    top = low = 0
+    for i, frame in enumerate(frames):
+        raw = preprocess.crop(frame)
+        image = preprocess.smooth(raw)
+        scores[i] = metric(image)
+        if i == 0 or scores[i] > scores[top]:
+            top, sharpest = i, image
+        if i == 0 or scores[i] < scores[low]:
+            low, blurriest, blurriest_raw = i, image, raw
+    return StackScan(scores, sharpest, blurriest, blurriest_raw)
+
+
 def focus_scores(frames: np.ndarray, settings: FocusSettings) -> np.ndarray:
     """The metric of every frame of a stack (n, H, W) or (n, H, W, C) -> scores (n,)."""
-    metric = get_metric(settings.metric)
-    return np.array([metric(settings.preprocess(frame)) for frame in frames], dtype=np.float64)
+    return scan_stack(frames, settings).scores
 
 
 def focus_from_curve(
-    z_um: np.ndarray, scores: np.ndarray, settings: FocusSettings, *, started_s: float | None = None
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    settings: FocusSettings,
+    *,
+    started_s: float | None = None,
+    structure_snr: float = math.inf,
 ) -> FocusResult:
-    """Read a curve of scores (n,) at z_um (n,); `started_s` (perf_counter) times the whole job."""
+    """Read a curve of scores (n,) at z_um (n,); `started_s` (perf_counter) times the whole job.
+
+    `structure_snr` is the stack's structure test (`structure.structure_snr`), where
+    there were images; below `settings.min_structure_snr` nothing is in view: the
+    curve is flat and the field empty (no other stack of this tile would find a peak).
+    """
     started_s = time.perf_counter() if started_s is None else started_s
     z, s = validate_curve(z_um, scores)
-    fit = find_peak(z, s, settings.peak)
+    if structure_snr < settings.min_structure_snr:
+        fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
+    else:
+        fit = find_peak(z, s, settings.peak)
     return FocusResult(
         z_um=z,
         scores=s,
@@ -96,4 +143,6 @@ def focus_stack(frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings) -
         raise ValueError(f"pixels must be integers or floats, got dtype {frames.dtype}")
     if frames.dtype.kind == "f" and not np.all(np.isfinite(frames)):
         raise ValueError("pixels must be finite (NaN or infinity found)")
-    return focus_from_curve(z, focus_scores(frames, settings), settings, started_s=started_s)
+    scan = scan_stack(frames, settings)
+    snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
+    return focus_from_curve(z, scan.scores, settings, started_s=started_s, structure_snr=snr)

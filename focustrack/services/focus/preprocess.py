@@ -79,12 +79,20 @@ class Preprocess:
 
     def __call__(self, frame: np.ndarray) -> np.ndarray:
         """Preprocess one frame, (H, W) or (H, W, C), any real dtype -> (h, w) float32."""
+        return self.smooth(self.crop(frame))
+
+    def crop(self, frame: np.ndarray) -> np.ndarray:
+        """The channel and region of interest of a frame, at full resolution: a 2-D view."""
         image = select_channel(frame, self.channel)
         if self.roi is not None:
             y0, x0, height, width = self.roi
             if y0 + height > image.shape[0] or x0 + width > image.shape[1]:
                 raise ValueError(f"roi {self.roi} does not fit in a {image.shape} frame")
             image = image[y0 : y0 + height, x0 : x0 + width]
+        return image
+
+    def smooth(self, image: np.ndarray) -> np.ndarray:
+        """The low-pass of a cropped 2-D image: (H, W) -> about (H, W) / 2**levels, float32."""
         return lowpass(image, self.lowpass_sigma_px, self.pyramid_levels)
 
 

@@ -153,6 +153,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "pixel size and --na; 2 px where a stack gives no pixel size)",
     )
     parser.add_argument("--na", type=float, default=0.85, help="numerical aperture (0.85)")
+    parser.add_argument(
+        "--min-structure-snr",
+        type=float,
+        default=FocusSettings.min_structure_snr,
+        help="a stack whose through-focus change stands fewer noise spreads than this above "
+        "its pixel noise is flat (default %(default)g; --min-structure-snr=-inf: never)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -160,7 +167,12 @@ def run(args: argparse.Namespace) -> int:
     preprocess = Preprocess(channel=GREEN)
     if args.lowpass_sigma_px is not None:
         preprocess = replace(preprocess, lowpass_sigma_px=args.lowpass_sigma_px)
-    settings = FocusSettings(preprocess, args.metric, PeakSettings(mode=PeakMode(args.focus_mode)))
+    settings = FocusSettings(
+        preprocess,
+        args.metric,
+        PeakSettings(mode=PeakMode(args.focus_mode)),
+        min_structure_snr=args.min_structure_snr,
+    )
     na = None if args.lowpass_sigma_px is not None else args.na
     session = session_from_args(args)
     worker = ZenohFocusWorker(session, settings, na)
