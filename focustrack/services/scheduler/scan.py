@@ -45,11 +45,11 @@ from focustrack.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, sessi
 
 log = logging.getLogger(__name__)
 
-#: The best Kalman strategy we have, the demo's headline (the lead switches it as filters
-#: improve). At the simulator's focus noise kf-wiener0 keeps 99.8% of tiles in focus against
-#: 84.1% for kf-wiener1-dir (8 standard 10x10 maps, `focustrack bench accuracy --noise-um 0.1
-#: --dof-um 0.89`); at the thesis' 1.5 um noise kf-wiener1-dir is ahead (51.0% vs 47.2%).
-BEST_KALMAN = "kf-wiener0"
+#: The best Kalman strategy we have, the demo's headline. kf-2d has the lowest prior MAE at
+#: the simulator's focus noise (0.146 um against 0.284 for kf-wiener0 and 0.254 for kf-mmae,
+#: 8 standard 10x10 maps, `focustrack bench accuracy --noise-um 0.1 --dof-um 0.89`) and at
+#: the thesis' 1.5 um noise (0.461 against 0.612 for kf-mmae, 16 maps of 20x20).
+BEST_KALMAN = "kf-2d"
 
 DEFAULT_ESTIMATOR = "http://127.0.0.1:8100"
 TOKEN_ENV = "FOCUSTRACK_ESTIMATOR_TOKEN"
