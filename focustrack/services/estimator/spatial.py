@@ -20,7 +20,8 @@ carry the previous row(s) in their state:
   field's size and length and the tilt's scale are not assumed: a bank of
   such filters over a grid of (sigma, length, tilt) runs in parallel and is
   averaged with the posterior probability of each member, from the likelihood
-  of its innovations (estimated online, per slide).
+  of its innovations (estimated online, per slide). Its focus map carries the
+  RTS-smoothed layers (a fixed-interval smoother over the rows: `kf-2d-rts`).
 - `gp-oracle` (`GpOracle`): Gaussian-process regression with the generator's
   exact covariance (`focustrack.surfaces.surface_covariance`): the
   Bayes-optimal linear estimator, which no scanner can run; the floor the
@@ -28,8 +29,8 @@ carry the previous row(s) in their state:
 
 All walk the serpentine alike (`SerpentineFilter`): the prior of a tile sets
 a stack of +/- k innovation sigmas; a stack without a peak (an edge peak or a
-flat curve) is followed by another (`retry_range`), up to `max_retries`, after
-which the prior stands; the tile is imaged at the frame of its last stack
+flat curve) is followed by another (`PeakSearch`) until the search ends,
+after which the prior stands; the tile is imaged at the acquired frame
 nearest the posterior.
 Heights are in um, lengths in tiles.
 """
@@ -46,21 +47,19 @@ import numpy as np
 import scipy.linalg
 
 from focustrack.geometry import Tile
+from focustrack.services.estimator.kalman_strategies import rts_smooth
 from focustrack.services.estimator.sqrt_filter import SqrtKalmanFilter, psd_factor
 from focustrack.services.estimator.strategy import (
     Acquisition,
-    FocusFlag,
+    FocusMap,
     Measurement,
     Outcome,
+    PeakSearch,
     Purpose,
     SlideSettings,
     Strategy,
-    ZRange,
-    ZRangePolicy,
 )
 from focustrack.surfaces import SurfaceSpec, surface_covariance
-
-_EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
 
 
 @dataclass(frozen=True)
@@ -75,23 +74,6 @@ class Gaussian:
         return math.sqrt(max(self.var_um2, 0.0))
 
 
-def retry_range(policy: ZRangePolicy, misses: list[tuple[ZRange, FocusFlag]]) -> ZRange:
-    """The stack after peakless ones on a tile: between two that bracket the peak, else beyond.
-
-    An EDGE_HIGH stack below an EDGE_LOW one brackets the peak: the next stack
-    spans the gap between them (and the frames they share); otherwise it
-    continues beyond the last (`policy.beyond`). The same rule as
-    `KalmanStrategy._retry_range`: one copy should move next to
-    `ZRangePolicy.beyond` (see docs/spatial.md).
-    """
-    above_um = max((z.high_um for z, f in misses if f is FocusFlag.EDGE_HIGH), default=-math.inf)
-    below_um = min((z.low_um for z, f in misses if f is FocusFlag.EDGE_LOW), default=math.inf)
-    if math.isfinite(above_um) and math.isfinite(below_um):
-        half_width_um = abs(below_um - above_um) / 2.0 + policy.z_step_um
-        return policy.around((above_um + below_um) / 2.0, half_width_um / policy.k_sigma)
-    return policy.beyond(*misses[-1])
-
-
 class SerpentineFilter(Strategy):
     """A recursive estimator walking the serpentine, one prediction and one correction a tile.
 
@@ -102,12 +84,10 @@ class SerpentineFilter(Strategy):
 
     def __init__(self, settings: SlideSettings, *, max_retries: int) -> None:
         super().__init__(settings)
-        if max_retries < 0:
-            raise ValueError(f"max_retries must not be negative, got {max_retries}")
         self.max_retries = max_retries
         self._position = 0  # serpentine index of the current tile
         self._prior: Gaussian | None = None  # the current tile's prior, once predicted
-        self._misses: list[tuple[ZRange, FocusFlag]] = []  # edge-peak stacks on the current tile
+        self._search = PeakSearch(settings.policy, max_retries)  # on the current tile
 
     @abstractmethod
     def _predict(self, tile: Tile) -> Gaussian:
@@ -129,7 +109,7 @@ class SerpentineFilter(Strategy):
             self.map.prior_um[tile.row, tile.col] = self._prior.mean_um
             self.map.prior_sigma_um[tile.row, tile.col] = self._prior.sigma_um
         prior = self._prior
-        if not self._misses:
+        if not self._search:
             # The measured peak must land in the stack: size it by the innovation sigma.
             innovation_sigma_um = math.sqrt(prior.var_um2 + self.settings.noise_sigma_um**2)
             z, purpose = (
@@ -137,7 +117,7 @@ class SerpentineFilter(Strategy):
                 Purpose.SCAN,
             )
         else:
-            z, purpose = retry_range(self.settings.policy, self._misses), Purpose.RETRY
+            z, purpose = self._search.next_range(), Purpose.RETRY
         return self._acquisition(
             tile.row,
             tile.col,
@@ -152,11 +132,7 @@ class SerpentineFilter(Strategy):
         tile = Tile(acquisition.row, acquisition.col)
         prior = self._prior
         assert prior is not None  # set by _plan for the pending acquisition
-        if not measurement.is_observation and len(self._misses) < self.max_retries:
-            # An edge peak or a flat curve: acquire again (`retry_range`).
-            edges = measurement.flags & _EDGES
-            flag = next(iter(edges)) if len(edges) == 1 else FocusFlag.FLAT
-            self._misses.append((acquisition.z, flag))
+        if not measurement.is_observation and self._search.failed(acquisition.z, measurement):
             return Outcome(
                 tile.row, tile.col, accepted=False, prior_um=prior.mean_um,
                 prior_sigma_um=prior.sigma_um,
@@ -168,16 +144,17 @@ class SerpentineFilter(Strategy):
             posterior = self._correct(tile, prior, measurement.z_um, R_um2)
             innovation_um = measurement.z_um - prior.mean_um
             nis = innovation_um**2 / (prior.var_um2 + R_um2)
-        else:  # no peak within max_retries: the prior stands
+        else:  # the search found no peak: the prior stands
             posterior = self._correct(tile, prior, None, 0.0)
-        frames_um = acquisition.z.z_um()
+        frames_um = np.concatenate([z.z_um() for z in [*self._search.stacks, acquisition.z]])
         self.map.posterior_um[tile.row, tile.col] = posterior.mean_um
         self.map.posterior_sigma_um[tile.row, tile.col] = posterior.sigma_um
         self.map.z_used_um[tile.row, tile.col] = frames_um[
             np.argmin(np.abs(frames_um - posterior.mean_um))
         ]
         self._position += 1
-        self._prior, self._misses = None, []
+        self._prior = None
+        self._search.clear()
         if self._position == self.grid.n_tiles:
             self._finish()
         return Outcome(
@@ -368,13 +345,26 @@ class RowModel:
         return scipy.linalg.block_diag(plane, field)
 
 
+def blend(
+    weights: np.ndarray, means_um: np.ndarray, vars_um2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (um) and variance (um^2) of Gaussian mixtures, member axis first.
+
+    `weights` (n_members,); `means_um` and `vars_um2` (n_members, ...) give the
+    members' estimates of the same quantities; the result has shape (...).
+    """
+    mean_um = np.tensordot(weights, means_um, axes=1)
+    return mean_um, np.tensordot(weights, vars_um2 + (means_um - mean_um) ** 2, axes=1)
+
+
 class RowBankFilter(SerpentineFilter):
     """`kf-2d`: strip filters for every (sigma, length, tilt) of a grid, averaged by likelihood.
 
     Member i's weight is proportional to the likelihood of all innovations so
     far under its model (Bayesian model averaging over fixed models, the
     multiple-model adaptive estimator without switching); the tile's prior and
-    posterior are the weighted mixture's mean and variance.
+    posterior are the weighted mixture's mean and variance. `focus_map` adds
+    the RTS-smoothed layers (`_smoothed`: `kf-2d-rts` in the benchmark).
     """
 
     name = "kf-2d"
@@ -409,6 +399,11 @@ class RowBankFilter(SerpentineFilter):
             self._filters.append(kf)
         self.log_weights = np.zeros(len(self.models))  # log posterior model probabilities
         self._row = 0
+        # For the RTS smoother over rows (`_smoothed`): every member's state after each finished
+        # row's last update (the current row's is live; the priors follow from these).
+        self._row_posteriors: list[tuple[np.ndarray, np.ndarray]] = []
+        self._n_finished = 0  # tiles corrected (with or without a measurement)
+        self._smoothed_at = -1  # `_n_finished` when the smoothed layers were last filled
 
     @property
     def weights(self) -> np.ndarray:
@@ -416,33 +411,48 @@ class RowBankFilter(SerpentineFilter):
         w = np.exp(self.log_weights - self.log_weights.max())
         return w / w.sum()
 
-    def _h(self, tile: Tile) -> np.ndarray:
-        """Measurement row: a tile's height is the plane at its centre plus its column's field."""
-        H = np.zeros((1, N_PLANE + 2 * self.grid.cols))
-        H[0, :N_PLANE] = (
-            1.0,
-            tile.col - (self.grid.cols - 1) / 2.0,
-            tile.row - (self.grid.rows - 1) / 2.0,
-        )
-        H[0, N_PLANE + 2 * tile.col] = 1.0
+    def _design(self, rows: np.ndarray) -> np.ndarray:
+        """Measurement rows of every tile of `rows`, shape (len(rows), cols, dim_x).
+
+        A tile's height is the plane at its centre plus its column's field.
+        """
+        cols = self.grid.cols
+        column = np.arange(cols)
+        H = np.zeros((len(rows), cols, N_PLANE + 2 * cols))
+        H[:, :, 0] = 1.0
+        H[:, :, 1] = column - (cols - 1) / 2.0
+        H[:, :, 2] = (np.asarray(rows) - (self.grid.rows - 1) / 2.0)[:, None]
+        H[:, column, N_PLANE + 2 * column] = 1.0
         return H
+
+    def _h(self, tile: Tile) -> np.ndarray:
+        """Measurement row of one tile, shape (1, dim_x) (`_design`)."""
+        return self._design(np.array([tile.row]))[0, [tile.col]]
+
+    def _states(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the members' x (n_members, dim_x) and P factors (n_members, dim_x, dim_x)."""
+        return (
+            np.stack([kf.x[:, 0] for kf in self._filters]),
+            np.stack([kf.P_sqrt for kf in self._filters]),
+        )
 
     def _mixture(self, tile: Tile) -> Gaussian:
         H = self._h(tile)
         means = np.array([(H @ kf.x).item() for kf in self._filters])
         variances = np.array([np.sum((H @ kf.P_sqrt) ** 2) for kf in self._filters])
-        w = self.weights
-        mean = float(w @ means)
-        return Gaussian(mean, float(w @ (variances + (means - mean) ** 2)))
+        mean, var = blend(self.weights, means, variances)
+        return Gaussian(float(mean), float(var))
 
     def _predict(self, tile: Tile) -> Gaussian:
         if tile.row != self._row:  # a new row: propagate every column one row down
+            self._row_posteriors.append(self._states())
             for model, kf in zip(self.models, self._filters, strict=True):
                 kf.predict(F=model.F, Q_sqrt=model.Q_sqrt)
             self._row = tile.row
         return self._mixture(tile)
 
     def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        self._n_finished += 1
         if z_um is None:
             return prior
         H = self._h(tile)
@@ -451,6 +461,59 @@ class RowBankFilter(SerpentineFilter):
             self.log_weights[i] += kf.log_likelihood
         self.log_weights -= self.log_weights.max()
         return self._mixture(tile)
+
+    def _smoothed(self) -> tuple[np.ndarray, np.ndarray]:
+        """RTS-smoothed heights (um) and variances (um^2) given every measurement so far.
+
+        Both (rows reached, cols). Fixed-interval smoothing over rows: step k is
+        row k, its posterior the state after the row's last update (the live
+        state for the current row), its prior row k - 1's posterior propagated
+        (F x, F P F' + Q: what the filter's predict did; recomputed here rather
+        than stored, which halves the memory kept per row). A row's state holds
+        every tile of that row, so each tile is read
+        from its own row's smoothed state, which has seen the rows below it and
+        the rest of its row: for the bank's models that is exactly the GP
+        posterior given all measurements. Each member is smoothed and the
+        members are blended with their current weights, which for fixed models
+        are the model probabilities given every measurement (the exact smoothed
+        mixture).
+        """
+        x_post, S_post = (
+            np.array(a) for a in zip(*self._row_posteriors, self._states(), strict=True)
+        )  # x (n_rows, n_members, dim_x), S (n_rows, n_members, dim_x, dim_x)
+        P_post = S_post @ S_post.swapaxes(-1, -2)
+        n_rows = len(x_post)
+        H = self._design(np.arange(n_rows))  # (n_rows, cols, dim_x)
+        means, variances = [], []
+        for m, model in enumerate(self.models):
+            x, P, F = x_post[:, m], P_post[:, m], model.F
+            # Priors of rows 1..n-1; row 0's (the initial state) is not used by the smoother.
+            x_prior = np.concatenate([x[:1], x[:-1] @ F.T])
+            P_prior = np.concatenate([P[:1], F @ P[:-1] @ F.T + model.Q])
+            Fs = np.broadcast_to(F, (n_rows, *F.shape))
+            xs, Ps = rts_smooth(x_prior, P_prior, x, P, Fs)
+            means.append(np.einsum("rcd,rd->rc", H, xs))
+            variances.append(np.sum((H @ Ps) * H, axis=-1))  # h' P h for every tile
+        return blend(self.weights, np.array(means), np.array(variances))
+
+    def focus_map(self) -> FocusMap:
+        """The estimates so far, with the RTS-smoothed layers over the tiles finished so far.
+
+        The backward pass runs here, when the map is asked for (and a tile was
+        finished since the last time), never per measurement.
+        """
+        if self._n_finished and self._smoothed_at != self._n_finished:
+            mean_um, var_um2 = self._smoothed()
+            reached = len(mean_um)
+            finished = np.isfinite(self.map.posterior_um[:reached])
+            self.map.smoothed_um = np.full(self.grid.shape, np.nan)
+            self.map.smoothed_sigma_um = np.full(self.grid.shape, np.nan)
+            self.map.smoothed_um[:reached] = np.where(finished, mean_um, np.nan)
+            self.map.smoothed_sigma_um[:reached] = np.where(
+                finished, np.sqrt(np.clip(var_um2, 0.0, None)), np.nan
+            )
+            self._smoothed_at = self._n_finished
+        return self.map
 
 
 # --- gp-oracle ---------------------------------------------------------------------------
