@@ -46,10 +46,16 @@ from focustrack.services.estimator.models import DirectionAwareModel
 from focustrack.services.estimator.strategy import SlideSettings, Strategy
 
 
-def mixture(means_um: np.ndarray, vars_um2: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
-    """Mean (um) and variance (um^2) of a Gaussian mixture; each argument (n_members,)."""
-    mean_um = float(weights @ means_um)
-    return mean_um, float(weights @ (vars_um2 + (means_um - mean_um) ** 2))
+def mixture(
+    means_um: np.ndarray, vars_um2: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (um) and variance (um^2) of Gaussian mixtures, member axis first.
+
+    `weights` (n_members,); `means_um` and `vars_um2` (n_members, ...) are the
+    members' estimates of the same quantities; the results have shape (...).
+    """
+    mean_um = np.tensordot(weights, means_um, axes=1)
+    return mean_um, np.tensordot(weights, vars_um2 + (means_um - mean_um) ** 2, axes=1)
 
 
 class ModelBank(PathEstimator):
@@ -82,7 +88,8 @@ class ModelBank(PathEstimator):
 
     @property
     def height(self) -> tuple[float, float]:
-        return mixture(*self._heights(), self.weights)
+        mean_um, var_um2 = mixture(*self._heights(), self.weights)
+        return float(mean_um), float(var_um2)
 
     def predict(self, step: Step) -> None:
         for member in self.members:
@@ -112,8 +119,7 @@ class ModelBank(PathEstimator):
         smoothed = [member.smoothed() for member in self.members]
         means_um = np.array([mean for mean, _ in smoothed])  # (n_members, n_tiles)
         vars_um2 = np.array([var for _, var in smoothed])
-        mean_um = self.weights @ means_um
-        return mean_um, self.weights @ (vars_um2 + (means_um - mean_um) ** 2)
+        return mixture(means_um, vars_um2, self.weights)
 
 
 def kf_mmae(

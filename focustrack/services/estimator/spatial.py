@@ -47,6 +47,7 @@ import numpy as np
 import scipy.linalg
 
 from focustrack.geometry import Tile
+from focustrack.services.estimator.bank import mixture
 from focustrack.services.estimator.kalman_strategies import rts_smooth
 from focustrack.services.estimator.sqrt_filter import SqrtKalmanFilter, psd_factor
 from focustrack.services.estimator.strategy import (
@@ -345,18 +346,6 @@ class RowModel:
         return scipy.linalg.block_diag(plane, field)
 
 
-def blend(
-    weights: np.ndarray, means_um: np.ndarray, vars_um2: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (um) and variance (um^2) of Gaussian mixtures, member axis first.
-
-    `weights` (n_members,); `means_um` and `vars_um2` (n_members, ...) give the
-    members' estimates of the same quantities; the result has shape (...).
-    """
-    mean_um = np.tensordot(weights, means_um, axes=1)
-    return mean_um, np.tensordot(weights, vars_um2 + (means_um - mean_um) ** 2, axes=1)
-
-
 class RowBankFilter(SerpentineFilter):
     """`kf-2d`: strip filters for every (sigma, length, tilt) of a grid, averaged by likelihood.
 
@@ -440,7 +429,7 @@ class RowBankFilter(SerpentineFilter):
         H = self._h(tile)
         means = np.array([(H @ kf.x).item() for kf in self._filters])
         variances = np.array([np.sum((H @ kf.P_sqrt) ** 2) for kf in self._filters])
-        mean, var = blend(self.weights, means, variances)
+        mean, var = mixture(means, variances, self.weights)
         return Gaussian(float(mean), float(var))
 
     def _predict(self, tile: Tile) -> Gaussian:
@@ -494,7 +483,7 @@ class RowBankFilter(SerpentineFilter):
             xs, Ps = rts_smooth(x_prior, P_prior, x, P, Fs)
             means.append(np.einsum("rcd,rd->rc", H, xs))
             variances.append(np.sum((H @ Ps) * H, axis=-1))  # h' P h for every tile
-        return blend(self.weights, np.array(means), np.array(variances))
+        return mixture(np.array(means), np.array(variances), self.weights)
 
     def focus_map(self) -> FocusMap:
         """The estimates so far, with the RTS-smoothed layers over the tiles finished so far.
