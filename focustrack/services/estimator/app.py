@@ -14,6 +14,7 @@ import gc
 import secrets
 import time
 from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Annotated, Literal
@@ -53,6 +54,9 @@ class Settings:
     token: str | None = None
     max_body_bytes: int = 64 * 1024
 
+
+#: Worker threads for strategy work and SQLite (a request waiting for its commit holds one).
+WORKER_THREADS = 64
 
 SlideId = Annotated[str, Path(min_length=1, max_length=64, description="The id POST returned")]
 _ERRORS = {
@@ -376,6 +380,9 @@ def create_app(settings: Settings) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        # Requests wait in worker threads for their group commit: allow many at once.
+        executor = ThreadPoolExecutor(WORKER_THREADS, thread_name_prefix="estimator")
+        asyncio.get_running_loop().set_default_executor(executor)
         # Everything loaded so far lives as long as the process: out of the collector's
         # sight, a full collection no longer stalls every request (150-200 ms at 100 slides).
         gc.collect()

@@ -7,25 +7,20 @@ so replaying the logged measurements gives back the same state exactly; the
 replay checks that every acquisition and outcome comes out as logged).
 
 Concurrency: every operation on a slide runs under that slide's asyncio lock,
-so requests on one slide are serialised and different slides proceed side by
-side. The strategy work of a request (well under a millisecond) runs on the
-event loop itself; the store's writer thread group-commits the measurement,
-and the request awaits that commit before its outcome is returned. (A hop to a
-worker thread per request, each blocked there for its commit, cost more CPU than
-the work: docs/estimator-api.md has the figures.) Rebuilding a slide from its
-log (a replay) still runs in a worker thread.
+in a worker thread (strategy work and the SQLite commit stay off the event
+loop), so requests on one slide are serialised and different slides proceed
+side by side. A measurement is committed before its outcome is returned.
 """
 
 from __future__ import annotations
 
 import asyncio
 import dataclasses
-import inspect
 import io
 import math
 import time
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numpy as np
@@ -225,7 +220,7 @@ class Slide:
                 )
             self.history.append(Logged(acquisition, measurement, outcome))
 
-    async def measure(self, request: schemas.MeasurementIn) -> tuple[Logged, bool]:
+    def measure(self, request: schemas.MeasurementIn) -> tuple[Logged, bool]:
         """Record a measurement (durably) or return the one already recorded for it.
 
         Returns the logged acquisition with its outcome, and whether it is new
@@ -267,9 +262,7 @@ class Slide:
             measurement_record(measurement),
             outcome_record(outcome),
         )
-        await asyncio.wrap_future(
-            self.store.submit(self.id, event, accepted=outcome.accepted, done=done)
-        )
+        self.store.append(self.id, event, accepted=outcome.accepted, done=done)
         logged = Logged(pending, measurement, outcome)
         self.history.append(logged)
         return logged, True
@@ -317,9 +310,8 @@ class Slides:
         self._live[slide_id] = slide
         return slide_id
 
-    async def run(self, slide_id: str, work: Callable[[Slide], T | Awaitable[T]]) -> T:
-        """`work(slide)` (awaited if it is a coroutine) under the slide's lock, on the event
-        loop; rebuilds the slide (in a worker thread) if needed.
+    async def run(self, slide_id: str, work: Callable[[Slide], T]) -> T:
+        """`work(slide)` under the slide's lock, in a worker thread; rebuilds the slide if needed.
 
         If the work fails past the domain's checks, the live slide may be half-updated
         (strategy advanced, commit failed): it is dropped, to be rebuilt from its log.
@@ -329,8 +321,7 @@ class Slides:
             try:
                 if slide is None:
                     slide = await asyncio.to_thread(self._load, slide_id)
-                result = work(slide)
-                return await result if inspect.isawaitable(result) else result
+                return await asyncio.to_thread(work, slide)
             except SlideNotFoundError:
                 self._locks.pop(slide_id, None)  # keep no lock for ids that do not exist
                 raise

@@ -7,12 +7,10 @@ store knows nothing of strategies: configurations and events are JSON
 objects it keeps, in order, durably.
 
 Durability: WAL journal with ``synchronous=FULL``, so a committed event is
-on disk (the WAL is fsynced) before `append` returns (or `submit`'s future is
-done). One connection, behind a lock. An fsync costs 0.2 ms on an idle
-development machine but 4-12 ms when other processes write, so appends are
-group-committed by one writer thread: those that arrive during a commit share
-the next. The service's event loop awaits `submit`'s future, so a request costs
-no worker thread of its own while its commit is under way.
+on disk (the WAL is fsynced) before `append` returns. One connection is
+shared by the service's worker threads behind a lock. An fsync costs 0.2 ms
+on an idle development machine but 4-12 ms when other processes write, so
+appends are group-committed: those that arrive during a commit share the next.
 """
 
 from __future__ import annotations
@@ -21,8 +19,7 @@ import json
 import sqlite3
 import threading
 import time
-from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -83,7 +80,7 @@ class _Append:
     event: Event
     accepted: bool
     done: bool
-    future: Future[None] = field(default_factory=Future)
+    finished: bool = False
     error: Exception | None = None
 
 
@@ -95,7 +92,7 @@ class Store:
         # Autocommit mode: every write below opens its own explicit transaction.
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         self._lock = threading.Lock()  # the connection, and the one commit under way
-        self._queued = threading.Condition()
+        self._queue_lock = threading.Lock()
         self._queue: list[_Append] = []  # appends waiting for the next group commit
         with self._lock:
             self._db.execute("PRAGMA journal_mode=WAL")
@@ -110,8 +107,6 @@ class Store:
             target=self._checkpoints, args=(checkpoint_every_s,), daemon=True
         )
         self._checkpointer.start()
-        self._writer = threading.Thread(target=self._group_commits, daemon=True)
-        self._writer.start()
 
     def _checkpoints(self, every_s: float) -> None:
         """Copy committed WAL frames into the database now and then, beside the writers.
@@ -131,9 +126,6 @@ class Store:
         if self._closing.is_set():
             return
         self._closing.set()
-        with self._queued:
-            self._queued.notify()
-        self._writer.join()
         self._checkpointer.join()
         with self._lock:
             self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
@@ -183,40 +175,20 @@ class Store:
         """Log `event` as the slide's next one and update its progress, durably, atomically.
 
         The sequence must be the slide's event count (the log has no gaps).
-        Blocks until the event is committed; raises StoreError if it was refused.
-        """
-        self.submit(slide_id, event, accepted=accepted, done=done).result()
-
-    def submit(self, slide_id: str, event: Event, *, accepted: bool, done: bool) -> Future[None]:
-        """Queue `event` for the next group commit; the future is done once it is on disk.
-
-        The future's exception is a StoreError if the append was refused, or the
-        sqlite3.Error that failed its commit. After `close`, nothing is committed.
+        Group commit: appends from concurrent threads that queue while a commit
+        is under way go to disk together in the next transaction, one fsync for
+        all of them; each returns once its own event is committed.
         """
         ticket = _Append(slide_id, event, accepted, done)
-        with self._queued:
-            if self._closing.is_set():
-                raise StoreError("the store is closed")
+        with self._queue_lock:
             self._queue.append(ticket)
-            self._queued.notify()
-        return ticket.future
-
-    def _group_commits(self) -> None:
-        """The writer thread: commit everything queued, in one transaction, until closed."""
-        while True:
-            with self._queued:
-                while not self._queue and not self._closing.is_set():
-                    self._queued.wait()
-                batch, self._queue = self._queue, []
-            if not batch:
-                return  # closing, and nothing left to commit
-            with self._lock:
+        with self._lock:
+            if not ticket.finished:  # nobody committed it yet: commit everything queued
+                with self._queue_lock:
+                    batch, self._queue = self._queue, []
                 self._commit(batch)
-            for ticket in batch:
-                if ticket.error is None:
-                    ticket.future.set_result(None)
-                else:
-                    ticket.future.set_exception(ticket.error)
+        if ticket.error is not None:
+            raise ticket.error
 
     def _commit(self, batch: list[_Append]) -> None:
         """One transaction for the batch; a refused append (a savepoint) spares the others."""
@@ -237,6 +209,9 @@ class Store:
                 self._db.execute("ROLLBACK")
             for ticket in batch:
                 ticket.error = ticket.error or error
+        finally:
+            for ticket in batch:
+                ticket.finished = True
 
     def _insert(self, ticket: _Append, now_s: float) -> None:
         slide_id, event = ticket.slide_id, ticket.event
