@@ -1,26 +1,40 @@
-# Every target sets itself up: a virtualenv in .venv with the project and its dev tools.
+# Every target sets itself up: a virtualenv in .venv with every distribution of the workspace
+# (editable) and the dev tools, at the versions of uv.lock. Needs only python3 (3.11+) and make.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+UV_VERSION := 0.13.8
+MANIFESTS := pyproject.toml uv.lock core/pyproject.toml client/pyproject.toml \
+	$(wildcard services/*/pyproject.toml)
 
-.PHONY: demo test lint format proto clean
+.PHONY: demo test test-fast lint typecheck format proto lock clean
 
-$(STAMP): pyproject.toml
+$(STAMP): $(MANIFESTS)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	test -x $(BIN)/uv || $(BIN)/python -m pip install --quiet "uv==$(UV_VERSION)"
+	VIRTUAL_ENV=$(abspath $(VENV)) $(BIN)/uv sync --locked --all-packages --active --quiet
 	touch $(STAMP)
 
 ## The main job: a demo scan of a simulated slide.
 demo: $(STAMP)
 	$(BIN)/focustrack demo --out out/demo --json out/demo/demo.json
 
-## Lint, format check and the whole test suite.
-test: $(STAMP)
+## Lint, format check, types, import boundaries and the whole test suite (what CI runs).
+test: lint typecheck
+	$(BIN)/pytest
+
+## The same without the slow end-to-end tests (for a quick look while developing).
+test-fast: lint typecheck
+	$(BIN)/pytest -m "not slow"
+
+lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	$(BIN)/pytest
+	$(BIN)/lint-imports
+
+typecheck: $(STAMP)
+	$(BIN)/mypy
 
 format: $(STAMP)
 	$(BIN)/ruff format .
@@ -28,7 +42,12 @@ format: $(STAMP)
 
 ## Regenerate the Python code of the wire schemas in proto/ (checked in; a test compares).
 proto: $(STAMP)
-	$(BIN)/python -m focustrack.wire.generate
+	$(BIN)/python proto/generate.py
+
+## Re-resolve uv.lock after a change of dependencies, and each service's requirements.txt.
+lock: $(STAMP)
+	$(BIN)/uv lock
+	$(BIN)/python scripts/export_requirements.py
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .ruff_cache
+	rm -rf $(VENV) out .pytest_cache .ruff_cache .mypy_cache

@@ -4,6 +4,9 @@ Each subcommand lives in its own module, which provides
 ``add_arguments(parser: argparse.ArgumentParser) -> None`` and
 ``run(args: argparse.Namespace) -> int``. Only the chosen module is imported,
 so `focustrack bench accuracy` does not pay for starting Zenoh or FastAPI.
+A module with an ``ENV_PREFIX`` (the services and the scan) also takes every
+option from the environment (`focustrack_core.config`), as its own console
+script (`focustrack-estimator`, ...) does.
 """
 
 from __future__ import annotations
@@ -11,6 +14,8 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+
+from focustrack_core.config import with_environment
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -29,13 +34,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "render and publish speed of the simulated microscope",
     ),
     "serve instrument": (
-        "focustrack.services.instrument_sim.service",
+        "focustrack_instrument_sim.service",
         "the simulated microscope on Zenoh",
     ),
-    "serve focus": ("focustrack.services.focus.service", "the focus service (Zenoh and REST)"),
-    "serve estimator": ("focustrack.services.estimator.service", "the estimator REST service"),
-    "scan": ("focustrack.services.scheduler.scan", "scan one slide through the services"),
-    "demo": ("focustrack.services.scheduler.demo", "embedded stack: scan a simulated slide"),
+    "serve focus": ("focustrack_focus.service", "the focus service (Zenoh and REST)"),
+    "serve estimator": ("focustrack_estimator.service", "the estimator REST service"),
+    "scan": ("focustrack_scheduler.scan", "scan one slide through the services"),
+    "demo": ("focustrack.demo", "embedded stack: scan a simulated slide"),
 }
 
 
@@ -56,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
             module = importlib.import_module(module_name)
             parser = argparse.ArgumentParser(prog=f"focustrack {name}", description=text)
             module.add_arguments(parser)
+            if hasattr(module, "ENV_PREFIX"):
+                with_environment(parser, module.ENV_PREFIX)
             return module.run(parser.parse_args(argv[n_words:]))
     print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
     return 0 if not argv or argv[0] in ("-h", "--help") else 2

@@ -6,11 +6,12 @@ import pytest
 
 from focustrack.bench.accuracy import OUTLIERS, add_measurement_noise, add_outliers
 from focustrack.bench.replay import replay, score
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.diagnostics import nis_gate
-from focustrack.services.estimator.kalman_strategies import STRATEGIES
-from focustrack.services.estimator.strategy import Measurement, SlideSettings
-from focustrack.surfaces import family_spec, generate_surfaces
+from focustrack_core.domain import Measurement
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.diagnostics import nis_gate
+from focustrack_estimator.kalman_strategies import STRATEGIES
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 
 def scan_row(name: str, heights_um: list[float], **params):

@@ -7,17 +7,17 @@ import pytest
 
 from focustrack.bench.accuracy import OUTLIERS, add_measurement_noise, add_outliers
 from focustrack.bench.replay import replay, score
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.bank import ModelBank, kf_mmae
-from focustrack.services.estimator.kalman_strategies import (
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.bank import ModelBank, kf_mmae
+from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
     PathFilter,
     kf_wiener0,
     kf_wiener1_dir,
 )
-from focustrack.services.estimator.models import WienerModel
-from focustrack.services.estimator.strategy import SlideSettings
-from focustrack.surfaces import family_spec, generate_surfaces
+from focustrack_estimator.models import WienerModel
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 
 def random_walk_surface(grid: ScanGrid, q: float, seed: int) -> np.ndarray:

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import Outliers, add_outliers
 from focustrack.cli import main
-from focustrack.services.estimator import registry
-from focustrack.surfaces import family_spec, generate_surfaces
+from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 REQUIRED = [
     "kf-wiener0",

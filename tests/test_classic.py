@@ -6,16 +6,11 @@ import numpy as np
 import pytest
 
 from focustrack.bench.replay import replay
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import classic, registry
-from focustrack.services.estimator.strategy import (
-    FocusFlag,
-    Measurement,
-    Purpose,
-    SlideSettings,
-    Strategy,
-)
-from focustrack.surfaces import family_spec, generate_surfaces
+from focustrack_core.domain import FocusFlag, Measurement, Purpose
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator import classic, registry
+from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 NAMES = ["af-every-tile", "tile-skip", "survey-bilinear", "survey-spline", "survey-delaunay"]
 WIDE = 41  # frames of the default policy's widest stack

@@ -20,24 +20,27 @@ import pytest
 from fastapi import FastAPI
 
 from focustrack.bench.replay import replay, simulated_measurement
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import registry
-from focustrack.services.estimator.app import Settings, create_app
-from focustrack.services.estimator.client import (
-    acquisition_of_next,
-    focus_map_of_npy,
-    measurement_body,
-    slide_config,
-)
-from focustrack.services.estimator.slides import MAP_LAYERS
-from focustrack.services.estimator.strategy import FocusMap, SlideSettings
-from focustrack.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_client import models as api
+from focustrack_core.domain import FocusMap
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.maps import MAP_LAYERS, focus_map_of_npy
+from focustrack_estimator import registry
+from focustrack_estimator.app import Settings, create_app
+from focustrack_estimator.slides import config_of
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_scheduler.remote import acquisition_of, measurement_in
 
 ROWS, COLS = 6, 5
 SETTINGS = SlideSettings(ScanGrid(ROWS, COLS, pitch_um=150.0, origin_x_um=1000.0))
 
 
 T = TypeVar("T")
+
+
+def slide_config(strategy: str, settings: SlideSettings) -> dict[str, Any]:
+    """The JSON body of `POST /v1/slides` for a slide with these settings."""
+    return config_of(strategy, settings).model_dump(mode="json")
 
 
 def run(coroutine: Coroutine[Any, Any, T]) -> T:
@@ -88,13 +91,13 @@ async def scan(
     while limit is None or n_pairs < limit:
         response = await http.get(f"/v1/slides/{slide_id}/next")
         assert response.status_code == 200, response.text
-        acquisition = acquisition_of_next(response.json())
+        acquisition = acquisition_of(api.Next.model_validate(response.json()))
         if acquisition is None:
             break
         measurement = simulated_measurement(
             acquisition, measured_um[acquisition.row, acquisition.col]
         )
-        body = measurement_body(acquisition, measurement)
+        body = measurement_in(acquisition, measurement).model_dump(mode="json")
         response = await http.post(f"/v1/slides/{slide_id}/measurements", json=body)
         assert response.status_code == 200, response.text
         n_pairs += 1

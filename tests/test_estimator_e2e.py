@@ -16,14 +16,17 @@ from subprocess import Popen
 import numpy as np
 import pytest
 
+from focustrack.bench.remote import RemoteStrategy
 from focustrack.bench.replay import replay, score
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import registry
-from focustrack.services.estimator.client import EstimatorClient, RemoteStrategy, slide_config
-from focustrack.services.estimator.service import spawn
-from focustrack.services.estimator.strategy import Acquisition, Measurement, Outcome, SlideSettings
-from focustrack.surfaces import SurfaceSpec, generate_surfaces
-from focustrack.wire.session import free_port
+from focustrack_client import EstimatorClient
+from focustrack_core.domain import Acquisition, Measurement, Outcome
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.wire.session import free_port
+from focustrack_estimator import registry
+from focustrack_estimator.service import spawn
+from focustrack_estimator.slides import config_of
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 SEED = 1234
 SETTINGS = SlideSettings(ScanGrid(20, 20))
@@ -76,7 +79,7 @@ def test_a_full_scan_over_http_scores_as_the_benchmark(server: Server, strategy:
     assert remote.outcomes == local.outcomes
     assert (remote.n_images, remote.scan_time_s) == (local.n_images, local.scan_time_s)
     slide = client.slide(served.slide_id)
-    assert slide["done"] and slide["n_acquisitions"] == len(local.outcomes)
+    assert slide.done and slide.n_acquisitions == len(local.outcomes)
     client.close()
 
 
@@ -86,8 +89,8 @@ class _KilledMidScan(RemoteStrategy):
     def __init__(self, server: Server, kill_after: int, strategy: str) -> None:
         client = EstimatorClient(server.url)
         self.server, self.kill_after, self.restarted = server, kill_after, False
-        slide = client.create_slide(slide_config(strategy, SETTINGS))
-        super().__init__(client, slide["id"], SETTINGS, strategy)
+        slide = client.create_slide(config_of(strategy, SETTINGS))
+        super().__init__(client, slide.id, SETTINGS, strategy)
 
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
         outcome = super()._take(acquisition, measurement)
@@ -97,7 +100,7 @@ class _KilledMidScan(RemoteStrategy):
             self.client.close()
             self.client = EstimatorClient(self.server.url)
             # The reply came after the commit: the restarted service has every measurement.
-            assert self.client.slide(self.slide_id)["n_acquisitions"] == self.kill_after + 1
+            assert self.client.slide(self.slide_id).n_acquisitions == self.kill_after + 1
             self.restarted = True
         return outcome
 

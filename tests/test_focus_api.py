@@ -14,8 +14,8 @@ import uvicorn
 from fastapi.testclient import TestClient
 
 from focustrack.bench.focus import render_stack
-from focustrack.services.focus.app import create_app
-from focustrack.wire.session import free_port
+from focustrack_core.wire.session import free_port
+from focustrack_focus.app import create_app
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 TRUTH_UM = 0.3

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from focustrack.bench.focus import render_stack
-from focustrack.services.focus.metrics import DEFAULT_METRIC, METRICS, get_metric
-from focustrack.services.focus.preprocess import (
+from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
+from focustrack_focus.preprocess import (
     Preprocess,
     lowpass,
     lowpass_sigma_for_optics,

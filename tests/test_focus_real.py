@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from focustrack.bench.focus import load_smear, load_yeast
-from focustrack.services.focus.metrics import METRICS
-from focustrack.services.focus.peak import PeakMode, PeakSettings
-from focustrack.services.focus.pipeline import FocusSettings, focus_stack
-from focustrack.services.focus.preprocess import Preprocess
+from focustrack_focus.metrics import METRICS
+from focustrack_focus.peak import PeakMode, PeakSettings
+from focustrack_focus.pipeline import FocusSettings, focus_stack
+from focustrack_focus.preprocess import Preprocess
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
 SMEAR, YEAST = REAL / "lip_smear_zstack", REAL / "yeast_brightfield_zstack"

@@ -15,12 +15,12 @@ import pytest
 import zenoh
 
 from focustrack.bench.focus import render_stack
-from focustrack.services.focus.pipeline import FocusSettings
-from focustrack.services.focus.service import ZenohFocusWorker
-from focustrack.v1 import common_pb2, focus_pb2, instrument_pb2
-from focustrack.wire import keys
-from focustrack.wire.codec import ZSTACK_ENCODING, encode_zstack
-from focustrack.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
+from focustrack_core.wire import keys
+from focustrack_core.wire.codec import ZSTACK_ENCODING, encode_zstack
+from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_focus.pipeline import FocusSettings
+from focustrack_focus.service import ZenohFocusWorker
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 TRUTH_UM = -0.4

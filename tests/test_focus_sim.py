@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from focustrack.bench.focus import StackShape, bench_settings, simulated_stacks
-from focustrack.services.estimator.strategy import FocusFlag
-from focustrack.services.focus.pipeline import focus_stack
+from focustrack_core.domain import FocusFlag
+from focustrack_focus.pipeline import focus_stack
 
 #: Not a seed the sigma model was fitted on (100-102) nor the benchmark's (1).
 SEED = 7

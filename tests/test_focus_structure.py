@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from focustrack.bench.focus import render_stack
-from focustrack.services.focus.preprocess import Preprocess
-from focustrack.services.focus.structure import (
+from focustrack_focus.preprocess import Preprocess
+from focustrack_focus.structure import (
     lowpass_noise_gain,
     pixel_noise_std,
     structure_snr,

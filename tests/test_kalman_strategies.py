@@ -8,16 +8,12 @@ import numpy as np
 import pytest
 
 from focustrack.bench.replay import replay, simulated_measurement
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.diagnostics import innovation_diagnostics
-from focustrack.services.estimator.kalman_strategies import STRATEGIES, KalmanStrategy
-from focustrack.services.estimator.strategy import (
-    FocusFlag,
-    Measurement,
-    Purpose,
-    SlideSettings,
-)
-from focustrack.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_core.domain import FocusFlag, Measurement, Purpose
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.diagnostics import innovation_diagnostics
+from focustrack_estimator.kalman_strategies import STRATEGIES, KalmanStrategy
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 
 def noisy(truth_um: np.ndarray, sigma_um: float, seed: int) -> np.ndarray:

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
-from focustrack.services.estimator.strategy import FocusFlag
-from focustrack.v1 import common_pb2, focus_pb2, instrument_pb2
-from focustrack.wire import generate
+from focustrack_client import models as api
+from focustrack_core.domain import FocusFlag
+from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 
 #: Field numbers as released. Add new fields here; never change or reuse a number.
 RELEASED_FIELDS = {
@@ -33,19 +34,44 @@ RELEASED_FIELDS = {
     },
     focus_pb2.FocusResult: {
         "slide": 1, "row": 2, "col": 3, "sequence": 4, "metric": 5, "z_um": 6, "scores": 7,
-        "best_z_um": 8, "sigma_um": 9, "flags": 10, "compute_time_s": 11, "error": 12,
-        "instrument": 13,
+        "best_z_um": 8, "sigma_um": 9, "compute_time_s": 11, "error": 12, "instrument": 13,
+        "flags": 14,  # v0.2: the FocusFlag enum; number 10 (strings) is reserved
     },
 }  # fmt: skip
 
 
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _generator():  # proto/generate.py is a script of the repository, not an installed module
+    spec = importlib.util.spec_from_file_location("generate", ROOT / "proto" / "generate.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_generated_code_is_up_to_date(tmp_path: Path) -> None:
+    generate = _generator()
     written = generate.generate(tmp_path)
     assert written, "no schema found under proto/"
     for path in written:
-        checked_in = generate.ROOT / path.relative_to(tmp_path)
+        checked_in = generate.PACKAGE_DIR / path.name
         assert checked_in.exists(), f"{checked_in} missing: run `make proto`"
         assert checked_in.read_bytes() == path.read_bytes(), f"{checked_in} is stale: `make proto`"
+
+
+def test_focus_flags_are_one_vocabulary_in_proto_the_domain_and_the_client() -> None:
+    proto = {
+        name.removeprefix("FOCUS_FLAG_") for name in common_pb2.FocusFlag.DESCRIPTOR.values_by_name
+    } - {"UNSPECIFIED"}
+    assert {flag.name for flag in FocusFlag} == proto
+    assert {(flag.name, flag.value) for flag in api.FocusFlag} == {
+        (flag.name, flag.value) for flag in FocusFlag
+    }
+    for flag in FocusFlag:
+        assert FocusFlag.of_proto(flag.proto) is flag
+    assert FocusFlag.of_proto(99) is None  # a flag of a newer version is ignored
 
 
 def test_released_field_numbers_are_kept() -> None:
@@ -61,11 +87,11 @@ def test_focus_result_round_trips_with_flags_and_absent_best_focus() -> None:
     result = focus_pb2.FocusResult(
         slide="s1", row=2, col=3, sequence=7, metric="normalized_variance",
         z_um=[0.0, 0.5, 1.0], scores=[1.0, 3.0, 2.0],
-        flags=[FocusFlag.MULTI_PEAK.value], compute_time_s=0.002,
+        flags=[FocusFlag.MULTI_PEAK.proto], compute_time_s=0.002,
     )  # fmt: skip
     decoded = focus_pb2.FocusResult.FromString(result.SerializeToString())
     assert not decoded.HasField("best_z_um") and not decoded.HasField("error")
-    assert [FocusFlag(flag) for flag in decoded.flags] == [FocusFlag.MULTI_PEAK]
+    assert [FocusFlag.of_proto(flag) for flag in decoded.flags] == [FocusFlag.MULTI_PEAK]
     decoded.best_z_um = 0.6
     assert decoded.HasField("best_z_um") and decoded.best_z_um == 0.6
     assert list(decoded.scores) == [1.0, 3.0, 2.0]

@@ -5,18 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from focustrack.bench import strategies as registry
 from focustrack.bench.replay import replay, score, simulated_measurement
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import registry
-from focustrack.services.estimator.classic import AfEveryTile, SurveyBilinear
-from focustrack.services.estimator.strategy import (
-    Acquisition,
-    FocusFlag,
-    Purpose,
-    SlideSettings,
-    ZRange,
-)
-from focustrack.timing import TimingModel
+from focustrack_core.domain import Acquisition, FocusFlag, Purpose, ZRange
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.timing import TimingModel
+from focustrack_estimator.classic import AfEveryTile, SurveyBilinear
+from focustrack_estimator.strategy import SlideSettings
 
 PITCH_UM = 200.0
 

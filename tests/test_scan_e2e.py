@@ -19,14 +19,15 @@ import tifffile
 
 from focustrack.bench.accuracy import add_measurement_noise
 from focustrack.bench.replay import replay, score
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import registry
-from focustrack.services.estimator.strategy import SlideSettings, ZRangePolicy
-from focustrack.services.scheduler import health, outputs
-from focustrack.services.scheduler.clients import InstrumentClient
-from focustrack.services.scheduler.demo import LocalStack
-from focustrack.services.scheduler.scan import BEST_KALMAN
-from focustrack.wire.session import free_port
+from focustrack.demo import LocalStack
+from focustrack_core import health
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.wire.session import free_port
+from focustrack_estimator import registry
+from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
+from focustrack_scheduler import outputs
+from focustrack_scheduler.clients import InstrumentClient
+from focustrack_scheduler.scan import BEST_KALMAN
 
 ROWS = COLS = 6
 SIZE = 256

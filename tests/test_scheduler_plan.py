@@ -9,17 +9,12 @@ import numpy as np
 import pytest
 
 from focustrack.bench.replay import simulated_measurement
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import registry
-from focustrack.services.estimator.strategy import (
-    Acquisition,
-    FocusFlag,
-    Measurement,
-    Outcome,
-    Purpose,
-    ZRange,
-)
-from focustrack.services.scheduler.plan import (
+from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.v1 import common_pb2, focus_pb2
+from focustrack_estimator import registry
+from focustrack_estimator.slides import settings_of
+from focustrack_scheduler.plan import (
     Acquire,
     AskNext,
     AwaitFocus,
@@ -33,9 +28,8 @@ from focustrack.services.scheduler.plan import (
     Step,
     measurement_of,
     scan_plan,
-    slide_settings,
+    slide_config,
 )
-from focustrack.v1 import common_pb2, focus_pb2
 
 GEOMETRY = SlideGeometry(ScanGrid(2, 2), dof_um=0.9)
 REQUEST = ScanRequest(instrument="sim", slide="slide-0", strategy="kf-wiener0")
@@ -62,7 +56,7 @@ def acquisition(
 
 
 def focus(
-    acq: Acquisition, best_z_um: float | None, *flags: str, sigma_um: float = 0.05
+    acq: Acquisition, best_z_um: float | None, *flags: int, sigma_um: float = 0.05
 ) -> focus_pb2.FocusResult:
     result = focus_pb2.FocusResult(
         slide="slide-0", row=acq.row, col=acq.col, sequence=acq.index, flags=list(flags)
@@ -79,15 +73,15 @@ def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_poste
     truth_um = np.linspace(-3.0, 4.0, grid.n_tiles).reshape(grid.shape)
     request = ScanRequest("sim", "slide-0", "kf-wiener0", noise_sigma_um=0.1)
     geometry = SlideGeometry(grid, dof_um=0.9)
-    strategy = registry.create("kf-wiener0", slide_settings(request, geometry))
+    strategy = registry.create("kf-wiener0", settings_of(slide_config(request, geometry)))
 
     def answer(step: Step) -> Any:
         match step:
             case DescribeSlide():
                 return geometry
             case CreateOrResumeSlide():
-                assert step.slide_id is None and step.config["grid"]["rows"] == 3
-                assert step.config["dof_um"] == 0.9 and step.config["noise_sigma_um"] == 0.1
+                assert step.slide_id is None and step.config.grid.rows == 3
+                assert step.config.dof_um == 0.9 and step.config.noise_sigma_um == 0.1
                 return "slide-id"
             case AskNext():
                 return strategy.next_acquisition()
@@ -96,7 +90,7 @@ def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_poste
             case AwaitFocus():
                 acq = step.acquisition
                 measured = simulated_measurement(acq, truth_um[acq.row, acq.col])
-                return focus(acq, measured.z_um, *sorted(measured.flags))
+                return focus(acq, measured.z_um, *(flag.proto for flag in sorted(measured.flags)))
             case PostMeasurement():
                 return strategy.record(step.acquisition, step.measurement)
             case KeepTile():
@@ -133,7 +127,7 @@ def test_an_edge_peak_is_posted_and_the_image_may_come_from_an_earlier_stack() -
             case Acquire():
                 return tuple(step.acquisition.z.z_um())
             case AwaitFocus() if step.acquisition is first:
-                return focus(first, 1.0, "edge_high")
+                return focus(first, 1.0, FocusFlag.EDGE_HIGH.proto)
             case AwaitFocus():
                 return focus(retry, 1.55)
             case PostMeasurement():
@@ -206,7 +200,7 @@ def test_an_image_only_acquisition_waits_for_no_focus_and_keeps_its_single_frame
     steps, slide_id = drive(resumed, answer)
     assert slide_id == "resumed-id"
     create = next(s for s in steps if isinstance(s, CreateOrResumeSlide))
-    assert create.slide_id == "resumed-id" and create.config["strategy"] == "af-every-tile"
+    assert create.slide_id == "resumed-id" and create.config.strategy == "af-every-tile"
     assert [s for s in steps if isinstance(s, KeepTile)] == [KeepTile(1, 1, 3, 0, 0.25)]
 
 
@@ -240,14 +234,14 @@ def test_frames_of_a_previous_tile_are_never_kept_for_the_next() -> None:
 
 def test_measurement_of_focus_results() -> None:
     acq = acquisition(0, 0, 0, low_um=0.0)
-    assert measurement_of(focus(acq, 0.8, "multi_peak")) == Measurement(
+    assert measurement_of(focus(acq, 0.8, FocusFlag.MULTI_PEAK.proto)) == Measurement(
         0.8, 0.05, frozenset({FocusFlag.MULTI_PEAK})
     )
-    assert measurement_of(focus(acq, None, "flat")) == Measurement(
+    assert measurement_of(focus(acq, None, FocusFlag.FLAT.proto)) == Measurement(
         None, flags=frozenset({FocusFlag.FLAT})
     )
     # a sigma the estimator would refuse is left out; a flag from a newer service is ignored
-    assert measurement_of(focus(acq, 0.8, "some_new_flag", sigma_um=0.0)) == Measurement(0.8)
+    assert measurement_of(focus(acq, 0.8, 99, sigma_um=0.0)) == Measurement(0.8)
     broken = focus(acq, 0.8)
     broken.error.CopyFrom(common_pb2.Error(code=common_pb2.ERROR_CODE_BAD_STACK, message="x"))
     assert measurement_of(broken) == Measurement(None)

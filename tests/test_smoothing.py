@@ -7,10 +7,11 @@ import pytest
 from filterpy.kalman import KalmanFilter, rts_smoother
 
 from focustrack.bench.replay import replay
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.kalman_strategies import STRATEGIES, rts_smooth
-from focustrack.services.estimator.strategy import Measurement, SlideSettings
-from focustrack.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_core.domain import Measurement
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.kalman_strategies import STRATEGIES, rts_smooth
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 
 def test_rts_smooth_equals_filterpys_smoother() -> None:

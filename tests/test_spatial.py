@@ -7,16 +7,13 @@ import math
 import numpy as np
 import pytest
 
+from focustrack.bench.oracle import gp_oracle
 from focustrack.bench.replay import replay
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.spatial import STRATEGIES, gp_oracle, kf_2d, nshp_weights
-from focustrack.services.estimator.strategy import (
-    FocusFlag,
-    Measurement,
-    Purpose,
-    SlideSettings,
-)
-from focustrack.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
+from focustrack_core.domain import FocusFlag, Measurement, Purpose
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.spatial import STRATEGIES, kf_2d, nshp_weights
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
 
 NOISE_UM = 1.5
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from focustrack.bench.replay import replay, simulated_measurement
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.spatial import kf_2d, matern32
-from focustrack.services.estimator.strategy import SlideSettings
-from focustrack.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.spatial import kf_2d, matern32
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 NOISE_UM = 1.5
 

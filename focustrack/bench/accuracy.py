@@ -3,7 +3,7 @@
 Every strategy scans the same maps in serpentine order and sees the same
 measurements (`focustrack.bench.replay`). Per strategy it reports the prior and
 posterior mean absolute error and std against the truth, images per tile,
-simulated scan time per map (`focustrack.timing`, docs/timing.md) and the
+simulated scan time per map (`focustrack_core.timing`, docs/timing.md) and the
 in-focus fraction (|z used - truth| <= depth of field / 2).
 
 Maps are generated (`--maps N --size 20 --seed S`, one block per `--family`)
@@ -29,11 +29,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from focustrack.bench import strategies as registry
 from focustrack.bench.replay import Replay, Scores, replay, score
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import registry
-from focustrack.services.estimator.strategy import SlideSettings
-from focustrack.surfaces import FAMILIES, SurfaceSpec, family_spec, generate_surfaces, load_map
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import (
+    FAMILIES,
+    SurfaceSpec,
+    family_spec,
+    generate_surfaces,
+    load_map,
+)
 
 DEFAULT_FAMILY = "standard"
 
@@ -202,12 +208,12 @@ def score_with_smoothed(replays: dict[str, list[Replay]], dof_um: float) -> dict
     scores = {}
     for name, runs in replays.items():
         scores[name] = score(runs, dof_um)
-        if runs and all(run.focus_map.smoothed_um is not None for run in runs):
+        smoothed_maps = [run.focus_map.smoothed_um for run in runs]
+        if runs and all(layer is not None for layer in smoothed_maps):
             smoothed = [
-                replace(
-                    run, focus_map=replace(run.focus_map, posterior_um=run.focus_map.smoothed_um)
-                )
-                for run in runs
+                replace(run, focus_map=replace(run.focus_map, posterior_um=layer))
+                for run, layer in zip(runs, smoothed_maps, strict=True)
+                if layer is not None
             ]
             scores[name + SMOOTHED_SUFFIX] = score(smoothed, dof_um)
     return scores

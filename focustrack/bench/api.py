@@ -34,17 +34,15 @@ import httpx
 import numpy as np
 
 from focustrack.bench.replay import simulated_measurement
-from focustrack.geometry import ScanGrid, Tile
-from focustrack.services.estimator.client import (
-    acquisition_of_next,
-    measurement_body,
-    slide_config,
-)
-from focustrack.services.estimator.service import spawn
-from focustrack.services.estimator.strategy import SlideSettings
-from focustrack.surfaces import SurfaceSpec, generate_surfaces
-from focustrack.timing import TimingModel
-from focustrack.wire.session import free_port
+from focustrack_client import models as api
+from focustrack_core.geometry import ScanGrid, Tile
+from focustrack_core.timing import TimingModel
+from focustrack_core.wire.session import free_port
+from focustrack_estimator.service import spawn
+from focustrack_estimator.slides import config_of
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_scheduler.remote import acquisition_of, measurement_in
 
 PAIR_ROUTES = ("/v1/slides/{slide_id}/next", "/v1/slides/{slide_id}/measurements")
 
@@ -92,7 +90,7 @@ class Connection:
         self._writer: asyncio.StreamWriter | None = None
 
     async def request(self, method: str, path: str, body: object = None) -> tuple[int, object]:
-        if self._writer is None:
+        if self._reader is None or self._writer is None:
             self._reader, self._writer = await asyncio.open_connection(self.host, self.port)
         payload = b"" if body is None else json.dumps(body).encode()
         head = (
@@ -115,7 +113,7 @@ class Connection:
 
 def _ok(reply: tuple[int, object]) -> dict:
     status, body = reply
-    if status != 200:
+    if status != 200 or not isinstance(body, dict):
         raise RuntimeError(f"estimator answered {status}: {body}")
     return body
 
@@ -146,13 +144,14 @@ class Scanner:
                 start_s = time.perf_counter()
                 reply = _ok(await self.http.request("GET", f"{url}/next"))
                 elapsed_s = time.perf_counter() - start_s
-                acquisition = acquisition_of_next(reply)
+                acquisition = acquisition_of(api.Next.model_validate(reply))
                 if acquisition is None:
                     return
                 if self.acquisition_s is not None:
                     await asyncio.sleep(self.acquisition_s * self._simulated_s(acquisition))
                 measured = self.measured_um[acquisition.row, acquisition.col]
-                body = measurement_body(acquisition, simulated_measurement(acquisition, measured))
+                measurement = simulated_measurement(acquisition, measured)
+                body = measurement_in(acquisition, measurement).model_dump(mode="json")
                 start_s = time.perf_counter()
                 _ok(await self.http.request("POST", f"{url}/measurements", body))
                 self.latencies_s.append(elapsed_s + time.perf_counter() - start_s)
@@ -185,10 +184,12 @@ async def run_case(
     async with httpx.AsyncClient(base_url=base_url, timeout=30.0) as http:
         scanners = []
         for truth in truths:
-            response = await http.post("/v1/slides", json=slide_config(args.strategy, settings))
+            response = await http.post(
+                "/v1/slides", json=config_of(args.strategy, settings).model_dump(mode="json")
+            )
             response.raise_for_status()
             measured = truth + rng.normal(0.0, args.noise_um, truth.shape)
-            connection = Connection(url.host, url.port)
+            connection = Connection(url.host, url.port or 80)
             slide_id = response.json()["id"]
             scanners.append(Scanner(connection, slide_id, grid, measured, acquisition_s))
         before = _scrape((await http.get("/metrics")).text)

@@ -36,14 +36,14 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.strategy import FocusFlag
-from focustrack.services.focus.metrics import DEFAULT_METRIC, METRICS
-from focustrack.services.focus.peak import MAD_TO_SIGMA, PeakMode
-from focustrack.services.focus.pipeline import FocusSettings, focus_scores, focus_stack
-from focustrack.services.focus.preprocess import Preprocess, lowpass_sigma_for_optics
-from focustrack.services.instrument_sim.microscope import Microscope, MicroscopeSpec, Slide
-from focustrack.services.instrument_sim.specimen import SpecimenSpec
+from focustrack_core.domain import FocusFlag
+from focustrack_core.geometry import ScanGrid
+from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
+from focustrack_focus.peak import MAD_TO_SIGMA, PeakMode
+from focustrack_focus.pipeline import FocusSettings, focus_scores, focus_stack
+from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
+from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, Slide
+from focustrack_instrument_sim.specimen import SpecimenSpec
 
 #: Field kind -> the simulator's specimen with every field of that kind.
 FIELD_SPECS = {
@@ -174,7 +174,7 @@ def simulate(metrics: Sequence[str], reps: int, seed: int) -> dict[str, list[Tri
                     for name, chosen in settings.items():
                         result = focus_stack(stack.frames, stack.z_um, chosen)
                         error = None
-                        if result.sigma_um is not None:
+                        if result.sigma_um is not None and result.best_z_um is not None:
                             error = result.best_z_um - stack.truth_um
                         trials[name].append(
                             Trial(field, size_px, stack.shape, error, result.sigma_um, result.flags)
@@ -192,7 +192,10 @@ def summarise(trials: list[Trial]) -> dict[str, float]:
     empty = [t for t in trials if t.field == "empty"]
 
     def field_mae(field: str) -> float:
-        return float(np.mean([abs(t.error_um) for t in measured if t.field == field] or [np.nan]))
+        field_errors = [
+            abs(t.error_um) for t in measured if t.field == field and t.error_um is not None
+        ]
+        return float(np.mean(field_errors or [np.nan]))
 
     def missed(field: str) -> float:
         of_field = [t for t in specimen if t.field == field]
@@ -268,7 +271,7 @@ def speed_frames(seed: int) -> tuple[np.ndarray, np.ndarray]:
 def load_smear(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """The lip smear stack: planes (n, h, w, 3) cropped to a common centre, and plane index (n,)."""
     planes = sorted(folder.glob("*.bmp"), key=lambda path: int(path.stem))
-    images = [cv2.imread(str(path), cv2.IMREAD_COLOR_RGB) for path in planes]
+    images: list[np.ndarray] = [cv2.imread(str(path), cv2.IMREAD_COLOR_RGB) for path in planes]  # type: ignore[misc]
     height = min(image.shape[0] for image in images)
     width = min(image.shape[1] for image in images)
 

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import multiprocessing
 import statistics
@@ -24,14 +25,14 @@ import cv2
 import numpy as np
 import zenoh
 
-from focustrack.services.instrument_sim.microscope import (
+from focustrack_core.v1 import instrument_pb2
+from focustrack_core.wire import codec, keys, session
+from focustrack_instrument_sim.microscope import (
     Microscope,
     MicroscopeSpec,
     slides_from_seed,
 )
-from focustrack.surfaces import SurfaceSpec
-from focustrack.v1 import instrument_pb2
-from focustrack.wire import codec, keys, session
+from focustrack_instrument_sim.surfaces import SurfaceSpec
 
 ACK_KEY = keys.bench_key("ack")
 MESSAGE_KEY = keys.bench_key("zstack-message")
@@ -66,9 +67,7 @@ def bench_render(size: int, n_frames: int, n_stacks: int, seed: int) -> dict:
         for row, col in tiles:
             z_low = truth_um[row, col] - (n_frames - 1) / 2 * 0.5
             results[phase].append(
-                _timed(
-                    lambda r=row, c=col, z=z_low: scope.acquire("slide-0", r, c, z, 0.5, n_frames)
-                )
+                _timed(functools.partial(scope.acquire, "slide-0", row, col, z_low, 0.5, n_frames))
             )
             print(f"render {phase} tile ({row}, {col}): {results[phase][-1][0]:.3f} s", flush=True)
     return {

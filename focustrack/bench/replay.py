@@ -12,7 +12,7 @@ service are stood in for by a measured map:
   re-acquire (and pay for it);
 - a single-frame acquisition only images the tile (no measurement).
 
-Cost follows `focustrack.timing.TimingModel`: the XY move from the previous
+Cost follows `focustrack_core.timing.TimingModel`: the XY move from the previous
 acquisition's tile, then the stack's frames.
 """
 
@@ -22,16 +22,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from focustrack.geometry import Tile
-from focustrack.services.estimator.strategy import (
-    Acquisition,
-    FocusFlag,
-    FocusMap,
-    Measurement,
-    Outcome,
-    Strategy,
-)
-from focustrack.timing import TimingModel
+from focustrack_core.domain import Acquisition, FocusFlag, FocusMap, Measurement, Outcome
+from focustrack_core.geometry import Tile
+from focustrack_core.timing import TimingModel
+from focustrack_estimator.strategy import Strategy
 
 
 def simulated_measurement(acquisition: Acquisition, measured_um: float) -> Measurement:

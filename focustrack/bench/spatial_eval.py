@@ -18,12 +18,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import add_measurement_noise, format_table
 from focustrack.bench.replay import Scores, replay, score
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator import registry, spatial
-from focustrack.services.estimator.strategy import SlideSettings
-from focustrack.surfaces import family_spec, generate_surfaces
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 DEFAULT_NAMES = ("gp-oracle", "kf-2d", "nshp-wiener1", "nshp-wiener0", "kf-wiener0")
 
@@ -39,7 +39,7 @@ def evaluate(
     progress: bool = True,
 ) -> dict[str, Scores]:
     """Scores of each named strategy (spatial ones and the registry's) on one map family."""
-    factories = {**registry.STRATEGIES, **spatial.STRATEGIES}
+    factories = registry.STRATEGIES
     unknown = [name for name in names if name not in factories]
     if unknown:
         raise ValueError(f"unknown strategy {', '.join(unknown)}; known: {', '.join(factories)}")
@@ -68,7 +68,11 @@ def ratio_table(title: str, scores: dict[str, Scores], reference: str = "gp-orac
     ref = scores[reference]
     lines = [f"\nMAE as a ratio to {reference}:", f"{'strategy':<18}{'prior':>8}{'post':>8}"]
     for name, s in scores.items():
-        prior = "-" if s.prior_mae_um is None else f"{s.prior_mae_um / ref.prior_mae_um:.3f}"
+        prior = (
+            "-"
+            if s.prior_mae_um is None or ref.prior_mae_um is None
+            else f"{s.prior_mae_um / ref.prior_mae_um:.3f}"
+        )
         lines.append(f"{name:<18}{prior:>8}{s.post_mae_um / ref.post_mae_um:>8.3f}")
     return table + "\n" + "\n".join(lines)
 

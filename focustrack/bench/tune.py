@@ -1,6 +1,6 @@
 """Tune the Kalman strategies' parameters and the stack width on TRAINING maps.
 
-The defaults of `focustrack.services.estimator.kalman_strategies` (and of the
+The defaults of `focustrack_estimator.kalman_strategies` (and of the
 model bank, `bank.kf_mmae`) come from here: maps generated from seeds 0..4 (16
 maps each, of the `--families` asked for: `standard`, the `SurfaceSpec()`
 defaults, unless told otherwise), measured with Gaussian noise (and outliers
@@ -36,10 +36,10 @@ import numpy as np
 
 from focustrack.bench.accuracy import OUTLIERS, add_outliers
 from focustrack.bench.replay import Scores, replay, score
-from focustrack.geometry import ScanGrid
-from focustrack.services.estimator.registry import STRATEGIES, parameters
-from focustrack.services.estimator.strategy import SlideSettings, ZRangePolicy
-from focustrack.surfaces import FAMILIES, family_spec, generate_surfaces
+from focustrack.bench.strategies import STRATEGIES, parameters
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
+from focustrack_instrument_sim.surfaces import FAMILIES, family_spec, generate_surfaces
 
 _Q_HEIGHT_UM2 = [0.0, 0.01, 0.03, 0.1, 0.2, 0.3]
 
@@ -128,7 +128,7 @@ def evaluate(
 
 def objective(scores: Scores) -> float:
     """What the accuracy stage minimises, in um."""
-    return scores.prior_mae_um + scores.post_mae_um
+    return (scores.prior_mae_um or 0.0) + scores.post_mae_um
 
 
 # Worker processes hold the training set once, instead of receiving it with every task.

@@ -1,0 +1,263 @@
+"""Clients of the estimator's REST API: `EstimatorClient` (blocking) and `AsyncEstimatorClient`.
+
+Both speak the same endpoints and return the same typed models
+(`focustrack_client.models`); an error reply raises the `EstimatorError`
+subclass named by its `code` (`errors.py`), never a bare HTTP error. Use either
+as a context manager so its connections are closed::
+
+    with EstimatorClient("http://127.0.0.1:8100", token="...") as estimator:
+        slide = estimator.create_slide(SlideCreate(strategy="kf-2d", grid=Grid(rows=20, cols=20)))
+        while not (step := estimator.next(slide.id)).done:
+            ...  # acquire the stack step.z_low_um .. step.z_high_um, find its best focus
+            estimator.measure(slide.id, MeasurementIn(row=step.row, col=step.col,
+                                                      sequence=step.sequence, z_um=z_um))
+
+Each endpoint is described once (`_Call`: method, path, body, how to read the
+reply); the two clients differ only in how they send it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Generic, Literal, Self, TypeVar
+
+import httpx
+from pydantic import BaseModel, TypeAdapter
+
+from focustrack_client.errors import raise_for_error
+from focustrack_client.models import (
+    Diagnostics,
+    FocusMapOut,
+    Health,
+    MeasurementIn,
+    Next,
+    OutcomeOut,
+    Slide,
+    SlideCreate,
+)
+
+#: Formats of `GET /v1/slides/{id}/map` other than JSON, as raw bytes.
+MapFormat = Literal["csv", "npy", "png"]
+
+_SLIDES = TypeAdapter(list[Slide])
+
+T = TypeVar("T")
+M = TypeVar("M", bound=BaseModel)
+
+
+@dataclass(frozen=True)
+class _Call(Generic[T]):
+    """One request and how to read its reply (`read` gets the successful response)."""
+
+    method: str
+    path: str
+    read: Callable[[httpx.Response], T]
+    body: BaseModel | None = None
+    params: dict[str, str] = field(default_factory=dict)
+
+    def request(self, http: httpx.Client | httpx.AsyncClient) -> httpx.Request:
+        content = None if self.body is None else self.body.model_dump_json(exclude_unset=False)
+        headers = {"Content-Type": "application/json"} if content is not None else {}
+        return http.build_request(
+            self.method, self.path, content=content, params=self.params, headers=headers
+        )
+
+    def result(self, response: httpx.Response) -> T:
+        raise_for_error(response)
+        return self.read(response)
+
+
+def _model(model: type[M]) -> Callable[[httpx.Response], M]:
+    return lambda response: model.model_validate_json(response.content)
+
+
+def _nothing(_: httpx.Response) -> None:
+    return None
+
+
+def _content(response: httpx.Response) -> bytes:
+    return response.content
+
+
+class _Endpoints:
+    """The estimator's endpoints as `_Call`s (shared by both clients)."""
+
+    @staticmethod
+    def create_slide(config: SlideCreate) -> _Call[Slide]:
+        return _Call("POST", "/v1/slides", _model(Slide), body=config)
+
+    @staticmethod
+    def list_slides() -> _Call[list[Slide]]:
+        return _Call("GET", "/v1/slides", lambda r: _SLIDES.validate_json(r.content))
+
+    @staticmethod
+    def slide(slide_id: str) -> _Call[Slide]:
+        return _Call("GET", f"/v1/slides/{slide_id}", _model(Slide))
+
+    @staticmethod
+    def delete_slide(slide_id: str) -> _Call[None]:
+        return _Call("DELETE", f"/v1/slides/{slide_id}", _nothing)
+
+    @staticmethod
+    def next(slide_id: str) -> _Call[Next]:
+        return _Call("GET", f"/v1/slides/{slide_id}/next", _model(Next))
+
+    @staticmethod
+    def measure(slide_id: str, measurement: MeasurementIn) -> _Call[OutcomeOut]:
+        path = f"/v1/slides/{slide_id}/measurements"
+        return _Call("POST", path, _model(OutcomeOut), body=measurement)
+
+    @staticmethod
+    def focus_map(slide_id: str) -> _Call[FocusMapOut]:
+        return _Call("GET", f"/v1/slides/{slide_id}/map", _model(FocusMapOut))
+
+    @staticmethod
+    def focus_map_file(slide_id: str, map_format: MapFormat) -> _Call[bytes]:
+        path = f"/v1/slides/{slide_id}/map"
+        return _Call("GET", path, _content, params={"format": map_format})
+
+    @staticmethod
+    def diagnostics(slide_id: str) -> _Call[Diagnostics]:
+        return _Call("GET", f"/v1/slides/{slide_id}/diagnostics", _model(Diagnostics))
+
+    @staticmethod
+    def health() -> _Call[Health]:
+        return _Call("GET", "/healthz", _model(Health))
+
+
+def _headers(token: str | None) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"} if token else {}
+
+
+class EstimatorClient:
+    """Blocking client of one estimator service (`base_url` such as http://127.0.0.1:8100).
+
+    `token` is the service's bearer token, where it has one; `timeout_s` bounds
+    every request. `transport` replaces the network (for an in-process app).
+    """
+
+    def __init__(
+        self,
+        base_url: str,
+        token: str | None = None,
+        timeout_s: float = 10.0,
+        transport: httpx.BaseTransport | None = None,
+    ) -> None:
+        self.http = httpx.Client(
+            base_url=base_url, headers=_headers(token), timeout=timeout_s, transport=transport
+        )
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.http.close()
+
+    def _send(self, call: _Call[T]) -> T:
+        return call.result(self.http.send(call.request(self.http)))
+
+    def create_slide(self, config: SlideCreate) -> Slide:
+        """A new slide, scanned as `config` says; its id is `.id`."""
+        return self._send(_Endpoints.create_slide(config))
+
+    def list_slides(self) -> list[Slide]:
+        return self._send(_Endpoints.list_slides())
+
+    def slide(self, slide_id: str) -> Slide:
+        return self._send(_Endpoints.slide(slide_id))
+
+    def delete_slide(self, slide_id: str) -> None:
+        self._send(_Endpoints.delete_slide(slide_id))
+
+    def next(self, slide_id: str) -> Next:
+        """The next tile and z-range to acquire (`.done` once the scan is complete)."""
+        return self._send(_Endpoints.next(slide_id))
+
+    def measure(self, slide_id: str, measurement: MeasurementIn) -> OutcomeOut:
+        """Report the best focus found for the acquisition `measurement.sequence`."""
+        return self._send(_Endpoints.measure(slide_id, measurement))
+
+    def focus_map(self, slide_id: str) -> FocusMapOut:
+        return self._send(_Endpoints.focus_map(slide_id))
+
+    def focus_map_file(self, slide_id: str, map_format: MapFormat) -> bytes:
+        """The map as a CSV, .npy or PNG file's bytes."""
+        return self._send(_Endpoints.focus_map_file(slide_id, map_format))
+
+    def diagnostics(self, slide_id: str) -> Diagnostics:
+        return self._send(_Endpoints.diagnostics(slide_id))
+
+    def health(self) -> Health:
+        return self._send(_Endpoints.health())
+
+
+class AsyncEstimatorClient:
+    """The same client for asyncio: every method is a coroutine (`async with` closes it)."""
+
+    def __init__(
+        self,
+        base_url: str,
+        token: str | None = None,
+        timeout_s: float = 10.0,
+        transport: httpx.AsyncBaseTransport | None = None,
+    ) -> None:
+        self.http = httpx.AsyncClient(
+            base_url=base_url, headers=_headers(token), timeout=timeout_s, transport=transport
+        )
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self.http.aclose()
+
+    async def _send(self, call: _Call[T]) -> T:
+        return call.result(await self.http.send(call.request(self.http)))
+
+    async def create_slide(self, config: SlideCreate) -> Slide:
+        return await self._send(_Endpoints.create_slide(config))
+
+    async def list_slides(self) -> list[Slide]:
+        return await self._send(_Endpoints.list_slides())
+
+    async def slide(self, slide_id: str) -> Slide:
+        return await self._send(_Endpoints.slide(slide_id))
+
+    async def delete_slide(self, slide_id: str) -> None:
+        await self._send(_Endpoints.delete_slide(slide_id))
+
+    async def next(self, slide_id: str) -> Next:
+        return await self._send(_Endpoints.next(slide_id))
+
+    async def measure(self, slide_id: str, measurement: MeasurementIn) -> OutcomeOut:
+        return await self._send(_Endpoints.measure(slide_id, measurement))
+
+    async def focus_map(self, slide_id: str) -> FocusMapOut:
+        return await self._send(_Endpoints.focus_map(slide_id))
+
+    async def focus_map_file(self, slide_id: str, map_format: MapFormat) -> bytes:
+        return await self._send(_Endpoints.focus_map_file(slide_id, map_format))
+
+    async def diagnostics(self, slide_id: str) -> Diagnostics:
+        return await self._send(_Endpoints.diagnostics(slide_id))
+
+    async def health(self) -> Health:
+        return await self._send(_Endpoints.health())

@@ -1,0 +1,165 @@
+"""The domain vocabulary every FocusTrack part speaks: flags, z-ranges, acquisitions, measurements.
+
+These are the words of the contract between the services (proto/ carries the
+same things on Zenoh, the estimator's REST API as JSON): an `Acquisition` asks
+for a z-stack at a tile, a `Measurement` is the best focus found in it (with
+`FocusFlag`s saying why there is none), an `Outcome` is what it did to the
+estimate, a `FocusMap` is the estimate of every tile. Heights in um, shapes in
+docstrings. Pure: numpy only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import cast
+
+import numpy as np
+
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.v1 import common_pb2
+
+
+class FocusFlag(StrEnum):
+    """Quality flags of a best-focus measurement (set by the focus service).
+
+    The wire form is the proto enum `focustrack.v1.FocusFlag` (`FOCUS_FLAG_<NAME>`);
+    JSON and this enum use the lower-case value. `proto` and `of_proto` convert.
+    """
+
+    EDGE_LOW = "edge_low"  # peak at the low-z end of the range: extend downwards
+    EDGE_HIGH = "edge_high"  # peak at the high-z end: extend upwards
+    FLAT = "flat"  # no peak in the curve (no contrast): no measurement
+    EMPTY = "empty"  # with FLAT: nothing in view in any frame, so no other stack would help
+    MULTI_PEAK = "multi_peak"  # more than one peak: measurement is less certain
+
+    @property
+    def proto(self) -> common_pb2.FocusFlag:
+        """This flag as the proto enum value (`FOCUS_FLAG_EDGE_LOW`, ...)."""
+        return cast(common_pb2.FocusFlag, common_pb2.FocusFlag.Value(f"FOCUS_FLAG_{self.name}"))
+
+    @classmethod
+    def of_proto(cls, value: int) -> FocusFlag | None:
+        """The flag of a proto enum value; None for one this version does not know."""
+        name = common_pb2.FocusFlag.Name(value) if value in common_pb2.FocusFlag.values() else ""
+        return cls.__members__.get(name.removeprefix("FOCUS_FLAG_"))
+
+
+#: Flags that mean the stack holds no usable best focus.
+NOT_AN_OBSERVATION = frozenset(
+    {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH, FocusFlag.FLAT, FocusFlag.EMPTY}
+)
+
+
+class Purpose(StrEnum):
+    SCAN = "scan"  # image the tile (and measure its focus where the strategy asks)
+    SURVEY = "survey"  # a survey point of a focus-map strategy, before the scan
+    RETRY = "retry"  # the same tile again, after an edge peak or a flat curve
+
+
+@dataclass(frozen=True)
+class ZRange:
+    """Frames at low_um, low_um + step_um, ..., high_um (n_frames of them), in um."""
+
+    low_um: float
+    step_um: float
+    n_frames: int
+
+    def __post_init__(self) -> None:
+        if self.n_frames < 1:
+            raise ValueError(f"a z-range needs at least one frame, got {self.n_frames}")
+        if not self.step_um > 0:
+            raise ValueError(f"z step must be positive, got {self.step_um} um")
+
+    @classmethod
+    def centred(cls, center_um: float, n_frames: int, step_um: float) -> ZRange:
+        return cls(center_um - (n_frames - 1) / 2.0 * step_um, step_um, n_frames)
+
+    @property
+    def high_um(self) -> float:
+        return self.low_um + (self.n_frames - 1) * self.step_um
+
+    @property
+    def center_um(self) -> float:
+        return (self.low_um + self.high_um) / 2.0
+
+    def z_um(self) -> np.ndarray:
+        """The z of every frame, shape (n_frames,), in um."""
+        return self.low_um + self.step_um * np.arange(self.n_frames)
+
+    def contains(self, z_um: float) -> bool:
+        """True when a peak at `z_um` would lie inside the stack (not at its edge)."""
+        return self.low_um <= z_um <= self.high_um
+
+
+@dataclass(frozen=True)
+class Acquisition:
+    """What to acquire next: a tile and a z-range, and what the strategy expects of it."""
+
+    index: int  # sequence number of this acquisition within the slide's scan
+    row: int
+    col: int
+    z: ZRange
+    purpose: Purpose
+    measure: bool  # True: a best focus is expected back; False: only image the tile
+    predicted_um: float | None = None  # the prior of this tile's focus, where there is one
+    predicted_sigma_um: float | None = None  # the prior's standard deviation
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The result of an acquisition: the best focus found in it, or why there is none."""
+
+    z_um: float | None
+    sigma_um: float | None = None
+    flags: frozenset[FocusFlag] = frozenset()
+
+    def __post_init__(self) -> None:
+        if self.z_um is not None and not math.isfinite(self.z_um):
+            raise ValueError(f"measured z must be finite, got {self.z_um}")
+        if self.sigma_um is not None and not (math.isfinite(self.sigma_um) and self.sigma_um > 0):
+            raise ValueError(f"measurement sigma must be positive and finite, got {self.sigma_um}")
+
+    @property
+    def is_observation(self) -> bool:
+        return self.z_um is not None and not (self.flags & NOT_AN_OBSERVATION)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one measurement did to the estimate of its tile (heights in um)."""
+
+    row: int
+    col: int
+    accepted: bool  # used as an observation (False: edge, flat, gated out or image only)
+    prior_um: float | None = None
+    prior_sigma_um: float | None = None
+    posterior_um: float | None = None
+    posterior_sigma_um: float | None = None
+    innovation_um: float | None = None
+    nis: float | None = None  # normalised innovation squared
+
+
+@dataclass
+class FocusMap:
+    """The estimates of every tile, each (rows, cols) in um, NaN where there is none yet.
+
+    `z_used_um` is the height the tile was imaged at (the frame kept for the
+    mosaic); it is what the in-focus fraction is judged on.
+    """
+
+    prior_um: np.ndarray
+    prior_sigma_um: np.ndarray
+    posterior_um: np.ndarray
+    posterior_sigma_um: np.ndarray
+    z_used_um: np.ndarray
+    smoothed_um: np.ndarray | None = None
+    smoothed_sigma_um: np.ndarray | None = None
+
+    @classmethod
+    def empty(cls, grid: ScanGrid) -> FocusMap:
+        def nan() -> np.ndarray:
+            return np.full(grid.shape, np.nan)
+
+        return cls(nan(), nan(), nan(), nan(), nan())

@@ -1,0 +1,84 @@
+"""A focus map's files: the layers every export has, as CSV and as a .npy table, and back.
+
+The estimator serves these formats (`GET /v1/slides/{id}/map?format=csv|npy`) and
+the scheduler writes them beside a scan, so both use this one definition.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+
+from focustrack_core.domain import FocusMap
+from focustrack_core.geometry import ScanGrid
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """JSON has no NaN: a missing estimate is null."""
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+#: The layers of a focus map export, in this order (all in um, rows x cols).
+MAP_LAYERS = (
+    "prior_um",
+    "prior_sigma_um",
+    "posterior_um",
+    "posterior_sigma_um",
+    "smoothed_um",
+    "smoothed_sigma_um",
+    "z_used_um",
+)
+
+
+def map_layers(focus_map: FocusMap) -> dict[str, np.ndarray]:
+    """Every layer of `MAP_LAYERS` as a (rows, cols) float array (NaN where there is none)."""
+    shape = focus_map.posterior_um.shape
+    return {
+        name: np.full(shape, np.nan)
+        if getattr(focus_map, name) is None
+        else np.asarray(getattr(focus_map, name), dtype=float)
+        for name in MAP_LAYERS
+    }
+
+
+def map_csv(focus_map: FocusMap, grid: ScanGrid) -> str:
+    """One line per tile (row-major): row, col, stage x/y and every layer; empty for NaN."""
+    layers = map_layers(focus_map)
+    lines = [",".join(("row", "col", "stage_x_um", "stage_y_um", *MAP_LAYERS))]
+    for row in range(grid.rows):
+        for col in range(grid.cols):
+            values = (finite_or_none(layers[name][row, col]) for name in MAP_LAYERS)
+            cells = ("" if value is None else repr(value) for value in values)
+            x_um, y_um = grid.stage_xy_um(row, col)
+            lines.append(",".join((str(row), str(col), repr(x_um), repr(y_um), *cells)))
+    return "\n".join(lines) + "\n"
+
+
+def map_npy(focus_map: FocusMap) -> bytes:
+    """A .npy file: a (rows, cols) structured array with one float64 field per layer."""
+    layers = map_layers(focus_map)
+    table = np.empty(focus_map.posterior_um.shape, dtype=[(name, "<f8") for name in MAP_LAYERS])
+    for name in MAP_LAYERS:
+        table[name] = layers[name]
+    buffer = io.BytesIO()
+    np.save(buffer, table, allow_pickle=False)
+    return buffer.getvalue()
+
+
+def focus_map_of_npy(content: bytes) -> FocusMap:
+    """The focus map of a `map_npy` file (smoothed layers None when all NaN)."""
+    table = np.load(io.BytesIO(content), allow_pickle=False)
+    smoothed = {
+        name: None if np.all(np.isnan(table[name])) else np.array(table[name])
+        for name in ("smoothed_um", "smoothed_sigma_um")
+    }
+    return FocusMap(
+        prior_um=np.array(table["prior_um"]),
+        prior_sigma_um=np.array(table["prior_sigma_um"]),
+        posterior_um=np.array(table["posterior_um"]),
+        posterior_sigma_um=np.array(table["posterior_sigma_um"]),
+        z_used_um=np.array(table["z_used_um"]),
+        **smoothed,
+    )

@@ -1,0 +1,146 @@
+"""The Zenoh edge: key expressions, the z-stack codec, and request/reply over real sessions."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import zenoh
+
+from focustrack_core.v1 import common_pb2, instrument_pb2
+from focustrack_core.wire import codec, keys, rpc, session
+
+
+def test_keys_build_and_parse() -> None:
+    assert keys.acquire_key("sim") == "focustrack/v1/instrument/sim/acquire"
+    assert keys.zstack_key("slide-1", 3, 4) == "focustrack/v1/zstack/slide-1/3/4"
+    assert keys.focus_key("s", 0, 9) == "focustrack/v1/focus/s/0/9"
+    assert keys.truth_key("sim", "s").startswith("focustrack/v1/eval/")
+    assert keys.parse_zstack_key(keys.zstack_key("a.b", 12, 7)) == ("a.b", 12, 7)
+    assert keys.parse_focus_key("focustrack/v1/focus/x/1/2") == keys.TileKey("x", 1, 2)
+    assert zenoh.KeyExpr(keys.zstack_pattern("x")).intersects(keys.zstack_key("x", 1, 2))
+    assert not zenoh.KeyExpr(keys.focus_pattern("x")).intersects(keys.focus_key("y", 1, 2))
+
+
+@pytest.mark.parametrize("name", ["", "a/b", "*", "a b", "x$"])
+def test_bad_names_are_refused(name: str) -> None:
+    with pytest.raises(ValueError, match="key chunk"):
+        keys.zstack_key(name, 0, 0)
+
+
+def test_bad_tile_keys_are_refused() -> None:
+    with pytest.raises(ValueError):
+        keys.zstack_key("s", -1, 0)
+    with pytest.raises(ValueError):
+        keys.parse_zstack_key("focustrack/v1/focus/s/1/2")
+    with pytest.raises(ValueError):
+        keys.parse_focus_key("focustrack/v1/focus/s/x/2")
+
+
+def _stack() -> tuple[instrument_pb2.ZStackHeader, np.ndarray]:
+    pixels = np.random.default_rng(0).integers(0, 4096, size=(3, 8, 6, 3), dtype=np.uint16)
+    header = instrument_pb2.ZStackHeader(slide="s", row=1, col=2, z_um=[0.0, 0.5, 1.0])
+    return header, pixels
+
+
+def test_codec_round_trips_both_forms() -> None:
+    header, pixels = _stack()
+    payload, attachment = codec.encode_zstack(header, pixels)
+    decoded_header, decoded = codec.decode_zstack(payload, attachment)
+    assert decoded_header.dtype == "<u2" and list(decoded_header.shape) == [3, 8, 6, 3]
+    np.testing.assert_array_equal(decoded, pixels)
+    header_2, pixels_2 = codec.decode_zstack_message(codec.encode_zstack_message(header, pixels))
+    assert header_2 == decoded_header
+    np.testing.assert_array_equal(pixels_2, pixels)
+
+
+def test_codec_refuses_inconsistent_stacks() -> None:
+    header, pixels = _stack()
+    payload, attachment = codec.encode_zstack(header, pixels)
+    with pytest.raises(ValueError, match="needs"):
+        codec.decode_zstack(payload[:-2], attachment)
+    with pytest.raises(ValueError, match="no header"):
+        codec.decode_zstack(payload, None)
+    with pytest.raises(ValueError, match="z values"):
+        codec.encode_zstack(header, pixels[:2])
+
+
+@pytest.fixture
+def pair() -> Iterator[tuple[zenoh.Session, zenoh.Session, zenoh.Session]]:
+    """A listening peer and two clients connected to it, on a free loopback port."""
+    endpoint = session.loopback_endpoint()
+    with (
+        session.open_session(listen=[endpoint]) as hub,
+        session.open_session(connect=[endpoint]) as one,
+        session.open_session(connect=[endpoint]) as two,
+    ):
+        yield hub, one, two
+
+
+def test_zstack_travels_between_clients(pair) -> None:
+    _, publisher, subscriber = pair
+    header, pixels = _stack()
+    received: list[tuple[instrument_pb2.ZStackHeader, np.ndarray]] = []
+    done = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        received.append(codec.decode_zstack_sample(sample))
+        done.set()
+
+    with subscriber.declare_subscriber(keys.zstack_pattern("s"), on_sample):
+        payload, attachment = codec.encode_zstack(header, pixels)
+        # the subscription needs a moment to reach the publisher through the hub
+        for _ in range(50):
+            publisher.put(keys.zstack_key("s", 1, 2), payload, attachment=attachment)
+            if done.wait(0.1):
+                break
+    assert received, "no z-stack arrived"
+    got_header, got_pixels = received[0]
+    assert (got_header.slide, got_header.row, got_header.col) == ("s", 1, 2)
+    np.testing.assert_array_equal(got_pixels, pixels)
+
+
+def test_call_returns_replies_and_raises_error_replies(pair) -> None:
+    hub, caller, _ = pair
+    key = "focustrack/v1/instrument/test/acquire"
+
+    def handle(query: zenoh.Query) -> instrument_pb2.AcquireReply:
+        request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
+        if request.n_frames > 3:
+            raise rpc.RequestError(
+                rpc.ErrorCode.ERROR_CODE_TOO_MANY_FRAMES, "at most 3 frames", "n_frames"
+            )
+        if request.n_frames == 0:
+            raise RuntimeError("boom")
+        return instrument_pb2.AcquireReply(header=instrument_pb2.ZStackHeader(slide=request.slide))
+
+    with hub.declare_queryable(key, lambda query: rpc.answer(query, key, handle)):
+        reply = rpc.call(caller, key, instrument_pb2.AcquireRequest(slide="s", n_frames=2),
+                         instrument_pb2.AcquireReply)  # fmt: skip
+        assert reply.header.slide == "s"
+        with pytest.raises(rpc.RemoteError) as refused:
+            rpc.call(caller, key, instrument_pb2.AcquireRequest(n_frames=9),
+                     instrument_pb2.AcquireReply)  # fmt: skip
+        assert refused.value.error.code == common_pb2.ERROR_CODE_TOO_MANY_FRAMES
+        assert refused.value.error.field == "n_frames"
+        with pytest.raises(rpc.RemoteError, match="boom"):
+            rpc.call(caller, key, instrument_pb2.AcquireRequest(), instrument_pb2.AcquireReply)
+        garbage = list(caller.get(key, payload=b"\xff\xff\xff", timeout=5.0))
+        assert rpc.error_of(garbage[0].err).code == common_pb2.ERROR_CODE_MALFORMED_REQUEST
+    with pytest.raises(rpc.RemoteError, match="no queryable"):
+        rpc.call(caller, key, instrument_pb2.AcquireRequest(), instrument_pb2.AcquireReply, 0.5)
+
+
+def test_session_arguments_default_and_override() -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    session.add_zenoh_arguments(parser, default_listen=[session.DEFAULT_ENDPOINT])
+    args = parser.parse_args([])
+    assert args.connect is None and args.zenoh_default_listen == [session.DEFAULT_ENDPOINT]
+    args = parser.parse_args(["--connect", "tcp/127.0.0.1:1", "--mode", "client"])
+    assert args.connect == ["tcp/127.0.0.1:1"] and args.listen is None
+    with pytest.raises(ValueError, match="at least one"):
+        session.session_config()

@@ -1,0 +1,50 @@
+"""A slide served by an estimator, driven as a local `Strategy` (for benchmarks and tests).
+
+`RemoteStrategy` turns a slide on an estimator service back into the two calls
+every strategy answers, so anything that drives a strategy (the benchmark's
+`replay`) drives a served slide the same way; the end-to-end test uses that to
+check that the service reproduces the benchmark exactly.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from focustrack_client import EstimatorClient
+from focustrack_core.domain import Acquisition, FocusMap, Measurement, Outcome
+from focustrack_core.maps import focus_map_of_npy
+from focustrack_estimator.slides import config_of
+from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_scheduler.remote import acquisition_of, measurement_in, outcome_of
+
+
+class RemoteStrategy(Strategy):
+    """A slide on an estimator service, driven through the Strategy interface."""
+
+    def __init__(
+        self, client: EstimatorClient, slide_id: str, settings: SlideSettings, name: str
+    ) -> None:
+        super().__init__(settings)
+        self.client, self.slide_id, self.name = client, slide_id, name
+
+    @classmethod
+    def create(
+        cls,
+        client: EstimatorClient,
+        strategy: str,
+        settings: SlideSettings,
+        params: dict[str, Any] | None = None,
+    ) -> RemoteStrategy:
+        """A new slide on the service, scanned with `strategy`."""
+        slide = client.create_slide(config_of(strategy, settings, params))
+        return cls(client, slide.id, settings, strategy)
+
+    def _plan(self) -> Acquisition | None:
+        return acquisition_of(self.client.next(self.slide_id))
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        body = measurement_in(acquisition, measurement)
+        return outcome_of(self.client.measure(self.slide_id, body))
+
+    def focus_map(self) -> FocusMap:
+        return focus_map_of_npy(self.client.focus_map_file(self.slide_id, "npy"))

@@ -1,0 +1,21 @@
+"""The strategies the benchmarks compare: every served one, and the `gp-oracle` floor."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from focustrack.bench.oracle import gp_oracle
+from focustrack_estimator import registry
+from focustrack_estimator.strategy import SlideSettings, Strategy
+
+STRATEGIES: dict[str, registry.Factory] = {**registry.STRATEGIES, "gp-oracle": gp_oracle}
+
+
+def parameters(name: str) -> dict[str, Any]:
+    """The tunable parameters of strategy `name` with their defaults."""
+    return registry.parameters(name, STRATEGIES)
+
+
+def create(name: str, settings: SlideSettings, params: dict[str, Any] | None = None) -> Strategy:
+    """A new strategy `name`, served or the oracle; unknown names or parameters: ValueError."""
+    return registry.create(name, settings, params, STRATEGIES)

@@ -1,0 +1,329 @@
+"""`focustrack demo`: the whole product on loopback, and a comparison of scan strategies.
+
+Starts a Zenoh router in this process and the instrument, focus and estimator
+services as separate processes (`python -m focustrack serve ...`) on free ports,
+waits until each answers, then scans the same simulated slide once per strategy
+(the best Kalman filter, Delaunay focus-map surveying and autofocus on every tile
+by default) and prints, per strategy, images per tile, simulated scan time,
+in-focus fraction and MAE against the instrument's truth, and where the wall time
+went. Everything is shut down on the way out, also on Ctrl-C.
+
+    focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from subprocess import STDOUT, Popen, TimeoutExpired
+from typing import Any
+
+import httpx
+import zenoh
+
+from focustrack_core.wire import rpc
+from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_estimator import registry
+from focustrack_instrument_sim.surfaces import FAMILIES
+from focustrack_scheduler.clients import wait_for_instrument
+from focustrack_scheduler.outputs import SCAN_FILES, WallTimes
+from focustrack_scheduler.scan import (
+    BEST_KALMAN,
+    SCAN_ERRORS,
+    ScanJob,
+    add_scan_options,
+    request_from_args,
+    retry_from_args,
+    run_scan,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STRATEGIES = (BEST_KALMAN, "survey-delaunay", "af-every-tile")
+INSTRUMENT = "sim"
+SLIDE = "slide-0"
+READY_TIMEOUT_S = 60.0
+
+
+@dataclass
+class Service:
+    """A service in a process of its own; its output goes to `log_path`."""
+
+    name: str
+    command: list[str]
+    log_path: Path
+    ready: Callable[[], bool]
+    process: Popen | None = field(default=None, repr=False)
+
+    def start(self) -> None:
+        with self.log_path.open("a") as log_file:
+            # A session of its own: Ctrl-C reaches the demo only, which stops this cleanly.
+            self.process = Popen(
+                self.command, stdout=log_file, stderr=STDOUT, start_new_session=True
+            )
+
+    def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> None:
+        deadline_s = time.monotonic() + timeout_s
+        while not self.ready():
+            assert self.process is not None
+            if self.process.poll() is not None:
+                raise RuntimeError(
+                    f"{self.name} exited with status {self.process.returncode}; see {self.log_path}"
+                )
+            if time.monotonic() > deadline_s:
+                raise RuntimeError(f"{self.name} not ready after {timeout_s:.0f} s")
+            time.sleep(0.2)
+
+    def kill(self) -> None:
+        """SIGKILL, as a crash would."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """SIGTERM, then SIGKILL if it has not ended within `timeout_s`."""
+        if self.process is None or self.process.poll() is not None:
+            return
+        self.process.terminate()
+        try:
+            self.process.wait(timeout_s)
+        except TimeoutExpired:
+            self.kill()
+
+
+def _http_ready(port: int) -> Callable[[], bool]:
+    def ready() -> bool:
+        try:
+            return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    return ready
+
+
+class LocalStack:
+    """A Zenoh router (this process) and the three services on loopback, as a context manager.
+
+    `instrument_args` are extra options of `focustrack serve instrument` (slides, frames).
+    """
+
+    def __init__(self, work_dir: Path, instrument_args: list[str]) -> None:
+        self.work_dir = Path(work_dir)
+        (self.work_dir / "logs").mkdir(parents=True, exist_ok=True)
+        self.endpoint = loopback_endpoint()
+        self.estimator_port = free_port()
+        self.estimator_url = f"http://127.0.0.1:{self.estimator_port}"
+        self.store = self.work_dir / "estimator.sqlite"
+        self.session: zenoh.Session | None = None
+        focus_port = free_port()
+        serve = [sys.executable, "-m", "focustrack", "serve"]
+        connect = ["--connect", self.endpoint]
+        store = ["--store", str(self.store)]
+        self.services = {
+            "instrument": Service(
+                "instrument",
+                [*serve, "instrument", *connect, "--name", INSTRUMENT, *instrument_args],
+                self.work_dir / "logs" / "instrument.log",
+                self._instrument_ready,
+            ),
+            "focus": Service(
+                "focus",
+                [*serve, "focus", *connect, "--port", str(focus_port)],
+                self.work_dir / "logs" / "focus.log",
+                _http_ready(focus_port),
+            ),
+            "estimator": Service(
+                "estimator",
+                [*serve, "estimator", "--port", str(self.estimator_port), *store],
+                self.work_dir / "logs" / "estimator.log",
+                _http_ready(self.estimator_port),
+            ),
+        }
+
+    def _instrument_ready(self) -> bool:
+        assert self.session is not None
+        try:
+            wait_for_instrument(self.session, INSTRUMENT, timeout_s=0.0)
+            return True
+        except rpc.RemoteError:
+            return False
+
+    def __enter__(self) -> LocalStack:
+        self.session = open_session(listen=[self.endpoint], mode="router")
+        try:
+            for service in self.services.values():
+                service.start()
+            for service in self.services.values():
+                service.wait_ready()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def restart(self, name: str) -> None:
+        """Start service `name` again (after `kill` or `stop`) and wait until it answers."""
+        service = self.services[name]
+        service.start()
+        service.wait_ready()
+
+    def close(self) -> None:
+        for service in reversed(self.services.values()):
+            service.stop()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def __exit__(self, *_: object) -> None:
+        self.close()
+
+
+def comparison_table(reports: dict[str, dict[str, Any]]) -> str:
+    """Images per tile, simulated scan time, in-focus fraction and MAE of each strategy."""
+
+    def number(value: float | None, form: str) -> str:
+        return "n/a" if value is None else format(value, form)
+
+    header = f"{'strategy':<18}{'images/tile':>12}{'scan time s':>13}{'in focus':>10}{'MAE um':>9}"
+    lines = [header, "-" * len(header)]
+    for name, report in reports.items():
+        lines.append(
+            f"{name:<18}{report['images_per_tile']:>12.2f}{report['scan_time_s']:>13.1f}"
+            f"{number(report['in_focus_fraction'], '.1%'):>10}{number(report['mae_um'], '.3f'):>9}"
+        )
+    return "\n".join(lines)
+
+
+def wall_time_table(reports: dict[str, dict[str, Any]]) -> str:
+    """Where each scan's wall time went, in seconds, and the share of all scans together."""
+    parts = [
+        ("rendering_s", "render"),
+        ("transport_s", "transport"),
+        ("focus_computation_s", "focus"),
+        ("estimation_s", "estimate"),
+        ("waiting_s", "waiting"),
+        ("scheduler_s", "scheduler"),
+        ("total_s", "total"),
+    ]
+    header = f"{'wall time s':<18}" + "".join(f"{label:>11}" for _, label in parts)
+    lines = [header, "-" * len(header)]
+    sums = WallTimes().as_dict()
+    for name, report in reports.items():
+        wall = report["wall_time_s"]
+        lines.append(f"{name:<18}" + "".join(f"{wall[key]:>11.1f}" for key, _ in parts))
+        for key in sums:
+            sums[key] += wall[key]
+    total_s = sums["total_s"] or 1.0
+    lines.append(
+        f"{'share of all':<18}" + "".join(f"{sums[key] / total_s:>11.1%}" for key, _ in parts)
+    )
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--rows", type=int, default=10, help="tile rows of the slide (10)")
+    parser.add_argument("--cols", type=int, default=10, help="tile columns of the slide (10)")
+    parser.add_argument("--size", type=int, default=512, help="frame side in pixels (512)")
+    parser.add_argument("--seed", type=int, default=1, help="seed of the slide (1)")
+    parser.add_argument("--family", choices=list(FAMILIES), default="standard")
+    parser.add_argument(
+        "--strategies",
+        nargs="+",
+        metavar="NAME",
+        default=list(DEFAULT_STRATEGIES),
+        help=f"strategies to compare (default: {' '.join(DEFAULT_STRATEGIES)})",
+    )
+    parser.add_argument(
+        "--out", type=Path, default=Path("out/demo"), help="output folder (out/demo)"
+    )
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the comparison as JSON")
+    add_scan_options(parser)
+
+
+def _stop_on_sigterm() -> None:
+    def interrupt(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    names = [name for item in args.strategies for name in item.split(",") if name]
+    unknown = [name for name in names if name not in registry.STRATEGIES]
+    if unknown or not names or min(args.rows, args.cols, args.size) < 1:
+        print(
+            f"focustrack demo: error: unknown strategy {', '.join(unknown) or '(none)'} or a "
+            f"size below 1; known strategies: {', '.join(registry.STRATEGIES)}",
+            file=sys.stderr,
+        )
+        return 2
+    _stop_on_sigterm()
+    out_dir: Path = args.out
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for suffix in ("", "-wal", "-shm"):  # a demo run starts afresh (a stale WAL would replay)
+        (out_dir / f"estimator.sqlite{suffix}").unlink(missing_ok=True)
+    instrument_args = [
+        "--seed", str(args.seed), "--family", args.family, "--slides", "1",
+        "--rows", str(args.rows), "--cols", str(args.cols),
+        "--width", str(args.size), "--height", str(args.size),
+    ]  # fmt: skip
+    print(
+        f"focustrack demo: a {args.rows}x{args.cols} slide of {args.size}x{args.size} px tiles "
+        f"(family {args.family}, seed {args.seed}); outputs in {out_dir}",
+        flush=True,
+    )
+    reports: dict[str, dict[str, Any]] = {}
+    try:
+        started_s = time.perf_counter()
+        with LocalStack(out_dir, instrument_args) as stack:
+            assert stack.session is not None
+            print(f"services ready in {time.perf_counter() - started_s:.1f} s", flush=True)
+            for name in names:
+                scan_dir = out_dir / name
+                _clear(scan_dir)
+                job = ScanJob(
+                    request=request_from_args(args, INSTRUMENT, SLIDE, name),
+                    estimator_url=stack.estimator_url,
+                    out_dir=scan_dir,
+                    retry=retry_from_args(args),
+                    progress=not args.no_progress,
+                    label=name,
+                )
+                reports[name] = run_scan(stack.session, job)
+    except KeyboardInterrupt:
+        print("focustrack demo: interrupted; services stopped", file=sys.stderr)
+        return 130
+    except (*SCAN_ERRORS, RuntimeError, ValueError) as error:
+        print(f"focustrack demo: error: {error}", file=sys.stderr)
+        return 1
+    print()
+    print(f"Strategies on the same slide ({args.rows}x{args.cols} tiles, seed {args.seed}):")
+    print(comparison_table(reports))
+    print()
+    print("Where the wall time went (s):")
+    print(wall_time_table(reports))
+    if args.json is not None:
+        keys = ("images_per_tile", "scan_time_s", "in_focus_fraction", "mae_um")
+        summary = {
+            "strategies": {
+                name: {key: report[key] for key in keys} for name, report in reports.items()
+            },
+            "wall_time_s": {name: report["wall_time_s"] for name, report in reports.items()},
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(summary, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _clear(scan_dir: Path) -> None:
+    """Remove a previous demo scan's files (only those a scan writes), so it starts afresh."""
+    for name in SCAN_FILES:
+        (scan_dir / name).unlink(missing_ok=True)

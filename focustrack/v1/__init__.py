@@ -1,5 +1,0 @@
-"""Python code generated from the wire schemas in proto/focustrack/v1 (do not edit the *_pb2 files).
-
-Regenerate with `make proto` (`python -m focustrack.wire.generate`); a test fails when
-these files are out of date.
-"""

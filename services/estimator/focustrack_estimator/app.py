@@ -1,0 +1,446 @@
+"""The estimator's REST API: FastAPI routers over `slides.Slides`, under /v1.
+
+`create_app(settings)` builds the application: its store, its live slides, its
+metrics, the optional bearer-token check (off unless a token is configured),
+the request body limit, and the mapping of domain errors to HTTP statuses
+(404 unknown slide, 409 not the pending acquisition or a conflicting re-post,
+422 invalid input, 413 oversized body), each with a `detail` naming the problem.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import secrets
+import time
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Path, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from fastapi.routing import APIRoute
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from focustrack_client import models as api
+from focustrack_core.domain import Acquisition, Outcome
+from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
+from focustrack_estimator.metrics import EstimatorMetrics
+from focustrack_estimator.slides import Slide, SlideError, Slides, diagnose, map_png
+from focustrack_estimator.store import SlideRecord, Store
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How the service runs: its SQLite file, its bearer token (None: no auth), its body limit."""
+
+    store_path: str
+    token: str | None = None
+    max_body_bytes: int = 64 * 1024
+
+
+#: Worker threads for strategy work and SQLite (a request waiting for its commit holds one).
+WORKER_THREADS = 64
+
+SlideId = Annotated[str, Path(min_length=1, max_length=64, description="The id POST returned")]
+_ERRORS: dict[int | str, dict[str, Any]] = {
+    status: {"model": api.Error, "description": text}
+    for status, text in (
+        (401, "Missing or wrong bearer token"),
+        (404, "Unknown slide"),
+        (409, "Not the pending acquisition, a conflicting re-post, or a finished scan"),
+        (413, "Request body too large"),
+    )
+}
+_MAP_MEDIA = {
+    "csv": "text/csv",
+    "npy": "application/octet-stream",
+    "png": "image/png",
+}
+
+#: The error code of an HTTP status the service answers without a more specific one.
+_CODE_OF_STATUS = {
+    401: api.ErrorCode.UNAUTHORIZED,
+    404: api.ErrorCode.NOT_FOUND,
+    405: api.ErrorCode.NOT_FOUND,
+    409: api.ErrorCode.CONFLICT,
+    413: api.ErrorCode.PAYLOAD_TOO_LARGE,
+    422: api.ErrorCode.INVALID_REQUEST,
+}
+
+
+def error_response(
+    status: int,
+    code: api.ErrorCode | None,
+    detail: object,
+    headers: dict[str, str] | None = None,
+) -> JSONResponse:
+    """An error reply in the one shape of `api.Error`: a `code` for programs, a `detail`."""
+    if code is None:
+        default = api.ErrorCode.INTERNAL if status >= 500 else api.ErrorCode.INVALID_REQUEST
+        code = _CODE_OF_STATUS.get(status, default)
+    return JSONResponse({"code": code, "detail": detail}, status, headers=headers)
+
+
+_bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
+
+
+# Dependencies are coroutines: FastAPI runs plain functions in its thread pool, a thread
+# hop per dependency per request (it tripled the latency of /next).
+async def _require_token(
+    request: Request,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    token: str = request.app.state.settings.token
+    if credentials is None or not secrets.compare_digest(
+        credentials.credentials.encode(), token.encode()
+    ):
+        raise HTTPException(
+            401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
+        )
+
+
+async def _slides(request: Request) -> Slides:
+    return request.app.state.slides
+
+
+async def _metrics(request: Request) -> EstimatorMetrics:
+    return request.app.state.metrics
+
+
+SlidesDep = Annotated[Slides, Depends(_slides)]
+MetricsDep = Annotated[EstimatorMetrics, Depends(_metrics)]
+
+v1 = APIRouter(prefix="/v1", responses=_ERRORS)
+
+
+def _slide_out(record: SlideRecord) -> api.Slide:
+    return api.Slide(
+        id=record.id,
+        config=api.SlideCreate.model_validate(record.config),
+        n_acquisitions=record.n_events,
+        n_accepted=record.n_accepted,
+        done=record.done,
+        created_unix_s=record.created_s,
+        updated_unix_s=record.updated_s,
+    )
+
+
+async def _record(slides: Slides, slide_id: str) -> SlideRecord:
+    record = await asyncio.to_thread(slides.store.slide, slide_id)
+    if record is None:
+        raise HTTPException(404, f"no slide {slide_id!r}")
+    return record
+
+
+@v1.post("/slides", status_code=201, tags=["slides"])
+async def create_slide(config: api.SlideCreate, slides: SlidesDep) -> api.Slide:
+    """Create a slide scan; its strategy is built (and its parameters checked) at once."""
+    slide_id = await slides.create(config)
+    return _slide_out(await _record(slides, slide_id))
+
+
+@v1.get("/slides", tags=["slides"])
+async def list_slides(slides: SlidesDep) -> list[api.Slide]:
+    """Every slide with its configuration and progress, oldest first."""
+    return [_slide_out(record) for record in await asyncio.to_thread(slides.store.slides)]
+
+
+@v1.get("/slides/{slide_id}", tags=["slides"])
+async def get_slide(slide_id: SlideId, slides: SlidesDep) -> api.Slide:
+    return _slide_out(await _record(slides, slide_id))
+
+
+@v1.delete("/slides/{slide_id}", status_code=204, tags=["slides"])
+async def delete_slide(slide_id: SlideId, slides: SlidesDep) -> Response:
+    await slides.delete(slide_id)
+    return Response(status_code=204)
+
+
+def _next_out(slide: Slide, acquisition: Acquisition | None) -> api.Next:
+    if acquisition is None:
+        return api.Next(done=True)
+    x_um, y_um = slide.grid.stage_xy_um(acquisition.row, acquisition.col)
+    z = acquisition.z
+    return api.Next(
+        done=False,
+        sequence=acquisition.index,
+        row=acquisition.row,
+        col=acquisition.col,
+        stage_x_um=x_um,
+        stage_y_um=y_um,
+        z_center_um=z.center_um,
+        z_low_um=z.low_um,
+        z_high_um=z.high_um,
+        z_step_um=z.step_um,
+        n_frames=z.n_frames,
+        predicted_z_um=finite_or_none(acquisition.predicted_um),
+        predicted_sigma_um=finite_or_none(acquisition.predicted_sigma_um),
+        purpose=acquisition.purpose,
+        measure=acquisition.measure,
+    )
+
+
+@v1.get("/slides/{slide_id}/next", tags=["scan"])
+async def next_acquisition(slide_id: SlideId, slides: SlidesDep) -> api.Next:
+    """The next tile to image and the z-range to acquire there (the same until measured)."""
+    return await slides.run(slide_id, lambda slide: _next_out(slide, slide.next()))
+
+
+def _outcome_out(sequence: int, outcome: Outcome) -> api.OutcomeOut:
+    return api.OutcomeOut(
+        sequence=sequence,
+        row=outcome.row,
+        col=outcome.col,
+        accepted=outcome.accepted,
+        prior_um=finite_or_none(outcome.prior_um),
+        prior_sigma_um=finite_or_none(outcome.prior_sigma_um),
+        posterior_um=finite_or_none(outcome.posterior_um),
+        posterior_sigma_um=finite_or_none(outcome.posterior_sigma_um),
+        innovation_um=finite_or_none(outcome.innovation_um),
+        nis=finite_or_none(outcome.nis),
+    )
+
+
+@v1.post("/slides/{slide_id}/measurements", tags=["scan"])
+async def post_measurement(
+    slide_id: SlideId,
+    measurement: api.MeasurementIn,
+    slides: SlidesDep,
+    metrics: MetricsDep,
+) -> api.OutcomeOut:
+    """The best focus measured for the pending acquisition; on disk before the reply.
+
+    Re-posting the same measurement for an acquisition already recorded returns
+    the same outcome; a different value for it is a 409.
+    """
+    logged, new = await slides.run(slide_id, lambda slide: slide.measure(measurement))
+    if new and logged.acquisition.measure:
+        metrics.measurements.inc()
+        if not logged.outcome.accepted:
+            metrics.rejections.inc()
+    return _outcome_out(measurement.sequence, logged.outcome)
+
+
+@v1.get(
+    "/slides/{slide_id}/map",
+    tags=["maps"],
+    response_model=api.FocusMapOut,
+    responses={
+        200: {
+            "content": {media: {} for media in _MAP_MEDIA.values()},
+            "description": "JSON (default); CSV, one line per tile; .npy, a structured array "
+            f"with fields {', '.join(MAP_LAYERS)}; PNG, a heat map of the posterior and its sigma",
+        }
+    },
+)
+async def get_map(
+    slide_id: SlideId,
+    slides: SlidesDep,
+    map_format: Annotated[Literal["json", "csv", "npy", "png"], Query(alias="format")] = "json",
+) -> api.FocusMapOut | Response:
+    """The prior, posterior and smoothed focus maps with their sigma (um)."""
+    focus_map, grid = await slides.run(slide_id, lambda slide: (slide.focus_map(), slide.grid))
+    if map_format == "json":
+        layers: dict[str, list[list[float | None]] | None] = {
+            name: [[finite_or_none(value) for value in row] for row in layer.tolist()]
+            for name, layer in map_layers(focus_map).items()
+        }
+        for name in ("smoothed_um", "smoothed_sigma_um"):
+            if getattr(focus_map, name) is None:
+                layers[name] = None
+        return api.FocusMapOut(rows=grid.rows, cols=grid.cols, **layers)
+    content: str | bytes
+    if map_format == "csv":
+        content = await asyncio.to_thread(map_csv, focus_map, grid)
+    elif map_format == "npy":
+        content = await asyncio.to_thread(map_npy, focus_map)
+    else:
+        content = await asyncio.to_thread(map_png, focus_map, f"slide {slide_id}")
+    return Response(content, media_type=_MAP_MEDIA[map_format])
+
+
+@v1.get("/slides/{slide_id}/diagnostics", tags=["maps"])
+async def get_diagnostics(slide_id: SlideId, slides: SlidesDep) -> api.Diagnostics:
+    """Counts and innovation statistics (mean, NIS, whiteness) of the scan so far."""
+    result = await slides.run(slide_id, lambda slide: diagnose(slide.history))
+    stats = result.innovations
+    return api.Diagnostics(
+        n_acquisitions=result.n_acquisitions,
+        n_measured=result.n_measured,
+        n_accepted=result.n_accepted,
+        n_rejected=result.n_rejected,
+        innovations_note=result.innovations_note,
+        innovations=None
+        if stats is None
+        else api.InnovationStats(
+            n=stats.n,
+            mean_innovation_um=stats.mean_um,
+            mean_z=stats.mean_z,
+            mean_nis=stats.mean_nis,
+            nis_low=stats.nis_interval[0],
+            nis_high=stats.nis_interval[1],
+            autocorrelation=stats.autocorrelation.tolist(),
+            autocorrelation_bound=stats.autocorrelation_bound,
+            ljung_box_q=stats.ljung_box_q,
+            ljung_box_p=stats.ljung_box_p,
+            zero_mean=stats.zero_mean,
+            consistent=stats.consistent,
+            white=stats.white,
+        ),
+    )
+
+
+ops = APIRouter(tags=["operations"])
+
+
+@ops.get("/healthz")
+async def healthz(slides: SlidesDep) -> api.Health:
+    return api.Health(status="ok", slides=await asyncio.to_thread(slides.store.count_slides))
+
+
+@ops.get("/metrics", response_class=PlainTextResponse)
+async def metrics_text(metrics: MetricsDep) -> PlainTextResponse:
+    """Prometheus text exposition: requests, latencies, filter time, slides, measurements."""
+    text = await asyncio.to_thread(metrics.render)
+    return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
+
+
+class _RequestMetrics:
+    """ASGI middleware: count and time every request by method, route template and status."""
+
+    def __init__(self, app: ASGIApp, metrics: EstimatorMetrics) -> None:
+        self.app, self.metrics = app, metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start_s = time.perf_counter()
+        status = 500
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            route = getattr(scope.get("route"), "path", "unmatched")  # the template, not the id
+            self.metrics.requests.inc(method=scope["method"], route=route, status=str(status))
+            self.metrics.latency.observe(time.perf_counter() - start_s, route=route)
+
+
+class _BodyLimit:
+    """ASGI middleware: refuse request bodies over `max_bytes` with a 413 that says the limit.
+
+    A declared Content-Length over the limit is refused before reading; a body
+    streamed without one is counted as it arrives (the error is raised from
+    `receive`, inside the route, so FastAPI renders it as JSON).
+    """
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app, self.max_bytes = app, max_bytes
+
+    def _error(self, size: str) -> HTTPException:
+        return HTTPException(413, f"request body of {size} exceeds the limit of {self.max_bytes}")
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length", b"")
+        if declared.isdigit() and int(declared) > self.max_bytes:
+            error = self._error(f"{int(declared)} bytes")
+            await error_response(413, api.ErrorCode.PAYLOAD_TOO_LARGE, error.detail)(
+                scope, receive, send
+            )
+            return
+        received = 0
+
+        async def limited() -> Message:
+            nonlocal received
+            message = await receive()
+            received += len(message.get("body", b""))
+            if received > self.max_bytes:
+                raise self._error(f"more than {received} bytes")
+            return message
+
+        await self.app(scope, limited, send)
+
+
+def _allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
+    """Every method some route of the app serves at the request's path."""
+    return sorted(
+        {
+            method
+            for route in app.routes
+            if isinstance(route, APIRoute) and route.matches(scope)[0] is not Match.NONE
+            for method in route.methods or ()
+        }
+    )
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """The estimator service over the store at `settings.store_path`."""
+    store = Store(settings.store_path)
+    metrics = EstimatorMetrics(store.count_slides, lambda: slides.n_live)
+    slides = Slides(store, timer=metrics.filter.observe)
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        # Requests wait in worker threads for their group commit: allow many at once.
+        executor = ThreadPoolExecutor(WORKER_THREADS, thread_name_prefix="estimator")
+        asyncio.get_running_loop().set_default_executor(executor)
+        # Everything loaded so far lives as long as the process: out of the collector's
+        # sight, a full collection no longer stalls every request (150-200 ms at 100 slides).
+        gc.collect()
+        gc.freeze()
+        yield
+        # The store is not closed here: in-process clients (TestClient) run the lifespan
+        # once per session; whoever created the app closes it (`service.run`).
+
+    app = FastAPI(
+        title="focustrack estimator",
+        version="1",
+        summary="Each slide's focus estimator: the next tile and z-range, and what a "
+        "measurement taught it",
+        lifespan=lifespan,
+    )
+    app.state.settings, app.state.slides, app.state.metrics = settings, slides, metrics
+    # The token check is only installed when there is a token (it costs a dependency per request).
+    app.include_router(v1, dependencies=[Depends(_require_token)] if settings.token else [])
+    app.include_router(ops)
+    app.add_middleware(_BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(_RequestMetrics, metrics=metrics)  # outermost: it counts the 413s too
+
+    @app.exception_handler(SlideError)
+    async def slide_error(_: Request, error: SlideError) -> JSONResponse:
+        if error.status == 422:  # the shape of FastAPI's own 422: one schema for clients
+            detail = [{"loc": list(error.where), "msg": str(error), "type": "value_error"}]
+            return error_response(error.status, error.code, detail)
+        return error_response(error.status, error.code, str(error))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:
+        headers = dict(error.headers or {})
+        if error.status_code == 405:  # Starlette names the methods of one route; a path has more
+            headers["Allow"] = ", ".join(_allowed_methods(app, request.scope))
+        return error_response(error.status_code, None, error.detail, headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(_: Request, error: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler echoes the input, which fails to render when it is NaN or
+        # infinite (a 500 for the very values it rejects): say where and what, not the value.
+        detail = [{"loc": e["loc"], "msg": e["msg"], "type": e["type"]} for e in error.errors()]
+        return error_response(422, api.ErrorCode.INVALID_REQUEST, detail)
+
+    return app

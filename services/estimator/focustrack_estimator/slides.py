@@ -1,0 +1,455 @@
+"""The estimator's domain: live slides, each a strategy rebuilt from its durable log.
+
+A `Slide` pairs a strategy with the history of what it was asked and told;
+`Slides` keeps the live ones in memory, creates new ones, and rebuilds a slide
+from its store log on first use after a restart (strategies are deterministic,
+so replaying the logged measurements gives back the same state exactly; the
+replay checks that every acquisition and outcome comes out as logged).
+
+Concurrency: every operation on a slide runs under that slide's asyncio lock,
+in a worker thread (strategy work and the SQLite commit stay off the event
+loop), so requests on one slide are serialised and different slides proceed
+side by side. A measurement is committed before its outcome is returned.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import io
+import time
+import uuid
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import numpy as np
+
+from focustrack_client import models as api
+from focustrack_core.domain import Acquisition, FocusFlag, FocusMap, Measurement, Outcome
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.maps import map_layers
+from focustrack_estimator import registry
+from focustrack_estimator.diagnostics import InnovationDiagnostics, innovation_diagnostics
+from focustrack_estimator.store import Event, Store
+from focustrack_estimator.strategy import SlideSettings, Strategy, ZRangePolicy
+
+#: Exceptions a strategy may raise on absurd parameters or input (turned into a 422).
+STRATEGY_ERRORS = (ValueError, TypeError, ArithmeticError, np.linalg.LinAlgError)
+
+T = TypeVar("T")
+
+
+class SlideError(Exception):
+    """A request the domain refuses; `status` is the HTTP status that says why.
+
+    `where` locates the offending input, as a validation error's `loc` does
+    (("body", "params", "q")): a 422 from the domain reads like one from the schema.
+    """
+
+    status = 422
+    code = api.ErrorCode.INVALID_REQUEST
+
+    def __init__(self, message: str, where: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.where = where
+
+
+class SlideNotFoundError(SlideError):
+    status = 404
+    code = api.ErrorCode.NOT_FOUND
+
+
+class SlideConflictError(SlideError):
+    """The request contradicts the slide's state (not the pending acquisition, a re-post
+    with a different value, a finished scan)."""
+
+    status = 409
+    code = api.ErrorCode.CONFLICT
+
+
+class ReplayMismatchError(SlideError):
+    """The stored log no longer replays to the logged outcomes (the strategy changed)."""
+
+    status = 500
+    code = api.ErrorCode.REPLAY_MISMATCH
+
+
+def config_of(
+    strategy: str, settings: SlideSettings, params: dict[str, Any] | None = None
+) -> api.SlideCreate:
+    """The API's slide of a strategy with these settings (the inverse of `settings_of`)."""
+    grid, policy = settings.grid, settings.policy
+    return api.SlideCreate(
+        strategy=strategy,
+        params=dict(params or {}),
+        grid=api.Grid(
+            rows=grid.rows,
+            cols=grid.cols,
+            pitch_um=grid.pitch_um,
+            origin_x_um=grid.origin_x_um,
+            origin_y_um=grid.origin_y_um,
+        ),
+        start_z_um=settings.start_z_um,
+        start_sigma_um=settings.start_sigma_um,
+        dof_um=settings.dof_um,
+        noise_sigma_um=settings.noise_sigma_um,
+        z_range=api.ZRangePolicy(
+            k_sigma=policy.k_sigma,
+            z_step_um=policy.z_step_um,
+            min_frames=policy.min_frames,
+            max_frames=policy.max_frames,
+        ),
+    )
+
+
+def settings_of(config: api.SlideCreate) -> SlideSettings:
+    """The domain's settings of an API slide."""
+    grid, policy = config.grid, config.z_range
+    return SlideSettings(
+        grid=ScanGrid(grid.rows, grid.cols, grid.pitch_um, grid.origin_x_um, grid.origin_y_um),
+        start_z_um=config.start_z_um,
+        start_sigma_um=config.start_sigma_um,
+        dof_um=config.dof_um,
+        noise_sigma_um=config.noise_sigma_um,
+        policy=ZRangePolicy(policy.k_sigma, policy.z_step_um, policy.min_frames, policy.max_frames),
+    )
+
+
+def resolve_params(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
+    """The strategy's full parameter set: `params` over the defaults, each of the default's type."""
+    try:
+        defaults = registry.parameters(strategy)
+    except ValueError as error:
+        raise SlideError(str(error), ("body", "strategy")) from None
+    unknown = sorted(set(params) - set(defaults))
+    if unknown:
+        raise SlideError(
+            f"unknown parameter(s) {', '.join(unknown)} for strategy {strategy!r}; "
+            f"known: {', '.join(defaults) or 'none'}",
+            ("body", "params"),
+        )
+    resolved = dict(defaults)
+    for name, value in params.items():
+        resolved[name] = _coerce(strategy, name, value, defaults[name])
+    return resolved
+
+
+def _coerce(strategy: str, name: str, value: Any, default: Any) -> Any:
+    if value is None or default is None:  # None asks for the default; a None default takes any
+        return default if value is None else value
+    numbers = isinstance(value, list) and all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value
+    )
+    if isinstance(default, tuple) and numbers:
+        return tuple(float(v) for v in value)
+    kind = type(default)
+    if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
+        return float(value)
+    if kind is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if kind in (bool, str) and isinstance(value, kind):
+        return value
+    raise SlideError(
+        f"parameter {name!r} of strategy {strategy!r} must be a {kind.__name__} "
+        f"(default {default!r}), got {value!r}",
+        ("body", "params", name),
+    )
+
+
+def acquisition_record(acquisition: Acquisition) -> dict[str, Any]:
+    return dataclasses.asdict(acquisition)
+
+
+def measurement_record(measurement: Measurement) -> dict[str, Any]:
+    return {
+        "z_um": measurement.z_um,
+        "sigma_um": measurement.sigma_um,
+        "flags": sorted(measurement.flags),
+    }
+
+
+def measurement_of(record: dict[str, Any]) -> Measurement:
+    return Measurement(
+        record["z_um"], record["sigma_um"], frozenset(FocusFlag(f) for f in record["flags"])
+    )
+
+
+def outcome_record(outcome: Outcome) -> dict[str, Any]:
+    return dataclasses.asdict(outcome)
+
+
+@dataclasses.dataclass(frozen=True)
+class Logged:
+    """One recorded acquisition, in memory: the tile asked for, what was sent, what it did."""
+
+    acquisition: Acquisition
+    measurement: Measurement
+    outcome: Outcome
+
+
+class Slide:
+    """One slide's live strategy and its history. Not thread-safe: `Slides` serialises calls.
+
+    `timer` is called with the seconds spent in each strategy call (for /metrics).
+    """
+
+    def __init__(
+        self,
+        slide_id: str,
+        config: api.SlideCreate,
+        store: Store,
+        timer: Callable[[float], None] = lambda _: None,
+    ) -> None:
+        self.id = slide_id
+        self.config = config
+        self.store = store
+        self._timer = timer
+        self.history: list[Logged] = []
+        try:
+            self.strategy: Strategy = registry.create(
+                config.strategy, settings_of(config), resolve_params(config.strategy, config.params)
+            )
+            self.next()  # plan the first acquisition: absurd parameters fail here, at creation
+        except SlideError:
+            raise
+        except STRATEGY_ERRORS as error:
+            raise SlideError(
+                f"strategy {config.strategy!r} rejected its settings or parameters: {error}",
+                ("body",),
+            ) from None
+
+    @property
+    def grid(self) -> ScanGrid:
+        return self.strategy.grid
+
+    def next(self) -> Acquisition | None:
+        start_s = time.perf_counter()
+        acquisition = self.strategy.next_acquisition()
+        self._timer(time.perf_counter() - start_s)
+        return acquisition
+
+    def replay(self, events: list[Event]) -> None:
+        """Rebuild the state from the logged events, checking each comes out as logged."""
+        for event in events:
+            acquisition = self.strategy.next_acquisition()
+            if acquisition is None or acquisition_record(acquisition) != event.acquisition:
+                raise ReplayMismatchError(
+                    f"slide {self.id}: logged acquisition {event.sequence} no longer replays "
+                    f"(the strategy {self.config.strategy!r} changed since it was logged)"
+                )
+            measurement = measurement_of(event.measurement)
+            outcome = self.strategy.record(acquisition, measurement)
+            if outcome_record(outcome) != event.outcome:
+                raise ReplayMismatchError(
+                    f"slide {self.id}: logged outcome {event.sequence} no longer replays "
+                    f"(the strategy {self.config.strategy!r} changed since it was logged)"
+                )
+            self.history.append(Logged(acquisition, measurement, outcome))
+
+    def measure(self, request: api.MeasurementIn) -> tuple[Logged, bool]:
+        """Record a measurement (durably) or return the one already recorded for it.
+
+        Returns the logged acquisition with its outcome, and whether it is new
+        (False: an idempotent re-post).
+        Raises SlideError (tile outside the grid), SlideConflictError (not the pending
+        acquisition, a re-post with another value, the scan is complete).
+        """
+        tile = (request.row, request.col)
+        if not self.grid.contains(*tile):
+            raise SlideError(
+                f"tile ({request.row}, {request.col}) is outside the slide's "
+                f"{self.grid.rows}x{self.grid.cols} grid",
+                ("body", "row" if request.row >= self.grid.rows else "col"),
+            )
+        try:
+            flags = frozenset(FocusFlag(flag) for flag in request.flags)
+            measurement = Measurement(request.z_um, request.sigma_um, flags)
+        except ValueError as error:
+            raise SlideError(str(error), ("body",)) from None
+        if request.sequence < len(self.history):
+            return self._recorded(request, measurement), False
+        pending = self.next()
+        if pending is None:
+            raise SlideConflictError(
+                f"the scan is complete: sequence {request.sequence} was not asked for"
+            )
+        if request.sequence != pending.index or tile != (pending.row, pending.col):
+            raise SlideConflictError(
+                f"acquisition {request.sequence} at tile ({request.row}, {request.col}) was "
+                f"not asked for: the pending one is {pending.index} at tile "
+                f"({pending.row}, {pending.col})"
+            )
+        start_s = time.perf_counter()
+        outcome = self.strategy.record(pending, measurement)
+        done = self.strategy.next_acquisition() is None
+        self._timer(time.perf_counter() - start_s)
+        event = Event(
+            pending.index,
+            acquisition_record(pending),
+            measurement_record(measurement),
+            outcome_record(outcome),
+        )
+        self.store.append(self.id, event, accepted=outcome.accepted, done=done)
+        logged = Logged(pending, measurement, outcome)
+        self.history.append(logged)
+        return logged, True
+
+    def _recorded(self, request: api.MeasurementIn, measurement: Measurement) -> Logged:
+        logged = self.history[request.sequence]
+        same_tile = (logged.acquisition.row, logged.acquisition.col) == (request.row, request.col)
+        if not same_tile or logged.measurement != measurement:
+            raise SlideConflictError(
+                f"acquisition {request.sequence} was already recorded for tile "
+                f"({logged.acquisition.row}, {logged.acquisition.col}) with "
+                f"{measurement_record(logged.measurement)}; a different value cannot replace it"
+            )
+        return logged
+
+    def focus_map(self) -> FocusMap:
+        """A copy of the current maps (safe to read after the lock is released)."""
+        return FocusMap(**dataclasses.asdict(self.strategy.focus_map()))  # asdict deep-copies
+
+
+class Slides:
+    """Every slide of the store; live ones cached in memory, others rebuilt on first use."""
+
+    def __init__(self, store: Store, timer: Callable[[float], None] = lambda _: None) -> None:
+        self.store = store
+        self._timer = timer
+        self._live: dict[str, Slide] = {}
+        self._locks: dict[str, asyncio.Lock] = {}
+
+    @property
+    def n_live(self) -> int:
+        return len(self._live)
+
+    def _lock(self, slide_id: str) -> asyncio.Lock:
+        return self._locks.setdefault(slide_id, asyncio.Lock())
+
+    async def create(self, config: api.SlideCreate) -> str:
+        """Check the configuration by building its strategy, store it, and return the new id."""
+        resolved = resolve_params(config.strategy, config.params)
+        # Stored and served as JSON: a bank's tuple of numbers is a list there.
+        params = {k: list(v) if isinstance(v, tuple) else v for k, v in resolved.items()}
+        config = config.model_copy(update={"params": params})
+        slide_id = uuid.uuid4().hex
+        slide = await asyncio.to_thread(Slide, slide_id, config, self.store, self._timer)
+        await asyncio.to_thread(self.store.create_slide, slide_id, config.model_dump(mode="json"))
+        self._live[slide_id] = slide
+        return slide_id
+
+    async def run(self, slide_id: str, work: Callable[[Slide], T]) -> T:
+        """`work(slide)` under the slide's lock, in a worker thread; rebuilds the slide if needed.
+
+        If the work fails past the domain's checks, the live slide may be half-updated
+        (strategy advanced, commit failed): it is dropped, to be rebuilt from its log.
+        """
+        async with self._lock(slide_id):
+            slide = self._live.get(slide_id)
+            try:
+                if slide is None:
+                    slide = await asyncio.to_thread(self._load, slide_id)
+                return await asyncio.to_thread(work, slide)
+            except SlideNotFoundError:
+                self._locks.pop(slide_id, None)  # keep no lock for ids that do not exist
+                raise
+            except SlideError:
+                raise
+            except Exception as error:
+                self._live.pop(slide_id, None)
+                if isinstance(error, STRATEGY_ERRORS):
+                    raise SlideError(f"strategy failed on slide {slide_id}: {error}") from None
+                raise
+
+    def _load(self, slide_id: str) -> Slide:
+        record = self.store.slide(slide_id)
+        if record is None:
+            raise SlideNotFoundError(f"no slide {slide_id!r}")
+        slide = Slide(
+            slide_id, api.SlideCreate.model_validate(record.config), self.store, self._timer
+        )
+        slide.replay(self.store.events(slide_id))
+        self._live[slide_id] = slide
+        return slide
+
+    async def delete(self, slide_id: str) -> None:
+        async with self._lock(slide_id):
+            if not await asyncio.to_thread(self.store.delete_slide, slide_id):
+                raise SlideNotFoundError(f"no slide {slide_id!r}")
+            self._live.pop(slide_id, None)
+        self._locks.pop(slide_id, None)
+
+
+# --- Diagnostics and map export: pure functions of a slide's history and maps. ---
+
+#: Innovation lags the whiteness test pools (fewer when the scan is short).
+MAX_LAG = 20
+
+
+@dataclasses.dataclass(frozen=True)
+class SlideDiagnostics:
+    """Counts over a slide's acquisitions and, when there are enough, its innovation statistics."""
+
+    n_acquisitions: int
+    n_measured: int  # acquisitions that asked for a best focus
+    n_accepted: int  # measurements used as observations
+    n_rejected: int  # measured, but not an observation: edge, flat, gated out
+    innovations: InnovationDiagnostics | None
+    innovations_note: str | None  # why `innovations` is None
+
+
+def diagnose(history: list[Logged]) -> SlideDiagnostics:
+    """Diagnostics from the accepted outcomes' innovations and NIS (S = innovation^2 / NIS).
+
+    Gated-out measurements are counted as rejected but left out of the innovation
+    statistics, which describe the filter's consistency on what it used.
+    """
+    n_measured = sum(logged.acquisition.measure for logged in history)
+    n_accepted = sum(logged.outcome.accepted for logged in history)
+    innovation_um, variance_um2 = [], []
+    for logged in history:
+        outcome = logged.outcome
+        if not outcome.accepted or outcome.innovation_um is None or outcome.nis is None:
+            continue
+        innovation_um.append(outcome.innovation_um)
+        # NIS = 0 only for a zero innovation, whose normalised value is 0 whatever S is.
+        variance_um2.append(outcome.innovation_um**2 / outcome.nis if outcome.nis > 0 else 1.0)
+    innovations, note = None, None
+    n = len(innovation_um)
+    if n < 3:
+        note = f"{n} innovation(s) logged; at least 3 are needed"
+    else:
+        try:
+            innovations = innovation_diagnostics(
+                np.array(innovation_um), np.array(variance_um2), max_lag=min(MAX_LAG, n - 2)
+            )
+        except ValueError as error:  # a constant sequence has no autocorrelation
+            note = str(error)
+    return SlideDiagnostics(
+        len(history), n_measured, n_accepted, n_measured - n_accepted, innovations, note
+    )
+
+
+def map_png(focus_map: FocusMap, title: str) -> bytes:
+    """A PNG heat map of the posterior focus map and its sigma, side by side."""
+    # Imported here: matplotlib adds half a second to every start of the service.
+    # The object-oriented API with an Agg canvas: no pyplot global state, safe in threads.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(10, 4.2), layout="constrained")
+    FigureCanvasAgg(figure)
+    layers = map_layers(focus_map)
+    for axes, name, cmap in zip(
+        figure.subplots(1, 2),
+        ("posterior_um", "posterior_sigma_um"),
+        ("viridis", "magma"),
+        strict=True,
+    ):
+        image = axes.imshow(np.ma.masked_invalid(layers[name]), cmap=cmap, origin="upper")
+        axes.set(title=name, xlabel="col (x)", ylabel="row (y)")
+        figure.colorbar(image, ax=axes, label="um")
+    figure.suptitle(title)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=80)
+    return buffer.getvalue()

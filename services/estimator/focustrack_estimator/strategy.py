@@ -1,0 +1,221 @@
+"""What every scan strategy is: a plan that says where to look next and learns from what it saw.
+
+A strategy answers two calls, whatever it is inside (a Kalman filter, tile
+skipping, a survey followed by an interpolated map):
+
+- `next_acquisition()` -> the next tile and the z-range to acquire there, or
+  None when the scan is complete;
+- `record(acquisition, measurement)` -> what the measurement did to the
+  estimate (prior, posterior, innovation, NIS, accepted).
+
+The benchmark, the estimator service and the scheduler all drive strategies
+through these two calls only, so every strategy is costed and served alike.
+Strategies are deterministic: replaying the same measurements rebuilds the
+same state (the estimator service relies on that to survive restarts).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+from focustrack_core.domain import (
+    Acquisition,
+    FocusFlag,
+    FocusMap,
+    Measurement,
+    Outcome,
+    Purpose,
+    ZRange,
+)
+from focustrack_core.geometry import ScanGrid
+
+_EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
+
+
+@dataclass(frozen=True)
+class ZRangePolicy:
+    """How wide a stack to take: +/- k_sigma predicted sigmas, within [min_frames, max_frames].
+
+    The predicted sigma is that of the innovation (prediction and measurement
+    noise together), because the measured peak, not the truth, must land in
+    the stack. A retry after an edge peak continues beyond the edge (`beyond`).
+    """
+
+    k_sigma: float = 2.0  # tuned on training seeds (docs/estimators.md)
+    z_step_um: float = 0.5
+    min_frames: int = 5
+    max_frames: int = 41
+
+    def __post_init__(self) -> None:
+        if not (self.k_sigma > 0 and self.z_step_um > 0):
+            raise ValueError("k_sigma and z_step_um must be positive")
+        if not 2 <= self.min_frames <= self.max_frames:
+            raise ValueError(
+                f"need 2 <= min_frames <= max_frames, got {self.min_frames}, {self.max_frames}"
+            )
+
+    def around(self, center_um: float, sigma_um: float) -> ZRange:
+        """A stack centred on a prediction with innovation sigma `sigma_um`."""
+        n_frames = 2 * math.ceil(self.k_sigma * sigma_um / self.z_step_um) + 1
+        n_frames = min(max(n_frames, self.min_frames), self.max_frames)
+        return ZRange.centred(center_um, n_frames, self.z_step_um)
+
+    def wide(self, center_um: float) -> ZRange:
+        """The widest stack the policy allows (autofocus without a prediction)."""
+        return ZRange.centred(center_um, self.max_frames, self.z_step_um)
+
+    def beyond(self, previous: ZRange, flag: FocusFlag) -> ZRange:
+        """The stack to take after `previous` ended in an edge peak (or a flat curve).
+
+        As wide as `previous` (at least `min_frames`), continuing past the edge
+        that was hit and overlapping it by two frames, so that a peak on the old
+        edge frame lies inside the new stack with both its flanks. A flat curve
+        gets the widest stack, centred where the last one was.
+        """
+        n_frames = max(previous.n_frames, self.min_frames)
+        overlap_um = self.z_step_um
+        if flag is FocusFlag.EDGE_HIGH:
+            return ZRange(previous.high_um - overlap_um, self.z_step_um, n_frames)
+        if flag is FocusFlag.EDGE_LOW:
+            high_um = previous.low_um + overlap_um
+            return ZRange(high_um - (n_frames - 1) * self.z_step_um, self.z_step_um, n_frames)
+        return self.wide(previous.center_um)
+
+    @staticmethod
+    def single(z_um: float, step_um: float) -> ZRange:
+        """One frame at `z_um` (imaging a tile whose focus is already decided)."""
+        return ZRange(z_um, step_um, 1)
+
+
+class PeakSearch:
+    """The search for one tile's focus peak: the stacks that found none, and the next to take.
+
+    After a stack without a peak:
+    - an edge peak continues past that edge (`ZRangePolicy.beyond`); two stacks
+      that each saw one flank (an EDGE_HIGH stack below an EDGE_LOW one)
+      bracket the peak, and the next stack spans what lies between them and
+      the frames they share;
+    - a flat curve gets the widest stack once, centred where the last one was;
+      a flat curve in a widest stack ends the search;
+    - an empty field (nothing in view) ends the search at once;
+    - so does a failure after `max_retries` retries: a scan must always end.
+    A strategy that gives a tile up images it where it predicted its focus.
+    """
+
+    def __init__(self, policy: ZRangePolicy, max_retries: int) -> None:
+        if max_retries < 0:
+            raise ValueError(f"max_retries must not be negative, got {max_retries}")
+        self.policy = policy
+        self.max_retries = max_retries
+        self.misses: list[tuple[ZRange, FocusFlag]] = []
+
+    def __bool__(self) -> bool:
+        """True once a stack of this tile has found no peak."""
+        return bool(self.misses)
+
+    @property
+    def stacks(self) -> list[ZRange]:
+        """The peakless stacks of this tile, in the order they were taken."""
+        return [stack for stack, _ in self.misses]
+
+    def clear(self) -> None:
+        """Start the search of a new tile."""
+        self.misses = []
+
+    def failed(self, stack: ZRange, measurement: Measurement) -> bool:
+        """Note that `stack` found no peak; True: take another (`next_range`); False: give up."""
+        edges = measurement.flags & _EDGES
+        flag = next(iter(edges)) if len(edges) == 1 else FocusFlag.FLAT
+        self.misses.append((stack, flag))
+        if FocusFlag.EMPTY in measurement.flags:
+            return False
+        if flag is FocusFlag.FLAT and stack.n_frames >= self.policy.max_frames:
+            return False
+        return len(self.misses) <= self.max_retries
+
+    def next_range(self) -> ZRange:
+        """The stack to take after the peakless ones."""
+        above_um = max(
+            (z.high_um for z, f in self.misses if f is FocusFlag.EDGE_HIGH), default=-math.inf
+        )
+        below_um = min(
+            (z.low_um for z, f in self.misses if f is FocusFlag.EDGE_LOW), default=math.inf
+        )
+        if math.isfinite(above_um) and math.isfinite(below_um):
+            half_width_um = abs(below_um - above_um) / 2.0 + self.policy.z_step_um
+            centre_um = (above_um + below_um) / 2.0
+            return self.policy.around(centre_um, half_width_um / self.policy.k_sigma)
+        return self.policy.beyond(*self.misses[-1])
+
+
+@dataclass(frozen=True)
+class SlideSettings:
+    """What every strategy is told about the slide, whatever its kind."""
+
+    grid: ScanGrid
+    start_z_um: float = 0.0  # the height to start from (for example the previous slide's)
+    start_sigma_um: float = 10.0  # how uncertain that start is
+    dof_um: float = 1.0  # depth of field of the objective
+    noise_sigma_um: float = 1.5  # default std of a best-focus measurement (R = noise**2)
+    policy: ZRangePolicy = field(default_factory=ZRangePolicy)
+
+
+class Strategy(ABC):
+    """A scan strategy: a plan (`_plan`) and what it learns from each measurement (`_take`).
+
+    Subclasses set `name`, take their own parameters as keyword arguments after
+    the settings, and implement `_plan` and `_take`; this base class keeps the
+    pending acquisition and its sequence number, so asking twice for the next
+    acquisition returns the same one and a measurement is only taken for it.
+    """
+
+    name: str
+
+    def __init__(self, settings: SlideSettings) -> None:
+        self.settings = settings
+        self.grid = settings.grid
+        self.map = FocusMap.empty(settings.grid)
+        self.n_recorded = 0
+        self._pending: Acquisition | None = None
+
+    def next_acquisition(self) -> Acquisition | None:
+        """The next acquisition to make, or None when every tile has been imaged."""
+        if self._pending is None:
+            self._pending = self._plan()
+        return self._pending
+
+    def record(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        """Take the measurement made for `acquisition`, which must be the pending one."""
+        pending = self.next_acquisition()
+        if pending is None:
+            raise ValueError("the scan is complete: no acquisition is pending")
+        if acquisition != pending:
+            raise ValueError(
+                f"measurement is for acquisition {acquisition.index} at tile "
+                f"({acquisition.row}, {acquisition.col}), but the pending one is "
+                f"{pending.index} at ({pending.row}, {pending.col})"
+            )
+        outcome = self._take(pending, measurement)
+        self._pending = None
+        self.n_recorded += 1
+        return outcome
+
+    def focus_map(self) -> FocusMap:
+        """The estimates so far (the final map once `next_acquisition` returns None)."""
+        return self.map
+
+    def _acquisition(
+        self, row: int, col: int, z: ZRange, purpose: Purpose, *, measure: bool, **prediction
+    ) -> Acquisition:
+        """A new acquisition, numbered in sequence; for `_plan` to return."""
+        return Acquisition(self.n_recorded, row, col, z, purpose, measure, **prediction)
+
+    @abstractmethod
+    def _plan(self) -> Acquisition | None:
+        """Decide the next acquisition (None when the scan is complete)."""
+
+    @abstractmethod
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        """Learn from the measurement of the pending acquisition; update `self.map`."""

@@ -1,0 +1,5 @@
+"""`python -m focustrack_focus`: the focus service (Zenoh and REST)."""
+
+from focustrack_focus.service import main
+
+raise SystemExit(main())

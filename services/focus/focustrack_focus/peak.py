@@ -1,0 +1,263 @@
+"""Best focus from a focus curve: a sub-step peak, an honest standard deviation, and flags.
+
+The peak is refined below the z step by a Gaussian fitted around the best
+frame: a weighted least-squares parabola in log(score), whose vertex is the
+Gaussian's centre (exact for a Gaussian peak; Caruana's method with three
+frames). Which frames: the three around the best, widened one frame each side
+at a time (up to seven) for as long as the wider fit's vertex agrees with every
+narrower one's within `PeakSettings.consistency_sigmas` of their noise
+(Lepski's rule): on a clean, skewed peak the three-point fit has the least bias,
+on a noisy one more frames average the noise.
+
+Its standard deviation has four parts, added in quadrature:
+- noise: the score noise (estimated from the curve itself, as the robust
+  spread of its third differences: `score_noise`) propagated through the
+  weighted fit to the vertex z0 = -b1 / (2 b2) by the delta method;
+- sampling: a floor of `model_floor_steps` z steps (a Gaussian fitted to a
+  peak of another shape, sampled at an arbitrary phase);
+- window: how far the chosen fit's vertex lies from that of the next window
+  (one frame wider, or narrower where none is wider): a peak that is not a
+  Gaussian, or one on a sloping background, moves with the window;
+- asymmetry: a focus curve on a sloping background (dust on another plane adds
+  contrast that grows towards it) is lopsided, and a Gaussian of variance
+  w**2 on a log-background of slope c peaks c w**2 away from its centre. c is
+  read from the curve as the odd part of log(score) about z0, over the frames
+  mirrored within the curve: |c| w**2.
+A curve with more than one peak adds the variance of the choice between them.
+
+Calibration (docs/focus.md): the constants were fitted on instrument-simulator
+stacks of seeds 100-102 (`focustrack bench focus --seed 100` ...: all field
+kinds, frame sizes, exposures and stack shapes) so that the z-scores (error /
+sigma) of the metrics have a spread near one; the benchmark reports them on
+seed 1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from scipy.signal import find_peaks
+
+from focustrack_core.domain import FocusFlag
+
+#: Std of a normal distribution per unit of its median absolute deviation.
+MAD_TO_SIGMA = 1.4826
+
+
+class PeakMode(StrEnum):
+    """Where the focus lies on the curve."""
+
+    MAX = "max"  # the maximum: stained (amplitude) specimens, the usual case
+    # the minimum between the two highest maxima: unstained, phase-like specimens in
+    # brightfield, whose contrast vanishes in focus and reverses sign across it
+    VALLEY = "valley"
+
+
+@dataclass(frozen=True)
+class PeakSettings:
+    """How a focus curve is read.
+
+    min_contrast: a curve whose range is below this share of its maximum is flat.
+    min_snr: ... or whose peak rises less than this many score-noise sigmas above its floor
+        (where the curve is long enough for a clean noise estimate: `score_noise`).
+    multi_peak_share: a second local maximum at least this share of the curve's range
+        high (prominence) makes the curve multi-peaked.
+    max_reach: the fit uses at most this many frames each side of the best one.
+    consistency_sigmas: a wider fit is kept while its vertex lies within this many noise
+        sigmas of every narrower fit's vertex (module docstring).
+    model_floor_steps: the sampling part of sigma, in z steps (module docstring).
+    """
+
+    mode: PeakMode = PeakMode.MAX
+    min_contrast: float = 0.01
+    min_snr: float = 10.0
+    multi_peak_share: float = 0.25
+    max_reach: int = 3
+    consistency_sigmas: float = 2.0  # fitted on simulator seeds 100-102 (docs/focus.md)
+    model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
+
+
+@dataclass(frozen=True)
+class PeakFit:
+    """The focus read from a curve, in um. z_um and sigma_um are None where there is none.
+
+    For an edge peak z_um is the edge frame's z and sigma_um None: the focus is
+    beyond the range, in the direction the flag says.
+    """
+
+    z_um: float | None
+    sigma_um: float | None
+    flags: frozenset[FocusFlag]
+
+    @property
+    def is_observation(self) -> bool:
+        return self.sigma_um is not None
+
+
+def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Check a curve and sort it by z; ValueError saying what is wrong. Shapes (n,), n >= 3."""
+    z = np.asarray(z_um, dtype=np.float64)
+    s = np.asarray(scores, dtype=np.float64)
+    if z.ndim != 1 or s.ndim != 1:
+        raise ValueError(f"z and scores must be 1-D, got shapes {z.shape} and {s.shape}")
+    if z.size != s.size:
+        raise ValueError(f"{z.size} z values but {s.size} scores: one score per z needed")
+    if z.size < 3:
+        raise ValueError(f"a focus curve needs at least 3 frames to locate a peak, got {z.size}")
+    if not np.all(np.isfinite(z)):
+        raise ValueError("z values must be finite (NaN or infinity found)")
+    if not np.all(np.isfinite(s)):
+        raise ValueError("scores must be finite (NaN or infinity found)")
+    order = np.argsort(z, kind="stable")
+    z, s = z[order], s[order]
+    if np.any(np.diff(z) <= 0):
+        raise ValueError("z values must be distinct (a z appears twice)")
+    return z, s
+
+
+def score_noise(scores: np.ndarray) -> tuple[float, bool]:
+    """Robust std of the score noise of a curve (n,), from its third differences.
+
+    A third difference -s[i] + 3 s[i+1] - 3 s[i+2] + s[i+3] of white noise has
+    variance 20 sigma**2, and it vanishes on any locally quadratic curve, so a
+    smooth focus curve leaves it near zero except around a sharp peak. So the
+    differences that touch the highest frame or its neighbours are left out,
+    and the median of the rest ignores the few that the peak's shoulders still
+    touch. Returns (sigma, clean): clean is False when fewer than two
+    differences were away from the peak and all were used (an overestimate,
+    fine for sigma, not for deciding that a curve is flat); (0.0, False) for
+    fewer than 4 frames.
+    """
+    if scores.size < 4:
+        return 0.0, False
+    d3 = np.diff(scores, 3)
+    first = np.arange(d3.size)  # difference i spans frames i .. i + 3
+    best = int(np.argmax(scores))
+    away = (first + 3 < best - 1) | (first > best + 1)
+    clean = np.count_nonzero(away) >= 2
+    if clean:
+        d3 = d3[away]
+    return MAD_TO_SIGMA * float(np.median(np.abs(d3))) / math.sqrt(20.0), bool(clean)
+
+
+def find_peak(
+    z_um: np.ndarray, scores: np.ndarray, settings: PeakSettings | None = None
+) -> PeakFit:
+    """Best focus from a curve: z (n,) in um, scores (n,). See the module docstring."""
+    settings = settings or PeakSettings()
+    z, s = validate_curve(z_um, scores)
+    top, span = abs(float(s.max())), float(s.max() - s.min())
+    if settings.mode is PeakMode.VALLEY:
+        # the valley is the peak of the curve turned upside down (lifted to stay
+        # positive for the log fit: scores in [span, 2 span], nearly a plain parabola)
+        s = float(s.max()) - s + span
+    noise, clean = score_noise(s)
+    if span <= settings.min_contrast * top or (clean and span <= settings.min_snr * noise):
+        return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
+    return _find_max(z, s, noise, settings)
+
+
+def _find_max(z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings) -> PeakFit:
+    span = float(s.max() - s.min())
+    peaks, props = find_peaks(s, prominence=max(settings.multi_peak_share * span, 3.0 * noise))
+    flags = {FocusFlag.MULTI_PEAK} if peaks.size > 1 else set()
+    best = int(np.argmax(s))
+    if best == 0:
+        return PeakFit(float(z[0]), None, frozenset(flags | {FocusFlag.EDGE_LOW}))
+    if best == z.size - 1:
+        return PeakFit(float(z[-1]), None, frozenset(flags | {FocusFlag.EDGE_HIGH}))
+    z0, sigma = _fit_vertex(z, s, best, noise, settings)
+    if peaks.size > 1:
+        # Either peak may be the specimen (the other dust, or a second layer): take the
+        # variance of the choice between them, weighted by prominence, on top of the fit.
+        weights = props["prominences"] / props["prominences"].sum()
+        spread = float(np.sum(weights * (z[peaks] - z0) ** 2))
+        sigma = math.sqrt(sigma**2 + spread)
+    return PeakFit(z0, sigma, frozenset(flags))
+
+
+@dataclass(frozen=True)
+class _Vertex:
+    """A log-parabola fit around the best frame: vertex z (um), its noise std (um) and the
+    variance (um**2) of the fitted Gaussian (0 for a fit of the scores themselves)."""
+
+    z_um: float
+    noise_sigma_um: float
+    width_var_um2: float
+
+
+def _fit_window(
+    z: np.ndarray, s: np.ndarray, best: int, reach: int, noise: float
+) -> _Vertex | None:
+    """Fit frames best - reach .. best + reach; None when they hold no peak (b2 >= 0)."""
+    window = slice(best - reach, best + reach + 1)
+    dz = z[window] - z[best]  # centred on the best frame: a well-conditioned fit
+    values = s[window]
+    use_log = bool(np.all(values > 0))
+    y = np.log(values) if use_log else values
+    # var(log s) = var(s) / s**2: weight each frame by s**2 / noise**2 (unit weights without log)
+    weights = values**2 if use_log else np.ones_like(values)
+    X = np.vander(dz, 3, increasing=True)  # columns 1, dz, dz**2
+    XtW = X.T * weights
+    normal_inv = np.linalg.inv(XtW @ X)
+    _, b1, b2 = normal_inv @ (XtW @ y)
+    if not b2 < 0:
+        return None
+    # the vertex stays within the window: outside it the fit is extrapolation
+    z0 = min(max(float(z[best] - b1 / (2.0 * b2)), float(z[window][0])), float(z[window][-1]))
+    grad = np.array([0.0, -1.0 / (2.0 * b2), b1 / (2.0 * b2**2)])
+    # weighted least squares with Var(y_i) = noise**2 / weights_i: Cov(b) = noise**2 (X'WX)^-1
+    noise_var = float(grad @ (noise**2 * normal_inv) @ grad)
+    # log(Gaussian) = -dz**2 / (2 w**2) + ...: w**2 = -1 / (2 b2) (no width without the log)
+    return _Vertex(z0, math.sqrt(noise_var), -1.0 / (2.0 * b2) if use_log else 0.0)
+
+
+def _fit_vertex(
+    z: np.ndarray, s: np.ndarray, best: int, noise: float, settings: PeakSettings
+) -> tuple[float, float]:
+    """Vertex z (um) of the Gaussian fit around interior frame `best`, and its sigma (um)."""
+    step_um = float(np.median(np.diff(z)))
+    fits: list[_Vertex] = []
+    for reach in range(1, min(best, z.size - 1 - best, settings.max_reach) + 1):
+        fit = _fit_window(z, s, best, reach, noise)
+        if fit is None:
+            break
+        fits.append(fit)
+    if not fits:  # not a peak even over three frames (a plateau): the best frame, a step of doubt
+        return float(z[best]), step_um
+    chosen, limit = 0, settings.consistency_sigmas
+    for wider in range(1, len(fits)):
+        if any(abs(fits[wider].z_um - f.z_um) > limit * f.noise_sigma_um for f in fits[:wider]):
+            break
+        chosen = wider
+    fit = fits[chosen]
+    neighbour = fits[chosen + 1] if chosen + 1 < len(fits) else fits[chosen - 1] if chosen else None
+    window_um = abs(neighbour.z_um - fit.z_um) if neighbour else 0.0
+    asymmetry_um = _log_slope_about(z, s, fit.z_um) * fit.width_var_um2
+    variance = (
+        fit.noise_sigma_um**2
+        + (settings.model_floor_steps * step_um) ** 2
+        + window_um**2
+        + asymmetry_um**2
+    )
+    return fit.z_um, math.sqrt(variance)
+
+
+def _log_slope_about(z: np.ndarray, s: np.ndarray, z0: float) -> float:
+    """|c| (1/um): the odd part of log(score) about z0, fitted as c d over mirrored offsets d.
+
+    Uses the frames whose mirror image about z0 lies inside the curve (scores
+    interpolated there); 0 where there are none or a score is not positive.
+    """
+    if not np.all(s > 0):
+        return 0.0
+    log_s = np.log(s)
+    offsets = np.abs(z - z0)
+    offsets = offsets[(offsets > 0) & (offsets <= min(z0 - z[0], z[-1] - z0))]
+    if offsets.size == 0:
+        return 0.0
+    odd = (np.interp(z0 + offsets, z, log_s) - np.interp(z0 - offsets, z, log_s)) / 2.0
+    return abs(float(np.sum(odd * offsets) / np.sum(offsets**2)))

@@ -1,0 +1,148 @@
+"""A z-stack (or a curve of scores) in, a `FocusResult` out: one path for REST, Zenoh, bench."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from focustrack_core.domain import FocusFlag, Measurement
+from focustrack_focus.metrics import DEFAULT_METRIC, get_metric
+from focustrack_focus.peak import PeakFit, PeakSettings, find_peak, validate_curve
+from focustrack_focus.preprocess import Preprocess
+from focustrack_focus.structure import structure_snr
+
+
+@dataclass(frozen=True)
+class FocusSettings:
+    """Everything that decides how a stack is read: preprocessing, metric, peak reading."""
+
+    preprocess: Preprocess = field(default_factory=Preprocess)
+    metric: str = DEFAULT_METRIC
+    peak: PeakSettings = field(default_factory=PeakSettings)
+    #: A stack whose through-focus change stands less than this many noise spreads
+    #: above its pixel noise holds nothing to focus on: flat (`structure.structure_snr`).
+    min_structure_snr: float = 10.0
+
+    def __post_init__(self) -> None:
+        get_metric(self.metric)  # fail early on an unknown name
+
+
+@dataclass(frozen=True)
+class FocusResult:
+    """The focus of one stack: its curve, best z and sigma (um, None where none), flags.
+
+    z_um and scores have shape (n,), sorted by z. compute_time_s is the wall time
+    of metric and fit in seconds.
+    """
+
+    z_um: np.ndarray
+    scores: np.ndarray
+    best_z_um: float | None
+    sigma_um: float | None
+    flags: frozenset[FocusFlag]
+    metric: str
+    compute_time_s: float
+
+    def measurement(self) -> Measurement:
+        """The result as the estimator's `Measurement` (no z for a flat curve)."""
+        return Measurement(self.best_z_um, self.sigma_um, self.flags)
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain JSON types; flags sorted for a stable output."""
+        return {
+            "z_um": self.z_um.tolist(),
+            "scores": self.scores.tolist(),
+            "best_z_um": self.best_z_um,
+            "sigma_um": self.sigma_um,
+            "flags": sorted(str(flag) for flag in self.flags),
+            "metric": self.metric,
+            "compute_time_s": self.compute_time_s,
+        }
+
+
+@dataclass(frozen=True)
+class StackScan:
+    """The scores of a stack (n,) and the frames the structure test compares.
+
+    sharpest, blurriest: preprocessed frames (h, w) float32 of the highest and
+    lowest score; blurriest_raw: the raw 2-D crop (channel, ROI) of the latter.
+    """
+
+    scores: np.ndarray
+    sharpest: np.ndarray
+    blurriest: np.ndarray
+    blurriest_raw: np.ndarray
+
+
+def scan_stack(frames: np.ndarray, settings: FocusSettings) -> StackScan:
+    """Preprocess and score every frame of a stack (n, H, W) or (n, H, W, C), n >= 1."""
+    metric, preprocess = get_metric(settings.metric), settings.preprocess
+    scores = np.empty(len(frames), dtype=np.float64)
+    top = low = 0
+    for i, frame in enumerate(frames):
+        raw = preprocess.crop(frame)
+        image = preprocess.smooth(raw)
+        scores[i] = metric(image)
+        if i == 0 or scores[i] > scores[top]:
+            top, sharpest = i, image
+        if i == 0 or scores[i] < scores[low]:
+            low, blurriest, blurriest_raw = i, image, raw
+    return StackScan(scores, sharpest, blurriest, blurriest_raw)
+
+
+def focus_scores(frames: np.ndarray, settings: FocusSettings) -> np.ndarray:
+    """The metric of every frame of a stack (n, H, W) or (n, H, W, C) -> scores (n,)."""
+    return scan_stack(frames, settings).scores
+
+
+def focus_from_curve(
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    settings: FocusSettings,
+    *,
+    started_s: float | None = None,
+    structure_snr: float = math.inf,
+) -> FocusResult:
+    """Read a curve of scores (n,) at z_um (n,); `started_s` (perf_counter) times the whole job.
+
+    `structure_snr` is the stack's structure test (`structure.structure_snr`), where
+    there were images; below `settings.min_structure_snr` nothing is in view: the
+    curve is flat and the field empty (no other stack of this tile would find a peak).
+    """
+    started_s = time.perf_counter() if started_s is None else started_s
+    z, s = validate_curve(z_um, scores)
+    if structure_snr < settings.min_structure_snr:
+        fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
+    else:
+        fit = find_peak(z, s, settings.peak)
+    return FocusResult(
+        z_um=z,
+        scores=s,
+        best_z_um=fit.z_um,
+        sigma_um=fit.sigma_um,
+        flags=fit.flags,
+        metric=settings.metric,
+        compute_time_s=time.perf_counter() - started_s,
+    )
+
+
+def focus_stack(frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings) -> FocusResult:
+    """The focus of a z-stack: frames (n, H, W) or (n, H, W, C) taken at z_um (n,)."""
+    started_s = time.perf_counter()
+    if frames.ndim not in (3, 4):
+        raise ValueError(f"a z-stack is (n, H, W) or (n, H, W, C), got shape {frames.shape}")
+    z = np.asarray(z_um, dtype=np.float64)
+    if z.ndim != 1 or z.size != frames.shape[0]:
+        raise ValueError(f"{frames.shape[0]} frames but {z.size} z values: one z per frame needed")
+    validate_curve(z, np.zeros_like(z))  # frame count and z values, before any pixel work
+    if frames.dtype.kind not in "uif":
+        raise ValueError(f"pixels must be integers or floats, got dtype {frames.dtype}")
+    if frames.dtype.kind == "f" and not np.all(np.isfinite(frames)):
+        raise ValueError("pixels must be finite (NaN or infinity found)")
+    scan = scan_stack(frames, settings)
+    snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
+    return focus_from_curve(z, scan.scores, settings, started_s=started_s, structure_snr=snr)

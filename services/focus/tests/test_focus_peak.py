@@ -1,0 +1,106 @@
+"""Best focus from a curve: sub-step accuracy, flags, validation, and an honest sigma."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from focustrack_core.domain import FocusFlag
+from focustrack_focus.peak import PeakMode, PeakSettings, find_peak
+
+Z_UM = np.arange(-3.0, 3.01, 0.5)
+
+
+def gaussian(z_um: np.ndarray, centre_um: float, width_um: float = 0.8) -> np.ndarray:
+    return 1.0 + 5.0 * np.exp(-0.5 * ((z_um - centre_um) / width_um) ** 2)
+
+
+@pytest.mark.parametrize("centre_um", [-0.37, 0.0, 0.21, 1.4])
+def test_sub_step_peak_of_a_clean_curve(centre_um: float) -> None:
+    fit = find_peak(Z_UM, gaussian(Z_UM, centre_um))
+    assert fit.flags == frozenset()
+    assert fit.z_um == pytest.approx(centre_um, abs=0.05)  # a tenth of the 0.5 um step
+    assert 0 < fit.sigma_um < 0.125  # a quarter step
+
+
+def test_unsorted_input_gives_the_same_answer() -> None:
+    order = np.random.default_rng(0).permutation(Z_UM.size)
+    a = find_peak(Z_UM, gaussian(Z_UM, 0.3))
+    b = find_peak(Z_UM[order], gaussian(Z_UM, 0.3)[order])
+    assert a == b
+
+
+@pytest.mark.parametrize(
+    ("centre_um", "flag", "z_um"),
+    [(-4.0, FocusFlag.EDGE_LOW, -3.0), (5.0, FocusFlag.EDGE_HIGH, 3.0)],
+)
+def test_edge_peaks_say_which_way_to_extend(centre_um: float, flag: FocusFlag, z_um: float) -> None:
+    fit = find_peak(Z_UM, gaussian(Z_UM, centre_um))
+    assert flag in fit.flags and fit.z_um == z_um and fit.sigma_um is None
+    assert not fit.is_observation
+
+
+def test_flat_curves_are_no_measurement() -> None:
+    rng = np.random.default_rng(1)
+    for scores in (np.full(Z_UM.size, 2.0), 2.0 + 0.01 * rng.normal(size=Z_UM.size)):
+        fit = find_peak(Z_UM, scores)
+        assert fit.flags == {FocusFlag.FLAT} and fit.z_um is None and fit.sigma_um is None
+
+
+def test_two_peaks_are_flagged_and_widen_sigma() -> None:
+    z = np.arange(-5.0, 5.01, 0.5)
+    single = find_peak(z, gaussian(z, -2.0))
+    double = find_peak(z, gaussian(z, -2.0) + 0.7 * (gaussian(z, 2.5) - 1.0))
+    assert FocusFlag.MULTI_PEAK in double.flags
+    assert double.z_um == pytest.approx(-2.0, abs=0.1)
+    assert double.sigma_um > 1.0 > 10 * single.sigma_um
+
+
+def test_valley_mode_finds_the_contrast_minimum() -> None:
+    z = np.arange(0.0, 10.01, 0.3)
+    scores = 3.0 - gaussian(z, 5.05, 0.6) / 3.0  # a dip between two shoulders
+    assert find_peak(z, scores, PeakSettings(mode=PeakMode.VALLEY)).z_um == pytest.approx(
+        5.05, abs=0.05
+    )
+    assert find_peak(z, scores).z_um != pytest.approx(5.05, abs=1.0)
+
+
+@pytest.mark.parametrize(
+    ("z_um", "scores", "message"),
+    [
+        ([0, 1, 2], [1, 2], "3 z values but 2 scores"),
+        ([0, 1], [1, 2], "at least 3 frames"),
+        ([0, 1, np.nan], [1, 2, 1], "z values must be finite"),
+        ([0, 1, 2], [1, np.inf, 1], "scores must be finite"),
+        ([0, 1, 1], [1, 2, 1], "distinct"),
+    ],
+)
+def test_bad_curves_are_refused_with_the_reason(z_um, scores, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        find_peak(np.array(z_um, float), np.array(scores, float))
+
+
+@pytest.mark.parametrize("slope_per_um", [-0.4, 0.25, 0.5])
+def test_a_sloping_background_widens_sigma_to_cover_the_shift(slope_per_um: float) -> None:
+    """A broad peak times exp(c z) (dust on another plane adds contrast towards it) peaks
+    c w**2 away from its centre; sigma grows to cover that shift."""
+    z = np.arange(-3.0, 3.01, 0.5)
+    width_um = 0.8
+    symmetric = find_peak(z, gaussian(z, 0.0, width_um))
+    lopsided = find_peak(z, gaussian(z, 0.0, width_um) * np.exp(slope_per_um * z))
+    assert abs(lopsided.z_um) > 0.1  # the shift is real ...
+    assert abs(lopsided.z_um) <= 3.0 * lopsided.sigma_um  # ... and inside three sigmas
+    assert lopsided.sigma_um > 2.0 * symmetric.sigma_um
+
+
+def test_noise_widens_the_fit_window_and_sigma() -> None:
+    """On a noisy curve more frames are fitted; the error stays within three sigmas."""
+    z = np.arange(-3.0, 3.01, 0.25)
+    rng = np.random.default_rng(3)
+    zscores = []
+    for _ in range(200):
+        truth = float(rng.uniform(-0.5, 0.5))
+        scores = gaussian(z, truth, 1.0) + rng.normal(0.0, 0.05, z.size)
+        fit = find_peak(z, scores)
+        zscores.append((fit.z_um - truth) / fit.sigma_um)
+    assert 0.6 < np.std(zscores) < 1.5, np.std(zscores)

@@ -1,0 +1,1 @@
+"""The simulated microscope: surfaces, specimen, optics, camera and stage, on Zenoh."""

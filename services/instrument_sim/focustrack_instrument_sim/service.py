@@ -1,0 +1,283 @@
+"""`focustrack serve instrument`: the simulated microscope on Zenoh.
+
+Queryables (key space in proto/README.md):
+- ``focustrack/v1/instrument/{name}/acquire``: AcquireRequest in; the stack is published
+  on ``focustrack/v1/zstack/{slide}/{row}/{col}``, then AcquireReply (header and timing)
+  comes back. Bad requests get an Error reply; the service keeps running.
+- ``focustrack/v1/instrument/{name}/info``: InstrumentInfo (slides, limits, optics).
+- ``focustrack/v1/eval/truth/{name}/{slide}``: SlideTruth, for evaluation code only.
+
+Acquisitions run one at a time on the main thread (there is one stage); info and
+truth are answered on Zenoh's threads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import signal
+import threading
+import time
+
+import zenoh
+
+from focustrack_core.config import command_main
+from focustrack_core.v1 import instrument_pb2
+from focustrack_core.wire import codec, keys, rpc
+from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, session_from_args
+from focustrack_instrument_sim.microscope import (
+    AcquisitionRefusedError,
+    Microscope,
+    MicroscopeSpec,
+    Refusal,
+    slides_from_map,
+    slides_from_seed,
+)
+from focustrack_instrument_sim.optics import CHANNELS, Optics
+from focustrack_instrument_sim.specimen import SpecimenSpec
+from focustrack_instrument_sim.stage import StageSpec
+from focustrack_instrument_sim.surfaces import FAMILIES, family_spec
+
+log = logging.getLogger(__name__)
+
+ERROR_CODES = {
+    Refusal.MALFORMED: rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST,
+    Refusal.UNKNOWN_SLIDE: rpc.ErrorCode.ERROR_CODE_UNKNOWN_SLIDE,
+    Refusal.TILE_OUTSIDE_SLIDE: rpc.ErrorCode.ERROR_CODE_TILE_OUTSIDE_SLIDE,
+    Refusal.Z_OUT_OF_RANGE: rpc.ErrorCode.ERROR_CODE_Z_OUT_OF_RANGE,
+    Refusal.TOO_MANY_FRAMES: rpc.ErrorCode.ERROR_CODE_TOO_MANY_FRAMES,
+}
+
+
+class InstrumentService:
+    """The Zenoh shell around a `Microscope`: declare on `start`, serve until `stop` is set."""
+
+    def __init__(
+        self,
+        microscope: Microscope,
+        session: zenoh.Session,
+        name: str = "sim",
+        *,
+        realtime: bool = False,
+    ) -> None:
+        self.microscope = microscope
+        self.session = session
+        self.name = keys.check_name(name, "instrument")
+        self.realtime = realtime
+        self.stop = threading.Event()
+        self._acquire_key = keys.acquire_key(name)
+        self._pending: queue.Queue[zenoh.Query] = queue.Queue()
+        self._declared: list = []
+
+    def start(self) -> None:
+        """Declare the queryables (the instrument becomes visible)."""
+        info_key = keys.info_key(self.name)
+        self._declared = [
+            self.session.declare_queryable(self._acquire_key, self._pending.put),
+            self.session.declare_queryable(
+                info_key, lambda query: rpc.answer(query, info_key, self._info)
+            ),
+            self.session.declare_queryable(
+                keys.truth_pattern(self.name),
+                lambda query: rpc.answer(query, str(query.key_expr), self._truth),
+            ),
+        ]
+
+    def serve(self) -> None:
+        """Answer acquisition requests, one at a time, until `stop` is set."""
+        while not self.stop.is_set():
+            try:
+                query = self._pending.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            rpc.answer(query, self._acquire_key, self._acquire)
+
+    def close(self) -> None:
+        for entity in self._declared:
+            entity.undeclare()
+        self._declared = []
+
+    def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
+        started_s = time.perf_counter()
+        request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
+        try:
+            stack = self.microscope.acquire(
+                request.slide,
+                request.row,
+                request.col,
+                request.z_low_um,
+                request.z_step_um,
+                request.n_frames,
+                request.exposure_s or None,
+            )
+        except AcquisitionRefusedError as refused:
+            code = ERROR_CODES[refused.reason]
+            raise rpc.RequestError(code, str(refused), refused.field) from refused
+        camera = self.microscope.spec.camera
+        header = instrument_pb2.ZStackHeader(
+            instrument=self.name,
+            slide=stack.slide,
+            row=stack.row,
+            col=stack.col,
+            sequence=request.sequence,
+            stage_x_um=stack.stage_x_um,
+            stage_y_um=stack.stage_y_um,
+            z_um=stack.z_um.tolist(),
+            pixel_size_um=self.microscope.pixel_size_um,
+            channel_order=CHANNELS,
+            bit_depth=camera.bit_depth,
+            exposure_s=stack.exposure_s,
+            timestamp_unix_s=time.time(),
+            clock_s=stack.clock_s,
+        )
+        payload, attachment = codec.encode_zstack(header, stack.pixels)
+        self.session.put(
+            keys.zstack_key(stack.slide, stack.row, stack.col),
+            payload,
+            attachment=attachment,
+            encoding=codec.ZSTACK_ENCODING,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        timing = stack.timing
+        if self.realtime:  # pace the simulated clock: the stack takes as long as it would
+            time.sleep(max(0.0, timing.total_s - (time.perf_counter() - started_s)))
+        return instrument_pb2.AcquireReply(
+            header=header,
+            timing=instrument_pb2.Timing(
+                move_s=timing.move_s,
+                z_settle_s=timing.z_settle_s,
+                exposure_s=timing.exposure_s,
+                readout_s=timing.readout_s,
+                total_s=timing.total_s,
+                clock_s=stack.clock_s,
+                move_distance_um=timing.move_distance_um,
+            ),
+        )
+
+    def _info(self, _query: zenoh.Query) -> instrument_pb2.InstrumentInfo:
+        spec = self.microscope.spec
+        optics = spec.optics
+        return instrument_pb2.InstrumentInfo(
+            instrument=self.name,
+            slides=[
+                instrument_pb2.SlideInfo(
+                    slide=slide.name,
+                    rows=slide.grid.rows,
+                    cols=slide.grid.cols,
+                    pitch_um=slide.grid.pitch_um,
+                    origin_x_um=slide.grid.origin_x_um,
+                    origin_y_um=slide.grid.origin_y_um,
+                )
+                for slide in self.microscope.slides.values()
+            ],
+            z_min_um=spec.stage.z_range_um[0],
+            z_max_um=spec.stage.z_range_um[1],
+            max_frames=spec.max_frames,
+            pixel_size_um=optics.pixel_size_um,
+            width=spec.width,
+            height=spec.height,
+            channel_order=CHANNELS,
+            bit_depth=spec.camera.bit_depth,
+            numerical_aperture=optics.numerical_aperture,
+            magnification=optics.magnification,
+            wavelength_um=optics.reference_wavelength_um,
+            refractive_index=optics.refractive_index,
+            depth_of_field_um=optics.depth_of_field_um,
+            default_exposure_s=spec.stage.timing.exposure_s,
+        )
+
+    def _truth(self, query: zenoh.Query) -> instrument_pb2.SlideTruth:
+        slide = str(query.key_expr).rsplit("/", 1)[-1]
+        if slide not in self.microscope.slides:
+            raise rpc.RequestError(
+                rpc.ErrorCode.ERROR_CODE_UNKNOWN_SLIDE, f"unknown slide {slide!r}", "slide"
+            )
+        focus_um, drift_um = self.microscope.truth_um(slide)
+        return instrument_pb2.SlideTruth(
+            instrument=self.name,
+            slide=slide,
+            rows=focus_um.shape[0],
+            cols=focus_um.shape[1],
+            best_focus_um=focus_um.ravel().tolist(),
+            drift_um=drift_um,
+            clock_s=self.microscope.stage.clock_s,
+        )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_zenoh_arguments(parser, default_listen=[DEFAULT_ENDPOINT])
+    parser.add_argument("--name", default="sim", help="instrument name in the key space")
+    slides = parser.add_argument_group("slides")
+    slides.add_argument("--seed", type=int, default=0, help="seed of surfaces and specimens")
+    slides.add_argument("--slides", type=int, default=1, help="generated slides (slide-0, ...)")
+    slides.add_argument("--rows", type=int, default=20, help="tiles per column of a slide")
+    slides.add_argument("--cols", type=int, default=20, help="tiles per row of a slide")
+    slides.add_argument("--family", choices=list(FAMILIES), default="standard")
+    slides.add_argument("--map", help="true focus map(s) in um (.npy, .csv, .tif) to use instead")
+    slides.add_argument("--pitch-um", type=float, default=200.0, help="tile centre spacing")
+    scope = parser.add_argument_group("microscope")
+    scope.add_argument("--width", type=int, default=1024, help="frame width in pixels")
+    scope.add_argument("--height", type=int, default=1024, help="frame height in pixels")
+    scope.add_argument("--max-frames", type=int, default=64, help="largest z-stack accepted")
+    scope.add_argument("--na", type=float, default=0.85, help="numerical aperture")
+    scope.add_argument("--magnification", type=float, default=60.0)
+    scope.add_argument("--drift-um-per-s", type=float, default=0.0, help="thermal z drift")
+    scope.add_argument("--dust-density", type=float, default=0.0, help="specks per 1000 um^2")
+    scope.add_argument(
+        "--realtime", action="store_true", help="pace acquisitions at their simulated duration"
+    )
+
+
+def microscope_from_args(args: argparse.Namespace) -> Microscope:
+    if args.map:
+        slides = slides_from_map(args.map, args.seed, args.pitch_um)
+    else:
+        surface = family_spec(args.family, args.rows, args.cols)
+        slides = slides_from_seed(args.seed, args.slides, surface, args.pitch_um)
+    spec = MicroscopeSpec(
+        optics=Optics(numerical_aperture=args.na, magnification=args.magnification),
+        stage=StageSpec(drift_um_per_s=args.drift_um_per_s),
+        specimen=SpecimenSpec(dust_density=args.dust_density),
+        height=args.height,
+        width=args.width,
+        max_frames=args.max_frames,
+    )
+    return Microscope(slides, spec, seed=args.seed)
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    try:
+        microscope = microscope_from_args(args)
+    except ValueError as error:
+        log.error("%s", error)
+        return 2
+    with session_from_args(args) as session:
+        service = InstrumentService(microscope, session, args.name, realtime=args.realtime)
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, lambda *_: service.stop.set())
+        service.start()
+        first = next(iter(microscope.slides.values()))
+        log.info(
+            "instrument %r ready: %d slide(s) of %dx%d tiles, %dx%d px frames, DoF %.2f um",
+            service.name,
+            len(microscope.slides),
+            first.grid.rows,
+            first.grid.cols,
+            microscope.spec.width,
+            microscope.spec.height,
+            microscope.spec.optics.depth_of_field_um,
+        )
+        service.serve()
+        service.close()
+    return 0
+
+
+#: Every option's environment variable is this prefix and its name (focustrack_core.config).
+ENV_PREFIX = "FOCUSTRACK_INSTRUMENT_"
+
+#: The `focustrack-instrument-sim` console script (and `python -m focustrack_instrument_sim`).
+main = command_main(
+    "focustrack-instrument-sim", "the simulated microscope on Zenoh", add_arguments, run, ENV_PREFIX
+)

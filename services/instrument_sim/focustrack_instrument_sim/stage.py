@@ -1,0 +1,96 @@
+"""The stage: travel limits, XY moves and z steps timed by `TimingModel`, thermal z drift, a clock.
+
+The clock is simulated: every acquisition advances it by the time the move, the z
+steps, the exposures and the readouts would take on the real instrument (the same
+`TimingModel` the accuracy benchmark costs strategies with). The service may pace
+it in real time.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+import numpy as np
+
+from focustrack_core.timing import TimingModel
+
+#: A simulated time in s: one, or an array of them.
+Clock = TypeVar("Clock", float, np.ndarray)
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """Travel limits in um (a 75 x 25 mm slide; +/- 100 um of focus) and z drift."""
+
+    x_range_um: tuple[float, float] = (0.0, 75_000.0)
+    y_range_um: tuple[float, float] = (0.0, 25_000.0)
+    z_range_um: tuple[float, float] = (-100.0, 100.0)
+    drift_um_per_s: float = 0.0  # slow thermal z drift: focus moves by this much per second
+    timing: TimingModel = field(default_factory=TimingModel)
+
+    def __post_init__(self) -> None:
+        for name in ("x_range_um", "y_range_um", "z_range_um"):
+            low, high = getattr(self, name)
+            if not low < high:
+                raise ValueError(f"{name} must be (low, high) with low < high, got {(low, high)}")
+
+
+@dataclass(frozen=True)
+class StackTiming:
+    """Durations of one acquisition in seconds (distance in um)."""
+
+    move_distance_um: float
+    move_s: float
+    z_settle_s: float
+    exposure_s: float
+    readout_s: float
+
+    @property
+    def total_s(self) -> float:
+        return self.move_s + self.z_settle_s + self.exposure_s + self.readout_s
+
+
+class Stage:
+    """Where the stage is and what time the simulated clock shows (starts at x = y = 0, t = 0)."""
+
+    def __init__(self, spec: StageSpec) -> None:
+        self.spec = spec
+        self.x_um = spec.x_range_um[0]
+        self.y_um = spec.y_range_um[0]
+        self.clock_s = 0.0
+
+    def drift_um(self, clock_s: Clock) -> Clock:
+        """z drift of the focus at simulated time(s) `clock_s` (a float, or an array of them)."""
+        return self.spec.drift_um_per_s * clock_s
+
+    def acquire(
+        self, x_um: float, y_um: float, n_frames: int, exposure_s: float
+    ) -> tuple[StackTiming, np.ndarray]:
+        """Move to (x, y) and take `n_frames` frames; advance the clock.
+
+        Returns the timing and the simulated time of the middle of each
+        frame's exposure, shape (n_frames,), in s.
+        """
+        timing = self.spec.timing
+        distance_um = math.hypot(x_um - self.x_um, y_um - self.y_um)
+        move_s = timing.move_s(distance_um)
+        frame_s = timing.z_settle_s + exposure_s + timing.readout_s
+        mid_exposure_s = (
+            self.clock_s
+            + move_s
+            + timing.z_settle_s
+            + exposure_s / 2
+            + frame_s * np.arange(n_frames)
+        )
+        stack = StackTiming(
+            move_distance_um=distance_um,
+            move_s=move_s,
+            z_settle_s=n_frames * timing.z_settle_s,
+            exposure_s=n_frames * exposure_s,
+            readout_s=n_frames * timing.readout_s,
+        )
+        self.x_um, self.y_um = x_um, y_um
+        self.clock_s += stack.total_s
+        return stack, mid_exposure_s

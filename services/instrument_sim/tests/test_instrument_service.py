@@ -1,0 +1,131 @@
+"""`focustrack-instrument-sim` over real Zenoh on loopback: stacks, metadata, truth, errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+import zenoh
+
+from focustrack_core.v1 import common_pb2, instrument_pb2
+from focustrack_core.wire import codec, keys, rpc, session
+
+SIZE = 128
+
+
+@pytest.fixture(scope="module")
+def instrument() -> Iterator[str]:
+    """The service in its own process, listening on a free port; yields the endpoint."""
+    endpoint = session.loopback_endpoint()
+    command = [
+        sys.executable, "-m", "focustrack_instrument_sim", "--listen", endpoint,
+        "--name", "sim", "--seed", "3", "--slides", "2", "--rows", "4", "--cols", "5",
+        "--width", str(SIZE), "--height", str(SIZE), "--max-frames", "25",
+    ]  # fmt: skip
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+    try:
+        with session.open_session(connect=[endpoint], connect_timeout_s=60) as probe:
+            for _ in range(100):
+                try:
+                    rpc.call(probe, keys.info_key("sim"), instrument_pb2.AcquireRequest(),
+                             instrument_pb2.InstrumentInfo, 1.0)  # fmt: skip
+                    break
+                except rpc.RemoteError:
+                    assert process.poll() is None, process.stderr.read()
+                    time.sleep(0.2)
+        yield endpoint
+    finally:
+        process.terminate()
+        assert process.wait(timeout=20) == 0
+
+
+@pytest.fixture
+def client(instrument: str) -> Iterator[zenoh.Session]:
+    with session.open_session(connect=[instrument]) as opened:
+        yield opened
+
+
+def _request(**fields) -> instrument_pb2.AcquireRequest:
+    defaults = dict(slide="slide-0", row=1, col=2, z_low_um=-2.0, z_step_um=0.5, n_frames=9)
+    return instrument_pb2.AcquireRequest(**{**defaults, **fields})
+
+
+def test_info_describes_slides_and_optics(client: zenoh.Session) -> None:
+    info = rpc.call(client, keys.info_key("sim"), instrument_pb2.AcquireRequest(),
+                    instrument_pb2.InstrumentInfo)  # fmt: skip
+    assert [s.slide for s in info.slides] == ["slide-0", "slide-1"]
+    assert (info.slides[0].rows, info.slides[0].cols) == (4, 5)
+    assert info.width == SIZE and info.max_frames == 25 and info.channel_order == "RGB"
+    assert 0.7 < info.depth_of_field_um < 1.1
+
+
+def test_acquire_publishes_the_stack_and_replies_with_timing(client: zenoh.Session) -> None:
+    received: list[tuple[instrument_pb2.ZStackHeader, np.ndarray]] = []
+    arrived = threading.Event()
+
+    def on_stack(sample: zenoh.Sample) -> None:
+        received.append(codec.decode_zstack_sample(sample))
+        arrived.set()
+
+    with client.declare_subscriber(keys.zstack_pattern("slide-0"), on_stack):
+        time.sleep(0.5)  # let the subscription reach the instrument
+        reply = rpc.call(client, keys.acquire_key("sim"), _request(sequence=42),
+                         instrument_pb2.AcquireReply)  # fmt: skip
+        assert arrived.wait(10), "the stack was not published"
+    header, pixels = received[0]
+    assert pixels.shape == (9, SIZE, SIZE, 3) and pixels.dtype == np.uint16
+    assert (header.slide, header.row, header.col, header.sequence) == ("slide-0", 1, 2, 42)
+    np.testing.assert_allclose(header.z_um, -2.0 + 0.5 * np.arange(9))
+    assert header.channel_order == "RGB" and pixels.max() < 2**header.bit_depth
+    assert header.stage_x_um == 400.0 and header.stage_y_um == 200.0
+    assert reply.header == header
+    timing = reply.timing
+    assert timing.move_distance_um > 0 and timing.move_s > 0
+    assert timing.total_s == pytest.approx(
+        timing.move_s + timing.z_settle_s + timing.exposure_s + timing.readout_s
+    )
+    assert timing.clock_s >= timing.total_s
+
+
+def test_truth_is_apart_and_matches_the_slide(client: zenoh.Session) -> None:
+    truth = rpc.call(client, keys.truth_key("sim", "slide-1"), instrument_pb2.AcquireRequest(),
+                     instrument_pb2.SlideTruth)  # fmt: skip
+    assert (truth.rows, truth.cols, len(truth.best_focus_um)) == (4, 5, 20)
+    assert keys.truth_key("sim", "slide-1").startswith("focustrack/v1/eval/")
+    with pytest.raises(rpc.RemoteError) as refused:
+        rpc.call(client, keys.truth_key("sim", "nope"), instrument_pb2.AcquireRequest(),
+                 instrument_pb2.SlideTruth)  # fmt: skip
+    assert refused.value.error.code == common_pb2.ERROR_CODE_UNKNOWN_SLIDE
+
+
+@pytest.mark.parametrize(
+    ("fields", "code", "field"),
+    [
+        ({"slide": "nope"}, common_pb2.ERROR_CODE_UNKNOWN_SLIDE, "slide"),
+        ({"row": 4}, common_pb2.ERROR_CODE_TILE_OUTSIDE_SLIDE, "row"),
+        ({"col": -1}, common_pb2.ERROR_CODE_TILE_OUTSIDE_SLIDE, "col"),
+        ({"z_low_um": 99.0}, common_pb2.ERROR_CODE_Z_OUT_OF_RANGE, "z_low_um"),
+        ({"n_frames": 26}, common_pb2.ERROR_CODE_TOO_MANY_FRAMES, "n_frames"),
+        ({"n_frames": 0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "n_frames"),
+        ({"z_step_um": 0.0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "z_step_um"),
+    ],
+)
+def test_bad_requests_get_error_replies(client: zenoh.Session, fields, code, field) -> None:
+    with pytest.raises(rpc.RemoteError) as refused:
+        rpc.call(client, keys.acquire_key("sim"), _request(**fields), instrument_pb2.AcquireReply)
+    assert refused.value.error.code == code
+    assert refused.value.error.field == field
+    assert refused.value.error.message
+
+
+def test_malformed_message_gets_an_error_and_the_service_keeps_running(client) -> None:
+    replies = list(client.get(keys.acquire_key("sim"), payload=b"\x08\xff\xff", timeout=10))
+    assert rpc.error_of(replies[0].err).code == common_pb2.ERROR_CODE_MALFORMED_REQUEST
+    reply = rpc.call(client, keys.acquire_key("sim"), _request(n_frames=1),
+                     instrument_pb2.AcquireReply)  # fmt: skip
+    assert len(reply.header.z_um) == 1

@@ -1,0 +1,208 @@
+"""The Zenoh side of the scheduler: the instrument's queryables and the stacks and focus results.
+
+`InstrumentClient` asks the instrument (info, acquire, and the evaluation-only
+truth); `Inbox` collects what arrives by subscription, the z-stacks of the slide
+(for the tile images) and the focus service's results, keyed by the
+acquisition's sequence number, for the engine to wait on.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import numpy as np
+import zenoh
+
+from focustrack_core.domain import Acquisition
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.v1 import focus_pb2, instrument_pb2
+from focustrack_core.wire import codec, keys, rpc
+from focustrack_scheduler.plan import SlideGeometry
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+def acquire_request(slide: str, acquisition: Acquisition) -> instrument_pb2.AcquireRequest:
+    """The AcquireRequest of an estimator acquisition (its index is the wire sequence)."""
+    z = acquisition.z
+    return instrument_pb2.AcquireRequest(
+        slide=slide,
+        row=acquisition.row,
+        col=acquisition.col,
+        z_low_um=z.low_um,
+        z_step_um=z.step_um,
+        n_frames=z.n_frames,
+        sequence=acquisition.index,
+    )
+
+
+def same_stack(acquisition: Acquisition, row: int, col: int, z_um: list[float]) -> bool:
+    """True when a stack (or its focus result) at (row, col) with frames `z_um` is this one's.
+
+    The sequence alone could match a late message of an earlier scan of the same slide.
+    """
+    return (
+        (row, col) == (acquisition.row, acquisition.col)
+        and len(z_um) == acquisition.z.n_frames
+        and abs(z_um[0] - acquisition.z.low_um) < 1e-3
+    )
+
+
+class InstrumentClient:
+    """Queries to one instrument; `RemoteError` when it refuses or does not answer."""
+
+    def __init__(self, session: zenoh.Session, name: str, timeout_s: float = 30.0) -> None:
+        self.session = session
+        self.name = keys.check_name(name, "instrument")
+        self.timeout_s = timeout_s
+
+    def info(self, timeout_s: float | None = None) -> instrument_pb2.InstrumentInfo:
+        return rpc.call(
+            self.session,
+            keys.info_key(self.name),
+            instrument_pb2.AcquireRequest(),
+            instrument_pb2.InstrumentInfo,
+            timeout_s or self.timeout_s,
+        )
+
+    def geometry(self, slide: str, timeout_s: float | None = None) -> SlideGeometry:
+        """The grid of `slide` and the depth of field; ValueError if the slide is unknown."""
+        info = self.info(timeout_s)
+        for described in info.slides:
+            if described.slide == slide:
+                grid = ScanGrid(
+                    described.rows,
+                    described.cols,
+                    described.pitch_um,
+                    described.origin_x_um,
+                    described.origin_y_um,
+                )
+                return SlideGeometry(grid, info.depth_of_field_um)
+        known = ", ".join(described.slide for described in info.slides) or "none"
+        raise ValueError(f"instrument {self.name!r} has no slide {slide!r} (it has: {known})")
+
+    def acquire(self, request: instrument_pb2.AcquireRequest) -> instrument_pb2.AcquireReply:
+        return rpc.call(
+            self.session,
+            keys.acquire_key(self.name),
+            request,
+            instrument_pb2.AcquireReply,
+            self.timeout_s,
+        )
+
+    def truth_um(self, slide: str, timeout_s: float = 5.0) -> np.ndarray:
+        """The true best focus (rows, cols) in um, from the evaluation-only truth queryable."""
+        truth = rpc.call(
+            self.session,
+            keys.truth_key(self.name, slide),
+            instrument_pb2.AcquireRequest(),
+            instrument_pb2.SlideTruth,
+            timeout_s,
+        )
+        return np.array(truth.best_focus_um, dtype=float).reshape(truth.rows, truth.cols)
+
+
+def wait_for_instrument(
+    session: zenoh.Session, name: str, timeout_s: float
+) -> instrument_pb2.InstrumentInfo:
+    """The instrument's info once it answers; RemoteError after `timeout_s` without an answer."""
+    client = InstrumentClient(session, name)
+    deadline_s = time.monotonic() + timeout_s
+    while True:
+        try:
+            return client.info(timeout_s=1.0)
+        except rpc.RemoteError:
+            if time.monotonic() > deadline_s:
+                raise
+            time.sleep(0.2)
+
+
+@dataclass(frozen=True)
+class Received(Generic[T]):
+    """A message taken off Zenoh, and when (unix seconds)."""
+
+    message: T
+    received_unix_s: float
+
+
+class Inbox(Generic[T]):
+    """Messages by sequence number, the latest of each; `wait` blocks until one is accepted.
+
+    Filled from a Zenoh callback thread, read by the engine's thread.
+    """
+
+    def __init__(self) -> None:
+        self._items: dict[int, Received[T]] = {}
+        self._changed = threading.Condition()
+
+    def put(self, sequence: int, message: T) -> None:
+        with self._changed:
+            self._items[sequence] = Received(message, time.time())
+            self._changed.notify_all()
+
+    def wait(
+        self, sequence: int, accept: Callable[[T], bool], timeout_s: float
+    ) -> Received[T] | None:
+        """The message of `sequence` that `accept` takes, or None after `timeout_s`."""
+        deadline_s = time.monotonic() + timeout_s
+        with self._changed:
+            while True:
+                item = self._items.get(sequence)
+                if item is not None and accept(item.message):
+                    return item
+                remaining_s = deadline_s - time.monotonic()
+                if remaining_s <= 0:
+                    return None
+                self._changed.wait(remaining_s)
+
+    def get(self, sequence: int) -> Received[T] | None:
+        with self._changed:
+            return self._items.get(sequence)
+
+    def retain(self, keep: Callable[[int], bool]) -> None:
+        """Drop every message whose sequence `keep` refuses."""
+        with self._changed:
+            self._items = {s: item for s, item in self._items.items() if keep(s)}
+
+
+Stack = tuple[instrument_pb2.ZStackHeader, np.ndarray]  # header, pixels (frames, h, w, channels)
+
+
+class SlideListener:
+    """Subscribes to the stacks and focus results of one slide; close it when done."""
+
+    def __init__(self, session: zenoh.Session, slide: str) -> None:
+        self.stacks: Inbox[Stack] = Inbox()
+        self.focus: Inbox[focus_pb2.FocusResult] = Inbox()
+        self._subscribers = [
+            session.declare_subscriber(keys.zstack_pattern(slide), self._on_stack),
+            session.declare_subscriber(keys.focus_pattern(slide), self._on_focus),
+        ]
+
+    def _on_stack(self, sample: zenoh.Sample) -> None:
+        try:
+            header, pixels = codec.decode_zstack_sample(sample)
+        except ValueError as error:  # Zenoh swallows callback exceptions: say it here
+            log.warning("unreadable stack on %s: %s", sample.key_expr, error)
+            return
+        self.stacks.put(header.sequence, (header, pixels))
+
+    def _on_focus(self, sample: zenoh.Sample) -> None:
+        try:
+            result = focus_pb2.FocusResult.FromString(sample.payload.to_bytes())
+        except Exception as error:  # a DecodeError; logged, since Zenoh would swallow it
+            log.warning("unreadable focus result on %s: %s", sample.key_expr, error)
+            return
+        self.focus.put(result.sequence, result)
+
+    def close(self) -> None:
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
+        self._subscribers = []

@@ -1,0 +1,366 @@
+"""The engine: executes a scan plan's steps against the real services.
+
+Each step of `plan.py` is carried out here, with the service's timeout and
+bounded retries, and a `ServiceUnavailableError` naming the service, its key
+expression or URL, when one is gone:
+
+- instrument (Zenoh queries): a query without an answer is sent again, up to
+  `RetryPolicy.instrument_attempts` times; a refusal (an Error reply) is not
+  retried, it is a bug in the request;
+- the stack itself (Zenoh subscription): an acquisition counts as done when its
+  reply *and* its stack have arrived, since the tile image is taken from the stack;
+- focus results: waited for `focus_timeout_s`; a timeout goes back to the plan,
+  which acquires the stack again;
+- estimator (HTTP): connection errors and 5xx answers are retried with back-off
+  for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
+  its log, and a measurement posted twice is recorded once); a 4xx is a refusal
+  and stops the scan with the estimator's own `detail`.
+
+The engine also keeps the scan's record (`outputs.ScanRecord`), the progress bar
+and the wall-time split.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import httpx
+import numpy as np
+from tqdm import tqdm
+
+from focustrack_client import EstimatorClient, EstimatorError
+from focustrack_core.domain import Acquisition, Outcome
+from focustrack_core.wire import keys, rpc
+from focustrack_scheduler.clients import (
+    InstrumentClient,
+    SlideListener,
+    acquire_request,
+    same_stack,
+)
+from focustrack_scheduler.outputs import ScanRecord, WallTimes, in_focus_fraction
+from focustrack_scheduler.plan import (
+    Acquire,
+    AskNext,
+    AwaitFocus,
+    CreateOrResumeSlide,
+    DescribeSlide,
+    KeepTile,
+    Plan,
+    PostMeasurement,
+    SlideGeometry,
+    Step,
+)
+from focustrack_scheduler.remote import acquisition_of, measurement_in, outcome_of
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+#: Pause before asking an instrument that did not answer again, in seconds.
+INSTRUMENT_RETRY_PAUSE_S = 1.0
+
+
+class ServiceUnavailableError(RuntimeError):
+    """A service did not answer within its timeout and retries."""
+
+
+class ScanRefusedError(RuntimeError):
+    """A service refused a request of the scan (the message says which and why)."""
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """Timeouts (s) and retries of the services a scan drives."""
+
+    instrument_timeout_s: float = 60.0  # one acquisition: a wide stack of big frames takes seconds
+    instrument_attempts: int = 3
+    focus_timeout_s: float = 15.0
+    estimator_timeout_s: float = 10.0  # one HTTP request
+    estimator_outage_s: float = 60.0  # keep retrying a gone estimator this long
+
+    def __post_init__(self) -> None:
+        if self.instrument_attempts < 1:
+            raise ValueError(f"instrument_attempts must be >= 1, got {self.instrument_attempts}")
+        times = (
+            self.instrument_timeout_s,
+            self.focus_timeout_s,
+            self.estimator_timeout_s,
+            self.estimator_outage_s,
+        )
+        if min(times) <= 0:
+            raise ValueError(f"timeouts must be positive, got {times}")
+
+
+class ScanProgress:
+    """A progress bar: tiles imaged, images, simulated time and the running in-focus rate.
+
+    The in-focus rate needs the truth (evaluation only), so it is shown when there is one.
+    """
+
+    def __init__(
+        self,
+        total_tiles: int,
+        truth_um: np.ndarray | None,
+        dof_um: float,
+        *,
+        label: str,
+        enabled: bool = True,
+    ) -> None:
+        self.truth_um, self.dof_um = truth_um, dof_um
+        self.bar = tqdm(total=total_tiles, desc=label, unit="tile", disable=not enabled)
+
+    def update(self, record: ScanRecord) -> None:
+        postfix = {"images": record.n_images, "sim": f"{record.scan_time_s:.0f}s"}
+        if self.truth_um is not None and record.kept:
+            tiles = tuple(np.array(list(record.kept)).T)
+            z_um = np.array(list(record.kept.values()))
+            postfix["in focus"] = (
+                f"{in_focus_fraction(z_um, self.truth_um[tiles], self.dof_um):.0%}"
+            )
+        self.bar.set_postfix(postfix, refresh=False)
+        # `update` redraws at most every `mininterval`, so a log file is not flooded.
+        self.bar.update(len(record.kept) - self.bar.n)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+class Engine:
+    """Runs a plan: each step against the instrument, the focus results or the estimator."""
+
+    def __init__(
+        self,
+        instrument: InstrumentClient,
+        listener: SlideListener,
+        estimator: EstimatorClient,
+        record: ScanRecord,
+        policy: RetryPolicy | None = None,
+        *,
+        estimator_url: str = "",
+        on_geometry: Callable[[SlideGeometry], ScanProgress | None] = lambda _: None,
+    ) -> None:
+        self.instrument = instrument
+        self.listener = listener
+        self.estimator = estimator
+        self.record = record
+        self.policy = policy or RetryPolicy()
+        self.estimator_url = estimator_url
+        self.wall = WallTimes()
+        self.geometry: SlideGeometry | None = None
+        self._on_geometry = on_geometry
+        self._progress: ScanProgress | None = None
+        self._tile: tuple[int, int] | None = None
+        self._tile_format_saved = "tile" in (record.state or {})
+        self._handlers: dict[type, Callable[[Any], Any]] = {
+            DescribeSlide: self._describe,
+            CreateOrResumeSlide: self._create_or_resume,
+            AskNext: self._ask_next,
+            Acquire: self._acquire,
+            AwaitFocus: self._await_focus,
+            PostMeasurement: self._post,
+            KeepTile: self._keep,
+        }
+
+    def run(self, plan: Plan) -> str:
+        """Execute `plan` to the end; its return value (the estimator's slide id)."""
+        started_s = time.perf_counter()
+        try:
+            result: Any = None
+            while True:
+                step: Step = plan.send(result)
+                result = self._handlers[type(step)](step)
+        except StopIteration as finished:
+            return finished.value
+        finally:
+            self.wall.close(time.perf_counter() - started_s)
+            if self._progress is not None:
+                self._progress.close()
+
+    # --- instrument -------------------------------------------------------------------
+
+    def _instrument_call(self, what: str, key_expr: str, call: Callable[[], T]) -> T:
+        """`call()`, sent again while nobody answers; an Error reply is a refusal."""
+        attempts = self.policy.instrument_attempts
+        for attempt in range(1, attempts + 1):
+            try:
+                return call()
+            except rpc.RemoteError as error:
+                if not _unanswered(error):
+                    raise ScanRefusedError(f"instrument refused {what}: {error}") from error
+                log.warning("%s: attempt %d/%d: %s", what, attempt, attempts, error)
+                problem = str(error)
+            if attempt < attempts:
+                time.sleep(INSTRUMENT_RETRY_PAUSE_S)
+        raise ServiceUnavailableError(
+            f"instrument {self.instrument.name!r} did not answer {what} on {key_expr} "
+            f"({attempts} attempt(s); {problem}). Is `focustrack serve instrument "
+            f"--name {self.instrument.name}` running on the same Zenoh network?"
+        )
+
+    def _describe(self, step: DescribeSlide) -> SlideGeometry:
+        key_expr = keys.info_key(step.instrument)
+        try:
+            geometry = self._instrument_call(
+                "the info query", key_expr, lambda: self.instrument.geometry(step.slide)
+            )
+        except ValueError as error:
+            raise ScanRefusedError(str(error)) from error
+        self.geometry = geometry
+        self._progress = self._on_geometry(geometry)
+        if self._progress is not None:
+            self._progress.update(self.record)
+        return geometry
+
+    def _acquire(self, step: Acquire) -> tuple[float, ...]:
+        acquisition = step.acquisition
+        tile = (acquisition.row, acquisition.col)
+        if tile != self._tile:  # the stacks of the previous tile are no longer needed
+            self._tile = tile
+            self.listener.stacks.retain(lambda _: False)
+        request = acquire_request(step.slide, acquisition)
+        key_expr = keys.acquire_key(self.instrument.name)
+        what = f"acquisition {acquisition.index} of tile {tile}"
+
+        def accept(stack: Any) -> bool:
+            header = stack[0]
+            return same_stack(acquisition, header.row, header.col, list(header.z_um))
+
+        for attempt in range(1, self.policy.instrument_attempts + 1):
+            sent_s = time.time()
+            reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
+            replied_s = time.time()
+            # Every stack taken is real images and stage time, kept or not.
+            self.record.acquired(acquisition, len(reply.header.z_um), reply.timing.total_s)
+            self._show()
+            stack = self.listener.stacks.wait(
+                acquisition.index, accept, self.policy.focus_timeout_s
+            )
+            published_s = min(max(reply.header.timestamp_unix_s, sent_s), replied_s)
+            self.wall.rendering_s += published_s - sent_s
+            if stack is not None:
+                self.wall.transport_s += max(replied_s, stack.received_unix_s) - published_s
+                return tuple(reply.header.z_um)
+            self.wall.transport_s += time.time() - published_s
+            log.warning("%s: the stack never arrived (attempt %d)", what, attempt)
+        raise ServiceUnavailableError(
+            f"{what}: the instrument replied but its stack never arrived on "
+            f"{keys.zstack_key(step.slide, *tile)}"
+        )
+
+    def _await_focus(self, step: AwaitFocus) -> Any:
+        acquisition = step.acquisition
+        started_s = time.perf_counter()
+
+        def accept(result: Any) -> bool:
+            return same_stack(acquisition, result.row, result.col, list(result.z_um)) or (
+                (result.row, result.col) == (acquisition.row, acquisition.col)
+                and result.HasField("error")  # a stack the service could not read
+            )
+
+        received = self.listener.focus.wait(acquisition.index, accept, self.policy.focus_timeout_s)
+        waited_s = time.perf_counter() - started_s
+        if received is None:
+            log.warning(
+                "no focus result for acquisition %d within %.0f s: acquiring it again",
+                acquisition.index,
+                self.policy.focus_timeout_s,
+            )
+            self.wall.waiting_s += waited_s
+            return None
+        compute_s = min(received.message.compute_time_s, waited_s)
+        self.wall.focus_computation_s += compute_s
+        self.wall.waiting_s += waited_s - compute_s
+        return received.message
+
+    def _keep(self, step: KeepTile) -> None:
+        stack = self.listener.stacks.get(step.sequence)
+        if stack is None or self.geometry is None:  # the plan only keeps frames it acquired
+            log.warning("tile (%d, %d): its stack is gone; no image kept", step.row, step.col)
+            return
+        header, pixels = stack.message
+        self.record.keep(
+            self.geometry.grid, step.row, step.col, step.z_um, pixels[step.frame], header.bit_depth
+        )
+        if not self._tile_format_saved:  # what the mosaic is made of, for the OME-TIFF
+            height, width, channels = pixels.shape[1:]
+            self._tile_format_saved = True
+            self.record.save_state(
+                tile={
+                    "height": height,
+                    "width": width,
+                    "channels": channels,
+                    "pixel_size_um": header.pixel_size_um,
+                }
+            )
+        self._show()
+
+    def _show(self) -> None:
+        if self._progress is not None:
+            self._progress.update(self.record)
+
+    # --- estimator --------------------------------------------------------------------
+
+    def estimator_call(self, what: str, call: Callable[[], T]) -> T:
+        """`call()`, retried with back-off while the estimator is unreachable or failing."""
+        started_s = time.perf_counter()
+        deadline_s = started_s + self.policy.estimator_outage_s
+        delay_s = 0.1
+        try:
+            while True:
+                try:
+                    return call()
+                except EstimatorError as error:
+                    if error.status < 500:
+                        raise ScanRefusedError(f"estimator refused {what}: {error}") from error
+                    problem = str(error)
+                except httpx.TransportError as error:
+                    problem = f"{type(error).__name__}: {error}"
+                if time.perf_counter() > deadline_s:
+                    raise ServiceUnavailableError(
+                        f"estimator at {self.estimator_url or 'its URL'} did not answer {what} "
+                        f"for {self.policy.estimator_outage_s:.0f} s: {problem}"
+                    )
+                log.warning("estimator: %s: %s; retrying", what, problem)
+                time.sleep(delay_s)
+                delay_s = min(2.0, delay_s * 2)
+        finally:
+            self.wall.estimation_s += time.perf_counter() - started_s
+
+    def _create_or_resume(self, step: CreateOrResumeSlide) -> str:
+        if (slide_id := step.slide_id) is not None:
+            slide = self.estimator_call(f"slide {slide_id}", lambda: self.estimator.slide(slide_id))
+            if slide.config.strategy != step.config.strategy:
+                raise ScanRefusedError(
+                    f"estimator slide {step.slide_id} is scanned with "
+                    f"{slide.config.strategy!r}, not {step.config.strategy!r}"
+                )
+            log.info("resuming estimator slide %s", slide_id)
+            return slide_id
+        slide = self.estimator_call(
+            "the new slide", lambda: self.estimator.create_slide(step.config)
+        )
+        self.record.save_state(slide_id=slide.id)
+        return slide.id
+
+    def _ask_next(self, step: AskNext) -> Acquisition | None:
+        return acquisition_of(
+            self.estimator_call("/next", lambda: self.estimator.next(step.slide_id))
+        )
+
+    def _post(self, step: PostMeasurement) -> Outcome:
+        body = measurement_in(step.acquisition, step.measurement)
+        reply = self.estimator_call(
+            f"the measurement of acquisition {step.acquisition.index}",
+            lambda: self.estimator.measure(step.slide_id, body),
+        )
+        return outcome_of(reply)
+
+
+def _unanswered(error: rpc.RemoteError) -> bool:
+    """True when nobody answered (a Zenoh timeout, no queryable), not when a service refused."""
+    return error.error.code in rpc.UNANSWERED

@@ -1,0 +1,370 @@
+"""What a scan leaves in its output folder, and the durable record it resumes from.
+
+During the scan (`ScanRecord`):
+- ``scan.json``: which scan this folder holds (estimator URL and slide id, instrument,
+  slide, strategy; the tile format once known), written when the slide is created;
+- ``scan_log.jsonl``: one line per acquisition made (tile, frames, simulated seconds)
+  and per tile image kept (tile, z), appended and flushed as they happen;
+- ``mosaic.partial.npy``: the mosaic being filled in, a memory map on disk.
+A scheduler that is restarted on the same folder reads these back and carries on.
+
+At the end (`write_outputs`):
+- ``focus_map.csv`` / ``focus_map.npy``: every layer of the estimator's map (prior,
+  posterior and smoothed heights with their sigma, z used), as the estimator exports them;
+- ``report.json``: images acquired, simulated scan time, in-focus fraction and MAE against
+  the instrument's truth, and the wall-time split;
+- ``scan.png``: true surface, estimated map, error map, images per tile;
+- ``mosaic.ome.tif``: the in-focus tile images side by side (8-bit RGB, tiled, with a
+  pyramid) for a slide viewer, and ``mosaic.png``, a small preview.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tifffile
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import TwoSlopeNorm
+from matplotlib.figure import Figure
+
+from focustrack_core.domain import Acquisition, FocusMap, Purpose
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.maps import map_csv, map_npy
+
+STATE_FILE = "scan.json"
+LOG_FILE = "scan_log.jsonl"
+PARTIAL_MOSAIC = "mosaic.partial.npy"
+MOSAIC = "mosaic.ome.tif"
+MOSAIC_PREVIEW = "mosaic.png"
+REPORT = "report.json"
+PLOTS = "scan.png"
+FOCUS_MAP_CSV = "focus_map.csv"
+FOCUS_MAP_NPY = "focus_map.npy"
+#: Every file a scan writes in its output folder.
+SCAN_FILES = (
+    STATE_FILE,
+    LOG_FILE,
+    PARTIAL_MOSAIC,
+    MOSAIC,
+    MOSAIC_PREVIEW,
+    REPORT,
+    PLOTS,
+    FOCUS_MAP_CSV,
+    FOCUS_MAP_NPY,
+)
+
+#: Side of the TIFF tiles, and the smallest pyramid level written, in pixels.
+TIFF_TILE_PX = 256
+#: Longest side of the PNG preview of the mosaic, in pixels.
+PREVIEW_PX = 1600
+
+
+@dataclass
+class WallTimes:
+    """Where the scan's wall-clock seconds went, as the scheduler saw them (they add up to total).
+
+    - rendering: acquire request sent -> stack published (the instrument rendering it);
+    - transport: stack published -> acquire reply and stack both received;
+    - focus_computation: the focus service's own compute time of the stacks awaited;
+    - estimation: the estimator's HTTP calls (next, measurements, slide creation);
+    - waiting: the rest of the wait for focus results (their queueing and travel);
+    - scheduler: everything else (tile images, the log, the progress display).
+    """
+
+    rendering_s: float = 0.0
+    transport_s: float = 0.0
+    focus_computation_s: float = 0.0
+    estimation_s: float = 0.0
+    waiting_s: float = 0.0
+    scheduler_s: float = 0.0
+    total_s: float = 0.0
+
+    def close(self, total_s: float) -> None:
+        """Set the total; what no other part accounts for is the scheduler's own."""
+        self.total_s = total_s
+        parts = (self.rendering_s, self.transport_s, self.focus_computation_s)
+        self.scheduler_s = max(0.0, total_s - sum(parts) - self.estimation_s - self.waiting_s)
+
+    def as_dict(self) -> dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def to_uint8(frame: np.ndarray, bit_depth: int) -> np.ndarray:
+    """A camera frame (h, w, channels) of `bit_depth` bits as 8 bits per channel."""
+    scale = 255.0 / (2**bit_depth - 1)
+    return np.clip(np.rint(frame * scale), 0, 255).astype(np.uint8)
+
+
+class ScanRecord:
+    """The durable record of one scan in `out_dir` (see the module docstring)."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.out_dir = Path(out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.acquisitions: list[dict[str, Any]] = []
+        self.kept: dict[tuple[int, int], float] = {}  # tile -> z (um) of its image
+        log_path = self.out_dir / LOG_FILE
+        if log_path.exists():
+            for line in log_path.read_text().splitlines():
+                try:
+                    self._take(json.loads(line))
+                except (ValueError, KeyError):  # a line cut short by a kill: the rest is intact
+                    continue
+        self._log = log_path.open("a")
+        self._mosaic: np.memmap | None = None
+
+    @property
+    def state(self) -> dict[str, Any] | None:
+        path = self.out_dir / STATE_FILE
+        return json.loads(path.read_text()) if path.exists() else None
+
+    def save_state(self, **entries: Any) -> None:
+        """Merge `entries` into scan.json (written whole, then renamed: never half a file)."""
+        state = {**(self.state or {}), **entries}
+        temporary = self.out_dir / (STATE_FILE + ".tmp")
+        temporary.write_text(json.dumps(state, indent=2) + "\n")
+        temporary.replace(self.out_dir / STATE_FILE)
+
+    def _take(self, entry: dict[str, Any]) -> None:
+        if entry["event"] == "acquired":
+            self.acquisitions.append(entry)
+        elif entry["event"] == "kept":
+            self.kept[(entry["row"], entry["col"])] = entry["z_um"]
+
+    def _append(self, entry: dict[str, Any]) -> None:
+        self._log.write(json.dumps(entry) + "\n")
+        self._log.flush()
+        self._take(entry)
+
+    def acquired(self, acquisition: Acquisition, n_frames: int, scan_time_s: float) -> None:
+        """An acquisition was made: `n_frames` images, `scan_time_s` simulated seconds."""
+        self._append(
+            {
+                "event": "acquired",
+                "row": acquisition.row,
+                "col": acquisition.col,
+                "sequence": acquisition.index,
+                "purpose": acquisition.purpose.value,
+                "n_frames": n_frames,
+                "scan_time_s": scan_time_s,
+            }
+        )
+
+    def keep(
+        self, grid: ScanGrid, row: int, col: int, z_um: float, image: np.ndarray, bit_depth: int
+    ) -> None:
+        """Tile (row, col)'s image (h, w, channels) at `z_um` goes into the mosaic."""
+        mosaic = self._open_mosaic(grid, image.shape)
+        height, width = image.shape[:2]
+        mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width] = to_uint8(
+            image, bit_depth
+        )
+        self._append({"event": "kept", "row": row, "col": col, "z_um": z_um})
+
+    def _open_mosaic(self, grid: ScanGrid, tile_shape: tuple[int, ...]) -> np.memmap:
+        if self._mosaic is None:
+            height, width, channels = tile_shape
+            shape = (grid.rows * height, grid.cols * width, channels)
+            path = self.out_dir / PARTIAL_MOSAIC
+            if path.exists():
+                self._mosaic = np.lib.format.open_memmap(path, mode="r+")
+                if self._mosaic.shape != shape:
+                    raise ValueError(
+                        f"{path} holds a {self._mosaic.shape} mosaic; tiles of {tile_shape} on "
+                        f"a {grid.rows}x{grid.cols} grid need {shape}: use a new output folder"
+                    )
+            else:
+                self._mosaic = np.lib.format.open_memmap(
+                    path, mode="w+", dtype=np.uint8, shape=shape
+                )
+        return self._mosaic
+
+    @property
+    def n_images(self) -> int:
+        return sum(entry["n_frames"] for entry in self.acquisitions)
+
+    @property
+    def scan_time_s(self) -> float:
+        return float(sum(entry["scan_time_s"] for entry in self.acquisitions))
+
+    def images_per_tile(self, grid: ScanGrid) -> np.ndarray:
+        """Images acquired on each tile, (rows, cols)."""
+        counts = np.zeros(grid.shape, dtype=int)
+        for entry in self.acquisitions:
+            counts[entry["row"], entry["col"]] += entry["n_frames"]
+        return counts
+
+    def z_kept_um(self, grid: ScanGrid) -> np.ndarray:
+        """The z of each tile's image, (rows, cols) in um; NaN where none was kept."""
+        z_um = np.full(grid.shape, np.nan)
+        for (row, col), z in self.kept.items():
+            z_um[row, col] = z
+        return z_um
+
+    def close(self) -> None:
+        self._log.close()
+        if self._mosaic is not None:
+            self._mosaic.flush()
+            self._mosaic = None
+
+
+def in_focus_fraction(z_um: np.ndarray, truth_um: np.ndarray, dof_um: float) -> float:
+    """Share of tiles imaged within half the depth of field of their true focus (NaN: not)."""
+    with np.errstate(invalid="ignore"):
+        return float(np.mean(np.abs(z_um - truth_um) <= dof_um / 2.0))
+
+
+def mean_abs_error_um(estimate_um: np.ndarray, truth_um: np.ndarray) -> float | None:
+    """Mean |estimate - truth| over the tiles that have an estimate (None if none has)."""
+    error = np.abs(estimate_um - truth_um)
+    return float(np.nanmean(error)) if np.isfinite(error).any() else None
+
+
+def write_mosaic(out_dir: Path, pixel_size_um: float, description: str) -> tuple[Path, Path] | None:
+    """Turn the partial mosaic into the OME-TIFF and its PNG preview (None if there is none)."""
+    partial = out_dir / PARTIAL_MOSAIC
+    if not partial.exists():
+        return None
+    mosaic = np.load(partial, mmap_mode="r")
+    path = out_dir / MOSAIC
+    n_levels = max(0, math.floor(math.log2(min(mosaic.shape[:2]) / TIFF_TILE_PX)))
+    options: dict[str, Any] = {
+        "photometric": "rgb" if mosaic.shape[-1] == 3 else "minisblack",
+        "tile": (TIFF_TILE_PX, TIFF_TILE_PX),
+        "resolutionunit": "CENTIMETER",
+    }
+    metadata = {
+        "axes": "YXS",
+        "PhysicalSizeX": pixel_size_um,
+        "PhysicalSizeXUnit": "µm",
+        "PhysicalSizeY": pixel_size_um,
+        "PhysicalSizeYUnit": "µm",
+        "Description": description,
+    }
+    per_cm = 1e4 / pixel_size_um
+    with tifffile.TiffWriter(path, bigtiff=mosaic.nbytes > 2**31) as tif:
+        tif.write(
+            mosaic,
+            subifds=n_levels,
+            resolution=(per_cm, per_cm),
+            metadata=metadata,
+            **options,
+        )
+        level = np.asarray(mosaic)
+        for index in range(1, n_levels + 1):
+            level = _half(level)  # a 2x2 mean: a viewer's zoomed-out level without aliasing
+            scale = per_cm / 2**index
+            tif.write(level, subfiletype=1, resolution=(scale, scale), **options)
+    step = max(1, math.ceil(max(mosaic.shape[:2]) / PREVIEW_PX))
+    preview = out_dir / MOSAIC_PREVIEW
+    _save_image(preview, np.asarray(mosaic[::step, ::step]))
+    partial.unlink()
+    return path, preview
+
+
+def _half(image: np.ndarray) -> np.ndarray:
+    height, width = (image.shape[0] // 2) * 2, (image.shape[1] // 2) * 2
+    blocks = image[:height, :width].reshape(height // 2, 2, width // 2, 2, -1)
+    return blocks.mean(axis=(1, 3)).round().astype(image.dtype)
+
+
+def _save_image(path: Path, image: np.ndarray) -> None:
+    figure = Figure(figsize=(image.shape[1] / 100, image.shape[0] / 100), dpi=100)
+    FigureCanvasAgg(figure)
+    axes = figure.add_axes((0, 0, 1, 1))
+    axes.imshow(image.squeeze(), cmap="gray", interpolation="nearest")
+    axes.set_axis_off()
+    figure.savefig(path, dpi=100)
+
+
+def write_plots(
+    path: Path,
+    focus_map: FocusMap,
+    truth_um: np.ndarray | None,
+    images_per_tile: np.ndarray,
+    title: str,
+) -> Path:
+    """True surface, estimated (posterior) map, error map and images per tile, as one PNG."""
+    figure = Figure(figsize=(11, 9), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(2, 2).ravel()
+    posterior_um = np.ma.masked_invalid(focus_map.posterior_um)
+    heights = [posterior_um] + ([truth_um] if truth_um is not None else [])
+    low_um = float(min(np.ma.min(h) for h in heights))
+    high_um = float(max(np.ma.max(h) for h in heights))
+    panels: list[tuple[Any, str, str, str, dict[str, Any]]] = [
+        (posterior_um, "estimated focus map (posterior)", "um", "viridis", {}),
+        (images_per_tile, "images per tile", "images", "cividis", {}),
+    ]
+    if truth_um is not None:
+        error_um = np.ma.masked_invalid(focus_map.posterior_um - truth_um)
+        limit_um = max(float(np.ma.max(np.abs(error_um))), 1e-3)
+        norm = TwoSlopeNorm(0.0, -limit_um, limit_um)
+        panels.insert(0, (truth_um, "true focus surface", "um", "viridis", {}))
+        panels.insert(2, (error_um, "error: posterior - truth", "um", "RdBu_r", {"norm": norm}))
+    for ax, (values, name, unit, cmap, extra) in zip(axes, panels, strict=False):
+        if unit == "um" and "norm" not in extra:
+            extra = {"vmin": low_um, "vmax": high_um}
+        image = ax.imshow(values, cmap=cmap, origin="upper", **extra)
+        ax.set(title=name, xlabel="col (x)", ylabel="row (y)")
+        figure.colorbar(image, ax=ax, label=unit)
+    for ax in axes[len(panels) :]:
+        ax.set_axis_off()
+        ax.text(0.5, 0.5, "no truth from the instrument", ha="center", va="center")
+    figure.suptitle(title)
+    figure.savefig(path, dpi=90)
+    return path
+
+
+def write_outputs(
+    record: ScanRecord,
+    grid: ScanGrid,
+    focus_map: FocusMap,
+    truth_um: np.ndarray | None,
+    dof_um: float,
+    wall: WallTimes,
+) -> dict[str, Any]:
+    """Write the focus map, plots, mosaic and report of a finished scan; return the report."""
+    out_dir = record.out_dir
+    state = record.state or {}
+    (out_dir / FOCUS_MAP_CSV).write_text(map_csv(focus_map, grid))
+    (out_dir / FOCUS_MAP_NPY).write_bytes(map_npy(focus_map))
+    z_kept_um = record.z_kept_um(grid)
+    images = record.images_per_tile(grid)
+    title = f"{state.get('strategy')} on {state.get('instrument')}/{state.get('slide')}"
+    write_plots(out_dir / PLOTS, focus_map, truth_um, images, title)
+    tile = state.get("tile")
+    if tile is not None:
+        write_mosaic(out_dir, tile["pixel_size_um"], f"focustrack scan: {title}")
+    report = {
+        "instrument": state.get("instrument"),
+        "slide": state.get("slide"),
+        "strategy": state.get("strategy"),
+        "estimator": state.get("estimator"),
+        "estimator_slide_id": state.get("slide_id"),
+        "rows": grid.rows,
+        "cols": grid.cols,
+        "tiles_imaged": int(np.isfinite(z_kept_um).sum()),
+        "acquisitions": len(record.acquisitions),
+        "retries": sum(entry["purpose"] == Purpose.RETRY for entry in record.acquisitions),
+        "images_acquired": record.n_images,
+        "images_per_tile": record.n_images / grid.n_tiles,
+        "scan_time_s": record.scan_time_s,
+        "dof_um": dof_um,
+        "in_focus_fraction": None
+        if truth_um is None
+        else in_focus_fraction(z_kept_um, truth_um, dof_um),
+        "mae_um": None if truth_um is None else mean_abs_error_um(focus_map.posterior_um, truth_um),
+        "prior_mae_um": None
+        if truth_um is None
+        else mean_abs_error_um(focus_map.prior_um, truth_um),
+        "wall_time_s": wall.as_dict(),
+        "mosaic": MOSAIC if (out_dir / MOSAIC).exists() else None,
+    }
+    (out_dir / REPORT).write_text(json.dumps(report, indent=2) + "\n")
+    return report

@@ -1,0 +1,270 @@
+"""The scan as a plan: a generator of steps, with no I/O (in the spirit of Bluesky).
+
+`scan_plan(request)` yields the steps of one slide scan and receives each step's
+result back (`plan.send(result)`); the engine (`engine.py`) executes them against
+the real services, with timeouts and retries. Kept apart like this, the scan
+logic (what to ask, what to do with each answer, which frame becomes the
+tile's image) is tested against fake results, and the engine only moves
+messages.
+
+The loop (docs/scheduler.md):
+
+1. `DescribeSlide`: the slide's tile grid and the objective's depth of field,
+   from the instrument;
+2. `CreateOrResumeSlide`: a new slide at the estimator, or the one a previous
+   run of this scan created (a restarted scheduler resumes; the estimator's
+   `/next` says where);
+3. until the estimator says `done`: `AskNext`, `Acquire` the z-stack it names,
+   `AwaitFocus` for the focus service's result of that stack (not when the
+   acquisition only images the tile), `KeepTile` the frame nearest the measured
+   focus (the prediction when there is none) as the tile's image for now,
+   `PostMeasurement`, and once the tile's estimate is final (the outcome has a
+   posterior) `KeepTile` again if another acquired frame of the tile is nearer
+   the posterior: that frame is the tile's image (the strategy's `z_used_um`).
+
+An edge peak or a flat curve is posted as it is; the estimator then asks for
+another stack of the same tile, so a retry is just the next `AskNext`. A focus
+result that does not come is a lost stack: the same acquisition is made again,
+up to `ScanRequest.focus_attempts` times, and then the scan stops with
+`FocusUnavailableError`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Generator, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from focustrack_client import models as api
+from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.v1 import focus_pb2
+from focustrack_core.wire import keys
+
+
+@dataclass(frozen=True)
+class ScanRequest:
+    """What to scan and how: the instrument's slide, the strategy and what is known before.
+
+    `noise_sigma_um` is the std the estimator assumes for a best-focus measurement
+    that comes without its own sigma, and sizes the first stacks; the focus
+    service's own sigma travels with every measurement.
+    """
+
+    instrument: str
+    slide: str
+    strategy: str
+    params: Mapping[str, Any] = field(default_factory=dict)
+    start_z_um: float = 0.0
+    start_sigma_um: float = 10.0
+    noise_sigma_um: float = 0.1
+    policy: api.ZRangePolicy = field(default_factory=api.ZRangePolicy)
+    resume_slide_id: str | None = None  # the estimator slide of a previous run of this scan
+    focus_attempts: int = 3  # acquisitions of one stack before the focus service counts as gone
+
+    def __post_init__(self) -> None:
+        keys.check_name(self.instrument, "instrument")
+        keys.check_name(self.slide, "slide")
+        if self.focus_attempts < 1:
+            raise ValueError(f"focus_attempts must be at least 1, got {self.focus_attempts}")
+
+
+@dataclass(frozen=True)
+class SlideGeometry:
+    """What the instrument says about a slide: its tile grid and the depth of field (um)."""
+
+    grid: ScanGrid
+    dof_um: float
+
+
+# --- Steps: each is a request to the engine; the comment says what it sends back. ---
+
+
+@dataclass(frozen=True)
+class DescribeSlide:
+    """-> SlideGeometry of `slide` on `instrument`."""
+
+    instrument: str
+    slide: str
+
+
+@dataclass(frozen=True)
+class CreateOrResumeSlide:
+    """-> the estimator's slide id: `slide_id` if given (resume), else a new slide of `config`."""
+
+    config: api.SlideCreate
+    slide_id: str | None
+
+
+@dataclass(frozen=True)
+class AskNext:
+    """-> the pending Acquisition of the estimator slide, or None when the scan is done."""
+
+    slide_id: str
+
+
+@dataclass(frozen=True)
+class Acquire:
+    """-> the z (um) of every frame of the stack, once it is acquired and received.
+
+    `attempt` counts from 1; a later attempt repeats a stack whose focus result was lost.
+    """
+
+    slide: str
+    acquisition: Acquisition
+    attempt: int = 1
+
+
+@dataclass(frozen=True)
+class AwaitFocus:
+    """-> the focus service's FocusResult for the acquisition's stack, or None on timeout."""
+
+    slide: str
+    acquisition: Acquisition
+
+
+@dataclass(frozen=True)
+class PostMeasurement:
+    """-> the Outcome of posting `measurement` for `acquisition` to the estimator."""
+
+    slide_id: str
+    acquisition: Acquisition
+    measurement: Measurement
+
+
+@dataclass(frozen=True)
+class KeepTile:
+    """-> None. Frame `frame` of the stack of acquisition `sequence` becomes tile (row, col)."""
+
+    row: int
+    col: int
+    sequence: int
+    frame: int
+    z_um: float
+
+
+Step = (
+    DescribeSlide
+    | CreateOrResumeSlide
+    | AskNext
+    | Acquire
+    | AwaitFocus
+    | PostMeasurement
+    | KeepTile
+)
+Plan = Generator[Step, Any, str]
+
+
+class FocusUnavailableError(RuntimeError):
+    """No focus result came for a stack, however often it was acquired."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One acquired frame of the tile being scanned."""
+
+    sequence: int
+    index: int
+    z_um: float
+
+
+def slide_config(request: ScanRequest, geometry: SlideGeometry) -> api.SlideCreate:
+    """The estimator slide to create: the request's strategy on the instrument's grid and DOF."""
+    grid = geometry.grid
+    return api.SlideCreate(
+        strategy=request.strategy,
+        params=dict(request.params),
+        grid=api.Grid(
+            rows=grid.rows,
+            cols=grid.cols,
+            pitch_um=grid.pitch_um,
+            origin_x_um=grid.origin_x_um,
+            origin_y_um=grid.origin_y_um,
+        ),
+        start_z_um=request.start_z_um,
+        start_sigma_um=request.start_sigma_um,
+        dof_um=geometry.dof_um,
+        noise_sigma_um=request.noise_sigma_um,
+        z_range=request.policy,
+    )
+
+
+def measurement_of(result: focus_pb2.FocusResult) -> Measurement:
+    """The measurement a focus result reports.
+
+    No best focus (a flat curve, or a stack the service could not read) is a
+    measurement without z, which the estimator answers with another stack.
+    Flags this version does not know are dropped; a sigma that is not a
+    positive finite number is left for the estimator's default.
+    """
+    flags = frozenset(
+        flag for value in result.flags if (flag := FocusFlag.of_proto(value)) is not None
+    )
+    if result.HasField("error") or not result.HasField("best_z_um"):
+        return Measurement(z_um=None, flags=flags)
+    sigma_um = result.sigma_um if result.HasField("sigma_um") else None
+    if sigma_um is not None and not (math.isfinite(sigma_um) and sigma_um > 0):
+        sigma_um = None
+    return Measurement(z_um=result.best_z_um, sigma_um=sigma_um, flags=flags)
+
+
+def nearest_frame(frames: list[Frame], z_um: float) -> Frame:
+    """The frame nearest `z_um` (the earliest on a tie)."""
+    if not frames:
+        raise ValueError("no frame has been acquired on this tile")
+    return min(frames, key=lambda frame: abs(frame.z_um - z_um))
+
+
+def _acquire_and_measure(
+    request: ScanRequest, acquisition: Acquisition
+) -> Generator[Step, Any, tuple[Measurement, tuple[float, ...]]]:
+    """Acquire the stack and read its focus; (measurement, z of its frames)."""
+    for attempt in range(1, request.focus_attempts + 1):
+        z_um = yield Acquire(request.slide, acquisition, attempt)
+        if not acquisition.measure:  # only image the tile: no focus result is expected
+            return Measurement(z_um=None), z_um
+        result = yield AwaitFocus(request.slide, acquisition)
+        if result is not None:
+            return measurement_of(result), z_um
+    raise FocusUnavailableError(
+        f"no focus result on {keys.focus_key(request.slide, acquisition.row, acquisition.col)} "
+        f"for acquisition {acquisition.index} after {request.focus_attempts} attempt(s): is "
+        f"the focus service running and subscribed to {keys.zstack_pattern(request.slide)}?"
+    )
+
+
+def scan_plan(request: ScanRequest) -> Plan:
+    """The steps of one slide scan; returns the estimator's slide id when the scan is done."""
+    geometry = yield DescribeSlide(request.instrument, request.slide)
+    slide_id = yield CreateOrResumeSlide(slide_config(request, geometry), request.resume_slide_id)
+    tile: tuple[int, int] | None = None
+    frames: list[Frame] = []  # every frame acquired on `tile` so far
+    while (acquisition := (yield AskNext(slide_id))) is not None:
+        if (acquisition.row, acquisition.col) != tile:
+            tile, frames = (acquisition.row, acquisition.col), []
+        measurement, z_um = yield from _acquire_and_measure(request, acquisition)
+        frames += [Frame(acquisition.index, index, z) for index, z in enumerate(z_um)]
+        # Keep an image before posting: a scheduler killed right after the post (the
+        # estimator has moved on) still leaves this tile with its best guess.
+        kept = nearest_frame(frames, _best_guess_um(acquisition, measurement))
+        yield KeepTile(acquisition.row, acquisition.col, kept.sequence, kept.index, kept.z_um)
+        outcome: Outcome = yield PostMeasurement(slide_id, acquisition, measurement)
+        if outcome.posterior_um is not None and math.isfinite(outcome.posterior_um):
+            # The tile's estimate is final: its image is the frame nearest it (the frame
+            # the strategy reports as `z_used_um`).
+            final = nearest_frame(frames, outcome.posterior_um)
+            if final != kept:
+                yield KeepTile(
+                    acquisition.row, acquisition.col, final.sequence, final.index, final.z_um
+                )
+    return slide_id
+
+
+def _best_guess_um(acquisition: Acquisition, measurement: Measurement) -> float:
+    """Where the tile's focus is before the estimator has answered: measured, else predicted."""
+    if measurement.z_um is not None:
+        return measurement.z_um
+    if acquisition.predicted_um is not None and math.isfinite(acquisition.predicted_um):
+        return acquisition.predicted_um
+    return acquisition.z.center_um

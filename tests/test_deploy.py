@@ -1,0 +1,119 @@
+"""Deployment files agree with the code: compose.yaml, each service's Dockerfile and lock export.
+
+What is checked without a container engine: every compose service builds from its own
+Dockerfile, runs its own console script configured by environment variables that the
+script's parser accepts, and probes its health with flags the probe accepts; each
+image installs exactly the versions of uv.lock. (Building and running the images is
+the containerized end-to-end test's job.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import re
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from focustrack_core import health
+from focustrack_core.config import with_environment
+
+ROOT = Path(__file__).resolve().parents[1]
+#: compose service -> (its folder under services/, the module of its console script)
+SERVICES = {
+    "instrument": ("instrument_sim", "focustrack_instrument_sim.service"),
+    "focus": ("focus", "focustrack_focus.service"),
+    "estimator": ("estimator", "focustrack_estimator.service"),
+    "scheduler": ("scheduler", "focustrack_scheduler.scan"),
+}
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict[str, Any]:
+    return yaml.safe_load((ROOT / "compose.yaml").read_text())
+
+
+def defaults(value: Any) -> str:
+    """A compose value with every `${NAME:-default}` taken at its default."""
+    return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", str(value))
+
+
+def test_every_service_is_its_own_image(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    assert set(services) == {"zenoh", *SERVICES}
+    for name, (folder, _) in SERVICES.items():
+        build = services[name]["build"]
+        assert build["context"] == "."
+        assert build["dockerfile"] == f"services/{folder}/Dockerfile"
+        assert (ROOT / build["dockerfile"]).exists()
+        assert "BASE_IMAGE" in build["args"]
+        assert "entrypoint" not in services[name] and "command" not in services[name]
+
+
+@pytest.mark.parametrize("name", sorted(SERVICES))
+def test_each_dockerfile_runs_its_distributions_console_script(name: str) -> None:
+    folder, module = SERVICES[name]
+    dockerfile = (ROOT / "services" / folder / "Dockerfile").read_text()
+    project = tomllib.loads((ROOT / "services" / folder / "pyproject.toml").read_text())["project"]
+    (script, target), *_ = project["scripts"].items()
+    assert target == f"{module}:main"
+    assert f'ENTRYPOINT ["{script}"]' in dockerfile
+    assert "ARG BASE_IMAGE=" in dockerfile and "USER focustrack" in dockerfile
+    assert f"-r /src/services/{folder}/requirements.txt" in dockerfile and "--no-deps" in dockerfile
+
+
+@pytest.mark.parametrize("name", sorted(SERVICES))
+def test_each_service_is_configured_by_environment_its_command_accepts(
+    compose: dict[str, Any], name: str
+) -> None:
+    service = compose["services"][name]
+    environ = {key: defaults(value) for key, value in service["environment"].items()}
+    module = importlib.import_module(SERVICES[name][1])
+    unknown = [key for key in environ if not key.startswith(module.ENV_PREFIX)]
+    assert not unknown, f"{name}: variables its command does not read: {unknown}"
+    parser = argparse.ArgumentParser()
+    module.add_arguments(parser)
+    options = {module.ENV_PREFIX + a.dest.upper() for a in parser._actions if a.option_strings}
+    assert set(environ) <= options, f"{name}: no such option: {set(environ) - options}"
+    args = with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
+    if name != "estimator":
+        assert args.connect == ["tcp/zenoh:7447"]
+    if name == "estimator":
+        assert args.store.startswith("/data/") and args.host == "0.0.0.0"
+    if name == "scheduler":
+        assert args.estimator == "http://estimator:8100" and args.out.parts[1] == "out"
+        assert args.no_progress is True
+
+
+def test_health_checks_volume_and_the_scheduler_job(compose: dict[str, Any]) -> None:
+    services = compose["services"]
+    for name in ("instrument", "focus", "estimator"):
+        check = services[name]["healthcheck"]
+        test = [defaults(word) for word in check["test"]]
+        assert test[:4] == ["CMD", "python3", "-m", "focustrack_core.health"]
+        probe = health.parser().parse_args(test[4:])
+        assert probe.http or (probe.instrument == "sim" and probe.connect == ["tcp/zenoh:7447"])
+        assert {"interval", "timeout", "retries"} <= set(check)
+    volume, mount = services["estimator"]["volumes"][0].split("#")[0].strip().split(":")
+    assert volume in compose["volumes"] and mount == "/data"
+    scheduler = services["scheduler"]
+    assert scheduler["restart"] == "on-failure"  # a job, resumed after a failure
+    assert set(scheduler["depends_on"]) == {"instrument", "focus", "estimator"}
+    assert all(c == {"condition": "service_healthy"} for c in scheduler["depends_on"].values())
+
+
+def test_each_services_requirements_are_the_lock_files(tmp_path: Path) -> None:
+    spec = importlib.util.spec_from_file_location(
+        "export", ROOT / "scripts" / "export_requirements.py"
+    )
+    assert spec is not None and spec.loader is not None
+    export = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(export)
+    for service in export.SERVICES:
+        checked_in = (ROOT / "services" / service / "requirements.txt").read_text()
+        assert checked_in == export.export(service), f"{service}: stale, run `make lock`"

@@ -1,0 +1,97 @@
+"""Each distribution installs alone, as its image installs it, in a plain virtualenv.
+
+The install step of every service's Dockerfile runs here as written (its /src paths
+pointed at this checkout): exactly the lock file's versions, then the workspace's own
+distributions, and `pip check` must pass. The estimator pulls neither OpenCV nor
+Zenoh; the client pulls httpx and pydantic and what they need, nothing more.
+Slow (a virtualenv and an install each): CI runs them, `make test-fast` skips them.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
+
+#: service folder -> its console script
+SERVICES = {
+    "estimator": "focustrack-estimator",
+    "focus": "focustrack-focus",
+    "instrument_sim": "focustrack-instrument-sim",
+    "scheduler": "focustrack-scheduler",
+}
+#: What the client may bring: httpx, pydantic, and their own dependencies.
+CLIENT_CLOSURE = {
+    "focustrack-client", "httpx", "httpcore", "h11", "anyio", "idna", "certifi", "sniffio",
+    "pydantic", "pydantic-core", "annotated-types", "typing-extensions", "typing-inspection",
+    "pip", "setuptools",
+}  # fmt: skip
+
+
+#: uv runs pip's install step with pip's semantics, ten times faster (it is in the dev tools).
+UV = str(Path(sys.executable).with_name("uv"))
+
+
+def venv(path: Path) -> Path:
+    """A new, empty virtualenv at `path`; its python."""
+    subprocess.run([UV, "venv", "--quiet", "--python", sys.executable, str(path)], check=True)
+    return path / "bin" / "python"
+
+
+def pip(python: Path, *args: str) -> str:
+    """`pip ARGS` in the virtualenv of `python` (run by uv); its output."""
+    command = [UV, "pip", args[0], "--python", str(python), *args[1:]]
+    return subprocess.run(command, check=True, capture_output=True, text=True).stdout
+
+
+def installed(python: Path) -> set[str]:
+    listing = json.loads(pip(python, "list", "--format=json"))
+    return {entry["name"].lower().replace("_", "-") for entry in listing}
+
+
+def dockerfile_install(folder: str, src: Path) -> list[str]:
+    """The `pip install ...` arguments of the service's Dockerfile, its /src copied to `src`.
+
+    As the image's COPY lines do, the distributions are copied first, so building
+    them leaves nothing in this checkout.
+    """
+    dockerfile = (ROOT / "services" / folder / "Dockerfile").read_text()
+    for copied in re.findall(r"^COPY (\S+) /src/\S+$", dockerfile, flags=re.MULTILINE):
+        ignore = shutil.ignore_patterns("build", "*.egg-info", "__pycache__", "tests")
+        shutil.copytree(ROOT / copied, src / copied, ignore=ignore)
+    match = re.search(r"pip install ([^&\n]+)", dockerfile.replace("\\\n", " "))
+    assert match, f"services/{folder}/Dockerfile has no pip install step"
+    return [word.replace("/src/", f"{src}/") for word in match.group(1).split()]
+
+
+@pytest.mark.parametrize("folder", sorted(SERVICES))
+def test_each_dockerfiles_install_step_works_in_a_plain_venv(tmp_path: Path, folder: str) -> None:
+    script = SERVICES[folder]
+    python = venv(tmp_path / "venv")
+    pip(python, "install", "--quiet", *dockerfile_install(folder, tmp_path / "src"))
+    pip(python, "check")
+    help_text = subprocess.run(
+        [python.with_name(script), "--help"], check=True, capture_output=True, text=True
+    ).stdout
+    assert "[env FOCUSTRACK_" in help_text  # the console script starts: every import resolves
+    packages = installed(python)
+    assert "focustrack" not in packages  # the umbrella is not needed to run a service
+    if folder == "estimator":
+        assert not {p for p in packages if "opencv" in p or "zenoh" in p}, packages
+
+
+def test_the_client_installs_with_httpx_and_pydantic_only(tmp_path: Path) -> None:
+    python = venv(tmp_path / "venv")
+    shutil.copytree(ROOT / "client", tmp_path / "client", ignore=shutil.ignore_patterns("build"))
+    pip(python, "install", "--quiet", str(tmp_path / "client"))
+    extra = installed(python) - CLIENT_CLOSURE
+    assert not extra, f"the client pulled {sorted(extra)}"
+    subprocess.run([python, "-c", "from focustrack_client import AsyncEstimatorClient"], check=True)
