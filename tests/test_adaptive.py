@@ -8,15 +8,15 @@ from focustrack.bench.accuracy import OUTLIERS, add_measurement_noise, add_outli
 from focustrack.bench.replay import replay, score
 from focustrack_core.domain import Measurement
 from focustrack_core.geometry import ScanGrid
+from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import nis_gate
-from focustrack_estimator.kalman_strategies import STRATEGIES
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 
 def scan_row(name: str, heights_um: list[float], **params):
     """Feed one row of measured heights to a strategy; returns it and its outcomes."""
-    strategy = STRATEGIES[name](SlideSettings(ScanGrid(1, len(heights_um))), **params)
+    strategy = registry.create(name, SlideSettings(ScanGrid(1, len(heights_um))), params)
     outcomes = [
         strategy.record(strategy.next_acquisition(), Measurement(z_um=z_um)) for z_um in heights_um
     ]
@@ -52,7 +52,7 @@ def test_gating_helps_on_the_outliers_family() -> None:
 
     def prior_mae(**params) -> float:
         runs = [
-            replay(STRATEGIES["kf-wiener1-dir"](settings, **params), t, m)
+            replay(registry.create("kf-wiener1-dir", settings, params), t, m)
             for t, m in zip(truths, measured, strict=True)
         ]
         return score(runs, settings.dof_um).prior_mae_um
@@ -69,7 +69,7 @@ def test_the_default_r_is_estimated_from_the_innovations() -> None:
     for adapt_r in (False, True):
         runs = []
         for truth, measured_um in zip(truths, measured, strict=True):
-            strategy = STRATEGIES["kf-wiener1-dir"](settings, adapt_r=adapt_r)
+            strategy = registry.create("kf-wiener1-dir", settings, {"adapt_r": adapt_r})
             runs.append(replay(strategy, truth, measured_um))
             if adapt_r:
                 # From 2.25 um^2 towards 0.09 um^2; the model's own error is counted in too.
@@ -82,7 +82,7 @@ def test_a_measurements_own_sigma_is_not_used_to_estimate_the_default_r() -> Non
     heights = [3.0, -3.0] * 10
     strategy, _ = scan_row("kf-wiener0", heights, adapt_r=True)
     assert strategy.default_r_um2 > 1.5**2  # large innovations: R grows
-    sharp = STRATEGIES["kf-wiener0"](SlideSettings(ScanGrid(1, 20)), adapt_r=True)
+    sharp = registry.create("kf-wiener0", SlideSettings(ScanGrid(1, 20)), {"adapt_r": True})
     for z_um in heights:
         sharp.record(sharp.next_acquisition(), Measurement(z_um=z_um, sigma_um=0.2))
     assert sharp.default_r_um2 == pytest.approx(1.5**2)
@@ -90,7 +90,7 @@ def test_a_measurements_own_sigma_is_not_used_to_estimate_the_default_r() -> Non
 
 def test_gating_parameters_are_checked() -> None:
     with pytest.raises(ValueError, match="gate_nis"):
-        STRATEGIES["kf-wiener0"](SlideSettings(ScanGrid(2, 2)), gate_nis=-1.0)
+        registry.create("kf-wiener0", SlideSettings(ScanGrid(2, 2)), {"gate_nis": -1.0})
     assert nis_gate(0.99) == pytest.approx(6.635, abs=1e-3)
     with pytest.raises(ValueError, match="probability"):
         nis_gate(1.0)

@@ -16,6 +16,7 @@ from focustrack_estimator.kalman_strategies import (
     kf_wiener1_dir,
 )
 from focustrack_estimator.models import WienerModel
+from focustrack_estimator.serpentine import FilterOptions
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
@@ -32,7 +33,7 @@ def random_walk_surface(grid: ScanGrid, q: float, seed: int) -> np.ndarray:
 def bank_strategy(settings: SlideSettings, qs: list[float], floor: float) -> KalmanStrategy:
     members = [PathFilter(WienerModel(0, q), settings, sqrt=False) for q in qs]
     bank = ModelBank(members, weight_floor=floor, nis_clip=4.0)
-    return KalmanStrategy(settings, bank, name="bank", max_retries=3)
+    return KalmanStrategy(settings, bank, name="bank", options=FilterOptions())
 
 
 def test_the_weights_find_the_process_noise_of_the_surface() -> None:

@@ -10,8 +10,10 @@ import pytest
 from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_core.domain import FocusFlag, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
+from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import innovation_diagnostics
 from focustrack_estimator.kalman_strategies import STRATEGIES, KalmanStrategy
+from focustrack_estimator.serpentine import FilterOptions
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
@@ -68,7 +70,7 @@ def test_zeroth_order_filter_lags_a_slope_the_direction_aware_one_follows() -> N
 
 
 def first_strategy(**params) -> KalmanStrategy:
-    return STRATEGIES["kf-wiener0"](SlideSettings(ScanGrid(2, 3)), **params)
+    return registry.create("kf-wiener0", SlideSettings(ScanGrid(2, 3)), params)
 
 
 def test_edge_flag_retries_the_same_tile_beyond_the_edge_without_predicting() -> None:
@@ -238,19 +240,24 @@ def test_innovations_are_white_only_when_the_model_fits() -> None:
 
 
 @pytest.mark.parametrize("name", sorted(STRATEGIES))
-def test_factories_take_keyword_only_parameters_with_defaults(name: str) -> None:
+def test_factories_take_options_and_keyword_only_parameters_with_defaults(name: str) -> None:
     parameters = list(inspect.signature(STRATEGIES[name]).parameters.values())
-    assert parameters[0].name == "settings"
-    for parameter in parameters[1:]:
+    assert [p.name for p in parameters[:2]] == ["settings", "options"]
+    assert isinstance(parameters[1].default, FilterOptions)
+    for parameter in parameters[2:]:
         assert parameter.kind is inspect.Parameter.KEYWORD_ONLY
         assert parameter.default is not inspect.Parameter.empty
     assert STRATEGIES[name](SlideSettings(ScanGrid(2, 2))).name == name
+    # To a user, the options are parameters like the others.
+    assert {"max_retries", "sqrt", "gate_nis", "gate_patience", "adapt_r"} <= set(
+        registry.parameters(name)
+    )
 
 
 def test_bad_parameters_are_clear_errors() -> None:
     settings = SlideSettings(ScanGrid(2, 2))
     with pytest.raises(ValueError, match="max_retries"):
-        STRATEGIES["kf-wiener0"](settings, max_retries=-1)
+        registry.create("kf-wiener0", settings, {"max_retries": -1})
     with pytest.raises(ValueError, match="beta"):
         STRATEGIES["kf-gm1"](settings, beta_per_tile=2.0)
     with pytest.raises(ValueError, match="q"):
@@ -263,7 +270,7 @@ def test_square_root_form_agrees_with_the_covariance_form(name: str) -> None:
     measured = noisy(truth, 1.5, seed=7)
     settings = SlideSettings(ScanGrid(8, 9))
     plain = replay(STRATEGIES[name](settings), truth, measured).focus_map
-    root = replay(STRATEGIES[name](settings, sqrt=True), truth, measured).focus_map
+    root = replay(registry.create(name, settings, {"sqrt": True}), truth, measured).focus_map
     for layer in (
         "prior_um",
         "prior_sigma_um",
@@ -280,7 +287,11 @@ def test_partitioned_update_runs_in_the_square_root_form_too() -> None:
     measured = noisy(truth, 1.5, seed=8)
     settings = SlideSettings(ScanGrid(6, 6))
     maps = [
-        replay(STRATEGIES["kf-wiener1-dir"](settings, partitioned=True, sqrt=sqrt), truth, measured)
+        replay(
+            registry.create("kf-wiener1-dir", settings, {"partitioned": True, "sqrt": sqrt}),
+            truth,
+            measured,
+        )
         for sqrt in (False, True)
     ]
     np.testing.assert_allclose(maps[1].focus_map.posterior_um, maps[0].focus_map.posterior_um)

@@ -15,7 +15,7 @@ import numpy as np
 import scipy.linalg
 
 from focustrack_core.geometry import Tile
-from focustrack_estimator.spatial import Gaussian, SerpentineFilter
+from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, surface_covariance
 
@@ -35,7 +35,7 @@ class GpOracle(SerpentineFilter):
     name = "gp-oracle"
 
     def __init__(self, settings: SlideSettings, spec: SurfaceSpec, *, max_retries: int) -> None:
-        super().__init__(settings, max_retries=max_retries)
+        super().__init__(settings, FilterOptions(max_retries=max_retries))
         if (spec.rows, spec.cols) != self.grid.shape:
             raise ValueError(f"surface spec is {spec.rows}x{spec.cols}, grid is {self.grid.shape}")
         rows, cols = np.divmod(np.arange(self.grid.n_tiles), self.grid.cols)

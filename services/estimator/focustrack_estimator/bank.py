@@ -43,6 +43,7 @@ from focustrack_estimator.kalman_strategies import (
     PathFilter,
 )
 from focustrack_estimator.models import DirectionAwareModel
+from focustrack_estimator.serpentine import FilterOptions
 from focustrack_estimator.strategy import SlideSettings, Strategy
 
 
@@ -124,17 +125,13 @@ class ModelBank(PathEstimator):
 
 def kf_mmae(
     settings: SlideSettings,
+    options: FilterOptions = FilterOptions(gate_nis=25.0),
     *,
     q: float = 1e-4,
     q_spread: float = 3.0,
     q_height_um2: float = 0.3,
     weight_floor: float = 1e-3,
     nis_clip: float = 9.0,
-    gate_nis: float = 25.0,
-    gate_patience: int = 1,
-    adapt_r: bool = False,
-    sqrt: bool = False,
-    max_retries: int = 3,
 ) -> KalmanStrategy:
     """A bank of four direction-aware filters: two gradient noises, with and without height noise.
 
@@ -152,19 +149,11 @@ def kf_mmae(
         for height_um2 in (0.0, q_height_um2)
     ]
     bank = ModelBank(
-        [PathFilter(model, settings, sqrt=sqrt) for model in models],
+        [PathFilter(model, settings, sqrt=options.sqrt) for model in models],
         weight_floor=weight_floor,
         nis_clip=nis_clip,
     )
-    return KalmanStrategy(
-        settings,
-        bank,
-        name="kf-mmae",
-        max_retries=max_retries,
-        gate_nis=gate_nis,
-        gate_patience=gate_patience,
-        adapt_r=adapt_r,
-    )
+    return KalmanStrategy(settings, bank, name="kf-mmae", options=options)
 
 
 STRATEGIES: dict[str, Callable[..., Strategy]] = {"kf-mmae": kf_mmae}

@@ -2,12 +2,17 @@
 
 Each strategy module exports ``STRATEGIES: dict[str, Callable[..., Strategy]]``:
 a factory called as ``factory(settings, **params)``, whose keyword parameters
-all have defaults (the tuned defaults). `create` checks the parameters by name
-so that a typo is an error, not a silently ignored setting.
+all have defaults (the tuned defaults). A factory whose second parameter is
+``options`` (a `FilterOptions`, with the strategy's defaults as its default)
+takes the options' fields as parameters too: to a user they are parameters
+like the others (``{"q": 0.2, "gate_nis": 9.0}``), to the code one dataclass.
+`create` checks the parameters by name so that a typo is an error, not a
+silently ignored setting.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -25,14 +30,22 @@ STRATEGIES: dict[str, Factory] = {
 }
 
 
+def _options_default(factory: Factory) -> Any | None:
+    """The default `options` dataclass of a factory that takes one, else None."""
+    options = inspect.signature(factory).parameters.get("options")
+    return None if options is None else options.default
+
+
 def parameters(name: str, strategies: Mapping[str, Factory] = STRATEGIES) -> dict[str, Any]:
     """The tunable parameters of strategy `name` (of `strategies`) with their defaults."""
-    signature = inspect.signature(_factory(name, strategies))
-    return {
+    factory = _factory(name, strategies)
+    own = {
         key: p.default
-        for key, p in signature.parameters.items()
+        for key, p in inspect.signature(factory).parameters.items()
         if p.kind is inspect.Parameter.KEYWORD_ONLY
     }
+    options = _options_default(factory)
+    return own if options is None else {**dataclasses.asdict(options), **own}
 
 
 def create(
@@ -51,7 +64,12 @@ def create(
             f"unknown parameter(s) {', '.join(unknown)} for strategy {name!r}; "
             f"known: {', '.join(known) or 'none'}"
         )
-    return factory(settings, **params)
+    options = _options_default(factory)
+    if options is None:
+        return factory(settings, **params)
+    fields = {field.name for field in dataclasses.fields(options)}
+    chosen = dataclasses.replace(options, **{k: v for k, v in params.items() if k in fields})
+    return factory(settings, chosen, **{k: v for k, v in params.items() if k not in fields})
 
 
 def _factory(name: str, strategies: Mapping[str, Factory]) -> Factory:

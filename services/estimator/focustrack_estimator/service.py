@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def spawn(store: str | Path, port: int, token: str | None = None, timeout_s: float = 30.0) -> Popen:
+def spawn(store: str | Path, port: int, token: str | None = None, timeout_s: float = 60.0) -> Popen:
     """Start the service on 127.0.0.1:`port` as a child process; return once /healthz answers.
 
     For the end-to-end tests and `focustrack bench api`, which need the server in

@@ -26,18 +26,17 @@ carry the previous row(s) in their state:
 The floor they are measured against, `gp-oracle`, needs the simulator's true
 covariance, so it lives with the benchmarks (`focustrack.bench.oracle`).
 
-All walk the serpentine alike (`SerpentineFilter`): the prior of a tile sets
-a stack of +/- k innovation sigmas; a stack without a peak (an edge peak or a
-flat curve) is followed by another (`PeakSearch`) until the search ends,
-after which the prior stands; the tile is imaged at the acquired frame
-nearest the posterior.
+All run the one per-tile loop of every filter strategy
+(`serpentine.SerpentineFilter`, shared with the 1-D Kalman filters): the prior
+of a tile sets a stack of +/- k innovation sigmas; a stack without a peak is
+followed by another (`PeakSearch`) until the search ends, after which the
+prior stands; the tile is imaged at the acquired frame nearest the posterior.
 Heights are in um, lengths in tiles.
 """
 
 from __future__ import annotations
 
 import math
-from abc import abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -45,121 +44,13 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg
 
-from focustrack_core.domain import Acquisition, FocusMap, Measurement, Outcome, Purpose
+from focustrack_core.domain import FocusMap
 from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
 from focustrack_estimator.kalman_strategies import rts_smooth
+from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter, psd_factor
-from focustrack_estimator.strategy import PeakSearch, SlideSettings, Strategy
-
-
-@dataclass(frozen=True)
-class Gaussian:
-    """A height estimate: mean in um and variance in um^2."""
-
-    mean_um: float
-    var_um2: float
-
-    @property
-    def sigma_um(self) -> float:
-        return math.sqrt(max(self.var_um2, 0.0))
-
-
-class SerpentineFilter(Strategy):
-    """A recursive estimator walking the serpentine, one prediction and one correction a tile.
-
-    Subclasses implement `_predict` (the prior of the next tile) and `_correct`
-    (take its measurement, or None when the tile gave none). `_finish` runs once
-    after the last tile.
-    """
-
-    def __init__(self, settings: SlideSettings, *, max_retries: int) -> None:
-        super().__init__(settings)
-        self.max_retries = max_retries
-        self._position = 0  # serpentine index of the current tile
-        self._prior: Gaussian | None = None  # the current tile's prior, once predicted
-        self._search = PeakSearch(settings.policy, max_retries)  # on the current tile
-
-    @abstractmethod
-    def _predict(self, tile: Tile) -> Gaussian:
-        """Advance the state to `tile` (the next in serpentine order); return its prior."""
-
-    @abstractmethod
-    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
-        """Take the measurement of `tile` (None: no measurement); return its posterior."""
-
-    def _finish(self) -> None:
-        """Called once when every tile has been imaged (for final-map work)."""
-
-    def _plan(self) -> Acquisition | None:
-        if self._position == self.grid.n_tiles:
-            return None
-        tile = self.grid.serpentine[self._position]
-        if self._prior is None:
-            self._prior = self._predict(tile)
-            self.map.prior_um[tile.row, tile.col] = self._prior.mean_um
-            self.map.prior_sigma_um[tile.row, tile.col] = self._prior.sigma_um
-        prior = self._prior
-        if not self._search:
-            # The measured peak must land in the stack: size it by the innovation sigma.
-            innovation_sigma_um = math.sqrt(prior.var_um2 + self.settings.noise_sigma_um**2)
-            z, purpose = (
-                self.settings.policy.around(prior.mean_um, innovation_sigma_um),
-                Purpose.SCAN,
-            )
-        else:
-            z, purpose = self._search.next_range(), Purpose.RETRY
-        return self._acquisition(
-            tile.row,
-            tile.col,
-            z,
-            purpose,
-            measure=True,
-            predicted_um=prior.mean_um,
-            predicted_sigma_um=prior.sigma_um,
-        )
-
-    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
-        tile = Tile(acquisition.row, acquisition.col)
-        prior = self._prior
-        assert prior is not None  # set by _plan for the pending acquisition
-        if not measurement.is_observation and self._search.failed(acquisition.z, measurement):
-            return Outcome(
-                tile.row, tile.col, accepted=False, prior_um=prior.mean_um,
-                prior_sigma_um=prior.sigma_um,
-            )  # fmt: skip
-
-        innovation_um = nis = None
-        if measurement.is_observation and measurement.z_um is not None:
-            R_um2 = (measurement.sigma_um or self.settings.noise_sigma_um) ** 2
-            posterior = self._correct(tile, prior, measurement.z_um, R_um2)
-            innovation_um = measurement.z_um - prior.mean_um
-            nis = innovation_um**2 / (prior.var_um2 + R_um2)
-        else:  # the search found no peak: the prior stands
-            posterior = self._correct(tile, prior, None, 0.0)
-        frames_um = np.concatenate([z.z_um() for z in [*self._search.stacks, acquisition.z]])
-        self.map.posterior_um[tile.row, tile.col] = posterior.mean_um
-        self.map.posterior_sigma_um[tile.row, tile.col] = posterior.sigma_um
-        self.map.z_used_um[tile.row, tile.col] = frames_um[
-            np.argmin(np.abs(frames_um - posterior.mean_um))
-        ]
-        self._position += 1
-        self._prior = None
-        self._search.clear()
-        if self._position == self.grid.n_tiles:
-            self._finish()
-        return Outcome(
-            tile.row,
-            tile.col,
-            accepted=innovation_um is not None,
-            prior_um=prior.mean_um,
-            prior_sigma_um=prior.sigma_um,
-            posterior_um=posterior.mean_um,
-            posterior_sigma_um=posterior.sigma_um,
-            innovation_um=innovation_um,
-            nis=nis,
-        )
-
+from focustrack_estimator.strategy import SlideSettings, Strategy
 
 # --- NSHP ------------------------------------------------------------------------------
 
@@ -210,7 +101,7 @@ class NshpFilter(SerpentineFilter):
         q_um2: float,
         max_retries: int,
     ) -> None:
-        super().__init__(settings, max_retries=max_retries)
+        super().__init__(settings, FilterOptions(max_retries=max_retries))
         if support < 1 or q_um2 <= 0:
             raise ValueError(f"need support >= 1 and q_um2 > 0, got {support}, {q_um2}")
         self.name = name
@@ -357,7 +248,7 @@ class RowBankFilter(SerpentineFilter):
         tilt_sigmas_um_per_tile: tuple[float, ...],
         max_retries: int,
     ) -> None:
-        super().__init__(settings, max_retries=max_retries)
+        super().__init__(settings, FilterOptions(max_retries=max_retries))
         grid_values = (*sigmas_um, *lengths_tiles, *tilt_sigmas_um_per_tile)
         if not (sigmas_um and lengths_tiles and tilt_sigmas_um_per_tile) or min(grid_values) <= 0:
             raise ValueError(

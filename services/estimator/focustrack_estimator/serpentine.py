@@ -1,0 +1,223 @@
+"""The one per-tile loop every filter strategy runs: predict a tile, stack around it, correct.
+
+A `SerpentineFilter` walks the grid in serpentine order. On each tile:
+
+1. `_predict(tile)` gives the prior (the subclass's filter moves onto the tile);
+2. the stack is taken over the prior +/- k innovation sigmas
+   (`ZRangePolicy.around`, sigma = sqrt(prior variance + R)): the measured
+   peak, not the truth, must land in it;
+3. a stack without a peak (an edge peak or a flat curve) is no measurement:
+   the same tile is acquired again beyond that edge (`PeakSearch`); when the
+   search ends without a peak the tile is given up (`gave_up`) and imaged at
+   its prediction, so that a scan always ends;
+4. a peak corrects the filter (`_correct`), unless the NIS gate rejects it
+   (`gated`): with `gate_nis` > 0, a measurement whose normalised innovation
+   squared exceeds it is an outlier (dust, a parasite in another plane) and
+   the tile keeps its prediction, unless `gate_patience` measurements in a row
+   were rejected before it, in which case the surface really moved (a fold, a
+   step) and the measurement is taken after the height's variance is inflated
+   by the squared innovation (`_inflate`);
+5. the tile is imaged (`FocusMap.z_used_um`) at the acquired frame nearest its
+   posterior, among all the stacks taken on it.
+
+With `adapt_r` the default R (for measurements without their own sigma) is
+estimated online by covariance matching of the innovations (E[y^2] = H P H' +
+R), as a running mean that starts from `R_PRIOR_COUNT` copies of the
+configured value. The 1-D Kalman filters (`kalman_strategies`), their bank
+(`bank`) and the 2-D filters (`spatial`) differ only in the three hooks.
+Heights in um, variances in um^2.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import abstractmethod
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose
+from focustrack_core.geometry import Tile
+from focustrack_estimator.strategy import PeakSearch, SlideSettings, Strategy
+
+#: How many measurements the configured default R counts as when `adapt_r` estimates it.
+R_PRIOR_COUNT = 20
+
+
+@dataclass(frozen=True)
+class Gaussian:
+    """A height estimate: mean in um and variance in um^2."""
+
+    mean_um: float
+    var_um2: float
+
+    @property
+    def sigma_um(self) -> float:
+        return math.sqrt(max(self.var_um2, 0.0))
+
+
+@dataclass(frozen=True)
+class FilterOptions:
+    """How the loop treats measurements, whatever the filter (each a strategy parameter).
+
+    max_retries: stacks after the first on a tile without a peak before it is
+    given up; gate_nis: NIS threshold of the gate (0: no gating; chi-square
+    with one degree of freedom for a consistent filter, `diagnostics.nis_gate`);
+    gate_patience: rejections in a row after which an outlier is taken as a
+    real step; adapt_r: estimate the default R online from the innovations;
+    sqrt: run the filter in square-root form (where the filter has one).
+    """
+
+    max_retries: int = 3
+    gate_nis: float = 0.0
+    gate_patience: int = 1
+    adapt_r: bool = False
+    sqrt: bool = False
+
+    def __post_init__(self) -> None:
+        if self.max_retries < 0:
+            raise ValueError(f"max_retries must not be negative, got {self.max_retries}")
+        if self.gate_nis < 0 or self.gate_patience < 0:
+            raise ValueError(
+                f"gate_nis and gate_patience must not be negative, got {self.gate_nis}, "
+                f"{self.gate_patience}"
+            )
+
+
+class SerpentineFilter(Strategy):
+    """A recursive estimator walking the serpentine, one prediction and one correction a tile.
+
+    Subclasses implement `_predict` (the prior of the next tile) and `_correct`
+    (take its measurement, or None when the tile gave none), and `_inflate`
+    where they support gating with patience. `_finish` runs once after the
+    last tile. `gave_up` and `gated` (rows, cols) mark tiles imaged at their
+    prediction: no stack found a peak, or the gate rejected the measurement.
+    """
+
+    def __init__(self, settings: SlideSettings, options: FilterOptions) -> None:
+        super().__init__(settings)
+        self.options = options
+        self.gave_up = np.zeros(self.grid.shape, dtype=bool)
+        self.gated = np.zeros(self.grid.shape, dtype=bool)
+        self._position = 0  # serpentine index of the current tile
+        self._prior: Gaussian | None = None  # the current tile's prior, once predicted
+        self._search = PeakSearch(settings.policy, options.max_retries)  # on the current tile
+        self._rejected_in_a_row = 0
+        self._r_sum_um2 = R_PRIOR_COUNT * settings.noise_sigma_um**2
+        self._r_count = R_PRIOR_COUNT
+        self._innovation_um: list[float] = []
+        self._innovation_var_um2: list[float] = []
+
+    @abstractmethod
+    def _predict(self, tile: Tile) -> Gaussian:
+        """Advance the state to `tile` (the next in serpentine order); return its prior."""
+
+    @abstractmethod
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        """Take the measurement of `tile` (None: no measurement); return its posterior."""
+
+    def _inflate(self, var_um2: float) -> None:
+        """Add `var_um2` to the current tile's height variance (gating with patience)."""
+        raise ValueError(f"{self.name} cannot take a gated step: use gate_patience=0")
+
+    def _finish(self) -> None:
+        """Called once when every tile has been imaged (for final-map work)."""
+
+    @property
+    def default_r_um2(self) -> float:
+        """The variance of a measurement that comes without a sigma (estimated if `adapt_r`)."""
+        if not self.options.adapt_r:
+            return self.settings.noise_sigma_um**2
+        # Single terms y^2 - H P H' may be negative; only the mean must stay positive.
+        floor_um2 = 1e-2 * self.settings.noise_sigma_um**2
+        return max(self._r_sum_um2 / self._r_count, floor_um2)
+
+    def innovations(self) -> tuple[np.ndarray, np.ndarray]:
+        """Accepted innovations (n,) in um and their predicted variances S (n,) in um^2.
+
+        In scan order, for `diagnostics.innovation_diagnostics` (gated-out
+        measurements are not innovations of the filter: their NIS is in their Outcome).
+        """
+        return np.array(self._innovation_um), np.array(self._innovation_var_um2)
+
+    def _plan(self) -> Acquisition | None:
+        if self._position == self.grid.n_tiles:
+            return None
+        tile = self.grid.serpentine[self._position]
+        if self._prior is None:
+            self._prior = self._predict(tile)
+            self.map.prior_um[tile.row, tile.col] = self._prior.mean_um
+            self.map.prior_sigma_um[tile.row, tile.col] = self._prior.sigma_um
+        prior = self._prior
+        if not self._search:
+            innovation_sigma_um = math.sqrt(prior.var_um2 + self.default_r_um2)
+            z = self.settings.policy.around(prior.mean_um, innovation_sigma_um)
+            purpose = Purpose.SCAN
+        else:
+            z, purpose = self._search.next_range(), Purpose.RETRY
+        return self._acquisition(
+            tile.row,
+            tile.col,
+            z,
+            purpose,
+            measure=True,
+            predicted_um=prior.mean_um,
+            predicted_sigma_um=prior.sigma_um,
+        )
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        tile = Tile(acquisition.row, acquisition.col)
+        prior = self._prior
+        assert prior is not None  # set by _plan for the pending acquisition
+        outcome = Outcome(
+            tile.row, tile.col, accepted=False, prior_um=prior.mean_um,
+            prior_sigma_um=prior.sigma_um,
+        )  # fmt: skip
+        if measurement.z_um is None or not measurement.is_observation:
+            if self._search.failed(acquisition.z, measurement):
+                return outcome  # another stack of this tile follows
+            self.gave_up[tile.row, tile.col] = True
+            return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
+
+        R_um2 = self.default_r_um2 if measurement.sigma_um is None else measurement.sigma_um**2
+        innovation_um = measurement.z_um - prior.mean_um
+        variance_um2 = prior.var_um2 + R_um2
+        outcome = replace(outcome, innovation_um=innovation_um, nis=innovation_um**2 / variance_um2)
+        if self.options.gate_nis and innovation_um**2 / variance_um2 > self.options.gate_nis:
+            if self._rejected_in_a_row < self.options.gate_patience:
+                # An outlier: the tile keeps its prediction and is imaged there.
+                self._rejected_in_a_row += 1
+                self.gated[tile.row, tile.col] = True
+                return self._finish_tile(
+                    acquisition, outcome, self._correct(tile, prior, None, 0.0)
+                )
+            # Outliers in a row are the surface itself moving (a fold, a step): take it.
+            self._inflate(innovation_um**2)
+            variance_um2 += innovation_um**2
+        self._rejected_in_a_row = 0
+        posterior = self._correct(tile, prior, measurement.z_um, R_um2)
+        if self.options.adapt_r and measurement.sigma_um is None:
+            self._r_sum_um2 += innovation_um**2 - (variance_um2 - R_um2)
+            self._r_count += 1
+        self._innovation_um.append(innovation_um)
+        self._innovation_var_um2.append(variance_um2)
+        outcome = replace(outcome, accepted=True, nis=innovation_um**2 / variance_um2)
+        return self._finish_tile(acquisition, outcome, posterior)
+
+    def _finish_tile(
+        self, acquisition: Acquisition, outcome: Outcome, posterior: Gaussian
+    ) -> Outcome:
+        """Record the tile's estimate, image it at the acquired frame nearest it, move on."""
+        row, col = acquisition.row, acquisition.col
+        frames_um = np.concatenate([z.z_um() for z in [*self._search.stacks, acquisition.z]])
+        self.map.posterior_um[row, col] = posterior.mean_um
+        self.map.posterior_sigma_um[row, col] = posterior.sigma_um
+        self.map.z_used_um[row, col] = frames_um[np.argmin(np.abs(frames_um - posterior.mean_um))]
+        self._position += 1
+        self._prior = None
+        self._search.clear()
+        if self._position == self.grid.n_tiles:
+            self._finish()
+        return replace(
+            outcome, posterior_um=posterior.mean_um, posterior_sigma_um=posterior.sigma_um
+        )

@@ -1,0 +1,103 @@
+"""The slim client against the real estimator: a uvicorn process on loopback, a real SQLite file.
+
+Both clients, blocking and asyncio, drive a slide from creation to deletion and
+read typed models back; every refusal arrives as the exception of its code.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterator
+from subprocess import Popen
+
+import numpy as np
+import pytest
+
+from focustrack_client import (
+    AsyncEstimatorClient,
+    ConflictError,
+    EstimatorClient,
+    InvalidRequestError,
+    SlideNotFoundError,
+    UnauthorizedError,
+)
+from focustrack_client.models import Grid, MeasurementIn, SlideCreate
+from focustrack_core.maps import focus_map_of_npy
+from focustrack_core.wire.session import free_port
+from focustrack_estimator.service import spawn
+
+TOKEN = "s3cret"
+
+
+@pytest.fixture(scope="module")
+def url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    port = free_port()
+    process: Popen = spawn(tmp_path_factory.mktemp("client") / "estimator.sqlite", port, TOKEN)
+    yield f"http://127.0.0.1:{port}"
+    process.terminate()
+    process.wait(timeout=10)
+
+
+def test_the_blocking_client_scans_a_slide_and_deletes_it(url: str) -> None:
+    with EstimatorClient(url, token=TOKEN) as estimator:
+        slide = estimator.create_slide(
+            SlideCreate(strategy="kf-wiener0", grid=Grid(rows=2, cols=3), label="client test")
+        )
+        assert slide.config.params["q"] == pytest.approx(0.14)  # every default resolved
+        assert slide.id in {s.id for s in estimator.list_slides()}
+        n_posted = 0
+        while not (step := estimator.next(slide.id)).done:
+            assert step.sequence is not None and step.z_center_um is not None
+            measurement = MeasurementIn(
+                row=step.row, col=step.col, sequence=step.sequence, z_um=step.z_center_um + 0.2
+            )
+            outcome = estimator.measure(slide.id, measurement)
+            assert outcome.accepted and outcome.posterior_um is not None
+            n_posted += 1
+        assert n_posted == 6 and estimator.slide(slide.id).done
+        focus_map = estimator.focus_map(slide.id)
+        assert (focus_map.rows, focus_map.cols) == (2, 3)
+        assert all(value is not None for row in focus_map.posterior_um for value in row)
+        from_npy = focus_map_of_npy(estimator.focus_map_file(slide.id, "npy"))
+        np.testing.assert_allclose(from_npy.posterior_um, np.array(focus_map.posterior_um))
+        assert estimator.diagnostics(slide.id).n_accepted == 6
+        with pytest.raises(ConflictError):  # the scan is complete: nothing is pending
+            estimator.measure(slide.id, MeasurementIn(row=0, col=0, sequence=6, z_um=0.0))
+        estimator.delete_slide(slide.id)
+        with pytest.raises(SlideNotFoundError) as gone:
+            estimator.slide(slide.id)
+        assert gone.value.status == 404
+
+
+def test_the_async_client_speaks_the_same_api(url: str) -> None:
+    async def scan() -> tuple[int, int]:
+        async with AsyncEstimatorClient(url, token=TOKEN) as estimator:
+            slide = await estimator.create_slide(
+                SlideCreate(strategy="kf-2d", grid=Grid(rows=2, cols=2))
+            )
+            steps = 0
+            while not (step := await estimator.next(slide.id)).done:
+                assert step.sequence is not None and step.z_center_um is not None
+                body = MeasurementIn(
+                    row=step.row, col=step.col, sequence=step.sequence, z_um=step.z_center_um
+                )
+                await estimator.measure(slide.id, body)
+                steps += 1
+            health = await estimator.health()
+            await estimator.delete_slide(slide.id)
+            return steps, health.slides
+
+    steps, n_slides = asyncio.run(scan())
+    assert steps == 4 and n_slides >= 1
+
+
+def test_refusals_are_typed_by_their_code(url: str) -> None:
+    with EstimatorClient(url, token="wrong") as intruder, pytest.raises(UnauthorizedError):
+        intruder.list_slides()
+    with EstimatorClient(url, token=TOKEN) as estimator:
+        with pytest.raises(InvalidRequestError) as refused:
+            estimator.create_slide(SlideCreate(strategy="kf-nosuch", grid=Grid(rows=2, cols=2)))
+        assert "unknown strategy" in str(refused.value.detail)
+        slide = estimator.create_slide(SlideCreate(strategy="tile-skip", grid=Grid(rows=1, cols=2)))
+        with pytest.raises(ConflictError):  # not the pending acquisition
+            estimator.measure(slide.id, MeasurementIn(row=0, col=1, sequence=5, z_um=1.0))
