@@ -20,13 +20,16 @@ $(STAMP): $(MANIFESTS)
 demo: $(STAMP)
 	$(BIN)/focustrack demo --out out/demo --json out/demo/demo.json
 
+# One pytest worker per core; a test file's tests stay on one worker (they share fixtures).
+PYTEST := $(BIN)/pytest -n auto --dist loadfile
+
 ## Lint, format check, types, import boundaries and the whole test suite (what CI runs).
 test: lint typecheck
-	$(BIN)/pytest
+	$(PYTEST)
 
 ## The same without the slow end-to-end tests (for a quick look while developing).
 test-fast: lint typecheck
-	$(BIN)/pytest -m "not slow"
+	$(PYTEST) -m "not slow"
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -28,6 +28,8 @@ from focustrack_estimator.slides import config_of
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
+pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
+
 SEED = 1234
 SETTINGS = SlideSettings(ScanGrid(20, 20))
 

@@ -29,6 +29,8 @@ from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
 from focustrack_scheduler.scan import BEST_KALMAN
 
+pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
+
 ROWS = COLS = 6
 SIZE = 256
 STRATEGY = BEST_KALMAN
