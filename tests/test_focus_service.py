@@ -1,4 +1,5 @@
-"""The focus service on real Zenoh (loopback): a published z-stack comes back as a FocusResult."""
+"""The focus service on real Zenoh (loopback): the frames of a z-stack, published one by one,
+come back as a FocusResult."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import queue
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import httpx
 import numpy as np
@@ -17,7 +18,7 @@ import zenoh
 from focustrack.bench.focus import render_stack
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
-from focustrack_core.wire.codec import ZSTACK_ENCODING, encode_zstack
+from focustrack_core.wire.codec import PixelPublisher, describe_pixels
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_focus.service import ZenohFocusWorker
@@ -35,7 +36,14 @@ def instrument() -> Iterator[tuple[zenoh.Session, str]]:
     session.close()
 
 
-def publish_stack(session: zenoh.Session, pixels: np.ndarray, z_um, sequence: int) -> None:
+def publish_stack(
+    session: zenoh.Session,
+    pixels: np.ndarray,
+    z_um,
+    sequence: int,
+    order: Sequence[int] | None = None,
+) -> None:
+    """Publish the frames of `pixels` (n, h, w, channels) one by one, in `order` (0..n-1)."""
     header = instrument_pb2.ZStackHeader(
         instrument="sim",
         slide="s1",
@@ -47,14 +55,10 @@ def publish_stack(session: zenoh.Session, pixels: np.ndarray, z_um, sequence: in
         channel_order="L",
         bit_depth=12,
     )
-    payload, attachment = encode_zstack(header, pixels)
-    session.put(
-        keys.zstack_key("s1", 2, 3),
-        payload,
-        attachment=attachment,
-        encoding=ZSTACK_ENCODING,
-        congestion_control=zenoh.CongestionControl.BLOCK,
-    )
+    describe_pixels(header, pixels)
+    publisher = PixelPublisher(session)
+    for index in range(len(pixels)) if order is None else order:
+        publisher.put_frame(keys.zframe_key("s1", 2, 3), header, index, pixels[index])
 
 
 def collect(session: zenoh.Session) -> tuple[zenoh.Subscriber, queue.Queue]:
@@ -76,7 +80,7 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(instrument) -> No
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
         frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=3)[..., 1]
-        publish_stack(publisher, frames[..., None], Z_UM, sequence=7)
+        publish_stack(publisher, frames[..., None], Z_UM, sequence=7, order=range(12, -1, -1))
         key, result = results.get(timeout=20)
         assert key == "focustrack/v1/focus/s1/2/3"
         assert (result.slide, result.row, result.col, result.sequence) == ("s1", 2, 3, 7)
