@@ -240,6 +240,14 @@ class PixelPublisher:
         self.n_network += 1
         return data
 
+    def has_subscribers(self, key_expr: str) -> bool:
+        """True when some subscriber matches `key_expr` (so a message there is not wasted)."""
+        publisher = self.session.declare_publisher(key_expr)
+        try:
+            return publisher.matching_status
+        finally:
+            publisher.undeclare()
+
     def put_stack(
         self, key_expr: str, header: instrument_pb2.ZStackHeader, pixels: np.ndarray
     ) -> None:
