@@ -18,10 +18,10 @@ import zenoh
 from focustrack.bench.focus import render_stack
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
-from focustrack_core.wire.codec import PixelPublisher, describe_pixels
+from focustrack_core.wire.codec import PixelPublisher, describe_pixels, frame_header, raw_payload
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_focus.pipeline import FocusSettings
-from focustrack_focus.service import ZenohFocusWorker
+from focustrack_focus.service import FrameAnalyser, ZenohFocusWorker
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 TRUTH_UM = -0.4
@@ -144,3 +144,43 @@ def test_focustrack_serve_focus_runs_zenoh_and_http_in_one_process(instrument) -
         subscriber.undeclare()
         process.terminate()
         process.wait(10)
+
+
+def _frame_samples(
+    pixels: np.ndarray, sequence: int, clock_s: float
+) -> list[tuple[bytes | bytearray, bytes]]:
+    header = instrument_pb2.ZStackHeader(
+        slide="s1",
+        row=2,
+        col=3,
+        sequence=sequence,
+        z_um=list(Z_UM),
+        clock_s=clock_s,
+        pixel_size_um=0.1,
+        channel_order="L",
+    )
+    describe_pixels(header, pixels)
+    return [
+        (raw_payload(pixels[i]), frame_header(header, i, pixels[i]).SerializeToString())
+        for i in range(len(pixels))
+    ]
+
+
+def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart() -> None:
+    frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=3)[..., 1][..., None]
+    analyser = FrameAnalyser(FocusSettings(), na=0.85)
+    key = keys.zframe_key("s1", 2, 3)
+    first, again = _frame_samples(frames, 4, 1.0), _frame_samples(frames, 4, 2.0)
+    # a stack taken again (same sequence, later clock) interleaved with the first one
+    assert [analyser.add(key, *sample) for sample in first[:5]] == [None] * 5
+    assert [analyser.add(key, *sample) for sample in again[:-1]] == [None] * 12
+    done = analyser.add(key, *again[-1])
+    assert done is not None and done.sequence == 4 and done.HasField("best_z_um")
+    assert [analyser.add(key, *sample) for sample in first[5:-1]] == [None] * 7
+    first_done = analyser.add(key, *first[-1])
+    assert first_done is not None and first_done.best_z_um == done.best_z_um  # same pixels
+    # a frame that cannot be read ends its stack with one error; the rest are ignored
+    bad = _frame_samples(frames, 5, 3.0)
+    refused = analyser.add(key, bad[0][0][:-2], bad[0][1])
+    assert refused is not None and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+    assert all(analyser.add(key, *sample) is None for sample in bad[1:])

@@ -87,6 +87,10 @@ def result_message(
     return message
 
 
+#: A stack: the key of its frames, its sequence number and its simulated clock.
+StackId = tuple[str, int, float]
+
+
 class StackInProgress(NamedTuple):
     """The frames of one stack seen so far: its tile, header and curve under way."""
 
@@ -98,17 +102,19 @@ class StackInProgress(NamedTuple):
 class FrameAnalyser:
     """Frame samples in, a FocusResult out as soon as the last frame of a stack lands.
 
-    Stacks are told apart by their key and sequence number; at most `max_open`
-    incomplete stacks are kept (the oldest is dropped with a warning when a frame
-    never comes). A frame that cannot be read ends its stack with an error result.
+    Stacks are told apart by their key, sequence number and simulated clock (an
+    acquisition taken again keeps its sequence); at most `max_open` incomplete stacks
+    are kept (the oldest is dropped with a warning when a frame never comes). A frame
+    that comes twice starts its stack over; one that cannot be read ends its stack with
+    an error result.
     """
 
     def __init__(self, base: FocusSettings, na: float | None, max_open: int = OPEN_STACKS) -> None:
         self.base = base
         self.na = na
         self.max_open = max_open
-        self._open: OrderedDict[tuple[str, int], StackInProgress] = OrderedDict()
-        self._failed: OrderedDict[tuple[str, int], None] = OrderedDict()
+        self._open: OrderedDict[StackId, StackInProgress] = OrderedDict()
+        self._failed: OrderedDict[StackId, None] = OrderedDict()
 
     def add(
         self, key: str, payload: bytes, attachment: bytes | None
@@ -120,10 +126,15 @@ class FrameAnalyser:
         try:
             frame_header, frame = decode_zframe(payload, attachment)
             header = frame_header.stack
-            stack_id = (key, header.sequence)
+            stack_id = (key, header.sequence, header.clock_s)
             if stack_id in self._failed:
                 return None  # the stack was already answered with an error
             stack = self._open.get(stack_id)
+            if stack is not None and not np.isnan(stack.curve.scores[frame_header.index]):
+                log.warning(
+                    "frame %d on %s came again: stack started over", frame_header.index, key
+                )
+                stack = None
             if stack is None:
                 curve = FrameByFrame(
                     np.asarray(header.z_um), settings_for(header, self.base, self.na)
@@ -138,7 +149,7 @@ class FrameAnalyser:
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)
             if header is not None:
-                stack_id = (key, header.sequence)
+                stack_id = (key, header.sequence, header.clock_s)
                 self._open.pop(stack_id, None)
                 self._failed[stack_id] = None
                 while len(self._failed) > self.max_open:
@@ -147,7 +158,7 @@ class FrameAnalyser:
 
     def _forget_oldest(self) -> None:
         while len(self._open) > self.max_open:
-            (key, sequence), stack = self._open.popitem(last=False)
+            (key, sequence, _), stack = self._open.popitem(last=False)
             missing = int(np.isnan(stack.curve.scores).sum())
             log.warning("stack %d on %s dropped: %d frame(s) never came", sequence, key, missing)
 

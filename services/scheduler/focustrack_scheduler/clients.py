@@ -191,7 +191,9 @@ class SlideListener:
     def __init__(self, session: zenoh.Session, slide: str) -> None:
         self.stacks: Inbox[Stack] = Inbox()
         self.focus: Inbox[focus_pb2.FocusResult] = Inbox()
-        self._gathering: OrderedDict[tuple[str, int], list[np.ndarray | None]] = OrderedDict()
+        self._gathering: OrderedDict[tuple[str, int, float], list[np.ndarray | None]] = (
+            OrderedDict()
+        )
         self._lock = threading.Lock()  # Zenoh may hand frames over on several threads
         self._subscribers = [
             session.declare_subscriber(keys.zframe_pattern(slide), self._on_frame),
@@ -205,7 +207,8 @@ class SlideListener:
             log.warning("unreadable frame on %s: %s", sample.key_expr, error)
             return
         header = frame_header.stack
-        stack_id = (str(sample.key_expr), header.sequence)
+        # An acquisition taken again keeps its sequence but not its clock.
+        stack_id = (str(sample.key_expr), header.sequence, header.clock_s)
         with self._lock:
             frames = self._gathering.setdefault(stack_id, [None] * len(header.z_um))
             frames[frame_header.index] = frame
