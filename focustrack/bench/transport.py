@@ -42,7 +42,8 @@ from focustrack_core.wire import codec, keys, session
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_focus.service import FrameAnalyser
 
-SLIDE = "bench-transport"
+TRANSPORT_SLIDE = "bench-transport"  # stacks the child only receives
+FOCUS_SLIDE = "bench-focus"  # stacks the child also runs the focus analysis on
 ACK_KEY = keys.bench_key("transport-ack")
 PATHS = ("tcp", "shm")
 
@@ -63,9 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
 
 
-def _child(endpoint: str, shared_memory: bool, mode: str) -> None:
-    """Subscriber process: per stack, acknowledge arrival times (transport) or the focus
-    result's latency (focus); `mode` is "transport" or "focus"."""
+def _child(endpoint: str, shared_memory: bool) -> None:
+    """Subscriber process: acknowledges each stack on TRANSPORT_SLIDE with its frames'
+    arrival, and each on FOCUS_SLIDE with its focus result's latency."""
     with session.open_session(connect=[endpoint], shared_memory=shared_memory) as child:
         arrivals: dict[int, list[float]] = {}
         samples: queue.Queue[tuple[float, str, bytes, bytes | None]] = queue.Queue()
@@ -76,10 +77,11 @@ def _child(endpoint: str, shared_memory: bool, mode: str) -> None:
 
         def on_frame(sample: zenoh.Sample) -> None:
             arrived_s = time.monotonic()
+            key = str(sample.key_expr)
             attachment = None if sample.attachment is None else sample.attachment.to_bytes()
             payload = sample.payload.to_bytes()
-            if mode == "focus":  # the analysis runs on a worker, as in the focus service
-                samples.put((arrived_s, str(sample.key_expr), payload, attachment))
+            if keys.parse_zframe_key(key).slide == FOCUS_SLIDE:  # analysed on a worker,
+                samples.put((arrived_s, key, payload, attachment))  # as in the service
                 return
             header, frame = codec.decode_zframe(payload, attachment)
             int(frame[-1, -1, -1])  # the pixels are readable where they landed
@@ -105,7 +107,7 @@ def _child(endpoint: str, shared_memory: bool, mode: str) -> None:
                     )
 
         threading.Thread(target=analyse, daemon=True).start()
-        with child.declare_subscriber(keys.zframe_pattern(SLIDE), on_frame):
+        with child.declare_subscriber(keys.zframe_pattern(), on_frame):
             acknowledge({"ready": True})
             threading.Event().wait()  # until the parent terminates this process
 
@@ -145,10 +147,10 @@ def memcpy_s(frames: list[np.ndarray], repeats: int = 5) -> float:
     return statistics.median(times)
 
 
-def _header(sequence: int, frames: list[np.ndarray]) -> instrument_pb2.ZStackHeader:
+def _header(slide: str, sequence: int, frames: list[np.ndarray]) -> instrument_pb2.ZStackHeader:
     header = instrument_pb2.ZStackHeader(
         instrument="bench",
-        slide=SLIDE,
+        slide=slide,
         sequence=sequence,
         z_um=list(np.arange(len(frames)) * 0.5),
         pixel_size_um=0.1,
@@ -159,35 +161,40 @@ def _header(sequence: int, frames: list[np.ndarray]) -> instrument_pb2.ZStackHea
     return header
 
 
-def run_path(path: str, mode: str, frames: list[np.ndarray], stacks: int, fps: float) -> list:
-    """The child's acknowledgements of `stacks` stacks over `path`, with the parent's start
-    times added (`started_s`, monotonic)."""
+def run_path(path: str, frames: list[np.ndarray], stacks: int, fps: float) -> dict[str, list]:
+    """The child's acknowledgements over `path`, by run: "transport" (`stacks` stacks as
+    fast as they go; the parent's start time added as `started_s`, monotonic), then
+    "focus" (`stacks` stacks paced at `fps`)."""
     endpoint = session.loopback_endpoint()
     pool_bytes = 2 * sum(frame.nbytes for frame in frames) if path == "shm" else 0
     acks = Acks()
-    key = keys.zframe_key(SLIDE, 0, 0)
-    period_s = 1.0 / fps if mode == "focus" else 0.0
-    reports = []
+    reports: dict[str, list] = {"transport": [], "focus": []}
     with session.open_session(listen=[endpoint]) as parent:
         publisher = codec.PixelPublisher(parent, pool_bytes)
         parent.declare_subscriber(ACK_KEY, acks.on_sample)
         context = multiprocessing.get_context("spawn")
-        child = context.Process(target=_child, args=(endpoint, path == "shm", mode))
+        child = context.Process(target=_child, args=(endpoint, path == "shm"))
         child.start()
         try:
             acks.wait(lambda item: item.get("ready", False))
             time.sleep(0.5)  # the child's subscription reaches this session
-            for sequence in range(stacks):
-                header = _header(sequence, frames)
-                started_s = time.monotonic()
-                for index, frame in enumerate(frames):
-                    while time.monotonic() < started_s + index * period_s:
-                        time.sleep(0.0005)  # a camera's frame clock
-                    publisher.put_frame(key, header, index, frame)
-                report = acks.wait(functools.partial(_is_of, sequence))
-                report["started_s"] = started_s
-                reports.append(report)
-                print(f"{path} {mode} stack {sequence + 1}/{stacks}: {_line(report)}", flush=True)
+            for run, slide, period_s in (
+                ("transport", TRANSPORT_SLIDE, 0.0),
+                ("focus", FOCUS_SLIDE, 1.0 / fps),
+            ):
+                key = keys.zframe_key(slide, 0, 0)
+                for sequence in range(stacks):
+                    header = _header(slide, sequence, frames)
+                    started_s = time.monotonic()
+                    for index, frame in enumerate(frames):
+                        while time.monotonic() < started_s + index * period_s:
+                            time.sleep(0.0005)  # a camera's frame clock
+                        publisher.put_frame(key, header, index, frame)
+                    report = acks.wait(functools.partial(_is_of, sequence))
+                    report["started_s"] = started_s
+                    reports[run].append(report)
+                    print(f"{path} {run} stack {sequence + 1}/{stacks}: {_line(report)}",
+                          flush=True)  # fmt: skip
         finally:
             child.terminate()
             child.join()
@@ -230,21 +237,20 @@ def run(args: argparse.Namespace) -> int:
         "memcpy_frames_per_s": args.frames / copy_s,
     }
     for path in PATHS:
-        reports = run_path(path, "transport", frames, args.stacks, args.fps)
-        transfer_s = statistics.median(r["last_arrival_s"] - r["started_s"] for r in reports)
+        reports = run_path(path, frames, args.stacks, args.fps)
+        transfer_s = statistics.median(
+            r["last_arrival_s"] - r["started_s"] for r in reports["transport"]
+        )
         gb_per_s = stack_bytes / transfer_s / 1e9
         figures[path] = {
             "stack_ms": 1e3 * transfer_s,
             "gb_per_s": gb_per_s,
             "frames_per_s": args.frames / transfer_s,
             "memcpy_ratio": gb_per_s / memcpy_gb_per_s,
+            "focus_latency_ms": 1e3 * statistics.median(r["latency_s"] for r in reports["focus"]),
+            "focus_last_frame_cpu_ms": 1e3
+            * statistics.median(r["last_frame_cpu_s"] for r in reports["focus"]),
         }
-    for path in PATHS:
-        reports = run_path(path, "focus", frames, args.stacks, args.fps)
-        figures[path]["focus_latency_ms"] = 1e3 * statistics.median(r["latency_s"] for r in reports)
-        figures[path]["focus_last_frame_cpu_ms"] = 1e3 * statistics.median(
-            r["last_frame_cpu_s"] for r in reports
-        )
     figures["targets"] = {
         "tcp_gb_per_s": figures["tcp"]["gb_per_s"] >= TCP_MIN_GB_PER_S,
         "tcp_memcpy_ratio": figures["tcp"]["memcpy_ratio"] >= TCP_MIN_MEMCPY_RATIO,
