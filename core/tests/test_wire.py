@@ -187,7 +187,7 @@ def test_frames_travel_through_shared_memory_or_fall_back_to_the_network(
         done.set()
 
     with (
-        session.open_session(listen=[endpoint]) as hub,
+        session.open_session(listen=[endpoint], shared_memory=True) as hub,
         session.open_session(connect=[endpoint], shared_memory=shared_memory) as listener,
         listener.declare_subscriber(keys.zframe_pattern("s"), on_sample),
     ):

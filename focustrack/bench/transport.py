@@ -169,7 +169,7 @@ def run_path(path: str, frames: list[np.ndarray], stacks: int, fps: float) -> di
     pool_bytes = 2 * sum(frame.nbytes for frame in frames) if path == "shm" else 0
     acks = Acks()
     reports: dict[str, list] = {"transport": [], "focus": []}
-    with session.open_session(listen=[endpoint]) as parent:
+    with session.open_session(listen=[endpoint], shared_memory=path == "shm") as parent:
         publisher = codec.PixelPublisher(parent, pool_bytes)
         parent.declare_subscriber(ACK_KEY, acks.on_sample)
         context = multiprocessing.get_context("spawn")
