@@ -29,6 +29,7 @@ def test_bench_transport_measures_tcp_and_shared_memory(tmp_path: Path, capsys) 
         "tcp_gb_per_s", "tcp_memcpy_ratio", "shm_memcpy_ratio", "focus_latency"
     }  # fmt: skip
     assert "| shm |" in capsys.readouterr().out
+    assert out.with_suffix(".png").stat().st_size > 0
 
 
 def test_bench_transport_refuses_bad_sizes(capsys) -> None:

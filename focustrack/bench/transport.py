@@ -61,7 +61,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--fps", type=float, default=100.0, help="camera frame rate of the focus run (100)"
     )
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
+    parser.add_argument(
+        "--json",
+        type=Path,
+        metavar="OUT",
+        help="write the figures as JSON, and a chart beside it (OUT with .png)",
+    )
 
 
 def _child(endpoint: str, shared_memory: bool) -> None:
@@ -262,8 +267,39 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(figures, indent=2) + "\n")
-        print(f"wrote {args.json}")
+        chart(figures, args.json.with_suffix(".png"))
+        print(f"wrote {args.json}, {args.json.with_suffix('.png')}")
     return 0
+
+
+def chart(figures: dict[str, Any], out: Path) -> None:
+    """GB/s of each path beside memcpy and the targets; focus latency against its target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (rate, latency) = plt.subplots(1, 2, figsize=(10, 4))
+    names = ["memcpy", *PATHS]
+    values = [figures["memcpy_gb_per_s"], *(figures[p]["gb_per_s"] for p in PATHS)]
+    rate.bar(names, values, color=["grey", "tab:blue", "tab:green"])
+    rate.axhline(TCP_MIN_GB_PER_S, color="tab:blue", ls="--", label="tcp target (GB/s)")
+    rate.axhline(
+        SHM_MIN_MEMCPY_RATIO * figures["memcpy_gb_per_s"],
+        color="tab:green",
+        ls=":",
+        label="shm target (1/2 memcpy)",
+    )
+    rate.set_ylabel("GB/s")
+    rate.set_title(f"{figures['frames']} frames of {figures['size']}^2 uint16, frame by frame")
+    rate.legend()
+    latency.bar(list(PATHS), [figures[p]["focus_latency_ms"] for p in PATHS])
+    latency.axhline(1e3 * FOCUS_MAX_LATENCY_S, color="red", ls="--", label="target")
+    latency.set_ylabel("ms from the last frame's arrival to the focus result")
+    latency.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
 
 
 def table(figures: dict[str, Any]) -> str:

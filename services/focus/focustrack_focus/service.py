@@ -18,7 +18,6 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import replace
-from typing import NamedTuple
 
 import numpy as np
 import uvicorn
@@ -91,14 +90,6 @@ def result_message(
 StackId = tuple[str, int, float]
 
 
-class StackInProgress(NamedTuple):
-    """The frames of one stack seen so far: its tile, header and curve under way."""
-
-    tile: keys.TileKey
-    header: instrument_pb2.ZStackHeader
-    curve: FrameByFrame
-
-
 class FrameAnalyser:
     """Frame samples in, a FocusResult out as soon as the last frame of a stack lands.
 
@@ -113,7 +104,7 @@ class FrameAnalyser:
         self.base = base
         self.na = na
         self.max_open = max_open
-        self._open: OrderedDict[StackId, StackInProgress] = OrderedDict()
+        self._open: OrderedDict[StackId, FrameByFrame] = OrderedDict()  # curves under way
         self._failed: OrderedDict[StackId, None] = OrderedDict()
 
     def add(
@@ -129,23 +120,23 @@ class FrameAnalyser:
             stack_id = (key, header.sequence, header.clock_s)
             if stack_id in self._failed:
                 return None  # the stack was already answered with an error
-            stack = self._open.get(stack_id)
-            if stack is not None and not np.isnan(stack.curve.scores[frame_header.index]):
+            curve = self._open.get(stack_id)
+            if curve is not None and not np.isnan(curve.scores[frame_header.index]):
                 log.warning(
                     "frame %d on %s came again: stack started over", frame_header.index, key
                 )
-                stack = None
-            if stack is None:
+                curve = None
+            if curve is None:
                 curve = FrameByFrame(
                     np.asarray(header.z_um), settings_for(header, self.base, self.na)
                 )
-                stack = self._open[stack_id] = StackInProgress(tile, header, curve)
+                self._open[stack_id] = curve
                 self._forget_oldest()
-            stack.curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
-            if not stack.curve.complete:
+            curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
+            if not curve.complete:
                 return None
             del self._open[stack_id]
-            return result_message(tile, header, stack.curve.result())
+            return result_message(tile, header, curve.result())
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)
             if header is not None:
@@ -158,8 +149,8 @@ class FrameAnalyser:
 
     def _forget_oldest(self) -> None:
         while len(self._open) > self.max_open:
-            (key, sequence, _), stack = self._open.popitem(last=False)
-            missing = int(np.isnan(stack.curve.scores).sum())
+            (key, sequence, _), curve = self._open.popitem(last=False)
+            missing = int(np.isnan(curve.scores).sum())
             log.warning("stack %d on %s dropped: %d frame(s) never came", sequence, key, missing)
 
 
