@@ -251,7 +251,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--cache-mb",
         type=float,
         default=1024.0,
-        help="in-focus tile spectra kept, MB (1024: 325 tiles of 512 x 512, 81 of 1024 x 1024)",
+        help="in-focus tile spectra kept, MB (1024: 244 tiles of 512 x 512, 61 of 1024 x 1024)",
     )
     scope.add_argument("--na", type=float, default=0.85, help="numerical aperture")
     scope.add_argument("--magnification", type=float, default=60.0)
