@@ -10,10 +10,9 @@ Shared memory (``--shared-memory MB``, off by default): the session accepts Zeno
 shared-memory buffers, and a publisher of pixels (`codec.PixelPublisher`) writes its
 payloads into a pool of that many MB. Subscribers on the same host with it on then map
 them without a copy; a link to a session that has it off, or to another host, carries
-the bytes over the network instead, by itself. It is off by default because a
-subscriber killed while it held shared-memory frames left its restarted successor
-without frames in our end-to-end test (zenoh 1.10; tests/test_scan_e2e.py with
-``--shared-memory`` on): turn it on where subscribers are not killed mid-stream.
+the bytes over the network instead, by itself. It is off by default: with it on, a
+focus service killed mid-scan and restarted answered no stack in our end-to-end test
+(zenoh 1.10, tests/test_scan_e2e.py; proto/README.md has what is known).
 """
 
 from __future__ import annotations
