@@ -33,6 +33,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.instrument",
         "render and publish speed of the simulated microscope",
     ),
+    "bench transport": (
+        "focustrack.bench.transport",
+        "Zenoh frame streaming over TCP and shared memory against memcpy, and focus latency",
+    ),
     "serve instrument": (
         "focustrack_instrument_sim.service",
         "the simulated microscope on Zenoh",

@@ -1,4 +1,5 @@
-"""The focus service on real Zenoh (loopback): a published z-stack comes back as a FocusResult."""
+"""The focus service on real Zenoh (loopback): the frames of a z-stack, published one by one,
+come back as a FocusResult."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import queue
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import httpx
 import numpy as np
@@ -17,10 +18,10 @@ import zenoh
 from focustrack.bench.focus import render_stack
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
-from focustrack_core.wire.codec import ZSTACK_ENCODING, encode_zstack
+from focustrack_core.wire.codec import PixelPublisher, describe_pixels, frame_header, raw_payload
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_focus.pipeline import FocusSettings
-from focustrack_focus.service import ZenohFocusWorker
+from focustrack_focus.service import FrameAnalyser, ZenohFocusWorker
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 TRUTH_UM = -0.4
@@ -35,7 +36,14 @@ def instrument() -> Iterator[tuple[zenoh.Session, str]]:
     session.close()
 
 
-def publish_stack(session: zenoh.Session, pixels: np.ndarray, z_um, sequence: int) -> None:
+def publish_stack(
+    session: zenoh.Session,
+    pixels: np.ndarray,
+    z_um,
+    sequence: int,
+    order: Sequence[int] | None = None,
+) -> None:
+    """Publish the frames of `pixels` (n, h, w, channels) one by one, in `order` (0..n-1)."""
     header = instrument_pb2.ZStackHeader(
         instrument="sim",
         slide="s1",
@@ -47,14 +55,10 @@ def publish_stack(session: zenoh.Session, pixels: np.ndarray, z_um, sequence: in
         channel_order="L",
         bit_depth=12,
     )
-    payload, attachment = encode_zstack(header, pixels)
-    session.put(
-        keys.zstack_key("s1", 2, 3),
-        payload,
-        attachment=attachment,
-        encoding=ZSTACK_ENCODING,
-        congestion_control=zenoh.CongestionControl.BLOCK,
-    )
+    describe_pixels(header, pixels)
+    publisher = PixelPublisher(session)
+    for index in range(len(pixels)) if order is None else order:
+        publisher.put_frame(keys.zframe_key("s1", 2, 3), header, index, pixels[index])
 
 
 def collect(session: zenoh.Session) -> tuple[zenoh.Subscriber, queue.Queue]:
@@ -76,7 +80,7 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(instrument) -> No
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
         frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=3)[..., 1]
-        publish_stack(publisher, frames[..., None], Z_UM, sequence=7)
+        publish_stack(publisher, frames[..., None], Z_UM, sequence=7, order=range(12, -1, -1))
         key, result = results.get(timeout=20)
         assert key == "focustrack/v1/focus/s1/2/3"
         assert (result.slide, result.row, result.col, result.sequence) == ("s1", 2, 3, 7)
@@ -140,3 +144,43 @@ def test_focustrack_serve_focus_runs_zenoh_and_http_in_one_process(instrument) -
         subscriber.undeclare()
         process.terminate()
         process.wait(10)
+
+
+def _frame_samples(
+    pixels: np.ndarray, sequence: int, clock_s: float
+) -> list[tuple[bytes | bytearray, bytes]]:
+    header = instrument_pb2.ZStackHeader(
+        slide="s1",
+        row=2,
+        col=3,
+        sequence=sequence,
+        z_um=list(Z_UM),
+        clock_s=clock_s,
+        pixel_size_um=0.1,
+        channel_order="L",
+    )
+    describe_pixels(header, pixels)
+    return [
+        (raw_payload(pixels[i]), frame_header(header, i, pixels[i]).SerializeToString())
+        for i in range(len(pixels))
+    ]
+
+
+def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart() -> None:
+    frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=3)[..., 1][..., None]
+    analyser = FrameAnalyser(FocusSettings(), na=0.85)
+    key = keys.zframe_key("s1", 2, 3)
+    first, again = _frame_samples(frames, 4, 1.0), _frame_samples(frames, 4, 2.0)
+    # a stack taken again (same sequence, later clock) interleaved with the first one
+    assert [analyser.add(key, *sample) for sample in first[:5]] == [None] * 5
+    assert [analyser.add(key, *sample) for sample in again[:-1]] == [None] * 12
+    done = analyser.add(key, *again[-1])
+    assert done is not None and done.sequence == 4 and done.HasField("best_z_um")
+    assert [analyser.add(key, *sample) for sample in first[5:-1]] == [None] * 7
+    first_done = analyser.add(key, *first[-1])
+    assert first_done is not None and first_done.best_z_um == done.best_z_um  # same pixels
+    # a frame that cannot be read ends its stack with one error; the rest are ignored
+    bad = _frame_samples(frames, 5, 3.0)
+    refused = analyser.add(key, bad[0][0][:-2], bad[0][1])
+    assert refused is not None and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+    assert all(analyser.add(key, *sample) is None for sample in bad[1:])

@@ -144,3 +144,64 @@ def test_session_arguments_default_and_override() -> None:
     assert args.connect == ["tcp/127.0.0.1:1"] and args.listen is None
     with pytest.raises(ValueError, match="at least one"):
         session.session_config()
+
+
+def test_pixel_array_is_sent_from_its_own_buffer_and_frames_round_trip() -> None:
+    header, pixels = _stack()
+    own = codec.pixel_array(pixels.shape, pixels.dtype)
+    own[...] = pixels
+    payload = codec.raw_payload(own)
+    assert isinstance(payload, bytearray)  # the array's own buffer: no copy
+    assert np.frombuffer(payload, np.uint8).ctypes.data == own.ctypes.data
+    assert isinstance(codec.raw_payload(own[1]), bytes)  # part of a buffer: one copy
+    codec.describe_pixels(header, own)
+    frame_header = codec.frame_header(header, 2, own[2])
+    decoded_header, frame = codec.decode_zframe(
+        codec.raw_payload(own[2]), frame_header.SerializeToString()
+    )
+    assert decoded_header.index == 2 and decoded_header.stack == header
+    np.testing.assert_array_equal(frame, pixels[2])
+    with pytest.raises(ValueError, match="frame 3 of a stack of 3"):
+        codec.frame_header(header, 3, own[2])
+    with pytest.raises(ValueError, match="needs"):
+        codec.decode_zframe(codec.raw_payload(own[2])[:-2], frame_header.SerializeToString())
+    with pytest.raises(ValueError, match="no header"):
+        codec.decode_zframe(codec.raw_payload(own[2]), None)
+
+
+@pytest.mark.parametrize("shared_memory", [True, False])
+def test_frames_travel_through_shared_memory_or_fall_back_to_the_network(
+    shared_memory: bool,
+) -> None:
+    """A publisher with a shared-memory pool reaches a subscriber that accepts shared
+    memory through it, and one that has it off over the network, with the same pixels."""
+    endpoint = session.loopback_endpoint()
+    header, pixels = _stack()
+    codec.describe_pixels(header, pixels)
+    received: list[tuple[bool, instrument_pb2.ZFrameHeader, np.ndarray]] = []
+    done = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        frame_header, frame = codec.decode_zframe_sample(sample)
+        received.append((sample.payload.as_shm() is not None, frame_header, frame))
+        done.set()
+
+    with (
+        session.open_session(listen=[endpoint], shared_memory=True) as hub,
+        session.open_session(connect=[endpoint], shared_memory=shared_memory) as listener,
+        listener.declare_subscriber(keys.zframe_pattern("s"), on_sample),
+    ):
+        publisher = codec.PixelPublisher(hub, shm_pool_bytes=1 << 20)
+        too_small = codec.PixelPublisher(hub, shm_pool_bytes=4096)
+        large = np.zeros((64, 64, 3), np.uint16)
+        assert isinstance(too_small.payload(large), bytes) and too_small.n_network == 1
+        for _ in range(50):  # the subscription needs a moment to reach the publisher
+            publisher.put_frame(keys.zframe_key("s", 1, 2), header, 1, pixels[1])
+            if done.wait(0.1):
+                break
+    assert received, "no frame arrived"
+    through_shm, frame_header, frame = received[0]
+    assert publisher.n_shared >= 1 and publisher.n_network == 0
+    assert through_shm is shared_memory
+    assert frame_header.index == 1 and frame_header.stack.row == 1
+    np.testing.assert_array_equal(frame, pixels[1])

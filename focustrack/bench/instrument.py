@@ -2,7 +2,8 @@
 
 - Render: a `--frames`-frame stack of `--size` x `--size` RGB pixels, for new tiles
   (cold: specimen drawn and its spectrum taken, then the stack) and for the same tiles
-  again (warm: the stack only). Wall and CPU seconds, one core for OpenCV.
+  again (warm: the stack only), with one render thread and with `--workers` (the
+  service's default, 2) side by side. Wall and CPU seconds; OpenCV's own threads off.
 - Publish: the stack from this process to a subscriber in another process over
   loopback TCP, until the subscriber has decoded it and acknowledged, as the instrument
   sends it (raw pixels as payload, header as attachment) and, for comparison, as one
@@ -43,6 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=int, default=1024, help="frame side in pixels")
     parser.add_argument("--frames", type=int, default=21, help="frames per stack")
     parser.add_argument("--stacks", type=int, default=5, help="stacks rendered (cold and warm)")
+    parser.add_argument("--workers", type=int, default=2, help="render threads to compare with 1")
     parser.add_argument("--repeats", type=int, default=10, help="stacks published per encoding")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
@@ -55,9 +57,10 @@ def _timed(action: Callable[[], object]) -> tuple[float, float]:
     return time.perf_counter() - wall, time.process_time() - cpu
 
 
-def bench_render(size: int, n_frames: int, n_stacks: int, seed: int) -> dict:
-    """Median wall and CPU seconds per stack, cold (new tile) and warm (same tile again)."""
-    spec = MicroscopeSpec(height=size, width=size, cached_tiles=n_stacks)
+def bench_render(size: int, n_frames: int, n_stacks: int, seed: int, workers: int) -> dict:
+    """Median wall and CPU seconds per stack, cold (new tile) and warm (same tile again),
+    with `workers` render threads."""
+    spec = MicroscopeSpec(height=size, width=size, cached_tiles=n_stacks, workers=workers)
     side = int(np.ceil(np.sqrt(n_stacks)))
     scope = Microscope(slides_from_seed(seed, 1, SurfaceSpec(side, side)), spec, seed=seed)
     truth_um, _ = scope.truth_um("slide-0")
@@ -69,9 +72,11 @@ def bench_render(size: int, n_frames: int, n_stacks: int, seed: int) -> dict:
             results[phase].append(
                 _timed(functools.partial(scope.acquire, "slide-0", row, col, z_low, 0.5, n_frames))
             )
-            print(f"render {phase} tile ({row}, {col}): {results[phase][-1][0]:.3f} s", flush=True)
+            print(f"render {phase} tile ({row}, {col}), {workers} thread(s): "
+                  f"{results[phase][-1][0]:.3f} s", flush=True)  # fmt: skip
+    scope.close()
     return {
-        f"render_{phase}_{kind}_s": statistics.median(t[i] for t in timings)
+        f"render_{workers}t_{phase}_{kind}_s": statistics.median(t[i] for t in timings)
         for phase, timings in results.items()
         for i, kind in enumerate(("wall", "cpu"))
     }
@@ -151,18 +156,21 @@ def bench_publish(pixels: np.ndarray, repeats: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    cv2.setNumThreads(1)  # the figure is for one core
+    cv2.setNumThreads(1)  # threads are the renderer's own, not OpenCV's
     figures: dict = {"size": args.size, "frames": args.frames}
-    figures.update(bench_render(args.size, args.frames, args.stacks, args.seed))
+    for workers in sorted({1, args.workers}):
+        figures.update(bench_render(args.size, args.frames, args.stacks, args.seed, workers))
     pixels = np.random.default_rng(args.seed).integers(
         0, 4096, size=(args.frames, args.size, args.size, 3), dtype=np.uint16
     )
     figures["stack_mb"] = pixels.nbytes / 1e6
     figures.update(bench_publish(pixels, args.repeats))
     print(f"\n{args.frames}-frame {args.size}x{args.size} RGB stack ({figures['stack_mb']:.0f} MB)")
-    for phase in ("cold", "warm"):
-        print(f"  render {phase:4s}: {figures[f'render_{phase}_wall_s']:.3f} s wall, "
-              f"{figures[f'render_{phase}_cpu_s']:.3f} s CPU")  # fmt: skip
+    for workers in sorted({1, args.workers}):
+        for phase in ("cold", "warm"):
+            name = f"render_{workers}t_{phase}"
+            print(f"  render {phase:4s}, {workers} thread(s): {figures[f'{name}_wall_s']:.3f} s "
+                  f"wall, {figures[f'{name}_cpu_s']:.3f} s CPU")  # fmt: skip
     for label in ("raw_attachment", "protobuf_bytes_field"):
         print(f"  publish to another process, {label}: {figures[f'publish_{label}_ms']:.1f} ms "
               f"({figures[f'publish_{label}_gb_per_s']:.2f} GB/s)")  # fmt: skip

@@ -3,8 +3,10 @@
 - ``focustrack/v1/instrument/{instrument}/acquire``: queryable; AcquireRequest in,
   AcquireReply out (error replies carry an Error).
 - ``focustrack/v1/instrument/{instrument}/info``: queryable; InstrumentInfo out.
-- ``focustrack/v1/zstack/{slide}/{row}/{col}``: the instrument publishes each stack
-  (raw pixels as payload, ZStackHeader as attachment).
+- ``focustrack/v1/zstack/{slide}/{row}/{col}``: the instrument publishes each whole stack
+  (raw pixels as payload, ZStackHeader as attachment) when someone subscribes to it.
+- ``focustrack/v1/zframe/{slide}/{row}/{col}``: the instrument publishes every frame of
+  a stack as soon as it is acquired (raw pixels of the frame, ZFrameHeader as attachment).
 - ``focustrack/v1/focus/{slide}/{row}/{col}``: the focus service publishes a FocusResult.
 - ``focustrack/v1/eval/truth/{instrument}/{slide}``: queryable; SlideTruth out. Ground
   truth for evaluation code only, under its own prefix so that no scanner reads it by
@@ -59,6 +61,10 @@ def zstack_key(slide: str, row: int, col: int) -> str:
     return f"{PREFIX}/zstack/{_tile(slide, row, col)}"
 
 
+def zframe_key(slide: str, row: int, col: int) -> str:
+    return f"{PREFIX}/zframe/{_tile(slide, row, col)}"
+
+
 def focus_key(slide: str, row: int, col: int) -> str:
     return f"{PREFIX}/focus/{_tile(slide, row, col)}"
 
@@ -83,6 +89,11 @@ def zstack_pattern(slide: str | None = None) -> str:
     return f"{PREFIX}/zstack/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
 
 
+def zframe_pattern(slide: str | None = None) -> str:
+    """Key expression matching the frames of one slide's stacks (or of every slide when None)."""
+    return f"{PREFIX}/zframe/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
+
+
 def focus_pattern(slide: str | None = None) -> str:
     """Key expression matching the focus results of one slide (or of every slide when None)."""
     return f"{PREFIX}/focus/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
@@ -101,6 +112,11 @@ def _parse_tile_key(key: str, kind: str) -> TileKey:
 def parse_zstack_key(key: str) -> TileKey:
     """(slide, row, col) of a ``focustrack/v1/zstack/{slide}/{row}/{col}`` key."""
     return _parse_tile_key(key, "zstack")
+
+
+def parse_zframe_key(key: str) -> TileKey:
+    """(slide, row, col) of a ``focustrack/v1/zframe/{slide}/{row}/{col}`` key."""
+    return _parse_tile_key(key, "zframe")
 
 
 def parse_focus_key(key: str) -> TileKey:

@@ -5,6 +5,14 @@ Topology: one process listens (by default the instrument, an embedded peer on
 it. A session that only connects runs in client mode, so the listener routes its
 traffic: two peers that only connect would not see each other (checked with
 zenoh 1.10), while clients do.
+
+Shared memory (``--shared-memory MB``, off by default): the session accepts Zenoh
+shared-memory buffers, and a publisher of pixels (`codec.PixelPublisher`) writes its
+payloads into a pool of that many MB. Subscribers on the same host with it on then map
+them without a copy; a link to a session that has it off, or to another host, carries
+the bytes over the network instead, by itself. It is off by default: with it on, a
+focus service killed mid-scan and restarted answered no stack in our end-to-end test
+(zenoh 1.10, tests/test_scan_e2e.py; proto/README.md has what is known).
 """
 
 from __future__ import annotations
@@ -24,6 +32,9 @@ MODES = ("peer", "client", "router")
 #: How long opening a session waits for a connect endpoint to come up.
 CONNECT_TIMEOUT_S = 30.0
 
+#: A good shared-memory pool for a pixel publisher, MB: 10 frames of 2048 x 2048 RGB uint16.
+SHARED_MEMORY_MB = 256
+
 
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago (for tests and embedded stacks)."""
@@ -42,12 +53,15 @@ def session_config(
     listen: Sequence[str] = (),
     mode: str | None = None,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
+    shared_memory: bool = False,
 ) -> zenoh.Config:
     """A Zenoh config with these endpoints and multicast scouting off.
 
     `mode` defaults to "peer" when listening and "client" when only connecting.
     Opening keeps retrying the connect endpoints for `connect_timeout_s`, so
-    services may start in any order.
+    services may start in any order. `shared_memory` lets the session exchange
+    shared-memory buffers with peers on this host (off: every byte goes over the
+    network, also from a peer that sends shared memory).
     """
     if not connect and not listen:
         raise ValueError("a Zenoh session needs at least one --connect or --listen endpoint")
@@ -61,6 +75,7 @@ def session_config(
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
     config.insert_json5("connect/retry", "{period_init_ms: 250, period_max_ms: 2000}")
+    config.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory))
     return config
 
 
@@ -69,12 +84,13 @@ def open_session(
     listen: Sequence[str] = (),
     mode: str | None = None,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
+    shared_memory: bool = False,
 ) -> zenoh.Session:
     """Open a session (see `session_config`); close it with `session.close()` or `with`.
 
     Raises zenoh.ZError when no connect endpoint answers within `connect_timeout_s`.
     """
-    return zenoh.open(session_config(connect, listen, mode, connect_timeout_s))
+    return zenoh.open(session_config(connect, listen, mode, connect_timeout_s, shared_memory))
 
 
 def add_zenoh_arguments(
@@ -103,6 +119,15 @@ def add_zenoh_arguments(
         choices=MODES,
         help="Zenoh mode (default: peer when listening, client when only connecting)",
     )
+    group.add_argument(
+        "--shared-memory",
+        type=int,
+        default=0,
+        metavar="MB",
+        help="Zenoh shared memory with processes on this host: the pool, in MB, that "
+        f"published pixels are written to, e.g. {SHARED_MEMORY_MB} (default 0: off, "
+        "network only; subscribers need it on too, any size)",
+    )
     parser.set_defaults(
         zenoh_default_connect=list(default_connect), zenoh_default_listen=list(default_listen)
     )
@@ -114,4 +139,13 @@ def session_from_args(args: argparse.Namespace) -> zenoh.Session:
         connect, listen = args.zenoh_default_connect, args.zenoh_default_listen
     else:
         connect, listen = args.connect or [], args.listen or []
-    return open_session(connect, listen, args.mode)
+    if args.shared_memory < 0:
+        raise ValueError(
+            f"--shared-memory must be 0 (off) or a pool size in MB, got {args.shared_memory}"
+        )
+    return open_session(connect, listen, args.mode, shared_memory=args.shared_memory > 0)
+
+
+def shm_pool_bytes(args: argparse.Namespace) -> int:
+    """The shared-memory pool of a pixel publisher, bytes, from ``--shared-memory`` (0: off)."""
+    return max(0, args.shared_memory) * 1_000_000

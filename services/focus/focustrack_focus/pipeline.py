@@ -146,3 +146,69 @@ def focus_stack(frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings) -
     scan = scan_stack(frames, settings)
     snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
     return focus_from_curve(z, scan.scores, settings, started_s=started_s, structure_snr=snr)
+
+
+class FrameByFrame:
+    """`focus_stack` built one frame at a time, as frames arrive, so the work overlaps
+    acquisition: `add` scores a frame (preprocess and metric, as `scan_stack`); once
+    every frame is in, `result` only reads the curve (structure test and peak fit).
+
+    z_um (n,): the z of every frame of the stack, um. Frames may come in any order;
+    each is (H, W) or (H, W, C). `result` gives what `focus_stack` gives for the whole
+    stack; its compute_time_s is the time spent in `add` and `result` together.
+    """
+
+    def __init__(self, z_um: np.ndarray, settings: FocusSettings) -> None:
+        self.z_um = np.asarray(z_um, dtype=np.float64)
+        if self.z_um.ndim != 1:
+            raise ValueError(f"z_um must be one z per frame, shape (n,), got {self.z_um.shape}")
+        validate_curve(self.z_um, np.zeros_like(self.z_um))  # frame count and z values
+        self.settings = settings
+        self.scores = np.full(self.z_um.size, np.nan)
+        self._metric = get_metric(settings.metric)
+        self._top = self._low = -1
+        self._sharpest = self._blurriest = self._blurriest_raw = np.empty(0, np.float32)
+        self._busy_s = 0.0
+
+    @property
+    def complete(self) -> bool:
+        """True once every frame has been added."""
+        return not np.isnan(self.scores).any()
+
+    def add(self, index: int, frame: np.ndarray) -> None:
+        """Score frame `index` (H, W) or (H, W, C); ValueError for a bad or repeated frame."""
+        started_s = time.perf_counter()
+        if not 0 <= index < self.scores.size:
+            raise ValueError(f"frame {index} of a stack of {self.scores.size} frames")
+        if not np.isnan(self.scores[index]):
+            raise ValueError(f"frame {index} arrived twice")
+        if frame.ndim not in (2, 3) or frame.dtype.kind not in "uif":
+            raise ValueError(
+                f"a frame is (H, W) or (H, W, C) of integers or floats, got {frame.shape} "
+                f"{frame.dtype}"
+            )
+        if frame.dtype.kind == "f" and not np.all(np.isfinite(frame)):
+            raise ValueError("pixels must be finite (NaN or infinity found)")
+        preprocess = self.settings.preprocess
+        raw = preprocess.crop(frame)
+        image = preprocess.smooth(raw)
+        score = self._metric(image)
+        self.scores[index] = score
+        if self._top < 0 or score > self.scores[self._top]:
+            self._top, self._sharpest = index, image
+        if self._low < 0 or score < self.scores[self._low]:
+            self._low, self._blurriest, self._blurriest_raw = index, image, raw
+        self._busy_s += time.perf_counter() - started_s
+
+    def result(self) -> FocusResult:
+        """The focus of the stack; ValueError while frames are missing."""
+        if not self.complete:
+            missing = np.flatnonzero(np.isnan(self.scores)).tolist()
+            raise ValueError(f"frames {missing} have not arrived")
+        started_s = time.perf_counter() - self._busy_s
+        snr = structure_snr(
+            self._sharpest, self._blurriest, self._blurriest_raw, self.settings.preprocess
+        )
+        return focus_from_curve(
+            self.z_um, self.scores, self.settings, started_s=started_s, structure_snr=snr
+        )

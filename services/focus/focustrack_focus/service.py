@@ -1,10 +1,12 @@
 """`focustrack serve focus`: the focus service on Zenoh and over REST, in one process.
 
-Zenoh: subscribes to ``focustrack/v1/zstack/**`` and publishes a FocusResult on
-``focustrack/v1/focus/{slide}/{row}/{col}`` for every stack; a stack that cannot
-be read gets a FocusResult whose `error` says why (code BAD_STACK). Stacks are
-taken from a bounded FIFO by one worker thread, so a burst waits (back pressure
-to the publisher) instead of piling up without bound.
+Zenoh: subscribes to the frames of z-stacks, ``focustrack/v1/zframe/**``, scores each
+frame as it lands, and publishes a FocusResult on ``focustrack/v1/focus/{slide}/{row}/{col}``
+as soon as the last frame of a stack is in (only the peak fit is left by then); a
+stack that cannot be read gets a FocusResult whose `error` says why (code BAD_STACK).
+Frames are taken from a bounded FIFO by one worker thread, so a burst waits (back
+pressure to the publisher) instead of piling up without bound. Whole-stack messages
+(``focustrack/v1/zstack/...``) are for other subscribers; this service does not read them.
 REST: the FastAPI app of `app.py`, served by uvicorn on --host/--port.
 """
 
@@ -14,6 +16,7 @@ import argparse
 import logging
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import replace
 
 import numpy as np
@@ -23,20 +26,21 @@ import zenoh
 from focustrack_core.config import command_main
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
-from focustrack_core.wire.codec import decode_zstack
+from focustrack_core.wire.codec import decode_zframe
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, session_from_args
 from focustrack_focus.app import create_app
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
-from focustrack_focus.pipeline import FocusResult, FocusSettings, focus_stack
+from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
 from focustrack_focus.preprocess import GREEN, Preprocess, lowpass_sigma_for_optics
 
 log = logging.getLogger(__name__)
 
-ZSTACK_SUBSCRIPTION = f"{keys.PREFIX}/zstack/**"
+ZFRAME_SUBSCRIPTION = f"{keys.PREFIX}/zframe/**"
 FOCUS_RESULT_ENCODING = protobuf_encoding(focus_pb2.FocusResult)
-QUEUE_STACKS = 8  # stacks waiting for the worker before the publisher is held back
+QUEUE_FRAMES = 64  # frames waiting for the worker before the publisher is held back
+OPEN_STACKS = 8  # incomplete stacks kept while their frames come in
 
 
 def settings_for(
@@ -82,33 +86,83 @@ def result_message(
     return message
 
 
-def analyse_sample(
-    key: str, payload: bytes, attachment: bytes | None, base: FocusSettings, na: float | None
-) -> focus_pb2.FocusResult:
-    """The FocusResult for one z-stack sample (ValueError only when its key names no tile)."""
-    tile = keys.parse_zstack_key(key)
-    header = None
-    try:
-        header, pixels = decode_zstack(payload, attachment)
-        frames = pixels[..., 0] if pixels.shape[-1] == 1 else pixels
-        z_um = np.asarray(header.z_um, dtype=float)
-        result = focus_stack(frames, z_um, settings_for(header, base, na))
-    except Exception as error:  # a bad stack is answered with an error, never a crash
-        log.warning("stack on %s: %s", key, error)
-        return result_message(tile, header, error=f"{type(error).__name__}: {error}")
-    return result_message(tile, header, result)
+#: A stack: the key of its frames, its sequence number and its simulated clock.
+StackId = tuple[str, int, float]
+
+
+class FrameAnalyser:
+    """Frame samples in, a FocusResult out as soon as the last frame of a stack lands.
+
+    Stacks are told apart by their key, sequence number and simulated clock (an
+    acquisition taken again keeps its sequence); at most `max_open` incomplete stacks
+    are kept (the oldest is dropped with a warning when a frame never comes). A frame
+    that comes twice starts its stack over; one that cannot be read ends its stack with
+    an error result.
+    """
+
+    def __init__(self, base: FocusSettings, na: float | None, max_open: int = OPEN_STACKS) -> None:
+        self.base = base
+        self.na = na
+        self.max_open = max_open
+        self._open: OrderedDict[StackId, FrameByFrame] = OrderedDict()  # curves under way
+        self._failed: OrderedDict[StackId, None] = OrderedDict()
+
+    def add(
+        self, key: str, payload: bytes, attachment: bytes | None
+    ) -> focus_pb2.FocusResult | None:
+        """The stack's FocusResult when this frame completes it (or ends it in error), else
+        None. ValueError only when the key names no tile (there is nowhere to answer)."""
+        tile = keys.parse_zframe_key(key)
+        header = None
+        try:
+            frame_header, frame = decode_zframe(payload, attachment)
+            header = frame_header.stack
+            stack_id = (key, header.sequence, header.clock_s)
+            if stack_id in self._failed:
+                return None  # the stack was already answered with an error
+            curve = self._open.get(stack_id)
+            if curve is not None and not np.isnan(curve.scores[frame_header.index]):
+                log.warning(
+                    "frame %d on %s came again: stack started over", frame_header.index, key
+                )
+                curve = None
+            if curve is None:
+                curve = FrameByFrame(
+                    np.asarray(header.z_um), settings_for(header, self.base, self.na)
+                )
+                self._open[stack_id] = curve
+                self._forget_oldest()
+            curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
+            if not curve.complete:
+                return None
+            del self._open[stack_id]
+            return result_message(tile, header, curve.result())
+        except Exception as error:  # a bad frame is answered with an error, never a crash
+            log.warning("frame on %s: %s", key, error)
+            if header is not None:
+                stack_id = (key, header.sequence, header.clock_s)
+                self._open.pop(stack_id, None)
+                self._failed[stack_id] = None
+                while len(self._failed) > self.max_open:
+                    self._failed.popitem(last=False)
+            return result_message(tile, header, error=f"{type(error).__name__}: {error}")
+
+    def _forget_oldest(self) -> None:
+        while len(self._open) > self.max_open:
+            (key, sequence, _), curve = self._open.popitem(last=False)
+            missing = int(np.isnan(curve.scores).sum())
+            log.warning("stack %d on %s dropped: %d frame(s) never came", sequence, key, missing)
 
 
 class ZenohFocusWorker:
-    """Subscribes to z-stacks and publishes their focus results, on its own thread."""
+    """Subscribes to z-stack frames and publishes their focus results, on its own thread."""
 
     def __init__(self, session: zenoh.Session, settings: FocusSettings, na: float | None = None):
         self.session = session
-        self.settings = settings
-        self.na = na
+        self.analyser = FrameAnalyser(settings, na)
         self.n_published = 0
         self._subscriber = session.declare_subscriber(
-            ZSTACK_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_STACKS)
+            ZFRAME_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
         )
         self._thread = threading.Thread(target=self._serve, name="focus-zenoh", daemon=True)
         self._thread.start()
@@ -118,11 +172,11 @@ class ZenohFocusWorker:
             key = str(sample.key_expr)
             attachment = None if sample.attachment is None else sample.attachment.to_bytes()
             try:
-                message = analyse_sample(
-                    key, sample.payload.to_bytes(), attachment, self.settings, self.na
-                )
+                message = self.analyser.add(key, sample.payload.to_bytes(), attachment)
             except ValueError as error:  # the key names no tile: nowhere to answer
                 log.warning("ignored sample on %s: %s", key, error)
+                continue
+            if message is None:
                 continue
             self.session.put(
                 keys.focus_key(message.slide, message.row, message.col),
@@ -181,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
     worker = ZenohFocusWorker(session, settings, na)
     log.info(
         "focus service: zenoh %s -> %s/focus/..., http://%s:%d (metric %s)",
-        ZSTACK_SUBSCRIPTION,
+        ZFRAME_SUBSCRIPTION,
         keys.PREFIX,
         args.host,
         args.port,

@@ -1,17 +1,22 @@
 """The simulated microscope: slides, a renderer (optics + camera) and a stage, without any I/O.
 
-`Microscope.acquire` validates a request, moves the stage, and renders the z-stack
-of the tile: for each frame, the defocus is the frame's z minus the tile's true
-focus (plus the stage's z drift at that moment), the in-focus spectrum of the tile
-(cached) is multiplied by the OTF of that defocus, and the camera digitises the
-result. The service (`service.py`) puts this on Zenoh.
+`Microscope.plan` validates a request and moves the stage; `Microscope.render` then
+renders the frames of the z-stack, in order, each as soon as it is done: for each
+frame, the defocus is the frame's z minus the tile's true focus (plus the stage's z
+drift at that moment), the in-focus spectrum of the tile (cached, as many tiles as
+`MicroscopeSpec.cache_mb` holds) is multiplied by the OTF of that defocus, and the
+camera digitises the result. Frames render on `MicroscopeSpec.workers` threads (OpenCV
+and numpy release the GIL), each with a random generator of its own drawn in frame
+order, so a stack is the same whichever thread renders which frame. `acquire` does
+both at once. The service (`service.py`) puts the frames on Zenoh as they come.
 """
 
 from __future__ import annotations
 
 import functools
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
@@ -96,7 +101,17 @@ class MicroscopeSpec:
     width: int = 1024
     max_frames: int = 64
     dust_dz_um: float = 8.0  # height of the dust plane above the specimen
-    cached_tiles: int = 8  # in-focus spectra kept (12 MB each at 1024 x 1024)
+    cache_mb: float = 1024.0  # in-focus spectra kept: 16.8 MB a tile at 1024 x 1024, 4.2 at 512
+    cached_tiles: int | None = None  # a fixed number of tiles instead of what cache_mb holds
+    workers: int = 2  # threads rendering the frames of a stack
+
+    @property
+    def tiles_cached(self) -> int:
+        """How many tiles' spectra the cache keeps (float32, three channels and dust)."""
+        if self.cached_tiles is not None:
+            return self.cached_tiles
+        tile_bytes = 4 * self.height * self.width * (len(opt.CHANNELS) + 1)
+        return max(1, int(self.cache_mb * 1e6 // tile_bytes))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -129,28 +144,56 @@ class Renderer:
         )
         return TileSpectra(channels, None if dust is None else opt.spectrum(dust) * self._pixel_mtf)
 
-    def render(
-        self, tile: TileSpectra, dz_um: np.ndarray, exposure_s: float, rng: np.random.Generator
+    def render_frame(
+        self,
+        tile: TileSpectra,
+        dz_um: float,
+        exposure_s: float,
+        rng: np.random.Generator,
+        out: np.ndarray,
     ) -> np.ndarray:
-        """The z-stack at defocus `dz_um` (frame z - true focus), (n, height, width, 3) uint16."""
+        """The frame at defocus `dz_um` (frame z - true focus), into `out` (height, width, 3)
+        uint16, which it returns. Thread-safe: the renderer's own state is only read."""
         camera = self.spec.camera
         signal_e = camera.background_e_per_s * exposure_s
-        pixels = np.empty((len(dz_um), *self.spec.shape, len(opt.CHANNELS)), dtype=np.uint16)
-        for k, dz in enumerate(dz_um):
-            dust = None
-            if tile.dust is not None:  # the dust plane sits dust_dz_um above the specimen
-                dz_dust = dz - self.spec.dust_dz_um
-                dust = opt.blurred(
-                    tile.dust, self._otfs[1].profile(dz_dust).take(self._bins[1]), 1.0
-                )
-            planes = []
-            for c, (otf, bins) in enumerate(zip(self._otfs, self._bins, strict=True)):
-                plane = opt.blurred(tile.channels[c], otf.profile(dz).take(bins), signal_e)
-                if dust is not None:
-                    plane *= dust
-                planes.append(expose(camera, plane, rng, self._bank))
-            cv2.merge(planes, dst=pixels[k])
-        return pixels
+        dust = None
+        if tile.dust is not None:  # the dust plane sits dust_dz_um above the specimen
+            dz_dust = dz_um - self.spec.dust_dz_um
+            dust = opt.blurred(tile.dust, self._otfs[1].profile(dz_dust).take(self._bins[1]), 1.0)
+        planes = []
+        for c, (otf, bins) in enumerate(zip(self._otfs, self._bins, strict=True)):
+            plane = opt.blurred(tile.channels[c], otf.profile(dz_um).take(bins), signal_e)
+            if dust is not None:
+                plane *= dust
+            planes.append(expose(camera, plane, rng, self._bank))
+        cv2.merge(planes, dst=out)
+        return out
+
+
+@dataclass(frozen=True)
+class StackPlan:
+    """An accepted acquisition: the stage has moved; its frames are still to be rendered.
+
+    z_um, dz_um (n,): commanded z of every frame and its defocus from the true focus, um;
+    rngs: one random generator per frame.
+    """
+
+    slide: str
+    row: int
+    col: int
+    z_um: np.ndarray
+    dz_um: np.ndarray
+    rngs: tuple[np.random.Generator, ...]
+    tile: TileSpectra
+    exposure_s: float
+    stage_x_um: float
+    stage_y_um: float
+    timing: StackTiming
+    clock_s: float  # simulated clock when the stack is complete
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.z_um)
 
 
 @dataclass(frozen=True)
@@ -187,6 +230,7 @@ class Microscope:
         self.stage = Stage(self.spec.stage)
         self._rng = np.random.default_rng([seed, 1])
         self.renderer = Renderer(self.spec, self._rng)
+        self._pool = ThreadPoolExecutor(self.spec.workers, thread_name_prefix="render")
         self._specimen = specimen or functools.partial(blood_smear, self.spec.specimen)
         self._tiles: OrderedDict[tuple[str, int, int], TileSpectra] = OrderedDict()
 
@@ -258,7 +302,7 @@ class Microscope:
             )
         return self.slides[slide]
 
-    def acquire(
+    def plan(
         self,
         slide: str,
         row: int,
@@ -267,8 +311,9 @@ class Microscope:
         z_step_um: float,
         n_frames: int,
         exposure_s: float | None = None,
-    ) -> Stack:
-        """Frames at z_low_um, z_low_um + z_step_um, ... (um) of tile (row, col) of `slide`.
+    ) -> StackPlan:
+        """Accept frames at z_low_um, z_low_um + z_step_um, ... (um) of tile (row, col) of
+        `slide` and move the stage there; `render` makes the frames.
 
         `exposure_s` defaults to the timing model's. Raises AcquisitionRefusedError.
         """
@@ -279,10 +324,75 @@ class Microscope:
         tile = self._tile_spectra(chosen, row, col)
         timing, frame_times_s = self.stage.acquire(x_um, y_um, n_frames, exposure_s)
         focus_um = chosen.focus_um[row, col] + self.stage.drift_um(frame_times_s)
-        pixels = self.renderer.render(tile, z_um - focus_um, exposure_s, self._rng)
-        return Stack(
-            slide, row, col, z_um, pixels, exposure_s, x_um, y_um, timing, self.stage.clock_s
+        return StackPlan(
+            slide,
+            row,
+            col,
+            z_um,
+            z_um - focus_um,
+            tuple(self._rng.spawn(n_frames)),
+            tile,
+            exposure_s,
+            x_um,
+            y_um,
+            timing,
+            self.stage.clock_s,
         )
+
+    def render(
+        self, plan: StackPlan, out: Callable[[int], np.ndarray] | None = None
+    ) -> Iterator[np.ndarray]:
+        """The frames of `plan`, (height, width, 3) uint16 each, in order, each yielded as
+        soon as it is rendered (the next ones are already under way on the pool).
+
+        `out(k)` gives the array frame k is rendered into (default: a new array).
+        """
+        shape = (*self.spec.shape, len(opt.CHANNELS))
+        target = out or (lambda _: np.empty(shape, dtype=np.uint16))
+        futures = [
+            self._pool.submit(
+                self.renderer.render_frame, plan.tile, dz, plan.exposure_s, rng, target(k)
+            )
+            for k, (dz, rng) in enumerate(zip(plan.dz_um, plan.rngs, strict=True))
+        ]
+        try:
+            for future in futures:
+                yield future.result()
+        finally:  # a consumer that stops early leaves no work behind
+            for future in futures:
+                future.cancel()
+
+    def acquire(
+        self,
+        slide: str,
+        row: int,
+        col: int,
+        z_low_um: float,
+        z_step_um: float,
+        n_frames: int,
+        exposure_s: float | None = None,
+    ) -> Stack:
+        """`plan` and `render` at once: the whole stack (see `plan`)."""
+        plan = self.plan(slide, row, col, z_low_um, z_step_um, n_frames, exposure_s)
+        pixels = np.empty((n_frames, *self.spec.shape, len(opt.CHANNELS)), dtype=np.uint16)
+        for _ in self.render(plan, pixels.__getitem__):
+            pass
+        return Stack(
+            slide,
+            row,
+            col,
+            plan.z_um,
+            pixels,
+            plan.exposure_s,
+            plan.stage_x_um,
+            plan.stage_y_um,
+            plan.timing,
+            plan.clock_s,
+        )
+
+    def close(self) -> None:
+        """Stop the rendering threads."""
+        self._pool.shutdown(cancel_futures=True)
 
     def truth_um(self, slide: str) -> tuple[np.ndarray, float]:
         """(true focus of every tile now, drift included, (rows, cols) um; the drift in um)."""
@@ -302,6 +412,6 @@ class Microscope:
             dust = dust_layer(self.spec.specimen, dust_seed, self.spec.shape, self.pixel_size_um)
         tile = self.renderer.spectra(transmission, dust)
         self._tiles[key] = tile
-        while len(self._tiles) > self.spec.cached_tiles:
+        while len(self._tiles) > self.spec.tiles_cached:
             self._tiles.popitem(last=False)
         return tile

@@ -1,14 +1,18 @@
 """`focustrack serve instrument`: the simulated microscope on Zenoh.
 
 Queryables (key space in proto/README.md):
-- ``focustrack/v1/instrument/{name}/acquire``: AcquireRequest in; the stack is published
-  on ``focustrack/v1/zstack/{slide}/{row}/{col}``, then AcquireReply (header and timing)
-  comes back. Bad requests get an Error reply; the service keeps running.
+- ``focustrack/v1/instrument/{name}/acquire``: AcquireRequest in; every frame is
+  published on ``focustrack/v1/zframe/{slide}/{row}/{col}`` as soon as it is rendered,
+  then the whole stack on ``focustrack/v1/zstack/{slide}/{row}/{col}`` if anyone
+  subscribes to it, then AcquireReply (header and timing) comes back. Bad requests
+  get an Error reply; the service keeps running.
 - ``focustrack/v1/instrument/{name}/info``: InstrumentInfo (slides, limits, optics).
 - ``focustrack/v1/eval/truth/{name}/{slide}``: SlideTruth, for evaluation code only.
 
-Acquisitions run one at a time on the main thread (there is one stage); info and
-truth are answered on Zenoh's threads.
+Acquisitions run one at a time on the main thread (there is one stage), which
+publishes each frame while the render threads work on the next ones; info and truth
+are answered on Zenoh's threads. Pixels go through Zenoh shared memory to subscribers
+on this host (``--shared-memory``), over the network to the others.
 """
 
 from __future__ import annotations
@@ -20,12 +24,18 @@ import signal
 import threading
 import time
 
+import numpy as np
 import zenoh
 
 from focustrack_core.config import command_main
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
-from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, session_from_args
+from focustrack_core.wire.session import (
+    DEFAULT_ENDPOINT,
+    add_zenoh_arguments,
+    session_from_args,
+    shm_pool_bytes,
+)
 from focustrack_instrument_sim.microscope import (
     AcquisitionRefusedError,
     Microscope,
@@ -60,9 +70,11 @@ class InstrumentService:
         name: str = "sim",
         *,
         realtime: bool = False,
+        shm_pool_bytes: int = 0,
     ) -> None:
         self.microscope = microscope
         self.session = session
+        self.publisher = codec.PixelPublisher(session, shm_pool_bytes)
         self.name = keys.check_name(name, "instrument")
         self.realtime = realtime
         self.stop = threading.Event()
@@ -102,7 +114,7 @@ class InstrumentService:
         started_s = time.perf_counter()
         request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
         try:
-            stack = self.microscope.acquire(
+            plan = self.microscope.plan(
                 request.slide,
                 request.row,
                 request.col,
@@ -117,29 +129,41 @@ class InstrumentService:
         camera = self.microscope.spec.camera
         header = instrument_pb2.ZStackHeader(
             instrument=self.name,
-            slide=stack.slide,
-            row=stack.row,
-            col=stack.col,
+            slide=plan.slide,
+            row=plan.row,
+            col=plan.col,
             sequence=request.sequence,
-            stage_x_um=stack.stage_x_um,
-            stage_y_um=stack.stage_y_um,
-            z_um=stack.z_um.tolist(),
+            stage_x_um=plan.stage_x_um,
+            stage_y_um=plan.stage_y_um,
+            z_um=plan.z_um.tolist(),
             pixel_size_um=self.microscope.pixel_size_um,
             channel_order=CHANNELS,
             bit_depth=camera.bit_depth,
-            exposure_s=stack.exposure_s,
-            timestamp_unix_s=time.time(),
-            clock_s=stack.clock_s,
+            exposure_s=plan.exposure_s,
+            clock_s=plan.clock_s,
         )
-        payload, attachment = codec.encode_zstack(header, stack.pixels)
-        self.session.put(
-            keys.zstack_key(stack.slide, stack.row, stack.col),
-            payload,
-            attachment=attachment,
-            encoding=codec.ZSTACK_ENCODING,
-            congestion_control=zenoh.CongestionControl.BLOCK,
+        shape = (plan.n_frames, *self.microscope.spec.shape, len(CHANNELS))
+        codec.describe_stack(header, shape, np.uint16)
+        frame_key = keys.zframe_key(plan.slide, plan.row, plan.col)
+        stack_key = keys.zstack_key(plan.slide, plan.row, plan.col)
+        # Frames in buffers of their own are sent without a copy; a stack someone wants
+        # whole is rendered into one buffer instead (its frames then cost a copy each).
+        stack = (
+            codec.pixel_array(shape, np.uint16)
+            if self.publisher.has_subscribers(stack_key)
+            else None
         )
-        timing = stack.timing
+        out = (
+            stack.__getitem__
+            if stack is not None
+            else lambda _: codec.pixel_array(shape[1:], np.uint16)
+        )
+        for index, frame in enumerate(self.microscope.render(plan, out)):
+            self.publisher.put_frame(frame_key, header, index, frame)
+        header.timestamp_unix_s = time.time()
+        if stack is not None:
+            self.publisher.put_stack(stack_key, header, stack)
+        timing = plan.timing
         if self.realtime:  # pace the simulated clock: the stack takes as long as it would
             time.sleep(max(0.0, timing.total_s - (time.perf_counter() - started_s)))
         return instrument_pb2.AcquireReply(
@@ -150,7 +174,7 @@ class InstrumentService:
                 exposure_s=timing.exposure_s,
                 readout_s=timing.readout_s,
                 total_s=timing.total_s,
-                clock_s=stack.clock_s,
+                clock_s=plan.clock_s,
                 move_distance_um=timing.move_distance_um,
             ),
         )
@@ -220,6 +244,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     scope.add_argument("--width", type=int, default=1024, help="frame width in pixels")
     scope.add_argument("--height", type=int, default=1024, help="frame height in pixels")
     scope.add_argument("--max-frames", type=int, default=64, help="largest z-stack accepted")
+    scope.add_argument(
+        "--workers", type=int, default=2, help="threads rendering the frames of a stack (2)"
+    )
+    scope.add_argument(
+        "--cache-mb",
+        type=float,
+        default=1024.0,
+        help="in-focus tile spectra kept, MB (1024: 244 tiles of 512 x 512, 61 of 1024 x 1024)",
+    )
     scope.add_argument("--na", type=float, default=0.85, help="numerical aperture")
     scope.add_argument("--magnification", type=float, default=60.0)
     scope.add_argument("--drift-um-per-s", type=float, default=0.0, help="thermal z drift")
@@ -242,6 +275,8 @@ def microscope_from_args(args: argparse.Namespace) -> Microscope:
         height=args.height,
         width=args.width,
         max_frames=args.max_frames,
+        cache_mb=args.cache_mb,
+        workers=args.workers,
     )
     return Microscope(slides, spec, seed=args.seed)
 
@@ -254,7 +289,13 @@ def run(args: argparse.Namespace) -> int:
         log.error("%s", error)
         return 2
     with session_from_args(args) as session:
-        service = InstrumentService(microscope, session, args.name, realtime=args.realtime)
+        service = InstrumentService(
+            microscope,
+            session,
+            args.name,
+            realtime=args.realtime,
+            shm_pool_bytes=shm_pool_bytes(args),
+        )
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: service.stop.set())
         service.start()
@@ -271,6 +312,7 @@ def run(args: argparse.Namespace) -> int:
         )
         service.serve()
         service.close()
+    microscope.close()
     return 0
 
 

@@ -64,20 +64,38 @@ def test_info_describes_slides_and_optics(client: zenoh.Session) -> None:
     assert 0.7 < info.depth_of_field_um < 1.1
 
 
-def test_acquire_publishes_the_stack_and_replies_with_timing(client: zenoh.Session) -> None:
+def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
+    client: zenoh.Session,
+) -> None:
     received: list[tuple[instrument_pb2.ZStackHeader, np.ndarray]] = []
+    frames: list[tuple[instrument_pb2.ZFrameHeader, np.ndarray]] = []
     arrived = threading.Event()
 
     def on_stack(sample: zenoh.Sample) -> None:
         received.append(codec.decode_zstack_sample(sample))
         arrived.set()
 
-    with client.declare_subscriber(keys.zstack_pattern("slide-0"), on_stack):
-        time.sleep(0.5)  # let the subscription reach the instrument
+    def on_frame(sample: zenoh.Sample) -> None:
+        frames.append(codec.decode_zframe_sample(sample))
+
+    with (
+        client.declare_subscriber(keys.zstack_pattern("slide-0"), on_stack),
+        client.declare_subscriber(keys.zframe_pattern("slide-0"), on_frame),
+    ):
+        time.sleep(0.5)  # let the subscriptions reach the instrument
         reply = rpc.call(client, keys.acquire_key("sim"), _request(sequence=42),
                          instrument_pb2.AcquireReply)  # fmt: skip
         assert arrived.wait(10), "the stack was not published"
+        for _ in range(100):  # frames and stack may be handed over on different threads
+            if len(frames) == 9:
+                break
+            time.sleep(0.1)
     header, pixels = received[0]
+    # every frame came first, one by one, in order, with the stack's pixels
+    assert [frame_header.index for frame_header, _ in frames] == list(range(9))
+    for frame_header, frame in frames:
+        assert frame_header.stack.sequence == 42 and frame_header.timestamp_unix_s > 0
+        np.testing.assert_array_equal(frame, pixels[frame_header.index])
     assert pixels.shape == (9, SIZE, SIZE, 3) and pixels.dtype == np.uint16
     assert (header.slide, header.row, header.col, header.sequence) == ("slide-0", 1, 2, 42)
     np.testing.assert_allclose(header.z_um, -2.0 + 0.5 * np.arange(9))

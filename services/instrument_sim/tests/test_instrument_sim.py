@@ -102,6 +102,26 @@ def test_specimen_is_deterministic_and_varies_between_tiles() -> None:
     assert not np.array_equal(first, other)
 
 
+def test_a_stack_does_not_depend_on_the_render_threads_and_streams_in_order() -> None:
+    stacks = []
+    for workers in (1, 2):
+        spec = MicroscopeSpec(height=64, width=64, workers=workers)
+        scope = Microscope(slides_from_seed(3, 1, SurfaceSpec(2, 2)), spec, seed=4)
+        stacks.append(scope.acquire("slide-0", 1, 0, -2.0, 0.5, 7).pixels)
+        plan = scope.plan("slide-0", 1, 0, -2.0, 0.5, 7)
+        frames = list(scope.render(plan))  # the same stack again, frame by frame
+        scope.close()
+        assert len(frames) == 7 and all(f.shape == (64, 64, 3) for f in frames)
+        assert np.abs(np.asarray(frames, float) - stacks[-1]).mean() > 0  # fresh noise
+    np.testing.assert_array_equal(stacks[0], stacks[1])
+
+
+def test_the_cache_holds_as_many_tiles_as_its_megabytes() -> None:
+    assert MicroscopeSpec(height=512, width=512).tiles_cached == 1024_000_000 // (4 * 512 * 512 * 4)
+    assert MicroscopeSpec(cache_mb=0.0).tiles_cached == 1
+    assert MicroscopeSpec(cached_tiles=3).tiles_cached == 3
+
+
 def test_a_tile_looks_the_same_when_imaged_again() -> None:
     spec = MicroscopeSpec(height=128, width=128, cached_tiles=1)
     scope = Microscope(slides_from_seed(2, 1, SurfaceSpec(2, 2)), spec, seed=0)

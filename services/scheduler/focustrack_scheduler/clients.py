@@ -2,8 +2,9 @@
 
 `InstrumentClient` asks the instrument (info, acquire, and the evaluation-only
 truth); `Inbox` collects what arrives by subscription, the z-stacks of the slide
-(for the tile images) and the focus service's results, keyed by the
-acquisition's sequence number, for the engine to wait on.
+(for the tile images, gathered from their frames as the instrument streams them)
+and the focus service's results, keyed by the acquisition's sequence number, for
+the engine to wait on.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Generic, TypeVar
@@ -172,27 +174,51 @@ class Inbox(Generic[T]):
             self._items = {s: item for s, item in self._items.items() if keep(s)}
 
 
-Stack = tuple[instrument_pb2.ZStackHeader, np.ndarray]  # header, pixels (frames, h, w, channels)
+#: A stack gathered from its frames: its header and every frame (h, w, channels), in z order.
+#: The frames are views of the received payloads: gathering them copies no pixels.
+Stack = tuple[instrument_pb2.ZStackHeader, tuple[np.ndarray, ...]]
+
+#: Stacks whose frames are still coming in, kept at most (the oldest incomplete one goes).
+OPEN_STACKS = 8
 
 
 class SlideListener:
-    """Subscribes to the stacks and focus results of one slide; close it when done."""
+    """Subscribes to the frames and focus results of one slide; close it when done.
+
+    A stack enters `stacks` once its last frame is in.
+    """
 
     def __init__(self, session: zenoh.Session, slide: str) -> None:
         self.stacks: Inbox[Stack] = Inbox()
         self.focus: Inbox[focus_pb2.FocusResult] = Inbox()
+        self._gathering: OrderedDict[tuple[str, int, float], list[np.ndarray | None]] = (
+            OrderedDict()
+        )
+        self._lock = threading.Lock()  # Zenoh may hand frames over on several threads
         self._subscribers = [
-            session.declare_subscriber(keys.zstack_pattern(slide), self._on_stack),
+            session.declare_subscriber(keys.zframe_pattern(slide), self._on_frame),
             session.declare_subscriber(keys.focus_pattern(slide), self._on_focus),
         ]
 
-    def _on_stack(self, sample: zenoh.Sample) -> None:
+    def _on_frame(self, sample: zenoh.Sample) -> None:
         try:
-            header, pixels = codec.decode_zstack_sample(sample)
+            frame_header, frame = codec.decode_zframe_sample(sample)
         except ValueError as error:  # Zenoh swallows callback exceptions: say it here
-            log.warning("unreadable stack on %s: %s", sample.key_expr, error)
+            log.warning("unreadable frame on %s: %s", sample.key_expr, error)
             return
-        self.stacks.put(header.sequence, (header, pixels))
+        header = frame_header.stack
+        # An acquisition taken again keeps its sequence but not its clock.
+        stack_id = (str(sample.key_expr), header.sequence, header.clock_s)
+        with self._lock:
+            frames = self._gathering.setdefault(stack_id, [None] * len(header.z_um))
+            frames[frame_header.index] = frame
+            if any(f is None for f in frames):
+                while len(self._gathering) > OPEN_STACKS:
+                    dropped, _ = self._gathering.popitem(last=False)
+                    log.warning("stack %d on %s never completed", dropped[1], dropped[0])
+                return
+            del self._gathering[stack_id]
+        self.stacks.put(header.sequence, (header, tuple(f for f in frames if f is not None)))
 
     def _on_focus(self, sample: zenoh.Sample) -> None:
         try:

@@ -248,8 +248,8 @@ class Engine:
             self.wall.transport_s += time.time() - published_s
             log.warning("%s: the stack never arrived (attempt %d)", what, attempt)
         raise ServiceUnavailableError(
-            f"{what}: the instrument replied but its stack never arrived on "
-            f"{keys.zstack_key(step.slide, *tile)}"
+            f"{what}: the instrument replied but the frames of its stack never arrived on "
+            f"{keys.zframe_key(step.slide, *tile)}"
         )
 
     def _await_focus(self, step: AwaitFocus) -> Any:
@@ -287,7 +287,7 @@ class Engine:
             self.geometry.grid, step.row, step.col, step.z_um, pixels[step.frame], header.bit_depth
         )
         if not self._tile_format_saved:  # what the mosaic is made of, for the OME-TIFF
-            height, width, channels = pixels.shape[1:]
+            height, width, channels = pixels[step.frame].shape
             self._tile_format_saved = True
             self.record.save_state(
                 tile={

@@ -230,7 +230,7 @@ def _acquire_and_measure(
     raise FocusUnavailableError(
         f"no focus result on {keys.focus_key(request.slide, acquisition.row, acquisition.col)} "
         f"for acquisition {acquisition.index} after {request.focus_attempts} attempt(s): is "
-        f"the focus service running and subscribed to {keys.zstack_pattern(request.slide)}?"
+        f"the focus service running and subscribed to {keys.zframe_pattern(request.slide)}?"
     )
 
 

@@ -1,0 +1,326 @@
+"""`focustrack bench transport`: does the Zenoh path keep up with a modern sCMOS camera?
+
+A parent process publishes z-stacks (`--frames` frames of `--size` x `--size` uint16,
+one channel: 21 x 2048 x 2048 = 176 MB by default) frame by frame, as the instrument
+does (`codec.PixelPublisher`, frames in buffers of their own), to a subscriber in a
+child process, over two paths:
+
+- ``tcp``: loopback TCP, the child's session with shared memory off;
+- ``shm``: Zenoh shared memory (the publisher's pool, the child's session with it on).
+
+Transport: the child decodes every frame (the one copy out of Zenoh, then a numpy
+view) and notes when it arrived; a stack's transfer time runs from the first frame's
+put to the last frame's arrival. GB/s and frames/s are compared with a memcpy of the
+same bytes (`np.copyto` into a buffer already written once) measured in the same run.
+
+Focus: the child runs the focus service's own frame analyser
+(`focustrack_focus.service.FrameAnalyser`) on every frame as it lands, on a worker
+thread fed by the Zenoh callback, and reports the time from the last frame's arrival
+to the focus result. Frames are paced at `--fps` (a camera's rate), so the figure is
+the wait a scan sees once the camera is done, not a backlog of the publisher's burst.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import multiprocessing
+import queue
+import statistics
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from focustrack_core.v1 import instrument_pb2
+from focustrack_core.wire import codec, keys, session
+from focustrack_focus.pipeline import FocusSettings
+from focustrack_focus.service import FrameAnalyser
+
+TRANSPORT_SLIDE = "bench-transport"  # stacks the child only receives
+FOCUS_SLIDE = "bench-focus"  # stacks the child also runs the focus analysis on
+ACK_KEY = keys.bench_key("transport-ack")
+PATHS = ("tcp", "shm")
+
+#: Targets of issue 16 (README): checked and printed beside the figures.
+TCP_MIN_GB_PER_S = 1.5
+TCP_MIN_MEMCPY_RATIO = 1 / 5
+SHM_MIN_MEMCPY_RATIO = 1 / 2
+FOCUS_MAX_LATENCY_S = 0.020
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--size", type=int, default=2048, help="frame side in pixels (2048)")
+    parser.add_argument("--frames", type=int, default=21, help="frames per stack (21)")
+    parser.add_argument("--stacks", type=int, default=5, help="stacks sent per path (5)")
+    parser.add_argument(
+        "--fps", type=float, default=100.0, help="camera frame rate of the focus run (100)"
+    )
+    parser.add_argument(
+        "--json",
+        type=Path,
+        metavar="OUT",
+        help="write the figures as JSON, and a chart beside it (OUT with .png)",
+    )
+
+
+def _child(endpoint: str, shared_memory: bool) -> None:
+    """Subscriber process: acknowledges each stack on TRANSPORT_SLIDE with its frames'
+    arrival, and each on FOCUS_SLIDE with its focus result's latency."""
+    with session.open_session(connect=[endpoint], shared_memory=shared_memory) as child:
+        arrivals: dict[int, list[float]] = {}
+        samples: queue.Queue[tuple[float, str, bytes, bytes | None]] = queue.Queue()
+        analyser = FrameAnalyser(FocusSettings(), na=None)
+
+        def acknowledge(report: dict[str, Any]) -> None:
+            child.put(ACK_KEY, json.dumps(report))
+
+        def on_frame(sample: zenoh.Sample) -> None:
+            arrived_s = time.monotonic()
+            key = str(sample.key_expr)
+            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
+            payload = sample.payload.to_bytes()
+            if keys.parse_zframe_key(key).slide == FOCUS_SLIDE:  # analysed on a worker,
+                samples.put((arrived_s, key, payload, attachment))  # as in the service
+                return
+            header, frame = codec.decode_zframe(payload, attachment)
+            int(frame[-1, -1, -1])  # the pixels are readable where they landed
+            times = arrivals.setdefault(header.stack.sequence, [])
+            times.append(time.monotonic())
+            if len(times) == len(header.stack.z_um):
+                acknowledge({"sequence": header.stack.sequence, "last_arrival_s": times[-1]})
+
+        def analyse() -> None:
+            while True:
+                arrived_s, key, payload, attachment = samples.get()
+                cpu_s = time.thread_time()
+                result = analyser.add(key, payload, attachment)
+                if result is not None:
+                    acknowledge(
+                        {
+                            "sequence": result.sequence,
+                            "latency_s": time.monotonic() - arrived_s,
+                            "last_frame_cpu_s": time.thread_time() - cpu_s,
+                            "best_z_um": result.best_z_um,
+                            "error": result.error.message,
+                        }
+                    )
+
+        threading.Thread(target=analyse, daemon=True).start()
+        with child.declare_subscriber(keys.zframe_pattern(), on_frame):
+            acknowledge({"ready": True})
+            threading.Event().wait()  # until the parent terminates this process
+
+
+class Acks:
+    """The child's acknowledgements, as they arrive."""
+
+    def __init__(self) -> None:
+        self._items: list[dict[str, Any]] = []
+        self._arrived = threading.Condition()
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        with self._arrived:
+            self._items.append(json.loads(sample.payload.to_string()))
+            self._arrived.notify_all()
+
+    def wait(self, accept: Callable[[dict[str, Any]], bool], timeout_s: float = 120) -> dict:
+        with self._arrived:
+            if not self._arrived.wait_for(lambda: any(map(accept, self._items)), timeout_s):
+                raise TimeoutError("no acknowledgement from the subscriber process")
+            found = next(item for item in self._items if accept(item))
+            self._items.remove(found)
+            return found
+
+
+def memcpy_s(frames: list[np.ndarray], repeats: int = 5) -> float:
+    """Median seconds to copy every frame once into buffers already written once."""
+    targets = [np.empty_like(frame) for frame in frames]
+    for target, frame in zip(targets, frames, strict=True):  # fault the pages in first
+        np.copyto(target, frame)
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        for target, frame in zip(targets, frames, strict=True):
+            np.copyto(target, frame)
+        times.append(time.perf_counter() - started)
+    return statistics.median(times)
+
+
+def _header(slide: str, sequence: int, frames: list[np.ndarray]) -> instrument_pb2.ZStackHeader:
+    header = instrument_pb2.ZStackHeader(
+        instrument="bench",
+        slide=slide,
+        sequence=sequence,
+        z_um=list(np.arange(len(frames)) * 0.5),
+        pixel_size_um=0.1,
+        channel_order="L",
+        bit_depth=12,
+    )
+    codec.describe_stack(header, (len(frames), *frames[0].shape), frames[0].dtype)
+    return header
+
+
+def run_path(path: str, frames: list[np.ndarray], stacks: int, fps: float) -> dict[str, list]:
+    """The child's acknowledgements over `path`, by run: "transport" (`stacks` stacks as
+    fast as they go; the parent's start time added as `started_s`, monotonic), then
+    "focus" (`stacks` stacks paced at `fps`)."""
+    endpoint = session.loopback_endpoint()
+    pool_bytes = 2 * sum(frame.nbytes for frame in frames) if path == "shm" else 0
+    acks = Acks()
+    reports: dict[str, list] = {"transport": [], "focus": []}
+    with session.open_session(listen=[endpoint], shared_memory=path == "shm") as parent:
+        publisher = codec.PixelPublisher(parent, pool_bytes)
+        parent.declare_subscriber(ACK_KEY, acks.on_sample)
+        context = multiprocessing.get_context("spawn")
+        child = context.Process(target=_child, args=(endpoint, path == "shm"))
+        child.start()
+        try:
+            acks.wait(lambda item: item.get("ready", False))
+            time.sleep(0.5)  # the child's subscription reaches this session
+            for run, slide, period_s in (
+                ("transport", TRANSPORT_SLIDE, 0.0),
+                ("focus", FOCUS_SLIDE, 1.0 / fps),
+            ):
+                key = keys.zframe_key(slide, 0, 0)
+                for sequence in range(stacks):
+                    header = _header(slide, sequence, frames)
+                    started_s = time.monotonic()
+                    for index, frame in enumerate(frames):
+                        while time.monotonic() < started_s + index * period_s:
+                            time.sleep(0.0005)  # a camera's frame clock
+                        publisher.put_frame(key, header, index, frame)
+                    report = acks.wait(functools.partial(_is_of, sequence))
+                    report["started_s"] = started_s
+                    reports[run].append(report)
+                    print(f"{path} {run} stack {sequence + 1}/{stacks}: {_line(report)}",
+                          flush=True)  # fmt: skip
+        finally:
+            child.terminate()
+            child.join()
+    if path == "shm" and publisher.n_network:
+        print(f"warning: {publisher.n_network} frame(s) took the network path (pool full)")
+    return reports
+
+
+def _is_of(sequence: int, report: dict[str, Any]) -> bool:
+    return bool(report.get("sequence") == sequence)
+
+
+def _line(report: dict[str, Any]) -> str:
+    if "latency_s" in report:
+        return f"focus result {1e3 * report['latency_s']:.1f} ms after the last frame"
+    return f"{1e3 * (report['last_arrival_s'] - report['started_s']):.0f} ms"
+
+
+def run(args: argparse.Namespace) -> int:
+    if min(args.size, args.frames - 2, args.stacks, args.fps) <= 0:
+        print("focustrack bench transport: error: --size, --stacks, --fps must be positive "
+              "and --frames at least 3")  # fmt: skip
+        return 2
+    rng = np.random.default_rng(0)
+    frames = []
+    for _ in range(args.frames):  # frames in buffers of their own, as the instrument's
+        frame = codec.pixel_array((args.size, args.size, 1), np.uint16)
+        frame[...] = rng.integers(0, 4096, size=frame.shape, dtype=np.uint16)
+        frames.append(frame)
+    stack_bytes = sum(frame.nbytes for frame in frames)
+    copy_s = memcpy_s(frames)
+    memcpy_gb_per_s = stack_bytes / copy_s / 1e9
+    print(f"memcpy of a {stack_bytes / 1e6:.0f} MB stack: {1e3 * copy_s:.1f} ms "
+          f"({memcpy_gb_per_s:.2f} GB/s)", flush=True)  # fmt: skip
+    figures: dict[str, Any] = {
+        "size": args.size,
+        "frames": args.frames,
+        "stack_mb": stack_bytes / 1e6,
+        "memcpy_gb_per_s": memcpy_gb_per_s,
+        "memcpy_frames_per_s": args.frames / copy_s,
+    }
+    for path in PATHS:
+        reports = run_path(path, frames, args.stacks, args.fps)
+        transfer_s = statistics.median(
+            r["last_arrival_s"] - r["started_s"] for r in reports["transport"]
+        )
+        gb_per_s = stack_bytes / transfer_s / 1e9
+        figures[path] = {
+            "stack_ms": 1e3 * transfer_s,
+            "gb_per_s": gb_per_s,
+            "frames_per_s": args.frames / transfer_s,
+            "memcpy_ratio": gb_per_s / memcpy_gb_per_s,
+            "focus_latency_ms": 1e3 * statistics.median(r["latency_s"] for r in reports["focus"]),
+            "focus_last_frame_cpu_ms": 1e3
+            * statistics.median(r["last_frame_cpu_s"] for r in reports["focus"]),
+        }
+    figures["targets"] = {
+        "tcp_gb_per_s": figures["tcp"]["gb_per_s"] >= TCP_MIN_GB_PER_S,
+        "tcp_memcpy_ratio": figures["tcp"]["memcpy_ratio"] >= TCP_MIN_MEMCPY_RATIO,
+        "shm_memcpy_ratio": figures["shm"]["memcpy_ratio"] >= SHM_MIN_MEMCPY_RATIO,
+        "focus_latency": max(figures[p]["focus_latency_ms"] for p in PATHS)
+        <= 1e3 * FOCUS_MAX_LATENCY_S,
+    }
+    print(table(figures))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+        chart(figures, args.json.with_suffix(".png"))
+        print(f"wrote {args.json}, {args.json.with_suffix('.png')}")
+    return 0
+
+
+def chart(figures: dict[str, Any], out: Path) -> None:
+    """GB/s of each path beside memcpy and the targets; focus latency against its target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (rate, latency) = plt.subplots(1, 2, figsize=(10, 4))
+    names = ["memcpy", *PATHS]
+    values = [figures["memcpy_gb_per_s"], *(figures[p]["gb_per_s"] for p in PATHS)]
+    rate.bar(names, values, color=["grey", "tab:blue", "tab:green"])
+    rate.axhline(TCP_MIN_GB_PER_S, color="tab:blue", ls="--", label="tcp target (GB/s)")
+    rate.axhline(
+        SHM_MIN_MEMCPY_RATIO * figures["memcpy_gb_per_s"],
+        color="tab:green",
+        ls=":",
+        label="shm target (1/2 memcpy)",
+    )
+    rate.set_ylabel("GB/s")
+    rate.set_title(f"{figures['frames']} frames of {figures['size']}^2 uint16, frame by frame")
+    rate.legend()
+    latency.bar(list(PATHS), [figures[p]["focus_latency_ms"] for p in PATHS])
+    latency.axhline(1e3 * FOCUS_MAX_LATENCY_S, color="red", ls="--", label="target")
+    latency.set_ylabel("ms from the last frame's arrival to the focus result")
+    latency.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+def table(figures: dict[str, Any]) -> str:
+    """The figures as the README's table (Markdown)."""
+    size, n = figures["size"], figures["frames"]
+    lines = [
+        f"{n} frames of {size}x{size} uint16 ({figures['stack_mb']:.0f} MB) per stack; "
+        f"memcpy {figures['memcpy_gb_per_s']:.2f} GB/s",
+        "",
+        "| path | ms per stack | GB/s | frames/s | of memcpy | focus result after last frame |",
+        "|---|---|---|---|---|---|",
+    ]
+    for path in PATHS:
+        f = figures[path]
+        lines.append(
+            f"| {path} | {f['stack_ms']:.0f} | {f['gb_per_s']:.2f} | {f['frames_per_s']:.0f} | "
+            f"{f['memcpy_ratio']:.2f} | {f['focus_latency_ms']:.1f} ms "
+            f"({f['focus_last_frame_cpu_ms']:.1f} ms CPU) |"
+        )
+    met = ", ".join(
+        f"{name} {'met' if ok else 'NOT met'}" for name, ok in figures["targets"].items()
+    )
+    lines += ["", f"targets: {met}"]
+    return "\n".join(lines)

@@ -1,0 +1,54 @@
+"""Frame-by-frame focus gives what `focus_stack` gives for the whole stack."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from focustrack_focus.pipeline import FocusSettings, FrameByFrame, focus_stack
+
+
+def _stack(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A 9-frame (9, 64, 64) uint16 stack whose texture is sharpest at z = 0.5 um."""
+    rng = np.random.default_rng(seed)
+    texture = rng.random((64, 64))
+    z_um = np.arange(-2.0, 2.01, 0.5)
+    frames = []
+    for z in z_um:
+        weight = np.exp(-((z - 0.5) ** 2))
+        frames.append(1000 + 800 * (weight * texture + (1 - weight) * texture.mean()))
+    noisy = np.asarray(frames) + rng.normal(0, 2, (len(z_um), 64, 64))
+    return np.clip(noisy, 0, 4095).astype(np.uint16), z_um
+
+
+def test_frames_in_any_order_give_the_whole_stack_result() -> None:
+    frames, z_um = _stack()
+    settings = FocusSettings()
+    whole = focus_stack(frames, z_um, settings)
+    incremental = FrameByFrame(z_um, settings)
+    for index in np.random.default_rng(1).permutation(len(z_um)):
+        assert not incremental.complete
+        incremental.add(int(index), frames[index])
+    assert incremental.complete
+    result = incremental.result()
+    np.testing.assert_allclose(result.scores, whole.scores)
+    assert result.best_z_um == pytest.approx(whole.best_z_um)
+    assert result.sigma_um == pytest.approx(whole.sigma_um)
+    assert result.flags == whole.flags and result.best_z_um == pytest.approx(0.5, abs=0.15)
+    assert result.compute_time_s > 0
+
+
+def test_missing_repeated_and_bad_frames_are_refused() -> None:
+    frames, z_um = _stack()
+    incremental = FrameByFrame(z_um, FocusSettings())
+    incremental.add(0, frames[0])
+    with pytest.raises(ValueError, match="arrived twice"):
+        incremental.add(0, frames[0])
+    with pytest.raises(ValueError, match="frame 9 of a stack of 9"):
+        incremental.add(9, frames[0])
+    with pytest.raises(ValueError, match="finite"):
+        incremental.add(1, np.full((64, 64), np.nan))
+    with pytest.raises(ValueError, match="have not arrived"):
+        incremental.result()
+    with pytest.raises(ValueError):
+        FrameByFrame(np.array([0.0, 1.0]), FocusSettings())  # too few frames for a curve

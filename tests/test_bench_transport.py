@@ -1,0 +1,37 @@
+"""`focustrack bench transport` runs both paths between two processes and writes its figures."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from focustrack import cli
+
+
+@pytest.mark.slow
+def test_bench_transport_measures_tcp_and_shared_memory(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "transport.json"
+    argv = ["bench", "transport", "--size", "128", "--frames", "5", "--stacks", "2"]
+    assert cli.main([*argv, "--json", str(out)]) == 0
+    figures = json.loads(out.read_text())
+    assert figures["stack_mb"] == pytest.approx(5 * 128 * 128 * 2 / 1e6)
+    assert figures["memcpy_gb_per_s"] > 0
+    for path in ("tcp", "shm"):
+        measured = figures[path]
+        assert measured["gb_per_s"] > 0 and measured["frames_per_s"] > 0
+        assert measured["memcpy_ratio"] == pytest.approx(
+            measured["gb_per_s"] / figures["memcpy_gb_per_s"]
+        )
+        assert 0 < measured["focus_latency_ms"] < 5000
+    assert set(figures["targets"]) == {
+        "tcp_gb_per_s", "tcp_memcpy_ratio", "shm_memcpy_ratio", "focus_latency"
+    }  # fmt: skip
+    assert "| shm |" in capsys.readouterr().out
+    assert out.with_suffix(".png").stat().st_size > 0
+
+
+def test_bench_transport_refuses_bad_sizes(capsys) -> None:
+    assert cli.main(["bench", "transport", "--frames", "2"]) == 2
+    assert "at least 3" in capsys.readouterr().out
