@@ -286,6 +286,32 @@ def instrument_arguments() -> list[str]:
     ]  # fmt: skip
 
 
+def write_report(out_dir: Path) -> None:
+    """FIGURES as report.json, and as report.png: build and start times, then the scan's
+    frames per tile in containers and as processes."""
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "report.json").write_text(json.dumps(FIGURES, indent=2) + "\n")
+    figure, (times, scan) = plt.subplots(1, 2, figsize=(10, 4))
+    for label, key in (("image build", "build_s"), ("to healthy", "healthy_s")):
+        seconds = FIGURES.get(key, {})
+        times.barh([f"{name}: {label}" for name in seconds], list(seconds.values()), label=label)
+    times.legend()
+    times.set_xlabel("s")
+    times.set_title("images and services")
+    runs = {"containers": FIGURES.get("scan", {}).get("frames_per_tile", 0.0)}
+    runs["processes"] = FIGURES.get("scan", {}).get("local_frames_per_tile", 0.0)
+    runs["containers, estimator killed"] = FIGURES.get("restart", {}).get("frames_per_tile", 0.0)
+    scan.bar(list(runs), list(runs.values()), color=["C0", "C1", "C2"])
+    scan.set_ylabel("frames per tile")
+    scan.set_title(f"{ROWS}x{COLS} slide, {SIZE} px tiles")
+    scan.tick_params(axis="x", labelsize=8)
+    figure.tight_layout()
+    figure.savefig(out_dir / "report.png", dpi=100)
+    plt.close(figure)
+
+
 @dataclass
 class Stack:
     """The running topology and the estimator's REST API, published on loopback."""
@@ -329,9 +355,8 @@ def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
         }
         say(pytestconfig, f"time to healthy (s): {FIGURES['healthy_s']}")
         yield Stack(running, f"http://127.0.0.1:{estimator_port}")
-        REPORT_DIR.mkdir(parents=True, exist_ok=True)
-        (REPORT_DIR / "report.json").write_text(json.dumps(FIGURES, indent=2) + "\n")
-        say(pytestconfig, f"figures in {REPORT_DIR / 'report.json'}")
+        write_report(REPORT_DIR)
+        say(pytestconfig, f"figures in {REPORT_DIR}/report.json and report.png")
 
 
 @pytest.fixture(scope="module")
