@@ -94,7 +94,7 @@ def ensure_engine() -> None:
     if missing:
         if os.geteuid() != 0 or shutil.which("apt-get") is None:
             pytest.skip(f"containers: {', '.join(missing)} missing, and no root with apt-get")
-        install = ["apt-get", "install", "-y", "--no-install-recommends", *missing]
+        install = ["apt-get", "install", "-y", *missing]  # as checked: with recommends
         env = os.environ | {"DEBIAN_FRONTEND": "noninteractive"}
         if subprocess.run(install, capture_output=True, env=env).returncode != 0:
             subprocess.run(["apt-get", "update"], capture_output=True, env=env)
