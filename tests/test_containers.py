@@ -63,7 +63,7 @@ DEBIAN_MIRROR = os.environ.get("FOCUSTRACK_DEBIAN_MIRROR", "http://deb.debian.or
 #: fails on hybrid cgroups, and the sandbox forbids raising rlimits.
 PODMAN = ["podman", "--runtime", "runc", "--cgroup-manager", "cgroupfs"]
 ULIMITS = ["--ulimit", "nofile=1024:1024", "--ulimit", "nproc=1000:1000"]
-TOOLS = {"podman": "podman", "runc": "runc", "debootstrap": "debootstrap"}
+TOOLS = ("podman", "runc", "debootstrap")  # Debian packages, each named as its command
 HEALTHY_TIMEOUT_S = 120.0
 FIGURES: dict[str, Any] = {}
 
@@ -84,13 +84,9 @@ def podman(*args: str, check: bool = True, timeout_s: float = 600) -> subprocess
     return run
 
 
-def missing_tools() -> list[str]:
-    return [package for package, tool in TOOLS.items() if shutil.which(tool) is None]
-
-
 def ensure_engine() -> None:
     """Install Podman, runc and debootstrap with apt-get when missing; skip when impossible."""
-    missing = missing_tools()
+    missing = [tool for tool in TOOLS if shutil.which(tool) is None]
     if missing:
         if os.geteuid() != 0 or shutil.which("apt-get") is None:
             pytest.skip(f"containers: {', '.join(missing)} missing, and no root with apt-get")
