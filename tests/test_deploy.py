@@ -22,6 +22,7 @@ import yaml
 
 from focustrack_core import health
 from focustrack_core.config import with_environment
+from focustrack_core.wire import router
 
 ROOT = Path(__file__).resolve().parents[1]
 #: compose service -> (its folder under services/, the module of its console script)
@@ -117,3 +118,18 @@ def test_each_services_requirements_are_the_lock_files(tmp_path: Path) -> None:
     for service in export.SERVICES:
         checked_in = (ROOT / "services" / service / "requirements.txt").read_text()
         assert checked_in == export.export(service), f"{service}: stale, run `make lock`"
+
+
+def test_services_run_on_a_read_only_root_and_the_router_can_be_ours(
+    compose: dict[str, Any],
+) -> None:
+    services = compose["services"]
+    for name in SERVICES:
+        assert services[name]["read_only"] is True and services[name]["tmpfs"] == ["/tmp"]
+    zenoh = services["zenoh"]
+    assert defaults(zenoh["image"]) == "eclipse/zenoh:1.10.2"  # the official router for labs
+    assert defaults(zenoh["entrypoint"]) == "/entrypoint.sh"  # that image's own
+    # Our router (ZENOH_ENTRYPOINT, where the official image cannot be pulled) takes the
+    # same command; tests/test_containers.py runs it.
+    args = router.parser().parse_args(zenoh["command"])
+    assert args.listen == ["tcp/0.0.0.0:7447"] and args.no_multicast_scouting

@@ -58,18 +58,21 @@ def installed(python: Path) -> set[str]:
 
 
 def dockerfile_install(folder: str, src: Path) -> list[str]:
-    """The `pip install ...` arguments of the service's Dockerfile, its /src copied to `src`.
+    """The `pip install ...` arguments of the service's Dockerfile (its install steps, the
+    locked requirements' and the distributions', in one), its /src copied to `src`.
 
     As the image's COPY lines do, the distributions are copied first, so building
     them leaves nothing in this checkout.
     """
     dockerfile = (ROOT / "services" / folder / "Dockerfile").read_text()
+    ignore = shutil.ignore_patterns("build", "*.egg-info", "__pycache__", "tests")
     for copied in re.findall(r"^COPY (\S+) /src/\S+$", dockerfile, flags=re.MULTILINE):
-        ignore = shutil.ignore_patterns("build", "*.egg-info", "__pycache__", "tests")
-        shutil.copytree(ROOT / copied, src / copied, ignore=ignore)
-    match = re.search(r"pip install ([^&\n]+)", dockerfile.replace("\\\n", " "))
-    assert match, f"services/{folder}/Dockerfile has no pip install step"
-    return [word.replace("/src/", f"{src}/") for word in match.group(1).split()]
+        if (ROOT / copied).is_dir():  # a file copied alone (requirements.txt) is in its folder
+            shutil.copytree(ROOT / copied, src / copied, ignore=ignore, dirs_exist_ok=True)
+    steps = re.findall(r"pip install ([^&\n]+)", dockerfile.replace("\\\n", " "))
+    assert steps, f"services/{folder}/Dockerfile has no pip install step"
+    words = dict.fromkeys(word for step in steps for word in step.split())  # --no-deps once
+    return [word.replace("/src/", f"{src}/") for word in words]
 
 
 @pytest.mark.parametrize("folder", sorted(SERVICES))

@@ -1,0 +1,56 @@
+"""A Zenoh router in one Python process, for deployments without the official router image.
+
+    python3 -m focustrack_core.wire.router --listen tcp/0.0.0.0:7447 --no-multicast-scouting
+
+It takes the official router's (zenohd's) flags that compose.yaml passes, so the
+`zenoh` service keeps one command whichever image runs it: `--listen` (repeatable)
+and `--no-multicast-scouting` (accepted for that reason; multicast scouting is always
+off in our sessions). It routes until SIGTERM or SIGINT, then closes its session and
+exits 0: as a container's PID 1, a process without a SIGTERM handler would ignore
+`stop` and be killed after the grace period.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+from focustrack_core.wire.session import open_session
+
+#: The signals that stop the router.
+STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
+
+
+def parser() -> argparse.ArgumentParser:
+    router = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    router.add_argument(
+        "-l",
+        "--listen",
+        action="append",
+        required=True,
+        metavar="ENDPOINT",
+        help="an endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    router.add_argument(
+        "--no-multicast-scouting",
+        action="store_true",
+        help="accepted for zenohd compatibility; multicast scouting is always off",
+    )
+    return router
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    # Blocked before the session opens, so Zenoh's threads inherit the mask and the
+    # signals wait for `sigwait` in this thread.
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    with open_session(listen=args.listen, mode="router"):
+        print(f"zenoh router listening on {' '.join(args.listen)}", file=sys.stderr, flush=True)
+        received = signal.sigwait(STOP_SIGNALS)
+    print(f"zenoh router stopped by {signal.Signals(received).name}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

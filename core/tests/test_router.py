@@ -1,0 +1,47 @@
+"""The router entry point (the `zenoh` service where the official image is absent): a real
+process on a free loopback port routes two client sessions, and stops cleanly on SIGTERM."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+
+from focustrack_core.wire.session import loopback_endpoint, open_session
+
+
+def test_the_router_routes_clients_and_stops_on_sigterm() -> None:
+    endpoint = loopback_endpoint()
+    command = [sys.executable, "-m", "focustrack_core.wire.router"]
+    router = subprocess.Popen(
+        [*command, "--listen", endpoint, "--no-multicast-scouting"],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        received = threading.Event()
+        # Two clients: they see each other only through the router (docs in wire/session.py).
+        with (
+            open_session(connect=[endpoint]) as subscriber,
+            open_session(connect=[endpoint]) as pub,
+        ):
+            subscriber.declare_subscriber("test/router", lambda sample: received.set())
+            for _ in range(50):  # until the subscription has reached the router
+                pub.put("test/router", b"hello")
+                if received.wait(0.1):
+                    break
+        assert received.is_set()
+        router.send_signal(signal.SIGTERM)
+        _, stderr = router.communicate(timeout=10)
+        assert router.returncode == 0, stderr
+        assert f"listening on {endpoint}" in stderr and "stopped by SIGTERM" in stderr
+    finally:
+        router.kill()
+
+
+def test_the_router_needs_an_endpoint() -> None:
+    run = subprocess.run(
+        [sys.executable, "-m", "focustrack_core.wire.router"], capture_output=True, text=True
+    )
+    assert run.returncode == 2 and "--listen" in run.stderr

@@ -1,0 +1,481 @@
+"""Containerized end to end: every image built, compose.yaml's topology run with Podman.
+
+The test builds each service's image (services/*/Dockerfile), runs the `zenoh` router,
+instrument, focus and estimator as compose.yaml describes them (a small runner below
+reads compose.yaml: image, entry point, environment, volumes, tmpfs, read-only root,
+health check, depends_on) on a Podman network of its own, waits for each health check
+to pass, and runs the scheduler container to scan a 6x6 slide of 256 px tiles. The
+result must match the simulator's truth (every tile in focus) and the same slide
+scanned by local processes (frames per tile). Then it kills the estimator container
+mid-scan and starts it again; the scan must complete with nothing lost, since the
+estimator's store lives on a volume. (The test plays the orchestrator: it does not pass
+compose's `restart` policies, so the kill and the start are its own.)
+
+No registry can be reached here, so the base image is built from Debian's packages with
+debootstrap (once per machine: it stays in Podman's store as BASE_TAG, with the host's
+CA bundle for pip) and the `zenoh` service runs our router from the instrument's image
+(ZENOH_IMAGE / ZENOH_ENTRYPOINT). Podman, runc and debootstrap are installed with
+apt-get when missing and the test runs as root; elsewhere it skips, saying what is
+missing. Layers are cached by Podman: a repeat run rebuilds only what changed (each
+image installs its locked requirements in a layer of its own).
+
+Figures (build times, time to healthy, in-focus rate, frames per tile in containers and
+as processes, the restart check) are printed as the test runs and written to
+out/containers/report.json.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import yaml
+
+from focustrack.demo import LocalStack
+from focustrack_core.wire.session import free_port
+from focustrack_scheduler import outputs
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1500)]
+
+ROOT = Path(__file__).resolve().parents[1]
+REPORT_DIR = ROOT / "out" / "containers"
+ROWS = COLS = 6
+SIZE = 256
+SEED = 5
+STRATEGY = "kf-2d"  # compose.yaml's default
+#: The base image built from Debian's packages, kept in Podman's store between runs.
+BASE_TAG = "localhost/focustrack-base:bookworm"
+DEBIAN_MIRROR = os.environ.get("FOCUSTRACK_DEBIAN_MIRROR", "http://deb.debian.org/debian")
+#: Settings each needed on these machines (docs: ENGINEERING_NOTES, "Containers"): crun
+#: fails on hybrid cgroups, and the sandbox forbids raising rlimits.
+PODMAN = ["podman", "--runtime", "runc", "--cgroup-manager", "cgroupfs"]
+ULIMITS = ["--ulimit", "nofile=1024:1024", "--ulimit", "nproc=1000:1000"]
+TOOLS = ("podman", "runc", "debootstrap")  # Debian packages, each named as its command
+HEALTHY_TIMEOUT_S = 120.0
+FIGURES: dict[str, Any] = {}
+
+
+def say(config: pytest.Config, message: str) -> None:
+    """Progress and figures on the terminal as the test runs (not only on failure)."""
+    capture = config.pluginmanager.getplugin("capturemanager")
+    with capture.global_and_fixture_disabled():
+        print(f"[containers] {message}", flush=True)
+
+
+def podman(*args: str, check: bool = True, timeout_s: float = 600) -> subprocess.CompletedProcess:
+    run = subprocess.run(
+        [*PODMAN, *args], capture_output=True, text=True, timeout=timeout_s, check=False
+    )
+    if check and run.returncode != 0:
+        raise AssertionError(f"podman {' '.join(args)} failed:\n{run.stdout}\n{run.stderr}")
+    return run
+
+
+def ensure_engine() -> None:
+    """Install Podman, runc and debootstrap with apt-get when missing; skip when impossible."""
+    missing = [tool for tool in TOOLS if shutil.which(tool) is None]
+    if missing:
+        if os.geteuid() != 0 or shutil.which("apt-get") is None:
+            pytest.skip(f"containers: {', '.join(missing)} missing, and no root with apt-get")
+        install = ["apt-get", "install", "-y", *missing]  # as checked: with recommends
+        env = os.environ | {"DEBIAN_FRONTEND": "noninteractive"}
+        if subprocess.run(install, capture_output=True, env=env).returncode != 0:
+            subprocess.run(["apt-get", "update"], capture_output=True, env=env)
+            done = subprocess.run(install, capture_output=True, text=True, env=env)
+            if done.returncode != 0:
+                pytest.skip(f"containers: apt-get could not install {missing}: {done.stderr}")
+    info = subprocess.run([*PODMAN, "info"], capture_output=True, text=True)
+    if info.returncode != 0:
+        pytest.skip(f"containers: podman cannot run here: {info.stderr.strip()[-500:]}")
+
+
+def ensure_base_image(config: pytest.Config) -> str:
+    """BASE_IMAGE from the environment, else the debootstrap base (built once per machine)."""
+    if os.environ.get("BASE_IMAGE"):
+        return os.environ["BASE_IMAGE"]
+    if podman("image", "exists", BASE_TAG, check=False).returncode == 0:
+        FIGURES["base_image_s"] = 0.0
+        return BASE_TAG
+    if os.geteuid() != 0:
+        pytest.skip("containers: building the Debian base image with debootstrap needs root")
+    say(config, f"building {BASE_TAG} with debootstrap from {DEBIAN_MIRROR} (once per machine)")
+    started_s = time.monotonic()
+    with tempfile.TemporaryDirectory(dir="/var/tmp") as scratch:
+        rootfs = Path(scratch) / "rootfs"
+        # python3 in the base: the Dockerfiles install it with apt only when it is absent.
+        packages = "--include=python3,python3-venv,ca-certificates"
+        debootstrap = ["debootstrap", "--variant=minbase", packages, "bookworm", str(rootfs)]
+        subprocess.run([*debootstrap, DEBIAN_MIRROR], check=True, capture_output=True)
+        # pip inside a build must trust what the host trusts (the host's CA bundle, at a
+        # path of its own: over the image's own bundle it would break ca-certificates).
+        shutil.copy("/etc/ssl/certs/ca-certificates.crt", rootfs / "etc" / "host-ca.crt")
+        tar = subprocess.Popen(["tar", "-C", str(rootfs), "-c", "."], stdout=subprocess.PIPE)
+        change = ["--change", "ENV PIP_CERT=/etc/host-ca.crt"]
+        imported = subprocess.run(
+            [*PODMAN, "import", *change, "-", BASE_TAG], stdin=tar.stdout, capture_output=True
+        )
+        assert tar.wait() == 0 and imported.returncode == 0, imported.stderr
+    FIGURES["base_image_s"] = round(time.monotonic() - started_s, 1)
+    say(config, f"base image built in {FIGURES['base_image_s']} s")
+    return BASE_TAG
+
+
+# --- compose.yaml, read and run with podman ------------------------------------------------
+
+VARIABLE = re.compile(r"\$\{(\w+)(?::-([^}]*))?\}")
+
+
+def interpolate(value: Any, variables: Mapping[str, str]) -> Any:
+    """`${NAME}` and `${NAME:-default}` in every string of `value`, as compose does."""
+    if isinstance(value, str):
+        return VARIABLE.sub(lambda m: variables.get(m[1]) or (m[2] or ""), value)
+    if isinstance(value, list):
+        return [interpolate(item, variables) for item in value]
+    if isinstance(value, dict):
+        return {key: interpolate(item, variables) for key, item in value.items()}
+    return value
+
+
+class Topology:
+    """compose.yaml's services as Podman containers on a network of the test's own.
+
+    Containers, volumes and the network are named PROJECT-NAME; each service is also
+    reachable by its compose name on the network, as under compose. `variables` play
+    the part of compose's .env file.
+    """
+
+    def __init__(self, project: str, variables: Mapping[str, str]) -> None:
+        self.compose = yaml.safe_load((ROOT / "compose.yaml").read_text())
+        self.project = project
+        self.variables = dict(variables)
+        self.network = f"{project}-net"
+        self.started_s: dict[str, float] = {}
+        self.containers: list[str] = []
+
+    def spec(self, service: str, **variables: str) -> dict[str, Any]:
+        """`service` of compose.yaml with its variables filled in (these before the others)."""
+        return dict(interpolate(self.compose["services"][service], self.variables | variables))
+
+    def name(self, container: str) -> str:
+        return f"{self.project}-{container}"
+
+    def build(self, service: str, base_image: str) -> float:
+        """Build `service`'s image as compose would, on `base_image`; seconds taken."""
+        spec = self.spec(service, BASE_IMAGE=base_image)
+        build_args = [f"--build-arg={key}={value}" for key, value in spec["build"]["args"].items()]
+        started_s = time.monotonic()
+        podman(
+            "build", *ULIMITS, *build_args, "-f", spec["build"]["dockerfile"],
+            "-t", spec["image"], str(ROOT / spec["build"]["context"]), timeout_s=1200,
+        )  # fmt: skip
+        return time.monotonic() - started_s
+
+    def run_arguments(self, service: str, container: str, **variables: str) -> list[str]:
+        """`podman run` arguments for `service`: all compose.yaml says of it but `restart`."""
+        spec = self.spec(service, **variables)
+        args = ["--name", self.name(container), "--network", self.network]
+        args += ["--network-alias", service, *ULIMITS]
+        if spec.get("read_only"):
+            args.append("--read-only")
+        for path in spec.get("tmpfs", []):
+            args += ["--tmpfs", path]
+        for key, value in spec.get("environment", {}).items():
+            args += ["-e", f"{key}={value}"]
+        for volume in spec.get("volumes", []):
+            source, target = volume.split(":", 1)
+            assert source in self.compose["volumes"], f"{service}: {source} is no named volume"
+            args += ["-v", f"{self.name(source)}:{target}"]
+        for port in spec.get("ports", []):
+            args += ["-p", port]
+        if "healthcheck" in spec:
+            check = spec["healthcheck"]
+            assert check["test"][0] == "CMD", "health checks run without a shell"
+            args += ["--health-cmd", json.dumps(check["test"][1:])]
+            for option in ("interval", "timeout", "retries", "start_period"):
+                if option in check:
+                    args += [f"--health-{option.replace('_', '-')}", str(check[option])]
+        if "entrypoint" in spec:
+            entrypoint = spec["entrypoint"]
+            words = shlex.split(entrypoint) if isinstance(entrypoint, str) else entrypoint
+            args += ["--entrypoint", json.dumps(words)]
+        return [*args, spec["image"], *spec.get("command", [])]
+
+    def up(self, service: str, container: str | None = None, **variables: str) -> str:
+        """Start `service` detached (as `container`, by default the service's name) once
+        what it depends on is started or healthy; the container's full name."""
+        container = container or service
+        for dependency, condition in self.spec(service).get("depends_on", {}).items():
+            if condition["condition"] == "service_healthy":
+                self.wait_healthy(dependency)
+        self.started_s[container] = time.monotonic()
+        self.containers.append(self.name(container))
+        podman("run", "-d", *self.run_arguments(service, container, **variables))
+        return self.name(container)
+
+    def wait_healthy(self, container: str) -> float:
+        """Run the container's health check until it passes (without systemd, Podman runs
+        none by itself); seconds since the container was started."""
+        deadline_s = time.monotonic() + HEALTHY_TIMEOUT_S
+        while podman("healthcheck", "run", self.name(container), check=False).returncode != 0:
+            assert self.inspect(container)["State"]["Running"], self.logs(container)
+            assert time.monotonic() < deadline_s, f"{container} not healthy: {self.logs(container)}"
+            time.sleep(0.5)
+        return time.monotonic() - self.started_s[container]
+
+    def health(self, container: str) -> str:
+        state = self.inspect(container)["State"]
+        return str((state.get("Health") or state.get("Healthcheck") or {}).get("Status"))
+
+    def inspect(self, container: str) -> dict[str, Any]:
+        return dict(json.loads(podman("inspect", self.name(container)).stdout)[0])
+
+    def logs(self, container: str) -> str:
+        run = podman("logs", self.name(container), check=False)
+        return (run.stdout + run.stderr)[-4000:]
+
+    def wait(self, container: str, timeout_s: float = 300) -> int:
+        """Wait for the container to exit; its exit code."""
+        run = podman("wait", self.name(container), timeout_s=timeout_s)
+        return int(run.stdout.strip().splitlines()[-1])
+
+    def volume(self, volume: str) -> Path:
+        """Where a named volume's files are on this host."""
+        run = podman("volume", "inspect", "--format", "{{.Mountpoint}}", self.name(volume))
+        return Path(run.stdout.strip())
+
+    def __enter__(self) -> Topology:
+        self.__exit__()  # what a killed earlier run may have left
+        podman("network", "create", self.network)
+        for volume in self.compose["volumes"]:
+            podman("volume", "create", self.name(volume))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        names = {self.name(service) for service in self.compose["services"]}
+        for container in sorted(names | set(self.containers)):
+            podman("rm", "-f", "-t", "2", container, check=False)
+        for volume in self.compose["volumes"]:
+            podman("volume", "rm", "-f", self.name(volume), check=False)
+        podman("network", "rm", "-f", self.network, check=False)
+
+
+# --- fixtures: the images, the running services, the same slide as local processes --------
+
+
+def instrument_arguments() -> list[str]:
+    return [
+        "--seed", str(SEED), "--rows", str(ROWS), "--cols", str(COLS),
+        "--width", str(SIZE), "--height", str(SIZE),
+    ]  # fmt: skip
+
+
+def write_report(out_dir: Path) -> None:
+    """FIGURES as report.json, and as report.png: build and start times, then the scan's
+    frames per tile in containers and as processes."""
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "report.json").write_text(json.dumps(FIGURES, indent=2) + "\n")
+    figure, (times, scan) = plt.subplots(1, 2, figsize=(10, 4))
+    for label, key in (("image build", "build_s"), ("to healthy", "healthy_s")):
+        seconds = FIGURES.get(key, {})
+        times.barh([f"{name}: {label}" for name in seconds], list(seconds.values()), label=label)
+    times.legend()
+    times.set_xlabel("s")
+    times.set_title("images and services")
+    runs = {"containers": FIGURES.get("scan", {}).get("frames_per_tile", 0.0)}
+    runs["processes"] = FIGURES.get("scan", {}).get("local_frames_per_tile", 0.0)
+    runs["containers, estimator killed"] = FIGURES.get("restart", {}).get("frames_per_tile", 0.0)
+    scan.bar(list(runs), list(runs.values()), color=["C0", "C1", "C2"])
+    scan.set_ylabel("frames per tile")
+    scan.set_title(f"{ROWS}x{COLS} slide, {SIZE} px tiles")
+    scan.tick_params(axis="x", labelsize=8)
+    figure.tight_layout()
+    figure.savefig(out_dir / "report.png", dpi=100)
+    plt.close(figure)
+
+
+@dataclass
+class Stack:
+    """The running topology and the estimator's REST API, published on loopback."""
+
+    topology: Topology
+    estimator_url: str
+
+
+@pytest.fixture(scope="module")
+def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
+    """The images built and the router, instrument, focus and estimator up and healthy."""
+    ensure_engine()
+    base_image = ensure_base_image(pytestconfig)
+    estimator_port, focus_port = free_port(), free_port()
+    variables = {
+        "FOCUSTRACK_VERSION": "e2e",
+        "SLIDE_SEED": str(SEED),
+        "SLIDE_ROWS": str(ROWS),
+        "SLIDE_COLS": str(COLS),
+        "FRAME_SIZE": str(SIZE),
+        # published on loopback only: the test reads the estimator's REST API
+        "ESTIMATOR_PORT": f"127.0.0.1:{estimator_port}",
+        "FOCUS_PORT": f"127.0.0.1:{focus_port}",
+        # our router, from the instrument's image: the official one cannot be pulled here
+        "ZENOH_IMAGE": "focustrack-instrument-sim:e2e",
+        "ZENOH_ENTRYPOINT": "python3 -m focustrack_core.wire.router",
+    }
+    with Topology(f"focustrack-e2e-{os.getpid()}", variables) as running:
+        builds_s = {}
+        for service, spec in running.compose["services"].items():
+            if "build" in spec:
+                say(pytestconfig, f"building {service} on {base_image} ...")
+                builds_s[service] = round(running.build(service, base_image), 1)
+                say(pytestconfig, f"built {service} in {builds_s[service]} s")
+        FIGURES["build_s"] = builds_s
+        for service in ("zenoh", "instrument", "focus", "estimator"):
+            running.up(service)
+        FIGURES["healthy_s"] = {
+            service: round(running.wait_healthy(service), 1)
+            for service in ("instrument", "focus", "estimator")
+        }
+        say(pytestconfig, f"time to healthy (s): {FIGURES['healthy_s']}")
+        yield Stack(running, f"http://127.0.0.1:{estimator_port}")
+        write_report(REPORT_DIR)
+        say(pytestconfig, f"figures in {REPORT_DIR}/report.json and report.png")
+
+
+@pytest.fixture(scope="module")
+def local_report(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The same slide scanned by local processes (as in tests/test_scan_e2e.py): its report."""
+    work = tmp_path_factory.mktemp("local")
+    with LocalStack(work / "stack", instrument_arguments()) as local:
+        scan = [
+            sys.executable, "-m", "focustrack", "scan", "--no-progress",
+            "--estimator", local.estimator_url, "--connect", local.endpoint,
+            "--instrument", "sim", "--slide", "slide-0", "--strategy", STRATEGY,
+            "--out", str(work / "scan"),
+        ]  # fmt: skip
+        run = subprocess.run(scan, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+    return dict(json.loads((work / "scan" / outputs.REPORT).read_text()))
+
+
+# --- the tests -----------------------------------------------------------------------------
+
+
+def acquired(out_dir: Path) -> list[dict[str, Any]]:
+    """The scan log's acquisitions (empty before the log exists)."""
+    path = out_dir / outputs.LOG_FILE
+    lines = path.read_text().splitlines() if path.exists() else []
+    return [entry for entry in map(json.loads, lines) if entry["event"] == "acquired"]
+
+
+def complete_report(stack: Stack, out_dir: Path) -> dict[str, Any]:
+    """The scan's report, once it is checked complete: every tile imaged, the estimator's
+    slide done, and every acquisition the estimator asked for in the scan's log."""
+    report = dict(json.loads((out_dir / outputs.REPORT).read_text()))
+    assert report["tiles_imaged"] == ROWS * COLS
+    slide = httpx.get(f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}").json()
+    assert slide["done"] is True
+    assert {entry["sequence"] for entry in acquired(out_dir)} == set(range(slide["n_acquisitions"]))
+    assert not (out_dir / outputs.PARTIAL_MOSAIC).exists()
+    assert (out_dir / outputs.MOSAIC).stat().st_size > 0
+    return report
+
+
+def test_services_turn_healthy_and_run_as_non_root_on_a_read_only_root(
+    stack: Stack, pytestconfig: pytest.Config
+) -> None:
+    topology = stack.topology
+    for service in ("zenoh", "instrument", "focus", "estimator"):
+        info = topology.inspect(service)
+        assert info["State"]["Running"], topology.logs(service)
+        uid = podman("exec", topology.name(service), "id", "-u").stdout.strip()
+        assert uid == "10001", f"{service} runs as uid {uid}"
+        if service == "zenoh":
+            assert "zenoh router listening on tcp/0.0.0.0:7447" in topology.logs(service)
+            continue
+        assert topology.health(service) == "healthy"
+        assert info["HostConfig"]["ReadonlyRootfs"] is True
+        write = podman("exec", topology.name(service), "touch", "/probe", check=False)
+        assert write.returncode != 0 and "Read-only file system" in write.stderr
+        podman("exec", topology.name(service), "touch", "/tmp/probe")  # the tmpfs is writable
+    say(pytestconfig, "instrument, focus, estimator healthy; uid 10001; read-only root")
+
+
+def test_a_scan_in_containers_matches_the_truth_and_the_same_scan_as_processes(
+    stack: Stack, local_report: dict[str, Any], pytestconfig: pytest.Config
+) -> None:
+    topology = stack.topology
+    started_s = time.monotonic()
+    scheduler = topology.up("scheduler", "scan-1", SCAN_NAME="scan-1")
+    assert topology.wait("scan-1") == 0, topology.logs("scan-1")
+    wall_s = time.monotonic() - started_s
+    assert topology.inspect("scan-1")["Config"]["User"] == "focustrack", scheduler
+    report = complete_report(stack, topology.volume("scans") / "scan-1")
+    tiles = ROWS * COLS
+    figures = {
+        "in_focus_fraction": report["in_focus_fraction"],
+        "local_in_focus_fraction": local_report["in_focus_fraction"],
+        "frames_per_tile": report["images_acquired"] / tiles,
+        "local_frames_per_tile": local_report["images_acquired"] / tiles,
+        "mae_um": report["mae_um"],
+        "local_mae_um": local_report["mae_um"],
+        "scan_wall_s": round(wall_s, 1),
+    }
+    FIGURES["scan"] = figures
+    say(pytestconfig, f"scan in containers vs processes: {figures}")
+    assert report["in_focus_fraction"] == 1.0  # every tile within the depth of field
+    assert local_report["in_focus_fraction"] == 1.0
+    assert report["images_acquired"] == local_report["images_acquired"]
+
+
+def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
+    stack: Stack, pytestconfig: pytest.Config
+) -> None:
+    topology = stack.topology
+    before = {slide["id"]: slide for slide in httpx.get(f"{stack.estimator_url}/v1/slides").json()}
+    topology.up("scheduler", "scan-2", SCAN_NAME="scan-2")
+    out_dir = topology.volume("scans") / "scan-2"
+    deadline_s = time.monotonic() + 120
+    while len(acquired(out_dir)) < 8:
+        assert topology.inspect("scan-2")["State"]["Running"], topology.logs("scan-2")
+        assert time.monotonic() < deadline_s, "the scan made no progress"
+        time.sleep(0.05)
+    podman("kill", topology.name("estimator"))
+    killed_at = len(acquired(out_dir))
+    time.sleep(2.0)
+    assert topology.inspect("scan-2")["State"]["Running"]  # it waits for the estimator
+    topology.started_s["estimator"] = time.monotonic()
+    podman("start", topology.name("estimator"))
+    healthy_again_s = topology.wait_healthy("estimator")
+    assert topology.wait("scan-2") == 0, topology.logs("scan-2")
+    report = complete_report(stack, out_dir)
+    after = {slide["id"]: slide for slide in httpx.get(f"{stack.estimator_url}/v1/slides").json()}
+    # Nothing lost: the slides from before the kill are all there, as they were, and the
+    # interrupted scan's slide is complete.
+    for slide_id, slide in before.items():
+        assert after[slide_id]["n_acquisitions"] == slide["n_acquisitions"]
+        assert after[slide_id]["done"] == slide["done"]
+    figures = {
+        "killed_after_acquisitions": killed_at,
+        "estimator_healthy_again_s": round(healthy_again_s, 1),
+        "tiles_imaged": report["tiles_imaged"],
+        "in_focus_fraction": report["in_focus_fraction"],
+        "frames_per_tile": report["images_acquired"] / (ROWS * COLS),
+        "slides_kept": f"{len(set(before) & set(after))}/{len(before)}",
+    }
+    FIGURES["restart"] = figures
+    say(pytestconfig, f"estimator killed mid-scan and started again: {figures}")
+    assert report["in_focus_fraction"] == 1.0
