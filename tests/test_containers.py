@@ -58,7 +58,21 @@ SEED = 5
 STRATEGY = "kf-2d"  # compose.yaml's default
 #: The base image built from Debian's packages, kept in Podman's store between runs.
 BASE_TAG = "localhost/focustrack-base:bookworm"
-DEBIAN_MIRROR = os.environ.get("FOCUSTRACK_DEBIAN_MIRROR", "http://deb.debian.org/debian")
+
+
+def debian_mirror() -> str:
+    """The Debian mirror this machine's apt uses (FOCUSTRACK_DEBIAN_MIRROR overrides it)."""
+    if os.environ.get("FOCUSTRACK_DEBIAN_MIRROR"):
+        return os.environ["FOCUSTRACK_DEBIAN_MIRROR"]
+    sources = [Path("/etc/apt/sources.list"), *sorted(Path("/etc/apt/sources.list.d").glob("*"))]
+    for source in sources:
+        text = source.read_text() if source.is_file() else ""
+        for match in re.finditer(r"^(?:URIs:\s*|deb\s+(?:\[[^]]*\]\s+)?)(\S+)", text, re.M):
+            if match[1].rstrip("/").endswith("/debian"):  # not -security or a third party's
+                return match[1]
+    pytest.skip("containers: no Debian mirror in apt's sources for debootstrap")
+
+
 #: Settings each needed on these machines (docs: ENGINEERING_NOTES, "Containers"): crun
 #: fails on hybrid cgroups, and the sandbox forbids raising rlimits.
 PODMAN = ["podman", "--runtime", "runc", "--cgroup-manager", "cgroupfs"]
@@ -111,14 +125,15 @@ def ensure_base_image(config: pytest.Config) -> str:
         return BASE_TAG
     if os.geteuid() != 0:
         pytest.skip("containers: building the Debian base image with debootstrap needs root")
-    say(config, f"building {BASE_TAG} with debootstrap from {DEBIAN_MIRROR} (once per machine)")
+    mirror = debian_mirror()
+    say(config, f"building {BASE_TAG} with debootstrap from {mirror} (once per machine)")
     started_s = time.monotonic()
     with tempfile.TemporaryDirectory(dir="/var/tmp") as scratch:
         rootfs = Path(scratch) / "rootfs"
         # python3 in the base: the Dockerfiles install it with apt only when it is absent.
         packages = "--include=python3,python3-venv,ca-certificates"
         debootstrap = ["debootstrap", "--variant=minbase", packages, "bookworm", str(rootfs)]
-        subprocess.run([*debootstrap, DEBIAN_MIRROR], check=True, capture_output=True)
+        subprocess.run([*debootstrap, mirror], check=True, capture_output=True)
         # pip inside a build must trust what the host trusts (the host's CA bundle, at a
         # path of its own: over the image's own bundle it would break ca-certificates).
         shutil.copy("/etc/ssl/certs/ca-certificates.crt", rootfs / "etc" / "host-ca.crt")
