@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import signal
 import sys
 import time
@@ -295,6 +296,7 @@ def run(args: argparse.Namespace) -> int:
                     retry=retry_from_args(args),
                     progress=not args.no_progress,
                     label=name,
+                    mosaic_format=args.mosaic_format,
                 )
                 reports[name] = run_scan(stack.session, job)
     except KeyboardInterrupt:
@@ -326,4 +328,8 @@ def run(args: argparse.Namespace) -> int:
 def _clear(scan_dir: Path) -> None:
     """Remove a previous demo scan's files (only those a scan writes), so it starts afresh."""
     for name in SCAN_FILES:
-        (scan_dir / name).unlink(missing_ok=True)
+        path = scan_dir / name
+        if path.is_dir():  # the OME-Zarr mosaic is a folder
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)

@@ -354,6 +354,7 @@ class Engine:
 
     def _post(self, step: PostMeasurement) -> Outcome:
         body = measurement_in(step.acquisition, step.measurement)
+        self.record.measurement(step.acquisition, step.measurement)
         reply = self.estimator_call(
             f"the measurement of acquisition {step.acquisition.index}",
             lambda: self.estimator.measure(step.slide_id, body),

@@ -37,7 +37,7 @@ from focustrack_scheduler.engine import (
     ScanRefusedError,
     ServiceUnavailableError,
 )
-from focustrack_scheduler.outputs import ScanRecord, write_outputs
+from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, write_outputs
 from focustrack_scheduler.plan import (
     FocusUnavailableError,
     ScanRequest,
@@ -76,6 +76,7 @@ class ScanJob:
     token: str | None = None
     progress: bool = True
     label: str = "scan"
+    mosaic_format: MosaicFormat = MosaicFormat.OME_ZARR
 
 
 def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
@@ -145,7 +146,13 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         )
         geometry = engine.geometry
         return write_outputs(
-            record, geometry.grid, focus_map, truth["um"], geometry.dof_um, engine.wall
+            record,
+            geometry.grid,
+            focus_map,
+            truth["um"],
+            geometry.dof_um,
+            engine.wall,
+            job.mosaic_format,
         )
     finally:
         listener.close()
@@ -199,6 +206,13 @@ def add_scan_options(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=default_retry.estimator_outage_s,
         help="how long to keep retrying an estimator that does not answer",
+    )
+    parser.add_argument(
+        "--mosaic-format",
+        type=MosaicFormat,
+        choices=list(MosaicFormat),
+        default=MosaicFormat.OME_ZARR,
+        help="file of the mosaic: mosaic.ome.zarr (ome-zarr, the default) or mosaic.ome.tif",
     )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
@@ -267,6 +281,7 @@ def run(args: argparse.Namespace) -> int:
             token=args.token or None,
             progress=not args.no_progress,
             label=args.strategy,
+            mosaic_format=args.mosaic_format,
         )
     except ValueError as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
