@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 import tifffile
+import zarr
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import TwoSlopeNorm
 from matplotlib.figure import Figure
@@ -369,7 +370,9 @@ def _write_ome_tiff(
 
 #: Colours of the mosaic's channels in OME-Zarr's "omero" rendering settings.
 _CHANNEL_COLOURS = (("red", "FF0000"), ("green", "00FF00"), ("blue", "0000FF"))
-_MICROMETRE = {"y": "micrometer", "x": "micrometer"}
+_SPACE = {"type": "space", "unit": "micrometer"}
+#: NGFF version written (https://ngff.openmicroscopy.org/0.5/).
+NGFF_VERSION = "0.5"
 
 
 def _write_ome_zarr(
@@ -384,51 +387,75 @@ def _write_ome_zarr(
     2x2-mean halvings, `attributes` under `ZARR_ATTRS`, and each (rows, cols) layer as an NGFF
     image in `ZARR_MAPS`, one pixel per tile, placed over its tile of the mosaic (micrometres).
     """
-    # dask, zarr and scikit-image take seconds to import: only the end of a scan needs them.
-    import dask.array as da
-    import zarr
-    from ome_zarr.scale import Methods
-    from ome_zarr.writer import write_image
-
-    root = zarr.open_group(path, mode="w")
-    chunk_px = 2 * TIFF_TILE_PX
-    pixels = da.from_array(mosaic, chunks=(chunk_px, chunk_px, mosaic.shape[-1]))
+    root = zarr.open_group(path, mode="w", zarr_format=3)
+    levels = [mosaic]
+    for _ in range(n_levels):
+        levels.append(_half(np.asarray(levels[-1])))  # as the OME-TIFF's pyramid
     channels = [
         {"label": label, "color": colour, "window": {"start": 0, "end": 255, "min": 0, "max": 255}}
         for label, colour in _CHANNEL_COLOURS[: mosaic.shape[-1]]
     ]
-    write_image(
-        pixels.transpose(2, 0, 1),
+    _write_ngff_image(
         root,
-        scale_factors=tuple(2**index for index in range(1, n_levels + 1)),
-        method=Methods.LOCAL_MEAN,
-        axes=["c", "y", "x"],
-        scale={"c": 1.0, "y": pixel_size_um, "x": pixel_size_um},
-        axes_units=_MICROMETRE,
-        name="mosaic",
+        "mosaic",
+        [level.transpose(2, 0, 1) for level in levels],
+        pixel_um=(pixel_size_um, pixel_size_um),
+        origin_um=(0.0, 0.0),
         omero={"channels": channels, "rdefs": {"model": "color"}},
     )
     root.attrs[ZARR_ATTRS] = attributes
     rows, cols = next(iter(layers.values())).shape
     tile_um = (mosaic.shape[0] / rows * pixel_size_um, mosaic.shape[1] / cols * pixel_size_um)
+    # A tile's value sits at the centre of its tile of the mosaic (NGFF places pixel centres).
+    centre_um = ((tile_um[0] - pixel_size_um) / 2, (tile_um[1] - pixel_size_um) / 2)
     maps = root.create_group(ZARR_MAPS)
     for name, values in layers.items():
         group = maps.create_group(name)
-        write_image(
-            np.asarray(values),
-            group,
-            scale_factors=(),
-            axes=["y", "x"],
-            scale={"y": tile_um[0], "x": tile_um[1]},
-            axes_units=_MICROMETRE,
-            name=name,
-        )
-        # Pixel centres: a tile's value sits at the centre of its tile of the mosaic.
-        ome: Any = group.attrs["ome"]  # JSON as written just above
-        transforms = ome["multiscales"][0]["datasets"][0]["coordinateTransformations"]
-        transforms[1]["translation"] = [(side - pixel_size_um) / 2 for side in tile_um]
-        group.attrs["ome"] = ome
+        _write_ngff_image(group, name, [np.asarray(values)], tile_um, centre_um)
         group.attrs[ZARR_ATTRS] = {"layer": name, "unit": "images" if name == "images" else "um"}
+
+
+def _write_ngff_image(
+    group: zarr.Group,
+    name: str,
+    levels: list[np.ndarray],
+    pixel_um: tuple[float, float],
+    origin_um: tuple[float, float],
+    **metadata: Any,
+) -> None:
+    """An NGFF multiscale image in `group`: `levels` (c, y, x) or (y, x), each half the last.
+
+    `pixel_um` is level 0's pixel size (y, x) and `origin_um` the centre of its first pixel.
+    """
+    names = ["c", "y", "x"][-levels[0].ndim :]
+    axes = [{"name": "c", "type": "channel"}] if levels[0].ndim == 3 else []
+    axes += [{"name": axis, **_SPACE} for axis in ("y", "x")]
+    datasets: list[dict[str, Any]] = []
+    for index, level in enumerate(levels):
+        factor = 2**index
+        chunks = (*level.shape[:-2], *(min(side, 2 * TIFF_TILE_PX) for side in level.shape[-2:]))
+        array = group.create_array(
+            f"s{index}", shape=level.shape, dtype=level.dtype, chunks=chunks, dimension_names=names
+        )
+        array[...] = level
+        scale = [size * factor for size in pixel_um]
+        # the centre of a level's first pixel: the mean of the factor x factor it averages
+        translation = [
+            o + (factor - 1) * size / 2 for o, size in zip(origin_um, pixel_um, strict=True)
+        ]
+        channel = [1.0] if level.ndim == 3 else []
+        channel_offset = [0.0] if level.ndim == 3 else []
+        datasets.append(
+            {
+                "path": f"s{index}",
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": channel + scale},
+                    {"type": "translation", "translation": channel_offset + translation},
+                ],
+            }
+        )
+    multiscale: dict[str, Any] = {"name": name, "axes": axes, "datasets": datasets}
+    group.attrs["ome"] = {"version": NGFF_VERSION, "multiscales": [multiscale], **metadata}
 
 
 def _half(image: np.ndarray) -> np.ndarray:
