@@ -7,14 +7,14 @@ take the stack, measures its focus here with the focus service's pure functions
 (`focustrack_focus.pipeline.focus_stack`), posts the measurement, takes another
 stack when the estimator asks for one (an edge peak, a flat curve), and returns
 the height to image the tile at: the estimator's posterior, else the measured
-best focus, else the prediction. The pymmcore-plus engine (`mmcore.py`) is built
-on it.
+best focus, else the prediction. The pymmcore-plus engine (`mmcore.py`) and the
+Bluesky plan (`bluesky.py`) are built on it.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +49,10 @@ class TileFocus:
     last: FocusResult | None
 
 
+#: `FocusTracker.tile`: yields the z (n,) um of each stack, is sent its frames, returns the focus.
+TileSteps = Generator[np.ndarray, np.ndarray, TileFocus]
+
+
 class FocusTracker:
     """One slide at the estimator, focused tile by tile (see the module docstring)."""
 
@@ -79,9 +83,23 @@ class FocusTracker:
         return sum(tile.n_frames for tile in self.tiles)
 
     def focus(self, row: int, col: int, acquire: AcquireStack) -> TileFocus:
-        """Every stack the estimator asks of tile (row, col), then where to image it.
+        """Every stack the estimator asks of tile (row, col), taken by `acquire`; where to image it.
 
         Raises TileOrderError when the estimator expects another tile (or none) first.
+        """
+        steps = self.tile(row, col)
+        try:
+            z_um = next(steps)
+            while True:
+                z_um = steps.send(acquire(z_um))
+        except StopIteration as done:
+            return done.value
+
+    def tile(self, row: int, col: int) -> TileSteps:
+        """`focus` as a generator, for plans that acquire by yielding (Bluesky's).
+
+        Yields the z of every frame of each stack to take, (n,) in um; is sent its
+        frames (n, H, W[, C]); returns the TileFocus.
         """
         n_frames = 0
         last: FocusResult | None = None
@@ -89,7 +107,7 @@ class FocusTracker:
         sigma_um: float | None = None
         while (step := self.estimator.next(self.slide_id)).row == row and step.col == col:
             frames_z_um = _frames_z_um(step)
-            frames = acquire(frames_z_um)
+            frames = yield frames_z_um
             n_frames += len(frames_z_um)
             measurement = Measurement(None)
             if step.measure:

@@ -1,9 +1,12 @@
-"""The simulated microscope as pymmcore-plus devices: try FocusTrack's MDA engine without hardware.
+"""The simulated microscope as lab devices: try FocusTrack's integrations without hardware.
 
-`simulated_core(scope)` is a `UniMMCore` with three pure-Python devices backed by
-`focustrack_instrument_sim.microscope.Microscope`: a camera ("Camera") that renders
-the tile under the objective at the focus stage's z, an XY stage ("XY") and a focus
-stage ("Z"). No Micro-Manager installation is needed.
+Both are backed by `focustrack_instrument_sim.microscope.Microscope` through a
+`SimScope`, whose camera renders the tile under the objective at the focus z:
+- `simulated_core(scope)`: a pymmcore-plus `UniMMCore` with three pure-Python
+  devices, a camera ("Camera"), an XY stage ("XY") and a focus stage ("Z"); no
+  Micro-Manager installation is needed;
+- `simulated_ophyd(scope)`: ophyd's simulated motors x, y, z (`ophyd.sim.SynAxis`,
+  in um) and a camera (`ophyd.sim.SynSignal`) that images where they stand.
 
 Stage coordinates are those of a useq grid centred on (0, 0): x grows with the
 column, y shrinks with the row (useq's `GridRowsColumns` puts row 0 at the top),
@@ -16,6 +19,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from ophyd.sim import SynAxis, SynSignal
 from pymmcore_plus.experimental.unicore import (
     SimpleCameraDevice,
     StageDevice,
@@ -144,3 +148,16 @@ def simulated_core(scope: SimScope) -> UniMMCore:
     core.setFocusDevice("Z")
     core.setAutoShutter(False)  # there is no shutter to open and close
     return core
+
+
+def simulated_ophyd(scope: SimScope) -> tuple[SynSignal, SynAxis, SynAxis, SynAxis]:
+    """(camera, x, y, z): ophyd's simulated motors (um) and a camera imaging where they stand."""
+    x, y, z = (SynAxis(name=name, egu="um") for name in ("x", "y", "z"))
+
+    def image() -> np.ndarray:
+        scope.x_um, scope.y_um, scope.z_um = x.position, y.position, z.position
+        return scope.frame()
+
+    scope.n_frames -= 1  # SynSignal reads its function once when it is made
+    camera = SynSignal(func=image, name="camera")
+    return camera, x, y, z
