@@ -34,6 +34,7 @@ from focustrack_core.wire.session import free_port, loopback_endpoint, open_sess
 from focustrack_estimator import registry
 from focustrack_instrument_sim.surfaces import FAMILIES
 from focustrack_scheduler.clients import wait_for_instrument
+from focustrack_scheduler.live_view import LiveServer
 from focustrack_scheduler.outputs import SCAN_FILES, WallTimes
 from focustrack_scheduler.scan import (
     BEST_KALMAN,
@@ -244,6 +245,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", type=Path, default=Path("out/demo"), help="output folder (out/demo)"
     )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the comparison as JSON")
+    parser.add_argument(
+        "--live-port",
+        type=int,
+        default=0,
+        help="port of the live web view on 127.0.0.1 (default 0: any free one)",
+    )
     add_scan_options(parser)
 
 
@@ -283,9 +290,10 @@ def run(args: argparse.Namespace) -> int:
     reports: dict[str, dict[str, Any]] = {}
     try:
         started_s = time.perf_counter()
-        with LocalStack(out_dir, instrument_args) as stack:
+        with LocalStack(out_dir, instrument_args) as stack, LiveServer(port=args.live_port) as live:
             assert stack.session is not None
             print(f"services ready in {time.perf_counter() - started_s:.1f} s", flush=True)
+            print(f"live view at {live.url}", flush=True)
             for name in names:
                 scan_dir = out_dir / name
                 _clear(scan_dir)
@@ -297,6 +305,7 @@ def run(args: argparse.Namespace) -> int:
                     progress=not args.no_progress,
                     label=name,
                     mosaic_format=args.mosaic_format,
+                    live=live,
                 )
                 reports[name] = run_scan(stack.session, job)
     except KeyboardInterrupt:
@@ -311,6 +320,9 @@ def run(args: argparse.Namespace) -> int:
     print()
     print("Where the wall time went (s):")
     print(wall_time_table(reports))
+    for name, report in reports.items():
+        if report["mosaic"] is not None:
+            print(f"mosaic of {name}: {out_dir / name / report['mosaic']}")
     if args.json is not None:
         keys = ("images_per_tile", "scan_time_s", "in_focus_fraction", "mae_um")
         summary = {

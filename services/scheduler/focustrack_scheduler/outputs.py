@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from enum import StrEnum
 from pathlib import Path
@@ -37,7 +38,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import TwoSlopeNorm
 from matplotlib.figure import Figure
 
-from focustrack_core.domain import Acquisition, FocusMap, Measurement, Purpose
+from focustrack_core.domain import Acquisition, FocusMap, Measurement, Outcome, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
 
@@ -139,6 +140,8 @@ class ScanRecord:
                 except (ValueError, KeyError):  # a line cut short by a kill: the rest is intact
                     continue
         self._log = log_path.open("a")
+        #: Called with every entry appended from now on (the live view follows the scan).
+        self.listeners: list[Callable[[dict[str, Any]], None]] = []
         self._mosaic: np.memmap | None = None
 
     @property
@@ -165,6 +168,8 @@ class ScanRecord:
         self._log.write(json.dumps(entry) + "\n")
         self._log.flush()
         self._take(entry)
+        for listener in self.listeners:
+            listener(entry)
 
     def acquired(self, acquisition: Acquisition, n_frames: int, scan_time_s: float) -> None:
         """An acquisition was made: `n_frames` images, `scan_time_s` simulated seconds."""
@@ -180,8 +185,18 @@ class ScanRecord:
             }
         )
 
-    def measurement(self, acquisition: Acquisition, measurement: Measurement) -> None:
-        """The best focus found in `acquisition`'s stack was posted (z and sigma in um)."""
+    def measurement(
+        self,
+        acquisition: Acquisition,
+        measurement: Measurement,
+        outcome: Outcome,
+        curve: tuple[list[float], list[float]] | None,
+    ) -> None:
+        """The best focus found in `acquisition`'s stack was posted (z and sigma in um).
+
+        `outcome` is what it did to the tile's estimate; `curve` the stack's focus curve
+        (z of every frame in um, its scores), where the focus service sent one.
+        """
         self._append(
             {
                 "event": "measured",
@@ -191,6 +206,10 @@ class ScanRecord:
                 "z_um": measurement.z_um,
                 "sigma_um": measurement.sigma_um,
                 "flags": sorted(str(flag) for flag in measurement.flags),
+                "posterior_um": finite_or_none(outcome.posterior_um),
+                "posterior_sigma_um": finite_or_none(outcome.posterior_sigma_um),
+                "curve_z_um": None if curve is None else curve[0],
+                "curve_scores": None if curve is None else curve[1],
             }
         )
 

@@ -11,7 +11,15 @@ import zarr
 from ome_zarr.io import parse_url
 from ome_zarr.reader import Multiscales, Reader
 
-from focustrack_core.domain import Acquisition, FocusFlag, FocusMap, Measurement, Purpose, ZRange
+from focustrack_core.domain import (
+    Acquisition,
+    FocusFlag,
+    FocusMap,
+    Measurement,
+    Outcome,
+    Purpose,
+    ZRange,
+)
 from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler import outputs
 from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, WallTimes, to_uint8
@@ -43,7 +51,8 @@ def scanned_record(out_dir: Path) -> tuple[ScanRecord, np.ndarray]:
             purpose = Purpose.SCAN if attempt == 0 else Purpose.RETRY
             acquisition = Acquisition(index, row, col, ZRange(5.0, 0.5, 9), purpose, True)
             record.acquired(acquisition, 9, 1.5)
-            record.measurement(acquisition, measurement)
+            outcome = Outcome(row, col, measurement.z_um is not None, posterior_um=measurement.z_um)
+            record.measurement(acquisition, measurement, outcome, None)
             index += 1
         record.keep(GRID, row, col, 10.0 + row, images[row, col], BIT_DEPTH)
     return record, images
