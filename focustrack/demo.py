@@ -6,7 +6,10 @@ waits until each answers, then scans the same simulated slide once per strategy
 (the best Kalman filter, Delaunay focus-map surveying and autofocus on every tile
 by default) and prints, per strategy, images per tile, simulated scan time,
 in-focus fraction and MAE against the instrument's truth, and where the wall time
-went. Everything is shut down on the way out, also on Ctrl-C.
+went. While it scans it serves the live web view of the scan and prints its
+address; at the end it saves a screenshot of it (live_view.png, where chromium is
+installed), and each scan's mosaic is an OME-Zarr (`--mosaic-format ome-tiff`
+for the OME-TIFF). Everything is shut down on the way out, also on Ctrl-C.
 
     focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
 """
@@ -29,6 +32,7 @@ from typing import Any
 import httpx
 import zenoh
 
+from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack_core.wire import rpc
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_estimator import registry
@@ -48,6 +52,8 @@ from focustrack_scheduler.scan import (
 
 log = logging.getLogger(__name__)
 
+#: The screenshot of the live view the demo leaves in its output folder.
+LIVE_VIEW_PNG = "live_view.png"
 DEFAULT_STRATEGIES = (BEST_KALMAN, "survey-delaunay", "af-every-tile")
 INSTRUMENT = "sim"
 SLIDE = "slide-0"
@@ -308,6 +314,11 @@ def run(args: argparse.Namespace) -> int:
                     live=live,
                 )
                 reports[name] = run_scan(stack.session, job)
+            try:  # the last scan's live view, for a person to look at
+                shot = screenshot_live_view(live.url, out_dir / LIVE_VIEW_PNG)
+                print(f"live view screenshot: {shot}", flush=True)
+            except NoBrowserError as error:
+                print(f"no live view screenshot: {error}", flush=True)
     except KeyboardInterrupt:
         print("focustrack demo: interrupted; services stopped", file=sys.stderr)
         return 130
