@@ -38,7 +38,7 @@ from focustrack_core.wire.session import free_port, loopback_endpoint, open_sess
 from focustrack_estimator import registry
 from focustrack_instrument_sim.surfaces import FAMILIES
 from focustrack_scheduler.clients import wait_for_instrument
-from focustrack_scheduler.live_view import LiveServer
+from focustrack_scheduler.live_view import LiveServer, port_number
 from focustrack_scheduler.outputs import SCAN_FILES, WallTimes
 from focustrack_scheduler.scan import (
     BEST_KALMAN,
@@ -253,7 +253,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the comparison as JSON")
     parser.add_argument(
         "--live-port",
-        type=int,
+        type=port_number,
         default=0,
         help="port of the live web view on 127.0.0.1 (default 0: any free one)",
     )

@@ -13,6 +13,7 @@ The scheduler serves it while it scans (`focustrack scan --live-port`, and the d
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import threading
@@ -31,6 +32,17 @@ from focustrack_scheduler.live import LiveScan
 MAX_UPDATES_PER_S = 5.0
 #: Seconds between keep-alive comments on an idle event stream.
 KEEPALIVE_S = 15.0
+
+
+def port_number(text: str) -> int:
+    """A TCP port for argparse: 0 (any free one) to 65535; anything else is a usage error."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0 (any free one) to 65535, not {text!r}")
+    return port
 
 
 class LiveServer:

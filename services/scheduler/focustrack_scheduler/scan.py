@@ -40,7 +40,7 @@ from focustrack_scheduler.engine import (
     ServiceUnavailableError,
 )
 from focustrack_scheduler.live import LiveScan
-from focustrack_scheduler.live_view import LiveServer
+from focustrack_scheduler.live_view import LiveServer, port_number
 from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, write_outputs
 from focustrack_scheduler.plan import (
     FocusUnavailableError,
@@ -278,7 +278,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--live-port",
-        type=int,
+        type=port_number,
         help="serve the live web view of the scan on this port of 127.0.0.1 (0: any free one)",
     )
     add_scan_options(parser)

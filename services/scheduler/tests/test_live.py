@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler.live import LiveScan
-from focustrack_scheduler.live_view import LiveServer
+from focustrack_scheduler.live_view import LiveServer, port_number
 from focustrack_scheduler.outputs import ScanRecord
 
 GRID = ScanGrid(200, 200)  # the size the page must keep up with
@@ -64,3 +66,10 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
             assert next(lines) == "" and next(lines) == "event: update"
             data = json.loads(next(lines).removeprefix("data: "))
             assert data["tiles"] == [[3, 4, 0.71, 0.2, 5, True, []]] and data["tiles_done"] == 1
+
+
+@pytest.mark.parametrize("text", ["-1", "65536", "eighty"])
+def test_a_bad_live_port_is_a_usage_error(text: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError, match="a port is 0"):
+        port_number(text)
+    assert port_number("0") == 0 and port_number("8200") == 8200
