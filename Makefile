@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 UV_VERSION := 0.13.8
 MANIFESTS := pyproject.toml uv.lock core/pyproject.toml client/pyproject.toml \
-	$(wildcard services/*/pyproject.toml)
+	$(wildcard services/*/pyproject.toml) $(wildcard integrations/*/pyproject.toml)
 
 .PHONY: demo test test-fast lint typecheck format proto lock clean
 

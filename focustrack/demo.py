@@ -6,7 +6,10 @@ waits until each answers, then scans the same simulated slide once per strategy
 (the best Kalman filter, Delaunay focus-map surveying and autofocus on every tile
 by default) and prints, per strategy, images per tile, simulated scan time,
 in-focus fraction and MAE against the instrument's truth, and where the wall time
-went. Everything is shut down on the way out, also on Ctrl-C.
+went. While it scans it serves the live web view of the scan and prints its
+address; at the end it saves a screenshot of it (live_view.png, where chromium is
+installed), and each scan's mosaic is an OME-Zarr (`--mosaic-format ome-tiff`
+for the OME-TIFF). Everything is shut down on the way out, also on Ctrl-C.
 
     focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import signal
 import sys
 import time
@@ -28,11 +32,13 @@ from typing import Any
 import httpx
 import zenoh
 
+from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack_core.wire import rpc
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_estimator import registry
 from focustrack_instrument_sim.surfaces import FAMILIES
 from focustrack_scheduler.clients import wait_for_instrument
+from focustrack_scheduler.live_view import LiveServer, port_number
 from focustrack_scheduler.outputs import SCAN_FILES, WallTimes
 from focustrack_scheduler.scan import (
     BEST_KALMAN,
@@ -46,6 +52,8 @@ from focustrack_scheduler.scan import (
 
 log = logging.getLogger(__name__)
 
+#: The screenshot of the live view the demo leaves in its output folder.
+LIVE_VIEW_PNG = "live_view.png"
 DEFAULT_STRATEGIES = (BEST_KALMAN, "survey-delaunay", "af-every-tile")
 INSTRUMENT = "sim"
 SLIDE = "slide-0"
@@ -243,6 +251,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--out", type=Path, default=Path("out/demo"), help="output folder (out/demo)"
     )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the comparison as JSON")
+    parser.add_argument(
+        "--live-port",
+        type=port_number,
+        default=0,
+        help="port of the live web view on 127.0.0.1 (default 0: any free one)",
+    )
     add_scan_options(parser)
 
 
@@ -282,9 +296,10 @@ def run(args: argparse.Namespace) -> int:
     reports: dict[str, dict[str, Any]] = {}
     try:
         started_s = time.perf_counter()
-        with LocalStack(out_dir, instrument_args) as stack:
+        with LocalStack(out_dir, instrument_args) as stack, LiveServer(port=args.live_port) as live:
             assert stack.session is not None
             print(f"services ready in {time.perf_counter() - started_s:.1f} s", flush=True)
+            print(f"live view at {live.url}", flush=True)
             for name in names:
                 scan_dir = out_dir / name
                 _clear(scan_dir)
@@ -295,8 +310,15 @@ def run(args: argparse.Namespace) -> int:
                     retry=retry_from_args(args),
                     progress=not args.no_progress,
                     label=name,
+                    mosaic_format=args.mosaic_format,
+                    live=live,
                 )
                 reports[name] = run_scan(stack.session, job)
+            try:  # the last scan's live view, for a person to look at
+                shot = screenshot_live_view(live.url, out_dir / LIVE_VIEW_PNG)
+                print(f"live view screenshot: {shot}", flush=True)
+            except NoBrowserError as error:
+                print(f"no live view screenshot: {error}", flush=True)
     except KeyboardInterrupt:
         print("focustrack demo: interrupted; services stopped", file=sys.stderr)
         return 130
@@ -309,6 +331,9 @@ def run(args: argparse.Namespace) -> int:
     print()
     print("Where the wall time went (s):")
     print(wall_time_table(reports))
+    for name, report in reports.items():
+        if report["mosaic"] is not None:
+            print(f"mosaic of {name}: {out_dir / name / report['mosaic']}")
     if args.json is not None:
         keys = ("images_per_tile", "scan_time_s", "in_focus_fraction", "mae_um")
         summary = {
@@ -326,4 +351,8 @@ def run(args: argparse.Namespace) -> int:
 def _clear(scan_dir: Path) -> None:
     """Remove a previous demo scan's files (only those a scan writes), so it starts afresh."""
     for name in SCAN_FILES:
-        (scan_dir / name).unlink(missing_ok=True)
+        path = scan_dir / name
+        if path.is_dir():  # the OME-Zarr mosaic is a folder
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)

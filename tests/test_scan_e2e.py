@@ -15,7 +15,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-import tifffile
+import zarr
 
 from focustrack.bench.accuracy import add_measurement_noise
 from focustrack.bench.replay import replay, score
@@ -101,9 +101,9 @@ def assert_complete(stack: LocalStack, out_dir: Path) -> dict:
     logged = [json.loads(line) for line in (out_dir / outputs.LOG_FILE).read_text().splitlines()]
     sequences = {entry["sequence"] for entry in logged if entry["event"] == "acquired"}
     assert sequences == set(range(slide["n_acquisitions"]))  # every one asked for was made
-    with tifffile.TiffFile(out_dir / outputs.MOSAIC) as tif:
-        assert tif.is_ome and tif.series[0].shape == (ROWS * SIZE, COLS * SIZE, 3)
-        mosaic = tif.series[0].asarray()
+    mosaic = np.asarray(zarr.open_group(out_dir / outputs.MOSAIC_ZARR, mode="r")["s0"])
+    assert mosaic.shape == (3, ROWS * SIZE, COLS * SIZE)  # the default OME-Zarr, (c, y, x)
+    mosaic = mosaic.transpose(1, 2, 0)
     tiles = mosaic.reshape(ROWS, SIZE, COLS, SIZE, 3)
     assert (tiles.std(axis=(1, 3, 4)) > 0).all()  # every tile holds an image
     assert not (out_dir / outputs.PARTIAL_MOSAIC).exists()

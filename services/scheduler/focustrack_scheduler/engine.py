@@ -156,6 +156,8 @@ class Engine:
         self._progress: ScanProgress | None = None
         self._tile: tuple[int, int] | None = None
         self._tile_format_saved = "tile" in (record.state or {})
+        #: acquisition index -> its focus curve (z um, scores), until it is posted
+        self._curves: dict[int, tuple[list[float], list[float]]] = {}
         self._handlers: dict[type, Callable[[Any], Any]] = {
             DescribeSlide: self._describe,
             CreateOrResumeSlide: self._create_or_resume,
@@ -272,6 +274,10 @@ class Engine:
             )
             self.wall.waiting_s += waited_s
             return None
+        self._curves[acquisition.index] = (
+            list(received.message.z_um),
+            list(received.message.scores),
+        )
         compute_s = min(received.message.compute_time_s, waited_s)
         self.wall.focus_computation_s += compute_s
         self.wall.waiting_s += waited_s - compute_s
@@ -358,7 +364,10 @@ class Engine:
             f"the measurement of acquisition {step.acquisition.index}",
             lambda: self.estimator.measure(step.slide_id, body),
         )
-        return outcome_of(reply)
+        outcome = outcome_of(reply)
+        curve = self._curves.pop(step.acquisition.index, None)
+        self.record.measurement(step.acquisition, step.measurement, outcome, curve)
+        return outcome
 
 
 def _unanswered(error: rpc.RemoteError) -> bool:

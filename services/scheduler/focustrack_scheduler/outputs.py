@@ -3,8 +3,9 @@
 During the scan (`ScanRecord`):
 - ``scan.json``: which scan this folder holds (estimator URL and slide id, instrument,
   slide, strategy; the tile format once known), written when the slide is created;
-- ``scan_log.jsonl``: one line per acquisition made (tile, frames, simulated seconds)
-  and per tile image kept (tile, z), appended and flushed as they happen;
+- ``scan_log.jsonl``: one line per acquisition made (tile, frames, simulated seconds),
+  per measurement posted (tile, best z, sigma, flags) and per tile image kept (tile, z),
+  appended and flushed as they happen;
 - ``mosaic.partial.npy``: the mosaic being filled in, a memory map on disk.
 A scheduler that is restarted on the same folder reads these back and carries on.
 
@@ -14,32 +15,38 @@ At the end (`write_outputs`):
 - ``report.json``: images acquired, simulated scan time, in-focus fraction and MAE against
   the instrument's truth, and the wall-time split;
 - ``scan.png``: true surface, estimated map, error map, images per tile;
-- ``mosaic.ome.tif``: the in-focus tile images side by side (8-bit RGB, tiled, with a
-  pyramid) for a slide viewer, and ``mosaic.png``, a small preview.
+- the in-focus tile images side by side (8-bit RGB, with a pyramid) for a slide viewer:
+  ``mosaic.ome.zarr`` (OME-Zarr, NGFF 0.5: the default; each tile's best z, sigma and flags
+  in its attributes, the focus-map layers as arrays beside it) or ``mosaic.ome.tif``
+  (`MosaicFormat`), and ``mosaic.png``, a small preview.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import tifffile
+import zarr
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import TwoSlopeNorm
 from matplotlib.figure import Figure
 
-from focustrack_core.domain import Acquisition, FocusMap, Purpose
+from focustrack_core.domain import Acquisition, FocusMap, Measurement, Outcome, Purpose
 from focustrack_core.geometry import ScanGrid
-from focustrack_core.maps import map_csv, map_npy
+from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
 
 STATE_FILE = "scan.json"
 LOG_FILE = "scan_log.jsonl"
 PARTIAL_MOSAIC = "mosaic.partial.npy"
 MOSAIC = "mosaic.ome.tif"
+MOSAIC_ZARR = "mosaic.ome.zarr"
 MOSAIC_PREVIEW = "mosaic.png"
 REPORT = "report.json"
 PLOTS = "scan.png"
@@ -51,6 +58,7 @@ SCAN_FILES = (
     LOG_FILE,
     PARTIAL_MOSAIC,
     MOSAIC,
+    MOSAIC_ZARR,
     MOSAIC_PREVIEW,
     REPORT,
     PLOTS,
@@ -62,6 +70,21 @@ SCAN_FILES = (
 TIFF_TILE_PX = 256
 #: Longest side of the PNG preview of the mosaic, in pixels.
 PREVIEW_PX = 1600
+#: Group of the OME-Zarr mosaic that holds the focus-map layers, one NGFF image each.
+ZARR_MAPS = "maps"
+#: Key of FocusTrack's own attributes in the OME-Zarr root (`tile_metadata`).
+ZARR_ATTRS = "focustrack"
+
+
+class MosaicFormat(StrEnum):
+    """The file the mosaic of a scan is written as."""
+
+    OME_ZARR = "ome-zarr"  # mosaic.ome.zarr: NGFF 0.5, lazy in napari and the OME viewers
+    OME_TIFF = "ome-tiff"  # mosaic.ome.tif: a tiled pyramid for QuPath and slide viewers
+
+    @property
+    def file_name(self) -> str:
+        return MOSAIC_ZARR if self is MosaicFormat.OME_ZARR else MOSAIC
 
 
 @dataclass
@@ -108,6 +131,7 @@ class ScanRecord:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.acquisitions: list[dict[str, Any]] = []
         self.kept: dict[tuple[int, int], float] = {}  # tile -> z (um) of its image
+        self.measured: dict[tuple[int, int], dict[str, Any]] = {}  # tile -> its last measurement
         log_path = self.out_dir / LOG_FILE
         if log_path.exists():
             for line in log_path.read_text().splitlines():
@@ -116,6 +140,8 @@ class ScanRecord:
                 except (ValueError, KeyError):  # a line cut short by a kill: the rest is intact
                     continue
         self._log = log_path.open("a")
+        #: Called with every entry appended from now on (the live view follows the scan).
+        self.listeners: list[Callable[[dict[str, Any]], None]] = []
         self._mosaic: np.memmap | None = None
 
     @property
@@ -135,11 +161,15 @@ class ScanRecord:
             self.acquisitions.append(entry)
         elif entry["event"] == "kept":
             self.kept[(entry["row"], entry["col"])] = entry["z_um"]
+        elif entry["event"] == "measured":
+            self.measured[(entry["row"], entry["col"])] = entry
 
     def _append(self, entry: dict[str, Any]) -> None:
         self._log.write(json.dumps(entry) + "\n")
         self._log.flush()
         self._take(entry)
+        for listener in self.listeners:
+            listener(entry)
 
     def acquired(self, acquisition: Acquisition, n_frames: int, scan_time_s: float) -> None:
         """An acquisition was made: `n_frames` images, `scan_time_s` simulated seconds."""
@@ -152,6 +182,34 @@ class ScanRecord:
                 "purpose": acquisition.purpose.value,
                 "n_frames": n_frames,
                 "scan_time_s": scan_time_s,
+            }
+        )
+
+    def measurement(
+        self,
+        acquisition: Acquisition,
+        measurement: Measurement,
+        outcome: Outcome,
+        curve: tuple[list[float], list[float]] | None,
+    ) -> None:
+        """The best focus found in `acquisition`'s stack was posted (z and sigma in um).
+
+        `outcome` is what it did to the tile's estimate; `curve` the stack's focus curve
+        (z of every frame in um, its scores), where the focus service sent one.
+        """
+        self._append(
+            {
+                "event": "measured",
+                "row": acquisition.row,
+                "col": acquisition.col,
+                "sequence": acquisition.index,
+                "z_um": measurement.z_um,
+                "sigma_um": measurement.sigma_um,
+                "flags": sorted(str(flag) for flag in measurement.flags),
+                "posterior_um": finite_or_none(outcome.posterior_um),
+                "posterior_sigma_um": finite_or_none(outcome.posterior_sigma_um),
+                "curve_z_um": None if curve is None else curve[0],
+                "curve_scores": None if curve is None else curve[1],
             }
         )
 
@@ -225,14 +283,81 @@ def mean_abs_error_um(estimate_um: np.ndarray, truth_um: np.ndarray) -> float | 
     return float(np.nanmean(error)) if np.isfinite(error).any() else None
 
 
-def write_mosaic(out_dir: Path, pixel_size_um: float, description: str) -> tuple[Path, Path] | None:
-    """Turn the partial mosaic into the OME-TIFF and its PNG preview (None if there is none)."""
+def tile_metadata(record: ScanRecord, grid: ScanGrid, focus_map: FocusMap) -> list[dict[str, Any]]:
+    """Every tile's numbers, row-major: where it is, its image, its last measurement, its map.
+
+    Per tile: row, col, stage_x_um, stage_y_um; z_used_um (its kept image), best_z_um,
+    sigma_um and flags (the last best focus posted for it; null and [] where none was),
+    images (acquired on it), posterior_um and posterior_sigma_um (the
+    estimator's map). Heights in um, null where there is none.
+    """
+    layers = map_layers(focus_map)
+    images = record.images_per_tile(grid)
+    tiles = []
+    for row in range(grid.rows):
+        for col in range(grid.cols):
+            measured = record.measured.get((row, col), {})
+            x_um, y_um = grid.stage_xy_um(row, col)
+            tiles.append(
+                {
+                    "row": row,
+                    "col": col,
+                    "stage_x_um": x_um,
+                    "stage_y_um": y_um,
+                    "z_used_um": record.kept.get((row, col)),
+                    "best_z_um": measured.get("z_um"),
+                    "sigma_um": measured.get("sigma_um"),
+                    "flags": measured.get("flags", []),
+                    "images": int(images[row, col]),
+                    "posterior_um": finite_or_none(layers["posterior_um"][row, col]),
+                    "posterior_sigma_um": finite_or_none(layers["posterior_sigma_um"][row, col]),
+                }
+            )
+    return tiles
+
+
+def write_mosaic(
+    record: ScanRecord,
+    grid: ScanGrid,
+    focus_map: FocusMap,
+    mosaic_format: MosaicFormat,
+    description: str,
+) -> tuple[Path, Path] | None:
+    """Turn the partial mosaic into `mosaic_format` and a PNG preview (None if there is none)."""
+    out_dir = record.out_dir
     partial = out_dir / PARTIAL_MOSAIC
-    if not partial.exists():
+    tile = (record.state or {}).get("tile")
+    if tile is None or not partial.exists():
         return None
     mosaic = np.load(partial, mmap_mode="r")
-    path = out_dir / MOSAIC
+    pixel_size_um = float(tile["pixel_size_um"])
     n_levels = max(0, math.floor(math.log2(min(mosaic.shape[:2]) / TIFF_TILE_PX)))
+    path = out_dir / mosaic_format.file_name
+    if mosaic_format is MosaicFormat.OME_TIFF:
+        _write_ome_tiff(path, mosaic, pixel_size_um, n_levels, description)
+    else:
+        attributes = {
+            "description": description,
+            "scan": {name: value for name, value in (record.state or {}).items() if name != "tile"},
+            "grid": {"rows": grid.rows, "cols": grid.cols, "pitch_um": grid.pitch_um},
+            "tile_px": {"height": tile["height"], "width": tile["width"]},
+            "pixel_size_um": pixel_size_um,
+            "maps": {name: f"{ZARR_MAPS}/{name}" for name in (*MAP_LAYERS, "images")},
+            "tiles": tile_metadata(record, grid, focus_map),
+        }
+        layers = {**map_layers(focus_map), "images": record.images_per_tile(grid)}
+        _write_ome_zarr(path, mosaic, pixel_size_um, n_levels, attributes, layers)
+    step = max(1, math.ceil(max(mosaic.shape[:2]) / PREVIEW_PX))
+    preview = out_dir / MOSAIC_PREVIEW
+    _save_image(preview, np.asarray(mosaic[::step, ::step]))
+    partial.unlink()
+    return path, preview
+
+
+def _write_ome_tiff(
+    path: Path, mosaic: np.ndarray, pixel_size_um: float, n_levels: int, description: str
+) -> None:
+    """The mosaic (height, width, channels) uint8 as a tiled OME-TIFF with `n_levels` halvings."""
     options: dict[str, Any] = {
         "photometric": "rgb" if mosaic.shape[-1] == 3 else "minisblack",
         "tile": (TIFF_TILE_PX, TIFF_TILE_PX),
@@ -260,11 +385,96 @@ def write_mosaic(out_dir: Path, pixel_size_um: float, description: str) -> tuple
             level = _half(level)  # a 2x2 mean: a viewer's zoomed-out level without aliasing
             scale = per_cm / 2**index
             tif.write(level, subfiletype=1, resolution=(scale, scale), **options)
-    step = max(1, math.ceil(max(mosaic.shape[:2]) / PREVIEW_PX))
-    preview = out_dir / MOSAIC_PREVIEW
-    _save_image(preview, np.asarray(mosaic[::step, ::step]))
-    partial.unlink()
-    return path, preview
+
+
+#: Colours of the mosaic's channels in OME-Zarr's "omero" rendering settings.
+_CHANNEL_COLOURS = (("red", "FF0000"), ("green", "00FF00"), ("blue", "0000FF"))
+_SPACE = {"type": "space", "unit": "micrometer"}
+#: NGFF version written (https://ngff.openmicroscopy.org/0.5/).
+NGFF_VERSION = "0.5"
+
+
+def _write_ome_zarr(
+    path: Path,
+    mosaic: np.ndarray,
+    pixel_size_um: float,
+    n_levels: int,
+    attributes: dict[str, Any],
+    layers: dict[str, np.ndarray],
+) -> None:
+    """The mosaic (height, width, channels) uint8 as an NGFF image (c, y, x) with `n_levels`
+    2x2-mean halvings, `attributes` under `ZARR_ATTRS`, and each (rows, cols) layer as an NGFF
+    image in `ZARR_MAPS`, one pixel per tile, placed over its tile of the mosaic (micrometres).
+    """
+    root = zarr.open_group(path, mode="w", zarr_format=3)
+    levels = [mosaic]
+    for _ in range(n_levels):
+        levels.append(_half(np.asarray(levels[-1])))  # as the OME-TIFF's pyramid
+    channels = [
+        {"label": label, "color": colour, "window": {"start": 0, "end": 255, "min": 0, "max": 255}}
+        for label, colour in _CHANNEL_COLOURS[: mosaic.shape[-1]]
+    ]
+    _write_ngff_image(
+        root,
+        "mosaic",
+        [level.transpose(2, 0, 1) for level in levels],
+        pixel_um=(pixel_size_um, pixel_size_um),
+        origin_um=(0.0, 0.0),
+        omero={"channels": channels, "rdefs": {"model": "color"}},
+    )
+    root.attrs[ZARR_ATTRS] = attributes
+    rows, cols = next(iter(layers.values())).shape
+    tile_um = (mosaic.shape[0] / rows * pixel_size_um, mosaic.shape[1] / cols * pixel_size_um)
+    # A tile's value sits at the centre of its tile of the mosaic (NGFF places pixel centres).
+    centre_um = ((tile_um[0] - pixel_size_um) / 2, (tile_um[1] - pixel_size_um) / 2)
+    maps = root.create_group(ZARR_MAPS)
+    for name, values in layers.items():
+        group = maps.create_group(name)
+        _write_ngff_image(group, name, [np.asarray(values)], tile_um, centre_um)
+        group.attrs[ZARR_ATTRS] = {"layer": name, "unit": "images" if name == "images" else "um"}
+
+
+def _write_ngff_image(
+    group: zarr.Group,
+    name: str,
+    levels: list[np.ndarray],
+    pixel_um: tuple[float, float],
+    origin_um: tuple[float, float],
+    **metadata: Any,
+) -> None:
+    """An NGFF multiscale image in `group`: `levels` (c, y, x) or (y, x), each half the last.
+
+    `pixel_um` is level 0's pixel size (y, x) and `origin_um` the centre of its first pixel.
+    """
+    names = ["c", "y", "x"][-levels[0].ndim :]
+    axes = [{"name": "c", "type": "channel"}] if levels[0].ndim == 3 else []
+    axes += [{"name": axis, **_SPACE} for axis in ("y", "x")]
+    datasets: list[dict[str, Any]] = []
+    for index, level in enumerate(levels):
+        factor = 2**index
+        chunks = (*level.shape[:-2], *(min(side, 2 * TIFF_TILE_PX) for side in level.shape[-2:]))
+        array = group.create_array(
+            f"s{index}", shape=level.shape, dtype=level.dtype, chunks=chunks, dimension_names=names
+        )
+        array[...] = level
+        scale = [size * factor for size in pixel_um]
+        # the centre of a level's first pixel: the mean of the factor x factor it averages
+        translation = [
+            o + (factor - 1) * size / 2 for o, size in zip(origin_um, pixel_um, strict=True)
+        ]
+        channel = [1.0] if level.ndim == 3 else []
+        channel_offset = [0.0] if level.ndim == 3 else []
+        datasets.append(
+            {
+                "path": f"s{index}",
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": channel + scale},
+                    {"type": "translation", "translation": channel_offset + translation},
+                ],
+            }
+        )
+    multiscale: dict[str, Any] = {"name": name, "axes": axes, "datasets": datasets}
+    group.attrs["ome"] = {"version": NGFF_VERSION, "multiscales": [multiscale], **metadata}
 
 
 def _half(image: np.ndarray) -> np.ndarray:
@@ -328,6 +538,7 @@ def write_outputs(
     truth_um: np.ndarray | None,
     dof_um: float,
     wall: WallTimes,
+    mosaic_format: MosaicFormat = MosaicFormat.OME_ZARR,
 ) -> dict[str, Any]:
     """Write the focus map, plots, mosaic and report of a finished scan; return the report."""
     out_dir = record.out_dir
@@ -338,9 +549,7 @@ def write_outputs(
     images = record.images_per_tile(grid)
     title = f"{state.get('strategy')} on {state.get('instrument')}/{state.get('slide')}"
     write_plots(out_dir / PLOTS, focus_map, truth_um, images, title)
-    tile = state.get("tile")
-    if tile is not None:
-        write_mosaic(out_dir, tile["pixel_size_um"], f"focustrack scan: {title}")
+    write_mosaic(record, grid, focus_map, mosaic_format, f"focustrack scan: {title}")
     report = {
         "instrument": state.get("instrument"),
         "slide": state.get("slide"),
@@ -364,7 +573,7 @@ def write_outputs(
         if truth_um is None
         else mean_abs_error_um(focus_map.prior_um, truth_um),
         "wall_time_s": wall.as_dict(),
-        "mosaic": MOSAIC if (out_dir / MOSAIC).exists() else None,
+        "mosaic": mosaic_format.file_name if (out_dir / mosaic_format.file_name).exists() else None,
     }
     (out_dir / REPORT).write_text(json.dumps(report, indent=2) + "\n")
     return report

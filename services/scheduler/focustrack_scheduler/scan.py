@@ -12,10 +12,12 @@ the scan (the message names it), 2 for bad arguments.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -37,7 +39,9 @@ from focustrack_scheduler.engine import (
     ScanRefusedError,
     ServiceUnavailableError,
 )
-from focustrack_scheduler.outputs import ScanRecord, write_outputs
+from focustrack_scheduler.live import LiveScan
+from focustrack_scheduler.live_view import LiveServer, port_number
+from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, write_outputs
 from focustrack_scheduler.plan import (
     FocusUnavailableError,
     ScanRequest,
@@ -76,6 +80,8 @@ class ScanJob:
     token: str | None = None
     progress: bool = True
     label: str = "scan"
+    mosaic_format: MosaicFormat = MosaicFormat.OME_ZARR
+    live: LiveServer | None = None  # the live web view that shows this scan, if any
 
 
 def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
@@ -117,6 +123,8 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         truth: dict[str, np.ndarray | None] = {"um": None}
 
         def start(geometry: SlideGeometry) -> ScanProgress:
+            if job.live is not None:
+                job.live.show(LiveScan.follow(record, geometry.grid, job.label))
             try:  # evaluation only: the plan never sees it
                 truth["um"] = instrument.truth_um(request.slide)
             except rpc.RemoteError as error:
@@ -144,8 +152,16 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
             engine.estimator_call("the map", lambda: estimator.focus_map_file(slide_id, "npy"))
         )
         geometry = engine.geometry
+        if job.live is not None and job.live.scan is not None:
+            job.live.scan.finish()
         return write_outputs(
-            record, geometry.grid, focus_map, truth["um"], geometry.dof_um, engine.wall
+            record,
+            geometry.grid,
+            focus_map,
+            truth["um"],
+            geometry.dof_um,
+            engine.wall,
+            job.mosaic_format,
         )
     finally:
         listener.close()
@@ -200,6 +216,13 @@ def add_scan_options(parser: argparse.ArgumentParser) -> None:
         default=default_retry.estimator_outage_s,
         help="how long to keep retrying an estimator that does not answer",
     )
+    parser.add_argument(
+        "--mosaic-format",
+        type=MosaicFormat,
+        choices=list(MosaicFormat),
+        default=MosaicFormat.OME_ZARR,
+        help="file of the mosaic: mosaic.ome.zarr (ome-zarr, the default) or mosaic.ome.tif",
+    )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
@@ -253,6 +276,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out", type=Path, default=Path("out/scan"), help="output folder (out/scan)"
     )
+    parser.add_argument(
+        "--live-port",
+        type=port_number,
+        help="serve the live web view of the scan on this port of 127.0.0.1 (0: any free one)",
+    )
     add_scan_options(parser)
 
 
@@ -267,13 +295,16 @@ def run(args: argparse.Namespace) -> int:
             token=args.token or None,
             progress=not args.no_progress,
             label=args.strategy,
+            mosaic_format=args.mosaic_format,
         )
     except ValueError as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 2
     try:
-        with session_from_args(args) as session:
-            report = run_scan(session, job)
+        with session_from_args(args) as session, live_server(args.live_port) as live:
+            if live is not None:
+                print(f"live view at {live.url}", flush=True)
+            report = run_scan(session, replace(job, live=live))
     except SCAN_ERRORS as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 1
@@ -283,6 +314,16 @@ def run(args: argparse.Namespace) -> int:
     print(summary_line(report))
     print(f"outputs in {args.out}")
     return 0
+
+
+@contextlib.contextmanager
+def live_server(port: int | None) -> Iterator[LiveServer | None]:
+    """The live web view on 127.0.0.1:`port` while the block runs (None: no view)."""
+    if port is None:
+        yield None
+        return
+    with LiveServer(port=port) as server:
+        yield server
 
 
 def summary_line(report: dict[str, Any]) -> str:

@@ -1,0 +1,163 @@
+"""The simulated microscope as lab devices: try FocusTrack's integrations without hardware.
+
+Both are backed by `focustrack_instrument_sim.microscope.Microscope` through a
+`SimScope`, whose camera renders the tile under the objective at the focus z:
+- `simulated_core(scope)`: a pymmcore-plus `UniMMCore` with three pure-Python
+  devices, a camera ("Camera"), an XY stage ("XY") and a focus stage ("Z"); no
+  Micro-Manager installation is needed;
+- `simulated_ophyd(scope)`: ophyd's simulated motors x, y, z (`ophyd.sim.SynAxis`,
+  in um) and a camera (`ophyd.sim.SynSignal`) that images where they stand.
+
+Stage coordinates are those of a useq grid centred on (0, 0): x grows with the
+column, y shrinks with the row (useq's `GridRowsColumns` puts row 0 at the top),
+`pitch_um` apart, so grid position (row, col) images the simulator's tile (row, col).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from ophyd.sim import SynAxis, SynSignal
+from pymmcore_plus.experimental.unicore import (
+    SimpleCameraDevice,
+    StageDevice,
+    UniMMCore,
+    XYStageDevice,
+)
+
+from focustrack_instrument_sim.microscope import Microscope
+
+#: Which colour channel the monochrome camera sees (green: the sharpest PSF of the three).
+GREEN = 1
+
+
+@dataclass
+class SimScope:
+    """The simulated microscope and where its stages are (um); counts the frames snapped."""
+
+    microscope: Microscope
+    slide: str
+    x_um: float = 0.0
+    y_um: float = 0.0
+    z_um: float = 0.0
+    exposure_ms: float = 10.0
+    n_frames: int = 0
+
+    def tile(self) -> tuple[int, int]:
+        """The (row, col) of the tile under the objective (see the module docstring)."""
+        grid = self.microscope.slides[self.slide].grid
+        col = round(self.x_um / grid.pitch_um + (grid.cols - 1) / 2)
+        row = round((grid.rows - 1) / 2 - self.y_um / grid.pitch_um)
+        return row, col
+
+    def frame(self) -> np.ndarray:
+        """The camera frame (height, width) uint16 at the stages' position."""
+        row, col = self.tile()
+        stack = self.microscope.acquire(
+            self.slide, row, col, self.z_um, 1.0, 1, self.exposure_ms / 1000.0
+        )
+        self.n_frames += 1
+        return stack.pixels[0, ..., GREEN]
+
+    def truth_um(self) -> np.ndarray:
+        """The true focus of every tile, (rows, cols) in um (evaluation only)."""
+        return self.microscope.truth_um(self.slide)[0]
+
+
+class SimCamera(SimpleCameraDevice):
+    def __init__(self, scope: SimScope) -> None:
+        super().__init__()
+        self.scope = scope
+
+    def sensor_shape(self) -> tuple[int, int]:
+        return self.scope.microscope.spec.shape
+
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.uint16)
+
+    def get_exposure(self) -> float:
+        return self.scope.exposure_ms
+
+    def set_exposure(self, exposure: float) -> None:
+        self.scope.exposure_ms = exposure
+
+    def snap(self, buffer: np.ndarray) -> Mapping[str, object]:
+        buffer[:] = self.scope.frame()
+        return {"z_um": self.scope.z_um}
+
+
+class SimXYStage(XYStageDevice):
+    def __init__(self, scope: SimScope) -> None:
+        super().__init__()
+        self.scope = scope
+
+    def set_position_um(self, x: float, y: float) -> None:
+        self.scope.x_um, self.scope.y_um = x, y
+
+    def get_position_um(self) -> tuple[float, float]:
+        return self.scope.x_um, self.scope.y_um
+
+    def set_origin_x(self) -> None:
+        self.scope.x_um = 0.0
+
+    def set_origin_y(self) -> None:
+        self.scope.y_um = 0.0
+
+    def home(self) -> None:
+        self.set_position_um(0.0, 0.0)
+
+    def stop(self) -> None:
+        """Moves are instantaneous: nothing to stop."""
+
+
+class SimZStage(StageDevice):
+    def __init__(self, scope: SimScope) -> None:
+        super().__init__()
+        self.scope = scope
+
+    def set_position_um(self, val: float) -> None:
+        self.scope.z_um = val
+
+    def get_position_um(self) -> float:
+        return self.scope.z_um
+
+    def set_origin(self) -> None:
+        self.scope.z_um = 0.0
+
+    def home(self) -> None:
+        self.scope.z_um = 0.0
+
+    def stop(self) -> None:
+        """Moves are instantaneous: nothing to stop."""
+
+
+def simulated_core(scope: SimScope) -> UniMMCore:
+    """A UniMMCore whose camera, XY stage and focus stage are `scope`'s."""
+    core = UniMMCore()
+    for label, device in (
+        ("Camera", SimCamera(scope)),
+        ("XY", SimXYStage(scope)),
+        ("Z", SimZStage(scope)),
+    ):
+        core.loadPyDevice(label, device)
+        core.initializeDevice(label)
+    core.setCameraDevice("Camera")
+    core.setXYStageDevice("XY")
+    core.setFocusDevice("Z")
+    core.setAutoShutter(False)  # there is no shutter to open and close
+    return core
+
+
+def simulated_ophyd(scope: SimScope) -> tuple[SynSignal, SynAxis, SynAxis, SynAxis]:
+    """(camera, x, y, z): ophyd's simulated motors (um) and a camera imaging where they stand."""
+    x, y, z = (SynAxis(name=name, egu="um") for name in ("x", "y", "z"))
+
+    def image() -> np.ndarray:
+        scope.x_um, scope.y_um, scope.z_um = x.position, y.position, z.position
+        return scope.frame()
+
+    scope.n_frames -= 1  # SynSignal reads its function once when it is made
+    camera = SynSignal(func=image, name="camera")
+    return camera, x, y, z

@@ -1,0 +1,163 @@
+"""Predictive focus for lab software that drives its own microscope: one tile at a time.
+
+The lab's acquisition loop visits tiles in the estimator's serpentine order and,
+at each tile, calls `FocusTracker.focus(row, col, acquire)`. The tracker asks the
+estimator (over REST, `focustrack_client`) for the tile's z-range, has `acquire`
+take the stack, measures its focus here with the focus service's pure functions
+(`focustrack_focus.pipeline.focus_stack`), posts the measurement, takes another
+stack when the estimator asks for one (an edge peak, a flat curve), and returns
+the height to image the tile at: the estimator's posterior, else the measured
+best focus, else the prediction. The pymmcore-plus engine (`mmcore.py`) and the
+Bluesky plan (`bluesky.py`) are built on it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Generator
+from dataclasses import dataclass
+
+import numpy as np
+
+from focustrack_client import EstimatorClient
+from focustrack_client.models import FocusFlag, MeasurementIn, Next, SlideCreate
+from focustrack_core.domain import Measurement
+from focustrack_focus.pipeline import FocusResult, FocusSettings, focus_stack
+
+#: Takes a z-stack at the current tile: z of every frame (n,) in um -> frames (n, H, W[, C]).
+AcquireStack = Callable[[np.ndarray], np.ndarray]
+
+
+class TileOrderError(RuntimeError):
+    """The lab visited a tile other than the one the estimator expects next."""
+
+
+@dataclass(frozen=True)
+class TileFocus:
+    """What the tracker found at one tile (heights in um).
+
+    z_um: where to image the tile. n_frames: frames acquired for focus on it, every
+    stack counted. last: the focus result of its last measured stack (the through-focus
+    curve, best z, sigma, flags), None when the estimator only asked for an image.
+    """
+
+    row: int
+    col: int
+    z_um: float
+    sigma_um: float | None
+    n_frames: int
+    last: FocusResult | None
+
+
+#: `FocusTracker.tile`: yields the z (n,) um of each stack, is sent its frames, returns the focus.
+TileSteps = Generator[np.ndarray, np.ndarray, TileFocus]
+
+
+class FocusTracker:
+    """One slide at the estimator, focused tile by tile (see the module docstring)."""
+
+    def __init__(
+        self,
+        estimator: EstimatorClient,
+        slide_id: str,
+        settings: FocusSettings | None = None,
+    ) -> None:
+        self.estimator = estimator
+        self.slide_id = slide_id
+        self.settings = settings or FocusSettings()
+        self.tiles: list[TileFocus] = []
+
+    @classmethod
+    def create(
+        cls,
+        estimator: EstimatorClient,
+        slide: SlideCreate,
+        settings: FocusSettings | None = None,
+    ) -> FocusTracker:
+        """A tracker of a new estimator slide scanned as `slide` says."""
+        return cls(estimator, estimator.create_slide(slide).id, settings)
+
+    @property
+    def n_frames(self) -> int:
+        """Frames acquired for focus so far, on every tile."""
+        return sum(tile.n_frames for tile in self.tiles)
+
+    def focus(self, row: int, col: int, acquire: AcquireStack) -> TileFocus:
+        """Every stack the estimator asks of tile (row, col), taken by `acquire`; where to image it.
+
+        Raises TileOrderError when the estimator expects another tile (or none) first.
+        """
+        steps = self.tile(row, col)
+        try:
+            z_um = next(steps)
+            while True:
+                z_um = steps.send(acquire(z_um))
+        except StopIteration as done:
+            return done.value
+
+    def tile(self, row: int, col: int) -> TileSteps:
+        """`focus` as a generator, for plans that acquire by yielding (Bluesky's).
+
+        Yields the z of every frame of each stack to take, (n,) in um; is sent its
+        frames (n, H, W[, C]); returns the TileFocus.
+        """
+        n_frames = 0
+        last: FocusResult | None = None
+        z_um: float | None = None
+        sigma_um: float | None = None
+        while (step := self.estimator.next(self.slide_id)).row == row and step.col == col:
+            frames_z_um = _frames_z_um(step)
+            frames = yield frames_z_um
+            n_frames += len(frames_z_um)
+            measurement = Measurement(None)
+            if step.measure:
+                last = focus_stack(frames, frames_z_um, self.settings)
+                measurement = last.measurement()
+            outcome = self.estimator.measure(
+                self.slide_id,
+                MeasurementIn(
+                    row=row,
+                    col=col,
+                    sequence=_required(step.sequence),
+                    z_um=measurement.z_um,
+                    sigma_um=measurement.sigma_um,
+                    flags=[FocusFlag(flag.value) for flag in sorted(measurement.flags)],
+                ),
+            )
+            z_um, sigma_um = _best(
+                (outcome.posterior_um, outcome.posterior_sigma_um),
+                (measurement.z_um, measurement.sigma_um),
+                (step.predicted_z_um, step.predicted_sigma_um),
+                (step.z_center_um, None),
+            )
+        if z_um is None:
+            expected = "nothing: the scan is done" if step.done else f"({step.row}, {step.col})"
+            raise TileOrderError(
+                f"the estimator expects {expected} next, not tile ({row}, {col}): visit the "
+                "tiles in its serpentine order (row 0 left to right, row 1 right to left, ...)"
+            )
+        tile = TileFocus(row, col, z_um, sigma_um, n_frames, last)
+        self.tiles.append(tile)
+        return tile
+
+
+def _required(value: int | None) -> int:
+    if value is None:
+        raise ValueError("the estimator's next acquisition has no sequence number")
+    return value
+
+
+def _frames_z_um(step: Next) -> np.ndarray:
+    """The z of every frame of the acquisition `step` names, (n_frames,) in um."""
+    low_um, step_um, n = step.z_low_um, step.z_step_um, step.n_frames
+    if low_um is None or step_um is None or n is None:
+        raise ValueError(f"the estimator's next acquisition has no z-range: {step}")
+    return low_um + step_um * np.arange(n)
+
+
+def _best(*candidates: tuple[float | None, float | None]) -> tuple[float | None, float | None]:
+    """The first (z_um, sigma_um) whose z is a finite number; (None, None) if none is."""
+    for z_um, sigma_um in candidates:
+        if z_um is not None and math.isfinite(z_um):
+            return z_um, sigma_um
+    return None, None

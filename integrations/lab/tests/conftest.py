@@ -1,0 +1,35 @@
+"""A real estimator service (uvicorn, SQLite) on a free loopback port, and a small slide."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from focustrack.lab_sim import SimScope
+from focustrack_client import EstimatorClient
+from focustrack_core.wire.session import free_port
+from focustrack_estimator.service import spawn
+from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
+from focustrack_instrument_sim.surfaces import SurfaceSpec
+
+
+@pytest.fixture
+def estimator(tmp_path: Path) -> Iterator[EstimatorClient]:
+    port = free_port()
+    process = spawn(tmp_path / "estimator.sqlite", port, timeout_s=120)
+    try:
+        with EstimatorClient(f"http://127.0.0.1:{port}") as client:
+            yield client
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+@pytest.fixture
+def scope() -> SimScope:
+    """A 6x6 slide under a microscope with 256 x 256 frames."""
+    slides = slides_from_seed(7, 1, SurfaceSpec(6, 6), pitch_um=200.0)
+    spec = MicroscopeSpec(height=256, width=256)
+    return SimScope(Microscope(slides, spec), "slide-0")

@@ -1,0 +1,83 @@
+"""The Bluesky plan on a real RunEngine with ophyd.sim motors, against a real estimator."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from bluesky import RunEngine
+from bluesky.callbacks import LiveTable
+
+from focustrack.lab_sim import SimScope, simulated_ophyd
+from focustrack_client import EstimatorClient
+from focustrack_client.models import Grid, SlideCreate
+from focustrack_lab.bluesky import STACK_STREAM, focustrack_grid
+from focustrack_lab.tracker import FocusTracker
+
+
+@pytest.mark.slow
+def test_the_plan_images_every_tile_in_focus_and_the_documents_carry_the_focus_map(
+    estimator: EstimatorClient, scope: SimScope, capsys: pytest.CaptureFixture[str]
+) -> None:
+    grid = scope.microscope.slides[scope.slide].grid
+    dof_um = scope.microscope.spec.optics.depth_of_field_um
+    camera, x, y, z = simulated_ophyd(scope)
+    slide = SlideCreate(
+        strategy="kf-2d",
+        grid=Grid(rows=grid.rows, cols=grid.cols, pitch_um=grid.pitch_um),
+        dof_um=dof_um,
+        noise_sigma_um=0.1,
+        start_sigma_um=5.0,
+    )
+    tracker = FocusTracker.create(estimator, slide)
+    documents: list[tuple[str, dict[str, Any]]] = []
+    RE = RunEngine({})
+    RE.subscribe(lambda name, document: documents.append((name, document)))
+    columns = ["focustrack_row", "focustrack_col", "focustrack_z_um", "focustrack_sigma_um"]
+    RE.subscribe(LiveTable(columns))  # Bluesky's own callback sees the focus map
+    # Tile (row, col) at the simulator's stage coordinates (lab_sim: centred on 0, y up).
+    x0_um = -(grid.cols - 1) / 2 * grid.pitch_um
+    y0_um = (grid.rows - 1) / 2 * grid.pitch_um
+    (run_uid,) = RE(
+        focustrack_grid(
+            camera,
+            x,
+            y,
+            z,
+            tracker,
+            rows=grid.rows,
+            cols=grid.cols,
+            pitch_um=grid.pitch_um,
+            x0_um=x0_um,
+            y0_um=y0_um,
+        )
+    )
+
+    names = [name for name, _ in documents]
+    assert names[0] == "start" and names[-1] == "stop"
+    assert documents[-1][1]["exit_status"] == "success" and documents[-1][1]["run_start"] == run_uid
+    streams = {doc["uid"]: doc["name"] for name, doc in documents if name == "descriptor"}
+    events = [
+        (streams[doc["descriptor"]], doc["data"]) for name, doc in documents if name == "event"
+    ]
+    primary = [data for stream, data in events if stream == "primary"]
+    stacks = [data for stream, data in events if stream == STACK_STREAM]
+    assert len(primary) == grid.n_tiles
+    assert len(stacks) == tracker.n_frames
+    truth_um, _ = scope.microscope.truth_um(scope.slide)
+    for data, tile in zip(primary, grid.serpentine, strict=True):
+        assert (data["focustrack_row"], data["focustrack_col"]) == (tile.row, tile.col)
+        assert data["z"] == pytest.approx(data["focustrack_z_um"])
+        assert abs(data["focustrack_z_um"] - truth_um[tile.row, tile.col]) <= dof_um / 2
+        assert np.asarray(data["camera"]).shape == scope.microscope.spec.shape
+    # FocusTrack's stacks narrow as it learns: far fewer frames than the first tile's at each.
+    assert tracker.n_frames < tracker.tiles[0].n_frames * grid.n_tiles / 2
+    # The estimator's map agrees with what the documents said.
+    posterior = estimator.focus_map(tracker.slide_id).posterior_um
+    for data in primary:
+        assert posterior[data["focustrack_row"]][data["focustrack_col"]] == pytest.approx(
+            data["focustrack_z_um"]
+        )
+    table = capsys.readouterr().out
+    assert "focustrack_z_um" in table and table.count("|") > grid.n_tiles

@@ -1,0 +1,70 @@
+"""A 6x6 useq MDA grid on a real UniMMCore, focused by FocusTrack against a real estimator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import useq
+
+from focustrack.lab_sim import SimScope, simulated_core
+from focustrack_client import EstimatorClient
+from focustrack_lab.mmcore import FocusTrackEngine
+from focustrack_lab.tracker import TileOrderError
+
+START_SIGMA_UM = 5.0
+
+
+@pytest.mark.slow
+def test_an_mda_grid_is_imaged_in_focus_with_fewer_frames_than_autofocus_per_position(
+    estimator: EstimatorClient, scope: SimScope
+) -> None:
+    dof_um = scope.microscope.spec.optics.depth_of_field_um
+    slide = scope.microscope.slides[scope.slide].grid
+    rows, cols, pitch_um = slide.rows, slide.cols, slide.pitch_um
+    core = simulated_core(scope)
+    engine = FocusTrackEngine(
+        core,
+        estimator,
+        strategy="kf-2d",
+        dof_um=dof_um,
+        noise_sigma_um=0.1,
+        start_sigma_um=START_SIGMA_UM,
+    )
+    core.mda.set_engine(engine)
+    kept: list[tuple[int, float, np.ndarray]] = []  # (grid index, z um, image) per MDA frame
+
+    @core.mda.events.frameReady.connect
+    def keep(image: np.ndarray, event: useq.MDAEvent, _meta: object) -> None:
+        kept.append((event.index["g"], scope.z_um, image))
+
+    grid = useq.GridRowsColumns(rows=rows, columns=cols, fov_width=pitch_um, fov_height=pitch_um)
+    core.mda.run(useq.MDASequence(grid_plan=grid))
+
+    assert engine.tracker is not None
+    tiles = engine.tracker.tiles
+    assert [(tile.row, tile.col) for tile in tiles] == [(t.row, t.col) for t in slide.serpentine]
+    assert len(kept) == rows * cols
+    truth_um = scope.truth_um()
+    for (_, z_um, image), tile in zip(kept, tiles, strict=True):
+        assert z_um == tile.z_um
+        assert image.shape == scope.microscope.spec.shape and image.std() > 0
+        assert abs(z_um - truth_um[tile.row, tile.col]) <= dof_um / 2, (
+            tile,
+            truth_um[tile.row, tile.col],
+        )
+    # Autofocus on every position would take the first position's stack (the prior's
+    # whole width) at each of them; FocusTrack narrows the stacks as it learns.
+    autofocus_frames = tiles[0].n_frames * rows * cols
+    assert engine.tracker.n_frames == scope.n_frames - len(kept)
+    assert engine.tracker.n_frames < autofocus_frames / 2
+    frames_per_position = engine.tracker.n_frames / len(kept)
+    print(f"FocusTrack {frames_per_position:.1f} frames/position, autofocus {tiles[0].n_frames}")
+
+    # The scan is done: another visit is refused, naming why.
+    with pytest.raises(TileOrderError, match="the scan is done"):
+        engine.tracker.focus(0, 0, lambda z_um: np.zeros((len(z_um), 8, 8)))
+    # FocusTrack chooses z: a sequence with a z plan is refused before anything moves.
+    with pytest.raises(ValueError, match="drop the z_plan"):
+        engine.setup_sequence(
+            useq.MDASequence(grid_plan=grid, z_plan=useq.ZRangeAround(range=4, step=1))
+        )

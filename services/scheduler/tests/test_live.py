@@ -1,0 +1,75 @@
+"""The live view's state (pure) and its server (real uvicorn on loopback, real HTTP)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
+from focustrack_core.geometry import ScanGrid
+from focustrack_scheduler.live import LiveScan
+from focustrack_scheduler.live_view import LiveServer, port_number
+from focustrack_scheduler.outputs import ScanRecord
+
+GRID = ScanGrid(200, 200)  # the size the page must keep up with
+
+
+def acquire_and_measure(record: ScanRecord, index: int, row: int, col: int, z_um: float) -> None:
+    acquisition = Acquisition(index, row, col, ZRange(z_um - 1.0, 0.5, 5), Purpose.SCAN, True)
+    record.acquired(acquisition, 5, 1.0)
+    outcome = Outcome(row, col, True, posterior_um=z_um + 0.01, posterior_sigma_um=0.2)
+    curve = ([z_um - 1.0, z_um - 0.5, z_um, z_um + 0.5, z_um + 1.0], [1.0, 2.0, 3.0, 2.0, 1.0])
+    record.measurement(acquisition, Measurement(z_um, 0.3), outcome, curve)
+
+
+def test_the_state_follows_the_record_and_streams_only_what_changed(tmp_path: Path) -> None:
+    record = ScanRecord(tmp_path)
+    acquire_and_measure(record, 0, 0, 0, 1.5)
+    live = LiveScan.follow(record, GRID, "kf-2d")  # what was logged before is there
+    first = live.changes()
+    assert first["tiles"] == [[0, 0, 1.51, 0.2, 5, False, []]]
+    acquire_and_measure(record, 1, 0, 1, 2.5)
+    flat = Acquisition(2, 0, 2, ZRange(0.0, 0.5, 9), Purpose.SCAN, True)
+    record.acquired(flat, 9, 1.0)
+    flags = frozenset({FocusFlag.FLAT})
+    record.measurement(flat, Measurement(None, flags=flags), Outcome(0, 2, False), None)
+    update = live.changes(first["version"])
+    assert [tile[:2] for tile in update["tiles"]] == [[0, 1], [0, 2]]  # only the new tiles
+    assert update["tiles"][1] == [0, 2, None, None, 9, False, ["flat"]]
+    assert update["curve"]["row"] == 0 and update["curve"]["col"] == 1  # the latest curve
+    assert update["images"] == 19 and update["tiles_total"] == 40_000
+    assert live.wait(update["version"], 0.01) == update["version"]  # nothing newer: times out
+
+
+def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: Path) -> None:
+    record = ScanRecord(tmp_path)
+    with LiveServer() as server:
+        assert httpx.get(server.url + "live/state").status_code == 503  # no scan yet
+        server.show(LiveScan.follow(record, GRID, "kf-2d"))
+        acquire_and_measure(record, 0, 3, 4, 0.7)
+        page = httpx.get(server.url)
+        assert page.status_code == 200 and "EventSource" in page.text
+        assert httpx.get(server.url + "live/state", params={"since": -1}).status_code == 422
+        state = httpx.get(server.url + "live/state").json()
+        assert state["tiles"] == [[3, 4, 0.71, 0.2, 5, False, []]]
+        with httpx.stream("GET", server.url + "live/events", timeout=10) as events:
+            lines = events.iter_lines()
+            assert next(lines) == "event: update"
+            data = json.loads(next(lines).removeprefix("data: "))
+            assert data["since"] == 0 and data["tiles"] == state["tiles"]
+            record.keep(GRID, 3, 4, 0.7, np.zeros((2, 2, 3)), 8)
+            assert next(lines) == "" and next(lines) == "event: update"
+            data = json.loads(next(lines).removeprefix("data: "))
+            assert data["tiles"] == [[3, 4, 0.71, 0.2, 5, True, []]] and data["tiles_done"] == 1
+
+
+@pytest.mark.parametrize("text", ["-1", "65536", "eighty"])
+def test_a_bad_live_port_is_a_usage_error(text: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError, match="a port is 0"):
+        port_number(text)
+    assert port_number("0") == 0 and port_number("8200") == 8200

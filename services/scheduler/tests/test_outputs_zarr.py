@@ -1,0 +1,131 @@
+"""The OME-Zarr mosaic: read with ome-zarr-py's reader, its metadata checked against the record."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+import zarr
+from ome_zarr.io import parse_url
+from ome_zarr.reader import Multiscales, Reader
+
+from focustrack_core.domain import (
+    Acquisition,
+    FocusFlag,
+    FocusMap,
+    Measurement,
+    Outcome,
+    Purpose,
+    ZRange,
+)
+from focustrack_core.geometry import ScanGrid
+from focustrack_scheduler import outputs
+from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, WallTimes, to_uint8
+
+GRID = ScanGrid(2, 3, pitch_um=150.0)
+TILE_PX = 256  # a 512 x 768 mosaic: one 2x halving on top of full resolution
+BIT_DEPTH = 12
+PIXEL_UM = 0.25
+
+
+def scanned_record(out_dir: Path) -> tuple[ScanRecord, np.ndarray]:
+    """A record of a scan of GRID: tile (0, 1) retried after an edge, tile (1, 2) flat."""
+    rng = np.random.default_rng(3)
+    record = ScanRecord(out_dir)
+    record.save_state(strategy="kf-2d", slide="slide-0", instrument="sim")
+    record.save_state(
+        tile={"height": TILE_PX, "width": TILE_PX, "channels": 3, "pixel_size_um": PIXEL_UM}
+    )
+    images = rng.integers(0, 2**BIT_DEPTH, (*GRID.shape, TILE_PX, TILE_PX, 3), dtype=np.uint16)
+    index = 0
+    for tile in GRID.serpentine:
+        row, col = tile.row, tile.col
+        measurements = [Measurement(10.0 + row + 0.1 * col, 0.2 + 0.01 * col)]
+        if (row, col) == (0, 1):
+            measurements.insert(0, Measurement(8.0, 0.3, frozenset({FocusFlag.EDGE_LOW})))
+        if (row, col) == (1, 2):
+            measurements = [Measurement(None, None, frozenset({FocusFlag.FLAT}))]
+        for attempt, measurement in enumerate(measurements):
+            purpose = Purpose.SCAN if attempt == 0 else Purpose.RETRY
+            acquisition = Acquisition(index, row, col, ZRange(5.0, 0.5, 9), purpose, True)
+            record.acquired(acquisition, 9, 1.5)
+            outcome = Outcome(row, col, measurement.z_um is not None, posterior_um=measurement.z_um)
+            record.measurement(acquisition, measurement, outcome, None)
+            index += 1
+        record.keep(GRID, row, col, 10.0 + row, images[row, col], BIT_DEPTH)
+    return record, images
+
+
+def focus_map() -> FocusMap:
+    rng = np.random.default_rng(4)
+    layers = [rng.normal(10.0, 1.0, GRID.shape) for _ in range(5)]
+    layers[2][1, 2] = np.nan  # no posterior where the curve was flat
+    return FocusMap(*layers)
+
+
+def write(tmp_path: Path, mosaic_format: MosaicFormat) -> tuple[dict, ScanRecord, np.ndarray]:
+    record, images = scanned_record(tmp_path)
+    report = outputs.write_outputs(record, GRID, focus_map(), None, 1.0, WallTimes(), mosaic_format)
+    return report, record, images
+
+
+def test_the_ome_zarr_mosaic_opens_with_ome_zarr_py_and_holds_the_scan_record(
+    tmp_path: Path,
+) -> None:
+    report, record, images = write(tmp_path, MosaicFormat.OME_ZARR)
+    path = tmp_path / outputs.MOSAIC_ZARR
+    assert report["mosaic"] == outputs.MOSAIC_ZARR
+    assert not (tmp_path / outputs.PARTIAL_MOSAIC).exists()
+
+    node = next(iter(Reader(parse_url(path))()))
+    assert any(isinstance(spec, Multiscales) for spec in node.specs)
+    levels = [np.asarray(level) for level in node.data]
+    assert [level.shape for level in levels] == [(3, 512, 768), (3, 256, 384)]
+    expected = to_uint8(images, BIT_DEPTH).transpose(4, 0, 2, 1, 3).reshape(3, 512, 768)
+    np.testing.assert_array_equal(levels[0], expected)
+    axes = node.metadata["axes"]
+    assert [axis["name"] for axis in axes] == ["c", "y", "x"]
+    assert axes[1]["unit"] == "micrometer"
+    assert node.metadata["coordinateTransformations"][0][0]["scale"] == [1.0, PIXEL_UM, PIXEL_UM]
+
+    attributes = zarr.open_group(path, mode="r").attrs[outputs.ZARR_ATTRS]
+    assert attributes["grid"] == {"rows": 2, "cols": 3, "pitch_um": 150.0}
+    assert attributes["scan"]["strategy"] == "kf-2d"
+    tiles = {(tile["row"], tile["col"]): tile for tile in attributes["tiles"]}
+    assert len(tiles) == GRID.n_tiles
+    for (row, col), measured in record.measured.items():
+        tile = tiles[(row, col)]
+        assert tile["best_z_um"] == measured["z_um"]
+        assert tile["sigma_um"] == measured["sigma_um"]
+        assert tile["flags"] == measured["flags"]
+        assert tile["z_used_um"] == record.kept[(row, col)]
+        assert tile["stage_x_um"] == col * 150.0
+    assert tiles[(0, 1)]["images"] == 18 and tiles[(0, 0)]["images"] == 9  # the retry counts
+    assert tiles[(0, 1)]["flags"] == [] and tiles[(0, 1)]["best_z_um"] == pytest.approx(10.1)
+    assert tiles[(1, 2)]["flags"] == ["flat"] and tiles[(1, 2)]["best_z_um"] is None
+    assert tiles[(1, 2)]["posterior_um"] is None  # JSON has no NaN
+
+    layers = {
+        "posterior_um": focus_map().posterior_um,
+        "posterior_sigma_um": focus_map().posterior_sigma_um,
+    }
+    for name, values in layers.items():
+        assert attributes["maps"][name] == f"{outputs.ZARR_MAPS}/{name}"
+        layer = next(iter(Reader(parse_url(path / outputs.ZARR_MAPS / name))()))
+        np.testing.assert_array_equal(np.asarray(layer.data[0]), values)
+        transform = layer.metadata["coordinateTransformations"][0]
+        tile_um = TILE_PX * PIXEL_UM  # one value per tile, centred on its tile of the mosaic
+        assert transform[0]["scale"] == [tile_um, tile_um]
+        assert transform[1]["translation"] == [(tile_um - PIXEL_UM) / 2] * 2
+    images_map = next(iter(Reader(parse_url(path / outputs.ZARR_MAPS / "images"))()))
+    np.testing.assert_array_equal(np.asarray(images_map.data[0]), record.images_per_tile(GRID))
+
+
+def test_ome_tiff_stays_an_option(tmp_path: Path) -> None:
+    report, _, _ = write(tmp_path, MosaicFormat.OME_TIFF)
+    assert report["mosaic"] == outputs.MOSAIC
+    assert not (tmp_path / outputs.MOSAIC_ZARR).exists()
+    with tifffile.TiffFile(tmp_path / outputs.MOSAIC) as tif:
+        assert tif.is_ome and tif.series[0].shape == (512, 768, 3)
