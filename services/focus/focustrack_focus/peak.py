@@ -69,6 +69,12 @@ class PeakSettings:
     consistency_sigmas: a wider fit is kept while its vertex lies within this many noise
         sigmas of every narrower fit's vertex (module docstring).
     model_floor_steps: the sampling part of sigma, in z steps (module docstring).
+    model_width_share: the shape part of sigma, as a share of the fitted Gaussian's std: a
+        metric's peak need not sit where a person sees focus (module docstring).
+    min_peak_sigma_um: the narrowest real peak (a Gaussian's std, um: about half the
+        optics' depth of field); a one-frame excursion narrower than that is an outlier
+        (`despike`).
+    ambiguous_below: a chosen peak whose probability is below this is flagged ambiguous.
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -78,6 +84,21 @@ class PeakSettings:
     max_reach: int = 3
     consistency_sigmas: float = 2.0  # fitted on simulator seeds 100-102 (docs/focus.md)
     model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
+    model_width_share: float = 0.0
+    min_peak_sigma_um: float = 0.4
+    ambiguous_below: float = 0.75
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The estimator's belief about a tile's focus before its stack: mean and std, um."""
+
+    z_um: float
+    sigma_um: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.z_um) and math.isfinite(self.sigma_um) and self.sigma_um > 0):
+            raise ValueError(f"a prior needs a finite z and a sigma > 0, got {self}")
 
 
 @dataclass(frozen=True)
@@ -85,16 +106,30 @@ class PeakFit:
     """The focus read from a curve, in um. z_um and sigma_um are None where there is none.
 
     For an edge peak z_um is the edge frame's z and sigma_um None: the focus is
-    beyond the range, in the direction the flag says.
+    beyond the range, in the direction the flag says. With more than one peak,
+    runner_up_z_um is the z of the next most likely one (an end frame when that
+    peak lies beyond the range) and chosen_probability the chosen peak's share of
+    the weights (`_candidates`); on a single peak they are None and 1.0.
     """
 
     z_um: float | None
     sigma_um: float | None
     flags: frozenset[FocusFlag]
+    runner_up_z_um: float | None = None
+    chosen_probability: float | None = None
 
     @property
     def is_observation(self) -> bool:
         return self.sigma_um is not None
+
+    def posterior(self, prior: Prior) -> tuple[float, float] | None:
+        """(z, sigma) in um of the prior updated with this measurement (the product of two
+        Gaussians); None where this fit is no measurement."""
+        if self.z_um is None or self.sigma_um is None:
+            return None
+        precision = 1.0 / prior.sigma_um**2 + 1.0 / self.sigma_um**2
+        z = (prior.z_um / prior.sigma_um**2 + self.z_um / self.sigma_um**2) / precision
+        return z, math.sqrt(1.0 / precision)
 
 
 def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,9 +179,16 @@ def score_noise(scores: np.ndarray) -> tuple[float, bool]:
 
 
 def find_peak(
-    z_um: np.ndarray, scores: np.ndarray, settings: PeakSettings | None = None
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    settings: PeakSettings | None = None,
+    prior: Prior | None = None,
 ) -> PeakFit:
-    """Best focus from a curve: z (n,) in um, scores (n,). See the module docstring."""
+    """Best focus from a curve: z (n,) in um, scores (n,). See the module docstring.
+
+    `prior`: the estimator's belief about the focus before this stack (um); it
+    weighs the choice between peaks, not the fit of the chosen one.
+    """
     settings = settings or PeakSettings()
     z, s = validate_curve(z_um, scores)
     top, span = abs(float(s.max())), float(s.max() - s.min())
@@ -157,26 +199,109 @@ def find_peak(
     noise, clean = score_noise(s)
     if span <= settings.min_contrast * top or (clean and span <= settings.min_snr * noise):
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
-    return _find_max(z, s, noise, settings)
+    s = despike(z, s, noise, settings.min_peak_sigma_um)
+    return _read_peaks(z, s, noise, settings, prior)
 
 
-def _find_max(z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings) -> PeakFit:
+def _outlier_allowance(step_over_width: float) -> tuple[float, float]:
+    """The largest residual, as a share of the peak's height, that a Gaussian peak of std w
+    sampled every `step_over_width` * w leaves against the predictions `despike` uses:
+    (interior: cubic interpolation from two frames each side; end: linear extrapolation
+    from the next two frames), over every sampling phase."""
+    phases = np.linspace(-4.0, 4.0, 161)
+    offsets = step_over_width * np.arange(-2, 3)
+    g = np.exp(-0.5 * (phases[:, None] + offsets[None, :]) ** 2)  # (phase, frame -2..2)
+    interior = g[:, 2] - (-g[:, 0] + 4 * g[:, 1] + 4 * g[:, 3] - g[:, 4]) / 6.0
+    end = g[:, 2] - (2 * g[:, 3] - g[:, 4])
+    return float(np.abs(interior).max()), float(np.abs(end).max())
+
+
+def despike(z: np.ndarray, s: np.ndarray, noise: float, min_peak_sigma_um: float) -> np.ndarray:
+    """The curve (n,) with one-frame outliers (spikes and dips) replaced by their prediction.
+
+    A frame is an outlier when it departs from what its neighbours predict (cubic
+    interpolation from two frames each side; at an end, linear extrapolation from the
+    next two) by more than any real peak could make it: a peak is at least as wide
+    as the optics' depth of field (a Gaussian of std `min_peak_sigma_um`), and the
+    largest residual such a peak leaves is `_outlier_allowance` times its height, at
+    most the curve's range; and by more than 4 noise sigmas. Where the frames are as
+    far apart as the depth of field, a one-frame peak is possible and nothing is
+    removed. Curves of fewer than 5 frames are returned as they are.
+    """
+    if s.size < 5:
+        return s
+    step_um = float(np.median(np.diff(z)))
+    interior_share, end_share = _outlier_allowance(step_um / min_peak_sigma_um)
     span = float(s.max() - s.min())
-    peaks, props = find_peaks(s, prominence=max(settings.multi_peak_share * span, 3.0 * noise))
-    flags = {FocusFlag.MULTI_PEAK} if peaks.size > 1 else set()
+    predicted = np.full(s.size, np.nan)
+    predicted[2:-2] = (-s[:-4] + 4 * s[1:-3] + 4 * s[3:-1] - s[4:]) / 6.0
+    predicted[0], predicted[-1] = 2 * s[1] - s[2], 2 * s[-2] - s[-3]
+    allowance = np.full(s.size, max(interior_share * span, 4.0 * 1.39 * noise))
+    # white noise: the interpolation residual has std 1.39 noise, the extrapolation 2.45
+    allowance[[0, -1]] = max(end_share * span, 4.0 * 2.45 * noise)
+    outliers = np.abs(s - predicted) > allowance  # NaN (frames 1 and n-2) compares False
+    if not outliers.any():
+        return s
+    return np.where(outliers, predicted, s)
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """A peak of the curve: frame index, prominence (score units), weight in the choice."""
+
+    index: int
+    prominence: float
+    weight: float
+
+
+def _candidates(
+    z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings, prior: Prior | None
+) -> list[_Candidate]:
+    """The curve's peaks, an end that rises outwards included (the peak may lie beyond it),
+    most likely first. The rule: weight = prominence ** 2, times, with a prior, the
+    prior's density at the peak (its sigma widened by one z step)."""
+    span = float(s.max() - s.min())
+    low = float(s.min()) - span  # lower than every frame: ends become peaks when they rise
+    padded = np.concatenate([[low], s, [low]])
+    threshold = max(settings.multi_peak_share * span, 3.0 * noise)
+    found, props = find_peaks(padded, prominence=threshold)
+    indices, prominences = found - 1, props["prominences"]
     best = int(np.argmax(s))
-    if best == 0:
-        return PeakFit(float(z[0]), None, frozenset(flags | {FocusFlag.EDGE_LOW}))
-    if best == z.size - 1:
-        return PeakFit(float(z[-1]), None, frozenset(flags | {FocusFlag.EDGE_HIGH}))
-    z0, sigma = _fit_vertex(z, s, best, noise, settings)
-    if peaks.size > 1:
-        # Either peak may be the specimen (the other dust, or a second layer): take the
-        # variance of the choice between them, weighted by prominence, on top of the fit.
-        weights = props["prominences"] / props["prominences"].sum()
-        spread = float(np.sum(weights * (z[peaks] - z0) ** 2))
-        sigma = math.sqrt(sigma**2 + spread)
-    return PeakFit(z0, sigma, frozenset(flags))
+    if best not in indices:  # a plateau's maximum: find_peaks sees no peak; keep the best frame
+        indices, prominences = np.append(indices, best), np.append(prominences, span)
+    weights = prominences**2
+    if prior is not None:
+        step_um = float(np.median(np.diff(z)))
+        spread_um2 = prior.sigma_um**2 + step_um**2
+        weights = weights * np.exp(-0.5 * (z[indices] - prior.z_um) ** 2 / spread_um2)
+        if not np.any(weights > 0):  # every peak far outside the prior: prominence alone
+            weights = prominences**2
+    order = np.argsort(-weights, kind="stable")
+    return [
+        _Candidate(int(indices[i]), float(prominences[i]), float(weights[i] / weights.sum()))
+        for i in order
+    ]
+
+
+def _read_peaks(
+    z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings, prior: Prior | None
+) -> PeakFit:
+    candidates = _candidates(z, s, noise, settings, prior)
+    chosen = candidates[0]
+    flags: set[FocusFlag] = set()
+    runner_up_z = None
+    if len(candidates) > 1:
+        flags.add(FocusFlag.MULTI_PEAK)
+        runner_up_z = float(z[candidates[1].index])
+        if chosen.weight < settings.ambiguous_below:
+            flags.add(FocusFlag.AMBIGUOUS)
+    if chosen.index in (0, z.size - 1):
+        edge = FocusFlag.EDGE_LOW if chosen.index == 0 else FocusFlag.EDGE_HIGH
+        return PeakFit(
+            float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, chosen.weight
+        )
+    z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
+    return PeakFit(z0, sigma, frozenset(flags), runner_up_z, chosen.weight)
 
 
 @dataclass(frozen=True)
@@ -240,6 +365,7 @@ def _fit_vertex(
     variance = (
         fit.noise_sigma_um**2
         + (settings.model_floor_steps * step_um) ** 2
+        + settings.model_width_share**2 * fit.width_var_um2
         + window_um**2
         + asymmetry_um**2
     )
