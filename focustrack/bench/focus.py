@@ -359,8 +359,8 @@ def run_real(args: argparse.Namespace) -> int:
     focus_real.print_report(fit, "fit fields 1, 3, ..., 19 (the constants were chosen here)")
     met = focus_real.targets(report)
     print("\ntargets on the report fields:")
-    for target, ok in met.items():
-        print(f"  {'met    ' if ok else 'NOT met'}  {target}")
+    for target, misses in met.items():
+        print(f"  {'NOT met' if misses else 'met    '}  {target}  {' '.join(misses)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {

@@ -34,6 +34,7 @@ seed 1.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from enum import StrEnum
@@ -84,7 +85,7 @@ class PeakSettings:
     max_reach: int = 3
     consistency_sigmas: float = 2.0  # fitted on simulator seeds 100-102 (docs/focus.md)
     model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
-    model_width_share: float = 0.0
+    model_width_share: float = 0.04  # fitted on the WSI curves, odd fields (docs/focus.md)
     min_peak_sigma_um: float = 0.4
     ambiguous_below: float = 0.75
 
@@ -199,50 +200,73 @@ def find_peak(
     noise, clean = score_noise(s)
     if span <= settings.min_contrast * top or (clean and span <= settings.min_snr * noise):
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
-    s = despike(z, s, noise, settings.min_peak_sigma_um)
-    return _read_peaks(z, s, noise, settings, prior)
+    # a noise estimate that is not clean took in the peak's own shape: too large to judge
+    # which bumps are noise, so then the prominence share alone decides (`_candidates`)
+    s = despike(z, s, noise if clean else 0.0, settings.min_peak_sigma_um)
+    return _read_peaks(z, s, noise, noise if clean else 0.0, settings, prior)
 
 
-def _outlier_allowance(step_over_width: float) -> tuple[float, float]:
+#: How `despike` predicts a frame from its neighbours (offsets in frames -> weights), and
+#: the std of the prediction's residual on white noise of unit std.
+_PREDICTORS: dict[str, tuple[dict[int, float], float]] = {
+    # cubic interpolation from two frames each side
+    "interior": ({-2: -1 / 6, -1: 4 / 6, 1: 4 / 6, 2: -1 / 6}, math.sqrt(1 + 34 / 36)),
+    # second frame: quadratic interpolation from the end frame and the next two
+    "second": ({-1: 1 / 3, 1: 1.0, 2: -1 / 3}, math.sqrt(1 + 1 / 9 + 1 + 1 / 9)),
+    # end frame: linear extrapolation from the next two
+    "end": ({1: 2.0, 2: -1.0}, math.sqrt(1 + 4 + 1)),
+}
+
+
+@functools.lru_cache(maxsize=64)
+def _outlier_allowance(step_over_width: float, predictor: str) -> float:
     """The largest residual, as a share of the peak's height, that a Gaussian peak of std w
-    sampled every `step_over_width` * w leaves against the predictions `despike` uses:
-    (interior: cubic interpolation from two frames each side; end: linear extrapolation
-    from the next two frames), over every sampling phase."""
+    sampled every `step_over_width` * w leaves against `predictor`, over every phase."""
+    weights, _ = _PREDICTORS[predictor]
     phases = np.linspace(-4.0, 4.0, 161)
-    offsets = step_over_width * np.arange(-2, 3)
-    g = np.exp(-0.5 * (phases[:, None] + offsets[None, :]) ** 2)  # (phase, frame -2..2)
-    interior = g[:, 2] - (-g[:, 0] + 4 * g[:, 1] + 4 * g[:, 3] - g[:, 4]) / 6.0
-    end = g[:, 2] - (2 * g[:, 3] - g[:, 4])
-    return float(np.abs(interior).max()), float(np.abs(end).max())
+
+    def gaussian(offset: int) -> np.ndarray:
+        return np.exp(-0.5 * (phases + step_over_width * offset) ** 2)
+
+    residual = gaussian(0) - sum(w * gaussian(k) for k, w in weights.items())
+    return float(np.abs(residual).max())
 
 
 def despike(z: np.ndarray, s: np.ndarray, noise: float, min_peak_sigma_um: float) -> np.ndarray:
     """The curve (n,) with one-frame outliers (spikes and dips) replaced by their prediction.
 
-    A frame is an outlier when it departs from what its neighbours predict (cubic
-    interpolation from two frames each side; at an end, linear extrapolation from the
-    next two) by more than any real peak could make it: a peak is at least as wide
-    as the optics' depth of field (a Gaussian of std `min_peak_sigma_um`), and the
-    largest residual such a peak leaves is `_outlier_allowance` times its height, at
-    most the curve's range; and by more than 4 noise sigmas. Where the frames are as
-    far apart as the depth of field, a one-frame peak is possible and nothing is
-    removed. Curves of fewer than 5 frames are returned as they are.
+    A frame is an outlier when it departs from what its neighbours predict
+    (`_PREDICTORS`: cubic interpolation from two frames each side; near an end,
+    quadratic interpolation or linear extrapolation) by more than any real peak
+    could make it: a peak is at least as wide as the optics' depth of field (a
+    Gaussian of std `min_peak_sigma_um`), and the largest residual such a peak
+    leaves is `_outlier_allowance` times its height, at most the curve's range;
+    and by more than 4 noise sigmas. Where frames are as far apart as the depth of
+    field, a one-frame peak is possible and nothing is removed. Curves of fewer
+    than 5 frames are returned as they are.
     """
     if s.size < 5:
         return s
-    step_um = float(np.median(np.diff(z)))
-    interior_share, end_share = _outlier_allowance(step_um / min_peak_sigma_um)
+    ratio = round(float(np.median(np.diff(z))) / min_peak_sigma_um, 3)
     span = float(s.max() - s.min())
-    predicted = np.full(s.size, np.nan)
-    predicted[2:-2] = (-s[:-4] + 4 * s[1:-3] + 4 * s[3:-1] - s[4:]) / 6.0
-    predicted[0], predicted[-1] = 2 * s[1] - s[2], 2 * s[-2] - s[-3]
-    allowance = np.full(s.size, max(interior_share * span, 4.0 * 1.39 * noise))
-    # white noise: the interpolation residual has std 1.39 noise, the extrapolation 2.45
-    allowance[[0, -1]] = max(end_share * span, 4.0 * 2.45 * noise)
-    outliers = np.abs(s - predicted) > allowance  # NaN (frames 1 and n-2) compares False
-    if not outliers.any():
-        return s
-    return np.where(outliers, predicted, s)
+    n = s.size
+    kinds = ["end", "second"] + ["interior"] * (n - 4) + ["second", "end"]
+    out = s.copy()
+    # one outlier at a time, the worst first: an outlier spoils its neighbours' predictions
+    for _ in range(n // 4):
+        excess = np.empty(n)
+        predicted = np.empty(n)
+        for i, kind in enumerate(kinds):
+            weights, noise_gain = _PREDICTORS[kind]
+            mirror = -1 if i > n // 2 else 1  # near the high end, offsets point downwards
+            predicted[i] = sum(w * out[i + mirror * k] for k, w in weights.items())
+            allowance = max(_outlier_allowance(ratio, kind) * span, 4.0 * noise_gain * noise)
+            excess[i] = abs(out[i] - predicted[i]) / allowance if allowance > 0 else 0.0
+        worst = int(np.argmax(excess))
+        if excess[worst] <= 1.0:
+            break
+        out[worst] = predicted[worst]
+    return out
 
 
 @dataclass(frozen=True)
@@ -255,7 +279,7 @@ class _Candidate:
 
 
 def _candidates(
-    z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings, prior: Prior | None
+    z: np.ndarray, s: np.ndarray, clean_noise: float, settings: PeakSettings, prior: Prior | None
 ) -> list[_Candidate]:
     """The curve's peaks, an end that rises outwards included (the peak may lie beyond it),
     most likely first. The rule: weight = prominence ** 2, times, with a prior, the
@@ -263,7 +287,7 @@ def _candidates(
     span = float(s.max() - s.min())
     low = float(s.min()) - span  # lower than every frame: ends become peaks when they rise
     padded = np.concatenate([[low], s, [low]])
-    threshold = max(settings.multi_peak_share * span, 3.0 * noise)
+    threshold = max(settings.multi_peak_share * span, 3.0 * clean_noise)
     found, props = find_peaks(padded, prominence=threshold)
     indices, prominences = found - 1, props["prominences"]
     best = int(np.argmax(s))
@@ -284,9 +308,14 @@ def _candidates(
 
 
 def _read_peaks(
-    z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings, prior: Prior | None
+    z: np.ndarray,
+    s: np.ndarray,
+    noise: float,
+    clean_noise: float,
+    settings: PeakSettings,
+    prior: Prior | None,
 ) -> PeakFit:
-    candidates = _candidates(z, s, noise, settings, prior)
+    candidates = _candidates(z, s, clean_noise, settings, prior)
     chosen = candidates[0]
     flags: set[FocusFlag] = set()
     runner_up_z = None
