@@ -70,8 +70,6 @@ class PeakSettings:
     consistency_sigmas: a wider fit is kept while its vertex lies within this many noise
         sigmas of every narrower fit's vertex (module docstring).
     model_floor_steps: the sampling part of sigma, in z steps (module docstring).
-    model_width_share: the shape part of sigma, as a share of the fitted Gaussian's std: a
-        metric's peak need not sit where a person sees focus (module docstring).
     min_peak_sigma_um: the narrowest real peak (a Gaussian's std, um: about half the
         optics' depth of field); a one-frame excursion narrower than that is an outlier
         (`despike`).
@@ -85,7 +83,6 @@ class PeakSettings:
     max_reach: int = 3
     consistency_sigmas: float = 2.0  # fitted on simulator seeds 100-102 (docs/focus.md)
     model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
-    model_width_share: float = 0.04  # fitted on the WSI curves, odd fields (docs/focus.md)
     min_peak_sigma_um: float = 0.4
     ambiguous_below: float = 0.75
 
@@ -285,8 +282,9 @@ def _candidates(
     most likely first. The rule: weight = prominence ** 2, times, with a prior, the
     prior's density at the peak (its sigma widened by one z step)."""
     span = float(s.max() - s.min())
-    low = float(s.min()) - span  # lower than every frame: ends become peaks when they rise
-    padded = np.concatenate([[low], s, [low]])
+    # padded with the curve's minimum: an end that rises outwards becomes a peak, and the
+    # prominence of every peak is still measured from the curve's own frames
+    padded = np.concatenate([[s.min()], s, [s.min()]])
     threshold = max(settings.multi_peak_share * span, 3.0 * clean_noise)
     found, props = find_peaks(padded, prominence=threshold)
     indices, prominences = found - 1, props["prominences"]
@@ -394,7 +392,6 @@ def _fit_vertex(
     variance = (
         fit.noise_sigma_um**2
         + (settings.model_floor_steps * step_um) ** 2
-        + settings.model_width_share**2 * fit.width_var_um2
         + window_um**2
         + asymmetry_um**2
     )
