@@ -83,7 +83,7 @@ class PeakSettings:
     max_reach: int = 3
     consistency_sigmas: float = 2.0  # fitted on simulator seeds 100-102 (docs/focus.md)
     model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
-    min_peak_sigma_um: float = 0.4
+    min_peak_sigma_um: float = 0.25  # half the 0.5 um depth of field of a 100x oil objective
     ambiguous_below: float = 0.75
 
 
