@@ -46,6 +46,7 @@ def test_unstained_yeast_focus_is_the_contrast_minimum() -> None:
     assert np.argmin(at_max.scores) in range(15, 19)
 
 
+@pytest.mark.slow  # about 25 s: 5 000 windows
 def test_wsi_curves_gradient_metric_meets_the_targets_on_held_out_fields() -> None:
     """Brenner on the even fields (the constants were chosen on the odd ones): full curves
     and scanner windows land within a step, inside 2 sigma, with edge flags toward focus."""

@@ -74,6 +74,8 @@ class PeakSettings:
         optics' depth of field); a one-frame excursion narrower than that is an outlier
         (`despike`).
     ambiguous_below: a chosen peak whose probability is below this is flagged ambiguous.
+    end_rise_share: an end frame rising this share of the range above the frames inside
+        it is a candidate peak beyond that end (`_candidates`).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -85,6 +87,7 @@ class PeakSettings:
     model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
     min_peak_sigma_um: float = 0.25  # half the 0.5 um depth of field of a 100x oil objective
     ambiguous_below: float = 0.75
+    end_rise_share: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -280,14 +283,24 @@ def _candidates(
 ) -> list[_Candidate]:
     """The curve's peaks, an end that rises outwards included (the peak may lie beyond it),
     most likely first. The rule: weight = prominence ** 2, times, with a prior, the
-    prior's density at the peak (its sigma widened by one z step)."""
+    prior's density at the peak (its sigma widened by one z step).
+
+    An interior peak counts from `multi_peak_share` of the range; an end from
+    `end_rise_share` (a window far from focus sees only the peak's faint tail rising
+    towards it, and a background rising more at the other end must not hide it).
+    Both need 3 noise sigmas where the noise estimate is clean.
+    """
     span = float(s.max() - s.min())
     # padded with the curve's minimum: an end that rises outwards becomes a peak, and the
     # prominence of every peak is still measured from the curve's own frames
     padded = np.concatenate([[s.min()], s, [s.min()]])
-    threshold = max(settings.multi_peak_share * span, 3.0 * clean_noise)
-    found, props = find_peaks(padded, prominence=threshold)
+    floor = min(settings.multi_peak_share, settings.end_rise_share) * span
+    found, props = find_peaks(padded, prominence=max(floor, 3.0 * clean_noise))
     indices, prominences = found - 1, props["prominences"]
+    is_end = (indices == 0) | (indices == s.size - 1)
+    share = np.where(is_end, settings.end_rise_share, settings.multi_peak_share)
+    keep = prominences >= np.maximum(share * span, 3.0 * clean_noise)
+    indices, prominences = indices[keep], prominences[keep]
     best = int(np.argmax(s))
     if best not in indices:  # a plateau's maximum: find_peaks sees no peak; keep the best frame
         indices, prominences = np.append(indices, best), np.append(prominences, span)

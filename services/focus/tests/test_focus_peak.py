@@ -164,3 +164,15 @@ def test_noise_widens_the_fit_window_and_sigma() -> None:
         fit = find_peak(z, scores)
         zscores.append((fit.z_um - truth) / fit.sigma_um)
     assert 0.6 < np.std(zscores) < 1.5, np.std(zscores)
+
+
+def test_a_window_above_focus_with_a_rising_background_names_both_ways() -> None:
+    # focus at 0; the window 4..12 um sees its faint tail at the low end and a background
+    # rising to the high end: both ends are candidates, and a prior decides between them
+    z = np.arange(4.0, 12.01, 1.0)
+    scores = 1 + 5 * np.exp(-0.5 * (z / 1.5) ** 2) + np.exp((z - 12) / 2.0)
+    blind = find_peak(z, scores)
+    assert FocusFlag.MULTI_PEAK in blind.flags and blind.runner_up_z_um == 4.0
+    informed = find_peak(z, scores, prior=Prior(1.0, 3.0))
+    assert FocusFlag.EDGE_LOW in informed.flags and informed.z_um == 4.0
+    assert informed.runner_up_z_um == 12.0
