@@ -23,7 +23,20 @@ Its standard deviation has four parts, added in quadrature:
   w**2 on a log-background of slope c peaks c w**2 away from its centre. c is
   read from the curve as the odd part of log(score) about z0, over the frames
   mirrored within the curve: |c| w**2.
-A curve with more than one peak adds the variance of the choice between them.
+
+Which peak (`_candidates`): real curves carry one-frame spikes and dips, second
+peaks (dust, another layer), and backgrounds that rise towards an end. First,
+frames that depart from their neighbours by more than a peak as wide as the
+optics' depth of field could make them are replaced by their neighbours'
+prediction (`despike`). Then every local maximum with enough prominence is a
+candidate, and so is an end frame that rises outwards (the peak may lie beyond
+it). The rule: the weight of a candidate is its prominence squared, times the
+request's prior density at it where there is a prior; the heaviest is chosen,
+its share of the weights is its probability, and the next one is the runner-up.
+The choice is said with `multi_peak` (more than one candidate), `ambiguous`
+(probability below `PeakSettings.ambiguous_below`) and the runner-up's z, never
+folded into sigma: sigma is the chosen peak's own. An end chosen is an edge flag
+pointing that way (no sigma).
 
 Calibration (docs/focus.md): the constants were fitted on instrument-simulator
 stacks of seeds 100-102 (`focustrack bench focus --seed 100` ...: all field
