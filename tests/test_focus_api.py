@@ -86,6 +86,26 @@ def test_curve(client: TestClient) -> None:
     assert response.json()["best_z_um"] == pytest.approx(0.7, abs=0.05)
     edge = client.post("/v1/focus/curve", json={"z_um": [0, 1, 2], "scores": [1, 2, 3]})
     assert edge.status_code == 200 and edge.json()["flags"] == ["edge_high"]
+    assert response.json()["chosen_probability"] == 1.0
+    assert response.json()["runner_up_z_um"] is None and response.json()["posterior_z_um"] is None
+
+
+def test_curve_with_a_prior_picks_its_peak_and_returns_the_posterior(client: TestClient) -> None:
+    z = np.arange(-5.0, 5.01, 0.5)
+    two_peaks = (
+        1 + 4 * np.exp(-0.5 * ((z + 2) / 0.8) ** 2) + 3.8 * np.exp(-0.5 * ((z - 2.5) / 0.8) ** 2)
+    )
+    body = {"z_um": z.tolist(), "scores": two_peaks.tolist()}
+    blind = client.post("/v1/focus/curve", json=body).json()
+    assert blind["best_z_um"] == pytest.approx(-2.0, abs=0.1)
+    assert blind["runner_up_z_um"] == 2.5 and "ambiguous" in blind["flags"]
+    informed = client.post("/v1/focus/curve", json=body | {"prior": {"z_um": 2.0, "sigma_um": 1.0}})
+    result = informed.json()
+    assert informed.status_code == 200, informed.text
+    # best_z_um is the curve's own measurement; the posterior adds the prior to it
+    assert result["best_z_um"] == pytest.approx(2.5, abs=0.1) and result["runner_up_z_um"] == -2.0
+    assert result["best_z_um"] > result["posterior_z_um"] > 2.0
+    assert result["posterior_sigma_um"] < min(result["sigma_um"], 1.0)
 
 
 @pytest.mark.parametrize(
@@ -95,6 +115,12 @@ def test_curve(client: TestClient) -> None:
         ({"z_um": [0, 1], "scores": [1, 2]}, 422, "at least 3"),
         ({"z_um": [0, 1, 1], "scores": [1, 2, 1]}, 422, "distinct"),
         ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "mode": "sideways"}, 422, "mode"),
+        ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "prior": {"z_um": 1}}, 422, "sigma_um"),
+        (
+            {"z_um": [0, 1, 2], "scores": [1, 2, 1], "prior": {"z_um": 1, "sigma_um": 0}},
+            422,
+            "greater than 0",
+        ),
     ],
 )
 def test_bad_curves(client: TestClient, body: dict, status: int, needle: str) -> None:

@@ -33,6 +33,9 @@ class FocusFlag(StrEnum):
     FLAT = "flat"  # no peak in the curve (no contrast): no measurement
     EMPTY = "empty"  # with FLAT: nothing in view in any frame, so no other stack would help
     MULTI_PEAK = "multi_peak"  # more than one peak: measurement is less certain
+    # two peaks, and the chosen one is not clearly the focus (its probability is below
+    # the service's threshold): z and sigma are the chosen peak's, the runner-up is given
+    AMBIGUOUS = "ambiguous"
 
     @property
     def proto(self) -> common_pb2.FocusFlag:

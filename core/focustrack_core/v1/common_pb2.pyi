@@ -26,6 +26,7 @@ class FocusFlag(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     FOCUS_FLAG_FLAT: _ClassVar[FocusFlag]
     FOCUS_FLAG_EMPTY: _ClassVar[FocusFlag]
     FOCUS_FLAG_MULTI_PEAK: _ClassVar[FocusFlag]
+    FOCUS_FLAG_AMBIGUOUS: _ClassVar[FocusFlag]
 ERROR_CODE_UNSPECIFIED: ErrorCode
 ERROR_CODE_MALFORMED_REQUEST: ErrorCode
 ERROR_CODE_UNKNOWN_SLIDE: ErrorCode
@@ -42,6 +43,7 @@ FOCUS_FLAG_EDGE_HIGH: FocusFlag
 FOCUS_FLAG_FLAT: FocusFlag
 FOCUS_FLAG_EMPTY: FocusFlag
 FOCUS_FLAG_MULTI_PEAK: FocusFlag
+FOCUS_FLAG_AMBIGUOUS: FocusFlag
 
 class Error(_message.Message):
     __slots__ = ("code", "message", "field")

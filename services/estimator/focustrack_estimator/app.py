@@ -434,6 +434,11 @@ def create_app(settings: Settings) -> FastAPI:
         headers = dict(error.headers or {})
         if error.status_code == 405:  # Starlette names the methods of one route; a path has more
             headers["Allow"] = ", ".join(_allowed_methods(app, request.scope))
+        if error.status_code == 400:
+            # FastAPI's answer to a body it cannot decode (not UTF-8): malformed input like
+            # any other, so the documented 422 invalid_request rather than an undocumented 400
+            detail = [{"loc": ["body"], "msg": error.detail, "type": "json_invalid"}]
+            return error_response(422, api.ErrorCode.INVALID_REQUEST, detail, headers)
         return error_response(error.status_code, None, error.detail, headers)
 
     @app.exception_handler(RequestValidationError)

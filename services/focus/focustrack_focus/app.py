@@ -5,7 +5,10 @@
   frame in um: a JSON list or comma-separated numbers); optional ``metric``,
   ``mode``, ``channel``, ``lowpass_sigma_px``.
 - ``POST /v1/focus/curve``: JSON ``{"z_um": [...], "scores": [...]}`` (optional
-  ``metric`` label and ``mode``), for lab software that computes its own scores.
+  ``metric`` label, ``mode`` and ``prior``: ``{"z_um": m, "sigma_um": s}``, the
+  estimator's belief before this stack), for lab software that computes its own
+  scores. ``best_z_um``/``sigma_um`` are always the curve's own measurement; with
+  a prior the reply adds ``posterior_z_um``/``posterior_sigma_um`` (both combined).
 - ``GET /healthz``. OpenAPI docs at ``/docs``.
 
 Bad input is a 4xx whose detail names the problem: 413 for an oversized
@@ -28,13 +31,22 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
-from focustrack_focus.peak import PeakMode
+from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
 
 #: Default upload limit: 41 frames of 2048x2048x3 uint16 is about 1 GB; 1 GiB.
 MAX_UPLOAD_BYTES = 1 << 30
 _NPY_MAGIC = b"\x93NUMPY"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+
+
+class PriorModel(BaseModel):
+    """The estimator's belief about the focus before this stack (um)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    z_um: float = Field(allow_inf_nan=False)
+    sigma_um: float = Field(gt=0, allow_inf_nan=False)
 
 
 class CurveRequest(BaseModel):
@@ -46,6 +58,9 @@ class CurveRequest(BaseModel):
     scores: list[Annotated[float, Field(allow_inf_nan=False)]] = Field(min_length=3)
     metric: str = Field(DEFAULT_METRIC, description="label of the metric that made the scores")
     mode: PeakMode = PeakMode.MAX
+    prior: PriorModel | None = Field(
+        None, description="the estimator's prior; weighs peaks, adds the posterior"
+    )
 
     @model_validator(mode="after")
     def _same_length(self) -> CurveRequest:
@@ -66,6 +81,12 @@ class FocusResponse(BaseModel):
     flags: list[str]
     metric: str
     compute_time_s: float
+    runner_up_z_um: float | None = Field(None, description="z of the next most likely peak")
+    chosen_probability: float | None = Field(
+        None, description="probability that best_z_um's peak is the focus (peak choice)"
+    )
+    posterior_z_um: float | None = Field(None, description="prior and measurement combined")
+    posterior_sigma_um: float | None = None
 
 
 def parse_z_list(text: str) -> np.ndarray:
@@ -134,8 +155,11 @@ def create_app(
     @app.post("/v1/focus/curve", response_model=FocusResponse)
     def focus_curve(request: CurveRequest) -> dict[str, Any]:
         chosen = replace(base, peak=replace(base.peak, mode=request.mode))
+        prior = None if request.prior is None else Prior(request.prior.z_um, request.prior.sigma_um)
         try:
-            result = focus_from_curve(np.array(request.z_um), np.array(request.scores), chosen)
+            result = focus_from_curve(
+                np.array(request.z_um), np.array(request.scores), chosen, prior=prior
+            )
         except ValueError as error:
             raise HTTPException(422, str(error)) from None
         return result.to_json() | {"metric": request.metric}

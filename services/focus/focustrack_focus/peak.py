@@ -23,7 +23,20 @@ Its standard deviation has four parts, added in quadrature:
   w**2 on a log-background of slope c peaks c w**2 away from its centre. c is
   read from the curve as the odd part of log(score) about z0, over the frames
   mirrored within the curve: |c| w**2.
-A curve with more than one peak adds the variance of the choice between them.
+
+Which peak (`_candidates`): real curves carry one-frame spikes and dips, second
+peaks (dust, another layer), and backgrounds that rise towards an end. First,
+frames that depart from their neighbours by more than a peak as wide as the
+optics' depth of field could make them are replaced by their neighbours'
+prediction (`despike`). Then every local maximum with enough prominence is a
+candidate, and so is an end frame that rises outwards (the peak may lie beyond
+it). The rule: the weight of a candidate is its prominence squared, times the
+request's prior density at it where there is a prior; the heaviest is chosen,
+its share of the weights is its probability, and the next one is the runner-up.
+The choice is said with `multi_peak` (more than one candidate), `ambiguous`
+(probability below `PeakSettings.ambiguous_below`) and the runner-up's z, never
+folded into sigma: sigma is the chosen peak's own. An end chosen is an edge flag
+pointing that way (no sigma).
 
 Calibration (docs/focus.md): the constants were fitted on instrument-simulator
 stacks of seeds 100-102 (`focustrack bench focus --seed 100` ...: all field
@@ -34,6 +47,7 @@ seed 1.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from enum import StrEnum
@@ -69,6 +83,12 @@ class PeakSettings:
     consistency_sigmas: a wider fit is kept while its vertex lies within this many noise
         sigmas of every narrower fit's vertex (module docstring).
     model_floor_steps: the sampling part of sigma, in z steps (module docstring).
+    min_peak_sigma_um: the narrowest real peak (a Gaussian's std, um: about half the
+        optics' depth of field); a one-frame excursion narrower than that is an outlier
+        (`despike`).
+    ambiguous_below: a chosen peak whose probability is below this is flagged ambiguous.
+    end_rise_share: an end frame rising this share of the range above the frames inside
+        it is a candidate peak beyond that end (`_candidates`).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -78,6 +98,21 @@ class PeakSettings:
     max_reach: int = 3
     consistency_sigmas: float = 2.0  # fitted on simulator seeds 100-102 (docs/focus.md)
     model_floor_steps: float = 0.02  # fitted on simulator seeds 100-102 (docs/focus.md)
+    min_peak_sigma_um: float = 0.25  # half the 0.5 um depth of field of a 100x oil objective
+    ambiguous_below: float = 0.75
+    end_rise_share: float = 0.05
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The estimator's belief about a tile's focus before its stack: mean and std, um."""
+
+    z_um: float
+    sigma_um: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.z_um) and math.isfinite(self.sigma_um) and self.sigma_um > 0):
+            raise ValueError(f"a prior needs a finite z and a sigma > 0, got {self}")
 
 
 @dataclass(frozen=True)
@@ -85,16 +120,30 @@ class PeakFit:
     """The focus read from a curve, in um. z_um and sigma_um are None where there is none.
 
     For an edge peak z_um is the edge frame's z and sigma_um None: the focus is
-    beyond the range, in the direction the flag says.
+    beyond the range, in the direction the flag says. With more than one peak,
+    runner_up_z_um is the z of the next most likely one (an end frame when that
+    peak lies beyond the range) and chosen_probability the chosen peak's share of
+    the weights (`_candidates`); on a single peak they are None and 1.0.
     """
 
     z_um: float | None
     sigma_um: float | None
     flags: frozenset[FocusFlag]
+    runner_up_z_um: float | None = None
+    chosen_probability: float | None = None
 
     @property
     def is_observation(self) -> bool:
         return self.sigma_um is not None
+
+    def posterior(self, prior: Prior) -> tuple[float, float] | None:
+        """(z, sigma) in um of the prior updated with this measurement (the product of two
+        Gaussians); None where this fit is no measurement."""
+        if self.z_um is None or self.sigma_um is None:
+            return None
+        precision = 1.0 / prior.sigma_um**2 + 1.0 / self.sigma_um**2
+        z = (prior.z_um / prior.sigma_um**2 + self.z_um / self.sigma_um**2) / precision
+        return z, math.sqrt(1.0 / precision)
 
 
 def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,9 +193,16 @@ def score_noise(scores: np.ndarray) -> tuple[float, bool]:
 
 
 def find_peak(
-    z_um: np.ndarray, scores: np.ndarray, settings: PeakSettings | None = None
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    settings: PeakSettings | None = None,
+    prior: Prior | None = None,
 ) -> PeakFit:
-    """Best focus from a curve: z (n,) in um, scores (n,). See the module docstring."""
+    """Best focus from a curve: z (n,) in um, scores (n,). See the module docstring.
+
+    `prior`: the estimator's belief about the focus before this stack (um); it
+    weighs the choice between peaks, not the fit of the chosen one.
+    """
     settings = settings or PeakSettings()
     z, s = validate_curve(z_um, scores)
     top, span = abs(float(s.max())), float(s.max() - s.min())
@@ -157,26 +213,148 @@ def find_peak(
     noise, clean = score_noise(s)
     if span <= settings.min_contrast * top or (clean and span <= settings.min_snr * noise):
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
-    return _find_max(z, s, noise, settings)
+    # a noise estimate that is not clean took in the peak's own shape: too large to judge
+    # which bumps are noise, so then the prominence share alone decides (`_candidates`)
+    s = despike(z, s, noise if clean else 0.0, settings.min_peak_sigma_um)
+    return _read_peaks(z, s, noise, noise if clean else 0.0, settings, prior)
 
 
-def _find_max(z: np.ndarray, s: np.ndarray, noise: float, settings: PeakSettings) -> PeakFit:
+#: How `despike` predicts a frame from its neighbours (offsets in frames -> weights), and
+#: the std of the prediction's residual on white noise of unit std.
+_PREDICTORS: dict[str, tuple[dict[int, float], float]] = {
+    # cubic interpolation from two frames each side
+    "interior": ({-2: -1 / 6, -1: 4 / 6, 1: 4 / 6, 2: -1 / 6}, math.sqrt(1 + 34 / 36)),
+    # second frame: quadratic interpolation from the end frame and the next two
+    "second": ({-1: 1 / 3, 1: 1.0, 2: -1 / 3}, math.sqrt(1 + 1 / 9 + 1 + 1 / 9)),
+    # end frame: linear extrapolation from the next two
+    "end": ({1: 2.0, 2: -1.0}, math.sqrt(1 + 4 + 1)),
+}
+
+
+@functools.lru_cache(maxsize=64)
+def _outlier_allowance(step_over_width: float, predictor: str) -> float:
+    """The largest residual, as a share of the peak's height, that a Gaussian peak of std w
+    sampled every `step_over_width` * w leaves against `predictor`, over every phase."""
+    weights, _ = _PREDICTORS[predictor]
+    phases = np.linspace(-4.0, 4.0, 161)
+
+    def gaussian(offset: int) -> np.ndarray:
+        return np.exp(-0.5 * (phases + step_over_width * offset) ** 2)
+
+    residual = gaussian(0) - sum(w * gaussian(k) for k, w in weights.items())
+    return float(np.abs(residual).max())
+
+
+def despike(z: np.ndarray, s: np.ndarray, noise: float, min_peak_sigma_um: float) -> np.ndarray:
+    """The curve (n,) with one-frame outliers (spikes and dips) replaced by their prediction.
+
+    A frame is an outlier when it departs from what its neighbours predict
+    (`_PREDICTORS`: cubic interpolation from two frames each side; near an end,
+    quadratic interpolation or linear extrapolation) by more than any real peak
+    could make it: a peak is at least as wide as the optics' depth of field (a
+    Gaussian of std `min_peak_sigma_um`), and the largest residual such a peak
+    leaves is `_outlier_allowance` times its height, at most the curve's range;
+    and by more than 4 noise sigmas. Where frames are as far apart as the depth of
+    field, a one-frame peak is possible and nothing is removed. Curves of fewer
+    than 5 frames are returned as they are.
+    """
+    if s.size < 5:
+        return s
+    ratio = round(float(np.median(np.diff(z))) / min_peak_sigma_um, 3)
     span = float(s.max() - s.min())
-    peaks, props = find_peaks(s, prominence=max(settings.multi_peak_share * span, 3.0 * noise))
-    flags = {FocusFlag.MULTI_PEAK} if peaks.size > 1 else set()
+    n = s.size
+    kinds = ["end", "second"] + ["interior"] * (n - 4) + ["second", "end"]
+    out = s.copy()
+    # one outlier at a time, the worst first: an outlier spoils its neighbours' predictions
+    for _ in range(n // 4):
+        excess = np.empty(n)
+        predicted = np.empty(n)
+        for i, kind in enumerate(kinds):
+            weights, noise_gain = _PREDICTORS[kind]
+            mirror = -1 if i > n // 2 else 1  # near the high end, offsets point downwards
+            predicted[i] = sum(w * out[i + mirror * k] for k, w in weights.items())
+            allowance = max(_outlier_allowance(ratio, kind) * span, 4.0 * noise_gain * noise)
+            excess[i] = abs(out[i] - predicted[i]) / allowance if allowance > 0 else 0.0
+        worst = int(np.argmax(excess))
+        if excess[worst] <= 1.0:
+            break
+        out[worst] = predicted[worst]
+    return out
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """A peak of the curve: frame index, prominence (score units), weight in the choice."""
+
+    index: int
+    prominence: float
+    weight: float
+
+
+def _candidates(
+    z: np.ndarray, s: np.ndarray, clean_noise: float, settings: PeakSettings, prior: Prior | None
+) -> list[_Candidate]:
+    """The curve's peaks, an end that rises outwards included (the peak may lie beyond it),
+    most likely first. The rule: weight = prominence ** 2, times, with a prior, the
+    prior's density at the peak (its sigma widened by one z step).
+
+    An interior peak counts from `multi_peak_share` of the range; an end from
+    `end_rise_share` (a window far from focus sees only the peak's faint tail rising
+    towards it, and a background rising more at the other end must not hide it).
+    Both need 3 noise sigmas where the noise estimate is clean.
+    """
+    span = float(s.max() - s.min())
+    # padded with the curve's minimum: an end that rises outwards becomes a peak, and the
+    # prominence of every peak is still measured from the curve's own frames
+    padded = np.concatenate([[s.min()], s, [s.min()]])
+    floor = min(settings.multi_peak_share, settings.end_rise_share) * span
+    found, props = find_peaks(padded, prominence=max(floor, 3.0 * clean_noise))
+    indices, prominences = found - 1, props["prominences"]
+    is_end = (indices == 0) | (indices == s.size - 1)
+    share = np.where(is_end, settings.end_rise_share, settings.multi_peak_share)
+    keep = prominences >= np.maximum(share * span, 3.0 * clean_noise)
+    indices, prominences = indices[keep], prominences[keep]
     best = int(np.argmax(s))
-    if best == 0:
-        return PeakFit(float(z[0]), None, frozenset(flags | {FocusFlag.EDGE_LOW}))
-    if best == z.size - 1:
-        return PeakFit(float(z[-1]), None, frozenset(flags | {FocusFlag.EDGE_HIGH}))
-    z0, sigma = _fit_vertex(z, s, best, noise, settings)
-    if peaks.size > 1:
-        # Either peak may be the specimen (the other dust, or a second layer): take the
-        # variance of the choice between them, weighted by prominence, on top of the fit.
-        weights = props["prominences"] / props["prominences"].sum()
-        spread = float(np.sum(weights * (z[peaks] - z0) ** 2))
-        sigma = math.sqrt(sigma**2 + spread)
-    return PeakFit(z0, sigma, frozenset(flags))
+    if best not in indices:  # a plateau's maximum: find_peaks sees no peak; keep the best frame
+        indices, prominences = np.append(indices, best), np.append(prominences, span)
+    weights = prominences**2
+    if prior is not None:
+        step_um = float(np.median(np.diff(z)))
+        spread_um2 = prior.sigma_um**2 + step_um**2
+        weights = weights * np.exp(-0.5 * (z[indices] - prior.z_um) ** 2 / spread_um2)
+        if not np.any(weights > 0):  # every peak far outside the prior: prominence alone
+            weights = prominences**2
+    order = np.argsort(-weights, kind="stable")
+    return [
+        _Candidate(int(indices[i]), float(prominences[i]), float(weights[i] / weights.sum()))
+        for i in order
+    ]
+
+
+def _read_peaks(
+    z: np.ndarray,
+    s: np.ndarray,
+    noise: float,
+    clean_noise: float,
+    settings: PeakSettings,
+    prior: Prior | None,
+) -> PeakFit:
+    candidates = _candidates(z, s, clean_noise, settings, prior)
+    chosen = candidates[0]
+    flags: set[FocusFlag] = set()
+    runner_up_z = None
+    if len(candidates) > 1:
+        flags.add(FocusFlag.MULTI_PEAK)
+        runner_up_z = float(z[candidates[1].index])
+        if chosen.weight < settings.ambiguous_below:
+            flags.add(FocusFlag.AMBIGUOUS)
+    if chosen.index in (0, z.size - 1):
+        edge = FocusFlag.EDGE_LOW if chosen.index == 0 else FocusFlag.EDGE_HIGH
+        return PeakFit(
+            float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, chosen.weight
+        )
+    z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
+    return PeakFit(z0, sigma, frozenset(flags), runner_up_z, chosen.weight)
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ import numpy as np
 
 from focustrack_core.domain import FocusFlag, Measurement
 from focustrack_focus.metrics import DEFAULT_METRIC, get_metric
-from focustrack_focus.peak import PeakFit, PeakSettings, find_peak, validate_curve
+from focustrack_focus.peak import PeakFit, PeakSettings, Prior, find_peak, validate_curve
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import structure_snr
 
@@ -36,7 +36,11 @@ class FocusResult:
     """The focus of one stack: its curve, best z and sigma (um, None where none), flags.
 
     z_um and scores have shape (n,), sorted by z. compute_time_s is the wall time
-    of metric and fit in seconds.
+    of metric and fit in seconds. best_z_um and sigma_um are this stack's
+    measurement alone, never mixed with a prior (the estimator holds the prior and
+    must not count it twice); where the request carried a prior, posterior_z_um and
+    posterior_sigma_um are the two combined. runner_up_z_um and chosen_probability:
+    `peak.PeakFit`.
     """
 
     z_um: np.ndarray
@@ -46,6 +50,10 @@ class FocusResult:
     flags: frozenset[FocusFlag]
     metric: str
     compute_time_s: float
+    runner_up_z_um: float | None = None
+    chosen_probability: float | None = None
+    posterior_z_um: float | None = None
+    posterior_sigma_um: float | None = None
 
     def measurement(self) -> Measurement:
         """The result as the estimator's `Measurement` (no z for a flat curve)."""
@@ -61,6 +69,10 @@ class FocusResult:
             "flags": sorted(str(flag) for flag in self.flags),
             "metric": self.metric,
             "compute_time_s": self.compute_time_s,
+            "runner_up_z_um": self.runner_up_z_um,
+            "chosen_probability": self.chosen_probability,
+            "posterior_z_um": self.posterior_z_um,
+            "posterior_sigma_um": self.posterior_sigma_um,
         }
 
 
@@ -106,19 +118,23 @@ def focus_from_curve(
     *,
     started_s: float | None = None,
     structure_snr: float = math.inf,
+    prior: Prior | None = None,
 ) -> FocusResult:
     """Read a curve of scores (n,) at z_um (n,); `started_s` (perf_counter) times the whole job.
 
     `structure_snr` is the stack's structure test (`structure.structure_snr`), where
     there were images; below `settings.min_structure_snr` nothing is in view: the
     curve is flat and the field empty (no other stack of this tile would find a peak).
+    `prior`: the estimator's belief (um); it weighs the choice between peaks and
+    gives the posterior.
     """
     started_s = time.perf_counter() if started_s is None else started_s
     z, s = validate_curve(z_um, scores)
     if structure_snr < settings.min_structure_snr:
         fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
     else:
-        fit = find_peak(z, s, settings.peak)
+        fit = find_peak(z, s, settings.peak, prior)
+    posterior = fit.posterior(prior) if prior is not None else None
     return FocusResult(
         z_um=z,
         scores=s,
@@ -127,10 +143,16 @@ def focus_from_curve(
         flags=fit.flags,
         metric=settings.metric,
         compute_time_s=time.perf_counter() - started_s,
+        runner_up_z_um=fit.runner_up_z_um,
+        chosen_probability=fit.chosen_probability,
+        posterior_z_um=None if posterior is None else posterior[0],
+        posterior_sigma_um=None if posterior is None else posterior[1],
     )
 
 
-def focus_stack(frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings) -> FocusResult:
+def focus_stack(
+    frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings, prior: Prior | None = None
+) -> FocusResult:
     """The focus of a z-stack: frames (n, H, W) or (n, H, W, C) taken at z_um (n,)."""
     started_s = time.perf_counter()
     if frames.ndim not in (3, 4):
@@ -145,7 +167,9 @@ def focus_stack(frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings) -
         raise ValueError("pixels must be finite (NaN or infinity found)")
     scan = scan_stack(frames, settings)
     snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
-    return focus_from_curve(z, scan.scores, settings, started_s=started_s, structure_snr=snr)
+    return focus_from_curve(
+        z, scan.scores, settings, started_s=started_s, structure_snr=snr, prior=prior
+    )
 
 
 class FrameByFrame:

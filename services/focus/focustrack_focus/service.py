@@ -77,6 +77,10 @@ def result_message(
             message.best_z_um = result.best_z_um
         if result.sigma_um is not None:
             message.sigma_um = result.sigma_um
+        if result.runner_up_z_um is not None:
+            message.runner_up_z_um = result.runner_up_z_um
+        if result.chosen_probability is not None:
+            message.chosen_probability = result.chosen_probability
         message.flags.extend(sorted(flag.proto for flag in result.flags))
         message.compute_time_s = result.compute_time_s
     if error:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from focustrack_core.domain import FocusFlag
-from focustrack_focus.peak import PeakMode, PeakSettings, find_peak
+from focustrack_focus.peak import PeakMode, PeakSettings, Prior, find_peak
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 
@@ -47,13 +47,73 @@ def test_flat_curves_are_no_measurement() -> None:
         assert fit.flags == {FocusFlag.FLAT} and fit.z_um is None and fit.sigma_um is None
 
 
-def test_two_peaks_are_flagged_and_widen_sigma() -> None:
+def test_two_peaks_are_flagged_with_the_runner_up_not_a_wide_sigma() -> None:
     z = np.arange(-5.0, 5.01, 0.5)
     single = find_peak(z, gaussian(z, -2.0))
-    double = find_peak(z, gaussian(z, -2.0) + 0.7 * (gaussian(z, 2.5) - 1.0))
-    assert FocusFlag.MULTI_PEAK in double.flags
+    # half as prominent: probability 1 / (1 + 0.5**2) = 0.8, clear enough (not ambiguous)
+    double = find_peak(z, gaussian(z, -2.0) + 0.5 * (gaussian(z, 2.5) - 1.0))
+    assert double.flags == {FocusFlag.MULTI_PEAK}
     assert double.z_um == pytest.approx(-2.0, abs=0.1)
-    assert double.sigma_um > 1.0 > 10 * single.sigma_um
+    assert double.runner_up_z_um == 2.5
+    assert 0.75 < double.chosen_probability < 1.0
+    # the choice is said by the flag and the probability, not by a sigma of the peaks' spread
+    # (which was 2.2 um here): a fifth of the 0.5 um step
+    assert double.sigma_um < 0.1
+    assert single.runner_up_z_um is None and single.chosen_probability == 1.0
+
+
+def test_two_equal_peaks_are_ambiguous_and_a_prior_decides() -> None:
+    z = np.arange(-5.0, 5.01, 0.5)
+    scores = gaussian(z, -2.0) + 0.95 * (gaussian(z, 2.5) - 1.0)
+    fit = find_peak(z, scores)
+    assert {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS} <= fit.flags
+    assert 0.5 <= fit.chosen_probability < 0.75
+    informed = find_peak(z, scores, prior=Prior(2.0, 1.0))
+    assert informed.z_um == pytest.approx(2.5, abs=0.1)
+    assert informed.runner_up_z_um == -2.0
+    assert FocusFlag.AMBIGUOUS not in informed.flags
+
+
+def test_posterior_is_the_product_of_prior_and_measurement() -> None:
+    fit = find_peak(Z_UM, gaussian(Z_UM, 0.3))
+    assert fit.sigma_um is not None
+    z, sigma = fit.posterior(Prior(1.0, fit.sigma_um))  # equal weights: halfway
+    assert z == pytest.approx((fit.z_um + 1.0) / 2) and sigma == pytest.approx(
+        fit.sigma_um / np.sqrt(2)
+    )
+    edge = find_peak(Z_UM, gaussian(Z_UM, 5.0))
+    assert edge.posterior(Prior(1.0, 1.0)) is None
+    with pytest.raises(ValueError, match="sigma > 0"):
+        Prior(0.0, 0.0)
+
+
+def test_an_interior_peak_beside_a_rising_end_is_measured_and_flagged() -> None:
+    # a sharp peak, then the curve climbs to the last frame (a background or another peak)
+    z = np.arange(0.0, 10.01, 0.5)
+    scores = gaussian(z, 3.0) + 4.0 * np.exp((z - 10.0) / 1.5)
+    fit = find_peak(z, scores)
+    assert fit.z_um == pytest.approx(3.0, abs=0.1) and fit.sigma_um is not None
+    assert FocusFlag.MULTI_PEAK in fit.flags
+    assert fit.runner_up_z_um == 10.0
+
+
+def test_a_one_frame_spike_on_a_slope_is_not_a_peak() -> None:
+    # dense sampling (0.25 um): no real peak is one frame wide; the focus lies above
+    z = np.arange(0.0, 2.01, 0.25)
+    scores = 1.0 + 0.1 * z
+    scores[4] += 0.3
+    fit = find_peak(z, scores)
+    assert FocusFlag.EDGE_HIGH in fit.flags and fit.sigma_um is None
+
+
+def test_a_narrow_peak_sampled_coarsely_is_a_peak_not_flat() -> None:
+    # 3 um apart, a real peak shows in one frame only above a plateau with a little noise
+    z = np.arange(0.0, 30.01, 3.0)
+    scores = 1.0 + 0.002 * np.random.default_rng(3).normal(size=z.size)
+    scores[5] += 0.4
+    fit = find_peak(z, scores)
+    assert fit.is_observation and fit.z_um == pytest.approx(15.0, abs=1.5)
+    assert FocusFlag.FLAT not in fit.flags
 
 
 def test_valley_mode_finds_the_contrast_minimum() -> None:
@@ -104,3 +164,15 @@ def test_noise_widens_the_fit_window_and_sigma() -> None:
         fit = find_peak(z, scores)
         zscores.append((fit.z_um - truth) / fit.sigma_um)
     assert 0.6 < np.std(zscores) < 1.5, np.std(zscores)
+
+
+def test_a_window_above_focus_with_a_rising_background_names_both_ways() -> None:
+    # focus at 0; the window 4..12 um sees its faint tail at the low end and a background
+    # rising to the high end: both ends are candidates, and a prior decides between them
+    z = np.arange(4.0, 12.01, 1.0)
+    scores = 1 + 5 * np.exp(-0.5 * (z / 1.5) ** 2) + np.exp((z - 12) / 2.0)
+    blind = find_peak(z, scores)
+    assert FocusFlag.MULTI_PEAK in blind.flags and blind.runner_up_z_um == 4.0
+    informed = find_peak(z, scores, prior=Prior(1.0, 3.0))
+    assert FocusFlag.EDGE_LOW in informed.flags and informed.z_um == 4.0
+    assert informed.runner_up_z_um == 12.0
