@@ -405,7 +405,8 @@ def complete_report(stack: Stack, out_dir: Path) -> dict[str, Any]:
     assert slide["done"] is True
     assert {entry["sequence"] for entry in acquired(out_dir)} == set(range(slide["n_acquisitions"]))
     assert not (out_dir / outputs.PARTIAL_MOSAIC).exists()
-    assert (out_dir / outputs.MOSAIC).stat().st_size > 0
+    assert report["mosaic"] == outputs.MOSAIC_ZARR  # the default format
+    assert (out_dir / outputs.MOSAIC_ZARR / "zarr.json").stat().st_size > 0
     return report
 
 
