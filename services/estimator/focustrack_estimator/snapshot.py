@@ -143,21 +143,21 @@ class _Decoder:
             items[:] = np.ravel(np.array(self.node(node["oa"], None), dtype=object))
             return items.reshape(node["shape"])
         if "s" in node:
-            items = list(self.arrays[node["s"]])
-            return items if node["k"] == "l" else tuple(items)
+            stacked = list(self.arrays[node["s"]])
+            return stacked if node["k"] == "l" else tuple(stacked)
         for kind, make in (("l", list), ("t", tuple)):
             if kind in node:
-                olds = current if isinstance(current, list | tuple) else []
-                olds = list(olds) + [None] * (len(node[kind]) - len(olds))
-                return make(self.node(n, old) for n, old in zip(node[kind], olds, strict=False))
+                previous = list(current) if isinstance(current, list | tuple) else []
+                previous += [None] * (len(node[kind]) - len(previous))
+                return make(self.node(n, old) for n, old in zip(node[kind], previous, strict=False))
         if "fs" in node:
             return frozenset(self.node(n, None) for n in node["fs"])
         if "set" in node:
             return {self.node(n, None) for n in node["set"]}
         if "d" in node:
-            olds = current if isinstance(current, dict) else {}
+            entries: dict[Any, Any] = current if isinstance(current, dict) else {}
             pairs = [(self.node(k, None), v) for k, v in node["d"]]
-            return {k: self.node(v, olds.get(k)) for k, v in pairs}
+            return {k: self.node(v, entries.get(k)) for k, v in pairs}
         if "dc" in node:
             cls = _class(node["dc"])
             if not dataclasses.is_dataclass(cls):
@@ -193,7 +193,8 @@ def encode(strategy: object) -> bytes:
     tree["state"] = encoder.attributes(strategy, type(strategy).__name__)
     text = json.dumps(tree, separators=(",", ":"))
     buffer = io.BytesIO()
-    np.savez(buffer, **encoder.arrays, **{_TREE: np.frombuffer(text.encode(), dtype=np.uint8)})
+    arrays: dict[str, Any] = {**encoder.arrays, _TREE: np.frombuffer(text.encode(), np.uint8)}
+    np.savez(buffer, **arrays)
     return buffer.getvalue()
 
 
