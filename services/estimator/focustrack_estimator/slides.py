@@ -393,6 +393,8 @@ class Slide:
         self.store.append(self.id, event, accepted=outcome.accepted, done=done)
         logged = Logged(pending, measurement, outcome)
         self.history.append(logged)
+        if done:  # the final map (smoothed layers included) once, so that its snapshot has it
+            self.strategy.focus_map()
         if done or len(self.history) - self.n_snapshot >= self.snapshot_every:
             self.save_snapshot()
         return logged, True

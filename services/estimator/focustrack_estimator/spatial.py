@@ -498,17 +498,18 @@ class RowBankFilter(SerpentineFilter):
             max(0, tile.col - self.window_cols),
             min(self.grid.cols, tile.col + 1 + self.window_cols),
         )
-        if lo == 0 and hi == self.grid.cols:  # the window spans the row: the full update
-            self.x += u * (y / s)[:, None]
-            self.P -= u[:, :, None] * u[:, None, :] / s[:, None, None]
-        else:
-            # Reduced update: gain u_w / s on the window w, zero elsewhere. With that gain the
-            # Joseph form gives P_ww - u_w u_w'/s, P_wo - u_w u_o'/s, and P_oo unchanged.
-            w = np.r_[0:N_PLANE, N_PLANE + 2 * lo : N_PLANE + 2 * hi]
+        # Reduced update: gain u_w / s on the window w (the plane and the columns lo..hi-1),
+        # zero elsewhere (o). With that gain the Joseph form gives P_ww - u_w u_w'/s,
+        # P_wo - u_w u_o'/s and P_oo unchanged (docs/spatial.md); where the window spans the
+        # row, o is empty and this is the full update. In place on slices: no copies of P.
+        window = (slice(0, N_PLANE), slice(N_PLANE + 2 * lo, N_PLANE + 2 * hi))
+        others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, None))
+        for w in window:
             self.x[:, w] += u[:, w] * (y / s)[:, None]
-            rows = self.P[:, w] - u[:, w, None] * u[:, None, :] / s[:, None, None]
-            self.P[:, w] = rows
-            self.P[:, :, w] = rows.transpose(0, 2, 1)
+            # (u_i u_j) / s in both triangles: P stays exactly symmetric.
+            self.P[:, w, :] -= u[:, w, None] * u[:, None, :] / s[:, None, None]  # P_ww, P_wo
+            for o in others:  # the columns of w in the rows of o: P_ow = P_wo'
+                self.P[:, o, w] -= u[:, o, None] * u[:, None, w] / s[:, None, None]
         self.log_weights -= 0.5 * (np.log(2.0 * math.pi * s) + y**2 / s)
         self.log_weights -= self.log_weights.max()
         return self._mixture(tile)
@@ -539,9 +540,6 @@ class RowBankFilter(SerpentineFilter):
         means = np.array([mean for mean, _ in smoothed])
         variances = np.array([var for _, var in smoothed])
         return mixture(means, variances, weights[kept] / weights[kept].sum())
-
-    def _finish(self) -> None:
-        self.focus_map()  # the final map's smoothed layers, once, while the scan ends
 
     def focus_map(self) -> FocusMap:
         """The estimates so far, with the smoothed layers over the tiles finished so far.
