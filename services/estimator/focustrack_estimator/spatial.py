@@ -658,8 +658,8 @@ def kf_2d(
     lengths_tiles: tuple[float, ...] = (4.0, 8.0, 16.0),
     tilt_sigmas_um_per_tile: tuple[float, ...] = (0.3, 1.5),
     max_retries: int = 3,
-    window_cols: int = 24,
-    prune_log_weight: float = 30.0,
+    window_cols: int = 12,
+    prune_log_weight: float = 20.0,
     smooth_block_cols: int = 32,
     smooth_margin_cols: int = 16,
 ) -> RowBankFilter:
