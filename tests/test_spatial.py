@@ -188,7 +188,7 @@ def test_reduced_update_stays_close_to_the_full_filter_with_a_consistent_covaria
     assert not np.array_equal(reduced_map.prior_um, full_map.prior_um)  # not the full filter
     assert _mae(reduced_map.prior_um, truth_um) < 1.1 * _mae(full_map.prior_um, truth_um)
     P = reduced.P
-    np.testing.assert_array_equal(P, P.transpose(0, 2, 1))
+    np.testing.assert_allclose(P, P.transpose(0, 2, 1), rtol=1e-12, atol=1e-14)
     assert np.linalg.eigvalsh(P).min() > -1e-9
 
 

@@ -506,7 +506,7 @@ class RowBankFilter(SerpentineFilter):
         others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, None))
         for w in window:
             self.x[:, w] += u[:, w] * (y / s)[:, None]
-            # (u_i u_j) / s in both triangles: P stays exactly symmetric.
+            # (u_i u_j) / s in both triangles: the update adds no asymmetry to P.
             self.P[:, w, :] -= u[:, w, None] * u[:, None, :] / s[:, None, None]  # P_ww, P_wo
             for o in others:  # the columns of w in the rows of o: P_ow = P_wo'
                 self.P[:, o, w] -= u[:, o, None] * u[:, None, w] / s[:, None, None]
