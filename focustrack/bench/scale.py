@@ -170,22 +170,28 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
             return times
 
         process, _, first_s = start()
-        client = EstimatorClient(f"http://127.0.0.1:{port}")
-        while (acquisition := acquisition_of(client.next(slide_id))) is not None:  # finish
-            measured = measured_um[acquisition.row, acquisition.col]
-            client.measure(
-                slide_id, measurement_in(acquisition, simulated_measurement(acquisition, measured))
-            )
-        client.close()
-        n_acquisitions = httpx.get(url, timeout=60.0).json()["n_acquisitions"]
-        maps()  # the first map of the complete scan (the smoothed layers were made at its end)
-        process.send_signal(signal.SIGKILL)
-        process.wait()
-        process, up_s, first_after_kill_s = start()
-        slide = httpx.get(url, timeout=60.0).json()
-        map_s = maps()
-        process.terminate()
-        process.wait()
+        try:
+            # The last measurement also makes the final map and its snapshot: allow it time.
+            client = EstimatorClient(f"http://127.0.0.1:{port}", timeout_s=300.0)
+            while (acquisition := acquisition_of(client.next(slide_id))) is not None:  # finish
+                measured = measured_um[acquisition.row, acquisition.col]
+                client.measure(
+                    slide_id,
+                    measurement_in(acquisition, simulated_measurement(acquisition, measured)),
+                )
+            client.close()
+            n_acquisitions = httpx.get(url, timeout=60.0).json()["n_acquisitions"]
+            maps()  # the first map of the complete scan (the smoothed layers were made at its end)
+            process.send_signal(signal.SIGKILL)
+            process.wait()
+            process, up_s, first_after_kill_s = start()
+            slide = httpx.get(url, timeout=60.0).json()
+            map_s = maps()
+            process.terminate()
+            process.wait()
+        finally:
+            if process.poll() is None:
+                process.kill()
     return {
         "strategy": strategy_name,
         "cols": size,
@@ -199,11 +205,17 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
 
 
 def _child(arguments: list[str]) -> dict[str, Any]:
+    """Run one case in a child; a failed case is reported (its error's last line), not fatal."""
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     command = [sys.executable, "-m", "focustrack.bench.scale", *arguments]
-    result = subprocess.run(command, env=env, capture_output=True, text=True, check=False)
+    # stderr to a file, not a pipe: a server the child started must not hold the pipe open.
+    with tempfile.TemporaryFile("w+") as errors:
+        result = subprocess.run(command, env=env, stdout=subprocess.PIPE, stderr=errors, text=True)
+        errors.seek(0)
+        error = errors.read().strip().splitlines()
     if result.returncode != 0:
-        raise RuntimeError(f"{' '.join(arguments)} failed:\n{result.stderr[-3000:]}")
+        print(f"{' '.join(arguments)} failed:\n" + "\n".join(error[-20:]), file=sys.stderr)
+        return {"strategy": arguments[1], "cols": int(arguments[2]), "error": error[-1:]}
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
@@ -288,15 +300,19 @@ def run(args: argparse.Namespace) -> int:
 
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
         results = list(pool.map(one, cases))
-    in_process = [r for r in results if r["kind"] == "in-process"]
-    rest = [r for r in results if r["kind"] == "rest"]
+    failed = [r for r in results if "error" in r]
+    in_process = [r for r in results if r["kind"] == "in-process" and "error" not in r]
+    rest = [r for r in results if r["kind"] == "rest" and "error" not in r]
+    for r in failed:
+        print(f"FAILED: {r['kind']} {r['strategy']} {r['cols']}: {r['error']}")
     print(_table(in_process, rest))
     print(f"\n{len(cases)} cases in {time.perf_counter() - started_s:.0f} s, {args.jobs} at a time")
     if args.json:
-        args.json.write_text(json.dumps({"in_process": in_process, "rest": rest}, indent=2))
+        figures = {"in_process": in_process, "rest": rest, "failed": failed}
+        args.json.write_text(json.dumps(figures, indent=2))
     if args.plot:
         _plot(in_process, args.plot)
-    return 0
+    return 1 if failed else 0
 
 
 def _main(argv: list[str]) -> None:
