@@ -30,6 +30,8 @@ from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 SEED = 1234
+#: Seconds a server may take to start: imports alone took 30-45 s on a loaded 2-core machine.
+START_TIMEOUT_S = 120.0
 SETTINGS = SlideSettings(ScanGrid(20, 20))
 
 
@@ -44,7 +46,7 @@ class Server:
 
     def __init__(self, store: Path) -> None:
         self.store, self.port = store, free_port()
-        self.process: Popen = spawn(store, self.port)
+        self.process: Popen = spawn(store, self.port, timeout_s=START_TIMEOUT_S)
         self.url = f"http://127.0.0.1:{self.port}"
 
     def kill(self) -> None:
@@ -52,7 +54,7 @@ class Server:
         self.process.wait(timeout=10)
 
     def restart(self) -> None:
-        self.process = spawn(self.store, self.port)
+        self.process = spawn(self.store, self.port, timeout_s=START_TIMEOUT_S)
 
     def stop(self) -> None:
         if self.process.poll() is None:
