@@ -28,6 +28,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "choose the Kalman strategies' defaults on training seeds",
     ),
     "bench focus": ("focustrack.bench.focus", "focus-metric accuracy and speed"),
+    "bench scale": (
+        "focustrack.bench.scale",
+        "cost per tile, final map, memory and restarts as the slide grows",
+    ),
     "bench api": ("focustrack.bench.api", "estimator REST latency and throughput"),
     "bench instrument": (
         "focustrack.bench.instrument",

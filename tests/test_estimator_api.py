@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import logging
 import sqlite3
 from collections.abc import Coroutine, Iterator
 from pathlib import Path
@@ -27,6 +28,7 @@ from focustrack_core.maps import MAP_LAYERS, focus_map_of_npy
 from focustrack_estimator import registry
 from focustrack_estimator.app import Settings, create_app
 from focustrack_estimator.slides import config_of
+from focustrack_estimator.store import Store
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_scheduler.remote import acquisition_of, measurement_in
@@ -523,3 +525,127 @@ def test_metrics_count_requests_measurements_and_rejections(app: FastAPI) -> Non
     assert any(
         line.startswith("focustrack_estimator_filter_duration_seconds_count") for line in lines
     )
+
+
+# --- restarts from snapshots, round-off in replays, the grid limit ---
+
+SNAPSHOTTED = "kf-2d"  # the restart tests' strategy
+
+
+def _start(path: Path, n_pairs: int, snapshot_every: int) -> str:
+    async def go() -> str:
+        app = create_app(Settings(str(path), snapshot_every=snapshot_every))
+        async with client(app) as http:
+            slide_id = await create(http, SNAPSHOTTED)
+            await scan(http, slide_id, maps(5)[1], limit=n_pairs)
+        app.state.slides.store.close()
+        return slide_id
+
+    return run(go())
+
+
+def _finish(path: Path, slide_id: str) -> tuple[httpx.Response, object]:
+    """Restart on the store: the first /next, then the rest of the scan and its map."""
+
+    async def go() -> tuple[httpx.Response, object]:
+        app = create_app(Settings(str(path)))
+        async with client(app) as http:
+            first = await http.get(f"/v1/slides/{slide_id}/next")
+            if first.status_code != 200:
+                return first, None
+            await scan(http, slide_id, maps(5)[1])
+            result = await served_map(http, slide_id)
+        app.state.slides.store.close()
+        return first, result
+
+    return run(go())
+
+
+def _tamper(path: Path, sequence: int, before: str, after: str) -> None:
+    with sqlite3.connect(path) as db:
+        cursor = db.execute(
+            "UPDATE events SET outcome = replace(outcome, ?, ?) WHERE sequence = ?",
+            (before, after, sequence),
+        )
+        assert cursor.rowcount == 1
+
+
+def test_a_restart_replays_only_the_events_after_the_snapshot(tmp_path: Path) -> None:
+    path = tmp_path / "estimator.sqlite"
+    slide_id = _start(path, n_pairs=13, snapshot_every=5)
+    store = Store(path)
+    snapshot = store.snapshot(slide_id)
+    store.close()
+    assert snapshot is not None and snapshot[0] == 10
+    # An event the snapshot covers is not replayed (changing it is not noticed) ...
+    _tamper(path, 3, '"accepted": true', '"accepted": false')
+    first, served = _finish(path, slide_id)
+    assert first.status_code == 200
+    assert_same_maps(served, local_map(SNAPSHOTTED, SETTINGS, 5))  # type: ignore[arg-type]
+
+
+def test_events_after_the_snapshot_are_checked(tmp_path: Path) -> None:
+    path = tmp_path / "estimator.sqlite"
+    slide_id = _start(path, n_pairs=13, snapshot_every=5)
+    _tamper(path, 11, '"accepted": true', '"accepted": false')
+    first, _ = _finish(path, slide_id)
+    assert first.status_code == 500
+    assert "outcome 11 no longer replays" in first.json()["detail"]
+
+
+def test_a_snapshot_that_does_not_fit_falls_back_to_the_whole_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "estimator.sqlite"
+    slide_id = _start(path, n_pairs=13, snapshot_every=5)
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE snapshots SET state = ?", (b"garbage",))
+    with caplog.at_level(logging.WARNING):
+        first, served = _finish(path, slide_id)
+    assert first.status_code == 200
+    assert "snapshot not used, replaying its log" in caplog.text
+    assert_same_maps(served, local_map(SNAPSHOTTED, SETTINGS, 5))  # type: ignore[arg-type]
+
+
+def test_round_off_in_a_replayed_outcome_is_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A log written with another numpy or BLAS differs in the last digits: it still loads."""
+    path = tmp_path / "estimator.sqlite"
+    slide_id = _start(path, n_pairs=4, snapshot_every=1000)  # no snapshot: the whole log replays
+    with sqlite3.connect(path) as db:
+        (outcome,) = db.execute("SELECT outcome FROM events WHERE sequence = 2").fetchone()
+    value = outcome.split('"posterior_um": ')[1].split(",")[0]
+    _tamper(path, 2, f'"posterior_um": {value}', f'"posterior_um": {float(value) * (1 + 1e-12)!r}')
+    with caplog.at_level(logging.WARNING):
+        first, served = _finish(path, slide_id)
+    assert first.status_code == 200
+    assert "outcome 2 differs from the logged one by round-off only" in caplog.text
+    assert_same_maps(served, local_map(SNAPSHOTTED, SETTINGS, 5))  # type: ignore[arg-type]
+    # More than round-off is still a mismatch (replayed from the log, the snapshot gone).
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE events SET outcome = json_set(outcome, '$.posterior_um', 1.0)")
+        db.execute("DELETE FROM snapshots")
+    first, _ = _finish(path, slide_id)
+    assert first.status_code == 500
+
+
+def test_a_grid_over_the_service_limit_is_a_422_naming_it(tmp_path: Path) -> None:
+    async def go() -> httpx.Response:
+        app = create_app(Settings(str(tmp_path / "e.sqlite"), max_grid_side=8, max_grid_tiles=40))
+        async with client(app) as http:
+            ok = await create(http, SNAPSHOTTED)  # 6x5: within both limits
+            assert ok
+            body = {"strategy": SNAPSHOTTED, "grid": {"rows": 9, "cols": 2}}
+            too_tall = await http.post("/v1/slides", json=body)
+            assert too_tall.status_code == 422
+            assert "--max-grid-side" in too_tall.json()["detail"][0]["msg"]
+            body = {"strategy": SNAPSHOTTED, "grid": {"rows": 7, "cols": 7}}
+            response = await http.post("/v1/slides", json=body)
+        app.state.slides.store.close()
+        return response
+
+    response = run(go())
+    assert response.status_code == 422
+    detail = response.json()["detail"][0]
+    assert detail["loc"] == ["body", "grid"] and "49 tiles" in detail["msg"]

@@ -25,12 +25,15 @@ from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
 from focustrack_estimator.service import spawn
 from focustrack_estimator.slides import config_of
+from focustrack_estimator.store import Store
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
 
 SEED = 1234
+#: Seconds a server may take to start: imports alone took 30-45 s on a loaded 2-core machine.
+START_TIMEOUT_S = 120.0
 SETTINGS = SlideSettings(ScanGrid(20, 20))
 
 
@@ -45,7 +48,7 @@ class Server:
 
     def __init__(self, store: Path) -> None:
         self.store, self.port = store, free_port()
-        self.process: Popen = spawn(store, self.port)
+        self.process: Popen = spawn(store, self.port, timeout_s=START_TIMEOUT_S)
         self.url = f"http://127.0.0.1:{self.port}"
 
     def kill(self) -> None:
@@ -53,7 +56,7 @@ class Server:
         self.process.wait(timeout=10)
 
     def restart(self) -> None:
-        self.process = spawn(self.store, self.port)
+        self.process = spawn(self.store, self.port, timeout_s=START_TIMEOUT_S)
 
     def stop(self) -> None:
         if self.process.poll() is None:
@@ -122,3 +125,28 @@ def test_a_killed_and_restarted_service_loses_nothing(server: Server) -> None:
             getattr(remote.focus_map, name), getattr(local.focus_map, name), err_msg=name
         )
     remote_strategy.client.close()
+
+
+@pytest.mark.slow
+def test_kf_2d_killed_restarts_from_its_snapshot_and_loses_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With a snapshot every 50 measurements a kill -9 after 157 replays only the last 7."""
+    monkeypatch.setenv("FOCUSTRACK_ESTIMATOR_SNAPSHOT_EVERY", "50")
+    server = Server(tmp_path / "estimator.sqlite")
+    try:
+        truth, measured = standard_map(SEED + 2)
+        local = replay(registry.create("kf-2d", SETTINGS), truth, measured)
+        remote_strategy = _KilledMidScan(server, kill_after=157, strategy="kf-2d")
+        remote = replay(remote_strategy, truth, measured)
+        assert remote_strategy.restarted
+        assert remote.outcomes == local.outcomes
+        np.testing.assert_array_equal(remote.focus_map.smoothed_um, local.focus_map.smoothed_um)
+        remote_strategy.client.close()
+        server.stop()  # a clean shutdown: the scan is complete, its snapshot covers it all
+        store = Store(server.store)
+        snapshot = store.snapshot(remote_strategy.slide_id)
+        store.close()
+        assert snapshot is not None and snapshot[0] == len(local.outcomes)
+    finally:
+        server.stop()

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 
 from focustrack.bench.oracle import gp_oracle
 from focustrack.bench.replay import replay
-from focustrack_core.domain import FocusFlag, Measurement, Purpose
+from focustrack_core.domain import FocusFlag, FocusMap, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_estimator.spatial import STRATEGIES, kf_2d, nshp_weights
 from focustrack_estimator.strategy import SlideSettings
@@ -164,3 +165,46 @@ def test_nshp_weights_reproduce_constants_and_planes() -> None:
     assert nshp_weights(in_row, 1) @ np.array([1.0, 0.0]) == pytest.approx(2.0)
     with pytest.raises(ValueError, match="order"):
         nshp_weights(offsets, 2)
+
+
+def _kf_2d_scan(
+    rows: int, cols: int, seed: int, **params: float
+) -> tuple[Any, FocusMap, np.ndarray]:
+    truth_um, measured_um = _maps(rows, cols, seed)
+    strategy = kf_2d(SlideSettings(grid=ScanGrid(rows, cols)), **params)  # type: ignore[arg-type]
+    return strategy, replay(strategy, truth_um, measured_um).focus_map, truth_um
+
+
+def _mae(estimate_um: np.ndarray, truth_um: np.ndarray) -> float:
+    return float(np.mean(np.abs(estimate_um - truth_um)))
+
+
+def test_reduced_update_stays_close_to_the_full_filter_with_a_consistent_covariance() -> None:
+    """A window of 8 columns on a 30-column slide: far columns are not corrected by a
+    measurement; the covariance stays that of the reduced estimator (symmetric, PSD)."""
+    rows, cols = 6, 30
+    reduced, reduced_map, truth_um = _kf_2d_scan(rows, cols, 2, window_cols=8)
+    _, full_map, _ = _kf_2d_scan(rows, cols, 2, window_cols=cols)
+    assert not np.array_equal(reduced_map.prior_um, full_map.prior_um)  # not the full filter
+    assert _mae(reduced_map.prior_um, truth_um) < 1.1 * _mae(full_map.prior_um, truth_um)
+    P = reduced.P
+    np.testing.assert_allclose(P, P.transpose(0, 2, 1), rtol=1e-12, atol=1e-14)
+    assert np.linalg.eigvalsh(P).min() > -1e-9
+
+
+def test_pruning_drops_members_without_changing_the_estimates_much() -> None:
+    pruned, pruned_map, truth_um = _kf_2d_scan(12, 12, 4, prune_log_weight=5.0)
+    kept, kept_map, _ = _kf_2d_scan(12, 12, 4, prune_log_weight=1e9)
+    assert len(pruned.active) < len(kept.active) == 18
+    for layer in ("prior_um", "smoothed_um"):
+        pruned_mae = _mae(getattr(pruned_map, layer), truth_um)
+        assert pruned_mae == pytest.approx(_mae(getattr(kept_map, layer), truth_um), rel=0.03)
+
+
+def test_the_smoother_in_column_blocks_stays_close_to_the_whole_row_smoother() -> None:
+    _, blocks, truth_um = _kf_2d_scan(6, 30, 6, smooth_block_cols=8, smooth_margin_cols=8)
+    _, whole, _ = _kf_2d_scan(6, 30, 6, smooth_block_cols=30)
+    assert not np.array_equal(blocks.smoothed_um, whole.smoothed_um)
+    assert _mae(blocks.smoothed_um, truth_um) < 1.05 * _mae(whole.smoothed_um, truth_um)
+    np.testing.assert_allclose(blocks.smoothed_sigma_um, whole.smoothed_sigma_um, rtol=0.1)
+    np.testing.assert_array_equal(blocks.posterior_um, whole.posterior_um)  # the same scan

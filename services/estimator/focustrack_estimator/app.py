@@ -32,17 +32,28 @@ from focustrack_client import models as api
 from focustrack_core.domain import Acquisition, Outcome
 from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
 from focustrack_estimator.metrics import EstimatorMetrics
-from focustrack_estimator.slides import Slide, SlideError, Slides, diagnose, map_png
+from focustrack_estimator.slides import (
+    GridLimits,
+    Slide,
+    SlideError,
+    Slides,
+    diagnose,
+    map_png,
+)
 from focustrack_estimator.store import SlideRecord, Store
 
 
 @dataclass(frozen=True)
 class Settings:
-    """How the service runs: its SQLite file, its bearer token (None: no auth), its body limit."""
+    """How the service runs: its SQLite file, its bearer token (None: no auth), its body limit,
+    the largest grid a slide may have, and how often a slide's state is snapshotted."""
 
     store_path: str
     token: str | None = None
     max_body_bytes: int = 64 * 1024
+    max_grid_side: int = GridLimits.max_side
+    max_grid_tiles: int = GridLimits.max_tiles
+    snapshot_every: int = 200  # measurements between a slide's snapshots
 
 
 #: Worker threads for strategy work and SQLite (a request waiting for its commit holds one).
@@ -393,7 +404,12 @@ def create_app(settings: Settings) -> FastAPI:
     """The estimator service over the store at `settings.store_path`."""
     store = Store(settings.store_path)
     metrics = EstimatorMetrics(store.count_slides, lambda: slides.n_live)
-    slides = Slides(store, timer=metrics.filter.observe)
+    slides = Slides(
+        store,
+        timer=metrics.filter.observe,
+        snapshot_every=settings.snapshot_every,
+        limits=GridLimits(settings.max_grid_side, settings.max_grid_tiles),
+    )
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -405,6 +421,9 @@ def create_app(settings: Settings) -> FastAPI:
         gc.collect()
         gc.freeze()
         yield
+        # At shutdown every live slide's state is snapshotted, so the next start replays
+        # nothing (after a kill -9 it replays the events since the last periodic snapshot).
+        await asyncio.to_thread(slides.save_snapshots)
         # The store is not closed here: in-process clients (TestClient) run the lifespan
         # once per session; whoever created the app closes it (`service.run`).
 

@@ -35,11 +35,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--max-body-bytes", type=int, default=64 * 1024, help="largest request body accepted"
     )
+    parser.add_argument(
+        "--max-grid-side",
+        type=int,
+        default=Settings.max_grid_side,
+        help="most tiles per side a slide's grid may have (larger: 422)",
+    )
+    parser.add_argument(
+        "--max-grid-tiles",
+        type=int,
+        default=Settings.max_grid_tiles,
+        help="most tiles a slide's grid may have (larger: 422)",
+    )
+    parser.add_argument(
+        "--snapshot-every",
+        type=int,
+        default=Settings.snapshot_every,
+        help="measurements between snapshots of a slide's state (a restart replays fewer)",
+    )
     parser.add_argument("--access-log", action="store_true", help="log every request")
 
 
 def run(args: argparse.Namespace) -> int:
-    app = create_app(Settings(args.store, args.token or None, args.max_body_bytes))
+    app = create_app(
+        Settings(
+            args.store,
+            args.token or None,
+            args.max_body_bytes,
+            max_grid_side=args.max_grid_side,
+            max_grid_tiles=args.max_grid_tiles,
+            snapshot_every=args.snapshot_every,
+        )
+    )
     print(
         f"estimator on http://{args.host}:{args.port} (store {args.store}, "
         f"auth {'on' if args.token else 'off'})",

@@ -49,7 +49,7 @@ from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
 from focustrack_estimator.kalman_strategies import rts_smooth
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
-from focustrack_estimator.sqrt_filter import SqrtKalmanFilter, psd_factor
+from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
 from focustrack_estimator.strategy import SlideSettings, Strategy
 
 # --- NSHP ------------------------------------------------------------------------------
@@ -196,28 +196,31 @@ class RowModel:
         return np.diag([1.0, self._lam**2])
 
     @cached_property
-    def _step_y(self) -> np.ndarray:
-        """exp(A) of the Matern-3/2 SDE matrix A = [[0, 1], [-lam^2, -2 lam]] (one row)."""
+    def step_y(self) -> np.ndarray:
+        """exp(A) of the Matern-3/2 SDE matrix A = [[0, 1], [-lam^2, -2 lam]] (one row), 2x2."""
         lam = self._lam
         return math.exp(-lam) * np.array([[1.0 + lam, 1.0], [-(lam**2), 1.0 - lam]])
 
     @cached_property
     def F(self) -> np.ndarray:  # noqa: N802 (the equations' names)
         """Row-to-row transition, (N_PLANE + 2 cols) square."""
-        return scipy.linalg.block_diag(np.eye(N_PLANE), np.kron(np.eye(self.cols), self._step_y))
+        return scipy.linalg.block_diag(np.eye(N_PLANE), np.kron(np.eye(self.cols), self.step_y))
+
+    @cached_property
+    def field_noise_per_um2(self) -> np.ndarray:
+        """Row-to-row process noise of the field states per unit sigma^2, (2 cols) square.
+
+        Stationary minus propagated covariance of (f, df/dy), correlated across x by k(dx).
+        """
+        A, P = self.step_y, self._stationary_y
+        return np.kron(self._column_corr, P - A @ P @ A.T)
 
     @cached_property
     def Q(self) -> np.ndarray:  # noqa: N802 (the equations' names)
-        """Row-to-row process noise (um^2): stationary minus propagated, correlated across x."""
-        A, P = self._step_y, self._stationary_y
-        noise_y = P - A @ P @ A.T
-        field = self.sigma_um**2 * np.kron(self._column_corr, noise_y)
-        return scipy.linalg.block_diag(np.zeros((N_PLANE, N_PLANE)), field)
-
-    @cached_property
-    def Q_sqrt(self) -> np.ndarray:  # noqa: N802 (the equations' names)
-        """A factor of Q, computed once (Q is rank-deficient: the plane has no noise)."""
-        return psd_factor(self.Q)
+        """Row-to-row process noise (um^2), (N_PLANE + 2 cols) square; the plane has none."""
+        return scipy.linalg.block_diag(
+            np.zeros((N_PLANE, N_PLANE)), self.sigma_um**2 * self.field_noise_per_um2
+        )
 
     def initial(self, offset_sigma_um: float) -> np.ndarray:
         """Covariance of the first row's state: the plane and the stationary field."""
@@ -227,6 +230,12 @@ class RowModel:
         return scipy.linalg.block_diag(plane, field)
 
 
+#: Members whose posterior probability is below this (normalised) are left out of the
+#: smoothed map (the others' weights renormalised): each member costs a smoother pass, and
+#: a 0.1% share moves the blend by 0.1% of the members' difference.
+SMOOTH_MIN_WEIGHT = 1e-3
+
+
 class RowBankFilter(SerpentineFilter):
     """`kf-2d`: strip filters for every (sigma, length, tilt) of a grid, averaged by likelihood.
 
@@ -234,7 +243,27 @@ class RowBankFilter(SerpentineFilter):
     far under its model (Bayesian model averaging over fixed models, the
     multiple-model adaptive estimator without switching); the tile's prior and
     posterior are the weighted mixture's mean and variance. `focus_map` adds
-    the RTS-smoothed layers (`_smoothed`: `kf-2d-rts` in the benchmark).
+    the smoothed layers (`_smoothed`: `kf-2d-rts` in the benchmark).
+
+    Cost per tile, whatever the slide's width (docs/spatial.md):
+
+    - **Reduced update** (Woods and Radewan 1977): a measurement of column c
+      corrects only the plane and the columns within `window_cols` of c; the
+      gain of every other state is zero. The covariance is updated for that
+      gain exactly (Joseph form, so P stays the true error covariance of the
+      reduced estimator): the window's block and its cross-covariance with the
+      rest change, the rest does not. Where the window spans the row (slides
+      up to 2 `window_cols` + 1 wide) this is the full Kalman filter.
+    - **Pruning**: at each new row, members whose log weight has fallen
+      `prune_log_weight` below the best are dropped for good (their weight is
+      then below e^-prune_log_weight, and fixed models cannot win it back
+      quickly); the weights of the others are unchanged.
+    - Row to row, F is block diagonal (2x2 per column): F P F' costs O(cols^2)
+      once a row, O(cols) per tile.
+
+    The members' states are kept stacked: x (n_members, dim_x) and covariances
+    P (n_members, dim_x, dim_x), dim_x = N_PLANE + 2 cols; `active` holds each
+    row's index into `models`.
     """
 
     name = "kf-2d"
@@ -247,6 +276,10 @@ class RowBankFilter(SerpentineFilter):
         lengths_tiles: tuple[float, ...],
         tilt_sigmas_um_per_tile: tuple[float, ...],
         max_retries: int,
+        window_cols: int,
+        prune_log_weight: float,
+        smooth_block_cols: int,
+        smooth_margin_cols: int,
     ) -> None:
         super().__init__(settings, FilterOptions(max_retries=max_retries))
         grid_values = (*sigmas_um, *lengths_tiles, *tilt_sigmas_um_per_tile)
@@ -254,6 +287,15 @@ class RowBankFilter(SerpentineFilter):
             raise ValueError(
                 "the bank's sigmas, lengths and tilt sigmas must be given and positive"
             )
+        if window_cols < 1 or smooth_block_cols < 1 or smooth_margin_cols < 0:
+            raise ValueError(
+                "need window_cols >= 1, smooth_block_cols >= 1 and smooth_margin_cols >= 0, "
+                f"got {window_cols}, {smooth_block_cols}, {smooth_margin_cols}"
+            )
+        if not prune_log_weight > 0:
+            raise ValueError(f"prune_log_weight must be positive, got {prune_log_weight}")
+        self.window_cols, self.prune_log_weight = window_cols, prune_log_weight
+        self.smooth_block_cols, self.smooth_margin_cols = smooth_block_cols, smooth_margin_cols
         cols = self.grid.cols
         self.models = [
             RowModel(sigma, length, tilt, cols)
@@ -261,115 +303,140 @@ class RowBankFilter(SerpentineFilter):
             for length in lengths_tiles
             for tilt in tilt_sigmas_um_per_tile
         ]
-        self._filters = []
-        for model in self.models:
-            kf = SqrtKalmanFilter(dim_x=N_PLANE + 2 * cols, dim_z=1)
-            kf.x[0, 0] = settings.start_z_um
-            kf.P = model.initial(settings.start_sigma_um)
-            self._filters.append(kf)
+        self.active = np.arange(len(self.models))  # members still in the bank
+        self.x = np.zeros((len(self.models), N_PLANE + 2 * cols))
+        self.x[:, 0] = settings.start_z_um
+        self.P = np.stack([model.initial(settings.start_sigma_um) for model in self.models])
         self.log_weights = np.zeros(len(self.models))  # log posterior model probabilities
         self._row = 0
-        # For the RTS smoother over rows (`_smoothed`): every member's state after each finished
-        # row's last update (the current row's is live; the priors follow from these).
-        self._row_posteriors: list[tuple[np.ndarray, np.ndarray]] = []
+        # The accepted measurements (um) and their R (um^2), NaN elsewhere: the smoother
+        # recomputes the row states from these instead of keeping every row's covariance.
+        self.z_um = np.full(self.grid.shape, np.nan)
+        self.R_um2 = np.full(self.grid.shape, np.nan)
         self._n_finished = 0  # tiles corrected (with or without a measurement)
         self._smoothed_at = -1  # `_n_finished` when the smoothed layers were last filled
 
     @property
     def weights(self) -> np.ndarray:
-        """Posterior probability of each member model, shape (len(models),)."""
+        """Posterior probability of each active member, shape (len(active),)."""
         w = np.exp(self.log_weights - self.log_weights.max())
         return w / w.sum()
 
-    def _design(self, rows: np.ndarray) -> np.ndarray:
-        """Measurement rows of every tile of `rows`, shape (len(rows), cols, dim_x).
+    def _h(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+        """The measurement row of `tile` as its non-zero (indices, values) in the state.
 
-        A tile's height is the plane at its centre plus its column's field.
+        A tile's height is the plane at its centre (offset, x-tilt times the
+        column's distance from the centre, y-tilt likewise) plus its column's field.
         """
-        cols = self.grid.cols
-        column = np.arange(cols)
-        H = np.zeros((len(rows), cols, N_PLANE + 2 * cols))
-        H[:, :, 0] = 1.0
-        H[:, :, 1] = column - (cols - 1) / 2.0
-        H[:, :, 2] = (np.asarray(rows) - (self.grid.rows - 1) / 2.0)[:, None]
-        H[:, column, N_PLANE + 2 * column] = 1.0
-        return H
-
-    def _h(self, tile: Tile) -> np.ndarray:
-        """Measurement row of one tile, shape (1, dim_x) (`_design`)."""
-        return self._design(np.array([tile.row]))[0, [tile.col]]
-
-    def _states(self) -> tuple[np.ndarray, np.ndarray]:
-        """Copies of the members' x (n_members, dim_x) and P factors (n_members, dim_x, dim_x)."""
-        return (
-            np.stack([kf.x[:, 0] for kf in self._filters]),
-            np.stack([kf.P_sqrt for kf in self._filters]),
+        indices = np.array([0, 1, 2, N_PLANE + 2 * tile.col])
+        values = np.array(
+            [
+                1.0,
+                tile.col - (self.grid.cols - 1) / 2.0,
+                tile.row - (self.grid.rows - 1) / 2.0,
+                1.0,
+            ]
         )
+        return indices, values
 
     def _mixture(self, tile: Tile) -> Gaussian:
-        H = self._h(tile)
-        means = np.array([(H @ kf.x).item() for kf in self._filters])
-        variances = np.array([np.sum((H @ kf.P_sqrt) ** 2) for kf in self._filters])
+        indices, values = self._h(tile)
+        means = self.x[:, indices] @ values
+        variances = np.einsum("i,mij,j->m", values, self.P[:, indices[:, None], indices], values)
         mean, var = mixture(means, variances, self.weights)
         return Gaussian(float(mean), float(var))
 
     def _predict(self, tile: Tile) -> Gaussian:
         if tile.row != self._row:  # a new row: propagate every column one row down
-            self._row_posteriors.append(self._states())
-            for model, kf in zip(self.models, self._filters, strict=True):
-                kf.predict(F=model.F, Q_sqrt=model.Q_sqrt)
+            self._predict_row()
+            self._prune()
             self._row = tile.row
         return self._mixture(tile)
+
+    def _predict_row(self) -> None:
+        """x <- F x, P <- F P F' + Q for every member, F block diagonal (`RowModel.F`)."""
+        n_members, cols = len(self.active), self.grid.cols
+        A = np.stack([self.models[i].step_y for i in self.active])[:, None]  # (m, 1, 2, 2)
+
+        def left(M: np.ndarray) -> np.ndarray:
+            """F @ M for M (n_members, dim_x, k): the 2x2 block of each column on its rows."""
+            out = M.copy()
+            field = M[:, N_PLANE:].reshape(n_members, cols, 2, -1)
+            out[:, N_PLANE:] = (A @ field).reshape(n_members, 2 * cols, -1)
+            return out
+
+        self.x = left(self.x[:, :, None])[:, :, 0]
+        self.P = left(left(self.P).transpose(0, 2, 1))  # F (F P)' = F P F' (P symmetric)
+        for m, i in enumerate(self.active):
+            model = self.models[i]
+            self.P[m, N_PLANE:, N_PLANE:] += model.sigma_um**2 * model.field_noise_per_um2
+
+    def _prune(self) -> None:
+        keep = self.log_weights >= self.log_weights.max() - self.prune_log_weight
+        if not keep.all():
+            self.active, self.log_weights = self.active[keep], self.log_weights[keep]
+            self.x, self.P = self.x[keep], self.P[keep]
 
     def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
         self._n_finished += 1
         if z_um is None:
             return prior
-        H = self._h(tile)
-        for i, kf in enumerate(self._filters):
-            kf.update(z_um, R=R_um2, H=H)
-            self.log_weights[i] += kf.log_likelihood
+        self.z_um[tile.row, tile.col], self.R_um2[tile.row, tile.col] = z_um, R_um2
+        indices, values = self._h(tile)
+        u = np.einsum("i,min->mn", values, self.P[:, indices])  # P h' of each member (m, n)
+        s = u[:, indices] @ values + R_um2  # innovation variances
+        y = z_um - self.x[:, indices] @ values  # innovations
+        lo, hi = (
+            max(0, tile.col - self.window_cols),
+            min(self.grid.cols, tile.col + 1 + self.window_cols),
+        )
+        # Reduced update: gain u_w / s on the window w (the plane and the columns lo..hi-1),
+        # zero elsewhere (o). With that gain the Joseph form gives P_ww - u_w u_w'/s,
+        # P_wo - u_w u_o'/s and P_oo unchanged (docs/spatial.md); where the window spans the
+        # row, o is empty and this is the full update. In place on slices: no copies of P.
+        window = (slice(0, N_PLANE), slice(N_PLANE + 2 * lo, N_PLANE + 2 * hi))
+        others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, None))
+        for w in window:
+            self.x[:, w] += u[:, w] * (y / s)[:, None]
+            # (u_i u_j) / s in both triangles: the update adds no asymmetry to P.
+            self.P[:, w, :] -= u[:, w, None] * u[:, None, :] / s[:, None, None]  # P_ww, P_wo
+            for o in others:  # the columns of w in the rows of o: P_ow = P_wo'
+                self.P[:, o, w] -= u[:, o, None] * u[:, None, w] / s[:, None, None]
+        self.log_weights -= 0.5 * (np.log(2.0 * math.pi * s) + y**2 / s)
         self.log_weights -= self.log_weights.max()
         return self._mixture(tile)
 
     def _smoothed(self) -> tuple[np.ndarray, np.ndarray]:
-        """RTS-smoothed heights (um) and variances (um^2) given every measurement so far.
+        """Smoothed heights (um) and variances (um^2) given every measurement so far.
 
-        Both (rows reached, cols). Fixed-interval smoothing over rows: step k is
-        row k, its posterior the state after the row's last update (the live
-        state for the current row), its prior row k - 1's posterior propagated
-        (F x, F P F' + Q: what the filter's predict did; recomputed here rather
-        than stored, which halves the memory kept per row). A row's state holds
-        every tile of that row, so each tile is read
-        from its own row's smoothed state, which has seen the rows below it and
-        the rest of its row: for the bank's models that is exactly the GP
-        posterior given all measurements. Each member is smoothed and the
-        members are blended with their current weights, which for fixed models
-        are the model probabilities given every measurement (the exact smoothed
-        mixture).
+        Both (rows reached, cols). Each member with a weight of at least
+        `SMOOTH_MIN_WEIGHT` is smoothed by `smooth_member` (a fixed-interval
+        smoother over rows, column block by column block) and the members are
+        blended with their current weights, which for fixed models are the
+        model probabilities given every measurement (the exact smoothed mixture).
         """
-        x_post, S_post = (
-            np.array(a) for a in zip(*self._row_posteriors, self._states(), strict=True)
-        )  # x (n_rows, n_members, dim_x), S (n_rows, n_members, dim_x, dim_x)
-        P_post = S_post @ S_post.swapaxes(-1, -2)
-        n_rows = len(x_post)
-        H = self._design(np.arange(n_rows))  # (n_rows, cols, dim_x)
-        means, variances = [], []
-        for m, model in enumerate(self.models):
-            x, P, F = x_post[:, m], P_post[:, m], model.F
-            # Priors of rows 1..n-1; row 0's (the initial state) is not used by the smoother.
-            x_prior = np.concatenate([x[:1], x[:-1] @ F.T])
-            P_prior = np.concatenate([P[:1], F @ P[:-1] @ F.T + model.Q])
-            Fs = np.broadcast_to(F, (n_rows, *F.shape))
-            xs, Ps = rts_smooth(x_prior, P_prior, x, P, Fs)
-            means.append(np.einsum("rcd,rd->rc", H, xs))
-            variances.append(np.sum((H @ Ps) * H, axis=-1))  # h' P h for every tile
-        return mixture(np.array(means), np.array(variances), self.weights)
+        weights = self.weights
+        kept = weights >= SMOOTH_MIN_WEIGHT
+        reached = self._row + 1
+        smoothed = [
+            smooth_member(
+                self.models[i],
+                self.settings,
+                self.z_um[:reached],
+                self.R_um2[:reached],
+                block_cols=self.smooth_block_cols,
+                margin_cols=self.smooth_margin_cols,
+            )
+            for i in self.active[kept]
+        ]
+        means = np.array([mean for mean, _ in smoothed])
+        variances = np.array([var for _, var in smoothed])
+        return mixture(means, variances, weights[kept] / weights[kept].sum())
 
     def focus_map(self) -> FocusMap:
-        """The estimates so far, with the RTS-smoothed layers over the tiles finished so far.
+        """The estimates so far, with the smoothed layers over the tiles finished so far.
 
-        The backward pass runs here, when the map is asked for (and a tile was
+        The smoother runs here, when the map is asked for (and a tile was
         finished since the last time), never per measurement.
         """
         if self._n_finished and self._smoothed_at != self._n_finished:
@@ -384,6 +451,72 @@ class RowBankFilter(SerpentineFilter):
             )
             self._smoothed_at = self._n_finished
         return self.map
+
+
+def smooth_member(
+    model: RowModel,
+    settings: SlideSettings,
+    z_um: np.ndarray,
+    R_um2: np.ndarray,
+    *,
+    block_cols: int,
+    margin_cols: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One strip model's smoothed heights (um) and variances (um^2) given the measurements.
+
+    `z_um` and `R_um2` (rows reached, cols) hold each measured tile's height and
+    variance, NaN where there is none. The model is filtered and RTS-smoothed
+    over rows (`rts_smooth`: step k is row k, its posterior the state after the
+    row's measurements, which for this model is exactly the Gaussian-process
+    posterior) on column blocks: the tiles of each block of `block_cols`
+    columns are read from a strip filter over those columns and `margin_cols`
+    more on either side, so that memory is rows x (N_PLANE + 2 width)^2 floats
+    whatever the slide's width. A block's margins stand in for the columns
+    beyond, whose measurements a Matern field a few lengths away barely feels;
+    where one block spans the grid the result is the exact smoother.
+    """
+    rows, cols = z_um.shape
+    grid = settings.grid
+    mean_um, var_um2 = np.full((rows, cols), np.nan), np.full((rows, cols), np.nan)
+    for start in range(0, cols, block_cols):
+        lo, hi = max(0, start - margin_cols), min(cols, start + block_cols + margin_cols)
+        block = RowModel(model.sigma_um, model.length_tiles, model.tilt_sigma_um_per_tile, hi - lo)
+        dim = N_PLANE + 2 * (hi - lo)
+        # Measurement rows of the block's tiles (plane at each tile, plus its column's field).
+        H = np.zeros((rows, hi - lo, dim))
+        H[:, :, 0] = 1.0
+        H[:, :, 1] = np.arange(lo, hi) - (grid.cols - 1) / 2.0
+        H[:, :, 2] = (np.arange(rows) - (grid.rows - 1) / 2.0)[:, None]
+        H[:, np.arange(hi - lo), N_PLANE + 2 * np.arange(hi - lo)] = 1.0
+        x_prior, P_prior = np.zeros((rows, dim)), np.zeros((rows, dim, dim))
+        x_post, P_post = np.zeros((rows, dim)), np.zeros((rows, dim, dim))
+        x = np.zeros(dim)
+        x[0] = settings.start_z_um
+        P = block.initial(settings.start_sigma_um)
+        for r in range(rows):
+            if r:
+                x, P = block.F @ x, block.F @ P @ block.F.T + block.Q
+            x_prior[r], P_prior[r] = x, P
+            measured = np.flatnonzero(np.isfinite(z_um[r, lo:hi]))
+            if measured.size:  # the row's tiles at once: the same as one by one
+                Hr = H[r, measured]
+                L = np.linalg.cholesky(Hr @ P @ Hr.T + np.diag(R_um2[r, lo + measured]))
+                # np.linalg.solve on the triangular L: scipy's solve_triangular took 18 ms a
+                # call here on a loaded 2-core machine, LAPACK's gesv well under one.
+                B = np.linalg.solve(L, Hr @ P)  # L^-1 H P
+                e = np.linalg.solve(L, z_um[r, lo + measured] - Hr @ x)
+                x, P = x + B.T @ e, P - B.T @ B
+                P = (P + P.T) / 2.0
+            x_post[r], P_post[r] = x, P
+        xs, Ps = rts_smooth(
+            x_prior, P_prior, x_post, P_post, np.broadcast_to(block.F, (rows, dim, dim))
+        )
+        core = slice(start - lo, min(cols, start + block_cols) - lo)
+        mean_um[:, lo + core.start : lo + core.stop] = np.einsum("rcd,rd->rc", H[:, core], xs)
+        var_um2[:, lo + core.start : lo + core.stop] = np.sum(
+            (H[:, core] @ Ps) * H[:, core], axis=-1
+        )
+    return mean_um, var_um2
 
 
 # --- factories ---------------------------------------------------------------------------
@@ -417,14 +550,25 @@ def kf_2d(
     lengths_tiles: tuple[float, ...] = (4.0, 8.0, 16.0),
     tilt_sigmas_um_per_tile: tuple[float, ...] = (0.3, 1.5),
     max_retries: int = 3,
+    window_cols: int = 12,
+    prune_log_weight: float = 20.0,
+    smooth_block_cols: int = 16,
+    smooth_margin_cols: int = 8,
 ) -> RowBankFilter:
     """The best 2-D estimator: the strip-filter bank, learning the slide's field and tilt.
 
     The bank is every (sigma, length, tilt sigma) of the three grids: 18 filters.
+    `window_cols`: a measurement corrects the columns within this many of its
+    own (the reduced update); `prune_log_weight`: members this far below the
+    best (in log likelihood) leave the bank; `smooth_block_cols`,
+    `smooth_margin_cols`: the smoother's column blocks and their margins
+    (docs/spatial.md).
     """
     return RowBankFilter(
         settings, sigmas_um=tuple(sigmas_um), lengths_tiles=tuple(lengths_tiles),
         tilt_sigmas_um_per_tile=tuple(tilt_sigmas_um_per_tile), max_retries=max_retries,
+        window_cols=window_cols, prune_log_weight=prune_log_weight,
+        smooth_block_cols=smooth_block_cols, smooth_margin_cols=smooth_margin_cols,
     )  # fmt: skip
 
 

@@ -2,9 +2,15 @@
 
 Event sourcing: a slide is its configuration plus the ordered log of
 (sequence, acquisition, measurement, outcome) events; strategies are
-deterministic, so replaying the log rebuilds the live state exactly. The
-store knows nothing of strategies: configurations and events are JSON
-objects it keeps, in order, durably.
+deterministic, so replaying the log rebuilds the live state. The log is the
+source of truth; beside it the store keeps each slide's newest snapshot (an
+opaque blob of the strategy's state after its first n events), so that a
+restart replays only the events after it. The store knows nothing of
+strategies: configurations and events are JSON objects, snapshots bytes.
+
+Schema versions (``PRAGMA user_version``), migrated forward on open:
+1, the slides and their events; 2, the snapshots. A file of a newer version
+than this code knows is refused rather than misread.
 
 Durability: WAL journal with ``synchronous=FULL``, so a committed event is
 on disk (the WAL is fsynced) before `append` returns. One connection is
@@ -23,7 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-_SCHEMA = """
+#: Each version's schema change, applied in order to bring an older file up to date.
+_MIGRATIONS: dict[int, str] = {
+    1: """
 CREATE TABLE IF NOT EXISTS slides (
     id TEXT PRIMARY KEY,
     config TEXT NOT NULL,
@@ -42,7 +50,19 @@ CREATE TABLE IF NOT EXISTS events (
     recorded_s REAL NOT NULL,
     PRIMARY KEY (slide_id, sequence)
 ) WITHOUT ROWID;
-"""
+""",
+    2: """
+CREATE TABLE IF NOT EXISTS snapshots (
+    slide_id TEXT PRIMARY KEY REFERENCES slides(id) ON DELETE CASCADE,
+    n_events INTEGER NOT NULL,
+    state BLOB NOT NULL,
+    created_s REAL NOT NULL
+);
+""",
+}
+
+#: The schema version this code writes (``PRAGMA user_version``).
+SCHEMA_VERSION = max(_MIGRATIONS)
 
 
 class StoreError(Exception):
@@ -101,12 +121,40 @@ class Store:
             # No checkpoint inside a commit: copying the WAL into the database (and its
             # fsync) stalled every waiting request for 150-200 ms. `_checkpoints` does it.
             self._db.execute("PRAGMA wal_autocheckpoint=0")
-            self._db.executescript(_SCHEMA)
+            self._migrate()
         self._closing = threading.Event()
         self._checkpointer = threading.Thread(
             target=self._checkpoints, args=(checkpoint_every_s,), daemon=True
         )
         self._checkpointer.start()
+
+    def _migrate(self) -> None:
+        """Bring the file to `SCHEMA_VERSION`, one migration per version, each atomic."""
+        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            self._db.close()
+            raise StoreError(
+                f"{self.path} has schema version {version}; this estimator knows up to "
+                f"{SCHEMA_VERSION}: run a newer one"
+            )
+        if version == 0 and self._table_exists("slides"):
+            version = 1  # written before the schema had a version: version 1's tables
+        for target in range(version + 1, SCHEMA_VERSION + 1):
+            self._db.execute("BEGIN IMMEDIATE")
+            for statement in _MIGRATIONS[target].split(";"):
+                if statement.strip():
+                    self._db.execute(statement)
+            self._db.execute(f"PRAGMA user_version = {target}")
+            self._db.execute("COMMIT")
+
+    def _table_exists(self, name: str) -> bool:
+        query = "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?"
+        return self._db.execute(query, (name,)).fetchone() is not None
+
+    @property
+    def schema_version(self) -> int:
+        with self._lock:
+            return self._db.execute("PRAGMA user_version").fetchone()[0]
 
     def _checkpoints(self, every_s: float) -> None:
         """Copy committed WAL frames into the database now and then, beside the writers.
@@ -239,13 +287,33 @@ class Store:
             (int(ticket.accepted), int(ticket.done), now_s, slide_id),
         )
 
-    def events(self, slide_id: str) -> list[Event]:
-        """The slide's log in sequence order."""
+    def put_snapshot(self, slide_id: str, n_events: int, state: bytes) -> None:
+        """Keep `state` as the slide's snapshot after its first `n_events` events (replacing
+        an older one); a snapshot older than the one kept is ignored."""
+        with self._lock:
+            self._db.execute(
+                "INSERT INTO snapshots (slide_id, n_events, state, created_s) VALUES (?, ?, ?, ?) "
+                "ON CONFLICT (slide_id) DO UPDATE SET n_events = excluded.n_events, "
+                "state = excluded.state, created_s = excluded.created_s "
+                "WHERE excluded.n_events >= snapshots.n_events",
+                (slide_id, n_events, state, time.time()),
+            )
+
+    def snapshot(self, slide_id: str) -> tuple[int, bytes] | None:
+        """The slide's newest snapshot: (events it covers, state), or None."""
+        with self._lock:
+            row = self._db.execute(
+                "SELECT n_events, state FROM snapshots WHERE slide_id = ?", (slide_id,)
+            ).fetchone()
+        return None if row is None else (row[0], bytes(row[1]))
+
+    def events(self, slide_id: str, start: int = 0) -> list[Event]:
+        """The slide's log in sequence order, from sequence `start` on."""
         with self._lock:
             rows = self._db.execute(
                 "SELECT sequence, acquisition, measurement, outcome FROM events "
-                "WHERE slide_id = ? ORDER BY sequence",
-                (slide_id,),
+                "WHERE slide_id = ? AND sequence >= ? ORDER BY sequence",
+                (slide_id, start),
             ).fetchall()
         return [Event(seq, json.loads(a), json.loads(m), json.loads(o)) for seq, a, m, o in rows]
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from focustrack_estimator.store import Event, Store, StoreError
+from focustrack_estimator.store import SCHEMA_VERSION, Event, Store, StoreError
 
 CONFIG = {"strategy": "kf-wiener0", "grid": {"rows": 2, "cols": 3}}
 
@@ -105,3 +105,64 @@ def test_appends_from_many_threads_keep_each_log_whole(store: Store) -> None:
         assert [e.sequence for e in store.events(slide_id)] == list(range(25))
         record = store.slide(slide_id)
         assert record is not None and record.done and record.n_events == 25
+
+
+# --- schema versions and snapshots ---
+
+_VERSION_1 = """
+CREATE TABLE slides (
+    id TEXT PRIMARY KEY, config TEXT NOT NULL, created_s REAL NOT NULL, updated_s REAL NOT NULL,
+    n_events INTEGER NOT NULL DEFAULT 0, n_accepted INTEGER NOT NULL DEFAULT 0,
+    done INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE events (
+    slide_id TEXT NOT NULL REFERENCES slides(id) ON DELETE CASCADE,
+    sequence INTEGER NOT NULL, acquisition TEXT NOT NULL, measurement TEXT NOT NULL,
+    outcome TEXT NOT NULL, recorded_s REAL NOT NULL, PRIMARY KEY (slide_id, sequence)
+) WITHOUT ROWID;
+INSERT INTO slides VALUES ('old', '{"strategy": "kf-wiener0"}', 1.0, 2.0, 1, 1, 0);
+INSERT INTO events VALUES ('old', 0, '{"index": 0}', '{"z_um": 1.0}', '{"accepted": true}', 2.0);
+"""
+
+
+def test_a_file_without_a_schema_version_is_migrated_and_keeps_its_slides(tmp_path: Path) -> None:
+    path = tmp_path / "old.sqlite"
+    with sqlite3.connect(path) as db:  # as the estimator wrote it before schema versions
+        db.executescript(_VERSION_1)
+    store = Store(path)
+    try:
+        assert store.schema_version == SCHEMA_VERSION == 2
+        record = store.slide("old")
+        assert record is not None and record.n_events == 1
+        assert [e.measurement for e in store.events("old")] == [{"z_um": 1.0}]
+        store.put_snapshot("old", 1, b"state")
+        assert store.snapshot("old") == (1, b"state")
+    finally:
+        store.close()
+    reopened = Store(path)  # migrating twice changes nothing
+    try:
+        assert reopened.snapshot("old") == (1, b"state")
+    finally:
+        reopened.close()
+
+
+def test_a_file_of_a_newer_schema_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "new.sqlite"
+    with sqlite3.connect(path) as db:
+        db.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
+    with pytest.raises(StoreError, match="schema version 3"):
+        Store(path)
+
+
+def test_the_newest_snapshot_is_kept_and_goes_with_its_slide(store: Store) -> None:
+    store.create_slide("a", CONFIG)
+    assert store.snapshot("a") is None
+    store.put_snapshot("a", 5, b"five")
+    store.put_snapshot("a", 9, b"nine")
+    store.put_snapshot("a", 7, b"seven")  # older than the one kept: ignored
+    assert store.snapshot("a") == (9, b"nine")
+    for sequence in range(3):
+        store.append("a", _event(sequence), accepted=True, done=False)
+    assert [e.sequence for e in store.events("a", start=1)] == [1, 2]
+    assert store.delete_slide("a")
+    assert store.snapshot("a") is None

@@ -1,0 +1,329 @@
+"""`focustrack bench scale`: cost per tile, final map and restart as the slide grows.
+
+For every strategy and grid size (square grids, `--sizes` columns) one child
+process scans a generated standard surface (measurement noise 1.5 um) in
+process, through the strategy's two calls, and reports:
+
+- the time per tile (every acquisition of the tile: `next_acquisition` and
+  `record`), mean and 99th percentile, in ms;
+- the time of the final map (`focus_map()` once the scan is complete: for
+  kf-2d the smoothed layers) in s;
+- the process's peak resident memory (the child's own, so cases do not mix),
+  and its resident memory before the scan (imports and maps) for reference.
+
+For the `--rest` strategies a second child fills a real store through the
+service's own code (`Slides`, snapshots every `--snapshot-every`), all but the
+last `--unsnapshotted` measurements, and stops as a kill -9 would: no shutdown
+snapshot. The estimator service is then started on that store as a process:
+`up` is process start to /healthz, `first answer` /healthz to the slide's first
+/next (loading its snapshot and replaying the events after it). The scan is
+finished over HTTP, every map format fetched and timed, the server killed with
+SIGKILL and started again, and the first answer and the map timed again: the
+figures after the kill are reported. The store is filled with SQLite's fsync
+off (`PRAGMA synchronous=OFF`): it measures restarts, not a disk.
+
+Children run with one BLAS thread (`OPENBLAS_NUM_THREADS=1`), `--jobs` at a
+time: figures are for one core, and on a shared machine they are noisy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from focustrack.bench.replay import simulated_measurement
+
+DEFAULT_SIZES = (20, 50, 100, 200)
+DEFAULT_STRATEGIES = (
+    "kf-2d",
+    "kf-wiener0",
+    "kf-wiener1",
+    "kf-wiener2",
+    "kf-gm1",
+    "kf-gm2",
+    "kf-wiener1-dir",
+    "kf-mmae",
+)
+DEFAULT_REST = ("kf-2d", "kf-wiener0")
+NOISE_UM = 1.5
+SEED = 1000
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def _surface(size: int) -> tuple[np.ndarray, Any]:
+    """Measured heights (um) of a standard surface of size x size tiles, and the settings."""
+    from focustrack_core.geometry import ScanGrid
+    from focustrack_estimator.strategy import SlideSettings
+    from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
+
+    truth_um = generate_surfaces(SurfaceSpec(rows=size, cols=size), 1, seed=SEED)[0]
+    noise_um = np.random.default_rng(SEED).normal(0.0, NOISE_UM, truth_um.shape)
+    return truth_um + noise_um, SlideSettings(grid=ScanGrid(size, size))
+
+
+def case_in_process(strategy_name: str, size: int) -> dict[str, Any]:
+    """One in-process scan: per-tile times, final-map time, peak memory (run in a child)."""
+    from focustrack_estimator import registry
+
+    measured_um, settings = _surface(size)
+    rss_before_mb = _peak_rss_mb()
+    strategy = registry.create(strategy_name, settings)
+    tile_s = np.zeros(settings.grid.shape)
+    while True:
+        start_s = time.perf_counter()
+        acquisition = strategy.next_acquisition()
+        if acquisition is None:
+            break
+        measurement = simulated_measurement(
+            acquisition, measured_um[acquisition.row, acquisition.col]
+        )
+        strategy.record(acquisition, measurement)
+        tile_s[acquisition.row, acquisition.col] += time.perf_counter() - start_s
+    start_s = time.perf_counter()
+    strategy.focus_map()
+    map_s = time.perf_counter() - start_s
+    return {
+        "strategy": strategy_name,
+        "cols": size,
+        "tiles": size * size,
+        "tile_mean_ms": float(np.mean(tile_s)) * 1e3,
+        "tile_p99_ms": float(np.percentile(tile_s, 99)) * 1e3,
+        "final_map_s": map_s,
+        "peak_rss_mb": _peak_rss_mb(),
+        "rss_before_scan_mb": rss_before_mb,
+    }
+
+
+def fill_store(
+    strategy_name: str, size: int, store_path: str, unsnapshotted: int, every: int
+) -> str:
+    """Scan into a store as the service does, and stop `unsnapshotted` measurements after a
+    periodic snapshot (as a kill -9 would), near the end of the scan."""
+    from focustrack_estimator.slides import Slide, config_of
+    from focustrack_estimator.store import Store
+    from focustrack_scheduler.remote import measurement_in
+
+    measured_um, settings = _surface(size)
+    store = Store(store_path)
+    store._db.execute("PRAGMA synchronous=OFF")  # a benchmark's shortcut (module docstring)
+    config = config_of(strategy_name, settings)
+    slide_id = "bench"
+    store.create_slide(slide_id, config.model_dump(mode="json"))
+    slide = Slide(slide_id, config, store, snapshot_every=every)
+    while (acquisition := slide.next()) is not None:
+        n_logged = len(slide.history)  # every acquisition is at least one per tile
+        if n_logged >= settings.grid.n_tiles - every and n_logged % every == unsnapshotted % every:
+            break
+        measured = measured_um[acquisition.row, acquisition.col]
+        slide.measure(measurement_in(acquisition, simulated_measurement(acquisition, measured)))
+    store.close()
+    return slide_id
+
+
+def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> dict[str, Any]:
+    """Restart of a served slide after kill -9: first answer and map formats (run in a child)."""
+    import httpx
+
+    from focustrack_client import EstimatorClient
+    from focustrack_core.wire.session import free_port
+    from focustrack_estimator.service import spawn
+    from focustrack_scheduler.remote import acquisition_of, measurement_in
+
+    with tempfile.TemporaryDirectory() as directory:
+        store_path = str(Path(directory) / "estimator.sqlite")
+        slide_id = fill_store(strategy_name, size, store_path, unsnapshotted, every)
+        measured_um, _ = _surface(size)
+        port = free_port()
+        url = f"http://127.0.0.1:{port}/v1/slides/{slide_id}"
+
+        def start() -> tuple[subprocess.Popen, float, float]:
+            start_s = time.perf_counter()
+            process = spawn(store_path, port, timeout_s=120.0)
+            up_s = time.perf_counter()
+            response = httpx.get(f"{url}/next", timeout=120.0)
+            response.raise_for_status()
+            return process, up_s - start_s, time.perf_counter() - up_s
+
+        def maps() -> dict[str, float]:
+            times = {}
+            for map_format in ("json", "csv", "npy", "png"):
+                start_s = time.perf_counter()
+                httpx.get(
+                    f"{url}/map", params={"format": map_format}, timeout=120.0
+                ).raise_for_status()
+                times[map_format] = time.perf_counter() - start_s
+            return times
+
+        process, _, first_s = start()
+        try:
+            # The last measurement also makes the final map and its snapshot: allow it time.
+            client = EstimatorClient(f"http://127.0.0.1:{port}", timeout_s=300.0)
+            while (acquisition := acquisition_of(client.next(slide_id))) is not None:  # finish
+                measured = measured_um[acquisition.row, acquisition.col]
+                client.measure(
+                    slide_id,
+                    measurement_in(acquisition, simulated_measurement(acquisition, measured)),
+                )
+            client.close()
+            n_acquisitions = httpx.get(url, timeout=60.0).json()["n_acquisitions"]
+            maps()  # the first map of the complete scan (the smoothed layers were made at its end)
+            process.send_signal(signal.SIGKILL)
+            process.wait()
+            process, up_s, first_after_kill_s = start()
+            slide = httpx.get(url, timeout=60.0).json()
+            map_s = maps()
+            process.terminate()
+            process.wait()
+        finally:
+            if process.poll() is None:
+                process.kill()
+    return {
+        "strategy": strategy_name,
+        "cols": size,
+        "replayed_at_first_start": unsnapshotted % every,
+        "first_answer_s": first_s,
+        "up_after_kill_s": up_s,
+        "first_answer_after_kill_s": first_after_kill_s,
+        "lost_nothing": slide["n_acquisitions"] == n_acquisitions and slide["done"],
+        "map_s": map_s,
+    }
+
+
+def _child(arguments: list[str]) -> dict[str, Any]:
+    """Run one case in a child; a failed case is reported (its error's last line), not fatal."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    command = [sys.executable, "-m", "focustrack.bench.scale", *arguments]
+    # stderr to a file, not a pipe: a server the child started must not hold the pipe open.
+    with tempfile.TemporaryFile("w+") as errors:
+        result = subprocess.run(command, env=env, stdout=subprocess.PIPE, stderr=errors, text=True)
+        errors.seek(0)
+        error = errors.read().strip().splitlines()
+    if result.returncode != 0:
+        print(f"{' '.join(arguments)} failed:\n" + "\n".join(error[-20:]), file=sys.stderr)
+        return {"strategy": arguments[1], "cols": int(arguments[2]), "error": error[-1:]}
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES))
+    parser.add_argument("--strategies", nargs="+", default=list(DEFAULT_STRATEGIES))
+    parser.add_argument(
+        "--rest", nargs="*", default=list(DEFAULT_REST), help="strategies also served and restarted"
+    )
+    parser.add_argument("--snapshot-every", type=int, default=200)
+    parser.add_argument(
+        "--unsnapshotted",
+        type=int,
+        default=150,
+        help="measurements after the last snapshot when the server is killed",
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="cases run at once")
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
+    parser.add_argument("--plot", type=Path, metavar="PNG", help="time per tile against width")
+
+
+def _table(in_process: list[dict[str, Any]], rest: list[dict[str, Any]]) -> str:
+    lines = [
+        "in process (one core):",
+        f"{'strategy':<16}{'cols':>6}{'tile mean ms':>14}{'tile p99 ms':>13}"
+        f"{'final map s':>13}{'peak RSS MB':>13}{'RSS before MB':>15}",
+    ]
+    for r in in_process:
+        lines.append(
+            f"{r['strategy']:<16}{r['cols']:>6}{r['tile_mean_ms']:>14.2f}{r['tile_p99_ms']:>13.2f}"
+            f"{r['final_map_s']:>13.3f}{r['peak_rss_mb']:>13.0f}{r['rss_before_scan_mb']:>15.0f}"
+        )
+    if rest:
+        lines += [
+            "",
+            "served, restarted after kill -9 (the store holds a snapshot and the events since):",
+            f"{'strategy':<16}{'cols':>6}{'up s':>8}{'first answer s':>16}{'lost nothing':>14}"
+            f"{'map json s':>12}{'csv s':>8}{'npy s':>8}{'png s':>8}",
+        ]
+        for r in rest:
+            m = r["map_s"]
+            lines.append(
+                f"{r['strategy']:<16}{r['cols']:>6}{r['up_after_kill_s']:>8.2f}"
+                f"{r['first_answer_after_kill_s']:>16.3f}{r['lost_nothing']!s:>14}"
+                f"{m['json']:>12.3f}{m['csv']:>8.3f}{m['npy']:>8.3f}{m['png']:>8.3f}"
+            )
+    return "\n".join(lines)
+
+
+def _plot(in_process: list[dict[str, Any]], path: Path) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(7, 4.5), layout="constrained")
+    FigureCanvasAgg(figure)
+    axes = figure.subplots()
+    for name in dict.fromkeys(r["strategy"] for r in in_process):
+        rows = [r for r in in_process if r["strategy"] == name]
+        axes.plot([r["cols"] for r in rows], [r["tile_mean_ms"] for r in rows], "o-", label=name)
+    axes.set(xlabel="columns (square grid)", ylabel="mean time per tile (ms)", yscale="log")
+    axes.legend(fontsize="small")
+    figure.savefig(path, dpi=100)
+
+
+def run(args: argparse.Namespace) -> int:
+    started_s = time.perf_counter()
+    cases = [["in-process", name, str(size)] for size in args.sizes for name in args.strategies]
+    rest_arguments = [str(args.unsnapshotted), str(args.snapshot_every)]
+    cases += [
+        ["rest", name, str(size), *rest_arguments] for size in args.sizes for name in args.rest
+    ]
+    results: list[dict[str, Any]] = []
+
+    def one(arguments: list[str]) -> dict[str, Any]:
+        result = _child(arguments)
+        print(
+            f"[{time.perf_counter() - started_s:6.0f} s] {' '.join(arguments[:3])} done",
+            file=sys.stderr,
+            flush=True,
+        )
+        return {"kind": arguments[0], **result}
+
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+        results = list(pool.map(one, cases))
+    failed = [r for r in results if "error" in r]
+    in_process = [r for r in results if r["kind"] == "in-process" and "error" not in r]
+    rest = [r for r in results if r["kind"] == "rest" and "error" not in r]
+    for r in failed:
+        print(f"FAILED: {r['kind']} {r['strategy']} {r['cols']}: {r['error']}")
+    print(_table(in_process, rest))
+    print(f"\n{len(cases)} cases in {time.perf_counter() - started_s:.0f} s, {args.jobs} at a time")
+    if args.json:
+        figures = {"in_process": in_process, "rest": rest, "failed": failed}
+        args.json.write_text(json.dumps(figures, indent=2))
+    if args.plot:
+        _plot(in_process, args.plot)
+    return 1 if failed else 0
+
+
+def _main(argv: list[str]) -> None:
+    """A child: one case, its figures as one JSON line on stdout."""
+    kind, name, size = argv[0], argv[1], int(argv[2])
+    if kind == "in-process":
+        result = case_in_process(name, size)
+    else:
+        result = case_rest(name, size, int(argv[3]), int(argv[4]))
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    _main(sys.argv[1:])

@@ -1,0 +1,86 @@
+"""Snapshots of strategy state: a restored strategy continues exactly as the original would."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+
+import numpy as np
+import pytest
+
+from focustrack.bench.replay import simulated_measurement
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator import registry
+from focustrack_estimator.snapshot import SnapshotError, encode, restore
+from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
+
+ROWS, COLS = 6, 5
+
+
+def _measured() -> np.ndarray:
+    truth_um = generate_surfaces(SurfaceSpec(rows=ROWS, cols=COLS), 1, seed=3)[0]
+    measured_um = truth_um + np.random.default_rng(3).normal(0.0, 1.5, truth_um.shape)
+    measured_um[2, 3] += 9.0  # an edge peak: a retry is pending at some snapshots
+    return measured_um
+
+
+def _steps(strategy: Strategy, measured_um: np.ndarray, n: int) -> list[dict]:
+    """Up to `n` acquisitions and their outcomes, as records."""
+    records = []
+    for _ in range(n):
+        acquisition = strategy.next_acquisition()
+        if acquisition is None:
+            break
+        outcome = strategy.record(
+            acquisition,
+            simulated_measurement(acquisition, measured_um[acquisition.row, acquisition.col]),
+        )
+        records.append({"a": dataclasses.asdict(acquisition), "o": dataclasses.asdict(outcome)})
+    return records
+
+
+def _maps(strategy: Strategy) -> dict[str, np.ndarray | None]:
+    return dataclasses.asdict(strategy.focus_map())
+
+
+@pytest.mark.parametrize("name", sorted(registry.STRATEGIES))
+@pytest.mark.parametrize("at", [7, 15])  # 15: inside the retries of the edge peak
+def test_a_restored_strategy_continues_as_the_original(name: str, at: int) -> None:
+    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    measured_um = _measured()
+    original = registry.create(name, settings)
+    _steps(original, measured_um, at)
+    original.next_acquisition()  # a pending acquisition is part of the state
+    blob = encode(original)
+    restored = registry.create(name, settings)
+    restored.next_acquisition()  # as a freshly built slide does
+    restore(restored, blob)
+    assert _steps(restored, measured_um, 1000) == _steps(original, measured_um, 1000)
+    for layer, value in _maps(original).items():
+        np.testing.assert_array_equal(_maps(restored)[layer], value, err_msg=layer)
+
+
+def test_a_snapshot_of_another_strategy_is_refused() -> None:
+    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    blob = encode(registry.create("kf-2d", settings))
+    with pytest.raises(SnapshotError, match="not format"):
+        restore(registry.create("kf-wiener0", settings), blob)
+    with pytest.raises(SnapshotError, match="unreadable"):
+        restore(registry.create("kf-2d", settings), b"not an archive")
+
+
+def test_a_snapshot_names_no_class_outside_the_project() -> None:
+    """A crafted tree naming another module's class is refused, not imported."""
+    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    strategy = registry.create("kf-wiener0", settings)
+    with np.load(io.BytesIO(encode(strategy)), allow_pickle=False) as archive:
+        arrays = {key: archive[key] for key in archive.files}
+    tree = json.loads(arrays["__tree__"].tobytes())
+    tree["state"]["settings"]["dc"] = "subprocess:Popen"
+    arrays["__tree__"] = np.frombuffer(json.dumps(tree).encode(), dtype=np.uint8)
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    with pytest.raises(SnapshotError, match="may not name 'subprocess:Popen'"):
+        restore(registry.create("kf-wiener0", settings), buffer.getvalue())
