@@ -348,12 +348,18 @@ def run_real(args: argparse.Namespace) -> int:
     folder = args.real_dir / "wsi_focus_curves"
     if not folder.is_dir():
         raise SystemExit(f"focustrack bench focus --real: {folder} is missing (see its README)")
-    readings = focus_real.real_curves(folder)
+    systematic = focus_real.calibrate(folder)
+    readings = focus_real.real_curves(folder, systematic_sigma_steps=systematic)
     report = focus_real.report(readings, focus_real.REPORT_FIELDS)
     fit = focus_real.report(readings, focus_real.FIT_FIELDS)
     print(
         f"source: {folder} (real WSI curves, {focus_real.WSI_STEP_UM} um steps); errors, sigma "
         "in steps against the hand label; coverage allows half a step for its rounding"
+    )
+    print(
+        "systematic sigma per measure, steps (learnt on the fit fields, "
+        f"{focus_real.CALIBRATION_COVERAGE:.0%} coverage): "
+        + ", ".join(f"{metric} {steps:g}" for metric, steps in systematic.items())
     )
     focus_real.print_report(report, "report fields 2, 4, ..., 20 (not used to fit)")
     focus_real.print_report(fit, "fit fields 1, 3, ..., 19 (the constants were chosen here)")
@@ -368,6 +374,7 @@ def run_real(args: argparse.Namespace) -> int:
             "step_um": focus_real.WSI_STEP_UM,
             "report_fields": list(focus_real.REPORT_FIELDS),
             "fit_fields": list(focus_real.FIT_FIELDS),
+            "systematic_sigma_steps": systematic,
             "metrics": report,
             "fit_metrics": fit,
             "targets": met,

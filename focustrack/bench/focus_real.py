@@ -18,7 +18,10 @@ points toward it (right) and away (wrong). "Silent misses": results more than
 3 steps off with no warning flag and outside 2 sigma.
 
 Honest calibration: the peak model's constants were chosen on the odd fields
-(1, 3, ..., 19); the headline figures are the even fields (2, 4, ..., 20).
+(1, 3, ..., 19); the headline figures are the even fields (2, 4, ..., 20). So is
+each measure's systematic sigma (`PeakSettings.systematic_sigma_um`: how far the
+measure's own peak strays from the plane a person picks), learnt afresh on every
+run from the odd fields alone (`learn_systematic_sigma`) and then used on all.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from focustrack_core.domain import FocusFlag
+from focustrack_focus.peak import PeakSettings
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve
 
 #: The z step of the WSI curves (um per motor step, the authors' later code).
@@ -51,6 +55,11 @@ REAL_METRICS = GRADIENT_METRICS + OTHER_METRICS
 #: (samples, spacing in steps) of the windows.
 WINDOW_SHAPES = tuple((n, k) for n in (5, 7, 9, 11) for k in (1, 2, 3))
 FIT_FIELDS = tuple(range(1, 21, 2))  # the constants were chosen on these
+#: The 2-sigma coverage the systematic sigma is learnt to reach on the fit fields (that of
+#: a normal distribution), on full curves and on windows alike.
+CALIBRATION_COVERAGE = 0.95
+#: The grid (steps) on which the systematic sigma is learnt.
+SYSTEMATIC_GRID_STEPS = 0.05
 REPORT_FIELDS = tuple(range(2, 21, 2))  # the headline figures
 #: Flags that warn the caller the z is not an ordinary measurement.
 WARNING_FLAGS = frozenset(
@@ -183,16 +192,50 @@ def summarise(readings: Sequence[Reading]) -> dict[str, float]:
 def real_curves(
     folder: Path,
     metrics: Sequence[str] = REAL_METRICS,
-    settings: FocusSettings | None = None,
     numbers: Sequence[int] | None = None,
+    systematic_sigma_steps: dict[str, float] | None = None,
 ) -> dict[str, list[Reading]]:
-    """Every metric's readings over every field (or those `numbers`) and window of `folder`."""
+    """Every metric's readings over every field (or those `numbers`) and window of `folder`,
+    each metric read with its systematic sigma (steps; 0 where not given)."""
     fields = [f for f in load_wsi_fields(folder) if numbers is None or f.number in numbers]
-    settings = settings or FocusSettings()
+    systematic = systematic_sigma_steps or {}
     out: dict[str, list[Reading]] = {}
     for metric in tqdm(metrics, desc="real curves", unit="metric"):
+        peak = PeakSettings(systematic_sigma_um=WSI_STEP_UM * systematic.get(metric, 0.0))
+        settings = FocusSettings(peak=peak)
         out[metric] = [r for field in fields for r in read_field(field, metric, settings)]
     return out
+
+
+def coverage_with(readings: Sequence[Reading], systematic_steps: float) -> float:
+    """The 2-sigma coverage (`summarise`) of readings made without a systematic sigma, had
+    `systematic_steps` been added to their sigma in quadrature (as `find_peak` adds it)."""
+    inside = [r for r in readings if r.label_side == 0 and r.sigma_steps is not None]
+    if not inside:
+        return math.nan
+    errors = np.array([abs(r.error_steps or 0.0) for r in inside])
+    sigmas = np.hypot([r.sigma_steps or 0.0 for r in inside], systematic_steps)
+    return float(np.mean(errors <= 2.0 * sigmas + 0.5))
+
+
+def learn_systematic_sigma(readings: Sequence[Reading]) -> float:
+    """The least systematic sigma (steps, on a grid of `SYSTEMATIC_GRID_STEPS`) with which
+    full curves and windows each reach `CALIBRATION_COVERAGE` (readings made without one;
+    pass only fit fields). 0 where they reach it already: a clear pick keeps its sigma."""
+    parts = (
+        [r for r in readings if r.kind == "full"],
+        [r for r in readings if r.kind != "full"],
+    )
+    systematic = 0.0
+    while any(coverage_with(part, systematic) < CALIBRATION_COVERAGE for part in parts):
+        systematic += SYSTEMATIC_GRID_STEPS
+    return round(systematic, 2)
+
+
+def calibrate(folder: Path, metrics: Sequence[str] = REAL_METRICS) -> dict[str, float]:
+    """Every metric's systematic sigma (steps), learnt on the fit fields alone."""
+    readings = real_curves(folder, metrics, numbers=FIT_FIELDS)
+    return {metric: learn_systematic_sigma(rows) for metric, rows in readings.items()}
 
 
 def report(readings: dict[str, list[Reading]], fields: Sequence[int]) -> dict[str, dict]:

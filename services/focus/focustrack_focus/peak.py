@@ -53,6 +53,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
+from scipy import special
 from scipy.signal import find_peaks
 
 from focustrack_core.domain import FocusFlag
@@ -89,6 +90,12 @@ class PeakSettings:
     ambiguous_below: a chosen peak whose probability is below this is flagged ambiguous.
     end_rise_share: an end frame rising this share of the range above the frames inside
         it is a candidate peak beyond that end (`_candidates`).
+    systematic_sigma_um: the metric's own offset from the true focus (a std, um), added to
+        every interior peak's sigma: a metric that weighs other spatial frequencies than
+        the eye peaks a fraction of the depth of field away from the plane a person
+        picks, by an amount no single curve shows. It belongs to a metric on a
+        microscope: 0 unless learnt from labelled curves (`focustrack bench focus --real`
+        learns it per metric on its fit fields; docs/focus.md).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -101,6 +108,7 @@ class PeakSettings:
     min_peak_sigma_um: float = 0.25  # half the 0.5 um depth of field of a 100x oil objective
     ambiguous_below: float = 0.75
     end_rise_share: float = 0.05
+    systematic_sigma_um: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -346,15 +354,63 @@ def _read_peaks(
     if len(candidates) > 1:
         flags.add(FocusFlag.MULTI_PEAK)
         runner_up_z = float(z[candidates[1].index])
-        if chosen.weight < settings.ambiguous_below:
-            flags.add(FocusFlag.AMBIGUOUS)
+    others = [c.index for c in candidates[1:]]
+    top = _TopChances.of(s, chosen.index, others, clean_noise, settings.max_reach)
+    probability = chosen.weight * top.located
+    if probability < settings.ambiguous_below:
+        flags.add(FocusFlag.AMBIGUOUS)
     if chosen.index in (0, z.size - 1):
         edge = FocusFlag.EDGE_LOW if chosen.index == 0 else FocusFlag.EDGE_HIGH
         return PeakFit(
-            float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, chosen.weight
+            float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, probability
         )
     z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
-    return PeakFit(z0, sigma, frozenset(flags), runner_up_z, chosen.weight)
+    sigma = math.hypot(sigma, top.spread_um(z, z0))
+    return PeakFit(z0, sigma, frozenset(flags), runner_up_z, probability)
+
+
+@dataclass(frozen=True)
+class _TopChances:
+    """How well the noise lets the chosen peak's top be located: the chance (n,) that each
+    frame of its part of the curve is the true top, and the share of it near the chosen
+    frame.
+
+    A frame lower than the chosen top by d is higher than it in truth with chance
+    Phi(-d / (sqrt(2) noise)) (both frames carry noise). Near the top of a broad peak
+    drowned in noise (a metric blind to this specimen: a curve of noise on a faint
+    bump), frames far from the chosen one are as likely the top as it is: the fit
+    around it, which only sees the noise of its own frames, says nothing of that.
+    Frames within the fit's reach are the fit's own business (its noise part); frames
+    nearer another candidate belong to that peak, whose share the choice already gives
+    (`_candidates`): the doubt between peaks stays out of sigma.
+    """
+
+    chances: np.ndarray
+    far: np.ndarray
+    located: float
+
+    @classmethod
+    def of(
+        cls, s: np.ndarray, chosen: int, others: list[int], clean_noise: float, reach: int
+    ) -> _TopChances:
+        frames = np.arange(s.size)
+        distance = np.abs(frames - chosen)
+        far = distance > reach
+        if clean_noise <= 0.0:  # no clean noise estimate: nothing to judge by
+            return cls(np.zeros(s.size), far, 1.0)
+        drop = np.maximum(s[chosen] - s, 0.0) / (math.sqrt(2.0) * clean_noise)
+        chances = 0.5 * special.erfc(drop / math.sqrt(2.0))
+        for other in others:
+            chances[np.abs(frames - other) < distance] = 0.0
+        return cls(chances, far, float(chances[~far].sum() / chances.sum()))
+
+    def spread_um(self, z: np.ndarray, z0: float) -> float:
+        """The std (um) about z0 that the far frames' chances of being the top add."""
+        total = self.chances.sum()
+        if total <= 0.0:
+            return 0.0
+        far = self.far
+        return math.sqrt(float(np.sum(self.chances[far] * (z[far] - z0) ** 2) / total))
 
 
 @dataclass(frozen=True)
@@ -405,7 +461,7 @@ def _fit_vertex(
             break
         fits.append(fit)
     if not fits:  # not a peak even over three frames (a plateau): the best frame, a step of doubt
-        return float(z[best]), step_um
+        return float(z[best]), math.hypot(step_um, settings.systematic_sigma_um)
     chosen, limit = 0, settings.consistency_sigmas
     for wider in range(1, len(fits)):
         if any(abs(fits[wider].z_um - f.z_um) > limit * f.noise_sigma_um for f in fits[:wider]):
@@ -420,6 +476,7 @@ def _fit_vertex(
         + (settings.model_floor_steps * step_um) ** 2
         + window_um**2
         + asymmetry_um**2
+        + settings.systematic_sigma_um**2
     )
     return fit.z_um, math.sqrt(variance)
 
