@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from importlib.resources import files
 from pathlib import Path
 
 import httpx
@@ -73,3 +74,11 @@ def test_a_bad_live_port_is_a_usage_error(text: str) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match="a port is 0"):
         port_number(text)
     assert port_number("0") == 0 and port_number("8200") == 8200
+
+
+def test_the_flag_legend_lists_every_flag() -> None:
+    """Every flag the focus service can set has its colour (and so its legend entry)."""
+    page = files("focustrack_scheduler").joinpath("live.html").read_text()
+    legend = page.split("const FLAG_COLOURS = {", 1)[1].split("};", 1)[0]
+    for flag in FocusFlag:
+        assert f"{flag.value}:" in legend, flag
