@@ -69,3 +69,49 @@ def test_wsi_window_ending_below_focus_points_up() -> None:
     below = np.arange(field.label_index - 5, field.label_index)  # ends one step below focus
     result = focus_from_curve(focus_real.WSI_STEP_UM * below, scores[below], FocusSettings())
     assert FocusFlag.EDGE_HIGH in result.flags and result.sigma_um is None
+
+
+def reading(error_steps: float, sigma_steps: float, kind: str = "full") -> focus_real.Reading:
+    return focus_real.Reading(1, kind, error_steps, sigma_steps, frozenset(), 0)
+
+
+def test_the_systematic_sigma_is_the_least_that_covers_the_fit_readings() -> None:
+    covered = [reading(0.4, 0.1), reading(0.3, 0.1, "5x1")]
+    assert focus_real.learn_systematic_sigma(covered) == 0.0  # a clear pick keeps its sigma
+    # one step off with sigma 0.1: |e| <= 2 hypot(0.1, s) + 0.5 from s = 0.24, on the grid 0.25
+    biased = covered + [reading(1.0, 0.1, "5x1")] * 19 + [reading(0.0, 0.1)] * 19
+    assert focus_real.learn_systematic_sigma(biased) == 0.25
+    assert focus_real.coverage_with(biased, 0.2) < focus_real.CALIBRATION_COVERAGE
+
+
+def test_wsi_vollath_curves_are_flagged_or_covered_not_confident_misses() -> None:
+    """VOLLATH_F4 is all but blind on this microscope: every full curve is flat, ambiguous
+    or within 2 sigma of the label, and most scanner windows are flat."""
+    calibration = focus_real.calibrate(WSI, ["VOLLATH_F4"])["VOLLATH_F4"]
+    assert calibration.relative_noise > 0.002  # ten times the gradient metrics' noise
+    settings = calibration.settings()
+    for field in focus_real.load_wsi_fields(WSI):
+        readings = focus_real.read_field(field, "VOLLATH_F4", settings)
+        full = readings[0]
+        assert full.kind == "full"
+        assert (
+            FocusFlag.FLAT in full.flags
+            or FocusFlag.AMBIGUOUS in full.flags
+            or abs(full.error_steps or 0.0) <= 2.0 * (full.sigma_steps or 0.0) + 0.5
+        ), field.number
+    flat = [FocusFlag.FLAT in r.flags for r in readings[1:]]
+    assert np.mean(flat) > 0.8
+
+
+@pytest.mark.slow  # about 15 s
+def test_wsi_jpeg_systematic_sigma_learnt_on_fit_fields_covers_held_out_fields() -> None:
+    """JPEG size peaks up to a step from the plane a person picks, either way: the
+    systematic sigma learnt on the odd fields covers the even ones, and stays small."""
+    calibration = focus_real.calibrate(WSI, ["JPEG"])
+    assert 0.1 <= calibration["JPEG"].systematic_sigma_steps <= 0.5
+    readings = focus_real.real_curves(WSI, ["JPEG"], focus_real.REPORT_FIELDS, calibration)
+    figures = focus_real.report(readings, focus_real.REPORT_FIELDS)["JPEG"]
+    for part in ("full", "windows"):
+        assert figures[part]["coverage_2sigma"] >= 0.92, part
+        assert figures[part]["silent_miss"] <= 0.001, part
+    assert figures["windows_11x3"]["median_sigma_steps"] <= 0.75

@@ -29,7 +29,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -348,8 +348,8 @@ def run_real(args: argparse.Namespace) -> int:
     folder = args.real_dir / "wsi_focus_curves"
     if not folder.is_dir():
         raise SystemExit(f"focustrack bench focus --real: {folder} is missing (see its README)")
-    systematic = focus_real.calibrate(folder)
-    readings = focus_real.real_curves(folder, systematic_sigma_steps=systematic)
+    calibration = focus_real.calibrate(folder)
+    readings = focus_real.real_curves(folder, calibration=calibration)
     report = focus_real.report(readings, focus_real.REPORT_FIELDS)
     fit = focus_real.report(readings, focus_real.FIT_FIELDS)
     print(
@@ -357,9 +357,12 @@ def run_real(args: argparse.Namespace) -> int:
         "in steps against the hand label; coverage allows half a step for its rounding"
     )
     print(
-        "systematic sigma per measure, steps (learnt on the fit fields, "
-        f"{focus_real.CALIBRATION_COVERAGE:.0%} coverage): "
-        + ", ".join(f"{metric} {steps:g}" for metric, steps in systematic.items())
+        "learnt on the fit fields per measure: noise (share of the maximum) and systematic "
+        f"sigma (steps, for {focus_real.CALIBRATION_COVERAGE:.0%} coverage):\n  "
+        + "\n  ".join(
+            f"{metric:<24}{c.relative_noise:>10.2g}{c.systematic_sigma_steps:>8.2f}"
+            for metric, c in calibration.items()
+        )
     )
     focus_real.print_report(report, "report fields 2, 4, ..., 20 (not used to fit)")
     focus_real.print_report(fit, "fit fields 1, 3, ..., 19 (the constants were chosen here)")
@@ -374,7 +377,7 @@ def run_real(args: argparse.Namespace) -> int:
             "step_um": focus_real.WSI_STEP_UM,
             "report_fields": list(focus_real.REPORT_FIELDS),
             "fit_fields": list(focus_real.FIT_FIELDS),
-            "systematic_sigma_steps": systematic,
+            "calibration": {m: asdict(c) for m, c in calibration.items()},
             "metrics": report,
             "fit_metrics": fit,
             "targets": met,

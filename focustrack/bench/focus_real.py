@@ -18,10 +18,12 @@ points toward it (right) and away (wrong). "Silent misses": results more than
 3 steps off with no warning flag and outside 2 sigma.
 
 Honest calibration: the peak model's constants were chosen on the odd fields
-(1, 3, ..., 19); the headline figures are the even fields (2, 4, ..., 20). So is
-each measure's systematic sigma (`PeakSettings.systematic_sigma_um`: how far the
-measure's own peak strays from the plane a person picks), learnt afresh on every
-run from the odd fields alone (`learn_systematic_sigma`) and then used on all.
+(1, 3, ..., 19); the headline figures are the even fields (2, 4, ..., 20). So are
+each measure's constants on this microscope (`Calibration`), learnt afresh on every
+run from the odd fields alone and then used on all: its score noise
+(`PeakSettings.min_relative_noise`) and its systematic sigma
+(`PeakSettings.systematic_sigma_um`: how far its own peak strays from the plane a
+person picks).
 """
 
 from __future__ import annotations
@@ -29,14 +31,14 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from focustrack_core.domain import FocusFlag
-from focustrack_focus.peak import PeakSettings
+from focustrack_focus.peak import PeakSettings, score_noise
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve
 
 #: The z step of the WSI curves (um per motor step, the authors' later code).
@@ -189,22 +191,44 @@ def summarise(readings: Sequence[Reading]) -> dict[str, float]:
     }
 
 
+@dataclass(frozen=True)
+class Calibration:
+    """A measure's constants on this microscope (`PeakSettings`), learnt on the fit fields:
+    its score noise as a share of a curve's maximum, and its systematic sigma (steps)."""
+
+    relative_noise: float = 0.0
+    systematic_sigma_steps: float = 0.0
+
+    def settings(self) -> FocusSettings:
+        peak = PeakSettings(
+            min_relative_noise=self.relative_noise,
+            systematic_sigma_um=WSI_STEP_UM * self.systematic_sigma_steps,
+        )
+        return FocusSettings(peak=peak)
+
+
 def real_curves(
     folder: Path,
     metrics: Sequence[str] = REAL_METRICS,
     numbers: Sequence[int] | None = None,
-    systematic_sigma_steps: dict[str, float] | None = None,
+    calibration: dict[str, Calibration] | None = None,
 ) -> dict[str, list[Reading]]:
     """Every metric's readings over every field (or those `numbers`) and window of `folder`,
-    each metric read with its systematic sigma (steps; 0 where not given)."""
+    each metric read with its calibration (none where not given)."""
     fields = [f for f in load_wsi_fields(folder) if numbers is None or f.number in numbers]
-    systematic = systematic_sigma_steps or {}
+    calibration = calibration or {}
     out: dict[str, list[Reading]] = {}
     for metric in tqdm(metrics, desc="real curves", unit="metric"):
-        peak = PeakSettings(systematic_sigma_um=WSI_STEP_UM * systematic.get(metric, 0.0))
-        settings = FocusSettings(peak=peak)
+        settings = calibration.get(metric, Calibration()).settings()
         out[metric] = [r for field in fields for r in read_field(field, metric, settings)]
     return out
+
+
+def learn_relative_noise(fields: Sequence[WsiField], metric: str) -> float:
+    """The metric's score noise as a share of a curve's maximum: the median over these
+    fields' full curves (long enough for a clean estimate: `score_noise`), 2 digits."""
+    shares = [score_noise(f.scores[metric])[0] / abs(f.scores[metric].max()) for f in fields]
+    return float(f"{np.median(shares):.2g}")
 
 
 def coverage_with(readings: Sequence[Reading], systematic_steps: float) -> float:
@@ -232,10 +256,16 @@ def learn_systematic_sigma(readings: Sequence[Reading]) -> float:
     return round(systematic, 2)
 
 
-def calibrate(folder: Path, metrics: Sequence[str] = REAL_METRICS) -> dict[str, float]:
-    """Every metric's systematic sigma (steps), learnt on the fit fields alone."""
-    readings = real_curves(folder, metrics, numbers=FIT_FIELDS)
-    return {metric: learn_systematic_sigma(rows) for metric, rows in readings.items()}
+def calibrate(folder: Path, metrics: Sequence[str] = REAL_METRICS) -> dict[str, Calibration]:
+    """Every metric's calibration, learnt on the fit fields alone: its noise first, then
+    the systematic sigma that the readings with that noise still need."""
+    fit_fields = [f for f in load_wsi_fields(folder) if f.number in FIT_FIELDS]
+    noise = {metric: Calibration(learn_relative_noise(fit_fields, metric)) for metric in metrics}
+    readings = real_curves(folder, metrics, numbers=FIT_FIELDS, calibration=noise)
+    return {
+        metric: replace(noise[metric], systematic_sigma_steps=learn_systematic_sigma(rows))
+        for metric, rows in readings.items()
+    }
 
 
 def report(readings: dict[str, list[Reading]], fields: Sequence[int]) -> dict[str, dict]:

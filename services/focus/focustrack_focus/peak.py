@@ -77,7 +77,8 @@ class PeakSettings:
 
     min_contrast: a curve whose range is below this share of its maximum is flat.
     min_snr: ... or whose peak rises less than this many score-noise sigmas above its floor
-        (where the curve is long enough for a clean noise estimate: `score_noise`).
+        (where the curve is long enough for a clean noise estimate, `score_noise`, or the
+        metric's noise is known: `min_relative_noise`).
     multi_peak_share: a second local maximum at least this share of the curve's range
         high (prominence) makes the curve multi-peaked.
     max_reach: the fit uses at most this many frames each side of the best one.
@@ -90,6 +91,11 @@ class PeakSettings:
     ambiguous_below: a chosen peak whose probability is below this is flagged ambiguous.
     end_rise_share: an end frame rising this share of the range above the frames inside
         it is a candidate peak beyond that end (`_candidates`).
+    min_relative_noise: the metric's score noise on this microscope as a share of the
+        curve's maximum, a floor under the curve's own estimate: a short window cannot
+        tell its noise from its peak's shape, so without it a window of pure noise reads
+        as a peak. It belongs to a metric on a microscope: 0 unless measured on full
+        curves (`focustrack bench focus --real` measures it on its fit fields).
     systematic_sigma_um: the metric's own offset from the true focus (a std, um), added to
         every interior peak's sigma: a metric that weighs other spatial frequencies than
         the eye peaks a fraction of the depth of field away from the plane a person
@@ -108,6 +114,7 @@ class PeakSettings:
     min_peak_sigma_um: float = 0.25  # half the 0.5 um depth of field of a 100x oil objective
     ambiguous_below: float = 0.75
     end_rise_share: float = 0.05
+    min_relative_noise: float = 0.0
     systematic_sigma_um: float = 0.0
 
 
@@ -219,12 +226,16 @@ def find_peak(
         # positive for the log fit: scores in [span, 2 span], nearly a plain parabola)
         s = float(s.max()) - s + span
     noise, clean = score_noise(s)
-    if span <= settings.min_contrast * top or (clean and span <= settings.min_snr * noise):
-        return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     # a noise estimate that is not clean took in the peak's own shape: too large to judge
-    # which bumps are noise, so then the prominence share alone decides (`_candidates`)
-    s = despike(z, s, noise if clean else 0.0, settings.min_peak_sigma_um)
-    return _read_peaks(z, s, noise, noise if clean else 0.0, settings, prior)
+    # which bumps are noise, so then only the metric's known noise floor judges (and
+    # where there is none, the prominence share alone decides: `_candidates`)
+    floor = settings.min_relative_noise * top
+    judged_noise = max(noise if clean else 0.0, floor)
+    noise = max(noise, floor)
+    if span <= settings.min_contrast * top or span <= settings.min_snr * judged_noise:
+        return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
+    s = despike(z, s, judged_noise, settings.min_peak_sigma_um)
+    return _read_peaks(z, s, noise, judged_noise, settings, prior)
 
 
 #: How `despike` predicts a frame from its neighbours (offsets in frames -> weights), and
@@ -300,7 +311,7 @@ class _Candidate:
 
 
 def _candidates(
-    z: np.ndarray, s: np.ndarray, clean_noise: float, settings: PeakSettings, prior: Prior | None
+    z: np.ndarray, s: np.ndarray, judged_noise: float, settings: PeakSettings, prior: Prior | None
 ) -> list[_Candidate]:
     """The curve's peaks, an end that rises outwards included (the peak may lie beyond it),
     most likely first. The rule: weight = prominence ** 2, times, with a prior, the
@@ -309,18 +320,18 @@ def _candidates(
     An interior peak counts from `multi_peak_share` of the range; an end from
     `end_rise_share` (a window far from focus sees only the peak's faint tail rising
     towards it, and a background rising more at the other end must not hide it).
-    Both need 3 noise sigmas where the noise estimate is clean.
+    Both need 3 noise sigmas where the noise is judged (`find_peak`).
     """
     span = float(s.max() - s.min())
     # padded with the curve's minimum: an end that rises outwards becomes a peak, and the
     # prominence of every peak is still measured from the curve's own frames
     padded = np.concatenate([[s.min()], s, [s.min()]])
     floor = min(settings.multi_peak_share, settings.end_rise_share) * span
-    found, props = find_peaks(padded, prominence=max(floor, 3.0 * clean_noise))
+    found, props = find_peaks(padded, prominence=max(floor, 3.0 * judged_noise))
     indices, prominences = found - 1, props["prominences"]
     is_end = (indices == 0) | (indices == s.size - 1)
     share = np.where(is_end, settings.end_rise_share, settings.multi_peak_share)
-    keep = prominences >= np.maximum(share * span, 3.0 * clean_noise)
+    keep = prominences >= np.maximum(share * span, 3.0 * judged_noise)
     indices, prominences = indices[keep], prominences[keep]
     best = int(np.argmax(s))
     if best not in indices:  # a plateau's maximum: find_peaks sees no peak; keep the best frame
@@ -343,11 +354,11 @@ def _read_peaks(
     z: np.ndarray,
     s: np.ndarray,
     noise: float,
-    clean_noise: float,
+    judged_noise: float,
     settings: PeakSettings,
     prior: Prior | None,
 ) -> PeakFit:
-    candidates = _candidates(z, s, clean_noise, settings, prior)
+    candidates = _candidates(z, s, judged_noise, settings, prior)
     chosen = candidates[0]
     flags: set[FocusFlag] = set()
     runner_up_z = None
@@ -355,7 +366,7 @@ def _read_peaks(
         flags.add(FocusFlag.MULTI_PEAK)
         runner_up_z = float(z[candidates[1].index])
     others = [c.index for c in candidates[1:]]
-    top = _TopChances.of(s, chosen.index, others, clean_noise, settings.max_reach)
+    top = _TopChances.of(s, chosen.index, others, judged_noise, settings.max_reach)
     probability = chosen.weight * top.located
     if probability < settings.ambiguous_below:
         flags.add(FocusFlag.AMBIGUOUS)
@@ -391,14 +402,14 @@ class _TopChances:
 
     @classmethod
     def of(
-        cls, s: np.ndarray, chosen: int, others: list[int], clean_noise: float, reach: int
+        cls, s: np.ndarray, chosen: int, others: list[int], judged_noise: float, reach: int
     ) -> _TopChances:
         frames = np.arange(s.size)
         distance = np.abs(frames - chosen)
         far = distance > reach
-        if clean_noise <= 0.0:  # no clean noise estimate: nothing to judge by
+        if judged_noise <= 0.0:  # no noise to judge by (`find_peak`)
             return cls(np.zeros(s.size), far, 1.0)
-        drop = np.maximum(s[chosen] - s, 0.0) / (math.sqrt(2.0) * clean_noise)
+        drop = np.maximum(s[chosen] - s, 0.0) / (math.sqrt(2.0) * judged_noise)
         chances = 0.5 * special.erfc(drop / math.sqrt(2.0))
         for other in others:
             chances[np.abs(frames - other) < distance] = 0.0

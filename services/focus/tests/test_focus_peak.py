@@ -176,3 +176,51 @@ def test_a_window_above_focus_with_a_rising_background_names_both_ways() -> None
     informed = find_peak(z, scores, prior=Prior(1.0, 3.0))
     assert FocusFlag.EDGE_LOW in informed.flags and informed.z_um == 4.0
     assert informed.runner_up_z_um == 12.0
+
+
+def faint_bump(seed: int, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """100 frames 0.5 um apart: a 19 um wide bump of `height` noise sigmas at z = 25 um on a
+    level of 1000 sigmas (a metric all but blind to the specimen, VOLLATH_F4 on the WSI
+    microscope), plus unit white noise."""
+    z = 0.5 * np.arange(100)
+    noise = np.random.default_rng(seed).normal(size=z.size)
+    return z, 1000.0 + height * np.exp(-0.5 * ((z - 25.0) / 19.0) ** 2) + noise
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_a_faint_bump_drowned_in_noise_is_flagged_not_a_confident_pick(seed: int) -> None:
+    z, scores = faint_bump(seed, height=20.0)
+    fit = find_peak(z, scores)
+    # frames several um from the noise-picked best one are as likely the top: said by the
+    # flag and the probability, and by a sigma of the top's spread, which covers the miss
+    assert FocusFlag.AMBIGUOUS in fit.flags
+    assert fit.chosen_probability < 0.6
+    assert fit.sigma_um > 2.0  # four steps
+    assert abs(fit.z_um - 25.0) <= 2.0 * fit.sigma_um
+
+
+def test_a_clear_peak_in_the_same_noise_keeps_a_small_sigma() -> None:
+    z, scores = faint_bump(0, height=0.0)
+    scores = scores + 200.0 * np.exp(-0.5 * ((z - 25.0) / 1.75) ** 2)  # Brenner-like
+    fit = find_peak(z, scores)
+    assert fit.flags == frozenset() and fit.chosen_probability == 1.0
+    assert fit.z_um == pytest.approx(25.0, abs=0.125)
+    assert fit.sigma_um < 0.125
+
+
+@pytest.mark.parametrize("seed", [1, 2, 4, 5])
+def test_a_known_noise_floor_makes_a_short_window_of_noise_flat(seed: int) -> None:
+    """Seven frames cannot tell their noise from a peak's shape: alone they read a peak;
+    with the metric's known noise (0.8 % of its level) they are flat."""
+    z = 0.5 * np.arange(7)
+    scores = 1000.0 + 8.0 * np.random.default_rng(seed).normal(size=z.size)
+    assert find_peak(z, scores).z_um is not None
+    known = find_peak(z, scores, PeakSettings(min_relative_noise=0.008))
+    assert known.flags == {FocusFlag.FLAT} and known.z_um is None
+
+
+def test_a_systematic_sigma_is_added_in_quadrature() -> None:
+    plain = find_peak(Z_UM, gaussian(Z_UM, 0.3))
+    biased = find_peak(Z_UM, gaussian(Z_UM, 0.3), PeakSettings(systematic_sigma_um=0.15))
+    assert biased.z_um == plain.z_um and biased.flags == plain.flags
+    assert biased.sigma_um == pytest.approx(np.hypot(plain.sigma_um, 0.15))
