@@ -28,7 +28,7 @@ class FocusFlag(StrEnum):
     FLAT = "flat"  # no peak in the curve (no contrast): no measurement
     EMPTY = "empty"  # with FLAT: nothing in view in any frame
     MULTI_PEAK = "multi_peak"  # more than one peak: the measurement is less certain
-    AMBIGUOUS = "ambiguous"  # two peaks, the chosen one not clearly the focus
+    AMBIGUOUS = "ambiguous"  # the chosen peak not clearly the focus (two peaks, or noise)
 
 
 class Purpose(StrEnum):

@@ -33,8 +33,9 @@ class FocusFlag(StrEnum):
     FLAT = "flat"  # no peak in the curve (no contrast): no measurement
     EMPTY = "empty"  # with FLAT: nothing in view in any frame, so no other stack would help
     MULTI_PEAK = "multi_peak"  # more than one peak: measurement is less certain
-    # two peaks, and the chosen one is not clearly the focus (its probability is below
-    # the service's threshold): z and sigma are the chosen peak's, the runner-up is given
+    # the chosen peak is not clearly the focus (its probability is below the service's
+    # threshold): two peaks (z and sigma are the chosen one's, the runner-up is given), or
+    # a top drowned in noise (frames far from the chosen one as likely the top)
     AMBIGUOUS = "ambiguous"
 
     @property

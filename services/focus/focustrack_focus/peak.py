@@ -9,9 +9,10 @@ narrower one's within `PeakSettings.consistency_sigmas` of their noise
 (Lepski's rule): on a clean, skewed peak the three-point fit has the least bias,
 on a noisy one more frames average the noise.
 
-Its standard deviation has four parts, added in quadrature:
+Its standard deviation has six parts, added in quadrature:
 - noise: the score noise (estimated from the curve itself, as the robust
-  spread of its third differences: `score_noise`) propagated through the
+  spread of its third differences: `score_noise`, but never below the metric's
+  known noise, `PeakSettings.min_relative_noise`) propagated through the
   weighted fit to the vertex z0 = -b1 / (2 b2) by the delta method;
 - sampling: a floor of `model_floor_steps` z steps (a Gaussian fitted to a
   peak of another shape, sampled at an arbitrary phase);
@@ -22,7 +23,12 @@ Its standard deviation has four parts, added in quadrature:
   contrast that grows towards it) is lopsided, and a Gaussian of variance
   w**2 on a log-background of slope c peaks c w**2 away from its centre. c is
   read from the curve as the odd part of log(score) about z0, over the frames
-  mirrored within the curve: |c| w**2.
+  mirrored within the curve: |c| w**2;
+- top: on a broad peak drowned in noise, frames beyond the fit's reach may be
+  the true top as likely as the best one (`_TopChances`): the spread of their
+  z weighted by that chance;
+- systematic: the metric's own offset from the plane a person picks
+  (`PeakSettings.systematic_sigma_um`, learnt per metric from labelled curves).
 
 Which peak (`_candidates`): real curves carry one-frame spikes and dips, second
 peaks (dust, another layer), and backgrounds that rise towards an end. First,
@@ -33,16 +39,24 @@ candidate, and so is an end frame that rises outwards (the peak may lie beyond
 it). The rule: the weight of a candidate is its prominence squared, times the
 request's prior density at it where there is a prior; the heaviest is chosen,
 its share of the weights is its probability, and the next one is the runner-up.
-The choice is said with `multi_peak` (more than one candidate), `ambiguous`
+That probability is scaled by the share of the top's chances near the chosen
+frame (`_TopChances`: below one where noise leaves the top unlocated). The
+choice is said with `multi_peak` (more than one candidate), `ambiguous`
 (probability below `PeakSettings.ambiguous_below`) and the runner-up's z, never
 folded into sigma: sigma is the chosen peak's own. An end chosen is an edge flag
 pointing that way (no sigma).
+
+Noise is judged (flat test, candidates, despike, the top's chances) by the
+curve's own estimate where it is clean, else by the metric's known noise floor
+alone: a short window cannot tell its noise from its peak's shape.
 
 Calibration (docs/focus.md): the constants were fitted on instrument-simulator
 stacks of seeds 100-102 (`focustrack bench focus --seed 100` ...: all field
 kinds, frame sizes, exposures and stack shapes) so that the z-scores (error /
 sigma) of the metrics have a spread near one; the benchmark reports them on
-seed 1.
+seed 1. The two per-metric constants (`min_relative_noise`,
+`systematic_sigma_um`) belong to a metric on a microscope and are 0 by default;
+`focustrack bench focus --real` learns them on its fit fields.
 """
 
 from __future__ import annotations
@@ -138,7 +152,8 @@ class PeakFit:
     beyond the range, in the direction the flag says. With more than one peak,
     runner_up_z_um is the z of the next most likely one (an end frame when that
     peak lies beyond the range) and chosen_probability the chosen peak's share of
-    the weights (`_candidates`); on a single peak they are None and 1.0.
+    the weights (`_candidates`) times the share of the top's chances near it
+    (`_TopChances`); on a single, clearly located peak they are None and 1.0.
     """
 
     z_um: float | None
