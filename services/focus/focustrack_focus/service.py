@@ -221,19 +221,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a stack whose through-focus change stands fewer noise spreads than this above "
         "its pixel noise is flat (default %(default)g; --min-structure-snr=-inf: never)",
     )
+    # the metric's constants on this microscope (`PeakSettings`; `bench focus --real` learns
+    # them from labelled curves): without them, short windows of noise can read as peaks
+    # and a metric's offset from a person's focus is not in sigma
+    parser.add_argument(
+        "--min-relative-noise",
+        type=float,
+        default=PeakSettings.min_relative_noise,
+        help="the metric's score noise as a share of a curve's maximum (default %(default)g)",
+    )
+    parser.add_argument(
+        "--systematic-sigma-um",
+        type=float,
+        default=PeakSettings.systematic_sigma_um,
+        help="the metric's offset from the true focus, a std added to sigma, um "
+        "(default %(default)g)",
+    )
+
+
+def settings_from_args(args: argparse.Namespace) -> FocusSettings:
+    """The service's `FocusSettings` from its command line."""
+    preprocess = Preprocess(channel=GREEN)
+    if args.lowpass_sigma_px is not None:
+        preprocess = replace(preprocess, lowpass_sigma_px=args.lowpass_sigma_px)
+    peak = PeakSettings(
+        mode=PeakMode(args.focus_mode),
+        min_relative_noise=args.min_relative_noise,
+        systematic_sigma_um=args.systematic_sigma_um,
+    )
+    return FocusSettings(preprocess, args.metric, peak, min_structure_snr=args.min_structure_snr)
 
 
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    preprocess = Preprocess(channel=GREEN)
-    if args.lowpass_sigma_px is not None:
-        preprocess = replace(preprocess, lowpass_sigma_px=args.lowpass_sigma_px)
-    settings = FocusSettings(
-        preprocess,
-        args.metric,
-        PeakSettings(mode=PeakMode(args.focus_mode)),
-        min_structure_snr=args.min_structure_snr,
-    )
+    settings = settings_from_args(args)
     na = None if args.lowpass_sigma_px is not None else args.na
     session = session_from_args(args)
     worker = ZenohFocusWorker(session, settings, na)
