@@ -356,20 +356,39 @@ def run_real(args: argparse.Namespace) -> int:
         f"source: {folder} (real WSI curves, {focus_real.WSI_STEP_UM} um steps); errors, sigma "
         "in steps against the hand label; coverage allows half a step for its rounding"
     )
+    unusable = {m: c.unusable_because for m, c in calibration.items() if not c.usable}
+
+    def systematic(c: focus_real.Calibration) -> str:
+        if c.systematic_sigma_steps is None:  # none up to the cap reached the coverage
+            return f"{'>' + str(focus_real.MEDIAN_SIGMA_TARGET_STEPS):>8}"
+        return f"{c.systematic_sigma_steps:>8.2f}"
+
     print(
         "learnt on the fit fields per measure: noise (share of the maximum) and systematic "
         f"sigma (steps, for {focus_real.CALIBRATION_COVERAGE:.0%} coverage):\n  "
         + "\n  ".join(
-            f"{metric:<24}{c.relative_noise:>10.2g}{c.systematic_sigma_steps:>8.2f}"
+            f"{metric:<24}{c.relative_noise:>10.2g}{systematic(c)}"
+            + ("" if c.usable else f"  UNUSABLE: {c.unusable_because}")
             for metric, c in calibration.items()
         )
     )
-    focus_real.print_report(report, "report fields 2, 4, ..., 20 (not used to fit)")
-    focus_real.print_report(fit, "fit fields 1, 3, ..., 19 (the constants were chosen here)")
-    met = focus_real.targets(report)
-    print("\ntargets on the report fields:")
+    focus_real.print_report(report, "report fields 2, 4, ..., 20 (not used to fit)", unusable)
+    focus_real.print_report(
+        fit, "fit fields 1, 3, ..., 19 (the constants were chosen here)", unusable
+    )
+    met = focus_real.targets(report, unusable)
+    print("\ntargets on the report fields (measures usable on this microscope):")
     for target, misses in met.items():
         print(f"  {'NOT met' if misses else 'met    '}  {target}  {' '.join(misses)}")
+    unusable_met = focus_real.unusable_targets(report, unusable)
+    for metric, verdict in unusable_met.items():
+        print(
+            f"\n{metric}: unusable on this microscope (learnt on the fit fields: "
+            f"{unusable[metric]}); every result it gives is flat, a warning with no z.\n"
+            f"  meets: {'; '.join(verdict['met']) or '-'}\n"
+            f"  cannot meet: {'; '.join(verdict['not_met']) or '-'} (a flat result has no z "
+            "or sigma to cover, and a measure that points nowhere never points the right way)"
+        )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {
@@ -381,6 +400,9 @@ def run_real(args: argparse.Namespace) -> int:
             "metrics": report,
             "fit_metrics": fit,
             "targets": met,
+            "unusable": {
+                m: {"because": unusable[m]} | verdict for m, verdict in unusable_met.items()
+            },
         }
         args.json.write_text(json.dumps(payload, indent=2))
         print(f"wrote {args.json}")

@@ -24,13 +24,22 @@ run from the odd fields alone and then used on all: its score noise
 (`PeakSettings.min_relative_noise`) and its systematic sigma
 (`PeakSettings.systematic_sigma_um`: how far its own peak strays from the plane a
 person picks).
+
+A measure may also be unusable on this microscope, decided on the odd fields alone
+(`usability`): when, read with its learnt noise, most of their windows are flat (it sees
+too little of the specimen to serve a scanner), or when no systematic sigma up to the
+issue's median-sigma target reaches the coverage there (its own peak strays too far from
+focus for any sigma that could meet that target). Such a measure is then given a noise
+floor as large as the curve's maximum, so that every result it gives is `flat`: a warning
+that names no z, never a silent miss. The bench reports it as unusable, with its figures,
+instead of counting it against targets that need a measurement (`targets`).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -62,6 +71,17 @@ FIT_FIELDS = tuple(range(1, 21, 2))  # the constants were chosen on these
 CALIBRATION_COVERAGE = 0.95
 #: The grid (steps) on which the systematic sigma is learnt.
 SYSTEMATIC_GRID_STEPS = 0.05
+#: The issue's target for the median sigma on 11x3 windows (steps). A systematic sigma
+#: above it puts every interior sigma above it, so it is also the largest systematic
+#: sigma a usable measure may need (`usability`).
+MEDIAN_SIGMA_TARGET_STEPS = 0.75
+#: A measure whose fit-field windows come back flat more often than this (most of them),
+#: read with its learnt noise, is unusable on the microscope (`usability`).
+MAX_FLAT_SHARE = 0.5
+#: The noise floor (share of a curve's maximum) that turns an unusable measure off: with
+#: noise as large as the maximum, no non-negative curve rises the `min_snr` (10) noise
+#: sigmas a peak needs, so every result is `flat`. `serve focus --min-relative-noise 1`.
+UNUSABLE_RELATIVE_NOISE = 1.0
 REPORT_FIELDS = tuple(range(2, 21, 2))  # the headline figures
 #: Flags that warn the caller the z is not an ordinary measurement.
 WARNING_FLAGS = frozenset(
@@ -194,15 +214,25 @@ def summarise(readings: Sequence[Reading]) -> dict[str, float]:
 @dataclass(frozen=True)
 class Calibration:
     """A measure's constants on this microscope (`PeakSettings`), learnt on the fit fields:
-    its score noise as a share of a curve's maximum, and its systematic sigma (steps)."""
+    its score noise as a share of a curve's maximum, its systematic sigma (steps; None
+    where none up to `MEDIAN_SIGMA_TARGET_STEPS` reaches the coverage), and why it is
+    unusable there ("" when it is usable)."""
 
     relative_noise: float = 0.0
-    systematic_sigma_steps: float = 0.0
+    systematic_sigma_steps: float | None = 0.0
+    unusable_because: str = ""
+
+    @property
+    def usable(self) -> bool:
+        return not self.unusable_because
 
     def settings(self) -> FocusSettings:
+        """The service's settings for the measure: an unusable one reads every curve flat."""
+        if not self.usable:
+            return FocusSettings(peak=PeakSettings(min_relative_noise=UNUSABLE_RELATIVE_NOISE))
         peak = PeakSettings(
             min_relative_noise=self.relative_noise,
-            systematic_sigma_um=WSI_STEP_UM * self.systematic_sigma_steps,
+            systematic_sigma_um=WSI_STEP_UM * (self.systematic_sigma_steps or 0.0),
         )
         return FocusSettings(peak=peak)
 
@@ -242,30 +272,66 @@ def coverage_with(readings: Sequence[Reading], systematic_steps: float) -> float
     return float(np.mean(errors <= 2.0 * sigmas + 0.5))
 
 
-def learn_systematic_sigma(readings: Sequence[Reading]) -> float:
+def learn_systematic_sigma(
+    readings: Sequence[Reading], cap_steps: float = MEDIAN_SIGMA_TARGET_STEPS
+) -> float | None:
     """The least systematic sigma (steps, on a grid of `SYSTEMATIC_GRID_STEPS`) with which
     full curves and windows each reach `CALIBRATION_COVERAGE` (readings made without one;
-    pass only fit fields). 0 where they reach it already: a clear pick keeps its sigma."""
+    pass only fit fields). 0 where they reach it already: a clear pick keeps its sigma.
+    None where even `cap_steps` does not reach it. Parts with no measured reading (all
+    flat) have nothing to cover and ask for nothing."""
     parts = (
         [r for r in readings if r.kind == "full"],
         [r for r in readings if r.kind != "full"],
     )
-    systematic = 0.0
-    while any(coverage_with(part, systematic) < CALIBRATION_COVERAGE for part in parts):
-        systematic += SYSTEMATIC_GRID_STEPS
-    return round(systematic, 2)
+    for step in range(round(cap_steps / SYSTEMATIC_GRID_STEPS) + 1):
+        systematic = round(step * SYSTEMATIC_GRID_STEPS, 2)
+        # NaN (nothing measured) is not below the coverage: such a part needs nothing
+        if not any(coverage_with(part, systematic) < CALIBRATION_COVERAGE for part in parts):
+            return systematic
+    return None
+
+
+def flat_share(readings: Sequence[Reading]) -> float:
+    """The share of the windows (not full curves) among `readings` that came back flat."""
+    flat = [FocusFlag.FLAT in r.flags for r in readings if r.kind != "full"]
+    return float(np.mean(flat)) if flat else math.nan
+
+
+def usability(readings: Sequence[Reading], systematic_steps: float | None) -> str:
+    """Why a measure is unusable on the microscope, from its fit-field readings (made
+    with its learnt noise, no systematic sigma) and the systematic sigma learnt from them;
+    "" when it is usable. Either rule alone keeps it from meeting the targets: a flat
+    window points nowhere (no edge flag, no z), and a systematic sigma above the median
+    sigma target puts every sigma above it."""
+    reasons = []
+    flat = flat_share(readings)
+    if flat > MAX_FLAT_SHARE:
+        reasons.append(f"{flat:.0%} of the fit fields' windows flat (> {MAX_FLAT_SHARE:.0%})")
+    if systematic_steps is None:
+        reasons.append(
+            f"no systematic sigma up to {MEDIAN_SIGMA_TARGET_STEPS} step reaches "
+            f"{CALIBRATION_COVERAGE:.0%} coverage on the fit fields"
+        )
+    return "; ".join(reasons)
 
 
 def calibrate(folder: Path, metrics: Sequence[str] = REAL_METRICS) -> dict[str, Calibration]:
     """Every metric's calibration, learnt on the fit fields alone: its noise first, then
-    the systematic sigma that the readings with that noise still need."""
+    the systematic sigma that the readings with that noise still need, then whether the
+    measure is usable at all (`usability`; an unusable one then reads every curve flat)."""
     fit_fields = [f for f in load_wsi_fields(folder) if f.number in FIT_FIELDS]
     noise = {metric: Calibration(learn_relative_noise(fit_fields, metric)) for metric in metrics}
     readings = real_curves(folder, metrics, numbers=FIT_FIELDS, calibration=noise)
-    return {
-        metric: replace(noise[metric], systematic_sigma_steps=learn_systematic_sigma(rows))
-        for metric, rows in readings.items()
-    }
+    out = {}
+    for metric, rows in readings.items():
+        systematic = learn_systematic_sigma(rows)
+        out[metric] = replace(
+            noise[metric],
+            systematic_sigma_steps=systematic,
+            unusable_because=usability(rows, systematic),
+        )
+    return out
 
 
 def report(readings: dict[str, list[Reading]], fields: Sequence[int]) -> dict[str, dict]:
@@ -296,7 +362,9 @@ _COLUMNS = (
 )
 
 
-def print_report(figures: dict[str, dict], title: str) -> None:
+def print_report(figures: dict[str, dict], title: str, unusable: Collection[str] = ()) -> None:
+    """The figures as tables (full curves, windows, 11x3 windows); a metric declared unusable
+    on the microscope is marked so (its coverage and sigma are nan: nothing measured)."""
     print(f"\n{title}")
     for part in ("full", "windows", "windows_11x3"):
         print(f"  {part}:")
@@ -307,34 +375,68 @@ def print_report(figures: dict[str, dict], title: str) -> None:
                 f"{row[key]:>10.2%}" if kind == "%" else f"{row[key]:>10.2f}"
                 for key, _, kind in _COLUMNS
             ]
-            print(f"  {metric:<24}" + "".join(cells))
+            mark = "  unusable (all flat)" if metric in unusable else ""
+            print(f"  {metric:<24}" + "".join(cells) + mark)
 
 
-def targets(figures: dict[str, dict]) -> dict[str, list[str]]:
+#: The issue's targets: name -> (test on a measure's figures, gradient measures only).
+#: Coverage and sigma count measured results only: a flat result carries no z and no
+#: sigma, so it is neither covered nor a silent miss. The edge figures count every window
+#: whose label lies outside, flat ones included (the issue's definition: how often the edge
+#: flag points the right way and the wrong way), so a measure that never points anywhere
+#: cannot meet "edge right".
+_TARGETS: dict[str, tuple[Callable[[dict[str, dict]], bool], bool]] = {
+    "within_1_step >= 97% (gradient metrics)": (
+        lambda f: all(f[p]["within_1_step"] >= 0.97 for p in ("full", "windows")),
+        True,
+    ),
+    "coverage_2sigma >= 92%": (
+        lambda f: all(f[p]["coverage_2sigma"] >= 0.92 for p in ("full", "windows")),
+        False,
+    ),
+    f"median sigma on 11x3 windows <= {MEDIAN_SIGMA_TARGET_STEPS} step": (
+        lambda f: f["windows_11x3"]["median_sigma_steps"] <= MEDIAN_SIGMA_TARGET_STEPS,
+        False,
+    ),
+    "edge flags right >= 98%": (lambda f: f["windows"]["edge_right"] >= 0.98, False),
+    "edge flags wrong <= 0.5%": (lambda f: f["windows"]["edge_wrong"] <= 0.005, False),
+    "silent misses <= 1 in 1000": (
+        lambda f: all(f[p]["silent_miss"] <= 0.001 for p in ("full", "windows")),
+        False,
+    ),
+}
+
+
+def targets(figures: dict[str, dict], unusable: Collection[str] = ()) -> dict[str, list[str]]:
     """The issue's targets on these figures: each target -> the metrics that miss it
-    (an empty list: met by every metric it applies to)."""
-
-    def missing(ok: Callable[[dict[str, dict]], bool], metrics: Sequence[str]) -> list[str]:
-        return [m for m in metrics if m in figures and not ok(figures[m])]
-
-    parts = ("full", "windows")
-    every = list(figures)
+    (an empty list: met by every metric it applies to). Metrics declared `unusable` on the
+    microscope are left out: `unusable_targets` says what they meet."""
+    usable = [m for m in figures if m not in unusable]
     return {
-        "within_1_step >= 97% (gradient metrics)": missing(
-            lambda f: all(f[p]["within_1_step"] >= 0.97 for p in parts), GRADIENT_METRICS
-        ),
-        "coverage_2sigma >= 92%": missing(
-            lambda f: all(f[p]["coverage_2sigma"] >= 0.92 for p in parts), every
-        ),
-        "median sigma on 11x3 windows <= 0.75 step": missing(
-            lambda f: f["windows_11x3"]["median_sigma_steps"] <= 0.75, every
-        ),
-        "edge flags right >= 98%": missing(lambda f: f["windows"]["edge_right"] >= 0.98, every),
-        "edge flags wrong <= 0.5%": missing(lambda f: f["windows"]["edge_wrong"] <= 0.005, every),
-        "silent misses <= 1 in 1000": missing(
-            lambda f: all(f[p]["silent_miss"] <= 0.001 for p in parts), every
-        ),
+        name: [
+            m for m in usable if (not gradient_only or m in GRADIENT_METRICS) and not ok(figures[m])
+        ]
+        for name, (ok, gradient_only) in _TARGETS.items()
     }
+
+
+def unusable_targets(figures: dict[str, dict], unusable: Collection[str]) -> dict[str, dict]:
+    """Per unusable metric: the targets it meets and those it does not (NaN, i.e. nothing
+    measured, does not meet a target)."""
+    out: dict[str, dict] = {}
+    for metric in unusable:
+        if metric not in figures:
+            continue
+        applies = [
+            (name, ok)
+            for name, (ok, gradient_only) in _TARGETS.items()
+            if not gradient_only or metric in GRADIENT_METRICS
+        ]
+        out[metric] = {
+            "met": [name for name, ok in applies if ok(figures[metric])],
+            "not_met": [name for name, ok in applies if not ok(figures[metric])],
+        }
+    return out
 
 
 def write_plot(path: Path, figures: dict[str, dict]) -> None:

@@ -109,7 +109,9 @@ class PeakSettings:
         curve's maximum, a floor under the curve's own estimate: a short window cannot
         tell its noise from its peak's shape, so without it a window of pure noise reads
         as a peak. It belongs to a metric on a microscope: 0 unless measured on full
-        curves (`focustrack bench focus --real` measures it on its fit fields).
+        curves (`focustrack bench focus --real` measures it on its fit fields). 1 (noise as
+        large as the maximum) turns off a metric found unusable on the microscope: no
+        curve of non-negative scores then rises `min_snr` noise sigmas, so all are flat.
     systematic_sigma_um: the metric's own offset from the true focus (a std, um), added to
         every interior peak's sigma: a metric that weighs other spatial frequencies than
         the eye peaks a fraction of the depth of field away from the plane a person

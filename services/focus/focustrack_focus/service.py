@@ -228,7 +228,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--min-relative-noise",
         type=float,
         default=PeakSettings.min_relative_noise,
-        help="the metric's score noise as a share of a curve's maximum (default %(default)g)",
+        help="the metric's score noise as a share of a curve's maximum (default %(default)g; "
+        "1: the metric is unusable on this microscope, every result is flat)",
     )
     parser.add_argument(
         "--systematic-sigma-um",

@@ -219,6 +219,15 @@ def test_a_known_noise_floor_makes_a_short_window_of_noise_flat(seed: int) -> No
     assert known.flags == {FocusFlag.FLAT} and known.z_um is None
 
 
+def test_a_noise_floor_of_the_maximum_turns_a_metric_off() -> None:
+    """1 (noise as large as the curve's maximum) is how an unusable metric is turned off:
+    even a clear peak (or a bare end rise) reads flat, while 0.1 still measures it."""
+    for scores in (gaussian(Z_UM, 0.3), 1.0 + np.exp(Z_UM)):
+        off = find_peak(Z_UM, scores, PeakSettings(min_relative_noise=1.0))
+        assert off.flags == {FocusFlag.FLAT} and off.z_um is None and off.sigma_um is None
+    assert find_peak(Z_UM, gaussian(Z_UM, 0.3), PeakSettings(min_relative_noise=0.01)).z_um
+
+
 def test_a_systematic_sigma_is_added_in_quadrature() -> None:
     plain = find_peak(Z_UM, gaussian(Z_UM, 0.3))
     biased = find_peak(Z_UM, gaussian(Z_UM, 0.3), PeakSettings(systematic_sigma_um=0.15))
