@@ -8,16 +8,18 @@ child process, over two paths:
 - ``tcp``: loopback TCP, the child's session with shared memory off;
 - ``shm``: Zenoh shared memory (the publisher's pool, the child's session with it on).
 
-Transport: the child decodes every frame (the one copy out of Zenoh, then a numpy
-view) and notes when it arrived; a stack's transfer time runs from the first frame's
-put to the last frame's arrival. GB/s and frames/s are compared with a memcpy of the
-same bytes (`np.copyto` into a buffer already written once) measured in the same run.
+Transport: the child's consumer thread decodes every frame (the one copy out of
+Zenoh, then a numpy view) and notes when it was readable; a stack's transfer time
+runs from the first frame's put to the last frame being readable. GB/s and frames/s
+are compared with a memcpy of the same bytes (`np.copyto` into a buffer already
+written once) measured in the same run.
 
 Focus: the child runs the focus service's own frame analyser
-(`focustrack_focus.service.FrameAnalyser`) on every frame as it lands, on a worker
-thread fed by the Zenoh callback, and reports the time from the last frame's arrival
-to the focus result. Frames are paced at `--fps` (a camera's rate), so the figure is
-the wait a scan sees once the camera is done, not a backlog of the publisher's burst.
+(`focustrack_focus.service.FrameAnalyser`) on every frame as it lands, on a consumer
+thread fed through a bounded FIFO (as the service is), and reports the time from the
+moment Zenoh hands over the last frame (before its copy) to the focus result. Frames
+are paced at `--fps` (a camera's rate), so the figure is the wait a scan sees once
+the camera is done, not a backlog of the publisher's burst.
 """
 
 from __future__ import annotations
@@ -26,7 +28,6 @@ import argparse
 import functools
 import json
 import multiprocessing
-import queue
 import statistics
 import threading
 import time
@@ -46,6 +47,7 @@ TRANSPORT_SLIDE = "bench-transport"  # stacks the child only receives
 FOCUS_SLIDE = "bench-focus"  # stacks the child also runs the focus analysis on
 ACK_KEY = keys.bench_key("transport-ack")
 PATHS = ("tcp", "shm")
+FRAME_QUEUE = 64  # frames Zenoh hands over before the consumer holds the publisher back
 
 #: Targets of issue 16 (README): checked and printed beside the figures.
 TCP_MIN_GB_PER_S = 1.5
@@ -71,23 +73,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _child(endpoint: str, shared_memory: bool) -> None:
     """Subscriber process: acknowledges each stack on TRANSPORT_SLIDE with its frames'
-    arrival, and each on FOCUS_SLIDE with its focus result's latency."""
+    arrival, and each on FOCUS_SLIDE with its focus result's latency.
+
+    Frames are taken from a bounded FIFO by one consumer thread, as in the focus service
+    (`ZenohFocusWorker`): the copy out of Zenoh happens there, so Zenoh's receiving thread
+    goes on with the next frame meanwhile.
+    """
     with session.open_session(connect=[endpoint], shared_memory=shared_memory) as child:
         arrivals: dict[int, list[float]] = {}
-        samples: queue.Queue[tuple[float, str, bytes, bytes | None]] = queue.Queue()
         analyser = FrameAnalyser(FocusSettings(), na=None)
 
         def acknowledge(report: dict[str, Any]) -> None:
             child.put(ACK_KEY, json.dumps(report))
 
-        def on_frame(sample: zenoh.Sample) -> None:
-            arrived_s = time.monotonic()
-            key = str(sample.key_expr)
-            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
-            payload = sample.payload.to_bytes()
-            if keys.parse_zframe_key(key).slide == FOCUS_SLIDE:  # analysed on a worker,
-                samples.put((arrived_s, key, payload, attachment))  # as in the service
-                return
+        def on_transport_frame(payload: bytes, attachment: bytes | None) -> None:
             header, frame = codec.decode_zframe(payload, attachment)
             int(frame[-1, -1, -1])  # the pixels are readable where they landed
             times = arrivals.setdefault(header.stack.sequence, [])
@@ -95,26 +94,34 @@ def _child(endpoint: str, shared_memory: bool) -> None:
             if len(times) == len(header.stack.z_um):
                 acknowledge({"sequence": header.stack.sequence, "last_arrival_s": times[-1]})
 
-        def analyse() -> None:
-            while True:
-                arrived_s, key, payload, attachment = samples.get()
-                cpu_s = time.thread_time()
-                result = analyser.add(key, payload, attachment)
-                if result is not None:
-                    acknowledge(
-                        {
-                            "sequence": result.sequence,
-                            "latency_s": time.monotonic() - arrived_s,
-                            "last_frame_cpu_s": time.thread_time() - cpu_s,
-                            "best_z_um": result.best_z_um,
-                            "error": result.error.message,
-                        }
-                    )
+        def on_focus_frame(
+            key: str, payload: bytes, attachment: bytes | None, arrived_s: float, cpu_s: float
+        ) -> None:
+            result = analyser.add(key, payload, attachment)
+            if result is not None:
+                acknowledge(
+                    {
+                        "sequence": result.sequence,
+                        "latency_s": time.monotonic() - arrived_s,
+                        "last_frame_cpu_s": time.thread_time() - cpu_s,
+                        "best_z_um": result.best_z_um,
+                        "error": result.error.message,
+                    }
+                )
 
-        threading.Thread(target=analyse, daemon=True).start()
-        with child.declare_subscriber(keys.zframe_pattern(), on_frame):
-            acknowledge({"ready": True})
-            threading.Event().wait()  # until the parent terminates this process
+        frames = child.declare_subscriber(
+            keys.zframe_pattern(), zenoh.handlers.FifoChannel(FRAME_QUEUE)
+        )
+        acknowledge({"ready": True})
+        for sample in frames:  # until the parent terminates this process
+            arrived_s, cpu_s = time.monotonic(), time.thread_time()
+            key = str(sample.key_expr)
+            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
+            payload = sample.payload.to_bytes()
+            if keys.parse_zframe_key(key).slide == FOCUS_SLIDE:
+                on_focus_frame(key, payload, attachment, arrived_s, cpu_s)
+            else:
+                on_transport_frame(payload, attachment)
 
 
 class Acks:

@@ -62,22 +62,37 @@ class NoiseBank:
 
 
 def expose(
-    camera: Camera, signal_e: np.ndarray, rng: np.random.Generator, bank: NoiseBank
+    camera: Camera,
+    signal_e: np.ndarray,
+    rng: np.random.Generator,
+    bank: NoiseBank,
+    out: np.ndarray | None = None,
+    scratch: np.ndarray | None = None,
 ) -> np.ndarray:
     """The digitised frame, (height, width) uint16, of the mean signal `signal_e` (e-, float32).
 
-    Electrons beyond the full well and ADUs beyond the bit depth saturate.
+    Electrons beyond the full well and ADUs beyond the bit depth saturate. With `out`
+    (uint16) and `scratch` (float32, the shape of `signal_e`) the frame is written into
+    `out`, `signal_e` is overwritten, and nothing is allocated (see `optics.blurred`).
     """
-    signal_e = cv2.max(signal_e, 0.0)  # FFT round-off can dip below zero
-    if float(signal_e.max()) < camera.exact_poisson_below_e:
+    in_place = out is not None and scratch is not None
+    signal_e = cv2.max(signal_e, 0.0, dst=signal_e if in_place else None)  # FFT round-off < 0
+    if cv2.minMaxLoc(signal_e)[1] < camera.exact_poisson_below_e:
         electrons = rng.poisson(signal_e).astype(np.float32)
         electrons += camera.read_noise_e * rng.standard_normal(signal_e.shape, dtype=np.float32)
     else:
-        sigma_e = cv2.sqrt(cv2.add(signal_e, camera.read_noise_e**2))
-        electrons = cv2.add(signal_e, cv2.multiply(sigma_e, bank.plane(rng)))
+        sigma_e = cv2.sqrt(cv2.add(signal_e, camera.read_noise_e**2, dst=scratch), dst=scratch)
+        noise_e = cv2.multiply(sigma_e, bank.plane(rng), dst=scratch)
+        electrons = cv2.add(signal_e, noise_e, dst=signal_e if in_place else None)
     # ADU = electrons / gain + offset, rounded and saturated at 0 by OpenCV's cast to uint16;
     # the full well (in ADU) and the bit depth cap it from above.
     adu = cv2.addWeighted(
-        electrons, 1.0 / camera.gain_e_per_adu, electrons, 0.0, camera.offset_adu, dtype=cv2.CV_16U
+        electrons,
+        1.0 / camera.gain_e_per_adu,
+        electrons,
+        0.0,
+        camera.offset_adu,
+        dst=out,
+        dtype=cv2.CV_16U,
     )
-    return cv2.min(adu, camera.saturation_adu)
+    return cv2.min(adu, camera.saturation_adu, dst=adu)

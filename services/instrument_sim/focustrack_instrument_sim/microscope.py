@@ -14,6 +14,7 @@ both at once. The service (`service.py`) puts the frames on Zenoh as they come.
 from __future__ import annotations
 
 import functools
+import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -134,8 +135,9 @@ class Renderer:
         geometry = opt.FrameGeometry(spec.height, spec.width, spec.optics.pixel_size_um)
         self._pixel_mtf = geometry.pixel_mtf
         self._otfs = [opt.DefocusOTF(spec.optics, wl) for wl in spec.optics.wavelengths_um]
-        self._bins = [geometry.bins(otf).astype(np.int32) for otf in self._otfs]
+        self._bins = [geometry.bins(otf) for otf in self._otfs]  # intp: what take() wants
         self._bank = NoiseBank(spec.shape, rng)
+        self._local = threading.local()  # each rendering thread's _Workspace
 
     def spectra(self, transmission: np.ndarray, dust: np.ndarray | None) -> TileSpectra:
         """Spectra of a tile (transmission (height, width, 3)) and its dust layer, if any."""
@@ -153,21 +155,42 @@ class Renderer:
         out: np.ndarray,
     ) -> np.ndarray:
         """The frame at defocus `dz_um` (frame z - true focus), into `out` (height, width, 3)
-        uint16, which it returns. Thread-safe: the renderer's own state is only read."""
+        uint16, which it returns. Thread-safe: the renderer's own state is only read, and
+        each thread works in buffers of its own."""
         camera = self.spec.camera
         signal_e = camera.background_e_per_s * exposure_s
+        work = self._workspace()
         dust = None
         if tile.dust is not None:  # the dust plane sits dust_dz_um above the specimen
             dz_dust = dz_um - self.spec.dust_dz_um
-            dust = opt.blurred(tile.dust, self._otfs[1].profile(dz_dust).take(self._bins[1]), 1.0)
-        planes = []
+            otf_map = self._otfs[1].profile(dz_dust).take(self._bins[1], out=work.otf_map)
+            dust = opt.blurred(tile.dust, otf_map, 1.0, out=work.dust)
         for c, (otf, bins) in enumerate(zip(self._otfs, self._bins, strict=True)):
-            plane = opt.blurred(tile.channels[c], otf.profile(dz_um).take(bins), signal_e)
+            otf_map = otf.profile(dz_um).take(bins, out=work.otf_map)
+            plane = opt.blurred(tile.channels[c], otf_map, signal_e, out=work.plane)
             if dust is not None:
                 plane *= dust
-            planes.append(expose(camera, plane, rng, self._bank))
-        cv2.merge(planes, dst=out)
+            expose(camera, plane, rng, self._bank, out=work.adu[c], scratch=work.scratch)
+        cv2.merge(work.adu, dst=out)
         return out
+
+    def _workspace(self) -> _Workspace:
+        work: _Workspace | None = getattr(self._local, "work", None)
+        if work is None:
+            work = self._local.work = _Workspace(self.spec.shape, len(opt.CHANNELS))
+        return work
+
+
+class _Workspace:
+    """One rendering thread's buffers, reused frame after frame: allocating fresh megabyte
+    arrays for every step cost more in page faults than the FFTs themselves."""
+
+    def __init__(self, shape: tuple[int, int], channels: int) -> None:
+        self.otf_map = np.empty(shape, dtype=np.float32)
+        self.plane = np.empty(shape, dtype=np.float32)
+        self.dust = np.empty(shape, dtype=np.float32)
+        self.scratch = np.empty(shape, dtype=np.float32)
+        self.adu = tuple(np.empty(shape, dtype=np.uint16) for _ in range(channels))
 
 
 @dataclass(frozen=True)

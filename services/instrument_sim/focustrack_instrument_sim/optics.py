@@ -183,7 +183,16 @@ def spectrum(plane: np.ndarray) -> np.ndarray:
     return cv2.dft(np.ascontiguousarray(plane, dtype=np.float32))
 
 
-def blurred(spectrum_ccs: np.ndarray, otf_map: np.ndarray, scale: float) -> np.ndarray:
-    """The image plane whose CCS spectrum is `spectrum_ccs * otf_map`, times `scale`."""
-    product = cv2.multiply(spectrum_ccs, otf_map, scale=scale / spectrum_ccs.size)
-    return cv2.idft(product, flags=cv2.DFT_REAL_OUTPUT)
+def blurred(
+    spectrum_ccs: np.ndarray, otf_map: np.ndarray, scale: float, out: np.ndarray | None = None
+) -> np.ndarray:
+    """The image plane whose CCS spectrum is `spectrum_ccs * otf_map`, times `scale`.
+
+    With `out` (float32, the shape of the spectrum), the plane is written there and
+    `otf_map` is overwritten by the product: a renderer that keeps both buffers allocates
+    nothing per frame (fresh megabyte arrays cost page faults that outweigh the FFT).
+    """
+    product = cv2.multiply(
+        spectrum_ccs, otf_map, dst=None if out is None else otf_map, scale=scale / spectrum_ccs.size
+    )
+    return cv2.idft(product, dst=out, flags=cv2.DFT_REAL_OUTPUT)

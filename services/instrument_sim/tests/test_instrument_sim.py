@@ -146,6 +146,18 @@ def test_camera_noise_is_shot_plus_read_noise(signal_e: float) -> None:
     assert adu.var() == pytest.approx(expected_var, rel=0.1)
 
 
+@pytest.mark.parametrize("signal_e", [12_000.0, 30.0])
+def test_exposing_into_buffers_gives_the_same_frame_as_allocating(signal_e: float) -> None:
+    camera = Camera()
+    signal = np.random.default_rng(1).normal(signal_e, signal_e / 10, (64, 64)).astype(np.float32)
+    bank = NoiseBank(signal.shape, np.random.default_rng(2))
+    fresh = expose(camera, signal.copy(), np.random.default_rng(3), bank)
+    out, scratch = np.empty(signal.shape, np.uint16), np.empty_like(signal)
+    in_place = expose(camera, signal.copy(), np.random.default_rng(3), bank, out, scratch)
+    assert in_place is out
+    np.testing.assert_array_equal(in_place, fresh)
+
+
 def test_camera_saturates_at_full_well_and_bit_depth() -> None:
     camera = Camera(bit_depth=10)
     rng = np.random.default_rng(0)
