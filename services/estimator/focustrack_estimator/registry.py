@@ -18,7 +18,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from focustrack_estimator import bank, classic, kalman_strategies, spatial
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Cost, CostModel, SlideSettings, Strategy
 
 Factory = Callable[..., Strategy]
 
@@ -27,6 +27,14 @@ STRATEGIES: dict[str, Factory] = {
     **bank.STRATEGIES,
     **spatial.STRATEGIES,
     **classic.STRATEGIES,
+}
+
+#: Each strategy's cost model, by the same names (a test keeps the two tables equal).
+COSTS: dict[str, CostModel] = {
+    **kalman_strategies.COSTS,
+    **bank.COSTS,
+    **spatial.COSTS,
+    **classic.COSTS,
 }
 
 
@@ -70,6 +78,18 @@ def create(
     fields = {field.name for field in dataclasses.fields(options)}
     chosen = dataclasses.replace(options, **{k: v for k, v in params.items() if k in fields})
     return factory(settings, chosen, **{k: v for k, v in params.items() if k not in fields})
+
+
+def cost(
+    name: str,
+    settings: SlideSettings,
+    params: Mapping[str, Any] | None = None,
+    strategies: Mapping[str, Factory] = STRATEGIES,
+    costs: Mapping[str, CostModel] = COSTS,
+) -> Cost:
+    """The projected cost of a slide of strategy `name` with `params` (over the defaults)."""
+    resolved = {**parameters(name, strategies), **(params or {})}
+    return costs[name](settings, resolved)
 
 
 def _factory(name: str, strategies: Mapping[str, Factory]) -> Factory:

@@ -19,13 +19,17 @@ side by side. A measurement is committed before its outcome is returned.
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
 import dataclasses
+import gc
 import io
 import logging
 import math
 import sqlite3
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -47,7 +51,7 @@ from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import InnovationDiagnostics, innovation_diagnostics
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.store import Event, Store
-from focustrack_estimator.strategy import SlideSettings, Strategy, ZRangePolicy
+from focustrack_estimator.strategy import Cost, SlideSettings, Strategy, ZRangePolicy
 
 log = logging.getLogger(__name__)
 
@@ -148,8 +152,28 @@ def resolve_params(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
         )
     resolved = dict(defaults)
     for name, value in params.items():
-        resolved[name] = _coerce(strategy, name, value, defaults[name])
+        resolved[name] = _physical(strategy, name, _coerce(strategy, name, value, defaults[name]))
     return resolved
+
+
+#: Magnitudes a strategy parameter may have (zero aside): beyond, its square under- or
+#: overflows a float (1e-300 squared is 0), which is no physical noise, length or sigma.
+PARAM_MAGNITUDES = (1e-100, 1e100)
+
+
+def _physical(strategy: str, name: str, value: Any) -> Any:
+    """`value`, or a SlideError if it (or an element of it) is a non-physical magnitude."""
+    low, high = PARAM_MAGNITUDES
+    numbers = value if isinstance(value, tuple) else (value,)
+    for number in numbers:
+        real = isinstance(number, float | int) and not isinstance(number, bool)
+        if real and number != 0 and not low <= abs(number) <= high:
+            raise SlideError(
+                f"parameter {name!r} of strategy {strategy!r}: {number!r} is not a physical "
+                f"value (magnitudes from {low:g} to {high:g}, or 0, are)",
+                ("body", "params", name),
+            )
+    return value
 
 
 def _coerce(strategy: str, name: str, value: Any, default: Any) -> Any:
@@ -260,6 +284,7 @@ class Slide:
         self.n_snapshot = 0  # events covered by the newest snapshot stored
         self._snapshots = True  # False once the strategy's state proved impossible to store
         try:
+            self.cost = cost_of(config)  # its share of the live slides' budget
             self.strategy: Strategy = registry.create(
                 config.strategy, settings_of(config), resolve_params(config.strategy, config.params)
             )
@@ -438,8 +463,77 @@ class GridLimits:
             )
 
 
+def cost_of(config: api.SlideCreate) -> Cost:
+    """The projected cost of a slide (its strategy's cost model, parameters resolved)."""
+    return registry.cost(
+        config.strategy, settings_of(config), resolve_params(config.strategy, config.params)
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """What one slide may cost, and what the live slides together may hold (service settings).
+
+    A slide is refused at creation (422) when its strategy's projected peak memory
+    or compute per tile exceeds `max_slide_bytes` or `max_tile_s`. The defaults
+    admit kf-2d on a 200x200 grid (about 180 MB, 2.5 ms per tile). Live slides are
+    evicted, least recently used first, when there are more than `max_live_slides`
+    or their projected bytes add up to more than `max_live_bytes`; an evicted slide
+    is rebuilt from its snapshot and log on its next request.
+    """
+
+    max_slide_bytes: int = 512 * 2**20
+    max_tile_s: float = 0.1
+    max_live_slides: int = 100
+    max_live_bytes: int = 768 * 2**20
+
+    def check(self, config: api.SlideCreate) -> Cost:
+        """The slide's projected cost; a SlideError (422) saying which limit it exceeds."""
+        cost = cost_of(config)
+        where = f"strategy {config.strategy!r} on a {config.grid.rows}x{config.grid.cols} grid"
+        if cost.peak_bytes > self.max_slide_bytes:
+            raise SlideError(
+                f"{where} with these parameters is projected to need {cost.peak_bytes / 2**20:.0f} "
+                f"MiB; this service allows {self.max_slide_bytes / 2**20:.0f} MiB per slide "
+                "(setting --max-slide-bytes): use a smaller grid or bank",
+                ("body",),
+            )
+        if cost.seconds_per_tile > self.max_tile_s:
+            raise SlideError(
+                f"{where} with these parameters is projected to need {cost.seconds_per_tile:.3g} s "
+                f"of computation per tile; this service allows {self.max_tile_s:g} s "
+                "(setting --max-tile-seconds): use a smaller grid or bank",
+                ("body",),
+            )
+        return cost
+
+
+def release_memory() -> None:
+    """Give freed memory back to the system: collect cycles, then trim glibc's heap.
+
+    Without the trim, a dropped slide's arrays below glibc's (self-raising) mmap
+    threshold stay in the process's heap, and its resident memory never shrinks.
+    """
+    gc.collect()
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _glibc() -> ctypes.CDLL | None:
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+    except OSError:
+        return None
+    return libc if libc is not None and hasattr(libc, "malloc_trim") else None
+
+
+_LIBC = _glibc()
+
+
 class Slides:
-    """Every slide of the store; live ones cached in memory, others rebuilt on first use."""
+    """Every slide of the store; live ones cached in memory (least recently used evicted
+    beyond the budget), others rebuilt on first use."""
 
     def __init__(
         self,
@@ -448,6 +542,7 @@ class Slides:
         *,
         snapshot_every: int = 200,
         limits: GridLimits = GridLimits(),
+        budget: Budget = Budget(),
     ) -> None:
         if snapshot_every < 1:
             raise ValueError(f"snapshot_every must be at least 1, got {snapshot_every}")
@@ -455,19 +550,55 @@ class Slides:
         self._timer = timer
         self.snapshot_every = snapshot_every
         self.limits = limits
-        self._live: dict[str, Slide] = {}
+        self.budget = budget
+        self._live: OrderedDict[str, Slide] = OrderedDict()  # least recently used first
         self._locks: dict[str, asyncio.Lock] = {}
 
     @property
     def n_live(self) -> int:
         return len(self._live)
 
+    @property
+    def live_bytes(self) -> int:
+        """The projected peak bytes of the live slides together."""
+        return sum(slide.cost.peak_bytes for slide in self._live.values())
+
+    def _keep(self, slide: Slide) -> None:
+        self._live[slide.id] = slide
+        self._live.move_to_end(slide.id)
+
+    async def _evict(self) -> None:
+        """Drop least recently used idle slides until the live ones fit the budget.
+
+        Each is snapshotted first (its next request restores the snapshot instead
+        of replaying its log); slides with a request under way are left alone.
+        """
+        evicted = False
+        while len(self._live) > 1 and (
+            len(self._live) > self.budget.max_live_slides
+            or self.live_bytes > self.budget.max_live_bytes
+        ):
+            idle = [i for i in self._live if not self._lock(i).locked()][:-1]  # never the newest
+            if not idle:
+                break
+            slide_id = idle[0]
+            async with self._lock(slide_id):
+                slide = self._live.pop(slide_id, None)
+                if slide is not None:
+                    await asyncio.to_thread(slide.save_snapshot)
+                    evicted = True
+            del slide
+        if evicted:
+            await asyncio.to_thread(release_memory)
+
     def _lock(self, slide_id: str) -> asyncio.Lock:
         return self._locks.setdefault(slide_id, asyncio.Lock())
 
     async def create(self, config: api.SlideCreate) -> str:
-        """Check the configuration by building its strategy, store it, and return the new id."""
+        """Check the configuration (grid, budget) by building its strategy, store it, and
+        return the new id."""
         self.limits.check(config.grid)
+        self.budget.check(config)
         resolved = resolve_params(config.strategy, config.params)
         # Stored and served as JSON: a bank's tuple of numbers is a list there.
         params = {k: list(v) if isinstance(v, tuple) else v for k, v in resolved.items()}
@@ -477,7 +608,8 @@ class Slides:
             Slide, slide_id, config, self.store, self._timer, self.snapshot_every
         )
         await asyncio.to_thread(self.store.create_slide, slide_id, config.model_dump(mode="json"))
-        self._live[slide_id] = slide
+        self._keep(slide)
+        await self._evict()
         return slide_id
 
     async def run(self, slide_id: str, work: Callable[[Slide], T]) -> T:
@@ -491,7 +623,8 @@ class Slides:
             try:
                 if slide is None:
                     slide = await asyncio.to_thread(self._load, slide_id)
-                return await asyncio.to_thread(work, slide)
+                self._keep(slide)
+                result = await asyncio.to_thread(work, slide)
             except SlideNotFoundError:
                 self._locks.pop(slide_id, None)  # keep no lock for ids that do not exist
                 raise
@@ -502,6 +635,8 @@ class Slides:
                 if isinstance(error, STRATEGY_ERRORS):
                     raise SlideError(f"strategy failed on slide {slide_id}: {error}") from None
                 raise
+        await self._evict()
+        return result
 
     def _load(self, slide_id: str) -> Slide:
         record = self.store.slide(slide_id)
@@ -520,7 +655,6 @@ class Slides:
                 log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
                 slide = Slide(slide_id, config, self.store, self._timer, self.snapshot_every)
         slide.replay(events[len(slide.history) :])
-        self._live[slide_id] = slide
         return slide
 
     def save_snapshots(self) -> None:
@@ -532,7 +666,8 @@ class Slides:
         async with self._lock(slide_id):
             if not await asyncio.to_thread(self.store.delete_slide, slide_id):
                 raise SlideNotFoundError(f"no slide {slide_id!r}")
-            self._live.pop(slide_id, None)
+            if self._live.pop(slide_id, None) is not None:
+                await asyncio.to_thread(release_memory)
         self._locks.pop(slide_id, None)
 
 
