@@ -169,8 +169,8 @@ def _physical(strategy: str, name: str, value: Any) -> Any:
         real = isinstance(number, float | int) and not isinstance(number, bool)
         if real and number != 0 and not low <= abs(number) <= high:
             raise SlideError(
-                f"parameter {name!r} of strategy {strategy!r}: {number!r} is not a physical "
-                f"value (magnitudes from {low:g} to {high:g}, or 0, are)",
+                f"parameter {name!r} of strategy {strategy!r} is not a physical value "
+                f"(magnitudes from {low:g} to {high:g}, or 0, are): {number!r}",
                 ("body", "params", name),
             )
     return value
