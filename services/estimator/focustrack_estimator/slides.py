@@ -476,7 +476,7 @@ class Budget:
 
     A slide is refused at creation (422) when its strategy's projected peak memory
     or compute per tile exceeds `max_slide_bytes` or `max_tile_s`. The defaults
-    admit kf-2d on a 200x200 grid (about 180 MB, 2.5 ms per tile). Live slides are
+    admit kf-2d on a 200x200 grid (about 220 MiB, 2.5 ms per tile). Live slides are
     evicted, least recently used first, when there are more than `max_live_slides`
     or their projected bytes add up to more than `max_live_bytes`; an evicted slide
     is rebuilt from its snapshot and log on its next request.
