@@ -11,6 +11,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from focustrack.bench.strategies import CATALOGUE
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.wire.session import free_port
@@ -23,8 +24,9 @@ from focustrack_estimator.strategy import SlideSettings
 
 def test_every_strategy_states_its_cost() -> None:
     assert set(registry.COSTS) == set(registry.STRATEGIES)
-    for name in registry.STRATEGIES:
-        cost = registry.cost(name, SlideSettings(grid=ScanGrid(20, 20)))
+    assert set(CATALOGUE.costs) == set(CATALOGUE.strategies) > set(registry.STRATEGIES)
+    for name in CATALOGUE.strategies:
+        cost = CATALOGUE.cost(name, SlideSettings(grid=ScanGrid(20, 20)))
         assert cost.peak_bytes > 20 * 20 and cost.seconds_per_tile >= 0
 
 
@@ -131,3 +133,18 @@ def test_creation_refuses_slides_over_the_budget_with_the_reason(server: str) ->
     assert oracle.status_code == 422 and "unknown strategy" in oracle.text
     assert _post(server, "kf-2d", 200, 200).status_code == 201  # what a real scanner needs
     assert httpx.get(f"{server}/healthz").json()["slides"] == 1
+
+
+def test_gp_oracle_is_served_only_when_opted_into_and_within_the_budget(tmp_path: Path) -> None:
+    port = free_port()
+    options = ["--strategies-from", "focustrack.bench.strategies"]
+    process = spawn(tmp_path / "oracle.sqlite", port, timeout_s=120, options=options)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        assert _post(url, "gp-oracle", 10, 10).status_code == 201
+        for rows, cols in ((90, 90), (500, 500)):  # the 1 GB and 466 GiB slides
+            refused = _post(url, "gp-oracle", rows, cols)
+            assert refused.status_code == 422 and "projected to need" in refused.text
+    finally:
+        process.terminate()
+        process.wait(60)

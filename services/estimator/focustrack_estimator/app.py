@@ -32,6 +32,7 @@ from focustrack_client import models as api
 from focustrack_core.domain import Acquisition, Outcome
 from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
 from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut
+from focustrack_estimator import registry
 from focustrack_estimator.metrics import EstimatorMetrics
 from focustrack_estimator.slides import (
     Budget,
@@ -62,6 +63,7 @@ class Settings:
     max_tile_s: float = Budget.max_tile_s
     max_live_slides: int = Budget.max_live_slides
     max_live_bytes: int = Budget.max_live_bytes
+    catalogue: registry.Catalogue = registry.SERVED  # the strategies served
 
 
 #: Worker threads for strategy work and SQLite (a request waiting for its commit holds one).
@@ -397,6 +399,7 @@ def create_app(settings: Settings) -> FastAPI:
             settings.max_live_slides,
             settings.max_live_bytes,
         ),
+        catalogue=settings.catalogue,
     )
 
     @asynccontextmanager

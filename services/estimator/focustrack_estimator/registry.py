@@ -80,19 +80,43 @@ def create(
     return factory(settings, chosen, **{k: v for k, v in params.items() if k not in fields})
 
 
-def cost(
-    name: str,
-    settings: SlideSettings,
-    params: Mapping[str, Any] | None = None,
-    strategies: Mapping[str, Factory] = STRATEGIES,
-    costs: Mapping[str, CostModel] = COSTS,
-) -> Cost:
-    """The projected cost of a slide of strategy `name` with `params` (over the defaults)."""
-    resolved = {**parameters(name, strategies), **(params or {})}
-    return costs[name](settings, resolved)
-
-
 def _factory(name: str, strategies: Mapping[str, Factory]) -> Factory:
     if name not in strategies:
         raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(strategies))}")
     return strategies[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class Catalogue:
+    """The strategies a service serves, by name, and each one's cost model (same names).
+
+    The estimator serves `SERVED`; `--strategies-from MODULE` serves a module's
+    `CATALOGUE` instead (the benchmarks' adds `gp-oracle`: an opt-in).
+    """
+
+    strategies: Mapping[str, Factory]
+    costs: Mapping[str, CostModel]
+
+    def __post_init__(self) -> None:
+        if set(self.strategies) != set(self.costs):
+            missing = sorted(set(self.strategies) ^ set(self.costs))
+            raise ValueError(f"every strategy needs a cost model and vice versa: {missing}")
+
+    def parameters(self, name: str) -> dict[str, Any]:
+        return parameters(name, self.strategies)
+
+    def create(
+        self, name: str, settings: SlideSettings, params: dict[str, Any] | None = None
+    ) -> Strategy:
+        return create(name, settings, params, self.strategies)
+
+    def cost(
+        self, name: str, settings: SlideSettings, params: Mapping[str, Any] | None = None
+    ) -> Cost:
+        """The projected cost of a slide of strategy `name` with `params` (over the defaults)."""
+        resolved = {**self.parameters(name), **(params or {})}
+        return self.costs[name](settings, resolved)
+
+
+#: What the estimator serves by default.
+SERVED = Catalogue(STRATEGIES, COSTS)

@@ -13,6 +13,7 @@ checkpoints and closes the store, and exits 0.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import signal
 import sys
@@ -26,6 +27,7 @@ import uvicorn
 
 from focustrack_core.config import command_main
 from focustrack_core.serving import refuse_open_network
+from focustrack_estimator import registry
 from focustrack_estimator.app import Settings, create_app
 from focustrack_estimator.store import StoreError
 
@@ -96,7 +98,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=Settings.max_live_bytes,
         help="projected bytes the slides in memory may hold together (beyond: evicted)",
     )
+    parser.add_argument(
+        "--strategies-from",
+        metavar="MODULE",
+        help="serve the strategies of MODULE's CATALOGUE instead of the estimator's own "
+        "(opt-in: focustrack.bench.strategies adds gp-oracle, the benchmarks' floor)",
+    )
     parser.add_argument("--access-log", action="store_true", help="log every request")
+
+
+def catalogue_from(module_name: str | None) -> registry.Catalogue:
+    """The served strategies: the estimator's, or `module_name`'s CATALOGUE (ValueError)."""
+    if not module_name:
+        return registry.SERVED
+    try:
+        catalogue = importlib.import_module(module_name).CATALOGUE
+    except (ImportError, AttributeError) as error:
+        raise ValueError(f"--strategies-from {module_name}: no CATALOGUE there ({error})") from None
+    if not isinstance(catalogue, registry.Catalogue):
+        raise ValueError(f"--strategies-from {module_name}: CATALOGUE is not a registry.Catalogue")
+    return catalogue
 
 
 def run(args: argparse.Namespace) -> int:
@@ -118,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
                 max_tile_s=args.max_tile_seconds,
                 max_live_slides=args.max_live_slides,
                 max_live_bytes=args.max_live_bytes,
+                catalogue=catalogue_from(args.strategies_from),
             )
         )
     except (StoreError, ValueError) as error:

@@ -137,10 +137,12 @@ def settings_of(config: api.SlideCreate) -> SlideSettings:
     )
 
 
-def resolve_params(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
+def resolve_params(
+    strategy: str, params: dict[str, Any], catalogue: registry.Catalogue = registry.SERVED
+) -> dict[str, Any]:
     """The strategy's full parameter set: `params` over the defaults, each of the default's type."""
     try:
-        defaults = registry.parameters(strategy)
+        defaults = catalogue.parameters(strategy)
     except ValueError as error:
         raise SlideError(str(error), ("body", "strategy")) from None
     unknown = sorted(set(params) - set(defaults))
@@ -274,6 +276,7 @@ class Slide:
         store: Store,
         timer: Callable[[float], None] = lambda _: None,
         snapshot_every: int = 200,
+        catalogue: registry.Catalogue = registry.SERVED,
     ) -> None:
         self.id = slide_id
         self.config = config
@@ -284,10 +287,9 @@ class Slide:
         self.n_snapshot = 0  # events covered by the newest snapshot stored
         self._snapshots = True  # False once the strategy's state proved impossible to store
         try:
-            self.cost = cost_of(config)  # its share of the live slides' budget
-            self.strategy: Strategy = registry.create(
-                config.strategy, settings_of(config), resolve_params(config.strategy, config.params)
-            )
+            self.cost = cost_of(config, catalogue)  # its share of the live slides' budget
+            params = resolve_params(config.strategy, config.params, catalogue)
+            self.strategy: Strategy = catalogue.create(config.strategy, settings_of(config), params)
             self.next()  # plan the first acquisition: absurd parameters fail here, at creation
         except SlideError:
             raise
@@ -463,11 +465,10 @@ class GridLimits:
             )
 
 
-def cost_of(config: api.SlideCreate) -> Cost:
+def cost_of(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> Cost:
     """The projected cost of a slide (its strategy's cost model, parameters resolved)."""
-    return registry.cost(
-        config.strategy, settings_of(config), resolve_params(config.strategy, config.params)
-    )
+    params = resolve_params(config.strategy, config.params, catalogue)
+    return catalogue.cost(config.strategy, settings_of(config), params)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -487,9 +488,11 @@ class Budget:
     max_live_slides: int = 100
     max_live_bytes: int = 768 * 2**20
 
-    def check(self, config: api.SlideCreate) -> Cost:
+    def check(
+        self, config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED
+    ) -> Cost:
         """The slide's projected cost; a SlideError (422) saying which limit it exceeds."""
-        cost = cost_of(config)
+        cost = cost_of(config, catalogue)
         where = f"strategy {config.strategy!r} on a {config.grid.rows}x{config.grid.cols} grid"
         if cost.peak_bytes > self.max_slide_bytes:
             raise SlideError(
@@ -543,6 +546,7 @@ class Slides:
         snapshot_every: int = 200,
         limits: GridLimits = GridLimits(),
         budget: Budget = Budget(),
+        catalogue: registry.Catalogue = registry.SERVED,
     ) -> None:
         if snapshot_every < 1:
             raise ValueError(f"snapshot_every must be at least 1, got {snapshot_every}")
@@ -551,6 +555,7 @@ class Slides:
         self.snapshot_every = snapshot_every
         self.limits = limits
         self.budget = budget
+        self.catalogue = catalogue
         self._live: OrderedDict[str, Slide] = OrderedDict()  # least recently used first
         self._locks: dict[str, asyncio.Lock] = {}
 
@@ -598,14 +603,14 @@ class Slides:
         """Check the configuration (grid, budget) by building its strategy, store it, and
         return the new id."""
         self.limits.check(config.grid)
-        self.budget.check(config)
-        resolved = resolve_params(config.strategy, config.params)
+        self.budget.check(config, self.catalogue)
+        resolved = resolve_params(config.strategy, config.params, self.catalogue)
         # Stored and served as JSON: a bank's tuple of numbers is a list there.
         params = {k: list(v) if isinstance(v, tuple) else v for k, v in resolved.items()}
         config = config.model_copy(update={"params": params})
         slide_id = uuid.uuid4().hex
         slide = await asyncio.to_thread(
-            Slide, slide_id, config, self.store, self._timer, self.snapshot_every
+            Slide, slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
         )
         await asyncio.to_thread(self.store.create_slide, slide_id, config.model_dump(mode="json"))
         self._keep(slide)
@@ -643,7 +648,9 @@ class Slides:
         if record is None:
             raise SlideNotFoundError(f"no slide {slide_id!r}")
         config = api.SlideCreate.model_validate(record.config)
-        slide = Slide(slide_id, config, self.store, self._timer, self.snapshot_every)
+        slide = Slide(
+            slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
+        )
         events = self.store.events(slide_id)
         snapshot = self.store.snapshot(slide_id)
         if snapshot is not None and snapshot[0] <= len(events):
@@ -653,7 +660,9 @@ class Slides:
                 slide.n_snapshot = snapshot[0]
             except SnapshotError as error:
                 log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
-                slide = Slide(slide_id, config, self.store, self._timer, self.snapshot_every)
+                slide = Slide(
+                    slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
+                )
         slide.replay(events[len(slide.history) :])
         return slide
 
