@@ -583,7 +583,8 @@ class Slides:
             len(self._live) > self.budget.max_live_slides
             or self.live_bytes > self.budget.max_live_bytes
         ):
-            idle = [i for i in self._live if not self._lock(i).locked()][:-1]  # never the newest
+            newest = next(reversed(self._live))  # the slide just used stays
+            idle = [i for i in self._live if i != newest and not self._lock(i).locked()]
             if not idle:
                 break
             slide_id = idle[0]
