@@ -148,3 +148,9 @@ def test_gp_oracle_is_served_only_when_opted_into_and_within_the_budget(tmp_path
     finally:
         process.terminate()
         process.wait(60)
+
+
+def test_a_budget_that_admits_nothing_is_a_configuration_error() -> None:
+    for bad in ({"max_live_slides": 0}, {"max_slide_bytes": -1}, {"max_tile_s": 0.0}):
+        with pytest.raises(ValueError, match="must be positive"):
+            Budget(**bad)  # type: ignore[arg-type]

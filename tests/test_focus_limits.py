@@ -112,3 +112,9 @@ def test_curves_with_values_beyond_the_floats_range_are_422(serve: Serve) -> Non
     assert good.status_code == 200 and good.json()["best_z_um"] == pytest.approx(1.0)
     too_many = {"z_um": list(range(2000)), "scores": [1.0] * 2000}
     _refused(httpx.post(f"{url}/v1/focus/curve", json=too_many), 422, "limit is 1001")
+
+
+def test_limits_that_admit_nothing_are_a_configuration_error() -> None:
+    for bad in ({"max_frames": 0}, {"max_json_depth": -1}, {"body_timeout_s": 0.0}):
+        with pytest.raises(ValueError, match="must be positive"):
+            FocusLimits(**bad)  # type: ignore[arg-type]

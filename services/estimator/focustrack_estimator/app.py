@@ -386,6 +386,12 @@ def _allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
 
 def create_app(settings: Settings) -> FastAPI:
     """The estimator service over the store at `settings.store_path`."""
+    budget = Budget(  # checked before the store is opened: a bad setting touches no file
+        settings.max_slide_bytes,
+        settings.max_tile_s,
+        settings.max_live_slides,
+        settings.max_live_bytes,
+    )
     store = Store(settings.store_path)
     metrics = EstimatorMetrics(store.count_slides, lambda: slides.n_live)
     slides = Slides(
@@ -393,12 +399,7 @@ def create_app(settings: Settings) -> FastAPI:
         timer=metrics.filter.observe,
         snapshot_every=settings.snapshot_every,
         limits=GridLimits(settings.max_grid_side, settings.max_grid_tiles),
-        budget=Budget(
-            settings.max_slide_bytes,
-            settings.max_tile_s,
-            settings.max_live_slides,
-            settings.max_live_bytes,
-        ),
+        budget=budget,
         catalogue=settings.catalogue,
     )
 

@@ -488,6 +488,11 @@ class Budget:
     max_live_slides: int = 100
     max_live_bytes: int = 768 * 2**20
 
+    def __post_init__(self) -> None:
+        counts = (self.max_slide_bytes, self.max_live_slides, self.max_live_bytes)
+        if min(counts) < 1 or not self.max_tile_s > 0:
+            raise ValueError(f"the budget's limits must be positive, got {self}")
+
     def check(
         self, config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED
     ) -> Cost:

@@ -62,6 +62,13 @@ class FocusLimits:
     max_json_depth: int = 32
     body_timeout_s: float = 60.0
 
+    def __post_init__(self) -> None:
+        counts = (self.max_upload_bytes, self.max_decoded_bytes, self.max_frames)
+        if min(*counts, self.max_json_bytes, self.max_json_depth) < 1:
+            raise ValueError(f"the focus service's limits must be positive, got {self}")
+        if not self.body_timeout_s > 0:
+            raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
+
 
 _NPY_MAGIC = b"\x93NUMPY"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")

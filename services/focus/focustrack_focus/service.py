@@ -252,14 +252,18 @@ def run(args: argparse.Namespace) -> int:
     if refusal:
         print(refusal, file=sys.stderr)
         return 2
-    limits = FocusLimits(
-        args.max_upload_bytes,
-        args.max_decoded_bytes,
-        args.max_frames,
-        args.max_json_bytes,
-        args.max_json_depth,
-        args.body_timeout_s,
-    )
+    try:
+        limits = FocusLimits(
+            args.max_upload_bytes,
+            args.max_decoded_bytes,
+            args.max_frames,
+            args.max_json_bytes,
+            args.max_json_depth,
+            args.body_timeout_s,
+        )
+    except ValueError as error:
+        print(f"focus service not started: {error}", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     preprocess = Preprocess(channel=GREEN)
     if args.lowpass_sigma_px is not None:
