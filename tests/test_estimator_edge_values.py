@@ -58,6 +58,7 @@ def test_non_physical_parameters_are_refused_at_creation(url: str) -> None:
     _refused(_create(url, params={"window_cols": 10**200}), "not a physical value")
     _refused(_create(url, strategy="kf-wiener0", params={"q": 1e-300}), "not a physical value")
     _refused(_create(url, params={"max_retries": 10**9}), "max_retries must be in 0..50")
+    _refused(_create(url, params={"lengths_tiles": [1e31]}), "not a physical value")
     _refused(_create(url, z_range={"z_step_um": 1e-9}), "z_step_um")
 
 
@@ -127,3 +128,21 @@ def test_no_slide_gets_stuck_with_the_sharpest_measurements_allowed(url: str, na
         assert response.status_code == 200, response.text
     assert httpx.get(f"{url}/v1/slides/{slide['id']}/next").json()["done"]
     assert httpx.get(f"{url}/v1/slides/{slide['id']}/map").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("name", "params"),
+    [
+        ("kf-wiener1", {"slope_sigma_um_per_tile": 1e30}),
+        ("kf-wiener1-dir", {"slope_sigma_um_per_tile": 1e30}),
+        ("kf-2d", {"lengths_tiles": [1e30]}),
+        ("kf-2d", {"tilt_sigmas_um_per_tile": [1e30]}),
+    ],
+)
+def test_parameters_that_break_the_arithmetic_together_fail_a_trial_scan(
+    url: str, name: str, params: dict[str, Any]
+) -> None:
+    """Each within the bounds, each once made a slide fail on its first sharp measurements
+    ("Singular matrix", "math domain error"): now refused at creation instead."""
+    response = _create(url, strategy=name, grid={"rows": 30, "cols": 30}, params=params)
+    _refused(response, "4x4 trial scan")

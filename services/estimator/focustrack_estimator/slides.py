@@ -158,9 +158,10 @@ def resolve_params(
     return resolved
 
 
-#: Magnitudes a strategy parameter may have (zero aside): beyond, its square under- or
-#: overflows a float (1e-300 squared is 0), which is no physical noise, length or sigma.
-PARAM_MAGNITUDES = (1e-100, 1e100)
+#: Magnitudes a strategy parameter may have (zero aside): beyond, its products with other
+#: quantities under- or overflow a float (1e-300 squared is 0), and it is no physical
+#: noise, length or sigma anyway (the smallest default is 1e-10).
+PARAM_MAGNITUDES = (1e-30, 1e30)
 
 
 def _physical(strategy: str, name: str, value: Any) -> Any:
@@ -465,6 +466,46 @@ class GridLimits:
             )
 
 
+#: Tiles per side of the trial scan of `probe` (fewer where the slide has fewer).
+PROBE_SIDE = 4
+
+
+def probe(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> None:
+    """Scan a small grid (at most `PROBE_SIDE` a side) with the slide's strategy, settings and
+    parameters, with the sharpest measurements the API allows, jumping up and down, then
+    make its map; a SlideError (422) if the strategy fails on the way.
+
+    Bounds on each value cannot see every combination that breaks the arithmetic (a
+    slope sigma of 1e30 with a 1 nm measurement made P singular): a slide whose
+    strategy fails this probe would fail on a real scan too and stay stuck there.
+    """
+    grid = config.grid.model_copy(
+        update={
+            "rows": min(config.grid.rows, PROBE_SIDE),
+            "cols": min(config.grid.cols, PROBE_SIDE),
+        }
+    )
+    settings = settings_of(config.model_copy(update={"grid": grid}))
+    params = resolve_params(config.strategy, config.params, catalogue)
+    try:
+        strategy = catalogue.create(config.strategy, settings, params)
+    except STRATEGY_ERRORS:
+        return  # a strategy that needs a larger grid (a survey): the slide's own was built
+    try:
+        while (acquisition := strategy.next_acquisition()) is not None:
+            jump_um = 10.0 * config.dof_um * (-1) ** acquisition.index
+            measurement = Measurement(acquisition.z.center_um + jump_um, api.MIN_SIGMA_UM)
+            strategy.record(acquisition, measurement)
+        strategy.focus_map()
+    except STRATEGY_ERRORS as error:
+        raise SlideError(
+            f"strategy {config.strategy!r} with these settings and parameters fails on a "
+            f"{grid.rows}x{grid.cols} trial scan ({type(error).__name__}: {error}): "
+            "they are not usable (non-physical values?)",
+            ("body",),
+        ) from None
+
+
 def cost_of(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> Cost:
     """The projected cost of a slide (its strategy's cost model, parameters resolved)."""
     params = resolve_params(config.strategy, config.params, catalogue)
@@ -618,6 +659,7 @@ class Slides:
         slide = await asyncio.to_thread(
             Slide, slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
         )
+        await asyncio.to_thread(probe, config, self.catalogue)
         await asyncio.to_thread(self.store.create_slide, slide_id, config.model_dump(mode="json"))
         self._keep(slide)
         await self._evict()
