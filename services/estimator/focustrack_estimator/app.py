@@ -2,9 +2,11 @@
 
 `create_app(settings)` builds the application: its store, its live slides, its
 metrics, the optional bearer-token check (off unless a token is configured),
-the request body limit, and the mapping of domain errors to HTTP statuses
-(404 unknown slide, 409 not the pending acquisition or a conflicting re-post,
-422 invalid input, 413 oversized body), each with a `detail` naming the problem.
+the request body limit and timeout, and the mapping of domain errors to HTTP
+statuses (404 unknown slide, 409 not the pending acquisition or a conflicting
+re-post, 422 invalid input or a slide over the cost budget, 413 oversized body,
+408 a body too slow to arrive), each with a `detail` naming the problem (and
+quoting at most 200 characters of any input).
 """
 
 from __future__ import annotations
