@@ -56,6 +56,8 @@ ROWS = COLS = 6
 SIZE = 256
 SEED = 5
 STRATEGY = "kf-2d"  # compose.yaml's default
+ESTIMATOR_TOKEN = "e2e-estimator-token"
+AUTH = {"Authorization": f"Bearer {ESTIMATOR_TOKEN}"}
 #: The base image built from Debian's packages, kept in Podman's store between runs.
 BASE_TAG = "localhost/focustrack-base:bookworm"
 
@@ -346,6 +348,9 @@ def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
         # published on loopback only: the test reads the estimator's REST API
         "ESTIMATOR_PORT": f"127.0.0.1:{estimator_port}",
         "FOCUS_PORT": f"127.0.0.1:{focus_port}",
+        # the services' tokens, as .env sets them (without, they refuse to start)
+        "FOCUSTRACK_ESTIMATOR_TOKEN": ESTIMATOR_TOKEN,
+        "FOCUSTRACK_FOCUS_TOKEN": "e2e-focus-token",
         # our router, from the instrument's image: the official one cannot be pulled here
         "ZENOH_IMAGE": "focustrack-instrument-sim:e2e",
         "ZENOH_ENTRYPOINT": "python3 -m focustrack_core.wire.router",
@@ -401,7 +406,9 @@ def complete_report(stack: Stack, out_dir: Path) -> dict[str, Any]:
     slide done, and every acquisition the estimator asked for in the scan's log."""
     report = dict(json.loads((out_dir / outputs.REPORT).read_text()))
     assert report["tiles_imaged"] == ROWS * COLS
-    slide = httpx.get(f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}").json()
+    slide = httpx.get(
+        f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}", headers=AUTH
+    ).json()
     assert slide["done"] is True
     assert {entry["sequence"] for entry in acquired(out_dir)} == set(range(slide["n_acquisitions"]))
     assert not (out_dir / outputs.PARTIAL_MOSAIC).exists()
@@ -461,7 +468,10 @@ def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
     stack: Stack, pytestconfig: pytest.Config
 ) -> None:
     topology = stack.topology
-    before = {slide["id"]: slide for slide in httpx.get(f"{stack.estimator_url}/v1/slides").json()}
+    before = {
+        slide["id"]: slide
+        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
+    }
     topology.up("scheduler", "scan-2", SCAN_NAME="scan-2")
     out_dir = topology.volume("scans") / "scan-2"
     deadline_s = time.monotonic() + 120
@@ -478,7 +488,10 @@ def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
     healthy_again_s = topology.wait_healthy("estimator")
     assert topology.wait("scan-2") == 0, topology.logs("scan-2")
     report = complete_report(stack, out_dir)
-    after = {slide["id"]: slide for slide in httpx.get(f"{stack.estimator_url}/v1/slides").json()}
+    after = {
+        slide["id"]: slide
+        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
+    }
     # Nothing lost: the slides from before the kill are all there, as they were, and the
     # interrupted scan's slide is complete.
     for slide_id, slide in before.items():

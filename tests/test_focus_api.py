@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 
 from focustrack.bench.focus import render_stack
 from focustrack_core.wire.session import free_port
-from focustrack_focus.app import create_app
+from focustrack_focus.app import FocusLimits, create_app
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 TRUTH_UM = 0.3
@@ -23,7 +23,7 @@ TRUTH_UM = 0.3
 
 @pytest.fixture(scope="module")
 def client() -> TestClient:
-    return TestClient(create_app(max_upload_bytes=4_000_000))
+    return TestClient(create_app(limits=FocusLimits(max_upload_bytes=4_000_000)))
 
 
 @pytest.fixture(scope="module")

@@ -48,8 +48,14 @@ MAX_ABS_UM = 1e6
 #: Most frames a z-range policy may ask for in one stack.
 MAX_FRAMES = 1001
 
+#: Smallest standard deviation (or depth of field) a slide or measurement may state, in um:
+#: a nanometre is below any optical focus measurement, and a smaller one (1e-300) makes
+#: the filters' covariances singular.
+MIN_SIGMA_UM = 1e-3
+
 Height = Annotated[float, Field(ge=-MAX_ABS_UM, le=MAX_ABS_UM)]
 Length = Annotated[float, Field(gt=0, le=MAX_ABS_UM)]
+Sigma = Annotated[float, Field(ge=MIN_SIGMA_UM, le=MAX_ABS_UM)]
 #: A strategy parameter: a scalar, a list of numbers (a bank's grid), or None (the default).
 ParamValue = bool | int | float | str | list[float] | None
 #: Not strict: flags arrive as JSON strings, and strict mode takes only enum members.
@@ -117,9 +123,9 @@ class SlideCreate(_Model):
     grid: Grid
     # The defaults are the estimator's `SlideSettings` (a test keeps them equal).
     start_z_um: Height = 0.0
-    start_sigma_um: Length = 10.0
-    dof_um: Length = 1.0
-    noise_sigma_um: Length = 1.5
+    start_sigma_um: Sigma = 10.0
+    dof_um: Sigma = 1.0
+    noise_sigma_um: Sigma = 1.5
     z_range: ZRangePolicy = Field(default_factory=ZRangePolicy)
     label: str | None = Field(None, max_length=200, description="Free text for the lab software")
 
@@ -163,7 +169,7 @@ class MeasurementIn(_Model):
     col: int = Field(ge=0, le=MAX_GRID_SIDE)
     sequence: int = Field(ge=0, le=2**31)
     z_um: Height | None = Field(description="Best focus in um; null when there is none")
-    sigma_um: Length | None = Field(None, description="Its std; null: the slide's noise sigma")
+    sigma_um: Sigma | None = Field(None, description="Its std; null: the slide's noise sigma")
     flags: list[Flag] = Field(default_factory=list, max_length=len(FocusFlag))
 
 

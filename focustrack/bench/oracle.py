@@ -10,13 +10,15 @@ serpentine as every 2-D estimator does (`SerpentineFilter`).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import scipy.linalg
 
 from focustrack_core.geometry import Tile
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
-from focustrack_estimator.strategy import SlideSettings
+from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, SlideSettings, tile_cost
 from focustrack_instrument_sim.surfaces import SurfaceSpec, surface_covariance
 
 _SPEC = SurfaceSpec()
@@ -108,3 +110,11 @@ def gp_oracle(
         smooth_sigma_tiles=smooth_sigma_tiles,
     )
     return GpOracle(settings, spec, max_retries=max_retries)
+
+
+def gp_oracle_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+    """The oracle's cost: the tiles' covariance K, its Cholesky factor L and the final map's
+    cross terms, each n_tiles^2 floats (90x90: 1.6 GB; 500x500: 1.4 TB); a prior is a
+    triangular solve against up to n_tiles measured tiles."""
+    n_tiles = settings.grid.n_tiles
+    return tile_cost(settings) + Cost(3 * 8 * n_tiles**2, n_tiles**2 / NOMINAL_FLOPS_PER_S)

@@ -1,14 +1,19 @@
-"""The strategies the benchmarks compare: every served one, and the `gp-oracle` floor."""
+"""The strategies the benchmarks compare: every served one, and the `gp-oracle` floor.
+
+`CATALOGUE` is also what `focustrack serve estimator --strategies-from
+focustrack.bench.strategies` serves: the oracle over REST, opted into.
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
-from focustrack.bench.oracle import gp_oracle
+from focustrack.bench.oracle import gp_oracle, gp_oracle_cost
 from focustrack_estimator import registry
 from focustrack_estimator.strategy import SlideSettings, Strategy
 
 STRATEGIES: dict[str, registry.Factory] = {**registry.STRATEGIES, "gp-oracle": gp_oracle}
+CATALOGUE = registry.Catalogue(STRATEGIES, {**registry.COSTS, "gp-oracle": gp_oracle_cost})
 
 
 def parameters(name: str) -> dict[str, Any]:

@@ -2,9 +2,11 @@
 
 `create_app(settings)` builds the application: its store, its live slides, its
 metrics, the optional bearer-token check (off unless a token is configured),
-the request body limit, and the mapping of domain errors to HTTP statuses
-(404 unknown slide, 409 not the pending acquisition or a conflicting re-post,
-422 invalid input, 413 oversized body), each with a `detail` naming the problem.
+the request body limit and timeout, and the mapping of domain errors to HTTP
+statuses (404 unknown slide, 409 not the pending acquisition or a conflicting
+re-post, 422 invalid input or a slide over the cost budget, 413 oversized body,
+408 a body too slow to arrive), each with a `detail` naming the problem (and
+quoting at most 200 characters of any input).
 """
 
 from __future__ import annotations
@@ -31,8 +33,11 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from focustrack_client import models as api
 from focustrack_core.domain import Acquisition, Outcome
 from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
+from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut
+from focustrack_estimator import registry
 from focustrack_estimator.metrics import EstimatorMetrics
 from focustrack_estimator.slides import (
+    Budget,
     GridLimits,
     Slide,
     SlideError,
@@ -45,8 +50,9 @@ from focustrack_estimator.store import SlideRecord, Store
 
 @dataclass(frozen=True)
 class Settings:
-    """How the service runs: its SQLite file, its bearer token (None: no auth), its body limit,
-    the largest grid a slide may have, and how often a slide's state is snapshotted."""
+    """How the service runs: its SQLite file, its bearer token (None: no auth), its body limit
+    and body timeout, the largest grid a slide may have, each slide's cost budget and the
+    live slides' (`slides.Budget`), and how often a slide's state is snapshotted."""
 
     store_path: str
     token: str | None = None
@@ -54,6 +60,12 @@ class Settings:
     max_grid_side: int = GridLimits.max_side
     max_grid_tiles: int = GridLimits.max_tiles
     snapshot_every: int = 200  # measurements between a slide's snapshots
+    body_timeout_s: float = 30.0  # a request body must arrive whole within this
+    max_slide_bytes: int = Budget.max_slide_bytes
+    max_tile_s: float = Budget.max_tile_s
+    max_live_slides: int = Budget.max_live_slides
+    max_live_bytes: int = Budget.max_live_bytes
+    catalogue: registry.Catalogue = registry.SERVED  # the strategies served
 
 
 #: Worker threads for strategy work and SQLite (a request waiting for its commit holds one).
@@ -92,11 +104,23 @@ def error_response(
     detail: object,
     headers: dict[str, str] | None = None,
 ) -> JSONResponse:
-    """An error reply in the one shape of `api.Error`: a `code` for programs, a `detail`."""
+    """An error reply in the one shape of `api.Error`: a `code` for programs, a `detail`
+    (long inputs quoted in it are cut: `focustrack_core.serving.cut`)."""
     if code is None:
         default = api.ErrorCode.INTERNAL if status >= 500 else api.ErrorCode.INVALID_REQUEST
         code = _CODE_OF_STATUS.get(status, default)
-    return JSONResponse({"code": code, "detail": detail}, status, headers=headers)
+    return JSONResponse({"code": code, "detail": _cut_quotes(detail)}, status, headers=headers)
+
+
+def _cut_quotes(detail: object) -> object:
+    """`detail` with every string in it (messages, locations: a key may be 1 MB) cut short."""
+    if isinstance(detail, str):
+        return cut(detail)
+    if isinstance(detail, list | tuple):
+        return [_cut_quotes(item) for item in detail]
+    if isinstance(detail, dict):
+        return {key: _cut_quotes(value) for key, value in detail.items()}
+    return detail
 
 
 _bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
@@ -350,44 +374,6 @@ class _RequestMetrics:
             self.metrics.latency.observe(time.perf_counter() - start_s, route=route)
 
 
-class _BodyLimit:
-    """ASGI middleware: refuse request bodies over `max_bytes` with a 413 that says the limit.
-
-    A declared Content-Length over the limit is refused before reading; a body
-    streamed without one is counted as it arrives (the error is raised from
-    `receive`, inside the route, so FastAPI renders it as JSON).
-    """
-
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
-        self.app, self.max_bytes = app, max_bytes
-
-    def _error(self, size: str) -> HTTPException:
-        return HTTPException(413, f"request body of {size} exceeds the limit of {self.max_bytes}")
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        declared = dict(scope["headers"]).get(b"content-length", b"")
-        if declared.isdigit() and int(declared) > self.max_bytes:
-            error = self._error(f"{int(declared)} bytes")
-            await error_response(413, api.ErrorCode.PAYLOAD_TOO_LARGE, error.detail)(
-                scope, receive, send
-            )
-            return
-        received = 0
-
-        async def limited() -> Message:
-            nonlocal received
-            message = await receive()
-            received += len(message.get("body", b""))
-            if received > self.max_bytes:
-                raise self._error(f"more than {received} bytes")
-            return message
-
-        await self.app(scope, limited, send)
-
-
 def _allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
     """Every method some route of the app serves at the request's path."""
     return sorted(
@@ -402,6 +388,12 @@ def _allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
 
 def create_app(settings: Settings) -> FastAPI:
     """The estimator service over the store at `settings.store_path`."""
+    budget = Budget(  # checked before the store is opened: a bad setting touches no file
+        settings.max_slide_bytes,
+        settings.max_tile_s,
+        settings.max_live_slides,
+        settings.max_live_bytes,
+    )
     store = Store(settings.store_path)
     metrics = EstimatorMetrics(store.count_slides, lambda: slides.n_live)
     slides = Slides(
@@ -409,6 +401,8 @@ def create_app(settings: Settings) -> FastAPI:
         timer=metrics.filter.observe,
         snapshot_every=settings.snapshot_every,
         limits=GridLimits(settings.max_grid_side, settings.max_grid_tiles),
+        budget=budget,
+        catalogue=settings.catalogue,
     )
 
     @asynccontextmanager
@@ -438,7 +432,17 @@ def create_app(settings: Settings) -> FastAPI:
     # The token check is only installed when there is a token (it costs a dependency per request).
     app.include_router(v1, dependencies=[Depends(_require_token)] if settings.token else [])
     app.include_router(ops)
-    app.add_middleware(_BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(
+        BodyLimit,
+        max_bytes=settings.max_body_bytes,
+        error_body=lambda detail: {"code": api.ErrorCode.PAYLOAD_TOO_LARGE, "detail": detail},
+    )
+    timeout = f"the request body did not arrive within {settings.body_timeout_s:g} s"
+    app.add_middleware(
+        SlowBodyTimeout,
+        timeout_s=settings.body_timeout_s,
+        error_body={"code": api.ErrorCode.INVALID_REQUEST, "detail": timeout},
+    )
     app.add_middleware(_RequestMetrics, metrics=metrics)  # outermost: it counts the 413s too
 
     @app.exception_handler(SlideError)

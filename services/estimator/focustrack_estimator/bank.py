@@ -41,10 +41,11 @@ from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
     PathEstimator,
     PathFilter,
+    path_cost,
 )
 from focustrack_estimator.models import DirectionAwareModel
 from focustrack_estimator.serpentine import FilterOptions
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import CostModel, SlideSettings, Strategy
 
 
 def mixture(
@@ -157,3 +158,4 @@ def kf_mmae(
 
 
 STRATEGIES: dict[str, Callable[..., Strategy]] = {"kf-mmae": kf_mmae}
+COSTS: dict[str, CostModel] = {"kf-mmae": path_cost(4)}  # its four members

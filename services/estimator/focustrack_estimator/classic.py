@@ -41,7 +41,8 @@ from __future__ import annotations
 
 import math
 from abc import abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator, RegularGridInterpolator
@@ -49,7 +50,14 @@ from scipy.spatial import Delaunay, QhullError
 
 from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose
 from focustrack_core.geometry import Tile
-from focustrack_estimator.strategy import PeakSearch, SlideSettings, Strategy
+from focustrack_estimator.strategy import (
+    Cost,
+    CostModel,
+    PeakSearch,
+    SlideSettings,
+    Strategy,
+    tile_cost,
+)
 
 #: Wide blocks to try beyond an edge before giving up on a tile (each block spans
 #: `policy.max_frames` frames: 20 um with the default policy).
@@ -336,3 +344,17 @@ STRATEGIES: dict[str, Callable[..., Strategy]] = {
     strategy.name: strategy
     for strategy in (AfEveryTile, TileSkip, SurveyBilinear, SurveySpline, SurveyDelaunay)
 }
+
+
+#: Bytes per survey point: its tile, its height and the interpolator's share (a Delaunay
+#: triangulation keeps a few hundred bytes per point).
+SURVEY_BYTES_PER_POINT = 1_000
+
+
+def _classic_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+    """Per-tile maps only; a survey adds its points and one interpolation over every tile."""
+    n_survey = min(int(params.get("n_survey", 0)), settings.grid.n_tiles)
+    return tile_cost(settings) + Cost(n_survey * SURVEY_BYTES_PER_POINT, 0.0)
+
+
+COSTS: dict[str, CostModel] = {name: _classic_cost for name in STRATEGIES}

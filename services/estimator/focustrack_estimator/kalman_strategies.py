@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -39,7 +40,7 @@ from focustrack_estimator.models import (
 )
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Cost, CostModel, SlideSettings, Strategy, tile_cost
 
 
 def rts_smooth(
@@ -370,3 +371,22 @@ STRATEGIES: dict[str, Callable[..., Strategy]] = {
     "kf-gm2": kf_gm2,
     "kf-wiener1-dir": kf_wiener1_dir,
 }
+
+
+#: Bytes a `PathFilter` keeps per tile for its smoother (prior and posterior state and
+#: covariance, as small numpy arrays of about 200 bytes each) and the smoother's arrays.
+PATH_BYTES_PER_TILE = 2_000
+
+
+def path_cost(n_members: int) -> CostModel:
+    """The cost model of a strategy over `n_members` `PathFilter`s of at most three states:
+    memory linear in the tiles (the smoother's history), constant work per tile."""
+
+    def cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+        n_tiles = settings.grid.n_tiles
+        return tile_cost(settings) + Cost(n_members * n_tiles * PATH_BYTES_PER_TILE, 0.0)
+
+    return cost
+
+
+COSTS: dict[str, CostModel] = {name: path_cost(1) for name in STRATEGIES}

@@ -18,7 +18,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from focustrack_estimator import bank, classic, kalman_strategies, spatial
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Cost, CostModel, SlideSettings, Strategy
 
 Factory = Callable[..., Strategy]
 
@@ -27,6 +27,14 @@ STRATEGIES: dict[str, Factory] = {
     **bank.STRATEGIES,
     **spatial.STRATEGIES,
     **classic.STRATEGIES,
+}
+
+#: Each strategy's cost model, by the same names (a test keeps the two tables equal).
+COSTS: dict[str, CostModel] = {
+    **kalman_strategies.COSTS,
+    **bank.COSTS,
+    **spatial.COSTS,
+    **classic.COSTS,
 }
 
 
@@ -76,3 +84,39 @@ def _factory(name: str, strategies: Mapping[str, Factory]) -> Factory:
     if name not in strategies:
         raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(strategies))}")
     return strategies[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class Catalogue:
+    """The strategies a service serves, by name, and each one's cost model (same names).
+
+    The estimator serves `SERVED`; `--strategies-from MODULE` serves a module's
+    `CATALOGUE` instead (the benchmarks' adds `gp-oracle`: an opt-in).
+    """
+
+    strategies: Mapping[str, Factory]
+    costs: Mapping[str, CostModel]
+
+    def __post_init__(self) -> None:
+        if set(self.strategies) != set(self.costs):
+            missing = sorted(set(self.strategies) ^ set(self.costs))
+            raise ValueError(f"every strategy needs a cost model and vice versa: {missing}")
+
+    def parameters(self, name: str) -> dict[str, Any]:
+        return parameters(name, self.strategies)
+
+    def create(
+        self, name: str, settings: SlideSettings, params: dict[str, Any] | None = None
+    ) -> Strategy:
+        return create(name, settings, params, self.strategies)
+
+    def cost(
+        self, name: str, settings: SlideSettings, params: Mapping[str, Any] | None = None
+    ) -> Cost:
+        """The projected cost of a slide of strategy `name` with `params` (over the defaults)."""
+        resolved = {**self.parameters(name), **(params or {})}
+        return self.costs[name](settings, resolved)
+
+
+#: What the estimator serves by default.
+SERVED = Catalogue(STRATEGIES, COSTS)

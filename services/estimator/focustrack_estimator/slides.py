@@ -19,13 +19,17 @@ side by side. A measurement is committed before its outcome is returned.
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
 import dataclasses
+import gc
 import io
 import logging
 import math
 import sqlite3
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -47,7 +51,7 @@ from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import InnovationDiagnostics, innovation_diagnostics
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.store import Event, Store
-from focustrack_estimator.strategy import SlideSettings, Strategy, ZRangePolicy
+from focustrack_estimator.strategy import Cost, SlideSettings, Strategy, ZRangePolicy
 
 log = logging.getLogger(__name__)
 
@@ -133,10 +137,12 @@ def settings_of(config: api.SlideCreate) -> SlideSettings:
     )
 
 
-def resolve_params(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
+def resolve_params(
+    strategy: str, params: dict[str, Any], catalogue: registry.Catalogue = registry.SERVED
+) -> dict[str, Any]:
     """The strategy's full parameter set: `params` over the defaults, each of the default's type."""
     try:
-        defaults = registry.parameters(strategy)
+        defaults = catalogue.parameters(strategy)
     except ValueError as error:
         raise SlideError(str(error), ("body", "strategy")) from None
     unknown = sorted(set(params) - set(defaults))
@@ -148,8 +154,29 @@ def resolve_params(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
         )
     resolved = dict(defaults)
     for name, value in params.items():
-        resolved[name] = _coerce(strategy, name, value, defaults[name])
+        resolved[name] = _physical(strategy, name, _coerce(strategy, name, value, defaults[name]))
     return resolved
+
+
+#: Magnitudes a strategy parameter may have (zero aside): beyond, its products with other
+#: quantities under- or overflow a float (1e-300 squared is 0), and it is no physical
+#: noise, length or sigma anyway (the smallest default is 1e-10).
+PARAM_MAGNITUDES = (1e-30, 1e30)
+
+
+def _physical(strategy: str, name: str, value: Any) -> Any:
+    """`value`, or a SlideError if it (or an element of it) is a non-physical magnitude."""
+    low, high = PARAM_MAGNITUDES
+    numbers = value if isinstance(value, tuple) else (value,)
+    for number in numbers:
+        real = isinstance(number, float | int) and not isinstance(number, bool)
+        if real and number != 0 and not low <= abs(number) <= high:
+            raise SlideError(
+                f"parameter {name!r} of strategy {strategy!r} is not a physical value "
+                f"(magnitudes from {low:g} to {high:g}, or 0, are): {number!r}",
+                ("body", "params", name),
+            )
+    return value
 
 
 def _coerce(strategy: str, name: str, value: Any, default: Any) -> Any:
@@ -250,6 +277,7 @@ class Slide:
         store: Store,
         timer: Callable[[float], None] = lambda _: None,
         snapshot_every: int = 200,
+        catalogue: registry.Catalogue = registry.SERVED,
     ) -> None:
         self.id = slide_id
         self.config = config
@@ -260,9 +288,9 @@ class Slide:
         self.n_snapshot = 0  # events covered by the newest snapshot stored
         self._snapshots = True  # False once the strategy's state proved impossible to store
         try:
-            self.strategy: Strategy = registry.create(
-                config.strategy, settings_of(config), resolve_params(config.strategy, config.params)
-            )
+            self.cost = cost_of(config, catalogue)  # its share of the live slides' budget
+            params = resolve_params(config.strategy, config.params, catalogue)
+            self.strategy: Strategy = catalogue.create(config.strategy, settings_of(config), params)
             self.next()  # plan the first acquisition: absurd parameters fail here, at creation
         except SlideError:
             raise
@@ -438,8 +466,123 @@ class GridLimits:
             )
 
 
+#: Tiles per side of the trial scan of `probe` (fewer where the slide has fewer).
+PROBE_SIDE = 4
+
+
+def probe(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> None:
+    """Scan a small grid (at most `PROBE_SIDE` a side) with the slide's strategy, settings and
+    parameters, with the sharpest measurements the API allows, jumping up and down, then
+    make its map; a SlideError (422) if the strategy fails on the way.
+
+    Bounds on each value cannot see every combination that breaks the arithmetic (a
+    slope sigma of 1e30 with a 1 nm measurement made P singular): a slide whose
+    strategy fails this probe would fail on a real scan too and stay stuck there.
+    """
+    grid = config.grid.model_copy(
+        update={
+            "rows": min(config.grid.rows, PROBE_SIDE),
+            "cols": min(config.grid.cols, PROBE_SIDE),
+        }
+    )
+    settings = settings_of(config.model_copy(update={"grid": grid}))
+    params = resolve_params(config.strategy, config.params, catalogue)
+    try:
+        strategy = catalogue.create(config.strategy, settings, params)
+    except STRATEGY_ERRORS:
+        return  # a strategy that needs a larger grid (a survey): the slide's own was built
+    try:
+        while (acquisition := strategy.next_acquisition()) is not None:
+            jump_um = 10.0 * config.dof_um * (-1) ** acquisition.index
+            measurement = Measurement(acquisition.z.center_um + jump_um, api.MIN_SIGMA_UM)
+            strategy.record(acquisition, measurement)
+        strategy.focus_map()
+    except STRATEGY_ERRORS as error:
+        raise SlideError(
+            f"strategy {config.strategy!r} with these settings and parameters fails on a "
+            f"{grid.rows}x{grid.cols} trial scan ({type(error).__name__}: {error}): "
+            "they are not usable (non-physical values?)",
+            ("body",),
+        ) from None
+
+
+def cost_of(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> Cost:
+    """The projected cost of a slide (its strategy's cost model, parameters resolved)."""
+    params = resolve_params(config.strategy, config.params, catalogue)
+    return catalogue.cost(config.strategy, settings_of(config), params)
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """What one slide may cost, and what the live slides together may hold (service settings).
+
+    A slide is refused at creation (422) when its strategy's projected peak memory
+    or compute per tile exceeds `max_slide_bytes` or `max_tile_s`. The defaults
+    admit kf-2d on a 200x200 grid (about 220 MiB, 2.5 ms per tile). Live slides are
+    evicted, least recently used first, when there are more than `max_live_slides`
+    or their projected bytes add up to more than `max_live_bytes`; an evicted slide
+    is rebuilt from its snapshot and log on its next request.
+    """
+
+    max_slide_bytes: int = 512 * 2**20
+    max_tile_s: float = 0.1
+    max_live_slides: int = 100
+    max_live_bytes: int = 768 * 2**20
+
+    def __post_init__(self) -> None:
+        counts = (self.max_slide_bytes, self.max_live_slides, self.max_live_bytes)
+        if min(counts) < 1 or not self.max_tile_s > 0:
+            raise ValueError(f"the budget's limits must be positive, got {self}")
+
+    def check(
+        self, config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED
+    ) -> Cost:
+        """The slide's projected cost; a SlideError (422) saying which limit it exceeds."""
+        cost = cost_of(config, catalogue)
+        where = f"strategy {config.strategy!r} on a {config.grid.rows}x{config.grid.cols} grid"
+        if cost.peak_bytes > self.max_slide_bytes:
+            raise SlideError(
+                f"{where} with these parameters is projected to need {cost.peak_bytes / 2**20:.0f} "
+                f"MiB; this service allows {self.max_slide_bytes / 2**20:.0f} MiB per slide "
+                "(setting --max-slide-bytes): use a smaller grid or bank",
+                ("body",),
+            )
+        if cost.seconds_per_tile > self.max_tile_s:
+            raise SlideError(
+                f"{where} with these parameters is projected to need {cost.seconds_per_tile:.3g} s "
+                f"of computation per tile; this service allows {self.max_tile_s:g} s "
+                "(setting --max-tile-seconds): use a smaller grid or bank",
+                ("body",),
+            )
+        return cost
+
+
+def release_memory() -> None:
+    """Give freed memory back to the system: collect cycles, then trim glibc's heap.
+
+    Without the trim, a dropped slide's arrays below glibc's (self-raising) mmap
+    threshold stay in the process's heap, and its resident memory never shrinks.
+    """
+    gc.collect()
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _glibc() -> ctypes.CDLL | None:
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+    except OSError:
+        return None
+    return libc if libc is not None and hasattr(libc, "malloc_trim") else None
+
+
+_LIBC = _glibc()
+
+
 class Slides:
-    """Every slide of the store; live ones cached in memory, others rebuilt on first use."""
+    """Every slide of the store; live ones cached in memory (least recently used evicted
+    beyond the budget), others rebuilt on first use."""
 
     def __init__(
         self,
@@ -448,6 +591,8 @@ class Slides:
         *,
         snapshot_every: int = 200,
         limits: GridLimits = GridLimits(),
+        budget: Budget = Budget(),
+        catalogue: registry.Catalogue = registry.SERVED,
     ) -> None:
         if snapshot_every < 1:
             raise ValueError(f"snapshot_every must be at least 1, got {snapshot_every}")
@@ -455,29 +600,69 @@ class Slides:
         self._timer = timer
         self.snapshot_every = snapshot_every
         self.limits = limits
-        self._live: dict[str, Slide] = {}
+        self.budget = budget
+        self.catalogue = catalogue
+        self._live: OrderedDict[str, Slide] = OrderedDict()  # least recently used first
         self._locks: dict[str, asyncio.Lock] = {}
 
     @property
     def n_live(self) -> int:
         return len(self._live)
 
+    @property
+    def live_bytes(self) -> int:
+        """The projected peak bytes of the live slides together."""
+        return sum(slide.cost.peak_bytes for slide in self._live.values())
+
+    def _keep(self, slide: Slide) -> None:
+        self._live[slide.id] = slide
+        self._live.move_to_end(slide.id)
+
+    async def _evict(self) -> None:
+        """Drop least recently used idle slides until the live ones fit the budget.
+
+        Each is snapshotted first (its next request restores the snapshot instead
+        of replaying its log); slides with a request under way are left alone.
+        """
+        evicted = False
+        while len(self._live) > 1 and (
+            len(self._live) > self.budget.max_live_slides
+            or self.live_bytes > self.budget.max_live_bytes
+        ):
+            newest = next(reversed(self._live))  # the slide just used stays
+            idle = [i for i in self._live if i != newest and not self._lock(i).locked()]
+            if not idle:
+                break
+            slide_id = idle[0]
+            async with self._lock(slide_id):
+                slide = self._live.pop(slide_id, None)
+                if slide is not None:
+                    await asyncio.to_thread(slide.save_snapshot)
+                    evicted = True
+            del slide
+        if evicted:
+            await asyncio.to_thread(release_memory)
+
     def _lock(self, slide_id: str) -> asyncio.Lock:
         return self._locks.setdefault(slide_id, asyncio.Lock())
 
     async def create(self, config: api.SlideCreate) -> str:
-        """Check the configuration by building its strategy, store it, and return the new id."""
+        """Check the configuration (grid, budget) by building its strategy, store it, and
+        return the new id."""
         self.limits.check(config.grid)
-        resolved = resolve_params(config.strategy, config.params)
+        self.budget.check(config, self.catalogue)
+        resolved = resolve_params(config.strategy, config.params, self.catalogue)
         # Stored and served as JSON: a bank's tuple of numbers is a list there.
         params = {k: list(v) if isinstance(v, tuple) else v for k, v in resolved.items()}
         config = config.model_copy(update={"params": params})
         slide_id = uuid.uuid4().hex
         slide = await asyncio.to_thread(
-            Slide, slide_id, config, self.store, self._timer, self.snapshot_every
+            Slide, slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
         )
+        await asyncio.to_thread(probe, config, self.catalogue)
         await asyncio.to_thread(self.store.create_slide, slide_id, config.model_dump(mode="json"))
-        self._live[slide_id] = slide
+        self._keep(slide)
+        await self._evict()
         return slide_id
 
     async def run(self, slide_id: str, work: Callable[[Slide], T]) -> T:
@@ -491,7 +676,8 @@ class Slides:
             try:
                 if slide is None:
                     slide = await asyncio.to_thread(self._load, slide_id)
-                return await asyncio.to_thread(work, slide)
+                self._keep(slide)
+                result = await asyncio.to_thread(work, slide)
             except SlideNotFoundError:
                 self._locks.pop(slide_id, None)  # keep no lock for ids that do not exist
                 raise
@@ -502,13 +688,17 @@ class Slides:
                 if isinstance(error, STRATEGY_ERRORS):
                     raise SlideError(f"strategy failed on slide {slide_id}: {error}") from None
                 raise
+        await self._evict()
+        return result
 
     def _load(self, slide_id: str) -> Slide:
         record = self.store.slide(slide_id)
         if record is None:
             raise SlideNotFoundError(f"no slide {slide_id!r}")
         config = api.SlideCreate.model_validate(record.config)
-        slide = Slide(slide_id, config, self.store, self._timer, self.snapshot_every)
+        slide = Slide(
+            slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
+        )
         events = self.store.events(slide_id)
         snapshot = self.store.snapshot(slide_id)
         if snapshot is not None and snapshot[0] <= len(events):
@@ -518,9 +708,10 @@ class Slides:
                 slide.n_snapshot = snapshot[0]
             except SnapshotError as error:
                 log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
-                slide = Slide(slide_id, config, self.store, self._timer, self.snapshot_every)
+                slide = Slide(
+                    slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
+                )
         slide.replay(events[len(slide.history) :])
-        self._live[slide_id] = slide
         return slide
 
     def save_snapshots(self) -> None:
@@ -532,7 +723,8 @@ class Slides:
         async with self._lock(slide_id):
             if not await asyncio.to_thread(self.store.delete_slide, slide_id):
                 raise SlideNotFoundError(f"no slide {slide_id!r}")
-            self._live.pop(slide_id, None)
+            if self._live.pop(slide_id, None) is not None:
+                await asyncio.to_thread(release_memory)
         self._locks.pop(slide_id, None)
 
 

@@ -37,9 +37,10 @@ Heights are in um, lengths in tiles.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.linalg
@@ -50,7 +51,14 @@ from focustrack_estimator.bank import mixture
 from focustrack_estimator.kalman_strategies import rts_smooth
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import (
+    NOMINAL_FLOPS_PER_S,
+    Cost,
+    CostModel,
+    SlideSettings,
+    Strategy,
+    tile_cost,
+)
 
 # --- NSHP ------------------------------------------------------------------------------
 
@@ -576,4 +584,52 @@ STRATEGIES: dict[str, Callable[..., Strategy]] = {
     "kf-2d": kf_2d,
     "nshp-wiener0": nshp_wiener0,
     "nshp-wiener1": nshp_wiener1,
+}
+
+
+# --- cost models (the budget: focustrack_estimator.slides.Budget) ------------------------------
+# Fitted to tracemalloc's peak over a scan (tests/test_estimator_budget.py keeps them within
+# a factor of the measurement); times are counted operations at NOMINAL_FLOPS_PER_S.
+
+#: Peak bytes of a kf-2d member per element of its (dim x dim) covariance: P itself, the
+#: copies and temporaries of the row prediction, and its model's cached column
+#: correlation and process noise (together about as large as P again).
+KF2D_PEAK_FLOATS_PER_P_ELEMENT = 5.0
+
+
+def kf_2d_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+    """kf-2d: every member keeps a (3 + 2 cols)^2 covariance; a tile's update touches its
+    window's rows of it, a new row all of it (F P F'); the smoother works on column blocks."""
+    rows, cols = settings.grid.shape
+    n_members = (
+        len(params["sigmas_um"])
+        * len(params["lengths_tiles"])
+        * len(params["tilt_sigmas_um_per_tile"])
+    )
+    dim = N_PLANE + 2 * cols
+    window_rows = N_PLANE + 2 * min(cols, 2 * int(params["window_cols"]) + 1)
+    block_dim = N_PLANE + 2 * min(
+        cols, int(params["smooth_block_cols"]) + 2 * int(params["smooth_margin_cols"])
+    )
+    state_bytes = n_members * dim * dim * 8 * KF2D_PEAK_FLOATS_PER_P_ELEMENT
+    smoother_bytes = 8 * (6 * rows * block_dim**2 + 2 * n_members * rows * cols)
+    flops_per_tile = n_members * dim * (6 * window_rows + 10 * dim / cols)
+    return tile_cost(settings) + Cost(
+        int(state_bytes + smoother_bytes), flops_per_tile / NOMINAL_FLOPS_PER_S
+    )
+
+
+def nshp_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+    """NSHP: the state holds `support` rows and the current one; every tile re-factors its
+    square-root covariance (a QR of a 2 dim x dim matrix, about 5 dim^3 operations)."""
+    rows, cols = settings.grid.shape
+    dim = min(rows, max(1, int(params["support"])) + 1) * cols
+    # P's square root, the dense F of the step and the QR's stacked input and output.
+    return tile_cost(settings) + Cost(8 * 10 * dim * dim, 5 * dim**3 / NOMINAL_FLOPS_PER_S)
+
+
+COSTS: dict[str, CostModel] = {
+    "kf-2d": kf_2d_cost,
+    "nshp-wiener0": nshp_cost,
+    "nshp-wiener1": nshp_cost,
 }

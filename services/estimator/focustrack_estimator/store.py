@@ -66,7 +66,8 @@ SCHEMA_VERSION = max(_MIGRATIONS)
 
 
 class StoreError(Exception):
-    """A request the store cannot honour (unknown slide, out-of-order event)."""
+    """A request the store cannot honour (unknown slide, out-of-order event), or a file it
+    refuses to open (damaged, not SQLite, of a newer schema)."""
 
 
 @dataclass(frozen=True)
@@ -105,16 +106,24 @@ class _Append:
 
 
 class Store:
-    """Slides and their event logs in one SQLite file at `path` (created if missing)."""
+    """Slides and their event logs in one SQLite file at `path` (created if missing or empty).
+
+    Opening checks the file (``PRAGMA quick_check``): a damaged file, or one that is
+    not SQLite, raises StoreError naming it, rather than serving until a read fails.
+    `created` says whether the file was missing or empty (a new store).
+    """
 
     def __init__(self, path: str | Path, checkpoint_every_s: float = 1.0) -> None:
         self.path = str(path)
+        file = Path(self.path)
+        self.created = not file.exists() or file.stat().st_size == 0
         # Autocommit mode: every write below opens its own explicit transaction.
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         self._lock = threading.Lock()  # the connection, and the one commit under way
         self._queue_lock = threading.Lock()
         self._queue: list[_Append] = []  # appends waiting for the next group commit
-        with self._lock:
+        try:
+            self._check()
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
@@ -122,11 +131,27 @@ class Store:
             # fsync) stalled every waiting request for 150-200 ms. `_checkpoints` does it.
             self._db.execute("PRAGMA wal_autocheckpoint=0")
             self._migrate()
+        except sqlite3.DatabaseError as error:
+            self._db.close()
+            raise StoreError(
+                f"{self.path} cannot be used as the estimator's store: {error}; "
+                "restore it from a backup or move it away to start a new store"
+            ) from None
         self._closing = threading.Event()
         self._checkpointer = threading.Thread(
             target=self._checkpoints, args=(checkpoint_every_s,), daemon=True
         )
         self._checkpointer.start()
+
+    def _check(self) -> None:
+        """Raise StoreError naming the file if SQLite's quick check finds damage in it."""
+        problems = [row[0] for row in self._db.execute("PRAGMA quick_check(5)").fetchall()]
+        if problems != ["ok"]:
+            self._db.close()
+            raise StoreError(
+                f"{self.path} is damaged (SQLite quick_check: {'; '.join(problems)}); "
+                "refusing to start on it: restore it from a backup or move it away"
+            )
 
     def _migrate(self) -> None:
         """Bring the file to `SCHEMA_VERSION`, one migration per version, each atomic."""

@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 from focustrack_core.domain import (
     Acquisition,
@@ -32,6 +34,25 @@ from focustrack_core.domain import (
 from focustrack_core.geometry import ScanGrid
 
 _EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
+
+#: Heights a stack may reach, +/- um: the API's bound on every height
+#: (`focustrack_client.models.MAX_ABS_UM`; a test keeps the two equal). A z-range the
+#: policy would put beyond it is moved (and if need be narrowed) inside it, so that what
+#: the estimator asks for can always be measured and posted back.
+Z_LIMIT_UM = 1e6
+
+#: Most retries a strategy may make on one tile: a scan must end, and each retry is a stack.
+MAX_RETRIES = 50
+
+
+def bounded(z: ZRange, limit_um: float = Z_LIMIT_UM) -> ZRange:
+    """`z` moved inside [-limit_um, limit_um], with fewer frames if it is wider than that."""
+    n_frames = min(z.n_frames, int(2 * limit_um // z.step_um) + 1)
+    span_um = (n_frames - 1) * z.step_um
+    low_um = min(max(z.low_um, -limit_um), limit_um - span_um)
+    if (low_um, n_frames) == (z.low_um, z.n_frames):
+        return z
+    return ZRange(low_um, z.step_um, n_frames)
 
 
 @dataclass(frozen=True)
@@ -105,8 +126,8 @@ class PeakSearch:
     """
 
     def __init__(self, policy: ZRangePolicy, max_retries: int) -> None:
-        if max_retries < 0:
-            raise ValueError(f"max_retries must not be negative, got {max_retries}")
+        if not 0 <= max_retries <= MAX_RETRIES:
+            raise ValueError(f"max_retries must be in 0..{MAX_RETRIES}, got {max_retries}")
         self.policy = policy
         self.max_retries = max_retries
         self.misses: list[tuple[ZRange, FocusFlag]] = []
@@ -162,6 +183,41 @@ class SlideSettings:
     policy: ZRangePolicy = field(default_factory=ZRangePolicy)
 
 
+@dataclass(frozen=True)
+class Cost:
+    """What one slide of a strategy is projected to cost: its peak memory (bytes, the slide's
+    whole life: state, transients, history) and its compute per tile (seconds at
+    `NOMINAL_FLOPS_PER_S`). Estimates for the budget (`focustrack_estimator.slides.Budget`),
+    checked against measurement by tests/test_estimator_budget.py."""
+
+    peak_bytes: int
+    seconds_per_tile: float
+
+    def __add__(self, other: Cost) -> Cost:
+        return Cost(
+            self.peak_bytes + other.peak_bytes, self.seconds_per_tile + other.seconds_per_tile
+        )
+
+
+#: A strategy's cost model: called with the slide's settings and every parameter resolved
+#: (defaults included), as its factory would be.
+CostModel = Callable[[SlideSettings, Mapping[str, Any]], Cost]
+
+#: Floating-point operations per second the time estimates assume: numpy on one loaded
+#: core of the 2-core machine (its dense kernels run at 1-3 GFLOP/s there).
+NOMINAL_FLOPS_PER_S = 1e9
+
+#: Bytes every strategy holds per tile whatever it is: the focus map's seven float layers,
+#: the serpentine's flags and innovations, and the service's history of each acquisition
+#: (Python objects: about 1.1 kB each, measured with tracemalloc).
+BYTES_PER_TILE = 1_500
+
+
+def tile_cost(settings: SlideSettings) -> Cost:
+    """The memory every strategy needs per tile (`BYTES_PER_TILE`); strategies add their own."""
+    return Cost(settings.grid.n_tiles * BYTES_PER_TILE, 0.0)
+
+
 class Strategy(ABC):
     """A scan strategy: a plan (`_plan`) and what it learns from each measurement (`_take`).
 
@@ -209,8 +265,8 @@ class Strategy(ABC):
     def _acquisition(
         self, row: int, col: int, z: ZRange, purpose: Purpose, *, measure: bool, **prediction
     ) -> Acquisition:
-        """A new acquisition, numbered in sequence; for `_plan` to return."""
-        return Acquisition(self.n_recorded, row, col, z, purpose, measure, **prediction)
+        """A new acquisition, numbered in sequence, its z-range `bounded`; for `_plan`."""
+        return Acquisition(self.n_recorded, row, col, bounded(z), purpose, measure, **prediction)
 
     @abstractmethod
     def _plan(self) -> Acquisition | None:

@@ -11,31 +11,65 @@
   a prior the reply adds ``posterior_z_um``/``posterior_sigma_um`` (both combined).
 - ``GET /healthz``. OpenAPI docs at ``/docs``.
 
-Bad input is a 4xx whose detail names the problem: 413 for an oversized
-upload, 415 for a file that is neither TIFF nor .npy, 422 for the rest.
+Bad input is a 4xx whose detail names the problem: 413 for an oversized body
+(or a stack that would decode to more than the limit), 415 for a file that is
+neither TIFF nor .npy, 408 for a body that arrives too slowly, 401 without the
+token (when one is set), 422 for the rest. What a request may ask is bounded
+(`FocusLimits`): bytes, decoded pixels (checked from the file's header, before
+decoding), frames, JSON size and nesting.
 """
 
 from __future__ import annotations
 
 import io
 import json
-from dataclasses import replace
+import math
+import secrets
+from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
 import numpy as np
 import tifffile
-from fastapi import FastAPI, File, Form, HTTPException, Request, UploadFile
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
 
-#: Default upload limit: 41 frames of 2048x2048x3 uint16 is about 1 GB; 1 GiB.
-MAX_UPLOAD_BYTES = 1 << 30
+
+@dataclass(frozen=True)
+class FocusLimits:
+    """What one request may ask of the service (its settings; each a flag of the command).
+
+    max_upload_bytes: the whole request body (a stack of 21 frames of 2048x2048
+    uint16 is 176 MB); max_decoded_bytes: the pixels a stack decodes to, read from
+    its header before decoding (a 3.5 MB zlib TIFF can hold 3.6 GB); max_frames: of
+    a stack or curve; max_json_bytes and max_json_depth: a curve's JSON body and
+    how deeply it may nest; body_timeout_s: how long a body may take to arrive.
+    """
+
+    max_upload_bytes: int = 256 << 20
+    max_decoded_bytes: int = 512 << 20
+    max_frames: int = 1001
+    max_json_bytes: int = 1 << 20
+    max_json_depth: int = 32
+    body_timeout_s: float = 60.0
+
+    def __post_init__(self) -> None:
+        counts = (self.max_upload_bytes, self.max_decoded_bytes, self.max_frames)
+        if min(*counts, self.max_json_bytes, self.max_json_depth) < 1:
+            raise ValueError(f"the focus service's limits must be positive, got {self}")
+        if not self.body_timeout_s > 0:
+            raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
+
+
 _NPY_MAGIC = b"\x93NUMPY"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 
@@ -110,16 +144,73 @@ class UnsupportedFileError(ValueError):
     """The upload is neither a TIFF nor a .npy file (HTTP 415)."""
 
 
-def decode_stack(data: bytes) -> np.ndarray:
-    """A z-stack from the bytes of a .npy or (multi-page) TIFF file; ValueError if it is not."""
+class TooLargeError(ValueError):
+    """The stack would decode to more than the limits allow (HTTP 413)."""
+
+
+def _check_size(shape: tuple[int, ...], itemsize: int, limits: FocusLimits) -> None:
+    """Refuse a stack of `shape` before its pixels are decoded: too many frames or bytes, none."""
+    if any(side == 0 for side in shape[1:]) or not shape:
+        raise ValueError(f"the stack's frames have no pixels (shape {shape})")
+    if shape[0] > limits.max_frames:
+        raise TooLargeError(f"the stack has {shape[0]} frames; the limit is {limits.max_frames}")
+    decoded = math.prod(shape) * itemsize
+    if decoded > limits.max_decoded_bytes:
+        raise TooLargeError(
+            f"the stack would decode to {decoded} bytes (shape {shape}); the limit is "
+            f"{limits.max_decoded_bytes} bytes"
+        )
+
+
+def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
+    """The shape and item size a .npy file declares in its header (nothing else is read)."""
+    buffer = io.BytesIO(data)
+    version = np.lib.format.read_magic(buffer)
+    readers = {
+        (1, 0): np.lib.format.read_array_header_1_0,
+        (2, 0): np.lib.format.read_array_header_2_0,
+    }
+    if version not in readers:
+        raise ValueError(f".npy format version {version} is not supported (1.0 or 2.0)")
+    shape, _, dtype = readers[version](buffer)  # a header over 10 000 bytes: ValueError
+    return tuple(int(side) for side in shape), dtype.itemsize
+
+
+def _tiff_shape(data: bytes, limits: FocusLimits) -> tuple[tuple[int, ...], int]:
+    """Pages and the largest page's shape and item size, from the TIFF's tags alone."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tiff:
+        n_pages, itemsize = 0, 1
+        largest: tuple[int, ...] = (0,)
+        for page in tiff.pages:
+            n_pages += 1
+            if n_pages > limits.max_frames:
+                break
+            shape = tuple(int(side) for side in page.shape)
+            if math.prod(shape) >= math.prod(largest):
+                largest, itemsize = shape, np.dtype(page.dtype).itemsize
+        return (n_pages, *largest), itemsize
+
+
+def decode_stack(data: bytes, limits: FocusLimits | None = None) -> np.ndarray:
+    """A z-stack from the bytes of a .npy or (multi-page) TIFF file; ValueError if it is not.
+
+    Within `limits` (TooLargeError, checked from the file's header before decoding).
+    """
+    limits = limits or FocusLimits()
     if data.startswith(_NPY_MAGIC):
         try:
+            _check_size(*_npy_shape(data), limits)
             return np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as error:
+            if isinstance(error, TooLargeError):
+                raise
             raise ValueError(f"the .npy file cannot be read: {error}") from None
     if data[:4] in _TIFF_MAGICS:
         try:
+            _check_size(*_tiff_shape(data, limits), limits)
             return tifffile.imread(io.BytesIO(data))
+        except TooLargeError:
+            raise
         except Exception as error:  # tifffile raises many types on a broken file
             raise ValueError(f"the TIFF file cannot be read: {error}") from None
     raise UnsupportedFileError(
@@ -127,33 +218,127 @@ def decode_stack(data: bytes) -> np.ndarray:
     )
 
 
+def json_depth_exceeds(text: bytes, max_depth: int) -> bool:
+    """Whether JSON `text` nests arrays or objects deeper than `max_depth` (brackets in
+    strings aside); checked before parsing, which would recurse that deep."""
+    depth, in_string, escaped = 0, False, False
+    for byte in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif byte == 0x5C:  # backslash
+                escaped = True
+            elif byte == 0x22:  # quote
+                in_string = False
+        elif byte == 0x22:
+            in_string = True
+        elif byte in (0x5B, 0x7B):  # [ {
+            depth += 1
+            if depth > max_depth:
+                return True
+        elif byte in (0x5D, 0x7D):  # ] }
+            depth -= 1
+    return False
+
+
+_bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
+
+
+def _errors(error: RequestValidationError) -> list[dict[str, Any]]:
+    # FastAPI's own handler echoes each bad input, and a NaN there cannot be written as
+    # JSON (a 500): give where and what is wrong, without the input (and cut long keys).
+    return [
+        {
+            "loc": [cut(part) if isinstance(part, str) else part for part in item["loc"]],
+            "msg": cut(item["msg"]),
+            "type": item["type"],
+        }
+        for item in error.errors()
+    ]
+
+
 def create_app(
-    settings: FocusSettings | None = None, max_upload_bytes: int = MAX_UPLOAD_BYTES
+    settings: FocusSettings | None = None,
+    limits: FocusLimits | None = None,
+    token: str | None = None,
 ) -> FastAPI:
-    """The REST app; `settings` are the defaults that request fields override."""
+    """The REST app; `settings` are the defaults that request fields override, `limits`
+    what one request may ask, `token` the bearer token /v1 requires (None: open)."""
     base = settings or FocusSettings()
+    limits = limits or FocusLimits()
+
+    async def require_token(
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    ) -> None:
+        if token is not None and (
+            credentials is None
+            or not secrets.compare_digest(credentials.credentials.encode(), token.encode())
+        ):
+            raise HTTPException(
+                401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
+            )
+
     app = FastAPI(
         title="focustrack focus service",
         version="1",
         description="Best focus (with an uncertainty and flags) from a z-stack or a focus curve.",
     )
+    app.add_middleware(
+        BodyLimit, max_bytes=limits.max_upload_bytes, error_body=lambda d: {"detail": d}
+    )
+    timeout = f"the request body did not arrive within {limits.body_timeout_s:g} s"
+    app.add_middleware(
+        SlowBodyTimeout, timeout_s=limits.body_timeout_s, error_body={"detail": timeout}
+    )
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
-        # FastAPI's own handler echoes each bad input, and a NaN there cannot be
-        # written as JSON (a 500): give where and what is wrong, without the input.
-        detail = [
-            {"loc": list(item["loc"]), "msg": item["msg"], "type": item["type"]}
-            for item in error.errors()
-        ]
-        return JSONResponse({"detail": detail}, status_code=422)
+        return JSONResponse({"detail": _errors(error)}, status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(_: Request, error: StarletteHTTPException) -> JSONResponse:
+        detail = cut(error.detail) if isinstance(error.detail, str) else error.detail
+        return JSONResponse({"detail": detail}, error.status_code, headers=error.headers)
 
     @app.get("/healthz")
     def healthz() -> dict[str, Any]:
         return {"status": "ok", "metrics": list(METRICS), "default_metric": base.metric}
 
-    @app.post("/v1/focus/curve", response_model=FocusResponse)
-    def focus_curve(request: CurveRequest) -> dict[str, Any]:
+    @app.post(
+        "/v1/focus/curve",
+        response_model=FocusResponse,
+        dependencies=[Depends(require_token)],
+        openapi_extra={
+            "requestBody": {
+                "required": True,
+                "content": {"application/json": {"schema": CurveRequest.model_json_schema()}},
+            }
+        },
+    )
+    async def focus_curve(http: Request) -> dict[str, Any]:
+        # The body is read and checked here, not by FastAPI: its size and nesting are
+        # bounded before it is parsed (a 59 MB body, 100 000 nested lists).
+        body = b""
+        async for chunk in http.stream():
+            body += chunk
+            if len(body) > limits.max_json_bytes:
+                raise HTTPException(
+                    413, f"the curve's JSON exceeds the limit of {limits.max_json_bytes} bytes"
+                )
+        if json_depth_exceeds(body, limits.max_json_depth):
+            raise HTTPException(422, f"the JSON nests deeper than {limits.max_json_depth} levels")
+        try:
+            request = CurveRequest.model_validate_json(body)
+        except ValidationError as error:
+            errors = [{**item, "loc": ("body", *item["loc"])} for item in error.errors()]
+            raise RequestValidationError(errors) from None
+        if len(request.z_um) > limits.max_frames:
+            raise HTTPException(
+                422, f"the curve has {len(request.z_um)} points; the limit is {limits.max_frames}"
+            )
+        return await run_in_threadpool(_curve, request)
+
+    def _curve(request: CurveRequest) -> dict[str, Any]:
         chosen = replace(base, peak=replace(base.peak, mode=request.mode))
         prior = None if request.prior is None else Prior(request.prior.z_um, request.prior.sigma_um)
         try:
@@ -164,7 +349,9 @@ def create_app(
             raise HTTPException(422, str(error)) from None
         return result.to_json() | {"metric": request.metric}
 
-    @app.post("/v1/focus/stack", response_model=FocusResponse)
+    @app.post(
+        "/v1/focus/stack", response_model=FocusResponse, dependencies=[Depends(require_token)]
+    )
     async def focus_stack_endpoint(
         stack: Annotated[UploadFile, File(description="multi-page TIFF or .npy, frames first")],
         z_um: Annotated[str, Form(description="z of each frame, um: JSON list or a,b,c")],
@@ -173,11 +360,12 @@ def create_app(
         channel: Annotated[int | None, Form(ge=0)] = base.preprocess.channel,
         lowpass_sigma_px: Annotated[float, Form(ge=0, le=64)] = base.preprocess.lowpass_sigma_px,
     ) -> dict[str, Any]:
-        if stack.size is not None and stack.size > max_upload_bytes:
-            raise HTTPException(413, f"stack of {stack.size} bytes exceeds {max_upload_bytes}")
-        data = await stack.read(max_upload_bytes + 1)
-        if len(data) > max_upload_bytes:
-            raise HTTPException(413, f"stack exceeds the limit of {max_upload_bytes} bytes")
+        limit = limits.max_upload_bytes
+        if stack.size is not None and stack.size > limit:
+            raise HTTPException(413, f"stack of {stack.size} bytes exceeds {limit}")
+        data = await stack.read(limit + 1)
+        if len(data) > limit:
+            raise HTTPException(413, f"stack exceeds the limit of {limit} bytes")
         try:
             z = parse_z_list(z_um)
             if metric not in METRICS:
@@ -189,12 +377,14 @@ def create_app(
                 metric=metric,
                 peak=replace(base.peak, mode=mode),
             )
-            frames = decode_stack(data)
+            frames = await run_in_threadpool(decode_stack, data, limits)
             if frames.ndim == 2:
                 raise ValueError(f"the stack holds a single {frames.shape} frame; need >= 3")
             result = await run_in_threadpool(focus_stack, frames, z, chosen)
         except UnsupportedFileError as error:
             raise HTTPException(415, str(error)) from None
+        except TooLargeError as error:
+            raise HTTPException(413, str(error)) from None
         except ValueError as error:
             raise HTTPException(422, str(error)) from None
         return result.to_json()

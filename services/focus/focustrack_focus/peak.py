@@ -178,6 +178,12 @@ class PeakFit:
         return z, math.sqrt(1.0 / precision)
 
 
+#: Largest |z| of a curve, um: a metre either way is no microscope (the estimator's bound).
+MAX_ABS_Z_UM = 1e6
+#: Largest |score|: the fit squares scores, and a square beyond a float's range is NaN.
+MAX_ABS_SCORE = 1e150
+
+
 def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Check a curve and sort it by z; ValueError saying what is wrong. Shapes (n,), n >= 3."""
     z = np.asarray(z_um, dtype=np.float64)
@@ -188,10 +194,10 @@ def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np
         raise ValueError(f"{z.size} z values but {s.size} scores: one score per z needed")
     if z.size < 3:
         raise ValueError(f"a focus curve needs at least 3 frames to locate a peak, got {z.size}")
-    if not np.all(np.isfinite(z)):
-        raise ValueError("z values must be finite (NaN or infinity found)")
-    if not np.all(np.isfinite(s)):
-        raise ValueError("scores must be finite (NaN or infinity found)")
+    if not np.all(np.abs(z) <= MAX_ABS_Z_UM):
+        raise ValueError(f"z values must be finite and within +/-{MAX_ABS_Z_UM:g} um")
+    if not np.all(np.abs(s) <= MAX_ABS_SCORE):
+        raise ValueError(f"scores must be finite and within +/-{MAX_ABS_SCORE:g}")
     order = np.argsort(z, kind="stable")
     z, s = z[order], s[order]
     if np.any(np.diff(z) <= 0):

@@ -82,18 +82,35 @@ class Preprocess:
         return self.smooth(self.crop(frame))
 
     def crop(self, frame: np.ndarray) -> np.ndarray:
-        """The channel and region of interest of a frame, at full resolution: a 2-D view."""
+        """The channel and region of interest of a frame, at full resolution: a 2-D view.
+
+        ValueError if it has no pixels, or too few for the low-pass (`MIN_SMOOTHED_PX`).
+        """
+        if frame.size == 0:
+            raise ValueError(f"the frames have no pixels (shape {frame.shape})")
         image = select_channel(frame, self.channel)
         if self.roi is not None:
             y0, x0, height, width = self.roi
             if y0 + height > image.shape[0] or x0 + width > image.shape[1]:
                 raise ValueError(f"roi {self.roi} does not fit in a {image.shape} frame")
             image = image[y0 : y0 + height, x0 : x0 + width]
+        smoothed_px = min(image.shape) // 2**self.pyramid_levels
+        if smoothed_px < MIN_SMOOTHED_PX and self.lowpass_sigma_px > 0:
+            raise ValueError(
+                f"a low-pass of {self.lowpass_sigma_px:g} px is too large for "
+                f"{image.shape[0]}x{image.shape[1]} px frames (it leaves {smoothed_px} px of "
+                f"the {MIN_SMOOTHED_PX} needed): use a smaller lowpass_sigma_px or larger frames"
+            )
         return image
 
     def smooth(self, image: np.ndarray) -> np.ndarray:
         """The low-pass of a cropped 2-D image: (H, W) -> about (H, W) / 2**levels, float32."""
         return lowpass(image, self.lowpass_sigma_px, self.pyramid_levels)
+
+
+#: Fewest pixels per side a frame may keep after the low-pass's pyramid: the focus
+#: metrics and the noise estimate of the structure test need a neighbourhood.
+MIN_SMOOTHED_PX = 4
 
 
 def select_channel(frame: np.ndarray, channel: int | None) -> np.ndarray:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import threading
 import time
 from collections import OrderedDict
@@ -24,12 +25,13 @@ import uvicorn
 import zenoh
 
 from focustrack_core.config import command_main
+from focustrack_core.serving import refuse_open_network
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
 from focustrack_core.wire.codec import decode_zframe
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, session_from_args
-from focustrack_focus.app import create_app
+from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
@@ -239,6 +241,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default %(default)g)",
     )
 
+    add_rest_arguments(parser)
+
 
 def settings_from_args(args: argparse.Namespace) -> FocusSettings:
     """The service's `FocusSettings` from its command line."""
@@ -253,7 +257,44 @@ def settings_from_args(args: argparse.Namespace) -> FocusSettings:
     return FocusSettings(preprocess, args.metric, peak, min_structure_snr=args.min_structure_snr)
 
 
+def add_rest_arguments(parser: argparse.ArgumentParser) -> None:
+    """The REST API's token and limits (`FocusLimits`)."""
+    parser.add_argument("--token", help="require this bearer token on /v1 (unset: no auth)")
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="serve REST without a token on a non-loopback address (refused otherwise)",
+    )
+    limits = FocusLimits()
+    for flag, kind, text in (
+        ("--max-upload-bytes", int, "largest request body, bytes (413)"),
+        ("--max-decoded-bytes", int, "largest decoded stack, bytes, read from its header (413)"),
+        ("--max-frames", int, "most frames of a stack or points of a curve"),
+        ("--max-json-bytes", int, "largest JSON body of /v1/focus/curve, bytes (413)"),
+        ("--max-json-depth", int, "deepest nesting of a JSON body (422)"),
+        ("--body-timeout-s", float, "seconds a request body may take to arrive (408)"),
+    ):
+        field = flag[2:].replace("-", "_")
+        parser.add_argument(flag, type=kind, default=getattr(limits, field), help=text)
+
+
 def run(args: argparse.Namespace) -> int:
+    refusal = refuse_open_network("focus", args.host, args.token, args.insecure)
+    if refusal:
+        print(refusal, file=sys.stderr)
+        return 2
+    try:
+        limits = FocusLimits(
+            args.max_upload_bytes,
+            args.max_decoded_bytes,
+            args.max_frames,
+            args.max_json_bytes,
+            args.max_json_depth,
+            args.body_timeout_s,
+        )
+    except ValueError as error:
+        print(f"focus service not started: {error}", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     settings = settings_from_args(args)
     na = None if args.lowpass_sigma_px is not None else args.na
@@ -269,7 +310,8 @@ def run(args: argparse.Namespace) -> int:
     )
     started = time.perf_counter()
     try:
-        uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+        app = create_app(settings, limits, args.token or None)
+        uvicorn.run(app, host=args.host, port=args.port, log_level="info")
     finally:
         worker.close()
         session.close()

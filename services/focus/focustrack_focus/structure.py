@@ -86,10 +86,10 @@ def structure_snr(
     (noise-free or coarsely quantised data: the test cannot judge them).
     """
     noise_std = pixel_noise_std(blurriest_raw)
-    if noise_std == 0.0:
-        return math.inf
     shape = blurriest_raw.shape
     gain = lowpass_noise_gain(shape, preprocess.lowpass_sigma_px, preprocess.pyramid_levels)
+    if noise_std == 0.0 or gain == 0.0:  # gain 0: a frame the low-pass leaves one pixel of
+        return math.inf
     _, std = cv2.meanStdDev(cv2.subtract(sharpest, blurriest))
     ratio = std.item() ** 2 / (2.0 * gain * noise_std**2)
     spread = math.sqrt(2.0 / (shape[0] * shape[1] * gain))

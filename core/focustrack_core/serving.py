@@ -1,0 +1,190 @@
+"""What every HTTP service of FocusTrack shares at its edge: safe defaults, pure ASGI.
+
+- `refuse_open_network`: off loopback a service needs a token (or `--insecure`).
+- `SlowBodyTimeout`: an ASGI middleware that aborts a request whose body trickles
+  in too slowly (uvicorn's `timeout_keep_alive` only covers idle connections).
+- `cut`: error messages quote at most `MAX_QUOTED_CHARS` of an input.
+
+No web framework is imported: the middleware speaks plain ASGI, so the core
+gains no dependency.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import json
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+#: Characters of an input an error message may quote; the rest is left out, with a note.
+MAX_QUOTED_CHARS = 200
+
+
+def cut(text: str, limit: int = MAX_QUOTED_CHARS) -> str:
+    """`text` if at most `limit` characters, else its start and a note of how long it was."""
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit]}... (cut: {len(text)} characters in all)"
+
+
+def is_loopback(host: str) -> bool:
+    """Whether binding `host` exposes the service to this machine only."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to anything
+        return False
+
+
+def refuse_open_network(service: str, host: str, token: str | None, insecure: bool) -> str | None:
+    """Why `service` must not start on `host` without a token (None: it may start).
+
+    On loopback only local processes reach it; anywhere else an open API lets any
+    host on the network drive it, so a token is required unless `insecure` is given.
+    """
+    if token or insecure or is_loopback(host):
+        return None
+    prefix = f"FOCUSTRACK_{service.upper()}_"
+    return (
+        f"refusing to serve the {service} API on {host} without a token: anyone on the "
+        f"network could use it. Set --token (or {prefix}TOKEN), bind to 127.0.0.1, or pass "
+        f"--insecure ({prefix}INSECURE=1) to run it open on purpose"
+    )
+
+
+class SlowBodyTimeout:
+    """ASGI middleware: a request body must arrive whole within `timeout_s` of the request.
+
+    A client that sends its headers and then trickles its body (or stops) would
+    otherwise hold a connection and a request task forever. When the time is up
+    while the body is still incomplete, the route is cancelled and the client gets
+    `status` with `error_body` (JSON) and the connection is closed. Requests
+    without a body, and routes that answer before reading theirs, are not timed.
+    """
+
+    def __init__(
+        self, app: ASGIApp, *, timeout_s: float, error_body: dict[str, Any], status: int = 408
+    ) -> None:
+        if not timeout_s > 0:
+            raise ValueError(f"the body timeout must be positive, got {timeout_s}")
+        self.app, self.timeout_s, self.status = app, timeout_s, status
+        self.error = json.dumps(error_body).encode()
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        headers = dict(scope.get("headers") or ()) if scope["type"] == "http" else {}
+        declared = headers.get(b"content-length", b"0")
+        has_body = b"transfer-encoding" in headers or (declared.isdigit() and int(declared) > 0)
+        if not has_body:
+            await self.app(scope, receive, send)
+            return
+        body_done = asyncio.Event()
+        started = False
+
+        async def tracked_receive() -> Message:
+            message = await receive()
+            if message["type"] != "http.request" or not message.get("more_body", False):
+                body_done.set()
+            return message
+
+        async def tracked_send(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        route = asyncio.ensure_future(self.app(scope, tracked_receive, tracked_send))
+        body = asyncio.ensure_future(body_done.wait())
+        try:
+            await asyncio.wait({route, body}, timeout=self.timeout_s, return_when="FIRST_COMPLETED")
+        except BaseException:  # this request cancelled (shutdown): its route with it
+            route.cancel()
+            raise
+        finally:
+            body.cancel()
+        if not route.done() and not body_done.is_set() and not started:
+            route.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await route
+            await send(
+                {
+                    "type": "http.response.start",
+                    "status": self.status,
+                    "headers": [
+                        (b"content-type", b"application/json"),
+                        (b"content-length", str(len(self.error)).encode()),
+                        (b"connection", b"close"),
+                    ],
+                }
+            )
+            await send({"type": "http.response.body", "body": self.error})
+            return
+        await route
+
+
+class _BodyTooLargeError(Exception):
+    """Raised inside a route's `receive` once its body passed the limit."""
+
+
+class BodyLimit:
+    """ASGI middleware: refuse request bodies over `max_bytes` with a 413 that says the limit.
+
+    A declared Content-Length over the limit is refused before anything is read; a
+    body streamed without one is counted as it arrives, and once over the limit the
+    route is stopped (what it would answer is dropped) and the 413 sent instead.
+    `error_body(message)` is the JSON of the reply, in the service's error shape.
+    """
+
+    def __init__(
+        self, app: ASGIApp, *, max_bytes: int, error_body: Callable[[str], dict[str, Any]]
+    ) -> None:
+        self.app, self.max_bytes, self.error_body = app, max_bytes, error_body
+
+    async def _refuse(self, send: Send, size: str) -> None:
+        message = f"request body of {size} exceeds the limit of {self.max_bytes} bytes"
+        body = json.dumps(self.error_body(message)).encode()
+        headers = [(b"content-type", b"application/json"), (b"connection", b"close")]
+        headers.append((b"content-length", str(len(body)).encode()))
+        await send({"type": "http.response.start", "status": 413, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length", b"")
+        if declared.isdigit() and int(declared) > self.max_bytes:
+            await self._refuse(send, f"{int(declared)} bytes")
+            return
+        received, over, started = 0, False, False
+
+        async def limited() -> Message:
+            nonlocal received, over
+            message = await receive()
+            received += len(message.get("body", b""))
+            if received > self.max_bytes:
+                over = True
+                raise _BodyTooLargeError
+            return message
+
+        async def guarded_send(message: Message) -> None:
+            nonlocal started
+            if over:  # the route's answer to the aborted body (a 400 or 500): ours instead
+                return
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, limited, guarded_send)
+        except Exception:
+            if not over:
+                raise
+        if over and not started:
+            await self._refuse(send, f"more than {received} bytes")

@@ -1,0 +1,156 @@
+"""The cost budget per slide (issue 13): each strategy's cost model, kept honest against
+tracemalloc, and creation refusing what exceeds the budget (real server on loopback)."""
+
+from __future__ import annotations
+
+import math
+import tracemalloc
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from focustrack.bench.strategies import CATALOGUE
+from focustrack_client import models as api
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.wire.session import free_port
+from focustrack_estimator import registry
+from focustrack_estimator.service import spawn
+from focustrack_estimator.slides import Budget, Slide, cost_of
+from focustrack_estimator.store import Store
+from focustrack_estimator.strategy import SlideSettings
+
+
+def test_every_strategy_states_its_cost() -> None:
+    assert set(registry.COSTS) == set(registry.STRATEGIES)
+    assert set(CATALOGUE.costs) == set(CATALOGUE.strategies) > set(registry.STRATEGIES)
+    for name in CATALOGUE.strategies:
+        cost = CATALOGUE.cost(name, SlideSettings(grid=ScanGrid(20, 20)))
+        assert cost.peak_bytes > 20 * 20 and cost.seconds_per_tile >= 0
+
+
+def test_the_defaults_admit_kf_2d_on_200x200_and_refuse_the_issues_slides() -> None:
+    budget = Budget()
+
+    def slide(strategy: str, rows: int, cols: int, **params: object) -> api.SlideCreate:
+        grid = api.Grid(rows=rows, cols=cols)
+        return api.SlideCreate(strategy=strategy, grid=grid, params=params)  # type: ignore[arg-type]
+
+    assert budget.check(slide("kf-2d", 200, 200)).peak_bytes < budget.max_slide_bytes
+    values = [0.1 * (i + 1) for i in range(20)]
+    bank = {"sigmas_um": values, "lengths_tiles": values, "tilt_sigmas_um_per_tile": values}
+    # 8000 members (the issue: 41 s of CPU and 5.6 GB), the 250x750 slide, nshp at 200x200
+    for config in (
+        slide("kf-2d", 146, 146, **bank),
+        slide("kf-2d", 250, 750),
+        slide("nshp-wiener1", 200, 200),
+    ):
+        with pytest.raises(Exception, match="projected to need"):
+            budget.check(config)
+    # a bank grows its cost with its members: 8000 members cost 8000/18 times 18
+    small, large = cost_of(slide("kf-2d", 50, 50)), cost_of(slide("kf-2d", 50, 50, **bank))
+    assert large.peak_bytes > 100 * small.peak_bytes / 4
+
+
+def _measured_peak_bytes(config: api.SlideCreate, store: Store) -> int:
+    """tracemalloc's peak over a whole scan of `config` through a `Slide` (history included)."""
+    store.create_slide("s", config.model_dump(mode="json"))
+    tracemalloc.start()
+    try:
+        base_bytes = tracemalloc.get_traced_memory()[0]
+        slide = Slide("s", config, store, snapshot_every=10**9)
+        while (acquisition := slide.next()) is not None:
+            z_um = 0.3 * math.sin(acquisition.row / 5) + 0.02 * acquisition.col
+            measurement = api.MeasurementIn(
+                row=acquisition.row,
+                col=acquisition.col,
+                sequence=acquisition.index,
+                z_um=z_um,
+                sigma_um=1.0,
+            )
+            slide.measure(measurement)
+        slide.focus_map()
+        return tracemalloc.get_traced_memory()[1] - base_bytes
+    finally:
+        tracemalloc.stop()
+
+
+#: (strategy, rows, cols): each kind of cost model on a grid where its own term matters
+#: (kf-2d wider than its update window, so the row prediction's copies are measured).
+MEASURED = [
+    ("kf-wiener0", 6, 40),
+    ("kf-mmae", 6, 40),
+    ("kf-2d", 3, 120),
+    ("nshp-wiener1", 4, 60),
+    ("survey-delaunay", 6, 40),
+]
+
+
+@pytest.mark.parametrize(("strategy", "rows", "cols"), MEASURED)
+def test_projected_memory_is_within_a_factor_of_the_measured(
+    tmp_path: Path, strategy: str, rows: int, cols: int
+) -> None:
+    config = api.SlideCreate(strategy=strategy, grid=api.Grid(rows=rows, cols=cols))
+    store = Store(tmp_path / "budget.sqlite")
+    try:
+        measured = _measured_peak_bytes(config, store)
+    finally:
+        store.close()
+    projected = cost_of(config).peak_bytes
+    # An estimate, not an account: within a factor of two either way of what was measured.
+    assert measured / 2 <= projected <= 2 * measured, (projected, measured)
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[str]:
+    port = free_port()
+    process = spawn(tmp_path / "estimator.sqlite", port, timeout_s=120)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        process.terminate()
+        process.wait(30)
+
+
+def _post(url: str, strategy: str, rows: int, cols: int, **extra: object) -> httpx.Response:
+    body = {"strategy": strategy, "grid": {"rows": rows, "cols": cols}, **extra}
+    return httpx.post(f"{url}/v1/slides", json=body, timeout=120)
+
+
+def test_creation_refuses_slides_over_the_budget_with_the_reason(server: str) -> None:
+    values = [round(0.1 * (i + 1), 1) for i in range(20)]
+    bank = {"sigmas_um": values, "lengths_tiles": values, "tilt_sigmas_um_per_tile": values}
+    refused = _post(server, "kf-2d", 146, 146, params=bank)
+    assert len(refused.request.content) < 700  # the issue's small request
+    assert refused.status_code == 422, refused.text
+    message = refused.json()["detail"][0]["msg"]
+    assert "projected to need" in message and "--max-slide-bytes" in message
+    assert _post(server, "kf-2d", 250, 750).status_code == 422  # the docs' whole slide
+    wide = _post(server, "kf-2d", 250, 500)  # within the grid limits, not within the budget
+    assert wide.status_code == 422 and "MiB" in wide.json()["detail"][0]["msg"]
+    oracle = _post(server, "gp-oracle", 500, 500)  # a benchmark's floor: not served
+    assert oracle.status_code == 422 and "unknown strategy" in oracle.text
+    assert _post(server, "kf-2d", 200, 200).status_code == 201  # what a real scanner needs
+    assert httpx.get(f"{server}/healthz").json()["slides"] == 1
+
+
+def test_gp_oracle_is_served_only_when_opted_into_and_within_the_budget(tmp_path: Path) -> None:
+    port = free_port()
+    options = ["--strategies-from", "focustrack.bench.strategies"]
+    process = spawn(tmp_path / "oracle.sqlite", port, timeout_s=120, options=options)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        assert _post(url, "gp-oracle", 10, 10).status_code == 201
+        for rows, cols in ((90, 90), (500, 500)):  # the issue's 1 GB and 466 GiB slides
+            refused = _post(url, "gp-oracle", rows, cols)
+            assert refused.status_code == 422 and "projected to need" in refused.text
+    finally:
+        process.terminate()
+        process.wait(60)
+
+
+def test_a_budget_that_admits_nothing_is_a_configuration_error() -> None:
+    for bad in ({"max_live_slides": 0}, {"max_slide_bytes": -1}, {"max_tile_s": 0.0}):
+        with pytest.raises(ValueError, match="must be positive"):
+            Budget(**bad)  # type: ignore[arg-type]

@@ -1,0 +1,148 @@
+"""Odd values at the estimator's edge (issue 13): non-physical sigmas and parameters are a
+422 at creation, z-ranges stay within the schema's bounds whatever the steps and retries,
+and no slide gets stuck on a singular matrix (real server process on loopback)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+
+from focustrack_client import models as api
+from focustrack_core.domain import ZRange
+from focustrack_core.wire.session import free_port
+from focustrack_estimator import strategy
+from focustrack_estimator.service import spawn
+
+
+@pytest.fixture(scope="module")
+def url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    port = free_port()
+    process = spawn(tmp_path_factory.mktemp("edge") / "edge.sqlite", port, timeout_s=120)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        process.terminate()
+        process.wait(60)
+
+
+def _create(url: str, **fields: Any) -> httpx.Response:
+    body = {"strategy": "kf-2d", "grid": {"rows": 4, "cols": 4}, **fields}
+    return httpx.post(f"{url}/v1/slides", json=body, timeout=60)
+
+
+def _refused(response: httpx.Response, needle: str) -> None:
+    assert response.status_code == 422, response.text
+    assert needle in response.text, response.text
+
+
+def test_the_schemas_bounds_are_the_strategies() -> None:
+    assert strategy.Z_LIMIT_UM == api.MAX_ABS_UM
+
+
+@pytest.mark.parametrize("name", ["start_sigma_um", "noise_sigma_um", "dof_um"])
+def test_non_physical_sigmas_are_refused_at_creation(url: str, name: str) -> None:
+    for value in (1e-300, 0.0, -1.0):
+        _refused(_create(url, **{name: value}), name)
+    infinite = '{"strategy": "kf-2d", "grid": {"rows": 4, "cols": 4}, "' + name + '": 1e999}'
+    response = httpx.post(
+        f"{url}/v1/slides", content=infinite, headers={"Content-Type": "application/json"}
+    )
+    _refused(response, name)
+
+
+def test_non_physical_parameters_are_refused_at_creation(url: str) -> None:
+    _refused(_create(url, params={"sigmas_um": [1e-300, 1.0]}), "not a physical value")
+    _refused(_create(url, params={"window_cols": 10**200}), "not a physical value")
+    _refused(_create(url, strategy="kf-wiener0", params={"q": 1e-300}), "not a physical value")
+    _refused(_create(url, params={"max_retries": 10**9}), "max_retries must be in 0..50")
+    _refused(_create(url, params={"lengths_tiles": [1e31]}), "not a physical value")
+    _refused(_create(url, z_range={"z_step_um": 1e-9}), "z_step_um")
+
+
+def test_a_measurement_with_a_non_physical_sigma_is_refused(url: str) -> None:
+    slide = _create(url).json()
+    pending = httpx.get(f"{url}/v1/slides/{slide['id']}/next").json()
+    body = {"row": pending["row"], "col": pending["col"], "sequence": pending["sequence"]}
+    for sigma_um in (1e-300, 0.0, -1.0):
+        response = httpx.post(
+            f"{url}/v1/slides/{slide['id']}/measurements",
+            json={**body, "z_um": 0.0, "sigma_um": sigma_um},
+        )
+        _refused(response, "sigma_um")
+
+
+def test_z_ranges_stay_within_the_schemas_bounds(url: str) -> None:
+    # The largest steps and stacks the schema allows, starting at its highest height,
+    # with edge peaks asking for stacks further up again and again.
+    slide = _create(
+        url,
+        start_z_um=api.MAX_ABS_UM,
+        start_sigma_um=api.MAX_ABS_UM,
+        z_range={"z_step_um": 1e3, "min_frames": 1001, "max_frames": 1001},
+        params={"max_retries": 50},
+    ).json()
+    for _ in range(60):
+        pending = httpx.get(f"{url}/v1/slides/{slide['id']}/next").json()
+        if pending["done"]:
+            break
+        assert -api.MAX_ABS_UM <= pending["z_low_um"] <= pending["z_high_um"] <= api.MAX_ABS_UM
+        body = {
+            "row": pending["row"],
+            "col": pending["col"],
+            "sequence": pending["sequence"],
+            "z_um": pending["z_high_um"],
+            "flags": ["edge_high"],
+        }
+        response = httpx.post(f"{url}/v1/slides/{slide['id']}/measurements", json=body)
+        assert response.status_code == 200, response.text  # every z asked can be posted back
+
+
+def test_bounded_moves_and_narrows_ranges_beyond_the_limit() -> None:
+    assert strategy.bounded(ZRange(-5.0, 1.0, 11), 100.0) == ZRange(-5.0, 1.0, 11)
+    assert strategy.bounded(ZRange(95.0, 1.0, 11), 100.0) == ZRange(90.0, 1.0, 11)
+    assert strategy.bounded(ZRange(-120.0, 1.0, 11), 100.0) == ZRange(-100.0, 1.0, 11)
+    wide = strategy.bounded(ZRange(-300.0, 100.0, 11), 100.0)
+    assert (wide.low_um, wide.high_um, wide.n_frames) == (-100.0, 100.0, 3)
+
+
+@pytest.mark.parametrize("name", ["kf-2d", "kf-mmae", "kf-wiener2", "nshp-wiener1"])
+def test_no_slide_gets_stuck_with_the_sharpest_measurements_allowed(url: str, name: str) -> None:
+    """Measurements as certain as the schema allows (sigma 1 nm), identical or jumping,
+    never leave a slide answering errors: every tile is measured and the scan ends."""
+    slide = _create(url, strategy=name, start_sigma_um=api.MIN_SIGMA_UM).json()
+    for i in range(17):
+        pending = httpx.get(f"{url}/v1/slides/{slide['id']}/next").json()
+        if pending["done"]:
+            break
+        body = {
+            "row": pending["row"],
+            "col": pending["col"],
+            "sequence": pending["sequence"],
+            "z_um": 0.0 if i % 2 else 1e3,
+            "sigma_um": api.MIN_SIGMA_UM,
+        }
+        response = httpx.post(f"{url}/v1/slides/{slide['id']}/measurements", json=body)
+        assert response.status_code == 200, response.text
+    assert httpx.get(f"{url}/v1/slides/{slide['id']}/next").json()["done"]
+    assert httpx.get(f"{url}/v1/slides/{slide['id']}/map").status_code == 200
+
+
+@pytest.mark.parametrize(
+    ("name", "params"),
+    [
+        ("kf-wiener1", {"slope_sigma_um_per_tile": 1e30}),
+        ("kf-wiener1-dir", {"slope_sigma_um_per_tile": 1e30}),
+        ("kf-2d", {"lengths_tiles": [1e30]}),
+        ("kf-2d", {"tilt_sigmas_um_per_tile": [1e30]}),
+    ],
+)
+def test_parameters_that_break_the_arithmetic_together_fail_a_trial_scan(
+    url: str, name: str, params: dict[str, Any]
+) -> None:
+    """Each within the bounds, each once made a slide fail on its first sharp measurements
+    ("Singular matrix", "math domain error"): now refused at creation instead."""
+    response = _create(url, strategy=name, grid={"rows": 30, "cols": 30}, params=params)
+    _refused(response, "4x4 trial scan")

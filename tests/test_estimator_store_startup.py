@@ -1,0 +1,135 @@
+"""The estimator's store at start and stop (issue 13): a damaged file is refused with its
+name, an empty or missing one announced as a new store, and SIGTERM closes the store and
+checkpoints its WAL (real server processes on loopback)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from focustrack_core.wire.session import free_port
+from focustrack_estimator.service import spawn
+from focustrack_estimator.store import Event, Store
+
+COMMAND = [sys.executable, "-m", "focustrack_estimator"]
+
+
+def _filled_store(path: Path, n_slides: int = 40) -> None:
+    """A store with enough slides and events to span many pages."""
+    store = Store(path)
+    try:
+        for i in range(n_slides):
+            store.create_slide(f"slide-{i}", {"strategy": "kf-wiener0", "pad": "x" * 2000})
+            event = Event(0, {"a": "y" * 1000}, {"z_um": 1.0}, {"accepted": True})
+            store.append(f"slide-{i}", event, accepted=True, done=False)
+    finally:
+        store.close()
+
+
+def test_a_store_damaged_mid_file_is_refused_naming_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "damaged.sqlite"
+    _filled_store(path)
+    data = bytearray(path.read_bytes())
+    assert len(data) > 40 * 4096
+    middle = len(data) // 2
+    data[middle : middle + 8192] = b"\xa5" * 8192  # two pages in the middle overwritten
+    path.write_bytes(bytes(data))
+    started = subprocess.run(
+        [*COMMAND, "--port", str(free_port()), "--store", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert started.returncode == 2, started.stderr
+    assert str(path) in started.stderr and "damaged" in started.stderr
+    assert "Traceback" not in started.stderr
+
+
+def test_a_file_that_is_not_sqlite_is_refused_naming_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "notes.sqlite"
+    path.write_bytes(b"these are not the slides you are looking for\n" * 100)
+    started = subprocess.run(
+        [*COMMAND, "--port", str(free_port()), "--store", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert started.returncode == 2 and str(path) in started.stderr, started.stderr
+    assert "Traceback" not in started.stderr
+
+
+def _start_and_stop(path: Path) -> tuple[int, str]:
+    """Start the service on `path`, create a slide, SIGTERM it; (exit code, its stdout)."""
+    port = free_port()
+    process = subprocess.Popen(
+        [*COMMAND, "--port", str(port), "--store", str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        url = f"http://127.0.0.1:{port}"
+        for _ in range(1200):
+            try:
+                if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                if process.poll() is not None:
+                    break
+                time.sleep(0.1)
+        body = {"strategy": "kf-wiener0", "grid": {"rows": 3, "cols": 3}}
+        assert httpx.post(f"{url}/v1/slides", json=body).status_code == 201
+        process.send_signal(signal.SIGTERM)
+        out, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert "Traceback" not in err, err
+    return process.returncode, out
+
+
+def test_an_empty_or_missing_store_is_announced_as_new(tmp_path: Path) -> None:
+    empty = tmp_path / "empty.sqlite"
+    empty.write_bytes(b"")
+    for path in (empty, tmp_path / "missing.sqlite"):
+        code, out = _start_and_stop(path)
+        assert code == 0 and f"creating a new store at {path}" in out, out
+    code, out = _start_and_stop(empty)  # now it holds a slide: no longer new
+    assert code == 0 and "creating a new store" not in out
+    store = Store(empty)
+    assert store.count_slides() == 2
+    store.close()
+
+
+def test_sigterm_closes_the_store_and_checkpoints_its_wal(tmp_path: Path) -> None:
+    path = tmp_path / "estimator.sqlite"
+    port = free_port()
+    process = spawn(path, port, timeout_s=120)
+    url = f"http://127.0.0.1:{port}/v1/slides"
+    slide = httpx.post(url, json={"strategy": "kf-2d", "grid": {"rows": 4, "cols": 4}}).json()
+    for _ in range(3):
+        pending = httpx.get(f"{url}/{slide['id']}/next").json()
+        measurement = {
+            "row": pending["row"],
+            "col": pending["col"],
+            "sequence": pending["sequence"],
+        }
+        response = httpx.post(f"{url}/{slide['id']}/measurements", json={**measurement, "z_um": 1})
+        assert response.status_code == 200
+    wal = Path(f"{path}-wal")
+    assert wal.exists()
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(60) == 0  # not -15: the service shut down and closed its store
+    assert not wal.exists() or wal.stat().st_size == 0
+    store = Store(path)
+    try:
+        assert store.slide(slide["id"]).n_events == 3  # type: ignore[union-attr]
+        assert store.snapshot(slide["id"]) is not None  # taken at shutdown
+    finally:
+        store.close()
