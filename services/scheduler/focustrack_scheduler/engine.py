@@ -216,11 +216,11 @@ class Engine:
         """`call()`, sent again while nobody answers or the instrument is busy; any other
         Error reply is a refusal."""
         outage_s = self.policy.instrument_outage_s
-        retrying = self.policy.retrying(outage_s, _retryable, f"instrument: {what}")
+        retrying = self.policy.retrying(outage_s, instrument_retryable, f"instrument: {what}")
         try:
             return retrying(call)
         except rpc.RemoteError as error:
-            if not _retryable(error):
+            if not instrument_retryable(error):
                 raise ScanRefusedError(f"instrument refused {what}: {error}") from error
             raise ServiceUnavailableError(
                 f"instrument {self.instrument.name!r} did not answer {what} on {key_expr} "
@@ -389,7 +389,7 @@ class Engine:
         return outcome
 
 
-def _retryable(error: BaseException) -> bool:
+def instrument_retryable(error: BaseException) -> bool:
     """True when nobody answered (a Zenoh timeout, no queryable) or the instrument was busy,
     not when it refused the request."""
     return isinstance(error, rpc.RemoteError) and error.error.code in rpc.RETRYABLE
