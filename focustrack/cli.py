@@ -53,6 +53,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve estimator": ("focustrack_estimator.service", "the estimator REST service"),
     "scan": ("focustrack_scheduler.scan", "scan one slide through the services"),
     "demo": ("focustrack.demo", "embedded stack: scan a simulated slide"),
+    "bus secrets": (
+        "focustrack.bus_secrets",
+        "certificates, passwords and Zenoh configs of an authenticated bus",
+    ),
 }
 
 

@@ -7,8 +7,8 @@ the scheduler query ``.../acquire`` and only the focus service publish results. 
 without credentials is refused its session; a peer with a valid user but the wrong
 role (``intruder``; and the focus service's own user, for acquisitions) gets no
 answer and reaches no subscriber; the scan through it still completes. The
-certificates are made here with the openssl command. docs/security.md explains the
-files; deploy/zenoh/ holds the same configuration for compose.
+certificates, passwords and configs are made here with `focustrack bus secrets`'s
+code (openssl), as for compose.secure.yaml; docs/security.md explains them.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import httpx
 import pytest
 import zenoh
 
+from focustrack.bus_secrets import ROLES, client_config, write_bus_files
 from focustrack.demo import Service
 from focustrack_core.v1 import focus_pb2, instrument_pb2
 from focustrack_core.wire import keys, rpc
@@ -32,75 +33,25 @@ from focustrack_core.wire.session import free_port, open_session
 
 pytestmark = pytest.mark.slow  # real services in processes
 
-ROOT = Path(__file__).resolve().parents[1]
-ACL_FILE = ROOT / "deploy" / "zenoh" / "acl.json5"
-USERS = {"instrument": "pw-instrument", "focus": "pw-focus", "scheduler": "pw-scheduler"}
 INTRUDER = ("intruder", "pw-intruder")  # a valid user that no ACL rule names
-
-
-def openssl(*args: str | Path, cwd: Path) -> None:
-    subprocess.run(["openssl", *map(str, args)], cwd=cwd, check=True, capture_output=True)
-
-
-def make_certificates(folder: Path) -> None:
-    """A CA, and a server certificate it signed for localhost / 127.0.0.1."""
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "san.cnf").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
-    new_key = ["-newkey", "rsa:2048", "-nodes"]
-    openssl("req", "-x509", *new_key, "-days", "2", "-subj", "/CN=focustrack-test-ca",
-            "-keyout", "ca.key", "-out", "ca.pem", cwd=folder)  # fmt: skip
-    openssl("req", *new_key, "-subj", "/CN=localhost",
-            "-keyout", "router.key", "-out", "router.csr", cwd=folder)  # fmt: skip
-    openssl("x509", "-req", "-in", "router.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
-            "-CAcreateserial", "-days", "2", "-extfile", "san.cnf", "-out", "router.pem",
-            cwd=folder)  # fmt: skip
-
-
-def client_config(folder: Path, name: str, user: str | None, password: str | None) -> Path:
-    """A service's Zenoh JSON5 file: trust the CA; log in as `user` (None: no credentials)."""
-    config: dict = {"transport": {"link": {"tls": {"root_ca_certificate": str(folder / "ca.pem")}}}}
-    if user is not None:
-        config["transport"]["auth"] = {"usrpwd": {"user": user, "password": password}}
-    path = folder / f"{name}.json5"
-    path.write_text(json.dumps(config, indent=2))
-    return path
-
-
-def router_config(folder: Path) -> Path:
-    """The router's file: TLS certificate, the password file and deploy/zenoh's ACL."""
-    credentials = folder / "credentials.txt"
-    users = USERS | dict([INTRUDER])
-    credentials.write_text("".join(f"{user}:{password}\n" for user, password in users.items()))
-    config = {
-        "transport": {
-            "link": {
-                "tls": {
-                    "listen_certificate": str(folder / "router.pem"),
-                    "listen_private_key": str(folder / "router.key"),
-                }
-            },
-            "auth": {"usrpwd": {"dictionary_file": str(credentials)}},
-        },
-        "access_control": json.loads(
-            zenoh.Config.from_file(str(ACL_FILE)).get_json("access_control")
-        ),
-    }
-    path = folder / "router.json5"
-    path.write_text(json.dumps(config, indent=2))
-    return path
 
 
 class Bus:
     """The secured router's endpoint and each role's config file."""
 
     def __init__(self, folder: Path) -> None:
-        make_certificates(folder)
+        passwords = write_bus_files(folder, ["localhost"], extra_users=dict([INTRUDER]))
         self.endpoint = f"tls/localhost:{free_port()}"
-        self.router_config = router_config(folder)
-        self.configs = {user: client_config(folder, user, user, pw) for user, pw in USERS.items()}
-        self.configs["intruder"] = client_config(folder, "intruder", *INTRUDER)
-        self.configs["anonymous"] = client_config(folder, "anonymous", None, None)
-        self.configs["wrong-password"] = client_config(folder, "wrong", "scheduler", "guess")
+        self.router_config = folder / "router.json5"
+        self.configs = {role: folder / f"{role}.json5" for role in ROLES}
+        for name, user, password in (
+            ("intruder", *INTRUDER),
+            ("anonymous", None, None),
+            ("wrong-password", "scheduler", passwords["scheduler"] + "x"),
+        ):
+            self.configs[name] = folder / f"{name}.json5"
+            config = client_config(folder / "ca.pem", user, password)
+            self.configs[name].write_text(json.dumps(config))
 
     def open(self, role: str, timeout_s: float = 5.0) -> zenoh.Session:
         return open_session(
@@ -207,10 +158,14 @@ def test_only_the_scheduler_may_acquire_and_only_the_focus_service_publish_resul
     request = instrument_pb2.AcquireRequest(
         slide="slide-0", row=0, col=0, z_low_um=-1.0, z_step_um=0.5, n_frames=3, sequence=7
     )
-    for role in ("intruder", "focus"):
+    for role in ("intruder", "focus", "health"):
         with bus.open(role) as session, pytest.raises(rpc.RemoteError) as refused:
             rpc.call(session, keys.acquire_key("sim"), request, instrument_pb2.AcquireReply, 3.0)
         assert refused.value.error.code in rpc.UNANSWERED  # nobody answers it
+    with bus.open("health") as probe:  # the health checks' role may ask the info only
+        info = rpc.call(probe, keys.info_key("sim"), instrument_pb2.AcquireRequest(),
+                        instrument_pb2.InstrumentInfo, 5.0)  # fmt: skip
+        assert info.instrument == "sim"
     with bus.open("scheduler") as scheduler:
         reply = rpc.call(
             scheduler, keys.acquire_key("sim"), request, instrument_pb2.AcquireReply, 30.0
