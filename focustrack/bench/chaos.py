@@ -220,9 +220,13 @@ def measurements_lost(estimator_url: str, report: dict[str, Any], log_path: Path
         for entry in map(json.loads, log_path.read_text().splitlines())
         if entry["event"] == "measured"
     }
-    slide = httpx.get(
-        f"{estimator_url}/v1/slides/{report['estimator_slide_id']}", timeout=10
-    ).json()
+    url = f"{estimator_url}/v1/slides/{report['estimator_slide_id']}"
+    gone = CHAOS_RETRY.retrying(  # the estimator may be down, killed by the fault script
+        CHAOS_RETRY.estimator_outage_s,
+        lambda error: isinstance(error, httpx.TransportError),
+        "the estimator's slide",
+    )
+    slide = gone(lambda: httpx.get(url, timeout=10).raise_for_status().json())
     return max(0, len(posted) - int(slide["n_acquisitions"]))
 
 
