@@ -347,7 +347,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scan_options(parser)
 
 
-def _stop_on_sigterm() -> None:
+def stop_on_sigterm() -> None:
+    """SIGTERM raises KeyboardInterrupt, so that `with LocalStack(...)` stops the services."""
+
     def interrupt(*_: object) -> None:
         raise KeyboardInterrupt
 
@@ -365,7 +367,7 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    _stop_on_sigterm()
+    stop_on_sigterm()
     out_dir: Path = args.out
     out_dir.mkdir(parents=True, exist_ok=True)
     for suffix in ("", "-wal", "-shm"):  # a demo run starts afresh (a stale WAL would replay)

@@ -23,14 +23,13 @@ def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: P
     chaos = subprocess.run(command, capture_output=True, text=True, timeout=280)
     assert chaos.returncode == 0, chaos.stdout + chaos.stderr
     report = json.loads(out.read_text())
-    assert report["scans_completed"] == 1
+    assert report["scans_completed"] == len(report["scans"]) >= 1  # scans go on while faults do
+    assert len(report["faults"]) == 2
     assert report["measurements_lost"] == 0
     assert report["wrong_results_accepted"] == 0
     assert report["rogue_results_sent"] > 0 and report["focus_results_rejected"] > 0
     assert report["faults"][0]["service"] == "router"  # seed 1 kills the router first
-    assert (
-        "chaos: killed router" in chaos.stdout and "scans completed:        1 of 1" in chaos.stdout
-    )
+    assert "chaos: killed router" in chaos.stdout
     assert set(report["peak_rss_mb"]) == {"router", "instrument", "focus", "estimator"}
     assert all(0 < mb < 1024 for mb in report["peak_rss_mb"].values())
     assert "hostile" in report["hostile_requests"]  # fired, or skipped saying why

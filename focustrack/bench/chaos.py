@@ -1,7 +1,8 @@
 """`focustrack bench chaos`: scans on loopback while services die and a rogue peer lies.
 
 The stack of `focustrack demo` (the router in a process of its own, the instrument, the
-focus service, the estimator) scans `--scans` slides one after the other while:
+focus service, the estimator) scans the slide again and again, at least `--scans` times
+and for as long as the fault script runs, while:
 
 - a fault script, seeded (`--seed`), kills (SIGKILL) the router, the focus service or
   the estimator, chosen at random, waits a random outage of up to `--down-max-s`, and
@@ -18,7 +19,7 @@ but not held by the estimator: must be 0), wrong results accepted (a measurement
 the rogue's z: must be 0), results rejected, the faults, and the largest resident
 memory (VmHWM, /proc) of each service over all its processes.
 
-    focustrack bench chaos [--scans 3 --faults 6 --seed 3] [--json OUT]
+    focustrack bench chaos [--scans 2 --faults 6 --seed 3] [--json OUT]
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from typing import Any
 import httpx
 import zenoh
 
-from focustrack.demo import INSTRUMENT, SLIDE, LocalStack
+from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.rpc import protobuf_encoding
@@ -54,6 +55,9 @@ VICTIMS = ("router", "focus", "estimator")
 
 #: Runs of one scan (the first and its resumptions) before the bench gives it up.
 MAX_RUNS = 6
+
+#: Scans at most, however long the fault script runs.
+MAX_SCANS = 50
 
 #: Ride out a minute without a service: the issue's bound for a restart.
 CHAOS_RETRY = RetryPolicy(instrument_timeout_s=15.0, focus_timeout_s=5.0, instrument_outage_s=60.0)
@@ -208,6 +212,9 @@ class FaultScript:
             )
             self.done.append(Fault(round(at_s, 1), victim, round(down_s, 1)))
 
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
     def join(self) -> None:
         self.stop.set()
         self._thread.join()
@@ -253,7 +260,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rows", type=int, default=6, help="tile rows of each slide (6)")
     parser.add_argument("--cols", type=int, default=6, help="tile columns of each slide (6)")
     parser.add_argument("--size", type=int, default=128, help="frame side in pixels (128)")
-    parser.add_argument("--scans", type=int, default=3, help="scans, one after the other (3)")
+    parser.add_argument(
+        "--scans",
+        type=int,
+        default=2,
+        help="scans at least, one after the other, and more while the faults go on (2)",
+    )
     parser.add_argument("--strategy", default=BEST_KALMAN, help=f"strategy ({BEST_KALMAN})")
     parser.add_argument(
         "--seed",
@@ -284,31 +296,42 @@ def run(args: argparse.Namespace) -> int:
         "--seed", "1", "--slides", "1", "--rows", str(args.rows),
         "--cols", str(args.cols), "--width", str(args.size), "--height", str(args.size),
     ]  # fmt: skip
+    stop_on_sigterm()  # so that the stack's processes are stopped on the way out
     args.out.mkdir(parents=True, exist_ok=True)
     for stale in args.out.glob("estimator.sqlite*"):
         stale.unlink()
     started_s = time.perf_counter()
-    with LocalStack(args.out, instrument_args, router_process=True) as stack:
-        assert stack.session is not None
-        print(f"stack ready in {time.perf_counter() - started_s:.1f} s; router "
-              f"{stack.endpoint}, estimator {stack.estimator_url}", flush=True)  # fmt: skip
-        memory = MemoryWatch(stack)
-        rogue = RoguePeer(stack.endpoint, SLIDE)
-        chaos = FaultScript(
-            stack, memory, args.seed, args.faults, args.duration_s, args.gap_max_s, args.down_max_s
-        )
-        chaos.start()
-        scans: list[dict[str, Any]] = []
-        try:
-            for index in range(args.scans):
-                scans.append(scan_once(stack, args, index, memory, rogue))
-        finally:
-            chaos.join()
-            rogue.close()
-        memory.sample()
-        hostile = hostile_requests(stack, memory)
-        print(f"hostile REST requests: {hostile}", flush=True)
-        memory.sample()
+    try:
+        with LocalStack(args.out, instrument_args, router_process=True) as stack:
+            assert stack.session is not None
+            print(f"stack ready in {time.perf_counter() - started_s:.1f} s; router "
+                  f"{stack.endpoint}, estimator {stack.estimator_url}", flush=True)  # fmt: skip
+            memory = MemoryWatch(stack)
+            rogue = RoguePeer(stack.endpoint, SLIDE)
+            chaos = FaultScript(
+                stack,
+                memory,
+                args.seed,
+                args.faults,
+                args.duration_s,
+                args.gap_max_s,
+                args.down_max_s,
+            )
+            chaos.start()
+            scans: list[dict[str, Any]] = []
+            try:
+                while len(scans) < args.scans or (chaos.running() and len(scans) < MAX_SCANS):
+                    scans.append(scan_once(stack, args, len(scans), memory, rogue))
+            finally:
+                chaos.join()
+                rogue.close()
+            memory.sample()
+            hostile = hostile_requests(stack, memory)
+            print(f"hostile REST requests: {hostile}", flush=True)
+            memory.sample()
+    except KeyboardInterrupt:
+        print("focustrack bench chaos: interrupted; services stopped", file=sys.stderr)
+        return 130
     report = {
         "scans": scans,
         "scans_completed": sum(scan["completed"] for scan in scans),
@@ -327,7 +350,7 @@ def run(args: argparse.Namespace) -> int:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
         print(f"wrote {args.json}")
     ok = (
-        report["scans_completed"] == args.scans
+        report["scans_completed"] == len(scans)
         and report["measurements_lost"] == 0
         and report["wrong_results_accepted"] == 0
     )
