@@ -219,14 +219,11 @@ class BackgroundSession:
         self,
         make_config: Callable[[], zenoh.Config],
         on_open: Callable[[zenoh.Session], None] = lambda _: None,
-        *,
-        what: str = "the Zenoh router",
     ) -> None:
         self.session: zenoh.Session | None = None
         self.last_error = ""
         self._make_config = make_config
         self._on_open = on_open
-        self._what = what
         self._opened = threading.Event()
         self._closing = threading.Event()
         self._thread = threading.Thread(target=self._open, name="zenoh-open", daemon=True)
@@ -243,8 +240,7 @@ class BackgroundSession:
                 self.last_error = str(error).split(" at /", 1)[0]  # without Zenoh's source path
                 if attempts == 1 or attempts % 10 == 0:
                     log.warning(
-                        "%s does not answer (attempt %d: %s); still trying",
-                        self._what,
+                        "the Zenoh router does not answer (attempt %d: %s); still trying",
                         attempts,
                         self.last_error,
                     )
