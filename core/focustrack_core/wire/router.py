@@ -23,7 +23,7 @@ from pathlib import Path
 import zenoh
 
 from focustrack_core.config import with_environment
-from focustrack_core.wire.session import open_session
+from focustrack_core.wire.session import session_config
 
 #: Every option's environment variable is this prefix and its name (focustrack_core.config).
 ENV_PREFIX = "FOCUSTRACK_ROUTER_"
@@ -62,12 +62,17 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    try:
+        config = session_config(listen=args.listen, mode="router", config_file=args.zenoh_config)
+    except ValueError as error:  # a file Zenoh cannot use
+        print(f"zenoh router: error: {error}", file=sys.stderr)
+        return 2
     # Blocked before the session opens, so Zenoh's threads inherit the mask and the
     # signals wait for `sigwait` in this thread.
     signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     try:
-        session = open_session(listen=args.listen, mode="router", config_file=args.zenoh_config)
-    except (ValueError, zenoh.ZError) as error:  # a bad file or an endpoint in use
+        session = zenoh.open(config)
+    except zenoh.ZError as error:  # e.g. the endpoint is in use
         print(f"zenoh router: error: {error}", file=sys.stderr)
         return 2
     with session:
