@@ -32,4 +32,8 @@ def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: P
     assert "chaos: killed router" in chaos.stdout
     assert set(report["peak_rss_mb"]) == {"router", "instrument", "focus", "estimator"}
     assert all(0 < mb < 1024 for mb in report["peak_rss_mb"].values())
-    assert "hostile" in report["hostile_requests"]  # fired, or skipped saying why
+    hostile = report["hostile_requests"]  # the status of each, or why they were not fired
+    if isinstance(hostile, dict):
+        assert hostile and all(status < 500 for status in hostile.values()), hostile
+    else:
+        assert hostile.startswith("skipped: ")

@@ -13,8 +13,9 @@ and for as long as the fault script runs, while:
 
 A scan that stops all the same (a service gone longer than its retry policy allows) is
 run again on its folder, which resumes it. Then the hostile REST requests of
-`focustrack.bench.hostile` (where that module exists) are fired at the focus service
-and the estimator. The report: scans completed, measurements lost (posted by a scan
+`focustrack.bench.hostile` (`fire(estimator_url, focus_url)`, where that module exists;
+otherwise the step is skipped and the report says so) are fired at the estimator and
+the focus service. The report: scans completed, measurements lost (posted by a scan
 but not held by the estimator: must be 0), wrong results accepted (a measurement with
 the rogue's z: must be 0), results rejected, the faults, and the largest resident
 memory (VmHWM, /proc) of each service over all its processes.
@@ -237,23 +238,19 @@ def measurements_lost(estimator_url: str, report: dict[str, Any], log_path: Path
     return max(0, len(posted) - int(slide["n_acquisitions"]))
 
 
-def hostile_requests(stack: LocalStack, memory: MemoryWatch) -> str:
-    """Fire `focustrack.bench.hostile`'s requests at the REST services; what was done."""
+def hostile_requests(stack: LocalStack, memory: MemoryWatch) -> dict[str, int] | str:
+    """Fire `focustrack.bench.hostile`'s requests at the REST services: the status each got,
+    or why they were not fired. VmHWM keeps each service's peak, so sampling after is exact.
+    """
     try:
         hostile = importlib.import_module("focustrack.bench.hostile")
     except ImportError:
         return "skipped: focustrack.bench.hostile is not on this branch"
-    fire = getattr(hostile, "fire", None)
-    if fire is None:
-        return "skipped: focustrack.bench.hostile has no fire(base_url)"
-    for name, url in (
-        ("focus", f"http://127.0.0.1:{stack.focus_port}"),
-        ("estimator", stack.estimator_url),
-    ):
-        print(f"hostile REST requests at the {name} service ({url})", flush=True)
-        fire(url)
-        memory.sample(name)
-    return "fired at the focus service and the estimator"
+    focus_url = f"http://127.0.0.1:{stack.focus_port}"
+    print(f"hostile REST requests at {stack.estimator_url} and {focus_url}", flush=True)
+    statuses: dict[str, int] = hostile.fire(stack.estimator_url, focus_url)
+    memory.sample()
+    return statuses
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -327,7 +324,7 @@ def run(args: argparse.Namespace) -> int:
                 rogue.close()
             memory.sample()
             hostile = hostile_requests(stack, memory)
-            print(f"hostile REST requests: {hostile}", flush=True)
+            print(f"hostile REST requests: {json.dumps(hostile)}", flush=True)
             memory.sample()
     except KeyboardInterrupt:
         print("focustrack bench chaos: interrupted; services stopped", file=sys.stderr)
