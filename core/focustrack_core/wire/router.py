@@ -16,17 +16,18 @@ handler would ignore `stop` and be killed after the grace period.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 from pathlib import Path
 
 import zenoh
 
-from focustrack_core.config import with_environment
 from focustrack_core.wire.session import session_config
 
-#: Every option's environment variable is this prefix and its name (focustrack_core.config).
-ENV_PREFIX = "FOCUSTRACK_ROUTER_"
+#: The environment twin of --config (the one option a container sets: --listen is zenohd's
+#: repeatable flag, which compose passes as it is).
+CONFIG_ENV = "FOCUSTRACK_ROUTER_ZENOH_CONFIG"
 
 #: The signals that stop the router.
 STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
@@ -53,11 +54,12 @@ def parser() -> argparse.ArgumentParser:
         "--zenoh-config",
         dest="zenoh_config",
         type=Path,
+        default=os.environ.get(CONFIG_ENV) or None,
         metavar="FILE",
         help="a Zenoh JSON5 configuration: TLS, user/password, access control "
-        "(docs/security.md); --listen and the mode are written over it",
+        f"(docs/security.md); --listen and the mode are written over it [env {CONFIG_ENV}]",
     )
-    return with_environment(router, ENV_PREFIX)
+    return router
 
 
 def main(argv: list[str] | None = None) -> int:
