@@ -23,6 +23,7 @@ def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: P
     chaos = subprocess.run(command, capture_output=True, text=True, timeout=280)
     assert chaos.returncode == 0, chaos.stdout + chaos.stderr
     report = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 0
     assert report["scans_completed"] == len(report["scans"]) >= 1  # scans go on while faults do
     assert len(report["faults"]) == 2
     assert report["measurements_lost"] == 0

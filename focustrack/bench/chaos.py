@@ -18,7 +18,8 @@ otherwise the step is skipped and the report says so) are fired at the estimator
 the focus service. The report: scans completed, measurements lost (posted by a scan
 but not held by the estimator: must be 0), wrong results accepted (a measurement with
 the rogue's z: must be 0), results rejected, the faults, and the largest resident
-memory (VmHWM, /proc) of each service over all its processes.
+memory (VmHWM, /proc) of each service over all its processes; with `--json OUT`, a
+chart beside it (OUT with .png): the faults and scans on a time line, the memory.
 
     focustrack bench chaos [--scans 2 --faults 6 --seed 3] [--json OUT]
 """
@@ -164,9 +165,13 @@ class MemoryWatch:
 
 @dataclass
 class Fault:
+    """A kill: when (s since the script started), of which service, the outage chosen, and
+    when the restarted service answered again (its start-up included)."""
+
     at_s: float
     service: str
     down_s: float
+    back_at_s: float
 
 
 class FaultScript:
@@ -208,10 +213,9 @@ class FaultScript:
             print(f"[{at_s:6.1f} s] chaos: killed {victim}; down for {down_s:.1f} s", flush=True)
             time.sleep(down_s)
             self.stack.restart(victim)
-            print(
-                f"[{time.monotonic() - self.started_s:6.1f} s] chaos: {victim} is back", flush=True
-            )
-            self.done.append(Fault(round(at_s, 1), victim, round(down_s, 1)))
+            back_at_s = time.monotonic() - self.started_s
+            print(f"[{back_at_s:6.1f} s] chaos: {victim} is back", flush=True)
+            self.done.append(Fault(round(at_s, 1), victim, round(down_s, 1), round(back_at_s, 1)))
 
     def running(self) -> bool:
         return self._thread.is_alive()
@@ -319,6 +323,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 while len(scans) < args.scans or (chaos.running() and len(scans) < MAX_SCANS):
                     scans.append(scan_once(stack, args, len(scans), memory, rogue))
+                    scans[-1]["finished_at_s"] = round(time.monotonic() - chaos.started_s, 1)
             finally:
                 chaos.join()
                 rogue.close()
@@ -345,7 +350,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=2) + "\n")
-        print(f"wrote {args.json}")
+        chart(report, args.json.with_suffix(".png"))
+        print(f"wrote {args.json}, {args.json.with_suffix('.png')}")
     ok = (
         report["scans_completed"] == len(scans)
         and report["measurements_lost"] == 0
@@ -401,6 +407,42 @@ def scan_once(
     print(f"scan {index}: {'complete' if completed else 'NOT complete'} in {runs} run(s); "
           f"{json.dumps(figures)}", flush=True)  # fmt: skip
     return figures
+
+
+def chart(report: dict[str, Any], out: Path) -> None:
+    """The faults and scans on a time line; each service's peak memory against 1 GB."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (timeline, memory) = plt.subplots(
+        1, 2, figsize=(11, 3.5), gridspec_kw={"width_ratios": [2, 1]}
+    )
+    rows = {name: index for index, name in enumerate(VICTIMS)}
+    for fault in report["faults"]:
+        row, at_s = rows[fault["service"]], fault["at_s"]
+        timeline.barh(row, fault["back_at_s"] - at_s, left=at_s, color="tab:orange")
+        timeline.barh(row, fault["down_s"], left=at_s, color="tab:red")
+    for scan in report["scans"]:
+        colour = "tab:green" if scan["completed"] else "black"
+        timeline.axvline(scan["finished_at_s"], color=colour, ls=":", lw=1)
+    timeline.set_yticks(list(rows.values()), list(rows))
+    timeline.set_xlabel(
+        "s since the fault script started (red: down; orange: starting again; dotted: a scan ended)"
+    )
+    timeline.set_title(
+        f"{report['scans_completed']} scans complete, {report['measurements_lost']} "
+        f"measurements lost, {report['wrong_results_accepted']} wrong results taken"
+    )
+    names = list(report["peak_rss_mb"])
+    memory.bar(names, [report["peak_rss_mb"][name] for name in names])
+    memory.axhline(1024, color="red", ls="--", label="1 GB")
+    memory.set_ylabel("peak resident memory, MB")
+    memory.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
 
 
 def summary(report: dict[str, Any]) -> str:
