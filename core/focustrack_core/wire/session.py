@@ -77,7 +77,12 @@ def load_config_file(path: str | Path) -> zenoh.Config:
     try:
         return zenoh.Config.from_file(str(path))
     except zenoh.ZError as error:
-        raise ValueError(f"Zenoh config {path}: {error}") from None
+        raise ValueError(f"Zenoh config {path}: {zenoh_message(error)}") from None
+
+
+def zenoh_message(error: zenoh.ZError) -> str:
+    """Zenoh's message without the path of the Rust source it came from."""
+    return str(error).split(" at /", 1)[0]
 
 
 def session_config(
@@ -200,11 +205,6 @@ def config_from_args(
     )
 
 
-def session_from_args(args: argparse.Namespace) -> zenoh.Session:
-    """Open the session described by the options of `add_zenoh_arguments`."""
-    return zenoh.open(config_from_args(args))
-
-
 class BackgroundSession:
     """A Zenoh session opened on a thread of its own, tried again until the router answers.
 
@@ -237,7 +237,7 @@ class BackgroundSession:
             try:
                 session = zenoh.open(self._make_config())
             except zenoh.ZError as error:
-                self.last_error = str(error).split(" at /", 1)[0]  # without Zenoh's source path
+                self.last_error = zenoh_message(error)
                 if attempts == 1 or attempts % 10 == 0:
                     log.warning(
                         "the Zenoh router does not answer (attempt %d: %s); still trying",

@@ -30,7 +30,7 @@ from focustrack_client.models import ZRangePolicy
 from focustrack_core.config import command_main
 from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.wire import rpc
-from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, session_from_args
+from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, config_from_args
 from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
 from focustrack_scheduler.engine import (
@@ -318,11 +318,12 @@ def run(args: argparse.Namespace) -> int:
             mosaic_format=args.mosaic_format,
             trust=signer_of(args.result_key_file),
         )
+        config = config_from_args(args)  # a Zenoh config file it cannot use: exit 2
     except ValueError as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 2
     try:
-        with session_from_args(args) as session, live_server(args.live_port) as live:
+        with zenoh.open(config) as session, live_server(args.live_port) as live:
             if live is not None:
                 print(f"live view at {live.url}", flush=True)
             report = run_scan(session, replace(job, live=live))
