@@ -2,7 +2,8 @@
 
 Writes into OUT, with the openssl command:
 
-- ``ca.pem`` (and ``ca.key``: keep it elsewhere once done), a certificate authority;
+- ``ca.pem``, a certificate authority made for this bus (its key is deleted once it has
+  signed the router's certificate: nobody can sign another; run again to renew all);
 - ``router.pem`` / ``router.key``, the router's TLS certificate for `--host` names;
 - ``credentials.txt``, the router's password file: one random password per role;
 - ``router.json5``: TLS, the password file and the access-control list of
@@ -58,7 +59,9 @@ def make_certificates(folder: Path, hosts: list[str]) -> None:
     openssl(folder, "x509", "-req", "-in", "router.csr", "-CA", "ca.pem", "-CAkey", "ca.key",
             "-CAcreateserial", "-days", "825", "-extfile", "san.cnf",
             "-out", "router.pem")  # fmt: skip
-    for scratch in ("router.csr", "san.cnf", "ca.srl"):
+    # The CA signs the router's certificate once; without its key nobody who can read
+    # this folder (every container mounts it) can make another certificate it trusts.
+    for scratch in ("router.csr", "san.cnf", "ca.srl", "ca.key"):
         (folder / scratch).unlink(missing_ok=True)
 
 
@@ -138,5 +141,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"focustrack bus secrets: error: {error}", file=sys.stderr)
         return 1
     print(f"wrote the bus's certificates, passwords and configs to {args.out}")
-    print(f"keep {args.out / 'ca.key'} elsewhere: it signs certificates the services trust")
+    print("give the folder to the containers' user only: it holds every role's password")
     return 0

@@ -176,5 +176,6 @@ def test_the_secure_overlay_configures_every_role_with_options_its_command_accep
         config = zenoh.Config.from_file(str(tmp_path / f"{role}.json5"))
         assert "/run/focustrack/" in config.get_json("transport")
     assert (tmp_path / "result.key").stat().st_size > 32
+    assert not (tmp_path / "ca.key").exists()  # nobody who reads the folder can sign
     users = (tmp_path / "credentials.txt").read_text().split()
     assert sorted(line.split(":")[0] for line in users) == sorted(ROLES)
