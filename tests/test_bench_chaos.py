@@ -13,6 +13,7 @@ import pytest
 pytestmark = pytest.mark.slow  # services in processes, killed and started again
 
 
+@pytest.mark.timeout(600)  # four services started, two of them again, on a loaded machine
 def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: Path) -> None:
     out = tmp_path / "chaos.json"
     command = [
@@ -20,7 +21,7 @@ def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: P
         "--size", "96", "--scans", "1", "--seed", "1", "--faults", "2", "--gap-max-s", "3",
         "--down-max-s", "3", "--out", str(tmp_path / "work"), "--json", str(out),
     ]  # fmt: skip
-    chaos = subprocess.run(command, capture_output=True, text=True, timeout=280)
+    chaos = subprocess.run(command, capture_output=True, text=True, timeout=560)
     assert chaos.returncode == 0, chaos.stdout + chaos.stderr
     report = json.loads(out.read_text())
     assert out.with_suffix(".png").stat().st_size > 0
