@@ -41,6 +41,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.transport",
         "Zenoh frame streaming over TCP and shared memory against memcpy, and focus latency",
     ),
+    "bench chaos": (
+        "focustrack.bench.chaos",
+        "scans while the router and services are killed at random and a rogue peer lies",
+    ),
     "serve instrument": (
         "focustrack_instrument_sim.service",
         "the simulated microscope on Zenoh",
@@ -49,6 +53,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve estimator": ("focustrack_estimator.service", "the estimator REST service"),
     "scan": ("focustrack_scheduler.scan", "scan one slide through the services"),
     "demo": ("focustrack.demo", "embedded stack: scan a simulated slide"),
+    "bus secrets": (
+        "focustrack.bus_secrets",
+        "certificates, passwords and Zenoh configs of an authenticated bus",
+    ),
 }
 
 

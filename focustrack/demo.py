@@ -9,7 +9,10 @@ in-focus fraction and MAE against the instrument's truth, and where the wall tim
 went. While it scans it serves the live web view of the scan and prints its
 address; at the end it saves a screenshot of it (live_view.png, where chromium is
 installed), and each scan's mosaic is an OME-Zarr (`--mosaic-format ome-tiff`
-for the OME-TIFF). Everything is shut down on the way out, also on Ctrl-C.
+for the OME-TIFF). A service that dies is started again, and the demo says so; the
+focus service tags its results with a key made for the run, and the scans take only
+tagged results (docs/security.md). Everything is shut down on the way out, also on
+Ctrl-C.
 
     focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
 """
@@ -19,9 +22,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import secrets
 import shutil
 import signal
+import socket
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -35,6 +41,7 @@ import zenoh
 from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack_core.wire import rpc
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_core.wire.trust import ResultSigner
 from focustrack_estimator import registry
 from focustrack_instrument_sim.surfaces import FAMILIES
 from focustrack_scheduler.clients import wait_for_instrument
@@ -58,6 +65,8 @@ DEFAULT_STRATEGIES = (BEST_KALMAN, "survey-delaunay", "af-every-tile")
 INSTRUMENT = "sim"
 SLIDE = "slide-0"
 READY_TIMEOUT_S = 60.0
+#: How often the stack looks for a service that died.
+SUPERVISE_PERIOD_S = 0.5
 
 
 @dataclass
@@ -69,6 +78,10 @@ class Service:
     log_path: Path
     ready: Callable[[], bool]
     process: Popen | None = field(default=None, repr=False)
+
+    def died(self) -> int | None:
+        """The exit status of a process that ended (None while it runs or was never started)."""
+        return None if self.process is None else self.process.poll()
 
     def start(self) -> None:
         with self.log_path.open("a") as log_file:
@@ -106,6 +119,14 @@ class Service:
             self.kill()
 
 
+def _tcp_ready(port: int) -> Callable[[], bool]:
+    def ready() -> bool:
+        with socket.socket() as probe:
+            return probe.connect_ex(("127.0.0.1", port)) == 0
+
+    return ready
+
+
 def _http_ready(port: int) -> Callable[[], bool]:
     def ready() -> bool:
         try:
@@ -117,43 +138,75 @@ def _http_ready(port: int) -> Callable[[], bool]:
 
 
 class LocalStack:
-    """A Zenoh router (this process) and the three services on loopback, as a context manager.
+    """A Zenoh router and the three services on loopback, as a context manager.
 
     `instrument_args` are extra options of `focustrack serve instrument` (slides, frames).
+    The router runs in this process, or with `router_process` in one of its own (so it
+    can be killed and started again: `services["router"]`). With `supervise`, a service
+    that dies is started again, and a line on stderr says so. The instrument serves its
+    truth (evaluation); the focus service tags its results with `trust`'s key.
     """
 
-    def __init__(self, work_dir: Path, instrument_args: list[str]) -> None:
+    def __init__(
+        self,
+        work_dir: Path,
+        instrument_args: list[str],
+        *,
+        router_process: bool = False,
+        supervise: bool = False,
+    ) -> None:
         self.work_dir = Path(work_dir)
         (self.work_dir / "logs").mkdir(parents=True, exist_ok=True)
         self.endpoint = loopback_endpoint()
         self.estimator_port = free_port()
         self.estimator_url = f"http://127.0.0.1:{self.estimator_port}"
         self.store = self.work_dir / "estimator.sqlite"
+        self.result_key_file = self.work_dir / "result.key"
+        self.result_key_file.write_text(secrets.token_hex(32) + "\n")
+        self.result_key_file.chmod(0o600)
+        self.trust = ResultSigner.from_file(self.result_key_file)
         self.session: zenoh.Session | None = None
-        focus_port = free_port()
+        self.focus_port = free_port()
         serve = [sys.executable, "-m", "focustrack", "serve"]
         connect = ["--connect", self.endpoint]
         store = ["--store", str(self.store)]
-        self.services = {
+        logs = self.work_dir / "logs"
+        self.services: dict[str, Service] = {}
+        self.router_process = router_process
+        if router_process:
+            port = int(self.endpoint.rsplit(":", 1)[1])
+            self.services["router"] = Service(
+                "router",
+                [sys.executable, "-m", "focustrack_core.wire.router", "--listen", self.endpoint],
+                logs / "router.log",
+                _tcp_ready(port),
+            )
+        instrument = [*serve, "instrument", *connect, "--name", INSTRUMENT, "--serve-truth"]
+        focus = [*serve, "focus", *connect, "--result-key-file", str(self.result_key_file)]
+        self.services |= {
             "instrument": Service(
                 "instrument",
-                [*serve, "instrument", *connect, "--name", INSTRUMENT, *instrument_args],
-                self.work_dir / "logs" / "instrument.log",
+                [*instrument, *instrument_args],
+                logs / "instrument.log",
                 self._instrument_ready,
             ),
             "focus": Service(
                 "focus",
-                [*serve, "focus", *connect, "--port", str(focus_port)],
-                self.work_dir / "logs" / "focus.log",
-                _http_ready(focus_port),
+                [*focus, "--port", str(self.focus_port)],
+                logs / "focus.log",
+                _http_ready(self.focus_port),
             ),
             "estimator": Service(
                 "estimator",
                 [*serve, "estimator", "--port", str(self.estimator_port), *store],
-                self.work_dir / "logs" / "estimator.log",
+                logs / "estimator.log",
                 _http_ready(self.estimator_port),
             ),
         }
+        self.supervise = supervise
+        self.restarts: dict[str, int] = dict.fromkeys(self.services, 0)
+        self._closing = threading.Event()
+        self._supervisor: threading.Thread | None = None
 
     def _instrument_ready(self) -> bool:
         assert self.session is not None
@@ -164,16 +217,44 @@ class LocalStack:
             return False
 
     def __enter__(self) -> LocalStack:
-        self.session = open_session(listen=[self.endpoint], mode="router")
         try:
+            if self.router_process:
+                router = self.services["router"]
+                router.start()
+                router.wait_ready()
+                self.session = open_session(connect=[self.endpoint])
+            else:
+                self.session = open_session(listen=[self.endpoint], mode="router")
             for service in self.services.values():
-                service.start()
+                if service.process is None:
+                    service.start()
             for service in self.services.values():
                 service.wait_ready()
         except BaseException:
             self.close()
             raise
+        if self.supervise:
+            self._supervisor = threading.Thread(
+                target=self._watch, name="demo-supervisor", daemon=True
+            )
+            self._supervisor.start()
         return self
+
+    def _watch(self) -> None:
+        """Start again every service that died, saying so (until the stack closes)."""
+        while not self._closing.wait(SUPERVISE_PERIOD_S):
+            for name, service in self.services.items():
+                status = service.died()
+                if status is None or self._closing.is_set():
+                    continue
+                self.restarts[name] += 1
+                print(
+                    f"focustrack demo: {name} exited with status {status}; starting it again "
+                    f"(restart {self.restarts[name]}, log {service.log_path})",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                service.start()
 
     def restart(self, name: str) -> None:
         """Start service `name` again (after `kill` or `stop`) and wait until it answers."""
@@ -182,11 +263,17 @@ class LocalStack:
         service.wait_ready()
 
     def close(self) -> None:
+        self._closing.set()
+        if self._supervisor is not None:
+            self._supervisor.join()
         for service in reversed(self.services.values()):
-            service.stop()
+            if service.name != "router":
+                service.stop()
         if self.session is not None:
             self.session.close()
             self.session = None
+        if "router" in self.services:
+            self.services["router"].stop()
 
     def __exit__(self, *_: object) -> None:
         self.close()
@@ -260,7 +347,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scan_options(parser)
 
 
-def _stop_on_sigterm() -> None:
+def stop_on_sigterm() -> None:
+    """SIGTERM raises KeyboardInterrupt, so that `with LocalStack(...)` stops the services."""
+
     def interrupt(*_: object) -> None:
         raise KeyboardInterrupt
 
@@ -278,7 +367,7 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    _stop_on_sigterm()
+    stop_on_sigterm()
     out_dir: Path = args.out
     out_dir.mkdir(parents=True, exist_ok=True)
     for suffix in ("", "-wal", "-shm"):  # a demo run starts afresh (a stale WAL would replay)
@@ -296,7 +385,10 @@ def run(args: argparse.Namespace) -> int:
     reports: dict[str, dict[str, Any]] = {}
     try:
         started_s = time.perf_counter()
-        with LocalStack(out_dir, instrument_args) as stack, LiveServer(port=args.live_port) as live:
+        with (
+            LocalStack(out_dir, instrument_args, supervise=True) as stack,
+            LiveServer(port=args.live_port) as live,
+        ):
             assert stack.session is not None
             print(f"services ready in {time.perf_counter() - started_s:.1f} s", flush=True)
             print(f"live view at {live.url}", flush=True)
@@ -312,6 +404,7 @@ def run(args: argparse.Namespace) -> int:
                     label=name,
                     mosaic_format=args.mosaic_format,
                     live=live,
+                    trust=stack.trust,
                 )
                 reports[name] = run_scan(stack.session, job)
             try:  # the last scan's live view, for a person to look at

@@ -345,6 +345,7 @@ def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
         "SLIDE_ROWS": str(ROWS),
         "SLIDE_COLS": str(COLS),
         "FRAME_SIZE": str(SIZE),
+        "SERVE_TRUTH": "1",  # off by default: this test compares the scan with the truth
         # published on loopback only: the test reads the estimator's REST API
         "ESTIMATOR_PORT": f"127.0.0.1:{estimator_port}",
         "FOCUS_PORT": f"127.0.0.1:{focus_port}",

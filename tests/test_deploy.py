@@ -13,13 +13,16 @@ import argparse
 import importlib
 import importlib.util
 import re
+import shutil
 import tomllib
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
+import zenoh
 
+from focustrack.bus_secrets import ROLES, write_bus_files
 from focustrack_core import health
 from focustrack_core.config import with_environment
 from focustrack_core.wire import router
@@ -133,3 +136,46 @@ def test_services_run_on_a_read_only_root_and_the_router_can_be_ours(
     # same command; tests/test_containers.py runs it.
     args = router.parser().parse_args(zenoh["command"])
     assert args.listen == ["tcp/0.0.0.0:7447"] and args.no_multicast_scouting
+
+
+def test_the_secure_overlay_configures_every_role_with_options_its_command_accepts(
+    compose: dict[str, Any], tmp_path: Path
+) -> None:
+    secure = yaml.safe_load((ROOT / "compose.secure.yaml").read_text())
+    services = secure["services"]
+    assert set(services) == {"zenoh", "instrument", "focus", "scheduler"}  # not the estimator
+    for spec in services.values():
+        assert [defaults(v) for v in spec["volumes"]] == ["./deploy/secrets:/run/focustrack:ro"]
+        assert "ports" not in spec
+    args = router.parser().parse_args(services["zenoh"]["command"])
+    assert args.listen == ["tls/0.0.0.0:7447"]
+    assert str(args.zenoh_config) == "/run/focustrack/router.json5"
+    for name in ("instrument", "focus", "scheduler"):
+        module = importlib.import_module(SERVICES[name][1])
+        parser = argparse.ArgumentParser()
+        module.add_arguments(parser)
+        merged = compose["services"][name]["environment"] | services[name]["environment"]
+        environ = {key: defaults(value) for key, value in merged.items()}
+        args = with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
+        assert args.connect == ["tls/zenoh:7447"]
+        assert str(args.zenoh_config) == f"/run/focustrack/{name}.json5"
+        if name != "instrument":
+            assert str(args.result_key_file) == "/run/focustrack/result.key"
+        else:
+            assert args.serve_truth is False and args.queue_depth >= 1
+    probe = [defaults(word) for word in services["instrument"]["healthcheck"]["test"]]
+    checked = health.parser().parse_args(probe[4:])
+    assert checked.connect == ["tls/zenoh:7447"]
+    assert str(checked.zenoh_config) == "/run/focustrack/health.json5"
+
+    # `focustrack bus secrets` writes every file those paths name, each a valid Zenoh config.
+    if shutil.which("openssl") is None:
+        pytest.skip("the openssl command is needed for `focustrack bus secrets`")
+    write_bus_files(tmp_path, ["zenoh"], Path("/run/focustrack"))
+    for role in ("router", *ROLES):
+        config = zenoh.Config.from_file(str(tmp_path / f"{role}.json5"))
+        assert "/run/focustrack/" in config.get_json("transport")
+    assert (tmp_path / "result.key").stat().st_size > 32
+    assert not (tmp_path / "ca.key").exists()  # nobody who reads the folder can sign
+    users = (tmp_path / "credentials.txt").read_text().split()
+    assert sorted(line.split(":")[0] for line in users) == sorted(ROLES)

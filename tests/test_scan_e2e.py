@@ -182,7 +182,7 @@ def test_a_missing_instrument_or_estimator_is_reported_not_waited_for(
     stack: LocalStack, tmp_path: Path
 ) -> None:
     started_s = time.monotonic()
-    command = scan_command(stack, tmp_path / "a", "--instrument-attempts", "2")
+    command = scan_command(stack, tmp_path / "a", "--instrument-outage-s", "2")
     command[command.index("--instrument") + 1] = "nosuch"
     missing = subprocess.run(command, capture_output=True, text=True, timeout=60)
     assert missing.returncode == 1

@@ -2,6 +2,7 @@
 
     python -m focustrack_core.health --http http://127.0.0.1:8100/healthz
     python -m focustrack_core.health --instrument sim --connect tcp/zenoh:7447
+    python -m focustrack_core.health --instrument sim --connect tls/zenoh:7447 --zenoh-config F
 
 `--http` needs nothing but the standard library (the estimator's image has no
 Zenoh); `--instrument` asks the instrument's info queryable over Zenoh.
@@ -14,6 +15,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from pathlib import Path
 
 
 def parser() -> argparse.ArgumentParser:
@@ -21,6 +23,9 @@ def parser() -> argparse.ArgumentParser:
     probe.add_argument("--http", metavar="URL", help="a /healthz URL that must answer 200")
     probe.add_argument("--instrument", metavar="NAME", help="an instrument that must answer")
     probe.add_argument("--connect", nargs="*", default=[], metavar="ENDPOINT")
+    probe.add_argument(
+        "--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 config (TLS, credentials)"
+    )
     probe.add_argument("--timeout-s", type=float, default=5.0)
     return probe
 
@@ -32,14 +37,18 @@ def probe_http(url: str, timeout_s: float) -> None:
             raise OSError(f"{url} answered HTTP {response.status}")
 
 
-def probe_instrument(name: str, connect: list[str], timeout_s: float) -> None:
+def probe_instrument(
+    name: str, connect: list[str], timeout_s: float, config_file: Path | None = None
+) -> None:
     """Return once instrument `name` answers its info query; raise RemoteError if it does not."""
     from focustrack_core.v1 import instrument_pb2
     from focustrack_core.wire import keys, rpc
     from focustrack_core.wire.session import open_session
 
     deadline_s = time.monotonic() + timeout_s
-    with open_session(connect=connect, connect_timeout_s=timeout_s) as session:
+    with open_session(
+        connect=connect, connect_timeout_s=timeout_s, config_file=config_file
+    ) as session:
         while True:
             try:
                 rpc.call(
@@ -62,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.http:
             probe_http(args.http, args.timeout_s)
         if args.instrument:
-            probe_instrument(args.instrument, args.connect, args.timeout_s)
+            probe_instrument(args.instrument, args.connect, args.timeout_s, args.zenoh_config)
     except Exception as error:  # any failure is "unhealthy", with its reason
         print(f"unhealthy: {type(error).__name__}: {error}", file=sys.stderr)
         return 1

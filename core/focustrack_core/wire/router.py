@@ -5,18 +5,29 @@
 It takes the official router's (zenohd's) flags that compose.yaml passes, so the
 `zenoh` service keeps one command whichever image runs it: `--listen` (repeatable)
 and `--no-multicast-scouting` (accepted for that reason; multicast scouting is always
-off in our sessions). It routes until SIGTERM or SIGINT, then closes its session and
-exits 0: as a container's PID 1, a process without a SIGTERM handler would ignore
-`stop` and be killed after the grace period.
+off in our sessions), and `--config FILE` (zenohd's name; `--zenoh-config` as our
+services call it, or FOCUSTRACK_ROUTER_ZENOH_CONFIG): a Zenoh JSON5 file for TLS,
+user/password authentication and access control (docs/security.md), which the listen
+endpoints and the mode are written over. It routes until SIGTERM or SIGINT, then
+closes its session and exits 0: as a container's PID 1, a process without a SIGTERM
+handler would ignore `stop` and be killed after the grace period.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
+from pathlib import Path
 
-from focustrack_core.wire.session import open_session
+import zenoh
+
+from focustrack_core.wire.session import session_config
+
+#: The environment twin of --config (the one option a container sets: --listen is zenohd's
+#: repeatable flag, which compose passes as it is).
+CONFIG_ENV = "FOCUSTRACK_ROUTER_ZENOH_CONFIG"
 
 #: The signals that stop the router.
 STOP_SIGNALS = {signal.SIGTERM, signal.SIGINT}
@@ -37,15 +48,36 @@ def parser() -> argparse.ArgumentParser:
         action="store_true",
         help="accepted for zenohd compatibility; multicast scouting is always off",
     )
+    router.add_argument(
+        "-c",
+        "--config",
+        "--zenoh-config",
+        dest="zenoh_config",
+        type=Path,
+        default=os.environ.get(CONFIG_ENV) or None,
+        metavar="FILE",
+        help="a Zenoh JSON5 configuration: TLS, user/password, access control "
+        f"(docs/security.md); --listen and the mode are written over it [env {CONFIG_ENV}]",
+    )
     return router
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    try:
+        config = session_config(listen=args.listen, mode="router", config_file=args.zenoh_config)
+    except ValueError as error:  # a file Zenoh cannot use
+        print(f"zenoh router: error: {error}", file=sys.stderr)
+        return 2
     # Blocked before the session opens, so Zenoh's threads inherit the mask and the
     # signals wait for `sigwait` in this thread.
     signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    with open_session(listen=args.listen, mode="router"):
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as error:  # e.g. the endpoint is in use
+        print(f"zenoh router: error: {error}", file=sys.stderr)
+        return 2
+    with session:
         print(f"zenoh router listening on {' '.join(args.listen)}", file=sys.stderr, flush=True)
         received = signal.sigwait(STOP_SIGNALS)
     print(f"zenoh router stopped by {signal.Signals(received).name}", file=sys.stderr)

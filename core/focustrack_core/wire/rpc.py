@@ -27,6 +27,9 @@ ErrorCode = common_pb2.ErrorCode
 #: Codes that say nobody answered (not that a service refused): worth trying again.
 UNANSWERED = frozenset({ErrorCode.ERROR_CODE_TIMEOUT, ErrorCode.ERROR_CODE_UNAVAILABLE})
 
+#: Codes worth trying again after a pause: nobody answered, or the service is busy.
+RETRYABLE = UNANSWERED | {ErrorCode.ERROR_CODE_BUSY}
+
 
 def protobuf_encoding(message_type: type[Message]) -> zenoh.Encoding:
     """``application/protobuf;<full message name>``."""

@@ -13,16 +13,34 @@ them without a copy; a link to a session that has it off, or to another host, ca
 the bytes over the network instead, by itself. It is off by default: with it on, a
 focus service killed mid-scan and restarted answered no stack in our end-to-end test
 (zenoh 1.10, tests/test_scan_e2e.py; proto/README.md has what is known).
+
+A Zenoh configuration file (``--zenoh-config FILE``, JSON5, Zenoh's own format) carries
+what our options do not: TLS, user/password authentication, access control, tuning
+(docs/security.md). Precedence: the file is read first, then our options are written
+over it, always: the mode, the connect and listen endpoints (the flags', else the
+command's defaults), multicast scouting (off), the connect timeout and retry, and
+shared memory. So a file never changes where a service connects; the flags do.
+
+`BackgroundSession` opens a session without blocking its caller and keeps trying
+until the router answers, so a service starts before the router and connects when
+it appears (its health says ``degraded`` meanwhile). Once open, a client session
+reconnects to a restarted router by itself and declares its subscribers and
+queryables again (checked with zenoh 1.10).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import socket
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import zenoh
+
+log = logging.getLogger(__name__)
 
 #: Where the embedded peer listens unless told otherwise.
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -31,6 +49,12 @@ MODES = ("peer", "client", "router")
 
 #: How long opening a session waits for a connect endpoint to come up.
 CONNECT_TIMEOUT_S = 30.0
+
+#: How long one attempt of `BackgroundSession` waits for the router before the next.
+ATTEMPT_TIMEOUT_S = 2.0
+
+#: The longest pause between two attempts of `BackgroundSession` (it doubles up to this).
+RETRY_MAX_S = 5.0
 
 #: A good shared-memory pool for a pixel publisher, MB: 10 frames of 2048 x 2048 RGB uint16.
 SHARED_MEMORY_MB = 256
@@ -55,12 +79,26 @@ def loopback_endpoint(port: int | None = None) -> str:
     return f"tcp/127.0.0.1:{free_port() if port is None else port}"
 
 
+def load_config_file(path: str | Path) -> zenoh.Config:
+    """A Zenoh JSON5 configuration file; ValueError naming the file when it cannot be used."""
+    try:
+        return zenoh.Config.from_file(str(path))
+    except zenoh.ZError as error:
+        raise ValueError(f"Zenoh config {path}: {zenoh_message(error)}") from None
+
+
+def zenoh_message(error: zenoh.ZError) -> str:
+    """Zenoh's message without the path of the Rust source it came from."""
+    return str(error).split(" at /", 1)[0]
+
+
 def session_config(
     connect: Sequence[str] = (),
     listen: Sequence[str] = (),
     mode: str | None = None,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
     shared_memory: bool = False,
+    config_file: str | Path | None = None,
 ) -> zenoh.Config:
     """A Zenoh config with these endpoints and multicast scouting off.
 
@@ -68,14 +106,15 @@ def session_config(
     Opening keeps retrying the connect endpoints for `connect_timeout_s`, so
     services may start in any order. `shared_memory` lets the session exchange
     shared-memory buffers with peers on this host (off: every byte goes over the
-    network, also from a peer that sends shared memory).
+    network, also from a peer that sends shared memory). `config_file` (Zenoh's
+    JSON5) is the base that these options are written over (see the module's doc).
     """
     if not connect and not listen:
         raise ValueError("a Zenoh session needs at least one --connect or --listen endpoint")
     mode = mode or ("peer" if listen else "client")
     if mode not in MODES:
         raise ValueError(f"unknown Zenoh mode {mode!r}; use one of {', '.join(MODES)}")
-    config = zenoh.Config()
+    config = zenoh.Config() if config_file is None else load_config_file(config_file)
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
@@ -95,12 +134,16 @@ def open_session(
     mode: str | None = None,
     connect_timeout_s: float = CONNECT_TIMEOUT_S,
     shared_memory: bool = False,
+    config_file: str | Path | None = None,
 ) -> zenoh.Session:
     """Open a session (see `session_config`); close it with `session.close()` or `with`.
 
-    Raises zenoh.ZError when no connect endpoint answers within `connect_timeout_s`.
+    Raises zenoh.ZError when no connect endpoint answers within `connect_timeout_s`
+    (or the router refuses the session: wrong credentials or certificates).
     """
-    return zenoh.open(session_config(connect, listen, mode, connect_timeout_s, shared_memory))
+    return zenoh.open(
+        session_config(connect, listen, mode, connect_timeout_s, shared_memory, config_file)
+    )
 
 
 def add_zenoh_arguments(
@@ -130,6 +173,13 @@ def add_zenoh_arguments(
         help="Zenoh mode (default: peer when listening, client when only connecting)",
     )
     group.add_argument(
+        "--zenoh-config",
+        type=Path,
+        metavar="FILE",
+        help="a Zenoh JSON5 configuration (TLS, user/password, access control; "
+        "docs/security.md); the options above are written over it",
+    )
+    group.add_argument(
         "--shared-memory",
         type=int,
         default=0,
@@ -143,8 +193,10 @@ def add_zenoh_arguments(
     )
 
 
-def session_from_args(args: argparse.Namespace) -> zenoh.Session:
-    """Open the session described by the options of `add_zenoh_arguments`."""
+def config_from_args(
+    args: argparse.Namespace, connect_timeout_s: float = CONNECT_TIMEOUT_S
+) -> zenoh.Config:
+    """The Zenoh config described by the options of `add_zenoh_arguments` (ValueError if bad)."""
     if args.connect is None and args.listen is None:
         connect, listen = args.zenoh_default_connect, args.zenoh_default_listen
     else:
@@ -153,7 +205,89 @@ def session_from_args(args: argparse.Namespace) -> zenoh.Session:
         raise ValueError(
             f"--shared-memory must be 0 (off) or a pool size in MB, got {args.shared_memory}"
         )
-    return open_session(connect, listen, args.mode, shared_memory=args.shared_memory > 0)
+    return session_config(
+        connect,
+        listen,
+        args.mode,
+        connect_timeout_s,
+        shared_memory=args.shared_memory > 0,
+        config_file=args.zenoh_config,
+    )
+
+
+class BackgroundSession:
+    """A Zenoh session opened on a thread of its own, tried again until the router answers.
+
+    `on_open(session)` runs once, on that thread, when the session is open (declare
+    subscribers and queryables there). `health()` is ``degraded`` until then and while
+    the session has no router or peer, ``ok`` otherwise. `make_config` is called for
+    each attempt (opening uses a zenoh.Config up); give it a short connect timeout
+    (`ATTEMPT_TIMEOUT_S`), so that `close` does not wait long.
+    """
+
+    def __init__(
+        self,
+        make_config: Callable[[], zenoh.Config],
+        on_open: Callable[[zenoh.Session], None] = lambda _: None,
+    ) -> None:
+        self.session: zenoh.Session | None = None
+        self.last_error = ""
+        self._make_config = make_config
+        self._on_open = on_open
+        self._opened = threading.Event()
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._open, name="zenoh-open", daemon=True)
+        self._thread.start()
+
+    def _open(self) -> None:
+        pause_s = 0.25
+        attempts = 0
+        while not self._closing.is_set():
+            attempts += 1
+            try:
+                session = zenoh.open(self._make_config())
+            except zenoh.ZError as error:
+                self.last_error = zenoh_message(error)
+                if attempts == 1 or attempts % 10 == 0:
+                    log.warning(
+                        "the Zenoh router does not answer (attempt %d: %s); still trying",
+                        attempts,
+                        self.last_error,
+                    )
+                self._closing.wait(pause_s)
+                pause_s = min(RETRY_MAX_S, 2 * pause_s)
+                continue
+            if self._closing.is_set():  # closed while this attempt was under way
+                session.close()
+                return
+            self.session = session
+            self._on_open(session)
+            self._opened.set()
+            log.info("Zenoh session open after %d attempt(s)", attempts)
+            return
+
+    def wait(self, timeout_s: float | None = None) -> zenoh.Session | None:
+        """The session once it is open and ready; None after `timeout_s` or when closed."""
+        self._opened.wait(timeout_s)
+        return self.session if self._opened.is_set() else None
+
+    def health(self) -> dict[str, str]:
+        """``status`` ok, or degraded while not open or without a router or peer; ``zenoh``
+        says which (for /healthz and logs)."""
+        session = self.session if self._opened.is_set() else None
+        if session is None:
+            return {"status": "degraded", "zenoh": f"connecting: {self.last_error or '...'}"}
+        info = session.info
+        if not (info.routers_zid() or info.peers_zid()):
+            return {"status": "degraded", "zenoh": "open, no router or peer reachable"}
+        return {"status": "ok", "zenoh": "connected"}
+
+    def close(self) -> None:
+        self._closing.set()
+        self._thread.join(ATTEMPT_TIMEOUT_S + 1.0)
+        if self.session is not None:
+            self.session.close()
+            self.session = None
 
 
 def shm_pool_bytes(args: argparse.Namespace) -> int:

@@ -8,6 +8,12 @@ Frames are taken from a bounded FIFO by one worker thread, so a burst waits (bac
 pressure to the publisher) instead of piling up without bound. Whole-stack messages
 (``focustrack/v1/zstack/...``) are for other subscribers; this service does not read them.
 REST: the FastAPI app of `app.py`, served by uvicorn on --host/--port.
+
+With ``--result-key-file`` every result carries an HMAC of it in its attachment, which
+the scheduler checks (`focustrack_core.wire.trust`, docs/security.md). The REST API
+comes up at once; the Zenoh session is opened in the background and tried again until
+the router answers, so the service starts before the router (``/healthz`` says
+``degraded`` until the session is open and linked).
 """
 
 from __future__ import annotations
@@ -18,11 +24,16 @@ import sys
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import uvicorn
 import zenoh
+from fastapi import FastAPI
+from fastapi.routing import APIRoute
 
 from focustrack_core.config import command_main
 from focustrack_core.serving import refuse_open_network
@@ -30,7 +41,14 @@ from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
 from focustrack_core.wire.codec import decode_zframe
 from focustrack_core.wire.rpc import protobuf_encoding
-from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, session_from_args
+from focustrack_core.wire.session import (
+    ATTEMPT_TIMEOUT_S,
+    DEFAULT_ENDPOINT,
+    BackgroundSession,
+    add_zenoh_arguments,
+    config_from_args,
+)
+from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
@@ -163,9 +181,16 @@ class FrameAnalyser:
 class ZenohFocusWorker:
     """Subscribes to z-stack frames and publishes their focus results, on its own thread."""
 
-    def __init__(self, session: zenoh.Session, settings: FocusSettings, na: float | None = None):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        settings: FocusSettings,
+        na: float | None = None,
+        signer: ResultSigner | None = None,
+    ):
         self.session = session
         self.analyser = FrameAnalyser(settings, na)
+        self.signer = signer
         self.n_published = 0
         self._subscriber = session.declare_subscriber(
             ZFRAME_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
@@ -184,11 +209,14 @@ class ZenohFocusWorker:
                 continue
             if message is None:
                 continue
+            key_expr = keys.focus_key(message.slide, message.row, message.col)
+            payload = message.SerializeToString()
             self.session.put(
-                keys.focus_key(message.slide, message.row, message.col),
-                message.SerializeToString(),
+                key_expr,
+                payload,
                 encoding=FOCUS_RESULT_ENCODING,
                 congestion_control=zenoh.CongestionControl.BLOCK,
+                attachment=None if self.signer is None else self.signer.tag(key_expr, payload),
             )
             self.n_published += 1
 
@@ -216,6 +244,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "pixel size and --na; 2 px where a stack gives no pixel size)",
     )
     parser.add_argument("--na", type=float, default=0.85, help="numerical aperture (0.85)")
+    parser.add_argument(
+        "--result-key-file",
+        type=Path,
+        metavar="FILE",
+        help="shared key: tag every result with its HMAC, for the scheduler to check "
+        "(docs/security.md)",
+    )
     parser.add_argument(
         "--min-structure-snr",
         type=float,
@@ -298,27 +333,50 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     settings = settings_from_args(args)
     na = None if args.lowpass_sigma_px is not None else args.na
-    session = session_from_args(args)
-    worker = ZenohFocusWorker(session, settings, na)
+    try:
+        config_from_args(args)  # a bad option or config file ends the command here, not later
+        signer = signer_of(args.result_key_file)
+    except ValueError as error:
+        log.error("%s", error)
+        return 2
+    workers: list[ZenohFocusWorker] = []
+    bus = BackgroundSession(
+        lambda: config_from_args(args, ATTEMPT_TIMEOUT_S),
+        lambda session: workers.append(ZenohFocusWorker(session, settings, na, signer)),
+    )
     log.info(
-        "focus service: zenoh %s -> %s/focus/..., http://%s:%d (metric %s)",
+        "focus service: zenoh %s -> %s/focus/... (results %s), http://%s:%d (metric %s)",
         ZFRAME_SUBSCRIPTION,
         keys.PREFIX,
+        "tagged" if signer is not None else "untagged",
         args.host,
         args.port,
         args.metric,
     )
     started = time.perf_counter()
     try:
-        app = create_app(settings, limits, args.token or None)
+        app = with_bus_health(create_app(settings, limits, args.token or None), bus.health)
         uvicorn.run(app, host=args.host, port=args.port, log_level="info")
     finally:
-        worker.close()
-        session.close()
-        log.info(
-            "published %d results in %.0f s", worker.n_published, time.perf_counter() - started
-        )
+        for worker in workers:
+            worker.close()
+        bus.close()
+        published = sum(worker.n_published for worker in workers)
+        log.info("published %d results in %.0f s", published, time.perf_counter() - started)
     return 0
+
+
+def with_bus_health(app: FastAPI, bus_health: Callable[[], dict[str, str]]) -> FastAPI:
+    """`app` whose ``/healthz`` also reports the Zenoh session (``status`` degraded while it
+    is not open or has no router). The REST app knows nothing of Zenoh; its shell adds it."""
+    rest = next(r for r in app.router.routes if isinstance(r, APIRoute) and r.path == "/healthz")
+    app.router.routes.remove(rest)
+
+    @app.get("/healthz")
+    def healthz() -> dict[str, Any]:
+        return rest.endpoint() | bus_health()
+
+    return app
 
 
 #: Every option's environment variable is this prefix and its name (focustrack_core.config).

@@ -7,12 +7,17 @@ Queryables (key space in proto/README.md):
   subscribes to it, then AcquireReply (header and timing) comes back. Bad requests
   get an Error reply; the service keeps running.
 - ``focustrack/v1/instrument/{name}/info``: InstrumentInfo (slides, limits, optics).
-- ``focustrack/v1/eval/truth/{name}/{slide}``: SlideTruth, for evaluation code only.
+- ``focustrack/v1/eval/truth/{name}/{slide}``: SlideTruth, for evaluation code only, and
+  only with ``--serve-truth``.
 
 Acquisitions run one at a time on the main thread (there is one stage), which
 publishes each frame while the render threads work on the next ones; info and truth
-are answered on Zenoh's threads. Pixels go through Zenoh shared memory to subscribers
-on this host (``--shared-memory``), over the network to the others.
+are answered on Zenoh's threads. At most `--queue-depth` acquisitions wait for the
+stage; one more is refused at once with ERROR_CODE_BUSY (the caller backs off and
+asks again), so a burst of requests cannot make a normal one wait behind all of it.
+The truth queryable is declared only with `--serve-truth` (benchmarks and tests):
+the ground truth is not on the bus unless asked for. Pixels go through Zenoh shared
+memory to subscribers on this host (``--shared-memory``), over the network to the others.
 """
 
 from __future__ import annotations
@@ -31,9 +36,11 @@ from focustrack_core.config import command_main
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.session import (
+    ATTEMPT_TIMEOUT_S,
     DEFAULT_ENDPOINT,
+    BackgroundSession,
     add_zenoh_arguments,
-    session_from_args,
+    config_from_args,
     shm_pool_bytes,
 )
 from focustrack_instrument_sim.microscope import (
@@ -50,6 +57,9 @@ from focustrack_instrument_sim.stage import StageSpec
 from focustrack_instrument_sim.surfaces import FAMILIES, family_spec
 
 log = logging.getLogger(__name__)
+
+#: Acquisitions that may wait for the stage; one more is refused BUSY.
+QUEUE_DEPTH = 4
 
 ERROR_CODES = {
     Refusal.MALFORMED: rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST,
@@ -71,7 +81,11 @@ class InstrumentService:
         *,
         realtime: bool = False,
         shm_pool_bytes: int = 0,
+        queue_depth: int = QUEUE_DEPTH,
+        serve_truth: bool = False,
     ) -> None:
+        if queue_depth < 1:
+            raise ValueError(f"queue_depth must be at least 1, got {queue_depth}")
         self.microscope = microscope
         self.session = session
         self.publisher = codec.PixelPublisher(session, shm_pool_bytes)
@@ -79,7 +93,9 @@ class InstrumentService:
         self.realtime = realtime
         self.stop = threading.Event()
         self._acquire_key = keys.acquire_key(name)
-        self._pending: queue.Queue[zenoh.Query] = queue.Queue()
+        self._pending: queue.Queue[zenoh.Query] = queue.Queue(maxsize=queue_depth)
+        self.serve_truth = serve_truth
+        self.n_busy = 0  # acquisitions refused because the queue was full
         self._declared: list = []
         self._frames: list[np.ndarray] = []  # frame buffers, reused from stack to stack
 
@@ -87,15 +103,32 @@ class InstrumentService:
         """Declare the queryables (the instrument becomes visible)."""
         info_key = keys.info_key(self.name)
         self._declared = [
-            self.session.declare_queryable(self._acquire_key, self._pending.put),
+            self.session.declare_queryable(self._acquire_key, self._enqueue),
             self.session.declare_queryable(
                 info_key, lambda query: rpc.answer(query, info_key, self._info)
             ),
-            self.session.declare_queryable(
-                keys.truth_pattern(self.name),
-                lambda query: rpc.answer(query, str(query.key_expr), self._truth),
-            ),
         ]
+        if self.serve_truth:
+            self._declared.append(
+                self.session.declare_queryable(
+                    keys.truth_pattern(self.name),
+                    lambda query: rpc.answer(query, str(query.key_expr), self._truth),
+                )
+            )
+
+    def _enqueue(self, query: zenoh.Query) -> None:
+        """Queue an acquisition for the stage, or refuse it BUSY when the queue is full."""
+        try:
+            self._pending.put_nowait(query)
+        except queue.Full:
+            self.n_busy += 1
+            rpc.answer(query, self._acquire_key, self._busy)
+
+    def _busy(self, _query: zenoh.Query) -> instrument_pb2.AcquireReply:
+        raise rpc.RequestError(
+            rpc.ErrorCode.ERROR_CODE_BUSY,
+            f"{self._pending.maxsize} acquisition(s) already wait for the stage; try again",
+        )
 
     def serve(self) -> None:
         """Answer acquisition requests, one at a time, until `stop` is set."""
@@ -268,6 +301,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     scope.add_argument(
         "--realtime", action="store_true", help="pace acquisitions at their simulated duration"
     )
+    scope.add_argument(
+        "--queue-depth",
+        type=int,
+        default=QUEUE_DEPTH,
+        help=f"acquisitions that may wait for the stage; more are refused BUSY ({QUEUE_DEPTH})",
+    )
+    parser.add_argument(
+        "--serve-truth",
+        action="store_true",
+        help="answer the ground truth (focustrack/v1/eval/truth/...): benchmarks and tests only",
+    )
 
 
 def microscope_from_args(args: argparse.Namespace) -> Microscope:
@@ -293,35 +337,60 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     try:
         microscope = microscope_from_args(args)
+        config_from_args(args)  # a bad option or config file ends the command here, not later
+        if args.queue_depth < 1:
+            raise ValueError(f"--queue-depth must be at least 1, got {args.queue_depth}")
     except ValueError as error:
         log.error("%s", error)
         return 2
-    with session_from_args(args) as session:
-        service = InstrumentService(
-            microscope,
-            session,
-            args.name,
-            realtime=args.realtime,
-            shm_pool_bytes=shm_pool_bytes(args),
-        )
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, lambda *_: service.stop.set())
-        service.start()
-        first = next(iter(microscope.slides.values()))
-        log.info(
-            "instrument %r ready: %d slide(s) of %dx%d tiles, %dx%d px frames, DoF %.2f um",
-            service.name,
-            len(microscope.slides),
-            first.grid.rows,
-            first.grid.cols,
-            microscope.spec.width,
-            microscope.spec.height,
-            microscope.spec.optics.depth_of_field_um,
-        )
-        service.serve()
-        service.close()
-    microscope.close()
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    # The stage waits for the bus; a router that comes later is connected to then.
+    bus = BackgroundSession(lambda: config_from_args(args, ATTEMPT_TIMEOUT_S))
+    try:
+        session = None
+        while session is None and not stop.is_set():
+            session = bus.wait(1.0)
+        if session is not None:
+            serve(microscope, session, args, stop)
+    finally:
+        bus.close()
+        microscope.close()
     return 0
+
+
+def serve(
+    microscope: Microscope, session: zenoh.Session, args: argparse.Namespace, stop: threading.Event
+) -> None:
+    """Run the instrument on an open session until `stop` is set."""
+    service = InstrumentService(
+        microscope,
+        session,
+        args.name,
+        realtime=args.realtime,
+        shm_pool_bytes=shm_pool_bytes(args),
+        queue_depth=args.queue_depth,
+        serve_truth=args.serve_truth,
+    )
+    service.stop = stop
+    service.start()
+    first = next(iter(microscope.slides.values()))
+    log.info(
+        "instrument %r ready: %d slide(s) of %dx%d tiles, %dx%d px frames, DoF %.2f um, "
+        "queue %d, truth %s",
+        service.name,
+        len(microscope.slides),
+        first.grid.rows,
+        first.grid.cols,
+        microscope.spec.width,
+        microscope.spec.height,
+        microscope.spec.optics.depth_of_field_um,
+        args.queue_depth,
+        "served" if args.serve_truth else "off",
+    )
+    service.serve()
+    service.close()
 
 
 #: Every option's environment variable is this prefix and its name (focustrack_core.config).

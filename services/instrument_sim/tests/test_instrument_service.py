@@ -25,7 +25,7 @@ def instrument() -> Iterator[str]:
     command = [
         sys.executable, "-m", "focustrack_instrument_sim", "--listen", endpoint,
         "--name", "sim", "--seed", "3", "--slides", "2", "--rows", "4", "--cols", "5",
-        "--width", str(SIZE), "--height", str(SIZE), "--max-frames", "25",
+        "--width", str(SIZE), "--height", str(SIZE), "--max-frames", "25", "--serve-truth",
     ]  # fmt: skip
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:

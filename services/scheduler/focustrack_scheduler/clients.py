@@ -24,6 +24,7 @@ from focustrack_core.domain import Acquisition
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.v1 import focus_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
+from focustrack_core.wire.trust import ResultSigner
 from focustrack_scheduler.plan import SlideGeometry
 
 log = logging.getLogger(__name__)
@@ -185,12 +186,19 @@ OPEN_STACKS = 8
 class SlideListener:
     """Subscribes to the frames and focus results of one slide; close it when done.
 
-    A stack enters `stacks` once its last frame is in.
+    A stack enters `stacks` once its last frame is in. With a `trust` key, a focus
+    result enters `focus` only when its attachment is that key's tag of it
+    (`focustrack_core.wire.trust`); the others are dropped, logged and counted in
+    `n_rejected`.
     """
 
-    def __init__(self, session: zenoh.Session, slide: str) -> None:
+    def __init__(
+        self, session: zenoh.Session, slide: str, trust: ResultSigner | None = None
+    ) -> None:
         self.stacks: Inbox[Stack] = Inbox()
         self.focus: Inbox[focus_pb2.FocusResult] = Inbox()
+        self.trust = trust
+        self.n_rejected = 0
         self._gathering: OrderedDict[tuple[str, int, float], list[np.ndarray | None]] = (
             OrderedDict()
         )
@@ -221,10 +229,23 @@ class SlideListener:
         self.stacks.put(header.sequence, (header, tuple(f for f in frames if f is not None)))
 
     def _on_focus(self, sample: zenoh.Sample) -> None:
+        key_expr = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
+        if self.trust is not None:
+            tag = None if sample.attachment is None else sample.attachment.to_bytes()
+            if not self.trust.verify(key_expr, payload, tag):
+                self.n_rejected += 1  # only Zenoh's callback thread counts
+                log.warning(
+                    "focus result on %s rejected (%d so far): %s",
+                    key_expr,
+                    self.n_rejected,
+                    "no tag" if tag is None else "wrong tag: not from the trusted focus service",
+                )
+                return
         try:
-            result = focus_pb2.FocusResult.FromString(sample.payload.to_bytes())
+            result = focus_pb2.FocusResult.FromString(payload)
         except Exception as error:  # a DecodeError; logged, since Zenoh would swallow it
-            log.warning("unreadable focus result on %s: %s", sample.key_expr, error)
+            log.warning("unreadable focus result on %s: %s", key_expr, error)
             return
         self.focus.put(result.sequence, result)
 

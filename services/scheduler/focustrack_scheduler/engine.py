@@ -1,17 +1,20 @@
 """The engine: executes a scan plan's steps against the real services.
 
 Each step of `plan.py` is carried out here, with the service's timeout and
-bounded retries, and a `ServiceUnavailableError` naming the service, its key
-expression or URL, when one is gone:
+retries with exponential back-off (tenacity) for as long as the policy's outage
+allows, and a `ServiceUnavailableError` naming the service, its key expression or
+URL, when one stays gone longer than that:
 
-- instrument (Zenoh queries): a query without an answer is sent again, up to
-  `RetryPolicy.instrument_attempts` times; a refusal (an Error reply) is not
-  retried, it is a bug in the request;
+- instrument (Zenoh queries): a query without an answer (the instrument or the
+  router is gone) or answered BUSY (its queue is full) is sent again, with pauses
+  doubling from `backoff_initial_s` to `backoff_max_s`, for up to
+  `RetryPolicy.instrument_outage_s` (60 s: a router or instrument restart); any
+  other refusal (an Error reply) is not retried, it is a bug in the request;
 - the stack itself (Zenoh subscription): an acquisition counts as done when its
   reply *and* its stack have arrived, since the tile image is taken from the stack;
 - focus results: waited for `focus_timeout_s`; a timeout goes back to the plan,
   which acquires the stack again;
-- estimator (HTTP): connection errors and 5xx answers are retried with back-off
+- estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
   and stops the scan with the estimator's own `detail`.
@@ -30,6 +33,7 @@ from typing import Any, TypeVar
 
 import httpx
 import numpy as np
+import tenacity
 from tqdm import tqdm
 
 from focustrack_client import EstimatorClient, EstimatorError
@@ -61,8 +65,8 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
-#: Pause before asking an instrument that did not answer again, in seconds.
-INSTRUMENT_RETRY_PAUSE_S = 1.0
+#: Acquisitions of one stack whose frames never arrive before the scan gives up.
+STACK_ATTEMPTS = 3
 
 
 class ServiceUnavailableError(RuntimeError):
@@ -75,25 +79,48 @@ class ScanRefusedError(RuntimeError):
 
 @dataclass(frozen=True)
 class RetryPolicy:
-    """Timeouts (s) and retries of the services a scan drives."""
+    """Timeouts (s) and how long a gone service is waited for, retried with back-off."""
 
     instrument_timeout_s: float = 60.0  # one acquisition: a wide stack of big frames takes seconds
-    instrument_attempts: int = 3
+    instrument_outage_s: float = 60.0  # keep retrying a gone (or busy) instrument this long
     focus_timeout_s: float = 15.0
     estimator_timeout_s: float = 10.0  # one HTTP request
     estimator_outage_s: float = 60.0  # keep retrying a gone estimator this long
+    backoff_initial_s: float = 0.25  # the first pause between retries; it doubles ...
+    backoff_max_s: float = 5.0  # ... up to this
 
     def __post_init__(self) -> None:
-        if self.instrument_attempts < 1:
-            raise ValueError(f"instrument_attempts must be >= 1, got {self.instrument_attempts}")
         times = (
             self.instrument_timeout_s,
+            self.instrument_outage_s,
             self.focus_timeout_s,
             self.estimator_timeout_s,
             self.estimator_outage_s,
+            self.backoff_initial_s,
+            self.backoff_max_s,
         )
         if min(times) <= 0:
             raise ValueError(f"timeouts must be positive, got {times}")
+
+    def retrying(
+        self, outage_s: float, retry_on: Callable[[BaseException], bool], what: str
+    ) -> tenacity.Retrying:
+        """Calls retried while `retry_on` says so, pauses doubling, for up to `outage_s`;
+        the last error is raised when that runs out."""
+        return tenacity.Retrying(
+            stop=tenacity.stop_after_delay(outage_s),
+            wait=tenacity.wait_exponential(
+                multiplier=self.backoff_initial_s, max=self.backoff_max_s
+            ),
+            retry=tenacity.retry_if_exception(retry_on),
+            before_sleep=lambda state: log.warning(
+                "%s: attempt %d failed (%s); retrying",
+                what,
+                state.attempt_number,
+                state.outcome.exception() if state.outcome is not None else "?",
+            ),
+            reraise=True,
+        )
 
 
 class ScanProgress:
@@ -186,23 +213,20 @@ class Engine:
     # --- instrument -------------------------------------------------------------------
 
     def _instrument_call(self, what: str, key_expr: str, call: Callable[[], T]) -> T:
-        """`call()`, sent again while nobody answers; an Error reply is a refusal."""
-        attempts = self.policy.instrument_attempts
-        for attempt in range(1, attempts + 1):
-            try:
-                return call()
-            except rpc.RemoteError as error:
-                if not _unanswered(error):
-                    raise ScanRefusedError(f"instrument refused {what}: {error}") from error
-                log.warning("%s: attempt %d/%d: %s", what, attempt, attempts, error)
-                problem = str(error)
-            if attempt < attempts:
-                time.sleep(INSTRUMENT_RETRY_PAUSE_S)
-        raise ServiceUnavailableError(
-            f"instrument {self.instrument.name!r} did not answer {what} on {key_expr} "
-            f"({attempts} attempt(s); {problem}). Is `focustrack serve instrument "
-            f"--name {self.instrument.name}` running on the same Zenoh network?"
-        )
+        """`call()`, sent again while nobody answers or the instrument is busy; any other
+        Error reply is a refusal."""
+        outage_s = self.policy.instrument_outage_s
+        retrying = self.policy.retrying(outage_s, instrument_retryable, f"instrument: {what}")
+        try:
+            return retrying(call)
+        except rpc.RemoteError as error:
+            if not instrument_retryable(error):
+                raise ScanRefusedError(f"instrument refused {what}: {error}") from error
+            raise ServiceUnavailableError(
+                f"instrument {self.instrument.name!r} did not answer {what} on {key_expr} "
+                f"for {outage_s:.0f} s ({error}). Is `focustrack serve instrument "
+                f"--name {self.instrument.name}` running on the same Zenoh network?"
+            ) from error
 
     def _describe(self, step: DescribeSlide) -> SlideGeometry:
         key_expr = keys.info_key(step.instrument)
@@ -232,7 +256,7 @@ class Engine:
             header = stack[0]
             return same_stack(acquisition, header.row, header.col, list(header.z_um))
 
-        for attempt in range(1, self.policy.instrument_attempts + 1):
+        for attempt in range(1, STACK_ATTEMPTS + 1):
             sent_s = time.time()
             reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
             replied_s = time.time()
@@ -314,28 +338,23 @@ class Engine:
     def estimator_call(self, what: str, call: Callable[[], T]) -> T:
         """`call()`, retried with back-off while the estimator is unreachable or failing."""
         started_s = time.perf_counter()
-        deadline_s = started_s + self.policy.estimator_outage_s
-        delay_s = 0.1
+        outage_s = self.policy.estimator_outage_s
         try:
-            while True:
-                try:
-                    return call()
-                except EstimatorError as error:
-                    if error.status < 500:
-                        raise ScanRefusedError(f"estimator refused {what}: {error}") from error
-                    problem = str(error)
-                except httpx.TransportError as error:
-                    problem = f"{type(error).__name__}: {error}"
-                if time.perf_counter() > deadline_s:
-                    raise ServiceUnavailableError(
-                        f"estimator at {self.estimator_url or 'its URL'} did not answer {what} "
-                        f"for {self.policy.estimator_outage_s:.0f} s: {problem}"
-                    )
-                log.warning("estimator: %s: %s; retrying", what, problem)
-                time.sleep(delay_s)
-                delay_s = min(2.0, delay_s * 2)
+            return self.policy.retrying(outage_s, _estimator_retryable, f"estimator: {what}")(call)
+        except EstimatorError as error:
+            if error.status < 500:
+                raise ScanRefusedError(f"estimator refused {what}: {error}") from error
+            raise self._estimator_gone(what, str(error)) from error
+        except httpx.TransportError as error:
+            raise self._estimator_gone(what, f"{type(error).__name__}: {error}") from error
         finally:
             self.wall.estimation_s += time.perf_counter() - started_s
+
+    def _estimator_gone(self, what: str, problem: str) -> ServiceUnavailableError:
+        return ServiceUnavailableError(
+            f"estimator at {self.estimator_url or 'its URL'} did not answer {what} "
+            f"for {self.policy.estimator_outage_s:.0f} s: {problem}"
+        )
 
     def _create_or_resume(self, step: CreateOrResumeSlide) -> str:
         if (slide_id := step.slide_id) is not None:
@@ -370,6 +389,14 @@ class Engine:
         return outcome
 
 
-def _unanswered(error: rpc.RemoteError) -> bool:
-    """True when nobody answered (a Zenoh timeout, no queryable), not when a service refused."""
-    return error.error.code in rpc.UNANSWERED
+def instrument_retryable(error: BaseException) -> bool:
+    """True when nobody answered (a Zenoh timeout, no queryable) or the instrument was busy,
+    not when it refused the request."""
+    return isinstance(error, rpc.RemoteError) and error.error.code in rpc.RETRYABLE
+
+
+def _estimator_retryable(error: BaseException) -> bool:
+    """True for a connection error or a 5xx answer (a 4xx is a refusal)."""
+    if isinstance(error, EstimatorError):
+        return error.status >= 500
+    return isinstance(error, httpx.TransportError)

@@ -539,8 +539,11 @@ def write_outputs(
     dof_um: float,
     wall: WallTimes,
     mosaic_format: MosaicFormat = MosaicFormat.OME_ZARR,
+    focus_results_rejected: int = 0,
 ) -> dict[str, Any]:
-    """Write the focus map, plots, mosaic and report of a finished scan; return the report."""
+    """Write the focus map, plots, mosaic and report of a finished scan; return the report.
+
+    `focus_results_rejected`: results dropped for want of a trusted tag (this run's)."""
     out_dir = record.out_dir
     state = record.state or {}
     (out_dir / FOCUS_MAP_CSV).write_text(map_csv(focus_map, grid))
@@ -573,6 +576,7 @@ def write_outputs(
         if truth_um is None
         else mean_abs_error_um(focus_map.prior_um, truth_um),
         "wall_time_s": wall.as_dict(),
+        "focus_results_rejected": focus_results_rejected,
         "mosaic": mosaic_format.file_name if (out_dir / mosaic_format.file_name).exists() else None,
     }
     (out_dir / REPORT).write_text(json.dumps(report, indent=2) + "\n")

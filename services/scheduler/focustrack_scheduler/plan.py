@@ -61,7 +61,7 @@ class ScanRequest:
     noise_sigma_um: float = 0.1
     policy: api.ZRangePolicy = field(default_factory=api.ZRangePolicy)
     resume_slide_id: str | None = None  # the estimator slide of a previous run of this scan
-    focus_attempts: int = 3  # acquisitions of one stack before the focus service counts as gone
+    focus_attempts: int = 5  # acquisitions of one stack before the focus service counts as gone
 
     def __post_init__(self) -> None:
         keys.check_name(self.instrument, "instrument")

@@ -30,7 +30,8 @@ from focustrack_client.models import ZRangePolicy
 from focustrack_core.config import command_main
 from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.wire import rpc
-from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, session_from_args
+from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, config_from_args
+from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
 from focustrack_scheduler.engine import (
     Engine,
@@ -82,6 +83,7 @@ class ScanJob:
     label: str = "scan"
     mosaic_format: MosaicFormat = MosaicFormat.OME_ZARR
     live: LiveServer | None = None  # the live web view that shows this scan, if any
+    trust: ResultSigner | None = None  # focus results count only with this key's tag
 
 
 def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
@@ -108,7 +110,7 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
     """Scan (or resume) the slide, write the outputs, and return the report."""
     record = ScanRecord(job.out_dir)
     estimator = EstimatorClient(job.estimator_url, job.token, job.retry.estimator_timeout_s)
-    listener = SlideListener(session, job.request.slide)
+    listener = SlideListener(session, job.request.slide, job.trust)
     try:
         resume_id = _check_same_scan(record, job)
         request = replace(job.request, resume_slide_id=resume_id)
@@ -162,6 +164,7 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
             geometry.dof_um,
             engine.wall,
             job.mosaic_format,
+            focus_results_rejected=listener.n_rejected,
         )
     finally:
         listener.close()
@@ -205,10 +208,20 @@ def add_scan_options(parser: argparse.ArgumentParser) -> None:
     retry.add_argument(
         "--instrument-timeout-s", type=float, default=default_retry.instrument_timeout_s
     )
-    retry.add_argument("--instrument-attempts", type=int, default=default_retry.instrument_attempts)
+    retry.add_argument(
+        "--instrument-outage-s",
+        type=float,
+        default=default_retry.instrument_outage_s,
+        help="how long to keep retrying an instrument (or router) that does not answer or "
+        "is busy, with pauses doubling up to 5 s",
+    )
     retry.add_argument("--focus-timeout-s", type=float, default=default_retry.focus_timeout_s)
     retry.add_argument(
-        "--focus-attempts", type=int, default=3, help="acquisitions of a stack without result"
+        "--focus-attempts",
+        type=int,
+        default=ScanRequest.focus_attempts,
+        help="acquisitions of a stack without result (%(default)s: with --focus-timeout-s, "
+        "rides out a focus service restart of a minute)",
     )
     retry.add_argument(
         "--estimator-outage-s",
@@ -224,6 +237,13 @@ def add_scan_options(parser: argparse.ArgumentParser) -> None:
         help="file of the mosaic: mosaic.ome.zarr (ome-zarr, the default) or mosaic.ome.tif",
     )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument(
+        "--result-key-file",
+        type=Path,
+        metavar="FILE",
+        help="the focus service's shared key: accept only focus results tagged with it "
+        "(docs/security.md; default: any result on the bus)",
+    )
 
 
 def request_from_args(
@@ -251,7 +271,7 @@ def request_from_args(
 def retry_from_args(args: argparse.Namespace) -> RetryPolicy:
     return RetryPolicy(
         instrument_timeout_s=args.instrument_timeout_s,
-        instrument_attempts=args.instrument_attempts,
+        instrument_outage_s=args.instrument_outage_s,
         focus_timeout_s=args.focus_timeout_s,
         estimator_outage_s=args.estimator_outage_s,
     )
@@ -296,12 +316,14 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             label=args.strategy,
             mosaic_format=args.mosaic_format,
+            trust=signer_of(args.result_key_file),
         )
+        config = config_from_args(args)  # a Zenoh config file it cannot use: exit 2
     except ValueError as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 2
     try:
-        with session_from_args(args) as session, live_server(args.live_port) as live:
+        with zenoh.open(config) as session, live_server(args.live_port) as live:
             if live is not None:
                 print(f"live view at {live.url}", flush=True)
             report = run_scan(session, replace(job, live=live))

@@ -1,0 +1,54 @@
+"""`--zenoh-config FILE`: the file is the base, our endpoint, mode and scouting options win."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+
+from focustrack_core.config import with_environment
+from focustrack_core.wire import router, session
+
+
+def test_the_file_is_kept_and_our_options_are_written_over_it(tmp_path: Path) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text(
+        """{
+          // comments and unquoted keys: JSON5
+          mode: "router",
+          connect: { endpoints: ["tcp/10.0.0.1:7447"] },
+          scouting: { multicast: { enabled: true } },
+          transport: { auth: { usrpwd: { user: "focus", password: "secret" } } },
+        }"""
+    )
+    parser = argparse.ArgumentParser()
+    session.add_zenoh_arguments(parser, default_connect=[session.DEFAULT_ENDPOINT])
+    environ = {"FOCUSTRACK_FOCUS_ZENOH_CONFIG": str(path)}  # the environment twin
+    args = with_environment(parser, "FOCUSTRACK_FOCUS_", environ).parse_args([])
+    config = session.config_from_args(args)
+    assert json.loads(config.get_json("mode")) == "client"  # only connects: a client
+    assert json.loads(config.get_json("connect/endpoints")) == [session.DEFAULT_ENDPOINT]
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    usrpwd = json.loads(config.get_json("transport/auth/usrpwd"))
+    assert (usrpwd["user"], usrpwd["password"]) == ("focus", "secret")  # from the file
+
+    args = parser.parse_args(["--connect", "tls/zenoh:7447", "--zenoh-config", str(path)])
+    endpoints = json.loads(session.config_from_args(args).get_json("connect/endpoints"))
+    assert endpoints == ["tls/zenoh:7447"]
+
+
+@pytest.mark.parametrize(
+    ("text", "says"), [(None, "No such file"), ("{mode: router", "expected"), ("{nope: 1}", "nope")]
+)
+def test_a_config_file_zenoh_cannot_use_is_a_clear_error(
+    tmp_path: Path, text: str | None, says: str
+) -> None:
+    path = tmp_path / "bad.json5"
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(ValueError, match=f"Zenoh config {path}") as error:
+        session.session_config(connect=[session.DEFAULT_ENDPOINT], config_file=path)
+    assert says in str(error.value)
+    assert router.main(["--listen", session.loopback_endpoint(), "--config", str(path)]) == 2

@@ -1,0 +1,460 @@
+"""`focustrack bench chaos`: scans on loopback while services die and a rogue peer lies.
+
+The stack of `focustrack demo` (the router in a process of its own, the instrument, the
+focus service, the estimator) scans the slide again and again, at least `--scans` times
+and for as long as the fault script runs, while:
+
+- a fault script, seeded (`--seed`), kills (SIGKILL) the router, the focus service or
+  the estimator, chosen at random, waits a random outage of up to `--down-max-s`, and
+  starts it again: at most `--faults` times and not after `--duration-s`;
+- a rogue peer answers every stack it sees on the bus with a wrong focus result (the
+  top of the stack plus `RoguePeer.OFFSET_UM`), half of them untagged and half with a
+  forged tag, before the focus service can answer.
+
+A scan that stops all the same (a service gone longer than its retry policy allows) is
+run again on its folder, which resumes it. Then the hostile REST requests of
+`focustrack.bench.hostile` (`fire(estimator_url, focus_url)`, where that module exists;
+otherwise the step is skipped and the report says so) are fired at the estimator and
+the focus service. The report: scans completed, measurements lost (posted by a scan
+but not held by the estimator: must be 0), wrong results accepted (a measurement with
+the rogue's z: must be 0), results rejected, the faults, and the largest resident
+memory (VmHWM, /proc) of each service over all its processes; with `--json OUT`, a
+chart beside it (OUT with .png): the faults and scans on a time line, the memory.
+
+    focustrack bench chaos [--scans 2 --faults 6 --seed 3] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import random
+import shutil
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import zenoh
+
+from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
+from focustrack_core.v1 import focus_pb2
+from focustrack_core.wire import codec, keys
+from focustrack_core.wire.rpc import protobuf_encoding
+from focustrack_core.wire.session import open_session
+from focustrack_scheduler import outputs
+from focustrack_scheduler.engine import RetryPolicy
+from focustrack_scheduler.plan import ScanRequest
+from focustrack_scheduler.scan import BEST_KALMAN, SCAN_ERRORS, ScanJob, run_scan
+
+#: The services the fault script may kill.
+VICTIMS = ("router", "focus", "estimator")
+
+#: Runs of one scan (the first and its resumptions) before the bench gives it up.
+MAX_RUNS = 6
+
+#: Scans at most, however long the fault script runs.
+MAX_SCANS = 50
+
+#: Ride out a minute without a service: the issue's bound for a restart.
+CHAOS_RETRY = RetryPolicy(instrument_timeout_s=15.0, focus_timeout_s=5.0, instrument_outage_s=60.0)
+FOCUS_ATTEMPTS = 12  # x focus_timeout_s: a focus service gone for a minute
+
+
+class RoguePeer:
+    """A peer on the bus that publishes a wrong focus result for every stack it sees.
+
+    On the first frame of each stack it puts a FocusResult for that stack (same tile,
+    sequence and frames) whose best z is the top of the stack plus `OFFSET_UM`: every
+    other result untagged, the others with a random 32-byte tag.
+    """
+
+    OFFSET_UM = 5.0
+
+    def __init__(self, endpoint: str, slide: str) -> None:
+        self.session = open_session(connect=[endpoint])
+        self.sent: dict[tuple[int, int, int], float] = {}  # (row, col, sequence) -> wrong z
+        self.n_sent = 0
+        self._lock = threading.Lock()
+        self._subscriber = self.session.declare_subscriber(
+            keys.zframe_pattern(slide), self._on_frame
+        )
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        try:
+            frame_header, _ = codec.decode_zframe_sample(sample)
+        except ValueError:
+            return
+        if frame_header.index != 0:
+            return
+        stack = frame_header.stack
+        wrong_z_um = stack.z_um[-1] + self.OFFSET_UM
+        n = len(stack.z_um)
+        result = focus_pb2.FocusResult(
+            slide=stack.slide,
+            row=stack.row,
+            col=stack.col,
+            sequence=stack.sequence,
+            instrument=stack.instrument,
+            metric="brenner",
+            z_um=stack.z_um,
+            scores=[float(i == n - 1) for i in range(n)],
+            best_z_um=wrong_z_um,
+            sigma_um=0.01,
+        )
+        with self._lock:
+            forged = self.n_sent % 2 == 1
+            self.n_sent += 1
+            self.sent[(stack.row, stack.col, stack.sequence)] = wrong_z_um
+        self.session.put(
+            keys.focus_key(stack.slide, stack.row, stack.col),
+            result.SerializeToString(),
+            encoding=protobuf_encoding(focus_pb2.FocusResult),
+            attachment=os.urandom(32) if forged else None,
+        )
+
+    def wrong_accepted(self, log_path: Path) -> int:
+        """Measurements in a scan's log that took this peer's wrong z."""
+        with self._lock:
+            sent = dict(self.sent)
+        count = 0
+        for line in log_path.read_text().splitlines():
+            entry = json.loads(line)
+            if entry["event"] != "measured" or entry["z_um"] is None:
+                continue
+            wrong = sent.get((entry["row"], entry["col"], entry["sequence"]))
+            count += wrong is not None and abs(entry["z_um"] - wrong) < 1e-6
+        return count
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+        self.session.close()
+
+
+def peak_rss_mb(pid: int) -> float | None:
+    """The largest resident set of process `pid` so far, MB (VmHWM; None if it is gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+@dataclass
+class MemoryWatch:
+    """The largest VmHWM seen of each service, over every process it ran in."""
+
+    stack: LocalStack
+    peak_mb: dict[str, float] = field(default_factory=dict)
+
+    def sample(self, name: str | None = None) -> None:
+        for service_name, service in self.stack.services.items():
+            if name not in (None, service_name) or service.process is None:
+                continue
+            rss_mb = peak_rss_mb(service.process.pid)
+            if rss_mb is not None:
+                self.peak_mb[service_name] = max(self.peak_mb.get(service_name, 0.0), rss_mb)
+
+
+@dataclass
+class Fault:
+    """A kill: when (s since the script started), of which service, the outage chosen, and
+    when the restarted service answered again (its start-up included)."""
+
+    at_s: float
+    service: str
+    down_s: float
+    back_at_s: float
+
+
+class FaultScript:
+    """Kills and restarts services at random, on a thread, until told to stop."""
+
+    def __init__(
+        self,
+        stack: LocalStack,
+        memory: MemoryWatch,
+        seed: int,
+        faults: int,
+        duration_s: float,
+        gap_max_s: float,
+        down_max_s: float,
+    ) -> None:
+        self.stack, self.memory = stack, memory
+        self.rng = random.Random(seed)
+        self.max_faults, self.duration_s = faults, duration_s
+        self.gap_max_s, self.down_max_s = gap_max_s, down_max_s
+        self.done: list[Fault] = []
+        self.stop = threading.Event()
+        self.started_s = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="chaos", daemon=True)
+
+    def start(self) -> None:
+        self.started_s = time.monotonic()
+        self._thread.start()
+
+    def _run(self) -> None:
+        while len(self.done) < self.max_faults:
+            gap_s = self.rng.uniform(0.3 * self.gap_max_s, self.gap_max_s)
+            if self.stop.wait(gap_s) or time.monotonic() - self.started_s > self.duration_s:
+                return
+            victim = self.rng.choice(VICTIMS)
+            down_s = self.rng.uniform(1.0, self.down_max_s)
+            at_s = time.monotonic() - self.started_s
+            self.memory.sample(victim)
+            self.stack.services[victim].kill()
+            print(f"[{at_s:6.1f} s] chaos: killed {victim}; down for {down_s:.1f} s", flush=True)
+            time.sleep(down_s)
+            self.stack.restart(victim)
+            back_at_s = time.monotonic() - self.started_s
+            print(f"[{back_at_s:6.1f} s] chaos: {victim} is back", flush=True)
+            self.done.append(Fault(round(at_s, 1), victim, round(down_s, 1), round(back_at_s, 1)))
+
+    def running(self) -> bool:
+        return self._thread.is_alive()
+
+    def join(self) -> None:
+        self.stop.set()
+        self._thread.join()
+
+
+def measurements_lost(estimator_url: str, report: dict[str, Any], log_path: Path) -> int:
+    """Measurements the scan posted that the estimator does not hold."""
+    posted = {
+        entry["sequence"]
+        for entry in map(json.loads, log_path.read_text().splitlines())
+        if entry["event"] == "measured"
+    }
+    url = f"{estimator_url}/v1/slides/{report['estimator_slide_id']}"
+    gone = CHAOS_RETRY.retrying(  # the estimator may be down, killed by the fault script
+        CHAOS_RETRY.estimator_outage_s,
+        lambda error: isinstance(error, httpx.TransportError),
+        "the estimator's slide",
+    )
+    slide = gone(lambda: httpx.get(url, timeout=10).raise_for_status().json())
+    return max(0, len(posted) - int(slide["n_acquisitions"]))
+
+
+def hostile_requests(stack: LocalStack, memory: MemoryWatch) -> dict[str, int] | str:
+    """Fire `focustrack.bench.hostile`'s requests at the REST services: the status each got,
+    or why they were not fired. VmHWM keeps each service's peak, so sampling after is exact.
+    """
+    try:
+        hostile = importlib.import_module("focustrack.bench.hostile")
+    except ImportError:
+        return "skipped: focustrack.bench.hostile is not on this branch"
+    focus_url = f"http://127.0.0.1:{stack.focus_port}"
+    print(f"hostile REST requests at {stack.estimator_url} and {focus_url}", flush=True)
+    statuses: dict[str, int] = hostile.fire(stack.estimator_url, focus_url)
+    memory.sample()
+    return statuses
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--rows", type=int, default=6, help="tile rows of each slide (6)")
+    parser.add_argument("--cols", type=int, default=6, help="tile columns of each slide (6)")
+    parser.add_argument("--size", type=int, default=128, help="frame side in pixels (128)")
+    parser.add_argument(
+        "--scans",
+        type=int,
+        default=2,
+        help="scans at least, one after the other, and more while the faults go on (2)",
+    )
+    parser.add_argument("--strategy", default=BEST_KALMAN, help=f"strategy ({BEST_KALMAN})")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=3,
+        help="seed of the fault script (3: its first kills are the estimator, the focus "
+        "service, the router)",
+    )
+    parser.add_argument("--faults", type=int, default=6, help="kills at most (6)")
+    parser.add_argument(
+        "--duration-s", type=float, default=180.0, help="no kill after this long (180 s)"
+    )
+    parser.add_argument(
+        "--gap-max-s", type=float, default=10.0, help="longest pause between kills (10 s)"
+    )
+    parser.add_argument(
+        "--down-max-s", type=float, default=8.0, help="longest outage of a killed service (8 s)"
+    )
+    parser.add_argument("--out", type=Path, default=Path("out/chaos"), help="work folder")
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the report as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    if min(args.rows, args.cols, args.size, args.scans) < 1 or args.faults < 0:
+        print("focustrack bench chaos: error: sizes and --scans must be >= 1", file=sys.stderr)
+        return 2
+    instrument_args = [
+        "--seed", "1", "--slides", "1", "--rows", str(args.rows),
+        "--cols", str(args.cols), "--width", str(args.size), "--height", str(args.size),
+    ]  # fmt: skip
+    stop_on_sigterm()  # so that the stack's processes are stopped on the way out
+    args.out.mkdir(parents=True, exist_ok=True)
+    for stale in args.out.glob("estimator.sqlite*"):
+        stale.unlink()
+    started_s = time.perf_counter()
+    try:
+        with LocalStack(args.out, instrument_args, router_process=True) as stack:
+            assert stack.session is not None
+            print(f"stack ready in {time.perf_counter() - started_s:.1f} s; router "
+                  f"{stack.endpoint}, estimator {stack.estimator_url}", flush=True)  # fmt: skip
+            memory = MemoryWatch(stack)
+            rogue = RoguePeer(stack.endpoint, SLIDE)
+            chaos = FaultScript(
+                stack,
+                memory,
+                args.seed,
+                args.faults,
+                args.duration_s,
+                args.gap_max_s,
+                args.down_max_s,
+            )
+            chaos.start()
+            scans: list[dict[str, Any]] = []
+            try:
+                while len(scans) < args.scans or (chaos.running() and len(scans) < MAX_SCANS):
+                    scans.append(scan_once(stack, args, len(scans), memory, rogue))
+                    scans[-1]["finished_at_s"] = round(time.monotonic() - chaos.started_s, 1)
+            finally:
+                chaos.join()
+                rogue.close()
+            memory.sample()
+            hostile = hostile_requests(stack, memory)
+            print(f"hostile REST requests: {json.dumps(hostile)}", flush=True)
+            memory.sample()
+    except KeyboardInterrupt:
+        print("focustrack bench chaos: interrupted; services stopped", file=sys.stderr)
+        return 130
+    report = {
+        "scans": scans,
+        "scans_completed": sum(scan["completed"] for scan in scans),
+        "measurements_lost": sum(scan["measurements_lost"] for scan in scans),
+        "wrong_results_accepted": sum(scan["wrong_results_accepted"] for scan in scans),
+        "focus_results_rejected": sum(scan["focus_results_rejected"] for scan in scans),
+        "rogue_results_sent": rogue.n_sent,
+        "faults": [vars(fault) for fault in chaos.done],
+        "hostile_requests": hostile,
+        "peak_rss_mb": {name: round(mb, 1) for name, mb in sorted(memory.peak_mb.items())},
+        "wall_time_s": round(time.perf_counter() - started_s, 1),
+    }
+    print(summary(report))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        chart(report, args.json.with_suffix(".png"))
+        print(f"wrote {args.json}, {args.json.with_suffix('.png')}")
+    ok = (
+        report["scans_completed"] == len(scans)
+        and report["measurements_lost"] == 0
+        and report["wrong_results_accepted"] == 0
+    )
+    return 0 if ok else 1
+
+
+def scan_once(
+    stack: LocalStack, args: argparse.Namespace, index: int, memory: MemoryWatch, rogue: RoguePeer
+) -> dict[str, Any]:
+    """One scan, resumed on its folder after a stop; its figures."""
+    assert stack.session is not None
+    scan_dir = args.out / f"scan-{index}"
+    shutil.rmtree(scan_dir, ignore_errors=True)  # a fresh scan each run of the bench
+    job = ScanJob(
+        request=ScanRequest(INSTRUMENT, SLIDE, args.strategy, focus_attempts=FOCUS_ATTEMPTS),
+        estimator_url=stack.estimator_url,
+        out_dir=scan_dir,
+        retry=CHAOS_RETRY,
+        progress=False,
+        label=f"chaos scan {index}",
+        trust=stack.trust,
+    )
+    rejected = 0
+    report: dict[str, Any] | None = None
+    runs = 0
+    while report is None and runs < MAX_RUNS:
+        runs += 1
+        try:
+            report = run_scan(stack.session, job)
+        except SCAN_ERRORS as error:
+            print(f"scan {index}: stopped ({error}); resuming it", flush=True)
+        memory.sample()
+    completed = report is not None
+    log_path = scan_dir / outputs.LOG_FILE
+    figures: dict[str, Any] = {
+        "completed": completed,
+        "runs": runs,
+        "wrong_results_accepted": rogue.wrong_accepted(log_path),
+    }
+    if report is not None:
+        rejected = report["focus_results_rejected"]
+        figures |= {
+            "measurements_lost": measurements_lost(stack.estimator_url, report, log_path),
+            "focus_results_rejected": rejected,
+            "in_focus_fraction": report["in_focus_fraction"],
+            "mae_um": report["mae_um"],
+            "images_per_tile": report["images_per_tile"],
+        }
+    else:
+        figures |= {"measurements_lost": args.rows * args.cols, "focus_results_rejected": 0}
+    print(f"scan {index}: {'complete' if completed else 'NOT complete'} in {runs} run(s); "
+          f"{json.dumps(figures)}", flush=True)  # fmt: skip
+    return figures
+
+
+def chart(report: dict[str, Any], out: Path) -> None:
+    """The faults and scans on a time line; each service's peak memory against 1 GB."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (timeline, memory) = plt.subplots(
+        1, 2, figsize=(11, 3.5), gridspec_kw={"width_ratios": [2, 1]}
+    )
+    rows = {name: index for index, name in enumerate(VICTIMS)}
+    for fault in report["faults"]:
+        row, at_s = rows[fault["service"]], fault["at_s"]
+        timeline.barh(row, fault["back_at_s"] - at_s, left=at_s, color="tab:orange")
+        timeline.barh(row, fault["down_s"], left=at_s, color="tab:red")
+    for scan in report["scans"]:
+        colour = "tab:green" if scan["completed"] else "black"
+        timeline.axvline(scan["finished_at_s"], color=colour, ls=":", lw=1)
+    timeline.set_yticks(list(rows.values()), list(rows))
+    timeline.set_xlabel(
+        "s since the fault script started (red: down; orange: starting again; dotted: a scan ended)"
+    )
+    timeline.set_title(
+        f"{report['scans_completed']} scans complete, {report['measurements_lost']} "
+        f"measurements lost, {report['wrong_results_accepted']} wrong results taken"
+    )
+    names = list(report["peak_rss_mb"])
+    memory.bar(names, [report["peak_rss_mb"][name] for name in names])
+    memory.axhline(1024, color="red", ls="--", label="1 GB")
+    memory.set_ylabel("peak resident memory, MB")
+    memory.legend()
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
+def summary(report: dict[str, Any]) -> str:
+    lines = [
+        f"scans completed:        {report['scans_completed']} of {len(report['scans'])}",
+        f"measurements lost:      {report['measurements_lost']} (must be 0)",
+        f"wrong results accepted: {report['wrong_results_accepted']} (must be 0; the rogue "
+        f"sent {report['rogue_results_sent']})",
+        f"results rejected:       {report['focus_results_rejected']}",
+        f"faults:                 {', '.join(f['service'] for f in report['faults']) or 'none'}",
+        f"hostile REST requests:  {report['hostile_requests']}",
+        "peak RSS (MB):          "
+        + ", ".join(f"{name} {mb:.0f}" for name, mb in report["peak_rss_mb"].items()),
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,41 @@
+"""`focustrack bench chaos`, small: a scan while the router and the focus service are killed
+and restarted and a rogue peer publishes wrong results; nothing lost, nothing wrong taken."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow  # services in processes, killed and started again
+
+
+@pytest.mark.timeout(600)  # four services started, two of them again, on a loaded machine
+def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: Path) -> None:
+    out = tmp_path / "chaos.json"
+    command = [
+        sys.executable, "-m", "focustrack", "bench", "chaos", "--rows", "3", "--cols", "4",
+        "--size", "96", "--scans", "1", "--seed", "1", "--faults", "2", "--gap-max-s", "3",
+        "--down-max-s", "3", "--out", str(tmp_path / "work"), "--json", str(out),
+    ]  # fmt: skip
+    chaos = subprocess.run(command, capture_output=True, text=True, timeout=560)
+    assert chaos.returncode == 0, chaos.stdout + chaos.stderr
+    report = json.loads(out.read_text())
+    assert out.with_suffix(".png").stat().st_size > 0
+    assert report["scans_completed"] == len(report["scans"]) >= 1  # scans go on while faults do
+    assert len(report["faults"]) == 2
+    assert report["measurements_lost"] == 0
+    assert report["wrong_results_accepted"] == 0
+    assert report["rogue_results_sent"] > 0 and report["focus_results_rejected"] > 0
+    assert report["faults"][0]["service"] == "router"  # seed 1 kills the router first
+    assert "chaos: killed router" in chaos.stdout
+    assert set(report["peak_rss_mb"]) == {"router", "instrument", "focus", "estimator"}
+    assert all(0 < mb < 1024 for mb in report["peak_rss_mb"].values())
+    hostile = report["hostile_requests"]  # the status of each, or why they were not fired
+    if isinstance(hostile, dict):
+        assert hostile and all(status < 500 for status in hostile.values()), hostile
+    else:
+        assert hostile.startswith("skipped: ")

@@ -1,0 +1,127 @@
+"""Services start before the router and connect when it appears.
+
+The exploit: `focustrack serve focus` with no router reachable exited after 32 s with a
+traceback, and its REST API never came up. Now the focus service's REST API answers at
+once (``/healthz`` status ``degraded``), the instrument waits for the bus, and both
+join the router when it is started, later, on the endpoint they were given: the focus
+service then answers a stack over Zenoh with a tagged result, and the instrument its
+info query.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from focustrack.bench.focus import render_stack
+from focustrack_core.v1 import focus_pb2, instrument_pb2
+from focustrack_core.wire import keys, rpc
+from focustrack_core.wire.codec import PixelPublisher, describe_pixels
+from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_core.wire.trust import ResultSigner
+
+pytestmark = pytest.mark.slow  # services in processes
+
+Z_UM = np.arange(-3.0, 3.01, 0.5)
+
+
+def wait_until(condition, what: str, process: subprocess.Popen, timeout_s: float = 120) -> None:
+    deadline_s = time.monotonic() + timeout_s
+    while not condition():
+        assert process.poll() is None, f"the service exited while waiting for {what}"
+        assert time.monotonic() < deadline_s, f"no {what} after {timeout_s:.0f} s"
+        time.sleep(0.2)
+
+
+def health(port: int) -> dict | None:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2.0).json()
+    except httpx.TransportError:
+        return None
+
+
+def test_focus_and_instrument_start_without_the_router_and_join_it_later(tmp_path: Path) -> None:
+    endpoint = loopback_endpoint()  # nothing listens there yet
+    port = free_port()
+    key_file = tmp_path / "result.key"
+    key_file.write_text("k" * 64)
+    serve = [sys.executable, "-m", "focustrack", "serve"]
+    env = os.environ | {"FOCUSTRACK_FOCUS_RESULT_KEY_FILE": str(key_file)}  # the env twin
+    focus = subprocess.Popen(
+        [*serve, "focus", "--connect", endpoint, "--port", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    slide = ["--rows", "2", "--cols", "2", "--width", "64", "--height", "64"]
+    instrument = subprocess.Popen(
+        [*serve, "instrument", "--connect", endpoint, *slide],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        wait_until(lambda: health(port) is not None, "REST API", focus)
+
+        def failed_once() -> bool:  # an attempt to reach the router has failed
+            return not (health(port) or {}).get("zenoh", "").endswith("...")
+
+        wait_until(failed_once, "a failed attempt", focus)
+        before = health(port)
+        assert before is not None and before["status"] == "degraded"
+        assert before["zenoh"].startswith("connecting")
+        assert before["metrics"]  # the REST part of the health is there too
+        assert instrument.poll() is None
+
+        with open_session(listen=[endpoint], mode="router") as router:
+            wait_until(lambda: (health(port) or {}).get("status") == "ok", "connection", focus)
+
+            def instrument_answers() -> bool:
+                try:
+                    rpc.call(router, keys.info_key("sim"), instrument_pb2.AcquireRequest(),
+                             instrument_pb2.InstrumentInfo, 1.0)  # fmt: skip
+                    return True
+                except rpc.RemoteError:
+                    return False
+
+            wait_until(instrument_answers, "instrument on the bus", instrument)
+
+            results: queue.Queue = queue.Queue()
+            subscriber = router.declare_subscriber(keys.focus_pattern("s1"), results.put)
+            header = instrument_pb2.ZStackHeader(
+                instrument="sim", slide="s1", row=0, col=0, sequence=3, z_um=Z_UM.tolist(),
+                pixel_size_um=0.1, channel_order="L", bit_depth=12,
+            )  # fmt: skip
+            frames = render_stack("full", 96, Z_UM, -0.4, seed=3)[..., 1][..., None]
+            describe_pixels(header, frames)
+            publisher = PixelPublisher(router)
+            for index, frame in enumerate(frames):
+                publisher.put_frame(keys.zframe_key("s1", 0, 0), header, index, frame)
+            sample = results.get(timeout=60)
+            subscriber.undeclare()
+        payload = sample.payload.to_bytes()
+        result = focus_pb2.FocusResult.FromString(payload)
+        assert result.sequence == 3 and result.HasField("best_z_um")
+        signer = ResultSigner.from_file(key_file)
+        tag = sample.attachment.to_bytes()
+        assert signer.verify(str(sample.key_expr), payload, tag)
+        assert not signer.verify(str(sample.key_expr), payload + b"x", tag)
+    finally:
+        for process in (focus, instrument):
+            process.terminate()
+        _, focus_log = focus.communicate(timeout=30)
+        _, instrument_log = instrument.communicate(timeout=30)
+    # uvicorn ends on the signal it stopped for, after its graceful shutdown
+    assert instrument.returncode == 0 and focus.returncode in (0, -signal.SIGTERM)
+    assert "Traceback" not in focus_log + instrument_log
+    assert "still trying" in focus_log  # it said what it waited for
