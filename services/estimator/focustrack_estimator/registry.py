@@ -17,7 +17,7 @@ import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from focustrack_estimator import bank, classic, kalman_strategies, spatial
+from focustrack_estimator import bank, classic, kalman_strategies, lean_scan, rescan, spatial
 from focustrack_estimator.strategy import SlideSettings, Strategy
 
 Factory = Callable[..., Strategy]
@@ -26,6 +26,8 @@ STRATEGIES: dict[str, Factory] = {
     **kalman_strategies.STRATEGIES,
     **bank.STRATEGIES,
     **spatial.STRATEGIES,
+    **lean_scan.STRATEGIES,
+    **rescan.STRATEGIES,
     **classic.STRATEGIES,
 }
 

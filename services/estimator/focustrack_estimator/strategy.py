@@ -20,6 +20,8 @@ import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from focustrack_core.domain import (
     Acquisition,
     FocusFlag,
@@ -177,6 +179,9 @@ class Strategy(ABC):
         self.settings = settings
         self.grid = settings.grid
         self.map = FocusMap.empty(settings.grid)
+        # Each tile's predicted P(its kept frame lies outside the depth of field), (rows,
+        # cols); NaN where the strategy states none (the benchmark's reliability table).
+        self.risk = np.full(settings.grid.shape, np.nan)
         self.n_recorded = 0
         self._pending: Acquisition | None = None
 

@@ -1,0 +1,201 @@
+"""`kf-rescan`: a slide scanned again, the last pass's map its prior, the drift estimated.
+
+Slides are scanned again (time-lapse, a second channel, a higher magnification).
+What changes between passes is mostly a slow drift of the whole slide (thermal,
+mechanical: the HISP drift-estimation seed), plus a little local change. So the
+height of tile (r, c) at time t is modelled as
+
+    z(r, c, t) = b(r, c) + d(t) + l(r, c),
+
+b the previous pass's map (its smoothed estimate, with its sigma), l an
+independent local change of std `local_sigma_um`, and d the drift, whose state
+is [offset um, rate um/s]: the rate a random walk of spectral density
+`rate_q_um2_per_s3`, the offset integrating it (the continuous white-noise
+acceleration model, Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]). A measurement z of a
+tile gives the innovation y = z - b - d with S = P_dd + sigma_b^2 + sigma_l^2 + R,
+which corrects the drift state (gain P[:, 0] / S) and the tile's height
+(prior variance V = P_dd + sigma_b^2 + sigma_l^2, the scalar update).
+
+Time is the scan's own: every acquisition advances a clock by the timing
+model's stage move and frames (`focustrack_core.timing`, the simulator's), so
+the strategy stays a function of its measurement log.
+
+The first tile knows nothing of the drift since the last pass (`start_sigma_um`):
+its stack is coarse (`coarse_step_um`, the whole uncertainty in a few frames),
+and the peak found there only centres a fine stack on the same tile, which
+measures it; after that the lean rule (`lean.choose_stack`, default risk 1%)
+takes the kept image alone on nearly every tile, measuring with 3 frames when
+the drift's uncertainty has grown past the risk.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from focustrack_core.domain import Acquisition, Measurement, Outcome, ZRange
+from focustrack_core.geometry import Tile
+from focustrack_core.timing import TimingModel
+from focustrack_estimator.lean import SHORT_FRAMES
+from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
+from focustrack_estimator.strategy import SlideSettings, Strategy
+
+
+class RescanFilter(SerpentineFilter):
+    """The previous pass's map plus a drift [offset, rate] and local change (module docstring)."""
+
+    name = "kf-rescan"
+
+    def __init__(
+        self,
+        settings: SlideSettings,
+        options: FilterOptions,
+        *,
+        base_um: np.ndarray,
+        base_sigma_um: np.ndarray,
+        local_sigma_um: float,
+        rate_sigma_um_per_s: float,
+        rate_q_um2_per_s3: float,
+        coarse_step_um: float,
+        timing: TimingModel | None = None,
+    ) -> None:
+        super().__init__(settings, options)
+        if base_um.shape != self.grid.shape or base_sigma_um.shape != self.grid.shape:
+            raise ValueError(
+                f"the prior map must be {self.grid.shape} (rows, cols), got {base_um.shape} "
+                f"with sigmas {base_sigma_um.shape}"
+            )
+        if not (np.all(np.isfinite(base_um)) and np.all(np.isfinite(base_sigma_um))):
+            raise ValueError("the prior map and its sigmas must be finite on every tile")
+        if min(local_sigma_um, rate_sigma_um_per_s, rate_q_um2_per_s3) < 0 or coarse_step_um <= 0:
+            raise ValueError("sigmas and q must not be negative, coarse_step_um must be positive")
+        self.base_um, self.base_var_um2 = base_um, np.square(base_sigma_um)
+        self.local_var_um2 = local_sigma_um**2
+        self.rate_q_um2_per_s3 = rate_q_um2_per_s3
+        self.coarse_step_um = coarse_step_um
+        self.timing = timing or TimingModel()
+        # drift state [offset um, rate um/s] and its covariance, at time _state_s
+        self.x = np.array([settings.start_z_um, 0.0])
+        self.P = np.diag([settings.start_sigma_um**2, rate_sigma_um_per_s**2])
+        self._state_s = 0.0
+        self._clock_s = 0.0  # the end of the last acquisition, s since the scan began
+        self._here: Tile | None = None
+        self._centre_um: float | None = None  # a coarse stack's peak on the current tile
+
+    @property
+    def drift_um(self) -> float:
+        """The drift's offset now (um): the last pass's map plus this is the slide."""
+        return float(self.x[0])
+
+    @property
+    def drift_um_per_s(self) -> float:
+        """The drift's rate estimated so far."""
+        return float(self.x[1])
+
+    def _arrival_s(self, tile: Tile) -> float:
+        """When the next acquisition on `tile` starts: the clock plus the move there."""
+        if self._here is None:
+            return self._clock_s
+        return self._clock_s + self.timing.move_s(self.grid.distance_um(self._here, tile))
+
+    def _tile_var_um2(self, tile: Tile) -> float:
+        return self.base_var_um2[tile.row, tile.col] + self.local_var_um2
+
+    def _predict(self, tile: Tile) -> Gaussian:
+        t_s = self._arrival_s(tile)
+        dt = t_s - self._state_s
+        F = np.array([[1.0, dt], [0.0, 1.0]])
+        Q = self.rate_q_um2_per_s3 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        self.x, self.P, self._state_s = F @ self.x, F @ self.P @ F.T + Q, t_s
+        mean_um = self.base_um[tile.row, tile.col] + self.x[0]
+        return Gaussian(float(mean_um), float(self.P[0, 0] + self._tile_var_um2(tile)))
+
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        if z_um is None:
+            return prior
+        y = z_um - prior.mean_um
+        S = prior.var_um2 + R_um2
+        gain = self.P[:, 0] / S  # the drift's share of the innovation
+        self.x = self.x + gain * y
+        self.P = self.P - np.outer(gain, self.P[0, :])
+        k = prior.var_um2 / S  # the tile's height: drift, prior map and local change together
+        return Gaussian(prior.mean_um + k * y, prior.var_um2 * (1.0 - k))
+
+    def _first_stack(self, prior: Gaussian) -> tuple[ZRange, bool]:
+        if self._centre_um is not None:  # the coarse peak centres a fine stack of this tile
+            return ZRange.centred(
+                self._centre_um, SHORT_FRAMES, self.settings.policy.z_step_um
+            ), True
+        policy = self.settings.policy
+        sigma_um = math.sqrt(prior.var_um2 + self.expected_r_um2)
+        if policy.k_sigma * sigma_um > policy.max_frames * policy.z_step_um / 4.0:
+            # an uncertainty wider than a quarter of the widest fine stack: search coarsely
+            half = math.ceil(policy.k_sigma * sigma_um / self.coarse_step_um)
+            n_frames = min(2 * half + 1, policy.max_frames)
+            return ZRange.centred(prior.mean_um, n_frames, self.coarse_step_um), True
+        return super()._first_stack(prior)
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        tile = Tile(acquisition.row, acquisition.col)
+        self._clock_s = self._arrival_s(tile) + self.timing.stack_s(acquisition.z.n_frames)
+        self._here = tile
+        coarse = acquisition.z.step_um > self.settings.policy.z_step_um
+        if coarse and measurement.is_observation and measurement.z_um is not None:
+            # found, but too coarsely to image the tile: a fine stack there follows
+            self._centre_um = measurement.z_um
+            assert self._prior is not None  # set by _plan for the pending acquisition
+            return Outcome(
+                tile.row, tile.col, accepted=False, prior_um=self._prior.mean_um,
+                prior_sigma_um=self._prior.sigma_um,
+            )  # fmt: skip
+        outcome = super()._take(acquisition, measurement)
+        if self._prior is None:  # the tile is finished
+            self._centre_um = None
+        return outcome
+
+
+def kf_rescan(
+    settings: SlideSettings,
+    options: FilterOptions = FilterOptions(risk_out_of_focus=0.01),
+    *,
+    prior_map_um: Sequence[Sequence[float]] = (),
+    prior_map_sigma_um: float | Sequence[Sequence[float]] = 0.05,
+    local_sigma_um: float = 0.05,
+    rate_sigma_um_per_s: float = 0.05,
+    rate_q_um2_per_s3: float = 1e-6,
+    coarse_step_um: float = 2.0,
+) -> RescanFilter:
+    """A re-scan of a slide: `prior_map_um` (rows x cols, um) is the last pass's map.
+
+    `prior_map_sigma_um`: its sigma, one for all tiles or a map; `local_sigma_um`:
+    the local change between passes; `rate_sigma_um_per_s`: the prior std of the
+    drift's rate; `rate_q_um2_per_s3`: how fast that rate wanders;
+    `coarse_step_um`: the z step of the first tile's search. `start_z_um` and
+    `start_sigma_um` of the slide are the drift's offset since the last pass and
+    its uncertainty. Without a prior map every tile is as uncertain as the start
+    (a flat map of sigma `start_sigma_um`): a scan that only tracks the drift.
+    """
+    if len(prior_map_um) == 0:
+        base_um = np.zeros(settings.grid.shape)
+        base_sigma_um = np.full(settings.grid.shape, settings.start_sigma_um)
+    else:
+        base_um = np.asarray(prior_map_um, dtype=float)
+        sigma = np.asarray(prior_map_sigma_um, dtype=float)
+        if base_um.ndim != 2 or sigma.ndim not in (0, 2):
+            raise ValueError("prior_map_um (and a map of sigmas) must be rows x cols, in um")
+        base_sigma_um = np.array(np.broadcast_to(sigma, base_um.shape))
+    return RescanFilter(
+        settings,
+        options,
+        base_um=base_um,
+        base_sigma_um=base_sigma_um,
+        local_sigma_um=local_sigma_um,
+        rate_sigma_um_per_s=rate_sigma_um_per_s,
+        rate_q_um2_per_s3=rate_q_um2_per_s3,
+        coarse_step_um=coarse_step_um,
+    )
+
+
+STRATEGIES: dict[str, Callable[..., Strategy]] = {"kf-rescan": kf_rescan}
