@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 
 #: The screenshot of the live view the demo leaves in its output folder.
 LIVE_VIEW_PNG = "live_view.png"
-DEFAULT_STRATEGIES = (BEST_KALMAN, "survey-delaunay", "af-every-tile")
+DEFAULT_STRATEGIES = (BEST_KALMAN, "kf-2d-lean", "survey-delaunay", "af-every-tile")
 INSTRUMENT = "sim"
 SLIDE = "slide-0"
 READY_TIMEOUT_S = 60.0

@@ -30,7 +30,7 @@ def test_risk_is_the_gaussian_mass_outside_the_depth_of_field() -> None:
 
 
 def _choose(sigma_um: float, r_um: float = 0.1, risk: float = 0.01):  # type: ignore[no-untyped-def]
-    return choose_stack(5.0, sigma_um**2, r_um**2, DOF_UM, POLICY, risk, 1.0, 3)
+    return choose_stack(5.0, sigma_um**2, r_um**2, DOF_UM, POLICY, risk, 1.0, 3, risk)
 
 
 def test_a_sure_prediction_takes_the_kept_image_only() -> None:
@@ -109,6 +109,18 @@ def test_kf_2d_lean_takes_fewer_frames_at_the_risk_it_states() -> None:
     bins = reliability(runs["kf-2d-lean"], DOF_UM)
     assert sum(b.n_tiles for b in bins) == truth.size
     assert all(b.low <= b.predicted < b.high or b.high == 1.0 for b in bins)
+
+
+def test_a_slide_start_is_searched_coarsely_then_measured_with_a_short_stack() -> None:
+    truth = np.full((2, 2), 7.3)  # 7.3 um from the start, 10 um unsure
+    strategy = registry.create("kf-2d-lean", SlideSettings(ScanGrid(2, 2), noise_sigma_um=0.1))
+    first = strategy.next_acquisition()
+    # +/- 2 sigmas of about 10.2 um (kf-2d's offset and field) at 2 um: 23 frames, not 41 + 41
+    assert first is not None and first.z.step_um == 2.0 and first.z.n_frames == 23
+    run = replay(strategy, truth, truth)
+    assert run.outcomes[0].accepted is False  # the coarse peak only centres the next stack
+    assert run.outcomes[1].accepted and run.focus_map.z_used_um[0, 0] == pytest.approx(7.3)
+    assert run.n_images - 23 < 4 * 3  # a short stack per tile at most after the coarse one
 
 
 def test_the_physical_limit_is_moves_and_one_frame_per_tile() -> None:

@@ -24,15 +24,19 @@ def kf_2d_lean(
     *,
     risk_out_of_focus: float = DEFAULT_RISK,
     skip_sigma_scale: float = 1.0,
+    skip_risk_cap: float = 1.0,
+    coarse_step_um: float = 2.0,
     max_retries: int = 3,
 ) -> RowBankFilter:
     """`kf-2d` with frames chosen per tile by the risk rule (`lean.choose_stack`)."""
     strategy = kf_2d(settings, max_retries=max_retries)
-    # kf-2d builds its own FilterOptions; the lean rule's settings are two more of them.
+    # kf-2d builds its own FilterOptions; the lean rule's settings are more of them.
     strategy.options = replace(
         strategy.options,
         risk_out_of_focus=risk_out_of_focus,
         skip_sigma_scale=skip_sigma_scale,
+        skip_risk_cap=skip_risk_cap,
+        coarse_step_um=coarse_step_um,
     )
     strategy.name = "kf-2d-lean"
     return strategy

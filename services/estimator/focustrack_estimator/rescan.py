@@ -21,24 +21,22 @@ model's stage move and frames (`focustrack_core.timing`, the simulator's), so
 the strategy stays a function of its measurement log.
 
 The first tile knows nothing of the drift since the last pass (`start_sigma_um`):
-its stack is coarse (`coarse_step_um`, the whole uncertainty in a few frames),
-and the peak found there only centres a fine stack on the same tile, which
-measures it; after that the lean rule (`lean.choose_stack`, default risk 1%)
+its stack is coarse (`lean.coarse_stack`, the whole uncertainty in a few
+frames), and the peak found there only centres a fine stack on the same tile,
+which measures it; after that the lean rule (`lean.choose_stack`, default risk 1%)
 takes the kept image alone on nearly every tile, measuring with 3 frames when
 the drift's uncertainty has grown past the risk.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from focustrack_core.domain import Acquisition, Measurement, Outcome, ZRange
+from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.geometry import Tile
 from focustrack_core.timing import TimingModel
-from focustrack_estimator.lean import SHORT_FRAMES
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import SlideSettings, Strategy
 
@@ -58,7 +56,6 @@ class RescanFilter(SerpentineFilter):
         local_sigma_um: float,
         rate_sigma_um_per_s: float,
         rate_q_um2_per_s3: float,
-        coarse_step_um: float,
         timing: TimingModel | None = None,
     ) -> None:
         super().__init__(settings, options)
@@ -69,12 +66,11 @@ class RescanFilter(SerpentineFilter):
             )
         if not (np.all(np.isfinite(base_um)) and np.all(np.isfinite(base_sigma_um))):
             raise ValueError("the prior map and its sigmas must be finite on every tile")
-        if min(local_sigma_um, rate_sigma_um_per_s, rate_q_um2_per_s3) < 0 or coarse_step_um <= 0:
-            raise ValueError("sigmas and q must not be negative, coarse_step_um must be positive")
+        if min(local_sigma_um, rate_sigma_um_per_s, rate_q_um2_per_s3) < 0:
+            raise ValueError("the sigmas and q of kf-rescan must not be negative")
         self.base_um, self.base_var_um2 = base_um, np.square(base_sigma_um)
         self.local_var_um2 = local_sigma_um**2
         self.rate_q_um2_per_s3 = rate_q_um2_per_s3
-        self.coarse_step_um = coarse_step_um
         self.timing = timing or TimingModel()
         # drift state [offset um, rate um/s] and its covariance, at time _state_s
         self.x = np.array([settings.start_z_um, 0.0])
@@ -82,7 +78,6 @@ class RescanFilter(SerpentineFilter):
         self._state_s = 0.0
         self._clock_s = 0.0  # the end of the last acquisition, s since the scan began
         self._here: Tile | None = None
-        self._centre_um: float | None = None  # a coarse stack's peak on the current tile
 
     @property
     def drift_um(self) -> float:
@@ -123,37 +118,11 @@ class RescanFilter(SerpentineFilter):
         k = prior.var_um2 / S  # the tile's height: drift, prior map and local change together
         return Gaussian(prior.mean_um + k * y, prior.var_um2 * (1.0 - k))
 
-    def _first_stack(self, prior: Gaussian) -> tuple[ZRange, bool]:
-        if self._centre_um is not None:  # the coarse peak centres a fine stack of this tile
-            return ZRange.centred(
-                self._centre_um, SHORT_FRAMES, self.settings.policy.z_step_um
-            ), True
-        policy = self.settings.policy
-        sigma_um = math.sqrt(prior.var_um2 + self.expected_r_um2)
-        if policy.k_sigma * sigma_um > policy.max_frames * policy.z_step_um / 4.0:
-            # an uncertainty wider than a quarter of the widest fine stack: search coarsely
-            half = math.ceil(policy.k_sigma * sigma_um / self.coarse_step_um)
-            n_frames = min(2 * half + 1, policy.max_frames)
-            return ZRange.centred(prior.mean_um, n_frames, self.coarse_step_um), True
-        return super()._first_stack(prior)
-
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
         tile = Tile(acquisition.row, acquisition.col)
         self._clock_s = self._arrival_s(tile) + self.timing.stack_s(acquisition.z.n_frames)
         self._here = tile
-        coarse = acquisition.z.step_um > self.settings.policy.z_step_um
-        if coarse and measurement.is_observation and measurement.z_um is not None:
-            # found, but too coarsely to image the tile: a fine stack there follows
-            self._centre_um = measurement.z_um
-            assert self._prior is not None  # set by _plan for the pending acquisition
-            return Outcome(
-                tile.row, tile.col, accepted=False, prior_um=self._prior.mean_um,
-                prior_sigma_um=self._prior.sigma_um,
-            )  # fmt: skip
-        outcome = super()._take(acquisition, measurement)
-        if self._prior is None:  # the tile is finished
-            self._centre_um = None
-        return outcome
+        return super()._take(acquisition, measurement)
 
 
 def kf_rescan(
@@ -165,14 +134,12 @@ def kf_rescan(
     local_sigma_um: float = 0.05,
     rate_sigma_um_per_s: float = 0.05,
     rate_q_um2_per_s3: float = 1e-6,
-    coarse_step_um: float = 2.0,
 ) -> RescanFilter:
     """A re-scan of a slide: `prior_map_um` (rows x cols, um) is the last pass's map.
 
     `prior_map_sigma_um`: its sigma, one for all tiles or a map; `local_sigma_um`:
     the local change between passes; `rate_sigma_um_per_s`: the prior std of the
-    drift's rate; `rate_q_um2_per_s3`: how fast that rate wanders;
-    `coarse_step_um`: the z step of the first tile's search. `start_z_um` and
+    drift's rate; `rate_q_um2_per_s3`: how fast that rate wanders. `start_z_um` and
     `start_sigma_um` of the slide are the drift's offset since the last pass and
     its uncertainty. Without a prior map every tile is as uncertain as the start
     (a flat map of sigma `start_sigma_um`): a scan that only tracks the drift.
@@ -194,7 +161,6 @@ def kf_rescan(
         local_sigma_um=local_sigma_um,
         rate_sigma_um_per_s=rate_sigma_um_per_s,
         rate_q_um2_per_s3=rate_q_um2_per_s3,
-        coarse_step_um=coarse_step_um,
     )
 
 

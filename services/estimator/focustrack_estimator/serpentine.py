@@ -40,7 +40,13 @@ import numpy as np
 
 from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import Tile
-from focustrack_estimator.lean import choose_stack, out_of_focus_risk
+from focustrack_estimator.lean import (
+    SHORT_FRAMES,
+    choose_stack,
+    coarse_stack,
+    out_of_focus_risk,
+    skip_allowance,
+)
 from focustrack_estimator.strategy import PeakSearch, SlideSettings, Strategy
 
 #: How many measurements the configured default R counts as when `adapt_r` estimates it.
@@ -76,7 +82,12 @@ class FilterOptions:
     the tile's frames are chosen by `lean.choose_stack` so that at most this share of
     tiles is imaged outside the depth of field (none beyond the kept image, 3 or a full
     stack); skip_sigma_scale: the lean rule widens the sigma of a tile it would skip
-    by this factor (`lean.skip_risk`).
+    by this factor (`lean.skip_risk`); coarse_step_um: the z step of the lean rule's coarse
+    search where the prediction is far too unsure for fine stacks (`lean.coarse_stack`);
+    skip_risk_cap: a skipped tile may take up to this many times the stated risk, as long
+    as the expected share of out-of-focus tiles stays within it (`lean.skip_allowance`); 1
+    by default: at 2 the training seeds stayed within 1% (0.8% at worst) but a test's
+    three maps went to 1.6%, the skipped tiles' error tails being heavier than Gaussian.
     """
 
     max_retries: int = 3
@@ -86,10 +97,14 @@ class FilterOptions:
     sqrt: bool = False
     risk_out_of_focus: float = 0.0
     skip_sigma_scale: float = 1.0
+    coarse_step_um: float = 2.0
+    skip_risk_cap: float = 1.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.risk_out_of_focus < 1.0:
             raise ValueError(f"risk_out_of_focus must lie in [0, 1), got {self.risk_out_of_focus}")
+        if not self.coarse_step_um > 0:
+            raise ValueError(f"coarse_step_um must be positive, got {self.coarse_step_um}")
         if not self.skip_sigma_scale >= 1.0:
             raise ValueError(f"skip_sigma_scale must be at least 1, got {self.skip_sigma_scale}")
         if self.max_retries < 0:
@@ -126,6 +141,7 @@ class SerpentineFilter(Strategy):
         self._innovation_var_um2: list[float] = []
         self._recent_r_um2: list[float] = []  # the R of the last RECENT_R_COUNT measurements
         self._skip_risk = math.nan  # the current tile's risk if imaged at its prediction
+        self._centre_um: float | None = None  # a coarse stack's peak on the current tile
 
     @abstractmethod
     def _predict(self, tile: Tile) -> Gaussian:
@@ -165,10 +181,20 @@ class SerpentineFilter(Strategy):
 
     def _first_stack(self, prior: Gaussian) -> tuple[ZRange, bool]:
         """The first acquisition of a tile with this prior: its frames and whether to measure."""
-        risk = self.options.risk_out_of_focus
+        risk, policy = self.options.risk_out_of_focus, self.settings.policy
         if not risk:
             innovation_sigma_um = math.sqrt(prior.var_um2 + self.default_r_um2)
-            return self.settings.policy.around(prior.mean_um, innovation_sigma_um), True
+            return policy.around(prior.mean_um, innovation_sigma_um), True
+        if self._centre_um is not None:  # a coarse stack's peak centres a short one
+            return ZRange.centred(self._centre_um, SHORT_FRAMES, policy.z_step_um), True
+        coarse = coarse_stack(
+            prior.mean_um,
+            math.sqrt(prior.var_um2 + self.expected_r_um2),
+            policy,
+            self.options.coarse_step_um,
+        )
+        if coarse is not None:
+            return coarse, True
         choice = choose_stack(
             prior.mean_um,
             prior.var_um2,
@@ -178,6 +204,7 @@ class SerpentineFilter(Strategy):
             risk,
             self.options.skip_sigma_scale,
             self.options.max_retries,
+            skip_allowance(risk, self.risk[np.isfinite(self.risk)], self.options.skip_risk_cap),
         )
         self._skip_risk = choice.skip_risk
         return choice.z, choice.measure
@@ -224,6 +251,11 @@ class SerpentineFilter(Strategy):
         )  # fmt: skip
         if not acquisition.measure:  # the kept image only: a missing measurement, predict only
             return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
+        if acquisition.z.step_um > self.settings.policy.z_step_um and measurement.is_observation:
+            # found, but too coarsely to image the tile or correct the filter: a short stack
+            # centred there follows, and measures the tile
+            self._centre_um = measurement.z_um
+            return outcome
         if measurement.z_um is None or not measurement.is_observation:
             if self._search.failed(acquisition.z, measurement):
                 return outcome  # another stack of this tile follows
@@ -276,6 +308,7 @@ class SerpentineFilter(Strategy):
         self._position += 1
         self._prior = None
         self._search.clear()
+        self._centre_um = None
         if self._position == self.grid.n_tiles:
             self._finish()
         return replace(

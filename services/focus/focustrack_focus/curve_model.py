@@ -14,9 +14,9 @@ is within 5% of it over +/- 5 um):
 gamma_um the half width at half height of the peak above the background, b
 the background's share of the peak, A the height (per tile: it follows the
 specimen's contrast). `CurveModel.learn` fits (mu, A, gamma, b) to each full
-stack with a clean single peak (`fit_curve`) and keeps the medians of gamma, b
-and the relative score noise (the fit's residual std over A) of the last
-`MAX_CURVES`; it is ready after `MIN_CURVES`.
+stack with a clean single peak (`fit_curve`) and keeps the medians of gamma, b,
+the relative score noise and the fit's relative misfit of the last
+`MAX_CURVES`; it is ready after `MIN_CURVES` (one).
 
 A short stack (`fit_short_stack`): where the model-free reading brackets the
 peak, its z stands and the model gives the sigma three frames cannot (their
@@ -48,9 +48,14 @@ from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, score_noise
 
 #: Stacks of at most this many frames are read with the model (when it is ready).
 SHORT_MAX_FRAMES = 3
-#: Full stacks a model needs before it reads short ones, and the most it remembers.
-MIN_CURVES = 3
+#: Full stacks a model needs before it reads short ones, and the most it remembers. One is
+#: enough: a lean scan takes a full (or coarse) stack on its first tile and few after it.
+MIN_CURVES = 1
 MAX_CURVES = 50
+#: Until this many curves, the spread of the widths is taken as DEFAULT_WIDTH_SPREAD of the
+#: width (a median absolute deviation of fewer curves says little).
+SPREAD_CURVES = 3
+DEFAULT_WIDTH_SPREAD = 0.15
 #: A full stack teaches the model only with this many frames or more.
 MIN_LEARN_FRAMES = 7
 #: A short stack whose fit leaves more than this many noise sigmas (rms) disagrees.
@@ -126,7 +131,10 @@ class CurveModel:
 
     @property
     def gamma_spread_um(self) -> float:
-        """The spread of the learnt widths (MAD as a std)."""
+        """The spread of the learnt widths (MAD as a std; `DEFAULT_WIDTH_SPREAD` of the width
+        until SPREAD_CURVES curves)."""
+        if len(self.gammas_um) < SPREAD_CURVES:
+            return DEFAULT_WIDTH_SPREAD * self.gamma_um
         return MAD_TO_SIGMA * float(np.median(np.abs(np.array(self.gammas_um) - self.gamma_um)))
 
     @property
