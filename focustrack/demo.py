@@ -32,7 +32,10 @@ from typing import Any
 import httpx
 import zenoh
 
+from focustrack.bench.replay import limit_time_s
 from focustrack.browser import NoBrowserError, screenshot_live_view
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.timing import TimingModel
 from focustrack_core.wire import rpc
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_estimator import registry
@@ -192,19 +195,25 @@ class LocalStack:
         self.close()
 
 
-def comparison_table(reports: dict[str, dict[str, Any]]) -> str:
-    """Images per tile, simulated scan time, in-focus fraction and MAE of each strategy."""
+def comparison_table(reports: dict[str, dict[str, Any]], limit_s: float) -> str:
+    """Images per tile, simulated scan time (also over `limit_s`, the physical limit: stage
+    moves and one frame per tile), in-focus fraction and MAE of each strategy."""
 
     def number(value: float | None, form: str) -> str:
         return "n/a" if value is None else format(value, form)
 
-    header = f"{'strategy':<18}{'images/tile':>12}{'scan time s':>13}{'in focus':>10}{'MAE um':>9}"
+    header = (
+        f"{'strategy':<18}{'images/tile':>12}{'scan time s':>13}{'/ limit':>9}{'in focus':>10}"
+        f"{'MAE um':>9}"
+    )
     lines = [header, "-" * len(header)]
     for name, report in reports.items():
         lines.append(
             f"{name:<18}{report['images_per_tile']:>12.2f}{report['scan_time_s']:>13.1f}"
+            f"{report['scan_time_s'] / limit_s:>9.2f}"
             f"{number(report['in_focus_fraction'], '.1%'):>10}{number(report['mae_um'], '.3f'):>9}"
         )
+    lines.append(f"physical limit (stage moves and one frame per tile): {limit_s:.1f} s")
     return "\n".join(lines)
 
 
@@ -327,7 +336,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print()
     print(f"Strategies on the same slide ({args.rows}x{args.cols} tiles, seed {args.seed}):")
-    print(comparison_table(reports))
+    # the instrument's default tile pitch and timing (`focustrack serve instrument`)
+    print(comparison_table(reports, limit_time_s(ScanGrid(args.rows, args.cols), TimingModel())))
     print()
     print("Where the wall time went (s):")
     print(wall_time_table(reports))
