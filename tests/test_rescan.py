@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 import pytest
 
@@ -10,6 +12,7 @@ from focustrack.bench.replay import Drift, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_estimator.rescan import RescanFilter
 from focustrack_estimator.strategy import SlideSettings
+from focustrack_instrument_sim import service
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 GRID = ScanGrid(10, 10)
@@ -17,7 +20,7 @@ SETTINGS = SlideSettings(GRID, noise_sigma_um=0.1, dof_um=0.9)
 
 
 def _rescan(base_um: np.ndarray, sigma_um: float = 0.03) -> RescanFilter:
-    params = {"prior_map_um": base_um.tolist(), "prior_map_sigma_um": sigma_um}
+    params = {"prior_map_um": base_um.ravel().tolist(), "prior_map_sigma_um": [sigma_um]}
     strategy = registry.create("kf-rescan", SETTINGS, params)
     assert isinstance(strategy, RescanFilter)
     return strategy
@@ -59,3 +62,16 @@ def test_a_prior_map_of_the_wrong_shape_is_refused() -> None:
     without = registry.create("kf-rescan", SETTINGS)  # no map: every tile as unsure as the start
     first = without.next_acquisition()
     assert first is not None and first.z.step_um == 2.0  # a coarse search
+
+
+def test_the_simulator_moves_a_slide_for_a_second_pass() -> None:
+    def truth(*extra: str) -> np.ndarray:
+        parser = argparse.ArgumentParser()
+        service.add_arguments(parser)
+        args = parser.parse_args(
+            ["--rows", "3", "--cols", "4", "--width", "32", "--height", "32", *extra]
+        )
+        microscope = service.microscope_from_args(args)
+        return microscope.truth_um("slide-0")[0]
+
+    assert np.allclose(truth("--z-offset-um", "12") - truth(), 12.0)

@@ -89,8 +89,8 @@ def run(args: argparse.Namespace) -> int:
     for run_1, t, m in zip(first, truth_2, measured_2, strict=True):
         base_um, base_sigma_um = prior_map(run_1)
         params = {
-            "prior_map_um": base_um.tolist(),
-            "prior_map_sigma_um": base_sigma_um.tolist(),
+            "prior_map_um": base_um.ravel().tolist(),
+            "prior_map_sigma_um": base_sigma_um.ravel().tolist(),
         }
         strategy = registry.create(RESCAN, settings, params)
         assert isinstance(strategy, RescanFilter)

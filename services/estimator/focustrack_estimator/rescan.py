@@ -30,6 +30,7 @@ the drift's uncertainty has grown past the risk.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -39,6 +40,9 @@ from focustrack_core.geometry import Tile
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import SlideSettings, Strategy
+
+#: The sigma of a prior map given without one (um).
+DEFAULT_MAP_SIGMA_UM = 0.05
 
 
 class RescanFilter(SerpentineFilter):
@@ -129,30 +133,37 @@ def kf_rescan(
     settings: SlideSettings,
     options: FilterOptions = FilterOptions(risk_out_of_focus=0.01),
     *,
-    prior_map_um: Sequence[Sequence[float]] = (),
-    prior_map_sigma_um: float | Sequence[Sequence[float]] = 0.05,
+    prior_map_um: Sequence[float] = (),
+    prior_map_sigma_um: Sequence[float] = (),
     local_sigma_um: float = 0.05,
     rate_sigma_um_per_s: float = 0.05,
     rate_q_um2_per_s3: float = 1e-6,
 ) -> RescanFilter:
-    """A re-scan of a slide: `prior_map_um` (rows x cols, um) is the last pass's map.
+    """A re-scan of a slide: `prior_map_um` is the last pass's map, rows x cols heights in
+    um, row after row (flat, as the REST API's parameters are lists of numbers).
 
-    `prior_map_sigma_um`: its sigma, one for all tiles or a map; `local_sigma_um`:
-    the local change between passes; `rate_sigma_um_per_s`: the prior std of the
-    drift's rate; `rate_q_um2_per_s3`: how fast that rate wanders. `start_z_um` and
-    `start_sigma_um` of the slide are the drift's offset since the last pass and
-    its uncertainty. Without a prior map every tile is as uncertain as the start
-    (a flat map of sigma `start_sigma_um`): a scan that only tracks the drift.
+    `prior_map_sigma_um`: its sigma, a map likewise, or one for all tiles (a list of
+    one; none: `DEFAULT_MAP_SIGMA_UM`, what kf-2d's smoothed map has on the demo slide);
+    `local_sigma_um`: the local change between passes; `rate_sigma_um_per_s`: the prior
+    std of the drift's rate; `rate_q_um2_per_s3`: how fast that rate wanders.
+    `start_z_um` and `start_sigma_um` of the slide are the drift's offset since the
+    last pass and its uncertainty. Without a prior map every tile is as uncertain as
+    the start (a flat map of sigma `start_sigma_um`): a scan that only tracks the drift.
     """
+    shape = settings.grid.shape
     if len(prior_map_um) == 0:
-        base_um = np.zeros(settings.grid.shape)
-        base_sigma_um = np.full(settings.grid.shape, settings.start_sigma_um)
+        base_um = np.zeros(shape)
+        base_sigma_um = np.full(shape, settings.start_sigma_um)
     else:
         base_um = np.asarray(prior_map_um, dtype=float)
-        sigma = np.asarray(prior_map_sigma_um, dtype=float)
-        if base_um.ndim != 2 or sigma.ndim not in (0, 2):
-            raise ValueError("prior_map_um (and a map of sigmas) must be rows x cols, in um")
-        base_sigma_um = np.array(np.broadcast_to(sigma, base_um.shape))
+        sigma = np.asarray(prior_map_sigma_um or [DEFAULT_MAP_SIGMA_UM], dtype=float)
+        if base_um.size != math.prod(shape) or sigma.size not in (1, base_um.size):
+            raise ValueError(
+                f"the prior map must hold rows x cols = {math.prod(shape)} heights (and as "
+                f"many sigmas, or one), got {base_um.size} and {sigma.size}"
+            )
+        base_um = base_um.reshape(shape)
+        base_sigma_um = np.broadcast_to(sigma.reshape(-1), base_um.size).reshape(shape).copy()
     return RescanFilter(
         settings,
         options,
