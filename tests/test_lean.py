@@ -30,7 +30,7 @@ def test_risk_is_the_gaussian_mass_outside_the_depth_of_field() -> None:
 
 
 def _choose(sigma_um: float, r_um: float = 0.1, risk: float = 0.01):  # type: ignore[no-untyped-def]
-    return choose_stack(5.0, sigma_um**2, r_um**2, DOF_UM, POLICY, risk, 1.0, 3, risk)
+    return choose_stack(5.0, sigma_um**2, r_um**2, DOF_UM, POLICY, risk, 1.0, 3)
 
 
 def test_a_sure_prediction_takes_the_kept_image_only() -> None:

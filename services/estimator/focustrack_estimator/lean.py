@@ -70,18 +70,6 @@ def out_of_focus_risk(
     return np.clip(1.0 - inside, 0.0, 1.0)
 
 
-def skip_allowance(risk: float, spent: np.ndarray, cap: float) -> float:
-    """The risk the next tile may take if imaged unmeasured, so that the expected share
-    of out-of-focus tiles stays within `risk`.
-
-    `spent` (n,): the predicted risk of every tile imaged so far. A measured tile
-    costs almost none of the budget, which lets a skipped one take more than
-    `risk`: risk (n + 1) - sum(spent), but never more than `cap` x risk (one tile
-    is not to gamble the budget of many).
-    """
-    return float(min(cap * risk, risk * (spent.size + 1) - float(np.sum(spent))))
-
-
 def skip_risk(sigma_um: float, dof_um: float, sigma_scale: float) -> float:
     """The risk of imaging a tile at its prediction (std `sigma_um`, widened by
     `sigma_scale`) without measuring it: 2 Phi(-dof / (2 sigma_scale sigma))."""
@@ -107,21 +95,19 @@ def choose_stack(
     risk: float,
     skip_sigma_scale: float,
     max_retries: int,
-    allowance: float,
 ) -> StackChoice:
     """The acquisition of a tile predicted at N(mean_um, var_um2); see the module docstring.
 
     `r_um2`: the variance expected of a measurement (the recent measurements' R);
     `risk`: the out-of-focus probability allowed for a tile, in (0, 1);
     `skip_sigma_scale`: how much wider than the filter's the sigma of a skipped tile is;
-    `max_retries`: the retries a search may take after its first stack (`PeakSearch`);
-    `allowance`: the risk this tile may take if skipped (`skip_allowance`).
+    `max_retries`: the retries a search may take after its first stack (`PeakSearch`).
     """
     if not 0.0 < risk < 1.0:
         raise ValueError(f"risk must lie in (0, 1), got {risk}")
     sigma_um = math.sqrt(max(var_um2, 0.0))
     if_skipped = skip_risk(sigma_um, dof_um, skip_sigma_scale)
-    if if_skipped <= allowance:
+    if if_skipped <= risk:
         return StackChoice(ZRangePolicy.single(mean_um, policy.z_step_um), False, if_skipped, 1.0)
     innovation_sigma_um = math.sqrt(max(var_um2, 0.0) + r_um2)
     full = policy.around(mean_um, innovation_sigma_um)

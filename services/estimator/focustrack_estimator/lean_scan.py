@@ -24,7 +24,6 @@ def kf_2d_lean(
     *,
     risk_out_of_focus: float = DEFAULT_RISK,
     skip_sigma_scale: float = 1.0,
-    skip_risk_cap: float = 1.0,
     coarse_step_um: float = 2.0,
     max_retries: int = 3,
 ) -> RowBankFilter:
@@ -35,7 +34,6 @@ def kf_2d_lean(
         strategy.options,
         risk_out_of_focus=risk_out_of_focus,
         skip_sigma_scale=skip_sigma_scale,
-        skip_risk_cap=skip_risk_cap,
         coarse_step_um=coarse_step_um,
     )
     strategy.name = "kf-2d-lean"
