@@ -23,6 +23,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.accuracy",
         "replay focus maps through every strategy; accuracy, images and scan time",
     ),
+    "bench rescan": (
+        "focustrack.bench.rescan",
+        "a slide scanned twice with drift: the second pass learning from the first",
+    ),
     "bench tune": (
         "focustrack.bench.tune",
         "choose the Kalman strategies' defaults on training seeds",

@@ -3,16 +3,17 @@
 Starts a Zenoh router in this process and the instrument, focus and estimator
 services as separate processes (`python -m focustrack serve ...`) on free ports,
 waits until each answers, then scans the same simulated slide once per strategy
-(the best Kalman filter, Delaunay focus-map surveying and autofocus on every tile
-by default) and prints, per strategy, images per tile, simulated scan time,
-in-focus fraction and MAE against the instrument's truth, and where the wall time
-went. While it scans it serves the live web view of the scan and prints its
-address; at the end it saves a screenshot of it (live_view.png, where chromium is
-installed), and each scan's mosaic is an OME-Zarr (`--mosaic-format ome-tiff`
-for the OME-TIFF). A service that dies is started again, and the demo says so; the
-focus service tags its results with a key made for the run, and the scans take only
-tagged results (docs/security.md). Everything is shut down on the way out, also on
-Ctrl-C.
+(the best Kalman filter, the same with the lean risk rule, Delaunay focus-map
+surveying and autofocus on every tile by default; then a second pass of kf-rescan
+with the lean scan's map after the slide's focus moved by 12 um) and prints, per
+strategy, images per tile, simulated scan time, in-focus fraction and MAE against
+the instrument's truth, and where the wall time went. While it scans it serves the
+live web view of the scan and prints its address; at the end it saves a screenshot
+of it (live_view.png, where chromium is installed), and each scan's mosaic is an
+OME-Zarr (`--mosaic-format ome-tiff` for the OME-TIFF). A service that dies is
+started again, and the demo says so; the focus service tags its results with a key
+made for the run, and the scans take only tagged results (docs/security.md).
+Everything is shut down on the way out, also on Ctrl-C.
 
     focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
 """
@@ -30,7 +31,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from subprocess import STDOUT, Popen, TimeoutExpired
 from typing import Any
@@ -38,7 +39,11 @@ from typing import Any
 import httpx
 import zenoh
 
+from focustrack.bench.replay import limit_time_s
 from focustrack.browser import NoBrowserError, screenshot_live_view
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.maps import focus_map_of_npy
+from focustrack_core.timing import TimingModel
 from focustrack_core.wire import rpc
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_core.wire.trust import ResultSigner
@@ -46,7 +51,7 @@ from focustrack_estimator import registry
 from focustrack_instrument_sim.surfaces import FAMILIES
 from focustrack_scheduler.clients import wait_for_instrument
 from focustrack_scheduler.live_view import LiveServer, port_number
-from focustrack_scheduler.outputs import SCAN_FILES, WallTimes
+from focustrack_scheduler.outputs import FOCUS_MAP_NPY, SCAN_FILES, WallTimes
 from focustrack_scheduler.scan import (
     BEST_KALMAN,
     SCAN_ERRORS,
@@ -61,7 +66,13 @@ log = logging.getLogger(__name__)
 
 #: The screenshot of the live view the demo leaves in its output folder.
 LIVE_VIEW_PNG = "live_view.png"
-DEFAULT_STRATEGIES = (BEST_KALMAN, "survey-delaunay", "af-every-tile")
+LEAN = "kf-2d-lean"
+DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, "survey-delaunay", "af-every-tile")
+#: The second pass: kf-rescan with the first pass's map, after the slide's focus moved by
+#: RESCAN_OFFSET_UM (10 minutes of drift at 0.02 um/s).
+RESCAN = "kf-rescan"
+SECOND_PASS = "2nd pass kf-rescan"
+RESCAN_OFFSET_UM = 12.0
 INSTRUMENT = "sim"
 SLIDE = "slide-0"
 READY_TIMEOUT_S = 60.0
@@ -207,6 +218,8 @@ class LocalStack:
         self.restarts: dict[str, int] = dict.fromkeys(self.services, 0)
         self._closing = threading.Event()
         self._supervisor: threading.Thread | None = None
+        self._held: set[str] = set()  # services being replaced: not the supervisor's to start
+        self._lock = threading.Lock()
 
     def _instrument_ready(self) -> bool:
         assert self.session is not None
@@ -244,23 +257,38 @@ class LocalStack:
         """Start again every service that died, saying so (until the stack closes)."""
         while not self._closing.wait(SUPERVISE_PERIOD_S):
             for name, service in self.services.items():
-                status = service.died()
-                if status is None or self._closing.is_set():
-                    continue
-                self.restarts[name] += 1
-                print(
-                    f"focustrack demo: {name} exited with status {status}; starting it again "
-                    f"(restart {self.restarts[name]}, log {service.log_path})",
-                    file=sys.stderr,
-                    flush=True,
-                )
-                service.start()
+                with self._lock:
+                    status = None if name in self._held else service.died()
+                    if status is None or self._closing.is_set():
+                        continue
+                    self.restarts[name] += 1
+                    print(
+                        f"focustrack demo: {name} exited with status {status}; starting it "
+                        f"again (restart {self.restarts[name]}, log {service.log_path})",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                    service.start()
 
     def restart(self, name: str) -> None:
         """Start service `name` again (after `kill` or `stop`) and wait until it answers."""
         service = self.services[name]
         service.start()
         service.wait_ready()
+
+    def restart_with(self, name: str, extra_args: list[str]) -> None:
+        """Stop service `name`, start it again with `extra_args` added to its command, and
+        wait until it answers; the supervisor leaves it alone meanwhile."""
+        with self._lock:
+            self._held.add(name)
+        try:
+            service = self.services[name]
+            service.stop()
+            service.command = [*service.command, *extra_args]
+            self.restart(name)
+        finally:
+            with self._lock:
+                self._held.discard(name)
 
     def close(self) -> None:
         self._closing.set()
@@ -279,19 +307,25 @@ class LocalStack:
         self.close()
 
 
-def comparison_table(reports: dict[str, dict[str, Any]]) -> str:
-    """Images per tile, simulated scan time, in-focus fraction and MAE of each strategy."""
+def comparison_table(reports: dict[str, dict[str, Any]], limit_s: float) -> str:
+    """Images per tile, simulated scan time (also over `limit_s`, the physical limit: stage
+    moves and one frame per tile), in-focus fraction and MAE of each strategy."""
 
     def number(value: float | None, form: str) -> str:
         return "n/a" if value is None else format(value, form)
 
-    header = f"{'strategy':<18}{'images/tile':>12}{'scan time s':>13}{'in focus':>10}{'MAE um':>9}"
+    header = (
+        f"{'strategy':<18}{'images/tile':>12}{'scan time s':>13}{'/ limit':>9}{'in focus':>10}"
+        f"{'MAE um':>9}"
+    )
     lines = [header, "-" * len(header)]
     for name, report in reports.items():
         lines.append(
             f"{name:<18}{report['images_per_tile']:>12.2f}{report['scan_time_s']:>13.1f}"
+            f"{report['scan_time_s'] / limit_s:>9.2f}"
             f"{number(report['in_focus_fraction'], '.1%'):>10}{number(report['mae_um'], '.3f'):>9}"
         )
+    lines.append(f"physical limit (stage moves and one frame per tile): {limit_s:.1f} s")
     return "\n".join(lines)
 
 
@@ -344,7 +378,48 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0,
         help="port of the live web view on 127.0.0.1 (default 0: any free one)",
     )
+    parser.add_argument(
+        "--rescan-offset-um",
+        type=float,
+        default=RESCAN_OFFSET_UM,
+        help="after the scans, the slide's focus moves by this much (drift between passes) and "
+        f"kf-rescan scans it again with the first pass's map (default {RESCAN_OFFSET_UM:g})",
+    )
+    parser.add_argument("--no-rescan", action="store_true", help="no second pass")
     add_scan_options(parser)
+
+
+def second_pass(
+    stack: LocalStack, args: argparse.Namespace, out_dir: Path, first: str, live: LiveServer
+) -> dict[str, Any]:
+    """Scan the slide again with kf-rescan, the map of strategy `first`'s scan as its prior,
+    after moving the slide's focus by `--rescan-offset-um` (the instrument is restarted with
+    it: drift between the passes, which kf-rescan is not told)."""
+    table = focus_map_of_npy((out_dir / first / FOCUS_MAP_NPY).read_bytes())
+    base_um, base_sigma_um = table.posterior_um, table.posterior_sigma_um
+    if table.smoothed_um is not None and table.smoothed_sigma_um is not None:
+        base_um, base_sigma_um = table.smoothed_um, table.smoothed_sigma_um
+    stack.restart_with("instrument", ["--z-offset-um", str(args.rescan_offset_um)])
+    scan_dir = out_dir / RESCAN
+    _clear(scan_dir)
+    params = {
+        "prior_map_um": base_um.ravel().tolist(),
+        "prior_map_sigma_um": base_sigma_um.ravel().tolist(),
+    }
+    request = replace(request_from_args(args, INSTRUMENT, SLIDE, RESCAN), params=params)
+    assert stack.session is not None
+    job = ScanJob(
+        request=request,
+        estimator_url=stack.estimator_url,
+        out_dir=scan_dir,
+        retry=retry_from_args(args),
+        progress=not args.no_progress,
+        label=f"{RESCAN} (2nd pass)",
+        mosaic_format=args.mosaic_format,
+        live=live,
+        trust=stack.trust,
+    )
+    return run_scan(stack.session, job)
 
 
 def stop_on_sigterm() -> None:
@@ -407,6 +482,14 @@ def run(args: argparse.Namespace) -> int:
                     trust=stack.trust,
                 )
                 reports[name] = run_scan(stack.session, job)
+            if not args.no_rescan:
+                first = LEAN if LEAN in reports else names[0]
+                print(
+                    f"second pass: the slide's focus moved by {args.rescan_offset_um:g} um; "
+                    f"{RESCAN} with the map of {first}",
+                    flush=True,
+                )
+                reports[SECOND_PASS] = second_pass(stack, args, out_dir, first, live)
             try:  # the last scan's live view, for a person to look at
                 shot = screenshot_live_view(live.url, out_dir / LIVE_VIEW_PNG)
                 print(f"live view screenshot: {shot}", flush=True)
@@ -420,13 +503,15 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print()
     print(f"Strategies on the same slide ({args.rows}x{args.cols} tiles, seed {args.seed}):")
-    print(comparison_table(reports))
+    # the instrument's default tile pitch and timing (`focustrack serve instrument`)
+    print(comparison_table(reports, limit_time_s(ScanGrid(args.rows, args.cols), TimingModel())))
     print()
     print("Where the wall time went (s):")
     print(wall_time_table(reports))
     for name, report in reports.items():
         if report["mosaic"] is not None:
-            print(f"mosaic of {name}: {out_dir / name / report['mosaic']}")
+            scan_dir = out_dir / (RESCAN if name == SECOND_PASS else name)
+            print(f"mosaic of {name}: {scan_dir / report['mosaic']}")
     if args.json is not None:
         keys = ("images_per_tile", "scan_time_s", "in_focus_fraction", "mae_um")
         summary = {

@@ -35,6 +35,7 @@ FIELDS = {
     "images_per_tile",
     "scan_time_s",
     "in_focus_fraction",
+    "limit_time_s",
 }
 
 
@@ -51,7 +52,7 @@ def test_generated_maps_json_table_and_plots(
     strategies = report["strategies"]
     smoothed = {name for name in strategies if name.endswith("-rts")}
     assert set(REQUIRED) <= set(strategies)
-    assert set(strategies) - smoothed == set(registry.STRATEGIES)
+    assert set(strategies) - smoothed == set(registry.STRATEGIES) - {"kf-rescan"}
     # Every 1-D Kalman strategy fills the smoothed layers: a -rts row each.
     assert {f"{name}-rts" for name in REQUIRED if name.startswith("kf-")} <= smoothed
     for name, fields in strategies.items():
@@ -68,11 +69,16 @@ def test_generated_maps_json_table_and_plots(
         assert strategies[name]["post_mae_um"] != filtered["post_mae_um"]
     assert strategies["af-every-tile"]["images_per_tile"] == 41.0
     assert report["families"]["standard"]["strategies"] == strategies
+    # the lean strategy states its risk, and its reliability table covers every tile
+    bins = report["families"]["standard"]["reliability"]["kf-2d-lean"]
+    assert sum(b["n_tiles"] for b in bins) == 2 * 10 * 10
+    assert set(report["families"]["standard"]["reliability"]) == {"kf-2d-lean"}
 
     printed = capsys.readouterr().out
     assert "standard: 2 maps of 10x10, seed 3" in printed
     assert all(name in printed for name in REQUIRED)
     assert "kf-wiener0-rts" in printed and "RTS-smoothed" in printed
+    assert "kf-2d-lean: stated risk 1.0%" in printed and "/ limit" in printed
     assert (tmp_path / "errors_standard.png").stat().st_size > 0
     assert (tmp_path / "summary_standard.png").stat().st_size > 0
 

@@ -30,7 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.replay import Replay, Scores, replay, score
+from focustrack.bench.replay import Replay, RiskBin, Scores, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import (
@@ -46,6 +46,10 @@ DEFAULT_FAMILY = "standard"
 #: The Bayes-optimal reference (when registered): given the family's SurfaceSpec as its
 #: parameters, and every strategy's MAE is also printed as a ratio to its MAE.
 ORACLE = "gp-oracle"
+
+#: Strategies that re-scan a slide with the last pass's map: replayed by `focustrack bench
+#: rescan`, here only when named (without a map they only track a drift).
+RESCANS = frozenset({"kf-rescan"})
 
 #: Suffix of the rows scored on a strategy's RTS-smoothed final map.
 SMOOTHED_SUFFIX = "-rts"
@@ -235,7 +239,7 @@ def format_table(title: str, scores: dict[str, Scores]) -> str:
     oracle = scores.get(ORACLE)
     header = (
         f"{'strategy':<20}{'prior MAE':>10}{'prior std':>10}{'post MAE':>10}{'post std':>10}"
-        f"{'images/tile':>13}{'scan time s':>13}{'in focus':>10}"
+        f"{'images/tile':>13}{'scan time s':>13}{'/ limit':>9}{'in focus':>10}"
         + (f"{'prior/oracle':>14}{'post/oracle':>13}" if oracle else "")
     )
     lines = [title, header, "-" * len(header)]
@@ -243,7 +247,8 @@ def format_table(title: str, scores: dict[str, Scores]) -> str:
         line = (
             f"{name:<20}{number(s.prior_mae_um, 3):>10}{number(s.prior_std_um, 3):>10}"
             f"{s.post_mae_um:>10.3f}{s.post_std_um:>10.3f}{s.images_per_tile:>13.2f}"
-            f"{s.scan_time_s:>13.1f}{s.in_focus_fraction:>10.1%}"
+            f"{s.scan_time_s:>13.1f}{s.scan_time_s / s.limit_time_s:>9.2f}"
+            f"{s.in_focus_fraction:>10.1%}"
         )
         if oracle:
             line += (
@@ -256,11 +261,35 @@ def format_table(title: str, scores: dict[str, Scores]) -> str:
             f"NAME{SMOOTHED_SUFFIX}: post MAE/std of NAME's RTS-smoothed final map; its prior, "
             "cost and in-focus fraction are NAME's (the same scan)."
         )
+    lines.append(
+        "/ limit: scan time over the physical limit (stage moves plus one frame per tile)."
+    )
     if oracle:
         lines.append(
             f"{ORACLE}: Bayes-optimal, knows the generator's covariance (no scanner can run it); "
             "ratios are MAE / its MAE."
         )
+    return "\n".join(lines)
+
+
+def stated_risk(name: str) -> float:
+    """The out-of-focus risk strategy `name` states by default (0: it states none)."""
+    return float(registry.parameters(name).get("risk_out_of_focus", 0.0) or 0.0)
+
+
+def format_reliability(name: str, bins: list[RiskBin], stated: float) -> str:
+    """The reliability table of one strategy: predicted risk against the achieved rate."""
+    n_tiles = sum(b.n_tiles for b in bins)
+    predicted = sum(b.predicted * b.n_tiles for b in bins) / max(n_tiles, 1)
+    achieved = sum(b.achieved * b.n_tiles for b in bins) / max(n_tiles, 1)
+    lines = [
+        f"{name}: stated risk {stated:.1%}; over {n_tiles} tiles predicted {predicted:.2%}, "
+        f"achieved {achieved:.2%} out of focus",
+        f"  {'predicted risk':<16}{'tiles':>8}{'predicted':>11}{'achieved':>10}",
+    ]
+    for b in bins:
+        band = f"[{b.low:g}, {b.high:g})"
+        lines.append(f"  {band:<16}{b.n_tiles:>8}{b.predicted:>11.2%}{b.achieved:>10.2%}")
     return "\n".join(lines)
 
 
@@ -408,9 +437,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(
                 f"--noise-um and --dof-um must be positive, got {args.noise_um}, {args.dof_um}"
             )
-        names = [
-            n for item in args.strategies or list(registry.STRATEGIES) for n in item.split(",")
-        ]
+        default = [name for name in registry.STRATEGIES if name not in RESCANS]
+        names = [n for item in args.strategies or default for n in item.split(",")]
         names = list(dict.fromkeys(n for n in names if n))
         unknown = [n for n in names if n not in registry.STRATEGIES]
         if unknown or not names:
@@ -439,10 +467,16 @@ def run(args: argparse.Namespace) -> int:
         print()
         conditions = f"noise {args.noise_um} um, depth of field {args.dof_um} um"
         print(format_table(f"{map_set.title}; {conditions}", scores))
+        calibration = {
+            name: reliability(replays[name], args.dof_um) for name in names if stated_risk(name) > 0
+        }
+        for name, bins in calibration.items():
+            print(format_reliability(name, bins, stated_risk(name)))
         families[map_set.name] = {
             "title": map_set.title,
             "maps": map_set.n_maps,
             "strategies": _scores_json(scores),
+            "reliability": {name: [asdict(b) for b in bins] for name, bins in calibration.items()},
         }
         if args.plots is not None:
             for path in write_plots(args.plots, map_set, replays, scores):

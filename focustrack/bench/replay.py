@@ -13,18 +13,22 @@ service are stood in for by a measured map:
 - a single-frame acquisition only images the tile (no measurement).
 
 Cost follows `focustrack_core.timing.TimingModel`: the XY move from the previous
-acquisition's tile, then the stack's frames.
+acquisition's tile, then the stack's frames. The physical limit of a scan
+(`limit_time_s`) is the serpentine's stage moves plus one exposure per tile (the
+kept image), with no search at all.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
 
 from focustrack_core.domain import Acquisition, FocusFlag, FocusMap, Measurement, Outcome
-from focustrack_core.geometry import Tile
+from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.timing import TimingModel
+from focustrack_estimator.lean import out_of_focus_risk
 from focustrack_estimator.strategy import Strategy
 
 
@@ -48,6 +52,27 @@ class Replay:
     outcomes: list[Outcome]
     n_images: int
     scan_time_s: float
+    limit_time_s: float  # stage moves along the serpentine plus one frame per tile
+    risk: np.ndarray  # (rows, cols): the strategy's predicted P(out of focus), NaN where none
+
+
+def limit_time_s(grid: ScanGrid, timing: TimingModel) -> float:
+    """The fastest scan of `grid` in s: the serpentine's moves and one frame per tile."""
+    path = grid.serpentine
+    moves_s = sum(timing.move_s(grid.distance_um(a, b)) for a, b in itertools.pairwise(path))
+    return moves_s + grid.n_tiles * timing.stack_s(1)
+
+
+@dataclass(frozen=True)
+class Drift:
+    """The whole slide moving in z while it is scanned: offset_um + rate_um_per_s * t."""
+
+    offset_um: float
+    rate_um_per_s: float
+
+    def at(self, t_s: float) -> float:
+        """The drift (um) t_s seconds into the scan."""
+        return self.offset_um + self.rate_um_per_s * t_s
 
 
 def replay(
@@ -55,9 +80,17 @@ def replay(
     truth_um: np.ndarray,
     measured_um: np.ndarray,
     timing: TimingModel | None = None,
+    drift: Drift | None = None,
 ) -> Replay:
-    """Run `strategy` to completion on one map; `truth_um` and `measured_um` are (rows, cols)."""
+    """Run `strategy` to completion on one map; `truth_um` and `measured_um` are (rows, cols).
+
+    With `drift`, the slide moves while it is scanned (a re-scan): a stack sees
+    the measured map plus the drift at the stack's start on the scan's clock, and
+    the truth a tile is scored on is its height when its last stack started (the
+    `Replay.truth_um`).
+    """
     timing = timing or TimingModel()
+    drift = drift or Drift(0.0, 0.0)
     grid = strategy.grid
     if truth_um.shape != grid.shape or measured_um.shape != grid.shape:
         raise ValueError(
@@ -67,6 +100,7 @@ def replay(
     outcomes: list[Outcome] = []
     n_images, scan_time_s = 0, 0.0
     here: Tile | None = None
+    truth_now_um = truth_um.astype(float)  # each tile's truth when its last stack started
     while (acquisition := strategy.next_acquisition()) is not None:
         if len(outcomes) >= max_acquisitions:
             raise RuntimeError(f"{strategy.name} did not finish in {max_acquisitions} acquisitions")
@@ -74,11 +108,21 @@ def replay(
         if here is not None:
             scan_time_s += timing.move_s(grid.distance_um(here, tile))
         here = tile
+        drift_um = drift.at(scan_time_s)
+        truth_now_um[tile.row, tile.col] = truth_um[tile.row, tile.col] + drift_um
         n_images += acquisition.z.n_frames
         scan_time_s += timing.stack_s(acquisition.z.n_frames)
-        measurement = simulated_measurement(acquisition, measured_um[tile.row, tile.col])
-        outcomes.append(strategy.record(acquisition, measurement))
-    return Replay(truth_um, strategy.focus_map(), outcomes, n_images, scan_time_s)
+        measured = measured_um[tile.row, tile.col] + drift_um
+        outcomes.append(strategy.record(acquisition, simulated_measurement(acquisition, measured)))
+    return Replay(
+        truth_now_um,
+        strategy.focus_map(),
+        outcomes,
+        n_images,
+        scan_time_s,
+        limit_time_s(grid, timing),
+        strategy.risk.copy(),
+    )
 
 
 @dataclass(frozen=True)
@@ -96,6 +140,55 @@ class Scores:
     images_per_tile: float
     scan_time_s: float  # mean per map
     in_focus_fraction: float
+    limit_time_s: float  # mean per map: moves plus one frame per tile (`limit_time_s`)
+
+
+#: Bins of predicted out-of-focus risk for the reliability table (`reliability`).
+RISK_BINS = (0.0, 0.001, 0.01, 0.05, 0.2, 0.5, 1.0)
+
+
+@dataclass(frozen=True)
+class RiskBin:
+    """Tiles whose predicted risk lies in [low, high): how many, predicted and achieved."""
+
+    low: float
+    high: float
+    n_tiles: int
+    predicted: float  # mean predicted risk of these tiles
+    achieved: float  # share of them imaged outside the depth of field
+
+
+def predicted_risk(run: Replay, dof_um: float) -> np.ndarray:
+    """Each tile's predicted P(|truth - z used| > dof/2), (rows, cols).
+
+    The strategy's own (`Strategy.risk`) where it states one, else the Gaussian of
+    its posterior (its prior where it did not measure) about the kept frame.
+    """
+    fm = run.focus_map
+    gaussian = out_of_focus_risk(fm.posterior_um, fm.posterior_sigma_um, fm.z_used_um, dof_um)
+    return np.where(np.isfinite(run.risk), run.risk, gaussian)
+
+
+def reliability(replays: list[Replay], dof_um: float) -> list[RiskBin]:
+    """Predicted against achieved out-of-focus rate, binned by predicted risk (`RISK_BINS`)."""
+    risk = np.concatenate([predicted_risk(r, dof_um).ravel() for r in replays])
+    out = np.concatenate(
+        [(np.abs(r.focus_map.z_used_um - r.truth_um) > dof_um / 2.0).ravel() for r in replays]
+    )
+    bins = []
+    for low, high in itertools.pairwise(RISK_BINS):
+        inside = (risk >= low) & ((risk < high) if high < 1.0 else (risk <= high))
+        if inside.any():
+            bins.append(
+                RiskBin(
+                    low,
+                    high,
+                    int(inside.sum()),
+                    float(risk[inside].mean()),
+                    float(out[inside].mean()),
+                )
+            )
+    return bins
 
 
 def _error_stats(estimates: list[np.ndarray], truths: list[np.ndarray]) -> tuple[float, float]:
@@ -120,4 +213,5 @@ def score(replays: list[Replay], dof_um: float) -> Scores:
         images_per_tile=sum(r.n_images for r in replays) / n_tiles,
         scan_time_s=float(np.mean([r.scan_time_s for r in replays])),
         in_focus_fraction=float(np.mean(np.abs(used_error) <= dof_um / 2.0)),
+        limit_time_s=float(np.mean([r.limit_time_s for r in replays])),
     )

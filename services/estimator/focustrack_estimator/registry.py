@@ -17,7 +17,7 @@ import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from focustrack_estimator import bank, classic, kalman_strategies, spatial
+from focustrack_estimator import bank, classic, kalman_strategies, lean_scan, rescan, spatial
 from focustrack_estimator.strategy import Cost, CostModel, SlideSettings, Strategy
 
 Factory = Callable[..., Strategy]
@@ -26,6 +26,8 @@ STRATEGIES: dict[str, Factory] = {
     **kalman_strategies.STRATEGIES,
     **bank.STRATEGIES,
     **spatial.STRATEGIES,
+    **lean_scan.STRATEGIES,
+    **rescan.STRATEGIES,
     **classic.STRATEGIES,
 }
 
@@ -34,6 +36,10 @@ COSTS: dict[str, CostModel] = {
     **kalman_strategies.COSTS,
     **bank.COSTS,
     **spatial.COSTS,
+    # kf-2d-lean wraps kf-2d at its default bank (its own parameters only pick frames);
+    # kf-rescan keeps a few numbers per tile, as a 1-D filter does.
+    "kf-2d-lean": lambda settings, _params: spatial.kf_2d_cost(settings, parameters("kf-2d")),
+    "kf-rescan": kalman_strategies.path_cost(1),
     **classic.COSTS,
 }
 

@@ -5,7 +5,9 @@ A `SerpentineFilter` walks the grid in serpentine order. On each tile:
 1. `_predict(tile)` gives the prior (the subclass's filter moves onto the tile);
 2. the stack is taken over the prior +/- k innovation sigmas
    (`ZRangePolicy.around`, sigma = sqrt(prior variance + R)): the measured
-   peak, not the truth, must land in it;
+   peak, not the truth, must land in it; with `risk_out_of_focus` set, the
+   lean rule (`lean.choose_stack`) picks the kept image alone (no
+   measurement: the tile is predicted only), a 3-frame stack or that stack;
 3. a stack without a peak (an edge peak or a flat curve) is no measurement:
    the same tile is acquired again beyond that edge (`PeakSearch`); when the
    search ends without a peak the tile is given up (`gave_up`) and imaged at
@@ -36,12 +38,21 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose
+from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import Tile
+from focustrack_estimator.lean import (
+    SHORT_FRAMES,
+    choose_stack,
+    coarse_stack,
+    out_of_focus_risk,
+)
 from focustrack_estimator.strategy import PeakSearch, SlideSettings, Strategy
 
 #: How many measurements the configured default R counts as when `adapt_r` estimates it.
 R_PRIOR_COUNT = 20
+
+#: How many recent measurements' R give the R a lean stack expects (`expected_r_um2`).
+RECENT_R_COUNT = 20
 
 
 @dataclass(frozen=True)
@@ -65,7 +76,13 @@ class FilterOptions:
     with one degree of freedom for a consistent filter, `diagnostics.nis_gate`);
     gate_patience: rejections in a row after which an outlier is taken as a
     real step; adapt_r: estimate the default R online from the innovations;
-    sqrt: run the filter in square-root form (where the filter has one).
+    sqrt: run the filter in square-root form (where the filter has one);
+    risk_out_of_focus: 0 takes a stack of +/- k innovation sigmas on every tile; above 0,
+    the tile's frames are chosen by `lean.choose_stack` so that at most this share of
+    tiles is imaged outside the depth of field (none beyond the kept image, 3 or a full
+    stack); skip_sigma_scale: the lean rule widens the sigma of a tile it would skip
+    by this factor (`lean.skip_risk`); coarse_step_um: the z step of the lean rule's coarse
+    search where the prediction is far too unsure for fine stacks (`lean.coarse_stack`).
     """
 
     max_retries: int = 3
@@ -73,8 +90,17 @@ class FilterOptions:
     gate_patience: int = 1
     adapt_r: bool = False
     sqrt: bool = False
+    risk_out_of_focus: float = 0.0
+    skip_sigma_scale: float = 1.0
+    coarse_step_um: float = 2.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.risk_out_of_focus < 1.0:
+            raise ValueError(f"risk_out_of_focus must lie in [0, 1), got {self.risk_out_of_focus}")
+        if not self.coarse_step_um > 0:
+            raise ValueError(f"coarse_step_um must be positive, got {self.coarse_step_um}")
+        if not self.skip_sigma_scale >= 1.0:
+            raise ValueError(f"skip_sigma_scale must be at least 1, got {self.skip_sigma_scale}")
         if self.max_retries < 0:
             raise ValueError(f"max_retries must not be negative, got {self.max_retries}")
         if self.gate_nis < 0 or self.gate_patience < 0:
@@ -107,6 +133,9 @@ class SerpentineFilter(Strategy):
         self._r_count = R_PRIOR_COUNT
         self._innovation_um: list[float] = []
         self._innovation_var_um2: list[float] = []
+        self._recent_r_um2: list[float] = []  # the R of the last RECENT_R_COUNT measurements
+        self._skip_risk = math.nan  # the current tile's risk if imaged at its prediction
+        self._centre_um: float | None = None  # a coarse stack's peak on the current tile
 
     @abstractmethod
     def _predict(self, tile: Tile) -> Gaussian:
@@ -132,6 +161,47 @@ class SerpentineFilter(Strategy):
         floor_um2 = 1e-2 * self.settings.noise_sigma_um**2
         return max(self._r_sum_um2 / self._r_count, floor_um2)
 
+    @property
+    def expected_r_um2(self) -> float:
+        """The R a measurement is expected to have: the median of the recent ones' R.
+
+        The focus service's sigma depends on the slide and the metric, not on the
+        configured default, so the lean choice between stacks (`lean.choose_stack`)
+        expects what the recent measurements had (the default R before any).
+        """
+        if not self._recent_r_um2:
+            return self.default_r_um2
+        return float(np.median(self._recent_r_um2))
+
+    def _first_stack(self, prior: Gaussian) -> tuple[ZRange, bool]:
+        """The first acquisition of a tile with this prior: its frames and whether to measure."""
+        risk, policy = self.options.risk_out_of_focus, self.settings.policy
+        if not risk:
+            innovation_sigma_um = math.sqrt(prior.var_um2 + self.default_r_um2)
+            return policy.around(prior.mean_um, innovation_sigma_um), True
+        if self._centre_um is not None:  # a coarse stack's peak centres a short one
+            return ZRange.centred(self._centre_um, SHORT_FRAMES, policy.z_step_um), True
+        coarse = coarse_stack(
+            prior.mean_um,
+            math.sqrt(prior.var_um2 + self.expected_r_um2),
+            policy,
+            self.options.coarse_step_um,
+        )
+        if coarse is not None:
+            return coarse, True
+        choice = choose_stack(
+            prior.mean_um,
+            prior.var_um2,
+            self.expected_r_um2,
+            self.settings.dof_um,
+            self.settings.policy,
+            risk,
+            self.options.skip_sigma_scale,
+            self.options.max_retries,
+        )
+        self._skip_risk = choice.skip_risk
+        return choice.z, choice.measure
+
     def innovations(self) -> tuple[np.ndarray, np.ndarray]:
         """Accepted innovations (n,) in um and their predicted variances S (n,) in um^2.
 
@@ -149,10 +219,9 @@ class SerpentineFilter(Strategy):
             self.map.prior_um[tile.row, tile.col] = self._prior.mean_um
             self.map.prior_sigma_um[tile.row, tile.col] = self._prior.sigma_um
         prior = self._prior
+        measure = True
         if not self._search:
-            innovation_sigma_um = math.sqrt(prior.var_um2 + self.default_r_um2)
-            z = self.settings.policy.around(prior.mean_um, innovation_sigma_um)
-            purpose = Purpose.SCAN
+            (z, measure), purpose = self._first_stack(prior), Purpose.SCAN
         else:
             z, purpose = self._search.next_range(), Purpose.RETRY
         return self._acquisition(
@@ -160,7 +229,7 @@ class SerpentineFilter(Strategy):
             tile.col,
             z,
             purpose,
-            measure=True,
+            measure=measure,
             predicted_um=prior.mean_um,
             predicted_sigma_um=prior.sigma_um,
         )
@@ -173,6 +242,13 @@ class SerpentineFilter(Strategy):
             tile.row, tile.col, accepted=False, prior_um=prior.mean_um,
             prior_sigma_um=prior.sigma_um,
         )  # fmt: skip
+        if not acquisition.measure:  # the kept image only: a missing measurement, predict only
+            return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
+        if acquisition.z.step_um > self.settings.policy.z_step_um and measurement.is_observation:
+            # found, but too coarsely to image the tile or correct the filter: a short stack
+            # centred there follows, and measures the tile
+            self._centre_um = measurement.z_um
+            return outcome
         if measurement.z_um is None or not measurement.is_observation:
             if self._search.failed(acquisition.z, measurement):
                 return outcome  # another stack of this tile follows
@@ -180,6 +256,7 @@ class SerpentineFilter(Strategy):
             return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
 
         R_um2 = self.default_r_um2 if measurement.sigma_um is None else measurement.sigma_um**2
+        self._recent_r_um2 = [*self._recent_r_um2[1 - RECENT_R_COUNT :], R_um2]
         innovation_um = measurement.z_um - prior.mean_um
         variance_um2 = prior.var_um2 + R_um2
         outcome = replace(outcome, innovation_um=innovation_um, nis=innovation_um**2 / variance_um2)
@@ -212,10 +289,19 @@ class SerpentineFilter(Strategy):
         frames_um = np.concatenate([z.z_um() for z in [*self._search.stacks, acquisition.z]])
         self.map.posterior_um[row, col] = posterior.mean_um
         self.map.posterior_sigma_um[row, col] = posterior.sigma_um
-        self.map.z_used_um[row, col] = frames_um[np.argmin(np.abs(frames_um - posterior.mean_um))]
+        z_used_um = frames_um[np.argmin(np.abs(frames_um - posterior.mean_um))]
+        self.map.z_used_um[row, col] = z_used_um
+        self.risk[row, col] = (
+            self._skip_risk
+            if not acquisition.measure
+            else out_of_focus_risk(
+                posterior.mean_um, posterior.sigma_um, z_used_um, self.settings.dof_um
+            )
+        )
         self._position += 1
         self._prior = None
         self._search.clear()
+        self._centre_um = None
         if self._position == self.grid.n_tiles:
             self._finish()
         return replace(

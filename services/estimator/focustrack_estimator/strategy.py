@@ -22,6 +22,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from focustrack_core.domain import (
     Acquisition,
     FocusFlag,
@@ -233,6 +235,9 @@ class Strategy(ABC):
         self.settings = settings
         self.grid = settings.grid
         self.map = FocusMap.empty(settings.grid)
+        # Each tile's predicted P(its kept frame lies outside the depth of field), (rows,
+        # cols); NaN where the strategy states none (the benchmark's reliability table).
+        self.risk = np.full(settings.grid.shape, np.nan)
         self.n_recorded = 0
         self._pending: Acquisition | None = None
 

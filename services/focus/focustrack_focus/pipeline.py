@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from focustrack_core.domain import FocusFlag, Measurement
+from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
 from focustrack_focus.metrics import DEFAULT_METRIC, get_metric
 from focustrack_focus.peak import PeakFit, PeakSettings, Prior, find_peak, validate_curve
 from focustrack_focus.preprocess import Preprocess
@@ -119,6 +120,7 @@ def focus_from_curve(
     started_s: float | None = None,
     structure_snr: float = math.inf,
     prior: Prior | None = None,
+    curve: CurveModel | None = None,
 ) -> FocusResult:
     """Read a curve of scores (n,) at z_um (n,); `started_s` (perf_counter) times the whole job.
 
@@ -126,7 +128,8 @@ def focus_from_curve(
     there were images; below `settings.min_structure_snr` nothing is in view: the
     curve is flat and the field empty (no other stack of this tile would find a peak).
     `prior`: the estimator's belief (um); it weighs the choice between peaks and
-    gives the posterior.
+    gives the posterior. `curve`: the slide's learnt curve; a short stack (at most
+    SHORT_MAX_FRAMES frames) is read with it once it is ready (`curve_model`).
     """
     started_s = time.perf_counter() if started_s is None else started_s
     z, s = validate_curve(z_um, scores)
@@ -134,6 +137,8 @@ def focus_from_curve(
         fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
     else:
         fit = find_peak(z, s, settings.peak, prior)
+        if curve is not None and curve.ready and z.size <= SHORT_MAX_FRAMES:
+            fit = fit_short_stack(z, s, curve, fit)
     posterior = fit.posterior(prior) if prior is not None else None
     return FocusResult(
         z_um=z,
@@ -224,8 +229,9 @@ class FrameByFrame:
             self._low, self._blurriest, self._blurriest_raw = index, image, raw
         self._busy_s += time.perf_counter() - started_s
 
-    def result(self) -> FocusResult:
-        """The focus of the stack; ValueError while frames are missing."""
+    def result(self, curve: CurveModel | None = None) -> FocusResult:
+        """The focus of the stack (a short one read with `curve`, where given and ready);
+        ValueError while frames are missing."""
         if not self.complete:
             missing = np.flatnonzero(np.isnan(self.scores)).tolist()
             raise ValueError(f"frames {missing} have not arrived")
@@ -234,5 +240,10 @@ class FrameByFrame:
             self._sharpest, self._blurriest, self._blurriest_raw, self.settings.preprocess
         )
         return focus_from_curve(
-            self.z_um, self.scores, self.settings, started_s=started_s, structure_snr=snr
+            self.z_um,
+            self.scores,
+            self.settings,
+            started_s=started_s,
+            structure_snr=snr,
+            curve=curve,
         )

@@ -50,6 +50,7 @@ from focustrack_core.wire.session import (
 )
 from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_focus.app import FocusLimits, create_app
+from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
@@ -61,6 +62,7 @@ ZFRAME_SUBSCRIPTION = f"{keys.PREFIX}/zframe/**"
 FOCUS_RESULT_ENCODING = protobuf_encoding(focus_pb2.FocusResult)
 QUEUE_FRAMES = 64  # frames waiting for the worker before the publisher is held back
 OPEN_STACKS = 8  # incomplete stacks kept while their frames come in
+CURVE_SLIDES = 16  # slides whose learnt focus curve is kept (the most recent)
 
 
 def settings_for(
@@ -130,6 +132,8 @@ class FrameAnalyser:
         self.max_open = max_open
         self._open: OrderedDict[StackId, FrameByFrame] = OrderedDict()  # curves under way
         self._failed: OrderedDict[StackId, None] = OrderedDict()
+        # each slide's through-focus curve, learnt from its full stacks, reads its short ones
+        self._curves: OrderedDict[str, CurveModel] = OrderedDict()
 
     def add(
         self, key: str, payload: bytes, attachment: bytes | None
@@ -160,7 +164,10 @@ class FrameAnalyser:
             if not curve.complete:
                 return None
             del self._open[stack_id]
-            return result_message(tile, header, curve.result())
+            model = self._curve(tile.slide)
+            result = curve.result(model)
+            model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
+            return result_message(tile, header, result)
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)
             if header is not None:
@@ -170,6 +177,15 @@ class FrameAnalyser:
                 while len(self._failed) > self.max_open:
                     self._failed.popitem(last=False)
             return result_message(tile, header, error=f"{type(error).__name__}: {error}")
+
+    def _curve(self, slide: str) -> CurveModel:
+        """The slide's curve model (a new one for a new slide; the oldest beyond CURVE_SLIDES
+        is forgotten)."""
+        model = self._curves.pop(slide, None) or CurveModel()
+        self._curves[slide] = model
+        while len(self._curves) > CURVE_SLIDES:
+            self._curves.popitem(last=False)
+        return model
 
     def _forget_oldest(self) -> None:
         while len(self._open) > self.max_open:

@@ -28,6 +28,7 @@ import queue
 import signal
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import zenoh
@@ -281,6 +282,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     slides.add_argument("--family", choices=list(FAMILIES), default="standard")
     slides.add_argument("--map", help="true focus map(s) in um (.npy, .csv, .tif) to use instead")
     slides.add_argument("--pitch-um", type=float, default=200.0, help="tile centre spacing")
+    slides.add_argument(
+        "--z-offset-um",
+        type=float,
+        default=0.0,
+        help="every slide's focus moved by this much (a re-scan after drift between passes)",
+    )
     scope = parser.add_argument_group("microscope")
     scope.add_argument("--width", type=int, default=1024, help="frame width in pixels")
     scope.add_argument("--height", type=int, default=1024, help="frame height in pixels")
@@ -320,6 +327,8 @@ def microscope_from_args(args: argparse.Namespace) -> Microscope:
     else:
         surface = family_spec(args.family, args.rows, args.cols)
         slides = slides_from_seed(args.seed, args.slides, surface, args.pitch_um)
+    if args.z_offset_um:
+        slides = [replace(slide, focus_um=slide.focus_um + args.z_offset_um) for slide in slides]
     spec = MicroscopeSpec(
         optics=Optics(numerical_aperture=args.na, magnification=args.magnification),
         stage=StageSpec(drift_um_per_s=args.drift_um_per_s),

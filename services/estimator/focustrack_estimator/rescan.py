@@ -1,0 +1,178 @@
+"""`kf-rescan`: a slide scanned again, the last pass's map its prior, the drift estimated.
+
+Slides are scanned again (time-lapse, a second channel, a higher magnification).
+What changes between passes is mostly a slow drift of the whole slide (thermal,
+mechanical: the HISP drift-estimation seed), plus a little local change. So the
+height of tile (r, c) at time t is modelled as
+
+    z(r, c, t) = b(r, c) + d(t) + l(r, c),
+
+b the previous pass's map (its smoothed estimate, with its sigma), l an
+independent local change of std `local_sigma_um`, and d the drift, whose state
+is [offset um, rate um/s]: the rate a random walk of spectral density
+`rate_q_um2_per_s3`, the offset integrating it (the continuous white-noise
+acceleration model, Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]). A measurement z of a
+tile gives the innovation y = z - b - d with S = P_dd + sigma_b^2 + sigma_l^2 + R,
+which corrects the drift state (gain P[:, 0] / S) and the tile's height
+(prior variance V = P_dd + sigma_b^2 + sigma_l^2, the scalar update).
+
+Time is the scan's own: every acquisition advances a clock by the timing
+model's stage move and frames (`focustrack_core.timing`, the simulator's), so
+the strategy stays a function of its measurement log.
+
+The first tile knows nothing of the drift since the last pass (`start_sigma_um`):
+its stack is coarse (`lean.coarse_stack`, the whole uncertainty in a few
+frames), and the peak found there only centres a fine stack on the same tile,
+which measures it; after that the lean rule (`lean.choose_stack`, default risk 1%)
+takes the kept image alone on nearly every tile, measuring with 3 frames when
+the drift's uncertainty has grown past the risk.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from focustrack_core.domain import Acquisition, Measurement, Outcome
+from focustrack_core.geometry import Tile
+from focustrack_core.timing import TimingModel
+from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
+from focustrack_estimator.strategy import SlideSettings, Strategy
+
+#: The sigma of a prior map given without one (um).
+DEFAULT_MAP_SIGMA_UM = 0.05
+
+
+class RescanFilter(SerpentineFilter):
+    """The previous pass's map plus a drift [offset, rate] and local change (module docstring)."""
+
+    name = "kf-rescan"
+
+    def __init__(
+        self,
+        settings: SlideSettings,
+        options: FilterOptions,
+        *,
+        base_um: np.ndarray,
+        base_sigma_um: np.ndarray,
+        local_sigma_um: float,
+        rate_sigma_um_per_s: float,
+        rate_q_um2_per_s3: float,
+        timing: TimingModel | None = None,
+    ) -> None:
+        super().__init__(settings, options)
+        if base_um.shape != self.grid.shape or base_sigma_um.shape != self.grid.shape:
+            raise ValueError(
+                f"the prior map must be {self.grid.shape} (rows, cols), got {base_um.shape} "
+                f"with sigmas {base_sigma_um.shape}"
+            )
+        if not (np.all(np.isfinite(base_um)) and np.all(np.isfinite(base_sigma_um))):
+            raise ValueError("the prior map and its sigmas must be finite on every tile")
+        if min(local_sigma_um, rate_sigma_um_per_s, rate_q_um2_per_s3) < 0:
+            raise ValueError("the sigmas and q of kf-rescan must not be negative")
+        self.base_um, self.base_var_um2 = base_um, np.square(base_sigma_um)
+        self.local_var_um2 = local_sigma_um**2
+        self.rate_q_um2_per_s3 = rate_q_um2_per_s3
+        self.timing = timing or TimingModel()
+        # drift state [offset um, rate um/s] and its covariance, at time _state_s
+        self.x = np.array([settings.start_z_um, 0.0])
+        self.P = np.diag([settings.start_sigma_um**2, rate_sigma_um_per_s**2])
+        self._state_s = 0.0
+        self._clock_s = 0.0  # the end of the last acquisition, s since the scan began
+        self._here: Tile | None = None
+
+    @property
+    def drift_um(self) -> float:
+        """The drift's offset now (um): the last pass's map plus this is the slide."""
+        return float(self.x[0])
+
+    @property
+    def drift_um_per_s(self) -> float:
+        """The drift's rate estimated so far."""
+        return float(self.x[1])
+
+    def _arrival_s(self, tile: Tile) -> float:
+        """When the next acquisition on `tile` starts: the clock plus the move there."""
+        if self._here is None:
+            return self._clock_s
+        return self._clock_s + self.timing.move_s(self.grid.distance_um(self._here, tile))
+
+    def _tile_var_um2(self, tile: Tile) -> float:
+        return self.base_var_um2[tile.row, tile.col] + self.local_var_um2
+
+    def _predict(self, tile: Tile) -> Gaussian:
+        t_s = self._arrival_s(tile)
+        dt = t_s - self._state_s
+        F = np.array([[1.0, dt], [0.0, 1.0]])
+        Q = self.rate_q_um2_per_s3 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        self.x, self.P, self._state_s = F @ self.x, F @ self.P @ F.T + Q, t_s
+        mean_um = self.base_um[tile.row, tile.col] + self.x[0]
+        return Gaussian(float(mean_um), float(self.P[0, 0] + self._tile_var_um2(tile)))
+
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        if z_um is None:
+            return prior
+        y = z_um - prior.mean_um
+        S = prior.var_um2 + R_um2
+        gain = self.P[:, 0] / S  # the drift's share of the innovation
+        self.x = self.x + gain * y
+        self.P = self.P - np.outer(gain, self.P[0, :])
+        k = prior.var_um2 / S  # the tile's height: drift, prior map and local change together
+        return Gaussian(prior.mean_um + k * y, prior.var_um2 * (1.0 - k))
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        tile = Tile(acquisition.row, acquisition.col)
+        self._clock_s = self._arrival_s(tile) + self.timing.stack_s(acquisition.z.n_frames)
+        self._here = tile
+        return super()._take(acquisition, measurement)
+
+
+def kf_rescan(
+    settings: SlideSettings,
+    options: FilterOptions = FilterOptions(risk_out_of_focus=0.01),
+    *,
+    prior_map_um: Sequence[float] = (),
+    prior_map_sigma_um: Sequence[float] = (),
+    local_sigma_um: float = 0.05,
+    rate_sigma_um_per_s: float = 0.05,
+    rate_q_um2_per_s3: float = 1e-6,
+) -> RescanFilter:
+    """A re-scan of a slide: `prior_map_um` is the last pass's map, rows x cols heights in
+    um, row after row (flat, as the REST API's parameters are lists of numbers).
+
+    `prior_map_sigma_um`: its sigma, a map likewise, or one for all tiles (a list of
+    one; none: `DEFAULT_MAP_SIGMA_UM`, what kf-2d's smoothed map has on the demo slide);
+    `local_sigma_um`: the local change between passes; `rate_sigma_um_per_s`: the prior
+    std of the drift's rate; `rate_q_um2_per_s3`: how fast that rate wanders.
+    `start_z_um` and `start_sigma_um` of the slide are the drift's offset since the
+    last pass and its uncertainty. Without a prior map every tile is as uncertain as
+    the start (a flat map of sigma `start_sigma_um`): a scan that only tracks the drift.
+    """
+    shape = settings.grid.shape
+    if len(prior_map_um) == 0:
+        base_um = np.zeros(shape)
+        base_sigma_um = np.full(shape, settings.start_sigma_um)
+    else:
+        base_um = np.asarray(prior_map_um, dtype=float)
+        sigma = np.asarray(prior_map_sigma_um or [DEFAULT_MAP_SIGMA_UM], dtype=float)
+        if base_um.size != math.prod(shape) or sigma.size not in (1, base_um.size):
+            raise ValueError(
+                f"the prior map must hold rows x cols = {math.prod(shape)} heights (and as "
+                f"many sigmas, or one), got {base_um.size} and {sigma.size}"
+            )
+        base_um = base_um.reshape(shape)
+        base_sigma_um = np.broadcast_to(sigma.reshape(-1), base_um.size).reshape(shape).copy()
+    return RescanFilter(
+        settings,
+        options,
+        base_um=base_um,
+        base_sigma_um=base_sigma_um,
+        local_sigma_um=local_sigma_um,
+        rate_sigma_um_per_s=rate_sigma_um_per_s,
+        rate_q_um2_per_s3=rate_q_um2_per_s3,
+    )
+
+
+STRATEGIES: dict[str, Callable[..., Strategy]] = {"kf-rescan": kf_rescan}

@@ -1,0 +1,129 @@
+"""The lean acquisition rule: the kept image alone, a short stack or a full one, by risk."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from focustrack.bench import strategies as registry
+from focustrack.bench.replay import limit_time_s, reliability, replay, score
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.timing import TimingModel
+from focustrack_estimator.lean import SHORT_FRAMES, choose_stack, out_of_focus_risk, search_cost
+from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
+from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
+
+POLICY = ZRangePolicy()
+DOF_UM = 1.0
+
+
+def test_risk_is_the_gaussian_mass_outside_the_depth_of_field() -> None:
+    assert out_of_focus_risk(0.0, 0.2, 0.0, DOF_UM) == pytest.approx(2 * norm.sf(0.5 / 0.2))
+    # kept 0.3 um off the mean: the near edge is 0.2 um away, the far one 0.8 um
+    expected = norm.sf(0.2 / 0.1) + norm.cdf(-0.8 / 0.1)
+    assert out_of_focus_risk(0.3, 0.1, 0.0, DOF_UM) == pytest.approx(expected)
+    assert out_of_focus_risk(0.0, 0.0, 0.4, DOF_UM) == 0.0
+    assert out_of_focus_risk(0.0, 0.0, 0.6, DOF_UM) == 1.0
+
+
+def _choose(sigma_um: float, r_um: float = 0.1, risk: float = 0.01):  # type: ignore[no-untyped-def]
+    return choose_stack(5.0, sigma_um**2, r_um**2, DOF_UM, POLICY, risk, 1.0, 3)
+
+
+def test_a_sure_prediction_takes_the_kept_image_only() -> None:
+    # 0.5 / 0.18 = 2.78 sigmas: a risk of 0.55%, within 1%
+    choice = _choose(0.18)
+    assert not choice.measure and choice.z.n_frames == 1 and choice.z.center_um == 5.0
+    assert choice.skip_risk == pytest.approx(2 * norm.sf(0.5 / 0.18))
+    # the same prediction with a stricter risk is measured, with a short stack
+    stricter = _choose(0.18, risk=0.001)
+    assert stricter.measure and stricter.z.n_frames == SHORT_FRAMES
+    assert stricter.z.center_um == pytest.approx(5.0)
+
+
+def test_an_unsure_prediction_takes_the_cheaper_search_that_reaches_the_peak() -> None:
+    # innovation sigma 1 um: 3 frames then 5-frame retries (reach 0.5, 2, 3.5, 5 um) cost
+    # 3 + 5 (62% + 4.6% + ...) = 6.3 frames in expectation, the full stack 11
+    sigma_um = math.hypot(1.0, 0.1)
+    choice = _choose(1.0)
+    assert choice.measure and choice.z.n_frames == SHORT_FRAMES
+    assert choice.expected_frames == pytest.approx(search_cost(choice.z, sigma_um, POLICY, 3, 0.01))
+    assert choice.expected_frames < POLICY.around(5.0, sigma_um).n_frames
+    # at 2.5 um the short start's retries miss beyond 5 um in 4.5% of tiles: the full stack
+    wide = _choose(2.5)
+    assert wide.z == POLICY.around(5.0, math.hypot(2.5, 0.1))
+
+
+def test_search_cost_counts_retries_and_refuses_a_likely_give_up() -> None:
+    short = POLICY.around(0.0, 0.01)  # min_frames: 5 frames, +/- 1 um
+    assert short.n_frames == POLICY.min_frames
+    tiny = search_cost(short, 0.01, POLICY, 3, 0.01)
+    assert tiny == pytest.approx(5.0)  # never misses
+    wide = search_cost(short, 1.0, POLICY, 3, 0.01)
+    # misses beyond 1 um (32%), then 2.5 um, then 4 um: each costs a 5-frame block
+    expected = 5 + 5 * sum(2 * norm.sf(reach) for reach in (1.0, 2.5, 4.0))
+    assert wide == pytest.approx(expected)
+    assert search_cost(short, 10.0, POLICY, 3, 0.01) is None  # 3 retries reach 5.5 um only
+
+
+def test_risk_must_be_a_probability() -> None:
+    with pytest.raises(ValueError, match="risk"):
+        _choose(0.1, risk=0.0)
+    settings = SlideSettings(ScanGrid(3, 3))
+    with pytest.raises(ValueError, match="risk_out_of_focus"):
+        registry.create("kf-2d-lean", settings, {"risk_out_of_focus": 1.5})
+    assert registry.parameters("kf-2d-lean")["risk_out_of_focus"] == 0.01
+    assert registry.parameters("kf-wiener0")["risk_out_of_focus"] == 0.0  # off: full stacks
+
+
+def _smooth_maps(n_maps: int, size: int) -> np.ndarray:
+    return generate_surfaces(SurfaceSpec(rows=size, cols=size), n_maps, seed=7)
+
+
+def test_kf_2d_lean_takes_fewer_frames_at_the_risk_it_states() -> None:
+    truth = _smooth_maps(3, 12)
+    noise = np.random.default_rng(3).standard_normal(truth.shape) * 0.1
+    settings = SlideSettings(ScanGrid(12, 12), noise_sigma_um=0.1, dof_um=DOF_UM)
+    runs = {
+        name: [
+            replay(registry.create(name, settings), t, t + e)
+            for t, e in zip(truth, noise, strict=True)
+        ]
+        for name in ("kf-2d", "kf-2d-lean")
+    }
+    lean, full = score(runs["kf-2d-lean"], DOF_UM), score(runs["kf-2d"], DOF_UM)
+    assert lean.images_per_tile < 0.6 * full.images_per_tile
+    assert lean.in_focus_fraction >= 0.99
+    assert lean.scan_time_s < full.scan_time_s
+    # some tiles were imaged at their prediction alone: posterior sigma = prior sigma there
+    skipped = [
+        np.isclose(r.focus_map.posterior_sigma_um, r.focus_map.prior_sigma_um)
+        for r in runs["kf-2d-lean"]
+    ]
+    assert 0 < np.mean(skipped) < 1
+    # every tile states its risk, and the reliability table covers every tile once
+    assert all(np.all(np.isfinite(r.risk)) for r in runs["kf-2d-lean"])
+    bins = reliability(runs["kf-2d-lean"], DOF_UM)
+    assert sum(b.n_tiles for b in bins) == truth.size
+    assert all(b.low <= b.predicted < b.high or b.high == 1.0 for b in bins)
+
+
+def test_a_slide_start_is_searched_coarsely_then_measured_with_a_short_stack() -> None:
+    truth = np.full((2, 2), 7.3)  # 7.3 um from the start, 10 um unsure
+    strategy = registry.create("kf-2d-lean", SlideSettings(ScanGrid(2, 2), noise_sigma_um=0.1))
+    first = strategy.next_acquisition()
+    # +/- 2 sigmas of about 10.2 um (kf-2d's offset and field) at 2 um: 23 frames, not 41 + 41
+    assert first is not None and first.z.step_um == 2.0 and first.z.n_frames == 23
+    run = replay(strategy, truth, truth)
+    assert run.outcomes[0].accepted is False  # the coarse peak only centres the next stack
+    assert run.outcomes[1].accepted and run.focus_map.z_used_um[0, 0] == pytest.approx(7.3)
+    assert run.n_images - 23 < 4 * 3  # a short stack per tile at most after the coarse one
+
+
+def test_the_physical_limit_is_moves_and_one_frame_per_tile() -> None:
+    grid, timing = ScanGrid(2, 3), TimingModel()
+    expected = 5 * timing.move_s(grid.distance_um(grid.serpentine[0], grid.serpentine[1]))
+    assert limit_time_s(grid, timing) == pytest.approx(expected + 6 * timing.stack_s(1))
