@@ -448,6 +448,8 @@ def test_map_formats_agree(app: FastAPI) -> None:
     np.testing.assert_array_equal(np.array(as_json["posterior_um"]), local.posterior_um)
     np.testing.assert_allclose(np.array(as_json["smoothed_um"]), local.smoothed_um)
     assert (as_json["rows"], as_json["cols"]) == (ROWS, COLS)
+    # Written without the model (for speed), yet exactly the model's JSON.
+    assert api.FocusMapOut.model_validate_json(replies["json"].content).model_dump() == as_json
 
     assert replies["csv"].headers["content-type"].startswith("text/csv")
     table = np.genfromtxt(io.StringIO(replies["csv"].text), delimiter=",", names=True)

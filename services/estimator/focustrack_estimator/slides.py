@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import io
 import logging
 import math
 import sqlite3
@@ -45,6 +44,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import map_layers
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import InnovationDiagnostics, innovation_diagnostics
+from focustrack_estimator.heatmap import MAGMA, VIRIDIS, heat_map_png
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.store import Event, Store
 from focustrack_estimator.strategy import SlideSettings, Strategy, ZRangePolicy
@@ -587,25 +587,12 @@ def diagnose(history: list[Logged]) -> SlideDiagnostics:
 
 
 def map_png(focus_map: FocusMap, title: str) -> bytes:
-    """A PNG heat map of the posterior focus map and its sigma, side by side."""
-    # Imported here: matplotlib adds half a second to every start of the service.
-    # The object-oriented API with an Agg canvas: no pyplot global state, safe in threads.
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    figure = Figure(figsize=(10, 4.2), layout="constrained")
-    FigureCanvasAgg(figure)
+    """A PNG heat map of the posterior focus map and its sigma, side by side (`heatmap`)."""
     layers = map_layers(focus_map)
-    for axes, name, cmap in zip(
-        figure.subplots(1, 2),
-        ("posterior_um", "posterior_sigma_um"),
-        ("viridis", "magma"),
-        strict=True,
-    ):
-        image = axes.imshow(np.ma.masked_invalid(layers[name]), cmap=cmap, origin="upper")
-        axes.set(title=name, xlabel="col (x)", ylabel="row (y)")
-        figure.colorbar(image, ax=axes, label="um")
-    figure.suptitle(title)
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=80)
-    return buffer.getvalue()
+    return heat_map_png(
+        [
+            ("posterior_um", layers["posterior_um"], VIRIDIS),
+            ("posterior_sigma_um", layers["posterior_sigma_um"], MAGMA),
+        ],
+        title,
+    )
