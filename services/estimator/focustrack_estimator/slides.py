@@ -25,8 +25,8 @@ import math
 import sqlite3
 import time
 import uuid
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TypeVar, overload
 
 import numpy as np
 
@@ -235,6 +235,54 @@ class Logged:
     outcome: Outcome
 
 
+class History(Sequence[Logged]):
+    """A slide's logged acquisitions in order; those a snapshot covers are read on first use.
+
+    After a restart the strategy comes from its snapshot, and only the events
+    after it are needed (to replay): reading and decoding the events the
+    snapshot covers took seconds for a 200x200 slide (40 000 events), so they
+    are read from the store when something first asks for them (diagnostics,
+    the re-post of an old measurement). `load` returns them.
+    """
+
+    def __init__(self, load: Callable[[], list[Logged]] | None = None, n_unread: int = 0) -> None:
+        self._load, self._n_unread = load, n_unread
+        self._items: list[Logged] = []
+
+    def _read(self) -> None:
+        if self._load is not None:
+            self._items[:0] = self._load()
+            self._load, self._n_unread = None, 0
+
+    def __len__(self) -> int:
+        return self._n_unread + len(self._items)
+
+    @overload
+    def __getitem__(self, index: int) -> Logged: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[Logged]: ...
+
+    def __getitem__(self, index: int | slice) -> Logged | list[Logged]:
+        if isinstance(index, slice):
+            self._read()
+            return self._items[index]
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(f"history index {index} out of range")
+        if index < self._n_unread:
+            self._read()
+        return self._items[index - self._n_unread]
+
+    def __iter__(self) -> Iterator[Logged]:
+        self._read()
+        return iter(self._items)
+
+    def append(self, logged: Logged) -> None:
+        self._items.append(logged)
+
+
 class Slide:
     """One slide's live strategy and its history. Not thread-safe: `Slides` serialises calls.
 
@@ -256,7 +304,7 @@ class Slide:
         self.store = store
         self._timer = timer
         self.snapshot_every = snapshot_every
-        self.history: list[Logged] = []
+        self.history = History()
         self.n_snapshot = 0  # events covered by the newest snapshot stored
         self._snapshots = True  # False once the strategy's state proved impossible to store
         try:
@@ -317,14 +365,21 @@ class Slide:
             f"(the strategy {self.config.strategy!r} changed since it was logged)"
         )
 
-    def load_history(self, events: list[Event]) -> None:
-        """Take logged events as the history without replaying them (a snapshot covers them)."""
-        self.history.extend(
-            Logged(
-                acquisition_of(e.acquisition), measurement_of(e.measurement), outcome_of(e.outcome)
-            )
-            for e in events
-        )
+    def cover_history(self, n_events: int) -> None:
+        """Take the first `n_events` logged events as the history without replaying them (a
+        snapshot covers them); they are read from the store when first needed (`History`)."""
+
+        def load() -> list[Logged]:
+            return [
+                Logged(
+                    acquisition_of(e.acquisition),
+                    measurement_of(e.measurement),
+                    outcome_of(e.outcome),
+                )
+                for e in self.store.events(self.id)[:n_events]
+            ]
+
+        self.history = History(load, n_events)
 
     def save_snapshot(self) -> None:
         """Store the strategy's state as the snapshot after the history's events.
@@ -509,17 +564,17 @@ class Slides:
             raise SlideNotFoundError(f"no slide {slide_id!r}")
         config = api.SlideCreate.model_validate(record.config)
         slide = Slide(slide_id, config, self.store, self._timer, self.snapshot_every)
-        events = self.store.events(slide_id)
         snapshot = self.store.snapshot(slide_id)
-        if snapshot is not None and snapshot[0] <= len(events):
+        if snapshot is not None and snapshot[0] <= record.n_events:
             try:
                 restore(slide.strategy, snapshot[1])
-                slide.load_history(events[: snapshot[0]])
+                slide.cover_history(snapshot[0])
                 slide.n_snapshot = snapshot[0]
             except SnapshotError as error:
                 log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
                 slide = Slide(slide_id, config, self.store, self._timer, self.snapshot_every)
-        slide.replay(events[len(slide.history) :])
+        # Only the events after the snapshot are read now (the others when first needed).
+        slide.replay(self.store.events(slide_id, start=len(slide.history)))
         self._live[slide_id] = slide
         return slide
 
@@ -554,7 +609,7 @@ class SlideDiagnostics:
     innovations_note: str | None  # why `innovations` is None
 
 
-def diagnose(history: list[Logged]) -> SlideDiagnostics:
+def diagnose(history: Sequence[Logged]) -> SlideDiagnostics:
     """Diagnostics from the accepted outcomes' innovations and NIS (S = innovation^2 / NIS).
 
     Gated-out measurements are counted as rejected but left out of the innovation
