@@ -234,6 +234,10 @@ class RowModel:
 #: a 0.1% share moves the blend by 0.1% of the members' difference.
 SMOOTH_MIN_WEIGHT = 1e-3
 
+#: Column blocks the smoother runs at once (one batch): their row states, rows x blocks x
+#: (N_PLANE + 2 x 32)^2 floats with the default blocks, are what it holds (57 MB at 200 rows).
+SMOOTH_BATCH_BLOCKS = 8
+
 
 class RowBankFilter(SerpentineFilter):
     """`kf-2d`: strip filters for every (sigma, length, tilt) of a grid, averaged by likelihood.
@@ -482,28 +486,52 @@ def smooth_member(
     posterior) on column blocks: the tiles of each block of `block_cols`
     columns are read from a strip filter over a window of `block_cols` + 2
     `margin_cols` columns around it (shifted inward at the slide's edges, so
-    every window has the same width), so that memory is rows x (N_PLANE + 2
-    width)^2 floats per block whatever the slide's width. A block's margins
-    stand in for the columns beyond, whose measurements a Matern field a few
-    lengths away barely feels; where one window spans the grid the result is
-    the exact smoother.
+    every window has the same width). A block's margins stand in for the
+    columns beyond, whose measurements a Matern field a few lengths away barely
+    feels; where one window spans the grid the result is the exact smoother.
 
-    All blocks run at once, as a batch (their windows have the same model and
-    width): per row one prediction and one batch update with the row's
+    The blocks run `SMOOTH_BATCH_BLOCKS` at a time, as one batch (their windows
+    have the same model and width), so that memory is rows x
+    `SMOOTH_BATCH_BLOCKS` x (N_PLANE + 2 width)^2 floats whatever the slide's
+    width: per row one prediction and one batch update with the row's
     measurements (the same as the tile-by-tile updates), and the backward pass
     of Rauch-Tung-Striebel, C_k = P+_k F' (P-_{k+1})^-1, with P-_{k+1} = F P+_k
     F' + Q recomputed instead of stored. A tile without a measurement has a zero
     measurement row (and unit R): it then adds nothing to the update, exactly.
     """
     rows, cols = z_um.shape
-    grid = settings.grid
     width = min(cols, block_cols + 2 * margin_cols)
     if width == cols:  # one window spans the grid: one block, the exact smoother
         block_cols = cols
     starts = np.arange(0, cols, block_cols)
-    los = np.clip(starts - margin_cols, 0, cols - width)  # (n_blocks,) each window's first column
-    n_blocks, dim = len(starts), N_PLANE + 2 * width
+    los = np.clip(starts - margin_cols, 0, cols - width)  # each window's first column
     window = RowModel(model.sigma_um, model.length_tiles, model.tilt_sigma_um_per_tile, width)
+    mean_um, var_um2 = np.full((rows, cols), np.nan), np.full((rows, cols), np.nan)
+    for first in range(0, len(starts), SMOOTH_BATCH_BLOCKS):
+        batch = slice(first, first + SMOOTH_BATCH_BLOCKS)
+        _smooth_windows(
+            window, settings, z_um, R_um2, starts[batch], los[batch], block_cols, mean_um, var_um2
+        )
+    return mean_um, var_um2
+
+
+def _smooth_windows(
+    window: RowModel,
+    settings: SlideSettings,
+    z_um: np.ndarray,
+    R_um2: np.ndarray,
+    starts: np.ndarray,
+    los: np.ndarray,
+    block_cols: int,
+    mean_um: np.ndarray,
+    var_um2: np.ndarray,
+) -> None:
+    """`smooth_member` on the blocks starting at columns `starts` (windows from `los`), as one
+    batch; writes each block's smoothed heights (um) and variances (um^2) into the maps."""
+    rows, cols = z_um.shape
+    grid = settings.grid
+    width = window.cols
+    n_blocks, dim = len(starts), N_PLANE + 2 * width
     columns = los[:, None] + np.arange(width)  # (n_blocks, width) each window's columns
     # Measurement rows of the windows' tiles: the plane at each tile plus its column's field.
     H = np.zeros((n_blocks, width, dim))
@@ -551,7 +579,6 @@ def smooth_member(
             P = (P + P.transpose(0, 2, 1)) / 2.0
         x_post[r], P_post[r] = x, P
 
-    mean_um, var_um2 = np.full((rows, cols), np.nan), np.full((rows, cols), np.nan)
     # Each block's own columns within its window.
     core = [
         slice(s - lo, min(cols, s + block_cols) - lo) for s, lo in zip(starts, los, strict=True)
@@ -575,7 +602,6 @@ def smooth_member(
         xs = x_post[k] + np.einsum("bij,bj->bi", C, xs - x_next)
         Ps = P_post[k] + C @ (Ps - P_next) @ C.transpose(0, 2, 1)
         read(k, xs, Ps)
-    return mean_um, var_um2
 
 
 # --- factories ---------------------------------------------------------------------------
