@@ -41,6 +41,8 @@ def test_the_command_writes_a_table_json_and_a_plot(
     figures = json.loads(out.read_text())
     cases = [(r["strategy"], r["cols"]) for r in figures["in_process"]]
     assert cases == [("kf-2d", 4), ("kf-wiener0", 4), ("kf-2d", 6), ("kf-wiener0", 6)]
+    assert all(r["case_cpu_s"] > 0 for r in figures["in_process"])
+    assert figures["cpu_s"] == pytest.approx(sum(r["case_cpu_s"] for r in figures["in_process"]))
     assert out.with_suffix(".png").read_bytes().startswith(b"\x89PNG")
     table = capsys.readouterr().out
     assert "kf-wiener0" in table and "CPU p99" in table

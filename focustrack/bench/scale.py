@@ -341,13 +341,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"FAILED: {r['kind']} {r['strategy']} {r['cols']}: {r['error']}")
     print(_table(in_process, rest))
     elapsed_s = time.perf_counter() - started_s
-    print(f"\n{len(cases)} cases in {elapsed_s:.0f} s, {args.jobs} at a time")
+    cpu_s = sum(r.get("case_cpu_s", 0.0) for r in results)
+    print(
+        f"\n{len(cases)} cases in {elapsed_s:.0f} s, {args.jobs} at a time; {cpu_s:.0f} s of CPU "
+        f"in all ({cpu_s / max(1, args.jobs):.0f} s on {args.jobs} idle cores); load average "
+        + " ".join(f"{load:.1f}" for load in os.getloadavg())
+    )
     if args.json:
         figures = {
             "in_process": in_process,
             "rest": rest,
             "failed": failed,
             "elapsed_s": elapsed_s,
+            "cpu_s": cpu_s,
             "jobs": args.jobs,
             "load_average": os.getloadavg(),
         }
@@ -366,6 +372,10 @@ def _main(argv: list[str]) -> None:
         result = case_in_process(name, size)
     else:
         result = case_rest(name, size, int(argv[3]), int(argv[4]))
+    # The case's CPU time, imports and the servers it started included: their sum over the
+    # cases, divided by the jobs, is the run's wall time on idle cores.
+    usage = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+    result["case_cpu_s"] = sum(u.ru_utime + u.ru_stime for u in usage)
     print(json.dumps(result))
 
 
