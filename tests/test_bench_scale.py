@@ -25,7 +25,8 @@ def test_a_served_case_restarts_after_kill_and_loses_nothing() -> None:
     result = case_rest("kf-2d", 6, unsnapshotted=3, every=10)
     assert result["lost_nothing"]
     assert result["replayed_at_first_start"] == 3
-    assert set(result["map_s"]) == {"json", "csv", "npy", "png"}
+    assert set(result["map_s"]) == set(result["map_cpu_s"]) == {"json", "csv", "npy", "png"}
+    assert result["up_after_kill_cpu_s"] > 0 and result["first_answer_after_kill_cpu_s"] >= 0
 
 
 @pytest.mark.slow  # four child processes, each importing the estimator

@@ -2,28 +2,35 @@
 
 For every strategy and grid size (square grids, `--sizes` columns) one child
 process scans a generated standard surface (measurement noise 1.5 um) in
-process, through the strategy's two calls, and reports:
+process, through the strategy's two calls, every tile of the full grid, and
+reports:
 
 - the time per tile (every acquisition of the tile: `next_acquisition` and
-  `record`), mean and 99th percentile, in ms;
+  `record`), mean and 99th percentile, in ms, both wall time and the thread's
+  CPU time: on a shared machine a process waits for a core for milliseconds
+  at a time, which sets the wall-time p99; the CPU time is what an idle core
+  takes;
 - the time of the final map (`focus_map()` once the scan is complete: for
-  kf-2d the smoothed layers) in s;
+  kf-2d the smoothed layers) in s, wall and CPU;
 - the process's peak resident memory (the child's own, so cases do not mix),
   and its resident memory before the scan (imports and maps) for reference.
 
 For the `--rest` strategies a second child fills a real store through the
 service's own code (`Slides`, snapshots every `--snapshot-every`), all but the
 last `--unsnapshotted` measurements, and stops as a kill -9 would: no shutdown
-snapshot. The estimator service is then started on that store as a process:
-`up` is process start to /healthz, `first answer` /healthz to the slide's first
-/next (loading its snapshot and replaying the events after it). The scan is
-finished over HTTP, every map format fetched and timed, the server killed with
-SIGKILL and started again, and the first answer and the map timed again: the
-figures after the kill are reported. The store is filled with SQLite's fsync
-off (`PRAGMA synchronous=OFF`): it measures restarts, not a disk.
+snapshot. The estimator service is then started on that store as a process
+and the scan finished over HTTP (the first /next replays the events after the
+snapshot), every map format fetched, the server killed with SIGKILL and
+started again: `up` is process start to /healthz, `first answer` /healthz to
+the slide's first /next (loading its snapshot), then every map format is
+fetched and timed again. Each is reported as wall time and the server
+process's CPU time (/proc). The store is filled with SQLite's fsync off
+(`PRAGMA synchronous=OFF`): it measures restarts, not a disk.
 
 Children run with one BLAS thread (`OPENBLAS_NUM_THREADS=1`), `--jobs` at a
-time: figures are for one core, and on a shared machine they are noisy.
+time, the longest first; each reports its CPU time (imports and the servers
+it started included), and the run their sum: divided by the jobs, it is the
+run's wall time on idle cores.
 """
 
 from __future__ import annotations
@@ -156,25 +163,33 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
         port = free_port()
         url = f"http://127.0.0.1:{port}/v1/slides/{slide_id}"
 
-        def start() -> tuple[subprocess.Popen, float, float]:
+        def start() -> tuple[subprocess.Popen, dict[str, float]]:
+            """Start the server and ask for the slide's first /next: wall and server CPU times."""
             start_s = time.perf_counter()
             process = spawn(store_path, port, timeout_s=120.0)
-            up_s = time.perf_counter()
+            up_s, up_cpu_s = time.perf_counter(), _process_cpu_s(process.pid)
             response = httpx.get(f"{url}/next", timeout=120.0)
             response.raise_for_status()
-            return process, up_s - start_s, time.perf_counter() - up_s
+            return process, {
+                "up_s": up_s - start_s,
+                "up_cpu_s": up_cpu_s,
+                "first_answer_s": time.perf_counter() - up_s,
+                "first_answer_cpu_s": _process_cpu_s(process.pid) - up_cpu_s,
+            }
 
-        def maps() -> dict[str, float]:
-            times = {}
+        def maps(pid: int) -> tuple[dict[str, float], dict[str, float]]:
+            """Each format's time, wall and the server's CPU."""
+            times, cpu_times = {}, {}
             for map_format in ("json", "csv", "npy", "png"):
-                start_s = time.perf_counter()
+                start_s, start_cpu_s = time.perf_counter(), _process_cpu_s(pid)
                 httpx.get(
                     f"{url}/map", params={"format": map_format}, timeout=120.0
                 ).raise_for_status()
                 times[map_format] = time.perf_counter() - start_s
-            return times
+                cpu_times[map_format] = _process_cpu_s(pid) - start_cpu_s
+            return times, cpu_times
 
-        process, _, first_s = start()
+        process, first = start()
         try:
             # The last measurement also makes the final map and its snapshot: allow it time.
             client = EstimatorClient(f"http://127.0.0.1:{port}", timeout_s=300.0)
@@ -186,12 +201,12 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
                 )
             client.close()
             n_acquisitions = httpx.get(url, timeout=60.0).json()["n_acquisitions"]
-            maps()  # the first map of the complete scan (the smoothed layers were made at its end)
+            maps(process.pid)  # the complete scan's (its smoothed layers were made at its end)
             process.send_signal(signal.SIGKILL)
             process.wait()
-            process, up_s, first_after_kill_s = start()
+            process, after_kill = start()
             slide = httpx.get(url, timeout=60.0).json()
-            map_s = maps()
+            map_s, map_cpu_s = maps(process.pid)
             process.terminate()
             process.wait()
         finally:
@@ -201,12 +216,23 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
         "strategy": strategy_name,
         "cols": size,
         "replayed_at_first_start": unsnapshotted % every,
-        "first_answer_s": first_s,
-        "up_after_kill_s": up_s,
-        "first_answer_after_kill_s": first_after_kill_s,
+        "first_answer_s": first["first_answer_s"],
+        "first_answer_cpu_s": first["first_answer_cpu_s"],
+        "up_after_kill_s": after_kill["up_s"],
+        "up_after_kill_cpu_s": after_kill["up_cpu_s"],
+        "first_answer_after_kill_s": after_kill["first_answer_s"],
+        "first_answer_after_kill_cpu_s": after_kill["first_answer_cpu_s"],
         "lost_nothing": slide["n_acquisitions"] == n_acquisitions and slide["done"],
         "map_s": map_s,
+        "map_cpu_s": map_cpu_s,
     }
+
+
+def _process_cpu_s(pid: int) -> float:
+    """A process's CPU time so far (user and system, all its threads), from /proc (Linux)."""
+    with open(f"/proc/{pid}/stat") as stat:
+        fields = stat.read().rpartition(")")[2].split()  # after the command's name
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
 def _child(arguments: list[str]) -> dict[str, Any]:
@@ -262,16 +288,18 @@ def _table(in_process: list[dict[str, Any]], rest: list[dict[str, Any]]) -> str:
         lines += [
             "",
             "served: a completed scan, its server killed with SIGKILL and started again; up is"
-            " process start to /healthz, first answer /healthz to the slide's first /next:",
-            f"{'strategy':<16}{'cols':>6}{'up s':>8}{'first answer s':>16}{'lost nothing':>14}"
-            f"{'map json s':>12}{'csv s':>8}{'npy s':>8}{'png s':>8}",
+            " process start to /healthz (imports), first answer /healthz to the slide's first"
+            " /next; each figure wall time / the server's CPU time, in s:",
+            f"{'strategy':<16}{'cols':>6}{'up':>13}{'first answer':>14}{'lost nothing':>14}"
+            + "".join(f"{name:>13}" for name in ("map json", "csv", "npy", "png")),
         ]
         for r in rest:
-            m = r["map_s"]
+            m, c = r["map_s"], r["map_cpu_s"]
+            up = f"{r['up_after_kill_s']:.2f}/{r['up_after_kill_cpu_s']:.2f}"
+            first = f"{r['first_answer_after_kill_s']:.2f}/{r['first_answer_after_kill_cpu_s']:.2f}"
             lines.append(
-                f"{r['strategy']:<16}{r['cols']:>6}{r['up_after_kill_s']:>8.2f}"
-                f"{r['first_answer_after_kill_s']:>16.3f}{r['lost_nothing']!s:>14}"
-                f"{m['json']:>12.3f}{m['csv']:>8.3f}{m['npy']:>8.3f}{m['png']:>8.3f}"
+                f"{r['strategy']:<16}{r['cols']:>6}{up:>13}{first:>14}{r['lost_nothing']!s:>14}"
+                + "".join(f"{f'{m[k]:.2f}/{c[k]:.2f}':>13}" for k in ("json", "csv", "npy", "png"))
             )
     return "\n".join(lines)
 
