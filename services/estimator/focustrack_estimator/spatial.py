@@ -357,7 +357,7 @@ class RowBankFilter(SerpentineFilter):
         return self._mixture(tile)
 
     def _predict_row(self) -> None:
-        """x <- F x, P <- F P F' + Q for every member, in place (`step_rows`)."""
+        """x <- F x, P <- F P F' + Q for every member (`RowModel.F`, `.Q`), in place."""
         A = np.stack([self.models[i].step_y for i in self.active])  # (m, 2, 2)
         step_rows(self.x[:, :, None], A)
         step_rows(self.P, A)
@@ -452,7 +452,8 @@ class RowBankFilter(SerpentineFilter):
 
 
 def step_rows(M: np.ndarray, step: np.ndarray) -> None:
-    """M <- F M in place, F = block_diag(I (N_PLANE), `step` for each column's (f, df/dy)).
+    """M <- F M in place, F = block_diag(I (N_PLANE), `step` for each column's (f, df/dy)):
+    `RowModel.F` applied without forming it.
 
     `M` (n, N_PLANE + 2 cols, k); `step` (n, 2, 2), one per leading index, or (2, 2).
     Element-wise on the rows of each column's pair: a batch of 2x2 matrix products
