@@ -27,8 +27,8 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import MAP_LAYERS, focus_map_of_npy
 from focustrack_estimator import registry
 from focustrack_estimator.app import Settings, create_app
-from focustrack_estimator.slides import config_of
-from focustrack_estimator.store import Store
+from focustrack_estimator.slides import Slides, config_of, outcome_of
+from focustrack_estimator.store import Event, Store
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_scheduler.remote import acquisition_of, measurement_in
@@ -448,6 +448,8 @@ def test_map_formats_agree(app: FastAPI) -> None:
     np.testing.assert_array_equal(np.array(as_json["posterior_um"]), local.posterior_um)
     np.testing.assert_allclose(np.array(as_json["smoothed_um"]), local.smoothed_um)
     assert (as_json["rows"], as_json["cols"]) == (ROWS, COLS)
+    # Written without the model (for speed), yet exactly the model's JSON.
+    assert api.FocusMapOut.model_validate_json(replies["json"].content).model_dump() == as_json
 
     assert replies["csv"].headers["content-type"].startswith("text/csv")
     table = np.genfromtxt(io.StringIO(replies["csv"].text), delimiter=",", names=True)
@@ -582,6 +584,32 @@ def test_a_restart_replays_only_the_events_after_the_snapshot(tmp_path: Path) ->
     first, served = _finish(path, slide_id)
     assert first.status_code == 200
     assert_same_maps(served, local_map(SNAPSHOTTED, SETTINGS, 5))  # type: ignore[arg-type]
+
+
+def test_a_restart_reads_the_events_a_snapshot_covers_only_when_needed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "estimator.sqlite"
+    slide_id = _start(path, n_pairs=13, snapshot_every=5)
+    store = Store(path)
+    logged = store.events(slide_id)
+    reads: list[int] = []  # the `start` of every read of the log
+    read_events = store.events
+
+    def events(slide_id: str, start: int = 0) -> list[Event]:
+        reads.append(start)
+        return read_events(slide_id, start)
+
+    monkeypatch.setattr(store, "events", events)
+    slide = Slides(store)._load(slide_id)
+    assert reads == [10]  # the snapshot covers 10 events: only the later ones are read
+    assert len(slide.history) == len(logged)
+    assert slide.history[-1].outcome == outcome_of(logged[-1].outcome)
+    assert reads == [10]
+    assert slide.history[3].outcome == outcome_of(logged[3].outcome)  # now the rest, once
+    assert [entry.outcome for entry in slide.history] == [outcome_of(e.outcome) for e in logged]
+    assert reads == [10, 0]
+    store.close()
 
 
 def test_events_after_the_snapshot_are_checked(tmp_path: Path) -> None:

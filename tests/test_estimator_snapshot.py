@@ -12,6 +12,7 @@ import pytest
 from focustrack.bench.replay import simulated_measurement
 from focustrack_core.geometry import ScanGrid
 from focustrack_estimator import registry
+from focustrack_estimator.serpentine import SerpentineFilter
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.strategy import SlideSettings, Strategy
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
@@ -84,3 +85,21 @@ def test_a_snapshot_names_no_class_outside_the_project() -> None:
     np.savez(buffer, **arrays)
     with pytest.raises(SnapshotError, match="may not name 'subprocess:Popen'"):
         restore(registry.create("kf-wiener0", settings), buffer.getvalue())
+
+
+def test_a_restore_keeps_equal_plain_values_and_stores_float_lists_as_arrays() -> None:
+    """The strategy's own grid object survives (with its cached serpentine order), and the
+    innovations (a list of floats) come back bit for bit from one array, not a JSON node each."""
+    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    original = registry.create("kf-wiener0", settings)
+    _steps(original, _measured(), 12)
+    blob = encode(original)
+    with np.load(io.BytesIO(blob), allow_pickle=False) as archive:
+        tree = archive["__tree__"].tobytes().decode()
+    assert '"fl"' in tree
+    restored = registry.create("kf-wiener0", settings)
+    grid = restored.grid
+    restore(restored, blob)
+    assert restored.grid is grid
+    assert isinstance(restored, SerpentineFilter) and isinstance(original, SerpentineFilter)
+    assert restored.innovations()[0].tolist() == original.innovations()[0].tolist()

@@ -7,7 +7,8 @@ import pytest
 
 from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_core.geometry import ScanGrid
-from focustrack_estimator.spatial import kf_2d, matern32
+from focustrack_estimator import spatial
+from focustrack_estimator.spatial import RowModel, kf_2d, matern32, smooth_member
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
@@ -85,3 +86,58 @@ def test_smoothed_layers_cover_the_tiles_finished_so_far() -> None:
     untouched = replay(kf_2d(settings), truth_um, measured_um).focus_map
     np.testing.assert_array_equal(final.smoothed_um, untouched.smoothed_um)
     np.testing.assert_array_equal(final.posterior_um, untouched.posterior_um)
+
+
+def _gp_posterior(
+    settings: SlideSettings, model: RowModel, z_um: np.ndarray, R_um2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The GP posterior mean and variance of every tile given the finite `z_um` (direct solve)."""
+    rows, cols = z_um.shape
+    r, c = (a.ravel() for a in np.mgrid[:rows, :cols])
+    plane = np.stack([np.ones(r.size), c - (cols - 1) / 2.0, r - (rows - 1) / 2.0], axis=1)
+    tilt_var = model.tilt_sigma_um_per_tile**2
+    K = plane @ np.diag([settings.start_sigma_um**2, tilt_var, tilt_var]) @ plane.T
+    K += (
+        model.sigma_um**2
+        * matern32(r[:, None] - r, model.length_tiles)
+        * matern32(c[:, None] - c, model.length_tiles)
+    )
+    seen = np.isfinite(z_um.ravel())
+    A = K[np.ix_(seen, seen)] + np.diag(R_um2.ravel()[seen])
+    Ks = K[:, seen]
+    mean_um = settings.start_z_um + Ks @ np.linalg.solve(
+        A, z_um.ravel()[seen] - settings.start_z_um
+    )
+    var_um2 = np.diag(K - Ks @ np.linalg.solve(A, Ks.T))
+    return mean_um.reshape(rows, cols), var_um2.reshape(rows, cols)
+
+
+def test_the_smoother_skips_tiles_without_a_measurement_exactly() -> None:
+    """Tiles given up (NaN) have a zero measurement row in the batch update: the one-window
+    smoother is still the GP posterior given the measured tiles, at every tile."""
+    rows, cols = 6, 5
+    settings = SlideSettings(grid=ScanGrid(rows, cols), start_z_um=0.3)
+    model = RowModel(1.4, 6.0, 0.3, cols)
+    z_um = _measured(generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=5)[0], seed=5)
+    R_um2 = np.random.default_rng(5).uniform(1.0, 3.0, z_um.shape)
+    z_um[1, 2] = z_um[4, 0] = z_um[4, 1] = np.nan
+    mean_um, var_um2 = smooth_member(model, settings, z_um, R_um2, block_cols=8, margin_cols=8)
+    expected_mean_um, expected_var_um2 = _gp_posterior(settings, model, z_um, R_um2)
+    np.testing.assert_allclose(mean_um, expected_mean_um, atol=1e-7)
+    np.testing.assert_allclose(var_um2, expected_var_um2, atol=1e-7)
+
+
+def test_the_smoother_gives_the_same_map_whatever_the_batch_of_blocks(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    rows, cols = 5, 30
+    settings = SlideSettings(grid=ScanGrid(rows, cols))
+    model = RowModel(1.4, 6.0, 0.3, cols)
+    z_um = _measured(generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=6)[0], seed=6)
+    R_um2 = np.full(z_um.shape, NOISE_UM**2)
+    batched = smooth_member(model, settings, z_um, R_um2, block_cols=4, margin_cols=4)
+    monkeypatch.setattr(spatial, "SMOOTH_BATCH_BLOCKS", 1)
+    one_by_one = smooth_member(model, settings, z_um, R_um2, block_cols=4, margin_cols=4)
+    for got, expected in zip(batched, one_by_one, strict=True):
+        assert np.isfinite(got).all()
+        np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-12)

@@ -7,6 +7,7 @@ the scheduler writes them beside a scan, so both use this one definition.
 from __future__ import annotations
 
 import io
+import json
 import math
 
 import numpy as np
@@ -45,15 +46,30 @@ def map_layers(focus_map: FocusMap) -> dict[str, np.ndarray]:
 
 def map_csv(focus_map: FocusMap, grid: ScanGrid) -> str:
     """One line per tile (row-major): row, col, stage x/y and every layer; empty for NaN."""
-    layers = map_layers(focus_map)
+    # Column by column on Python floats (repr, as before): a loop per cell took seconds
+    # for a 200x200 map on a loaded machine.
+    rows, cols = np.divmod(np.arange(grid.rows * grid.cols), grid.cols)
+    columns = [
+        [str(i) for i in rows.tolist()],
+        [str(i) for i in cols.tolist()],
+        [repr(v) for v in (grid.origin_x_um + cols * grid.pitch_um).tolist()],
+        [repr(v) for v in (grid.origin_y_um + rows * grid.pitch_um).tolist()],
+    ]
+    columns += [
+        [repr(v) if math.isfinite(v) else "" for v in layer.ravel().tolist()]
+        for layer in map_layers(focus_map).values()
+    ]
     lines = [",".join(("row", "col", "stage_x_um", "stage_y_um", *MAP_LAYERS))]
-    for row in range(grid.rows):
-        for col in range(grid.cols):
-            values = (finite_or_none(layers[name][row, col]) for name in MAP_LAYERS)
-            cells = ("" if value is None else repr(value) for value in values)
-            x_um, y_um = grid.stage_xy_um(row, col)
-            lines.append(",".join((str(row), str(col), repr(x_um), repr(y_um), *cells)))
+    lines += map(",".join, zip(*columns, strict=True))
     return "\n".join(lines) + "\n"
+
+
+def layer_json(layer: np.ndarray) -> str:
+    """A (rows, cols) float layer as a JSON array of rows, null where it is not finite."""
+    # json's C encoder on the whole list writes NaN and infinities as bare words; no float
+    # it writes contains them otherwise. Ten times faster than a null check per value.
+    text = json.dumps(np.asarray(layer, dtype=float).tolist())
+    return text.replace("-Infinity", "null").replace("Infinity", "null").replace("NaN", "null")
 
 
 def map_npy(focus_map: FocusMap) -> bytes:

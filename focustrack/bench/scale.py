@@ -2,28 +2,35 @@
 
 For every strategy and grid size (square grids, `--sizes` columns) one child
 process scans a generated standard surface (measurement noise 1.5 um) in
-process, through the strategy's two calls, and reports:
+process, through the strategy's two calls, every tile of the full grid, and
+reports:
 
 - the time per tile (every acquisition of the tile: `next_acquisition` and
-  `record`), mean and 99th percentile, in ms;
+  `record`), mean and 99th percentile, in ms, both wall time and the thread's
+  CPU time: on a shared machine a process waits for a core for milliseconds
+  at a time, which sets the wall-time p99; the CPU time is what an idle core
+  takes;
 - the time of the final map (`focus_map()` once the scan is complete: for
-  kf-2d the smoothed layers) in s;
+  kf-2d the smoothed layers) in s, wall and CPU;
 - the process's peak resident memory (the child's own, so cases do not mix),
   and its resident memory before the scan (imports and maps) for reference.
 
 For the `--rest` strategies a second child fills a real store through the
 service's own code (`Slides`, snapshots every `--snapshot-every`), all but the
 last `--unsnapshotted` measurements, and stops as a kill -9 would: no shutdown
-snapshot. The estimator service is then started on that store as a process:
-`up` is process start to /healthz, `first answer` /healthz to the slide's first
-/next (loading its snapshot and replaying the events after it). The scan is
-finished over HTTP, every map format fetched and timed, the server killed with
-SIGKILL and started again, and the first answer and the map timed again: the
-figures after the kill are reported. The store is filled with SQLite's fsync
-off (`PRAGMA synchronous=OFF`): it measures restarts, not a disk.
+snapshot. The estimator service is then started on that store as a process
+and the scan finished over HTTP (the first /next replays the events after the
+snapshot), every map format fetched, the server killed with SIGKILL and
+started again: `up` is process start to /healthz, `first answer` /healthz to
+the slide's first /next (loading its snapshot), then every map format is
+fetched and timed again. Each is reported as wall time and the server
+process's CPU time (/proc). The store is filled with SQLite's fsync off
+(`PRAGMA synchronous=OFF`): it measures restarts, not a disk.
 
 Children run with one BLAS thread (`OPENBLAS_NUM_THREADS=1`), `--jobs` at a
-time: figures are for one core, and on a shared machine they are noisy.
+time, the longest first; each reports its CPU time (imports and the servers
+it started included), and the run their sum: divided by the jobs, it is the
+run's wall time on idle cores.
 """
 
 from __future__ import annotations
@@ -83,9 +90,10 @@ def case_in_process(strategy_name: str, size: int) -> dict[str, Any]:
     measured_um, settings = _surface(size)
     rss_before_mb = _peak_rss_mb()
     strategy = registry.create(strategy_name, settings)
-    tile_s = np.zeros(settings.grid.shape)
+    tile_s = np.zeros(settings.grid.shape)  # wall time
+    tile_cpu_s = np.zeros(settings.grid.shape)  # this thread's CPU time
     while True:
-        start_s = time.perf_counter()
+        start_s, start_cpu_s = time.perf_counter(), time.thread_time()
         acquisition = strategy.next_acquisition()
         if acquisition is None:
             break
@@ -94,16 +102,20 @@ def case_in_process(strategy_name: str, size: int) -> dict[str, Any]:
         )
         strategy.record(acquisition, measurement)
         tile_s[acquisition.row, acquisition.col] += time.perf_counter() - start_s
-    start_s = time.perf_counter()
+        tile_cpu_s[acquisition.row, acquisition.col] += time.thread_time() - start_cpu_s
+    start_s, start_cpu_s = time.perf_counter(), time.thread_time()
     strategy.focus_map()
-    map_s = time.perf_counter() - start_s
+    map_s, map_cpu_s = time.perf_counter() - start_s, time.thread_time() - start_cpu_s
     return {
         "strategy": strategy_name,
         "cols": size,
         "tiles": size * size,
         "tile_mean_ms": float(np.mean(tile_s)) * 1e3,
         "tile_p99_ms": float(np.percentile(tile_s, 99)) * 1e3,
+        "tile_cpu_mean_ms": float(np.mean(tile_cpu_s)) * 1e3,
+        "tile_cpu_p99_ms": float(np.percentile(tile_cpu_s, 99)) * 1e3,
         "final_map_s": map_s,
+        "final_map_cpu_s": map_cpu_s,
         "peak_rss_mb": _peak_rss_mb(),
         "rss_before_scan_mb": rss_before_mb,
     }
@@ -151,25 +163,33 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
         port = free_port()
         url = f"http://127.0.0.1:{port}/v1/slides/{slide_id}"
 
-        def start() -> tuple[subprocess.Popen, float, float]:
+        def start() -> tuple[subprocess.Popen, dict[str, float]]:
+            """Start the server and ask for the slide's first /next: wall and server CPU times."""
             start_s = time.perf_counter()
             process = spawn(store_path, port, timeout_s=120.0)
-            up_s = time.perf_counter()
+            up_s, up_cpu_s = time.perf_counter(), _process_cpu_s(process.pid)
             response = httpx.get(f"{url}/next", timeout=120.0)
             response.raise_for_status()
-            return process, up_s - start_s, time.perf_counter() - up_s
+            return process, {
+                "up_s": up_s - start_s,
+                "up_cpu_s": up_cpu_s,
+                "first_answer_s": time.perf_counter() - up_s,
+                "first_answer_cpu_s": _process_cpu_s(process.pid) - up_cpu_s,
+            }
 
-        def maps() -> dict[str, float]:
-            times = {}
+        def maps(pid: int) -> tuple[dict[str, float], dict[str, float]]:
+            """Each format's time, wall and the server's CPU."""
+            times, cpu_times = {}, {}
             for map_format in ("json", "csv", "npy", "png"):
-                start_s = time.perf_counter()
+                start_s, start_cpu_s = time.perf_counter(), _process_cpu_s(pid)
                 httpx.get(
                     f"{url}/map", params={"format": map_format}, timeout=120.0
                 ).raise_for_status()
                 times[map_format] = time.perf_counter() - start_s
-            return times
+                cpu_times[map_format] = _process_cpu_s(pid) - start_cpu_s
+            return times, cpu_times
 
-        process, _, first_s = start()
+        process, first = start()
         try:
             # The last measurement also makes the final map and its snapshot: allow it time.
             client = EstimatorClient(f"http://127.0.0.1:{port}", timeout_s=300.0)
@@ -181,12 +201,12 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
                 )
             client.close()
             n_acquisitions = httpx.get(url, timeout=60.0).json()["n_acquisitions"]
-            maps()  # the first map of the complete scan (the smoothed layers were made at its end)
+            maps(process.pid)  # the complete scan's (its smoothed layers were made at its end)
             process.send_signal(signal.SIGKILL)
             process.wait()
-            process, up_s, first_after_kill_s = start()
+            process, after_kill = start()
             slide = httpx.get(url, timeout=60.0).json()
-            map_s = maps()
+            map_s, map_cpu_s = maps(process.pid)
             process.terminate()
             process.wait()
         finally:
@@ -196,12 +216,23 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
         "strategy": strategy_name,
         "cols": size,
         "replayed_at_first_start": unsnapshotted % every,
-        "first_answer_s": first_s,
-        "up_after_kill_s": up_s,
-        "first_answer_after_kill_s": first_after_kill_s,
+        "first_answer_s": first["first_answer_s"],
+        "first_answer_cpu_s": first["first_answer_cpu_s"],
+        "up_after_kill_s": after_kill["up_s"],
+        "up_after_kill_cpu_s": after_kill["up_cpu_s"],
+        "first_answer_after_kill_s": after_kill["first_answer_s"],
+        "first_answer_after_kill_cpu_s": after_kill["first_answer_cpu_s"],
         "lost_nothing": slide["n_acquisitions"] == n_acquisitions and slide["done"],
         "map_s": map_s,
+        "map_cpu_s": map_cpu_s,
     }
+
+
+def _process_cpu_s(pid: int) -> float:
+    """A process's CPU time so far (user and system, all its threads), from /proc (Linux)."""
+    with open(f"/proc/{pid}/stat") as stat:
+        fields = stat.read().rpartition(")")[2].split()  # after the command's name
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
 
 
 def _child(arguments: list[str]) -> dict[str, Any]:
@@ -234,50 +265,83 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--jobs", type=int, default=2, help="cases run at once")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
-    parser.add_argument("--plot", type=Path, metavar="PNG", help="time per tile against width")
+    parser.add_argument(
+        "--plot", type=Path, metavar="PNG", help="time per tile against width (default: beside OUT)"
+    )
 
 
 def _table(in_process: list[dict[str, Any]], rest: list[dict[str, Any]]) -> str:
     lines = [
-        "in process (one core):",
-        f"{'strategy':<16}{'cols':>6}{'tile mean ms':>14}{'tile p99 ms':>13}"
-        f"{'final map s':>13}{'peak RSS MB':>13}{'RSS before MB':>15}",
+        "in process, one BLAS thread; wall time, and this thread's CPU time (what an idle core"
+        " would take), every tile of the full grid:",
+        f"{'strategy':<16}{'cols':>6}{'tile mean ms':>14}{'tile p99 ms':>13}{'CPU mean':>10}"
+        f"{'CPU p99':>9}{'final map s':>13}{'CPU s':>7}{'peak RSS MB':>13}{'RSS before MB':>15}",
     ]
     for r in in_process:
         lines.append(
             f"{r['strategy']:<16}{r['cols']:>6}{r['tile_mean_ms']:>14.2f}{r['tile_p99_ms']:>13.2f}"
-            f"{r['final_map_s']:>13.3f}{r['peak_rss_mb']:>13.0f}{r['rss_before_scan_mb']:>15.0f}"
+            f"{r['tile_cpu_mean_ms']:>10.2f}{r['tile_cpu_p99_ms']:>9.2f}"
+            f"{r['final_map_s']:>13.3f}{r['final_map_cpu_s']:>7.2f}"
+            f"{r['peak_rss_mb']:>13.0f}{r['rss_before_scan_mb']:>15.0f}"
         )
     if rest:
         lines += [
             "",
-            "served, restarted after kill -9 (the store holds a snapshot and the events since):",
-            f"{'strategy':<16}{'cols':>6}{'up s':>8}{'first answer s':>16}{'lost nothing':>14}"
-            f"{'map json s':>12}{'csv s':>8}{'npy s':>8}{'png s':>8}",
+            "served: a completed scan, its server killed with SIGKILL and started again; up is"
+            " process start to /healthz (imports), first answer /healthz to the slide's first"
+            " /next; each figure wall time / the server's CPU time, in s:",
+            f"{'strategy':<16}{'cols':>6}{'up':>13}{'first answer':>14}{'lost nothing':>14}"
+            + "".join(f"{name:>13}" for name in ("map json", "csv", "npy", "png")),
         ]
         for r in rest:
-            m = r["map_s"]
+            m, c = r["map_s"], r["map_cpu_s"]
+            up = f"{r['up_after_kill_s']:.2f}/{r['up_after_kill_cpu_s']:.2f}"
+            first = f"{r['first_answer_after_kill_s']:.2f}/{r['first_answer_after_kill_cpu_s']:.2f}"
             lines.append(
-                f"{r['strategy']:<16}{r['cols']:>6}{r['up_after_kill_s']:>8.2f}"
-                f"{r['first_answer_after_kill_s']:>16.3f}{r['lost_nothing']!s:>14}"
-                f"{m['json']:>12.3f}{m['csv']:>8.3f}{m['npy']:>8.3f}{m['png']:>8.3f}"
+                f"{r['strategy']:<16}{r['cols']:>6}{up:>13}{first:>14}{r['lost_nothing']!s:>14}"
+                + "".join(f"{f'{m[k]:.2f}/{c[k]:.2f}':>13}" for k in ("json", "csv", "npy", "png"))
             )
     return "\n".join(lines)
 
 
 def _plot(in_process: list[dict[str, Any]], path: Path) -> None:
+    """Mean and p99 time per tile, and the final map's time, against the width: CPU time
+    (what an idle core takes) solid, wall time on this machine dotted."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    figure = Figure(figsize=(7, 4.5), layout="constrained")
+    figure = Figure(figsize=(13, 4.2), layout="constrained")
     FigureCanvasAgg(figure)
-    axes = figure.subplots()
-    for name in dict.fromkeys(r["strategy"] for r in in_process):
+    panels = figure.subplots(1, 3)
+    keys = (
+        ("tile_cpu_mean_ms", "tile_mean_ms"),
+        ("tile_cpu_p99_ms", "tile_p99_ms"),
+        ("final_map_cpu_s", "final_map_s"),
+    )
+    sizes = sorted({r["cols"] for r in in_process})
+    for i, name in enumerate(dict.fromkeys(r["strategy"] for r in in_process)):
         rows = [r for r in in_process if r["strategy"] == name]
-        axes.plot([r["cols"] for r in rows], [r["tile_mean_ms"] for r in rows], "o-", label=name)
-    axes.set(xlabel="columns (square grid)", ylabel="mean time per tile (ms)", yscale="log")
-    axes.legend(fontsize="small")
+        cols = [r["cols"] for r in rows]
+        for axes, (cpu, wall) in zip(panels, keys, strict=True):
+            axes.plot(cols, [r[cpu] for r in rows], "o-", color=f"C{i}", label=name)
+            axes.plot(cols, [r[wall] for r in rows], ":", color=f"C{i}", alpha=0.5)
+    labels = ("mean time per tile (ms)", "p99 time per tile (ms)", "final map (s)")
+    for axes, label, target in zip(panels, labels, (5.0, 10.0, 5.0), strict=True):
+        axes.set(xlabel="columns (square grid)", ylabel=label, xscale="log", yscale="log")
+        axes.set_xticks(sizes, [str(size) for size in sizes])
+        axes.minorticks_off()
+        axes.axhline(target, color="grey", linestyle="--", linewidth=0.8)
+    panels[0].legend(fontsize="small", title="CPU solid, wall dotted", title_fontsize="small")
+    figure.suptitle("kf-2d targets at 200 columns dashed")
     figure.savefig(path, dpi=100)
+
+
+def _cost(arguments: list[str]) -> float:
+    """A case's rough cost, to start the longest first (tiles, kf-2d and served ones more)."""
+    tiles = int(arguments[2]) ** 2
+    return (
+        tiles * (4.0 if arguments[1] == "kf-2d" else 1.0) * (3.0 if arguments[0] == "rest" else 1.0)
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -287,7 +351,11 @@ def run(args: argparse.Namespace) -> int:
     cases += [
         ["rest", name, str(size), *rest_arguments] for size in args.sizes for name in args.rest
     ]
-    results: list[dict[str, Any]] = []
+    print(
+        f"{len(cases)} cases, {args.jobs} at a time, longest first; every tile of every grid",
+        file=sys.stderr,
+        flush=True,
+    )
 
     def one(arguments: list[str]) -> dict[str, Any]:
         result = _child(arguments)
@@ -298,20 +366,38 @@ def run(args: argparse.Namespace) -> int:
         )
         return {"kind": arguments[0], **result}
 
+    longest_first = sorted(cases, key=_cost, reverse=True)
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        results = list(pool.map(one, cases))
+        done = dict(zip(map(tuple, longest_first), pool.map(one, longest_first), strict=True))
+    results = [done[tuple(arguments)] for arguments in cases]  # in the table's order
     failed = [r for r in results if "error" in r]
     in_process = [r for r in results if r["kind"] == "in-process" and "error" not in r]
     rest = [r for r in results if r["kind"] == "rest" and "error" not in r]
     for r in failed:
         print(f"FAILED: {r['kind']} {r['strategy']} {r['cols']}: {r['error']}")
     print(_table(in_process, rest))
-    print(f"\n{len(cases)} cases in {time.perf_counter() - started_s:.0f} s, {args.jobs} at a time")
+    elapsed_s = time.perf_counter() - started_s
+    cpu_s = sum(r.get("case_cpu_s", 0.0) for r in results)
+    print(
+        f"\n{len(cases)} cases in {elapsed_s:.0f} s, {args.jobs} at a time; {cpu_s:.0f} s of CPU "
+        f"in all ({cpu_s / max(1, args.jobs):.0f} s on {args.jobs} idle cores); load average "
+        + " ".join(f"{load:.1f}" for load in os.getloadavg())
+    )
     if args.json:
-        figures = {"in_process": in_process, "rest": rest, "failed": failed}
+        figures = {
+            "in_process": in_process,
+            "rest": rest,
+            "failed": failed,
+            "elapsed_s": elapsed_s,
+            "cpu_s": cpu_s,
+            "jobs": args.jobs,
+            "load_average": os.getloadavg(),
+        }
         args.json.write_text(json.dumps(figures, indent=2))
-    if args.plot:
-        _plot(in_process, args.plot)
+    plot = args.plot or (args.json.with_suffix(".png") if args.json else None)
+    if plot and in_process:
+        _plot(in_process, plot)
+        print(f"plot: {plot}")
     return 1 if failed else 0
 
 
@@ -322,6 +408,10 @@ def _main(argv: list[str]) -> None:
         result = case_in_process(name, size)
     else:
         result = case_rest(name, size, int(argv[3]), int(argv[4]))
+    # The case's CPU time, imports and the servers it started included: their sum over the
+    # cases, divided by the jobs, is the run's wall time on idle cores.
+    usage = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+    result["case_cpu_s"] = sum(u.ru_utime + u.ru_stime for u in usage)
     print(json.dumps(result))
 
 

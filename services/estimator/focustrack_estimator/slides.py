@@ -23,15 +23,14 @@ import ctypes
 import ctypes.util
 import dataclasses
 import gc
-import io
 import logging
 import math
 import sqlite3
 import time
 import uuid
 from collections import OrderedDict
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, TypeVar, overload
 
 import numpy as np
 
@@ -49,6 +48,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import map_layers
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import InnovationDiagnostics, innovation_diagnostics
+from focustrack_estimator.heatmap import MAGMA, VIRIDIS, heat_map_png
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.store import Event, Store
 from focustrack_estimator.strategy import Cost, SlideSettings, Strategy, ZRangePolicy
@@ -262,6 +262,54 @@ class Logged:
     outcome: Outcome
 
 
+class History(Sequence[Logged]):
+    """A slide's logged acquisitions in order; those a snapshot covers are read on first use.
+
+    After a restart the strategy comes from its snapshot, and only the events
+    after it are needed (to replay): reading and decoding the events the
+    snapshot covers took seconds for a 200x200 slide (40 000 events), so they
+    are read from the store when something first asks for them (diagnostics,
+    the re-post of an old measurement). `load` returns them.
+    """
+
+    def __init__(self, load: Callable[[], list[Logged]] | None = None, n_unread: int = 0) -> None:
+        self._load, self._n_unread = load, n_unread
+        self._items: list[Logged] = []
+
+    def _read(self) -> None:
+        if self._load is not None:
+            self._items[:0] = self._load()
+            self._load, self._n_unread = None, 0
+
+    def __len__(self) -> int:
+        return self._n_unread + len(self._items)
+
+    @overload
+    def __getitem__(self, index: int) -> Logged: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[Logged]: ...
+
+    def __getitem__(self, index: int | slice) -> Logged | list[Logged]:
+        if isinstance(index, slice):
+            self._read()
+            return self._items[index]
+        if index < 0:
+            index += len(self)
+        if not 0 <= index < len(self):
+            raise IndexError(f"history index {index} out of range")
+        if index < self._n_unread:
+            self._read()
+        return self._items[index - self._n_unread]
+
+    def __iter__(self) -> Iterator[Logged]:
+        self._read()
+        return iter(self._items)
+
+    def append(self, logged: Logged) -> None:
+        self._items.append(logged)
+
+
 class Slide:
     """One slide's live strategy and its history. Not thread-safe: `Slides` serialises calls.
 
@@ -284,7 +332,7 @@ class Slide:
         self.store = store
         self._timer = timer
         self.snapshot_every = snapshot_every
-        self.history: list[Logged] = []
+        self.history = History()
         self.n_snapshot = 0  # events covered by the newest snapshot stored
         self._snapshots = True  # False once the strategy's state proved impossible to store
         try:
@@ -345,14 +393,21 @@ class Slide:
             f"(the strategy {self.config.strategy!r} changed since it was logged)"
         )
 
-    def load_history(self, events: list[Event]) -> None:
-        """Take logged events as the history without replaying them (a snapshot covers them)."""
-        self.history.extend(
-            Logged(
-                acquisition_of(e.acquisition), measurement_of(e.measurement), outcome_of(e.outcome)
-            )
-            for e in events
-        )
+    def cover_history(self, n_events: int) -> None:
+        """Take the first `n_events` logged events as the history without replaying them (a
+        snapshot covers them); they are read from the store when first needed (`History`)."""
+
+        def load() -> list[Logged]:
+            return [
+                Logged(
+                    acquisition_of(e.acquisition),
+                    measurement_of(e.measurement),
+                    outcome_of(e.outcome),
+                )
+                for e in self.store.events(self.id)[:n_events]
+            ]
+
+        self.history = History(load, n_events)
 
     def save_snapshot(self) -> None:
         """Store the strategy's state as the snapshot after the history's events.
@@ -699,19 +754,19 @@ class Slides:
         slide = Slide(
             slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
         )
-        events = self.store.events(slide_id)
         snapshot = self.store.snapshot(slide_id)
-        if snapshot is not None and snapshot[0] <= len(events):
+        if snapshot is not None and snapshot[0] <= record.n_events:
             try:
                 restore(slide.strategy, snapshot[1])
-                slide.load_history(events[: snapshot[0]])
+                slide.cover_history(snapshot[0])
                 slide.n_snapshot = snapshot[0]
             except SnapshotError as error:
                 log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
                 slide = Slide(
                     slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
                 )
-        slide.replay(events[len(slide.history) :])
+        # Only the events after the snapshot are read now (the others when first needed).
+        slide.replay(self.store.events(slide_id, start=len(slide.history)))
         return slide
 
     def save_snapshots(self) -> None:
@@ -746,7 +801,7 @@ class SlideDiagnostics:
     innovations_note: str | None  # why `innovations` is None
 
 
-def diagnose(history: list[Logged]) -> SlideDiagnostics:
+def diagnose(history: Sequence[Logged]) -> SlideDiagnostics:
     """Diagnostics from the accepted outcomes' innovations and NIS (S = innovation^2 / NIS).
 
     Gated-out measurements are counted as rejected but left out of the innovation
@@ -779,25 +834,12 @@ def diagnose(history: list[Logged]) -> SlideDiagnostics:
 
 
 def map_png(focus_map: FocusMap, title: str) -> bytes:
-    """A PNG heat map of the posterior focus map and its sigma, side by side."""
-    # Imported here: matplotlib adds half a second to every start of the service.
-    # The object-oriented API with an Agg canvas: no pyplot global state, safe in threads.
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    figure = Figure(figsize=(10, 4.2), layout="constrained")
-    FigureCanvasAgg(figure)
+    """A PNG heat map of the posterior focus map and its sigma, side by side (`heatmap`)."""
     layers = map_layers(focus_map)
-    for axes, name, cmap in zip(
-        figure.subplots(1, 2),
-        ("posterior_um", "posterior_sigma_um"),
-        ("viridis", "magma"),
-        strict=True,
-    ):
-        image = axes.imshow(np.ma.masked_invalid(layers[name]), cmap=cmap, origin="upper")
-        axes.set(title=name, xlabel="col (x)", ylabel="row (y)")
-        figure.colorbar(image, ax=axes, label="um")
-    figure.suptitle(title)
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=80)
-    return buffer.getvalue()
+    return heat_map_png(
+        [
+            ("posterior_um", layers["posterior_um"], VIRIDIS),
+            ("posterior_sigma_um", layers["posterior_sigma_um"], MAGMA),
+        ],
+        title,
+    )

@@ -48,7 +48,6 @@ import scipy.linalg
 from focustrack_core.domain import FocusMap
 from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
-from focustrack_estimator.kalman_strategies import rts_smooth
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
 from focustrack_estimator.strategy import (
@@ -243,6 +242,10 @@ class RowModel:
 #: a 0.1% share moves the blend by 0.1% of the members' difference.
 SMOOTH_MIN_WEIGHT = 1e-3
 
+#: Column blocks the smoother runs at once (one batch): their row states, rows x blocks x
+#: (N_PLANE + 2 x 32)^2 floats with the default blocks, are what it holds (57 MB at 200 rows).
+SMOOTH_BATCH_BLOCKS = 8
+
 
 class RowBankFilter(SerpentineFilter):
     """`kf-2d`: strip filters for every (sigma, length, tilt) of a grid, averaged by likelihood.
@@ -362,19 +365,11 @@ class RowBankFilter(SerpentineFilter):
         return self._mixture(tile)
 
     def _predict_row(self) -> None:
-        """x <- F x, P <- F P F' + Q for every member, F block diagonal (`RowModel.F`)."""
-        n_members, cols = len(self.active), self.grid.cols
-        A = np.stack([self.models[i].step_y for i in self.active])[:, None]  # (m, 1, 2, 2)
-
-        def left(M: np.ndarray) -> np.ndarray:
-            """F @ M for M (n_members, dim_x, k): the 2x2 block of each column on its rows."""
-            out = M.copy()
-            field = M[:, N_PLANE:].reshape(n_members, cols, 2, -1)
-            out[:, N_PLANE:] = (A @ field).reshape(n_members, 2 * cols, -1)
-            return out
-
-        self.x = left(self.x[:, :, None])[:, :, 0]
-        self.P = left(left(self.P).transpose(0, 2, 1))  # F (F P)' = F P F' (P symmetric)
+        """x <- F x, P <- F P F' + Q for every member (`RowModel.F`, `.Q`), in place."""
+        A = np.stack([self.models[i].step_y for i in self.active])  # (m, 2, 2)
+        step_rows(self.x[:, :, None], A)
+        step_rows(self.P, A)
+        step_rows(self.P.transpose(0, 2, 1), A)  # F (F P)' = F P F' (P symmetric)
         for m, i in enumerate(self.active):
             model = self.models[i]
             self.P[m, N_PLANE:, N_PLANE:] += model.sigma_um**2 * model.field_noise_per_um2
@@ -404,12 +399,15 @@ class RowBankFilter(SerpentineFilter):
         # row, o is empty and this is the full update. In place on slices: no copies of P.
         window = (slice(0, N_PLANE), slice(N_PLANE + 2 * lo, N_PLANE + 2 * hi))
         others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, None))
+        # u u' / s as v v' with v = u / sqrt(s): one outer product per row block, and
+        # v_i v_j = v_j v_i exactly, so the update adds no asymmetry to P.
+        v = u / np.sqrt(s)[:, None]
         for w in window:
             self.x[:, w] += u[:, w] * (y / s)[:, None]
-            # (u_i u_j) / s in both triangles: the update adds no asymmetry to P.
-            self.P[:, w, :] -= u[:, w, None] * u[:, None, :] / s[:, None, None]  # P_ww, P_wo
-            for o in others:  # the columns of w in the rows of o: P_ow = P_wo'
-                self.P[:, o, w] -= u[:, o, None] * u[:, None, w] / s[:, None, None]
+            self.P[:, w, :] -= v[:, w, None] * v[:, None, :]  # P_ww and P_wo
+        for w in window:  # P_ow = P_wo': copied, not recomputed (a strided write)
+            for o in others:
+                self.P[:, o, w] = self.P[:, w, o].transpose(0, 2, 1)
         self.log_weights -= 0.5 * (np.log(2.0 * math.pi * s) + y**2 / s)
         self.log_weights -= self.log_weights.max()
         return self._mixture(tile)
@@ -461,6 +459,24 @@ class RowBankFilter(SerpentineFilter):
         return self.map
 
 
+def step_rows(M: np.ndarray, step: np.ndarray) -> None:
+    """M <- F M in place, F = block_diag(I (N_PLANE), `step` for each column's (f, df/dy)):
+    `RowModel.F` applied without forming it.
+
+    `M` (n, N_PLANE + 2 cols, k); `step` (n, 2, 2), one per leading index, or (2, 2).
+    Element-wise on the rows of each column's pair: a batch of 2x2 matrix products
+    (one per column and member) costs many times more.
+    """
+    a, b, c, d = (
+        np.asarray(step)[..., i, j, None, None] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1))
+    )
+    f, g = M[:, N_PLANE::2], M[:, N_PLANE + 1 :: 2]
+    f_new = a * f + b * g
+    g *= d
+    g += c * f
+    f[...] = f_new
+
+
 def smooth_member(
     model: RowModel,
     settings: SlideSettings,
@@ -474,57 +490,127 @@ def smooth_member(
 
     `z_um` and `R_um2` (rows reached, cols) hold each measured tile's height and
     variance, NaN where there is none. The model is filtered and RTS-smoothed
-    over rows (`rts_smooth`: step k is row k, its posterior the state after the
-    row's measurements, which for this model is exactly the Gaussian-process
+    over rows (step k is row k, its posterior the state after the row's
+    measurements, which for this model is exactly the Gaussian-process
     posterior) on column blocks: the tiles of each block of `block_cols`
-    columns are read from a strip filter over those columns and `margin_cols`
-    more on either side, so that memory is rows x (N_PLANE + 2 width)^2 floats
-    whatever the slide's width. A block's margins stand in for the columns
-    beyond, whose measurements a Matern field a few lengths away barely feels;
-    where one block spans the grid the result is the exact smoother.
+    columns are read from a strip filter over a window of `block_cols` + 2
+    `margin_cols` columns around it (shifted inward at the slide's edges, so
+    every window has the same width). A block's margins stand in for the
+    columns beyond, whose measurements a Matern field a few lengths away barely
+    feels; where one window spans the grid the result is the exact smoother.
+
+    The blocks run `SMOOTH_BATCH_BLOCKS` at a time, as one batch (their windows
+    have the same model and width), so that memory is rows x
+    `SMOOTH_BATCH_BLOCKS` x (N_PLANE + 2 width)^2 floats whatever the slide's
+    width: per row one prediction and one batch update with the row's
+    measurements (the same as the tile-by-tile updates), and the backward pass
+    of Rauch-Tung-Striebel, C_k = P+_k F' (P-_{k+1})^-1, with P-_{k+1} = F P+_k
+    F' + Q recomputed instead of stored. A tile without a measurement has a zero
+    measurement row (and unit R): it then adds nothing to the update, exactly.
     """
     rows, cols = z_um.shape
-    grid = settings.grid
+    width = min(cols, block_cols + 2 * margin_cols)
+    if width == cols:  # one window spans the grid: one block, the exact smoother
+        block_cols = cols
+    starts = np.arange(0, cols, block_cols)
+    los = np.clip(starts - margin_cols, 0, cols - width)  # each window's first column
+    window = RowModel(model.sigma_um, model.length_tiles, model.tilt_sigma_um_per_tile, width)
     mean_um, var_um2 = np.full((rows, cols), np.nan), np.full((rows, cols), np.nan)
-    for start in range(0, cols, block_cols):
-        lo, hi = max(0, start - margin_cols), min(cols, start + block_cols + margin_cols)
-        block = RowModel(model.sigma_um, model.length_tiles, model.tilt_sigma_um_per_tile, hi - lo)
-        dim = N_PLANE + 2 * (hi - lo)
-        # Measurement rows of the block's tiles (plane at each tile, plus its column's field).
-        H = np.zeros((rows, hi - lo, dim))
-        H[:, :, 0] = 1.0
-        H[:, :, 1] = np.arange(lo, hi) - (grid.cols - 1) / 2.0
-        H[:, :, 2] = (np.arange(rows) - (grid.rows - 1) / 2.0)[:, None]
-        H[:, np.arange(hi - lo), N_PLANE + 2 * np.arange(hi - lo)] = 1.0
-        x_prior, P_prior = np.zeros((rows, dim)), np.zeros((rows, dim, dim))
-        x_post, P_post = np.zeros((rows, dim)), np.zeros((rows, dim, dim))
-        x = np.zeros(dim)
-        x[0] = settings.start_z_um
-        P = block.initial(settings.start_sigma_um)
-        for r in range(rows):
-            if r:
-                x, P = block.F @ x, block.F @ P @ block.F.T + block.Q
-            x_prior[r], P_prior[r] = x, P
-            measured = np.flatnonzero(np.isfinite(z_um[r, lo:hi]))
-            if measured.size:  # the row's tiles at once: the same as one by one
-                Hr = H[r, measured]
-                L = np.linalg.cholesky(Hr @ P @ Hr.T + np.diag(R_um2[r, lo + measured]))
-                # np.linalg.solve on the triangular L: scipy's solve_triangular took 18 ms a
-                # call here on a loaded 2-core machine, LAPACK's gesv well under one.
-                B = np.linalg.solve(L, Hr @ P)  # L^-1 H P
-                e = np.linalg.solve(L, z_um[r, lo + measured] - Hr @ x)
-                x, P = x + B.T @ e, P - B.T @ B
-                P = (P + P.T) / 2.0
-            x_post[r], P_post[r] = x, P
-        xs, Ps = rts_smooth(
-            x_prior, P_prior, x_post, P_post, np.broadcast_to(block.F, (rows, dim, dim))
-        )
-        core = slice(start - lo, min(cols, start + block_cols) - lo)
-        mean_um[:, lo + core.start : lo + core.stop] = np.einsum("rcd,rd->rc", H[:, core], xs)
-        var_um2[:, lo + core.start : lo + core.stop] = np.sum(
-            (H[:, core] @ Ps) * H[:, core], axis=-1
+    for first in range(0, len(starts), SMOOTH_BATCH_BLOCKS):
+        batch = slice(first, first + SMOOTH_BATCH_BLOCKS)
+        _smooth_windows(
+            window, settings, z_um, R_um2, starts[batch], los[batch], block_cols, mean_um, var_um2
         )
     return mean_um, var_um2
+
+
+def _smooth_windows(
+    window: RowModel,
+    settings: SlideSettings,
+    z_um: np.ndarray,
+    R_um2: np.ndarray,
+    starts: np.ndarray,
+    los: np.ndarray,
+    block_cols: int,
+    mean_um: np.ndarray,
+    var_um2: np.ndarray,
+) -> None:
+    """`smooth_member` on the blocks starting at columns `starts` (windows from `los`), as one
+    batch; writes each block's smoothed heights (um) and variances (um^2) into the maps."""
+    rows, cols = z_um.shape
+    grid = settings.grid
+    width = window.cols
+    n_blocks, dim = len(starts), N_PLANE + 2 * width
+    columns = los[:, None] + np.arange(width)  # (n_blocks, width) each window's columns
+    # Measurement rows of the windows' tiles: the plane at each tile plus its column's field.
+    H = np.zeros((n_blocks, width, dim))
+    H[:, :, 0] = 1.0
+    H[:, :, 1] = columns - (grid.cols - 1) / 2.0
+    H[:, np.arange(width), N_PLANE + 2 * np.arange(width)] = 1.0
+    Q = window.Q
+
+    def predict(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """F x and F P F' + Q for the batch (copies)."""
+        x, P = x.copy(), P.copy()
+        step_rows(x[:, :, None], window.step_y)
+        step_rows(P, window.step_y)
+        step_rows(P.transpose(0, 2, 1), window.step_y)
+        return x, P + Q
+
+    def rows_h(r: int) -> np.ndarray:
+        H[:, :, 2] = r - (grid.rows - 1) / 2.0
+        return H
+
+    x_prior = np.zeros((rows, n_blocks, dim))
+    x_post, P_post = np.zeros((rows, n_blocks, dim)), np.zeros((rows, n_blocks, dim, dim))
+    x = np.zeros((n_blocks, dim))
+    x[:, 0] = settings.start_z_um
+    P = np.broadcast_to(window.initial(settings.start_sigma_um), (n_blocks, dim, dim)).copy()
+    for r in range(rows):
+        if r:
+            x, P = predict(x, P)
+        x_prior[r] = x
+        z, R = z_um[r, columns], R_um2[r, columns]  # (n_blocks, width)
+        measured = np.isfinite(z)
+        if measured.any():  # the row's tiles at once: the same as one by one
+            Hr = rows_h(r) * measured[:, :, None]
+            HP = Hr @ P
+            S = HP @ Hr.transpose(0, 2, 1)
+            S[:, np.arange(width), np.arange(width)] += np.where(measured, R, 1.0)
+            L = np.linalg.cholesky(S)
+            # np.linalg.solve on the triangular L: scipy's solve_triangular took 18 ms a
+            # call here on a loaded 2-core machine, LAPACK's gesv well under one.
+            B = np.linalg.solve(L, HP)  # L^-1 H P
+            innovation = np.where(measured, z, 0.0) - np.einsum("bwd,bd->bw", Hr, x)
+            e = np.linalg.solve(L, innovation[:, :, None])[:, :, 0]
+            x = x + np.einsum("bwd,bw->bd", B, e)
+            P = P - B.transpose(0, 2, 1) @ B
+            P = (P + P.transpose(0, 2, 1)) / 2.0
+        x_post[r], P_post[r] = x, P
+
+    # Each block's own columns within its window.
+    core = [
+        slice(s - lo, min(cols, s + block_cols) - lo) for s, lo in zip(starts, los, strict=True)
+    ]
+
+    def read(r: int, xs: np.ndarray, Ps: np.ndarray) -> None:
+        Hs = rows_h(r)
+        means = np.einsum("bwd,bd->bw", Hs, xs)
+        variances = np.sum((Hs @ Ps) * Hs, axis=-1)
+        for b, own in enumerate(core):
+            mean_um[r, los[b] + own.start : los[b] + own.stop] = means[b, own]
+            var_um2[r, los[b] + own.start : los[b] + own.stop] = variances[b, own]
+
+    xs, Ps = x_post[-1], P_post[-1]
+    read(rows - 1, xs, Ps)
+    for k in range(rows - 2, -1, -1):
+        x_next, P_next = predict(x_post[k], P_post[k])  # row k+1's prior
+        FP = P_post[k].copy()
+        step_rows(FP, window.step_y)  # F P+_k
+        C = np.linalg.solve(P_next, FP).transpose(0, 2, 1)  # P+_k F' (P-_{k+1})^-1
+        xs = x_post[k] + np.einsum("bij,bj->bi", C, xs - x_next)
+        Ps = P_post[k] + C @ (Ps - P_next) @ C.transpose(0, 2, 1)
+        read(k, xs, Ps)
 
 
 # --- factories ---------------------------------------------------------------------------
