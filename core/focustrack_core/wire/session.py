@@ -59,13 +59,6 @@ RETRY_MAX_S = 5.0
 #: A good shared-memory pool for a pixel publisher, MB: 10 frames of 2048 x 2048 RGB uint16.
 SHARED_MEMORY_MB = 256
 
-#: Link settings for camera frames (8 MB at 2048 x 2048 uint16) over TCP. Zenoh's defaults
-#: (a 64 KiB receive buffer, the kernel's socket buffers) hold loopback TCP to about
-#: 0.8 GB/s for such frames; with these it carries about 2x that (`focustrack bench
-#: transport`; proto/README.md). Each link may hold this much memory per buffer.
-RX_BUFFER_BYTES = 16 * 1024 * 1024
-TCP_SOCKET_BUFFER_BYTES = 8 * 1024 * 1024
-
 
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago (for tests and embedded stacks)."""
@@ -122,9 +115,6 @@ def session_config(
     config.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
     config.insert_json5("connect/retry", "{period_init_ms: 250, period_max_ms: 2000}")
     config.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory))
-    config.insert_json5("transport/link/rx/buffer_size", str(RX_BUFFER_BYTES))
-    config.insert_json5("transport/link/tcp/so_sndbuf", str(TCP_SOCKET_BUFFER_BYTES))
-    config.insert_json5("transport/link/tcp/so_rcvbuf", str(TCP_SOCKET_BUFFER_BYTES))
     return config
 
 
