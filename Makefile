@@ -5,15 +5,20 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 UV_VERSION := 0.13.8
-MANIFESTS := pyproject.toml uv.lock core/pyproject.toml client/pyproject.toml \
+MANIFESTS := Makefile pyproject.toml uv.lock core/pyproject.toml client/pyproject.toml \
 	$(wildcard services/*/pyproject.toml) $(wildcard integrations/*/pyproject.toml)
 
 .PHONY: demo test test-fast lint typecheck format proto lock clean
 
+# --compile-bytecode: uv leaves the .pyc files to the first import, and with
+# PYTHONDONTWRITEBYTECODE set (as on our machines) every process would compile
+# scipy, fastapi and filterpy again: 5-6 s instead of 2 s to start a service.
+# compileall does the same for the workspace's own (editable) sources.
 $(STAMP): $(MANIFESTS)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	test -x $(BIN)/uv || $(BIN)/python -m pip install --quiet "uv==$(UV_VERSION)"
-	VIRTUAL_ENV=$(abspath $(VENV)) $(BIN)/uv sync --locked --all-packages --active --quiet
+	VIRTUAL_ENV=$(abspath $(VENV)) $(BIN)/uv sync --locked --all-packages --active --quiet --compile-bytecode
+	$(BIN)/python -m compileall -q -x '/tests/' core client services integrations
 	touch $(STAMP)
 
 ## The main job: a demo scan of a simulated slide.
