@@ -12,7 +12,13 @@ from focustrack.bench import strategies as registry
 from focustrack.bench.replay import limit_time_s, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.timing import TimingModel
-from focustrack_estimator.lean import SHORT_FRAMES, choose_stack, out_of_focus_risk, search_cost
+from focustrack_estimator.lean import (
+    COARSE_STEP_UM,
+    SHORT_FRAMES,
+    choose_stack,
+    out_of_focus_risk,
+    search_cost,
+)
 from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
@@ -115,12 +121,13 @@ def test_a_slide_start_is_searched_coarsely_then_measured_with_a_short_stack() -
     truth = np.full((2, 2), 7.3)  # 7.3 um from the start, 10 um unsure
     strategy = registry.create("kf-2d-lean", SlideSettings(ScanGrid(2, 2), noise_sigma_um=0.1))
     first = strategy.next_acquisition()
-    # +/- 2 sigmas of about 10.2 um (kf-2d's offset and field) at 2 um: 23 frames, not 41 + 41
-    assert first is not None and first.z.step_um == 2.0 and first.z.n_frames == 23
+    # +/- 2 sigmas of about 10.2 um (kf-2d's offset and field) at 4 um: 13 frames, not 41 + 41
+    assert first is not None and first.z.step_um == COARSE_STEP_UM == 4.0
+    assert first.z.n_frames == 13
     run = replay(strategy, truth, truth)
     assert run.outcomes[0].accepted is False  # the coarse peak only centres the next stack
     assert run.outcomes[1].accepted and run.focus_map.z_used_um[0, 0] == pytest.approx(7.3)
-    assert run.n_images - 23 < 4 * 3  # a short stack per tile at most after the coarse one
+    assert run.n_images - 13 < 4 * 3  # a short stack per tile at most after the coarse one
 
 
 def test_the_physical_limit_is_moves_and_one_frame_per_tile() -> None:

@@ -10,6 +10,7 @@ import pytest
 from focustrack.bench import strategies as registry
 from focustrack.bench.replay import Drift, replay, score
 from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.rescan import RescanFilter
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim import service
@@ -61,7 +62,7 @@ def test_a_prior_map_of_the_wrong_shape_is_refused() -> None:
         _rescan(np.zeros((3, 4)))
     without = registry.create("kf-rescan", SETTINGS)  # no map: every tile as unsure as the start
     first = without.next_acquisition()
-    assert first is not None and first.z.step_um == 2.0  # a coarse search
+    assert first is not None and first.z.step_um == COARSE_STEP_UM  # a coarse search
 
 
 def test_the_simulator_moves_a_slide_for_a_second_pass() -> None:

@@ -52,6 +52,12 @@ from focustrack_estimator.strategy import ZRangePolicy
 #: Frames of a short stack: the fewest that locate a peak of known shape (curve_model).
 SHORT_FRAMES = 3
 
+#: z step of the coarse search, um: at most the focus curve's full width at half maximum,
+#: so that one frame always lies above half the peak. The simulator's gradient metrics are
+#: 4.6 um wide; a real whole-slide scanner's Brenner curves 3.5-6 um (wsi_focus_curves).
+#: A narrower curve needs `coarse_step_um` set below its width.
+COARSE_STEP_UM = 4.0
+
 
 def out_of_focus_risk(
     mean_um: np.ndarray | float,

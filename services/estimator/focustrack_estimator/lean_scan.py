@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 
+from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.spatial import RowBankFilter, kf_2d
 from focustrack_estimator.strategy import SlideSettings, Strategy
 
@@ -24,7 +25,7 @@ def kf_2d_lean(
     *,
     risk_out_of_focus: float = DEFAULT_RISK,
     skip_sigma_scale: float = 1.0,
-    coarse_step_um: float = 2.0,
+    coarse_step_um: float = COARSE_STEP_UM,
     max_retries: int = 3,
 ) -> RowBankFilter:
     """`kf-2d` with frames chosen per tile by the risk rule (`lean.choose_stack`)."""

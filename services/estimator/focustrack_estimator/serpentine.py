@@ -41,6 +41,7 @@ import numpy as np
 from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import Tile
 from focustrack_estimator.lean import (
+    COARSE_STEP_UM,
     SHORT_FRAMES,
     choose_stack,
     coarse_stack,
@@ -92,7 +93,7 @@ class FilterOptions:
     sqrt: bool = False
     risk_out_of_focus: float = 0.0
     skip_sigma_scale: float = 1.0
-    coarse_step_um: float = 2.0
+    coarse_step_um: float = COARSE_STEP_UM
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.risk_out_of_focus < 1.0:
