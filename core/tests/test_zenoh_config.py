@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from focustrack_core.config import with_environment
 from focustrack_core.wire import router, session
@@ -52,3 +53,17 @@ def test_a_config_file_zenoh_cannot_use_is_a_clear_error(
         session.session_config(connect=[session.DEFAULT_ENDPOINT], config_file=path)
     assert says in str(error.value)
     assert router.main(["--listen", session.loopback_endpoint(), "--config", str(path)]) == 2
+
+
+def test_pixel_tuning_applies_unless_a_config_file_sets_its_own(tmp_path: Path) -> None:
+    def tuned(config: zenoh.Config) -> dict[str, int]:
+        return {key: json.loads(config.get_json(key)) for key in session.PIXEL_TUNING}
+
+    assert tuned(zenoh.Config()) != session.PIXEL_TUNING  # Zenoh's defaults are other
+    assert tuned(session.session_config(listen=[session.DEFAULT_ENDPOINT])) == (
+        session.PIXEL_TUNING
+    )
+    path = tmp_path / "tuned.json5"
+    path.write_text("{transport: {link: {tx: {queue: {size: {data: 8}}}}}}")
+    config = session.session_config(connect=[session.DEFAULT_ENDPOINT], config_file=path)
+    assert tuned(config) == {**session.PIXEL_TUNING, "transport/link/tx/queue/size/data": 8}

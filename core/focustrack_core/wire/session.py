@@ -21,6 +21,15 @@ over it, always: the mode, the connect and listen endpoints (the flags', else th
 command's defaults), multicast scouting (off), the connect timeout and retry, and
 shared memory. So a file never changes where a service connects; the flags do.
 
+Tuning for pixels (`PIXEL_TUNING`), written where the file leaves Zenoh's default:
+Zenoh's transmit queue holds 2 batches of 64 KiB per priority and its receive pool
+64 KiB per link, so a stack of 8 MB frames over TCP loopback waited on the round trip
+and ran at about 1 GB/s, half a core idle. With 16 batches queued, a 16 MiB receive
+pool and 8 MiB socket buffers the same frames run at 1.5-2.0 GB/s, copied out of Zenoh
+included (`focustrack bench transport`, and bare sessions in two processes, zenoh 1.10;
+16 is the most Zenoh accepts, 32 panics when a link opens). Memory: up to 16 MiB of
+receive buffers per link while frames flow.
+
 `BackgroundSession` opens a session without blocking its caller and keeps trying
 until the router answers, so a service starts before the router and connects when
 it appears (its health says ``degraded`` meanwhile). Once open, a client session
@@ -55,6 +64,14 @@ ATTEMPT_TIMEOUT_S = 2.0
 
 #: The longest pause between two attempts of `BackgroundSession` (it doubles up to this).
 RETRY_MAX_S = 5.0
+
+#: Zenoh settings that carry camera frames at speed (see the module's doc): key, value.
+PIXEL_TUNING = {
+    "transport/link/tx/queue/size/data": 16,  # batches of 64 KiB in flight per link
+    "transport/link/rx/buffer_size": 16 * 1024 * 1024,  # bytes of receive buffers per link
+    "transport/link/tcp/so_sndbuf": 8 * 1024 * 1024,  # bytes: the kernel's socket buffers
+    "transport/link/tcp/so_rcvbuf": 8 * 1024 * 1024,
+}
 
 #: A good shared-memory pool for a pixel publisher, MB: 10 frames of 2048 x 2048 RGB uint16.
 SHARED_MEMORY_MB = 256
@@ -100,7 +117,8 @@ def session_config(
     services may start in any order. `shared_memory` lets the session exchange
     shared-memory buffers with peers on this host (off: every byte goes over the
     network, also from a peer that sends shared memory). `config_file` (Zenoh's
-    JSON5) is the base that these options are written over (see the module's doc).
+    JSON5) is the base that these options are written over (see the module's doc);
+    `PIXEL_TUNING` applies where the file keeps Zenoh's default.
     """
     if not connect and not listen:
         raise ValueError("a Zenoh session needs at least one --connect or --listen endpoint")
@@ -108,6 +126,10 @@ def session_config(
     if mode not in MODES:
         raise ValueError(f"unknown Zenoh mode {mode!r}; use one of {', '.join(MODES)}")
     config = zenoh.Config() if config_file is None else load_config_file(config_file)
+    zenoh_defaults = zenoh.Config()
+    for key, value in PIXEL_TUNING.items():
+        if config.get_json(key) == zenoh_defaults.get_json(key):  # the file's own value wins
+            config.insert_json5(key, json.dumps(value))
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
