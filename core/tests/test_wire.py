@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -100,6 +101,20 @@ def test_zstack_travels_between_clients(pair) -> None:
     got_header, got_pixels = received[0]
     assert (got_header.slide, got_header.row, got_header.col) == ("s", 1, 2)
     np.testing.assert_array_equal(got_pixels, pixels)
+
+
+def test_has_subscribers_says_whether_anyone_listens(pair) -> None:
+    _, publisher_session, subscriber_session = pair
+    publisher = codec.PixelPublisher(publisher_session)
+    key = keys.zstack_key("s", 1, 2)
+    assert publisher.has_subscribers(key) is False
+    with subscriber_session.declare_subscriber(keys.zstack_pattern("s"), lambda _: None):
+        for _ in range(50):  # the subscription needs a moment to reach the publisher
+            if publisher.has_subscribers(key):
+                break
+            time.sleep(0.1)
+        assert publisher.has_subscribers(key) is True
+        assert publisher.has_subscribers(keys.zstack_key("other", 1, 2)) is False
 
 
 def test_call_returns_replies_and_raises_error_replies(pair) -> None:

@@ -244,7 +244,7 @@ class PixelPublisher:
         """True when some subscriber matches `key_expr` (so a message there is not wasted)."""
         publisher = self.session.declare_publisher(key_expr)
         try:
-            return publisher.matching_status
+            return publisher.matching_status.matching  # the status object itself is truthy
         finally:
             publisher.undeclare()
 
