@@ -45,7 +45,13 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.timing import TimingModel
 from focustrack_core.wire import rpc
-from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_core.wire.session import (
+    SHARED_MEMORY_MB,
+    free_port,
+    loopback_endpoint,
+    open_session,
+    shared_memory_room_mb,
+)
 from focustrack_core.wire.trust import ResultSigner
 from focustrack_estimator import registry
 from focustrack_instrument_sim.surfaces import FAMILIES
@@ -155,7 +161,9 @@ class LocalStack:
     The router runs in this process, or with `router_process` in one of its own (so it
     can be killed and started again: `services["router"]`). With `supervise`, a service
     that dies is started again, and a line on stderr says so. The instrument serves its
-    truth (evaluation); the focus service tags its results with `trust`'s key.
+    truth (evaluation); the focus service tags its results with `trust`'s key. With
+    `shared_memory_mb`, the instrument publishes its frames into a shared-memory pool of
+    that size, and every session of the stack takes them from there.
     """
 
     def __init__(
@@ -165,6 +173,7 @@ class LocalStack:
         *,
         router_process: bool = False,
         supervise: bool = False,
+        shared_memory_mb: int = 0,
     ) -> None:
         self.work_dir = Path(work_dir)
         (self.work_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -180,6 +189,9 @@ class LocalStack:
         self.focus_port = free_port()
         serve = [sys.executable, "-m", "focustrack", "serve"]
         connect = ["--connect", self.endpoint]
+        self.shared_memory = shared_memory_mb > 0
+        if self.shared_memory:
+            connect += ["--shared-memory", str(shared_memory_mb)]
         store = ["--store", str(self.store)]
         logs = self.work_dir / "logs"
         self.services: dict[str, Service] = {}
@@ -235,9 +247,13 @@ class LocalStack:
                 router = self.services["router"]
                 router.start()
                 router.wait_ready()
-                self.session = open_session(connect=[self.endpoint])
+                self.session = open_session(
+                    connect=[self.endpoint], shared_memory=self.shared_memory
+                )
             else:
-                self.session = open_session(listen=[self.endpoint], mode="router")
+                self.session = open_session(
+                    listen=[self.endpoint], mode="router", shared_memory=self.shared_memory
+                )
             for service in self.services.values():
                 if service.process is None:
                     service.start()
@@ -386,6 +402,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"kf-rescan scans it again with the first pass's map (default {RESCAN_OFFSET_UM:g})",
     )
     parser.add_argument("--no-rescan", action="store_true", help="no second pass")
+    parser.add_argument(
+        "--shared-memory",
+        type=int,
+        metavar="MB",
+        help="frames cross Zenoh in a shared-memory pool of this many MB, 0: over TCP "
+        f"(default {SHARED_MEMORY_MB} when /dev/shm has room for it, else 0)",
+    )
     add_scan_options(parser)
 
 
@@ -435,6 +458,10 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     names = [name for item in args.strategies for name in item.split(",") if name]
     unknown = [name for name in names if name not in registry.STRATEGIES]
+    if args.shared_memory is not None and args.shared_memory < 0:
+        print("focustrack demo: error: --shared-memory must be 0 (TCP) or a pool size in MB, "
+              f"got {args.shared_memory}", file=sys.stderr)  # fmt: skip
+        return 2
     if unknown or not names or min(args.rows, args.cols, args.size) < 1:
         print(
             f"focustrack demo: error: unknown strategy {', '.join(unknown) or '(none)'} or a "
@@ -452,16 +479,22 @@ def run(args: argparse.Namespace) -> int:
         "--rows", str(args.rows), "--cols", str(args.cols),
         "--width", str(args.size), "--height", str(args.size),
     ]  # fmt: skip
+    shared_memory_mb = args.shared_memory
+    if shared_memory_mb is None:  # the stack is on one host: shared memory where there is room
+        shared_memory_mb = SHARED_MEMORY_MB if shared_memory_room_mb() >= SHARED_MEMORY_MB else 0
+    path = f"shared memory ({shared_memory_mb} MB pool)" if shared_memory_mb else "TCP loopback"
     print(
         f"focustrack demo: a {args.rows}x{args.cols} slide of {args.size}x{args.size} px tiles "
-        f"(family {args.family}, seed {args.seed}); outputs in {out_dir}",
+        f"(family {args.family}, seed {args.seed}); frames over {path}; outputs in {out_dir}",
         flush=True,
     )
     reports: dict[str, dict[str, Any]] = {}
     try:
         started_s = time.perf_counter()
         with (
-            LocalStack(out_dir, instrument_args, supervise=True) as stack,
+            LocalStack(
+                out_dir, instrument_args, supervise=True, shared_memory_mb=shared_memory_mb
+            ) as stack,
             LiveServer(port=args.live_port) as live,
         ):
             assert stack.session is not None

@@ -22,6 +22,7 @@ from focustrack.bench.replay import replay, score
 from focustrack.demo import SECOND_PASS, LocalStack
 from focustrack_core import health
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.wire import session
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
 from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
@@ -215,6 +216,9 @@ def test_demo_compares_strategies_and_writes_json(tmp_path: Path) -> None:
     demo = subprocess.run(command, capture_output=True, text=True, timeout=180)
     assert demo.returncode == 0, demo.stderr
     assert "images/tile" in demo.stdout and "transport" in demo.stdout
+    # one host: the frames take shared memory where /dev/shm has room for the pool
+    room = session.shared_memory_room_mb() >= session.SHARED_MEMORY_MB
+    assert ("frames over shared memory" if room else "frames over TCP") in demo.stdout
     strategies = json.loads(out_json.read_text())["strategies"]
     # the second pass (kf-rescan with the first scan's map, after the focus moved) comes last
     assert list(strategies) == [BEST_KALMAN, "af-every-tile", SECOND_PASS]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -67,3 +68,9 @@ def test_pixel_tuning_applies_unless_a_config_file_sets_its_own(tmp_path: Path) 
     path.write_text("{transport: {link: {tx: {queue: {size: {data: 8}}}}}}")
     config = session.session_config(connect=[session.DEFAULT_ENDPOINT], config_file=path)
     assert tuned(config) == {**session.PIXEL_TUNING, "transport/link/tx/queue/size/data": 8}
+
+
+def test_shared_memory_room_is_what_the_file_system_has_free(tmp_path: Path) -> None:
+    assert session.shared_memory_room_mb(tmp_path / "nowhere") == 0
+    free_mb = shutil.disk_usage(tmp_path).free / 1e6
+    assert 0 < session.shared_memory_room_mb(tmp_path) == pytest.approx(free_mb, abs=100)

@@ -42,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import socket
 import threading
 from collections.abc import Callable, Sequence
@@ -300,6 +301,17 @@ class BackgroundSession:
         if self.session is not None:
             self.session.close()
             self.session = None
+
+
+def shared_memory_room_mb(path: str | Path = "/dev/shm") -> int:
+    """MB free for Zenoh's shared-memory pools (POSIX shared memory lives in /dev/shm), 0
+    where there is none. A pool larger than this would crash its process with SIGBUS once
+    its pages fill up (a container's /dev/shm is 64 MB unless told otherwise)."""
+    try:
+        stat = os.statvfs(path)
+    except OSError:
+        return 0
+    return stat.f_bavail * stat.f_frsize // 1_000_000
 
 
 def shm_pool_bytes(args: argparse.Namespace) -> int:
