@@ -244,7 +244,9 @@ class PixelPublisher:
         """True when some subscriber matches `key_expr` (so a message there is not wasted)."""
         publisher = self.session.declare_publisher(key_expr)
         try:
-            return publisher.matching_status.matching  # the status object itself is truthy
+            # zenoh 1.10's stubs say bool, but it is a MatchingStatus, always truthy itself
+            status = publisher.matching_status
+            return bool(status.matching)  # type: ignore[attr-defined]
         finally:
             publisher.undeclare()
 
