@@ -28,7 +28,7 @@ and ran at about 1 GB/s, half a core idle. With 16 batches queued, a 16 MiB rece
 pool and 8 MiB socket buffers the same frames run at 1.5-2.0 GB/s, copied out of Zenoh
 included (`focustrack bench transport`, and bare sessions in two processes, zenoh 1.10;
 16 is the most Zenoh accepts, 32 panics when a link opens). Memory: up to 16 MiB of
-receive buffers per link while frames flow.
+receive buffers per link while frames flow (about 3 MB per idle link).
 
 `BackgroundSession` opens a session without blocking its caller and keeps trying
 until the router answers, so a service starts before the router and connects when
