@@ -59,7 +59,7 @@ FOCUS_MAX_LATENCY_S = 0.020
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=int, default=2048, help="frame side in pixels (2048)")
     parser.add_argument("--frames", type=int, default=21, help="frames per stack (21)")
-    parser.add_argument("--stacks", type=int, default=5, help="stacks sent per path (5)")
+    parser.add_argument("--stacks", type=int, default=10, help="stacks sent per path (10)")
     parser.add_argument(
         "--fps", type=float, default=100.0, help="camera frame rate of the focus run (100)"
     )

@@ -273,4 +273,5 @@ class PixelPublisher:
             attachment=attachment,
             encoding=encoding,
             congestion_control=zenoh.CongestionControl.BLOCK,
+            express=True,  # megabytes fill their batches anyway: 10% faster over TCP unbatched
         )
