@@ -198,11 +198,17 @@ class LocalStack:
         self.router_process = router_process
         if router_process:
             port = int(self.endpoint.rsplit(":", 1)[1])
+            router = [
+                sys.executable,
+                "-m",
+                "focustrack_core.wire.router",
+                "--listen",
+                self.endpoint,
+            ]
+            if self.shared_memory:
+                router.append("--shared-memory")
             self.services["router"] = Service(
-                "router",
-                [sys.executable, "-m", "focustrack_core.wire.router", "--listen", self.endpoint],
-                logs / "router.log",
-                _tcp_ready(port),
+                "router", router, logs / "router.log", _tcp_ready(port)
             )
         instrument = [*serve, "instrument", *connect, "--name", INSTRUMENT, "--serve-truth"]
         focus = [*serve, "focus", *connect, "--result-key-file", str(self.result_key_file)]

@@ -8,6 +8,11 @@ import subprocess
 import sys
 import threading
 
+import numpy as np
+import pytest
+import zenoh
+
+from focustrack_core.wire import codec
 from focustrack_core.wire.session import loopback_endpoint, open_session
 
 
@@ -45,3 +50,38 @@ def test_the_router_needs_an_endpoint() -> None:
         [sys.executable, "-m", "focustrack_core.wire.router"], capture_output=True, text=True
     )
     assert run.returncode == 2 and "--listen" in run.stderr
+
+
+@pytest.mark.parametrize("shared_memory", [True, False])
+def test_the_router_hands_on_shared_memory_only_when_told(shared_memory: bool) -> None:
+    endpoint = loopback_endpoint()
+    flags = ["--shared-memory"] if shared_memory else []
+    router = subprocess.Popen(
+        [sys.executable, "-m", "focustrack_core.wire.router", "--listen", endpoint, *flags],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        arrived: list[bool] = []  # whether each payload came as shared memory
+        received = threading.Event()
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            arrived.append(sample.payload.as_shm() is not None)
+            received.set()
+
+        with (
+            open_session(connect=[endpoint], shared_memory=True) as subscriber,
+            open_session(connect=[endpoint], shared_memory=True) as pub,
+        ):
+            subscriber.declare_subscriber("test/pixels", on_sample)
+            publisher = codec.PixelPublisher(pub, shm_pool_bytes=1 << 20)
+            pixels = codec.pixel_array((64, 64), np.uint16)
+            for _ in range(50):  # until the subscription has reached the router
+                pub.put("test/pixels", publisher.payload(pixels))
+                if received.wait(0.1):
+                    break
+        assert arrived and publisher.n_shared >= 1
+        assert arrived[0] is shared_memory
+    finally:
+        router.kill()
+        router.wait(timeout=10)

@@ -8,7 +8,10 @@ and `--no-multicast-scouting` (accepted for that reason; multicast scouting is a
 off in our sessions), and `--config FILE` (zenohd's name; `--zenoh-config` as our
 services call it, or FOCUSTRACK_ROUTER_ZENOH_CONFIG): a Zenoh JSON5 file for TLS,
 user/password authentication and access control (docs/security.md), which the listen
-endpoints and the mode are written over. It routes until SIGTERM or SIGINT, then
+endpoints and the mode are written over. `--shared-memory` hands Zenoh shared-memory
+buffers on between sessions on this host that have it on (`focustrack demo` with its
+router in a process of its own); without it they cross the router as bytes, as between
+hosts. It routes until SIGTERM or SIGINT, then
 closes its session and exits 0: as a container's PID 1, a process without a SIGTERM
 handler would ignore `stop` and be killed after the grace period.
 """
@@ -49,6 +52,12 @@ def parser() -> argparse.ArgumentParser:
         help="accepted for zenohd compatibility; multicast scouting is always off",
     )
     router.add_argument(
+        "--shared-memory",
+        action="store_true",
+        help="hand on Zenoh shared-memory buffers between sessions on this host "
+        "(off: they cross this router as bytes)",
+    )
+    router.add_argument(
         "-c",
         "--config",
         "--zenoh-config",
@@ -65,7 +74,12 @@ def parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
-        config = session_config(listen=args.listen, mode="router", config_file=args.zenoh_config)
+        config = session_config(
+            listen=args.listen,
+            mode="router",
+            shared_memory=args.shared_memory,
+            config_file=args.zenoh_config,
+        )
     except ValueError as error:  # a file Zenoh cannot use
         print(f"zenoh router: error: {error}", file=sys.stderr)
         return 2
