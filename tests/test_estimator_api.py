@@ -12,6 +12,7 @@ import io
 import logging
 import sqlite3
 from collections.abc import Coroutine, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -61,7 +62,8 @@ def local_map(strategy: str, settings: SlideSettings, seed: int) -> FocusMap:
 
 
 def assert_same_maps(served: FocusMap, local: FocusMap) -> None:
-    for name in ("prior_um", "prior_sigma_um", "posterior_um", "posterior_sigma_um", "z_used_um"):
+    names = ("prior_um", "prior_sigma_um", "posterior_um", "posterior_sigma_um", "z_used_um")
+    for name in (*names, "out_of_focus_risk"):
         np.testing.assert_array_equal(getattr(served, name), getattr(local, name), err_msg=name)
 
 
@@ -480,6 +482,38 @@ def test_diagnostics_summarise_the_innovations(app: FastAPI) -> None:
     assert innovations["nis_low"] < 1.0 < innovations["nis_high"]
     assert 0.0 < innovations["mean_nis"] < 10.0
     assert diagnostics["innovations_note"] is None
+
+
+def test_diagnostics_say_whether_the_stated_risk_is_met(app: FastAPI) -> None:
+    """At the thesis noise (1.5 um, 1 um depth of field) no tile can be made sure enough for
+    a 1% risk, and the diagnostics say so; at 0.1 um the same slide meets it."""
+    truth, noisy = maps(6)
+    sharp = replace(SETTINGS, noise_sigma_um=0.1)
+    measured = truth + np.random.default_rng(6).normal(0.0, 0.1, truth.shape)
+
+    async def go() -> list[tuple[dict[str, Any], FocusMap]]:
+        results = []
+        async with client(app) as http:
+            for settings, measured_um in ((SETTINGS, noisy), (sharp, measured)):
+                body = slide_config("kf-2d-lean", settings)
+                response = await http.post("/v1/slides", json=body)
+                slide_id = response.json()["id"]
+                await scan(http, slide_id, measured_um)
+                diagnostics = (await http.get(f"/v1/slides/{slide_id}/diagnostics")).json()
+                results.append((diagnostics["risk"], await served_map(http, slide_id)))
+        return results
+
+    (noisy_risk, noisy_map), (sharp_risk, _) = run(go())
+    local = replay(registry.create("kf-2d-lean", SETTINGS), truth, noisy).focus_map
+    assert_same_maps(noisy_map, local)
+    assert noisy_map.out_of_focus_risk is not None
+    assert noisy_risk["stated_risk"] == 0.01
+    assert noisy_risk["n_tiles"] == ROWS * COLS
+    assert noisy_risk["expected_out_of_focus"] == pytest.approx(np.mean(local.out_of_focus_risk))
+    assert noisy_risk["expected_out_of_focus"] > 0.1
+    assert "not met" in noisy_risk["note"]
+    assert sharp_risk["expected_out_of_focus"] <= 0.01
+    assert sharp_risk["note"] is None
 
 
 def test_bearer_token_when_configured(tmp_path: Path) -> None:

@@ -18,6 +18,7 @@ from focustrack_estimator.lean import (
     choose_stack,
     out_of_focus_risk,
     search_cost,
+    summarise_risk,
 )
 from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
@@ -75,6 +76,22 @@ def test_search_cost_counts_retries_and_refuses_a_likely_give_up() -> None:
     assert search_cost(short, 10.0, POLICY, 3, 0.01) is None  # 3 retries reach 5.5 um only
 
 
+def test_a_risk_summary_counts_imaged_tiles_and_says_when_the_stated_risk_is_not_met() -> None:
+    risk = np.array([[0.001, 0.002, np.nan], [0.03, np.nan, np.nan]])
+    summary = summarise_risk(risk, 0.01, DOF_UM, 1.5)
+    assert summary is not None
+    assert (summary.n_tiles, summary.n_over_stated) == (3, 1)
+    assert summary.expected_out_of_focus == pytest.approx(0.011)
+    assert summary.note is not None and "1.0%" in summary.note and "1.5 um" in summary.note
+    # within the stated risk on average: one tile above it is no failure of the setting
+    met = summarise_risk(np.array([[0.001, 0.002, 0.02]]), 0.01, DOF_UM, 0.1)
+    assert met is not None and met.note is None and met.n_over_stated == 1
+    # no stated risk (kf-2d): counted, never over
+    unstated = summarise_risk(risk, None, DOF_UM, 1.5)
+    assert unstated is not None and (unstated.n_over_stated, unstated.note) == (0, None)
+    assert summarise_risk(np.full((2, 2), np.nan), 0.01, DOF_UM, 1.5) is None
+
+
 def test_risk_must_be_a_probability() -> None:
     with pytest.raises(ValueError, match="risk"):
         _choose(0.1, risk=0.0)
@@ -111,7 +128,7 @@ def test_kf_2d_lean_takes_fewer_frames_at_the_risk_it_states() -> None:
     ]
     assert 0 < np.mean(skipped) < 1
     # every tile states its risk, and the reliability table covers every tile once
-    assert all(np.all(np.isfinite(r.risk)) for r in runs["kf-2d-lean"])
+    assert all(np.all(np.isfinite(r.focus_map.out_of_focus_risk)) for r in runs["kf-2d-lean"])
     bins = reliability(runs["kf-2d-lean"], DOF_UM)
     assert sum(b.n_tiles for b in bins) == truth.size
     assert all(b.low <= b.predicted < b.high or b.high == 1.0 for b in bins)

@@ -157,6 +157,10 @@ def test_a_scan_completes_as_the_benchmark_predicts_and_resumes_after_a_kill(
     assert 0.8 * predicted.images_per_tile <= per_tile <= 1.25 * predicted.images_per_tile + 0.5
     assert len({(e["row"], e["col"]) for e in flat}) <= 0.15 * ROWS * COLS
     assert report["in_focus_fraction"] >= predicted.in_focus_fraction - 0.1
+    # the estimator's own expectation of it, from each tile's predicted risk
+    assert report["predicted_in_focus_fraction"] == pytest.approx(
+        report["in_focus_fraction"], abs=0.15
+    )
     assert report["mae_um"] < 0.5 and report["scan_time_s"] > 0
     wall = report["wall_time_s"]
     assert wall["total_s"] > 0 and wall["rendering_s"] > 0 and wall["estimation_s"] > 0

@@ -200,6 +200,11 @@ class FocusMapOut(BaseModel):
     z_used_um: list[list[float | None]]
     smoothed_um: list[list[float | None]] | None
     smoothed_sigma_um: list[list[float | None]] | None
+    out_of_focus_risk: list[list[float | None]] | None = Field(
+        None,
+        description="Each tile's predicted probability (0..1) that its kept frame lies outside "
+        "the depth of field; null where the strategy states none",
+    )
 
 
 class InnovationStats(BaseModel):
@@ -225,6 +230,23 @@ class InnovationStats(BaseModel):
     white: bool
 
 
+class RiskStats(BaseModel):
+    """The imaged tiles' predicted out-of-focus risk against the slide's stated one.
+
+    Each tile's risk is the filter's probability that its kept frame lies outside the
+    depth of field (the map's `out_of_focus_risk`); their mean is the share of tiles
+    expected out of focus.
+    """
+
+    stated_risk: float | None = Field(
+        description="The slide's risk_out_of_focus; null where the strategy states none"
+    )
+    n_tiles: int = Field(description="Imaged tiles with a predicted risk")
+    expected_out_of_focus: float = Field(description="Mean predicted risk of those tiles")
+    n_over_stated: int = Field(description="Tiles whose predicted risk exceeds the stated one")
+    note: str | None = Field(description="Why the stated risk is not met, when it is not")
+
+
 class Diagnostics(BaseModel):
     n_acquisitions: int
     n_measured: int = Field(description="Acquisitions that asked for a best focus")
@@ -232,6 +254,9 @@ class Diagnostics(BaseModel):
     n_rejected: int = Field(description="Measured but not used: edge peak, flat curve, gated out")
     innovations: InnovationStats | None
     innovations_note: str | None = Field(description="Why there are no innovation statistics")
+    risk: RiskStats | None = Field(
+        None, description="Predicted out-of-focus risk; null before a tile with one is imaged"
+    )
 
 
 class Health(BaseModel):

@@ -150,7 +150,9 @@ class FocusMap:
     """The estimates of every tile, each (rows, cols) in um, NaN where there is none yet.
 
     `z_used_um` is the height the tile was imaged at (the frame kept for the
-    mosaic); it is what the in-focus fraction is judged on.
+    mosaic); it is what the in-focus fraction is judged on. `out_of_focus_risk`
+    is the strategy's predicted probability that this frame lies outside the
+    depth of field (0..1, NaN where the strategy states none).
     """
 
     prior_um: np.ndarray
@@ -160,10 +162,11 @@ class FocusMap:
     z_used_um: np.ndarray
     smoothed_um: np.ndarray | None = None
     smoothed_sigma_um: np.ndarray | None = None
+    out_of_focus_risk: np.ndarray | None = None
 
     @classmethod
     def empty(cls, grid: ScanGrid) -> FocusMap:
         def nan() -> np.ndarray:
             return np.full(grid.shape, np.nan)
 
-        return cls(nan(), nan(), nan(), nan(), nan())
+        return cls(nan(), nan(), nan(), nan(), nan(), out_of_focus_risk=nan())

@@ -21,7 +21,8 @@ def finite_or_none(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else float(value)
 
 
-#: The layers of a focus map export, in this order (all in um, rows x cols).
+#: The layers of a focus map export, in this order (rows x cols; heights and sigmas in um,
+#: the predicted out-of-focus risk a probability).
 MAP_LAYERS = (
     "prior_um",
     "prior_sigma_um",
@@ -30,6 +31,7 @@ MAP_LAYERS = (
     "smoothed_um",
     "smoothed_sigma_um",
     "z_used_um",
+    "out_of_focus_risk",
 )
 
 
@@ -84,17 +86,20 @@ def map_npy(focus_map: FocusMap) -> bytes:
 
 
 def focus_map_of_npy(content: bytes) -> FocusMap:
-    """The focus map of a `map_npy` file (smoothed layers None when all NaN)."""
+    """The focus map of a `map_npy` file: smoothed layers None when all NaN, the risk None
+    in a file written before it was a layer."""
     table = np.load(io.BytesIO(content), allow_pickle=False)
-    smoothed = {
+    optional = {
         name: None if np.all(np.isnan(table[name])) else np.array(table[name])
         for name in ("smoothed_um", "smoothed_sigma_um")
     }
+    if "out_of_focus_risk" in (table.dtype.names or ()):
+        optional["out_of_focus_risk"] = np.array(table["out_of_focus_risk"])
     return FocusMap(
         prior_um=np.array(table["prior_um"]),
         prior_sigma_um=np.array(table["prior_sigma_um"]),
         posterior_um=np.array(table["posterior_um"]),
         posterior_sigma_um=np.array(table["posterior_sigma_um"]),
         z_used_um=np.array(table["z_used_um"]),
-        **smoothed,
+        **optional,
     )

@@ -10,7 +10,7 @@ import numpy as np
 
 from focustrack_core.domain import FocusMap
 from focustrack_core.geometry import ScanGrid
-from focustrack_core.maps import MAP_LAYERS, layer_json, map_csv
+from focustrack_core.maps import MAP_LAYERS, focus_map_of_npy, layer_json, map_csv, map_npy
 
 
 def test_a_json_layer_has_null_where_the_value_is_not_finite() -> None:
@@ -41,3 +41,24 @@ def test_the_csv_has_a_line_per_tile_with_exact_values_and_empty_cells_for_nan()
     assert cells[0][8:10] == ["", ""]  # no smoothed layers: empty cells
     table = np.genfromtxt(io.StringIO("\n".join(lines)), delimiter=",", names=True)
     assert math.isnan(table["prior_um"][2])
+
+
+def test_the_npy_table_round_trips_the_risk_layer_and_reads_files_written_before_it() -> None:
+    grid = ScanGrid(2, 2, pitch_um=100.0)
+    focus_map = FocusMap.empty(grid)
+    assert focus_map.out_of_focus_risk is not None
+    focus_map.posterior_um[:] = [[1.0, 2.0], [3.0, 4.0]]
+    focus_map.out_of_focus_risk[0] = [0.25, 0.001]  # row 1 not imaged: NaN
+    read = focus_map_of_npy(map_npy(focus_map))
+    assert read.out_of_focus_risk is not None
+    np.testing.assert_array_equal(read.out_of_focus_risk, focus_map.out_of_focus_risk)
+    np.testing.assert_array_equal(read.posterior_um, focus_map.posterior_um)
+
+    # a table written before the layer existed: no risk, the other layers as they were
+    table = np.load(io.BytesIO(map_npy(focus_map)))
+    older = [name for name in MAP_LAYERS if name != "out_of_focus_risk"]
+    buffer = io.BytesIO()
+    np.save(buffer, table[older].astype([(name, "<f8") for name in older]))
+    legacy = focus_map_of_npy(buffer.getvalue())
+    assert legacy.out_of_focus_risk is None
+    np.testing.assert_array_equal(legacy.posterior_um, focus_map.posterior_um)

@@ -277,8 +277,14 @@ def stated_risk(name: str) -> float:
     return float(registry.parameters(name).get("risk_out_of_focus", 0.0) or 0.0)
 
 
-def format_reliability(name: str, bins: list[RiskBin], stated: float) -> str:
-    """The reliability table of one strategy: predicted risk against the achieved rate."""
+def format_reliability(
+    name: str, bins: list[RiskBin], stated: float, floor: float | None = None
+) -> str:
+    """The reliability table of one strategy: predicted risk against the achieved rate.
+
+    `floor`: the out-of-focus share of the Bayes-optimal oracle on the same maps, where it
+    ran; a stated risk below it cannot be met by any estimator, and the table says so.
+    """
     n_tiles = sum(b.n_tiles for b in bins)
     predicted = sum(b.predicted * b.n_tiles for b in bins) / max(n_tiles, 1)
     achieved = sum(b.achieved * b.n_tiles for b in bins) / max(n_tiles, 1)
@@ -290,6 +296,11 @@ def format_reliability(name: str, bins: list[RiskBin], stated: float) -> str:
     for b in bins:
         band = f"[{b.low:g}, {b.high:g})"
         lines.append(f"  {band:<16}{b.n_tiles:>8}{b.predicted:>11.2%}{b.achieved:>10.2%}")
+    if floor is not None and floor > stated:
+        lines.append(
+            f"  no estimator can meet the stated {stated:.1%} on these maps: {ORACLE} "
+            f"(Bayes-optimal) leaves {floor:.1%} of tiles out of focus"
+        )
     return "\n".join(lines)
 
 
@@ -470,8 +481,9 @@ def run(args: argparse.Namespace) -> int:
         calibration = {
             name: reliability(replays[name], args.dof_um) for name in names if stated_risk(name) > 0
         }
+        floor = 1.0 - scores[ORACLE].in_focus_fraction if ORACLE in scores else None
         for name, bins in calibration.items():
-            print(format_reliability(name, bins, stated_risk(name)))
+            print(format_reliability(name, bins, stated_risk(name), floor))
         families[map_set.name] = {
             "title": map_set.title,
             "maps": map_set.n_maps,

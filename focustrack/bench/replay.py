@@ -53,7 +53,6 @@ class Replay:
     n_images: int
     scan_time_s: float
     limit_time_s: float  # stage moves along the serpentine plus one frame per tile
-    risk: np.ndarray  # (rows, cols): the strategy's predicted P(out of focus), NaN where none
 
 
 def limit_time_s(grid: ScanGrid, timing: TimingModel) -> float:
@@ -121,7 +120,6 @@ def replay(
         n_images,
         scan_time_s,
         limit_time_s(grid, timing),
-        strategy.risk.copy(),
     )
 
 
@@ -161,12 +159,14 @@ class RiskBin:
 def predicted_risk(run: Replay, dof_um: float) -> np.ndarray:
     """Each tile's predicted P(|truth - z used| > dof/2), (rows, cols).
 
-    The strategy's own (`Strategy.risk`) where it states one, else the Gaussian of
-    its posterior (its prior where it did not measure) about the kept frame.
+    The strategy's own (`FocusMap.out_of_focus_risk`) where it states one, else the
+    Gaussian of its posterior (its prior where it did not measure) about the kept frame.
     """
     fm = run.focus_map
     gaussian = out_of_focus_risk(fm.posterior_um, fm.posterior_sigma_um, fm.z_used_um, dof_um)
-    return np.where(np.isfinite(run.risk), run.risk, gaussian)
+    if fm.out_of_focus_risk is None:
+        return gaussian
+    return np.where(np.isfinite(fm.out_of_focus_risk), fm.out_of_focus_risk, gaussian)
 
 
 def reliability(replays: list[Replay], dof_um: float) -> list[RiskBin]:

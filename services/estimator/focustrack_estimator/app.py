@@ -19,7 +19,7 @@ import time
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Path, Query, Request
@@ -44,6 +44,7 @@ from focustrack_core.maps import (
 )
 from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut
 from focustrack_estimator import registry
+from focustrack_estimator.lean import RiskSummary, summarise_risk
 from focustrack_estimator.metrics import EstimatorMetrics
 from focustrack_estimator.slides import (
     Budget,
@@ -319,7 +320,7 @@ async def get_map(
 @v1.get("/slides/{slide_id}/diagnostics", tags=["maps"])
 async def get_diagnostics(slide_id: SlideId, slides: SlidesDep) -> api.Diagnostics:
     """Counts and innovation statistics (mean, NIS, whiteness) of the scan so far."""
-    result = await slides.run(slide_id, lambda slide: diagnose(slide.history))
+    result, risk = await slides.run(slide_id, lambda slide: (diagnose(slide.history), _risk(slide)))
     stats = result.innovations
     return api.Diagnostics(
         n_acquisitions=result.n_acquisitions,
@@ -344,6 +345,17 @@ async def get_diagnostics(slide_id: SlideId, slides: SlidesDep) -> api.Diagnosti
             consistent=stats.consistent,
             white=stats.white,
         ),
+        risk=None if risk is None else api.RiskStats(**asdict(risk)),
+    )
+
+
+def _risk(slide: Slide) -> RiskSummary | None:
+    strategy = slide.strategy
+    risk_map = strategy.focus_map().out_of_focus_risk
+    if risk_map is None:
+        return None
+    return summarise_risk(
+        risk_map, strategy.stated_risk, strategy.settings.dof_um, strategy.measurement_sigma_um
     )
 
 

@@ -168,3 +168,47 @@ def search_cost(
     if 2.0 * float(ndtr(-reach_um / innovation_sigma_um)) > risk:
         return None
     return frames
+
+
+@dataclass(frozen=True)
+class RiskSummary:
+    """A scan's predicted out-of-focus risk over its imaged tiles, against the stated one.
+
+    `expected_out_of_focus` is the mean of the tiles' predicted risks: the share of
+    them expected outside the depth of field (a scan with the truth known can check
+    it, as `focustrack bench accuracy`'s reliability table does). `note` says why the
+    stated risk is not met, when it is not.
+    """
+
+    stated_risk: float | None  # the slide's `risk_out_of_focus`; None where it states none
+    n_tiles: int  # imaged tiles with a predicted risk
+    expected_out_of_focus: float
+    n_over_stated: int  # tiles whose predicted risk exceeds the stated one
+    note: str | None
+
+
+def summarise_risk(
+    risk: np.ndarray, stated_risk: float | None, dof_um: float, measurement_sigma_um: float
+) -> RiskSummary | None:
+    """The summary of a risk map (rows, cols; NaN where no tile was imaged), None if empty.
+
+    `measurement_sigma_um` is the sigma the recent measurements had; beside the depth
+    of field `dof_um` it tells a user why a stated risk cannot be met: where a
+    single measurement is too noisy for the depth of field, even the measured tiles
+    stay above it (thesis noise 1.5 um against a 1 um depth of field: about a third
+    of tiles out of focus, for any estimator).
+    """
+    imaged = risk[np.isfinite(risk)]
+    if imaged.size == 0:
+        return None
+    expected = float(imaged.mean())
+    over = 0 if stated_risk is None else int(np.count_nonzero(imaged > stated_risk))
+    note = None
+    if stated_risk is not None and expected > stated_risk:
+        note = (
+            f"the stated risk ({stated_risk:.1%}) is not met: {expected:.1%} of the "
+            f"{imaged.size} imaged tiles are expected out of focus, and {over} tiles are above "
+            f"it; measurements with a sigma of {measurement_sigma_um:.2g} um against a depth "
+            f"of field of {dof_um:.2g} um leave even a measured tile that unsure"
+        )
+    return RiskSummary(stated_risk, int(imaged.size), expected, over, note)

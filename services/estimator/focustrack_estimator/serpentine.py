@@ -174,6 +174,14 @@ class SerpentineFilter(Strategy):
             return self.default_r_um2
         return float(np.median(self._recent_r_um2))
 
+    @property
+    def stated_risk(self) -> float | None:
+        return self.options.risk_out_of_focus or None
+
+    @property
+    def measurement_sigma_um(self) -> float:
+        return math.sqrt(self.expected_r_um2)
+
     def _first_stack(self, prior: Gaussian) -> tuple[ZRange, bool]:
         """The first acquisition of a tile with this prior: its frames and whether to measure."""
         risk, policy = self.options.risk_out_of_focus, self.settings.policy
@@ -292,7 +300,9 @@ class SerpentineFilter(Strategy):
         self.map.posterior_sigma_um[row, col] = posterior.sigma_um
         z_used_um = frames_um[np.argmin(np.abs(frames_um - posterior.mean_um))]
         self.map.z_used_um[row, col] = z_used_um
-        self.risk[row, col] = (
+        risk = self.map.out_of_focus_risk
+        assert risk is not None  # FocusMap.empty made it
+        risk[row, col] = (
             self._skip_risk
             if not acquisition.measure
             else out_of_focus_risk(

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 #: Version of the encoding; a snapshot of another version is not restored (the log is).
-FORMAT = 1
+FORMAT = 2  # 2: FocusMap.out_of_focus_risk (was Strategy.risk)
 
 #: Packages whose enums, dataclasses and objects a snapshot may name.
 _ALLOWED_MODULES = ("focustrack_core.", "focustrack_estimator.", "filterpy.")

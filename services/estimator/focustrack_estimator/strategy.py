@@ -22,8 +22,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from focustrack_core.domain import (
     Acquisition,
     FocusFlag,
@@ -234,10 +232,9 @@ class Strategy(ABC):
     def __init__(self, settings: SlideSettings) -> None:
         self.settings = settings
         self.grid = settings.grid
+        # The estimates, and each tile's predicted P(its kept frame lies outside the depth
+        # of field) (`FocusMap.out_of_focus_risk`, NaN where the strategy states none).
         self.map = FocusMap.empty(settings.grid)
-        # Each tile's predicted P(its kept frame lies outside the depth of field), (rows,
-        # cols); NaN where the strategy states none (the benchmark's reliability table).
-        self.risk = np.full(settings.grid.shape, np.nan)
         self.n_recorded = 0
         self._pending: Acquisition | None = None
 
@@ -266,6 +263,16 @@ class Strategy(ABC):
     def focus_map(self) -> FocusMap:
         """The estimates so far (the final map once `next_acquisition` returns None)."""
         return self.map
+
+    @property
+    def stated_risk(self) -> float | None:
+        """The share of tiles allowed out of focus, where the strategy takes one (else None)."""
+        return None
+
+    @property
+    def measurement_sigma_um(self) -> float:
+        """The sigma a measurement is expected to have now, um (the configured noise)."""
+        return self.settings.noise_sigma_um
 
     def _acquisition(
         self, row: int, col: int, z: ZRange, purpose: Purpose, *, measure: bool, **prediction

@@ -283,12 +283,21 @@ def mean_abs_error_um(estimate_um: np.ndarray, truth_um: np.ndarray) -> float | 
     return float(np.nanmean(error)) if np.isfinite(error).any() else None
 
 
+def predicted_in_focus_fraction(focus_map: FocusMap) -> float | None:
+    """The share of imaged tiles the estimator expects in focus: 1 - their mean predicted
+    out-of-focus risk (None where it states none)."""
+    risk = focus_map.out_of_focus_risk
+    if risk is None or not np.isfinite(risk).any():
+        return None
+    return 1.0 - float(np.nanmean(risk))
+
+
 def tile_metadata(record: ScanRecord, grid: ScanGrid, focus_map: FocusMap) -> list[dict[str, Any]]:
     """Every tile's numbers, row-major: where it is, its image, its last measurement, its map.
 
     Per tile: row, col, stage_x_um, stage_y_um; z_used_um (its kept image), best_z_um,
     sigma_um and flags (the last best focus posted for it; null and [] where none was),
-    images (acquired on it), posterior_um and posterior_sigma_um (the
+    images (acquired on it), posterior_um, posterior_sigma_um and out_of_focus_risk (the
     estimator's map). Heights in um, null where there is none.
     """
     layers = map_layers(focus_map)
@@ -311,6 +320,7 @@ def tile_metadata(record: ScanRecord, grid: ScanGrid, focus_map: FocusMap) -> li
                     "images": int(images[row, col]),
                     "posterior_um": finite_or_none(layers["posterior_um"][row, col]),
                     "posterior_sigma_um": finite_or_none(layers["posterior_sigma_um"][row, col]),
+                    "out_of_focus_risk": finite_or_none(layers["out_of_focus_risk"][row, col]),
                 }
             )
     return tiles
@@ -431,7 +441,8 @@ def _write_ome_zarr(
     for name, values in layers.items():
         group = maps.create_group(name)
         _write_ngff_image(group, name, [np.asarray(values)], tile_um, centre_um)
-        group.attrs[ZARR_ATTRS] = {"layer": name, "unit": "images" if name == "images" else "um"}
+        unit = {"images": "images", "out_of_focus_risk": "probability"}.get(name, "um")
+        group.attrs[ZARR_ATTRS] = {"layer": name, "unit": unit}
 
 
 def _write_ngff_image(
@@ -571,6 +582,7 @@ def write_outputs(
         "in_focus_fraction": None
         if truth_um is None
         else in_focus_fraction(z_kept_um, truth_um, dof_um),
+        "predicted_in_focus_fraction": predicted_in_focus_fraction(focus_map),
         "mae_um": None if truth_um is None else mean_abs_error_um(focus_map.posterior_um, truth_um),
         "prior_mae_um": None
         if truth_um is None
