@@ -27,6 +27,7 @@ import zenoh
 
 from focustrack.bus_secrets import ROLES, client_config, write_bus_files
 from focustrack.demo import Service
+from focustrack_core.health import instrument_answers
 from focustrack_core.v1 import focus_pb2, instrument_pb2
 from focustrack_core.wire import keys, rpc
 from focustrack_core.wire.session import free_port, open_session
@@ -96,22 +97,18 @@ def stack(bus: Bus, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[s
         return ["--connect", bus.endpoint, "--zenoh-config", str(bus.configs[role])]
 
     with bus.open("scheduler") as probe:
-
-        def instrument_ready() -> bool:
-            try:
-                rpc.call(probe, keys.info_key("sim"), instrument_pb2.AcquireRequest(),
-                         instrument_pb2.InstrumentInfo, 1.0)  # fmt: skip
-                return True
-            except rpc.RemoteError:
-                return False
-
         instrument = [*serve, "instrument", *zenoh_args("instrument"), "--name", "sim",
                       "--rows", "3", "--cols", "3", "--width", "64", "--height", "64"]  # fmt: skip
         focus = [*serve, "focus", *zenoh_args("focus"), "--port", str(focus_port)]
         store = ["--store", str(folder / "estimator.sqlite")]
         estimator = [*serve, "estimator", "--port", str(estimator_port), *store]
         services = [
-            Service("instrument", instrument, folder / "instrument.log", instrument_ready),
+            Service(
+                "instrument",
+                instrument,
+                folder / "instrument.log",
+                lambda: instrument_answers(probe, "sim"),
+            ),
             Service(
                 "focus",
                 focus,

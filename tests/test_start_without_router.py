@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 
 from focustrack.bench.focus import render_stack
+from focustrack_core.health import instrument_answers
 from focustrack_core.v1 import focus_pb2, instrument_pb2
-from focustrack_core.wire import keys, rpc
+from focustrack_core.wire import keys
 from focustrack_core.wire.codec import PixelPublisher, describe_pixels
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_core.wire.trust import ResultSigner
@@ -86,15 +87,9 @@ def test_focus_and_instrument_start_without_the_router_and_join_it_later(tmp_pat
         with open_session(listen=[endpoint], mode="router") as router:
             wait_until(lambda: (health(port) or {}).get("status") == "ok", "connection", focus)
 
-            def instrument_answers() -> bool:
-                try:
-                    rpc.call(router, keys.info_key("sim"), instrument_pb2.AcquireRequest(),
-                             instrument_pb2.InstrumentInfo, 1.0)  # fmt: skip
-                    return True
-                except rpc.RemoteError:
-                    return False
-
-            wait_until(instrument_answers, "instrument on the bus", instrument)
+            wait_until(
+                lambda: instrument_answers(router, "sim"), "instrument on the bus", instrument
+            )
 
             results: queue.Queue = queue.Queue()
             subscriber = router.declare_subscriber(keys.focus_pattern("s1"), results.put)

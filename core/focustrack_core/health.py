@@ -16,6 +16,10 @@ import time
 import urllib.error
 import urllib.request
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the estimator's image has no Zenoh: imported where an instrument is probed
+    import zenoh
 
 
 def parser() -> argparse.ArgumentParser:
@@ -37,32 +41,38 @@ def probe_http(url: str, timeout_s: float) -> None:
             raise OSError(f"{url} answered HTTP {response.status}")
 
 
+def instrument_answers(session: zenoh.Session, name: str, timeout_s: float = 1.0) -> bool:
+    """Whether instrument `name` answers its info query on `session` within `timeout_s`."""
+    from focustrack_core.v1 import instrument_pb2
+    from focustrack_core.wire import keys, rpc
+
+    try:
+        rpc.call(
+            session,
+            keys.info_key(name),
+            instrument_pb2.AcquireRequest(),
+            instrument_pb2.InstrumentInfo,
+            timeout_s=timeout_s,
+        )
+    except rpc.RemoteError:
+        return False
+    return True
+
+
 def probe_instrument(
     name: str, connect: list[str], timeout_s: float, config_file: Path | None = None
 ) -> None:
-    """Return once instrument `name` answers its info query; raise RemoteError if it does not."""
-    from focustrack_core.v1 import instrument_pb2
-    from focustrack_core.wire import keys, rpc
+    """Return once instrument `name` answers its info query; raise TimeoutError if it does not."""
     from focustrack_core.wire.session import open_session
 
     deadline_s = time.monotonic() + timeout_s
     with open_session(
         connect=connect, connect_timeout_s=timeout_s, config_file=config_file
     ) as session:
-        while True:
-            try:
-                rpc.call(
-                    session,
-                    keys.info_key(name),
-                    instrument_pb2.AcquireRequest(),
-                    instrument_pb2.InstrumentInfo,
-                    timeout_s=1.0,
-                )
-                return
-            except rpc.RemoteError:
-                if time.monotonic() > deadline_s:
-                    raise
-                time.sleep(0.2)
+        while not instrument_answers(session, name):
+            if time.monotonic() > deadline_s:
+                raise TimeoutError(f"instrument {name!r} did not answer within {timeout_s} s")
+            time.sleep(0.2)
 
 
 def main(argv: list[str] | None = None) -> int:

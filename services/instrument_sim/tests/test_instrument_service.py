@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from focustrack_core import health
 from focustrack_core.v1 import common_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc, session
 
@@ -31,13 +32,10 @@ def instrument() -> Iterator[str]:
     try:
         with session.open_session(connect=[endpoint], connect_timeout_s=60) as probe:
             for _ in range(100):
-                try:
-                    rpc.call(probe, keys.info_key("sim"), instrument_pb2.AcquireRequest(),
-                             instrument_pb2.InstrumentInfo, 1.0)  # fmt: skip
+                if health.instrument_answers(probe, "sim"):
                     break
-                except rpc.RemoteError:
-                    assert process.poll() is None, process.stderr.read()
-                    time.sleep(0.2)
+                assert process.poll() is None, process.stderr.read()
+                time.sleep(0.2)
         yield endpoint
     finally:
         process.terminate()
@@ -108,6 +106,15 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
         timing.move_s + timing.z_settle_s + timing.exposure_s + timing.readout_s
     )
     assert timing.clock_s >= timing.total_s
+
+
+def test_the_health_probe_passes_for_this_instrument_and_fails_for_another(
+    instrument: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    probe = ["--connect", instrument, "--timeout-s", "5", "--instrument"]
+    assert health.main([*probe, "sim"]) == 0
+    assert health.main([*probe[:3], "1", "--instrument", "nobody"]) == 1
+    assert "unhealthy: TimeoutError: instrument 'nobody' did not answer" in capsys.readouterr().err
 
 
 def test_truth_is_apart_and_matches_the_slide(client: zenoh.Session) -> None:
