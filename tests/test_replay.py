@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.replay import replay, score, simulated_measurement
+from focustrack.bench.replay import planes_in_focus, replay, score, simulated_measurement
 from focustrack_core.domain import Acquisition, FocusFlag, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.timing import TimingModel
@@ -96,3 +96,20 @@ def test_scores_pool_maps() -> None:
 def test_replay_refuses_maps_of_another_shape() -> None:
     with pytest.raises(ValueError, match="differ from grid"):
         replay(AfEveryTile(SlideSettings(ScanGrid(2, 3))), np.zeros((3, 2)), np.zeros((3, 2)))
+
+
+def test_kept_planes_a_depth_of_field_apart_widen_what_counts_as_in_focus() -> None:
+    rng = np.random.default_rng(5)
+    settings = SlideSettings(ScanGrid(6, 6))
+    truths = [rng.normal(0.0, 2.0, (6, 6)) for _ in range(2)]
+    runs = [
+        replay(registry.create("kf-2d", settings), t, t + rng.normal(0.0, 1.5, t.shape))
+        for t in truths
+    ]
+    one = planes_in_focus(runs, 1.0, 1)
+    assert one[0] == pytest.approx(score(runs, 1.0).in_focus_fraction)
+    # three planes: in focus within 1.5 um of the kept frame, as predicted from the Gaussian
+    used = np.concatenate([(r.focus_map.z_used_um - r.truth_um).ravel() for r in runs])
+    achieved, predicted = planes_in_focus(runs, 1.0, 3)
+    assert achieved == pytest.approx(np.mean(np.abs(used) <= 1.5))
+    assert one[0] < achieved and one[1] < predicted <= 1.0

@@ -191,6 +191,32 @@ def reliability(replays: list[Replay], dof_um: float) -> list[RiskBin]:
     return bins
 
 
+def planes_in_focus(replays: list[Replay], dof_um: float, n_planes: int) -> tuple[float, float]:
+    """In-focus share (achieved, predicted) had each tile kept `n_planes` frames a depth of
+    field apart, centred on its kept frame: in focus when one of them is.
+
+    Their windows tile n_planes * dof_um about the kept frame without a gap, so the
+    predicted risk is `out_of_focus_risk` with that depth; the tile's Gaussian is its
+    posterior (its prior where it was not measured).
+    """
+    half_um = n_planes * dof_um / 2.0
+    achieved = np.concatenate(
+        [(np.abs(r.focus_map.z_used_um - r.truth_um) <= half_um).ravel() for r in replays]
+    )
+    risk = np.concatenate(
+        [
+            out_of_focus_risk(
+                r.focus_map.posterior_um,
+                r.focus_map.posterior_sigma_um,
+                r.focus_map.z_used_um,
+                n_planes * dof_um,
+            ).ravel()
+            for r in replays
+        ]
+    )
+    return float(achieved.mean()), 1.0 - float(risk.mean())
+
+
 def _error_stats(estimates: list[np.ndarray], truths: list[np.ndarray]) -> tuple[float, float]:
     error = np.concatenate([(e - t).ravel() for e, t in zip(estimates, truths, strict=True)])
     return float(np.mean(np.abs(error))), float(np.std(error))
