@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.replay import planes_in_focus, replay, score, simulated_measurement
+from focustrack.bench.replay import replay, score, simulated_measurement
 from focustrack_core.domain import Acquisition, FocusFlag, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.timing import TimingModel
@@ -98,18 +98,20 @@ def test_replay_refuses_maps_of_another_shape() -> None:
         replay(AfEveryTile(SlideSettings(ScanGrid(2, 3))), np.zeros((3, 2)), np.zeros((3, 2)))
 
 
-def test_kept_planes_a_depth_of_field_apart_widen_what_counts_as_in_focus() -> None:
+def test_a_tile_that_keeps_several_frames_is_in_focus_when_one_of_them_is() -> None:
     rng = np.random.default_rng(5)
     settings = SlideSettings(ScanGrid(6, 6))
-    truths = [rng.normal(0.0, 2.0, (6, 6)) for _ in range(2)]
-    runs = [
-        replay(registry.create("kf-2d", settings), t, t + rng.normal(0.0, 1.5, t.shape))
-        for t in truths
-    ]
-    one = planes_in_focus(runs, 1.0, 1)
-    assert one[0] == pytest.approx(score(runs, 1.0).in_focus_fraction)
-    # three planes: in focus within 1.5 um of the kept frame, as predicted from the Gaussian
-    used = np.concatenate([(r.focus_map.z_used_um - r.truth_um).ravel() for r in runs])
-    achieved, predicted = planes_in_focus(runs, 1.0, 3)
-    assert achieved == pytest.approx(np.mean(np.abs(used) <= 1.5))
-    assert one[0] < achieved and one[1] < predicted <= 1.0
+    truth = rng.normal(0.0, 2.0, (6, 6))
+    run = replay(registry.create("kf-2d-lean", settings), truth, truth + rng.normal(0, 1.5, (6, 6)))
+    assert run.planes_um  # at 1.5 um of noise against 1 um of depth of field, tiles keep several
+    inside = run.in_focus(1.0)
+    for (row, col), planes_um in run.planes_um.items():
+        assert planes_um[0] <= run.focus_map.z_used_um[row, col] <= planes_um[-1]
+        assert np.all(np.diff(planes_um) > 0) and np.all(np.diff(planes_um) <= 1.0 + 1e-9)
+        assert inside[row, col] == any(abs(z - truth[row, col]) <= 0.5 for z in planes_um)
+    single = np.abs(run.focus_map.z_used_um - truth) <= 0.5
+    assert inside.sum() > single.sum() and np.all(inside >= single)
+    scores = score([run], 1.0)
+    assert scores.in_focus_fraction == pytest.approx(inside.mean())
+    kept = 36 + sum(len(planes) - 1 for planes in run.planes_um.values())
+    assert scores.frames_kept_per_tile == pytest.approx(kept / 36)

@@ -14,6 +14,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.v1 import common_pb2, focus_pb2
 from focustrack_estimator import registry
 from focustrack_estimator.slides import settings_of
+from focustrack_estimator.strategy import Strategy
 from focustrack_scheduler.plan import (
     Acquire,
     AskNext,
@@ -21,6 +22,7 @@ from focustrack_scheduler.plan import (
     CreateOrResumeSlide,
     DescribeSlide,
     FocusUnavailableError,
+    KeepPlanes,
     KeepTile,
     PostMeasurement,
     ScanRequest,
@@ -32,6 +34,7 @@ from focustrack_scheduler.plan import (
 )
 
 GEOMETRY = SlideGeometry(ScanGrid(2, 2), dof_um=0.9)
+GEOMETRY_3 = SlideGeometry(ScanGrid(3, 3), dof_um=0.9)
 REQUEST = ScanRequest(instrument="sim", slide="slide-0", strategy="kf-wiener0")
 
 
@@ -67,21 +70,18 @@ def focus(
     return result
 
 
-def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_posterior() -> None:
-    """The plan against a local strategy standing in for the estimator, truth for the focus."""
-    grid = ScanGrid(3, 4)
-    truth_um = np.linspace(-3.0, 4.0, grid.n_tiles).reshape(grid.shape)
-    request = ScanRequest("sim", "slide-0", "kf-wiener0", noise_sigma_um=0.1)
-    geometry = SlideGeometry(grid, dof_um=0.9)
-    strategy = registry.create("kf-wiener0", settings_of(slide_config(request, geometry)))
+def local_services(
+    strategy: Strategy, geometry: SlideGeometry, measured_um: np.ndarray
+) -> tuple[Callable[[Step], Any], list[Outcome]]:
+    """Answers to the plan's steps: `strategy` stands in for the estimator and
+    `measured_um` (rows, cols) for the focus service; the outcomes, as they come."""
+    outcomes: list[Outcome] = []
 
     def answer(step: Step) -> Any:
         match step:
             case DescribeSlide():
                 return geometry
             case CreateOrResumeSlide():
-                assert step.slide_id is None and step.config.grid.rows == 3
-                assert step.config.dof_um == 0.9 and step.config.noise_sigma_um == 0.1
                 return "slide-id"
             case AskNext():
                 return strategy.next_acquisition()
@@ -89,15 +89,31 @@ def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_poste
                 return tuple(step.acquisition.z.z_um())
             case AwaitFocus():
                 acq = step.acquisition
-                measured = simulated_measurement(acq, truth_um[acq.row, acq.col])
+                measured = simulated_measurement(acq, measured_um[acq.row, acq.col])
                 return focus(acq, measured.z_um, *(flag.proto for flag in sorted(measured.flags)))
             case PostMeasurement():
-                return strategy.record(step.acquisition, step.measurement)
-            case KeepTile():
+                outcomes.append(strategy.record(step.acquisition, step.measurement))
+                return outcomes[-1]
+            case KeepTile() | KeepPlanes():
                 return None
+
+    return answer, outcomes
+
+
+def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_posterior() -> None:
+    """The plan against a local strategy standing in for the estimator, truth for the focus."""
+    grid = ScanGrid(3, 4)
+    truth_um = np.linspace(-3.0, 4.0, grid.n_tiles).reshape(grid.shape)
+    request = ScanRequest("sim", "slide-0", "kf-wiener0", noise_sigma_um=0.1)
+    geometry = SlideGeometry(grid, dof_um=0.9)
+    strategy = registry.create("kf-wiener0", settings_of(slide_config(request, geometry)))
+    answer, _ = local_services(strategy, geometry, truth_um)
 
     steps, slide_id = drive(request, answer)
     assert slide_id == "slide-id"
+    (create,) = [s for s in steps if isinstance(s, CreateOrResumeSlide)]
+    assert create.slide_id is None and create.config.grid.rows == 3
+    assert create.config.dof_um == 0.9 and create.config.noise_sigma_um == 0.1
     last_kept = {(s.row, s.col): s for s in steps if isinstance(s, KeepTile)}
     assert set(last_kept) == {(t.row, t.col) for t in grid.serpentine}
     focus_map = strategy.focus_map()
@@ -108,6 +124,37 @@ def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_poste
     assert sum(isinstance(s, Acquire) for s in steps) == sum(
         isinstance(s, AwaitFocus) for s in steps
     )
+
+
+def test_a_tile_too_unsure_for_one_frame_keeps_the_frames_its_outcome_names() -> None:
+    """At 1.5 um of measurement noise against 0.9 um of depth of field, kf-2d-lean names
+    several frames to keep of a measured tile (asking for more, image only, where its
+    stacks hold too few): the plan keeps each of them."""
+    grid = ScanGrid(3, 3)
+    rng = np.random.default_rng(2)
+    measured_um = rng.normal(0.0, 1.5, grid.shape)
+    request = ScanRequest("sim", "slide-0", "kf-2d-lean", noise_sigma_um=1.5)
+    strategy = registry.create("kf-2d-lean", settings_of(slide_config(request, GEOMETRY_3)))
+    answer, outcomes = local_services(strategy, GEOMETRY_3, measured_um)
+
+    steps, _ = drive(request, answer)
+    planes_acquired = [
+        s for s in steps if isinstance(s, Acquire) and s.acquisition.purpose == Purpose.PLANES
+    ]
+    assert not any(a.acquisition.measure for a in planes_acquired)  # image only
+    awaited = {s.acquisition.index for s in steps if isinstance(s, AwaitFocus)}
+    assert not awaited & {a.acquisition.index for a in planes_acquired}
+    kept = [s for s in steps if isinstance(s, KeepPlanes)]
+    named = {(o.row, o.col): o.planes_um for o in outcomes if o.planes_um}
+    assert kept and {(s.row, s.col): tuple(f.z_um for f in s.planes) for s in kept} == named
+    for step in kept:  # each a frame of this tile's own stacks
+        sequences = {
+            s.acquisition.index
+            for s in steps
+            if isinstance(s, Acquire)
+            and (s.acquisition.row, s.acquisition.col) == (step.row, step.col)
+        }
+        assert {frame.sequence for frame in step.planes} <= sequences
 
 
 def test_an_edge_peak_is_posted_and_the_image_may_come_from_an_earlier_stack() -> None:

@@ -37,6 +37,7 @@ class Purpose(StrEnum):
     SCAN = "scan"  # image the tile (and measure its focus where asked)
     SURVEY = "survey"  # a survey point of a focus-map strategy, before the scan
     RETRY = "retry"  # the same tile again, after an edge peak or a flat curve
+    PLANES = "planes"  # more frames of a measured tile, kept where one is too unsure
 
 
 #: Largest grid side and tile count a slide may have (a 25 x 75 mm slide at 100 um tiles
@@ -186,6 +187,12 @@ class OutcomeOut(BaseModel):
     posterior_sigma_um: float | None
     innovation_um: float | None
     nis: float | None = Field(description="Normalised innovation squared")
+    planes_um: list[float] = Field(
+        default_factory=list,
+        description="Where the tile's image alone is too unsure (risk_out_of_focus), the "
+        "heights of every frame it keeps, ascending, each within a depth of field of the next: "
+        "the tile is in focus when one of them is. Empty: keep the frame nearest the posterior",
+    )
 
 
 class FocusMapOut(BaseModel):

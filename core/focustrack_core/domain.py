@@ -60,6 +60,7 @@ class Purpose(StrEnum):
     SCAN = "scan"  # image the tile (and measure its focus where the strategy asks)
     SURVEY = "survey"  # a survey point of a focus-map strategy, before the scan
     RETRY = "retry"  # the same tile again, after an edge peak or a flat curve
+    PLANES = "planes"  # more frames of a measured tile, kept where one is too unsure
 
 
 @dataclass(frozen=True)
@@ -143,6 +144,9 @@ class Outcome:
     posterior_sigma_um: float | None = None
     innovation_um: float | None = None
     nis: float | None = None  # normalised innovation squared
+    # The frames the tile keeps, z in um ascending, where it keeps more than its image at
+    # z_used_um (the estimate is final and one frame is too unsure: `lean.kept_planes`).
+    planes_um: tuple[float, ...] = ()
 
 
 @dataclass

@@ -34,7 +34,6 @@ from focustrack.bench.replay import (
     Replay,
     RiskBin,
     Scores,
-    planes_in_focus,
     reliability,
     replay,
     score,
@@ -285,34 +284,15 @@ def stated_risk(name: str) -> float:
     return float(registry.parameters(name).get("risk_out_of_focus", 0.0) or 0.0)
 
 
-#: The most frames per tile `fewest_planes` tries (odd: centred on the kept frame).
-MAX_PLANES = 9
-
-
-def fewest_planes(replays: list[Replay], dof_um: float, stated: float) -> tuple[int, float, float]:
-    """The fewest kept frames per tile (odd, a depth of field apart, at most `MAX_PLANES`)
-    whose predicted out-of-focus share is within `stated`: (n, achieved, predicted in focus)."""
-    for n_planes in range(3, MAX_PLANES + 1, 2):
-        achieved, predicted = planes_in_focus(replays, dof_um, n_planes)
-        if 1.0 - predicted <= stated:
-            break
-    return n_planes, achieved, predicted
-
-
 def format_reliability(
-    name: str,
-    bins: list[RiskBin],
-    stated: float,
-    floor: float | None = None,
-    planes: tuple[int, float, float] | None = None,
+    name: str, bins: list[RiskBin], stated: float, scores: Scores, floor: float | None = None
 ) -> str:
     """The reliability table of one strategy: predicted risk against the achieved rate.
 
-    `floor`: the out-of-focus share of the Bayes-optimal oracle on the same maps, where it
-    ran; a stated risk below it is out of reach with one kept frame per tile (for any
-    estimator where the maps are Gaussian), and the table says so. `planes`: (n, achieved,
-    predicted in focus) with n kept frames per tile a depth of field apart
-    (`planes_in_focus`), the fewest that would meet the stated risk.
+    With the frames its tiles keep where one is too unsure (`lean.kept_planes`), and
+    `floor`: the out-of-focus share of the Bayes-optimal oracle with one frame per tile
+    on the same maps, where it ran; a stated risk below it is out of reach with one
+    frame per tile (for any estimator, where the maps are Gaussian).
     """
     n_tiles = sum(b.n_tiles for b in bins)
     predicted = sum(b.predicted * b.n_tiles for b in bins) / max(n_tiles, 1)
@@ -325,18 +305,15 @@ def format_reliability(
     for b in bins:
         band = f"[{b.low:g}, {b.high:g})"
         lines.append(f"  {band:<16}{b.n_tiles:>8}{b.predicted:>11.2%}{b.achieved:>10.2%}")
+    lines.append(
+        f"  frames kept per tile: {scores.frames_kept_per_tile:.2f} (more than one where one is "
+        "too unsure: a tile is in focus when one of its frames is)"
+    )
     if floor is not None and floor > stated:
         lines.append(
-            f"  the stated {stated:.1%} is out of reach with one frame per tile: {ORACLE} "
-            f"(the Bayes-optimal filter for these maps' covariance) leaves {floor:.1%} of "
-            "tiles out of focus"
-        )
-    if planes is not None:
-        n_planes, achieved_in, predicted_in = planes
-        lines.append(
-            f"  with {n_planes} frames kept per tile, a depth of field apart: {achieved_in:.2%} "
-            f"in focus (predicted {predicted_in:.2%}); frames the scan did not take cost one "
-            "each"
+            f"  one frame per tile could not meet the stated {stated:.1%} here: {ORACLE} (the "
+            f"Bayes-optimal filter for these maps' covariance) leaves {floor:.1%} of tiles out "
+            "of focus"
         )
     return "\n".join(lines)
 
@@ -520,11 +497,7 @@ def run(args: argparse.Namespace) -> int:
         }
         floor = 1.0 - scores[ORACLE].in_focus_fraction if ORACLE in scores else None
         for name, bins in calibration.items():
-            stated = stated_risk(name)
-            planes = None
-            if floor is not None and floor > stated:
-                planes = fewest_planes(replays[name], args.dof_um, stated)
-            print(format_reliability(name, bins, stated, floor, planes))
+            print(format_reliability(name, bins, stated_risk(name), scores[name], floor))
         families[map_set.name] = {
             "title": map_set.title,
             "maps": map_set.n_maps,

@@ -53,6 +53,22 @@ class Replay:
     n_images: int
     scan_time_s: float
     limit_time_s: float  # stage moves along the serpentine plus one frame per tile
+    # tiles that keep several frames (`Outcome.planes_um`): (row, col) -> their z, in um
+    planes_um: dict[tuple[int, int], tuple[float, ...]]
+
+    def in_focus(self, dof_um: float) -> np.ndarray:
+        """(rows, cols) bool: a frame the tile keeps lies within dof/2 of its truth."""
+        inside = np.abs(self.focus_map.z_used_um - self.truth_um) <= dof_um / 2.0
+        for (row, col), planes_um in self.planes_um.items():
+            truth_um = self.truth_um[row, col]
+            inside[row, col] = any(abs(z - truth_um) <= dof_um / 2.0 for z in planes_um)
+        return inside
+
+    @property
+    def frames_kept(self) -> int:
+        """Frames kept over all tiles imaged (one per tile, more where it keeps planes)."""
+        imaged = int(np.isfinite(self.focus_map.z_used_um).sum())
+        return imaged + sum(len(planes) - 1 for planes in self.planes_um.values())
 
 
 def limit_time_s(grid: ScanGrid, timing: TimingModel) -> float:
@@ -120,6 +136,7 @@ def replay(
         n_images,
         scan_time_s,
         limit_time_s(grid, timing),
+        {(o.row, o.col): o.planes_um for o in outcomes if o.planes_um},
     )
 
 
@@ -139,6 +156,7 @@ class Scores:
     scan_time_s: float  # mean per map
     in_focus_fraction: float
     limit_time_s: float  # mean per map: moves plus one frame per tile (`limit_time_s`)
+    frames_kept_per_tile: float  # 1, more where tiles keep several frames (`Replay.planes_um`)
 
 
 #: Bins of predicted out-of-focus risk for the reliability table (`reliability`).
@@ -172,9 +190,7 @@ def predicted_risk(run: Replay, dof_um: float) -> np.ndarray:
 def reliability(replays: list[Replay], dof_um: float) -> list[RiskBin]:
     """Predicted against achieved out-of-focus rate, binned by predicted risk (`RISK_BINS`)."""
     risk = np.concatenate([predicted_risk(r, dof_um).ravel() for r in replays])
-    out = np.concatenate(
-        [(np.abs(r.focus_map.z_used_um - r.truth_um) > dof_um / 2.0).ravel() for r in replays]
-    )
+    out = np.concatenate([~r.in_focus(dof_um).ravel() for r in replays])
     bins = []
     for low, high in itertools.pairwise(RISK_BINS):
         inside = (risk >= low) & ((risk < high) if high < 1.0 else (risk <= high))
@@ -191,45 +207,18 @@ def reliability(replays: list[Replay], dof_um: float) -> list[RiskBin]:
     return bins
 
 
-def planes_in_focus(replays: list[Replay], dof_um: float, n_planes: int) -> tuple[float, float]:
-    """In-focus share (achieved, predicted) had each tile kept `n_planes` frames a depth of
-    field apart, centred on its kept frame: in focus when one of them is.
-
-    Their windows tile n_planes * dof_um about the kept frame without a gap, so the
-    predicted risk is `out_of_focus_risk` with that depth; the tile's Gaussian is its
-    posterior (its prior where it was not measured).
-    """
-    half_um = n_planes * dof_um / 2.0
-    achieved = np.concatenate(
-        [(np.abs(r.focus_map.z_used_um - r.truth_um) <= half_um).ravel() for r in replays]
-    )
-    risk = np.concatenate(
-        [
-            out_of_focus_risk(
-                r.focus_map.posterior_um,
-                r.focus_map.posterior_sigma_um,
-                r.focus_map.z_used_um,
-                n_planes * dof_um,
-            ).ravel()
-            for r in replays
-        ]
-    )
-    return float(achieved.mean()), 1.0 - float(risk.mean())
-
-
 def _error_stats(estimates: list[np.ndarray], truths: list[np.ndarray]) -> tuple[float, float]:
     error = np.concatenate([(e - t).ravel() for e, t in zip(estimates, truths, strict=True)])
     return float(np.mean(np.abs(error))), float(np.std(error))
 
 
 def score(replays: list[Replay], dof_um: float) -> Scores:
-    """Pool one strategy's replays into its scores (in focus: |z used - truth| <= dof/2)."""
+    """Pool one strategy's replays into its scores (in focus: `Replay.in_focus`)."""
     truths = [r.truth_um for r in replays]
     priors = [r.focus_map.prior_um for r in replays]
     has_prior = all(np.all(np.isfinite(p)) for p in priors)
     prior_mae, prior_std = _error_stats(priors, truths) if has_prior else (None, None)
     post_mae, post_std = _error_stats([r.focus_map.posterior_um for r in replays], truths)
-    used_error = np.concatenate([(r.focus_map.z_used_um - r.truth_um).ravel() for r in replays])
     n_tiles = sum(r.truth_um.size for r in replays)
     return Scores(
         prior_mae_um=prior_mae,
@@ -238,6 +227,9 @@ def score(replays: list[Replay], dof_um: float) -> Scores:
         post_std_um=post_std,
         images_per_tile=sum(r.n_images for r in replays) / n_tiles,
         scan_time_s=float(np.mean([r.scan_time_s for r in replays])),
-        in_focus_fraction=float(np.mean(np.abs(used_error) <= dof_um / 2.0)),
+        in_focus_fraction=float(
+            np.mean(np.concatenate([r.in_focus(dof_um).ravel() for r in replays]))
+        ),
+        frames_kept_per_tile=sum(r.frames_kept for r in replays) / n_tiles,
         limit_time_s=float(np.mean([r.limit_time_s for r in replays])),
     )

@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     print(format_scores(title, scores))
     bins = reliability(second[RESCAN], args.dof_um)
     stated = float(registry.parameters(RESCAN)["risk_out_of_focus"])
-    print(format_reliability(f"pass 2 {RESCAN}", bins, stated))
+    print(format_reliability(f"pass 2 {RESCAN}", bins, stated, scores[f"pass 2 {RESCAN}"]))
     print(
         f"{RESCAN}: drift between the passes estimated at the end of pass 2, error mean "
         f"{np.mean(drift_error_um):+.3f} um, max |error| {np.max(np.abs(drift_error_um)):.3f} um"

@@ -39,6 +39,9 @@ class TileFocus:
     z_um: where to image the tile. n_frames: frames acquired for focus on it, every
     stack counted. last: the focus result of its last measured stack (the through-focus
     curve, best z, sigma, flags), None when the estimator only asked for an image.
+    planes_um: where one image is too unsure to be in focus (the slide's
+    risk_out_of_focus), the heights of the frames to image it at instead, ascending, each
+    within a depth of field of the next: one of them is in focus. Empty: image at z_um.
     """
 
     row: int
@@ -47,6 +50,7 @@ class TileFocus:
     sigma_um: float | None
     n_frames: int
     last: FocusResult | None
+    planes_um: tuple[float, ...] = ()
 
 
 #: `FocusTracker.tile`: yields the z (n,) um of each stack, is sent its frames, returns the focus.
@@ -105,6 +109,7 @@ class FocusTracker:
         last: FocusResult | None = None
         z_um: float | None = None
         sigma_um: float | None = None
+        planes_um: tuple[float, ...] = ()
         while (step := self.estimator.next(self.slide_id)).row == row and step.col == col:
             frames_z_um = _frames_z_um(step)
             frames = yield frames_z_um
@@ -124,6 +129,7 @@ class FocusTracker:
                     flags=[FocusFlag(flag.value) for flag in sorted(measurement.flags)],
                 ),
             )
+            planes_um = tuple(outcome.planes_um)
             z_um, sigma_um = _best(
                 (outcome.posterior_um, outcome.posterior_sigma_um),
                 (measurement.z_um, measurement.sigma_um),
@@ -136,7 +142,7 @@ class FocusTracker:
                 f"the estimator expects {expected} next, not tile ({row}, {col}): visit the "
                 "tiles in its serpentine order (row 0 left to right, row 1 right to left, ...)"
             )
-        tile = TileFocus(row, col, z_um, sigma_um, n_frames, last)
+        tile = TileFocus(row, col, z_um, sigma_um, n_frames, last, planes_um)
         self.tiles.append(tile)
         return tile
 

@@ -250,6 +250,7 @@ def _outcome_out(sequence: int, outcome: Outcome) -> api.OutcomeOut:
         posterior_sigma_um=finite_or_none(outcome.posterior_sigma_um),
         innovation_um=finite_or_none(outcome.innovation_um),
         nis=finite_or_none(outcome.nis),
+        planes_um=list(outcome.planes_um),
     )
 
 

@@ -19,6 +19,10 @@ from focustrack_estimator.strategy import SlideSettings, Strategy
 #: The stated risk of the lean strategies by default: at most 1% of tiles out of focus.
 DEFAULT_RISK = 0.01
 
+#: The most frames a lean strategy keeps of a tile by default: at the thesis' noise (1.5 um,
+#: a depth of field of 1 um) 5 frames a depth of field apart hold all but 0.1% of tiles.
+MAX_KEPT_PLANES = 5
+
 
 def kf_2d_lean(
     settings: SlideSettings,
@@ -27,8 +31,10 @@ def kf_2d_lean(
     skip_sigma_scale: float = 1.0,
     coarse_step_um: float = COARSE_STEP_UM,
     max_retries: int = 3,
+    max_kept_planes: int = MAX_KEPT_PLANES,
 ) -> RowBankFilter:
-    """`kf-2d` with frames chosen per tile by the risk rule (`lean.choose_stack`)."""
+    """`kf-2d` with frames chosen per tile by the risk rule (`lean.choose_stack`), keeping
+    up to `max_kept_planes` of a tile's frames where one is too unsure (`lean.kept_planes`)."""
     strategy = kf_2d(settings, max_retries=max_retries)
     # kf-2d builds its own FilterOptions; the lean rule's settings are more of them.
     strategy.options = replace(
@@ -36,6 +42,7 @@ def kf_2d_lean(
         risk_out_of_focus=risk_out_of_focus,
         skip_sigma_scale=skip_sigma_scale,
         coarse_step_um=coarse_step_um,
+        max_kept_planes=max_kept_planes,
     )
     strategy.name = "kf-2d-lean"
     return strategy

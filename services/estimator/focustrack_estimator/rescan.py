@@ -38,6 +38,7 @@ import numpy as np
 from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.geometry import Tile
 from focustrack_core.timing import TimingModel
+from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import SlideSettings, Strategy
 
@@ -131,7 +132,9 @@ class RescanFilter(SerpentineFilter):
 
 def kf_rescan(
     settings: SlideSettings,
-    options: FilterOptions = FilterOptions(risk_out_of_focus=0.01),
+    options: FilterOptions = FilterOptions(
+        risk_out_of_focus=DEFAULT_RISK, max_kept_planes=MAX_KEPT_PLANES
+    ),
     *,
     prior_map_um: Sequence[float] = (),
     prior_map_sigma_um: Sequence[float] = (),

@@ -38,14 +38,16 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose, ZRange
+from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import Tile
 from focustrack_estimator.lean import (
     COARSE_STEP_UM,
     SHORT_FRAMES,
     choose_stack,
     coarse_stack,
-    out_of_focus_risk,
+    kept_planes,
+    planes_risk,
+    planes_stack,
 )
 from focustrack_estimator.strategy import PeakSearch, SlideSettings, Strategy
 
@@ -83,7 +85,10 @@ class FilterOptions:
     tiles is imaged outside the depth of field (none beyond the kept image, 3 or a full
     stack); skip_sigma_scale: the lean rule widens the sigma of a tile it would skip
     by this factor (`lean.skip_risk`); coarse_step_um: the z step of the lean rule's coarse
-    search where the prediction is far too unsure for fine stacks (`lean.coarse_stack`).
+    search where the prediction is far too unsure for fine stacks (`lean.coarse_stack`);
+    max_kept_planes: with risk_out_of_focus set, a measured tile whose kept frame alone
+    would exceed that risk keeps up to this many acquired frames, each within a depth of
+    field of the next (`lean.kept_planes`): the tile is in focus when one of them is.
     """
 
     max_retries: int = 3
@@ -94,8 +99,11 @@ class FilterOptions:
     risk_out_of_focus: float = 0.0
     skip_sigma_scale: float = 1.0
     coarse_step_um: float = COARSE_STEP_UM
+    max_kept_planes: int = 1
 
     def __post_init__(self) -> None:
+        if self.max_kept_planes < 1:
+            raise ValueError(f"max_kept_planes must be at least 1, got {self.max_kept_planes}")
         if not 0.0 <= self.risk_out_of_focus < 1.0:
             raise ValueError(f"risk_out_of_focus must lie in [0, 1), got {self.risk_out_of_focus}")
         if not self.coarse_step_um > 0:
@@ -109,6 +117,17 @@ class FilterOptions:
                 f"gate_nis and gate_patience must not be negative, got {self.gate_nis}, "
                 f"{self.gate_patience}"
             )
+
+
+@dataclass(frozen=True)
+class PendingPlanes:
+    """A measured tile waiting for the frames it keeps (`lean.planes_stack`): the stack to
+    acquire, the stacks it had, and its final posterior and outcome."""
+
+    z: ZRange
+    stacks: tuple[ZRange, ...]
+    posterior: Gaussian
+    outcome: Outcome
 
 
 class SerpentineFilter(Strategy):
@@ -137,6 +156,7 @@ class SerpentineFilter(Strategy):
         self._recent_r_um2: list[float] = []  # the R of the last RECENT_R_COUNT measurements
         self._skip_risk = math.nan  # the current tile's risk if imaged at its prediction
         self._centre_um: float | None = None  # a coarse stack's peak on the current tile
+        self._planes: PendingPlanes | None = None  # frames the current tile still needs
 
     @abstractmethod
     def _predict(self, tile: Tile) -> Gaussian:
@@ -223,6 +243,16 @@ class SerpentineFilter(Strategy):
         if self._position == self.grid.n_tiles:
             return None
         tile = self.grid.serpentine[self._position]
+        if self._planes is not None:
+            return self._acquisition(
+                tile.row,
+                tile.col,
+                self._planes.z,
+                Purpose.PLANES,
+                measure=False,
+                predicted_um=self._planes.posterior.mean_um,
+                predicted_sigma_um=self._planes.posterior.sigma_um,
+            )
         if self._prior is None:
             self._prior = self._predict(tile)
             self.map.prior_um[tile.row, tile.col] = self._prior.mean_um
@@ -243,7 +273,35 @@ class SerpentineFilter(Strategy):
             predicted_sigma_um=prior.sigma_um,
         )
 
+    def _planes_to_take(
+        self,
+        acquisition: Acquisition,
+        posterior: Gaussian,
+        planes_um: tuple[float, ...],
+        risk: float,
+    ) -> ZRange | None:
+        """The frames to acquire so that the tile can keep enough of them, None if none."""
+        stated = self.options.risk_out_of_focus
+        if not stated or risk <= stated or acquisition.purpose == Purpose.PLANES:
+            return None
+        if len(planes_um) >= self.options.max_kept_planes:
+            return None
+        return planes_stack(
+            posterior.mean_um,
+            posterior.sigma_um,
+            float(self.map.z_used_um[acquisition.row, acquisition.col]),
+            self.settings.dof_um,
+            self.settings.policy.z_step_um,
+            stated,
+            self.options.max_kept_planes,
+        )
+
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        if acquisition.purpose == Purpose.PLANES:
+            assert self._planes is not None  # planned by _plan for the pending planes
+            # image only: the measurement's innovation was the outcome before this one
+            outcome = replace(self._planes.outcome, accepted=False, innovation_um=None, nis=None)
+            return self._finish_tile(acquisition, outcome, self._planes.posterior)
         tile = Tile(acquisition.row, acquisition.col)
         prior = self._prior
         assert prior is not None  # set by _plan for the pending acquisition
@@ -262,7 +320,10 @@ class SerpentineFilter(Strategy):
             if self._search.failed(acquisition.z, measurement):
                 return outcome  # another stack of this tile follows
             self.gave_up[tile.row, tile.col] = True
-            return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
+            # an empty field holds nothing to be in focus: no more of its frames are worth keeping
+            empty = FocusFlag.EMPTY in measurement.flags
+            posterior = self._correct(tile, prior, None, 0.0)
+            return self._finish_tile(acquisition, outcome, posterior, keep_planes=not empty)
 
         R_um2 = self.default_r_um2 if measurement.sigma_um is None else measurement.sigma_um**2
         self._recent_r_um2 = [*self._recent_r_um2[1 - RECENT_R_COUNT :], R_um2]
@@ -291,24 +352,59 @@ class SerpentineFilter(Strategy):
         return self._finish_tile(acquisition, outcome, posterior)
 
     def _finish_tile(
-        self, acquisition: Acquisition, outcome: Outcome, posterior: Gaussian
+        self,
+        acquisition: Acquisition,
+        outcome: Outcome,
+        posterior: Gaussian,
+        *,
+        keep_planes: bool = True,
     ) -> Outcome:
-        """Record the tile's estimate, image it at the acquired frame nearest it, move on."""
+        """Record the tile's estimate, image it at the acquired frame nearest it, move on.
+
+        With a stated risk, a measured tile keeps more of its frames where that one is
+        too unsure (`lean.kept_planes`; not where `keep_planes` is False: an empty field);
+        where its stacks hold too few, the frames it needs are acquired first
+        (`lean.planes_stack`, purpose PLANES) and the tile is finished when they come: the
+        outcome in between has the final posterior.
+        """
         row, col = acquisition.row, acquisition.col
-        frames_um = np.concatenate([z.z_um() for z in [*self._search.stacks, acquisition.z]])
+        stacks = (*self._search.stacks, acquisition.z)
+        if self._planes is not None:  # the frames it asked for came: finish with them
+            stacks = (*self._planes.stacks, acquisition.z)
+            self._planes = None
+        frames_um = np.concatenate([z.z_um() for z in stacks])
         self.map.posterior_um[row, col] = posterior.mean_um
         self.map.posterior_sigma_um[row, col] = posterior.sigma_um
-        z_used_um = frames_um[np.argmin(np.abs(frames_um - posterior.mean_um))]
+        z_used_um = float(frames_um[np.argmin(np.abs(frames_um - posterior.mean_um))])
         self.map.z_used_um[row, col] = z_used_um
         risk = self.map.out_of_focus_risk
         assert risk is not None  # FocusMap.empty made it
-        risk[row, col] = (
-            self._skip_risk
-            if not acquisition.measure
-            else out_of_focus_risk(
-                posterior.mean_um, posterior.sigma_um, z_used_um, self.settings.dof_um
+        planes_um: tuple[float, ...] = (z_used_um,)
+        if not acquisition.measure and acquisition.purpose != Purpose.PLANES:
+            risk[row, col] = self._skip_risk
+        else:
+            dof_um = self.settings.dof_um
+            if self.options.risk_out_of_focus and keep_planes:
+                planes_um = kept_planes(
+                    posterior.mean_um,
+                    posterior.sigma_um,
+                    frames_um,
+                    z_used_um,
+                    dof_um,
+                    self.options.risk_out_of_focus,
+                    self.options.max_kept_planes,
+                )
+            risk[row, col] = planes_risk(posterior.mean_um, posterior.sigma_um, planes_um, dof_um)
+            more = (
+                self._planes_to_take(acquisition, posterior, planes_um, risk[row, col])
+                if keep_planes
+                else None
             )
-        )
+            if more is not None:
+                self._planes = PendingPlanes(more, stacks, posterior, outcome)
+                return replace(
+                    outcome, posterior_um=posterior.mean_um, posterior_sigma_um=posterior.sigma_um
+                )
         self._position += 1
         self._prior = None
         self._search.clear()
@@ -316,5 +412,8 @@ class SerpentineFilter(Strategy):
         if self._position == self.grid.n_tiles:
             self._finish()
         return replace(
-            outcome, posterior_um=posterior.mean_um, posterior_sigma_um=posterior.sigma_um
+            outcome,
+            posterior_um=posterior.mean_um,
+            posterior_sigma_um=posterior.sigma_um,
+            planes_um=planes_um if len(planes_um) > 1 else (),
         )

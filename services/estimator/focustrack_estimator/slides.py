@@ -220,7 +220,10 @@ def measurement_of(record: dict[str, Any]) -> Measurement:
 
 
 def outcome_record(outcome: Outcome) -> dict[str, Any]:
-    return dataclasses.asdict(outcome)
+    record = dataclasses.asdict(outcome)
+    # as logged before tiles kept several frames: the logs of those scans still replay
+    planes_um = record.pop("planes_um")
+    return {**record, "planes_um": list(planes_um)} if planes_um else record
 
 
 def acquisition_of(record: dict[str, Any]) -> Acquisition:
@@ -230,7 +233,7 @@ def acquisition_of(record: dict[str, Any]) -> Acquisition:
 
 
 def outcome_of(record: dict[str, Any]) -> Outcome:
-    return Outcome(**record)
+    return Outcome(**{**record, "planes_um": tuple(record.get("planes_um", ()))})
 
 
 #: Replayed and logged numbers that differ by at most this (relative, and absolute in um)

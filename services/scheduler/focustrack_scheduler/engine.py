@@ -45,13 +45,14 @@ from focustrack_scheduler.clients import (
     acquire_request,
     same_stack,
 )
-from focustrack_scheduler.outputs import ScanRecord, WallTimes, in_focus_fraction
+from focustrack_scheduler.outputs import ScanRecord, WallTimes
 from focustrack_scheduler.plan import (
     Acquire,
     AskNext,
     AwaitFocus,
     CreateOrResumeSlide,
     DescribeSlide,
+    KeepPlanes,
     KeepTile,
     Plan,
     PostMeasurement,
@@ -144,11 +145,8 @@ class ScanProgress:
     def update(self, record: ScanRecord) -> None:
         postfix = {"images": record.n_images, "sim": f"{record.scan_time_s:.0f}s"}
         if self.truth_um is not None and record.kept:
-            tiles = tuple(np.array(list(record.kept)).T)
-            z_um = np.array(list(record.kept.values()))
-            postfix["in focus"] = (
-                f"{in_focus_fraction(z_um, self.truth_um[tiles], self.dof_um):.0%}"
-            )
+            in_focus = record.tiles_in_focus(self.truth_um, self.dof_um) / len(record.kept)
+            postfix["in focus"] = f"{in_focus:.0%}"
         self.bar.set_postfix(postfix, refresh=False)
         # `update` redraws at most every `mininterval`, so a log file is not flooded.
         self.bar.update(len(record.kept) - self.bar.n)
@@ -193,6 +191,7 @@ class Engine:
             AwaitFocus: self._await_focus,
             PostMeasurement: self._post,
             KeepTile: self._keep,
+            KeepPlanes: self._keep_planes,
         }
 
     def run(self, plan: Plan) -> str:
@@ -328,6 +327,17 @@ class Engine:
                 }
             )
         self._show()
+
+    def _keep_planes(self, step: KeepPlanes) -> None:
+        frames = []
+        for frame in step.planes:
+            stack = self.listener.stacks.get(frame.sequence)
+            if stack is None:  # the plan only keeps frames it acquired
+                log.warning("tile (%d, %d): a stack is gone; no planes kept", step.row, step.col)
+                return
+            frames.append(stack.message[1][frame.index])
+        z_um = [frame.z_um for frame in step.planes]
+        self.record.keep_planes(step.row, step.col, z_um, np.stack(frames))
 
     def _show(self) -> None:
         if self._progress is not None:

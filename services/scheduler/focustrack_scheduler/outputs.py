@@ -4,9 +4,11 @@ During the scan (`ScanRecord`):
 - ``scan.json``: which scan this folder holds (estimator URL and slide id, instrument,
   slide, strategy; the tile format once known), written when the slide is created;
 - ``scan_log.jsonl``: one line per acquisition made (tile, frames, simulated seconds),
-  per measurement posted (tile, best z, sigma, flags) and per tile image kept (tile, z),
-  appended and flushed as they happen;
-- ``mosaic.partial.npy``: the mosaic being filled in, a memory map on disk.
+  per measurement posted (tile, best z, sigma, flags), per tile image kept (tile, z) and
+  per tile that keeps several frames (tile, their z), appended and flushed as they happen;
+- ``mosaic.partial.npy``: the mosaic being filled in, a memory map on disk;
+- ``planes/r{row}_c{col}.npy``: the frames a tile keeps where one is too unsure to be in
+  focus (`Outcome.planes_um`), (n, h, w, channels) as the camera gave them, ascending in z.
 A scheduler that is restarted on the same folder reads these back and carries on.
 
 At the end (`write_outputs`):
@@ -52,6 +54,7 @@ REPORT = "report.json"
 PLOTS = "scan.png"
 FOCUS_MAP_CSV = "focus_map.csv"
 FOCUS_MAP_NPY = "focus_map.npy"
+PLANES = "planes"
 #: Every file a scan writes in its output folder.
 SCAN_FILES = (
     STATE_FILE,
@@ -64,6 +67,7 @@ SCAN_FILES = (
     PLOTS,
     FOCUS_MAP_CSV,
     FOCUS_MAP_NPY,
+    PLANES,
 )
 
 #: Side of the TIFF tiles, and the smallest pyramid level written, in pixels.
@@ -131,6 +135,7 @@ class ScanRecord:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.acquisitions: list[dict[str, Any]] = []
         self.kept: dict[tuple[int, int], float] = {}  # tile -> z (um) of its image
+        self.planes: dict[tuple[int, int], list[float]] = {}  # tile -> z (um) of its frames
         self.measured: dict[tuple[int, int], dict[str, Any]] = {}  # tile -> its last measurement
         log_path = self.out_dir / LOG_FILE
         if log_path.exists():
@@ -161,6 +166,8 @@ class ScanRecord:
             self.acquisitions.append(entry)
         elif entry["event"] == "kept":
             self.kept[(entry["row"], entry["col"])] = entry["z_um"]
+        elif entry["event"] == "planes":
+            self.planes[(entry["row"], entry["col"])] = entry["z_um"]
         elif entry["event"] == "measured":
             self.measured[(entry["row"], entry["col"])] = entry
 
@@ -224,6 +231,33 @@ class ScanRecord:
         )
         self._append({"event": "kept", "row": row, "col": col, "z_um": z_um})
 
+    def keep_planes(self, row: int, col: int, z_um: list[float], frames: np.ndarray) -> None:
+        """Tile (row, col) keeps `frames` (n, h, w, channels) at `z_um` (n,), ascending."""
+        folder = self.out_dir / PLANES
+        folder.mkdir(exist_ok=True)
+        path = folder / f"r{row}_c{col}.npy"
+        temporary = path.with_suffix(".tmp")
+        with temporary.open("wb") as file:  # written whole, then renamed: never half a file
+            np.save(file, frames, allow_pickle=False)
+        temporary.replace(path)
+        self._append(
+            {
+                "event": "planes",
+                "row": row,
+                "col": col,
+                "z_um": z_um,
+                "file": f"{PLANES}/{path.name}",
+            }
+        )
+
+    def tiles_in_focus(self, truth_um: np.ndarray, dof_um: float) -> int:
+        """Tiles with a kept frame (its image, or one of its planes) within dof/2 of their
+        true focus `truth_um` (rows, cols), in um."""
+        return sum(
+            any(abs(z - truth_um[tile]) <= dof_um / 2.0 for z in [z_um, *self.planes.get(tile, [])])
+            for tile, z_um in self.kept.items()
+        )
+
     def _open_mosaic(self, grid: ScanGrid, tile_shape: tuple[int, ...]) -> np.memmap:
         if self._mosaic is None:
             height, width, channels = tile_shape
@@ -271,12 +305,6 @@ class ScanRecord:
             self._mosaic = None
 
 
-def in_focus_fraction(z_um: np.ndarray, truth_um: np.ndarray, dof_um: float) -> float:
-    """Share of tiles imaged within half the depth of field of their true focus (NaN: not)."""
-    with np.errstate(invalid="ignore"):
-        return float(np.mean(np.abs(z_um - truth_um) <= dof_um / 2.0))
-
-
 def mean_abs_error_um(estimate_um: np.ndarray, truth_um: np.ndarray) -> float | None:
     """Mean |estimate - truth| over the tiles that have an estimate (None if none has)."""
     error = np.abs(estimate_um - truth_um)
@@ -295,7 +323,8 @@ def predicted_in_focus_fraction(focus_map: FocusMap) -> float | None:
 def tile_metadata(record: ScanRecord, grid: ScanGrid, focus_map: FocusMap) -> list[dict[str, Any]]:
     """Every tile's numbers, row-major: where it is, its image, its last measurement, its map.
 
-    Per tile: row, col, stage_x_um, stage_y_um; z_used_um (its kept image), best_z_um,
+    Per tile: row, col, stage_x_um, stage_y_um; z_used_um (its kept image), planes_um (the
+    frames it keeps besides, where one is too unsure: `ScanRecord.keep_planes`), best_z_um,
     sigma_um and flags (the last best focus posted for it; null and [] where none was),
     images (acquired on it), posterior_um, posterior_sigma_um and out_of_focus_risk (the
     estimator's map). Heights in um, null where there is none.
@@ -314,6 +343,7 @@ def tile_metadata(record: ScanRecord, grid: ScanGrid, focus_map: FocusMap) -> li
                     "stage_x_um": x_um,
                     "stage_y_um": y_um,
                     "z_used_um": record.kept.get((row, col)),
+                    "planes_um": record.planes.get((row, col), []),
                     "best_z_um": measured.get("z_um"),
                     "sigma_um": measured.get("sigma_um"),
                     "flags": measured.get("flags", []),
@@ -577,11 +607,15 @@ def write_outputs(
         "retries": sum(entry["purpose"] == Purpose.RETRY for entry in record.acquisitions),
         "images_acquired": record.n_images,
         "images_per_tile": record.n_images / grid.n_tiles,
+        "frames_kept_per_tile": (
+            len(record.kept) - len(record.planes) + sum(map(len, record.planes.values()))
+        )
+        / grid.n_tiles,
         "scan_time_s": record.scan_time_s,
         "dof_um": dof_um,
         "in_focus_fraction": None
         if truth_um is None
-        else in_focus_fraction(z_kept_um, truth_um, dof_um),
+        else record.tiles_in_focus(truth_um, dof_um) / grid.n_tiles,
         "predicted_in_focus_fraction": predicted_in_focus_fraction(focus_map),
         "mae_um": None if truth_um is None else mean_abs_error_um(focus_map.posterior_um, truth_um),
         "prior_mae_um": None

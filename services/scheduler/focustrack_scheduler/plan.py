@@ -20,7 +20,10 @@ The loop (docs/scheduler.md):
    focus (the prediction when there is none) as the tile's image for now,
    `PostMeasurement`, and once the tile's estimate is final (the outcome has a
    posterior) `KeepTile` again if another acquired frame of the tile is nearer
-   the posterior: that frame is the tile's image (the strategy's `z_used_um`).
+   the posterior: that frame is the tile's image (the strategy's `z_used_um`);
+   where the outcome names several frames to keep (`planes_um`: one frame is too
+   unsure to be in focus), `KeepPlanes` keeps them all beside it. The frames they
+   need come first, as an image-only acquisition of purpose `planes`.
 
 An edge peak or a flat curve is posted as it is; the estimator then asks for
 another stack of the same tile, so a retry is just the next `AskNext`. A focus
@@ -134,6 +137,15 @@ class PostMeasurement:
 
 
 @dataclass(frozen=True)
+class Frame:
+    """One acquired frame of the tile being scanned."""
+
+    sequence: int
+    index: int
+    z_um: float
+
+
+@dataclass(frozen=True)
 class KeepTile:
     """-> None. Frame `frame` of the stack of acquisition `sequence` becomes tile (row, col)."""
 
@@ -144,6 +156,16 @@ class KeepTile:
     z_um: float
 
 
+@dataclass(frozen=True)
+class KeepPlanes:
+    """-> None. The frames `planes` of tile (row, col), ascending in z, are kept besides its
+    image: where one frame is too unsure to be in focus, one of these is (`Outcome.planes_um`)."""
+
+    row: int
+    col: int
+    planes: tuple[Frame, ...]
+
+
 Step = (
     DescribeSlide
     | CreateOrResumeSlide
@@ -152,21 +174,13 @@ Step = (
     | AwaitFocus
     | PostMeasurement
     | KeepTile
+    | KeepPlanes
 )
 Plan = Generator[Step, Any, str]
 
 
 class FocusUnavailableError(RuntimeError):
     """No focus result came for a stack, however often it was acquired."""
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One acquired frame of the tile being scanned."""
-
-    sequence: int
-    index: int
-    z_um: float
 
 
 def slide_config(request: ScanRequest, geometry: SlideGeometry) -> api.SlideCreate:
@@ -258,6 +272,9 @@ def scan_plan(request: ScanRequest) -> Plan:
                 yield KeepTile(
                     acquisition.row, acquisition.col, final.sequence, final.index, final.z_um
                 )
+            if outcome.planes_um:
+                planes = tuple(nearest_frame(frames, z_um) for z_um in outcome.planes_um)
+                yield KeepPlanes(acquisition.row, acquisition.col, planes)
     return slide_id
 
 

@@ -62,4 +62,5 @@ def outcome_of(reply: api.OutcomeOut) -> Outcome:
         posterior_sigma_um=reply.posterior_sigma_um,
         innovation_um=reply.innovation_um,
         nis=reply.nis,
+        planes_um=tuple(reply.planes_um),
     )

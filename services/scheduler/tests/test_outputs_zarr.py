@@ -129,3 +129,23 @@ def test_ome_tiff_stays_an_option(tmp_path: Path) -> None:
     assert not (tmp_path / outputs.MOSAIC_ZARR).exists()
     with tifffile.TiffFile(tmp_path / outputs.MOSAIC) as tif:
         assert tif.is_ome and tif.series[0].shape == (512, 768, 3)
+
+
+def test_the_frames_a_tile_keeps_are_on_disk_read_back_and_judged_for_focus(
+    tmp_path: Path,
+) -> None:
+    record, images = scanned_record(tmp_path)
+    planes = np.stack([images[0, 0], images[0, 1], images[1, 0]])
+    record.keep_planes(0, 0, [9.0, 10.0, 11.0], planes)
+    np.testing.assert_array_equal(np.load(tmp_path / outputs.PLANES / "r0_c0.npy"), planes)
+    # kept at 10 (its image) and at 9, 10, 11: in focus within 1.5 um with 1 um of depth of field
+    truth_um = np.full(GRID.shape, 100.0)
+    truth_um[0, 0] = 11.3
+    assert record.tiles_in_focus(truth_um, 1.0) == 1
+    assert record.tiles_in_focus(truth_um, 0.5) == 0
+    record.close()
+    again = ScanRecord(tmp_path)  # a restarted scheduler reads them back from the log
+    assert again.planes == {(0, 0): [9.0, 10.0, 11.0]}
+    report = outputs.write_outputs(again, GRID, focus_map(), truth_um, 1.0, WallTimes())
+    assert report["in_focus_fraction"] == pytest.approx(1 / GRID.n_tiles)
+    assert report["frames_kept_per_tile"] == pytest.approx((GRID.n_tiles + 2) / GRID.n_tiles)

@@ -1,0 +1,51 @@
+"""The tracker passes on the frames a tile keeps where one image is too unsure (real estimator)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from focustrack.lab_sim import SimScope
+from focustrack_client import EstimatorClient
+from focustrack_client.models import Grid, SlideCreate
+from focustrack_focus.peak import PeakSettings
+from focustrack_focus.pipeline import FocusSettings
+from focustrack_lab.tracker import FocusTracker
+
+
+@pytest.mark.slow
+def test_a_focus_measure_too_noisy_for_the_depth_of_field_gets_several_frames_to_keep(
+    estimator: EstimatorClient, scope: SimScope
+) -> None:
+    grid = scope.microscope.slides[scope.slide].grid
+    dof_um = scope.microscope.spec.optics.depth_of_field_um
+    slide = SlideCreate(
+        strategy="kf-2d-lean",
+        grid=Grid(rows=grid.rows, cols=grid.cols, pitch_um=grid.pitch_um),
+        dof_um=dof_um,
+        noise_sigma_um=1.5,
+        start_sigma_um=5.0,
+    )
+    # A measure whose peak strays 1.5 um from the focus (as the thesis' noise): its sigma says so.
+    noisy = FocusSettings(peak=PeakSettings(systematic_sigma_um=1.5))
+    tracker = FocusTracker.create(estimator, slide, noisy)
+
+    def acquire(z_um: np.ndarray) -> np.ndarray:
+        frames = []
+        for z in z_um:
+            scope.z_um = float(z)
+            frames.append(scope.frame())
+        return np.stack(frames)
+
+    for col in range(grid.cols):  # the first row: the least known, the most unsure
+        scope.x_um = (col - (grid.cols - 1) / 2) * grid.pitch_um
+        scope.y_um = (grid.rows - 1) / 2 * grid.pitch_um
+        tracker.focus(0, col, acquire)
+
+    kept = [tile for tile in tracker.tiles if tile.planes_um]
+    assert kept, [tile.sigma_um for tile in tracker.tiles]
+    for tile in kept:
+        planes = np.array(tile.planes_um)
+        assert 3 <= planes.size <= 5 and np.all(np.diff(planes) > 0)
+        assert np.all(np.diff(planes) <= dof_um + 1e-9)  # their depths of field join
+        assert planes[0] <= tile.z_um <= planes[-1]
