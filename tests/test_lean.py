@@ -16,7 +16,10 @@ from focustrack_estimator.lean import (
     COARSE_STEP_UM,
     SHORT_FRAMES,
     choose_stack,
+    kept_planes,
     out_of_focus_risk,
+    planes_risk,
+    planes_stack,
     search_cost,
     summarise_risk,
 )
@@ -74,6 +77,35 @@ def test_search_cost_counts_retries_and_refuses_a_likely_give_up() -> None:
     expected = 5 + 5 * sum(2 * norm.sf(reach) for reach in (1.0, 2.5, 4.0))
     assert wide == pytest.approx(expected)
     assert search_cost(short, 10.0, POLICY, 3, 0.01) is None  # 3 retries reach 5.5 um only
+
+
+def test_a_tile_too_unsure_for_one_frame_keeps_the_fewest_frames_that_meet_the_risk() -> None:
+    frames_um = np.arange(-3.0, 3.01, 0.5)  # a full stack, 0.5 um steps
+    # sure: the kept frame alone
+    assert kept_planes(0.1, 0.1, frames_um, 0.0, DOF_UM, 0.01, 5) == (0.0,)
+    # sigma 0.6 um: one frame leaves 2 Phi(-0.5 / 0.6) = 40%; frames a depth of field apart
+    planes = kept_planes(0.1, 0.6, frames_um, 0.0, DOF_UM, 0.01, 5)
+    assert planes == (-1.0, 0.0, 1.0, 2.0) or planes == (-2.0, -1.0, 0.0, 1.0)
+    assert planes_risk(0.1, 0.6, planes, DOF_UM) <= 0.01
+    assert planes_risk(0.1, 0.6, planes[1:], DOF_UM) > 0.01  # none of them is spare
+    # capped, and only frames that were acquired within a depth of field of the next
+    assert len(kept_planes(0.0, 3.0, frames_um, 0.0, DOF_UM, 0.01, 3)) == 3
+    assert kept_planes(0.0, 3.0, np.array([0.0, 1.5]), 0.0, DOF_UM, 0.01, 5) == (0.0,)
+    # the windows join: their risk is the Gaussian's mass outside [low - dof/2, high + dof/2]
+    assert planes_risk(0.0, 1.0, (-1.0, 0.0, 1.0), DOF_UM) == pytest.approx(2 * norm.sf(1.5))
+
+
+def test_the_frames_a_tile_lacks_are_a_stack_a_depth_of_field_apart() -> None:
+    stack = planes_stack(0.0, 0.6, 0.0, DOF_UM, 0.5, 0.01, 5)
+    assert stack is not None and stack.step_um == 1.0 and stack.n_frames == 5
+    assert stack.center_um == 0.0
+    # 3 are enough where the sigma is smaller; none where the kept frame alone is
+    small = planes_stack(0.0, 0.35, 0.0, DOF_UM, 0.5, 0.01, 5)
+    assert small is not None and small.n_frames == 3
+    assert planes_stack(0.0, 0.01, 0.0, DOF_UM, 0.5, 0.01, 5) is None
+    # frames further apart than the depth of field would leave gaps: none
+    assert planes_stack(0.0, 0.6, 0.0, DOF_UM, 1.5, 0.01, 5) is None
+    assert planes_stack(0.0, 0.6, 0.0, DOF_UM, 0.5, 0.01, 1) is None
 
 
 def test_a_risk_summary_counts_imaged_tiles_and_says_when_the_stated_risk_is_not_met() -> None:
