@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from focustrack.bench.replay import simulated_measurement
+from focustrack_core.domain import Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_estimator import registry
 from focustrack_estimator.serpentine import SerpentineFilter
@@ -61,6 +62,18 @@ def test_a_restored_strategy_continues_as_the_original(name: str, at: int) -> No
     assert _steps(restored, measured_um, 1000) == _steps(original, measured_um, 1000)
     for layer, value in _maps(original).items():
         np.testing.assert_array_equal(_maps(restored)[layer], value, err_msg=layer)
+
+
+def test_enums_come_back_as_enums_not_their_values() -> None:
+    """A pending acquisition's purpose (a StrEnum, so also a str) is restored as the enum."""
+    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    original = registry.create("kf-2d", settings)
+    _steps(original, _measured(), 3)
+    pending = original.next_acquisition()
+    restored = registry.create("kf-2d", settings)
+    restore(restored, encode(original))
+    assert pending is not None and restored.next_acquisition() == pending
+    assert type(restored.next_acquisition().purpose) is Purpose  # type: ignore[union-attr]
 
 
 def test_a_snapshot_of_another_strategy_is_refused() -> None:

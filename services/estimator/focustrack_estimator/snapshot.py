@@ -75,13 +75,11 @@ class _Encoder:
         return key
 
     def node(self, value: Any, path: str) -> Any:
-        if value is None or isinstance(value, bool | str):
-            return {"v": value}
-        if isinstance(value, enum.Enum):
+        if isinstance(value, enum.Enum):  # first: a StrEnum is a str, an IntEnum an int
             if not _allowed(type(value)):
                 raise SnapshotError(f"{path}: enum {_name(type(value))} is not the project's")
             return {"e": _name(type(value)), "v": value.value}
-        if isinstance(value, int | float):  # after bool and enum (both may be ints)
+        if value is None or isinstance(value, bool | str | int | float):
             return {"v": value}
         if isinstance(value, np.generic):
             return {"n": value.dtype.str, "v": value.item()}
