@@ -28,6 +28,7 @@ from focustrack_estimator import registry
 from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
+from focustrack_scheduler.fusion import fuse_planes
 from focustrack_scheduler.scan import BEST_KALMAN
 
 pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
@@ -237,3 +238,35 @@ def test_demo_compares_strategies_and_writes_json(tmp_path: Path) -> None:
     # the services were stopped: no process still runs on the demo's estimator store
     store = str(tmp_path / "demo" / "estimator.sqlite")
     assert subprocess.run(["pgrep", "-f", store], capture_output=True).returncode == 1
+
+
+def test_tiles_too_unsure_for_one_frame_keep_several_and_the_mosaic_fuses_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A focus measure whose peak strays 1.5 um (said in its sigma) against a depth of field
+    under 1 um: kf-2d-lean keeps several frames of its unsure tiles, the scheduler writes
+    them beside the mosaic, fuses them into the tile's image and judges focus on any."""
+    monkeypatch.setenv("FOCUSTRACK_FOCUS_SYSTEMATIC_SIGMA_UM", "1.5")  # the focus service's
+    instrument_args = [
+        "--seed", "5", "--slides", "1", "--rows", "3", "--cols", "3",
+        "--width", "128", "--height", "128",
+    ]  # fmt: skip
+    out_dir = tmp_path / "scan"
+    with LocalStack(tmp_path / "stack", instrument_args) as noisy:
+        command = scan_command(noisy, out_dir, "--noise-sigma-um", "1.5")
+        command[command.index(STRATEGY)] = "kf-2d-lean"
+        scan = subprocess.run(command, capture_output=True, text=True, timeout=180)
+    assert scan.returncode == 0, scan.stderr
+    report = report_of(out_dir)
+    assert report["frames_kept_per_tile"] > 1.0
+    logged = [json.loads(line) for line in (out_dir / outputs.LOG_FILE).read_text().splitlines()]
+    planes = [entry for entry in logged if entry["event"] == "planes"]
+    assert planes
+    mosaic = np.asarray(zarr.open_group(out_dir / outputs.MOSAIC_ZARR, mode="r")["s0"])
+    mosaic = mosaic.transpose(1, 2, 0)  # (y, x, c)
+    for entry in planes:
+        frames = np.load(out_dir / entry["file"])
+        assert frames.shape[0] == len(entry["z_um"]) >= 2
+        row, col = entry["row"], entry["col"]
+        tile = mosaic[row * 128 : (row + 1) * 128, col * 128 : (col + 1) * 128]
+        np.testing.assert_array_equal(tile, outputs.to_uint8(fuse_planes(frames), 12))

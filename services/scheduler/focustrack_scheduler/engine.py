@@ -329,15 +329,21 @@ class Engine:
         self._show()
 
     def _keep_planes(self, step: KeepPlanes) -> None:
-        frames = []
+        if self.geometry is None:  # described before any acquisition
+            return
+        frames, bit_depth = [], 0
         for frame in step.planes:
             stack = self.listener.stacks.get(frame.sequence)
             if stack is None:  # the plan only keeps frames it acquired
                 log.warning("tile (%d, %d): a stack is gone; no planes kept", step.row, step.col)
                 return
-            frames.append(stack.message[1][frame.index])
+            header, pixels = stack.message
+            frames.append(pixels[frame.index])
+            bit_depth = header.bit_depth
         z_um = [frame.z_um for frame in step.planes]
-        self.record.keep_planes(step.row, step.col, z_um, np.stack(frames))
+        self.record.keep_planes(
+            self.geometry.grid, step.row, step.col, z_um, np.stack(frames), bit_depth
+        )
 
     def _show(self) -> None:
         if self._progress is not None:

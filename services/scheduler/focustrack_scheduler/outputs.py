@@ -8,7 +8,8 @@ During the scan (`ScanRecord`):
   per tile that keeps several frames (tile, their z), appended and flushed as they happen;
 - ``mosaic.partial.npy``: the mosaic being filled in, a memory map on disk;
 - ``planes/r{row}_c{col}.npy``: the frames a tile keeps where one is too unsure to be in
-  focus (`Outcome.planes_um`), (n, h, w, channels) as the camera gave them, ascending in z.
+  focus (`Outcome.planes_um`), (n, h, w, channels) as the camera gave them, ascending in z;
+  the tile's image in the mosaic is then their fusion (`fusion.fuse_planes`).
 A scheduler that is restarted on the same folder reads these back and carries on.
 
 At the end (`write_outputs`):
@@ -43,6 +44,7 @@ from matplotlib.figure import Figure
 from focustrack_core.domain import Acquisition, FocusMap, Measurement, Outcome, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
+from focustrack_scheduler.fusion import fuse_planes
 
 STATE_FILE = "scan.json"
 LOG_FILE = "scan_log.jsonl"
@@ -224,15 +226,29 @@ class ScanRecord:
         self, grid: ScanGrid, row: int, col: int, z_um: float, image: np.ndarray, bit_depth: int
     ) -> None:
         """Tile (row, col)'s image (h, w, channels) at `z_um` goes into the mosaic."""
+        self._write_tile(grid, row, col, image, bit_depth)
+        self._append({"event": "kept", "row": row, "col": col, "z_um": z_um})
+
+    def _write_tile(
+        self, grid: ScanGrid, row: int, col: int, image: np.ndarray, bit_depth: int
+    ) -> None:
         mosaic = self._open_mosaic(grid, image.shape)
         height, width = image.shape[:2]
         mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width] = to_uint8(
             image, bit_depth
         )
-        self._append({"event": "kept", "row": row, "col": col, "z_um": z_um})
 
-    def keep_planes(self, row: int, col: int, z_um: list[float], frames: np.ndarray) -> None:
-        """Tile (row, col) keeps `frames` (n, h, w, channels) at `z_um` (n,), ascending."""
+    def keep_planes(
+        self,
+        grid: ScanGrid,
+        row: int,
+        col: int,
+        z_um: list[float],
+        frames: np.ndarray,
+        bit_depth: int,
+    ) -> None:
+        """Tile (row, col) keeps `frames` (n, h, w, channels) at `z_um` (n,), ascending; its
+        mosaic tile becomes their fusion, each pixel from the sharpest (`fuse_planes`)."""
         folder = self.out_dir / PLANES
         folder.mkdir(exist_ok=True)
         path = folder / f"r{row}_c{col}.npy"
@@ -240,6 +256,7 @@ class ScanRecord:
         with temporary.open("wb") as file:  # written whole, then renamed: never half a file
             np.save(file, frames, allow_pickle=False)
         temporary.replace(path)
+        self._write_tile(grid, row, col, fuse_planes(frames), bit_depth)
         self._append(
             {
                 "event": "planes",

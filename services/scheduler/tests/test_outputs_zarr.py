@@ -22,6 +22,7 @@ from focustrack_core.domain import (
 )
 from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler import outputs
+from focustrack_scheduler.fusion import fuse_planes
 from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, WallTimes, to_uint8
 
 GRID = ScanGrid(2, 3, pitch_um=150.0)
@@ -136,8 +137,12 @@ def test_the_frames_a_tile_keeps_are_on_disk_read_back_and_judged_for_focus(
 ) -> None:
     record, images = scanned_record(tmp_path)
     planes = np.stack([images[0, 0], images[0, 1], images[1, 0]])
-    record.keep_planes(0, 0, [9.0, 10.0, 11.0], planes)
+    record.keep_planes(GRID, 0, 0, [9.0, 10.0, 11.0], planes, BIT_DEPTH)
     np.testing.assert_array_equal(np.load(tmp_path / outputs.PLANES / "r0_c0.npy"), planes)
+    # the tile's image in the mosaic is now their fusion
+    mosaic = np.load(tmp_path / outputs.PARTIAL_MOSAIC)
+    fused = to_uint8(fuse_planes(planes), BIT_DEPTH)
+    np.testing.assert_array_equal(mosaic[:TILE_PX, :TILE_PX], fused)
     # kept at 10 (its image) and at 9, 10, 11: in focus within 1.5 um with 1 um of depth of field
     truth_um = np.full(GRID.shape, 100.0)
     truth_um[0, 0] = 11.3
