@@ -14,6 +14,7 @@ from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
 from focustrack_focus.preprocess import Preprocess
+from focustrack_scheduler.fusion import fuse_planes
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
 SMEAR, YEAST = REAL / "lip_smear_zstack", REAL / "yeast_brightfield_zstack"
@@ -162,3 +163,28 @@ def test_wsi_jpeg_systematic_sigma_learnt_on_fit_fields_covers_held_out_fields()
         assert figures[part]["coverage_2sigma"] >= 0.92, part
         assert figures[part]["silent_miss"] <= 0.001, part
     assert figures["windows_11x3"]["median_sigma_steps"] <= 0.75
+
+
+def test_fusing_a_real_smears_planes_takes_each_region_from_the_plane_in_focus() -> None:
+    """A tile's kept frames fused (`focustrack_scheduler.fusion`) on real texture: halves of
+    the labelled focus plane and of a plane 3 steps off, swapped between two frames,
+    come back from the focused plane; the real planes -2, 0, 2 fuse as sharp as plane 0."""
+    frames, plane = load_smear(SMEAR)
+    focused, off = frames[plane == 0][0], frames[plane == -3][0]
+    half = focused.shape[1] // 2
+    left_sharp, right_sharp = focused.copy(), off.copy()
+    left_sharp[:, half:], right_sharp[:, half:] = off[:, half:], focused[:, half:]
+    fused = fuse_planes(np.stack([left_sharp, right_sharp]))
+    from_focus = np.all(fused == focused, axis=2)
+    seam = 8  # the sharpness window straddles the seam there
+    assert from_focus[:, : half - seam].mean() > 0.95
+    assert from_focus[:, half + seam :].mean() > 0.95
+
+    def brenner(image: np.ndarray) -> float:
+        grey = image.astype(np.float64).mean(axis=2)
+        return float(((grey[:, 2:] - grey[:, :-2]) ** 2).mean())
+
+    three = np.stack([frames[plane == z][0] for z in (-2, 0, 2)])
+    assert (
+        brenner(fuse_planes(three)) >= brenner(focused) > max(brenner(three[0]), brenner(three[2]))
+    )
