@@ -16,7 +16,12 @@ Writes into OUT, with the openssl command:
 Paths inside the configs are where the services see OUT (`--mount`, e.g.
 /run/focustrack in compose.secure.yaml; default OUT itself).
 
-    focustrack bus secrets deploy/secrets --host zenoh --mount /run/focustrack
+Only the two certificates are readable by all; the folder and every other file (keys,
+passwords, the configs that hold them) are its owner's alone. `--owner UID` gives them
+to the user the services run as: 10001 in every FocusTrack image, so the containers
+can read what they mount (that needs root).
+
+    sudo focustrack bus secrets deploy/secrets --host zenoh --mount /run/focustrack --owner 10001
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import json
+import os
 import secrets
 import shutil
 import subprocess
@@ -122,6 +128,22 @@ def write_bus_files(
     return passwords
 
 
+#: The files anyone may read: certificates, no secret in them.
+PUBLIC_FILES = ("ca.pem", "router.pem")
+
+
+def restrict(folder: Path, owner: int | None) -> None:
+    """The folder and its secret files for their owner alone (`PUBLIC_FILES` for all);
+    given to user `owner` first where set (PermissionError without root)."""
+    paths = [folder, *sorted(folder.iterdir())]
+    if owner is not None:
+        for path in paths:
+            os.chown(path, owner, owner)
+    folder.chmod(0o700)
+    for path in paths[1:]:
+        path.chmod(0o644 if path.name in PUBLIC_FILES else 0o600)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", type=Path, help="folder to write the files into")
     parser.add_argument(
@@ -132,14 +154,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--mount", type=Path, help="where the services see the folder (default: the folder)"
     )
+    parser.add_argument(
+        "--owner",
+        type=int,
+        metavar="UID",
+        help="give the files to this user (and group): the services' own, 10001 in the "
+        "FocusTrack images; needs root (default: whoever runs the command)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         write_bus_files(args.out, args.host or ["zenoh"], args.mount)
+        restrict(args.out, args.owner)
+    except PermissionError as error:
+        print(
+            f"focustrack bus secrets: error: {error}: giving the files to uid {args.owner} "
+            f"needs root (sudo), or `chown -R {args.owner} {args.out}` afterwards",
+            file=sys.stderr,
+        )
+        return 1
     except (RuntimeError, OSError) as error:
         print(f"focustrack bus secrets: error: {error}", file=sys.stderr)
         return 1
-    print(f"wrote the bus's certificates, passwords and configs to {args.out}")
-    print("give the folder to the containers' user only: it holds every role's password")
+    owner = "you" if args.owner is None else f"uid {args.owner}"
+    print(f"wrote the bus's certificates, passwords and configs to {args.out}, for {owner} only")
+    if args.owner is None:
+        print("containers read it as uid 10001: give it to them with --owner 10001 (as root)")
     return 0

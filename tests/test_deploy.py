@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import importlib.util
+import os
 import re
 import shutil
 import tomllib
@@ -22,7 +23,8 @@ import pytest
 import yaml
 import zenoh
 
-from focustrack.bus_secrets import ROLES, write_bus_files
+from focustrack.bus_secrets import PUBLIC_FILES, ROLES, write_bus_files
+from focustrack.cli import main
 from focustrack_core import health
 from focustrack_core.config import with_environment
 from focustrack_core.wire import router
@@ -179,3 +181,24 @@ def test_the_secure_overlay_configures_every_role_with_options_its_command_accep
     assert not (tmp_path / "ca.key").exists()  # nobody who reads the folder can sign
     users = (tmp_path / "credentials.txt").read_text().split()
     assert sorted(line.split(":")[0] for line in users) == sorted(ROLES)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="`bus secrets` needs openssl")
+def test_bus_secrets_are_their_owners_alone_and_given_to_the_containers_user(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The router's key and the passwords for one user only; with --owner, the user every
+    FocusTrack image runs as (10001), who could not read a root-owned 0600 key otherwise."""
+    mine = tmp_path / "mine"
+    assert main(["bus", "secrets", str(mine), "--host", "zenoh"]) == 0
+    assert "--owner 10001" in capsys.readouterr().out  # what a container deployment needs
+    modes = {path.name: path.stat().st_mode & 0o777 for path in mine.iterdir()}
+    assert modes == {name: 0o644 if name in PUBLIC_FILES else 0o600 for name in modes}
+    assert mine.stat().st_mode & 0o777 == 0o700 and "router.key" in modes
+    if os.geteuid() != 0:
+        assert main(["bus", "secrets", str(tmp_path / "theirs"), "--owner", "10001"]) == 1
+        assert "needs root" in capsys.readouterr().err
+        return
+    theirs = tmp_path / "theirs"
+    assert main(["bus", "secrets", str(theirs), "--owner", "10001"]) == 0
+    assert {path.stat().st_uid for path in [theirs, *theirs.iterdir()]} == {10001}
