@@ -9,7 +9,10 @@ result must match the simulator's truth (every tile in focus) and the same slide
 scanned by local processes (frames per tile). Then it kills the estimator container
 mid-scan and starts it again; the scan must complete with nothing lost, since the
 estimator's store lives on a volume. (The test plays the orchestrator: it does not pass
-compose's `restart` policies, so the kill and the start are its own.)
+compose's `restart` policies, so the kill and the start are its own.) Last, the same
+images run compose.secure.yaml merged over compose.yaml (as `compose -f ... -f ...`),
+with the bus's secrets made as docs/security.md says: TLS, a login per role, the
+router's access-control list and tagged focus results.
 
 No registry can be reached here, so the base image is built from Debian's packages with
 debootstrap (once per machine: it stays in Podman's store as BASE_TAG, with the host's
@@ -44,6 +47,7 @@ import httpx
 import pytest
 import yaml
 
+from focustrack.bus_secrets import restrict, write_bus_files
 from focustrack.demo import LocalStack
 from focustrack_core.wire.session import free_port
 from focustrack_scheduler import outputs
@@ -57,6 +61,8 @@ SIZE = 256
 SEED = 5
 STRATEGY = "kf-2d"  # compose.yaml's default
 ESTIMATOR_TOKEN = "e2e-estimator-token"
+#: The user every FocusTrack image runs as (services/*/Dockerfile).
+CONTAINER_UID = 10001
 AUTH = {"Authorization": f"Bearer {ESTIMATOR_TOKEN}"}
 #: The base image built from Debian's packages, kept in Podman's store between runs.
 BASE_TAG = "localhost/focustrack-base:bookworm"
@@ -166,16 +172,37 @@ def interpolate(value: Any, variables: Mapping[str, str]) -> Any:
     return value
 
 
+#: Compose's keys whose lists an override file extends (others it replaces).
+EXTENDED_LISTS = ("volumes", "ports", "tmpfs")
+
+
+def merge_compose(base: Any, override: Any, key: str = "") -> Any:
+    """`override` over `base`, as `docker compose -f base -f override` merges them: maps
+    merged key by key, the lists of `EXTENDED_LISTS` extended, any other value replaced."""
+    if isinstance(base, dict) and isinstance(override, dict):
+        merged = dict(base)
+        for name, value in override.items():
+            merged[name] = merge_compose(base[name], value, name) if name in base else value
+        return merged
+    if isinstance(base, list) and isinstance(override, list) and key in EXTENDED_LISTS:
+        return [*base, *override]
+    return override
+
+
 class Topology:
-    """compose.yaml's services as Podman containers on a network of the test's own.
+    """compose files' services as Podman containers on a network of the test's own.
 
     Containers, volumes and the network are named PROJECT-NAME; each service is also
     reachable by its compose name on the network, as under compose. `variables` play
-    the part of compose's .env file.
+    the part of compose's .env file; `files` are merged in order, as compose's `-f`.
     """
 
-    def __init__(self, project: str, variables: Mapping[str, str]) -> None:
-        self.compose = yaml.safe_load((ROOT / "compose.yaml").read_text())
+    def __init__(
+        self, project: str, variables: Mapping[str, str], files: tuple[str, ...] = ("compose.yaml",)
+    ) -> None:
+        self.compose: dict[str, Any] = {}
+        for name in files:
+            self.compose = merge_compose(self.compose, yaml.safe_load((ROOT / name).read_text()))
         self.project = project
         self.variables = dict(variables)
         self.network = f"{project}-net"
@@ -213,6 +240,9 @@ class Topology:
             args += ["-e", f"{key}={value}"]
         for volume in spec.get("volumes", []):
             source, target = volume.split(":", 1)
+            if source.startswith(("/", ".")):  # a bind mount, relative to the compose file
+                args += ["-v", f"{(ROOT / source).resolve()}:{target}"]
+                continue
             assert source in self.compose["volumes"], f"{service}: {source} is no named volume"
             args += ["-v", f"{self.name(source)}:{target}"]
         for port in spec.get("ports", []):
@@ -333,13 +363,9 @@ class Stack:
     estimator_url: str
 
 
-@pytest.fixture(scope="module")
-def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
-    """The images built and the router, instrument, focus and estimator up and healthy."""
-    ensure_engine()
-    base_image = ensure_base_image(pytestconfig)
-    estimator_port, focus_port = free_port(), free_port()
-    variables = {
+def topology_variables(estimator_port: int, focus_port: int) -> dict[str, str]:
+    """What the tests' .env would say: the slide, the images, ports on loopback, tokens."""
+    return {
         "FOCUSTRACK_VERSION": "e2e",
         "SLIDE_SEED": str(SEED),
         "SLIDE_ROWS": str(ROWS),
@@ -356,6 +382,15 @@ def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
         "ZENOH_IMAGE": "focustrack-instrument-sim:e2e",
         "ZENOH_ENTRYPOINT": "python3 -m focustrack_core.wire.router",
     }
+
+
+@pytest.fixture(scope="module")
+def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
+    """The images built and the router, instrument, focus and estimator up and healthy."""
+    ensure_engine()
+    base_image = ensure_base_image(pytestconfig)
+    estimator_port, focus_port = free_port(), free_port()
+    variables = topology_variables(estimator_port, focus_port)
     with Topology(f"focustrack-e2e-{os.getpid()}", variables) as running:
         builds_s = {}
         for service, spec in running.compose["services"].items():
@@ -374,6 +409,30 @@ def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
         yield Stack(running, f"http://127.0.0.1:{estimator_port}")
         write_report(REPORT_DIR)
         say(pytestconfig, f"figures in {REPORT_DIR}/report.json and report.png")
+
+
+@pytest.fixture(scope="module")
+def secure_stack(
+    stack: Stack, pytestconfig: pytest.Config, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[Stack]:
+    """compose.secure.yaml over compose.yaml, on the images `stack` built: the bus over TLS
+    with a login per role, the router's access-control list, tagged focus results; the
+    secrets as docs/security.md makes them (`focustrack bus secrets --owner 10001`)."""
+    secrets_dir = tmp_path_factory.mktemp("bus") / "secrets"
+    write_bus_files(secrets_dir, ["zenoh"], Path("/run/focustrack"))
+    restrict(secrets_dir, CONTAINER_UID)
+    estimator_port, focus_port = free_port(), free_port()
+    variables = topology_variables(estimator_port, focus_port) | {"BUS_SECRETS": str(secrets_dir)}
+    files = ("compose.yaml", "compose.secure.yaml")
+    with Topology(f"focustrack-secure-{os.getpid()}", variables, files) as running:
+        for service in ("zenoh", "instrument", "focus", "estimator"):
+            running.up(service)
+        FIGURES["secure_healthy_s"] = {
+            service: round(running.wait_healthy(service), 1)
+            for service in ("instrument", "focus", "estimator")
+        }
+        say(pytestconfig, f"secure bus: time to healthy (s): {FIGURES['secure_healthy_s']}")
+        yield Stack(running, f"http://127.0.0.1:{estimator_port}")
 
 
 @pytest.fixture(scope="module")
@@ -463,6 +522,30 @@ def test_a_scan_in_containers_matches_the_truth_and_the_same_scan_as_processes(
     assert report["in_focus_fraction"] == 1.0  # every tile within the depth of field
     assert local_report["in_focus_fraction"] == 1.0
     assert report["images_acquired"] == local_report["images_acquired"]
+
+
+def test_a_scan_on_the_secure_bus_in_containers_logs_in_over_tls_and_trusts_its_results(
+    secure_stack: Stack, local_report: dict[str, Any], pytestconfig: pytest.Config
+) -> None:
+    topology = secure_stack.topology
+    assert "zenoh router listening on tls/0.0.0.0:7447" in topology.logs("zenoh")
+    # the instrument turned healthy by its health check's own login (the health role)
+    assert topology.health("instrument") == "healthy"
+    topology.up("scheduler", "scan-secure", SCAN_NAME="scan-secure")
+    assert topology.wait("scan-secure") == 0, topology.logs("scan-secure")
+    report = complete_report(secure_stack, topology.volume("scans") / "scan-secure")
+    figures = {
+        "frames_per_tile": report["images_acquired"] / (ROWS * COLS),
+        "local_frames_per_tile": local_report["images_acquired"] / (ROWS * COLS),
+        "focus_results_rejected": report["focus_results_rejected"],
+    }
+    FIGURES["secure_scan"] = figures
+    say(pytestconfig, f"scan on the secure bus: {figures}")
+    # the same scan as processes on an open bus, frame for frame
+    assert report["images_acquired"] == local_report["images_acquired"]
+    assert report["focus_results_rejected"] == 0  # every result carried a valid tag
+    # a secure deployment serves no truth (compose.secure.yaml): no in-focus figures
+    assert report["in_focus_fraction"] is None
 
 
 def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
