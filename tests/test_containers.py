@@ -272,6 +272,15 @@ class Topology:
         podman("run", "-d", *self.run_arguments(service, container, **variables))
         return self.name(container)
 
+    def up_services(self) -> dict[str, float]:
+        """The router and the three services started; seconds each took to turn healthy."""
+        for service in ("zenoh", "instrument", "focus", "estimator"):
+            self.up(service)
+        return {
+            service: round(self.wait_healthy(service), 1)
+            for service in ("instrument", "focus", "estimator")
+        }
+
     def wait_healthy(self, container: str) -> float:
         """Run the container's health check until it passes (without systemd, Podman runs
         none by itself); seconds since the container was started."""
@@ -399,12 +408,7 @@ def stack(pytestconfig: pytest.Config) -> Iterator[Stack]:
                 builds_s[service] = round(running.build(service, base_image), 1)
                 say(pytestconfig, f"built {service} in {builds_s[service]} s")
         FIGURES["build_s"] = builds_s
-        for service in ("zenoh", "instrument", "focus", "estimator"):
-            running.up(service)
-        FIGURES["healthy_s"] = {
-            service: round(running.wait_healthy(service), 1)
-            for service in ("instrument", "focus", "estimator")
-        }
+        FIGURES["healthy_s"] = running.up_services()
         say(pytestconfig, f"time to healthy (s): {FIGURES['healthy_s']}")
         yield Stack(running, f"http://127.0.0.1:{estimator_port}")
         write_report(REPORT_DIR)
@@ -425,12 +429,7 @@ def secure_stack(
     variables = topology_variables(estimator_port, focus_port) | {"BUS_SECRETS": str(secrets_dir)}
     files = ("compose.yaml", "compose.secure.yaml")
     with Topology(f"focustrack-secure-{os.getpid()}", variables, files) as running:
-        for service in ("zenoh", "instrument", "focus", "estimator"):
-            running.up(service)
-        FIGURES["secure_healthy_s"] = {
-            service: round(running.wait_healthy(service), 1)
-            for service in ("instrument", "focus", "estimator")
-        }
+        FIGURES["secure_healthy_s"] = running.up_services()
         say(pytestconfig, f"secure bus: time to healthy (s): {FIGURES['secure_healthy_s']}")
         yield Stack(running, f"http://127.0.0.1:{estimator_port}")
 
