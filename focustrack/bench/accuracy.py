@@ -30,14 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.replay import (
-    Replay,
-    RiskBin,
-    Scores,
-    reliability,
-    replay,
-    score,
-)
+from focustrack.bench.replay import Replay, RiskBin, Scores, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import (
@@ -287,12 +280,12 @@ def stated_risk(name: str) -> float:
 def format_reliability(
     name: str, bins: list[RiskBin], stated: float, scores: Scores, floor: float | None = None
 ) -> str:
-    """The reliability table of one strategy: predicted risk against the achieved rate.
+    """The reliability table of one strategy: predicted risk against the achieved rate, and
+    the frames its tiles kept (`scores`; several where one is too unsure: `lean.kept_planes`).
 
-    With the frames its tiles keep where one is too unsure (`lean.kept_planes`), and
-    `floor`: the out-of-focus share of the Bayes-optimal oracle with one frame per tile
-    on the same maps, where it ran; a stated risk below it is out of reach with one
-    frame per tile (for any estimator, where the maps are Gaussian).
+    `floor`: the out-of-focus share of the Bayes-optimal oracle on the same maps, one frame
+    per tile, where it ran; a stated risk below it is out of reach with one frame per tile
+    (for any estimator, where the maps are Gaussian), and the table says so.
     """
     n_tiles = sum(b.n_tiles for b in bins)
     predicted = sum(b.predicted * b.n_tiles for b in bins) / max(n_tiles, 1)

@@ -175,7 +175,8 @@ class RiskBin:
 
 
 def predicted_risk(run: Replay, dof_um: float) -> np.ndarray:
-    """Each tile's predicted P(|truth - z used| > dof/2), (rows, cols).
+    """Each tile's predicted P(out of focus), (rows, cols): the truth outside the depth of
+    field of every frame the tile keeps (`Replay.in_focus`).
 
     The strategy's own (`FocusMap.out_of_focus_risk`) where it states one, else the
     Gaussian of its posterior (its prior where it did not measure) about the kept frame.
