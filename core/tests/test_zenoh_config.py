@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import socket
 from pathlib import Path
 
 import pytest
@@ -74,3 +75,14 @@ def test_shared_memory_room_is_what_the_file_system_has_free(tmp_path: Path) -> 
     assert session.shared_memory_room_mb(tmp_path / "nowhere") == 0
     free_mb = shutil.disk_usage(tmp_path).free / 1e6
     assert 0 < session.shared_memory_room_mb(tmp_path) == pytest.approx(free_mb, abs=100)
+
+
+def test_a_free_port_is_below_the_ephemeral_range_and_bindable() -> None:
+    low, high = session.ephemeral_port_range()
+    assert 1024 <= low < high
+    ports = {session.free_port() for _ in range(20)}
+    assert len(ports) > 1  # picked at random
+    for port in ports:
+        assert session.LOWEST_FREE_PORT <= port < low
+        with socket.socket() as server:
+            server.bind(("127.0.0.1", port))

@@ -43,6 +43,7 @@ import argparse
 import json
 import logging
 import os
+import secrets
 import socket
 import threading
 from collections.abc import Callable, Sequence
@@ -78,11 +79,37 @@ PIXEL_TUNING = {
 SHARED_MEMORY_MB = 256
 
 
+#: The lowest port `free_port` picks.
+LOWEST_FREE_PORT = 10000
+
+
+def ephemeral_port_range() -> tuple[int, int]:
+    """The ports the kernel gives outgoing connections (Linux's setting, else its default)."""
+    try:
+        low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(low), int(high)
+    except (OSError, ValueError):
+        return 32768, 60999
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (for tests and embedded stacks)."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+    """A TCP port on 127.0.0.1 that was free a moment ago (for tests and embedded stacks).
+
+    Picked at random below the kernel's ephemeral range: a port the kernel hands out (as
+    binding port 0 does) may be given again as the source port of an outgoing connection
+    (a Zenoh link, an HTTP request) before the server meant to listen there binds it,
+    which failed a test now and then with "address already in use".
+    """
+    low = ephemeral_port_range()[0]
+    for _ in range(200):
+        port = secrets.choice(range(LOWEST_FREE_PORT, low)) if low > LOWEST_FREE_PORT else 0
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:  # taken: another
+                continue
+            return int(probe.getsockname()[1])
+    raise OSError(f"no free port found between {LOWEST_FREE_PORT} and {low}")
 
 
 def loopback_endpoint(port: int | None = None) -> str:
