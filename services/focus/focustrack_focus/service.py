@@ -39,7 +39,7 @@ from focustrack_core.config import command_main
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
-from focustrack_core.wire.codec import decode_zframe
+from focustrack_core.wire.codec import decode_zframe, payload_bytes
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
@@ -219,7 +219,7 @@ class ZenohFocusWorker:
             key = str(sample.key_expr)
             attachment = None if sample.attachment is None else sample.attachment.to_bytes()
             try:
-                message = self.analyser.add(key, sample.payload.to_bytes(), attachment)
+                message = self.analyser.add(key, payload_bytes(sample.payload), attachment)
             except ValueError as error:  # the key names no tile: nowhere to answer
                 log.warning("ignored sample on %s: %s", key, error)
                 continue

@@ -230,7 +230,7 @@ class SlideListener:
 
     def _on_focus(self, sample: zenoh.Sample) -> None:
         key_expr = str(sample.key_expr)
-        payload = sample.payload.to_bytes()
+        payload = codec.payload_bytes(sample.payload)
         if self.trust is not None:
             tag = None if sample.attachment is None else sample.attachment.to_bytes()
             if not self.trust.verify(key_expr, payload, tag):
