@@ -11,6 +11,7 @@ docstrings. Pure: numpy only.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import cast
@@ -129,6 +130,12 @@ class Measurement:
     @property
     def is_observation(self) -> bool:
         return self.z_um is not None and not (self.flags & NOT_AN_OBSERVATION)
+
+
+def kept_in_focus(z_kept_um: Sequence[float], truth_um: float, dof_um: float) -> bool:
+    """Whether a tile kept at `z_kept_um` (its image, and any more frames it keeps) is in
+    focus: one of them lies within half the depth of field of its true focus (um)."""
+    return any(abs(z - truth_um) <= dof_um / 2.0 for z in z_kept_um)
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from focustrack_core.domain import Acquisition, FocusFlag, FocusMap, Measurement, Outcome
+from focustrack_core.domain import (
+    Acquisition,
+    FocusFlag,
+    FocusMap,
+    Measurement,
+    Outcome,
+    kept_in_focus,
+)
 from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.lean import out_of_focus_risk
@@ -60,8 +67,7 @@ class Replay:
         """(rows, cols) bool: a frame the tile keeps lies within dof/2 of its truth."""
         inside = np.abs(self.focus_map.z_used_um - self.truth_um) <= dof_um / 2.0
         for (row, col), planes_um in self.planes_um.items():
-            truth_um = self.truth_um[row, col]
-            inside[row, col] = any(abs(z - truth_um) <= dof_um / 2.0 for z in planes_um)
+            inside[row, col] = kept_in_focus(planes_um, self.truth_um[row, col], dof_um)
         return inside
 
     @property

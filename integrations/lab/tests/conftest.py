@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
 from focustrack.lab_sim import SimScope
 from focustrack_client import EstimatorClient
+from focustrack_client.models import Grid, SlideCreate
 from focustrack_core.wire.session import free_port
 from focustrack_estimator.service import spawn
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
@@ -33,3 +34,21 @@ def scope() -> SimScope:
     slides = slides_from_seed(7, 1, SurfaceSpec(6, 6), pitch_um=200.0)
     spec = MicroscopeSpec(height=256, width=256)
     return SimScope(Microscope(slides, spec), "slide-0")
+
+
+@pytest.fixture
+def scope_slide(scope: SimScope) -> Callable[[str, float], SlideCreate]:
+    """Makes the estimator slide of the scope's slide for a strategy and a noise (um): its
+    grid and depth of field, the start 5 um unsure."""
+    grid = scope.microscope.slides[scope.slide].grid
+
+    def slide(strategy: str, noise_sigma_um: float) -> SlideCreate:
+        return SlideCreate(
+            strategy=strategy,
+            grid=Grid(rows=grid.rows, cols=grid.cols, pitch_um=grid.pitch_um),
+            dof_um=scope.microscope.spec.optics.depth_of_field_um,
+            noise_sigma_um=noise_sigma_um,
+            start_sigma_um=5.0,
+        )
+
+    return slide

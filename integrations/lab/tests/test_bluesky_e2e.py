@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -11,25 +12,22 @@ from bluesky.callbacks import LiveTable
 
 from focustrack.lab_sim import SimScope, simulated_ophyd
 from focustrack_client import EstimatorClient
-from focustrack_client.models import Grid, SlideCreate
+from focustrack_client.models import SlideCreate
 from focustrack_lab.bluesky import STACK_STREAM, focustrack_grid
 from focustrack_lab.tracker import FocusTracker
 
 
 @pytest.mark.slow
 def test_the_plan_images_every_tile_in_focus_and_the_documents_carry_the_focus_map(
-    estimator: EstimatorClient, scope: SimScope, capsys: pytest.CaptureFixture[str]
+    estimator: EstimatorClient,
+    scope: SimScope,
+    scope_slide: Callable[[str, float], SlideCreate],
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     grid = scope.microscope.slides[scope.slide].grid
     dof_um = scope.microscope.spec.optics.depth_of_field_um
     camera, x, y, z = simulated_ophyd(scope)
-    slide = SlideCreate(
-        strategy="kf-2d",
-        grid=Grid(rows=grid.rows, cols=grid.cols, pitch_um=grid.pitch_um),
-        dof_um=dof_um,
-        noise_sigma_um=0.1,
-        start_sigma_um=5.0,
-    )
+    slide = scope_slide("kf-2d", 0.1)
     tracker = FocusTracker.create(estimator, slide)
     documents: list[tuple[str, dict[str, Any]]] = []
     RE = RunEngine({})

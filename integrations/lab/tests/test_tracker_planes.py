@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
 from focustrack.lab_sim import SimScope
 from focustrack_client import EstimatorClient
-from focustrack_client.models import Grid, SlideCreate
+from focustrack_client.models import SlideCreate
 from focustrack_focus.peak import PeakSettings
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_lab.tracker import FocusTracker
@@ -15,17 +17,11 @@ from focustrack_lab.tracker import FocusTracker
 
 @pytest.mark.slow
 def test_a_focus_measure_too_noisy_for_the_depth_of_field_gets_several_frames_to_keep(
-    estimator: EstimatorClient, scope: SimScope
+    estimator: EstimatorClient, scope: SimScope, scope_slide: Callable[[str, float], SlideCreate]
 ) -> None:
     grid = scope.microscope.slides[scope.slide].grid
     dof_um = scope.microscope.spec.optics.depth_of_field_um
-    slide = SlideCreate(
-        strategy="kf-2d-lean",
-        grid=Grid(rows=grid.rows, cols=grid.cols, pitch_um=grid.pitch_um),
-        dof_um=dof_um,
-        noise_sigma_um=1.5,
-        start_sigma_um=5.0,
-    )
+    slide = scope_slide("kf-2d-lean", 1.5)
     # A measure whose peak strays 1.5 um from the focus (as the thesis' noise): its sigma says so.
     noisy = FocusSettings(peak=PeakSettings(systematic_sigma_um=1.5))
     tracker = FocusTracker.create(estimator, slide, noisy)

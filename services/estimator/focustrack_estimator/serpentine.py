@@ -277,10 +277,12 @@ class SerpentineFilter(Strategy):
         self,
         acquisition: Acquisition,
         posterior: Gaussian,
+        z_used_um: float,
         planes_um: tuple[float, ...],
         risk: float,
     ) -> ZRange | None:
-        """The frames to acquire so that the tile can keep enough of them, None if none."""
+        """The frames to acquire so that the tile can keep enough of them about its kept
+        frame at `z_used_um`, None if none."""
         stated = self.options.risk_out_of_focus
         if not stated or risk <= stated or acquisition.purpose == Purpose.PLANES:
             return None
@@ -289,7 +291,7 @@ class SerpentineFilter(Strategy):
         return planes_stack(
             posterior.mean_um,
             posterior.sigma_um,
-            float(self.map.z_used_um[acquisition.row, acquisition.col]),
+            z_used_um,
             self.settings.dof_um,
             self.settings.policy.z_step_um,
             stated,
@@ -396,7 +398,7 @@ class SerpentineFilter(Strategy):
                 )
             risk[row, col] = planes_risk(posterior.mean_um, posterior.sigma_um, planes_um, dof_um)
             more = (
-                self._planes_to_take(acquisition, posterior, planes_um, risk[row, col])
+                self._planes_to_take(acquisition, posterior, z_used_um, planes_um, risk[row, col])
                 if keep_planes
                 else None
             )

@@ -331,19 +331,17 @@ class Engine:
     def _keep_planes(self, step: KeepPlanes) -> None:
         if self.geometry is None:  # described before any acquisition
             return
-        frames, bit_depth = [], 0
-        for frame in step.planes:
-            stack = self.listener.stacks.get(frame.sequence)
-            if stack is None:  # the plan only keeps frames it acquired
-                log.warning("tile (%d, %d): a stack is gone; no planes kept", step.row, step.col)
-                return
-            header, pixels = stack.message
-            frames.append(pixels[frame.index])
-            bit_depth = header.bit_depth
-        z_um = [frame.z_um for frame in step.planes]
-        self.record.keep_planes(
-            self.geometry.grid, step.row, step.col, z_um, np.stack(frames), bit_depth
+        stacks = [self.listener.stacks.get(frame.sequence) for frame in step.planes]
+        if any(stack is None for stack in stacks):  # the plan only keeps frames it acquired
+            log.warning("tile (%d, %d): a stack is gone; no planes kept", step.row, step.col)
+            return
+        messages = [stack.message for stack in stacks if stack is not None]
+        frames = np.stack(
+            [pixels[f.index] for (_, pixels), f in zip(messages, step.planes, strict=True)]
         )
+        z_um = [frame.z_um for frame in step.planes]
+        bit_depth = messages[0][0].bit_depth  # one camera: the same for every stack of a tile
+        self.record.keep_planes(self.geometry.grid, step.row, step.col, z_um, frames, bit_depth)
 
     def _show(self) -> None:
         if self._progress is not None:
