@@ -25,10 +25,17 @@ def test_bench_transport_measures_tcp_and_shared_memory(tmp_path: Path, capsys) 
             measured["gb_per_s"] / figures["memcpy_gb_per_s"]
         )
         assert 0 < measured["focus_latency_ms"] < 5000
+    assert set(figures["ceilings"]) == {"zenoh_tcp", "socket_tcp", "two_copies"}
+    for ceiling in figures["ceilings"].values():
+        assert ceiling["gb_per_s"] > 0
+        assert ceiling["memcpy_ratio"] == pytest.approx(
+            ceiling["gb_per_s"] / figures["memcpy_gb_per_s"]
+        )
     assert set(figures["targets"]) == {
         "tcp_gb_per_s", "tcp_memcpy_ratio", "shm_memcpy_ratio", "focus_latency"
     }  # fmt: skip
-    assert "| shm |" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "| shm |" in printed and "| socket_tcp |" in printed
     assert out.with_suffix(".png").stat().st_size > 0
 
 

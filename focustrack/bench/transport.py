@@ -14,6 +14,19 @@ runs from the first frame's put to the last frame being readable. GB/s and frame
 are compared with a memcpy of the same bytes (`np.copyto` into a buffer already
 written once) measured in the same run.
 
+Ceilings, measured in the same run so that a ratio can be read against what is
+possible at all on this machine (`CEILINGS`):
+
+- ``zenoh_tcp``: bare Zenoh sessions over TCP loopback with the same settings, the same
+  frames put and copied out with ``to_bytes()``, nothing else (no header, no decoding,
+  no consumer thread): the most our TCP path can reach with zenoh's Python API;
+- ``socket_tcp``: a plain TCP socket, ``sendall`` from the frames' own buffers and
+  ``recv_into`` a buffer made once (one copy in the kernel each way): what pixels
+  reach over loopback outside Zenoh;
+- ``two_copies``: two processes copying a stack each at the same time (each path
+  copies once on each side, and the two copies share the memory bus): the most any
+  path with a copy on each side can reach.
+
 Focus: the child runs the focus service's own frame analyser
 (`focustrack_focus.service.FrameAnalyser`) on every frame as it lands, on a consumer
 thread fed through a bounded FIFO (as the service is), and reports the time from the
@@ -25,9 +38,11 @@ the camera is done, not a backlog of the publisher's burst.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import multiprocessing
+import socket
 import statistics
 import threading
 import time
@@ -47,6 +62,9 @@ TRANSPORT_SLIDE = "bench-transport"  # stacks the child only receives
 FOCUS_SLIDE = "bench-focus"  # stacks the child also runs the focus analysis on
 ACK_KEY = keys.bench_key("transport-ack")
 PATHS = ("tcp", "shm")
+CEILINGS = ("zenoh_tcp", "socket_tcp", "two_copies")
+CEILING_KEY = keys.bench_key("transport-ceiling")
+SOCKET_BUFFER_BYTES = 8 * 1024 * 1024  # as Zenoh's links (session.PIXEL_TUNING)
 FRAME_QUEUE = 64  # frames Zenoh hands over before the consumer holds the publisher back
 
 #: Targets of issue 16 (README): checked and printed beside the figures.
@@ -159,6 +177,112 @@ def memcpy_s(frames: list[np.ndarray], repeats: int = 5) -> float:
     return statistics.median(times)
 
 
+def _random_frames(size: int, count: int) -> list[np.ndarray]:
+    """`count` frames (size, size, 1) of 12-bit noise, each in a buffer of its own (as the
+    instrument's, `codec.pixel_array`)."""
+    rng = np.random.default_rng(0)
+    frames = []
+    for _ in range(count):
+        frame = codec.pixel_array((size, size, 1), np.uint16)
+        frame[...] = rng.integers(0, 4096, size=frame.shape, dtype=np.uint16)
+        frames.append(frame)
+    return frames
+
+
+def _memcpy_child(size: int, count: int, repeats: int, start: Any, done: Any) -> None:
+    """The second copier of `two_copies`: copies its own stack alongside the parent's."""
+    frames = _random_frames(size, count)
+    start.wait()
+    done.put(memcpy_s(frames, repeats))
+
+
+def two_copies_s(frames: list[np.ndarray], repeats: int) -> float:
+    """Median seconds per stack of `frames` while another process copies as much at the
+    same time (the slower of the two)."""
+    context = multiprocessing.get_context("spawn")
+    start, done = context.Barrier(2), context.Queue()
+    size, count = frames[0].shape[0], len(frames)
+    child = context.Process(target=_memcpy_child, args=(size, count, repeats, start, done))
+    child.start()
+    try:
+        start.wait(timeout=120)
+        mine = memcpy_s(frames, repeats)
+        return max(mine, done.get(timeout=120))
+    finally:
+        child.join()
+
+
+def _stream_child(kind: str, address: str, size: int, count: int, stacks: int, done: Any) -> None:
+    """Receiver of a `stream_s` run: puts None once it listens, then the monotonic time at
+    which each stack's last frame was in hand."""
+    if kind == "socket_tcp":
+        host, port = address.rsplit(":", 1)
+        with socket.create_connection((host, int(port))) as link:
+            link.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER_BYTES)
+            done.put(None)
+            frame = memoryview(bytearray(size * size * 2))
+            for _ in range(stacks):
+                for _ in range(count):
+                    received = 0
+                    while received < len(frame):
+                        received += link.recv_into(frame[received:])
+                done.put(time.monotonic())
+        return
+    with session.open_session(connect=[address]) as child:
+        frames = child.declare_subscriber(CEILING_KEY, zenoh.handlers.FifoChannel(FRAME_QUEUE))
+        done.put(None)
+        for index, sample in enumerate(frames, start=1):
+            sample.payload.to_bytes()
+            if index % count == 0:
+                done.put(time.monotonic())
+            if index == count * stacks:
+                return
+
+
+def stream_s(kind: str, frames: list[np.ndarray], stacks: int) -> float:
+    """Median seconds per stack of `frames` sent to another process by `kind`:
+    "zenoh_tcp" or "socket_tcp" (see the module's doc)."""
+    context = multiprocessing.get_context("spawn")
+    done = context.Queue()
+    with contextlib.ExitStack() as resources:
+        if kind == "socket_tcp":
+            server = resources.enter_context(
+                socket.create_server(("127.0.0.1", session.free_port()))
+            )
+            address = f"127.0.0.1:{server.getsockname()[1]}"
+        else:
+            address = session.loopback_endpoint()
+            parent = resources.enter_context(session.open_session(listen=[address]))
+        size, count = frames[0].shape[0], len(frames)
+        child = context.Process(
+            target=_stream_child, args=(kind, address, size, count, stacks, done)
+        )
+        child.start()
+        resources.callback(child.join)
+        if kind == "socket_tcp":
+            link = resources.enter_context(server.accept()[0])
+            link.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER_BYTES)
+            send: Callable[[bytes | bytearray], object] = link.sendall
+        else:
+            send = parent.declare_publisher(
+                CEILING_KEY, congestion_control=zenoh.CongestionControl.BLOCK, express=True
+            ).put
+        done.get(timeout=120)
+        time.sleep(0.5)  # a Zenoh subscription reaches the publisher
+        times = []
+        for _ in range(stacks):
+            started_s = time.monotonic()
+            for frame in frames:
+                send(codec.raw_payload(frame))
+            times.append(done.get(timeout=120) - started_s)
+        return statistics.median(times)
+
+
+def ceiling_s(kind: str, frames: list[np.ndarray], stacks: int) -> float:
+    """Median seconds per stack of `frames` for the ceiling `kind` (one of CEILINGS)."""
+    return two_copies_s(frames, stacks) if kind == "two_copies" else stream_s(kind, frames, stacks)
+
+
 def _header(slide: str, sequence: int, frames: list[np.ndarray]) -> instrument_pb2.ZStackHeader:
     header = instrument_pb2.ZStackHeader(
         instrument="bench",
@@ -230,12 +354,7 @@ def run(args: argparse.Namespace) -> int:
         print("focustrack bench transport: error: --size, --stacks, --fps must be positive "
               "and --frames at least 3")  # fmt: skip
         return 2
-    rng = np.random.default_rng(0)
-    frames = []
-    for _ in range(args.frames):  # frames in buffers of their own, as the instrument's
-        frame = codec.pixel_array((args.size, args.size, 1), np.uint16)
-        frame[...] = rng.integers(0, 4096, size=frame.shape, dtype=np.uint16)
-        frames.append(frame)
+    frames = _random_frames(args.size, args.frames)
     stack_bytes = sum(frame.nbytes for frame in frames)
     copy_s = memcpy_s(frames)
     memcpy_gb_per_s = stack_bytes / copy_s / 1e9
@@ -263,6 +382,14 @@ def run(args: argparse.Namespace) -> int:
             "focus_last_frame_cpu_ms": 1e3
             * statistics.median(r["last_frame_cpu_s"] for r in reports["focus"]),
         }
+    figures["ceilings"] = {}
+    for kind in CEILINGS:
+        gb_per_s = stack_bytes / ceiling_s(kind, frames, args.stacks) / 1e9
+        figures["ceilings"][kind] = {
+            "gb_per_s": gb_per_s,
+            "memcpy_ratio": gb_per_s / memcpy_gb_per_s,
+        }
+        print(f"ceiling {kind}: {gb_per_s:.2f} GB/s", flush=True)
     figures["targets"] = {
         "tcp_gb_per_s": figures["tcp"]["gb_per_s"] >= TCP_MIN_GB_PER_S,
         "tcp_memcpy_ratio": figures["tcp"]["memcpy_ratio"] >= TCP_MIN_MEMCPY_RATIO,
@@ -280,17 +407,30 @@ def run(args: argparse.Namespace) -> int:
 
 
 def chart(figures: dict[str, Any], out: Path) -> None:
-    """GB/s of each path beside memcpy and the targets; focus latency against its target."""
+    """GB/s of each path beside memcpy, the ceilings and the targets; focus latency against
+    its target."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, (rate, latency) = plt.subplots(1, 2, figsize=(10, 4))
-    names = ["memcpy", *PATHS]
-    values = [figures["memcpy_gb_per_s"], *(figures[p]["gb_per_s"] for p in PATHS)]
-    rate.bar(names, values, color=["grey", "tab:blue", "tab:green"])
+    names = ["memcpy", *PATHS, *CEILINGS]
+    values = [
+        figures["memcpy_gb_per_s"],
+        *(figures[p]["gb_per_s"] for p in PATHS),
+        *(figures["ceilings"][kind]["gb_per_s"] for kind in CEILINGS),
+    ]
+    colours = ["grey", "tab:blue", "tab:green", *["lightgrey"] * len(CEILINGS)]
+    rate.bar(names, values, color=colours)
+    rate.tick_params(axis="x", labelrotation=30)
     rate.axhline(TCP_MIN_GB_PER_S, color="tab:blue", ls="--", label="tcp target (GB/s)")
+    rate.axhline(
+        TCP_MIN_MEMCPY_RATIO * figures["memcpy_gb_per_s"],
+        color="tab:blue",
+        ls=":",
+        label="tcp target (1/5 memcpy)",
+    )
     rate.axhline(
         SHM_MIN_MEMCPY_RATIO * figures["memcpy_gb_per_s"],
         color="tab:green",
@@ -326,6 +466,9 @@ def table(figures: dict[str, Any]) -> str:
             f"{f['memcpy_ratio']:.2f} | {f['focus_latency_ms']:.1f} ms "
             f"({f['focus_last_frame_cpu_ms']:.1f} ms CPU) |"
         )
+    lines += ["", "| ceiling, same run | GB/s | of memcpy |", "|---|---|---|"]
+    for kind, ceiling in figures["ceilings"].items():
+        lines.append(f"| {kind} | {ceiling['gb_per_s']:.2f} | {ceiling['memcpy_ratio']:.2f} |")
     met = ", ".join(
         f"{name} {'met' if ok else 'NOT met'}" for name, ok in figures["targets"].items()
     )

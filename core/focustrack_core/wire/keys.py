@@ -80,7 +80,7 @@ def truth_pattern(instrument: str) -> str:
 
 
 def bench_key(name: str) -> str:
-    """``focustrack/v1/bench/{name}``: traffic of `focustrack bench instrument` only."""
+    """``focustrack/v1/bench/{name}``: traffic of the benches only."""
     return f"{PREFIX}/bench/{check_name(name, 'bench key')}"
 
 
