@@ -10,11 +10,11 @@ import pytest
 from focustrack.bench import focus_real
 from focustrack.bench.focus import load_smear, load_yeast
 from focustrack_core.domain import FocusFlag
+from focustrack_core.fusion import fuse_planes
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
 from focustrack_focus.preprocess import Preprocess
-from focustrack_scheduler.fusion import fuse_planes
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
 SMEAR, YEAST = REAL / "lip_smear_zstack", REAL / "yeast_brightfield_zstack"
@@ -166,7 +166,7 @@ def test_wsi_jpeg_systematic_sigma_learnt_on_fit_fields_covers_held_out_fields()
 
 
 def test_fusing_a_real_smears_planes_takes_each_region_from_the_plane_in_focus() -> None:
-    """A tile's kept frames fused (`focustrack_scheduler.fusion`) on real texture: halves of
+    """A tile's kept frames fused (`focustrack_core.fusion`) on real texture: halves of
     the labelled focus plane and of a plane 3 steps off, swapped between two frames,
     come back from the focused plane; the real planes -2, 0, 2 fuse as sharp as plane 0."""
     frames, plane = load_smear(SMEAR)

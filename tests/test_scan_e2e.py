@@ -21,6 +21,7 @@ from focustrack.bench.accuracy import add_measurement_noise
 from focustrack.bench.replay import replay, score
 from focustrack.demo import SECOND_PASS, LocalStack
 from focustrack_core import health
+from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.wire import session
 from focustrack_core.wire.session import free_port
@@ -28,7 +29,6 @@ from focustrack_estimator import registry
 from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
-from focustrack_scheduler.fusion import fuse_planes
 from focustrack_scheduler.scan import BEST_KALMAN
 
 pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them

@@ -9,8 +9,15 @@ moves z through each and reads the camera (stream "focus_stack": the through-foc
 images with their z). It then moves z to the tile's best focus and reads the camera,
 the motors and the tile's focus (stream "primary"): one event per tile, with
 `focustrack_row`, `focustrack_col`, `focustrack_z_um`, `focustrack_sigma_um`,
-`focustrack_frames` and `focustrack_flags`, so Bluesky's callbacks (LiveTable,
-databroker, tiled) see the focus map as it is made.
+`focustrack_frames`, `focustrack_flags` and `focustrack_planes`, so Bluesky's callbacks
+(LiveTable, databroker, tiled) see the focus map as it is made.
+
+Where one image of a tile is too unsure to be in focus (a slide with a stated risk, as
+strategy kf-2d-lean keeps: `TileFocus.planes_um`), the plan first reads the camera at
+each of the tile's planes (stream "focustrack_planes", with the tile's focus, so each
+event names its tile): one of them is in focus, and their fusion
+(`focustrack_core.fusion.fuse_planes`) is the tile's image. `focustrack_planes` in the
+primary event counts them (0: the primary image is the tile's).
 
 Tile (row, col) sits at x = x0_um + col * pitch_um, y = y0_um - row * pitch_um
 (useq's grids put row 0 at the top, as here). Motor positions are in um.
@@ -34,6 +41,8 @@ Plan = Generator[Msg, Any, Any]
 
 #: The stream of through-focus images (the primary stream holds one event per tile).
 STACK_STREAM = "focus_stack"
+#: The stream of the images kept at a tile's planes, where one image is too unsure.
+PLANES_STREAM = "focustrack_planes"
 
 
 class TileFocusReading(Device):
@@ -45,6 +54,7 @@ class TileFocusReading(Device):
     sigma_um = Component(Signal, value=float("nan"), kind="hinted")
     frames = Component(Signal, value=0, kind="normal")
     flags = Component(Signal, value="", kind="normal")
+    planes = Component(Signal, value=0, kind="normal")  # images kept at planes_um
 
     def show(self, tile: TileFocus) -> Plan:
         """Set the signals to `tile`'s values (a plan stub)."""
@@ -63,6 +73,8 @@ class TileFocusReading(Device):
             tile.n_frames,
             self.flags,
             flags,
+            self.planes,
+            len(tile.planes_um),
         )
 
 
@@ -99,8 +111,11 @@ def focustrack_grid(
         for tile in ScanGrid(rows, cols).serpentine:
             yield from bps.mv(x, x0_um + tile.col * pitch_um, y, y0_um - tile.row * pitch_um)
             focus = yield from _focus_tile(camera, z, tracker, tile.row, tile.col)
-            yield from bps.mv(z, focus.z_um)
             yield from reading.show(focus)
+            for plane_um in focus.planes_um:
+                yield from bps.mv(z, plane_um)
+                yield from bps.trigger_and_read([camera, z, reading], name=PLANES_STREAM)
+            yield from bps.mv(z, focus.z_um)
             yield from bps.trigger_and_read([camera, x, y, z, reading])
         return tracker.tiles[-rows * cols :]
 

@@ -11,6 +11,14 @@ the stacks the estimator asks for again), then moves the focus stage to the best
 z; the event's own image, the one the MDA keeps, is snapped there. The stacks are
 not MDA frames: only the kept images reach the MDA's writers and `frameReady`.
 
+Where one image of a position is too unsure to be in focus (a slide with a stated
+risk, as strategy kf-2d-lean keeps: `TileFocus.planes_um`), the engine snaps each of
+the position's planes and the MDA frame is their fusion (extended depth of field,
+`focustrack_core.fusion`): one frame per position still, so every writer takes it,
+and the event's metadata lists the planes (`focustrack_planes_um`). A lab loop that
+wants the planes themselves as separate images drives `FocusTracker` itself and snaps
+them at `TileFocus.planes_um`.
+
 The grid's rows and columns are FocusTrack's tiles (row, col); the MDA must visit
 them in the estimator's serpentine order, which is useq's default `row_wise_snake`.
 FocusTrack chooses z: a sequence with a z plan is refused.
@@ -18,17 +26,24 @@ FocusTrack chooses z: a sequence with a z plan is refused.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 from pymmcore_plus import CMMCorePlus
 from pymmcore_plus.mda import MDAEngine
+from pymmcore_plus.metadata import FrameMetaV1
 from useq import GridFromEdges, GridRowsColumns, GridWidthHeight, MDAEvent, MDASequence, OrderMode
 
 from focustrack_client import EstimatorClient
 from focustrack_client.models import Grid, SlideCreate
+from focustrack_core.fusion import fuse_planes
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_lab.tracker import FocusTracker, TileFocus
+
+#: What an MDA engine yields per image (pymmcore-plus's `PImagePayload`, typing only there).
+ImagePayload = tuple[np.ndarray, MDAEvent, FrameMetaV1]
 
 
 class FocusTrackEngine(MDAEngine):
@@ -96,6 +111,28 @@ class FocusTrackEngine(MDAEngine):
             self._focused[index] = self.tracker.focus(row, col, self._snap_stack)
         self.mmcore.setZPosition(self._focused[index].z_um)
         self.mmcore.waitForDevice(self.mmcore.getFocusDevice())
+
+    def exec_single_event(self, event: MDAEvent) -> Iterator[ImagePayload | None]:
+        """The event's image: snapped at the position's best z, or the fusion of its
+        planes where it has some (module docstring)."""
+        index = event.index.get("g")
+        focus = None if index is None else self._focused.get(index)
+        if index is None or focus is None or not focus.planes_um:
+            yield from super().exec_single_event(event)
+            return
+        planes = self._snap_stack(np.asarray(focus.planes_um))
+        runner_t0 = event.metadata.get("runner_t0") or time.perf_counter()  # as the base's
+        self.mmcore.setZPosition(focus.z_um)  # where the next event of this position starts
+        self.mmcore.waitForDevice(self.mmcore.getFocusDevice())
+        event = event.model_copy(
+            update={"metadata": {**event.metadata, "focustrack_planes_um": list(focus.planes_um)}}
+        )
+        meta: FrameMetaV1 = self.get_frame_metadata(
+            event,
+            runner_time_ms=1e3 * (time.perf_counter() - runner_t0),
+            camera_device=self.mmcore.getCameraDevice(),
+        )
+        yield fuse_planes(planes), event, meta
 
     def _snap_stack(self, z_um: np.ndarray) -> np.ndarray:
         """Frames (n, H, W[, C]) snapped at z_um (n,) with the core's focus stage and camera."""

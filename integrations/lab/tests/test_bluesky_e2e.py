@@ -13,7 +13,9 @@ from bluesky.callbacks import LiveTable
 from focustrack.lab_sim import SimScope, simulated_ophyd
 from focustrack_client import EstimatorClient
 from focustrack_client.models import SlideCreate
-from focustrack_lab.bluesky import STACK_STREAM, focustrack_grid
+from focustrack_focus.peak import PeakSettings
+from focustrack_focus.pipeline import FocusSettings
+from focustrack_lab.bluesky import PLANES_STREAM, STACK_STREAM, focustrack_grid
 from focustrack_lab.tracker import FocusTracker
 
 
@@ -79,3 +81,55 @@ def test_the_plan_images_every_tile_in_focus_and_the_documents_carry_the_focus_m
         )
     table = capsys.readouterr().out
     assert "focustrack_z_um" in table and table.count("|") > grid.n_tiles
+
+
+@pytest.mark.slow
+def test_a_tile_too_unsure_for_one_image_is_read_at_each_of_its_planes(
+    estimator: EstimatorClient,
+    scope: SimScope,
+    scope_slide: Callable[[str, float], SlideCreate],
+) -> None:
+    grid = scope.microscope.slides[scope.slide].grid
+    camera, x, y, z = simulated_ophyd(scope)
+    # A measure whose peak strays 1.5 um from the focus (as the thesis' noise): its sigma says so.
+    noisy = FocusSettings(peak=PeakSettings(systematic_sigma_um=1.5))
+    tracker = FocusTracker.create(estimator, scope_slide("kf-2d-lean", 1.5), noisy)
+    documents: list[tuple[str, dict[str, Any]]] = []
+    RE = RunEngine({})
+    RE.subscribe(lambda name, document: documents.append((name, document)))
+    RE(
+        focustrack_grid(
+            camera,
+            x,
+            y,
+            z,
+            tracker,
+            rows=grid.rows,
+            cols=grid.cols,
+            pitch_um=grid.pitch_um,
+            x0_um=-(grid.cols - 1) / 2 * grid.pitch_um,
+            y0_um=(grid.rows - 1) / 2 * grid.pitch_um,
+        )
+    )
+
+    streams = {doc["uid"]: doc["name"] for name, doc in documents if name == "descriptor"}
+    events = [
+        (streams[doc["descriptor"]], doc["data"]) for name, doc in documents if name == "event"
+    ]
+    primary = [data for stream, data in events if stream == "primary"]
+    planes = [data for stream, data in events if stream == PLANES_STREAM]
+    tiles = {(tile.row, tile.col): tile for tile in tracker.tiles}
+    with_planes = [tile for tile in tiles.values() if tile.planes_um]
+    assert with_planes, [tile.sigma_um for tile in tiles.values()]
+    assert len(primary) == grid.n_tiles  # still one primary event per tile
+    for data in primary:
+        tile = tiles[data["focustrack_row"], data["focustrack_col"]]
+        assert data["focustrack_planes"] == len(tile.planes_um)
+    read_at: dict[tuple[int, int], list[float]] = {}
+    for data in planes:
+        read_at.setdefault((data["focustrack_row"], data["focustrack_col"]), []).append(data["z"])
+        assert np.asarray(data["camera"]).shape == scope.microscope.spec.shape
+    assert read_at == {
+        (tile.row, tile.col): pytest.approx(list(tile.planes_um)) for tile in with_planes
+    }
+    assert scope.n_frames == tracker.n_frames + len(planes) + len(primary)

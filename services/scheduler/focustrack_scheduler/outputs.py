@@ -49,9 +49,9 @@ from focustrack_core.domain import (
     Purpose,
     kept_in_focus,
 )
+from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import MAP_LAYERS, finite_or_none, map_csv, map_layers, map_npy
-from focustrack_scheduler.fusion import fuse_planes
 
 STATE_FILE = "scan.json"
 LOG_FILE = "scan_log.jsonl"

@@ -20,9 +20,9 @@ from focustrack_core.domain import (
     Purpose,
     ZRange,
 )
+from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler import outputs
-from focustrack_scheduler.fusion import fuse_planes
 from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, WallTimes, to_uint8
 
 GRID = ScanGrid(2, 3, pitch_um=150.0)

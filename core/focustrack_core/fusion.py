@@ -5,7 +5,8 @@ depth of field apart (docs/lean.md); its image in the mosaic takes each pixel fr
 the frame that is sharpest around it. Sharpness is the local energy of the
 Laplacian, the classic focus measure of extended-depth-of-field fusion (as in
 Fiji's "Extended Depth of Field" and the slide scanners' extended-focus modes).
-Pure numpy: the scheduler has no image library.
+Pure numpy, in the core: the scheduler fuses its mosaic tiles with it and the lab
+integrations (`focustrack_lab`) their MDA images, and neither has an image library.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack_scheduler.fusion import box_sum, fuse_planes
+from focustrack_core.fusion import box_sum, fuse_planes
 
 
 def _blurred(image: np.ndarray, passes: int) -> np.ndarray:
