@@ -19,26 +19,10 @@ from focustrack_lab.bluesky import PLANES_STREAM, STACK_STREAM, focustrack_grid
 from focustrack_lab.tracker import FocusTracker
 
 
-@pytest.mark.slow
-def test_the_plan_images_every_tile_in_focus_and_the_documents_carry_the_focus_map(
-    estimator: EstimatorClient,
-    scope: SimScope,
-    scope_slide: Callable[[str, float], SlideCreate],
-    capsys: pytest.CaptureFixture[str],
-) -> None:
+def scan(RE: RunEngine, scope: SimScope, tracker: FocusTracker) -> str:
+    """Runs the plan over the scope's slide with ophyd.sim devices; the run's uid."""
     grid = scope.microscope.slides[scope.slide].grid
-    dof_um = scope.microscope.spec.optics.depth_of_field_um
     camera, x, y, z = simulated_ophyd(scope)
-    slide = scope_slide("kf-2d", 0.1)
-    tracker = FocusTracker.create(estimator, slide)
-    documents: list[tuple[str, dict[str, Any]]] = []
-    RE = RunEngine({})
-    RE.subscribe(lambda name, document: documents.append((name, document)))
-    columns = ["focustrack_row", "focustrack_col", "focustrack_z_um", "focustrack_sigma_um"]
-    RE.subscribe(LiveTable(columns))  # Bluesky's own callback sees the focus map
-    # Tile (row, col) at the simulator's stage coordinates (lab_sim: centred on 0, y up).
-    x0_um = -(grid.cols - 1) / 2 * grid.pitch_um
-    y0_um = (grid.rows - 1) / 2 * grid.pitch_um
     (run_uid,) = RE(
         focustrack_grid(
             camera,
@@ -49,20 +33,47 @@ def test_the_plan_images_every_tile_in_focus_and_the_documents_carry_the_focus_m
             rows=grid.rows,
             cols=grid.cols,
             pitch_um=grid.pitch_um,
-            x0_um=x0_um,
-            y0_um=y0_um,
+            # Tile (row, col) at the simulator's stage coordinates (lab_sim: centred on 0, y up).
+            x0_um=-(grid.cols - 1) / 2 * grid.pitch_um,
+            y0_um=(grid.rows - 1) / 2 * grid.pitch_um,
         )
     )
+    return str(run_uid)
+
+
+def events_by_stream(documents: list[tuple[str, dict[str, Any]]]) -> dict[str, list[dict]]:
+    """The data of every event document, by the name of its stream."""
+    streams = {doc["uid"]: doc["name"] for name, doc in documents if name == "descriptor"}
+    events: dict[str, list[dict]] = {}
+    for name, doc in documents:
+        if name == "event":
+            events.setdefault(streams[doc["descriptor"]], []).append(doc["data"])
+    return events
+
+
+@pytest.mark.slow
+def test_the_plan_images_every_tile_in_focus_and_the_documents_carry_the_focus_map(
+    estimator: EstimatorClient,
+    scope: SimScope,
+    scope_slide: Callable[[str, float], SlideCreate],
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    grid = scope.microscope.slides[scope.slide].grid
+    dof_um = scope.microscope.spec.optics.depth_of_field_um
+    slide = scope_slide("kf-2d", 0.1)
+    tracker = FocusTracker.create(estimator, slide)
+    documents: list[tuple[str, dict[str, Any]]] = []
+    RE = RunEngine({})
+    RE.subscribe(lambda name, document: documents.append((name, document)))
+    columns = ["focustrack_row", "focustrack_col", "focustrack_z_um", "focustrack_sigma_um"]
+    RE.subscribe(LiveTable(columns))  # Bluesky's own callback sees the focus map
+    run_uid = scan(RE, scope, tracker)
 
     names = [name for name, _ in documents]
     assert names[0] == "start" and names[-1] == "stop"
     assert documents[-1][1]["exit_status"] == "success" and documents[-1][1]["run_start"] == run_uid
-    streams = {doc["uid"]: doc["name"] for name, doc in documents if name == "descriptor"}
-    events = [
-        (streams[doc["descriptor"]], doc["data"]) for name, doc in documents if name == "event"
-    ]
-    primary = [data for stream, data in events if stream == "primary"]
-    stacks = [data for stream, data in events if stream == STACK_STREAM]
+    events = events_by_stream(documents)
+    primary, stacks = events["primary"], events[STACK_STREAM]
     assert len(primary) == grid.n_tiles
     assert len(stacks) == tracker.n_frames
     truth_um, _ = scope.microscope.truth_um(scope.slide)
@@ -90,34 +101,16 @@ def test_a_tile_too_unsure_for_one_image_is_read_at_each_of_its_planes(
     scope_slide: Callable[[str, float], SlideCreate],
 ) -> None:
     grid = scope.microscope.slides[scope.slide].grid
-    camera, x, y, z = simulated_ophyd(scope)
     # A measure whose peak strays 1.5 um from the focus (as the thesis' noise): its sigma says so.
     noisy = FocusSettings(peak=PeakSettings(systematic_sigma_um=1.5))
     tracker = FocusTracker.create(estimator, scope_slide("kf-2d-lean", 1.5), noisy)
     documents: list[tuple[str, dict[str, Any]]] = []
     RE = RunEngine({})
     RE.subscribe(lambda name, document: documents.append((name, document)))
-    RE(
-        focustrack_grid(
-            camera,
-            x,
-            y,
-            z,
-            tracker,
-            rows=grid.rows,
-            cols=grid.cols,
-            pitch_um=grid.pitch_um,
-            x0_um=-(grid.cols - 1) / 2 * grid.pitch_um,
-            y0_um=(grid.rows - 1) / 2 * grid.pitch_um,
-        )
-    )
+    scan(RE, scope, tracker)
 
-    streams = {doc["uid"]: doc["name"] for name, doc in documents if name == "descriptor"}
-    events = [
-        (streams[doc["descriptor"]], doc["data"]) for name, doc in documents if name == "event"
-    ]
-    primary = [data for stream, data in events if stream == "primary"]
-    planes = [data for stream, data in events if stream == PLANES_STREAM]
+    events = events_by_stream(documents)
+    primary, planes = events["primary"], events[PLANES_STREAM]
     tiles = {(tile.row, tile.col): tile for tile in tracker.tiles}
     with_planes = [tile for tile in tiles.values() if tile.planes_um]
     assert with_planes, [tile.sigma_um for tile in tiles.values()]
