@@ -18,6 +18,7 @@ class ErrorCode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     ERROR_CODE_TIMEOUT: _ClassVar[ErrorCode]
     ERROR_CODE_UNAVAILABLE: _ClassVar[ErrorCode]
     ERROR_CODE_BUSY: _ClassVar[ErrorCode]
+    ERROR_CODE_FRAMES_GONE: _ClassVar[ErrorCode]
 
 class FocusFlag(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -39,6 +40,7 @@ ERROR_CODE_BAD_STACK: ErrorCode
 ERROR_CODE_TIMEOUT: ErrorCode
 ERROR_CODE_UNAVAILABLE: ErrorCode
 ERROR_CODE_BUSY: ErrorCode
+ERROR_CODE_FRAMES_GONE: ErrorCode
 FOCUS_FLAG_UNSPECIFIED: FocusFlag
 FOCUS_FLAG_EDGE_LOW: FocusFlag
 FOCUS_FLAG_EDGE_HIGH: FocusFlag

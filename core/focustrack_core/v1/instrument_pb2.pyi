@@ -106,6 +106,20 @@ class AcquireReply(_message.Message):
     timing: Timing
     def __init__(self, header: _Optional[_Union[ZStackHeader, _Mapping]] = ..., timing: _Optional[_Union[Timing, _Mapping]] = ...) -> None: ...
 
+class FramesRequest(_message.Message):
+    __slots__ = ("slide", "row", "col", "sequence", "indices")
+    SLIDE_FIELD_NUMBER: _ClassVar[int]
+    ROW_FIELD_NUMBER: _ClassVar[int]
+    COL_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    INDICES_FIELD_NUMBER: _ClassVar[int]
+    slide: str
+    row: int
+    col: int
+    sequence: int
+    indices: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ...) -> None: ...
+
 class SlideInfo(_message.Message):
     __slots__ = ("slide", "rows", "cols", "pitch_um", "origin_x_um", "origin_y_um")
     SLIDE_FIELD_NUMBER: _ClassVar[int]

@@ -3,6 +3,8 @@
 - ``focustrack/v1/instrument/{instrument}/acquire``: queryable; AcquireRequest in,
   AcquireReply out (error replies carry an Error).
 - ``focustrack/v1/instrument/{instrument}/info``: queryable; InstrumentInfo out.
+- ``focustrack/v1/instrument/{instrument}/frames``: queryable; FramesRequest in, one
+  reply per frame of a stack acquired lately (as published on zframe), or an Error.
 - ``focustrack/v1/zstack/{slide}/{row}/{col}``: the instrument publishes each whole stack
   (raw pixels as payload, ZStackHeader as attachment) when someone subscribes to it.
 - ``focustrack/v1/zframe/{slide}/{row}/{col}``: the instrument publishes every frame of
@@ -55,6 +57,10 @@ def acquire_key(instrument: str) -> str:
 
 def info_key(instrument: str) -> str:
     return f"{PREFIX}/instrument/{check_name(instrument, 'instrument')}/info"
+
+
+def frames_key(instrument: str) -> str:
+    return f"{PREFIX}/instrument/{check_name(instrument, 'instrument')}/frames"
 
 
 def zstack_key(slide: str, row: int, col: int) -> str:

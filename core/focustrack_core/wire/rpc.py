@@ -1,10 +1,11 @@
 """Request/reply over Zenoh queryables with protobuf messages and Error replies.
 
 A queryable hands each query to `answer` with a function that turns it into a reply
-message; a `RequestError` raised there (for example by `parse_request`) becomes an
-error reply (payload an `Error`, encoding ``application/protobuf;focustrack_core.v1.Error``),
-and any other exception an INTERNAL error reply, so the service keeps running. A
-caller uses `call`, which returns the reply message or raises `RemoteError`.
+message (or to `serve` with one that replies itself, as often as it needs); a
+`RequestError` raised there (for example by `parse_request`) becomes an error reply
+(payload an `Error`, encoding ``application/protobuf;focustrack_core.v1.Error``), and
+any other exception an INTERNAL error reply, so the service keeps running. A caller
+uses `call`, which returns the reply message or raises `RemoteError`.
 """
 
 from __future__ import annotations
@@ -86,9 +87,16 @@ def reply_error(query: zenoh.Query, error: common_pb2.Error) -> None:
 
 def answer(query: zenoh.Query, key_expr: str, handle: Callable[[zenoh.Query], Message]) -> None:
     """Reply to `query` with `handle(query)`, or with an error reply; always finishes the query."""
+    serve(query, key_expr, lambda query: reply_message(query, key_expr, handle(query)))
+
+
+def serve(query: zenoh.Query, key_expr: str, respond: Callable[[zenoh.Query], None]) -> None:
+    """Let `respond` reply to `query` (as many replies as it likes); a `RequestError` it
+    raises becomes that error reply, any other exception an INTERNAL one. Always
+    finishes the query."""
     with query:
         try:
-            message = handle(query)
+            respond(query)
         except RequestError as refused:
             log.info("refused query on %s: %s", key_expr, refused)
             reply_error(query, refused.error)
@@ -101,8 +109,6 @@ def answer(query: zenoh.Query, key_expr: str, handle: Callable[[zenoh.Query], Me
                     message=f"{type(failure).__name__}: {failure}",
                 ),
             )
-        else:
-            reply_message(query, key_expr, message)
 
 
 def error_of(reply_error: zenoh.ReplyError) -> common_pb2.Error:

@@ -7,12 +7,16 @@ Queryables (key space in proto/README.md):
   subscribes to it, then AcquireReply (header and timing) comes back. Bad requests
   get an Error reply; the service keeps running.
 - ``focustrack/v1/instrument/{name}/info``: InstrumentInfo (slides, limits, optics).
+- ``focustrack/v1/instrument/{name}/frames``: FramesRequest in; one reply per frame of
+  a stack acquired lately (the frames the scheduler keeps: `recent.RecentStacks`, up to
+  ``--keep-frames-mb`` of them besides the last stack), or an Error reply
+  (ERROR_CODE_FRAMES_GONE when the stack is no longer held).
 - ``focustrack/v1/eval/truth/{name}/{slide}``: SlideTruth, for evaluation code only, and
   only with ``--serve-truth``.
 
 Acquisitions run one at a time on the main thread (there is one stage), which
-publishes each frame while the render threads work on the next ones; info and truth
-are answered on Zenoh's threads. At most `--queue-depth` acquisitions wait for the
+publishes each frame while the render threads work on the next ones; info, frames and
+truth are answered on Zenoh's threads. At most `--queue-depth` acquisitions wait for the
 stage; one more is refused at once with ERROR_CODE_BUSY (the caller backs off and
 asks again), so a burst of requests cannot make a normal one wait behind all of it.
 The truth queryable is declared only with `--serve-truth` (benchmarks and tests):
@@ -53,6 +57,7 @@ from focustrack_instrument_sim.microscope import (
     slides_from_seed,
 )
 from focustrack_instrument_sim.optics import CHANNELS, Optics
+from focustrack_instrument_sim.recent import RecentStacks
 from focustrack_instrument_sim.specimen import SpecimenSpec
 from focustrack_instrument_sim.stage import StageSpec
 from focustrack_instrument_sim.surfaces import FAMILIES, family_spec
@@ -61,6 +66,10 @@ log = logging.getLogger(__name__)
 
 #: Acquisitions that may wait for the stage; one more is refused BUSY.
 QUEUE_DEPTH = 4
+
+#: Frames of past stacks kept for queries, MB, besides the last stack (`RecentStacks`):
+#: two stacks of 41 frames of 1024 x 1024 RGB uint16.
+KEEP_FRAMES_MB = 512
 
 ERROR_CODES = {
     Refusal.MALFORMED: rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST,
@@ -84,6 +93,7 @@ class InstrumentService:
         shm_pool_bytes: int = 0,
         queue_depth: int = QUEUE_DEPTH,
         serve_truth: bool = False,
+        keep_frames_bytes: int = KEEP_FRAMES_MB * 1_000_000,
     ) -> None:
         if queue_depth < 1:
             raise ValueError(f"queue_depth must be at least 1, got {queue_depth}")
@@ -98,15 +108,18 @@ class InstrumentService:
         self.serve_truth = serve_truth
         self.n_busy = 0  # acquisitions refused because the queue was full
         self._declared: list = []
-        self._frames: list[np.ndarray] = []  # frame buffers, reused from stack to stack
+        self.recent = RecentStacks(keep_frames_bytes)
 
     def start(self) -> None:
         """Declare the queryables (the instrument becomes visible)."""
-        info_key = keys.info_key(self.name)
+        info_key, frames_key = keys.info_key(self.name), keys.frames_key(self.name)
         self._declared = [
             self.session.declare_queryable(self._acquire_key, self._enqueue),
             self.session.declare_queryable(
                 info_key, lambda query: rpc.answer(query, info_key, self._info)
+            ),
+            self.session.declare_queryable(
+                frames_key, lambda query: rpc.serve(query, frames_key, self._reply_frames)
             ),
         ]
         if self.serve_truth:
@@ -189,9 +202,12 @@ class InstrumentService:
             else None
         )
         out = stack.__getitem__ if stack is not None else self._frame_buffer
+        frames = []
         for index, frame in enumerate(self.microscope.render(plan, out)):
             self.publisher.put_frame(frame_key, header, index, frame)
+            frames.append(frame)
         header.timestamp_unix_s = time.time()
+        self.recent.keep(header, frames, recyclable=stack is None)
         if stack is not None:
             self.publisher.put_stack(stack_key, header, stack)
         timing = plan.timing
@@ -210,16 +226,38 @@ class InstrumentService:
             ),
         )
 
-    def _frame_buffer(self, index: int) -> np.ndarray:
-        """The buffer frame `index` of a stack renders into (height, width, channels) uint16.
+    def _frame_buffer(self, _index: int) -> np.ndarray:
+        """A buffer to render a frame into (height, width, channels) uint16: one of a stack
+        no longer kept where there is one (`RecentStacks.buffer`)."""
+        return self.recent.buffer((*self.microscope.spec.shape, len(CHANNELS)), np.dtype(np.uint16))
 
-        Zenoh copies a payload before `put` returns, so the buffers are free again once a
-        stack is published: reusing them spares the page faults of fresh megabytes per frame.
-        """
-        shape = (*self.microscope.spec.shape, len(CHANNELS))
-        while len(self._frames) <= index:
-            self._frames.append(codec.pixel_array(shape, np.uint16))
-        return self._frames[index]
+    def _reply_frames(self, query: zenoh.Query) -> None:
+        """Answer a FramesRequest with one reply per frame, as they were published."""
+        request = rpc.parse_request(query, instrument_pb2.FramesRequest)
+        try:
+            found = self.recent.copies(
+                request.slide, request.row, request.col, request.sequence, list(request.indices)
+            )
+        except IndexError as error:
+            raise rpc.RequestError(
+                rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST, str(error), "indices"
+            ) from error
+        if found is None:
+            raise rpc.RequestError(
+                rpc.ErrorCode.ERROR_CODE_FRAMES_GONE,
+                f"stack {request.sequence} of tile ({request.row}, {request.col}) of slide "
+                f"{request.slide!r} is not held (any more): the instrument keeps "
+                f"{self.recent.budget_bytes / 1e6:.0f} MB of past stacks besides the last",
+            )
+        header, frames = found
+        indices = list(request.indices) or list(range(len(frames)))
+        for index, frame in zip(indices, frames, strict=True):
+            query.reply(
+                query.key_expr,
+                self.publisher.payload(frame),
+                attachment=codec.frame_header(header, index, frame).SerializeToString(),
+                encoding=codec.ZFRAME_ENCODING,
+            )
 
     def _info(self, _query: zenoh.Query) -> instrument_pb2.InstrumentInfo:
         spec = self.microscope.spec
@@ -309,6 +347,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--realtime", action="store_true", help="pace acquisitions at their simulated duration"
     )
     scope.add_argument(
+        "--keep-frames-mb",
+        type=float,
+        default=KEEP_FRAMES_MB,
+        help="frames of past stacks kept for the frames queryable, MB, besides the last "
+        f"stack ({KEEP_FRAMES_MB})",
+    )
+    scope.add_argument(
         "--queue-depth",
         type=int,
         default=QUEUE_DEPTH,
@@ -349,6 +394,8 @@ def run(args: argparse.Namespace) -> int:
         config_from_args(args)  # a bad option or config file ends the command here, not later
         if args.queue_depth < 1:
             raise ValueError(f"--queue-depth must be at least 1, got {args.queue_depth}")
+        if args.keep_frames_mb < 0:
+            raise ValueError(f"--keep-frames-mb must not be negative, got {args.keep_frames_mb}")
     except ValueError as error:
         log.error("%s", error)
         return 2
@@ -381,6 +428,7 @@ def serve(
         shm_pool_bytes=shm_pool_bytes(args),
         queue_depth=args.queue_depth,
         serve_truth=args.serve_truth,
+        keep_frames_bytes=int(args.keep_frames_mb * 1_000_000),
     )
     service.stop = stop
     service.start()

@@ -154,3 +154,57 @@ def test_malformed_message_gets_an_error_and_the_service_keeps_running(client) -
     reply = rpc.call(client, keys.acquire_key("sim"), _request(n_frames=1),
                      instrument_pb2.AcquireReply)  # fmt: skip
     assert len(reply.header.z_um) == 1
+
+
+def _frames_query(
+    client: zenoh.Session, **fields
+) -> list[tuple[instrument_pb2.ZFrameHeader, np.ndarray]]:
+    """The frames replied to a FramesRequest; RemoteError on an error reply."""
+    request = instrument_pb2.FramesRequest(**{"slide": "slide-0", "row": 3, "col": 4, **fields})
+    replies = client.get(
+        keys.frames_key("sim"),
+        payload=request.SerializeToString(),
+        timeout=10,
+        consolidation=zenoh.ConsolidationMode.NONE,  # every frame replies on the same key
+    )
+    frames = []
+    for reply in replies:
+        if reply.err is not None:
+            raise rpc.RemoteError(rpc.error_of(reply.err))
+        frames.append(codec.decode_zframe_sample(reply.ok))
+    return frames
+
+
+def test_the_frames_of_a_recent_stack_are_answered_as_they_were_published(
+    client: zenoh.Session,
+) -> None:
+    published: list[tuple[instrument_pb2.ZFrameHeader, np.ndarray]] = []
+    with client.declare_subscriber(
+        keys.zframe_pattern("slide-0"),
+        lambda sample: published.append(codec.decode_zframe_sample(sample)),
+    ):
+        time.sleep(0.5)  # let the subscription reach the instrument
+        rpc.call(client, keys.acquire_key("sim"), _request(row=3, col=4, sequence=77, n_frames=5),
+                 instrument_pb2.AcquireReply)  # fmt: skip
+        for _ in range(100):
+            if len(published) == 5:
+                break
+            time.sleep(0.1)
+    by_index = {header.index: frame for header, frame in published if header.stack.sequence == 77}
+    answered = _frames_query(client, sequence=77, indices=[4, 0])
+    assert [header.index for header, _ in answered] == [4, 0]
+    for header, frame in answered:
+        assert (header.stack.row, header.stack.col, header.stack.sequence) == (3, 4, 77)
+        np.testing.assert_array_equal(frame, by_index[header.index])
+    assert [header.index for header, _ in _frames_query(client, sequence=77)] == list(range(5))
+
+    with pytest.raises(rpc.RemoteError) as gone:
+        _frames_query(client, sequence=78)  # never taken
+    assert gone.value.error.code == common_pb2.ERROR_CODE_FRAMES_GONE
+    assert "is not held" in gone.value.error.message
+    with pytest.raises(rpc.RemoteError) as outside:
+        _frames_query(client, sequence=77, indices=[5])
+    assert outside.value.error.code == common_pb2.ERROR_CODE_MALFORMED_REQUEST
+    assert outside.value.error.field == "indices"
+    replies = list(client.get(keys.frames_key("sim"), payload=b"\x08\xff\xff", timeout=10))
+    assert rpc.error_of(replies[0].err).code == common_pb2.ERROR_CODE_MALFORMED_REQUEST

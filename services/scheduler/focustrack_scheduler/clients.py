@@ -1,10 +1,10 @@
-"""The Zenoh side of the scheduler: the instrument's queryables and the stacks and focus results.
+"""The Zenoh side of the scheduler: the instrument's queryables and the focus results.
 
-`InstrumentClient` asks the instrument (info, acquire, and the evaluation-only
-truth); `Inbox` collects what arrives by subscription, the z-stacks of the slide
-(for the tile images, gathered from their frames as the instrument streams them)
-and the focus service's results, keyed by the acquisition's sequence number, for
-the engine to wait on.
+`InstrumentClient` asks the instrument (info, acquire, the frames a tile keeps, and
+the evaluation-only truth); `Inbox` collects the focus service's results as they
+arrive by subscription, keyed by the acquisition's sequence number, for the engine to
+wait on. The scheduler does not subscribe to the frames: only the focus service needs
+every one, and the scheduler fetches the few it keeps once their tile's focus is known.
 """
 
 from __future__ import annotations
@@ -12,9 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 import numpy as np
@@ -22,7 +20,7 @@ import zenoh
 
 from focustrack_core.domain import Acquisition
 from focustrack_core.geometry import ScanGrid
-from focustrack_core.v1 import focus_pb2, instrument_pb2
+from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.trust import ResultSigner
 from focustrack_scheduler.plan import SlideGeometry
@@ -47,7 +45,7 @@ def acquire_request(slide: str, acquisition: Acquisition) -> instrument_pb2.Acqu
 
 
 def same_stack(acquisition: Acquisition, row: int, col: int, z_um: list[float]) -> bool:
-    """True when a stack (or its focus result) at (row, col) with frames `z_um` is this one's.
+    """True when a focus result at (row, col) of frames at `z_um` is of this acquisition.
 
     The sequence alone could match a late message of an earlier scan of the same slide.
     """
@@ -100,6 +98,51 @@ class InstrumentClient:
             self.timeout_s,
         )
 
+    def frames(
+        self, slide: str, row: int, col: int, sequence: int, indices: list[int]
+    ) -> tuple[instrument_pb2.ZStackHeader, list[np.ndarray]]:
+        """The header of stack `sequence` of tile (row, col) and its frames at `indices`
+        (height, width, channels), from the instrument's frames queryable.
+
+        Raises RemoteError when the instrument refuses (ERROR_CODE_FRAMES_GONE: it no
+        longer holds the stack) or does not answer with every frame.
+        """
+        request = instrument_pb2.FramesRequest(
+            slide=slide, row=row, col=col, sequence=sequence, indices=indices
+        )
+        key_expr = keys.frames_key(self.name)
+        replies = self.session.get(
+            key_expr,
+            payload=request.SerializeToString(),
+            encoding=rpc.protobuf_encoding(instrument_pb2.FramesRequest),
+            timeout=self.timeout_s,
+            consolidation=zenoh.ConsolidationMode.NONE,  # every frame replies on the same key
+        )
+        header, frames = None, {}
+        for reply in replies:
+            if reply.err is not None:
+                raise rpc.RemoteError(rpc.error_of(reply.err))
+            if reply.ok is not None:
+                try:
+                    frame_header, frame = codec.decode_zframe_sample(reply.ok)
+                except ValueError as error:
+                    raise rpc.RemoteError(
+                        common_pb2.Error(
+                            code=rpc.ErrorCode.ERROR_CODE_BAD_STACK,
+                            message=f"unreadable frame from {key_expr}: {error}",
+                        )
+                    ) from error
+                header, frames[frame_header.index] = frame_header.stack, frame
+        missing = sorted(set(indices) - set(frames))
+        if header is None or missing:
+            raise rpc.RemoteError(
+                common_pb2.Error(
+                    code=rpc.ErrorCode.ERROR_CODE_UNAVAILABLE,
+                    message=f"{key_expr} sent no frame {missing or indices} of stack {sequence}",
+                )
+            )
+        return header, [frames[index] for index in indices]
+
     def truth_um(self, slide: str, timeout_s: float = 5.0) -> np.ndarray:
         """The true best focus (rows, cols) in um, from the evaluation-only truth queryable."""
         truth = rpc.call(
@@ -127,14 +170,6 @@ def wait_for_instrument(
             time.sleep(0.2)
 
 
-@dataclass(frozen=True)
-class Received(Generic[T]):
-    """A message taken off Zenoh, and when (unix seconds)."""
-
-    message: T
-    received_unix_s: float
-
-
 class Inbox(Generic[T]):
     """Messages by sequence number, the latest of each; `wait` blocks until one is accepted.
 
@@ -142,91 +177,43 @@ class Inbox(Generic[T]):
     """
 
     def __init__(self) -> None:
-        self._items: dict[int, Received[T]] = {}
+        self._items: dict[int, T] = {}
         self._changed = threading.Condition()
 
     def put(self, sequence: int, message: T) -> None:
         with self._changed:
-            self._items[sequence] = Received(message, time.time())
+            self._items[sequence] = message
             self._changed.notify_all()
 
-    def wait(
-        self, sequence: int, accept: Callable[[T], bool], timeout_s: float
-    ) -> Received[T] | None:
+    def wait(self, sequence: int, accept: Callable[[T], bool], timeout_s: float) -> T | None:
         """The message of `sequence` that `accept` takes, or None after `timeout_s`."""
         deadline_s = time.monotonic() + timeout_s
         with self._changed:
             while True:
                 item = self._items.get(sequence)
-                if item is not None and accept(item.message):
+                if item is not None and accept(item):
                     return item
                 remaining_s = deadline_s - time.monotonic()
                 if remaining_s <= 0:
                     return None
                 self._changed.wait(remaining_s)
 
-    def get(self, sequence: int) -> Received[T] | None:
-        with self._changed:
-            return self._items.get(sequence)
-
-    def retain(self, keep: Callable[[int], bool]) -> None:
-        """Drop every message whose sequence `keep` refuses."""
-        with self._changed:
-            self._items = {s: item for s, item in self._items.items() if keep(s)}
-
-
-#: A stack gathered from its frames: its header and every frame (h, w, channels), in z order.
-#: The frames are views of the received payloads: gathering them copies no pixels.
-Stack = tuple[instrument_pb2.ZStackHeader, tuple[np.ndarray, ...]]
-
-#: Stacks whose frames are still coming in, kept at most (the oldest incomplete one goes).
-OPEN_STACKS = 8
-
 
 class SlideListener:
-    """Subscribes to the frames and focus results of one slide; close it when done.
+    """Subscribes to the focus results of one slide; close it when done.
 
-    A stack enters `stacks` once its last frame is in. With a `trust` key, a focus
-    result enters `focus` only when its attachment is that key's tag of it
-    (`focustrack_core.wire.trust`); the others are dropped, logged and counted in
-    `n_rejected`.
+    With a `trust` key, a focus result enters `focus` only when its attachment is that
+    key's tag of it (`focustrack_core.wire.trust`); the others are dropped, logged and
+    counted in `n_rejected`.
     """
 
     def __init__(
         self, session: zenoh.Session, slide: str, trust: ResultSigner | None = None
     ) -> None:
-        self.stacks: Inbox[Stack] = Inbox()
         self.focus: Inbox[focus_pb2.FocusResult] = Inbox()
         self.trust = trust
         self.n_rejected = 0
-        self._gathering: OrderedDict[tuple[str, int, float], list[np.ndarray | None]] = (
-            OrderedDict()
-        )
-        self._lock = threading.Lock()  # Zenoh may hand frames over on several threads
-        self._subscribers = [
-            session.declare_subscriber(keys.zframe_pattern(slide), self._on_frame),
-            session.declare_subscriber(keys.focus_pattern(slide), self._on_focus),
-        ]
-
-    def _on_frame(self, sample: zenoh.Sample) -> None:
-        try:
-            frame_header, frame = codec.decode_zframe_sample(sample)
-        except ValueError as error:  # Zenoh swallows callback exceptions: say it here
-            log.warning("unreadable frame on %s: %s", sample.key_expr, error)
-            return
-        header = frame_header.stack
-        # An acquisition taken again keeps its sequence but not its clock.
-        stack_id = (str(sample.key_expr), header.sequence, header.clock_s)
-        with self._lock:
-            frames = self._gathering.setdefault(stack_id, [None] * len(header.z_um))
-            frames[frame_header.index] = frame
-            if any(f is None for f in frames):
-                while len(self._gathering) > OPEN_STACKS:
-                    dropped, _ = self._gathering.popitem(last=False)
-                    log.warning("stack %d on %s never completed", dropped[1], dropped[0])
-                return
-            del self._gathering[stack_id]
-        self.stacks.put(header.sequence, (header, tuple(f for f in frames if f is not None)))
+        self._subscribers = [session.declare_subscriber(keys.focus_pattern(slide), self._on_focus)]
 
     def _on_focus(self, sample: zenoh.Sample) -> None:
         key_expr = str(sample.key_expr)

@@ -10,8 +10,9 @@ URL, when one stays gone longer than that:
   doubling from `backoff_initial_s` to `backoff_max_s`, for up to
   `RetryPolicy.instrument_outage_s` (60 s: a router or instrument restart); any
   other refusal (an Error reply) is not retried, it is a bug in the request;
-- the stack itself (Zenoh subscription): an acquisition counts as done when its
-  reply *and* its stack have arrived, since the tile image is taken from the stack;
+- the frames a tile keeps (its image, or its planes) are fetched from the instrument
+  by a query once the tile's focus is known (`InstrumentClient.frames`), retried as
+  any instrument query; the scheduler does not receive the other frames;
 - focus results: waited for `focus_timeout_s`; a timeout goes back to the plan,
   which acquires the stack again;
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
@@ -52,6 +53,7 @@ from focustrack_scheduler.plan import (
     AwaitFocus,
     CreateOrResumeSlide,
     DescribeSlide,
+    Frame,
     KeepPlanes,
     KeepTile,
     Plan,
@@ -64,10 +66,6 @@ from focustrack_scheduler.remote import acquisition_of, measurement_in, outcome_
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
-
-
-#: Acquisitions of one stack whose frames never arrive before the scan gives up.
-STACK_ATTEMPTS = 3
 
 
 class ServiceUnavailableError(RuntimeError):
@@ -179,7 +177,9 @@ class Engine:
         self.geometry: SlideGeometry | None = None
         self._on_geometry = on_geometry
         self._progress: ScanProgress | None = None
-        self._tile: tuple[int, int] | None = None
+        self._slide = ""  # the slide being scanned (DescribeSlide)
+        #: the acquisitions of the tile being scanned, by sequence: to take one again
+        self._taken: dict[int, tuple[str, Acquisition]] = {}
         self._tile_format_saved = "tile" in (record.state or {})
         #: acquisition index -> its focus curve (z um, scores), until it is posted
         self._curves: dict[int, tuple[list[float], list[float]]] = {}
@@ -235,7 +235,7 @@ class Engine:
             )
         except ValueError as error:
             raise ScanRefusedError(str(error)) from error
-        self.geometry = geometry
+        self.geometry, self._slide = geometry, step.slide
         self._progress = self._on_geometry(geometry)
         if self._progress is not None:
             self._progress.update(self.record)
@@ -244,38 +244,27 @@ class Engine:
     def _acquire(self, step: Acquire) -> tuple[float, ...]:
         acquisition = step.acquisition
         tile = (acquisition.row, acquisition.col)
-        if tile != self._tile:  # the stacks of the previous tile are no longer needed
-            self._tile = tile
-            self.listener.stacks.retain(lambda _: False)
-        request = acquire_request(step.slide, acquisition)
+        if any((a.row, a.col) != tile for _, a in self._taken.values()):
+            self._taken = {}  # a new tile: the frames of the last are no longer asked for
+        self._taken[acquisition.index] = (step.slide, acquisition)
+        return self._take(step.slide, acquisition)
+
+    def _take(self, slide: str, acquisition: Acquisition) -> tuple[float, ...]:
+        """Acquire `acquisition`'s stack of `slide`; the z (um) of its frames."""
+        request = acquire_request(slide, acquisition)
         key_expr = keys.acquire_key(self.instrument.name)
-        what = f"acquisition {acquisition.index} of tile {tile}"
-
-        def accept(stack: Any) -> bool:
-            header = stack[0]
-            return same_stack(acquisition, header.row, header.col, list(header.z_um))
-
-        for attempt in range(1, STACK_ATTEMPTS + 1):
-            sent_s = time.time()
-            reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
-            replied_s = time.time()
-            # Every stack taken is real images and stage time, kept or not.
-            self.record.acquired(acquisition, len(reply.header.z_um), reply.timing.total_s)
-            self._show()
-            stack = self.listener.stacks.wait(
-                acquisition.index, accept, self.policy.focus_timeout_s
-            )
-            published_s = min(max(reply.header.timestamp_unix_s, sent_s), replied_s)
-            self.wall.rendering_s += published_s - sent_s
-            if stack is not None:
-                self.wall.transport_s += max(replied_s, stack.received_unix_s) - published_s
-                return tuple(reply.header.z_um)
-            self.wall.transport_s += time.time() - published_s
-            log.warning("%s: the stack never arrived (attempt %d)", what, attempt)
-        raise ServiceUnavailableError(
-            f"{what}: the instrument replied but the frames of its stack never arrived on "
-            f"{keys.zframe_key(step.slide, *tile)}"
-        )
+        what = f"acquisition {acquisition.index} of tile ({acquisition.row}, {acquisition.col})"
+        sent_s = time.time()
+        reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
+        replied_s = time.time()
+        # Every stack taken is real images and stage time, kept or not.
+        self.record.acquired(acquisition, len(reply.header.z_um), reply.timing.total_s)
+        self._show()
+        # The instrument replies once its frames are published (timestamp_unix_s).
+        published_s = min(max(reply.header.timestamp_unix_s, sent_s), replied_s)
+        self.wall.rendering_s += published_s - sent_s
+        self.wall.transport_s += replied_s - published_s
+        return tuple(reply.header.z_um)
 
     def _await_focus(self, step: AwaitFocus) -> Any:
         acquisition = step.acquisition
@@ -298,25 +287,56 @@ class Engine:
             self.wall.waiting_s += waited_s
             return None
         self._curves[acquisition.index] = (
-            list(received.message.z_um),
-            list(received.message.scores),
+            list(received.z_um),
+            list(received.scores),
         )
-        compute_s = min(received.message.compute_time_s, waited_s)
+        compute_s = min(received.compute_time_s, waited_s)
         self.wall.focus_computation_s += compute_s
         self.wall.waiting_s += waited_s - compute_s
-        return received.message
+        return received
+
+    def _fetch(
+        self, row: int, col: int, sequence: int, indices: list[int]
+    ) -> tuple[Any, list[np.ndarray]]:
+        """The stack header and frames at `indices` of acquisition `sequence` of tile
+        (row, col), from the instrument (its frames query, retried as any instrument call).
+
+        A stack the instrument no longer holds (it restarted, or its budget ran out) is
+        taken again, once: the kept image is never lost.
+        """
+        started_s = time.perf_counter()
+        what = f"frames {indices} of acquisition {sequence}"
+        key_expr = keys.frames_key(self.instrument.name)
+
+        def fetch() -> tuple[Any, list[np.ndarray]] | None:
+            try:
+                return self.instrument.frames(self._slide, row, col, sequence, indices)
+            except rpc.RemoteError as error:
+                if error.error.code == rpc.ErrorCode.ERROR_CODE_FRAMES_GONE:
+                    return None
+                raise
+
+        found = self._instrument_call(what, key_expr, fetch)
+        if found is None and sequence in self._taken:
+            log.warning("%s: the instrument no longer holds them; taking the stack again", what)
+            self.wall.transport_s += time.perf_counter() - started_s
+            self._take(*self._taken[sequence])
+            started_s = time.perf_counter()
+            found = self._instrument_call(what, key_expr, fetch)
+        if found is None:
+            raise ScanRefusedError(f"instrument has no {what} of tile ({row}, {col}) any more")
+        self.wall.transport_s += time.perf_counter() - started_s
+        return found
 
     def _keep(self, step: KeepTile) -> None:
-        stack = self.listener.stacks.get(step.sequence)
-        if stack is None or self.geometry is None:  # the plan only keeps frames it acquired
-            log.warning("tile (%d, %d): its stack is gone; no image kept", step.row, step.col)
+        if self.geometry is None:  # described before any acquisition
             return
-        header, pixels = stack.message
+        header, (pixels,) = self._fetch(step.row, step.col, step.sequence, [step.frame])
         self.record.keep(
-            self.geometry.grid, step.row, step.col, step.z_um, pixels[step.frame], header.bit_depth
+            self.geometry.grid, step.row, step.col, step.z_um, pixels, header.bit_depth
         )
         if not self._tile_format_saved:  # what the mosaic is made of, for the OME-TIFF
-            height, width, channels = pixels[step.frame].shape
+            height, width, channels = pixels.shape
             self._tile_format_saved = True
             self.record.save_state(
                 tile={
@@ -331,17 +351,19 @@ class Engine:
     def _keep_planes(self, step: KeepPlanes) -> None:
         if self.geometry is None:  # described before any acquisition
             return
-        stacks = [self.listener.stacks.get(frame.sequence) for frame in step.planes]
-        if any(stack is None for stack in stacks):  # the plan only keeps frames it acquired
-            log.warning("tile (%d, %d): a stack is gone; no planes kept", step.row, step.col)
-            return
-        messages = [stack.message for stack in stacks if stack is not None]
-        frames = np.stack(
-            [pixels[f.index] for (_, pixels), f in zip(messages, step.planes, strict=True)]
-        )
+        by_stack: dict[int, list[Frame]] = {}
+        for frame in step.planes:
+            by_stack.setdefault(frame.sequence, []).append(frame)
+        pixels: dict[Frame, np.ndarray] = {}
+        bit_depth = 0
+        for sequence, frames in by_stack.items():  # one query per stack
+            indices = [frame.index for frame in frames]
+            header, fetched = self._fetch(step.row, step.col, sequence, indices)
+            pixels.update(zip(frames, fetched, strict=True))
+            bit_depth = header.bit_depth  # one camera: the same for every stack of a tile
         z_um = [frame.z_um for frame in step.planes]
-        bit_depth = messages[0][0].bit_depth  # one camera: the same for every stack of a tile
-        self.record.keep_planes(self.geometry.grid, step.row, step.col, z_um, frames, bit_depth)
+        stacked = np.stack([pixels[frame] for frame in step.planes])
+        self.record.keep_planes(self.geometry.grid, step.row, step.col, z_um, stacked, bit_depth)
 
     def _show(self) -> None:
         if self._progress is not None:

@@ -1,0 +1,101 @@
+"""The scheduler fetches only the frames it keeps from the instrument, and takes a stack
+again when the instrument no longer holds it (real Zenoh sessions, an in-process instrument)."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from focustrack_client import EstimatorClient
+from focustrack_core.domain import Acquisition, Purpose, ZRange
+from focustrack_core.wire import session
+from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
+from focustrack_instrument_sim.service import InstrumentService
+from focustrack_instrument_sim.surfaces import SurfaceSpec
+from focustrack_scheduler import outputs
+from focustrack_scheduler.clients import InstrumentClient, SlideListener
+from focustrack_scheduler.engine import Engine, ScanRefusedError
+from focustrack_scheduler.outputs import ScanRecord
+from focustrack_scheduler.plan import Acquire, DescribeSlide, KeepTile, Plan
+
+SLIDE = "slide-0"
+
+
+@pytest.fixture
+def bus() -> Iterator[tuple[zenoh.Session, zenoh.Session, InstrumentService]]:
+    """(instrument's session, scheduler's session, the instrument): it keeps no frames
+    beyond its last stack."""
+    endpoint = session.loopback_endpoint()
+    slides = slides_from_seed(5, 1, SurfaceSpec(3, 3), pitch_um=200.0)
+    microscope = Microscope(slides, MicroscopeSpec(height=64, width=64))
+    with (
+        session.open_session(listen=[endpoint]) as served,
+        session.open_session(connect=[endpoint]) as scheduler,
+    ):
+        service = InstrumentService(microscope, served, "sim", keep_frames_bytes=0)
+        service.start()
+        thread = threading.Thread(target=service.serve)
+        thread.start()
+        try:
+            yield served, scheduler, service
+        finally:
+            service.stop.set()
+            thread.join()
+            service.close()
+            microscope.close()
+
+
+def _keep_only(step: KeepTile) -> Plan:
+    yield DescribeSlide("sim", SLIDE)
+    yield step
+    return "scanned"
+
+
+def _acquisition(index: int, low_um: float) -> Acquisition:
+    return Acquisition(index, 1, 2, ZRange(low_um, 0.5, 5), Purpose.SCAN, measure=True)
+
+
+def test_a_kept_frame_is_fetched_and_a_stack_no_longer_held_is_taken_again(
+    bus: tuple[zenoh.Session, zenoh.Session, InstrumentService], tmp_path: Path
+) -> None:
+    _, scheduler, service = bus
+    first, second = _acquisition(1, -2.0), _acquisition(2, 0.5)
+
+    def plan() -> Plan:
+        yield DescribeSlide("sim", SLIDE)
+        z_um = yield Acquire(SLIDE, first)
+        yield Acquire(SLIDE, second)  # the instrument now holds only this stack
+        yield KeepTile(1, 2, first.index, 3, z_um[3])
+        return "scanned"
+
+    record = ScanRecord(tmp_path)
+    listener = SlideListener(scheduler, SLIDE)
+    engine = Engine(
+        InstrumentClient(scheduler, "sim", timeout_s=10),
+        listener,
+        EstimatorClient("http://127.0.0.1:9"),  # not asked by this plan
+        record,
+    )
+    assert engine.run(plan()) == "scanned"
+    listener.close()
+
+    assert record.kept == {(1, 2): pytest.approx(-0.5)}
+    # The stack was taken again for its frame: three stacks acquired, the first twice.
+    assert [entry["sequence"] for entry in record.acquisitions] == [1, 2, 1]
+    assert record.n_images == 15
+    # The tile's image is that frame, of the stack taken again (the one the instrument holds).
+    header, (frame,) = InstrumentClient(scheduler, "sim").frames(SLIDE, 1, 2, 1, [3])
+    assert header.z_um[3] == pytest.approx(-0.5) and frame.shape == (64, 64, 3)
+    mosaic = np.load(tmp_path / outputs.PARTIAL_MOSAIC)
+    np.testing.assert_array_equal(
+        mosaic[64:128, 128:192], outputs.to_uint8(frame, header.bit_depth)
+    )
+    # A stack taken on no tile of this scan is not taken again: the scan stops, naming it.
+    with pytest.raises(ScanRefusedError, match="no frames \\[0\\] of acquisition 9"):
+        engine.run(_keep_only(KeepTile(1, 2, 9, 0, 0.0)))
+    assert service.recent.budget_bytes == 0
