@@ -297,12 +297,13 @@ class Engine:
 
     def _fetch(
         self, row: int, col: int, sequence: int, indices: list[int]
-    ) -> tuple[Any, list[np.ndarray]]:
+    ) -> tuple[Any, list[np.ndarray]] | None:
         """The stack header and frames at `indices` of acquisition `sequence` of tile
         (row, col), from the instrument (its frames query, retried as any instrument call).
 
-        A stack the instrument no longer holds (it restarted, or its budget ran out) is
-        taken again, once: the kept image is never lost.
+        A stack of this tile that the instrument no longer holds (it restarted, or its
+        budget ran out) is taken again, once. None (logged) when it is still gone, or was
+        taken before this scheduler started (a resumed scan).
         """
         started_s = time.perf_counter()
         what = f"frames {indices} of acquisition {sequence}"
@@ -323,15 +324,18 @@ class Engine:
             self._take(*self._taken[sequence])
             started_s = time.perf_counter()
             found = self._instrument_call(what, key_expr, fetch)
-        if found is None:
-            raise ScanRefusedError(f"instrument has no {what} of tile ({row}, {col}) any more")
         self.wall.transport_s += time.perf_counter() - started_s
+        if found is None:
+            log.warning("tile (%d, %d): the instrument has no %s any more", row, col, what)
         return found
 
     def _keep(self, step: KeepTile) -> None:
         if self.geometry is None:  # described before any acquisition
             return
-        header, (pixels,) = self._fetch(step.row, step.col, step.sequence, [step.frame])
+        found = self._fetch(step.row, step.col, step.sequence, [step.frame])
+        if found is None:  # logged: no image kept
+            return
+        header, (pixels,) = found
         self.record.keep(
             self.geometry.grid, step.row, step.col, step.z_um, pixels, header.bit_depth
         )
@@ -358,7 +362,10 @@ class Engine:
         bit_depth = 0
         for sequence, frames in by_stack.items():  # one query per stack
             indices = [frame.index for frame in frames]
-            header, fetched = self._fetch(step.row, step.col, sequence, indices)
+            found = self._fetch(step.row, step.col, sequence, indices)
+            if found is None:  # logged: no planes kept
+                return
+            header, fetched = found
             pixels.update(zip(frames, fetched, strict=True))
             bit_depth = header.bit_depth  # one camera: the same for every stack of a tile
         z_um = [frame.z_um for frame in step.planes]

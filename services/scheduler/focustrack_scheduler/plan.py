@@ -109,7 +109,7 @@ class AskNext:
 
 @dataclass(frozen=True)
 class Acquire:
-    """-> the z (um) of every frame of the stack, once it is acquired and received.
+    """-> the z (um) of every frame of the stack, once the instrument has published them.
 
     `attempt` counts from 1; a later attempt repeats a stack whose focus result was lost.
     """
