@@ -98,10 +98,10 @@ class RecentStacks:
 
     def copies(
         self, slide: str, row: int, col: int, sequence: int, indices: list[int]
-    ) -> tuple[instrument_pb2.ZStackHeader, list[np.ndarray]] | None:
-        """The header of that tile's stack of that sequence and copies of its frames at
-        `indices` (all when empty), or None when it is no longer kept. Copies: a dropped
-        stack's buffers are rendered into again, perhaps while a query replies.
+    ) -> tuple[instrument_pb2.ZStackHeader, list[tuple[int, np.ndarray]]] | None:
+        """The header of that tile's stack of that sequence and (index, copy of the frame)
+        at `indices` (every frame when empty), or None when it is no longer kept. Copies: a
+        dropped stack's buffers are rendered into again, perhaps while a query replies.
         IndexError names a frame the stack does not have."""
         with self._lock:
             stack = self._stacks.get((slide, row, col, sequence))
@@ -114,7 +114,7 @@ class RecentStacks:
                     raise IndexError(f"frame {index} of a stack of {n} frames")
             header = instrument_pb2.ZStackHeader()
             header.CopyFrom(stack.header)
-            return header, [_copy(stack.frames[index]) for index in wanted]
+            return header, [(index, _copy(stack.frames[index])) for index in wanted]
 
     def _release(self, stack: KeptStack | None) -> None:
         if stack is not None and stack.recyclable:

@@ -250,8 +250,7 @@ class InstrumentService:
                 f"{self.recent.budget_bytes / 1e6:.0f} MB of past stacks besides the last",
             )
         header, frames = found
-        indices = list(request.indices) or list(range(len(frames)))
-        for index, frame in zip(indices, frames, strict=True):
+        for index, frame in frames:
             query.reply(
                 query.key_expr,
                 self.publisher.payload(frame),

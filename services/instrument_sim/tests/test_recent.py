@@ -32,8 +32,8 @@ def test_the_oldest_stacks_go_once_the_budget_is_spent_and_the_newest_always_sta
     # Besides the newest (3 frames), 5 frames' worth: stack 2 only.
     assert store.copies("s", 0, 1, 0, []) is None
     assert store.copies("s", 0, 1, 1, []) is None
-    header, frames = store.copies("s", 0, 1, 2, [2])
-    assert header.sequence == 2 and int(frames[0][0, 0, 0]) == 202
+    header, [(index, frame)] = store.copies("s", 0, 1, 2, [2])
+    assert header.sequence == 2 and index == 2 and int(frame[0, 0, 0]) == 202
     assert store.copies("s", 0, 1, 3, []) is not None
     tiny = RecentStacks(budget_bytes=0)
     _stack(tiny, 7, n=10)  # larger than the budget, and the newest: kept
@@ -43,7 +43,8 @@ def test_the_oldest_stacks_go_once_the_budget_is_spent_and_the_newest_always_sta
 def test_copies_are_the_frames_asked_for_and_outlive_the_reuse_of_their_buffers() -> None:
     store = RecentStacks(budget_bytes=0)
     _stack(store, 1, n=3)
-    _, (second, first) = store.copies("s", 0, 1, 1, [2, 0])
+    _, [(i, second), (j, first)] = store.copies("s", 0, 1, 1, [2, 0])
+    assert (i, j) == (2, 0)
     assert int(second[0, 0, 0]) == 102 and int(first[0, 0, 0]) == 100
     assert second.shape == SHAPE and second.dtype == DTYPE
     _stack(store, 2, n=3)  # renders into stack 1's buffers
@@ -67,8 +68,8 @@ def test_a_stack_taken_again_replaces_the_earlier_one() -> None:
     _stack(store, 4, n=2)
     header = instrument_pb2.ZStackHeader(slide="s", row=0, col=1, sequence=4, clock_s=9.0)
     store.keep(header, [np.full(SHAPE, 7, DTYPE)], recyclable=False)
-    kept_header, frames = store.copies("s", 0, 1, 4, [])
-    assert kept_header.clock_s == 9.0 and len(frames) == 1 and int(frames[0][0, 0, 0]) == 7
+    kept_header, [(index, frame)] = store.copies("s", 0, 1, 4, [])
+    assert kept_header.clock_s == 9.0 and index == 0 and int(frame[0, 0, 0]) == 7
 
 
 def test_a_negative_budget_is_refused() -> None:
