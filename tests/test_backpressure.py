@@ -64,12 +64,13 @@ def test_a_flood_of_big_acquisitions_gets_busy_and_a_normal_one_is_served_next(
 ) -> None:
     started: list[int] = []  # sequence of each stack, in the order its first frame came
     lock = threading.Lock()
+    assembler = codec.FrameAssembler()
 
     def on_frame(sample: zenoh.Sample) -> None:
-        frame_header, _ = codec.decode_zframe_sample(sample)
-        if frame_header.index == 0:
+        frame = assembler.add_sample(sample)
+        if frame is not None and frame[0].index == 0:
             with lock:
-                started.append(frame_header.stack.sequence)
+                started.append(frame[0].stack.sequence)
 
     with (
         open_session(connect=[endpoint]) as flooder,

@@ -25,6 +25,7 @@ from focustrack_focus.service import FrameAnalyser, ZenohFocusWorker
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 TRUTH_UM = -0.4
+PART_BYTES = 5000  # frames of 96 x 96 uint16 go in 4 parts
 
 
 @pytest.fixture
@@ -56,7 +57,7 @@ def publish_stack(
         bit_depth=12,
     )
     describe_pixels(header, pixels)
-    publisher = PixelPublisher(session)
+    publisher = PixelPublisher(session, part_bytes=PART_BYTES)
     for index in range(len(pixels)) if order is None else order:
         publisher.put_frame(keys.zframe_key("s1", 2, 3), header, index, pixels[index])
 
@@ -184,3 +185,9 @@ def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart()
     refused = analyser.add(key, bad[0][0][:-2], bad[0][1])
     assert refused is not None and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
     assert all(analyser.add(key, *sample) is None for sample in bad[1:])
+    # so does a frame whose first part was lost
+    payload, attachment = _frame_samples(frames, 6, 4.0)[0]
+    second_part = instrument_pb2.ZFrameHeader.FromString(attachment)
+    second_part.parts, second_part.part_offset = 2, PART_BYTES
+    lost = analyser.add(key, payload[PART_BYTES:], second_part.SerializeToString())
+    assert lost is not None and lost.sequence == 6 and "a part was lost" in lost.error.message

@@ -184,6 +184,95 @@ def test_pixel_array_is_sent_from_its_own_buffer_and_frames_round_trip() -> None
         codec.decode_zframe(codec.raw_payload(own[2]), None)
 
 
+def _frame_parts(
+    stack: instrument_pb2.ZStackHeader, index: int, frame: np.ndarray, cuts: list[int], parts: int
+) -> list[tuple[instrument_pb2.ZFrameHeader, bytes]]:
+    """(header, payload) of each part of `frame` cut at byte offsets `cuts` (0 first),
+    each header saying the frame comes in `parts`."""
+    data = frame.tobytes()
+    pieces = []
+    for start, end in zip(cuts, [*cuts[1:], len(data)], strict=True):
+        header = codec.frame_header(stack, index, frame)
+        header.parts, header.part_offset = parts, start
+        pieces.append((header, data[start:end]))
+    return pieces
+
+
+def test_frames_in_parts_are_joined_and_parts_that_do_not_fit_refused() -> None:
+    header, pixels = _stack()  # frames of 8 x 6 x 3 uint16: 288 bytes
+    codec.describe_pixels(header, pixels)
+    assembler = codec.FrameAssembler(max_open=1)
+    whole = codec.frame_header(header, 0, pixels[0])
+    np.testing.assert_array_equal(assembler.add("k", whole, pixels[0].tobytes()), pixels[0])
+    first, second, third = _frame_parts(header, 1, pixels[1], [0, 100, 200], parts=3)
+    assert assembler.add("k", *first) is None and assembler.add("k", *second) is None
+    np.testing.assert_array_equal(assembler.add("k", *third), pixels[1])
+    with pytest.raises(ValueError, match="not a whole frame"):
+        codec.decode_zframe(second[1], second[0].SerializeToString())
+    # a part lost: the frame is refused, and so are its later parts
+    assert assembler.add("k", *first) is None
+    with pytest.raises(ValueError, match="at byte 200, expected 100: a part was lost"):
+        assembler.add("k", *third)
+    with pytest.raises(ValueError, match="expected 0"):
+        assembler.add("k", *second)
+    # a first part starts the frame over
+    assert assembler.add("k", *first) is None and assembler.add("k", *first) is None
+    assert assembler.add("k", *second) is None
+    np.testing.assert_array_equal(assembler.add("k", *third), pixels[1])
+    # the last part (by count) must end the frame, and no part may end past it
+    short_first, short_last = _frame_parts(header, 1, pixels[1], [0, 100], parts=3)[:2]
+    assert assembler.add("k", *short_first) is None
+    with pytest.raises(ValueError, match="part 2 of 3 of frame 1 ends at byte 288 of 288"):
+        assembler.add("k", *short_last)
+    first, last = _frame_parts(header, 1, pixels[1], [0, 100], parts=2)
+    assert assembler.add("k", *first) is None
+    with pytest.raises(ValueError, match="ends at byte 290 of 288"):
+        assembler.add("k", last[0], last[1] + b"xx")
+    # beyond `max_open` frames under way, the oldest is dropped
+    assert assembler.add("k", *first) is None
+    assert assembler.add("other", *first) is None
+    with pytest.raises(ValueError, match="expected 0"):
+        assembler.add("k", *last)
+    np.testing.assert_array_equal(assembler.add("other", *last), pixels[1])
+    with pytest.raises(ValueError, match="at most 100"):
+        codec.FrameAssembler(max_frame_bytes=100).add("k", *first)
+
+
+@pytest.mark.parametrize("part_bytes", [0, 100, 288])
+def test_a_publisher_sends_frames_in_parts_that_a_subscriber_joins(pair, part_bytes: int) -> None:
+    _, publisher_session, subscriber_session = pair
+    header, pixels = _stack()  # frames of 288 bytes
+    codec.describe_pixels(header, pixels)
+    publisher = codec.PixelPublisher(publisher_session, part_bytes=part_bytes)
+    assembler = codec.FrameAssembler()
+    samples: list[int] = []  # each sample's part_offset
+    frames: list[tuple[instrument_pb2.ZFrameHeader, np.ndarray]] = []
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        samples.append(codec.zframe_header(sample.attachment.to_bytes()).part_offset)
+        if (frame := assembler.add_sample(sample)) is not None:
+            frames.append(frame)
+
+    key = keys.zframe_key("s", 1, 2)
+    with subscriber_session.declare_subscriber(keys.zframe_pattern("s"), on_sample):
+        for _ in range(50):  # the subscription needs a moment to reach the publisher
+            if publisher.has_subscribers(key):
+                break
+            time.sleep(0.1)
+        for index in range(3):
+            publisher.put_frame(key, header, index, pixels[index])
+        for _ in range(50):
+            if len(frames) == 3:
+                break
+            time.sleep(0.1)
+    assert samples == ([0, 100, 200] if part_bytes == 100 else [0]) * 3
+    assert [frame_header.index for frame_header, _ in frames] == [0, 1, 2]
+    for (_, frame), expected in zip(frames, pixels, strict=True):
+        np.testing.assert_array_equal(frame, expected)  # a reused part buffer corrupts none
+    with pytest.raises(ValueError, match="0 sends frames whole"):
+        codec.PixelPublisher(publisher_session, part_bytes=-1)
+
+
 @pytest.mark.parametrize("shared_memory", [True, False])
 def test_frames_travel_through_shared_memory_or_fall_back_to_the_network(
     shared_memory: bool,

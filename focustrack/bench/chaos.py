@@ -81,17 +81,19 @@ class RoguePeer:
         self.sent: dict[tuple[int, int, int], float] = {}  # (row, col, sequence) -> wrong z
         self.n_sent = 0
         self._lock = threading.Lock()
+        self._frames = codec.FrameAssembler()
         self._subscriber = self.session.declare_subscriber(
             keys.zframe_pattern(slide), self._on_frame
         )
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         try:
-            frame_header, _ = codec.decode_zframe_sample(sample)
+            frame = self._frames.add_sample(sample)
         except ValueError:
             return
-        if frame_header.index != 0:
+        if frame is None or frame[0].index != 0:
             return
+        frame_header = frame[0]
         stack = frame_header.stack
         wrong_z_um = stack.z_um[-1] + self.OFFSET_UM
         n = len(stack.z_um)

@@ -8,8 +8,9 @@ child process, over two paths:
 - ``tcp``: loopback TCP, the child's session with shared memory off;
 - ``shm``: Zenoh shared memory (the publisher's pool, the child's session with it on).
 
-Transport: the child's consumer thread decodes every frame (the one copy out of
-Zenoh, then a numpy view) and notes when it was readable; a stack's transfer time
+Transport: the child's consumer thread decodes every frame (the copy out of Zenoh;
+over TCP, frames come in parts of `codec.FRAME_PART_BYTES`, copied into the frame)
+and notes when it was readable; a stack's transfer time
 runs from the first frame's put to the last frame being readable. GB/s and frames/s
 are compared with a memcpy of the same bytes (`np.copyto` into a buffer already
 written once) measured in the same run.
@@ -18,8 +19,9 @@ Ceilings, measured in the same run so that a ratio can be read against what is
 possible at all on this machine (`CEILINGS`):
 
 - ``zenoh_tcp``: bare Zenoh sessions over TCP loopback with the same settings, the same
-  frames put and copied out with ``to_bytes()``, nothing else (no header, no decoding,
-  no consumer thread): the most our TCP path can reach with zenoh's Python API;
+  frames put in the same parts (`codec.frame_parts`), copied out with ``to_bytes()``
+  and into a frame, nothing else (no header, no decoding): the most our TCP path can
+  reach with zenoh's Python API;
 - ``socket_tcp``: a plain TCP socket, ``sendall`` from the frames' own buffers and
   ``recv_into`` a buffer made once (one copy in the kernel each way): what pixels
   reach over loopback outside Zenoh;
@@ -104,8 +106,13 @@ def _child(endpoint: str, shared_memory: bool) -> None:
         def acknowledge(report: dict[str, Any]) -> None:
             child.put(ACK_KEY, json.dumps(report))
 
-        def on_transport_frame(payload: bytes, attachment: bytes | None) -> None:
-            header, frame = codec.decode_zframe(payload, attachment)
+        transported = codec.FrameAssembler()
+
+        def on_transport_frame(key: str, payload: bytes, attachment: bytes | None) -> None:
+            header = codec.zframe_header(attachment)
+            frame = transported.add(key, header, payload)
+            if frame is None:
+                return  # a part of the frame: more to come
             int(frame[-1, -1, -1])  # the pixels are readable where they landed
             times = arrivals.setdefault(header.stack.sequence, [])
             times.append(time.monotonic())
@@ -139,7 +146,7 @@ def _child(endpoint: str, shared_memory: bool) -> None:
             if keys.parse_zframe_key(key).slide == FOCUS_SLIDE:
                 on_focus_frame(key, payload, attachment, arrived_s, cpu_s)
             else:
-                on_transport_frame(payload, attachment)
+                on_transport_frame(key, payload, attachment)
 
 
 class Acks:
@@ -228,14 +235,21 @@ def _stream_child(kind: str, address: str, size: int, count: int, stacks: int, d
                         received += link.recv_into(frame[received:])
                 done.put(time.monotonic())
         return
+    frame_bytes = size * size * 2
+    parts_per_frame = -(-frame_bytes // codec.FRAME_PART_BYTES)
     with session.open_session(connect=[address]) as child:
-        frames = child.declare_subscriber(CEILING_KEY, zenoh.handlers.FifoChannel(FRAME_QUEUE))
+        samples = child.declare_subscriber(CEILING_KEY, zenoh.handlers.FifoChannel(FRAME_QUEUE))
         done.put(None)
-        for index, sample in enumerate(frames, start=1):
-            sample.payload.to_bytes()
-            if index % count == 0:
+        pixels = np.empty(0, np.uint8)
+        for index, sample in enumerate(samples, start=1):
+            offset = (index - 1) % parts_per_frame * codec.FRAME_PART_BYTES
+            if offset == 0:
+                pixels = np.empty(frame_bytes, np.uint8)  # as `codec.FrameAssembler` does
+            part = sample.payload.to_bytes()
+            pixels[offset : offset + len(part)] = np.frombuffer(part, np.uint8)
+            if index % (count * parts_per_frame) == 0:
                 done.put(time.monotonic())
-            if index == count * stacks:
+            if index == count * parts_per_frame * stacks:
                 return
 
 
@@ -264,9 +278,14 @@ def stream_s(kind: str, frames: list[np.ndarray], stacks: int) -> float:
             link.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER_BYTES)
             send: Callable[[bytes | bytearray], object] = link.sendall
         else:
-            send = parent.declare_publisher(
+            put = parent.declare_publisher(
                 CEILING_KEY, congestion_control=zenoh.CongestionControl.BLOCK, express=True
             ).put
+
+            def send(frame: bytes | bytearray) -> None:
+                for _, part in codec.frame_parts(frame, codec.FRAME_PART_BYTES):
+                    put(part)
+
         done.get(timeout=120)
         time.sleep(0.5)  # a Zenoh subscription reaches the publisher
         times = []

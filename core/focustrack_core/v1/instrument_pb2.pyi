@@ -81,14 +81,18 @@ class ZStackHeader(_message.Message):
     def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ...) -> None: ...
 
 class ZFrameHeader(_message.Message):
-    __slots__ = ("stack", "index", "timestamp_unix_s")
+    __slots__ = ("stack", "index", "timestamp_unix_s", "parts", "part_offset")
     STACK_FIELD_NUMBER: _ClassVar[int]
     INDEX_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMP_UNIX_S_FIELD_NUMBER: _ClassVar[int]
+    PARTS_FIELD_NUMBER: _ClassVar[int]
+    PART_OFFSET_FIELD_NUMBER: _ClassVar[int]
     stack: ZStackHeader
     index: int
     timestamp_unix_s: float
-    def __init__(self, stack: _Optional[_Union[ZStackHeader, _Mapping]] = ..., index: _Optional[int] = ..., timestamp_unix_s: _Optional[float] = ...) -> None: ...
+    parts: int
+    part_offset: int
+    def __init__(self, stack: _Optional[_Union[ZStackHeader, _Mapping]] = ..., index: _Optional[int] = ..., timestamp_unix_s: _Optional[float] = ..., parts: _Optional[int] = ..., part_offset: _Optional[int] = ...) -> None: ...
 
 class ZStack(_message.Message):
     __slots__ = ("header", "pixels")

@@ -39,7 +39,7 @@ from focustrack_core.config import command_main
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
-from focustrack_core.wire.codec import decode_zframe, payload_bytes
+from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
@@ -117,13 +117,14 @@ StackId = tuple[str, int, float]
 
 
 class FrameAnalyser:
-    """Frame samples in, a FocusResult out as soon as the last frame of a stack lands.
+    """Frame samples in (whole, or in parts), a FocusResult out as soon as the last frame
+    of a stack lands.
 
     Stacks are told apart by their key, sequence number and simulated clock (an
     acquisition taken again keeps its sequence); at most `max_open` incomplete stacks
     are kept (the oldest is dropped with a warning when a frame never comes). A frame
-    that comes twice starts its stack over; one that cannot be read ends its stack with
-    an error result.
+    that comes twice starts its stack over; one that cannot be read (or a part lost) ends
+    its stack with an error result.
     """
 
     def __init__(self, base: FocusSettings, na: float | None, max_open: int = OPEN_STACKS) -> None:
@@ -131,6 +132,7 @@ class FrameAnalyser:
         self.na = na
         self.max_open = max_open
         self._open: OrderedDict[StackId, FrameByFrame] = OrderedDict()  # curves under way
+        self._frames = FrameAssembler(max_open)  # frames in parts (a frame per stack at most)
         self._failed: OrderedDict[StackId, None] = OrderedDict()
         # each slide's through-focus curve, learnt from its full stacks, reads its short ones
         self._curves: OrderedDict[str, CurveModel] = OrderedDict()
@@ -143,11 +145,14 @@ class FrameAnalyser:
         tile = keys.parse_zframe_key(key)
         header = None
         try:
-            frame_header, frame = decode_zframe(payload, attachment)
+            frame_header = zframe_header(attachment)
             header = frame_header.stack
             stack_id = (key, header.sequence, header.clock_s)
             if stack_id in self._failed:
                 return None  # the stack was already answered with an error
+            frame = self._frames.add(key, frame_header, payload)
+            if frame is None:
+                return None  # a part of the frame: more to come
             curve = self._open.get(stack_id)
             if curve is not None and not np.isnan(curve.scores[frame_header.index]):
                 log.warning(

@@ -91,6 +91,7 @@ class InstrumentService:
         *,
         realtime: bool = False,
         shm_pool_bytes: int = 0,
+        frame_part_bytes: int = codec.FRAME_PART_BYTES,
         queue_depth: int = QUEUE_DEPTH,
         serve_truth: bool = False,
         keep_frames_bytes: int = KEEP_FRAMES_MB * 1_000_000,
@@ -99,7 +100,7 @@ class InstrumentService:
             raise ValueError(f"queue_depth must be at least 1, got {queue_depth}")
         self.microscope = microscope
         self.session = session
-        self.publisher = codec.PixelPublisher(session, shm_pool_bytes)
+        self.publisher = codec.PixelPublisher(session, shm_pool_bytes, frame_part_bytes)
         self.name = keys.check_name(name, "instrument")
         self.realtime = realtime
         self.stop = threading.Event()
@@ -353,6 +354,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"stack ({KEEP_FRAMES_MB})",
     )
     scope.add_argument(
+        "--frame-part-kb",
+        type=int,
+        default=codec.FRAME_PART_BYTES // 1024,
+        help="frames go over the network in parts of this many KiB, 0: whole "
+        f"({codec.FRAME_PART_BYTES // 1024}: fastest over TCP; see proto/README.md)",
+    )
+    scope.add_argument(
         "--queue-depth",
         type=int,
         default=QUEUE_DEPTH,
@@ -395,6 +403,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--queue-depth must be at least 1, got {args.queue_depth}")
         if args.keep_frames_mb < 0:
             raise ValueError(f"--keep-frames-mb must not be negative, got {args.keep_frames_mb}")
+        if args.frame_part_kb < 0:
+            raise ValueError(f"--frame-part-kb must not be negative, got {args.frame_part_kb}")
     except ValueError as error:
         log.error("%s", error)
         return 2
@@ -425,6 +435,7 @@ def serve(
         args.name,
         realtime=args.realtime,
         shm_pool_bytes=shm_pool_bytes(args),
+        frame_part_bytes=args.frame_part_kb * 1024,
         queue_depth=args.queue_depth,
         serve_truth=args.serve_truth,
         keep_frames_bytes=int(args.keep_frames_mb * 1_000_000),

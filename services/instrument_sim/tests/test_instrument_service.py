@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import threading
@@ -15,6 +16,7 @@ import zenoh
 from focustrack_core import health
 from focustrack_core.v1 import common_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc, session
+from focustrack_instrument_sim import service
 
 SIZE = 128
 
@@ -27,6 +29,7 @@ def instrument() -> Iterator[str]:
         sys.executable, "-m", "focustrack_instrument_sim", "--listen", endpoint,
         "--name", "sim", "--seed", "3", "--slides", "2", "--rows", "4", "--cols", "5",
         "--width", str(SIZE), "--height", str(SIZE), "--max-frames", "25", "--serve-truth",
+        "--frame-part-kb", "32",  # frames of 96 KiB go in 3 parts
     ]  # fmt: skip
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:
@@ -73,8 +76,11 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
         received.append(codec.decode_zstack_sample(sample))
         arrived.set()
 
+    assembler = codec.FrameAssembler()
+
     def on_frame(sample: zenoh.Sample) -> None:
-        frames.append(codec.decode_zframe_sample(sample))
+        if (frame := assembler.add_sample(sample)) is not None:
+            frames.append(frame)
 
     with (
         client.declare_subscriber(keys.zstack_pattern("slide-0"), on_stack),
@@ -93,6 +99,7 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
     assert [frame_header.index for frame_header, _ in frames] == list(range(9))
     for frame_header, frame in frames:
         assert frame_header.stack.sequence == 42 and frame_header.timestamp_unix_s > 0
+        assert frame_header.parts == 3  # --frame-part-kb 32
         np.testing.assert_array_equal(frame, pixels[frame_header.index])
     assert pixels.shape == (9, SIZE, SIZE, 3) and pixels.dtype == np.uint16
     assert (header.slide, header.row, header.col, header.sequence) == ("slide-0", 1, 2, 42)
@@ -106,6 +113,19 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
         timing.move_s + timing.z_settle_s + timing.exposure_s + timing.readout_s
     )
     assert timing.clock_s >= timing.total_s
+
+
+@pytest.mark.parametrize(
+    "option", [["--frame-part-kb", "-1"], ["--keep-frames-mb", "-1"], ["--queue-depth", "0"]]
+)
+def test_a_bad_option_ends_the_command_with_a_message(
+    option: list[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    parser = argparse.ArgumentParser()
+    service.add_arguments(parser)
+    args = parser.parse_args(["--connect", session.loopback_endpoint(), "--rows", "2", *option])
+    assert service.run(args) == 2
+    assert f"{option[0]} must" in caplog.text
 
 
 def test_the_health_probe_passes_for_this_instrument_and_fails_for_another(
@@ -179,10 +199,13 @@ def test_the_frames_of_a_recent_stack_are_answered_as_they_were_published(
     client: zenoh.Session,
 ) -> None:
     published: list[tuple[instrument_pb2.ZFrameHeader, np.ndarray]] = []
-    with client.declare_subscriber(
-        keys.zframe_pattern("slide-0"),
-        lambda sample: published.append(codec.decode_zframe_sample(sample)),
-    ):
+    assembler = codec.FrameAssembler()
+
+    def on_frame(sample: zenoh.Sample) -> None:
+        if (frame := assembler.add_sample(sample)) is not None:
+            published.append(frame)
+
+    with client.declare_subscriber(keys.zframe_pattern("slide-0"), on_frame):
         time.sleep(0.5)  # let the subscription reach the instrument
         rpc.call(client, keys.acquire_key("sim"), _request(row=3, col=4, sequence=77, n_frames=5),
                  instrument_pb2.AcquireReply)  # fmt: skip
