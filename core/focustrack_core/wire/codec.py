@@ -17,8 +17,9 @@ takes only bytes, bytearray, str or a shared-memory buffer, and gives bytes back
   pixels are a read-only numpy view of those bytes (`pixels_from_bytes`), never copied
   again.
 - Over the network a frame goes in parts of `FRAME_PART_BYTES` (`PixelPublisher`), each
-  copied once more on each side (into the part; parts joined by `FrameAssembler`). That
-  is faster all the same: a part stays in the CPU's cache through every copy on its way.
+  copied once more on each side: into the part, and (`FrameAssembler`) into the frame as
+  it comes. That is faster all the same: a part stays in the CPU's cache through every
+  copy on its way.
 """
 
 from __future__ import annotations
