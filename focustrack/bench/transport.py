@@ -32,7 +32,7 @@ possible at all on this machine (`CEILINGS`):
 Focus: the child runs the focus service's own frame analyser
 (`focustrack_focus.service.FrameAnalyser`) on every frame as it lands, on a consumer
 thread fed through a bounded FIFO (as the service is), and reports the time from the
-moment Zenoh hands over the last frame (before its copy) to the focus result. Frames
+moment Zenoh hands over the last frame (its last part, before its copy) to the focus result. Frames
 are paced at `--fps` (a camera's rate), so the figure is the wait a scan sees once
 the camera is done, not a backlog of the publisher's burst.
 """
