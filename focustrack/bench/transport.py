@@ -10,8 +10,8 @@ child process, over two paths:
 
 Transport: the child's consumer thread decodes every frame (the copy out of Zenoh;
 over TCP, frames come in parts of `codec.FRAME_PART_BYTES`, copied into the frame)
-and notes when it was readable; a stack's transfer time
-runs from the first frame's put to the last frame being readable. GB/s and frames/s
+and notes when it was readable; a stack's transfer time runs from the first frame's
+put to the last frame being readable. GB/s and frames/s
 are compared with a memcpy of the same bytes (`np.copyto` into a buffer already
 written once) measured in the same run.
 
@@ -32,9 +32,9 @@ possible at all on this machine (`CEILINGS`):
 Focus: the child runs the focus service's own frame analyser
 (`focustrack_focus.service.FrameAnalyser`) on every frame as it lands, on a consumer
 thread fed through a bounded FIFO (as the service is), and reports the time from the
-moment Zenoh hands over the last frame (its last part, before its copy) to the focus result. Frames
-are paced at `--fps` (a camera's rate), so the figure is the wait a scan sees once
-the camera is done, not a backlog of the publisher's burst.
+moment Zenoh hands over the last frame (its last part, before its copy) to the focus
+result. Frames are paced at `--fps` (a camera's rate), so the figure is the wait a scan
+sees once the camera is done, not a backlog of the publisher's burst.
 """
 
 from __future__ import annotations
