@@ -8,15 +8,15 @@ from focustrack.bench.accuracy import OUTLIERS, add_measurement_noise, add_outli
 from focustrack.bench.replay import replay, score
 from focustrack_core.domain import Measurement
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import nis_gate
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 
 def scan_row(name: str, heights_um: list[float], **params):
     """Feed one row of measured heights to a strategy; returns it and its outcomes."""
-    strategy = registry.create(name, SlideSettings(ScanGrid(1, len(heights_um))), params)
+    strategy = registry.create(name, default_settings(ScanGrid(1, len(heights_um))), params)
     outcomes = [
         strategy.record(strategy.next_acquisition(), Measurement(z_um=z_um)) for z_um in heights_um
     ]
@@ -48,7 +48,7 @@ def test_consecutive_outliers_are_a_real_step_and_the_filter_follows_it() -> Non
 def test_gating_helps_on_the_outliers_family() -> None:
     truths = generate_surfaces(family_spec("outliers", 20, 20), 8, seed=7)
     measured = add_outliers(add_measurement_noise(truths, 1.5, 7), OUTLIERS["outliers"], 7)
-    settings = SlideSettings(ScanGrid(20, 20))
+    settings = default_settings(ScanGrid(20, 20))
 
     def prior_mae(**params) -> float:
         runs = [
@@ -64,7 +64,7 @@ def test_the_default_r_is_estimated_from_the_innovations() -> None:
     # The slide's focus measurements are far better than the configured 1.5 um.
     truths = generate_surfaces(family_spec("standard", 20, 20), 2, seed=9)
     measured = add_measurement_noise(truths, 0.3, seed=9)
-    settings = SlideSettings(ScanGrid(20, 20), noise_sigma_um=1.5)
+    settings = default_settings(ScanGrid(20, 20), noise_sigma_um=1.5)
     maes = {}
     for adapt_r in (False, True):
         runs = []
@@ -82,7 +82,7 @@ def test_a_measurements_own_sigma_is_not_used_to_estimate_the_default_r() -> Non
     heights = [3.0, -3.0] * 10
     strategy, _ = scan_row("kf-wiener0", heights, adapt_r=True)
     assert strategy.default_r_um2 > 1.5**2  # large innovations: R grows
-    sharp = registry.create("kf-wiener0", SlideSettings(ScanGrid(1, 20)), {"adapt_r": True})
+    sharp = registry.create("kf-wiener0", default_settings(ScanGrid(1, 20)), {"adapt_r": True})
     for z_um in heights:
         sharp.record(sharp.next_acquisition(), Measurement(z_um=z_um, sigma_um=0.2))
     assert sharp.default_r_um2 == pytest.approx(1.5**2)
@@ -90,7 +90,7 @@ def test_a_measurements_own_sigma_is_not_used_to_estimate_the_default_r() -> Non
 
 def test_gating_parameters_are_checked() -> None:
     with pytest.raises(ValueError, match="gate_nis"):
-        registry.create("kf-wiener0", SlideSettings(ScanGrid(2, 2)), {"gate_nis": -1.0})
+        registry.create("kf-wiener0", default_settings(ScanGrid(2, 2)), {"gate_nis": -1.0})
     assert nis_gate(0.99) == pytest.approx(6.635, abs=1e-3)
     with pytest.raises(ValueError, match="probability"):
         nis_gate(1.0)

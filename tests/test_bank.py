@@ -7,7 +7,9 @@ import pytest
 
 from focustrack.bench.accuracy import OUTLIERS, add_measurement_noise, add_outliers
 from focustrack.bench.replay import replay, score
+from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator.bank import ModelBank, kf_mmae
 from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
@@ -17,7 +19,6 @@ from focustrack_estimator.kalman_strategies import (
 )
 from focustrack_estimator.models import WienerModel
 from focustrack_estimator.serpentine import FilterOptions
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 
@@ -40,7 +41,7 @@ def test_the_weights_find_the_process_noise_of_the_surface() -> None:
     grid = ScanGrid(20, 20)
     truth = random_walk_surface(grid, q=1.0, seed=1)
     measured = truth + np.random.default_rng(2).normal(0.0, 0.5, truth.shape)
-    settings = SlideSettings(grid, noise_sigma_um=0.5)
+    settings = default_settings(grid, noise_sigma_um=0.5)
     strategy = bank_strategy(settings, [0.01, 1.0, 100.0], floor=1e-3)
     replay(strategy, truth, measured)
     weights = strategy.estimator.weights
@@ -51,7 +52,7 @@ def test_the_weights_find_the_process_noise_of_the_surface() -> None:
 def test_a_bank_of_one_is_that_filter() -> None:
     truth = generate_surfaces(family_spec("standard", 8, 8), 1, seed=3)[0]
     measured = add_measurement_noise(truth[None], 1.5, seed=3)[0]
-    settings = SlideSettings(ScanGrid(8, 8))
+    settings = default_settings(ScanGrid(8, 8))
     single = replay(kf_wiener0(settings), truth, measured).focus_map
     bank = replay(bank_strategy(settings, [0.14], floor=0.0), truth, measured).focus_map
     for layer in ("prior_um", "posterior_um", "posterior_sigma_um", "smoothed_um"):
@@ -65,7 +66,7 @@ def test_the_bank_is_as_good_as_the_best_single_model_on_every_family(family: st
     measured = add_measurement_noise(truths, 1.5, seed=5)
     if family in OUTLIERS:
         measured = add_outliers(measured, OUTLIERS[family], seed=5)
-    settings = SlideSettings(ScanGrid(14, 14))
+    settings = default_settings(ScanGrid(14, 14))
 
     def prior_mae(factory) -> float:
         runs = [replay(factory(settings), t, m) for t, m in zip(truths, measured, strict=True)]
@@ -76,7 +77,7 @@ def test_the_bank_is_as_good_as_the_best_single_model_on_every_family(family: st
 
 
 def test_bad_bank_parameters_are_clear_errors() -> None:
-    settings = SlideSettings(ScanGrid(3, 3))
+    settings = default_settings(ScanGrid(3, 3))
     with pytest.raises(ValueError, match="weight_floor"):
         kf_mmae(settings, weight_floor=0.5)
     with pytest.raises(ValueError, match="q_spread"):

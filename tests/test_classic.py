@@ -8,8 +8,9 @@ import pytest
 from focustrack.bench.replay import replay
 from focustrack_core.domain import FocusFlag, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import classic, registry
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Strategy
 from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 NAMES = ["af-every-tile", "tile-skip", "survey-bilinear", "survey-spline", "survey-delaunay"]
@@ -28,14 +29,14 @@ def test_registered_with_keyword_only_defaults() -> None:
     assert registry.parameters("tile-skip") == {"every": 2}
     assert set(registry.parameters("survey-delaunay")) == {"n_survey"}
     with pytest.raises(ValueError, match="unknown parameter"):
-        registry.create("survey-spline", SlideSettings(ScanGrid(20, 20)), {"n_points": 9})
+        registry.create("survey-spline", default_settings(ScanGrid(20, 20)), {"n_points": 9})
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_each_strategy_completes_on_a_noisy_map(name: str) -> None:
     truth = generate_surfaces(family_spec("standard"), 1, seed=11)[0]
     measured = truth + np.random.default_rng(11).normal(0.0, 1.5, truth.shape)
-    strategy = registry.create(name, SlideSettings(ScanGrid(20, 20)))
+    strategy = registry.create(name, default_settings(ScanGrid(20, 20)))
     run = replay(strategy, truth, measured)
     assert strategy.next_acquisition() is None
     focus_map = run.focus_map
@@ -46,7 +47,7 @@ def test_each_strategy_completes_on_a_noisy_map(name: str) -> None:
 
 def test_image_counts() -> None:
     truth = _plane(20, 20)
-    settings = SlideSettings(ScanGrid(20, 20))
+    settings = default_settings(ScanGrid(20, 20))
 
     def images(strategy: Strategy) -> int:
         return replay(strategy, truth, truth).n_images
@@ -64,7 +65,7 @@ def test_image_counts() -> None:
 
 def test_tile_skip_reuses_the_last_measured_height() -> None:
     truth = _plane(3, 4)
-    run = replay(classic.TileSkip(SlideSettings(ScanGrid(3, 4)), every=3), truth, truth)
+    run = replay(classic.TileSkip(default_settings(ScanGrid(3, 4)), every=3), truth, truth)
     grid = ScanGrid(3, 4)
     for position, tile in enumerate(grid.serpentine):
         focused = grid.serpentine[position - position % 3]
@@ -77,14 +78,14 @@ def test_tile_skip_reuses_the_last_measured_height() -> None:
 )
 def test_survey_interpolation_is_exact_on_a_plane(cls: type[Strategy], n_survey: int) -> None:
     truth = _plane(11, 13)
-    run = replay(cls(SlideSettings(ScanGrid(11, 13)), n_survey=n_survey), truth, truth)
+    run = replay(cls(default_settings(ScanGrid(11, 13)), n_survey=n_survey), truth, truth)
     assert np.allclose(run.focus_map.posterior_um, truth, atol=1e-9)
     assert np.allclose(run.focus_map.z_used_um, truth, atol=1e-9)
 
 
 def test_survey_pass_comes_first_then_single_frames_in_serpentine_order() -> None:
     grid = ScanGrid(5, 6)
-    strategy = classic.SurveyDelaunay(SlideSettings(grid), n_survey=9)
+    strategy = classic.SurveyDelaunay(default_settings(grid), n_survey=9)
     truth = _plane(5, 6)
     acquisitions = []
     while (acquisition := strategy.next_acquisition()) is not None:
@@ -111,11 +112,11 @@ def test_survey_axes() -> None:
     with pytest.raises(ValueError, match="at least one survey point"):
         classic.survey_axes(0, 5, 5)
     with pytest.raises(ValueError, match="needs at least 4 survey points per axis"):
-        classic.SurveySpline(SlideSettings(ScanGrid(20, 20)), n_survey=9)
+        classic.SurveySpline(default_settings(ScanGrid(20, 20)), n_survey=9)
 
 
 def test_an_edge_peak_is_chased_and_a_hopeless_tile_given_up() -> None:
-    strategy = classic.AfEveryTile(SlideSettings(ScanGrid(1, 2), start_z_um=0.0))
+    strategy = classic.AfEveryTile(default_settings(ScanGrid(1, 2), start_z_um=0.0))
     first = strategy.next_acquisition()
     assert first is not None
     outcome = strategy.record(first, Measurement(None, flags=frozenset({FocusFlag.EDGE_LOW})))
@@ -125,14 +126,14 @@ def test_an_edge_peak_is_chased_and_a_hopeless_tile_given_up() -> None:
 
     # Far beyond any stack: after MAX_RETRIES blocks the tile is imaged at the start height.
     truth = np.array([[1000.0, 1000.0]])
-    run = replay(classic.AfEveryTile(SlideSettings(ScanGrid(1, 2))), truth, truth)
+    run = replay(classic.AfEveryTile(default_settings(ScanGrid(1, 2))), truth, truth)
     assert run.n_images == 2 * (1 + classic.MAX_RETRIES) * WIDE
     assert np.all(run.focus_map.z_used_um == 0.0) and not any(o.accepted for o in run.outcomes)
 
 
 def test_delaunay_fills_beyond_the_hull_from_the_nearest_survey_point() -> None:
     grid = ScanGrid(5, 5)
-    strategy = classic.SurveyDelaunay(SlideSettings(grid), n_survey=9)
+    strategy = classic.SurveyDelaunay(default_settings(grid), n_survey=9)
     truth = _plane(5, 5)
     corners = {(0, 0), (0, 4), (4, 0), (4, 4)}
     while (acquisition := strategy.next_acquisition()) is not None:
@@ -151,7 +152,7 @@ def test_delaunay_fills_beyond_the_hull_from_the_nearest_survey_point() -> None:
 
 
 def test_grid_survey_fills_a_missing_node_from_its_nearest_neighbour() -> None:
-    strategy = classic.SurveyBilinear(SlideSettings(ScanGrid(3, 3)), n_survey=9)
+    strategy = classic.SurveyBilinear(default_settings(ScanGrid(3, 3)), n_survey=9)
     while (acquisition := strategy.next_acquisition()) is not None:
         z_um = None if (acquisition.row, acquisition.col) == (1, 1) else 2.0
         flags = frozenset({FocusFlag.FLAT}) if z_um is None else frozenset()

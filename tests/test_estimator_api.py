@@ -22,19 +22,19 @@ from fastapi import FastAPI
 
 from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_client import models as api
-from focustrack_core.domain import FocusMap
+from focustrack_core.domain import FocusMap, SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import MAP_LAYERS, focus_map_of_npy
+from focustrack_core.rest import to_api, to_domain
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
 from focustrack_estimator.app import Settings, create_app
-from focustrack_estimator.slides import Slides, config_of, outcome_of
+from focustrack_estimator.slides import Slides, outcome_of
 from focustrack_estimator.store import Event, Store
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
-from focustrack_scheduler.remote import acquisition_of, measurement_in
 
 ROWS, COLS = 6, 5
-SETTINGS = SlideSettings(ScanGrid(ROWS, COLS, pitch_um=150.0, origin_x_um=1000.0))
+SETTINGS = default_settings(ScanGrid(ROWS, COLS, pitch_um=150.0, origin_x_um=1000.0))
 
 
 T = TypeVar("T")
@@ -42,7 +42,7 @@ T = TypeVar("T")
 
 def slide_config(strategy: str, settings: SlideSettings) -> dict[str, Any]:
     """The JSON body of `POST /v1/slides` for a slide with these settings."""
-    return config_of(strategy, settings).model_dump(mode="json")
+    return to_api.slide_create(strategy, settings).model_dump(mode="json")
 
 
 def run(coroutine: Coroutine[Any, Any, T]) -> T:
@@ -94,13 +94,13 @@ async def scan(
     while limit is None or n_pairs < limit:
         response = await http.get(f"/v1/slides/{slide_id}/next")
         assert response.status_code == 200, response.text
-        acquisition = acquisition_of(api.Next.model_validate(response.json()))
+        acquisition = to_domain.acquisition(api.Next.model_validate(response.json()))
         if acquisition is None:
             break
         measurement = simulated_measurement(
             acquisition, measured_um[acquisition.row, acquisition.col]
         )
-        body = measurement_in(acquisition, measurement).model_dump(mode="json")
+        body = to_api.measurement_in(acquisition, measurement).model_dump(mode="json")
         response = await http.post(f"/v1/slides/{slide_id}/measurements", json=body)
         assert response.status_code == 200, response.text
         n_pairs += 1
@@ -307,7 +307,7 @@ def test_edge_peak_asks_again_beyond_the_edge(app: FastAPI) -> None:
 
 
 def test_finished_scan_says_done_and_refuses_more(app: FastAPI) -> None:
-    settings = SlideSettings(ScanGrid(2, 2))
+    settings = default_settings(ScanGrid(2, 2))
 
     async def go() -> None:
         async with client(app) as http:
@@ -499,12 +499,12 @@ def test_diagnostics_say_whether_the_stated_risk_is_met(app: FastAPI) -> None:
                 slide_id = response.json()["id"]
                 outcomes = []
                 while not (next_ := (await http.get(f"/v1/slides/{slide_id}/next")).json())["done"]:
-                    acquisition = acquisition_of(api.Next.model_validate(next_))
+                    acquisition = to_domain.acquisition(api.Next.model_validate(next_))
                     assert acquisition is not None
                     measurement = simulated_measurement(
                         acquisition, noisy[acquisition.row, acquisition.col]
                     )
-                    body = measurement_in(acquisition, measurement).model_dump(mode="json")
+                    body = to_api.measurement_in(acquisition, measurement).model_dump(mode="json")
                     reply = await http.post(f"/v1/slides/{slide_id}/measurements", json=body)
                     outcomes.append({**reply.json(), "purpose": next_["purpose"]})
                 diagnostics = (await http.get(f"/v1/slides/{slide_id}/diagnostics")).json()

@@ -14,19 +14,19 @@ import pytest
 from focustrack.bench.strategies import CATALOGUE
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
 from focustrack_estimator.service import spawn
 from focustrack_estimator.slides import Budget, Slide, cost_of
 from focustrack_estimator.store import Store
-from focustrack_estimator.strategy import SlideSettings
 
 
 def test_every_strategy_states_its_cost() -> None:
     assert set(registry.COSTS) == set(registry.STRATEGIES)
     assert set(CATALOGUE.costs) == set(CATALOGUE.strategies) > set(registry.STRATEGIES)
     for name in CATALOGUE.strategies:
-        cost = CATALOGUE.cost(name, SlideSettings(grid=ScanGrid(20, 20)))
+        cost = CATALOGUE.cost(name, default_settings(ScanGrid(20, 20)))
         assert cost.peak_bytes > 20 * 20 and cost.seconds_per_tile >= 0
 
 

@@ -21,12 +21,12 @@ from focustrack.bench.replay import replay, score
 from focustrack_client import EstimatorClient
 from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest import to_api
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
 from focustrack_estimator.service import spawn
-from focustrack_estimator.slides import config_of
 from focustrack_estimator.store import Store
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
@@ -34,7 +34,7 @@ pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` sk
 SEED = 1234
 #: Seconds a server may take to start: imports alone took 30-45 s on a loaded 2-core machine.
 START_TIMEOUT_S = 120.0
-SETTINGS = SlideSettings(ScanGrid(20, 20))
+SETTINGS = default_settings(ScanGrid(20, 20))
 
 
 def standard_map(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +94,7 @@ class _KilledMidScan(RemoteStrategy):
     def __init__(self, server: Server, kill_after: int, strategy: str) -> None:
         client = EstimatorClient(server.url)
         self.server, self.kill_after, self.restarted = server, kill_after, False
-        slide = client.create_slide(config_of(strategy, SETTINGS))
+        slide = client.create_slide(to_api.slide_create(strategy, SETTINGS))
         super().__init__(client, slide.id, SETTINGS, strategy)
 
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:

@@ -38,10 +38,6 @@ def _refused(response: httpx.Response, needle: str) -> None:
     assert needle in response.text, response.text
 
 
-def test_the_schemas_bounds_are_the_strategies() -> None:
-    assert strategy.Z_LIMIT_UM == api.MAX_ABS_UM
-
-
 @pytest.mark.parametrize("name", ["start_sigma_um", "noise_sigma_um", "dof_um"])
 def test_non_physical_sigmas_are_refused_at_creation(url: str, name: str) -> None:
     for value in (1e-300, 0.0, -1.0):

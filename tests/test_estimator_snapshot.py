@@ -12,10 +12,11 @@ import pytest
 from focustrack.bench.replay import simulated_measurement
 from focustrack_core.domain import Purpose
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
 from focustrack_estimator.serpentine import SerpentineFilter
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Strategy
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 ROWS, COLS = 6, 5
@@ -50,7 +51,7 @@ def _maps(strategy: Strategy) -> dict[str, np.ndarray | None]:
 @pytest.mark.parametrize("name", sorted(registry.STRATEGIES))
 @pytest.mark.parametrize("at", [7, 15])  # 15: inside the retries of the edge peak
 def test_a_restored_strategy_continues_as_the_original(name: str, at: int) -> None:
-    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    settings = default_settings(ScanGrid(ROWS, COLS))
     measured_um = _measured()
     original = registry.create(name, settings)
     _steps(original, measured_um, at)
@@ -66,7 +67,7 @@ def test_a_restored_strategy_continues_as_the_original(name: str, at: int) -> No
 
 def test_enums_come_back_as_enums_not_their_values() -> None:
     """A pending acquisition's purpose (a StrEnum, so also a str) is restored as the enum."""
-    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    settings = default_settings(ScanGrid(ROWS, COLS))
     original = registry.create("kf-2d", settings)
     _steps(original, _measured(), 3)
     pending = original.next_acquisition()
@@ -77,7 +78,7 @@ def test_enums_come_back_as_enums_not_their_values() -> None:
 
 
 def test_a_snapshot_of_another_strategy_is_refused() -> None:
-    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    settings = default_settings(ScanGrid(ROWS, COLS))
     blob = encode(registry.create("kf-2d", settings))
     with pytest.raises(SnapshotError, match="not format"):
         restore(registry.create("kf-wiener0", settings), blob)
@@ -87,7 +88,7 @@ def test_a_snapshot_of_another_strategy_is_refused() -> None:
 
 def test_a_snapshot_names_no_class_outside_the_project() -> None:
     """A crafted tree naming another module's class is refused, not imported."""
-    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    settings = default_settings(ScanGrid(ROWS, COLS))
     strategy = registry.create("kf-wiener0", settings)
     with np.load(io.BytesIO(encode(strategy)), allow_pickle=False) as archive:
         arrays = {key: archive[key] for key in archive.files}
@@ -103,7 +104,7 @@ def test_a_snapshot_names_no_class_outside_the_project() -> None:
 def test_a_restore_keeps_equal_plain_values_and_stores_float_lists_as_arrays() -> None:
     """The strategy's own grid object survives (with its cached serpentine order), and the
     innovations (a list of floats) come back bit for bit from one array, not a JSON node each."""
-    settings = SlideSettings(grid=ScanGrid(ROWS, COLS))
+    settings = default_settings(ScanGrid(ROWS, COLS))
     original = registry.create("kf-wiener0", settings)
     _steps(original, _measured(), 12)
     blob = encode(original)

@@ -10,11 +10,11 @@ import pytest
 from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_core.domain import FocusFlag, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import innovation_diagnostics
 from focustrack_estimator.kalman_strategies import STRATEGIES, KalmanStrategy
 from focustrack_estimator.serpentine import FilterOptions
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 
@@ -29,7 +29,7 @@ def edge(flag: FocusFlag) -> Measurement:
 @pytest.mark.parametrize("name", sorted(STRATEGIES))
 def test_every_strategy_completes_a_scan(name: str) -> None:
     truth = generate_surfaces(SurfaceSpec(rows=8, cols=10), 1, seed=0)[0]
-    settings = SlideSettings(ScanGrid(8, 10))
+    settings = default_settings(ScanGrid(8, 10))
     strategy = STRATEGIES[name](settings)
     result = replay(strategy, truth, noisy(truth, 1.5, seed=0))
     fm = result.focus_map
@@ -48,7 +48,7 @@ def test_every_strategy_completes_a_scan(name: str) -> None:
 def test_direction_aware_filter_tracks_a_tilted_plane() -> None:
     rows, cols = np.mgrid[0:12, 0:12]
     truth = 5.0 + 0.4 * cols - 0.3 * rows
-    settings = SlideSettings(ScanGrid(12, 12), noise_sigma_um=0.2)
+    settings = default_settings(ScanGrid(12, 12), noise_sigma_um=0.2)
     result = replay(STRATEGIES["kf-wiener1-dir"](settings), truth, noisy(truth, 0.2, seed=1))
     error = np.abs(result.focus_map.posterior_um - truth)
     prior_error = np.abs(result.focus_map.prior_um - truth)[2:]  # once both slopes are seen
@@ -60,7 +60,7 @@ def test_direction_aware_filter_tracks_a_tilted_plane() -> None:
 
 def test_zeroth_order_filter_lags_a_slope_the_direction_aware_one_follows() -> None:
     truth = np.tile(0.5 * np.arange(20.0), (6, 1))
-    settings = SlideSettings(ScanGrid(6, 20), noise_sigma_um=0.1)
+    settings = default_settings(ScanGrid(6, 20), noise_sigma_um=0.1)
     measured = noisy(truth, 0.1, seed=2)
     errors = {
         name: np.abs(replay(STRATEGIES[name](settings), truth, measured).focus_map.prior_um - truth)
@@ -70,7 +70,7 @@ def test_zeroth_order_filter_lags_a_slope_the_direction_aware_one_follows() -> N
 
 
 def first_strategy(**params) -> KalmanStrategy:
-    return registry.create("kf-wiener0", SlideSettings(ScanGrid(2, 3)), params)
+    return registry.create("kf-wiener0", default_settings(ScanGrid(2, 3)), params)
 
 
 def test_edge_flag_retries_the_same_tile_beyond_the_edge_without_predicting() -> None:
@@ -157,7 +157,7 @@ def test_a_scan_always_ends_even_without_any_peak() -> None:
 
 def run_log(name: str, truth: np.ndarray, measured: np.ndarray) -> list:
     """A scan's (acquisition, measurement) log, with some flat curves among the stacks."""
-    strategy = STRATEGIES[name](SlideSettings(ScanGrid(*truth.shape)))
+    strategy = STRATEGIES[name](default_settings(ScanGrid(*truth.shape)))
     log = []
     while (acquisition := strategy.next_acquisition()) is not None:
         if acquisition.index % 17 == 5:
@@ -175,8 +175,8 @@ def run_log(name: str, truth: np.ndarray, measured: np.ndarray) -> list:
 def test_replaying_the_measurement_log_rebuilds_the_same_state(name: str) -> None:
     truth = generate_surfaces(SurfaceSpec(rows=6, cols=7), 1, seed=4)[0]
     log = run_log(name, truth, noisy(truth, 1.5, seed=4))
-    original = STRATEGIES[name](SlideSettings(ScanGrid(6, 7)))
-    rebuilt = STRATEGIES[name](SlideSettings(ScanGrid(6, 7)))
+    original = STRATEGIES[name](default_settings(ScanGrid(6, 7)))
+    rebuilt = STRATEGIES[name](default_settings(ScanGrid(6, 7)))
     half = len(log) // 2
     for acquisition, measurement in log:
         original.record(acquisition, measurement)
@@ -208,7 +208,7 @@ def test_height_noise_helps_on_an_isolated_jump() -> None:
     columns = np.arange(60.0)
     truth = (0.05 * columns + np.where(columns >= 30, 3.0, 0.0))[None, :]  # a fold at column 30
     measured = noisy(truth, 0.3, seed=3)
-    settings = SlideSettings(ScanGrid(1, 60), noise_sigma_um=0.3)
+    settings = default_settings(ScanGrid(1, 60), noise_sigma_um=0.3)
 
     def error_after_jump(q_height_um2: float) -> float:
         strategy = STRATEGIES["kf-wiener1"](settings, q=1e-4, q_height_um2=q_height_um2)
@@ -229,7 +229,7 @@ def test_innovations_are_white_only_when_the_model_fits() -> None:
     measured = noisy(truth, 1.5, seed=6)
 
     def diagnose(q: float):
-        strategy = STRATEGIES["kf-wiener0"](SlideSettings(grid), q=q)
+        strategy = STRATEGIES["kf-wiener0"](default_settings(grid), q=q)
         replay(strategy, truth, measured)
         return innovation_diagnostics(*strategy.innovations())
 
@@ -247,7 +247,7 @@ def test_factories_take_options_and_keyword_only_parameters_with_defaults(name: 
     for parameter in parameters[2:]:
         assert parameter.kind is inspect.Parameter.KEYWORD_ONLY
         assert parameter.default is not inspect.Parameter.empty
-    assert STRATEGIES[name](SlideSettings(ScanGrid(2, 2))).name == name
+    assert STRATEGIES[name](default_settings(ScanGrid(2, 2))).name == name
     # To a user, the options are parameters like the others.
     assert {"max_retries", "sqrt", "gate_nis", "gate_patience", "adapt_r"} <= set(
         registry.parameters(name)
@@ -255,7 +255,7 @@ def test_factories_take_options_and_keyword_only_parameters_with_defaults(name: 
 
 
 def test_bad_parameters_are_clear_errors() -> None:
-    settings = SlideSettings(ScanGrid(2, 2))
+    settings = default_settings(ScanGrid(2, 2))
     with pytest.raises(ValueError, match="max_retries"):
         registry.create("kf-wiener0", settings, {"max_retries": -1})
     with pytest.raises(ValueError, match="beta"):
@@ -268,7 +268,7 @@ def test_bad_parameters_are_clear_errors() -> None:
 def test_square_root_form_agrees_with_the_covariance_form(name: str) -> None:
     truth = generate_surfaces(SurfaceSpec(rows=8, cols=9), 1, seed=7)[0]
     measured = noisy(truth, 1.5, seed=7)
-    settings = SlideSettings(ScanGrid(8, 9))
+    settings = default_settings(ScanGrid(8, 9))
     plain = replay(STRATEGIES[name](settings), truth, measured).focus_map
     root = replay(registry.create(name, settings, {"sqrt": True}), truth, measured).focus_map
     for layer in (
@@ -285,7 +285,7 @@ def test_square_root_form_agrees_with_the_covariance_form(name: str) -> None:
 def test_partitioned_update_runs_in_the_square_root_form_too() -> None:
     truth = generate_surfaces(SurfaceSpec(rows=6, cols=6), 1, seed=8)[0]
     measured = noisy(truth, 1.5, seed=8)
-    settings = SlideSettings(ScanGrid(6, 6))
+    settings = default_settings(ScanGrid(6, 6))
     maps = [
         replay(
             registry.create("kf-wiener1-dir", settings, {"partitioned": True, "sqrt": sqrt}),

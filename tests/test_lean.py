@@ -11,6 +11,7 @@ from scipy.stats import norm
 from focustrack.bench import strategies as registry
 from focustrack.bench.replay import limit_time_s, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_policy, default_settings
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.lean import (
     COARSE_STEP_UM,
@@ -23,10 +24,9 @@ from focustrack_estimator.lean import (
     search_cost,
     summarise_risk,
 )
-from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
-POLICY = ZRangePolicy()
+POLICY = default_policy()
 DOF_UM = 1.0
 
 
@@ -127,7 +127,7 @@ def test_a_risk_summary_counts_imaged_tiles_and_says_when_the_stated_risk_is_not
 def test_risk_must_be_a_probability() -> None:
     with pytest.raises(ValueError, match="risk"):
         _choose(0.1, risk=0.0)
-    settings = SlideSettings(ScanGrid(3, 3))
+    settings = default_settings(ScanGrid(3, 3))
     with pytest.raises(ValueError, match="risk_out_of_focus"):
         registry.create("kf-2d-lean", settings, {"risk_out_of_focus": 1.5})
     assert registry.parameters("kf-2d-lean")["risk_out_of_focus"] == 0.01
@@ -141,7 +141,7 @@ def _smooth_maps(n_maps: int, size: int) -> np.ndarray:
 def test_kf_2d_lean_takes_fewer_frames_at_the_risk_it_states() -> None:
     truth = _smooth_maps(3, 12)
     noise = np.random.default_rng(3).standard_normal(truth.shape) * 0.1
-    settings = SlideSettings(ScanGrid(12, 12), noise_sigma_um=0.1, dof_um=DOF_UM)
+    settings = default_settings(ScanGrid(12, 12), noise_sigma_um=0.1, dof_um=DOF_UM)
     runs = {
         name: [
             replay(registry.create(name, settings), t, t + e)
@@ -168,7 +168,7 @@ def test_kf_2d_lean_takes_fewer_frames_at_the_risk_it_states() -> None:
 
 def test_a_slide_start_is_searched_coarsely_then_measured_with_a_short_stack() -> None:
     truth = np.full((2, 2), 7.3)  # 7.3 um from the start, 10 um unsure
-    strategy = registry.create("kf-2d-lean", SlideSettings(ScanGrid(2, 2), noise_sigma_um=0.1))
+    strategy = registry.create("kf-2d-lean", default_settings(ScanGrid(2, 2), noise_sigma_um=0.1))
     first = strategy.next_acquisition()
     # +/- 2 sigmas of about 10.2 um (kf-2d's offset and field) at 4 um: 13 frames, not 41 + 41
     assert first is not None and first.z.step_um == COARSE_STEP_UM == 4.0

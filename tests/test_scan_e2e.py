@@ -23,10 +23,10 @@ from focustrack.demo import SECOND_PASS, LocalStack
 from focustrack_core import health
 from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_policy, default_settings
 from focustrack_core.wire import session
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
-from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
 from focustrack_scheduler.scan import BEST_KALMAN
@@ -121,7 +121,7 @@ def benchmark_prediction(stack: LocalStack, dof_um: float):
     assert stack.session is not None
     truth_um = InstrumentClient(stack.session, "sim").truth_um("slide-0")
     measured_um = add_measurement_noise(truth_um[None], NOISE_UM, seed=0)[0]
-    settings = SlideSettings(ScanGrid(ROWS, COLS), dof_um=dof_um, noise_sigma_um=NOISE_UM)
+    settings = default_settings(ScanGrid(ROWS, COLS), dof_um=dof_um, noise_sigma_um=NOISE_UM)
     return score([replay(registry.create(STRATEGY, settings), truth_um, measured_um)], dof_um)
 
 
@@ -152,7 +152,7 @@ def test_a_scan_completes_as_the_benchmark_predicts_and_resumes_after_a_kill(
         for entry in map(json.loads, (tmp_path / outputs.LOG_FILE).read_text().splitlines())
         if entry["event"] == "acquired"
     ]
-    max_frames = ZRangePolicy().max_frames
+    max_frames = default_policy().max_frames
     flat = [e for e in acquired if e["purpose"] == "retry" and e["n_frames"] == max_frames]
     per_tile = (report["images_acquired"] - sum(e["n_frames"] for e in flat)) / (ROWS * COLS)
     assert 0.8 * predicted.images_per_tile <= per_tile <= 1.25 * predicted.images_per_tile + 0.5

@@ -11,9 +11,9 @@ import pytest
 from focustrack.bench.replay import simulated_measurement
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest import to_domain
 from focustrack_core.v1 import common_pb2, focus_pb2
 from focustrack_estimator import registry
-from focustrack_estimator.slides import settings_of
 from focustrack_estimator.strategy import Strategy
 from focustrack_scheduler.plan import (
     Acquire,
@@ -106,7 +106,9 @@ def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_poste
     truth_um = np.linspace(-3.0, 4.0, grid.n_tiles).reshape(grid.shape)
     request = ScanRequest("sim", "slide-0", "kf-wiener0", noise_sigma_um=0.1)
     geometry = SlideGeometry(grid, dof_um=0.9)
-    strategy = registry.create("kf-wiener0", settings_of(slide_config(request, geometry)))
+    strategy = registry.create(
+        "kf-wiener0", to_domain.slide_settings(slide_config(request, geometry))
+    )
     answer, _ = local_services(strategy, geometry, truth_um)
 
     steps, slide_id = drive(request, answer)
@@ -134,7 +136,9 @@ def test_a_tile_too_unsure_for_one_frame_keeps_the_frames_its_outcome_names() ->
     rng = np.random.default_rng(2)
     measured_um = rng.normal(0.0, 1.5, grid.shape)
     request = ScanRequest("sim", "slide-0", "kf-2d-lean", noise_sigma_um=1.5)
-    strategy = registry.create("kf-2d-lean", settings_of(slide_config(request, GEOMETRY_3)))
+    strategy = registry.create(
+        "kf-2d-lean", to_domain.slide_settings(slide_config(request, GEOMETRY_3))
+    )
     answer, outcomes = local_services(strategy, GEOMETRY_3, measured_um)
 
     steps, _ = drive(request, answer)

@@ -12,8 +12,8 @@ from focustrack.bench.oracle import gp_oracle
 from focustrack.bench.replay import replay
 from focustrack_core.domain import FocusFlag, FocusMap, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator.spatial import STRATEGIES, kf_2d, nshp_weights
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
 
 NOISE_UM = 1.5
@@ -28,7 +28,7 @@ def _maps(rows: int, cols: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("name", sorted(STRATEGIES))
 def test_scan_completes_and_is_deterministic(name: str) -> None:
     truth_um, measured_um = _maps(6, 5, seed=11)
-    settings = SlideSettings(grid=ScanGrid(6, 5))
+    settings = default_settings(ScanGrid(6, 5))
     first = replay(STRATEGIES[name](settings), truth_um, measured_um)
     second = replay(STRATEGIES[name](settings), truth_um, measured_um)
     fm = first.focus_map
@@ -49,7 +49,7 @@ def test_edge_peak_is_reacquired_beyond_the_edge(name: str) -> None:
     truth_um, _ = _maps(4, 4, seed=5)
     measured_um = truth_um.copy()
     measured_um[1, 2] += 8.0  # above a stack centred on the prediction
-    result = replay(STRATEGIES[name](SlideSettings(grid=ScanGrid(4, 4))), truth_um, measured_um)
+    result = replay(STRATEGIES[name](default_settings(ScanGrid(4, 4))), truth_um, measured_um)
     on_tile = [o for o in result.outcomes if (o.row, o.col) == (1, 2)]
     assert len(on_tile) > 1 and not on_tile[0].accepted and on_tile[-1].accepted
     assert on_tile[-1].innovation_um is not None and on_tile[-1].innovation_um > 5.0
@@ -57,7 +57,7 @@ def test_edge_peak_is_reacquired_beyond_the_edge(name: str) -> None:
 
 def test_measurement_sigma_is_used_as_r() -> None:
     """A measurement with a large sigma moves the estimate less than one with a small sigma."""
-    settings = SlideSettings(grid=ScanGrid(3, 3), start_sigma_um=5.0)
+    settings = default_settings(ScanGrid(3, 3), start_sigma_um=5.0)
     posteriors = []
     for sigma_um in (0.1, 10.0):
         strategy = kf_2d(settings)
@@ -70,7 +70,7 @@ def test_measurement_sigma_is_used_as_r() -> None:
 
 
 def test_peakless_stacks_are_retried_then_the_prior_stands() -> None:
-    strategy = STRATEGIES["nshp-wiener0"](SlideSettings(grid=ScanGrid(2, 2)), max_retries=2)
+    strategy = STRATEGIES["nshp-wiener0"](default_settings(ScanGrid(2, 2)), max_retries=2)
     edge = Measurement(None, flags=frozenset({FocusFlag.EDGE_HIGH}))
     outcomes = []
     for _ in range(3):
@@ -109,7 +109,7 @@ def test_kf_2d_uses_the_row_above() -> None:
     for seed in range(3):
         noise_um = np.random.default_rng(seed).normal(0.0, NOISE_UM, truth_um.shape)
         measured_um = truth_um + noise_um
-        settings = SlideSettings(grid=ScanGrid(rows, cols), noise_sigma_um=NOISE_UM)
+        settings = default_settings(ScanGrid(rows, cols), noise_sigma_um=NOISE_UM)
         result = replay(kf_2d(settings), truth_um, measured_um)
         kf_2d_mae.append(np.mean(np.abs(result.focus_map.prior_um - truth_um)))
         baseline_mae.append(
@@ -124,7 +124,7 @@ def test_gp_oracle_equals_direct_gaussian_process_regression() -> None:
     rows, cols = 4, 5
     spec = SurfaceSpec(rows=rows, cols=cols)
     truth_um, measured_um = _maps(rows, cols, seed=3)
-    settings = SlideSettings(grid=ScanGrid(rows, cols), start_z_um=0.5)
+    settings = default_settings(ScanGrid(rows, cols), start_z_um=0.5)
     result = replay(gp_oracle(settings), truth_um, measured_um)
 
     order = settings.grid.serpentine
@@ -150,7 +150,7 @@ def test_gp_oracle_equals_direct_gaussian_process_regression() -> None:
 
 def test_gp_oracle_rejects_a_spec_of_another_size() -> None:
     with pytest.raises(ValueError, match="grid"):
-        gp_oracle(SlideSettings(grid=ScanGrid(4, 4)), rows=20, cols=20)
+        gp_oracle(default_settings(ScanGrid(4, 4)), rows=20, cols=20)
 
 
 def test_nshp_weights_reproduce_constants_and_planes() -> None:
@@ -171,7 +171,7 @@ def _kf_2d_scan(
     rows: int, cols: int, seed: int, **params: float
 ) -> tuple[Any, FocusMap, np.ndarray]:
     truth_um, measured_um = _maps(rows, cols, seed)
-    strategy = kf_2d(SlideSettings(grid=ScanGrid(rows, cols)), **params)  # type: ignore[arg-type]
+    strategy = kf_2d(default_settings(ScanGrid(rows, cols)), **params)  # type: ignore[arg-type]
     return strategy, replay(strategy, truth_um, measured_um).focus_map, truth_um
 
 

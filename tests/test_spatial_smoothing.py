@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from focustrack.bench.replay import replay, simulated_measurement
+from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import spatial
 from focustrack_estimator.spatial import RowModel, kf_2d, matern32, smooth_member
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 NOISE_UM = 1.5
@@ -24,7 +25,7 @@ def test_one_member_smoother_is_gaussian_process_regression_on_all_measurements(
     rows, cols, sigma_um, length, tilt, start_um = 5, 4, 1.4, 6.0, 0.3, 0.5
     truth_um = generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=4)[0]
     measured_um = _measured(truth_um, seed=4)
-    settings = SlideSettings(grid=ScanGrid(rows, cols), start_z_um=start_um)
+    settings = default_settings(ScanGrid(rows, cols), start_z_um=start_um)
     strategy = kf_2d(
         settings, sigmas_um=(sigma_um,), lengths_tiles=(length,), tilt_sigmas_um_per_tile=(tilt,)
     )
@@ -48,7 +49,7 @@ def test_smoothing_improves_the_final_map_and_its_sigma_matches_the_error() -> N
     size = 12
     filtered_mae, smoothed_mae, z_scores = [], [], []
     for seed, truth_um in enumerate(generate_surfaces(SurfaceSpec(rows=size, cols=size), 3, 21)):
-        strategy = kf_2d(SlideSettings(grid=ScanGrid(size, size), noise_sigma_um=NOISE_UM))
+        strategy = kf_2d(default_settings(ScanGrid(size, size), noise_sigma_um=NOISE_UM))
         fm = replay(strategy, truth_um, _measured(truth_um, seed)).focus_map
         assert np.mean(fm.smoothed_sigma_um) < 0.9 * np.mean(fm.posterior_sigma_um)
         filtered_mae.append(np.mean(np.abs(fm.posterior_um - truth_um)))
@@ -65,7 +66,7 @@ def test_smoothed_layers_cover_the_tiles_finished_so_far() -> None:
     rows, cols = 4, 5
     truth_um = generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=8)[0]
     measured_um = _measured(truth_um, seed=8)
-    settings = SlideSettings(grid=ScanGrid(rows, cols))
+    settings = default_settings(ScanGrid(rows, cols))
     strategy = kf_2d(settings)
     assert strategy.focus_map().smoothed_um is None  # nothing finished yet
     while np.isfinite(strategy.map.posterior_um).sum() < cols + 2:  # row 0, 2 tiles of row 1
@@ -116,7 +117,7 @@ def test_the_smoother_skips_tiles_without_a_measurement_exactly() -> None:
     """Tiles given up (NaN) have a zero measurement row in the batch update: the one-window
     smoother is still the GP posterior given the measured tiles, at every tile."""
     rows, cols = 6, 5
-    settings = SlideSettings(grid=ScanGrid(rows, cols), start_z_um=0.3)
+    settings = default_settings(ScanGrid(rows, cols), start_z_um=0.3)
     model = RowModel(1.4, 6.0, 0.3, cols)
     z_um = _measured(generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=5)[0], seed=5)
     R_um2 = np.random.default_rng(5).uniform(1.0, 3.0, z_um.shape)
@@ -131,7 +132,7 @@ def test_the_smoother_gives_the_same_map_whatever_the_batch_of_blocks(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     rows, cols = 5, 30
-    settings = SlideSettings(grid=ScanGrid(rows, cols))
+    settings = default_settings(ScanGrid(rows, cols))
     model = RowModel(1.4, 6.0, 0.3, cols)
     z_um = _measured(generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=6)[0], seed=6)
     R_um2 = np.full(z_um.shape, NOISE_UM**2)

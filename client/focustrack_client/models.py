@@ -89,8 +89,8 @@ class Grid(_Model):
 class ZRangePolicy(_Model):
     """How wide a stack to take: +/- k_sigma predicted sigmas, within [min, max] frames.
 
-    The defaults are the estimator's (`focustrack_estimator.strategy.ZRangePolicy`,
-    tuned in docs/estimators.md); a test keeps the two equal.
+    These defaults are the product's (k_sigma tuned in docs/estimators.md): the
+    estimator and the scheduler take theirs from here.
     """
 
     k_sigma: float = Field(2.0, gt=0, le=100)
@@ -122,7 +122,7 @@ class SlideCreate(_Model):
         description="The strategy's parameters by name; omitted ones take their defaults",
     )
     grid: Grid
-    # The defaults are the estimator's `SlideSettings` (a test keeps them equal).
+    # The product's defaults: the estimator and the scheduler take theirs from here.
     start_z_um: Height = 0.0
     start_sigma_um: Sigma = 10.0
     dof_um: Sigma = 1.0

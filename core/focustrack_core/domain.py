@@ -1,11 +1,15 @@
 """The domain vocabulary every FocusTrack part speaks: flags, z-ranges, acquisitions, measurements.
 
 These are the words of the contract between the services (proto/ carries the
-same things on Zenoh, the estimator's REST API as JSON): an `Acquisition` asks
-for a z-stack at a tile, a `Measurement` is the best focus found in it (with
-`FocusFlag`s saying why there is none), an `Outcome` is what it did to the
-estimate, a `FocusMap` is the estimate of every tile. Heights in um, shapes in
-docstrings. Pure: numpy only.
+same things on Zenoh, the estimator's REST API as JSON): `SlideSettings` say
+what is known of a slide before its scan (with the `ZRangePolicy` that sizes its
+stacks), an `Acquisition` asks for a z-stack at a tile, a `Measurement` is the
+best focus found in it (with `FocusFlag`s saying why there is none), an
+`Outcome` is what it did to the estimate, a `FocusMap` is the estimate of every
+tile. Heights in um, shapes in docstrings. Pure: numpy only.
+
+The defaults of the settings are the REST API's (`focustrack_client.models`, the
+users' contract); `focustrack_core.rest.to_domain` makes these from them.
 """
 
 from __future__ import annotations
@@ -97,6 +101,73 @@ class ZRange:
     def contains(self, z_um: float) -> bool:
         """True when a peak at `z_um` would lie inside the stack (not at its edge)."""
         return self.low_um <= z_um <= self.high_um
+
+
+@dataclass(frozen=True)
+class ZRangePolicy:
+    """How wide a stack to take: +/- k_sigma predicted sigmas, within [min_frames, max_frames].
+
+    The predicted sigma is that of the innovation (prediction and measurement
+    noise together), because the measured peak, not the truth, must land in
+    the stack. A retry after an edge peak continues beyond the edge (`beyond`).
+    """
+
+    k_sigma: float  # tuned on training seeds (docs/estimators.md)
+    z_step_um: float
+    min_frames: int
+    max_frames: int
+
+    def __post_init__(self) -> None:
+        if not (self.k_sigma > 0 and self.z_step_um > 0):
+            raise ValueError("k_sigma and z_step_um must be positive")
+        if not 2 <= self.min_frames <= self.max_frames:
+            raise ValueError(
+                f"need 2 <= min_frames <= max_frames, got {self.min_frames}, {self.max_frames}"
+            )
+
+    def around(self, center_um: float, sigma_um: float) -> ZRange:
+        """A stack centred on a prediction with innovation sigma `sigma_um`."""
+        n_frames = 2 * math.ceil(self.k_sigma * sigma_um / self.z_step_um) + 1
+        n_frames = min(max(n_frames, self.min_frames), self.max_frames)
+        return ZRange.centred(center_um, n_frames, self.z_step_um)
+
+    def wide(self, center_um: float) -> ZRange:
+        """The widest stack the policy allows (autofocus without a prediction)."""
+        return ZRange.centred(center_um, self.max_frames, self.z_step_um)
+
+    def beyond(self, previous: ZRange, flag: FocusFlag) -> ZRange:
+        """The stack to take after `previous` ended in an edge peak (or a flat curve).
+
+        As wide as `previous` (at least `min_frames`), continuing past the edge
+        that was hit and overlapping it by two frames, so that a peak on the old
+        edge frame lies inside the new stack with both its flanks. A flat curve
+        gets the widest stack, centred where the last one was.
+        """
+        n_frames = max(previous.n_frames, self.min_frames)
+        overlap_um = self.z_step_um
+        if flag is FocusFlag.EDGE_HIGH:
+            return ZRange(previous.high_um - overlap_um, self.z_step_um, n_frames)
+        if flag is FocusFlag.EDGE_LOW:
+            high_um = previous.low_um + overlap_um
+            return ZRange(high_um - (n_frames - 1) * self.z_step_um, self.z_step_um, n_frames)
+        return self.wide(previous.center_um)
+
+    @staticmethod
+    def single(z_um: float, step_um: float) -> ZRange:
+        """One frame at `z_um` (imaging a tile whose focus is already decided)."""
+        return ZRange(z_um, step_um, 1)
+
+
+@dataclass(frozen=True)
+class SlideSettings:
+    """What every strategy is told about the slide, whatever its kind (heights in um)."""
+
+    grid: ScanGrid
+    start_z_um: float  # the height to start from (for example the previous slide's)
+    start_sigma_um: float  # how uncertain that start is
+    dof_um: float  # depth of field of the objective
+    noise_sigma_um: float  # default std of a best-focus measurement (R = noise**2)
+    policy: ZRangePolicy
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from tqdm import tqdm
 from focustrack.bench import strategies as registry
 from focustrack.bench.replay import Replay, RiskBin, Scores, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
-from focustrack_estimator.strategy import SlideSettings
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_instrument_sim.surfaces import (
     FAMILIES,
     SurfaceSpec,
@@ -188,8 +188,8 @@ def replay_all(
                 for truth_um, measured_um, start_z_um in zip(
                     map_set.truth_um, map_set.measured_um, map_set.start_z_um, strict=True
                 ):
-                    settings = SlideSettings(
-                        grid=grid,
+                    settings = default_settings(
+                        grid,
                         start_z_um=float(start_z_um),
                         dof_um=dof_um,
                         noise_sigma_um=noise_um,
@@ -472,7 +472,7 @@ def run(args: argparse.Namespace) -> int:
         for map_set in map_sets:  # a strategy that cannot scan these maps fails now, not midway
             grid = ScanGrid(*map_set.truth_um.shape[1:])
             for name in names:
-                registry.create(name, SlideSettings(grid=grid))
+                registry.create(name, default_settings(grid))
     except (ValueError, OSError) as error:
         print(f"focustrack bench accuracy: error: {error}", file=sys.stderr)
         return 2

@@ -36,13 +36,12 @@ import numpy as np
 from focustrack.bench.replay import simulated_measurement
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid, Tile
+from focustrack_core.rest import to_api, to_domain
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.timing import TimingModel
 from focustrack_core.wire.session import free_port
 from focustrack_estimator.service import spawn
-from focustrack_estimator.slides import config_of
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
-from focustrack_scheduler.remote import acquisition_of, measurement_in
 
 PAIR_ROUTES = ("/v1/slides/{slide_id}/next", "/v1/slides/{slide_id}/measurements")
 
@@ -144,14 +143,14 @@ class Scanner:
                 start_s = time.perf_counter()
                 reply = _ok(await self.http.request("GET", f"{url}/next"))
                 elapsed_s = time.perf_counter() - start_s
-                acquisition = acquisition_of(api.Next.model_validate(reply))
+                acquisition = to_domain.acquisition(api.Next.model_validate(reply))
                 if acquisition is None:
                     return
                 if self.acquisition_s is not None:
                     await asyncio.sleep(self.acquisition_s * self._simulated_s(acquisition))
                 measured = self.measured_um[acquisition.row, acquisition.col]
                 measurement = simulated_measurement(acquisition, measured)
-                body = measurement_in(acquisition, measurement).model_dump(mode="json")
+                body = to_api.measurement_in(acquisition, measurement).model_dump(mode="json")
                 start_s = time.perf_counter()
                 _ok(await self.http.request("POST", f"{url}/measurements", body))
                 self.latencies_s.append(elapsed_s + time.perf_counter() - start_s)
@@ -177,7 +176,7 @@ async def run_case(
     acquisition_s: float | None,
 ) -> CaseResult:
     grid = ScanGrid(args.size, args.size)
-    settings = SlideSettings(grid, noise_sigma_um=args.noise_um)
+    settings = default_settings(grid, noise_sigma_um=args.noise_um)
     truths = generate_surfaces(SurfaceSpec(rows=args.size, cols=args.size), n_slides, args.seed)
     rng = np.random.default_rng(args.seed)
     url = httpx.URL(base_url)
@@ -185,7 +184,8 @@ async def run_case(
         scanners = []
         for truth in truths:
             response = await http.post(
-                "/v1/slides", json=config_of(args.strategy, settings).model_dump(mode="json")
+                "/v1/slides",
+                json=to_api.slide_create(args.strategy, settings).model_dump(mode="json"),
             )
             response.raise_for_status()
             measured = truth + rng.normal(0.0, args.noise_um, truth.shape)

@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
+from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
-from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, SlideSettings, tile_cost
+from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, tile_cost
 from focustrack_instrument_sim.surfaces import SurfaceSpec, surface_covariance
 
 _SPEC = SurfaceSpec()

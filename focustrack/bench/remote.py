@@ -11,11 +11,10 @@ from __future__ import annotations
 from typing import Any
 
 from focustrack_client import EstimatorClient
-from focustrack_core.domain import Acquisition, FocusMap, Measurement, Outcome
+from focustrack_core.domain import Acquisition, FocusMap, Measurement, Outcome, SlideSettings
 from focustrack_core.maps import focus_map_of_npy
-from focustrack_estimator.slides import config_of
-from focustrack_estimator.strategy import SlideSettings, Strategy
-from focustrack_scheduler.remote import acquisition_of, measurement_in, outcome_of
+from focustrack_core.rest import to_api, to_domain
+from focustrack_estimator.strategy import Strategy
 
 
 class RemoteStrategy(Strategy):
@@ -36,15 +35,15 @@ class RemoteStrategy(Strategy):
         params: dict[str, Any] | None = None,
     ) -> RemoteStrategy:
         """A new slide on the service, scanned with `strategy`."""
-        slide = client.create_slide(config_of(strategy, settings, params))
+        slide = client.create_slide(to_api.slide_create(strategy, settings, params))
         return cls(client, slide.id, settings, strategy)
 
     def _plan(self) -> Acquisition | None:
-        return acquisition_of(self.client.next(self.slide_id))
+        return to_domain.acquisition(self.client.next(self.slide_id))
 
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
-        body = measurement_in(acquisition, measurement)
-        return outcome_of(self.client.measure(self.slide_id, body))
+        body = to_api.measurement_in(acquisition, measurement)
+        return to_domain.outcome(self.client.measure(self.slide_id, body))
 
     def focus_map(self) -> FocusMap:
         return focus_map_of_npy(self.client.focus_map_file(self.slide_id, "npy"))

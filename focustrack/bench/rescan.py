@@ -25,8 +25,8 @@ from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import add_measurement_noise, format_reliability
 from focustrack.bench.replay import Drift, Replay, Scores, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator.rescan import RescanFilter
-from focustrack_estimator.strategy import SlideSettings
 from focustrack_instrument_sim.surfaces import FAMILIES, family_spec, generate_surfaces
 
 RESCAN = "kf-rescan"
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     rng = np.random.default_rng([args.seed, 3])
     truth_2 = truth_um + args.local_um * rng.standard_normal(truth_um.shape)
     measured_2 = add_measurement_noise(truth_2, args.noise_um, args.seed + 1)
-    settings = SlideSettings(grid=grid, dof_um=args.dof_um, noise_sigma_um=args.noise_um)
+    settings = default_settings(grid, dof_um=args.dof_um, noise_sigma_um=args.noise_um)
 
     first = [
         replay(registry.create(args.first, settings), t, m, drift=Drift(0.0, rate))

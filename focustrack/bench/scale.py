@@ -51,6 +51,8 @@ from typing import Any
 import numpy as np
 
 from focustrack.bench.replay import simulated_measurement
+from focustrack_core.rest import to_api, to_domain
+from focustrack_core.rest.to_domain import default_settings
 
 DEFAULT_SIZES = (20, 50, 100, 200)
 DEFAULT_STRATEGIES = (
@@ -75,12 +77,11 @@ def _peak_rss_mb() -> float:
 def _surface(size: int) -> tuple[np.ndarray, Any]:
     """Measured heights (um) of a standard surface of size x size tiles, and the settings."""
     from focustrack_core.geometry import ScanGrid
-    from focustrack_estimator.strategy import SlideSettings
     from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
     truth_um = generate_surfaces(SurfaceSpec(rows=size, cols=size), 1, seed=SEED)[0]
     noise_um = np.random.default_rng(SEED).normal(0.0, NOISE_UM, truth_um.shape)
-    return truth_um + noise_um, SlideSettings(grid=ScanGrid(size, size))
+    return truth_um + noise_um, default_settings(ScanGrid(size, size))
 
 
 def case_in_process(strategy_name: str, size: int) -> dict[str, Any]:
@@ -126,14 +127,13 @@ def fill_store(
 ) -> str:
     """Scan into a store as the service does, and stop `unsnapshotted` measurements after a
     periodic snapshot (as a kill -9 would), near the end of the scan."""
-    from focustrack_estimator.slides import Slide, config_of
+    from focustrack_estimator.slides import Slide
     from focustrack_estimator.store import Store
-    from focustrack_scheduler.remote import measurement_in
 
     measured_um, settings = _surface(size)
     store = Store(store_path)
     store._db.execute("PRAGMA synchronous=OFF")  # a benchmark's shortcut (module docstring)
-    config = config_of(strategy_name, settings)
+    config = to_api.slide_create(strategy_name, settings)
     slide_id = "bench"
     store.create_slide(slide_id, config.model_dump(mode="json"))
     slide = Slide(slide_id, config, store, snapshot_every=every)
@@ -142,7 +142,9 @@ def fill_store(
         if n_logged >= settings.grid.n_tiles - every and n_logged % every == unsnapshotted % every:
             break
         measured = measured_um[acquisition.row, acquisition.col]
-        slide.measure(measurement_in(acquisition, simulated_measurement(acquisition, measured)))
+        slide.measure(
+            to_api.measurement_in(acquisition, simulated_measurement(acquisition, measured))
+        )
     store.close()
     return slide_id
 
@@ -154,7 +156,6 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
     from focustrack_client import EstimatorClient
     from focustrack_core.wire.session import free_port
     from focustrack_estimator.service import spawn
-    from focustrack_scheduler.remote import acquisition_of, measurement_in
 
     with tempfile.TemporaryDirectory() as directory:
         store_path = str(Path(directory) / "estimator.sqlite")
@@ -193,11 +194,15 @@ def case_rest(strategy_name: str, size: int, unsnapshotted: int, every: int) -> 
         try:
             # The last measurement also makes the final map and its snapshot: allow it time.
             client = EstimatorClient(f"http://127.0.0.1:{port}", timeout_s=300.0)
-            while (acquisition := acquisition_of(client.next(slide_id))) is not None:  # finish
+            while (
+                acquisition := to_domain.acquisition(client.next(slide_id))
+            ) is not None:  # finish
                 measured = measured_um[acquisition.row, acquisition.col]
                 client.measure(
                     slide_id,
-                    measurement_in(acquisition, simulated_measurement(acquisition, measured)),
+                    to_api.measurement_in(
+                        acquisition, simulated_measurement(acquisition, measured)
+                    ),
                 )
             client.close()
             n_acquisitions = httpx.get(url, timeout=60.0).json()["n_acquisitions"]

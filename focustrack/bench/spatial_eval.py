@@ -22,7 +22,7 @@ from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import add_measurement_noise, format_table
 from focustrack.bench.replay import Scores, replay, score
 from focustrack_core.geometry import ScanGrid
-from focustrack_estimator.strategy import SlideSettings
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 DEFAULT_NAMES = ("gp-oracle", "kf-2d", "nshp-wiener1", "nshp-wiener0", "kf-wiener0")
@@ -46,7 +46,7 @@ def evaluate(
     spec = family_spec(family)
     truth_um = generate_surfaces(spec, n_maps, seed)
     measured_um = add_measurement_noise(truth_um, noise_um, seed)
-    settings = SlideSettings(grid=ScanGrid(spec.rows, spec.cols), noise_sigma_um=noise_um)
+    settings = default_settings(ScanGrid(spec.rows, spec.cols), noise_sigma_um=noise_um)
     scores = {}
     for name in names:
         params = asdict(spec) if name == "gp-oracle" else {}

@@ -9,8 +9,9 @@ from __future__ import annotations
 from typing import Any
 
 from focustrack.bench.oracle import gp_oracle, gp_oracle_cost
+from focustrack_core.domain import SlideSettings
 from focustrack_estimator import registry
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Strategy
 
 STRATEGIES: dict[str, registry.Factory] = {**registry.STRATEGIES, "gp-oracle": gp_oracle}
 CATALOGUE = registry.Catalogue(STRATEGIES, {**registry.COSTS, "gp-oracle": gp_oracle_cost})

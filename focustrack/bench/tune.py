@@ -37,8 +37,9 @@ import numpy as np
 from focustrack.bench.accuracy import OUTLIERS, add_outliers
 from focustrack.bench.replay import Scores, replay, score
 from focustrack.bench.strategies import STRATEGIES, parameters
+from focustrack_core.domain import ZRangePolicy
 from focustrack_core.geometry import ScanGrid
-from focustrack_estimator.strategy import SlideSettings, ZRangePolicy
+from focustrack_core.rest.to_domain import default_policy, default_settings
 from focustrack_instrument_sim.surfaces import FAMILIES, family_spec, generate_surfaces
 
 _Q_HEIGHT_UM2 = [0.0, 0.01, 0.03, 0.1, 0.2, 0.3]
@@ -116,8 +117,8 @@ def evaluate(
 ) -> Scores:
     """Scores of strategy `name` with `params` over every map of `data`."""
     rows, cols = data.truth_um.shape[1:]
-    settings = SlideSettings(
-        ScanGrid(rows, cols), noise_sigma_um=noise_um, policy=policy or ZRangePolicy()
+    settings = default_settings(
+        ScanGrid(rows, cols), noise_sigma_um=noise_um, policy=policy or default_policy()
     )
     replays = [
         replay(STRATEGIES[name](settings, **params), truth, measured)
@@ -222,7 +223,7 @@ def tune(
 
             params, scores = coordinate_search(name, SEARCH_SPACE[name], run, log=log)
             log(f"{name}: best {_format(params)}; stack width sweep")
-            policies = [replace(ZRangePolicy(), k_sigma=k) for k in k_sigmas]
+            policies = [replace(default_policy(), k_sigma=k) for k in k_sigmas]
             sweep = list(pool.map(_evaluate_in_worker, [(name, params, p) for p in policies]))
             for k, swept in zip(k_sigmas, sweep, strict=True):
                 log(

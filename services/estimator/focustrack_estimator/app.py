@@ -32,16 +32,16 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from focustrack_client import models as api
-from focustrack_core.domain import Acquisition, FocusMap, Outcome
+from focustrack_core.domain import FocusMap
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import (
     MAP_LAYERS,
-    finite_or_none,
     layer_json,
     map_csv,
     map_layers,
     map_npy,
 )
+from focustrack_core.rest import to_api
 from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut
 from focustrack_estimator import registry
 from focustrack_estimator.lean import RiskSummary, summarise_risk
@@ -208,50 +208,10 @@ async def delete_slide(slide_id: SlideId, slides: SlidesDep) -> Response:
     return Response(status_code=204)
 
 
-def _next_out(slide: Slide, acquisition: Acquisition | None) -> api.Next:
-    if acquisition is None:
-        return api.Next(done=True)
-    x_um, y_um = slide.grid.stage_xy_um(acquisition.row, acquisition.col)
-    z = acquisition.z
-    return api.Next(
-        done=False,
-        sequence=acquisition.index,
-        row=acquisition.row,
-        col=acquisition.col,
-        stage_x_um=x_um,
-        stage_y_um=y_um,
-        z_center_um=z.center_um,
-        z_low_um=z.low_um,
-        z_high_um=z.high_um,
-        z_step_um=z.step_um,
-        n_frames=z.n_frames,
-        predicted_z_um=finite_or_none(acquisition.predicted_um),
-        predicted_sigma_um=finite_or_none(acquisition.predicted_sigma_um),
-        purpose=acquisition.purpose,
-        measure=acquisition.measure,
-    )
-
-
 @v1.get("/slides/{slide_id}/next", tags=["scan"])
 async def next_acquisition(slide_id: SlideId, slides: SlidesDep) -> api.Next:
     """The next tile to image and the z-range to acquire there (the same until measured)."""
-    return await slides.run(slide_id, lambda slide: _next_out(slide, slide.next()))
-
-
-def _outcome_out(sequence: int, outcome: Outcome) -> api.OutcomeOut:
-    return api.OutcomeOut(
-        sequence=sequence,
-        row=outcome.row,
-        col=outcome.col,
-        accepted=outcome.accepted,
-        prior_um=finite_or_none(outcome.prior_um),
-        prior_sigma_um=finite_or_none(outcome.prior_sigma_um),
-        posterior_um=finite_or_none(outcome.posterior_um),
-        posterior_sigma_um=finite_or_none(outcome.posterior_sigma_um),
-        innovation_um=finite_or_none(outcome.innovation_um),
-        nis=finite_or_none(outcome.nis),
-        planes_um=list(outcome.planes_um),
-    )
+    return await slides.run(slide_id, lambda slide: to_api.next_step(slide.next(), slide.grid))
 
 
 @v1.post("/slides/{slide_id}/measurements", tags=["scan"])
@@ -271,7 +231,7 @@ async def post_measurement(
         metrics.measurements.inc()
         if not logged.outcome.accepted:
             metrics.rejections.inc()
-    return _outcome_out(measurement.sequence, logged.outcome)
+    return to_api.outcome_out(measurement.sequence, logged.outcome)
 
 
 def _map_json(focus_map: FocusMap, grid: ScanGrid) -> str:

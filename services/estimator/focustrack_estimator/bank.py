@@ -36,6 +36,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Step
 from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
@@ -45,7 +46,7 @@ from focustrack_estimator.kalman_strategies import (
 )
 from focustrack_estimator.models import DirectionAwareModel
 from focustrack_estimator.serpentine import FilterOptions
-from focustrack_estimator.strategy import CostModel, SlideSettings, Strategy
+from focustrack_estimator.strategy import CostModel, Strategy
 
 
 def mixture(

@@ -48,16 +48,9 @@ import numpy as np
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator, RegularGridInterpolator
 from scipy.spatial import Delaunay, QhullError
 
-from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose
+from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose, SlideSettings
 from focustrack_core.geometry import Tile
-from focustrack_estimator.strategy import (
-    Cost,
-    CostModel,
-    PeakSearch,
-    SlideSettings,
-    Strategy,
-    tile_cost,
-)
+from focustrack_estimator.strategy import Cost, CostModel, PeakSearch, Strategy, tile_cost
 
 #: Wide blocks to try beyond an edge before giving up on a tile (each block spans
 #: `policy.max_frames` frames: 20 um with the default policy).

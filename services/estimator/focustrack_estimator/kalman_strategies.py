@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from focustrack_core.domain import FocusMap
+from focustrack_core.domain import FocusMap, SlideSettings
 from focustrack_core.geometry import Step, Tile
 from focustrack_estimator.models import (
     DirectionAwareModel,
@@ -40,7 +40,7 @@ from focustrack_estimator.models import (
 )
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
-from focustrack_estimator.strategy import Cost, CostModel, SlideSettings, Strategy, tile_cost
+from focustrack_estimator.strategy import Cost, CostModel, Strategy, tile_cost
 
 
 def rts_smooth(

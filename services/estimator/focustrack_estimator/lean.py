@@ -50,8 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from focustrack_core.domain import ZRange
-from focustrack_estimator.strategy import ZRangePolicy
+from focustrack_core.domain import ZRange, ZRangePolicy
 
 #: Frames of a short stack: the fewest that locate a peak of known shape (curve_model).
 SHORT_FRAMES = 3

@@ -12,9 +12,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 
+from focustrack_core.domain import SlideSettings
 from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.spatial import RowBankFilter, kf_2d
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Strategy
 
 #: The stated risk of the lean strategies by default: at most 1% of tiles out of focus.
 DEFAULT_RISK = 0.01

@@ -17,8 +17,9 @@ import inspect
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from focustrack_core.domain import SlideSettings
 from focustrack_estimator import bank, classic, kalman_strategies, lean_scan, rescan, spatial
-from focustrack_estimator.strategy import Cost, CostModel, SlideSettings, Strategy
+from focustrack_estimator.strategy import Cost, CostModel, Strategy
 
 Factory = Callable[..., Strategy]
 

@@ -35,12 +35,12 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from focustrack_core.domain import Acquisition, Measurement, Outcome
+from focustrack_core.domain import Acquisition, Measurement, Outcome, SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
-from focustrack_estimator.strategy import SlideSettings, Strategy
+from focustrack_estimator.strategy import Strategy
 
 #: The sigma of a prior map given without one (um).
 DEFAULT_MAP_SIGMA_UM = 0.05

@@ -38,7 +38,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
+from focustrack_core.domain import (
+    Acquisition,
+    FocusFlag,
+    Measurement,
+    Outcome,
+    Purpose,
+    SlideSettings,
+    ZRange,
+)
 from focustrack_core.geometry import Tile
 from focustrack_estimator.lean import (
     COARSE_STEP_UM,
@@ -49,7 +57,7 @@ from focustrack_estimator.lean import (
     planes_risk,
     planes_stack,
 )
-from focustrack_estimator.strategy import PeakSearch, SlideSettings, Strategy
+from focustrack_estimator.strategy import PeakSearch, Strategy
 
 #: How many measurements the configured default R counts as when `adapt_r` estimates it.
 R_PRIOR_COUNT = 20

@@ -46,12 +46,13 @@ from focustrack_core.domain import (
 )
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import map_layers
+from focustrack_core.rest import to_domain
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import InnovationDiagnostics, innovation_diagnostics
 from focustrack_estimator.heatmap import MAGMA, VIRIDIS, heat_map_png
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.store import Event, Store
-from focustrack_estimator.strategy import Cost, SlideSettings, Strategy, ZRangePolicy
+from focustrack_estimator.strategy import Cost, Strategy
 
 log = logging.getLogger(__name__)
 
@@ -94,47 +95,6 @@ class ReplayMismatchError(SlideError):
 
     status = 500
     code = api.ErrorCode.REPLAY_MISMATCH
-
-
-def config_of(
-    strategy: str, settings: SlideSettings, params: dict[str, Any] | None = None
-) -> api.SlideCreate:
-    """The API's slide of a strategy with these settings (the inverse of `settings_of`)."""
-    grid, policy = settings.grid, settings.policy
-    return api.SlideCreate(
-        strategy=strategy,
-        params=dict(params or {}),
-        grid=api.Grid(
-            rows=grid.rows,
-            cols=grid.cols,
-            pitch_um=grid.pitch_um,
-            origin_x_um=grid.origin_x_um,
-            origin_y_um=grid.origin_y_um,
-        ),
-        start_z_um=settings.start_z_um,
-        start_sigma_um=settings.start_sigma_um,
-        dof_um=settings.dof_um,
-        noise_sigma_um=settings.noise_sigma_um,
-        z_range=api.ZRangePolicy(
-            k_sigma=policy.k_sigma,
-            z_step_um=policy.z_step_um,
-            min_frames=policy.min_frames,
-            max_frames=policy.max_frames,
-        ),
-    )
-
-
-def settings_of(config: api.SlideCreate) -> SlideSettings:
-    """The domain's settings of an API slide."""
-    grid, policy = config.grid, config.z_range
-    return SlideSettings(
-        grid=ScanGrid(grid.rows, grid.cols, grid.pitch_um, grid.origin_x_um, grid.origin_y_um),
-        start_z_um=config.start_z_um,
-        start_sigma_um=config.start_sigma_um,
-        dof_um=config.dof_um,
-        noise_sigma_um=config.noise_sigma_um,
-        policy=ZRangePolicy(policy.k_sigma, policy.z_step_um, policy.min_frames, policy.max_frames),
-    )
 
 
 def resolve_params(
@@ -341,7 +301,9 @@ class Slide:
         try:
             self.cost = cost_of(config, catalogue)  # its share of the live slides' budget
             params = resolve_params(config.strategy, config.params, catalogue)
-            self.strategy: Strategy = catalogue.create(config.strategy, settings_of(config), params)
+            self.strategy: Strategy = catalogue.create(
+                config.strategy, to_domain.slide_settings(config), params
+            )
             self.next()  # plan the first acquisition: absurd parameters fail here, at creation
         except SlideError:
             raise
@@ -449,8 +411,7 @@ class Slide:
                 ("body", "row" if request.row >= self.grid.rows else "col"),
             )
         try:
-            flags = frozenset(FocusFlag(flag) for flag in request.flags)
-            measurement = Measurement(request.z_um, request.sigma_um, flags)
+            measurement = to_domain.measurement(request)
         except ValueError as error:
             raise SlideError(str(error), ("body",)) from None
         if request.sequence < len(self.history):
@@ -543,7 +504,7 @@ def probe(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERV
             "cols": min(config.grid.cols, PROBE_SIDE),
         }
     )
-    settings = settings_of(config.model_copy(update={"grid": grid}))
+    settings = to_domain.slide_settings(config.model_copy(update={"grid": grid}))
     params = resolve_params(config.strategy, config.params, catalogue)
     try:
         strategy = catalogue.create(config.strategy, settings, params)
@@ -567,7 +528,7 @@ def probe(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERV
 def cost_of(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> Cost:
     """The projected cost of a slide (its strategy's cost model, parameters resolved)."""
     params = resolve_params(config.strategy, config.params, catalogue)
-    return catalogue.cost(config.strategy, settings_of(config), params)
+    return catalogue.cost(config.strategy, to_domain.slide_settings(config), params)
 
 
 @dataclasses.dataclass(frozen=True)

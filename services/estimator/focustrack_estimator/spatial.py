@@ -45,19 +45,12 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from focustrack_core.domain import FocusMap
+from focustrack_core.domain import FocusMap, SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
-from focustrack_estimator.strategy import (
-    NOMINAL_FLOPS_PER_S,
-    Cost,
-    CostModel,
-    SlideSettings,
-    Strategy,
-    tile_cost,
-)
+from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, CostModel, Strategy, tile_cost
 
 # --- NSHP ------------------------------------------------------------------------------
 

@@ -19,9 +19,10 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
+from focustrack_client.models import MAX_ABS_UM
 from focustrack_core.domain import (
     Acquisition,
     FocusFlag,
@@ -29,17 +30,17 @@ from focustrack_core.domain import (
     Measurement,
     Outcome,
     Purpose,
+    SlideSettings,
     ZRange,
+    ZRangePolicy,
 )
-from focustrack_core.geometry import ScanGrid
 
 _EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
 
-#: Heights a stack may reach, +/- um: the API's bound on every height
-#: (`focustrack_client.models.MAX_ABS_UM`; a test keeps the two equal). A z-range the
+#: Heights a stack may reach, +/- um: the API's bound on every height. A z-range the
 #: policy would put beyond it is moved (and if need be narrowed) inside it, so that what
 #: the estimator asks for can always be measured and posted back.
-Z_LIMIT_UM = 1e6
+Z_LIMIT_UM = MAX_ABS_UM
 
 #: Most retries a strategy may make on one tile: a scan must end, and each retry is a stack.
 MAX_RETRIES = 50
@@ -53,61 +54,6 @@ def bounded(z: ZRange, limit_um: float = Z_LIMIT_UM) -> ZRange:
     if (low_um, n_frames) == (z.low_um, z.n_frames):
         return z
     return ZRange(low_um, z.step_um, n_frames)
-
-
-@dataclass(frozen=True)
-class ZRangePolicy:
-    """How wide a stack to take: +/- k_sigma predicted sigmas, within [min_frames, max_frames].
-
-    The predicted sigma is that of the innovation (prediction and measurement
-    noise together), because the measured peak, not the truth, must land in
-    the stack. A retry after an edge peak continues beyond the edge (`beyond`).
-    """
-
-    k_sigma: float = 2.0  # tuned on training seeds (docs/estimators.md)
-    z_step_um: float = 0.5
-    min_frames: int = 5
-    max_frames: int = 41
-
-    def __post_init__(self) -> None:
-        if not (self.k_sigma > 0 and self.z_step_um > 0):
-            raise ValueError("k_sigma and z_step_um must be positive")
-        if not 2 <= self.min_frames <= self.max_frames:
-            raise ValueError(
-                f"need 2 <= min_frames <= max_frames, got {self.min_frames}, {self.max_frames}"
-            )
-
-    def around(self, center_um: float, sigma_um: float) -> ZRange:
-        """A stack centred on a prediction with innovation sigma `sigma_um`."""
-        n_frames = 2 * math.ceil(self.k_sigma * sigma_um / self.z_step_um) + 1
-        n_frames = min(max(n_frames, self.min_frames), self.max_frames)
-        return ZRange.centred(center_um, n_frames, self.z_step_um)
-
-    def wide(self, center_um: float) -> ZRange:
-        """The widest stack the policy allows (autofocus without a prediction)."""
-        return ZRange.centred(center_um, self.max_frames, self.z_step_um)
-
-    def beyond(self, previous: ZRange, flag: FocusFlag) -> ZRange:
-        """The stack to take after `previous` ended in an edge peak (or a flat curve).
-
-        As wide as `previous` (at least `min_frames`), continuing past the edge
-        that was hit and overlapping it by two frames, so that a peak on the old
-        edge frame lies inside the new stack with both its flanks. A flat curve
-        gets the widest stack, centred where the last one was.
-        """
-        n_frames = max(previous.n_frames, self.min_frames)
-        overlap_um = self.z_step_um
-        if flag is FocusFlag.EDGE_HIGH:
-            return ZRange(previous.high_um - overlap_um, self.z_step_um, n_frames)
-        if flag is FocusFlag.EDGE_LOW:
-            high_um = previous.low_um + overlap_um
-            return ZRange(high_um - (n_frames - 1) * self.z_step_um, self.z_step_um, n_frames)
-        return self.wide(previous.center_um)
-
-    @staticmethod
-    def single(z_um: float, step_um: float) -> ZRange:
-        """One frame at `z_um` (imaging a tile whose focus is already decided)."""
-        return ZRange(z_um, step_um, 1)
 
 
 class PeakSearch:
@@ -169,18 +115,6 @@ class PeakSearch:
             centre_um = (above_um + below_um) / 2.0
             return self.policy.around(centre_um, half_width_um / self.policy.k_sigma)
         return self.policy.beyond(*self.misses[-1])
-
-
-@dataclass(frozen=True)
-class SlideSettings:
-    """What every strategy is told about the slide, whatever its kind."""
-
-    grid: ScanGrid
-    start_z_um: float = 0.0  # the height to start from (for example the previous slide's)
-    start_sigma_um: float = 10.0  # how uncertain that start is
-    dof_um: float = 1.0  # depth of field of the objective
-    noise_sigma_um: float = 1.5  # default std of a best-focus measurement (R = noise**2)
-    policy: ZRangePolicy = field(default_factory=ZRangePolicy)
 
 
 @dataclass(frozen=True)

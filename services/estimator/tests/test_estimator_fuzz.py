@@ -23,17 +23,17 @@ from fastapi.testclient import TestClient
 from schemathesis import checks
 
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest import to_api
+from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
 from focustrack_estimator.app import Settings, create_app
-from focustrack_estimator.slides import config_of
-from focustrack_estimator.strategy import SlideSettings
 
 # The schema is read when the module is collected, so the app (and its store) exist by then.
 _DIRECTORY = Path(tempfile.mkdtemp(prefix="estimator-fuzz-"))
 app = create_app(Settings(str(_DIRECTORY / "estimator.sqlite")))
 schema = schemathesis.openapi.from_asgi("/openapi.json", app)
 _strategies = itertools.cycle(sorted(registry.STRATEGIES))
-_SETTINGS = SlideSettings(ScanGrid(5, 5))
+_SETTINGS = default_settings(ScanGrid(5, 5))
 _http = TestClient(app)  # not entered: the app's lifespan (which closes the store) stays off
 
 
@@ -46,7 +46,7 @@ def _store() -> Iterator[None]:
 
 def _new_slide() -> str:
     response = _http.post(
-        "/v1/slides", json=config_of(next(_strategies), _SETTINGS).model_dump(mode="json")
+        "/v1/slides", json=to_api.slide_create(next(_strategies), _SETTINGS).model_dump(mode="json")
     )
     assert response.status_code == 201, response.text
     return response.json()["id"]

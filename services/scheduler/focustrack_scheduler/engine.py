@@ -39,6 +39,7 @@ from tqdm import tqdm
 
 from focustrack_client import EstimatorClient, EstimatorError
 from focustrack_core.domain import Acquisition, Outcome
+from focustrack_core.rest import to_api, to_domain
 from focustrack_core.wire import keys, rpc
 from focustrack_scheduler.clients import (
     InstrumentClient,
@@ -61,7 +62,6 @@ from focustrack_scheduler.plan import (
     SlideGeometry,
     Step,
 )
-from focustrack_scheduler.remote import acquisition_of, measurement_in, outcome_of
 
 log = logging.getLogger(__name__)
 
@@ -416,17 +416,17 @@ class Engine:
         return slide.id
 
     def _ask_next(self, step: AskNext) -> Acquisition | None:
-        return acquisition_of(
+        return to_domain.acquisition(
             self.estimator_call("/next", lambda: self.estimator.next(step.slide_id))
         )
 
     def _post(self, step: PostMeasurement) -> Outcome:
-        body = measurement_in(step.acquisition, step.measurement)
+        body = to_api.measurement_in(step.acquisition, step.measurement)
         reply = self.estimator_call(
             f"the measurement of acquisition {step.acquisition.index}",
             lambda: self.estimator.measure(step.slide_id, body),
         )
-        outcome = outcome_of(reply)
+        outcome = to_domain.outcome(reply)
         curve = self._curves.pop(step.acquisition.index, None)
         self.record.measurement(step.acquisition, step.measurement, outcome, curve)
         return outcome

@@ -40,8 +40,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from focustrack_client import models as api
-from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome
+from focustrack_core.domain import (
+    Acquisition,
+    FocusFlag,
+    Measurement,
+    Outcome,
+    SlideSettings,
+    ZRangePolicy,
+)
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest import to_api
+from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import keys
 
@@ -62,7 +71,7 @@ class ScanRequest:
     start_z_um: float = 0.0
     start_sigma_um: float = 10.0
     noise_sigma_um: float = 0.1
-    policy: api.ZRangePolicy = field(default_factory=api.ZRangePolicy)
+    policy: ZRangePolicy = field(default_factory=default_policy)
     resume_slide_id: str | None = None  # the estimator slide of a previous run of this scan
     focus_attempts: int = 5  # acquisitions of one stack before the focus service counts as gone
 
@@ -185,23 +194,15 @@ class FocusUnavailableError(RuntimeError):
 
 def slide_config(request: ScanRequest, geometry: SlideGeometry) -> api.SlideCreate:
     """The estimator slide to create: the request's strategy on the instrument's grid and DOF."""
-    grid = geometry.grid
-    return api.SlideCreate(
-        strategy=request.strategy,
-        params=dict(request.params),
-        grid=api.Grid(
-            rows=grid.rows,
-            cols=grid.cols,
-            pitch_um=grid.pitch_um,
-            origin_x_um=grid.origin_x_um,
-            origin_y_um=grid.origin_y_um,
-        ),
+    settings = SlideSettings(
+        grid=geometry.grid,
         start_z_um=request.start_z_um,
         start_sigma_um=request.start_sigma_um,
         dof_um=geometry.dof_um,
         noise_sigma_um=request.noise_sigma_um,
-        z_range=request.policy,
+        policy=request.policy,
     )
+    return to_api.slide_create(request.strategy, settings, request.params)
 
 
 def measurement_of(result: focus_pb2.FocusResult) -> Measurement:

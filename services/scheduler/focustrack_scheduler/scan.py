@@ -26,9 +26,9 @@ import numpy as np
 import zenoh
 
 from focustrack_client import EstimatorClient
-from focustrack_client.models import ZRangePolicy
 from focustrack_core.config import command_main
 from focustrack_core.maps import focus_map_of_npy
+from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.wire import rpc
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, add_zenoh_arguments, config_from_args
 from focustrack_core.wire.trust import ResultSigner, signer_of
@@ -198,7 +198,7 @@ def add_scan_options(parser: argparse.ArgumentParser) -> None:
         help="std of a best-focus measurement without its own sigma (0.1)",
     )
     policy = parser.add_argument_group("z-stacks")
-    defaults = ZRangePolicy()
+    defaults = default_policy()
     policy.add_argument("--k-sigma", type=float, default=defaults.k_sigma)
     policy.add_argument("--z-step-um", type=float, default=defaults.z_step_um)
     policy.add_argument("--min-frames", type=int, default=defaults.min_frames)
@@ -258,7 +258,7 @@ def request_from_args(
         start_z_um=args.start_z_um,
         start_sigma_um=args.start_sigma_um,
         noise_sigma_um=args.noise_sigma_um,
-        policy=ZRangePolicy(
+        policy=default_policy(
             k_sigma=args.k_sigma,
             z_step_um=args.z_step_um,
             min_frames=args.min_frames,
