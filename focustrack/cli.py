@@ -1,12 +1,14 @@
 """The `focustrack` command: one entry point, a subcommand per job.
 
-Each subcommand lives in its own module, which provides
-``add_arguments(parser: argparse.ArgumentParser) -> None`` and
+Each subcommand lives in its own module. A service's module (and the scan's)
+provides ``Settings``, its one settings model (`focustrack_core.settings`: flags,
+environment and settings file alike), and ``run(settings: Settings) -> int``, as its
+own console script (`focustrack-estimator`, ...) uses them; any other module
+provides ``add_arguments(parser: argparse.ArgumentParser) -> None`` and
 ``run(args: argparse.Namespace) -> int``. Only the chosen module is imported,
 so `focustrack bench accuracy` does not pay for starting Zenoh or FastAPI.
-A module with an ``ENV_PREFIX`` (the services and the scan) also takes every
-option from the environment (`focustrack_core.config`), as its own console
-script (`focustrack-estimator`, ...) does.
+A module with an ``ENV_PREFIX`` also takes every option from the environment
+(`focustrack_core.config`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import importlib
 import sys
 
 from focustrack_core.config import with_environment
+from focustrack_core.settings import parse
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -80,6 +83,10 @@ def main(argv: list[str] | None = None) -> int:
             module_name, text = COMMANDS[name]
             module = importlib.import_module(module_name)
             parser = argparse.ArgumentParser(prog=f"focustrack {name}", description=text)
+            settings_cls = getattr(module, "Settings", None)
+            if settings_cls is not None:
+                settings_cls.add_arguments(parser)
+                return module.run(parse(parser, settings_cls, argv[n_words:]))
             module.add_arguments(parser)
             if hasattr(module, "ENV_PREFIX"):
                 with_environment(parser, module.ENV_PREFIX)

@@ -48,8 +48,12 @@ import socket
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import ClassVar, Literal
 
 import zenoh
+from pydantic import Field
+
+from focustrack_core.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
 
@@ -231,6 +235,57 @@ def add_zenoh_arguments(
     parser.set_defaults(
         zenoh_default_connect=list(default_connect), zenoh_default_listen=list(default_listen)
     )
+
+
+class ZenohSettings(ServiceSettings):
+    """The Zenoh options of every service on the bus (`ServiceSettings` subclasses add theirs).
+
+    Neither ``--connect`` nor ``--listen`` given: the service's own endpoints
+    (`default_connect`, `default_listen`), e.g. the instrument listens on
+    `DEFAULT_ENDPOINT` and the others connect to it.
+    """
+
+    list_fields: ClassVar[tuple[str, ...]] = ("connect", "listen")
+    default_connect: ClassVar[tuple[str, ...]] = ()
+    default_listen: ClassVar[tuple[str, ...]] = ()
+
+    connect: list[str] | None = Field(
+        None, description=f"endpoints to connect to, e.g. {DEFAULT_ENDPOINT}"
+    )
+    listen: list[str] | None = Field(None, description="endpoints to listen on")
+    mode: Literal["peer", "client", "router"] | None = Field(
+        None, description="Zenoh mode (default: peer when listening, client when only connecting)"
+    )
+    zenoh_config: Path | None = Field(
+        None,
+        description="a Zenoh JSON5 configuration (TLS, user/password, access control; "
+        "docs/security.md); the options above are written over it",
+    )
+    shared_memory: int = Field(
+        0,
+        ge=0,
+        description="Zenoh shared memory with processes on this host: the pool, in MB, that "
+        f"published pixels are written to, e.g. {SHARED_MEMORY_MB} (0: off, network only; "
+        "subscribers need it on too, any size)",
+    )
+
+    def endpoints(self) -> tuple[list[str], list[str]]:
+        """(connect, listen): the options', else the service's defaults."""
+        if self.connect is None and self.listen is None:
+            return list(self.default_connect), list(self.default_listen)
+        return self.connect or [], self.listen or []
+
+    def zenoh(self, connect_timeout_s: float = CONNECT_TIMEOUT_S) -> zenoh.Config:
+        """The Zenoh config these options describe (ValueError if it cannot be used)."""
+        connect, listen = self.endpoints()
+        return session_config(
+            connect,
+            listen,
+            self.mode,
+            connect_timeout_s,
+            shared_memory=self.shared_memory > 0,
+            config_file=self.zenoh_config,
+        )
 
 
 def config_from_args(

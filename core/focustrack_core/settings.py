@@ -1,0 +1,217 @@
+"""A service's settings from one model: its flags, its environment and an optional file.
+
+Each service describes its options once, as a subclass of `ServiceSettings` (a
+pydantic-settings model: a field per option, with its type, default, bounds and
+help). From that one model come:
+
+- the command line: ``--max-tile-seconds 0.2``, the field names in kebab case; a
+  switch is ``--insecure`` (and ``--no-insecure``); a list takes its items after one
+  flag (``--connect A B``), repeated flags, or commas;
+- the environment: ``FOCUSTRACK_ESTIMATOR_MAX_TILE_SECONDS=0.2`` (the model's
+  `env_prefix` and the field name in capitals), so a container sets variables and
+  runs the command as it is; a list reads its items separated by commas or spaces;
+- a settings file, ``--settings FILE`` (or ``{PREFIX}SETTINGS``): TOML or JSON, the
+  field names as keys (``max_tile_seconds = 0.2``).
+
+Precedence: a flag over the environment over the file over the model's default.
+A value the model refuses stops the command with exit status 2 and a message
+naming the option and what is wrong with it, as argparse does for a bad flag.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar, Self, TypeVar
+
+from pydantic import ValidationError, field_validator
+from pydantic.fields import FieldInfo
+from pydantic_settings import (
+    BaseSettings,
+    CliSettingsSource,
+    InitSettingsSource,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+)
+
+S = TypeVar("S", bound="ServiceSettings")
+
+#: The option naming a settings file (besides its environment twin, ``{PREFIX}SETTINGS``).
+SETTINGS_FILE_OPTION = "--settings"
+
+
+class ServiceSettings(BaseSettings):
+    """The base of every service's settings; subclasses set `env_prefix` in `model_config`."""
+
+    model_config = SettingsConfigDict(
+        extra="forbid",
+        env_ignore_empty=True,  # an empty variable is an unset one (a switch stays off)
+        cli_kebab_case=True,
+        cli_implicit_flags=True,  # --insecure, not --insecure true
+        cli_hide_none_type=True,
+        validate_default=True,
+    )
+
+    #: Fields whose text (from the environment, a flag or a file) is a list of items
+    #: separated by commas or spaces, as lists always read (set by subclasses).
+    list_fields: ClassVar[tuple[str, ...]] = ()
+
+    #: The settings file read on construction (`load` sets it for the call).
+    _file: ClassVar[Path | None] = None
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _split_lists(cls, value: Any, info: Any) -> Any:
+        """A list field given as one text (environment, file) is its items."""
+        if info.field_name in cls.list_fields and isinstance(value, str):
+            return [item for item in re.split(r"[,\s]+", value.strip()) if item]
+        return value
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        sources: tuple[PydanticBaseSettingsSource, ...] = (init_settings, env_settings)
+        if cls._file is not None:
+            sources += (InitSettingsSource(settings_cls, read_settings_file(cls._file)),)
+        return sources
+
+    @classmethod
+    def env_prefix(cls) -> str:
+        return str(cls.model_config.get("env_prefix", ""))
+
+    @classmethod
+    def variable(cls, name: str) -> str:
+        """The environment variable of field `name` (``FOCUSTRACK_FOCUS_PORT``)."""
+        return f"{cls.env_prefix()}{name.upper()}"
+
+    @classmethod
+    def add_arguments(cls, parser: argparse.ArgumentParser) -> None:
+        """Add a flag for every field of the model (and ``--settings``) to `parser`."""
+        parser.add_argument(
+            SETTINGS_FILE_OPTION,
+            type=Path,
+            metavar="FILE",
+            dest="settings_file",
+            help=f"a TOML or JSON file of settings by field name [env {cls.variable('settings')}]",
+        )
+        CliSettingsSource(cls, root_parser=parser, add_argument_method=_add_argument(cls))
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> Self:
+        """The settings of parsed flags over the environment, the file and the defaults.
+
+        Raises `SettingsError` naming each option the model refuses and why.
+        """
+        flags = vars(args).copy()
+        path = flags.pop("settings_file", None) or os.environ.get(cls.variable("settings"))
+        source: CliSettingsSource[Any] = CliSettingsSource(
+            cls, root_parser=argparse.ArgumentParser(add_help=False)
+        )
+        file = None if path is None else Path(path)
+        try:
+            parsed = source(parsed_args=argparse.Namespace(**flags))
+            return cls.load(file, _cli_settings_source=parsed)
+        except ValidationError as error:
+            raise SettingsError(_describe(cls, error)) from None
+
+    @classmethod
+    def load(cls, file: Path | None = None, **values: Any) -> Self:
+        """The settings of `values` over the environment, `file` (if any) and the defaults."""
+        previous, cls._file = cls._file, file
+        try:
+            return cls(**values)
+        finally:
+            cls._file = previous
+
+
+class SettingsError(ValueError):
+    """Settings the model refuses (a bad value, an unreadable file); the message says which."""
+
+
+def read_settings_file(path: Path) -> dict[str, Any]:
+    """The settings in a TOML (``.toml``) or JSON file, by field name; SettingsError if bad."""
+    try:
+        text = path.read_text()
+        values = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+    except (OSError, ValueError) as error:
+        raise SettingsError(f"settings file {path}: {error}") from None
+    if not isinstance(values, dict):
+        raise SettingsError(f"settings file {path}: expected a table of settings by name")
+    return values
+
+
+def _add_argument(cls: type[ServiceSettings]) -> Callable[..., argparse.Action]:
+    """The `add_argument` of CliSettingsSource, with today's list flags and env names in help."""
+
+    def add_argument(parser: Any, *names: str, **kwargs: Any) -> argparse.Action:
+        if kwargs.get("action") == "append":  # a list: its items after one flag, or repeated
+            kwargs.update(action="extend", nargs="*")
+            kwargs["metavar"] = re.sub(r"^list\[(.*)\]$", r"\1", str(kwargs.get("metavar", "")))
+        dest = kwargs.get("dest", "")
+        field = cls.model_fields.get(dest)
+        if field is not None:
+            kwargs["help"] = f"{kwargs.get('help', '')} [env {cls.variable(dest)}]".strip()
+            choices = _choices(field)
+            if choices:
+                kwargs["choices"] = choices
+                kwargs.pop("metavar", None)
+        return parser.add_argument(*names, **kwargs)
+
+    return add_argument
+
+
+def _choices(field: FieldInfo) -> list[str] | None:
+    """The values a Literal field takes, as text (argparse then lists them in --help)."""
+    annotation = field.annotation
+    if getattr(annotation, "__origin__", None) is not None and str(annotation).startswith(
+        "typing.Literal"
+    ):
+        return [str(value) for value in annotation.__args__]  # type: ignore[union-attr]
+    return None
+
+
+def _describe(cls: type[ServiceSettings], error: ValidationError) -> str:
+    """One line per refused option: its flag, its variable and what is wrong."""
+    lines = []
+    for problem in error.errors(include_url=False):
+        name = str(problem["loc"][0]) if problem["loc"] else ""
+        flag = "--" + name.replace("_", "-")
+        lines.append(f"{flag} ({cls.variable(name)}): {problem['msg']}")
+    return "; ".join(lines)
+
+
+def command_main(
+    prog: str,
+    description: str,
+    settings_cls: type[S],
+    run: Callable[[S], int],
+) -> Callable[..., int]:
+    """A console script's `main(argv=None)`: settings from flags, environment and file, then run."""
+
+    def main(argv: list[str] | None = None) -> int:
+        parser = argparse.ArgumentParser(prog=prog, description=description)
+        settings_cls.add_arguments(parser)
+        return run(parse(parser, settings_cls, sys.argv[1:] if argv is None else argv))
+
+    return main
+
+
+def parse(parser: argparse.ArgumentParser, settings_cls: type[S], argv: list[str]) -> S:
+    """Parse `argv` with `parser` (flags of `settings_cls`) into settings; exit 2 if refused."""
+    args = parser.parse_args(argv)
+    try:
+        return settings_cls.from_args(args)
+    except SettingsError as error:
+        parser.error(str(error))  # exits 2
