@@ -8,7 +8,7 @@ UV_VERSION := 0.13.8
 MANIFESTS := Makefile pyproject.toml uv.lock core/pyproject.toml client/pyproject.toml \
 	$(wildcard services/*/pyproject.toml) $(wildcard integrations/*/pyproject.toml)
 
-.PHONY: demo test test-fast lint typecheck format proto lock clean
+.PHONY: demo test test-fast lint typecheck docs format proto lock clean
 
 # --compile-bytecode: uv leaves the .pyc files to the first import, and with
 # PYTHONDONTWRITEBYTECODE set (as on our machines) every process would compile
@@ -28,12 +28,12 @@ demo: $(STAMP)
 # One pytest worker per core; a test file's tests stay on one worker (they share fixtures).
 PYTEST := $(BIN)/pytest -n auto --dist loadfile
 
-## Lint, format check, types, import boundaries and the whole test suite (what CI runs).
-test: lint typecheck
+## Lint, format check, types, import boundaries, the docs and the whole test suite (what CI runs).
+test: lint typecheck docs
 	$(PYTEST)
 
 ## The same without the slow end-to-end tests (for a quick look while developing).
-test-fast: lint typecheck
+test-fast: lint typecheck docs
 	$(PYTEST) -m "not slow"
 
 lint: $(STAMP)
@@ -43,6 +43,11 @@ lint: $(STAMP)
 
 typecheck: $(STAMP)
 	$(BIN)/mypy
+
+## The documentation site from docs/ (mkdocs, material theme) into site/; --strict fails
+## on any warning, such as a link to a page or anchor that does not exist.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
 
 format: $(STAMP)
 	$(BIN)/ruff format .
@@ -58,4 +63,4 @@ lock: $(STAMP)
 	$(BIN)/python scripts/export_requirements.py
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .ruff_cache .mypy_cache
+	rm -rf $(VENV) out site .pytest_cache .ruff_cache .mypy_cache
