@@ -9,9 +9,9 @@ from focustrack.bench.replay import replay, score
 from focustrack_core.domain import Measurement
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import family_spec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import nis_gate
-from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 
 def scan_row(name: str, heights_um: list[float], **params):

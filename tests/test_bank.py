@@ -10,6 +10,7 @@ from focustrack.bench.replay import replay, score
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import family_spec, generate_surfaces
 from focustrack_estimator.bank import ModelBank, kf_mmae
 from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
@@ -19,7 +20,6 @@ from focustrack_estimator.kalman_strategies import (
 )
 from focustrack_estimator.models import WienerModel
 from focustrack_estimator.serpentine import FilterOptions
-from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
 
 
 def random_walk_surface(grid: ScanGrid, q: float, seed: int) -> np.ndarray:

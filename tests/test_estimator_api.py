@@ -27,11 +27,11 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import MAP_LAYERS, focus_map_of_npy
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.app import Settings, create_app
 from focustrack_estimator.slides import Slides, outcome_of
 from focustrack_estimator.store import Event, Store
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 ROWS, COLS = 6, 5
 SETTINGS = default_settings(ScanGrid(ROWS, COLS, pitch_um=150.0, origin_x_um=1000.0))

@@ -23,11 +23,11 @@ from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest import to_api
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
 from focustrack_estimator.service import spawn
 from focustrack_estimator.store import Store
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
 

@@ -13,11 +13,11 @@ from focustrack.bench.replay import simulated_measurement
 from focustrack_core.domain import Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.serpentine import SerpentineFilter
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.strategy import Strategy
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 ROWS, COLS = 6, 5
 

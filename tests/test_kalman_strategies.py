@@ -11,11 +11,11 @@ from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_core.domain import FocusFlag, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import innovation_diagnostics
 from focustrack_estimator.kalman_strategies import STRATEGIES, KalmanStrategy
 from focustrack_estimator.serpentine import FilterOptions
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 
 def noisy(truth_um: np.ndarray, sigma_um: float, seed: int) -> np.ndarray:

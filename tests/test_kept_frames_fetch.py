@@ -13,10 +13,10 @@ import zenoh
 
 from focustrack_client import EstimatorClient
 from focustrack_core.domain import Acquisition, Purpose, ZRange
+from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.wire import session
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
 from focustrack_instrument_sim.service import InstrumentService
-from focustrack_instrument_sim.surfaces import SurfaceSpec
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
 from focustrack_scheduler.engine import Engine

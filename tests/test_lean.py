@@ -12,6 +12,7 @@ from focustrack.bench import strategies as registry
 from focustrack.bench.replay import limit_time_s, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.lean import (
     COARSE_STEP_UM,
@@ -24,7 +25,6 @@ from focustrack_estimator.lean import (
     search_cost,
     summarise_risk,
 )
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 POLICY = default_policy()
 DOF_UM = 1.0

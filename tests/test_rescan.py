@@ -11,10 +11,10 @@ from focustrack.bench import strategies as registry
 from focustrack.bench.replay import Drift, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.rescan import RescanFilter
 from focustrack_instrument_sim import service
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 GRID = ScanGrid(10, 10)
 SETTINGS = default_settings(GRID, noise_sigma_um=0.1, dof_um=0.9)

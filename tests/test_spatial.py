@@ -13,8 +13,8 @@ from focustrack.bench.replay import replay
 from focustrack_core.domain import FocusFlag, FocusMap, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
 from focustrack_estimator.spatial import STRATEGIES, kf_2d, nshp_weights
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
 
 NOISE_UM = 1.5
 

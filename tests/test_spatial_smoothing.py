@@ -9,9 +9,9 @@ from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import spatial
 from focustrack_estimator.spatial import RowModel, kf_2d, matern32, smooth_member
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 NOISE_UM = 1.5
 

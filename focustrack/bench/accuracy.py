@@ -33,7 +33,7 @@ from focustrack.bench import strategies as registry
 from focustrack.bench.replay import Replay, RiskBin, Scores, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_instrument_sim.surfaces import (
+from focustrack_core.surfaces import (
     FAMILIES,
     SurfaceSpec,
     family_spec,

@@ -38,10 +38,10 @@ from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_core.wire.session import free_port
 from focustrack_estimator.service import spawn
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 PAIR_ROUTES = ("/v1/slides/{slide_id}/next", "/v1/slides/{slide_id}/measurements")
 

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import zenoh
 
+from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
 from focustrack_instrument_sim.microscope import (
@@ -33,7 +34,6 @@ from focustrack_instrument_sim.microscope import (
     MicroscopeSpec,
     slides_from_seed,
 )
-from focustrack_instrument_sim.surfaces import SurfaceSpec
 
 ACK_KEY = keys.bench_key("ack")
 MESSAGE_KEY = keys.bench_key("zstack-message")

@@ -1,7 +1,7 @@
 """`gp-oracle`: the floor every estimator is measured against, for the benchmarks only.
 
 Gaussian-process regression with the generator's exact covariance
-(`focustrack_instrument_sim.surfaces.surface_covariance`) is the Bayes-optimal
+(`focustrack_core.surfaces.surface_covariance`) is the Bayes-optimal
 linear estimator of a generated map; no scanner knows that covariance, so the
 oracle is a benchmark's reference, never served by the estimator. It walks the
 serpentine as every 2-D estimator does (`SerpentineFilter`).
@@ -18,9 +18,9 @@ import scipy.linalg
 
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Tile
+from focustrack_core.surfaces import SurfaceSpec, surface_covariance
 from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, tile_cost
-from focustrack_instrument_sim.surfaces import SurfaceSpec, surface_covariance
 
 _SPEC = SurfaceSpec()
 

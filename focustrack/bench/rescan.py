@@ -26,8 +26,8 @@ from focustrack.bench.accuracy import add_measurement_noise, format_reliability
 from focustrack.bench.replay import Drift, Replay, Scores, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import FAMILIES, family_spec, generate_surfaces
 from focustrack_estimator.rescan import RescanFilter
-from focustrack_instrument_sim.surfaces import FAMILIES, family_spec, generate_surfaces
 
 RESCAN = "kf-rescan"
 

@@ -77,7 +77,7 @@ def _peak_rss_mb() -> float:
 def _surface(size: int) -> tuple[np.ndarray, Any]:
     """Measured heights (um) of a standard surface of size x size tiles, and the settings."""
     from focustrack_core.geometry import ScanGrid
-    from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
+    from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 
     truth_um = generate_surfaces(SurfaceSpec(rows=size, cols=size), 1, seed=SEED)[0]
     noise_um = np.random.default_rng(SEED).normal(0.0, NOISE_UM, truth_um.shape)

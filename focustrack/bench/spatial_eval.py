@@ -23,7 +23,7 @@ from focustrack.bench.accuracy import add_measurement_noise, format_table
 from focustrack.bench.replay import Scores, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_instrument_sim.surfaces import family_spec, generate_surfaces
+from focustrack_core.surfaces import family_spec, generate_surfaces
 
 DEFAULT_NAMES = ("gp-oracle", "kf-2d", "nshp-wiener1", "nshp-wiener0", "kf-wiener0")
 

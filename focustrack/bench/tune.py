@@ -40,7 +40,7 @@ from focustrack.bench.strategies import STRATEGIES, parameters
 from focustrack_core.domain import ZRangePolicy
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
-from focustrack_instrument_sim.surfaces import FAMILIES, family_spec, generate_surfaces
+from focustrack_core.surfaces import FAMILIES, family_spec, generate_surfaces
 
 _Q_HEIGHT_UM2 = [0.0, 0.01, 0.03, 0.1, 0.2, 0.3]
 

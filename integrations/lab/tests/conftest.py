@@ -10,10 +10,10 @@ import pytest
 from focustrack.lab_sim import SimScope
 from focustrack_client import EstimatorClient
 from focustrack_client.models import Grid, SlideCreate
+from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.wire.session import free_port
 from focustrack_estimator.service import spawn
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
-from focustrack_instrument_sim.surfaces import SurfaceSpec
 
 
 @pytest.fixture

@@ -44,13 +44,13 @@ from focustrack_core.maps import (
 from focustrack_core.rest import to_api
 from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut
 from focustrack_estimator import registry
+from focustrack_estimator.errors import SlideError
 from focustrack_estimator.lean import RiskSummary, summarise_risk
 from focustrack_estimator.metrics import EstimatorMetrics
 from focustrack_estimator.slides import (
     Budget,
     GridLimits,
     Slide,
-    SlideError,
     Slides,
     diagnose,
     map_png,

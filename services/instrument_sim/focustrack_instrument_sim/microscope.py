@@ -26,11 +26,11 @@ import cv2
 import numpy as np
 
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces, load_map
 from focustrack_instrument_sim import optics as opt
 from focustrack_instrument_sim.camera import Camera, NoiseBank, expose
 from focustrack_instrument_sim.specimen import SpecimenSpec, blood_smear, dust_layer
 from focustrack_instrument_sim.stage import StackTiming, Stage, StageSpec
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces, load_map
 
 #: (seed, (height, width), pixel size in um) -> transmission (height, width, 3) float32
 SpecimenFn = Callable[[np.random.SeedSequence, tuple[int, int], float], np.ndarray]

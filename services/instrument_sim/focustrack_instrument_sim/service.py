@@ -38,6 +38,7 @@ import numpy as np
 import zenoh
 
 from focustrack_core.config import command_main
+from focustrack_core.surfaces import FAMILIES, family_spec
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.session import (
@@ -60,7 +61,6 @@ from focustrack_instrument_sim.optics import CHANNELS, Optics
 from focustrack_instrument_sim.recent import RecentStacks
 from focustrack_instrument_sim.specimen import SpecimenSpec
 from focustrack_instrument_sim.stage import StageSpec
-from focustrack_instrument_sim.surfaces import FAMILIES, family_spec
 
 log = logging.getLogger(__name__)
 

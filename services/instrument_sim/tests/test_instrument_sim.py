@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_instrument_sim import optics as opt
 from focustrack_instrument_sim.camera import Camera, NoiseBank, expose
@@ -18,7 +19,6 @@ from focustrack_instrument_sim.microscope import (
 )
 from focustrack_instrument_sim.specimen import SpecimenSpec, blood_smear
 from focustrack_instrument_sim.stage import StageSpec
-from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 
 def test_in_focus_otf_is_the_diffraction_limited_one() -> None:

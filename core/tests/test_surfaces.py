@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from focustrack_instrument_sim.surfaces import (
+from focustrack_core.surfaces import (
     FAMILIES,
     SurfaceSpec,
     family_spec,
