@@ -18,7 +18,7 @@ import importlib
 import sys
 
 from focustrack_core.config import with_environment
-from focustrack_core.settings import parse
+from focustrack_core.settings import ServiceSettings, parse
 
 #: subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
             module = importlib.import_module(module_name)
             parser = argparse.ArgumentParser(prog=f"focustrack {name}", description=text)
             settings_cls = getattr(module, "Settings", None)
-            if settings_cls is not None:
+            if isinstance(settings_cls, type) and issubclass(settings_cls, ServiceSettings):
                 settings_cls.add_arguments(parser)
                 return module.run(parse(parser, settings_cls, argv[n_words:]))
             module.add_arguments(parser)

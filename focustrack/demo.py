@@ -39,7 +39,6 @@ from typing import Any
 import httpx
 import zenoh
 
-from focustrack.bench.replay import limit_time_s
 from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import focus_map_of_npy
@@ -55,6 +54,7 @@ from focustrack_core.wire.session import (
 )
 from focustrack_core.wire.trust import ResultSigner
 from focustrack_estimator import registry
+from focustrack_estimator.replay import limit_time_s
 from focustrack_scheduler.clients import wait_for_instrument
 from focustrack_scheduler.live_view import LiveServer, port_number
 from focustrack_scheduler.outputs import FOCUS_MAP_NPY, SCAN_FILES, WallTimes

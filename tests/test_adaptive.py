@@ -4,14 +4,19 @@ from __future__ import annotations
 
 import pytest
 
-from focustrack.bench.accuracy import OUTLIERS, add_measurement_noise, add_outliers
-from focustrack.bench.replay import replay, score
 from focustrack_core.domain import Measurement
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_core.surfaces import family_spec, generate_surfaces
+from focustrack_core.surfaces import (
+    OUTLIERS,
+    add_measurement_noise,
+    add_outliers,
+    family_spec,
+    generate_surfaces,
+)
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import nis_gate
+from focustrack_estimator.replay import replay, score
 
 
 def scan_row(name: str, heights_um: list[float], **params):

@@ -5,12 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack.bench.accuracy import OUTLIERS, add_measurement_noise, add_outliers
-from focustrack.bench.replay import replay, score
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_core.surfaces import family_spec, generate_surfaces
+from focustrack_core.surfaces import (
+    OUTLIERS,
+    add_measurement_noise,
+    add_outliers,
+    family_spec,
+    generate_surfaces,
+)
 from focustrack_estimator.bank import ModelBank, kf_mmae
 from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
@@ -19,6 +23,7 @@ from focustrack_estimator.kalman_strategies import (
     kf_wiener1_dir,
 )
 from focustrack_estimator.models import WienerModel
+from focustrack_estimator.replay import replay, score
 from focustrack_estimator.serpentine import FilterOptions
 
 

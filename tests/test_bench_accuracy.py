@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.accuracy import Outliers, add_outliers
 from focustrack.cli import main
-from focustrack_core.surfaces import family_spec, generate_surfaces
+from focustrack_core.surfaces import Outliers, add_outliers, family_spec, generate_surfaces
 
 REQUIRED = [
     "kf-wiener0",

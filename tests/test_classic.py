@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack.bench.replay import replay
 from focustrack_core.domain import FocusFlag, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import family_spec, generate_surfaces
 from focustrack_estimator import classic, registry
+from focustrack_estimator.replay import replay
 from focustrack_estimator.strategy import Strategy
 
 NAMES = ["af-every-tile", "tile-skip", "survey-bilinear", "survey-spline", "survey-delaunay"]

@@ -1,7 +1,7 @@
 """The estimator's REST API in process (ASGI transport): behaviour, validation, concurrency.
 
 Every slide scanned here is checked against the same strategy replayed locally
-on the same measurements (`focustrack.bench.replay`): the service must not
+on the same measurements (`focustrack_estimator.replay`): the service must not
 change a single number.
 """
 
@@ -20,7 +20,6 @@ import numpy as np
 import pytest
 from fastapi import FastAPI
 
-from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_client import models as api
 from focustrack_core.domain import FocusMap, SlideSettings
 from focustrack_core.geometry import ScanGrid
@@ -30,6 +29,7 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.app import Settings, create_app
+from focustrack_estimator.replay import replay, simulated_measurement
 from focustrack_estimator.slides import Slides, outcome_of
 from focustrack_estimator.store import Event, Store
 

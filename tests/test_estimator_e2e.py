@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from focustrack.bench.remote import RemoteStrategy
-from focustrack.bench.replay import replay, score
 from focustrack_client import EstimatorClient
 from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.geometry import ScanGrid
@@ -26,6 +25,7 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
+from focustrack_estimator.replay import replay, score
 from focustrack_estimator.service import spawn
 from focustrack_estimator.store import Store
 

@@ -9,12 +9,12 @@ import json
 import numpy as np
 import pytest
 
-from focustrack.bench.replay import simulated_measurement
 from focustrack_core.domain import Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
+from focustrack_estimator.replay import simulated_measurement
 from focustrack_estimator.serpentine import SerpentineFilter
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.strategy import Strategy

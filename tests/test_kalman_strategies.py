@@ -7,7 +7,6 @@ import inspect
 import numpy as np
 import pytest
 
-from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_core.domain import FocusFlag, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
@@ -15,6 +14,7 @@ from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import innovation_diagnostics
 from focustrack_estimator.kalman_strategies import STRATEGIES, KalmanStrategy
+from focustrack_estimator.replay import replay, simulated_measurement
 from focustrack_estimator.serpentine import FilterOptions
 
 

@@ -9,7 +9,6 @@ import pytest
 from scipy.stats import norm
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.replay import limit_time_s, reliability, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
@@ -25,6 +24,7 @@ from focustrack_estimator.lean import (
     search_cost,
     summarise_risk,
 )
+from focustrack_estimator.replay import limit_time_s, reliability, replay, score
 
 POLICY = default_policy()
 DOF_UM = 1.0

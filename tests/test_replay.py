@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.replay import replay, score, simulated_measurement
 from focustrack_core.domain import Acquisition, FocusFlag, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.classic import AfEveryTile, SurveyBilinear
+from focustrack_estimator.replay import replay, score, simulated_measurement
 
 PITCH_UM = 200.0
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.replay import Drift, replay, score
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator.lean import COARSE_STEP_UM
+from focustrack_estimator.replay import Drift, replay, score
 from focustrack_estimator.rescan import RescanFilter
 from focustrack_instrument_sim import service
 

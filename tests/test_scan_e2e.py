@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 import zarr
 
-from focustrack.bench.accuracy import add_measurement_noise
-from focustrack.bench.replay import replay, score
 from focustrack.demo import SECOND_PASS, LocalStack
 from focustrack_core import health
 from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
+from focustrack_core.surfaces import add_measurement_noise
 from focustrack_core.wire import session
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
+from focustrack_estimator.replay import replay, score
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
 from focustrack_scheduler.scan import BEST_KALMAN

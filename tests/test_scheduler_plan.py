@@ -8,12 +8,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from focustrack.bench.replay import simulated_measurement
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest import to_domain
 from focustrack_core.v1 import common_pb2, focus_pb2
 from focustrack_estimator import registry
+from focustrack_estimator.replay import simulated_measurement
 from focustrack_estimator.strategy import Strategy
 from focustrack_scheduler.plan import (
     Acquire,

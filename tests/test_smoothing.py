@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter, rts_smoother
 
-from focustrack.bench.replay import replay
 from focustrack_core.domain import Measurement
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator.kalman_strategies import STRATEGIES, rts_smooth
+from focustrack_estimator.replay import replay
 
 
 def test_rts_smooth_equals_filterpys_smoother() -> None:

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from focustrack.bench.oracle import gp_oracle
-from focustrack.bench.replay import replay
 from focustrack_core.domain import FocusFlag, FocusMap, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
+from focustrack_estimator.replay import replay
 from focustrack_estimator.spatial import STRATEGIES, kf_2d, nshp_weights
 
 NOISE_UM = 1.5

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack.bench.replay import replay, simulated_measurement
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import spatial
+from focustrack_estimator.replay import replay, simulated_measurement
 from focustrack_estimator.spatial import RowModel, kf_2d, matern32, smooth_member
 
 NOISE_UM = 1.5

@@ -182,3 +182,47 @@ def load_map(path: str | Path) -> np.ndarray:
     if not np.all(np.isfinite(array)):
         raise ValueError(f"{path}: map contains NaN or infinite heights")
     return array
+
+
+# --- Measured maps: a truth as a best-focus search would see it. ---
+
+
+def add_measurement_noise(truth_um: np.ndarray, noise_um: float, seed: int) -> np.ndarray:
+    """Truth (n_maps, rows, cols) plus Gaussian noise of std `noise_um`; map i's from (seed, i).
+
+    The noise stream is separate from the surface generator's (which uses (seed, i)
+    too), so the noise does not depend on the family or the size of a map.
+    """
+    noise = [
+        np.random.default_rng([seed, index, 1]).standard_normal(truth.shape)
+        for index, truth in enumerate(truth_um)
+    ]
+    return truth_um + noise_um * np.stack(noise)
+
+
+@dataclass(frozen=True)
+class Outliers:
+    """Gross measurement errors: a `fraction` of tiles off by `low_um`..`high_um`, either sign.
+
+    What dust or a parasite lying in another plane does to a best-focus search:
+    the peak it finds is several um from the specimen's, whatever the noise.
+    """
+
+    fraction: float
+    low_um: float
+    high_um: float
+
+
+#: Map families whose measurements also carry outliers (their surfaces are in FAMILIES).
+OUTLIERS: dict[str, Outliers] = {"outliers": Outliers(fraction=0.05, low_um=3.0, high_um=8.0)}
+
+
+def add_outliers(measured_um: np.ndarray, outliers: Outliers, seed: int) -> np.ndarray:
+    """Measured maps (n_maps, rows, cols) with outliers; map i's drawn from (seed, i, 2)."""
+    corrupted = measured_um.copy()
+    for index, measured in enumerate(corrupted):
+        rng = np.random.default_rng([seed, index, 2])
+        hit = rng.random(measured.shape) < outliers.fraction
+        size_um = rng.uniform(outliers.low_um, outliers.high_um, measured.shape)
+        measured += np.where(hit, rng.choice([-1.0, 1.0], measured.shape) * size_um, 0.0)
+    return corrupted

@@ -3,7 +3,7 @@
 The service runs in a process of its own (`focustrack serve estimator`, uvicorn)
 on a fresh SQLite store; this process plays the scanners, each driving one
 slide through the `/next` + `/measurements` pair with measurements simulated
-from a generated focus map (`focustrack.bench.replay.simulated_measurement`).
+from a generated focus map (`focustrack_estimator.replay.simulated_measurement`).
 
 Cases:
 - `1-slide`: one scanner, back to back (no acquisition time): the latency floor;
@@ -33,7 +33,6 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from focustrack.bench.replay import simulated_measurement
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.rest import to_api, to_domain
@@ -41,6 +40,7 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_core.wire.session import free_port
+from focustrack_estimator.replay import simulated_measurement
 from focustrack_estimator.service import spawn
 
 PAIR_ROUTES = ("/v1/slides/{slide_id}/next", "/v1/slides/{slide_id}/measurements")

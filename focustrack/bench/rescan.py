@@ -6,7 +6,7 @@ the slide has drifted by rate x gap (0.02 um/s for 10 minutes: 12 um), and it
 has changed locally by `--local-um` (an independent Gaussian per tile), with
 new measurement noise. Pass 2 is scanned by `kf-rescan` with pass 1's smoothed
 map as its prior, and, for reference, by the strategies of `--compare`
-without one. Scans are replayed in process (`focustrack.bench.replay`: frames
+without one. Scans are replayed in process (`focustrack_estimator.replay`: frames
 and times counted as the simulator does); pass 2's drift is unknown to every
 strategy (start 0 um, start sigma 10 um).
 """
@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.accuracy import add_measurement_noise, format_reliability
-from focustrack.bench.replay import Drift, Replay, Scores, reliability, replay, score
+from focustrack.bench.accuracy import format_reliability
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_core.surfaces import FAMILIES, family_spec, generate_surfaces
+from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
+from focustrack_estimator.replay import Drift, Replay, Scores, reliability, replay, score
 from focustrack_estimator.rescan import RescanFilter
 
 RESCAN = "kf-rescan"

@@ -50,9 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.bench.replay import simulated_measurement
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_estimator.replay import simulated_measurement
 
 DEFAULT_SIZES = (20, 50, 100, 200)
 DEFAULT_STRATEGIES = (

@@ -2,7 +2,7 @@
 
 Maps: `generate_surfaces(family_spec(family), n_maps, seed)` plus Gaussian
 measurement noise (`focustrack.bench.accuracy.add_measurement_noise`); every
-strategy is replayed on the same measurements (`focustrack.bench.replay`).
+strategy is replayed on the same measurements (`focustrack_estimator.replay`).
 `gp-oracle` is given the family's `SurfaceSpec`; no other strategy knows it.
 
 Run: `python -m focustrack.bench.spatial_eval [--maps 16] [--seed 1000]
@@ -19,11 +19,11 @@ from pathlib import Path
 from tqdm import tqdm
 
 from focustrack.bench import strategies as registry
-from focustrack.bench.accuracy import add_measurement_noise, format_table
-from focustrack.bench.replay import Scores, replay, score
+from focustrack.bench.accuracy import format_table
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_core.surfaces import family_spec, generate_surfaces
+from focustrack_core.surfaces import add_measurement_noise, family_spec, generate_surfaces
+from focustrack_estimator.replay import Scores, replay, score
 
 DEFAULT_NAMES = ("gp-oracle", "kf-2d", "nshp-wiener1", "nshp-wiener0", "kf-wiener0")
 

@@ -34,13 +34,18 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.bench.accuracy import OUTLIERS, add_outliers
-from focustrack.bench.replay import Scores, replay, score
 from focustrack.bench.strategies import STRATEGIES, parameters
 from focustrack_core.domain import ZRangePolicy
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
-from focustrack_core.surfaces import FAMILIES, family_spec, generate_surfaces
+from focustrack_core.surfaces import (
+    FAMILIES,
+    OUTLIERS,
+    add_outliers,
+    family_spec,
+    generate_surfaces,
+)
+from focustrack_estimator.replay import Scores, replay, score
 
 _Q_HEIGHT_UM2 = [0.0, 0.01, 0.03, 0.1, 0.2, 0.3]
 
