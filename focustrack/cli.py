@@ -48,6 +48,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.transport",
         "Zenoh frame streaming over TCP and shared memory against memcpy, and focus latency",
     ),
+    "bench startup": (
+        "focustrack.bench.startup",
+        "seconds from exec to each service's first answer (/healthz, the instrument's info)",
+    ),
     "bench chaos": (
         "focustrack.bench.chaos",
         "scans while the router and services are killed at random and a rogue peer lies",
