@@ -13,7 +13,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.rescan import RescanFilter
 from focustrack_estimator.strategy import SlideSettings
-from focustrack_instrument_sim import service
+from focustrack_instrument_sim import service, simulated
 from focustrack_instrument_sim.surfaces import SurfaceSpec, generate_surfaces
 
 GRID = ScanGrid(10, 10)
@@ -72,7 +72,7 @@ def test_the_simulator_moves_a_slide_for_a_second_pass() -> None:
         args = parser.parse_args(
             ["--rows", "3", "--cols", "4", "--width", "32", "--height", "32", *extra]
         )
-        microscope = service.microscope_from_args(args)
+        microscope = simulated.microscope_from_args(args)
         return microscope.truth_um("slide-0")[0]
 
     assert np.allclose(truth("--z-offset-um", "12") - truth(), 12.0)

@@ -8,11 +8,10 @@ import pytest
 from focustrack_core.timing import TimingModel
 from focustrack_instrument_sim import optics as opt
 from focustrack_instrument_sim.camera import Camera, NoiseBank, expose
+from focustrack_instrument_sim.instrument import AcquisitionRefusedError, Refusal
 from focustrack_instrument_sim.microscope import (
-    AcquisitionRefusedError,
     Microscope,
     MicroscopeSpec,
-    Refusal,
     slides_from_map,
     slides_from_seed,
 )
