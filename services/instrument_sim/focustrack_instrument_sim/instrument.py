@@ -26,7 +26,7 @@ Units: um for x, y, z and lengths; s for times. Frames are numpy arrays
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Protocol, runtime_checkable
@@ -187,6 +187,10 @@ class FocusTruth:
     clock_s: float
 
 
+#: The frames of a stack as `Instrument.acquire` yields them, (height, width, channels) each.
+Frames = Generator[np.ndarray, None, None]
+
+
 class Instrument(Protocol):
     """A microscope the Zenoh shell can serve (see the module's doc for the call order)."""
 
@@ -210,11 +214,11 @@ class Instrument(Protocol):
         or DeviceError."""
         ...
 
-    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Iterator[np.ndarray]:
+    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
         """The frames of `plan`, in order: frame k is written into `out(k)` (an array of
         `plan.frame.shape` and dtype, which the shell may publish without a copy), which
-        is yielded as soon as the frame is complete. Raises DeviceError; a consumer that
-        stops early closes the iterator, and the instrument stops the stack."""
+        is yielded as soon as the frame is complete. Raises DeviceError. A consumer that
+        stops early closes the generator: the instrument stops the stack then."""
         ...
 
     def close(self) -> None:

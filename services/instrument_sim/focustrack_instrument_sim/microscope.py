@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +30,7 @@ from focustrack_instrument_sim.camera import Camera, NoiseBank, expose
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
     FrameFormat,
+    Frames,
     Refusal,
     StackPlan,
     StackTiming,
@@ -346,9 +347,7 @@ class Microscope:
             tile=tile,
         )
 
-    def render(
-        self, plan: SimulatedPlan, out: Callable[[int], np.ndarray] | None = None
-    ) -> Iterator[np.ndarray]:
+    def render(self, plan: SimulatedPlan, out: Callable[[int], np.ndarray] | None = None) -> Frames:
         """The frames of `plan`, (height, width, 3) uint16 each, in order, each yielded as
         soon as it is rendered (the next ones are already under way on the pool).
 

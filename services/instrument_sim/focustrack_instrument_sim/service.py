@@ -38,7 +38,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 
 import numpy as np
 import zenoh
@@ -235,9 +235,10 @@ class InstrumentService:
             )
             out = stack.__getitem__ if stack is not None else self._frame_buffers(plan)
             frames = []
-            for index, frame in enumerate(self.instrument.acquire(plan, out)):
-                self.publisher.put_frame(frame_key, header, index, frame)
-                frames.append(frame)
+            with closing(self.instrument.acquire(plan, out)) as taken:  # stopped on a failure
+                for index, frame in enumerate(taken):
+                    self.publisher.put_frame(frame_key, header, index, frame)
+                    frames.append(frame)
             if len(frames) < plan.n_frames:  # a stack cut short is not a stack
                 raise NoImageError("camera", f"{len(frames)} of {plan.n_frames} frames came")
         header.timestamp_unix_s = time.time()

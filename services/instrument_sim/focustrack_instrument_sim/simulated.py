@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -13,6 +13,7 @@ from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
     Description,
     FocusTruth,
+    Frames,
     OpticsInfo,
     Refusal,
     SlideLayout,
@@ -71,7 +72,7 @@ class SimulatedInstrument:
     ) -> StackPlan:
         return self.microscope.plan(slide, row, col, z_low_um, z_step_um, n_frames, exposure_s)
 
-    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Iterator[np.ndarray]:
+    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
         if not isinstance(plan, SimulatedPlan):
             raise TypeError(f"not a plan of the simulator: {type(plan).__name__}")
         return self.microscope.render(plan, out)

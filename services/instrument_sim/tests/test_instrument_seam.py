@@ -26,6 +26,7 @@ from focustrack_instrument_sim.instrument import (
     DeviceError,
     DeviceTimeoutError,
     FrameFormat,
+    Frames,
     Instrument,
     NoImageError,
     OpticsInfo,
@@ -85,7 +86,7 @@ class ConstantInstrument:
             slide, row, col, x_um, y_um, z_um, exposure_s, FRAME, 0.65, timing, self.clock_s
         )
 
-    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Iterator[np.ndarray]:
+    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
         for k in range(plan.n_frames if self.frames_delivered is None else self.frames_delivered):
             if k == 1 and self.failure is not None:
                 raise self.failure
