@@ -17,6 +17,7 @@ from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.wire import session
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
 from focustrack_instrument_sim.service import InstrumentService
+from focustrack_instrument_sim.simulated import SimulatedInstrument
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
 from focustrack_scheduler.engine import Engine
@@ -37,7 +38,9 @@ def bus() -> Iterator[tuple[zenoh.Session, zenoh.Session, InstrumentService]]:
         session.open_session(listen=[endpoint]) as served,
         session.open_session(connect=[endpoint]) as scheduler,
     ):
-        service = InstrumentService(microscope, served, "sim", keep_frames_bytes=0)
+        service = InstrumentService(
+            SimulatedInstrument(microscope), served, "sim", keep_frames_bytes=0
+        )
         service.start()
         thread = threading.Thread(target=service.serve)
         thread.start()

@@ -14,7 +14,7 @@ from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.replay import Drift, replay, score
 from focustrack_estimator.rescan import RescanFilter
-from focustrack_instrument_sim import service
+from focustrack_instrument_sim import service, simulated
 
 GRID = ScanGrid(10, 10)
 SETTINGS = default_settings(GRID, noise_sigma_um=0.1, dof_um=0.9)
@@ -72,7 +72,7 @@ def test_the_simulator_moves_a_slide_for_a_second_pass() -> None:
         args = parser.parse_args(
             ["--rows", "3", "--cols", "4", "--width", "32", "--height", "32", *extra]
         )
-        microscope = service.microscope_from_args(args)
+        microscope = simulated.microscope_from_args(args)
         return microscope.truth_um("slide-0")[0]
 
     assert np.allclose(truth("--z-offset-um", "12") - truth(), 12.0)

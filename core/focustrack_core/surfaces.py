@@ -21,7 +21,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 
 @dataclass(frozen=True)
@@ -129,6 +128,9 @@ def generate_surface(spec: SurfaceSpec, rng: np.random.Generator) -> np.ndarray:
         through = rng.uniform(-0.3, 0.3, size=2) * (spec.rows, spec.cols)
         side = (y - through[0]) * np.cos(angle) - (x - through[1]) * np.sin(angle) > 0
         step = np.where(side, spec.step_um, 0.0)
+        # Imported here: the instrument's `--help` lists FAMILIES without loading scipy.
+        from scipy import ndimage
+
         surface += ndimage.gaussian_filter(step, spec.smooth_sigma_tiles, mode="nearest")
     return surface
 

@@ -19,6 +19,10 @@ class ErrorCode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     ERROR_CODE_UNAVAILABLE: _ClassVar[ErrorCode]
     ERROR_CODE_BUSY: _ClassVar[ErrorCode]
     ERROR_CODE_FRAMES_GONE: _ClassVar[ErrorCode]
+    ERROR_CODE_DEVICE_FAILURE: _ClassVar[ErrorCode]
+    ERROR_CODE_DEVICE_TIMEOUT: _ClassVar[ErrorCode]
+    ERROR_CODE_TARGET_NOT_REACHED: _ClassVar[ErrorCode]
+    ERROR_CODE_NO_IMAGE: _ClassVar[ErrorCode]
 
 class FocusFlag(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -41,6 +45,10 @@ ERROR_CODE_TIMEOUT: ErrorCode
 ERROR_CODE_UNAVAILABLE: ErrorCode
 ERROR_CODE_BUSY: ErrorCode
 ERROR_CODE_FRAMES_GONE: ErrorCode
+ERROR_CODE_DEVICE_FAILURE: ErrorCode
+ERROR_CODE_DEVICE_TIMEOUT: ErrorCode
+ERROR_CODE_TARGET_NOT_REACHED: ErrorCode
+ERROR_CODE_NO_IMAGE: ErrorCode
 FOCUS_FLAG_UNSPECIFIED: FocusFlag
 FOCUS_FLAG_EDGE_LOW: FocusFlag
 FOCUS_FLAG_EDGE_HIGH: FocusFlag

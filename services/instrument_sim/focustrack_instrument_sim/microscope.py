@@ -8,7 +8,7 @@ drift at that moment), the in-focus spectrum of the tile (cached, as many tiles 
 camera digitises the result. Frames render on `MicroscopeSpec.workers` threads (OpenCV
 and numpy release the GIL), each with a random generator of its own drawn in frame
 order, so a stack is the same whichever thread renders which frame. `acquire` does
-both at once. The service (`service.py`) puts the frames on Zenoh as they come.
+both at once. `simulated.SimulatedInstrument` serves it as an `instrument.Instrument`.
 """
 
 from __future__ import annotations
@@ -16,10 +16,9 @@ from __future__ import annotations
 import functools
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from enum import StrEnum
 from pathlib import Path
 
 import cv2
@@ -29,30 +28,19 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces, load_map
 from focustrack_instrument_sim import optics as opt
 from focustrack_instrument_sim.camera import Camera, NoiseBank, expose
+from focustrack_instrument_sim.instrument import (
+    AcquisitionRefusedError,
+    FrameFormat,
+    Frames,
+    Refusal,
+    StackPlan,
+    StackTiming,
+)
 from focustrack_instrument_sim.specimen import SpecimenSpec, blood_smear, dust_layer
-from focustrack_instrument_sim.stage import StackTiming, Stage, StageSpec
+from focustrack_instrument_sim.stage import Stage, StageSpec
 
 #: (seed, (height, width), pixel size in um) -> transmission (height, width, 3) float32
 SpecimenFn = Callable[[np.random.SeedSequence, tuple[int, int], float], np.ndarray]
-
-
-class Refusal(StrEnum):
-    """Why a request cannot be acquired."""
-
-    MALFORMED = "malformed_request"
-    UNKNOWN_SLIDE = "unknown_slide"
-    TILE_OUTSIDE_SLIDE = "tile_outside_slide"
-    Z_OUT_OF_RANGE = "z_out_of_range"
-    TOO_MANY_FRAMES = "too_many_frames"
-
-
-class AcquisitionRefusedError(ValueError):
-    """A request the microscope will not carry out; `reason` and `field` say why."""
-
-    def __init__(self, reason: Refusal, message: str, field: str = "") -> None:
-        super().__init__(message)
-        self.reason = reason
-        self.field = field
 
 
 @dataclass(frozen=True)
@@ -117,6 +105,13 @@ class MicroscopeSpec:
     @property
     def shape(self) -> tuple[int, int]:
         return (self.height, self.width)
+
+    @property
+    def frame(self) -> FrameFormat:
+        """A frame: (height, width, 3) uint16, RGB, the camera's bit depth."""
+        return FrameFormat(
+            self.height, self.width, opt.CHANNELS, np.dtype(np.uint16), self.camera.bit_depth
+        )
 
 
 @dataclass(frozen=True)
@@ -194,29 +189,17 @@ class _Workspace:
 
 
 @dataclass(frozen=True)
-class StackPlan:
-    """An accepted acquisition: the stage has moved; its frames are still to be rendered.
+class SimulatedPlan(StackPlan):
+    """An accepted acquisition: the stage has moved (and the simulated clock with it);
+    its frames are still to be rendered.
 
-    z_um, dz_um (n,): commanded z of every frame and its defocus from the true focus, um;
-    rngs: one random generator per frame.
+    dz_um (n,): every frame's defocus from the true focus, um; rngs: one random
+    generator per frame; tile: the in-focus spectra of the tile.
     """
 
-    slide: str
-    row: int
-    col: int
-    z_um: np.ndarray
     dz_um: np.ndarray
     rngs: tuple[np.random.Generator, ...]
     tile: TileSpectra
-    exposure_s: float
-    stage_x_um: float
-    stage_y_um: float
-    timing: StackTiming
-    clock_s: float  # simulated clock when the stack is complete
-
-    @property
-    def n_frames(self) -> int:
-        return len(self.z_um)
 
 
 @dataclass(frozen=True)
@@ -334,7 +317,7 @@ class Microscope:
         z_step_um: float,
         n_frames: int,
         exposure_s: float | None = None,
-    ) -> StackPlan:
+    ) -> SimulatedPlan:
         """Accept frames at z_low_um, z_low_um + z_step_um, ... (um) of tile (row, col) of
         `slide` and move the stage there; `render` makes the frames.
 
@@ -347,31 +330,31 @@ class Microscope:
         tile = self._tile_spectra(chosen, row, col)
         timing, frame_times_s = self.stage.acquire(x_um, y_um, n_frames, exposure_s)
         focus_um = chosen.focus_um[row, col] + self.stage.drift_um(frame_times_s)
-        return StackPlan(
-            slide,
-            row,
-            col,
-            z_um,
-            z_um - focus_um,
-            tuple(self._rng.spawn(n_frames)),
-            tile,
-            exposure_s,
-            x_um,
-            y_um,
-            timing,
-            self.stage.clock_s,
+        return SimulatedPlan(
+            slide=slide,
+            row=row,
+            col=col,
+            stage_x_um=x_um,
+            stage_y_um=y_um,
+            z_um=z_um,
+            exposure_s=exposure_s,
+            frame=self.spec.frame,
+            pixel_size_um=self.pixel_size_um,
+            timing=timing,
+            clock_s=self.stage.clock_s,
+            dz_um=z_um - focus_um,
+            rngs=tuple(self._rng.spawn(n_frames)),
+            tile=tile,
         )
 
-    def render(
-        self, plan: StackPlan, out: Callable[[int], np.ndarray] | None = None
-    ) -> Iterator[np.ndarray]:
+    def render(self, plan: SimulatedPlan, out: Callable[[int], np.ndarray] | None = None) -> Frames:
         """The frames of `plan`, (height, width, 3) uint16 each, in order, each yielded as
         soon as it is rendered (the next ones are already under way on the pool).
 
         `out(k)` gives the array frame k is rendered into (default: a new array).
         """
-        shape = (*self.spec.shape, len(opt.CHANNELS))
-        target = out or (lambda _: np.empty(shape, dtype=np.uint16))
+        frame = self.spec.frame
+        target = out or (lambda _: np.empty(frame.shape, dtype=frame.dtype))
         futures = [
             self._pool.submit(
                 self.renderer.render_frame, plan.tile, dz, plan.exposure_s, rng, target(k)

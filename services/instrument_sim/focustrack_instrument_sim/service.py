@@ -1,22 +1,27 @@
-"""`focustrack serve instrument`: the simulated microscope on Zenoh.
+"""`focustrack serve instrument`: a microscope on Zenoh, the simulator by default.
+
+A thin shell over any `instrument.Instrument` (`--backend`, `backends.BACKENDS`): it
+queues acquisitions, publishes their frames and stacks, keeps the last ones' frames
+for the frames queryable, and answers info and truth from the instrument.
 
 Queryables (key space in proto/README.md):
 - ``focustrack/v1/instrument/{name}/acquire``: AcquireRequest in; every frame is
-  published on ``focustrack/v1/zframe/{slide}/{row}/{col}`` as soon as it is rendered,
+  published on ``focustrack/v1/zframe/{slide}/{row}/{col}`` as soon as it is taken,
   then the whole stack on ``focustrack/v1/zstack/{slide}/{row}/{col}`` if anyone
   subscribes to it, then AcquireReply (header and timing) comes back. Bad requests
-  get an Error reply; the service keeps running.
+  get an Error reply (a refusal or a device's failure: `request_error`); the service
+  keeps running.
 - ``focustrack/v1/instrument/{name}/info``: InstrumentInfo (slides, limits, optics).
 - ``focustrack/v1/instrument/{name}/frames``: FramesRequest in; one reply per frame of
   a stack acquired lately (the frames the scheduler keeps: `recent.RecentStacks`, up to
   ``--keep-frames-mb`` of them besides the last stack), or an Error reply
   (ERROR_CODE_FRAMES_GONE when the stack is no longer held).
 - ``focustrack/v1/eval/truth/{name}/{slide}``: SlideTruth, for evaluation code only, and
-  only with ``--serve-truth``.
+  only with ``--serve-truth`` (an instrument that is a `TruthSource`: the simulator).
 
 Acquisitions run one at a time on the main thread (there is one stage), which
-publishes each frame while the render threads work on the next ones; info, frames and
-truth are answered on Zenoh's threads. At most `--queue-depth` acquisitions wait for the
+publishes each frame while the instrument takes the next ones; info, frames and truth
+are answered on Zenoh's threads. At most `--queue-depth` acquisitions wait for the
 stage; one more is refused at once with ERROR_CODE_BUSY (the caller backs off and
 asks again), so a burst of requests cannot make a normal one wait behind all of it.
 The truth queryable is declared only with `--serve-truth` (benchmarks and tests):
@@ -32,13 +37,13 @@ import queue
 import signal
 import threading
 import time
-from dataclasses import replace
+from collections.abc import Callable, Iterator
+from contextlib import closing, contextmanager
 
 import numpy as np
 import zenoh
 
 from focustrack_core.config import command_main
-from focustrack_core.surfaces import FAMILIES, family_spec
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.session import (
@@ -49,18 +54,20 @@ from focustrack_core.wire.session import (
     config_from_args,
     shm_pool_bytes,
 )
-from focustrack_instrument_sim.microscope import (
+from focustrack_instrument_sim.backends import BACKENDS
+from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
-    Microscope,
-    MicroscopeSpec,
+    DeviceError,
+    DeviceTimeoutError,
+    Instrument,
+    InstrumentError,
+    NoImageError,
     Refusal,
-    slides_from_map,
-    slides_from_seed,
+    StackPlan,
+    TargetNotReachedError,
+    TruthSource,
 )
-from focustrack_instrument_sim.optics import CHANNELS, Optics
 from focustrack_instrument_sim.recent import RecentStacks
-from focustrack_instrument_sim.specimen import SpecimenSpec
-from focustrack_instrument_sim.stage import StageSpec
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +78,8 @@ QUEUE_DEPTH = 4
 #: two stacks of 41 frames of 1024 x 1024 RGB uint16.
 KEEP_FRAMES_MB = 512
 
-ERROR_CODES = {
+#: The error reply of each refusal.
+REFUSAL_CODES = {
     Refusal.MALFORMED: rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST,
     Refusal.UNKNOWN_SLIDE: rpc.ErrorCode.ERROR_CODE_UNKNOWN_SLIDE,
     Refusal.TILE_OUTSIDE_SLIDE: rpc.ErrorCode.ERROR_CODE_TILE_OUTSIDE_SLIDE,
@@ -79,13 +87,54 @@ ERROR_CODES = {
     Refusal.TOO_MANY_FRAMES: rpc.ErrorCode.ERROR_CODE_TOO_MANY_FRAMES,
 }
 
+#: The error reply of each failure of a device, the most specific first.
+DEVICE_ERROR_CODES: tuple[tuple[type[DeviceError], rpc.ErrorCode], ...] = (
+    (DeviceTimeoutError, rpc.ErrorCode.ERROR_CODE_DEVICE_TIMEOUT),
+    (TargetNotReachedError, rpc.ErrorCode.ERROR_CODE_TARGET_NOT_REACHED),
+    (NoImageError, rpc.ErrorCode.ERROR_CODE_NO_IMAGE),
+    (DeviceError, rpc.ErrorCode.ERROR_CODE_DEVICE_FAILURE),
+)
+
+
+def request_error(error: InstrumentError) -> rpc.RequestError:
+    """The error reply of what an instrument raised: a refusal's code and field, a failed
+    device's code, INTERNAL for any other InstrumentError."""
+    if isinstance(error, AcquisitionRefusedError):
+        return rpc.RequestError(REFUSAL_CODES[error.reason], str(error), error.field)
+    code = next(
+        (code for kind, code in DEVICE_ERROR_CODES if isinstance(error, kind)),
+        rpc.ErrorCode.ERROR_CODE_INTERNAL,
+    )
+    return rpc.RequestError(code, str(error))
+
+
+@contextmanager
+def replies_for_instrument_errors() -> Iterator[None]:
+    """Turn an InstrumentError raised within into its error reply (`request_error`)."""
+    try:
+        yield
+    except InstrumentError as error:
+        if isinstance(error, DeviceError):
+            log.error("instrument failed: %s", error)
+        raise request_error(error) from error
+
+
+def truth_source(instrument: Instrument, serve_truth: bool) -> TruthSource | None:
+    """The instrument, to serve its ground truth from (None without `serve_truth`);
+    ValueError when it has none."""
+    if not serve_truth:
+        return None
+    if not isinstance(instrument, TruthSource):
+        raise ValueError(f"--serve-truth: {type(instrument).__name__} has no ground truth")
+    return instrument
+
 
 class InstrumentService:
-    """The Zenoh shell around a `Microscope`: declare on `start`, serve until `stop` is set."""
+    """The Zenoh shell around an `Instrument`: declare on `start`, serve until `stop` is set."""
 
     def __init__(
         self,
-        microscope: Microscope,
+        instrument: Instrument,
         session: zenoh.Session,
         name: str = "sim",
         *,
@@ -98,7 +147,8 @@ class InstrumentService:
     ) -> None:
         if queue_depth < 1:
             raise ValueError(f"queue_depth must be at least 1, got {queue_depth}")
-        self.microscope = microscope
+        self.instrument = instrument
+        self.truth = truth_source(instrument, serve_truth)
         self.session = session
         self.publisher = codec.PixelPublisher(session, shm_pool_bytes, frame_part_bytes)
         self.name = keys.check_name(name, "instrument")
@@ -106,7 +156,6 @@ class InstrumentService:
         self.stop = threading.Event()
         self._acquire_key = keys.acquire_key(name)
         self._pending: queue.Queue[zenoh.Query] = queue.Queue(maxsize=queue_depth)
-        self.serve_truth = serve_truth
         self.n_busy = 0  # acquisitions refused because the queue was full
         self._declared: list = []
         self.recent = RecentStacks(keep_frames_bytes)
@@ -123,7 +172,7 @@ class InstrumentService:
                 frames_key, lambda query: rpc.serve(query, frames_key, self._reply_frames)
             ),
         ]
-        if self.serve_truth:
+        if self.truth is not None:
             self._declared.append(
                 self.session.declare_queryable(
                     keys.truth_pattern(self.name),
@@ -162,8 +211,8 @@ class InstrumentService:
     def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
         started_s = time.perf_counter()
         request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
-        try:
-            plan = self.microscope.plan(
+        with replies_for_instrument_errors():
+            plan = self.instrument.plan(
                 request.slide,
                 request.row,
                 request.col,
@@ -172,41 +221,26 @@ class InstrumentService:
                 request.n_frames,
                 request.exposure_s or None,
             )
-        except AcquisitionRefusedError as refused:
-            code = ERROR_CODES[refused.reason]
-            raise rpc.RequestError(code, str(refused), refused.field) from refused
-        camera = self.microscope.spec.camera
-        header = instrument_pb2.ZStackHeader(
-            instrument=self.name,
-            slide=plan.slide,
-            row=plan.row,
-            col=plan.col,
-            sequence=request.sequence,
-            stage_x_um=plan.stage_x_um,
-            stage_y_um=plan.stage_y_um,
-            z_um=plan.z_um.tolist(),
-            pixel_size_um=self.microscope.pixel_size_um,
-            channel_order=CHANNELS,
-            bit_depth=camera.bit_depth,
-            exposure_s=plan.exposure_s,
-            clock_s=plan.clock_s,
-        )
-        shape = (plan.n_frames, *self.microscope.spec.shape, len(CHANNELS))
-        codec.describe_stack(header, shape, np.uint16)
-        frame_key = keys.zframe_key(plan.slide, plan.row, plan.col)
-        stack_key = keys.zstack_key(plan.slide, plan.row, plan.col)
-        # Frames in buffers of their own are sent without a copy; a stack someone wants
-        # whole is rendered into one buffer instead (its frames then cost a copy each).
-        stack = (
-            codec.pixel_array(shape, np.uint16)
-            if self.publisher.has_subscribers(stack_key)
-            else None
-        )
-        out = stack.__getitem__ if stack is not None else self._frame_buffer
-        frames = []
-        for index, frame in enumerate(self.microscope.render(plan, out)):
-            self.publisher.put_frame(frame_key, header, index, frame)
-            frames.append(frame)
+            header = self._header(plan, request.sequence)
+            shape = (plan.n_frames, *plan.frame.shape)
+            codec.describe_stack(header, shape, plan.frame.dtype)
+            frame_key = keys.zframe_key(plan.slide, plan.row, plan.col)
+            stack_key = keys.zstack_key(plan.slide, plan.row, plan.col)
+            # Frames in buffers of their own are sent without a copy; a stack someone wants
+            # whole is acquired into one buffer instead (its frames then cost a copy each).
+            stack = (
+                codec.pixel_array(shape, plan.frame.dtype)
+                if self.publisher.has_subscribers(stack_key)
+                else None
+            )
+            out = stack.__getitem__ if stack is not None else self._frame_buffers(plan)
+            frames = []
+            with closing(self.instrument.acquire(plan, out)) as taken:  # stopped on a failure
+                for index, frame in enumerate(taken):
+                    self.publisher.put_frame(frame_key, header, index, frame)
+                    frames.append(frame)
+            if len(frames) < plan.n_frames:  # a stack cut short is not a stack
+                raise NoImageError("camera", f"{len(frames)} of {plan.n_frames} frames came")
         header.timestamp_unix_s = time.time()
         self.recent.keep(header, frames, recyclable=stack is None)
         if stack is not None:
@@ -227,10 +261,28 @@ class InstrumentService:
             ),
         )
 
-    def _frame_buffer(self, _index: int) -> np.ndarray:
-        """A buffer to render a frame into (height, width, channels) uint16: one of a stack
-        no longer kept where there is one (`RecentStacks.buffer`)."""
-        return self.recent.buffer((*self.microscope.spec.shape, len(CHANNELS)), np.dtype(np.uint16))
+    def _header(self, plan: StackPlan, sequence: int) -> instrument_pb2.ZStackHeader:
+        """The header of the stack of `plan` (without its shape and dtype yet)."""
+        return instrument_pb2.ZStackHeader(
+            instrument=self.name,
+            slide=plan.slide,
+            row=plan.row,
+            col=plan.col,
+            sequence=sequence,
+            stage_x_um=plan.stage_x_um,
+            stage_y_um=plan.stage_y_um,
+            z_um=plan.z_um.tolist(),
+            pixel_size_um=plan.pixel_size_um,
+            channel_order=plan.frame.channel_order,
+            bit_depth=plan.frame.bit_depth,
+            exposure_s=plan.exposure_s,
+            clock_s=plan.clock_s,
+        )
+
+    def _frame_buffers(self, plan: StackPlan) -> Callable[[int], np.ndarray]:
+        """Buffers to take the frames of `plan` into, (height, width, channels) each: those
+        of a stack no longer kept where there are some (`RecentStacks.buffer`)."""
+        return lambda _index: self.recent.buffer(plan.frame.shape, plan.frame.dtype)
 
     def _reply_frames(self, query: zenoh.Query) -> None:
         """Answer a FramesRequest with one reply per frame, as they were published."""
@@ -260,8 +312,9 @@ class InstrumentService:
             )
 
     def _info(self, _query: zenoh.Query) -> instrument_pb2.InstrumentInfo:
-        spec = self.microscope.spec
-        optics = spec.optics
+        with replies_for_instrument_errors():
+            description = self.instrument.describe()
+        frame, optics = description.frame, description.optics
         return instrument_pb2.InstrumentInfo(
             instrument=self.name,
             slides=[
@@ -273,94 +326,74 @@ class InstrumentService:
                     origin_x_um=slide.grid.origin_x_um,
                     origin_y_um=slide.grid.origin_y_um,
                 )
-                for slide in self.microscope.slides.values()
+                for slide in description.slides
             ],
-            z_min_um=spec.stage.z_range_um[0],
-            z_max_um=spec.stage.z_range_um[1],
-            max_frames=spec.max_frames,
+            z_min_um=description.z_range_um[0],
+            z_max_um=description.z_range_um[1],
+            max_frames=description.max_frames,
             pixel_size_um=optics.pixel_size_um,
-            width=spec.width,
-            height=spec.height,
-            channel_order=CHANNELS,
-            bit_depth=spec.camera.bit_depth,
+            width=frame.width,
+            height=frame.height,
+            channel_order=frame.channel_order,
+            bit_depth=frame.bit_depth,
             numerical_aperture=optics.numerical_aperture,
             magnification=optics.magnification,
-            wavelength_um=optics.reference_wavelength_um,
+            wavelength_um=optics.wavelength_um,
             refractive_index=optics.refractive_index,
             depth_of_field_um=optics.depth_of_field_um,
-            default_exposure_s=spec.stage.timing.exposure_s,
+            default_exposure_s=description.default_exposure_s,
+            hardware_sequenced=description.hardware_sequenced,
         )
 
     def _truth(self, query: zenoh.Query) -> instrument_pb2.SlideTruth:
+        assert self.truth is not None  # declared only then
         slide = str(query.key_expr).rsplit("/", 1)[-1]
-        if slide not in self.microscope.slides:
-            raise rpc.RequestError(
-                rpc.ErrorCode.ERROR_CODE_UNKNOWN_SLIDE, f"unknown slide {slide!r}", "slide"
-            )
-        focus_um, drift_um = self.microscope.truth_um(slide)
+        with replies_for_instrument_errors():
+            truth = self.truth.truth(slide)
+        rows, cols = truth.best_focus_um.shape
         return instrument_pb2.SlideTruth(
             instrument=self.name,
             slide=slide,
-            rows=focus_um.shape[0],
-            cols=focus_um.shape[1],
-            best_focus_um=focus_um.ravel().tolist(),
-            drift_um=drift_um,
-            clock_s=self.microscope.stage.clock_s,
+            rows=rows,
+            cols=cols,
+            best_focus_um=truth.best_focus_um.ravel().tolist(),
+            drift_um=truth.drift_um,
+            clock_s=truth.clock_s,
         )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser, default_listen=[DEFAULT_ENDPOINT])
     parser.add_argument("--name", default="sim", help="instrument name in the key space")
-    slides = parser.add_argument_group("slides")
-    slides.add_argument("--seed", type=int, default=0, help="seed of surfaces and specimens")
-    slides.add_argument("--slides", type=int, default=1, help="generated slides (slide-0, ...)")
-    slides.add_argument("--rows", type=int, default=20, help="tiles per column of a slide")
-    slides.add_argument("--cols", type=int, default=20, help="tiles per row of a slide")
-    slides.add_argument("--family", choices=list(FAMILIES), default="standard")
-    slides.add_argument("--map", help="true focus map(s) in um (.npy, .csv, .tif) to use instead")
-    slides.add_argument("--pitch-um", type=float, default=200.0, help="tile centre spacing")
-    slides.add_argument(
-        "--z-offset-um",
-        type=float,
-        default=0.0,
-        help="every slide's focus moved by this much (a re-scan after drift between passes)",
+    parser.add_argument(
+        "--backend",
+        choices=list(BACKENDS),
+        default="sim",
+        help="the instrument served: "
+        + ", ".join(f"{name} ({backend.help})" for name, backend in BACKENDS.items())
+        + "; default sim",
     )
-    scope = parser.add_argument_group("microscope")
-    scope.add_argument("--width", type=int, default=1024, help="frame width in pixels")
-    scope.add_argument("--height", type=int, default=1024, help="frame height in pixels")
-    scope.add_argument("--max-frames", type=int, default=64, help="largest z-stack accepted")
-    scope.add_argument(
-        "--workers", type=int, default=2, help="threads rendering the frames of a stack (2)"
-    )
-    scope.add_argument(
-        "--cache-mb",
-        type=float,
-        default=1024.0,
-        help="in-focus tile spectra kept, MB (1024: 244 tiles of 512 x 512, 61 of 1024 x 1024)",
-    )
-    scope.add_argument("--na", type=float, default=0.85, help="numerical aperture")
-    scope.add_argument("--magnification", type=float, default=60.0)
-    scope.add_argument("--drift-um-per-s", type=float, default=0.0, help="thermal z drift")
-    scope.add_argument("--dust-density", type=float, default=0.0, help="specks per 1000 um^2")
-    scope.add_argument(
+    for backend in BACKENDS.values():
+        backend.add_arguments(parser)
+    shell = parser.add_argument_group("service")
+    shell.add_argument(
         "--realtime", action="store_true", help="pace acquisitions at their simulated duration"
     )
-    scope.add_argument(
+    shell.add_argument(
         "--keep-frames-mb",
         type=float,
         default=KEEP_FRAMES_MB,
         help="frames of past stacks kept for the frames queryable, MB, besides the last "
         f"stack ({KEEP_FRAMES_MB})",
     )
-    scope.add_argument(
+    shell.add_argument(
         "--frame-part-kb",
         type=int,
         default=codec.FRAME_PART_BYTES // 1024,
         help="frames go over the network in parts of this many KiB, 0: whole "
         f"({codec.FRAME_PART_BYTES // 1024}: fastest over TCP; see proto/README.md)",
     )
-    scope.add_argument(
+    shell.add_argument(
         "--queue-depth",
         type=int,
         default=QUEUE_DEPTH,
@@ -373,31 +406,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def microscope_from_args(args: argparse.Namespace) -> Microscope:
-    if args.map:
-        slides = slides_from_map(args.map, args.seed, args.pitch_um)
-    else:
-        surface = family_spec(args.family, args.rows, args.cols)
-        slides = slides_from_seed(args.seed, args.slides, surface, args.pitch_um)
-    if args.z_offset_um:
-        slides = [replace(slide, focus_um=slide.focus_um + args.z_offset_um) for slide in slides]
-    spec = MicroscopeSpec(
-        optics=Optics(numerical_aperture=args.na, magnification=args.magnification),
-        stage=StageSpec(drift_um_per_s=args.drift_um_per_s),
-        specimen=SpecimenSpec(dust_density=args.dust_density),
-        height=args.height,
-        width=args.width,
-        max_frames=args.max_frames,
-        cache_mb=args.cache_mb,
-        workers=args.workers,
-    )
-    return Microscope(slides, spec, seed=args.seed)
+def open_instrument(args: argparse.Namespace) -> Instrument:
+    """The instrument of `--backend` and its options; ValueError for a bad option (then
+    nothing is left open), InstrumentError when its devices fail."""
+    instrument = BACKENDS[args.backend].open(args)
+    try:
+        truth_source(instrument, args.serve_truth)
+    except ValueError:
+        instrument.close()
+        raise
+    return instrument
 
 
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     try:
-        microscope = microscope_from_args(args)
         config_from_args(args)  # a bad option or config file ends the command here, not later
         if args.queue_depth < 1:
             raise ValueError(f"--queue-depth must be at least 1, got {args.queue_depth}")
@@ -405,9 +428,13 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--keep-frames-mb must not be negative, got {args.keep_frames_mb}")
         if args.frame_part_kb < 0:
             raise ValueError(f"--frame-part-kb must not be negative, got {args.frame_part_kb}")
+        instrument = open_instrument(args)
     except ValueError as error:
         log.error("%s", error)
         return 2
+    except InstrumentError as error:
+        log.error("the instrument did not open: %s", error)
+        return 1
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
@@ -418,19 +445,19 @@ def run(args: argparse.Namespace) -> int:
         while session is None and not stop.is_set():
             session = bus.wait(1.0)
         if session is not None:
-            serve(microscope, session, args, stop)
+            serve(instrument, session, args, stop)
     finally:
         bus.close()
-        microscope.close()
+        instrument.close()
     return 0
 
 
 def serve(
-    microscope: Microscope, session: zenoh.Session, args: argparse.Namespace, stop: threading.Event
+    instrument: Instrument, session: zenoh.Session, args: argparse.Namespace, stop: threading.Event
 ) -> None:
     """Run the instrument on an open session until `stop` is set."""
     service = InstrumentService(
-        microscope,
+        instrument,
         session,
         args.name,
         realtime=args.realtime,
@@ -442,17 +469,18 @@ def serve(
     )
     service.stop = stop
     service.start()
-    first = next(iter(microscope.slides.values()))
+    description = instrument.describe()
+    first = description.slides[0]
     log.info(
         "instrument %r ready: %d slide(s) of %dx%d tiles, %dx%d px frames, DoF %.2f um, "
         "queue %d, truth %s",
         service.name,
-        len(microscope.slides),
+        len(description.slides),
         first.grid.rows,
         first.grid.cols,
-        microscope.spec.width,
-        microscope.spec.height,
-        microscope.spec.optics.depth_of_field_um,
+        description.frame.width,
+        description.frame.height,
+        description.optics.depth_of_field_um,
         args.queue_depth,
         "served" if args.serve_truth else "off",
     )

@@ -15,6 +15,7 @@ from typing import TypeVar
 import numpy as np
 
 from focustrack_core.timing import TimingModel
+from focustrack_instrument_sim.instrument import StackTiming
 
 #: A simulated time in s: one, or an array of them.
 Clock = TypeVar("Clock", float, np.ndarray)
@@ -35,21 +36,6 @@ class StageSpec:
             low, high = getattr(self, name)
             if not low < high:
                 raise ValueError(f"{name} must be (low, high) with low < high, got {(low, high)}")
-
-
-@dataclass(frozen=True)
-class StackTiming:
-    """Durations of one acquisition in seconds (distance in um)."""
-
-    move_distance_um: float
-    move_s: float
-    z_settle_s: float
-    exposure_s: float
-    readout_s: float
-
-    @property
-    def total_s(self) -> float:
-        return self.move_s + self.z_settle_s + self.exposure_s + self.readout_s
 
 
 class Stage:

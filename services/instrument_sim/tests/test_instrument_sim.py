@@ -9,11 +9,10 @@ from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_instrument_sim import optics as opt
 from focustrack_instrument_sim.camera import Camera, NoiseBank, expose
+from focustrack_instrument_sim.instrument import AcquisitionRefusedError, Refusal
 from focustrack_instrument_sim.microscope import (
-    AcquisitionRefusedError,
     Microscope,
     MicroscopeSpec,
-    Refusal,
     slides_from_map,
     slides_from_seed,
 )

@@ -1,0 +1,237 @@
+"""The instrument seam: what the Zenoh shell (`service.py`) needs from a microscope, no more.
+
+A backend is any object with the methods of `Instrument`: the simulator
+(`simulated.SimulatedInstrument`) is one; a real microscope behind Micro-Manager is
+another. The shell calls them like this, for each acquisition, one at a time:
+
+1. `Instrument.plan` checks a request (slide, tile, z range, frame count, exposure)
+   and commits the instrument to it, or raises `AcquisitionRefusedError` with a
+   `Refusal` and the offending field. The `StackPlan` it returns says where the stage
+   goes (the tile's stage x, y and the z of every frame), what the frames will be
+   (`FrameFormat`) and what the stack costs (`StackTiming`).
+2. `Instrument.acquire` takes the planned frames, frame k into the buffer `out(k)` the
+   shell hands it, and yields each buffer, in z order, as soon as its frame exists.
+   Stage moves happen within (1) and (2): the shell never moves the stage by itself.
+
+`Instrument.describe` (the info queryable) and `TruthSource.truth` (evaluation only)
+are called from Zenoh's threads, also while a stack is being acquired. A device that
+fails raises one of the `DeviceError`s; the shell turns every `InstrumentError` into
+an error reply with its own code (and anything else into an INTERNAL one) and keeps
+serving. A backend bounds its waits on devices: a device that does not answer is a
+`DeviceTimeoutError`, not a call that never returns.
+
+Units: um for x, y, z and lengths; s for times. Frames are numpy arrays
+(height, width, channels), C-ordered.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from focustrack_core.geometry import ScanGrid
+
+
+class Refusal(StrEnum):
+    """Why a request cannot be acquired."""
+
+    MALFORMED = "malformed_request"
+    UNKNOWN_SLIDE = "unknown_slide"
+    TILE_OUTSIDE_SLIDE = "tile_outside_slide"
+    Z_OUT_OF_RANGE = "z_out_of_range"
+    TOO_MANY_FRAMES = "too_many_frames"
+
+
+class InstrumentError(Exception):
+    """What an instrument raises on purpose: a refused request or a failed device."""
+
+
+class AcquisitionRefusedError(InstrumentError, ValueError):
+    """A request the instrument will not carry out; `reason` and `field` say why."""
+
+    def __init__(self, reason: Refusal, message: str, field: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.field = field
+
+
+class DeviceError(InstrumentError):
+    """A device of the instrument failed while carrying out an accepted request (its
+    driver reported an error). `device` names it (a Micro-Manager label, "camera", ...)."""
+
+    def __init__(self, device: str, message: str) -> None:
+        super().__init__(f"{device}: {message}")
+        self.device = device
+
+
+class DeviceTimeoutError(DeviceError):
+    """A device did not finish in time (a move, an exposure, a readout)."""
+
+
+class TargetNotReachedError(DeviceError):
+    """The stage stopped away from the position it was sent to."""
+
+
+class NoImageError(DeviceError):
+    """The camera delivered no image for a frame."""
+
+
+@dataclass(frozen=True)
+class FrameFormat:
+    """The pixels of one frame: an array `shape` (height, width, channels) of `dtype`,
+    one channel per letter of `channel_order` ("RGB"), values below 2**bit_depth."""
+
+    height: int
+    width: int
+    channel_order: str
+    dtype: np.dtype
+    bit_depth: int
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (self.height, self.width, len(self.channel_order))
+
+
+@dataclass(frozen=True)
+class SlideLayout:
+    """A slide the instrument can scan: its name and its tile grid (tile (row, col) is
+    centred at stage `grid.stage_xy_um(row, col)`, um)."""
+
+    name: str
+    grid: ScanGrid
+
+
+@dataclass(frozen=True)
+class OpticsInfo:
+    """The objective and camera as the specimen sees them (lengths in um)."""
+
+    pixel_size_um: float  # a camera pixel in the specimen plane
+    numerical_aperture: float
+    magnification: float
+    wavelength_um: float  # the reference wavelength of the depth of field
+    refractive_index: float  # of the immersion medium (1.0: air)
+    depth_of_field_um: float  # lambda n / NA^2 + n e / (M NA)
+
+
+@dataclass(frozen=True)
+class Description:
+    """What an instrument offers, as the info queryable (`InstrumentInfo`) reports it."""
+
+    slides: tuple[SlideLayout, ...]
+    frame: FrameFormat
+    optics: OpticsInfo
+    z_range_um: tuple[float, float]  # (low, high) travel of the focus stage
+    max_frames: int  # the largest stack accepted
+    default_exposure_s: float  # the exposure of a request that names none
+    hardware_sequenced: bool = False  # stacks run as a triggered hardware sequence, not a
+    # move and a snap per frame: frames come at the camera's rate
+
+    def __post_init__(self) -> None:
+        if not self.slides:
+            raise ValueError("an instrument offers at least one slide")
+
+
+@dataclass(frozen=True)
+class StackTiming:
+    """Durations of one acquisition in seconds (distance in um)."""
+
+    move_distance_um: float
+    move_s: float  # the XY move to the tile, settling included
+    z_settle_s: float  # of every frame together
+    exposure_s: float  # of every frame together
+    readout_s: float  # of every frame together
+
+    @property
+    def total_s(self) -> float:
+        return self.move_s + self.z_settle_s + self.exposure_s + self.readout_s
+
+
+@dataclass(frozen=True)
+class StackPlan:
+    """An accepted acquisition of tile (row, col) of `slide`, before its frames exist.
+
+    z_um (n,): the z of every frame, in acquisition order, um; the stage goes to
+    (stage_x_um, stage_y_um). `clock_s` is the instrument's clock, s, when the stack is
+    complete (the simulator's simulated clock). A backend may subclass it to carry
+    what `acquire` needs besides.
+    """
+
+    slide: str
+    row: int
+    col: int
+    stage_x_um: float
+    stage_y_um: float
+    z_um: np.ndarray
+    exposure_s: float  # of each frame
+    frame: FrameFormat
+    pixel_size_um: float
+    timing: StackTiming
+    clock_s: float
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.z_um)
+
+
+@dataclass(frozen=True)
+class FocusTruth:
+    """The ground truth of a slide (evaluation only): the true focus of every tile now,
+    (rows, cols) um, drift included; the drift, um; the clock at which they hold, s."""
+
+    best_focus_um: np.ndarray
+    drift_um: float
+    clock_s: float
+
+
+#: The frames of a stack as `Instrument.acquire` yields them, (height, width, channels) each.
+Frames = Generator[np.ndarray, None, None]
+
+
+class Instrument(Protocol):
+    """A microscope the Zenoh shell can serve (see the module's doc for the call order)."""
+
+    def describe(self) -> Description:
+        """The slides, frames, optics and limits of the instrument."""
+        ...
+
+    def plan(
+        self,
+        slide: str,
+        row: int,
+        col: int,
+        z_low_um: float,
+        z_step_um: float,
+        n_frames: int,
+        exposure_s: float | None = None,
+    ) -> StackPlan:
+        """Accept frames at z_low_um, z_low_um + z_step_um, ... (n_frames of them, um) of
+        tile (row, col) of `slide`, each exposed `exposure_s` (None: the default); the
+        shell acquires the plan next. Raises AcquisitionRefusedError (nothing changes)
+        or DeviceError."""
+        ...
+
+    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
+        """The frames of `plan`, in order: frame k is written into `out(k)` (an array of
+        `plan.frame.shape` and dtype, which the shell may publish without a copy), which
+        is yielded as soon as the frame is complete. Raises DeviceError. A consumer that
+        stops early closes the generator: the instrument stops the stack then."""
+        ...
+
+    def close(self) -> None:
+        """Release the devices (and threads); the instrument is not used afterwards."""
+        ...
+
+
+@runtime_checkable
+class TruthSource(Protocol):
+    """An instrument that knows the true focus of its slides (the simulator): served on
+    ``focustrack/v1/eval/truth/...`` with ``--serve-truth``, for evaluation only."""
+
+    def truth(self, slide: str) -> FocusTruth:
+        """The ground truth of `slide` now; AcquisitionRefusedError(UNKNOWN_SLIDE) for a
+        slide the instrument does not have."""
+        ...

@@ -1,0 +1,111 @@
+"""The simulator as an `Instrument` (`--backend sim`): `SimulatedInstrument` over
+`microscope.Microscope`, and the microscope the command line's options describe."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from focustrack_core.surfaces import family_spec
+from focustrack_instrument_sim.instrument import (
+    AcquisitionRefusedError,
+    Description,
+    FocusTruth,
+    Frames,
+    OpticsInfo,
+    Refusal,
+    SlideLayout,
+    StackPlan,
+)
+from focustrack_instrument_sim.microscope import (
+    Microscope,
+    MicroscopeSpec,
+    SimulatedPlan,
+    slides_from_map,
+    slides_from_seed,
+)
+from focustrack_instrument_sim.optics import Optics
+from focustrack_instrument_sim.specimen import SpecimenSpec
+from focustrack_instrument_sim.stage import StageSpec
+
+
+class SimulatedInstrument:
+    """A `Microscope` as an `Instrument` and a `TruthSource`: its frames, simulated timing
+    and refusals, unchanged. Its stage moves (and its clock advances) in `plan`."""
+
+    def __init__(self, scope: Microscope) -> None:
+        self.microscope = scope
+
+    def describe(self) -> Description:
+        spec = self.microscope.spec
+        optics = spec.optics
+        return Description(
+            slides=tuple(
+                SlideLayout(slide.name, slide.grid) for slide in self.microscope.slides.values()
+            ),
+            frame=spec.frame,
+            optics=OpticsInfo(
+                pixel_size_um=optics.pixel_size_um,
+                numerical_aperture=optics.numerical_aperture,
+                magnification=optics.magnification,
+                wavelength_um=optics.reference_wavelength_um,
+                refractive_index=optics.refractive_index,
+                depth_of_field_um=optics.depth_of_field_um,
+            ),
+            z_range_um=spec.stage.z_range_um,
+            max_frames=spec.max_frames,
+            default_exposure_s=spec.stage.timing.exposure_s,
+        )
+
+    def plan(
+        self,
+        slide: str,
+        row: int,
+        col: int,
+        z_low_um: float,
+        z_step_um: float,
+        n_frames: int,
+        exposure_s: float | None = None,
+    ) -> StackPlan:
+        return self.microscope.plan(slide, row, col, z_low_um, z_step_um, n_frames, exposure_s)
+
+    def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
+        if not isinstance(plan, SimulatedPlan):
+            raise TypeError(f"not a plan of the simulator: {type(plan).__name__}")
+        return self.microscope.render(plan, out)
+
+    def truth(self, slide: str) -> FocusTruth:
+        if slide not in self.microscope.slides:
+            raise AcquisitionRefusedError(
+                Refusal.UNKNOWN_SLIDE, f"unknown slide {slide!r}", "slide"
+            )
+        focus_um, drift_um = self.microscope.truth_um(slide)
+        return FocusTruth(focus_um, drift_um, self.microscope.stage.clock_s)
+
+    def close(self) -> None:
+        self.microscope.close()
+
+
+def microscope_from_args(args: argparse.Namespace) -> Microscope:
+    """The microscope of the simulator's options (`backends.add_simulator_arguments`)."""
+    if args.map:
+        slides = slides_from_map(args.map, args.seed, args.pitch_um)
+    else:
+        surface = family_spec(args.family, args.rows, args.cols)
+        slides = slides_from_seed(args.seed, args.slides, surface, args.pitch_um)
+    if args.z_offset_um:
+        slides = [replace(slide, focus_um=slide.focus_um + args.z_offset_um) for slide in slides]
+    spec = MicroscopeSpec(
+        optics=Optics(numerical_aperture=args.na, magnification=args.magnification),
+        stage=StageSpec(drift_um_per_s=args.drift_um_per_s),
+        specimen=SpecimenSpec(dust_density=args.dust_density),
+        height=args.height,
+        width=args.width,
+        max_frames=args.max_frames,
+        cache_mb=args.cache_mb,
+        workers=args.workers,
+    )
+    return Microscope(slides, spec, seed=args.seed)
