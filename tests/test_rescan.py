@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import pytest
 
@@ -14,7 +12,8 @@ from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.replay import Drift, replay, score
 from focustrack_estimator.rescan import RescanFilter
-from focustrack_instrument_sim import service, simulated
+from focustrack_instrument_sim import simulated
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
 GRID = ScanGrid(10, 10)
 SETTINGS = default_settings(GRID, noise_sigma_um=0.1, dof_um=0.9)
@@ -66,13 +65,9 @@ def test_a_prior_map_of_the_wrong_shape_is_refused() -> None:
 
 
 def test_the_simulator_moves_a_slide_for_a_second_pass() -> None:
-    def truth(*extra: str) -> np.ndarray:
-        parser = argparse.ArgumentParser()
-        service.add_arguments(parser)
-        args = parser.parse_args(
-            ["--rows", "3", "--cols", "4", "--width", "32", "--height", "32", *extra]
-        )
-        microscope = simulated.microscope_from_args(args)
+    def truth(z_offset_um: float = 0.0) -> np.ndarray:
+        options = SimulatorOptions(rows=3, cols=4, width=32, height=32, z_offset_um=z_offset_um)
+        microscope = simulated.microscope_from_options(options)
         return microscope.truth_um("slide-0")[0]
 
-    assert np.allclose(truth("--z-offset-um", "12") - truth(), 12.0)
+    assert np.allclose(truth(12.0) - truth(), 12.0)

@@ -1,73 +1,51 @@
-"""The instruments `focustrack serve instrument --backend NAME` serves, and their options.
+"""The instruments `focustrack serve instrument --backend NAME` serves.
 
-Each backend adds its options to the command (all of them show in `--help`) and opens
-its instrument from the parsed options. A backend's code, and what it needs (the
-simulator: scipy and OpenCV; a real microscope: its drivers), is imported only when
-the service opens it: `--help` and a bad option cost none of it.
+Each backend declares its options as a small pydantic model of its own (the simulator's:
+`simulator_options.SimulatorOptions`), which the service's one settings model composes
+(`service.InstrumentSettings`: the flags stay flat and all show in `--help`), and opens
+its instrument from those settings. A backend's code, and what it needs (the simulator:
+scipy and OpenCV; a real microscope: its drivers), is imported only when the service
+opens it: `--help` and a bad option cost none of it. A new backend adds its options
+model to `service.InstrumentSettings` and its entry to `BACKENDS`.
 """
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
+
+from pydantic import BaseModel
 
 from focustrack_instrument_sim.instrument import Instrument
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
+
+Options = TypeVar("Options", bound=BaseModel)
 
 
 @dataclass(frozen=True)
-class Backend:
-    """A kind of instrument: `help` for `--backend`, its options, and how it opens."""
+class Backend(Generic[Options]):
+    """A kind of instrument: `help` for `--backend`, and how it opens from its options
+    (the service's settings, which include them)."""
 
     help: str
-    add_arguments: Callable[[argparse.ArgumentParser], None]
-    open: Callable[[argparse.Namespace], Instrument]  # ValueError: a bad option
+    open: Callable[[Options], Instrument]  # ValueError: a bad option
 
 
-def add_simulator_arguments(parser: argparse.ArgumentParser) -> None:
-    """The simulator's slides and microscope."""
-    from focustrack_core.surfaces import FAMILIES  # numpy only
+def open_simulator(options: SimulatorOptions) -> Instrument:
+    from focustrack_instrument_sim.simulated import SimulatedInstrument, microscope_from_options
 
-    slides = parser.add_argument_group("slides (--backend sim)")
-    slides.add_argument("--seed", type=int, default=0, help="seed of surfaces and specimens")
-    slides.add_argument("--slides", type=int, default=1, help="generated slides (slide-0, ...)")
-    slides.add_argument("--rows", type=int, default=20, help="tiles per column of a slide")
-    slides.add_argument("--cols", type=int, default=20, help="tiles per row of a slide")
-    slides.add_argument("--family", choices=list(FAMILIES), default="standard")
-    slides.add_argument("--map", help="true focus map(s) in um (.npy, .csv, .tif) to use instead")
-    slides.add_argument("--pitch-um", type=float, default=200.0, help="tile centre spacing")
-    slides.add_argument(
-        "--z-offset-um",
-        type=float,
-        default=0.0,
-        help="every slide's focus moved by this much (a re-scan after drift between passes)",
-    )
-    scope = parser.add_argument_group("microscope (--backend sim)")
-    scope.add_argument("--width", type=int, default=1024, help="frame width in pixels")
-    scope.add_argument("--height", type=int, default=1024, help="frame height in pixels")
-    scope.add_argument("--max-frames", type=int, default=64, help="largest z-stack accepted")
-    scope.add_argument(
-        "--workers", type=int, default=2, help="threads rendering the frames of a stack (2)"
-    )
-    scope.add_argument(
-        "--cache-mb",
-        type=float,
-        default=1024.0,
-        help="in-focus tile spectra kept, MB (1024: 244 tiles of 512 x 512, 61 of 1024 x 1024)",
-    )
-    scope.add_argument("--na", type=float, default=0.85, help="numerical aperture")
-    scope.add_argument("--magnification", type=float, default=60.0)
-    scope.add_argument("--drift-um-per-s", type=float, default=0.0, help="thermal z drift")
-    scope.add_argument("--dust-density", type=float, default=0.0, help="specks per 1000 um^2")
-
-
-def open_simulator(args: argparse.Namespace) -> Instrument:
-    from focustrack_instrument_sim.simulated import SimulatedInstrument, microscope_from_args
-
-    return SimulatedInstrument(microscope_from_args(args))
+    return SimulatedInstrument(microscope_from_options(options))
 
 
 #: --backend NAME -> the backend.
-BACKENDS: dict[str, Backend] = {
-    "sim": Backend("the simulated microscope", add_simulator_arguments, open_simulator),
+BACKENDS: dict[str, Backend[Any]] = {
+    "sim": Backend("the simulated microscope", open_simulator),
 }
+
+# The choices of --backend: the names of `BACKENDS`, as a Literal built from them (mypy
+# takes no Literal built at run time).
+if TYPE_CHECKING:
+    BackendName = str
+else:
+    BackendName = Literal[tuple(BACKENDS)]

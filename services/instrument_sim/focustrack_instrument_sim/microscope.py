@@ -36,6 +36,7 @@ from focustrack_instrument_sim.instrument import (
     StackPlan,
     StackTiming,
 )
+from focustrack_instrument_sim.simulator_options import default
 from focustrack_instrument_sim.specimen import SpecimenSpec, blood_smear, dust_layer
 from focustrack_instrument_sim.stage import Stage, StageSpec
 
@@ -58,7 +59,7 @@ class Slide:
 
 
 def slides_from_seed(
-    seed: int, n_slides: int, spec: SurfaceSpec, pitch_um: float = 200.0
+    seed: int, n_slides: int, spec: SurfaceSpec, pitch_um: float = default("pitch_um")
 ) -> list[Slide]:
     """`n_slides` generated slides named slide-0, slide-1, ...
 
@@ -70,7 +71,9 @@ def slides_from_seed(
     return [Slide(f"slide-{i}", surface, grid, (seed, i)) for i, surface in enumerate(surfaces)]
 
 
-def slides_from_map(path: str | Path, seed: int, pitch_um: float = 200.0) -> list[Slide]:
+def slides_from_map(
+    path: str | Path, seed: int, pitch_um: float = default("pitch_um")
+) -> list[Slide]:
     """Slides whose true focus comes from a user's map file (one slide per map in it)."""
     maps = load_map(path)
     maps = maps[None] if maps.ndim == 2 else maps
@@ -86,13 +89,14 @@ class MicroscopeSpec:
     camera: Camera = field(default_factory=Camera)
     stage: StageSpec = field(default_factory=StageSpec)
     specimen: SpecimenSpec = field(default_factory=SpecimenSpec)
-    height: int = 1024
-    width: int = 1024
-    max_frames: int = 64
+    height: int = default("height")
+    width: int = default("width")
+    max_frames: int = default("max_frames")
     dust_dz_um: float = 8.0  # height of the dust plane above the specimen
-    cache_mb: float = 1024.0  # in-focus spectra kept: 16.8 MB a tile at 1024 x 1024, 4.2 at 512
+    # in-focus spectra kept, MB: 16.8 MB a tile at 1024 x 1024, 4.2 at 512
+    cache_mb: float = default("cache_mb")
     cached_tiles: int | None = None  # a fixed number of tiles instead of what cache_mb holds
-    workers: int = 2  # threads rendering the frames of a stack
+    workers: int = default("workers")  # threads rendering the frames of a stack
 
     @property
     def tiles_cached(self) -> int:
@@ -226,7 +230,7 @@ class Microscope:
         slides: Sequence[Slide],
         spec: MicroscopeSpec | None = None,
         *,
-        seed: int = 0,
+        seed: int = default("seed"),
         specimen: SpecimenFn | None = None,
     ) -> None:
         self.spec = spec or MicroscopeSpec()

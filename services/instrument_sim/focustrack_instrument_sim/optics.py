@@ -33,6 +33,8 @@ import cv2
 import numpy as np
 from scipy import special
 
+from focustrack_instrument_sim.simulator_options import default
+
 #: Channel order of every rendered image.
 CHANNELS = "RGB"
 
@@ -46,8 +48,8 @@ class Optics:
     filters; the green one is the reference for the depth of field.
     """
 
-    numerical_aperture: float = 0.85
-    magnification: float = 60.0
+    numerical_aperture: float = default("na")
+    magnification: float = default("magnification")
     refractive_index: float = 1.0
     camera_pixel_um: float = 6.5
     wavelengths_um: tuple[float, float, float] = (0.61, 0.55, 0.47)  # R, G, B

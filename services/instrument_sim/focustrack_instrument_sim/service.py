@@ -31,7 +31,6 @@ memory to subscribers on this host (``--shared-memory``), over the network to th
 
 from __future__ import annotations
 
-import argparse
 import logging
 import queue
 import signal
@@ -39,22 +38,23 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import closing, contextmanager
+from typing import ClassVar
 
 import numpy as np
 import zenoh
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
 
-from focustrack_core.config import command_main
+from focustrack_core.settings import command_main
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
     DEFAULT_ENDPOINT,
     BackgroundSession,
-    add_zenoh_arguments,
-    config_from_args,
-    shm_pool_bytes,
+    ZenohSettings,
 )
-from focustrack_instrument_sim.backends import BACKENDS
+from focustrack_instrument_sim.backends import BACKENDS, BackendName
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
     DeviceError,
@@ -68,6 +68,7 @@ from focustrack_instrument_sim.instrument import (
     TruthSource,
 )
 from focustrack_instrument_sim.recent import RecentStacks
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
 log = logging.getLogger(__name__)
 
@@ -362,73 +363,69 @@ class InstrumentService:
         )
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_zenoh_arguments(parser, default_listen=[DEFAULT_ENDPOINT])
-    parser.add_argument("--name", default="sim", help="instrument name in the key space")
-    parser.add_argument(
-        "--backend",
-        choices=list(BACKENDS),
-        default="sim",
-        help="the instrument served: "
-        + ", ".join(f"{name} ({backend.help})" for name, backend in BACKENDS.items())
-        + "; default sim",
+class InstrumentShellSettings(ZenohSettings):
+    """The shell's options, whatever the instrument: its name, queue, frames and truth."""
+
+    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_INSTRUMENT_")
+    default_listen: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)
+
+    name: str = Field("sim", description="instrument name in the key space")
+    backend: BackendName = Field(
+        "sim",
+        description="the instrument served: "
+        + ", ".join(f"{name} ({backend.help})" for name, backend in BACKENDS.items()),
     )
-    for backend in BACKENDS.values():
-        backend.add_arguments(parser)
-    shell = parser.add_argument_group("service")
-    shell.add_argument(
-        "--realtime", action="store_true", help="pace acquisitions at their simulated duration"
+    realtime: bool = Field(False, description="pace acquisitions at their simulated duration")
+    keep_frames_mb: float = Field(
+        KEEP_FRAMES_MB,
+        ge=0,
+        description="frames of past stacks kept for the frames queryable, MB, besides the "
+        "last stack",
     )
-    shell.add_argument(
-        "--keep-frames-mb",
-        type=float,
-        default=KEEP_FRAMES_MB,
-        help="frames of past stacks kept for the frames queryable, MB, besides the last "
-        f"stack ({KEEP_FRAMES_MB})",
+    frame_part_kb: int = Field(
+        codec.FRAME_PART_BYTES // 1024,
+        ge=0,
+        description="frames go over the network in parts of this many KiB, 0: whole (the "
+        "default is the fastest over TCP; see proto/README.md)",
     )
-    shell.add_argument(
-        "--frame-part-kb",
-        type=int,
-        default=codec.FRAME_PART_BYTES // 1024,
-        help="frames go over the network in parts of this many KiB, 0: whole "
-        f"({codec.FRAME_PART_BYTES // 1024}: fastest over TCP; see proto/README.md)",
+    queue_depth: int = Field(
+        QUEUE_DEPTH,
+        ge=1,
+        description="acquisitions that may wait for the stage; more are refused BUSY",
     )
-    shell.add_argument(
-        "--queue-depth",
-        type=int,
-        default=QUEUE_DEPTH,
-        help=f"acquisitions that may wait for the stage; more are refused BUSY ({QUEUE_DEPTH})",
-    )
-    parser.add_argument(
-        "--serve-truth",
-        action="store_true",
-        help="answer the ground truth (focustrack/v1/eval/truth/...): benchmarks and tests only",
+    serve_truth: bool = Field(
+        False,
+        description="answer the ground truth (focustrack/v1/eval/truth/...): benchmarks and "
+        "tests only",
     )
 
 
-def open_instrument(args: argparse.Namespace) -> Instrument:
+class InstrumentSettings(SimulatorOptions, InstrumentShellSettings):
+    """The service's settings: flags, ``FOCUSTRACK_INSTRUMENT_<OPTION>`` or a settings file.
+
+    The shell's options and every backend's (`backends.BACKENDS`), flat: a backend opens
+    from these settings, which are its options too. A new backend adds its options model
+    to the bases (and a list option of it to `list_fields`, after the shell's).
+    """
+
+
+def open_instrument(settings: InstrumentSettings) -> Instrument:
     """The instrument of `--backend` and its options; ValueError for a bad option (then
     nothing is left open), InstrumentError when its devices fail."""
-    instrument = BACKENDS[args.backend].open(args)
+    instrument = BACKENDS[settings.backend].open(settings)
     try:
-        truth_source(instrument, args.serve_truth)
+        truth_source(instrument, settings.serve_truth)
     except ValueError:
         instrument.close()
         raise
     return instrument
 
 
-def run(args: argparse.Namespace) -> int:
+def run(settings: InstrumentSettings) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     try:
-        config_from_args(args)  # a bad option or config file ends the command here, not later
-        if args.queue_depth < 1:
-            raise ValueError(f"--queue-depth must be at least 1, got {args.queue_depth}")
-        if args.keep_frames_mb < 0:
-            raise ValueError(f"--keep-frames-mb must not be negative, got {args.keep_frames_mb}")
-        if args.frame_part_kb < 0:
-            raise ValueError(f"--frame-part-kb must not be negative, got {args.frame_part_kb}")
-        instrument = open_instrument(args)
+        settings.zenoh()  # a bad option or config file ends the command here, not later
+        instrument = open_instrument(settings)
     except ValueError as error:
         log.error("%s", error)
         return 2
@@ -439,13 +436,13 @@ def run(args: argparse.Namespace) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     # The stage waits for the bus; a router that comes later is connected to then.
-    bus = BackgroundSession(lambda: config_from_args(args, ATTEMPT_TIMEOUT_S))
+    bus = BackgroundSession(lambda: settings.zenoh(ATTEMPT_TIMEOUT_S))
     try:
         session = None
         while session is None and not stop.is_set():
             session = bus.wait(1.0)
         if session is not None:
-            serve(instrument, session, args, stop)
+            serve(instrument, session, settings, stop)
     finally:
         bus.close()
         instrument.close()
@@ -453,19 +450,22 @@ def run(args: argparse.Namespace) -> int:
 
 
 def serve(
-    instrument: Instrument, session: zenoh.Session, args: argparse.Namespace, stop: threading.Event
+    instrument: Instrument,
+    session: zenoh.Session,
+    settings: InstrumentShellSettings,
+    stop: threading.Event,
 ) -> None:
     """Run the instrument on an open session until `stop` is set."""
     service = InstrumentService(
         instrument,
         session,
-        args.name,
-        realtime=args.realtime,
-        shm_pool_bytes=shm_pool_bytes(args),
-        frame_part_bytes=args.frame_part_kb * 1024,
-        queue_depth=args.queue_depth,
-        serve_truth=args.serve_truth,
-        keep_frames_bytes=int(args.keep_frames_mb * 1_000_000),
+        settings.name,
+        realtime=settings.realtime,
+        shm_pool_bytes=settings.shared_memory * 1_000_000,
+        frame_part_bytes=settings.frame_part_kb * 1024,
+        queue_depth=settings.queue_depth,
+        serve_truth=settings.serve_truth,
+        keep_frames_bytes=int(settings.keep_frames_mb * 1_000_000),
     )
     service.stop = stop
     service.start()
@@ -481,17 +481,17 @@ def serve(
         description.frame.width,
         description.frame.height,
         description.optics.depth_of_field_um,
-        args.queue_depth,
-        "served" if args.serve_truth else "off",
+        settings.queue_depth,
+        "served" if settings.serve_truth else "off",
     )
     service.serve()
     service.close()
 
 
-#: Every option's environment variable is this prefix and its name (focustrack_core.config).
-ENV_PREFIX = "FOCUSTRACK_INSTRUMENT_"
+#: The service's settings model (the `focustrack` command runs `run` with it).
+Settings = InstrumentSettings
 
 #: The `focustrack-instrument-sim` console script (and `python -m focustrack_instrument_sim`).
 main = command_main(
-    "focustrack-instrument-sim", "the simulated microscope on Zenoh", add_arguments, run, ENV_PREFIX
+    "focustrack-instrument-sim", "the simulated microscope on Zenoh", InstrumentSettings, run
 )

@@ -1,9 +1,8 @@
 """The simulator as an `Instrument` (`--backend sim`): `SimulatedInstrument` over
-`microscope.Microscope`, and the microscope the command line's options describe."""
+`microscope.Microscope`, and the microscope its options describe (`SimulatorOptions`)."""
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -28,6 +27,7 @@ from focustrack_instrument_sim.microscope import (
     slides_from_seed,
 )
 from focustrack_instrument_sim.optics import Optics
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
 from focustrack_instrument_sim.specimen import SpecimenSpec
 from focustrack_instrument_sim.stage import StageSpec
 
@@ -89,23 +89,23 @@ class SimulatedInstrument:
         self.microscope.close()
 
 
-def microscope_from_args(args: argparse.Namespace) -> Microscope:
-    """The microscope of the simulator's options (`backends.add_simulator_arguments`)."""
-    if args.map:
-        slides = slides_from_map(args.map, args.seed, args.pitch_um)
+def microscope_from_options(options: SimulatorOptions) -> Microscope:
+    """The microscope the simulator's options describe."""
+    if options.map is not None:
+        slides = slides_from_map(options.map, options.seed, options.pitch_um)
     else:
-        surface = family_spec(args.family, args.rows, args.cols)
-        slides = slides_from_seed(args.seed, args.slides, surface, args.pitch_um)
-    if args.z_offset_um:
-        slides = [replace(slide, focus_um=slide.focus_um + args.z_offset_um) for slide in slides]
+        surface = family_spec(options.family, options.rows, options.cols)
+        slides = slides_from_seed(options.seed, options.slides, surface, options.pitch_um)
+    if options.z_offset_um:
+        slides = [replace(slide, focus_um=slide.focus_um + options.z_offset_um) for slide in slides]
     spec = MicroscopeSpec(
-        optics=Optics(numerical_aperture=args.na, magnification=args.magnification),
-        stage=StageSpec(drift_um_per_s=args.drift_um_per_s),
-        specimen=SpecimenSpec(dust_density=args.dust_density),
-        height=args.height,
-        width=args.width,
-        max_frames=args.max_frames,
-        cache_mb=args.cache_mb,
-        workers=args.workers,
+        optics=Optics(numerical_aperture=options.na, magnification=options.magnification),
+        stage=StageSpec(drift_um_per_s=options.drift_um_per_s),
+        specimen=SpecimenSpec(dust_density=options.dust_density),
+        height=options.height,
+        width=options.width,
+        max_frames=options.max_frames,
+        cache_mb=options.cache_mb,
+        workers=options.workers,
     )
-    return Microscope(slides, spec, seed=args.seed)
+    return Microscope(slides, spec, seed=options.seed)

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from focustrack_instrument_sim.simulator_options import default
+
 # Optical density (R, G, B) of each material at full thickness.
 _PLASMA_OD = np.array([0.015, 0.025, 0.015], dtype=np.float32)
 _HAEMOGLOBIN_OD = np.array([0.08, 0.55, 0.35], dtype=np.float32)
@@ -48,7 +50,7 @@ class SpecimenSpec:
     empty_fraction: float = 0.05  # fields with no cells at all
     sparse_fraction: float = 0.15  # fields with 10-30% of the usual cells
     edge_um: float = 0.2  # width of the soft edge of every object
-    dust_density: float = 0.0  # grey specks per 1000 um^2 (0: no dust layer)
+    dust_density: float = default("dust_density")  # grey specks per 1000 um^2 (0: no dust layer)
 
 
 def _smoothstep(x: np.ndarray) -> np.ndarray:

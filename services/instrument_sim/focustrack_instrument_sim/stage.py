@@ -16,6 +16,7 @@ import numpy as np
 
 from focustrack_core.timing import TimingModel
 from focustrack_instrument_sim.instrument import StackTiming
+from focustrack_instrument_sim.simulator_options import default
 
 #: A simulated time in s: one, or an array of them.
 Clock = TypeVar("Clock", float, np.ndarray)
@@ -28,7 +29,8 @@ class StageSpec:
     x_range_um: tuple[float, float] = (0.0, 75_000.0)
     y_range_um: tuple[float, float] = (0.0, 25_000.0)
     z_range_um: tuple[float, float] = (-100.0, 100.0)
-    drift_um_per_s: float = 0.0  # slow thermal z drift: focus moves by this much per second
+    # slow thermal z drift: focus moves by this much per second
+    drift_um_per_s: float = default("drift_um_per_s")
     timing: TimingModel = field(default_factory=TimingModel)
 
     def __post_init__(self) -> None:

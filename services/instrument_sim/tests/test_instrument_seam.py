@@ -4,7 +4,6 @@ failed devices), the command's backends, and what the shell imports."""
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 import threading
@@ -250,23 +249,18 @@ def test_truth_is_served_only_by_an_instrument_that_has_it(client: zenoh.Session
 
 
 def _run(
-    monkeypatch: pytest.MonkeyPatch, open_instrument: Callable[[argparse.Namespace], Instrument],
+    monkeypatch: pytest.MonkeyPatch, open_instrument: Callable[[service.Settings], Instrument],
     *options: str,
 ) -> int:  # fmt: skip
-    """`run` with `--backend fake`, a backend that opens with `open_instrument`."""
-    monkeypatch.setitem(backends.BACKENDS, "fake", Backend("a test's", lambda _: None,
-                                                           open_instrument))  # fmt: skip
-    parser = argparse.ArgumentParser()
-    service.add_arguments(parser)
-    args = parser.parse_args(["--connect", session.loopback_endpoint(), "--backend", "fake",
-                              *options])  # fmt: skip
-    return service.run(args)
+    """The command with its backend (sim, the default) opening with `open_instrument`."""
+    monkeypatch.setitem(backends.BACKENDS, "sim", Backend("a test's", open_instrument))
+    return service.main(["--connect", session.loopback_endpoint(), *options])
 
 
 def test_the_command_ends_when_the_instrument_does_not_open(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    def unplugged(_args: argparse.Namespace) -> Instrument:
+    def unplugged(_settings: service.Settings) -> Instrument:
         raise DeviceError("Camera", "not connected")
 
     assert _run(monkeypatch, unplugged) == 1
@@ -280,24 +274,33 @@ def test_the_command_refuses_serve_truth_without_truth(
     assert "--serve-truth: ConstantInstrument has no ground truth" in caplog.text
 
 
-SIMULATOR = ["microscope", "optics", "specimen", "camera", "stage", "simulated"]
+#: What the simulator loads when it opens: its modules, scipy and OpenCV.
+SIMULATOR = {
+    *(f"focustrack_instrument_sim.{name}" for name in
+      ("microscope", "optics", "specimen", "camera", "stage", "simulated")),
+    "scipy", "cv2",
+}  # fmt: skip
 
 
-def test_the_shell_and_its_help_load_no_simulator() -> None:
-    loaded = subprocess.run(
-        [sys.executable, "-c",
-         "import sys, focustrack_instrument_sim.service; print(' '.join(sys.modules))"],
-        capture_output=True, text=True, check=True,
-    ).stdout.split()  # fmt: skip
-    for name in SIMULATOR:
-        assert f"focustrack_instrument_sim.{name}" not in loaded
-    assert not {"scipy", "cv2"} & set(loaded)
-    assert not [name for name in loaded if name.endswith(".surfaces")]
-    # --help lists the map families (surfaces.py, numpy only) and loads nothing heavier
-    help_imports = subprocess.run(
-        [sys.executable, "-X", "importtime", "-m", "focustrack_instrument_sim", "--help"],
-        capture_output=True, text=True, check=True,
-    ).stderr  # fmt: skip
-    imported = {line.rsplit("|", 1)[-1].strip() for line in help_imports.splitlines()}
-    assert [name for name in imported if name.endswith(".surfaces")]
-    assert not {"scipy", "cv2", "focustrack_instrument_sim.microscope"} & imported
+@pytest.mark.parametrize(
+    ("command", "status"),
+    [
+        (["-c", "import focustrack_instrument_sim.service"], 0),
+        (["-m", "focustrack_instrument_sim", "--help"], 0),
+        (["-m", "focustrack_instrument_sim", "--rows", "0"], 2),  # refused by the options
+    ],
+)
+def test_the_shell_its_help_and_a_bad_option_load_no_simulator(
+    command: list[str], status: int
+) -> None:
+    ran = subprocess.run(
+        [sys.executable, "-X", "importtime", *command], capture_output=True, text=True
+    )
+    assert ran.returncode == status, ran.stderr[-2000:]
+    imported = {
+        line.rsplit("|", 1)[-1].strip()
+        for line in ran.stderr.splitlines()
+        if line.startswith("import time:")
+    }
+    assert "focustrack_instrument_sim.simulator_options" in imported  # declarations only
+    assert not SIMULATOR & imported

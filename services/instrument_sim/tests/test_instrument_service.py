@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import argparse
+import re
 import subprocess
 import sys
 import threading
@@ -116,16 +116,44 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
 
 
 @pytest.mark.parametrize(
-    "option", [["--frame-part-kb", "-1"], ["--keep-frames-mb", "-1"], ["--queue-depth", "0"]]
+    "option",
+    [
+        ["--frame-part-kb", "-1"],
+        ["--keep-frames-mb", "-1"],
+        ["--queue-depth", "0"],
+        ["--shared-memory", "-1"],
+        ["--workers", "0"],
+    ],
 )
-def test_a_bad_option_ends_the_command_with_a_message(
-    option: list[str], caplog: pytest.LogCaptureFixture
+def test_a_refused_option_ends_the_command_naming_it(
+    option: list[str], capsys: pytest.CaptureFixture[str]
 ) -> None:
-    parser = argparse.ArgumentParser()
-    service.add_arguments(parser)
-    args = parser.parse_args(["--connect", session.loopback_endpoint(), "--rows", "2", *option])
-    assert service.run(args) == 2
-    assert f"{option[0]} must" in caplog.text
+    with pytest.raises(SystemExit) as refused:
+        service.main(["--connect", session.loopback_endpoint(), "--rows", "2", *option])
+    assert refused.value.code == 2
+    variable = service.Settings.variable(option[0][2:].replace("-", "_"))
+    assert f"{option[0]} ({variable}):" in capsys.readouterr().err
+
+
+#: Every option of `focustrack serve instrument`: the users' contract (added to, never renamed).
+OPTIONS = [
+    "connect", "listen", "mode", "zenoh-config", "shared-memory", "name", "backend", "seed",
+    "slides", "rows", "cols", "family", "map", "pitch-um", "z-offset-um", "width", "height",
+    "max-frames", "workers", "cache-mb", "na", "magnification", "drift-um-per-s",
+    "dust-density", "realtime", "keep-frames-mb", "frame-part-kb", "queue-depth", "serve-truth",
+]  # fmt: skip
+
+
+def test_help_lists_every_option_and_its_variable(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as helped:
+        service.main(["--help"])
+    assert helped.value.code == 0
+    text = capsys.readouterr().out
+    for option in OPTIONS:
+        assert re.search(rf"--{option}[ ,\n]", text), option
+        assert f"[env FOCUSTRACK_INSTRUMENT_{option.replace('-', '_').upper()}]" in " ".join(
+            text.split()
+        )
 
 
 def test_the_health_probe_passes_for_this_instrument_and_fails_for_another(

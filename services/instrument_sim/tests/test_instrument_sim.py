@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from focustrack_core.geometry import ScanGrid
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_instrument_sim import optics as opt
@@ -16,6 +17,8 @@ from focustrack_instrument_sim.microscope import (
     slides_from_map,
     slides_from_seed,
 )
+from focustrack_instrument_sim.simulated import microscope_from_options
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
 from focustrack_instrument_sim.specimen import SpecimenSpec, blood_smear
 from focustrack_instrument_sim.stage import StageSpec
 
@@ -119,6 +122,13 @@ def test_the_cache_holds_as_many_tiles_as_its_megabytes() -> None:
     assert MicroscopeSpec(height=512, width=512).tiles_cached == 1024_000_000 // (4 * 512 * 512 * 4)
     assert MicroscopeSpec(cache_mb=0.0).tiles_cached == 1
     assert MicroscopeSpec(cached_tiles=3).tiles_cached == 3
+
+
+def test_the_simulators_default_options_are_its_microscopes_defaults() -> None:
+    scope = microscope_from_options(SimulatorOptions())
+    scope.close()
+    assert scope.spec == MicroscopeSpec()
+    assert [slide.grid for slide in scope.slides.values()] == [ScanGrid(20, 20)]
 
 
 def test_a_tile_looks_the_same_when_imaged_again() -> None:

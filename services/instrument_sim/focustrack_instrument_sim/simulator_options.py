@@ -1,0 +1,66 @@
+"""The simulator's options (`--backend sim`): its slides and its microscope.
+
+Declarations only (pydantic, and the core's map families and grid: numpy), so that the
+service's settings compose them without loading the simulator: `--help` and a bad
+option cost no scipy or OpenCV. The simulator's defaults are written here once: the
+microscope's dataclasses (`MicroscopeSpec`, `Optics`, `StageSpec`, `SpecimenSpec`) take
+theirs from these options (`default`), and the options take the slides' tile grid from
+the core's (`SurfaceSpec`, `ScanGrid`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, Field
+
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.surfaces import FAMILIES, SurfaceSpec
+
+# The choices of --family: the names of `FAMILIES`, as a Literal built from them (mypy
+# takes no Literal built at run time).
+if TYPE_CHECKING:
+    FamilyName = str
+else:
+    FamilyName = Literal[tuple(FAMILIES)]
+
+
+class SimulatorOptions(BaseModel):
+    """The simulated microscope: generated slides (or a map file's) and its optics."""
+
+    # the slides
+    seed: int = Field(0, ge=0, description="seed of surfaces and specimens")
+    slides: int = Field(1, ge=1, description="generated slides (slide-0, ...)")
+    rows: int = Field(SurfaceSpec.rows, ge=1, description="tiles per column of a slide")
+    cols: int = Field(SurfaceSpec.cols, ge=1, description="tiles per row of a slide")
+    family: FamilyName = Field("standard", description="the map family of generated slides")
+    map: Path | None = Field(
+        None, description="true focus map(s) in um (.npy, .csv, .tif) to use instead"
+    )
+    pitch_um: float = Field(ScanGrid.pitch_um, gt=0, description="tile centre spacing, um")
+    z_offset_um: float = Field(
+        0.0,
+        description="every slide's focus moved by this much, um (a re-scan after drift "
+        "between passes)",
+    )
+    # the microscope
+    width: int = Field(1024, ge=1, description="frame width in pixels")
+    height: int = Field(1024, ge=1, description="frame height in pixels")
+    max_frames: int = Field(64, ge=1, description="largest z-stack accepted")
+    workers: int = Field(2, ge=1, description="threads rendering the frames of a stack")
+    cache_mb: float = Field(
+        1024.0,
+        ge=0,
+        description="in-focus tile spectra kept, MB (16.8 MB a tile of 1024 x 1024, "
+        "4.2 of 512 x 512)",
+    )
+    na: float = Field(0.85, gt=0, description="numerical aperture")
+    magnification: float = Field(60.0, gt=0, description="magnification of the objective")
+    drift_um_per_s: float = Field(0.0, description="thermal z drift, um/s")
+    dust_density: float = Field(0.0, ge=0, description="dust specks per 1000 um^2 (0: none)")
+
+
+def default(option: str) -> Any:
+    """The default of the simulator's `option`, for the dataclass field that has it too."""
+    return SimulatorOptions.model_fields[option].default
