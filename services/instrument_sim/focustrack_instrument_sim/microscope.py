@@ -239,10 +239,15 @@ class Microscope:
         self.slides = {slide.name: slide for slide in slides}
         self.stage = Stage(self.spec.stage)
         self._rng = np.random.default_rng([seed, 1])
-        self.renderer = Renderer(self.spec, self._rng)
         self._pool = ThreadPoolExecutor(self.spec.workers, thread_name_prefix="render")
         self._specimen = specimen or functools.partial(blood_smear, self.spec.specimen)
         self._tiles: OrderedDict[tuple[str, int, int], TileSpectra] = OrderedDict()
+
+    @functools.cached_property
+    def renderer(self) -> Renderer:
+        """Optics and camera, made for the first stack (`plan`, on the acquiring thread):
+        they take a fraction of a second, and scipy's import, that the info does not wait for."""
+        return Renderer(self.spec, self._rng)
 
     @property
     def pixel_size_um(self) -> float:

@@ -31,7 +31,6 @@ from functools import cached_property
 
 import cv2
 import numpy as np
-from scipy import special
 
 from focustrack_instrument_sim.simulator_options import default
 
@@ -100,6 +99,9 @@ class DefocusOTF:
         n_q: int = 512,
         dr_um: float = 0.05,
     ) -> None:
+        # Imported here, when the simulator first renders: the service answers before then.
+        from scipy import special
+
         na, n = optics.numerical_aperture, optics.refractive_index
         self.wavelength_um = wavelength_um
         self._max_dz_um = optics.max_defocus_um

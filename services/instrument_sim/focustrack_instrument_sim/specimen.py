@@ -24,7 +24,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from focustrack_instrument_sim.simulator_options import default
 
@@ -151,6 +150,9 @@ def _scatter(
 
 def _granules(rng: np.random.Generator, shape: tuple[int, int], pixel_um: float) -> np.ndarray:
     """A smooth positive texture around 1 (chromatin and platelet granularity)."""
+    # Imported here, when the simulator first renders: the service answers before then.
+    from scipy import ndimage
+
     noise = ndimage.gaussian_filter(rng.standard_normal(shape, dtype=np.float32), 0.25 / pixel_um)
     return np.clip(1.0 + 0.6 * noise / max(float(noise.std()), 1e-6), 0.2, None)
 
