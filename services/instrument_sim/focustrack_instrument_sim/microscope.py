@@ -98,6 +98,9 @@ class MicroscopeSpec:
     cached_tiles: int | None = None  # a fixed number of tiles instead of what cache_mb holds
     workers: int = default("workers")  # threads rendering the frames of a stack
 
+    def __post_init__(self) -> None:
+        opt.check_frame_shape(self.shape)  # now, not when the renderer is made for a stack
+
     @property
     def tiles_cached(self) -> int:
         """How many tiles' spectra the cache keeps (float32, three channels and dust)."""
@@ -245,8 +248,9 @@ class Microscope:
 
     @functools.cached_property
     def renderer(self) -> Renderer:
-        """Optics and camera, made for the first stack (`plan`, on the acquiring thread):
-        they take a fraction of a second, and scipy's import, that the info does not wait for."""
+        """Optics and camera, made when the first stack is planned (on the acquiring
+        thread): building them, and importing scipy, takes a fraction of a second that the
+        instrument's description (the service's info) does not wait for."""
         return Renderer(self.spec, self._rng)
 
     @property

@@ -134,6 +134,13 @@ class DefocusOTF:
         return np.append(otf / otf[0], np.float32(0.0))
 
 
+def check_frame_shape(shape: tuple[int, int]) -> None:
+    """ValueError unless (height, width) has even sides of 2 pixels or more (CCS layout)."""
+    height, width = shape
+    if height % 2 or width % 2 or height < 2 or width < 2:
+        raise ValueError(f"frame sides must be even and >= 2, got {shape}")
+
+
 def ccs_frequency_indices(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """(|v|, u): the frequency indices held by each element of OpenCV's CCS spectrum layout.
 
@@ -143,9 +150,8 @@ def ccs_frequency_indices(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
     columns hold u = 0 and u = width / 2, with v = (r + 1) // 2 packed down the
     rows. Both are int arrays of `shape`; v is folded to |v| <= height / 2.
     """
+    check_frame_shape(shape)
     height, width = shape
-    if height % 2 or width % 2 or height < 2 or width < 2:
-        raise ValueError(f"frame sides must be even and >= 2, got {shape}")
     rows = np.arange(height)[:, None]
     cols = np.arange(width)[None, :]
     u = np.broadcast_to((cols + 1) // 2, shape).copy()

@@ -5,7 +5,9 @@ service's settings compose them without loading the simulator: `--help` and a ba
 option cost no scipy or OpenCV. The simulator's defaults are written here once: the
 microscope's dataclasses (`MicroscopeSpec`, `Optics`, `StageSpec`, `SpecimenSpec`) take
 theirs from these options (`default`), and the options take the slides' tile grid from
-the core's (`SurfaceSpec`, `ScanGrid`).
+the core's (`SurfaceSpec`, `ScanGrid`). Bounds are here where nothing else checks a
+value; the rest (even frame sides, the NA, the grid) the simulator's dataclasses refuse
+when it opens, which ends the command with exit status 2 and their message.
 """
 
 from __future__ import annotations
@@ -32,21 +34,21 @@ class SimulatorOptions(BaseModel):
     # the slides
     seed: int = Field(0, ge=0, description="seed of surfaces and specimens")
     slides: int = Field(1, ge=1, description="generated slides (slide-0, ...)")
-    rows: int = Field(SurfaceSpec.rows, ge=1, description="tiles per column of a slide")
-    cols: int = Field(SurfaceSpec.cols, ge=1, description="tiles per row of a slide")
+    rows: int = Field(SurfaceSpec.rows, description="tiles per column of a slide")
+    cols: int = Field(SurfaceSpec.cols, description="tiles per row of a slide")
     family: FamilyName = Field("standard", description="the map family of generated slides")
     map: Path | None = Field(
         None, description="true focus map(s) in um (.npy, .csv, .tif) to use instead"
     )
-    pitch_um: float = Field(ScanGrid.pitch_um, gt=0, description="tile centre spacing, um")
+    pitch_um: float = Field(ScanGrid.pitch_um, description="tile centre spacing, um")
     z_offset_um: float = Field(
         0.0,
         description="every slide's focus moved by this much, um (a re-scan after drift "
         "between passes)",
     )
     # the microscope
-    width: int = Field(1024, ge=1, description="frame width in pixels")
-    height: int = Field(1024, ge=1, description="frame height in pixels")
+    width: int = Field(1024, description="frame width in pixels (even)")
+    height: int = Field(1024, description="frame height in pixels (even)")
     max_frames: int = Field(64, ge=1, description="largest z-stack accepted")
     workers: int = Field(2, ge=1, description="threads rendering the frames of a stack")
     cache_mb: float = Field(
@@ -55,8 +57,8 @@ class SimulatorOptions(BaseModel):
         description="in-focus tile spectra kept, MB (16.8 MB a tile of 1024 x 1024, "
         "4.2 of 512 x 512)",
     )
-    na: float = Field(0.85, gt=0, description="numerical aperture")
-    magnification: float = Field(60.0, gt=0, description="magnification of the objective")
+    na: float = Field(0.85, description="numerical aperture")
+    magnification: float = Field(60.0, description="magnification of the objective")
     drift_um_per_s: float = Field(0.0, description="thermal z drift, um/s")
     dust_density: float = Field(0.0, ge=0, description="dust specks per 1000 um^2 (0: none)")
 

@@ -287,7 +287,7 @@ SIMULATOR = {
     [
         (["-c", "import focustrack_instrument_sim.service"], 0),
         (["-m", "focustrack_instrument_sim", "--help"], 0),
-        (["-m", "focustrack_instrument_sim", "--rows", "0"], 2),  # refused by the options
+        (["-m", "focustrack_instrument_sim", "--queue-depth", "0"], 2),  # refused
     ],
 )
 def test_the_shell_its_help_and_a_bad_option_load_no_simulator(

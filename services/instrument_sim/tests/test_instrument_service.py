@@ -135,6 +135,21 @@ def test_a_refused_option_ends_the_command_naming_it(
     assert f"{option[0]} ({variable}):" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--width", "33"], "frame sides must be even"),
+        (["--na", "1.2"], "NA must lie in (0, n=1.0)"),
+        (["--rows", "0"], "surface must have at least one tile"),
+    ],
+)
+def test_a_value_the_simulator_refuses_ends_the_command_before_it_serves(
+    option: list[str], message: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    assert service.main(["--connect", session.loopback_endpoint(), *option]) == 2
+    assert message in caplog.text
+
+
 #: Every option of `focustrack serve instrument`: the users' contract (added to, never renamed).
 OPTIONS = [
     "connect", "listen", "mode", "zenoh-config", "shared-memory", "name", "backend", "seed",
