@@ -58,6 +58,10 @@ class ServiceSettings(BaseSettings):
         validate_default=True,
     )
 
+    #: The heading of this model's own fields in `--help` (None: among the options).
+    #: A model of options that others compose (the Zenoh options, a backend's) sets one.
+    help_heading: ClassVar[str | None] = None
+
     #: Fields whose text (from the environment, a flag or a file) is a list of items
     #: separated by commas or spaces, as lists always read (set by subclasses).
     list_fields: ClassVar[tuple[str, ...]] = ()
@@ -95,6 +99,12 @@ class ServiceSettings(BaseSettings):
     def variable(cls, name: str) -> str:
         """The environment variable of field `name` (``FOCUSTRACK_FOCUS_PORT``)."""
         return f"{cls.env_prefix()}{name.upper()}"
+
+    @classmethod
+    def default_text(cls, name: str) -> str | None:
+        """How `--help` states field `name`'s default, where the field's own value (None, say)
+        stands for another (subclasses override); None: as the field's default reads."""
+        return None
 
     @classmethod
     def add_arguments(cls, parser: argparse.ArgumentParser) -> None:
@@ -153,7 +163,10 @@ def read_settings_file(path: Path) -> dict[str, Any]:
 
 
 def _add_argument(cls: type[ServiceSettings]) -> Callable[..., argparse.Action]:
-    """The `add_argument` of CliSettingsSource, with today's list flags and env names in help."""
+    """The `add_argument` of CliSettingsSource, with today's list flags, env names in help,
+    choices of Literal fields, and each field under the `help_heading` of the model
+    declaring it."""
+    groups: dict[type, Any] = {}
 
     def add_argument(parser: Any, *names: str, **kwargs: Any) -> argparse.Action:
         if kwargs.get("action") == "append":  # a list: its items after one flag, or repeated
@@ -161,15 +174,33 @@ def _add_argument(cls: type[ServiceSettings]) -> Callable[..., argparse.Action]:
             kwargs["metavar"] = re.sub(r"^list\[(.*)\]$", r"\1", str(kwargs.get("metavar", "")))
         dest = kwargs.get("dest", "")
         field = cls.model_fields.get(dest)
-        if field is not None:
-            kwargs["help"] = f"{kwargs.get('help', '')} [env {cls.variable(dest)}]".strip()
-            choices = _choices(field)
-            if choices:
-                kwargs["choices"] = choices
-                kwargs.pop("metavar", None)
+        if field is None:
+            return parser.add_argument(*names, **kwargs)
+        default = cls.default_text(dest)
+        text = str(kwargs.get("help", ""))
+        if default is not None:
+            text = re.sub(r"\(default: [^)]*\)", f"(default: {default})", text)
+        kwargs["help"] = f"{text} [env {cls.variable(dest)}]".strip()
+        choices = _choices(field)
+        if choices:
+            kwargs["choices"] = choices
+            kwargs.pop("metavar", None)
+        owner = _declaring_model(cls, dest)
+        heading = vars(owner).get("help_heading")
+        if heading is not None:
+            if owner not in groups:
+                groups[owner] = parser.add_argument_group(heading)
+            parser = groups[owner]
         return parser.add_argument(*names, **kwargs)
 
     return add_argument
+
+
+def _declaring_model(cls: type, name: str) -> type:
+    """The class of `cls`'s hierarchy whose own annotations declare field `name`."""
+    return next(
+        (klass for klass in cls.__mro__ if name in vars(klass).get("__annotations__", {})), cls
+    )
 
 
 def _choices(field: FieldInfo) -> list[str] | None:

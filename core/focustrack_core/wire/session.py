@@ -245,6 +245,7 @@ class ZenohSettings(ServiceSettings):
     `DEFAULT_ENDPOINT` and the others connect to it.
     """
 
+    help_heading: ClassVar[str | None] = "zenoh"
     list_fields: ClassVar[tuple[str, ...]] = ("connect", "listen")
     default_connect: ClassVar[tuple[str, ...]] = ()
     default_listen: ClassVar[tuple[str, ...]] = ()
@@ -268,6 +269,14 @@ class ZenohSettings(ServiceSettings):
         f"published pixels are written to, e.g. {SHARED_MEMORY_MB} (0: off, network only; "
         "subscribers need it on too, any size)",
     )
+
+    @classmethod
+    def default_text(cls, name: str) -> str | None:
+        """--connect and --listen: the service's own endpoints when neither is given."""
+        if name in ("connect", "listen"):
+            endpoints = cls.default_connect if name == "connect" else cls.default_listen
+            return " ".join(endpoints) or "none"
+        return None
 
     def endpoints(self) -> tuple[list[str], list[str]]:
         """(connect, listen): the options', else the service's defaults."""

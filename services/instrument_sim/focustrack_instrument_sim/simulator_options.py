@@ -13,7 +13,7 @@ when it opens, which ends the command with exit status 2 and their message.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from pydantic import BaseModel, Field
 
@@ -30,6 +30,8 @@ else:
 
 class SimulatorOptions(BaseModel):
     """The simulated microscope: generated slides (or a map file's) and its optics."""
+
+    help_heading: ClassVar[str | None] = "the simulated microscope (--backend sim)"
 
     # the slides
     seed: int = Field(0, ge=0, description="seed of surfaces and specimens")
