@@ -27,6 +27,7 @@ from focustrack.bus_secrets import PUBLIC_FILES, ROLES, write_bus_files
 from focustrack.cli import main
 from focustrack_core import health
 from focustrack_core.config import with_environment
+from focustrack_core.settings import ServiceSettings
 from focustrack_core.wire import router
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,20 +74,33 @@ def test_each_dockerfile_runs_its_distributions_console_script(name: str) -> Non
     assert f"-r /src/services/{folder}/requirements.txt" in dockerfile and "--no-deps" in dockerfile
 
 
+def configured(module: Any, environ: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> Any:
+    """The options of `module`'s command in the environment `environ`, nothing else set
+    (its settings model's, or its parser's); AssertionError naming a variable it does not read."""
+    model = getattr(module, "Settings", None)
+    if not (isinstance(model, type) and issubclass(model, ServiceSettings)):
+        parser = argparse.ArgumentParser()
+        module.add_arguments(parser)
+        names = {module.ENV_PREFIX + a.dest.upper() for a in parser._actions if a.option_strings}
+        assert set(environ) <= names, f"no such option: {set(environ) - names}"
+        return with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
+    names = {model.variable(field) for field in model.model_fields}
+    assert set(environ) <= names, f"no such option: {set(environ) - names}"
+    for key in [key for key in os.environ if key.startswith(model.env_prefix())]:
+        monkeypatch.delenv(key)
+    for key, value in environ.items():
+        monkeypatch.setenv(key, value)
+    return model()
+
+
 @pytest.mark.parametrize("name", sorted(SERVICES))
 def test_each_service_is_configured_by_environment_its_command_accepts(
-    compose: dict[str, Any], name: str
+    compose: dict[str, Any], name: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     service = compose["services"][name]
     environ = {key: defaults(value) for key, value in service["environment"].items()}
     module = importlib.import_module(SERVICES[name][1])
-    unknown = [key for key in environ if not key.startswith(module.ENV_PREFIX)]
-    assert not unknown, f"{name}: variables its command does not read: {unknown}"
-    parser = argparse.ArgumentParser()
-    module.add_arguments(parser)
-    options = {module.ENV_PREFIX + a.dest.upper() for a in parser._actions if a.option_strings}
-    assert set(environ) <= options, f"{name}: no such option: {set(environ) - options}"
-    args = with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
+    args = configured(module, environ, monkeypatch)
     if name != "estimator":
         assert args.connect == ["tcp/zenoh:7447"]
     if name == "estimator":
@@ -141,7 +155,7 @@ def test_services_run_on_a_read_only_root_and_the_router_can_be_ours(
 
 
 def test_the_secure_overlay_configures_every_role_with_options_its_command_accepts(
-    compose: dict[str, Any], tmp_path: Path
+    compose: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     secure = yaml.safe_load((ROOT / "compose.secure.yaml").read_text())
     services = secure["services"]
@@ -154,11 +168,9 @@ def test_the_secure_overlay_configures_every_role_with_options_its_command_accep
     assert str(args.zenoh_config) == "/run/focustrack/router.json5"
     for name in ("instrument", "focus", "scheduler"):
         module = importlib.import_module(SERVICES[name][1])
-        parser = argparse.ArgumentParser()
-        module.add_arguments(parser)
         merged = compose["services"][name]["environment"] | services[name]["environment"]
         environ = {key: defaults(value) for key, value in merged.items()}
-        args = with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
+        args = configured(module, environ, monkeypatch)
         assert args.connect == ["tls/zenoh:7447"]
         assert str(args.zenoh_config) == f"/run/focustrack/{name}.json5"
         if name != "instrument":
