@@ -2,7 +2,8 @@
 
 Each entry names its ``event`` (acquired, measured, kept, planes; `record.ScanRecord`
 writes them). A scheduler killed mid-write leaves the last line cut short: reading the
-log back skips it, and every line before it is intact.
+log back skips it, and every line before it is intact; the next entry starts a line of
+its own.
 """
 
 from __future__ import annotations
@@ -19,6 +20,11 @@ class ScanLog:
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self._file = self.path.open("a")
+        if self._file.tell() > 0:
+            with self.path.open("rb") as file:
+                file.seek(-1, 2)
+                if file.read(1) != b"\n":  # a line a kill cut short: the next starts anew
+                    self._write("\n")
 
     def read(self) -> Iterator[dict[str, Any]]:
         """Every entry on disk, in order; a line that does not parse (cut short) is skipped."""
@@ -32,7 +38,10 @@ class ScanLog:
 
     def append(self, entry: dict[str, Any]) -> None:
         """Write `entry` as one line and flush it to the operating system."""
-        self._file.write(json.dumps(entry) + "\n")
+        self._write(json.dumps(entry) + "\n")
+
+    def _write(self, text: str) -> None:
+        self._file.write(text)
         self._file.flush()
 
     def close(self) -> None:
