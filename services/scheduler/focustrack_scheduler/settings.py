@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Annotated, Any, ClassVar, Self
 
 from pydantic import BaseModel, Field, field_validator
-from pydantic.fields import FieldInfo
 from pydantic_settings import CliToggleFlag, NoDecode, SettingsConfigDict
 
 from focustrack_client import models as api
@@ -44,7 +43,10 @@ _RETRY = RetryPolicy()
 
 def _api_field(model: type[BaseModel], name: str, description: str) -> Any:
     """An option with the default and bounds of the estimator API's field `model.name`."""
-    return FieldInfo.merge_field_infos(model.model_fields[name], description=description)
+    api_field = model.model_fields[name]
+    option = Field(api_field.default, description=description)
+    option.metadata = list(api_field.metadata)  # the bounds (annotated-types' Ge, Le, ...)
+    return option
 
 
 def _estimator_token() -> str | None:

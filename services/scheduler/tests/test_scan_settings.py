@@ -112,6 +112,7 @@ def test_the_token_defaults_to_the_estimators_variable(monkeypatch: pytest.Monke
         (["--live-port", "70000"], "--live-port (FOCUSTRACK_SCAN_LIVE_PORT)"),
         (["--focus-attempts", "0"], "--focus-attempts (FOCUSTRACK_SCAN_FOCUS_ATTEMPTS)"),
         (["--start-sigma-um", "0"], "--start-sigma-um (FOCUSTRACK_SCAN_START_SIGMA_UM)"),
+        (["--k-sigma", "0"], "--k-sigma (FOCUSTRACK_SCAN_K_SIGMA): Input should be greater"),
         (["--mosaic-format", "png"], "invalid choice: 'png'"),
     ],
 )
