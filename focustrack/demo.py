@@ -31,7 +31,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from subprocess import STDOUT, Popen, TimeoutExpired
 from typing import Any
@@ -58,15 +58,8 @@ from focustrack_estimator.replay import limit_time_s
 from focustrack_scheduler.clients import wait_for_instrument
 from focustrack_scheduler.live_view import LiveServer, port_number
 from focustrack_scheduler.outputs import FOCUS_MAP_NPY, SCAN_FILES, WallTimes
-from focustrack_scheduler.scan import (
-    BEST_KALMAN,
-    SCAN_ERRORS,
-    ScanJob,
-    add_scan_options,
-    request_from_args,
-    retry_from_args,
-    run_scan,
-)
+from focustrack_scheduler.scan import SCAN_ERRORS, ScanJob, run_scan
+from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
 log = logging.getLogger(__name__)
 
@@ -419,11 +412,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="frames cross Zenoh in a shared-memory pool of this many MB, 0: over TCP "
         f"(default {SHARED_MEMORY_MB} when /dev/shm has room for it, else 0)",
     )
-    add_scan_options(parser)
+    ScanOptions.add_arguments(parser)  # the options of a scan, as `focustrack scan` has them
 
 
 def second_pass(
-    stack: LocalStack, args: argparse.Namespace, out_dir: Path, first: str, live: LiveServer
+    stack: LocalStack,
+    args: argparse.Namespace,
+    options: ScanOptions,
+    out_dir: Path,
+    first: str,
+    live: LiveServer,
 ) -> dict[str, Any]:
     """Scan the slide again with kf-rescan, the map of strategy `first`'s scan as its prior,
     after moving the slide's focus by `--rescan-offset-um` (the instrument is restarted with
@@ -439,16 +437,15 @@ def second_pass(
         "prior_map_um": base_um.ravel().tolist(),
         "prior_map_sigma_um": base_sigma_um.ravel().tolist(),
     }
-    request = replace(request_from_args(args, INSTRUMENT, SLIDE, RESCAN), params=params)
     assert stack.session is not None
     job = ScanJob(
-        request=request,
+        request=options.request(INSTRUMENT, SLIDE, RESCAN, params),
         estimator_url=stack.estimator_url,
         out_dir=scan_dir,
-        retry=retry_from_args(args),
-        progress=not args.no_progress,
+        retry=options.retry(),
+        progress=not options.no_progress,
         label=f"{RESCAN} (2nd pass)",
-        mosaic_format=args.mosaic_format,
+        mosaic_format=options.mosaic_format,
         live=live,
         trust=stack.trust,
     )
@@ -478,6 +475,11 @@ def run(args: argparse.Namespace) -> int:
             f"size below 1; known strategies: {', '.join(registry.STRATEGIES)}",
             file=sys.stderr,
         )
+        return 2
+    try:
+        options = ScanOptions.from_args(args)
+    except ValueError as error:  # a scan option the settings model refuses
+        print(f"focustrack demo: error: {error}", file=sys.stderr)
         return 2
     stop_on_sigterm()
     out_dir: Path = args.out
@@ -514,13 +516,13 @@ def run(args: argparse.Namespace) -> int:
                 scan_dir = out_dir / name
                 _clear(scan_dir)
                 job = ScanJob(
-                    request=request_from_args(args, INSTRUMENT, SLIDE, name),
+                    request=options.request(INSTRUMENT, SLIDE, name),
                     estimator_url=stack.estimator_url,
                     out_dir=scan_dir,
-                    retry=retry_from_args(args),
-                    progress=not args.no_progress,
+                    retry=options.retry(),
+                    progress=not options.no_progress,
                     label=name,
-                    mosaic_format=args.mosaic_format,
+                    mosaic_format=options.mosaic_format,
                     live=live,
                     trust=stack.trust,
                 )
@@ -532,7 +534,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{RESCAN} with the map of {first}",
                     flush=True,
                 )
-                reports[SECOND_PASS] = second_pass(stack, args, out_dir, first, live)
+                reports[SECOND_PASS] = second_pass(stack, args, options, out_dir, first, live)
             try:  # the last scan's live view, for a person to look at
                 shot = screenshot_live_view(live.url, out_dir / LIVE_VIEW_PNG)
                 print(f"live view screenshot: {shot}", flush=True)

@@ -21,8 +21,9 @@ from focustrack_instrument_sim.simulated import SimulatedInstrument
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
 from focustrack_scheduler.engine import Engine
-from focustrack_scheduler.outputs import ScanRecord
+from focustrack_scheduler.mosaic_store import to_uint8
 from focustrack_scheduler.plan import Acquire, DescribeSlide, KeepTile, Plan
+from focustrack_scheduler.record import ScanRecord
 
 SLIDE = "slide-0"
 
@@ -87,18 +88,16 @@ def test_a_kept_frame_is_fetched_and_a_stack_no_longer_held_is_taken_again(
     assert engine.run(plan()) == "scanned"
     listener.close()
 
-    assert record.kept == {(1, 2): pytest.approx(-0.5)}
+    assert record.tally.kept == {(1, 2): pytest.approx(-0.5)}
     # The stack was taken again for its frame: three stacks acquired, the first twice.
-    assert [entry["sequence"] for entry in record.acquisitions] == [1, 2, 1]
-    assert record.n_images == 15
+    assert [entry["sequence"] for entry in record.tally.acquisitions] == [1, 2, 1]
+    assert record.tally.n_images == 15
     # The tile's image is that frame, of the stack taken again (the one the instrument holds).
     header, (frame,) = InstrumentClient(scheduler, "sim").frames(SLIDE, 1, 2, 1, [3])
     assert header.z_um[3] == pytest.approx(-0.5) and frame.shape == (64, 64, 3)
     mosaic = np.load(tmp_path / outputs.PARTIAL_MOSAIC)
-    np.testing.assert_array_equal(
-        mosaic[64:128, 128:192], outputs.to_uint8(frame, header.bit_depth)
-    )
+    np.testing.assert_array_equal(mosaic[64:128, 128:192], to_uint8(frame, header.bit_depth))
     # A stack this engine did not take (a resumed scan's) is not taken again: no image.
     assert engine.run(_keep_only(KeepTile(0, 0, 9, 0, 0.0))) == "scanned"
-    assert (0, 0) not in record.kept
+    assert (0, 0) not in record.tally.kept
     assert service.recent.budget_bytes == 0

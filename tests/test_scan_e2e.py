@@ -29,7 +29,8 @@ from focustrack_estimator import registry
 from focustrack_estimator.replay import replay, score
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
-from focustrack_scheduler.scan import BEST_KALMAN
+from focustrack_scheduler.mosaic_store import to_uint8
+from focustrack_scheduler.settings import BEST_KALMAN
 
 pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
 
@@ -269,4 +270,4 @@ def test_tiles_too_unsure_for_one_frame_keep_several_and_the_mosaic_fuses_them(
         assert frames.shape[0] == len(entry["z_um"]) >= 2
         row, col = entry["row"], entry["col"]
         tile = mosaic[row * 128 : (row + 1) * 128, col * 128 : (col + 1) * 128]
-        np.testing.assert_array_equal(tile, outputs.to_uint8(fuse_planes(frames), 12))
+        np.testing.assert_array_equal(tile, to_uint8(fuse_planes(frames), 12))

@@ -21,8 +21,8 @@ from focustrack.bench.chaos import RoguePeer
 from focustrack.demo import INSTRUMENT, SLIDE, LocalStack
 from focustrack_scheduler import outputs
 from focustrack_scheduler.engine import ScanRefusedError
-from focustrack_scheduler.plan import ScanRequest
-from focustrack_scheduler.scan import BEST_KALMAN, ScanJob, run_scan
+from focustrack_scheduler.scan import ScanJob, run_scan
+from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
 pytestmark = pytest.mark.slow  # services in processes
 
@@ -43,7 +43,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalStack]:
 def scan(stack: LocalStack, out_dir: Path, trusted: bool) -> dict:
     assert stack.session is not None
     job = ScanJob(
-        request=ScanRequest(INSTRUMENT, SLIDE, BEST_KALMAN),
+        request=ScanOptions.defaults().request(INSTRUMENT, SLIDE, BEST_KALMAN),
         estimator_url=stack.estimator_url,
         out_dir=out_dir,
         progress=False,

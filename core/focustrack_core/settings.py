@@ -27,6 +27,7 @@ import re
 import sys
 import tomllib
 from collections.abc import Callable
+from enum import Enum
 from pathlib import Path
 from typing import Any, ClassVar, Self, TypeVar
 
@@ -204,8 +205,10 @@ def _declaring_model(cls: type, name: str) -> type:
 
 
 def _choices(field: FieldInfo) -> list[str] | None:
-    """The values a Literal field takes, as text (argparse then lists them in --help)."""
+    """The values a Literal or enum field takes, as text (argparse then lists them in --help)."""
     annotation = field.annotation
+    if isinstance(annotation, type) and issubclass(annotation, Enum):
+        return [str(member.value) for member in annotation]
     if getattr(annotation, "__origin__", None) is not None and str(annotation).startswith(
         "typing.Literal"
     ):

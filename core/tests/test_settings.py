@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from enum import StrEnum
 from pathlib import Path
 from typing import ClassVar, Literal
 
@@ -154,3 +155,26 @@ def test_a_console_script_exits_2_on_a_refused_value(
         main(["--port", "-1"])
     assert exit_.value.code == 2
     assert "--port (FOCUSTRACK_DEMO_PORT)" in capsys.readouterr().err
+
+
+class Colour(StrEnum):
+    RED = "red-ish"
+    BLUE = "blue-ish"
+
+
+class PaintSettings(ServiceSettings):
+    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_PAINT_")
+
+    colour: Colour = Field(Colour.RED, description="a colour")
+
+
+def test_an_enum_takes_its_values_as_choices(capsys: pytest.CaptureFixture[str]) -> None:
+    parser = argparse.ArgumentParser()
+    PaintSettings.add_arguments(parser)
+    assert "--colour {red-ish,blue-ish}" in parser.format_help()
+    assert (
+        PaintSettings.from_args(parser.parse_args(["--colour", "blue-ish"])).colour is Colour.BLUE
+    )
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--colour", "BLUE"])
+    assert "invalid choice: 'BLUE'" in capsys.readouterr().err

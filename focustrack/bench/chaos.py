@@ -49,8 +49,8 @@ from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import open_session
 from focustrack_scheduler import outputs
 from focustrack_scheduler.engine import RetryPolicy
-from focustrack_scheduler.plan import ScanRequest
-from focustrack_scheduler.scan import BEST_KALMAN, SCAN_ERRORS, ScanJob, run_scan
+from focustrack_scheduler.scan import SCAN_ERRORS, ScanJob, run_scan
+from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
 #: The services the fault script may kill.
 VICTIMS = ("router", "focus", "estimator")
@@ -370,7 +370,9 @@ def scan_once(
     scan_dir = args.out / f"scan-{index}"
     shutil.rmtree(scan_dir, ignore_errors=True)  # a fresh scan each run of the bench
     job = ScanJob(
-        request=ScanRequest(INSTRUMENT, SLIDE, args.strategy, focus_attempts=FOCUS_ATTEMPTS),
+        request=ScanOptions.defaults(focus_attempts=FOCUS_ATTEMPTS).request(
+            INSTRUMENT, SLIDE, args.strategy
+        ),
         estimator_url=stack.estimator_url,
         out_dir=scan_dir,
         retry=CHAOS_RETRY,

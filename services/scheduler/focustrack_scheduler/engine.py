@@ -20,7 +20,7 @@ URL, when one stays gone longer than that:
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
   and stops the scan with the estimator's own `detail`.
 
-The engine also keeps the scan's record (`outputs.ScanRecord`), the progress bar
+The engine also keeps the scan's record (`record.ScanRecord`), the progress bar
 and the wall-time split.
 """
 
@@ -35,7 +35,6 @@ from typing import Any, TypeVar
 import httpx
 import numpy as np
 import tenacity
-from tqdm import tqdm
 
 from focustrack_client import EstimatorClient, EstimatorError
 from focustrack_core.domain import Acquisition, Outcome
@@ -47,7 +46,8 @@ from focustrack_scheduler.clients import (
     acquire_request,
     same_stack,
 )
-from focustrack_scheduler.outputs import ScanRecord, WallTimes
+from focustrack_scheduler.in_focus import InFocusScore
+from focustrack_scheduler.outputs import WallTimes
 from focustrack_scheduler.plan import (
     Acquire,
     AskNext,
@@ -62,6 +62,7 @@ from focustrack_scheduler.plan import (
     SlideGeometry,
     Step,
 )
+from focustrack_scheduler.record import ScanRecord
 
 log = logging.getLogger(__name__)
 
@@ -129,25 +130,22 @@ class ScanProgress:
     """
 
     def __init__(
-        self,
-        total_tiles: int,
-        truth_um: np.ndarray | None,
-        dof_um: float,
-        *,
-        label: str,
-        enabled: bool = True,
+        self, total_tiles: int, truth_um: np.ndarray | None, dof_um: float, *, label: str
     ) -> None:
-        self.truth_um, self.dof_um = truth_um, dof_um
-        self.bar = tqdm(total=total_tiles, desc=label, unit="tile", disable=not enabled)
+        from tqdm import tqdm  # only a scan that shows its progress needs it
+
+        self.score = None if truth_um is None else InFocusScore(truth_um, dof_um)
+        self.bar = tqdm(total=total_tiles, desc=label, unit="tile")
 
     def update(self, record: ScanRecord) -> None:
-        postfix = {"images": record.n_images, "sim": f"{record.scan_time_s:.0f}s"}
-        if self.truth_um is not None and record.kept:
-            in_focus = record.tiles_in_focus(self.truth_um, self.dof_um) / len(record.kept)
+        tally = record.tally
+        postfix = {"images": tally.n_images, "sim": f"{tally.scan_time_s:.0f}s"}
+        if self.score is not None and tally.kept:
+            in_focus = self.score.tiles(tally.kept, tally.planes) / len(tally.kept)
             postfix["in focus"] = f"{in_focus:.0%}"
         self.bar.set_postfix(postfix, refresh=False)
         # `update` redraws at most every `mininterval`, so a log file is not flooded.
-        self.bar.update(len(record.kept) - self.bar.n)
+        self.bar.update(len(tally.kept) - self.bar.n)
 
     def close(self) -> None:
         self.bar.close()
@@ -180,7 +178,7 @@ class Engine:
         self._slide = ""  # the slide being scanned (DescribeSlide)
         #: the acquisitions of the tile being scanned, by sequence: to take one again
         self._taken: dict[int, tuple[str, Acquisition]] = {}
-        self._tile_format_saved = "tile" in (record.state or {})
+        self._tile_format_saved = "tile" in (record.state.read() or {})
         #: acquisition index -> its focus curve (z um, scores), until it is posted
         self._curves: dict[int, tuple[list[float], list[float]]] = {}
         self._handlers: dict[type, Callable[[Any], Any]] = {
@@ -342,7 +340,7 @@ class Engine:
         if not self._tile_format_saved:  # what the mosaic is made of, for the OME-TIFF
             height, width, channels = pixels.shape
             self._tile_format_saved = True
-            self.record.save_state(
+            self.record.state.save(
                 tile={
                     "height": height,
                     "width": width,
@@ -412,7 +410,7 @@ class Engine:
         slide = self.estimator_call(
             "the new slide", lambda: self.estimator.create_slide(step.config)
         )
-        self.record.save_state(slide_id=slide.id)
+        self.record.state.save(slide_id=slide.id)
         return slide.id
 
     def _ask_next(self, step: AskNext) -> Acquisition | None:

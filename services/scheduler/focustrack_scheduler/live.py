@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from focustrack_core.geometry import ScanGrid
-from focustrack_scheduler.outputs import ScanRecord
+from focustrack_scheduler.record import ScanRecord
 
 
 class LiveScan:
@@ -43,17 +43,18 @@ class LiveScan:
     def follow(cls, record: ScanRecord, grid: ScanGrid, label: str = "scan") -> LiveScan:
         """The live state of `record` so far, kept up to date as the scheduler logs more."""
         live = cls(grid, label)
-        for entry in record.acquisitions:
+        tally = record.tally
+        for entry in tally.acquisitions:
             live.take(entry)
-        for entry in record.measured.values():
+        for entry in tally.measured.values():
             live.take(entry)
-        for (row, col), z_um in record.kept.items():
+        for (row, col), z_um in tally.kept.items():
             live.take({"event": "kept", "row": row, "col": col, "z_um": z_um})
-        record.listeners.append(live.take)
+        record.listeners.add(live.take)
         return live
 
     def take(self, entry: dict[str, Any]) -> None:
-        """Apply one entry of the scan log (outputs.ScanRecord) and wake the waiters."""
+        """Apply one entry of the scan log (`scan_log`) and wake the waiters."""
         tile = (entry["row"], entry["col"])
         with self._condition:
             if entry["event"] == "acquired":

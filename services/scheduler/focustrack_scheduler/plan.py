@@ -59,21 +59,24 @@ from focustrack_core.wire import keys
 class ScanRequest:
     """What to scan and how: the instrument's slide, the strategy and what is known before.
 
-    `noise_sigma_um` is the std the estimator assumes for a best-focus measurement
-    that comes without its own sigma, and sizes the first stacks; the focus
-    service's own sigma travels with every measurement.
+    `start_z_um` and `start_sigma_um` are the prior height and its std (um) before the
+    first tile; `noise_sigma_um` is the std the estimator assumes for a best-focus
+    measurement that comes without its own sigma, and sizes the first stacks; the focus
+    service's own sigma travels with every measurement. `focus_attempts` is how often one
+    stack is acquired before the focus service counts as gone. Their defaults are the
+    scan's settings' (`settings.ScanOptions.request`).
     """
 
     instrument: str
     slide: str
     strategy: str
+    start_z_um: float
+    start_sigma_um: float
+    noise_sigma_um: float
+    focus_attempts: int
     params: Mapping[str, Any] = field(default_factory=dict)
-    start_z_um: float = 0.0
-    start_sigma_um: float = 10.0
-    noise_sigma_um: float = 0.1
     policy: ZRangePolicy = field(default_factory=default_policy)
     resume_slide_id: str | None = None  # the estimator slide of a previous run of this scan
-    focus_attempts: int = 5  # acquisitions of one stack before the focus service counts as gone
 
     def __post_init__(self) -> None:
         keys.check_name(self.instrument, "instrument")

@@ -15,7 +15,7 @@ from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome,
 from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler.live import LiveScan
 from focustrack_scheduler.live_view import LiveServer, port_number
-from focustrack_scheduler.outputs import ScanRecord
+from focustrack_scheduler.record import ScanRecord
 
 GRID = ScanGrid(200, 200)  # the size the page must keep up with
 

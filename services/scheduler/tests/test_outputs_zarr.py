@@ -23,7 +23,12 @@ from focustrack_core.domain import (
 from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler import outputs
-from focustrack_scheduler.outputs import MosaicFormat, ScanRecord, WallTimes, to_uint8
+from focustrack_scheduler.finished import FinishedScan, write_outputs
+from focustrack_scheduler.in_focus import InFocusScore
+from focustrack_scheduler.mosaic_store import to_uint8
+from focustrack_scheduler.outputs import MosaicFormat, WallTimes
+from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.writers import DEFAULT_WRITERS
 
 GRID = ScanGrid(2, 3, pitch_um=150.0)
 TILE_PX = 256  # a 512 x 768 mosaic: one 2x halving on top of full resolution
@@ -35,8 +40,8 @@ def scanned_record(out_dir: Path) -> tuple[ScanRecord, np.ndarray]:
     """A record of a scan of GRID: tile (0, 1) retried after an edge, tile (1, 2) flat."""
     rng = np.random.default_rng(3)
     record = ScanRecord(out_dir)
-    record.save_state(strategy="kf-2d", slide="slide-0", instrument="sim")
-    record.save_state(
+    record.state.save(strategy="kf-2d", slide="slide-0", instrument="sim")
+    record.state.save(
         tile={"height": TILE_PX, "width": TILE_PX, "channels": 3, "pixel_size_um": PIXEL_UM}
     )
     images = rng.integers(0, 2**BIT_DEPTH, (*GRID.shape, TILE_PX, TILE_PX, 3), dtype=np.uint16)
@@ -66,10 +71,20 @@ def focus_map() -> FocusMap:
     return FocusMap(*layers)
 
 
+def finish(
+    record: ScanRecord,
+    truth_um: np.ndarray | None = None,
+    mosaic_format: MosaicFormat = MosaicFormat.OME_ZARR,
+) -> dict:
+    """Write the default outputs of the scan `record` holds; its report."""
+    scan = FinishedScan.of(record, GRID, focus_map(), truth_um, 1.0, WallTimes(), mosaic_format)
+    write_outputs(scan, DEFAULT_WRITERS)
+    return dict(scan.report)
+
+
 def write(tmp_path: Path, mosaic_format: MosaicFormat) -> tuple[dict, ScanRecord, np.ndarray]:
     record, images = scanned_record(tmp_path)
-    report = outputs.write_outputs(record, GRID, focus_map(), None, 1.0, WallTimes(), mosaic_format)
-    return report, record, images
+    return finish(record, mosaic_format=mosaic_format), record, images
 
 
 def test_the_ome_zarr_mosaic_opens_with_ome_zarr_py_and_holds_the_scan_record(
@@ -96,12 +111,12 @@ def test_the_ome_zarr_mosaic_opens_with_ome_zarr_py_and_holds_the_scan_record(
     assert attributes["scan"]["strategy"] == "kf-2d"
     tiles = {(tile["row"], tile["col"]): tile for tile in attributes["tiles"]}
     assert len(tiles) == GRID.n_tiles
-    for (row, col), measured in record.measured.items():
+    for (row, col), measured in record.tally.measured.items():
         tile = tiles[(row, col)]
         assert tile["best_z_um"] == measured["z_um"]
         assert tile["sigma_um"] == measured["sigma_um"]
         assert tile["flags"] == measured["flags"]
-        assert tile["z_used_um"] == record.kept[(row, col)]
+        assert tile["z_used_um"] == record.tally.kept[(row, col)]
         assert tile["stage_x_um"] == col * 150.0
     assert tiles[(0, 1)]["images"] == 18 and tiles[(0, 0)]["images"] == 9  # the retry counts
     assert tiles[(0, 1)]["flags"] == [] and tiles[(0, 1)]["best_z_um"] == pytest.approx(10.1)
@@ -121,7 +136,8 @@ def test_the_ome_zarr_mosaic_opens_with_ome_zarr_py_and_holds_the_scan_record(
         assert transform[0]["scale"] == [tile_um, tile_um]
         assert transform[1]["translation"] == [(tile_um - PIXEL_UM) / 2] * 2
     images_map = next(iter(Reader(parse_url(path / outputs.ZARR_MAPS / "images"))()))
-    np.testing.assert_array_equal(np.asarray(images_map.data[0]), record.images_per_tile(GRID))
+    images_per_tile = record.tally.images_per_tile(GRID)
+    np.testing.assert_array_equal(np.asarray(images_map.data[0]), images_per_tile)
 
 
 def test_ome_tiff_stays_an_option(tmp_path: Path) -> None:
@@ -146,11 +162,12 @@ def test_the_frames_a_tile_keeps_are_on_disk_read_back_and_judged_for_focus(
     # kept at 10 (its image) and at 9, 10, 11: in focus within 1.5 um with 1 um of depth of field
     truth_um = np.full(GRID.shape, 100.0)
     truth_um[0, 0] = 11.3
-    assert record.tiles_in_focus(truth_um, 1.0) == 1
-    assert record.tiles_in_focus(truth_um, 0.5) == 0
+    tally = record.tally
+    assert InFocusScore(truth_um, 1.0).tiles(tally.kept, tally.planes) == 1
+    assert InFocusScore(truth_um, 0.5).tiles(tally.kept, tally.planes) == 0
     record.close()
     again = ScanRecord(tmp_path)  # a restarted scheduler reads them back from the log
-    assert again.planes == {(0, 0): [9.0, 10.0, 11.0]}
-    report = outputs.write_outputs(again, GRID, focus_map(), truth_um, 1.0, WallTimes())
+    assert again.tally.planes == {(0, 0): [9.0, 10.0, 11.0]}
+    report = finish(again, truth_um)
     assert report["in_focus_fraction"] == pytest.approx(1 / GRID.n_tiles)
     assert report["frames_kept_per_tile"] == pytest.approx((GRID.n_tiles + 2) / GRID.n_tiles)

@@ -1,8 +1,16 @@
-"""The scan plan against fake step results: pure, no services."""
+"""The scan plan against fake step results: pure, no services.
+
+`FakeEstimator` stands in for the estimator and the focus service alike, built from the
+plan's own steps: it scans every tile in serpentine order with stacks centred on the last
+estimate, retries a tile whose peak lies beyond its stack, and (for the tiles it is told)
+asks for an image-only stack and names frames of both stacks to keep (`Outcome.planes_um`),
+as the lean strategies do.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -10,11 +18,7 @@ import pytest
 
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
-from focustrack_core.rest import to_domain
 from focustrack_core.v1 import common_pb2, focus_pb2
-from focustrack_estimator import registry
-from focustrack_estimator.replay import simulated_measurement
-from focustrack_estimator.strategy import Strategy
 from focustrack_scheduler.plan import (
     Acquire,
     AskNext,
@@ -30,12 +34,13 @@ from focustrack_scheduler.plan import (
     Step,
     measurement_of,
     scan_plan,
-    slide_config,
 )
+from focustrack_scheduler.settings import ScanOptions
 
 GEOMETRY = SlideGeometry(ScanGrid(2, 2), dof_um=0.9)
-GEOMETRY_3 = SlideGeometry(ScanGrid(3, 3), dof_um=0.9)
-REQUEST = ScanRequest(instrument="sim", slide="slide-0", strategy="kf-wiener0")
+DEFAULTS = ScanOptions.defaults()
+REQUEST = DEFAULTS.request("sim", "slide-0", "kf-wiener0")
+STEP_UM = 0.5
 
 
 def drive(request: ScanRequest, answer: Callable[[Step], Any]) -> tuple[list[Step], str]:
@@ -55,7 +60,7 @@ def drive(request: ScanRequest, answer: Callable[[Step], Any]) -> tuple[list[Ste
 def acquisition(
     index: int, row: int, col: int, low_um: float, n: int = 5, measure: bool = True
 ) -> Acquisition:
-    return Acquisition(index, row, col, ZRange(low_um, 0.5, n), Purpose.SCAN, measure)
+    return Acquisition(index, row, col, ZRange(low_um, STEP_UM, n), Purpose.SCAN, measure)
 
 
 def focus(
@@ -70,95 +75,159 @@ def focus(
     return result
 
 
-def local_services(
-    strategy: Strategy, geometry: SlideGeometry, measured_um: np.ndarray
-) -> tuple[Callable[[Step], Any], list[Outcome]]:
-    """Answers to the plan's steps: `strategy` stands in for the estimator and
-    `measured_um` (rows, cols) for the focus service; the outcomes, as they come."""
-    outcomes: list[Outcome] = []
+class FakeEstimator:
+    """The estimator and the focus service of a slide whose focus is `truth_um` (rows, cols).
 
-    def answer(step: Step) -> Any:
-        match step:
-            case DescribeSlide():
-                return geometry
-            case CreateOrResumeSlide():
-                return "slide-id"
-            case AskNext():
-                return strategy.next_acquisition()
-            case Acquire():
-                return tuple(step.acquisition.z.z_um())
-            case AwaitFocus():
-                acq = step.acquisition
-                measured = simulated_measurement(acq, measured_um[acq.row, acq.col])
-                return focus(acq, measured.z_um, *(flag.proto for flag in sorted(measured.flags)))
-            case PostMeasurement():
-                outcomes.append(strategy.record(step.acquisition, step.measurement))
-                return outcomes[-1]
-            case KeepTile() | KeepPlanes():
+    Stacks of 5 frames centred on the last estimate (`start_z_um` first); a peak beyond a
+    stack comes back as an edge and the tile is taken again past that edge; the estimate
+    of a tile is its measured peak. A tile of `planes_tiles` is first answered without a
+    final estimate, then given an image-only stack of 3 frames between the first's, and
+    keeps the 2 frames of each stack nearest its peak.
+    """
+
+    def __init__(
+        self, grid: ScanGrid, truth_um: np.ndarray, planes_tiles: frozenset[tuple[int, int]]
+    ) -> None:
+        self.truth_um = truth_um
+        self.planes_tiles = planes_tiles
+        self.tiles = iter([(tile.row, tile.col) for tile in grid.serpentine])
+        self.estimate_um = 0.0
+        self.index = 0
+        self.pending: Acquisition | None = None
+        self.frames_um: list[float] = []  # every frame of the tile being scanned
+        self.outcomes: list[Outcome] = []
+
+    def _acquisition(self, tile: tuple[int, int], z: ZRange, purpose: Purpose) -> Acquisition:
+        self.index += 1
+        return Acquisition(self.index, *tile, z, purpose, purpose is not Purpose.PLANES)
+
+    def next(self) -> Acquisition | None:
+        if self.pending is None:
+            tile = next(self.tiles, None)
+            if tile is None:
                 return None
+            self.frames_um = []
+            z = ZRange.centred(self.estimate_um, 5, STEP_UM)
+            self.pending = self._acquisition(tile, z, Purpose.SCAN)
+        return self.pending
 
-    return answer, outcomes
+    def focus(self, acq: Acquisition) -> focus_pb2.FocusResult:
+        truth_um = float(self.truth_um[acq.row, acq.col])
+        if truth_um < acq.z.low_um:
+            return focus(acq, None, FocusFlag.EDGE_LOW.proto)
+        if truth_um > acq.z.high_um:
+            return focus(acq, None, FocusFlag.EDGE_HIGH.proto)
+        return focus(acq, truth_um)
+
+    def post(self, acq: Acquisition, measurement: Measurement) -> Outcome:
+        tile = (acq.row, acq.col)
+        self.frames_um += acq.z.z_um().tolist()
+        if measurement.flags & {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH}:
+            shift_um = acq.z.n_frames * STEP_UM
+            low_um = acq.z.low_um + (
+                shift_um if FocusFlag.EDGE_HIGH in measurement.flags else -shift_um
+            )
+            self.pending = self._acquisition(tile, ZRange(low_um, STEP_UM, 5), Purpose.RETRY)
+            return self._outcome(Outcome(*tile, accepted=False))
+        if acq.measure:
+            assert measurement.z_um is not None
+            self.estimate_um = measurement.z_um
+        if tile in self.planes_tiles and acq.measure:  # more frames first: not final yet
+            between = ZRange(acq.z.low_um + STEP_UM / 2, STEP_UM, 3)
+            self.pending = self._acquisition(tile, between, Purpose.PLANES)
+            return self._outcome(Outcome(*tile, accepted=True))
+        self.pending = None
+        planes_um: tuple[float, ...] = ()
+        if tile in self.planes_tiles:
+            nearest = sorted(self.frames_um, key=lambda z: abs(z - self.estimate_um))
+            planes_um = tuple(sorted(nearest[:4]))
+        final = Outcome(
+            *tile, accepted=acq.measure, posterior_um=self.estimate_um, planes_um=planes_um
+        )
+        return self._outcome(final)
+
+    def _outcome(self, outcome: Outcome) -> Outcome:
+        self.outcomes.append(outcome)
+        return outcome
+
+    def answer(self, geometry: SlideGeometry) -> Callable[[Step], Any]:
+        """Answers to the plan's steps on a slide of `geometry`."""
+
+        def answer(step: Step) -> Any:
+            match step:
+                case DescribeSlide():
+                    return geometry
+                case CreateOrResumeSlide():
+                    return "slide-id"
+                case AskNext():
+                    return self.next()
+                case Acquire():
+                    return tuple(step.acquisition.z.z_um())
+                case AwaitFocus():
+                    return self.focus(step.acquisition)
+                case PostMeasurement():
+                    return self.post(step.acquisition, step.measurement)
+                case KeepTile() | KeepPlanes():
+                    return None
+
+        return answer
 
 
-def test_a_real_strategy_scans_every_tile_and_keeps_the_frame_nearest_each_posterior() -> None:
-    """The plan against a local strategy standing in for the estimator, truth for the focus."""
+def test_every_tile_is_scanned_and_keeps_the_frame_nearest_its_estimate() -> None:
+    """The plan against a fake estimator: edges retried, every tile imaged at its estimate."""
     grid = ScanGrid(3, 4)
     truth_um = np.linspace(-3.0, 4.0, grid.n_tiles).reshape(grid.shape)
-    request = ScanRequest("sim", "slide-0", "kf-wiener0", noise_sigma_um=0.1)
+    request = DEFAULTS.request("sim", "slide-0", "kf-wiener0")
     geometry = SlideGeometry(grid, dof_um=0.9)
-    strategy = registry.create(
-        "kf-wiener0", to_domain.slide_settings(slide_config(request, geometry))
-    )
-    answer, _ = local_services(strategy, geometry, truth_um)
+    fake = FakeEstimator(grid, truth_um, frozenset())
 
-    steps, slide_id = drive(request, answer)
+    steps, slide_id = drive(request, fake.answer(geometry))
     assert slide_id == "slide-id"
     (create,) = [s for s in steps if isinstance(s, CreateOrResumeSlide)]
     assert create.slide_id is None and create.config.grid.rows == 3
-    assert create.config.dof_um == 0.9 and create.config.noise_sigma_um == 0.1
+    assert create.config.dof_um == 0.9
+    assert create.config.noise_sigma_um == DEFAULTS.noise_sigma_um
+    acquired = [s.acquisition for s in steps if isinstance(s, Acquire)]
+    assert any(a.purpose == Purpose.RETRY for a in acquired)  # some peaks beyond a stack
     last_kept = {(s.row, s.col): s for s in steps if isinstance(s, KeepTile)}
     assert set(last_kept) == {(t.row, t.col) for t in grid.serpentine}
-    focus_map = strategy.focus_map()
-    for (row, col), k in last_kept.items():  # the strategy's own choice of frame: z used
-        assert k.z_um == pytest.approx(focus_map.z_used_um[row, col])
-    assert np.mean(np.abs(focus_map.z_used_um - truth_um) <= 0.45) > 0.9
+    for (row, col), kept in last_kept.items():
+        frames_um = [z for a in acquired if (a.row, a.col) == (row, col) for z in a.z.z_um()]
+        nearest_um = min(frames_um, key=lambda z: abs(z - truth_um[row, col]))
+        assert kept.z_um == pytest.approx(nearest_um)  # the frame nearest the final estimate
+        assert abs(kept.z_um - truth_um[row, col]) <= STEP_UM / 2
     # Every Acquire is answered by exactly one AwaitFocus (all these stacks are measured).
-    assert sum(isinstance(s, Acquire) for s in steps) == sum(
-        isinstance(s, AwaitFocus) for s in steps
-    )
+    assert len(acquired) == sum(isinstance(s, AwaitFocus) for s in steps)
 
 
 def test_a_tile_too_unsure_for_one_frame_keeps_the_frames_its_outcome_names() -> None:
-    """At 1.5 um of measurement noise against 0.9 um of depth of field, kf-2d-lean names
-    several frames to keep of a measured tile (asking for more, image only, where its
-    stacks hold too few): the plan keeps each of them."""
+    """Where the outcome names several frames to keep (after an image-only stack for more of
+    them), the plan keeps each of them, from the tile's own stacks."""
     grid = ScanGrid(3, 3)
-    rng = np.random.default_rng(2)
-    measured_um = rng.normal(0.0, 1.5, grid.shape)
-    request = ScanRequest("sim", "slide-0", "kf-2d-lean", noise_sigma_um=1.5)
-    strategy = registry.create(
-        "kf-2d-lean", to_domain.slide_settings(slide_config(request, GEOMETRY_3))
-    )
-    answer, outcomes = local_services(strategy, GEOMETRY_3, measured_um)
+    truth_um = np.random.default_rng(2).normal(0.0, 0.4, grid.shape)
+    geometry = SlideGeometry(grid, dof_um=0.9)
+    fake = FakeEstimator(grid, truth_um, frozenset({(0, 1), (2, 2)}))
 
-    steps, _ = drive(request, answer)
+    steps, _ = drive(REQUEST, fake.answer(geometry))
     planes_acquired = [
         s for s in steps if isinstance(s, Acquire) and s.acquisition.purpose == Purpose.PLANES
     ]
+    assert len(planes_acquired) == 2
     assert not any(a.acquisition.measure for a in planes_acquired)  # image only
     awaited = {s.acquisition.index for s in steps if isinstance(s, AwaitFocus)}
     assert not awaited & {a.acquisition.index for a in planes_acquired}
     kept = [s for s in steps if isinstance(s, KeepPlanes)]
-    named = {(o.row, o.col): o.planes_um for o in outcomes if o.planes_um}
-    assert kept and {(s.row, s.col): tuple(f.z_um for f in s.planes) for s in kept} == named
-    for step in kept:  # each a frame of this tile's own stacks
+    named = {(o.row, o.col): o.planes_um for o in fake.outcomes if o.planes_um}
+    assert set(named) == {(0, 1), (2, 2)}
+    assert {(s.row, s.col): tuple(f.z_um for f in s.planes) for s in kept} == named
+    for step in kept:  # each a frame of this tile's own stacks, both stacks among them
         sequences = {
             s.acquisition.index
             for s in steps
             if isinstance(s, Acquire)
             and (s.acquisition.row, s.acquisition.col) == (step.row, step.col)
         }
-        assert {frame.sequence for frame in step.planes} <= sequences
+        assert {frame.sequence for frame in step.planes} == sequences
 
 
 def test_an_edge_peak_is_posted_and_the_image_may_come_from_an_earlier_stack() -> None:
@@ -200,7 +269,7 @@ def test_an_edge_peak_is_posted_and_the_image_may_come_from_an_earlier_stack() -
 
 def test_a_lost_focus_result_is_acquired_again_then_the_scan_stops_naming_the_key() -> None:
     only = acquisition(7, 1, 0, low_um=0.0)
-    request = ScanRequest("sim", "slide-0", "kf-wiener0", focus_attempts=2)
+    request = ScanOptions.defaults(focus_attempts=2).request("sim", "slide-0", "kf-wiener0")
 
     def answer(step: Step) -> Any:
         match step:
@@ -247,7 +316,9 @@ def test_an_image_only_acquisition_waits_for_no_focus_and_keeps_its_single_frame
             case AwaitFocus():
                 pytest.fail("an image-only acquisition has no focus result")
 
-    resumed = ScanRequest("sim", "slide-0", "af-every-tile", resume_slide_id="resumed-id")
+    resumed = replace(
+        DEFAULTS.request("sim", "slide-0", "af-every-tile"), resume_slide_id="resumed-id"
+    )
     steps, slide_id = drive(resumed, answer)
     assert slide_id == "resumed-id"
     create = next(s for s in steps if isinstance(s, CreateOrResumeSlide))
@@ -300,6 +371,6 @@ def test_measurement_of_focus_results() -> None:
 
 def test_bad_requests_are_refused_before_any_step() -> None:
     with pytest.raises(ValueError, match="instrument"):
-        ScanRequest("no/slash", "slide-0", "kf-wiener0")
+        DEFAULTS.request("no/slash", "slide-0", "kf-wiener0")
     with pytest.raises(ValueError, match="focus_attempts"):
-        ScanRequest("sim", "slide-0", "kf-wiener0", focus_attempts=0)
+        replace(REQUEST, focus_attempts=0)

@@ -1,0 +1,162 @@
+"""A finished scan as its output writers see it, and the writers' interface.
+
+`FinishedScan.of` takes what the record, the estimator and the instrument know at the end
+of a scan into one value that no longer changes; each `OutputWriter` writes one output of
+it (`writers.DEFAULT_WRITERS`: the focus map, the plots, the mosaic and its preview, the
+OME-Zarr metadata, the report). Adding an output is adding a writer to the list a scan is
+given (`scan.ScanJob.writers`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Protocol
+
+import numpy as np
+
+from focustrack_core.domain import FocusMap
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.maps import finite_or_none, map_layers
+from focustrack_scheduler.outputs import MosaicFormat, WallTimes
+from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.report import scan_report
+from focustrack_scheduler.tally import Tile
+
+
+@dataclass(frozen=True)
+class FinishedScan:
+    """Everything an output writer may read of a finished scan (heights in um).
+
+    `state` is the folder's scan.json (estimator, instrument, slide, strategy, params,
+    slide_id, and `tile`: the tile images' height, width, channels and pixel_size_um);
+    `kept` the z of each tile's image, `planes` the z of the frames a tile keeps besides,
+    `measured` each tile's last measurement as logged; `images_per_tile` (rows, cols);
+    `mosaic` the kept images side by side, (rows * h, cols * w, channels) uint8, read-only
+    (None when no tile was kept); `report` the figures of ``report.json``.
+    """
+
+    out_dir: Path
+    grid: ScanGrid
+    dof_um: float
+    focus_map: FocusMap
+    truth_um: np.ndarray | None  # the instrument's truth (evaluation only), if it has one
+    state: Mapping[str, Any]
+    kept: Mapping[Tile, float]
+    planes: Mapping[Tile, tuple[float, ...]]
+    measured: Mapping[Tile, Mapping[str, Any]]
+    images_per_tile: np.ndarray
+    mosaic: np.ndarray | None
+    mosaic_format: MosaicFormat
+    report: Mapping[str, Any]
+
+    @classmethod
+    def of(
+        cls,
+        record: ScanRecord,
+        grid: ScanGrid,
+        focus_map: FocusMap,
+        truth_um: np.ndarray | None,
+        dof_um: float,
+        wall: WallTimes,
+        mosaic_format: MosaicFormat,
+        focus_results_rejected: int = 0,
+    ) -> FinishedScan:
+        """The scan `record` holds, on `grid`, with the estimator's `focus_map`, the
+        instrument's `truth_um` (rows, cols) and depth of field, its wall-time split, the
+        mosaic's format and the focus results rejected for want of a trusted tag."""
+        state = record.state.read() or {}
+        tally = record.tally
+        mosaic = record.mosaic.read() if "tile" in state else None
+        has_mosaic = mosaic is not None or (record.out_dir / mosaic_format.file_name).exists()
+        images_per_tile = tally.images_per_tile(grid)
+        images_per_tile.setflags(write=False)
+        report = scan_report(
+            tally,
+            state,
+            grid,
+            focus_map,
+            truth_um,
+            dof_um,
+            wall.as_dict(),
+            focus_results_rejected,
+            mosaic_format.file_name if has_mosaic else None,
+        )
+        return cls(
+            out_dir=record.out_dir,
+            grid=grid,
+            dof_um=dof_um,
+            focus_map=focus_map,
+            truth_um=truth_um,
+            state=MappingProxyType(state),
+            kept=MappingProxyType(dict(tally.kept)),
+            planes=MappingProxyType({tile: tuple(z) for tile, z in tally.planes.items()}),
+            measured=MappingProxyType(dict(tally.measured)),
+            images_per_tile=images_per_tile,
+            mosaic=mosaic,
+            mosaic_format=mosaic_format,
+            report=MappingProxyType(report),
+        )
+
+    @property
+    def title(self) -> str:
+        """What was scanned: "strategy on instrument/slide"."""
+        state = self.state
+        return f"{state.get('strategy')} on {state.get('instrument')}/{state.get('slide')}"
+
+    @property
+    def description(self) -> str:
+        """The mosaic's description (OME-TIFF and OME-Zarr alike)."""
+        return f"focustrack scan: {self.title}"
+
+    def tile_metadata(self) -> list[dict[str, Any]]:
+        """Every tile's numbers, row-major: where it is, its image, its last measurement, its map.
+
+        Per tile: row, col, stage_x_um, stage_y_um; z_used_um (its kept image), planes_um (the
+        frames it keeps besides, where one is too unsure: `ScanRecord.keep_planes`), best_z_um,
+        sigma_um and flags (the last best focus posted for it; null and [] where none was),
+        images (acquired on it), posterior_um, posterior_sigma_um and out_of_focus_risk (the
+        estimator's map). Heights in um, null where there is none.
+        """
+        layers = map_layers(self.focus_map)
+        grid = self.grid
+        tiles = []
+        for row in range(grid.rows):
+            for col in range(grid.cols):
+                measured = self.measured.get((row, col), {})
+                x_um, y_um = grid.stage_xy_um(row, col)
+                tiles.append(
+                    {
+                        "row": row,
+                        "col": col,
+                        "stage_x_um": x_um,
+                        "stage_y_um": y_um,
+                        "z_used_um": self.kept.get((row, col)),
+                        "planes_um": list(self.planes.get((row, col), [])),
+                        "best_z_um": measured.get("z_um"),
+                        "sigma_um": measured.get("sigma_um"),
+                        "flags": measured.get("flags", []),
+                        "images": int(self.images_per_tile[row, col]),
+                        "posterior_um": finite_or_none(layers["posterior_um"][row, col]),
+                        "posterior_sigma_um": finite_or_none(
+                            layers["posterior_sigma_um"][row, col]
+                        ),
+                        "out_of_focus_risk": finite_or_none(layers["out_of_focus_risk"][row, col]),
+                    }
+                )
+        return tiles
+
+
+class OutputWriter(Protocol):
+    """One output of a finished scan, written into `scan.out_dir`."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        """Write the output's files (none where the scan has nothing for it); their paths."""
+        ...
+
+
+def write_outputs(scan: FinishedScan, writers: Sequence[OutputWriter]) -> list[Path]:
+    """Run each writer on `scan`, in order; every path written."""
+    return [path for writer in writers for path in writer.write(scan)]

@@ -1,0 +1,87 @@
+"""The mosaic while it is filled in, and the frames a tile keeps besides its image.
+
+``mosaic.partial.npy`` is a memory map of (rows * h, cols * w, channels) uint8: each tile's
+image lands in its place as it is kept, so a restarted scheduler carries on with the
+tiles already there. ``planes/r{row}_c{col}.npy`` holds a tile's kept frames as the camera
+gave them; the tile's place in the mosaic then shows their fusion (`fusion.fuse_planes`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from focustrack_core.fusion import fuse_planes
+from focustrack_core.geometry import ScanGrid
+from focustrack_scheduler.outputs import PARTIAL_MOSAIC, PLANES
+
+
+def to_uint8(frame: np.ndarray, bit_depth: int) -> np.ndarray:
+    """A camera frame (h, w, channels) of `bit_depth` bits as 8 bits per channel."""
+    scale = 255.0 / (2**bit_depth - 1)
+    return np.clip(np.rint(frame * scale), 0, 255).astype(np.uint8)
+
+
+class MosaicStore:
+    """The partial mosaic and the planes files of the scan in `out_dir`."""
+
+    def __init__(self, out_dir: Path) -> None:
+        self.out_dir = Path(out_dir)
+        self.path = self.out_dir / PARTIAL_MOSAIC
+        self._mosaic: np.memmap | None = None
+
+    def write_tile(
+        self, grid: ScanGrid, row: int, col: int, image: np.ndarray, bit_depth: int
+    ) -> None:
+        """Tile (row, col)'s image (h, w, channels) of `bit_depth` bits, in its place."""
+        mosaic = self._open(grid, image.shape)
+        height, width = image.shape[:2]
+        mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width] = to_uint8(
+            image, bit_depth
+        )
+
+    def save_planes(
+        self, grid: ScanGrid, row: int, col: int, frames: np.ndarray, bit_depth: int
+    ) -> str:
+        """Keep tile (row, col)'s `frames` (n, h, w, channels), ascending in z; its place in
+        the mosaic becomes their fusion, each pixel from the sharpest. The file, relative to
+        the output folder."""
+        folder = self.out_dir / PLANES
+        folder.mkdir(exist_ok=True)
+        path = folder / f"r{row}_c{col}.npy"
+        temporary = path.with_suffix(".tmp")
+        with temporary.open("wb") as file:  # written whole, then renamed: never half a file
+            np.save(file, frames, allow_pickle=False)
+        temporary.replace(path)
+        self.write_tile(grid, row, col, fuse_planes(frames), bit_depth)
+        return f"{PLANES}/{path.name}"
+
+    def read(self) -> np.ndarray | None:
+        """The mosaic so far, read-only and mapped from disk; None if no tile was kept."""
+        if self._mosaic is not None:
+            self._mosaic.flush()
+        return np.load(self.path, mmap_mode="r") if self.path.exists() else None
+
+    def _open(self, grid: ScanGrid, tile_shape: tuple[int, ...]) -> np.memmap:
+        if self._mosaic is None:
+            height, width, channels = tile_shape
+            shape = (grid.rows * height, grid.cols * width, channels)
+            if self.path.exists():
+                self._mosaic = np.lib.format.open_memmap(self.path, mode="r+")
+                if self._mosaic.shape != shape:
+                    raise ValueError(
+                        f"{self.path} holds a {self._mosaic.shape} mosaic; tiles of "
+                        f"{tile_shape} on a {grid.rows}x{grid.cols} grid need {shape}: use a "
+                        "new output folder"
+                    )
+            else:
+                self._mosaic = np.lib.format.open_memmap(
+                    self.path, mode="w+", dtype=np.uint8, shape=shape
+                )
+        return self._mosaic
+
+    def close(self) -> None:
+        if self._mosaic is not None:
+            self._mosaic.flush()
+            self._mosaic = None

@@ -1,0 +1,112 @@
+"""The mosaic as OME-Zarr (``mosaic.ome.zarr``, NGFF 0.5): the image, then the scan's metadata.
+
+`write_mosaic` writes the multiscale image (c, y, x); `write_metadata` adds, in the same
+group, FocusTrack's attributes (`ZARR_ATTRS`: the scan, the grid, every tile's numbers) and
+the focus-map layers in `ZARR_MAPS`, one NGFF image each, a pixel per tile, placed over its
+tile of the mosaic (micrometres), so a viewer overlays them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from focustrack_scheduler.outputs import ZARR_ATTRS, ZARR_MAPS
+from focustrack_scheduler.pyramid import TIFF_TILE_PX, half, n_levels
+
+#: Colours of the mosaic's channels in OME-Zarr's "omero" rendering settings.
+_CHANNEL_COLOURS = (("red", "FF0000"), ("green", "00FF00"), ("blue", "0000FF"))
+_SPACE = {"type": "space", "unit": "micrometer"}
+#: NGFF version written (https://ngff.openmicroscopy.org/0.5/).
+NGFF_VERSION = "0.5"
+
+
+def write_mosaic(path: Path, mosaic: np.ndarray, pixel_size_um: float) -> None:
+    """The mosaic (height, width, channels) uint8 as a new NGFF image (c, y, x) at `path`,
+    with its 2x2-mean halvings (`pyramid.n_levels`, as the OME-TIFF's pyramid)."""
+    root = zarr.open_group(path, mode="w", zarr_format=3)
+    levels = [mosaic]
+    for _ in range(n_levels(mosaic.shape)):
+        levels.append(half(np.asarray(levels[-1])))
+    channels = [
+        {"label": label, "color": colour, "window": {"start": 0, "end": 255, "min": 0, "max": 255}}
+        for label, colour in _CHANNEL_COLOURS[: mosaic.shape[-1]]
+    ]
+    _write_ngff_image(
+        root,
+        "mosaic",
+        [level.transpose(2, 0, 1) for level in levels],
+        pixel_um=(pixel_size_um, pixel_size_um),
+        origin_um=(0.0, 0.0),
+        omero={"channels": channels, "rdefs": {"model": "color"}},
+    )
+
+
+def write_metadata(
+    path: Path,
+    mosaic_shape: tuple[int, ...],
+    pixel_size_um: float,
+    attributes: dict[str, Any],
+    layers: dict[str, np.ndarray],
+) -> None:
+    """Into the OME-Zarr mosaic at `path` (of `mosaic_shape`, pixels `pixel_size_um` wide):
+    `attributes` under `ZARR_ATTRS`, and each (rows, cols) layer as an NGFF image in
+    `ZARR_MAPS`, one pixel per tile, placed over its tile of the mosaic (micrometres)."""
+    root = zarr.open_group(path, mode="r+", zarr_format=3)
+    root.attrs[ZARR_ATTRS] = attributes
+    rows, cols = next(iter(layers.values())).shape
+    tile_um = (mosaic_shape[0] / rows * pixel_size_um, mosaic_shape[1] / cols * pixel_size_um)
+    # A tile's value sits at the centre of its tile of the mosaic (NGFF places pixel centres).
+    centre_um = ((tile_um[0] - pixel_size_um) / 2, (tile_um[1] - pixel_size_um) / 2)
+    maps = root.create_group(ZARR_MAPS)
+    for name, values in layers.items():
+        group = maps.create_group(name)
+        _write_ngff_image(group, name, [np.asarray(values)], tile_um, centre_um)
+        unit = {"images": "images", "out_of_focus_risk": "probability"}.get(name, "um")
+        group.attrs[ZARR_ATTRS] = {"layer": name, "unit": unit}
+
+
+def _write_ngff_image(
+    group: zarr.Group,
+    name: str,
+    levels: list[np.ndarray],
+    pixel_um: tuple[float, float],
+    origin_um: tuple[float, float],
+    **metadata: Any,
+) -> None:
+    """An NGFF multiscale image in `group`: `levels` (c, y, x) or (y, x), each half the last.
+
+    `pixel_um` is level 0's pixel size (y, x) and `origin_um` the centre of its first pixel.
+    """
+    names = ["c", "y", "x"][-levels[0].ndim :]
+    axes = [{"name": "c", "type": "channel"}] if levels[0].ndim == 3 else []
+    axes += [{"name": axis, **_SPACE} for axis in ("y", "x")]
+    datasets: list[dict[str, Any]] = []
+    for index, level in enumerate(levels):
+        factor = 2**index
+        chunks = (*level.shape[:-2], *(min(side, 2 * TIFF_TILE_PX) for side in level.shape[-2:]))
+        array = group.create_array(
+            f"s{index}", shape=level.shape, dtype=level.dtype, chunks=chunks, dimension_names=names
+        )
+        array[...] = level
+        scale = [size * factor for size in pixel_um]
+        # the centre of a level's first pixel: the mean of the factor x factor it averages
+        translation = [
+            o + (factor - 1) * size / 2 for o, size in zip(origin_um, pixel_um, strict=True)
+        ]
+        channel = [1.0] if level.ndim == 3 else []
+        channel_offset = [0.0] if level.ndim == 3 else []
+        datasets.append(
+            {
+                "path": f"s{index}",
+                "coordinateTransformations": [
+                    {"type": "scale", "scale": channel + scale},
+                    {"type": "translation", "translation": channel_offset + translation},
+                ],
+            }
+        )
+    multiscale: dict[str, Any] = {"name": name, "axes": axes, "datasets": datasets}
+    group.attrs["ome"] = {"version": NGFF_VERSION, "multiscales": [multiscale], **metadata}

@@ -1,0 +1,216 @@
+"""The settings of a scan, in one model: flags, ``FOCUSTRACK_SCAN_<OPTION>`` and a settings file.
+
+`ScanOptions` are the options a scan shares with `focustrack demo` (the prior, the
+z-stacks, timeouts and retries, the mosaic's format, the progress bar, the result key);
+`ScanSettings`, the `focustrack scan` command's, adds what to scan, where the estimator
+and the bus are, and where the outputs go. Each default is written once: the prior's and
+the z-stacks' are the estimator API's (`focustrack_client.models`), the timeouts are
+`engine.RetryPolicy`'s, and the others are here; `ScanOptions.request` and `retry` hand them
+to the scan's own objects.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, Self
+
+from pydantic import BaseModel, Field, field_validator
+from pydantic_settings import CliToggleFlag, NoDecode, SettingsConfigDict
+
+from focustrack_client import models as api
+from focustrack_core.rest.to_domain import default_policy
+from focustrack_core.settings import ServiceSettings
+from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
+from focustrack_scheduler.engine import RetryPolicy
+from focustrack_scheduler.outputs import MosaicFormat
+from focustrack_scheduler.plan import ScanRequest
+
+#: The best Kalman strategy we have, the demo's headline. kf-2d has the lowest prior MAE at
+#: the simulator's focus noise (0.146 um against 0.284 for kf-wiener0 and 0.254 for kf-mmae,
+#: 8 standard 10x10 maps, `focustrack bench accuracy --noise-um 0.1 --dof-um 0.89`) and at
+#: the thesis' 1.5 um noise (0.461 against 0.612 for kf-mmae, 16 maps of 20x20).
+BEST_KALMAN = "kf-2d"
+
+#: The estimator's bearer token when no option gives one (the estimator's own variable).
+TOKEN_ENV = "FOCUSTRACK_ESTIMATOR_TOKEN"
+
+_RETRY = RetryPolicy()
+
+
+def _api_field(model: type[BaseModel], name: str, description: str) -> Any:
+    """An option with the default and bounds of the estimator API's field `model.name`."""
+    api_field = model.model_fields[name]
+    option = Field(api_field.default, description=description)
+    option.metadata = list(api_field.metadata)  # the bounds (annotated-types' Ge, Le, ...)
+    return option
+
+
+def _estimator_token() -> str | None:
+    return os.environ.get(TOKEN_ENV) or None
+
+
+class ScanOptions(ServiceSettings):
+    """How a scan is made, shared by `focustrack scan` and `focustrack demo`."""
+
+    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_SCAN_")
+
+    # what is known before the first tile
+    start_z_um: float = _api_field(api.SlideCreate, "start_z_um", "start height, um")
+    start_sigma_um: float = _api_field(api.SlideCreate, "start_sigma_um", "its std, um")
+    noise_sigma_um: api.Sigma = Field(
+        0.1, description="std of a best-focus measurement without its own sigma, um"
+    )
+    # z-stacks
+    k_sigma: float = _api_field(
+        api.ZRangePolicy, "k_sigma", "a stack spans +/- this many predicted sigmas"
+    )
+    z_step_um: float = _api_field(api.ZRangePolicy, "z_step_um", "between frames, um")
+    min_frames: int = _api_field(api.ZRangePolicy, "min_frames", "frames of a stack, at least")
+    max_frames: int = _api_field(api.ZRangePolicy, "max_frames", "frames of a stack, at most")
+    # timeouts and retries
+    instrument_timeout_s: float = Field(
+        _RETRY.instrument_timeout_s, gt=0, description="one instrument query, s"
+    )
+    instrument_outage_s: float = Field(
+        _RETRY.instrument_outage_s,
+        gt=0,
+        description="how long to keep retrying an instrument (or router) that does not answer "
+        "or is busy, with pauses doubling up to 5 s",
+    )
+    focus_timeout_s: float = Field(
+        _RETRY.focus_timeout_s, gt=0, description="the wait for a stack's focus result, s"
+    )
+    focus_attempts: int = Field(
+        5,
+        ge=1,
+        description="acquisitions of a stack without result (with --focus-timeout-s, rides "
+        "out a focus service restart of a minute)",
+    )
+    estimator_outage_s: float = Field(
+        _RETRY.estimator_outage_s,
+        gt=0,
+        description="how long to keep retrying an estimator that does not answer",
+    )
+    # outputs and trust
+    mosaic_format: MosaicFormat = Field(
+        MosaicFormat.OME_ZARR,
+        description="file of the mosaic: mosaic.ome.zarr (ome-zarr) or mosaic.ome.tif",
+    )
+    no_progress: CliToggleFlag[bool] = Field(False, description="hide the progress bar")
+    result_key_file: Path | None = Field(
+        None,
+        description="the focus service's shared key: accept only focus results tagged with it "
+        "(docs/security.md; default: any result on the bus)",
+    )
+
+    @classmethod
+    def defaults(cls, **changes: Any) -> ScanOptions:
+        """The options' defaults with `changes` over them, without reading the environment
+        (for scans that code makes: benchmarks, tests)."""
+        return cls.model_construct(**changes)
+
+    def request(
+        self, instrument: str, slide: str, strategy: str, params: Mapping[str, Any] | None = None
+    ) -> ScanRequest:
+        """The scan of `slide` on `instrument` with `strategy` (and its `params`), as these
+        options make it (ValueError on a bad name or z-stack policy)."""
+        return ScanRequest(
+            instrument=instrument,
+            slide=slide,
+            strategy=strategy,
+            params=dict(params or {}),
+            start_z_um=self.start_z_um,
+            start_sigma_um=self.start_sigma_um,
+            noise_sigma_um=self.noise_sigma_um,
+            policy=default_policy(
+                k_sigma=self.k_sigma,
+                z_step_um=self.z_step_um,
+                min_frames=self.min_frames,
+                max_frames=self.max_frames,
+            ),
+            focus_attempts=self.focus_attempts,
+        )
+
+    def retry(self) -> RetryPolicy:
+        """The timeouts and retries these options set (the others as `RetryPolicy` has them)."""
+        return RetryPolicy(
+            instrument_timeout_s=self.instrument_timeout_s,
+            instrument_outage_s=self.instrument_outage_s,
+            focus_timeout_s=self.focus_timeout_s,
+            estimator_outage_s=self.estimator_outage_s,
+        )
+
+
+class ScanSettings(ZenohSettings, ScanOptions):
+    """The settings of `focustrack scan` (and `focustrack-scheduler`)."""
+
+    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_SCAN_")
+    default_connect: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)
+
+    estimator: str = Field("http://127.0.0.1:8100", description="estimator URL")
+    token: str | None = Field(
+        default_factory=_estimator_token,
+        description=f"estimator bearer token (default ${TOKEN_ENV})",
+    )
+    instrument: str = Field("sim", description="instrument name")
+    slide: str = Field("slide-0", description="slide name")
+    strategy: str = Field(BEST_KALMAN, description="strategy")
+    param: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="a strategy parameter, NAME=VALUE, the value read as JSON where it parses "
+        "(repeat the option)",
+    )
+    out: Path = Field(Path("out/scan"), description="output folder")
+    live_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="serve the live web view of the scan on this port of 127.0.0.1 "
+        "(0: any free one)",
+    )
+
+    @field_validator("param", mode="before")
+    @classmethod
+    def _param_items(cls, value: Any) -> Any:
+        """One item (the environment's NAME=VALUE) or a JSON list of them (the flags')."""
+        if isinstance(value, str):
+            return json.loads(value) if value.startswith("[") else [value]
+        return value
+
+    @field_validator("param")
+    @classmethod
+    def _named(cls, items: list[str]) -> list[str]:
+        for item in items:
+            name, equals, _ = item.partition("=")
+            if not (name and equals):
+                raise ValueError(f"takes NAME=VALUE, got {item!r}")
+        return items
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> Self:
+        # The --param items reach the model as one JSON list: a list option's items are
+        # otherwise split at commas, and a parameter's value may hold some ("[1.0, 2.0]").
+        flags = vars(args).copy()
+        if flags.get("param") is not None:
+            flags["param"] = json.dumps(flags["param"])
+        return super().from_args(argparse.Namespace(**flags))
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """The strategy parameters by name; values read as JSON where they parse."""
+        params: dict[str, Any] = {}
+        for item in self.param:
+            name, _, text = item.partition("=")
+            try:
+                params[name] = json.loads(text)
+            except json.JSONDecodeError:
+                params[name] = text
+        return params
+
+    def scan_request(self) -> ScanRequest:
+        """The scan these settings describe (ValueError on a bad name or z-stack policy)."""
+        return self.request(self.instrument, self.slide, self.strategy, self.params)

@@ -1,0 +1,66 @@
+"""What a scan has done so far, folded from its log's entries (`scan_log.ScanLog`).
+
+The same entries build it during the scan and, read back, after a restart: acquisitions
+(images and simulated seconds), the last measurement of each tile, the z of each tile's
+kept image and of the frames a tile keeps besides (its planes).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from focustrack_core.geometry import ScanGrid
+
+#: A tile of the grid: (row, col).
+Tile = tuple[int, int]
+
+
+class ScanTally:
+    """The log's entries by kind (heights in um); `take` folds in one more."""
+
+    def __init__(self) -> None:
+        self.acquisitions: list[dict[str, Any]] = []
+        self.kept: dict[Tile, float] = {}  # tile -> z (um) of its image
+        self.planes: dict[Tile, list[float]] = {}  # tile -> z (um) of its frames
+        self.measured: dict[Tile, dict[str, Any]] = {}  # tile -> its last measurement
+
+    def take(self, entry: dict[str, Any]) -> None:
+        """Fold in one log entry (KeyError if it lacks its event's fields)."""
+        event = entry["event"]
+        if event == "acquired":
+            self.acquisitions.append(entry)
+        elif event == "kept":
+            self.kept[(entry["row"], entry["col"])] = entry["z_um"]
+        elif event == "planes":
+            self.planes[(entry["row"], entry["col"])] = entry["z_um"]
+        elif event == "measured":
+            self.measured[(entry["row"], entry["col"])] = entry
+
+    @property
+    def n_images(self) -> int:
+        return sum(entry["n_frames"] for entry in self.acquisitions)
+
+    @property
+    def scan_time_s(self) -> float:
+        return float(sum(entry["scan_time_s"] for entry in self.acquisitions))
+
+    @property
+    def frames_kept(self) -> int:
+        """Frames kept over all tiles (one per tile, all of its planes where it keeps some)."""
+        return len(self.kept) + sum(len(z_um) - 1 for z_um in self.planes.values())
+
+    def images_per_tile(self, grid: ScanGrid) -> np.ndarray:
+        """Images acquired on each tile, (rows, cols)."""
+        counts = np.zeros(grid.shape, dtype=int)
+        for entry in self.acquisitions:
+            counts[entry["row"], entry["col"]] += entry["n_frames"]
+        return counts
+
+    def z_kept_um(self, grid: ScanGrid) -> np.ndarray:
+        """The z of each tile's image, (rows, cols) in um; NaN where none was kept."""
+        z_um = np.full(grid.shape, np.nan)
+        for (row, col), z in self.kept.items():
+            z_um[row, col] = z
+        return z_um

@@ -1,0 +1,133 @@
+"""The outputs of a finished scan, one writer each (`finished.OutputWriter`).
+
+`DEFAULT_WRITERS` is what every scan writes (`outputs` lists the files). A writer imports
+its file format's library when it writes (matplotlib, zarr, tifffile), so a scan, or its
+``--help``, does not load them before its end. The order matters twice: the preview reads
+the partial mosaic, which `MosaicWriter` removes once the mosaic file holds it (the scan's
+`mosaic` stays readable: a memory map outlives its file), and `OmeZarrMetadataWriter` adds
+to the OME-Zarr group that `MosaicWriter` made.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from focustrack_core.maps import MAP_LAYERS, map_csv, map_layers, map_npy
+from focustrack_scheduler.finished import FinishedScan, OutputWriter
+from focustrack_scheduler.outputs import (
+    FOCUS_MAP_CSV,
+    FOCUS_MAP_NPY,
+    MOSAIC_PREVIEW,
+    PARTIAL_MOSAIC,
+    PLOTS,
+    REPORT,
+    ZARR_MAPS,
+    MosaicFormat,
+)
+
+#: Longest side of the PNG preview of the mosaic, in pixels.
+PREVIEW_PX = 1600
+
+
+class FocusMapWriter:
+    """``focus_map.csv`` and ``focus_map.npy``: every layer of the estimator's map."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        csv, npy = scan.out_dir / FOCUS_MAP_CSV, scan.out_dir / FOCUS_MAP_NPY
+        csv.write_text(map_csv(scan.focus_map, scan.grid))
+        npy.write_bytes(map_npy(scan.focus_map))
+        return [csv, npy]
+
+
+class PlotsWriter:
+    """``scan.png``: true surface, estimated map, error map, images per tile."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        from focustrack_scheduler.plots import write_plots
+
+        path = scan.out_dir / PLOTS
+        return [write_plots(path, scan.focus_map, scan.truth_um, scan.images_per_tile, scan.title)]
+
+
+class MosaicPreviewWriter:
+    """``mosaic.png``: the mosaic at most `PREVIEW_PX` on its longest side (where there is one)."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        if scan.mosaic is None:
+            return []
+        from focustrack_scheduler.plots import save_image
+
+        step = max(1, math.ceil(max(scan.mosaic.shape[:2]) / PREVIEW_PX))
+        path = scan.out_dir / MOSAIC_PREVIEW
+        save_image(path, scan.mosaic[::step, ::step])
+        return [path]
+
+
+class MosaicWriter:
+    """The mosaic in the scan's format (``mosaic.ome.zarr`` or ``mosaic.ome.tif``), which then
+    replaces the partial mosaic of the record."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        if scan.mosaic is None:
+            return []
+        path = scan.out_dir / scan.mosaic_format.file_name
+        pixel_size_um = float(scan.state["tile"]["pixel_size_um"])
+        if scan.mosaic_format is MosaicFormat.OME_TIFF:
+            from focustrack_scheduler.ome_tiff import write_ome_tiff
+
+            write_ome_tiff(path, scan.mosaic, pixel_size_um, scan.description)
+        else:
+            from focustrack_scheduler.ome_zarr import write_mosaic
+
+            write_mosaic(path, scan.mosaic, pixel_size_um)
+        (scan.out_dir / PARTIAL_MOSAIC).unlink()
+        return [path]
+
+
+class OmeZarrMetadataWriter:
+    """Into ``mosaic.ome.zarr``: the scan, the grid and every tile's numbers as attributes,
+    and the focus-map layers (and images per tile) as NGFF images beside the mosaic."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        if scan.mosaic is None or scan.mosaic_format is not MosaicFormat.OME_ZARR:
+            return []
+        from focustrack_scheduler.ome_zarr import write_metadata
+
+        tile = scan.state["tile"]
+        grid = scan.grid
+        pixel_size_um = float(tile["pixel_size_um"])
+        attributes = {
+            "description": scan.description,
+            "scan": {name: value for name, value in scan.state.items() if name != "tile"},
+            "grid": {"rows": grid.rows, "cols": grid.cols, "pitch_um": grid.pitch_um},
+            "tile_px": {"height": tile["height"], "width": tile["width"]},
+            "pixel_size_um": pixel_size_um,
+            "maps": {name: f"{ZARR_MAPS}/{name}" for name in (*MAP_LAYERS, "images")},
+            "tiles": scan.tile_metadata(),
+        }
+        layers = {**map_layers(scan.focus_map), "images": scan.images_per_tile}
+        path = scan.out_dir / scan.mosaic_format.file_name
+        write_metadata(path, scan.mosaic.shape, pixel_size_um, attributes, layers)
+        return [path]
+
+
+class ReportWriter:
+    """``report.json``: the scan's figures (`FinishedScan.report`)."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        path = scan.out_dir / REPORT
+        path.write_text(json.dumps(dict(scan.report), indent=2) + "\n")
+        return [path]
+
+
+#: What every scan writes, in this order (see the module docstring).
+DEFAULT_WRITERS: tuple[OutputWriter, ...] = (
+    FocusMapWriter(),
+    PlotsWriter(),
+    MosaicPreviewWriter(),
+    MosaicWriter(),
+    OmeZarrMetadataWriter(),
+    ReportWriter(),
+)

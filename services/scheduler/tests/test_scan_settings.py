@@ -1,0 +1,162 @@
+"""`focustrack scan`'s settings: today's flags, variables and defaults, from one model."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from focustrack_client import models as api
+from focustrack_core.settings import parse
+from focustrack_scheduler import scan
+from focustrack_scheduler.engine import RetryPolicy
+from focustrack_scheduler.outputs import MosaicFormat
+from focustrack_scheduler.settings import BEST_KALMAN, TOKEN_ENV, ScanOptions, ScanSettings
+
+#: Every option of `focustrack scan` before its settings model (flag -> default).
+OPTIONS = {
+    "estimator": "http://127.0.0.1:8100",
+    "token": None,
+    "connect": None,
+    "listen": None,
+    "mode": None,
+    "zenoh_config": None,
+    "shared_memory": 0,
+    "instrument": "sim",
+    "slide": "slide-0",
+    "strategy": BEST_KALMAN,
+    "param": [],
+    "out": Path("out/scan"),
+    "live_port": None,
+    "start_z_um": 0.0,
+    "start_sigma_um": 10.0,
+    "noise_sigma_um": 0.1,
+    "k_sigma": api.ZRangePolicy().k_sigma,
+    "z_step_um": api.ZRangePolicy().z_step_um,
+    "min_frames": api.ZRangePolicy().min_frames,
+    "max_frames": api.ZRangePolicy().max_frames,
+    "instrument_timeout_s": RetryPolicy().instrument_timeout_s,
+    "instrument_outage_s": RetryPolicy().instrument_outage_s,
+    "focus_timeout_s": RetryPolicy().focus_timeout_s,
+    "focus_attempts": 5,
+    "estimator_outage_s": RetryPolicy().estimator_outage_s,
+    "mosaic_format": MosaicFormat.OME_ZARR,
+    "no_progress": False,
+    "result_key_file": None,
+}
+
+
+@pytest.fixture(autouse=True)
+def clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in [*ScanSettings.model_fields, "settings"]:
+        monkeypatch.delenv(ScanSettings.variable(name), raising=False)
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+
+
+def settings(*argv: str) -> ScanSettings:
+    parser = argparse.ArgumentParser()
+    ScanSettings.add_arguments(parser)
+    return parse(parser, ScanSettings, list(argv))
+
+
+def test_every_option_keeps_its_flag_variable_and_default() -> None:
+    parser = argparse.ArgumentParser()
+    ScanSettings.add_arguments(parser)
+    flags = {flag for action in parser._actions for flag in action.option_strings}
+    assert {"--" + name.replace("_", "-") for name in OPTIONS} <= flags
+    assert set(ScanSettings.model_fields) == set(OPTIONS)
+    assert {name: getattr(settings(), name) for name in OPTIONS} == OPTIONS
+    assert ScanSettings.variable("no_progress") == "FOCUSTRACK_SCAN_NO_PROGRESS"
+    assert settings().endpoints() == (["tcp/127.0.0.1:7447"], [])
+
+
+def test_flags_over_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FOCUSTRACK_SCAN_K_SIGMA", "3.5")
+    monkeypatch.setenv("FOCUSTRACK_SCAN_NO_PROGRESS", "1")
+    monkeypatch.setenv("FOCUSTRACK_SCAN_FOCUS_TIMEOUT_S", "4")
+    got = settings("--focus-timeout-s", "5", "--mosaic-format", "ome-tiff", "--live-port", "0")
+    assert (got.k_sigma, got.no_progress, got.focus_timeout_s) == (3.5, True, 5.0)
+    assert got.mosaic_format is MosaicFormat.OME_TIFF and got.live_port == 0
+    assert got.retry() == RetryPolicy(focus_timeout_s=5.0)
+    assert got.scan_request().policy.k_sigma == 3.5
+
+
+def test_param_takes_name_value_items_whose_values_may_hold_commas(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    got = settings("--param", "prior_map_um=[1.0, 2.0]", "--param", "label=a,b", "--param", "n=3")
+    assert got.params == {"prior_map_um": [1.0, 2.0], "label": "a,b", "n": 3}
+    assert got.scan_request().params == got.params
+    monkeypatch.setenv("FOCUSTRACK_SCAN_PARAM", "gain=0.5")
+    assert settings().params == {"gain": 0.5}
+
+
+def test_the_token_defaults_to_the_estimators_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(TOKEN_ENV, "from-estimator")
+    assert settings().token == "from-estimator"
+    monkeypatch.setenv("FOCUSTRACK_SCAN_TOKEN", "from-scan")
+    assert settings().token == "from-scan"
+    assert settings("--token", "from-flag").token == "from-flag"
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (
+            ["--param", "no-equals"],
+            "--param (FOCUSTRACK_SCAN_PARAM): Value error, takes NAME=VALUE",
+        ),
+        (["--live-port", "70000"], "--live-port (FOCUSTRACK_SCAN_LIVE_PORT)"),
+        (["--focus-attempts", "0"], "--focus-attempts (FOCUSTRACK_SCAN_FOCUS_ATTEMPTS)"),
+        (["--start-sigma-um", "0"], "--start-sigma-um (FOCUSTRACK_SCAN_START_SIGMA_UM)"),
+        (["--k-sigma", "0"], "--k-sigma (FOCUSTRACK_SCAN_K_SIGMA): Input should be greater"),
+        (["--mosaic-format", "png"], "invalid choice: 'png'"),
+    ],
+)
+def test_a_refused_value_exits_2_naming_its_option(
+    argv: list[str], needle: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        settings(*argv)
+    assert exit_.value.code == 2
+    assert needle in capsys.readouterr().err
+
+
+def test_a_bad_name_or_policy_exits_2_before_any_connection(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert scan.run(settings("--instrument", "no/slash")) == 2
+    assert scan.run(settings("--min-frames", "30", "--max-frames", "10")) == 2
+    assert capsys.readouterr().err.count("focustrack scan: error:") == 2
+
+
+def test_the_demo_takes_the_scan_options_beside_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--rows", type=int, default=10)
+    ScanOptions.add_arguments(parser)
+    args = parser.parse_args(["--rows", "4", "--noise-sigma-um", "1.5", "--no-progress"])
+    options = ScanOptions.from_args(args)
+    assert options.noise_sigma_um == 1.5 and options.no_progress
+    request = options.request("sim", "slide-0", "kf-rescan", {"prior_map_um": [0.0]})
+    assert (request.noise_sigma_um, request.params) == (1.5, {"prior_map_um": [0.0]})
+    monkeypatch.setenv("FOCUSTRACK_SCAN_FOCUS_ATTEMPTS", "9")
+    assert ScanOptions.defaults().focus_attempts == 5  # code's scans read no environment
+    assert ScanOptions.defaults(focus_attempts=2).request("a", "b", "c").focus_attempts == 2
+
+
+def test_the_scan_command_loads_no_plotting_image_or_web_library() -> None:
+    """`focustrack scan --help` and the scan's start load matplotlib, zarr, tifffile,
+    FastAPI, uvicorn and tqdm only when they are used."""
+    heavy = ("matplotlib", "zarr", "ome_zarr", "tifffile", "fastapi", "uvicorn", "tqdm")
+    code = (
+        "import sys, contextlib\n"
+        "from focustrack_scheduler.scan import main\n"
+        "with contextlib.suppress(SystemExit):\n"
+        "    main(['--help'])\n"
+        f"print(sorted(name for name in {heavy!r} if name in sys.modules))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.splitlines()[-1] == "[]"
