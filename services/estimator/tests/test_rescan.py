@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-import argparse
-
 import numpy as np
 import pytest
 
-from focustrack.bench import strategies as registry
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_estimator import registry
 from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.replay import Drift, replay, score
 from focustrack_estimator.rescan import RescanFilter
-from focustrack_instrument_sim import service
 
 GRID = ScanGrid(10, 10)
 SETTINGS = default_settings(GRID, noise_sigma_um=0.1, dof_um=0.9)
@@ -63,16 +60,3 @@ def test_a_prior_map_of_the_wrong_shape_is_refused() -> None:
     without = registry.create("kf-rescan", SETTINGS)  # no map: every tile as unsure as the start
     first = without.next_acquisition()
     assert first is not None and first.z.step_um == COARSE_STEP_UM  # a coarse search
-
-
-def test_the_simulator_moves_a_slide_for_a_second_pass() -> None:
-    def truth(*extra: str) -> np.ndarray:
-        parser = argparse.ArgumentParser()
-        service.add_arguments(parser)
-        args = parser.parse_args(
-            ["--rows", "3", "--cols", "4", "--width", "32", "--height", "32", *extra]
-        )
-        microscope = service.microscope_from_args(args)
-        return microscope.truth_um("slide-0")[0]
-
-    assert np.allclose(truth("--z-offset-um", "12") - truth(), 12.0)
