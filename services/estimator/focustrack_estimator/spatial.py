@@ -3,17 +3,16 @@
 In a serpentine scan the tile above the current one was measured a whole row
 ago; a 1-D filter along the path has mostly forgotten it. The 2-D strategies
 carry the previous row(s) in their state: the NSHP filters (`nshp`) and, here,
-
-- `kf-2d` (`RowBankFilter`): a strip processor (Woods and Radewan's term)
-  whose state is a whole row of heights and their y-slopes; row to row the
-  field evolves as a Matern-3/2 process in y with process noise correlated
-  across columns, plus a plane (offset and tilts) as constant states, so the
-  model is a separable Gaussian process that the filter computes exactly. The
-  field's size and length and the tilt's scale are not assumed: a bank of
-  such filters over a grid of (sigma, length, tilt) runs in parallel and is
-  averaged with the posterior probability of each member, from the likelihood
-  of its innovations (estimated online, per slide). Its focus map carries the
-  RTS-smoothed layers (a fixed-interval smoother over the rows: `kf-2d-rts`).
+`kf-2d` (`RowBankFilter`), a strip processor (Woods and Radewan's term)
+whose state is a whole row of heights and their y-slopes; row to row the
+field evolves as a Matern-3/2 process in y with process noise correlated
+across columns, plus a plane (offset and tilts) as constant states, so the
+model is a separable Gaussian process that the filter computes exactly. The
+field's size and length and the tilt's scale are not assumed: a bank of
+such filters over a grid of (sigma, length, tilt) runs in parallel and is
+averaged with the posterior probability of each member, from the likelihood
+of its innovations (estimated online, per slide). Its focus map carries the
+RTS-smoothed layers (a fixed-interval smoother over the rows: `kf-2d-rts`).
 
 The floor they are measured against, `gp-oracle`, needs the simulator's true
 covariance, so it lives with the benchmarks (`focustrack.bench.oracle`).
