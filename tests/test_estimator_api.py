@@ -195,7 +195,7 @@ def _grid(**changes: Any) -> dict[str, Any]:
 INVALID = [
     ("unknown strategy", "post", None, _slide_body(strategy="kf-nope"), 422, "unknown strategy"),
     ("unknown parameter", "post", None, _slide_body(params={"qq": 1.0}), 422, "qq"),
-    ("parameter type", "post", None, _slide_body(params={"q": "big"}), 422, "must be a float"),
+    ("parameter type", "post", None, _slide_body(params={"q": "big"}), 422, "a valid number"),
     ("bool for int", "post", None, _slide_body(params={"max_retries": True}), 422, "int"),
     ("unknown field", "post", None, _slide_body(colour="red"), 422, "colour"),
     ("grid too large", "post", None, _slide_body(grid=_grid(rows=1000, cols=1000)), 422, "tiles"),

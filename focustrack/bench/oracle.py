@@ -10,17 +10,16 @@ serpentine as every 2-D estimator does (`SerpentineFilter`).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 import scipy.linalg
+from pydantic import Field
 
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_core.surfaces import SurfaceSpec, surface_covariance
-from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
-from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, tile_cost
+from focustrack_estimator.serpentine import Gaussian, RetryParams, SerpentineFilter
+from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, StrategyEntry, tile_cost
 
 _SPEC = SurfaceSpec()
 
@@ -37,8 +36,8 @@ class GpOracle(SerpentineFilter):
 
     name = "gp-oracle"
 
-    def __init__(self, settings: SlideSettings, spec: SurfaceSpec, *, max_retries: int) -> None:
-        super().__init__(settings, FilterOptions(max_retries=max_retries))
+    def __init__(self, settings: SlideSettings, spec: SurfaceSpec, params: RetryParams) -> None:
+        super().__init__(settings, params)
         if (spec.rows, spec.cols) != self.grid.shape:
             raise ValueError(f"surface spec is {spec.rows}x{spec.cols}, grid is {self.grid.shape}")
         rows, cols = np.divmod(np.arange(self.grid.n_tiles), self.grid.cols)
@@ -82,40 +81,52 @@ class GpOracle(SerpentineFilter):
         self.map.posterior_sigma_um = np.sqrt(np.clip(var, 0.0, None)).reshape(self.grid.shape)
 
 
-def gp_oracle(
-    settings: SlideSettings,
-    *,
-    rows: int | None = None,
-    cols: int | None = None,
-    field_sigma_um: float = _SPEC.field_sigma_um,
-    range_tiles: float = _SPEC.range_tiles,
-    tilt_sigma_um_per_tile: float = _SPEC.tilt_sigma_um_per_tile,
-    bend_sigma_um: float = _SPEC.bend_sigma_um,
-    step_um: float = _SPEC.step_um,
-    smooth_sigma_tiles: float = _SPEC.smooth_sigma_tiles,
-    max_retries: int = 3,
-) -> GpOracle:
+class GpOracleParams(RetryParams):
+    """gp-oracle: the `SurfaceSpec` of the maps it is the floor for (benchmarks only)."""
+
+    rows: int | None = Field(None, ge=1, description="The spec's rows (none: the grid's)")
+    cols: int | None = Field(None, ge=1, description="The spec's columns (none: the grid's)")
+    field_sigma_um: float = Field(_SPEC.field_sigma_um, ge=0.0, description="Field std, um")
+    range_tiles: float = Field(
+        _SPEC.range_tiles, gt=0.0, description="Field correlation range, tiles"
+    )
+    tilt_sigma_um_per_tile: float = Field(
+        _SPEC.tilt_sigma_um_per_tile, ge=0.0, description="Std of each tilt, um/tile"
+    )
+    bend_sigma_um: float = Field(_SPEC.bend_sigma_um, ge=0.0, description="Bend std, um")
+    step_um: float = Field(
+        _SPEC.step_um, description="Height of a step across the slide, um (0: none)"
+    )
+    smooth_sigma_tiles: float = Field(
+        _SPEC.smooth_sigma_tiles, ge=0.0, description="Smoothing of the field, tiles"
+    )
+
+
+def gp_oracle(settings: SlideSettings, params: GpOracleParams) -> GpOracle:
     """The oracle for surfaces of this `SurfaceSpec` (rows, cols: the grid's when None).
 
     With `step_um` != 0 the surfaces are not Gaussian; the oracle then uses the
     covariance of the Gaussian part only (`surface_covariance`).
     """
     spec = SurfaceSpec(
-        rows=settings.grid.rows if rows is None else rows,
-        cols=settings.grid.cols if cols is None else cols,
-        field_sigma_um=field_sigma_um,
-        range_tiles=range_tiles,
-        tilt_sigma_um_per_tile=tilt_sigma_um_per_tile,
-        bend_sigma_um=bend_sigma_um,
-        step_um=step_um,
-        smooth_sigma_tiles=smooth_sigma_tiles,
+        rows=settings.grid.rows if params.rows is None else params.rows,
+        cols=settings.grid.cols if params.cols is None else params.cols,
+        field_sigma_um=params.field_sigma_um,
+        range_tiles=params.range_tiles,
+        tilt_sigma_um_per_tile=params.tilt_sigma_um_per_tile,
+        bend_sigma_um=params.bend_sigma_um,
+        step_um=params.step_um,
+        smooth_sigma_tiles=params.smooth_sigma_tiles,
     )
-    return GpOracle(settings, spec, max_retries=max_retries)
+    return GpOracle(settings, spec, params)
 
 
-def gp_oracle_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+def gp_oracle_cost(settings: SlideSettings, params: GpOracleParams) -> Cost:
     """The oracle's cost: the tiles' covariance K, its Cholesky factor L and the final map's
     cross terms, each n_tiles^2 floats (90x90: 1.6 GB; 500x500: 1.4 TB); a prior is a
     triangular solve against up to n_tiles measured tiles."""
     n_tiles = settings.grid.n_tiles
     return tile_cost(settings) + Cost(3 * 8 * n_tiles**2, n_tiles**2 / NOMINAL_FLOPS_PER_S)
+
+
+GP_ORACLE = StrategyEntry(GpOracleParams, gp_oracle, gp_oracle_cost)

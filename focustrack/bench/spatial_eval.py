@@ -39,10 +39,10 @@ def evaluate(
     progress: bool = True,
 ) -> dict[str, Scores]:
     """Scores of each named strategy (spatial ones and the registry's) on one map family."""
-    factories = registry.STRATEGIES
-    unknown = [name for name in names if name not in factories]
+    known = registry.STRATEGIES
+    unknown = [name for name in names if name not in known]
     if unknown:
-        raise ValueError(f"unknown strategy {', '.join(unknown)}; known: {', '.join(factories)}")
+        raise ValueError(f"unknown strategy {', '.join(unknown)}; known: {', '.join(known)}")
     spec = family_spec(family)
     truth_um = generate_surfaces(spec, n_maps, seed)
     measured_um = add_measurement_noise(truth_um, noise_um, seed)
@@ -51,7 +51,7 @@ def evaluate(
     for name in names:
         params = asdict(spec) if name == "gp-oracle" else {}
         runs = [
-            replay(factories[name](settings, **params), truth, measured)
+            replay(registry.create(name, settings, params), truth, measured)
             for truth, measured in tqdm(
                 list(zip(truth_um, measured_um, strict=True)), desc=name, disable=not progress
             )

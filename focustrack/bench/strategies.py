@@ -8,20 +8,20 @@ from __future__ import annotations
 
 from typing import Any
 
-from focustrack.bench.oracle import gp_oracle, gp_oracle_cost
+from focustrack.bench.oracle import GP_ORACLE
 from focustrack_core.domain import SlideSettings
 from focustrack_estimator import registry
-from focustrack_estimator.strategy import Strategy
+from focustrack_estimator.strategy import Strategy, StrategyEntry
 
-STRATEGIES: dict[str, registry.Factory] = {**registry.STRATEGIES, "gp-oracle": gp_oracle}
-CATALOGUE = registry.Catalogue(STRATEGIES, {**registry.COSTS, "gp-oracle": gp_oracle_cost})
+STRATEGIES: dict[str, StrategyEntry[Any]] = {**registry.STRATEGIES, "gp-oracle": GP_ORACLE}
+CATALOGUE = registry.Catalogue(STRATEGIES)
 
 
 def parameters(name: str) -> dict[str, Any]:
-    """The tunable parameters of strategy `name` with their defaults."""
-    return registry.parameters(name, STRATEGIES)
+    """Strategy `name`'s parameters at their defaults, as JSON gives them."""
+    return CATALOGUE.parameters(name)
 
 
-def create(name: str, settings: SlideSettings, params: dict[str, Any] | None = None) -> Strategy:
+def create(name: str, settings: SlideSettings, params: registry.Params = None) -> Strategy:
     """A new strategy `name`, served or the oracle; unknown names or parameters: ValueError."""
-    return registry.create(name, settings, params, STRATEGIES)
+    return CATALOGUE.create(name, settings, params)

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.bench.strategies import STRATEGIES, parameters
+from focustrack.bench.strategies import create, parameters
 from focustrack_core.domain import ZRangePolicy
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
@@ -126,7 +126,7 @@ def evaluate(
         ScanGrid(rows, cols), noise_sigma_um=noise_um, policy=policy or default_policy()
     )
     replays = [
-        replay(STRATEGIES[name](settings, **params), truth, measured)
+        replay(create(name, settings, params), truth, measured)
         for truth, measured in zip(data.truth_um, data.measured_um, strict=True)
     ]
     return score(replays, settings.dof_um)

@@ -47,6 +47,7 @@ from focustrack_estimator import registry
 from focustrack_estimator.errors import SlideError
 from focustrack_estimator.lean import RiskSummary, summarise_risk
 from focustrack_estimator.metrics import EstimatorMetrics
+from focustrack_estimator.params import StrategyInfo, publish_params, strategy_infos
 from focustrack_estimator.slides import (
     Budget,
     GridLimits,
@@ -189,6 +190,13 @@ async def create_slide(config: api.SlideCreate, slides: SlidesDep) -> api.Slide:
     """Create a slide scan; its strategy is built (and its parameters checked) at once."""
     slide_id = await slides.create(config)
     return _slide_out(await _record(slides, slide_id))
+
+
+@v1.get("/strategies", tags=["strategies"])
+async def list_strategies(slides: SlidesDep) -> list[StrategyInfo]:
+    """The strategies served, each with its parameters: their JSON schema (types, units,
+    bounds, defaults) and their defaults."""
+    return strategy_infos(slides.catalogue)
 
 
 @v1.get("/slides", tags=["slides"])
@@ -420,6 +428,7 @@ def create_app(settings: Settings) -> FastAPI:
     # The token check is only installed when there is a token (it costs a dependency per request).
     app.include_router(v1, dependencies=[Depends(_require_token)] if settings.token else [])
     app.include_router(ops)
+    publish_params(app.openapi(), settings.catalogue)  # the document is built once, kept
     app.add_middleware(
         BodyLimit,
         max_bytes=settings.max_body_bytes,

@@ -32,9 +32,11 @@ the exact smoothed mixture; with the floor it is an approximation).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
+from pydantic import Field
 
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Step
@@ -42,11 +44,12 @@ from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
     PathEstimator,
     PathFilter,
+    QHeightUm2,
     path_cost,
 )
 from focustrack_estimator.models import DirectionAwareModel
-from focustrack_estimator.serpentine import FilterOptions
-from focustrack_estimator.strategy import CostModel, Strategy
+from focustrack_estimator.serpentine import FilterParams, GateNis
+from focustrack_estimator.strategy import StrategyEntry
 
 
 def mixture(
@@ -125,38 +128,64 @@ class ModelBank(PathEstimator):
         return mixture(means_um, vars_um2, self.weights)
 
 
-def kf_mmae(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(gate_nis=25.0),
-    *,
-    q: float = 1e-4,
-    q_spread: float = 3.0,
-    q_height_um2: float = 0.3,
-    weight_floor: float = 1e-3,
-    nis_clip: float = 9.0,
-) -> KalmanStrategy:
+#: Members of the `kf-mmae` bank: two gradient noises, each with and without height noise.
+MMAE_MEMBERS = 4
+
+
+class KfMmaeParams(FilterParams):
+    """kf-mmae: a bank of four direction-aware filters blended by likelihood (MMAE).
+
+    Defaults chosen on training seeds (docs/estimators.md); its gate is on by default.
+    """
+
+    gate_nis: GateNis = 25.0
+    q: float = Field(
+        1e-4,
+        ge=0.0,
+        description="Spectral density of the lively members' gradient noise, um^2/tile^3 "
+        "(the stiff members': q / q_spread)",
+    )
+    q_spread: float = Field(
+        3.0, ge=1.0, description="Ratio of the lively members' gradient noise to the stiff ones'"
+    )
+    q_height_um2: QHeightUm2 = 0.3
+    weight_floor: float = Field(
+        1e-3,
+        ge=0.0,
+        lt=1.0 / MMAE_MEMBERS,
+        description="Least weight of a member, so that a model can take over within a few "
+        "tiles when the surface changes",
+    )
+    nis_clip: float = Field(
+        9.0,
+        gt=0.0,
+        description="NIS at which the widest member's density floors every member's "
+        "likelihood (an outlier then leaves the weights almost as they were)",
+    )
+
+
+def kf_mmae(settings: SlideSettings, params: KfMmaeParams) -> KalmanStrategy:
     """A bank of four direction-aware filters: two gradient noises, with and without height noise.
 
     Members: `DirectionAwareModel(q', q_height_um2=h)` (full update) for q' in
     {q / q_spread, q} (um^2/tile^3) and h in {0, q_height_um2} (um^2): a
     stiff and a lively gradient, each with and without a height that may jump
     (steps, rough smears). Gating and the adaptive R act on the blended
-    prediction. Defaults chosen on training seeds (docs/estimators.md).
+    prediction.
     """
-    if q_spread < 1.0:
-        raise ValueError(f"q_spread must be at least 1, got {q_spread}")
     models = [
         DirectionAwareModel(q_member, q_height_um2=height_um2, partitioned=False)
-        for q_member in (q / q_spread, q)
-        for height_um2 in (0.0, q_height_um2)
+        for q_member in (params.q / params.q_spread, params.q)
+        for height_um2 in (0.0, params.q_height_um2)
     ]
     bank = ModelBank(
-        [PathFilter(model, settings, sqrt=options.sqrt) for model in models],
-        weight_floor=weight_floor,
-        nis_clip=nis_clip,
+        [PathFilter(model, settings, sqrt=params.sqrt) for model in models],
+        weight_floor=params.weight_floor,
+        nis_clip=params.nis_clip,
     )
-    return KalmanStrategy(settings, bank, name="kf-mmae", options=options)
+    return KalmanStrategy(settings, bank, name="kf-mmae", options=params)
 
 
-STRATEGIES: dict[str, Callable[..., Strategy]] = {"kf-mmae": kf_mmae}
-COSTS: dict[str, CostModel] = {"kf-mmae": path_cost(4)}  # its four members
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
+    "kf-mmae": StrategyEntry(KfMmaeParams, kf_mmae, path_cost(MMAE_MEMBERS))
+}

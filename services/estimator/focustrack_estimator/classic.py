@@ -41,16 +41,23 @@ from __future__ import annotations
 
 import math
 from abc import abstractmethod
-from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import Field
 from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator, RegularGridInterpolator
 from scipy.spatial import Delaunay, QhullError
 
 from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose, SlideSettings
 from focustrack_core.geometry import Tile
-from focustrack_estimator.strategy import Cost, CostModel, PeakSearch, Strategy, tile_cost
+from focustrack_estimator.strategy import (
+    Cost,
+    PeakSearch,
+    Strategy,
+    StrategyEntry,
+    StrategyParams,
+    tile_cost,
+)
 
 #: Wide blocks to try beyond an edge before giving up on a tile (each block spans
 #: `policy.max_frames` frames: 20 um with the default policy).
@@ -133,11 +140,9 @@ class TileSkip(_Autofocusing):
 
     name = "tile-skip"
 
-    def __init__(self, settings: SlideSettings, *, every: int = 2) -> None:
-        if every < 1:
-            raise ValueError(f"tile-skip needs every >= 1, got {every}")
+    def __init__(self, settings: SlideSettings, params: TileSkipParams) -> None:
         super().__init__(settings)
-        self.every = every
+        self.every = params.every
         self._position = 0  # serpentine position of the current tile
 
     def _plan(self) -> Acquisition | None:
@@ -164,8 +169,8 @@ class AfEveryTile(TileSkip):
 
     name = "af-every-tile"
 
-    def __init__(self, settings: SlideSettings) -> None:
-        super().__init__(settings, every=1)
+    def __init__(self, settings: SlideSettings, params: AfEveryTileParams) -> None:
+        super().__init__(settings, TileSkipParams(every=1))
 
 
 def survey_axes(n_survey: int, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
@@ -201,8 +206,9 @@ class _Survey(_Autofocusing):
 
     min_points_per_axis = 1  # of the survey grid, for the interpolator to work
 
-    def __init__(self, settings: SlideSettings, *, n_survey: int) -> None:
+    def __init__(self, settings: SlideSettings, params: SurveyParams) -> None:
         super().__init__(settings)
+        n_survey = params.n_survey
         survey_rows, survey_cols = survey_axes(n_survey, *self.grid.shape)
         if min(len(survey_rows), len(survey_cols)) < self.min_points_per_axis:
             raise ValueError(
@@ -293,9 +299,6 @@ class SurveyBilinear(_GridSurvey):
     method = "linear"
     min_points_per_axis = 2
 
-    def __init__(self, settings: SlideSettings, *, n_survey: int = 36) -> None:
-        super().__init__(settings, n_survey=n_survey)
-
 
 class SurveySpline(_GridSurvey):
     """Focus-map surveying with cubic-spline interpolation (thesis Table 2-1: 36 points)."""
@@ -303,9 +306,6 @@ class SurveySpline(_GridSurvey):
     name = "survey-spline"
     method = "cubic"
     min_points_per_axis = 4
-
-    def __init__(self, settings: SlideSettings, *, n_survey: int = 81) -> None:
-        super().__init__(settings, n_survey=n_survey)
 
 
 class SurveyDelaunay(_Survey):
@@ -317,9 +317,6 @@ class SurveyDelaunay(_Survey):
     """
 
     name = "survey-delaunay"
-
-    def __init__(self, settings: SlideSettings, *, n_survey: int = 36) -> None:
-        super().__init__(settings, n_survey=n_survey)
 
     def _interpolate(self, points: np.ndarray, z_um: np.ndarray) -> np.ndarray:
         tiles = self._tile_points()
@@ -333,10 +330,52 @@ class SurveyDelaunay(_Survey):
         return heights.reshape(self.grid.shape)
 
 
-STRATEGIES: dict[str, Callable[..., Strategy]] = {
-    strategy.name: strategy
-    for strategy in (AfEveryTile, TileSkip, SurveyBilinear, SurveySpline, SurveyDelaunay)
-}
+# --- parameters, entries and cost models ------------------------------------------------
+
+
+class AfEveryTileParams(StrategyParams):
+    """af-every-tile: autofocus on every tile with the widest stack (no parameters)."""
+
+
+class TileSkipParams(StrategyParams):
+    """tile-skip: autofocus on every n-th tile, single frames in between."""
+
+    every: int = Field(
+        2, ge=1, description="Autofocus on every this-many-th tile of the serpentine path (1: all)"
+    )
+
+
+NSurvey = Annotated[
+    int,
+    Field(
+        ge=1,
+        description="Survey points, about (a regular grid following the map's aspect ratio)",
+    ),
+]
+
+
+class SurveyParams(StrategyParams):
+    """A focus-map survey's parameters (each strategy has its default)."""
+
+    n_survey: NSurvey
+
+
+class SurveyBilinearParams(SurveyParams):
+    """survey-bilinear: survey points, then bilinear interpolation."""
+
+    n_survey: NSurvey = 36
+
+
+class SurveySplineParams(SurveyParams):
+    """survey-spline: survey points, then cubic-spline interpolation."""
+
+    n_survey: NSurvey = 81
+
+
+class SurveyDelaunayParams(SurveyParams):
+    """survey-delaunay: survey points, then linear interpolation on their triangulation."""
+
+    n_survey: NSurvey = 36
 
 
 #: Bytes per survey point: its tile, its height and the interpolator's share (a Delaunay
@@ -344,10 +383,21 @@ STRATEGIES: dict[str, Callable[..., Strategy]] = {
 SURVEY_BYTES_PER_POINT = 1_000
 
 
-def _classic_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
-    """Per-tile maps only; a survey adds its points and one interpolation over every tile."""
-    n_survey = min(int(params.get("n_survey", 0)), settings.grid.n_tiles)
+def autofocus_cost(settings: SlideSettings, params: StrategyParams) -> Cost:
+    """Per-tile maps only."""
+    return tile_cost(settings)
+
+
+def survey_cost(settings: SlideSettings, params: SurveyParams) -> Cost:
+    """Per-tile maps, the survey's points and one interpolation over every tile."""
+    n_survey = min(params.n_survey, settings.grid.n_tiles)
     return tile_cost(settings) + Cost(n_survey * SURVEY_BYTES_PER_POINT, 0.0)
 
 
-COSTS: dict[str, CostModel] = {name: _classic_cost for name in STRATEGIES}
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
+    "af-every-tile": StrategyEntry(AfEveryTileParams, AfEveryTile, autofocus_cost),
+    "tile-skip": StrategyEntry(TileSkipParams, TileSkip, autofocus_cost),
+    "survey-bilinear": StrategyEntry(SurveyBilinearParams, SurveyBilinear, survey_cost),
+    "survey-spline": StrategyEntry(SurveySplineParams, SurveySpline, survey_cost),
+    "survey-delaunay": StrategyEntry(SurveyDelaunayParams, SurveyDelaunay, survey_cost),
+}

@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
+from pydantic import AfterValidator, Field
 
 from focustrack_core.domain import FocusMap, SlideSettings
 from focustrack_core.geometry import Step, Tile
@@ -37,10 +37,17 @@ from focustrack_estimator.models import (
     GaussMarkovModel,
     StateSpaceModel,
     WienerModel,
+    gauss_markov_process_noise,
 )
-from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
+from focustrack_estimator.serpentine import FilterParams, Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
-from focustrack_estimator.strategy import Cost, CostModel, Strategy, tile_cost
+from focustrack_estimator.strategy import (
+    Cost,
+    CostModel,
+    StrategyEntry,
+    StrategyParams,
+    tile_cost,
+)
 
 
 def rts_smooth(
@@ -212,7 +219,7 @@ class KalmanStrategy(SerpentineFilter):
         estimator: PathEstimator,
         *,
         name: str,
-        options: FilterOptions,
+        options: FilterParams,
     ) -> None:
         super().__init__(settings, options)
         self.name = name
@@ -249,128 +256,185 @@ class KalmanStrategy(SerpentineFilter):
         self.estimator.inflate(var_um2)
 
 
-# Factories: `factory(settings, options, **params)`; keyword defaults are tuned on training
-# maps by `focustrack.bench.tune` (docs/estimators.md). Units: q of the Wiener models is the
-# spectral density of the noise on the highest derivative (um^2/tile for order 0,
-# um^2/tile^3 for order 1, um^2/tile^5 for order 2). `options` (`FilterOptions`, each of
-# its fields a strategy parameter: the registry flattens them) sets retries, square-root
-# filtering and the adaptive-noise options, off by default: these are the thesis' filters.
+# Parameters and factories: defaults are tuned on training maps by `focustrack.bench.tune`
+# (docs/estimators.md). Each model extends `FilterParams` (retries, the lean rule, the NIS
+# gate, the adaptive R and the square-root form, off by default: these are the thesis'
+# filters).
+
+QHeightUm2 = Annotated[
+    float,
+    Field(
+        ge=0.0,
+        description="Variance of white noise entering at the height itself on each step, "
+        "um^2 (absorbs an isolated jump of the surface instead of bending the gradient)",
+    ),
+]
+SlopeSigmaUmPerTile = Annotated[
+    float, Field(ge=0.0, description="Prior std of the gradient (the filter starts at 0), um/tile")
+]
+
+
+class KfWiener0Params(FilterParams):
+    """kf-wiener0: Zhang et al.'s random walk (thesis eq. 3-23, order 0)."""
+
+    q: float = Field(
+        0.14,
+        ge=0.0,
+        description="Spectral density of the white noise driving the height, um^2/tile",
+    )
+
+
+class KfWiener1Params(FilterParams):
+    """kf-wiener1: height and gradient along the path; the gradient is a Wiener process."""
+
+    q: float = Field(
+        1e-8,
+        ge=0.0,
+        description="Spectral density of the white noise driving the gradient, um^2/tile^3",
+    )
+    q_height_um2: QHeightUm2 = 0.2
+    slope_sigma_um_per_tile: SlopeSigmaUmPerTile = 0.5
+
+
+class KfWiener2Params(FilterParams):
+    """kf-wiener2: height, gradient and curvature along the path; the curvature is a Wiener
+    process."""
+
+    q: float = Field(
+        1e-10,
+        ge=0.0,
+        description="Spectral density of the white noise driving the curvature, um^2/tile^5",
+    )
+    q_height_um2: QHeightUm2 = 0.2
+    slope_sigma_um_per_tile: SlopeSigmaUmPerTile = 0.5
+    curvature_sigma_um_per_tile2: float = Field(
+        0.1, ge=0.0, description="Prior std of the curvature (the filter starts at 0), um/tile^2"
+    )
+
+
+def _positive_semidefinite(order: int) -> AfterValidator:
+    """A check that the Gauss-Markov model of `order` has a valid Q at a beta (a ValueError
+    naming the least beta where not: `models.gauss_markov_process_noise`)."""
+
+    def check(beta_per_tile: float) -> float:
+        gauss_markov_process_noise(order, 1.0, beta_per_tile)  # sigma only scales Q
+        return beta_per_tile
+
+    return AfterValidator(check)
+
+
+BetaPerTile = Field(
+    gt=0.0,
+    description="Inverse correlation length of the Gauss-Markov derivative, 1/tile (the "
+    "thesis' closed-form Q needs beta >= 5.98 for order 1, >= 20.99 for order 2)",
+)
+
+
+class KfGm1Params(FilterParams):
+    """kf-gm1: height and a Gauss-Markov gradient (thesis eq. 3-33..3-47, order 1)."""
+
+    sigma: float = Field(
+        0.7, gt=0.0, description="Stationary std of the Gauss-Markov gradient, um/tile"
+    )
+    beta_per_tile: Annotated[float, BetaPerTile, _positive_semidefinite(1)] = 8.0
+    q_height_um2: QHeightUm2 = 0.01
+
+
+class KfGm2Params(FilterParams):
+    """kf-gm2: height, gradient and a Gauss-Markov curvature (order 2)."""
+
+    sigma: float = Field(
+        0.01, gt=0.0, description="Stationary std of the Gauss-Markov curvature, um/tile^2"
+    )
+    beta_per_tile: Annotated[float, BetaPerTile, _positive_semidefinite(2)] = 100.0
+    q_height_um2: QHeightUm2 = 0.2
+    slope_sigma_um_per_tile: SlopeSigmaUmPerTile = 0.5
+
+
+class KfWiener1DirParams(FilterParams):
+    """kf-wiener1-dir: the direction-aware first-order filter (thesis eq. 3-54, 3-55,
+    Algorithm 2): x and y gradients in slide coordinates."""
+
+    q: float = Field(
+        1e-4,
+        ge=0.0,
+        description="Spectral density of the white noise driving each gradient, um^2/tile^3",
+    )
+    q_height_um2: QHeightUm2 = 0.0
+    slope_sigma_um_per_tile: SlopeSigmaUmPerTile = 0.5
+    partitioned: bool = Field(
+        False,
+        description="Correct only the height and the gradient along the last step (thesis "
+        "Algorithm 2, line 15) instead of every state",
+    )
 
 
 def kalman_strategy(
-    settings: SlideSettings, model: StateSpaceModel, name: str, options: FilterOptions
+    settings: SlideSettings, model: StateSpaceModel, name: str, params: FilterParams
 ) -> KalmanStrategy:
     """A `KalmanStrategy` over one model's `PathFilter` (the factories' common tail)."""
     return KalmanStrategy(
-        settings, PathFilter(model, settings, sqrt=options.sqrt), name=name, options=options
+        settings, PathFilter(model, settings, sqrt=params.sqrt), name=name, options=params
     )
 
 
-def kf_wiener0(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(),
-    *,
-    q: float = 0.14,
-) -> KalmanStrategy:
+def kf_wiener0(settings: SlideSettings, params: KfWiener0Params) -> KalmanStrategy:
     """Zhang et al.'s random walk: the height is a Wiener process (thesis eq. 3-23, order 0)."""
-    return kalman_strategy(settings, WienerModel(0, q), "kf-wiener0", options)
+    return kalman_strategy(settings, WienerModel(0, params.q), "kf-wiener0", params)
 
 
-def kf_wiener1(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(),
-    *,
-    q: float = 1e-8,
-    q_height_um2: float = 0.2,
-    slope_sigma_um_per_tile: float = 0.5,
-) -> KalmanStrategy:
+def kf_wiener1(settings: SlideSettings, params: KfWiener1Params) -> KalmanStrategy:
     """Height and gradient along the path; the gradient is a Wiener process (order 1)."""
     model = WienerModel(
-        1, q, q_height_um2=q_height_um2, slope_sigma_um_per_tile=slope_sigma_um_per_tile
+        1,
+        params.q,
+        q_height_um2=params.q_height_um2,
+        slope_sigma_um_per_tile=params.slope_sigma_um_per_tile,
     )
-    return kalman_strategy(settings, model, "kf-wiener1", options)
+    return kalman_strategy(settings, model, "kf-wiener1", params)
 
 
-def kf_wiener2(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(),
-    *,
-    q: float = 1e-10,
-    q_height_um2: float = 0.2,
-    slope_sigma_um_per_tile: float = 0.5,
-    curvature_sigma_um_per_tile2: float = 0.1,
-) -> KalmanStrategy:
+def kf_wiener2(settings: SlideSettings, params: KfWiener2Params) -> KalmanStrategy:
     """Height, gradient and curvature along the path; the curvature is a Wiener process."""
     model = WienerModel(
         2,
-        q,
-        q_height_um2=q_height_um2,
-        slope_sigma_um_per_tile=slope_sigma_um_per_tile,
-        curvature_sigma_um_per_tile2=curvature_sigma_um_per_tile2,
+        params.q,
+        q_height_um2=params.q_height_um2,
+        slope_sigma_um_per_tile=params.slope_sigma_um_per_tile,
+        curvature_sigma_um_per_tile2=params.curvature_sigma_um_per_tile2,
     )
-    return kalman_strategy(settings, model, "kf-wiener2", options)
+    return kalman_strategy(settings, model, "kf-wiener2", params)
 
 
-def kf_gm1(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(),
-    *,
-    sigma: float = 0.7,
-    beta_per_tile: float = 8.0,
-    q_height_um2: float = 0.01,
-) -> KalmanStrategy:
+def kf_gm1(settings: SlideSettings, params: KfGm1Params) -> KalmanStrategy:
     """Height and a Gauss-Markov gradient (std `sigma` um/tile, eq. 3-33..3-47, order 1)."""
-    model = GaussMarkovModel(1, sigma, beta_per_tile, q_height_um2=q_height_um2)
-    return kalman_strategy(settings, model, "kf-gm1", options)
+    model = GaussMarkovModel(
+        1, params.sigma, params.beta_per_tile, q_height_um2=params.q_height_um2
+    )
+    return kalman_strategy(settings, model, "kf-gm1", params)
 
 
-def kf_gm2(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(),
-    *,
-    sigma: float = 0.01,
-    beta_per_tile: float = 100.0,
-    q_height_um2: float = 0.2,
-    slope_sigma_um_per_tile: float = 0.5,
-) -> KalmanStrategy:
+def kf_gm2(settings: SlideSettings, params: KfGm2Params) -> KalmanStrategy:
     """Height, gradient and a Gauss-Markov curvature (std `sigma` um/tile^2, order 2)."""
     model = GaussMarkovModel(
         2,
-        sigma,
-        beta_per_tile,
-        q_height_um2=q_height_um2,
-        slope_sigma_um_per_tile=slope_sigma_um_per_tile,
+        params.sigma,
+        params.beta_per_tile,
+        q_height_um2=params.q_height_um2,
+        slope_sigma_um_per_tile=params.slope_sigma_um_per_tile,
     )
-    return kalman_strategy(settings, model, "kf-gm2", options)
+    return kalman_strategy(settings, model, "kf-gm2", params)
 
 
-def kf_wiener1_dir(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(),
-    *,
-    q: float = 1e-4,
-    q_height_um2: float = 0.0,
-    slope_sigma_um_per_tile: float = 0.5,
-    partitioned: bool = False,
-) -> KalmanStrategy:
+def kf_wiener1_dir(settings: SlideSettings, params: KfWiener1DirParams) -> KalmanStrategy:
     """The direction-aware first-order filter (thesis eq. 3-54, 3-55, Algorithm 2)."""
     model = DirectionAwareModel(
-        q,
-        q_height_um2=q_height_um2,
-        slope_sigma_um_per_tile=slope_sigma_um_per_tile,
-        partitioned=partitioned,
+        params.q,
+        q_height_um2=params.q_height_um2,
+        slope_sigma_um_per_tile=params.slope_sigma_um_per_tile,
+        partitioned=params.partitioned,
     )
-    return kalman_strategy(settings, model, "kf-wiener1-dir", options)
-
-
-STRATEGIES: dict[str, Callable[..., Strategy]] = {
-    "kf-wiener0": kf_wiener0,
-    "kf-wiener1": kf_wiener1,
-    "kf-wiener2": kf_wiener2,
-    "kf-gm1": kf_gm1,
-    "kf-gm2": kf_gm2,
-    "kf-wiener1-dir": kf_wiener1_dir,
-}
+    return kalman_strategy(settings, model, "kf-wiener1-dir", params)
 
 
 #: Bytes a `PathFilter` keeps per tile for its smoother (prior and posterior state and
@@ -378,15 +442,22 @@ STRATEGIES: dict[str, Callable[..., Strategy]] = {
 PATH_BYTES_PER_TILE = 2_000
 
 
-def path_cost(n_members: int) -> CostModel:
+def path_cost(n_members: int) -> CostModel[StrategyParams]:
     """The cost model of a strategy over `n_members` `PathFilter`s of at most three states:
     memory linear in the tiles (the smoother's history), constant work per tile."""
 
-    def cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+    def cost(settings: SlideSettings, params: StrategyParams) -> Cost:
         n_tiles = settings.grid.n_tiles
         return tile_cost(settings) + Cost(n_members * n_tiles * PATH_BYTES_PER_TILE, 0.0)
 
     return cost
 
 
-COSTS: dict[str, CostModel] = {name: path_cost(1) for name in STRATEGIES}
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
+    "kf-wiener0": StrategyEntry(KfWiener0Params, kf_wiener0, path_cost(1)),
+    "kf-wiener1": StrategyEntry(KfWiener1Params, kf_wiener1, path_cost(1)),
+    "kf-wiener2": StrategyEntry(KfWiener2Params, kf_wiener2, path_cost(1)),
+    "kf-gm1": StrategyEntry(KfGm1Params, kf_gm1, path_cost(1)),
+    "kf-gm2": StrategyEntry(KfGm2Params, kf_gm2, path_cost(1)),
+    "kf-wiener1-dir": StrategyEntry(KfWiener1DirParams, kf_wiener1_dir, path_cost(1)),
+}

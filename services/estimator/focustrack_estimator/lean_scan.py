@@ -9,13 +9,12 @@ outside the depth of field (docs/lean.md).
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import replace
+from typing import Any
 
 from focustrack_core.domain import SlideSettings
-from focustrack_estimator.lean import COARSE_STEP_UM
-from focustrack_estimator.spatial import RowBankFilter, kf_2d
-from focustrack_estimator.strategy import Strategy
+from focustrack_estimator.serpentine import LeanParams, MaxKeptPlanes, RiskOutOfFocus
+from focustrack_estimator.spatial import RowBankFilter, RowBankParams, kf_2d_cost
+from focustrack_estimator.strategy import Cost, StrategyEntry
 
 #: The stated risk of the lean strategies by default: at most 1% of tiles out of focus.
 DEFAULT_RISK = 0.01
@@ -25,28 +24,24 @@ DEFAULT_RISK = 0.01
 MAX_KEPT_PLANES = 5
 
 
-def kf_2d_lean(
-    settings: SlideSettings,
-    *,
-    risk_out_of_focus: float = DEFAULT_RISK,
-    skip_sigma_scale: float = 1.0,
-    coarse_step_um: float = COARSE_STEP_UM,
-    max_retries: int = 3,
-    max_kept_planes: int = MAX_KEPT_PLANES,
-) -> RowBankFilter:
+class Kf2dLeanParams(LeanParams):
+    """kf-2d-lean: kf-2d at its default bank, each tile's frames chosen by the risk rule."""
+
+    risk_out_of_focus: RiskOutOfFocus = DEFAULT_RISK
+    max_kept_planes: MaxKeptPlanes = MAX_KEPT_PLANES
+
+
+def kf_2d_lean(settings: SlideSettings, params: Kf2dLeanParams) -> RowBankFilter:
     """`kf-2d` with frames chosen per tile by the risk rule (`lean.choose_stack`), keeping
     up to `max_kept_planes` of a tile's frames where one is too unsure (`lean.kept_planes`)."""
-    strategy = kf_2d(settings, max_retries=max_retries)
-    # kf-2d builds its own FilterOptions; the lean rule's settings are more of them.
-    strategy.options = replace(
-        strategy.options,
-        risk_out_of_focus=risk_out_of_focus,
-        skip_sigma_scale=skip_sigma_scale,
-        coarse_step_um=coarse_step_um,
-        max_kept_planes=max_kept_planes,
-    )
-    strategy.name = "kf-2d-lean"
-    return strategy
+    return RowBankFilter(settings, RowBankParams(), params, name="kf-2d-lean")
 
 
-STRATEGIES: dict[str, Callable[..., Strategy]] = {"kf-2d-lean": kf_2d_lean}
+def kf_2d_lean_cost(settings: SlideSettings, params: Kf2dLeanParams) -> Cost:
+    """kf-2d's at its default bank: the lean rule's parameters only pick frames."""
+    return kf_2d_cost(settings, RowBankParams())
+
+
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
+    "kf-2d-lean": StrategyEntry(Kf2dLeanParams, kf_2d_lean, kf_2d_lean_cost),
+}

@@ -1,72 +1,97 @@
-"""A strategy's parameters: a slide's `params` over the strategy's defaults, checked."""
+"""Strategy parameters at the REST edge: a slide's `params` resolved once into its strategy's
+model, and every strategy's model published in the OpenAPI document.
+
+The request model (`focustrack_client.models.SlideCreate`) takes `params` as a JSON
+object of any names, as the client cannot know the served strategies; the estimator
+validates it with the model of the strategy `strategy` names (`resolve_params`) and
+describes it in its OpenAPI document as any of those models (`publish_params`), which
+`GET /v1/strategies` lists by strategy (`strategy_infos`).
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
+from pydantic import BaseModel, Field
+from pydantic.json_schema import models_json_schema
+
 from focustrack_estimator import registry
 from focustrack_estimator.errors import SlideError
+from focustrack_estimator.strategy import StrategyParams
 
 
 def resolve_params(
     strategy: str, params: dict[str, Any], catalogue: registry.Catalogue = registry.SERVED
-) -> dict[str, Any]:
-    """The strategy's full parameter set: `params` over the defaults, each of the default's type."""
+) -> StrategyParams:
+    """The strategy's parameters: `params` over its defaults, validated by its model; a
+    SlideError (422) located at the first bad parameter, or at the strategy if unknown."""
     try:
-        defaults = catalogue.parameters(strategy)
+        return catalogue.params(strategy, params)
+    except registry.ParamsError as error:
+        raise SlideError(str(error), ("body", "params", error.name)) from None
     except ValueError as error:
         raise SlideError(str(error), ("body", "strategy")) from None
-    unknown = sorted(set(params) - set(defaults))
-    if unknown:
-        raise SlideError(
-            f"unknown parameter(s) {', '.join(unknown)} for strategy {strategy!r}; "
-            f"known: {', '.join(defaults) or 'none'}",
-            ("body", "params"),
+
+
+class StrategyInfo(BaseModel):
+    """A served strategy and its parameters (`GET /v1/strategies`)."""
+
+    name: str = Field(description="The strategy's name, as `SlideCreate.strategy` takes it")
+    parameters: dict[str, Any] = Field(
+        description="The JSON schema of its parameters: each one's type, default, unit (in "
+        "its name or its description) and bounds"
+    )
+    defaults: dict[str, Any] = Field(
+        description="Every parameter at its default: a slide created without `params` has these"
+    )
+
+
+def strategy_infos(catalogue: registry.Catalogue) -> list[StrategyInfo]:
+    """Every strategy of `catalogue` with its parameters' schema and defaults, by name."""
+    return [
+        StrategyInfo(
+            name=name,
+            parameters=entry.params.model_json_schema(),
+            defaults=entry.params().model_dump(mode="json"),
         )
-    resolved = dict(defaults)
-    for name, value in params.items():
-        resolved[name] = _physical(strategy, name, _coerce(strategy, name, value, defaults[name]))
-    return resolved
+        for name, entry in sorted(catalogue.strategies.items())
+    ]
 
 
-#: Magnitudes a strategy parameter may have (zero aside): beyond, its products with other
-#: quantities under- or overflow a float (1e-300 squared is 0), and it is no physical
-#: noise, length or sigma anyway (the smallest default is 1e-10).
-PARAM_MAGNITUDES = (1e-30, 1e30)
+#: What `SlideCreate.params` says in the OpenAPI document beside its models.
+PARAMS_NOTE = (
+    "Null takes a parameter's default too. The object is the parameters model of the "
+    "strategy `strategy` names (`x-strategy-params` maps each name to its model; GET "
+    "/v1/strategies lists them with their defaults); every number in it is 0 or of a "
+    "magnitude from 1e-30 to 1e30."
+)
 
 
-def _physical(strategy: str, name: str, value: Any) -> Any:
-    """`value`, or a SlideError if it (or an element of it) is a non-physical magnitude."""
-    low, high = PARAM_MAGNITUDES
-    numbers = value if isinstance(value, tuple) else (value,)
-    for number in numbers:
-        real = isinstance(number, float | int) and not isinstance(number, bool)
-        if real and number != 0 and not low <= abs(number) <= high:
-            raise SlideError(
-                f"parameter {name!r} of strategy {strategy!r} is not a physical value "
-                f"(magnitudes from {low:g} to {high:g}, or 0, are): {number!r}",
-                ("body", "params", name),
-            )
-    return value
+def publish_params(openapi: dict[str, Any], catalogue: registry.Catalogue) -> None:
+    """Add each strategy's parameters model of `catalogue` to the OpenAPI document's
+    components, and describe `SlideCreate.params` and `StrategyInfo.defaults` as any of them.
 
-
-def _coerce(strategy: str, name: str, value: Any, default: Any) -> Any:
-    if value is None or default is None:  # None asks for the default; a None default takes any
-        return default if value is None else value
-    numbers = isinstance(value, list) and all(
-        isinstance(v, int | float) and not isinstance(v, bool) for v in value
+    `openapi` is changed in place (FastAPI's `app.openapi()`, which it keeps).
+    """
+    models = {name: entry.params for name, entry in sorted(catalogue.strategies.items())}
+    unique = list(dict.fromkeys(models.values()))
+    keys, schema = models_json_schema(
+        [(model, "validation") for model in unique], ref_template="#/components/schemas/{model}"
     )
-    if isinstance(default, tuple) and numbers:
-        return tuple(float(v) for v in value)
-    kind = type(default)
-    if kind is float and isinstance(value, int | float) and not isinstance(value, bool):
-        return float(value)
-    if kind is int and isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if kind in (bool, str) and isinstance(value, kind):
-        return value
-    raise SlideError(
-        f"parameter {name!r} of strategy {strategy!r} must be a {kind.__name__} "
-        f"(default {default!r}), got {value!r}",
-        ("body", "params", name),
-    )
+    components = openapi.setdefault("components", {}).setdefault("schemas", {})
+    components.update(schema.get("$defs", {}))
+    ref = {model: keys[(model, "validation")] for model in unique}
+    any_of = [ref[model] for model in unique]
+    for component, body in components.items():
+        properties = body.get("properties", {})
+        if component.startswith("SlideCreate") and "params" in properties:
+            properties["params"] = {
+                "anyOf": any_of,
+                "title": "Params",
+                "description": f"{properties['params'].get('description', '')}. {PARAMS_NOTE}",
+                "x-strategy-params": {name: ref[model] for name, model in models.items()},
+            }
+        if component == StrategyInfo.__name__:
+            properties["defaults"] = {**properties["defaults"], "anyOf": any_of}
+            properties["defaults"].pop("type", None)
+            properties["defaults"].pop("additionalProperties", None)

@@ -1,129 +1,128 @@
 """Every strategy the estimator serves, by name (the benchmarks add their oracle to it).
 
-Each strategy module exports ``STRATEGIES: dict[str, Callable[..., Strategy]]``:
-a factory called as ``factory(settings, **params)``, whose keyword parameters
-all have defaults (the tuned defaults). A factory whose second parameter is
-``options`` (a `FilterOptions`, with the strategy's defaults as its default)
-takes the options' fields as parameters too: to a user they are parameters
-like the others (``{"q": 0.2, "gate_nis": 9.0}``), to the code one dataclass.
-`create` checks the parameters by name so that a typo is an error, not a
-silently ignored setting.
+Each strategy module exports ``STRATEGIES: dict[str, StrategyEntry]``: per
+strategy its parameters' model (`StrategyParams`: every parameter's name, type,
+default, unit and bounds), its factory and its cost model, both called as
+``f(settings, params)`` with the parameters validated by that model. To a user
+the parameters are a JSON object (``{"q": 0.2, "gate_nis": 9.0}``, omitted ones
+at their defaults, a typo an error); to the code one typed model.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
+from pydantic import ValidationError
+
 from focustrack_core.domain import SlideSettings
-from focustrack_estimator import bank, classic, kalman_strategies, lean_scan, rescan, spatial
-from focustrack_estimator.strategy import Cost, CostModel, Strategy
+from focustrack_estimator import (
+    bank,
+    classic,
+    kalman_strategies,
+    lean_scan,
+    nshp,
+    rescan,
+    spatial,
+)
+from focustrack_estimator.strategy import Cost, Strategy, StrategyEntry, StrategyParams
 
-Factory = Callable[..., Strategy]
-
-STRATEGIES: dict[str, Factory] = {
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
     **kalman_strategies.STRATEGIES,
     **bank.STRATEGIES,
     **spatial.STRATEGIES,
+    **nshp.STRATEGIES,
     **lean_scan.STRATEGIES,
     **rescan.STRATEGIES,
     **classic.STRATEGIES,
 }
 
-#: Each strategy's cost model, by the same names (a test keeps the two tables equal).
-COSTS: dict[str, CostModel] = {
-    **kalman_strategies.COSTS,
-    **bank.COSTS,
-    **spatial.COSTS,
-    # kf-2d-lean wraps kf-2d at its default bank (its own parameters only pick frames);
-    # kf-rescan keeps a few numbers per tile, as a 1-D filter does.
-    "kf-2d-lean": lambda settings, _params: spatial.kf_2d_cost(settings, parameters("kf-2d")),
-    "kf-rescan": kalman_strategies.path_cost(1),
-    **classic.COSTS,
-}
+#: Parameters as a caller may give them: a model, a JSON object (over the defaults) or None.
+Params = StrategyParams | Mapping[str, Any] | None
 
 
-def _options_default(factory: Factory) -> Any | None:
-    """The default `options` dataclass of a factory that takes one, else None."""
-    options = inspect.signature(factory).parameters.get("options")
-    return None if options is None else options.default
+class ParamsError(ValueError):
+    """Parameters a strategy's model refuses; the message names the parameter (`name`), the
+    rule and the value given, or the known parameters where `name` is not one of them."""
+
+    def __init__(self, message: str, name: str) -> None:
+        super().__init__(message)
+        self.name = name
 
 
-def parameters(name: str, strategies: Mapping[str, Factory] = STRATEGIES) -> dict[str, Any]:
-    """The tunable parameters of strategy `name` (of `strategies`) with their defaults."""
-    factory = _factory(name, strategies)
-    own = {
-        key: p.default
-        for key, p in inspect.signature(factory).parameters.items()
-        if p.kind is inspect.Parameter.KEYWORD_ONLY
-    }
-    options = _options_default(factory)
-    return own if options is None else {**dataclasses.asdict(options), **own}
-
-
-def create(
-    name: str,
-    settings: SlideSettings,
-    params: dict[str, Any] | None = None,
-    strategies: Mapping[str, Factory] = STRATEGIES,
-) -> Strategy:
-    """A new strategy `name` for a slide; unknown names or parameters raise ValueError."""
-    factory = _factory(name, strategies)
-    params = params or {}
-    known = parameters(name, strategies)
-    unknown = sorted(set(params) - set(known))
-    if unknown:
-        raise ValueError(
-            f"unknown parameter(s) {', '.join(unknown)} for strategy {name!r}; "
-            f"known: {', '.join(known) or 'none'}"
+def _refusal(strategy: str, model: type[StrategyParams], error: ValidationError) -> ParamsError:
+    """The first of `error`'s complaints, in words (pydantic's own do not name the strategy
+    nor, for an unknown parameter, the known ones)."""
+    first = error.errors()[0]
+    name = str(first["loc"][0]) if first["loc"] else ""
+    if name not in model.model_fields:
+        known = ", ".join(model.model_fields) or "none"
+        return ParamsError(
+            f"unknown parameter {name!r} for strategy {strategy!r}; known: {known}", name
         )
-    options = _options_default(factory)
-    if options is None:
-        return factory(settings, **params)
-    fields = {field.name for field in dataclasses.fields(options)}
-    chosen = dataclasses.replace(options, **{k: v for k, v in params.items() if k in fields})
-    return factory(settings, chosen, **{k: v for k, v in params.items() if k not in fields})
+    default = model.model_fields[name].default
+    return ParamsError(
+        f"parameter {name!r} of strategy {strategy!r} (default {default!r}): {first['msg']}; "
+        f"got {first['input']!r}",
+        name,
+    )
 
 
-def _factory(name: str, strategies: Mapping[str, Factory]) -> Factory:
-    if name not in strategies:
-        raise ValueError(f"unknown strategy {name!r}; known: {', '.join(sorted(strategies))}")
-    return strategies[name]
-
-
-@dataclasses.dataclass(frozen=True)
+@dataclass(frozen=True)
 class Catalogue:
-    """The strategies a service serves, by name, and each one's cost model (same names).
+    """The strategies a service serves, by name.
 
     The estimator serves `SERVED`; `--strategies-from MODULE` serves a module's
     `CATALOGUE` instead (the benchmarks' adds `gp-oracle`: an opt-in).
     """
 
-    strategies: Mapping[str, Factory]
-    costs: Mapping[str, CostModel]
+    strategies: Mapping[str, StrategyEntry[Any]]
 
-    def __post_init__(self) -> None:
-        if set(self.strategies) != set(self.costs):
-            missing = sorted(set(self.strategies) ^ set(self.costs))
-            raise ValueError(f"every strategy needs a cost model and vice versa: {missing}")
+    def entry(self, name: str) -> StrategyEntry[Any]:
+        """Strategy `name`'s entry; a ValueError naming the known ones if there is none."""
+        if name not in self.strategies:
+            known = ", ".join(sorted(self.strategies))
+            raise ValueError(f"unknown strategy {name!r}; known: {known}")
+        return self.strategies[name]
+
+    def params(self, name: str, params: Params = None) -> StrategyParams:
+        """Strategy `name`'s parameters: `params` (a JSON object: over the defaults) validated
+        by its model; a `ParamsError` naming the first bad parameter."""
+        model = self.entry(name).params
+        if isinstance(params, StrategyParams):
+            if not isinstance(params, model):
+                raise TypeError(
+                    f"strategy {name!r} takes {model.__name__}, not {type(params).__name__}"
+                )
+            return params
+        try:
+            return model.model_validate(params or {})
+        except ValidationError as error:
+            raise _refusal(name, model, error) from None
 
     def parameters(self, name: str) -> dict[str, Any]:
-        return parameters(name, self.strategies)
+        """Strategy `name`'s parameters at their defaults, as JSON gives them."""
+        return self.params(name).model_dump(mode="json")
 
-    def create(
-        self, name: str, settings: SlideSettings, params: dict[str, Any] | None = None
-    ) -> Strategy:
-        return create(name, settings, params, self.strategies)
+    def create(self, name: str, settings: SlideSettings, params: Params = None) -> Strategy:
+        """A new strategy `name` for a slide (`params` as `params` takes them)."""
+        return self.entry(name).factory(settings, self.params(name, params))
 
-    def cost(
-        self, name: str, settings: SlideSettings, params: Mapping[str, Any] | None = None
-    ) -> Cost:
-        """The projected cost of a slide of strategy `name` with `params` (over the defaults)."""
-        resolved = {**self.parameters(name), **(params or {})}
-        return self.costs[name](settings, resolved)
+    def cost(self, name: str, settings: SlideSettings, params: Params = None) -> Cost:
+        """The projected cost of a slide of strategy `name` with `params`."""
+        return self.entry(name).cost(settings, self.params(name, params))
 
 
 #: What the estimator serves by default.
-SERVED = Catalogue(STRATEGIES, COSTS)
+SERVED = Catalogue(STRATEGIES)
+
+
+def create(name: str, settings: SlideSettings, params: Params = None) -> Strategy:
+    """A new served strategy `name` (`Catalogue.create` of `SERVED`)."""
+    return SERVED.create(name, settings, params)
+
+
+def parameters(name: str) -> dict[str, Any]:
+    """A served strategy's parameters at their defaults (`Catalogue.parameters` of `SERVED`)."""
+    return SERVED.parameters(name)

@@ -31,55 +31,85 @@ the drift's uncertainty has grown past the risk.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import Field, Strict
 
 from focustrack_core.domain import Acquisition, Measurement, Outcome, SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_core.timing import TimingModel
+from focustrack_estimator.kalman_strategies import path_cost
 from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
-from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
-from focustrack_estimator.strategy import Strategy
+from focustrack_estimator.serpentine import (
+    FilterParams,
+    Gaussian,
+    MaxKeptPlanes,
+    RiskOutOfFocus,
+    SerpentineFilter,
+)
+from focustrack_estimator.strategy import StrategyEntry
 
 #: The sigma of a prior map given without one (um).
 DEFAULT_MAP_SIGMA_UM = 0.05
 
 
+#: Lists of numbers, as the REST API's parameters are (any length, possibly empty).
+Heights = Annotated[tuple[float, ...], Strict(False)]
+Sigmas = Annotated[tuple[Annotated[float, Field(ge=0.0)], ...], Strict(False)]
+
+
+class KfRescanParams(FilterParams):
+    """kf-rescan: the last pass's map as the prior, the drift since then estimated; tiles
+    acquired by the lean rule (at most 1% out of focus by default)."""
+
+    risk_out_of_focus: RiskOutOfFocus = DEFAULT_RISK
+    max_kept_planes: MaxKeptPlanes = MAX_KEPT_PLANES
+    prior_map_um: Heights = Field(
+        (),
+        description="The last pass's map: rows x cols heights, um, row after row (none: a "
+        "flat map as unsure as the start, a scan that only tracks the drift)",
+    )
+    prior_map_sigma_um: Sigmas = Field(
+        (),
+        description="Its sigma, um: a map likewise, or one for every tile (none: "
+        f"{DEFAULT_MAP_SIGMA_UM} um, what kf-2d's smoothed map has on the demo slide)",
+    )
+    local_sigma_um: float = Field(
+        0.05, ge=0.0, description="Std of the local change of a tile between passes, um"
+    )
+    rate_sigma_um_per_s: float = Field(
+        0.05, ge=0.0, description="Prior std of the drift's rate, um/s"
+    )
+    rate_q_um2_per_s3: float = Field(
+        1e-6,
+        ge=0.0,
+        description="Spectral density of the random walk of the drift's rate, um^2/s^3",
+    )
+
+
 class RescanFilter(SerpentineFilter):
-    """The previous pass's map plus a drift [offset, rate] and local change (module docstring)."""
+    """The previous pass's map plus a drift [offset, rate] and local change (module docstring).
+
+    `start_z_um` and `start_sigma_um` of the slide are the drift's offset since the last
+    pass and its uncertainty. Without a prior map every tile is as uncertain as the start
+    (a flat map of sigma `start_sigma_um`): a scan that only tracks the drift.
+    """
 
     name = "kf-rescan"
 
     def __init__(
-        self,
-        settings: SlideSettings,
-        options: FilterOptions,
-        *,
-        base_um: np.ndarray,
-        base_sigma_um: np.ndarray,
-        local_sigma_um: float,
-        rate_sigma_um_per_s: float,
-        rate_q_um2_per_s3: float,
-        timing: TimingModel | None = None,
+        self, settings: SlideSettings, params: KfRescanParams, timing: TimingModel | None = None
     ) -> None:
-        super().__init__(settings, options)
-        if base_um.shape != self.grid.shape or base_sigma_um.shape != self.grid.shape:
-            raise ValueError(
-                f"the prior map must be {self.grid.shape} (rows, cols), got {base_um.shape} "
-                f"with sigmas {base_sigma_um.shape}"
-            )
-        if not (np.all(np.isfinite(base_um)) and np.all(np.isfinite(base_sigma_um))):
-            raise ValueError("the prior map and its sigmas must be finite on every tile")
-        if min(local_sigma_um, rate_sigma_um_per_s, rate_q_um2_per_s3) < 0:
-            raise ValueError("the sigmas and q of kf-rescan must not be negative")
-        self.base_um, self.base_var_um2 = base_um, np.square(base_sigma_um)
-        self.local_var_um2 = local_sigma_um**2
-        self.rate_q_um2_per_s3 = rate_q_um2_per_s3
+        super().__init__(settings, params)
+        self.base_um, base_sigma_um = prior_map(settings, params)
+        self.base_var_um2 = np.square(base_sigma_um)
+        self.local_var_um2 = params.local_sigma_um**2
+        self.rate_q_um2_per_s3 = params.rate_q_um2_per_s3
         self.timing = timing or TimingModel()
         # drift state [offset um, rate um/s] and its covariance, at time _state_s
         self.x = np.array([settings.start_z_um, 0.0])
-        self.P = np.diag([settings.start_sigma_um**2, rate_sigma_um_per_s**2])
+        self.P = np.diag([settings.start_sigma_um**2, params.rate_sigma_um_per_s**2])
         self._state_s = 0.0
         self._clock_s = 0.0  # the end of the last acquisition, s since the scan began
         self._here: Tile | None = None
@@ -130,52 +160,24 @@ class RescanFilter(SerpentineFilter):
         return super()._take(acquisition, measurement)
 
 
-def kf_rescan(
-    settings: SlideSettings,
-    options: FilterOptions = FilterOptions(
-        risk_out_of_focus=DEFAULT_RISK, max_kept_planes=MAX_KEPT_PLANES
-    ),
-    *,
-    prior_map_um: Sequence[float] = (),
-    prior_map_sigma_um: Sequence[float] = (),
-    local_sigma_um: float = 0.05,
-    rate_sigma_um_per_s: float = 0.05,
-    rate_q_um2_per_s3: float = 1e-6,
-) -> RescanFilter:
-    """A re-scan of a slide: `prior_map_um` is the last pass's map, rows x cols heights in
-    um, row after row (flat, as the REST API's parameters are lists of numbers).
-
-    `prior_map_sigma_um`: its sigma, a map likewise, or one for all tiles (a list of
-    one; none: `DEFAULT_MAP_SIGMA_UM`, what kf-2d's smoothed map has on the demo slide);
-    `local_sigma_um`: the local change between passes; `rate_sigma_um_per_s`: the prior
-    std of the drift's rate; `rate_q_um2_per_s3`: how fast that rate wanders.
-    `start_z_um` and `start_sigma_um` of the slide are the drift's offset since the
-    last pass and its uncertainty. Without a prior map every tile is as uncertain as
-    the start (a flat map of sigma `start_sigma_um`): a scan that only tracks the drift.
-    """
+def prior_map(settings: SlideSettings, params: KfRescanParams) -> tuple[np.ndarray, np.ndarray]:
+    """The last pass's map and its sigma (rows, cols), um, from the flat lists of `params`;
+    a ValueError if they do not fit the grid."""
     shape = settings.grid.shape
-    if len(prior_map_um) == 0:
-        base_um = np.zeros(shape)
-        base_sigma_um = np.full(shape, settings.start_sigma_um)
-    else:
-        base_um = np.asarray(prior_map_um, dtype=float)
-        sigma = np.asarray(prior_map_sigma_um or [DEFAULT_MAP_SIGMA_UM], dtype=float)
-        if base_um.size != math.prod(shape) or sigma.size not in (1, base_um.size):
-            raise ValueError(
-                f"the prior map must hold rows x cols = {math.prod(shape)} heights (and as "
-                f"many sigmas, or one), got {base_um.size} and {sigma.size}"
-            )
-        base_um = base_um.reshape(shape)
-        base_sigma_um = np.broadcast_to(sigma.reshape(-1), base_um.size).reshape(shape).copy()
-    return RescanFilter(
-        settings,
-        options,
-        base_um=base_um,
-        base_sigma_um=base_sigma_um,
-        local_sigma_um=local_sigma_um,
-        rate_sigma_um_per_s=rate_sigma_um_per_s,
-        rate_q_um2_per_s3=rate_q_um2_per_s3,
-    )
+    if len(params.prior_map_um) == 0:
+        return np.zeros(shape), np.full(shape, settings.start_sigma_um)
+    base_um = np.asarray(params.prior_map_um, dtype=float)
+    sigma = np.asarray(params.prior_map_sigma_um or [DEFAULT_MAP_SIGMA_UM], dtype=float)
+    if base_um.size != math.prod(shape) or sigma.size not in (1, base_um.size):
+        raise ValueError(
+            f"the prior map must hold rows x cols = {math.prod(shape)} heights (and as "
+            f"many sigmas, or one), got {base_um.size} and {sigma.size}"
+        )
+    base_sigma_um = np.broadcast_to(sigma.reshape(-1), base_um.size).reshape(shape).copy()
+    return base_um.reshape(shape), base_sigma_um
 
 
-STRATEGIES: dict[str, Callable[..., Strategy]] = {"kf-rescan": kf_rescan}
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
+    # a few numbers per tile, as a 1-D filter keeps
+    "kf-rescan": StrategyEntry(KfRescanParams, RescanFilter, path_cost(1)),
+}

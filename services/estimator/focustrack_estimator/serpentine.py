@@ -35,8 +35,10 @@ from __future__ import annotations
 import math
 from abc import abstractmethod
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 
 from focustrack_core.domain import (
     Acquisition,
@@ -57,7 +59,7 @@ from focustrack_estimator.lean import (
     planes_risk,
     planes_stack,
 )
-from focustrack_estimator.strategy import PeakSearch, Strategy
+from focustrack_estimator.strategy import MAX_RETRIES, PeakSearch, Strategy, StrategyParams
 
 #: How many measurements the configured default R counts as when `adapt_r` estimates it.
 R_PRIOR_COUNT = 20
@@ -78,53 +80,109 @@ class Gaussian:
         return math.sqrt(max(self.var_um2, 0.0))
 
 
-@dataclass(frozen=True)
-class FilterOptions:
-    """How the loop treats measurements, whatever the filter (each a strategy parameter).
+MaxRetries = Annotated[
+    int,
+    Field(
+        ge=0,
+        le=MAX_RETRIES,
+        description="Stacks taken after the first on a tile without a peak before the tile "
+        "is given up (imaged at its prediction)",
+    ),
+]
+RiskOutOfFocus = Annotated[
+    float,
+    Field(
+        ge=0.0,
+        lt=1.0,
+        description="Share of tiles allowed outside the depth of field. 0: a stack of +/- "
+        "k innovation sigmas on every tile; above 0, each tile's frames are chosen so that "
+        "at most this share is imaged out of focus (the kept image alone, 3 frames or a "
+        "full stack: `lean.choose_stack`)",
+    ),
+]
+SkipSigmaScale = Annotated[
+    float,
+    Field(
+        ge=1.0,
+        description="Factor by which the lean rule widens the predicted sigma of a tile it "
+        "would image without measuring it (`lean.skip_risk`)",
+    ),
+]
+CoarseStepUm = Annotated[
+    float,
+    Field(
+        gt=0.0,
+        description="z step of the lean rule's coarse search where the prediction is far "
+        "too unsure for fine stacks, um (`lean.coarse_stack`)",
+    ),
+]
+MaxKeptPlanes = Annotated[
+    int,
+    Field(
+        ge=1,
+        description="With risk_out_of_focus set, most frames a measured tile keeps where its "
+        "kept frame alone would exceed that risk, each within a depth of field of the next "
+        "(`lean.kept_planes`): the tile is in focus when one of them is",
+    ),
+]
+GateNis = Annotated[
+    float,
+    Field(
+        ge=0.0,
+        description="NIS threshold of the outlier gate (0: no gating; chi-square with one "
+        "degree of freedom for a consistent filter, `diagnostics.nis_gate`)",
+    ),
+]
+GatePatience = Annotated[
+    int,
+    Field(
+        ge=0,
+        description="Measurements rejected by the gate in a row after which the next one is "
+        "taken as a real step of the surface",
+    ),
+]
+AdaptR = Annotated[
+    bool,
+    Field(description="Estimate the default measurement variance R online from the innovations"),
+]
+Sqrt = Annotated[
+    bool, Field(description="Run the filter in square-root form (where the filter has one)")
+]
 
-    max_retries: stacks after the first on a tile without a peak before it is
-    given up; gate_nis: NIS threshold of the gate (0: no gating; chi-square
-    with one degree of freedom for a consistent filter, `diagnostics.nis_gate`);
-    gate_patience: rejections in a row after which an outlier is taken as a
-    real step; adapt_r: estimate the default R online from the innovations;
-    sqrt: run the filter in square-root form (where the filter has one);
-    risk_out_of_focus: 0 takes a stack of +/- k innovation sigmas on every tile; above 0,
-    the tile's frames are chosen by `lean.choose_stack` so that at most this share of
-    tiles is imaged outside the depth of field (none beyond the kept image, 3 or a full
-    stack); skip_sigma_scale: the lean rule widens the sigma of a tile it would skip
-    by this factor (`lean.skip_risk`); coarse_step_um: the z step of the lean rule's coarse
-    search where the prediction is far too unsure for fine stacks (`lean.coarse_stack`);
-    max_kept_planes: with risk_out_of_focus set, a measured tile whose kept frame alone
-    would exceed that risk keeps up to this many acquired frames, each within a depth of
-    field of the next (`lean.kept_planes`): the tile is in focus when one of them is.
+
+class RetryParams(StrategyParams):
+    """What every filter strategy takes: the search after a stack without a peak."""
+
+    max_retries: MaxRetries = 3
+
+
+class LeanParams(RetryParams):
+    """The lean rule's parameters (`lean.choose_stack`, docs/lean.md): off by default."""
+
+    risk_out_of_focus: RiskOutOfFocus = 0.0
+    skip_sigma_scale: SkipSigmaScale = 1.0
+    coarse_step_um: CoarseStepUm = COARSE_STEP_UM
+    max_kept_planes: MaxKeptPlanes = 1
+
+
+class FilterParams(LeanParams):
+    """How the loop treats measurements, whatever the filter: retries, the lean rule, the
+    NIS gate, the adaptive R and the square-root form (off by default: the thesis' filters).
+
+    The loop (`SerpentineFilter`) reads its options from this model; a strategy whose
+    parameters hold fewer of them runs with the others at these defaults (`of`).
     """
 
-    max_retries: int = 3
-    gate_nis: float = 0.0
-    gate_patience: int = 1
-    adapt_r: bool = False
-    sqrt: bool = False
-    risk_out_of_focus: float = 0.0
-    skip_sigma_scale: float = 1.0
-    coarse_step_um: float = COARSE_STEP_UM
-    max_kept_planes: int = 1
+    gate_nis: GateNis = 0.0
+    gate_patience: GatePatience = 1
+    adapt_r: AdaptR = False
+    sqrt: Sqrt = False
 
-    def __post_init__(self) -> None:
-        if self.max_kept_planes < 1:
-            raise ValueError(f"max_kept_planes must be at least 1, got {self.max_kept_planes}")
-        if not 0.0 <= self.risk_out_of_focus < 1.0:
-            raise ValueError(f"risk_out_of_focus must lie in [0, 1), got {self.risk_out_of_focus}")
-        if not self.coarse_step_um > 0:
-            raise ValueError(f"coarse_step_um must be positive, got {self.coarse_step_um}")
-        if not self.skip_sigma_scale >= 1.0:
-            raise ValueError(f"skip_sigma_scale must be at least 1, got {self.skip_sigma_scale}")
-        if self.max_retries < 0:
-            raise ValueError(f"max_retries must not be negative, got {self.max_retries}")
-        if self.gate_nis < 0 or self.gate_patience < 0:
-            raise ValueError(
-                f"gate_nis and gate_patience must not be negative, got {self.gate_nis}, "
-                f"{self.gate_patience}"
-            )
+    @classmethod
+    def of(cls, params: RetryParams) -> FilterParams:
+        """The loop's options in a strategy's `params`: those it has, the others at their
+        defaults."""
+        return cls.model_validate(params.model_dump(include=set(cls.model_fields)))
 
 
 @dataclass(frozen=True)
@@ -148,14 +206,14 @@ class SerpentineFilter(Strategy):
     prediction: no stack found a peak, or the gate rejected the measurement.
     """
 
-    def __init__(self, settings: SlideSettings, options: FilterOptions) -> None:
+    def __init__(self, settings: SlideSettings, params: RetryParams) -> None:
         super().__init__(settings)
-        self.options = options
+        self.options = FilterParams.of(params)
         self.gave_up = np.zeros(self.grid.shape, dtype=bool)
         self.gated = np.zeros(self.grid.shape, dtype=bool)
         self._position = 0  # serpentine index of the current tile
         self._prior: Gaussian | None = None  # the current tile's prior, once predicted
-        self._search = PeakSearch(settings.policy, options.max_retries)  # on the current tile
+        self._search = PeakSearch(settings.policy, self.options.max_retries)  # current tile
         self._rejected_in_a_row = 0
         self._r_sum_um2 = R_PRIOR_COUNT * settings.noise_sigma_um**2
         self._r_count = R_PRIOR_COUNT

@@ -59,7 +59,7 @@ from focustrack_estimator.heatmap import MAGMA, VIRIDIS, heat_map_png
 from focustrack_estimator.params import resolve_params
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.store import Event, Store
-from focustrack_estimator.strategy import Cost, Strategy
+from focustrack_estimator.strategy import Cost, Strategy, StrategyParams
 
 log = logging.getLogger(__name__)
 
@@ -193,6 +193,7 @@ class Slide:
         self,
         slide_id: str,
         config: api.SlideCreate,
+        params: StrategyParams,
         store: Store,
         timer: Callable[[float], None] = lambda _: None,
         snapshot_every: int = 200,
@@ -207,8 +208,7 @@ class Slide:
         self.n_snapshot = 0  # events covered by the newest snapshot stored
         self._snapshots = True  # False once the strategy's state proved impossible to store
         try:
-            self.cost = cost_of(config, catalogue)  # its share of the live slides' budget
-            params = resolve_params(config.strategy, config.params, catalogue)
+            self.cost = cost_of(config, params, catalogue)  # its share of the live slides' budget
             self.strategy: Strategy = catalogue.create(
                 config.strategy, to_domain.slide_settings(config), params
             )
@@ -397,7 +397,11 @@ class GridLimits:
 PROBE_SIDE = 4
 
 
-def probe(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> None:
+def probe(
+    config: api.SlideCreate,
+    params: StrategyParams,
+    catalogue: registry.Catalogue = registry.SERVED,
+) -> None:
     """Scan a small grid (at most `PROBE_SIDE` a side) with the slide's strategy, settings and
     parameters, with the sharpest measurements the API allows, jumping up and down, then
     make its map; a SlideError (422) if the strategy fails on the way.
@@ -413,7 +417,6 @@ def probe(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERV
         }
     )
     settings = to_domain.slide_settings(config.model_copy(update={"grid": grid}))
-    params = resolve_params(config.strategy, config.params, catalogue)
     try:
         strategy = catalogue.create(config.strategy, settings, params)
     except STRATEGY_ERRORS:
@@ -433,9 +436,12 @@ def probe(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERV
         ) from None
 
 
-def cost_of(config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED) -> Cost:
-    """The projected cost of a slide (its strategy's cost model, parameters resolved)."""
-    params = resolve_params(config.strategy, config.params, catalogue)
+def cost_of(
+    config: api.SlideCreate,
+    params: StrategyParams,
+    catalogue: registry.Catalogue = registry.SERVED,
+) -> Cost:
+    """The projected cost of a slide (its strategy's cost model, with its parameters)."""
     return catalogue.cost(config.strategy, to_domain.slide_settings(config), params)
 
 
@@ -462,10 +468,13 @@ class Budget:
             raise ValueError(f"the budget's limits must be positive, got {self}")
 
     def check(
-        self, config: api.SlideCreate, catalogue: registry.Catalogue = registry.SERVED
+        self,
+        config: api.SlideCreate,
+        params: StrategyParams,
+        catalogue: registry.Catalogue = registry.SERVED,
     ) -> Cost:
         """The slide's projected cost; a SlideError (422) saying which limit it exceeds."""
-        cost = cost_of(config, catalogue)
+        cost = cost_of(config, params, catalogue)
         where = f"strategy {config.strategy!r} on a {config.grid.rows}x{config.grid.cols} grid"
         if cost.peak_bytes > self.max_slide_bytes:
             raise SlideError(
@@ -577,16 +586,16 @@ class Slides:
         """Check the configuration (grid, budget) by building its strategy, store it, and
         return the new id."""
         self.limits.check(config.grid)
-        self.budget.check(config, self.catalogue)
-        resolved = resolve_params(config.strategy, config.params, self.catalogue)
-        # Stored and served as JSON: a bank's tuple of numbers is a list there.
-        params = {k: list(v) if isinstance(v, tuple) else v for k, v in resolved.items()}
-        config = config.model_copy(update={"params": params})
+        params = resolve_params(config.strategy, config.params, self.catalogue)
+        self.budget.check(config, params, self.catalogue)
+        # Stored and served with every parameter resolved, as JSON (a tuple is a list there).
+        config = config.model_copy(update={"params": params.model_dump(mode="json")})
         slide_id = uuid.uuid4().hex
         slide = await asyncio.to_thread(
-            Slide, slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
-        )
-        await asyncio.to_thread(probe, config, self.catalogue)
+            Slide, slide_id, config, params, self.store, self._timer, self.snapshot_every,
+            self.catalogue,
+        )  # fmt: skip
+        await asyncio.to_thread(probe, config, params, self.catalogue)
         await asyncio.to_thread(self.store.create_slide, slide_id, config.model_dump(mode="json"))
         self._keep(slide)
         await self._evict()
@@ -623,8 +632,9 @@ class Slides:
         if record is None:
             raise SlideNotFoundError(f"no slide {slide_id!r}")
         config = api.SlideCreate.model_validate(record.config)
+        params = resolve_params(config.strategy, config.params, self.catalogue)
         slide = Slide(
-            slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
+            slide_id, config, params, self.store, self._timer, self.snapshot_every, self.catalogue
         )
         snapshot = self.store.snapshot(slide_id)
         if snapshot is not None and snapshot[0] <= record.n_events:
@@ -635,8 +645,9 @@ class Slides:
             except SnapshotError as error:
                 log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
                 slide = Slide(
-                    slide_id, config, self.store, self._timer, self.snapshot_every, self.catalogue
-                )
+                    slide_id, config, params, self.store, self._timer, self.snapshot_every,
+                    self.catalogue,
+                )  # fmt: skip
         # Only the events after the snapshot are read now (the others when first needed).
         slide.replay(self.store.events(slide_id, start=len(slide.history)))
         return slide

@@ -1,27 +1,18 @@
 """2-D estimators: use the row above, not only the path behind (docs/spatial.md).
 
 In a serpentine scan the tile above the current one was measured a whole row
-ago; a 1-D filter along the path has mostly forgotten it. The strategies here
-carry the previous row(s) in their state:
-
-- `nshp-wiener0`, `nshp-wiener1` (`NshpFilter`): the thesis' Non-Symmetric
-  Half-Plane filter (ch. 4, eq. 4-1 to 4-4, Algorithm 3) with the two causes of
-  its failure (section 4-2-4) removed. The state holds heights only, so the
-  y-gradient is implied by measured heights instead of carried as a state that
-  is never observed; and the state's every element is corrected with the full
-  Kalman gain and propagated with its full covariance, so the prediction uses
-  the neighbours' estimates with their correct (cross-)covariances rather than
-  as if they were noise-free inputs (no "K[slc] = 0", Algorithm 3 line 13).
-- `kf-2d` (`RowBankFilter`): a strip processor (Woods and Radewan's term)
-  whose state is a whole row of heights and their y-slopes; row to row the
-  field evolves as a Matern-3/2 process in y with process noise correlated
-  across columns, plus a plane (offset and tilts) as constant states, so the
-  model is a separable Gaussian process that the filter computes exactly. The
-  field's size and length and the tilt's scale are not assumed: a bank of
-  such filters over a grid of (sigma, length, tilt) runs in parallel and is
-  averaged with the posterior probability of each member, from the likelihood
-  of its innovations (estimated online, per slide). Its focus map carries the
-  RTS-smoothed layers (a fixed-interval smoother over the rows: `kf-2d-rts`).
+ago; a 1-D filter along the path has mostly forgotten it. The 2-D strategies
+carry the previous row(s) in their state: the NSHP filters (`nshp`) and, here,
+`kf-2d` (`RowBankFilter`), a strip processor (Woods and Radewan's term)
+whose state is a whole row of heights and their y-slopes; row to row the
+field evolves as a Matern-3/2 process in y with process noise correlated
+across columns, plus a plane (offset and tilts) as constant states, so the
+model is a separable Gaussian process that the filter computes exactly. The
+field's size and length and the tilt's scale are not assumed: a bank of
+such filters over a grid of (sigma, length, tilt) runs in parallel and is
+averaged with the posterior probability of each member, from the likelihood
+of its innovations (estimated online, per slide). Its focus map carries the
+RTS-smoothed layers (a fixed-interval smoother over the rows: `kf-2d-rts`).
 
 The floor they are measured against, `gp-oracle`, needs the simulator's true
 covariance, so it lives with the benchmarks (`focustrack.bench.oracle`).
@@ -37,117 +28,25 @@ Heights are in um, lengths in tiles.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import scipy.linalg
+from pydantic import Field, Strict
 
 from focustrack_core.domain import FocusMap, SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
-from focustrack_estimator.serpentine import FilterOptions, Gaussian, SerpentineFilter
-from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
-from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, CostModel, Strategy, tile_cost
-
-# --- NSHP ------------------------------------------------------------------------------
-
-
-def nshp_weights(offsets: np.ndarray, order: int) -> np.ndarray:
-    """Prediction weights of the support heights for the tile at offset (0, 0).
-
-    `offsets` (n, 2) holds each support tile's (d_row, d_col) from the predicted
-    tile. Order 0: the inverse-distance weighted mean of the support heights
-    (the thesis' weights, section 4-1). Order 1: the inverse-distance weighted
-    least-squares plane through them, evaluated at the tile, so the local
-    x- and y-slopes come from measured heights (where the support spans only
-    one row or column, that direction's slope is left out). Weights sum to one.
-    """
-    if order not in (0, 1):
-        raise ValueError(f"NSHP order must be 0 or 1, got {order}")
-    inverse_distance = 1.0 / np.hypot(offsets[:, 0], offsets[:, 1])
-    columns = [np.ones(len(offsets))]
-    if order == 1:
-        columns += [offsets[:, k] for k in (0, 1) if np.ptp(offsets[:, k]) > 0]
-    X = np.stack(columns, axis=1)
-    if np.linalg.matrix_rank(X) < X.shape[1]:
-        X = X[:, :1]
-    XtW = X.T * inverse_distance
-    # weights w with w @ heights = e0' (X' W X)^-1 X' W heights (the fitted plane at (0, 0))
-    return np.linalg.solve(XtW @ X, XtW)[0]
-
-
-class NshpFilter(SerpentineFilter):
-    """The NSHP Kalman filter over heights (thesis ch. 4), with the full-state correction.
-
-    State: the heights of the tiles of the current row and the `support` rows
-    above (those a later tile's support can still reach). Each step appends the
-    new tile with the support prediction height = sum(w * neighbours) + noise of
-    variance `q_um2` (eq. 4-2 and 4-4, as a growing state instead of a shift
-    register) and drops the row no longer reachable. Support (eq. 4-1, fig. 4-2,
-    M = `support`): the M tiles behind on the current row, and M rows above from
-    M columns back to M columns ahead, mirrored on rows scanned right to left.
-    """
-
-    def __init__(
-        self,
-        settings: SlideSettings,
-        *,
-        name: str,
-        order: int,
-        support: int,
-        q_um2: float,
-        max_retries: int,
-    ) -> None:
-        super().__init__(settings, FilterOptions(max_retries=max_retries))
-        if support < 1 or q_um2 <= 0:
-            raise ValueError(f"need support >= 1 and q_um2 > 0, got {support}, {q_um2}")
-        self.name = name
-        self.order, self.support, self.q_um2 = order, support, q_um2
-        self._tiles: list[Tile] = []  # the tile of each state element
-        self._kf = SqrtKalmanFilter(dim_x=1, dim_z=1)
-
-    def _support(self, tile: Tile) -> list[Tile]:
-        """The already-scanned NSHP neighbours of `tile` (eq. 4-1 with M1 = M2 = M)."""
-        M = self.support
-        behind = -1 if tile.row % 2 == 0 else 1  # serpentine: even rows go left to right
-        candidates = [Tile(tile.row, tile.col + behind * k) for k in range(1, M + 1)]
-        candidates += [
-            Tile(tile.row - k, tile.col + d) for k in range(1, M + 1) for d in range(-M, M + 1)
-        ]
-        return [t for t in candidates if self.grid.contains(t.row, t.col)]
-
-    def _predict(self, tile: Tile) -> Gaussian:
-        if not self._tiles:
-            self._kf.x = np.array([[self.settings.start_z_um]])
-            self._kf.P = np.array([[self.settings.start_sigma_um**2]])
-        else:
-            index = {t: i for i, t in enumerate(self._tiles)}
-            support = self._support(tile)
-            kept = [i for i, t in enumerate(self._tiles) if t.row >= tile.row - self.support]
-            offsets = np.array([(t.row - tile.row, t.col - tile.col) for t in support], float)
-            F = np.zeros((len(kept) + 1, len(self._tiles)))
-            F[np.arange(len(kept)), kept] = 1.0
-            F[-1, [index[t] for t in support]] = nshp_weights(offsets, self.order)
-            Q_sqrt = np.zeros((len(kept) + 1, 1))  # noise enters the new tile only
-            Q_sqrt[-1, 0] = math.sqrt(self.q_um2)
-            self._kf.predict(F=F, Q_sqrt=Q_sqrt)
-            self._tiles = [self._tiles[i] for i in kept]
-        self._tiles.append(tile)
-        return Gaussian(self._kf.x[-1, 0], float(np.sum(self._kf.P_sqrt[-1] ** 2)))
-
-    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
-        if z_um is None:
-            return prior
-        H = np.zeros((1, len(self._tiles)))
-        H[0, -1] = 1.0
-        # Full gain on every element (the thesis zeroed it outside the support): the rows
-        # above are corrected by this tile too, as the joint Gaussian requires.
-        self._kf.update(z_um, R=R_um2, H=H)
-        return Gaussian(self._kf.x[-1, 0], float(np.sum(self._kf.P_sqrt[-1] ** 2)))
-
+from focustrack_estimator.serpentine import Gaussian, RetryParams, SerpentineFilter
+from focustrack_estimator.strategy import (
+    NOMINAL_FLOPS_PER_S,
+    Cost,
+    StrategyEntry,
+    StrategyParams,
+    tile_cost,
+)
 
 # --- kf-2d: a bank of row-state (strip) filters ------------------------------------------
 
@@ -243,6 +142,9 @@ SMOOTH_BATCH_BLOCKS = 8
 class RowBankFilter(SerpentineFilter):
     """`kf-2d`: strip filters for every (sigma, length, tilt) of a grid, averaged by likelihood.
 
+    `bank` sets the grids, the reduced update and the smoother; `options` the per-tile
+    loop's (`SerpentineFilter`: kf-2d's retries, kf-2d-lean's risk rule too).
+
     Member i's weight is proportional to the likelihood of all innovations so
     far under its model (Bayesian model averaging over fixed models, the
     multiple-model adaptive estimator without switching); the tile's prior and
@@ -270,42 +172,20 @@ class RowBankFilter(SerpentineFilter):
     row's index into `models`.
     """
 
-    name = "kf-2d"
-
     def __init__(
-        self,
-        settings: SlideSettings,
-        *,
-        sigmas_um: tuple[float, ...],
-        lengths_tiles: tuple[float, ...],
-        tilt_sigmas_um_per_tile: tuple[float, ...],
-        max_retries: int,
-        window_cols: int,
-        prune_log_weight: float,
-        smooth_block_cols: int,
-        smooth_margin_cols: int,
+        self, settings: SlideSettings, bank: RowBankParams, options: RetryParams, *, name: str
     ) -> None:
-        super().__init__(settings, FilterOptions(max_retries=max_retries))
-        grid_values = (*sigmas_um, *lengths_tiles, *tilt_sigmas_um_per_tile)
-        if not (sigmas_um and lengths_tiles and tilt_sigmas_um_per_tile) or min(grid_values) <= 0:
-            raise ValueError(
-                "the bank's sigmas, lengths and tilt sigmas must be given and positive"
-            )
-        if window_cols < 1 or smooth_block_cols < 1 or smooth_margin_cols < 0:
-            raise ValueError(
-                "need window_cols >= 1, smooth_block_cols >= 1 and smooth_margin_cols >= 0, "
-                f"got {window_cols}, {smooth_block_cols}, {smooth_margin_cols}"
-            )
-        if not prune_log_weight > 0:
-            raise ValueError(f"prune_log_weight must be positive, got {prune_log_weight}")
-        self.window_cols, self.prune_log_weight = window_cols, prune_log_weight
-        self.smooth_block_cols, self.smooth_margin_cols = smooth_block_cols, smooth_margin_cols
+        super().__init__(settings, options)
+        self.name = name
+        self.window_cols, self.prune_log_weight = bank.window_cols, bank.prune_log_weight
+        self.smooth_block_cols = bank.smooth_block_cols
+        self.smooth_margin_cols = bank.smooth_margin_cols
         cols = self.grid.cols
         self.models = [
             RowModel(sigma, length, tilt, cols)
-            for sigma in sigmas_um
-            for length in lengths_tiles
-            for tilt in tilt_sigmas_um_per_tile
+            for sigma in bank.sigmas_um
+            for length in bank.lengths_tiles
+            for tilt in bank.tilt_sigmas_um_per_tile
         ]
         self.active = np.arange(len(self.models))  # members still in the bank
         self.x = np.zeros((len(self.models), N_PLANE + 2 * cols))
@@ -606,69 +486,61 @@ def _smooth_windows(
         read(k, xs, Ps)
 
 
-# --- factories ---------------------------------------------------------------------------
+# --- kf-2d's parameters, factory and cost model ---------------------------------------------
 # Defaults chosen on training seeds 0..9 (docs/spatial.md), never on the reported maps.
 
-
-def nshp_wiener0(
-    settings: SlideSettings, *, support: int = 1, q_um2: float = 0.5, max_retries: int = 3
-) -> NshpFilter:
-    """NSHP filter, order 0: the weighted mean of the support heights, plus noise."""
-    return NshpFilter(
-        settings, name="nshp-wiener0", order=0, support=support, q_um2=q_um2,
-        max_retries=max_retries,
-    )  # fmt: skip
+#: A bank's grid of one quantity: at least one value, each positive.
+BankGrid = Annotated[
+    tuple[Annotated[float, Field(gt=0.0)], ...], Strict(False), Field(min_length=1)
+]
 
 
-def nshp_wiener1(
-    settings: SlideSettings, *, support: int = 2, q_um2: float = 0.03, max_retries: int = 3
-) -> NshpFilter:
-    """NSHP filter, order 1: the support's weighted plane extrapolated to the tile, plus noise."""
-    return NshpFilter(
-        settings, name="nshp-wiener1", order=1, support=support, q_um2=q_um2,
-        max_retries=max_retries,
-    )  # fmt: skip
+class RowBankParams(StrategyParams):
+    """The strip-filter bank of `kf-2d`: its grids, its reduced update and its smoother."""
+
+    sigmas_um: BankGrid = Field(
+        (0.7, 1.4, 2.8), description="The members' field std, um (one member per combination)"
+    )
+    lengths_tiles: BankGrid = Field(
+        (4.0, 8.0, 16.0), description="The members' Matern-3/2 length scale, tiles"
+    )
+    tilt_sigmas_um_per_tile: BankGrid = Field(
+        (0.3, 1.5), description="The members' prior std of each tilt of the plane, um/tile"
+    )
+    window_cols: int = Field(
+        12,
+        ge=1,
+        description="A measurement corrects the columns within this many of its own (the "
+        "reduced update), columns",
+    )
+    prune_log_weight: float = Field(
+        20.0,
+        gt=0.0,
+        description="Members this far below the best in log likelihood leave the bank",
+    )
+    smooth_block_cols: int = Field(
+        16, ge=1, description="Columns of each block the smoother reads, columns"
+    )
+    smooth_margin_cols: int = Field(
+        8, ge=0, description="Columns on each side of a block the smoother also filters, columns"
+    )
 
 
-def kf_2d(
-    settings: SlideSettings,
-    *,
-    sigmas_um: tuple[float, ...] = (0.7, 1.4, 2.8),
-    lengths_tiles: tuple[float, ...] = (4.0, 8.0, 16.0),
-    tilt_sigmas_um_per_tile: tuple[float, ...] = (0.3, 1.5),
-    max_retries: int = 3,
-    window_cols: int = 12,
-    prune_log_weight: float = 20.0,
-    smooth_block_cols: int = 16,
-    smooth_margin_cols: int = 8,
-) -> RowBankFilter:
+class Kf2dParams(RowBankParams, RetryParams):
+    """kf-2d: the strip-filter bank, learning the slide's field and tilt (docs/spatial.md)."""
+
+
+def kf_2d(settings: SlideSettings, params: Kf2dParams) -> RowBankFilter:
     """The best 2-D estimator: the strip-filter bank, learning the slide's field and tilt.
 
-    The bank is every (sigma, length, tilt sigma) of the three grids: 18 filters.
-    `window_cols`: a measurement corrects the columns within this many of its
-    own (the reduced update); `prune_log_weight`: members this far below the
-    best (in log likelihood) leave the bank; `smooth_block_cols`,
-    `smooth_margin_cols`: the smoother's column blocks and their margins
-    (docs/spatial.md).
+    The bank is every (sigma, length, tilt sigma) of the three grids: 18 filters by default.
     """
-    return RowBankFilter(
-        settings, sigmas_um=tuple(sigmas_um), lengths_tiles=tuple(lengths_tiles),
-        tilt_sigmas_um_per_tile=tuple(tilt_sigmas_um_per_tile), max_retries=max_retries,
-        window_cols=window_cols, prune_log_weight=prune_log_weight,
-        smooth_block_cols=smooth_block_cols, smooth_margin_cols=smooth_margin_cols,
-    )  # fmt: skip
+    return RowBankFilter(settings, params, params, name="kf-2d")
 
 
-STRATEGIES: dict[str, Callable[..., Strategy]] = {
-    "kf-2d": kf_2d,
-    "nshp-wiener0": nshp_wiener0,
-    "nshp-wiener1": nshp_wiener1,
-}
-
-
-# --- cost models (the budget: focustrack_estimator.slides.Budget) ------------------------------
-# Fitted to tracemalloc's peak over a scan (tests/test_estimator_budget.py keeps them within
-# a factor of the measurement); times are counted operations at NOMINAL_FLOPS_PER_S.
+# Cost models are fitted to tracemalloc's peak over a scan (tests/test_estimator_budget.py
+# keeps them within a factor of the measurement); times are counted operations at
+# NOMINAL_FLOPS_PER_S (the budget: focustrack_estimator.slides.Budget).
 
 #: Peak bytes of a kf-2d member per element of its (dim x dim) covariance: P itself, the
 #: copies and temporaries of the row prediction, and its model's cached column
@@ -676,20 +548,14 @@ STRATEGIES: dict[str, Callable[..., Strategy]] = {
 KF2D_PEAK_FLOATS_PER_P_ELEMENT = 5.0
 
 
-def kf_2d_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
+def kf_2d_cost(settings: SlideSettings, bank: RowBankParams) -> Cost:
     """kf-2d: every member keeps a (3 + 2 cols)^2 covariance; a tile's update touches its
     window's rows of it, a new row all of it (F P F'); the smoother works on column blocks."""
     rows, cols = settings.grid.shape
-    n_members = (
-        len(params["sigmas_um"])
-        * len(params["lengths_tiles"])
-        * len(params["tilt_sigmas_um_per_tile"])
-    )
+    n_members = len(bank.sigmas_um) * len(bank.lengths_tiles) * len(bank.tilt_sigmas_um_per_tile)
     dim = N_PLANE + 2 * cols
-    window_rows = N_PLANE + 2 * min(cols, 2 * int(params["window_cols"]) + 1)
-    block_dim = N_PLANE + 2 * min(
-        cols, int(params["smooth_block_cols"]) + 2 * int(params["smooth_margin_cols"])
-    )
+    window_rows = N_PLANE + 2 * min(cols, 2 * bank.window_cols + 1)
+    block_dim = N_PLANE + 2 * min(cols, bank.smooth_block_cols + 2 * bank.smooth_margin_cols)
     state_bytes = n_members * dim * dim * 8 * KF2D_PEAK_FLOATS_PER_P_ELEMENT
     smoother_bytes = 8 * (6 * rows * block_dim**2 + 2 * n_members * rows * cols)
     flops_per_tile = n_members * dim * (6 * window_rows + 10 * dim / cols)
@@ -698,17 +564,6 @@ def kf_2d_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
     )
 
 
-def nshp_cost(settings: SlideSettings, params: Mapping[str, Any]) -> Cost:
-    """NSHP: the state holds `support` rows and the current one; every tile re-factors its
-    square-root covariance (a QR of a 2 dim x dim matrix, about 5 dim^3 operations)."""
-    rows, cols = settings.grid.shape
-    dim = min(rows, max(1, int(params["support"])) + 1) * cols
-    # P's square root, the dense F of the step and the QR's stacked input and output.
-    return tile_cost(settings) + Cost(8 * 10 * dim * dim, 5 * dim**3 / NOMINAL_FLOPS_PER_S)
-
-
-COSTS: dict[str, CostModel] = {
-    "kf-2d": kf_2d_cost,
-    "nshp-wiener0": nshp_cost,
-    "nshp-wiener1": nshp_cost,
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
+    "kf-2d": StrategyEntry(Kf2dParams, kf_2d, kf_2d_cost),
 }

@@ -12,6 +12,11 @@ The benchmark, the estimator service and the scheduler all drive strategies
 through these two calls only, so every strategy is costed and served alike.
 Strategies are deterministic: replaying the same measurements rebuilds the
 same state (the estimator service relies on that to survive restarts).
+
+Each strategy is served as a `StrategyEntry`: its parameters' model (a
+`StrategyParams` subclass, beside the strategy: every parameter's name, type,
+default, unit and bounds), its factory ``factory(settings, params)`` and its
+cost model ``cost(settings, params)``.
 """
 
 from __future__ import annotations
@@ -20,7 +25,9 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Generic, TypeVar
+
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
 from focustrack_client.models import MAX_ABS_UM
 from focustrack_core.domain import (
@@ -133,9 +140,63 @@ class Cost:
         )
 
 
-#: A strategy's cost model: called with the slide's settings and every parameter resolved
-#: (defaults included), as its factory would be.
-CostModel = Callable[[SlideSettings, Mapping[str, Any]], Cost]
+#: Magnitudes a strategy parameter may have (zero aside): beyond, its products with other
+#: quantities under- or overflow a float (1e-300 squared is 0), and it is no physical
+#: noise, length or sigma anyway (the smallest default is 1e-10).
+PARAM_MAGNITUDES = (1e-30, 1e30)
+
+
+def _null_is_the_default(schema: dict[str, Any]) -> None:
+    """Say in a parameters model's JSON schema that each parameter takes null (its default)."""
+    for parameter in schema.get("properties", {}).values():
+        if isinstance(parameter.get("type"), str):
+            parameter["type"] = [parameter["type"], "null"]
+
+
+class StrategyParams(BaseModel):
+    """A strategy's parameters: each one's name, type, default, unit (in its name or its
+    description) and bounds. Every strategy has its own model, beside it.
+
+    Values are taken as JSON gives them: an int where a float is expected, a list of
+    numbers where a tuple is (a bank's grid), never a bool where a number is; None asks
+    for the default; an unknown name is an error. Every number (and every element of a
+    tuple) is 0 or of a magnitude within `PARAM_MAGNITUDES`. Not frozen: restoring a
+    snapshot writes a strategy's attributes back, its options among them (`snapshot`).
+    """
+
+    model_config = ConfigDict(
+        extra="forbid",
+        strict=True,
+        allow_inf_nan=False,
+        json_schema_extra=_null_is_the_default,
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _none_is_the_default(cls, data: Any) -> Any:
+        if isinstance(data, Mapping):
+            return {k: v for k, v in data.items() if v is not None or k not in cls.model_fields}
+        return data
+
+    @field_validator("*")
+    @classmethod
+    def _physical(cls, value: Any) -> Any:
+        low, high = PARAM_MAGNITUDES
+        for number in value if isinstance(value, tuple) else (value,):
+            real = isinstance(number, float | int) and not isinstance(number, bool)
+            if real and number != 0 and not low <= abs(number) <= high:
+                raise ValueError(
+                    f"not a physical value (magnitudes from {low:g} to {high:g}, or 0, are): "
+                    f"{number!r}"
+                )
+        return value
+
+
+P = TypeVar("P", bound=StrategyParams)
+
+#: A strategy's cost model: called with the slide's settings and its parameters, as its
+#: factory is.
+CostModel = Callable[[SlideSettings, P], Cost]
 
 #: Floating-point operations per second the time estimates assume: numpy on one loaded
 #: core of the 2-core machine (its dense kernels run at 1-3 GFLOP/s there).
@@ -155,8 +216,8 @@ def tile_cost(settings: SlideSettings) -> Cost:
 class Strategy(ABC):
     """A scan strategy: a plan (`_plan`) and what it learns from each measurement (`_take`).
 
-    Subclasses set `name`, take their own parameters as keyword arguments after
-    the settings, and implement `_plan` and `_take`; this base class keeps the
+    Subclasses set `name`, take their parameters (their `StrategyParams` model)
+    after the settings, and implement `_plan` and `_take`; this base class keeps the
     pending acquisition and its sequence number, so asking twice for the next
     acquisition returns the same one and a measurement is only taken for it.
     """
@@ -221,3 +282,13 @@ class Strategy(ABC):
     @abstractmethod
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
         """Learn from the measurement of the pending acquisition; update `self.map`."""
+
+
+@dataclass(frozen=True)
+class StrategyEntry(Generic[P]):
+    """A served strategy: its parameters' model, its factory and its cost model, each
+    called with the slide's settings and the parameters validated by that model."""
+
+    params: type[P]
+    factory: Callable[[SlideSettings, P], Strategy]
+    cost: CostModel[P]

@@ -22,13 +22,13 @@ def _plane(rows: int, cols: int) -> np.ndarray:
     return 1.5 + 0.3 * row - 0.2 * col
 
 
-def test_registered_with_keyword_only_defaults() -> None:
+def test_registered_with_their_defaults() -> None:
     assert set(classic.STRATEGIES) == set(NAMES)
     assert all(name in registry.STRATEGIES for name in NAMES)
     assert registry.parameters("af-every-tile") == {}
     assert registry.parameters("tile-skip") == {"every": 2}
     assert set(registry.parameters("survey-delaunay")) == {"n_survey"}
-    with pytest.raises(ValueError, match="unknown parameter"):
+    with pytest.raises(ValueError, match=r"unknown parameter 'n_points'.*known: n_survey"):
         registry.create("survey-spline", default_settings(ScanGrid(20, 20)), {"n_points": 9})
 
 
@@ -52,20 +52,23 @@ def test_image_counts() -> None:
     def images(strategy: Strategy) -> int:
         return replay(strategy, truth, truth).n_images
 
-    assert images(classic.AfEveryTile(settings)) == 400 * WIDE
-    assert images(classic.TileSkip(settings)) == 200 * WIDE + 200  # thesis: 200 measured tiles
-    assert images(classic.TileSkip(settings, every=3)) == 134 * WIDE + 266
-    for cls, n_survey in [
-        (classic.SurveyBilinear, 49),
-        (classic.SurveySpline, 36),
-        (classic.SurveyDelaunay, 100),
+    assert images(registry.create("af-every-tile", settings)) == 400 * WIDE
+    assert images(registry.create("tile-skip", settings)) == 200 * WIDE + 200  # thesis: 200
+    assert images(registry.create("tile-skip", settings, {"every": 3})) == 134 * WIDE + 266
+    for name, n_survey in [
+        ("survey-bilinear", 49),
+        ("survey-spline", 36),
+        ("survey-delaunay", 100),
     ]:
-        assert images(cls(settings, n_survey=n_survey)) == n_survey * WIDE + 400
+        strategy = registry.create(name, settings, {"n_survey": n_survey})
+        assert images(strategy) == n_survey * WIDE + 400
 
 
 def test_tile_skip_reuses_the_last_measured_height() -> None:
     truth = _plane(3, 4)
-    run = replay(classic.TileSkip(default_settings(ScanGrid(3, 4)), every=3), truth, truth)
+    run = replay(
+        registry.create("tile-skip", default_settings(ScanGrid(3, 4)), {"every": 3}), truth, truth
+    )
     grid = ScanGrid(3, 4)
     for position, tile in enumerate(grid.serpentine):
         focused = grid.serpentine[position - position % 3]
@@ -73,19 +76,19 @@ def test_tile_skip_reuses_the_last_measured_height() -> None:
 
 
 @pytest.mark.parametrize(
-    ("cls", "n_survey"),
-    [(classic.SurveyBilinear, 16), (classic.SurveySpline, 25), (classic.SurveyDelaunay, 16)],
+    ("name", "n_survey"), [("survey-bilinear", 16), ("survey-spline", 25), ("survey-delaunay", 16)]
 )
-def test_survey_interpolation_is_exact_on_a_plane(cls: type[Strategy], n_survey: int) -> None:
+def test_survey_interpolation_is_exact_on_a_plane(name: str, n_survey: int) -> None:
     truth = _plane(11, 13)
-    run = replay(cls(default_settings(ScanGrid(11, 13)), n_survey=n_survey), truth, truth)
+    settings = default_settings(ScanGrid(11, 13))
+    run = replay(registry.create(name, settings, {"n_survey": n_survey}), truth, truth)
     assert np.allclose(run.focus_map.posterior_um, truth, atol=1e-9)
     assert np.allclose(run.focus_map.z_used_um, truth, atol=1e-9)
 
 
 def test_survey_pass_comes_first_then_single_frames_in_serpentine_order() -> None:
     grid = ScanGrid(5, 6)
-    strategy = classic.SurveyDelaunay(default_settings(grid), n_survey=9)
+    strategy = registry.create("survey-delaunay", default_settings(grid), {"n_survey": 9})
     truth = _plane(5, 6)
     acquisitions = []
     while (acquisition := strategy.next_acquisition()) is not None:
@@ -112,11 +115,11 @@ def test_survey_axes() -> None:
     with pytest.raises(ValueError, match="at least one survey point"):
         classic.survey_axes(0, 5, 5)
     with pytest.raises(ValueError, match="needs at least 4 survey points per axis"):
-        classic.SurveySpline(default_settings(ScanGrid(20, 20)), n_survey=9)
+        registry.create("survey-spline", default_settings(ScanGrid(20, 20)), {"n_survey": 9})
 
 
 def test_an_edge_peak_is_chased_and_a_hopeless_tile_given_up() -> None:
-    strategy = classic.AfEveryTile(default_settings(ScanGrid(1, 2), start_z_um=0.0))
+    strategy = registry.create("af-every-tile", default_settings(ScanGrid(1, 2), start_z_um=0.0))
     first = strategy.next_acquisition()
     assert first is not None
     outcome = strategy.record(first, Measurement(None, flags=frozenset({FocusFlag.EDGE_LOW})))
@@ -126,14 +129,14 @@ def test_an_edge_peak_is_chased_and_a_hopeless_tile_given_up() -> None:
 
     # Far beyond any stack: after MAX_RETRIES blocks the tile is imaged at the start height.
     truth = np.array([[1000.0, 1000.0]])
-    run = replay(classic.AfEveryTile(default_settings(ScanGrid(1, 2))), truth, truth)
+    run = replay(registry.create("af-every-tile", default_settings(ScanGrid(1, 2))), truth, truth)
     assert run.n_images == 2 * (1 + classic.MAX_RETRIES) * WIDE
     assert np.all(run.focus_map.z_used_um == 0.0) and not any(o.accepted for o in run.outcomes)
 
 
 def test_delaunay_fills_beyond_the_hull_from_the_nearest_survey_point() -> None:
     grid = ScanGrid(5, 5)
-    strategy = classic.SurveyDelaunay(default_settings(grid), n_survey=9)
+    strategy = registry.create("survey-delaunay", default_settings(grid), {"n_survey": 9})
     truth = _plane(5, 5)
     corners = {(0, 0), (0, 4), (4, 0), (4, 4)}
     while (acquisition := strategy.next_acquisition()) is not None:
@@ -152,7 +155,7 @@ def test_delaunay_fills_beyond_the_hull_from_the_nearest_survey_point() -> None:
 
 
 def test_grid_survey_fills_a_missing_node_from_its_nearest_neighbour() -> None:
-    strategy = classic.SurveyBilinear(default_settings(ScanGrid(3, 3)), n_survey=9)
+    strategy = registry.create("survey-bilinear", default_settings(ScanGrid(3, 3)), {"n_survey": 9})
     while (acquisition := strategy.next_acquisition()) is not None:
         z_um = None if (acquisition.row, acquisition.col) == (1, 1) else 2.0
         flags = frozenset({FocusFlag.FLAT}) if z_um is None else frozenset()

@@ -15,16 +15,12 @@ from focustrack_core.surfaces import (
     family_spec,
     generate_surfaces,
 )
-from focustrack_estimator.bank import ModelBank, kf_mmae
-from focustrack_estimator.kalman_strategies import (
-    KalmanStrategy,
-    PathFilter,
-    kf_wiener0,
-    kf_wiener1_dir,
-)
+from focustrack_estimator import registry
+from focustrack_estimator.bank import ModelBank
+from focustrack_estimator.kalman_strategies import KalmanStrategy, PathFilter
 from focustrack_estimator.models import WienerModel
 from focustrack_estimator.replay import replay, score
-from focustrack_estimator.serpentine import FilterOptions
+from focustrack_estimator.serpentine import FilterParams
 
 
 def random_walk_surface(grid: ScanGrid, q: float, seed: int) -> np.ndarray:
@@ -39,7 +35,7 @@ def random_walk_surface(grid: ScanGrid, q: float, seed: int) -> np.ndarray:
 def bank_strategy(settings: SlideSettings, qs: list[float], floor: float) -> KalmanStrategy:
     members = [PathFilter(WienerModel(0, q), settings, sqrt=False) for q in qs]
     bank = ModelBank(members, weight_floor=floor, nis_clip=4.0)
-    return KalmanStrategy(settings, bank, name="bank", options=FilterOptions())
+    return KalmanStrategy(settings, bank, name="bank", options=FilterParams())
 
 
 def test_the_weights_find_the_process_noise_of_the_surface() -> None:
@@ -58,7 +54,7 @@ def test_a_bank_of_one_is_that_filter() -> None:
     truth = generate_surfaces(family_spec("standard", 8, 8), 1, seed=3)[0]
     measured = add_measurement_noise(truth[None], 1.5, seed=3)[0]
     settings = default_settings(ScanGrid(8, 8))
-    single = replay(kf_wiener0(settings), truth, measured).focus_map
+    single = replay(registry.create("kf-wiener0", settings), truth, measured).focus_map
     bank = replay(bank_strategy(settings, [0.14], floor=0.0), truth, measured).focus_map
     for layer in ("prior_um", "posterior_um", "posterior_sigma_um", "smoothed_um"):
         np.testing.assert_allclose(getattr(bank, layer), getattr(single, layer), atol=1e-12)
@@ -73,21 +69,24 @@ def test_the_bank_is_as_good_as_the_best_single_model_on_every_family(family: st
         measured = add_outliers(measured, OUTLIERS[family], seed=5)
     settings = default_settings(ScanGrid(14, 14))
 
-    def prior_mae(factory) -> float:
-        runs = [replay(factory(settings), t, m) for t, m in zip(truths, measured, strict=True)]
+    def prior_mae(name: str) -> float:
+        runs = [
+            replay(registry.create(name, settings), t, m)
+            for t, m in zip(truths, measured, strict=True)
+        ]
         return score(runs, settings.dof_um).prior_mae_um
 
-    best_single = min(prior_mae(kf_wiener0), prior_mae(kf_wiener1_dir))
-    assert prior_mae(kf_mmae) <= 1.02 * best_single
+    best_single = min(prior_mae("kf-wiener0"), prior_mae("kf-wiener1-dir"))
+    assert prior_mae("kf-mmae") <= 1.02 * best_single
 
 
 def test_bad_bank_parameters_are_clear_errors() -> None:
     settings = default_settings(ScanGrid(3, 3))
-    with pytest.raises(ValueError, match="weight_floor"):
-        kf_mmae(settings, weight_floor=0.5)
-    with pytest.raises(ValueError, match="q_spread"):
-        kf_mmae(settings, q_spread=0.5)
-    with pytest.raises(ValueError, match="nis_clip"):
-        kf_mmae(settings, nis_clip=0.0)
+    for bad in ({"weight_floor": 0.5}, {"q_spread": 0.5}, {"nis_clip": 0.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            registry.create("kf-mmae", settings, bad)
+    members = [PathFilter(WienerModel(0, 0.1), settings, sqrt=False)] * 2
+    with pytest.raises(ValueError, match="weight_floor"):  # 1/2 for two members
+        ModelBank(members, weight_floor=0.5, nis_clip=1.0)
     with pytest.raises(ValueError, match="at least one member"):
         ModelBank([], weight_floor=0.0, nis_clip=1.0)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from focustrack.bench import strategies as registry
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
+from focustrack_estimator import registry
 from focustrack_estimator.lean import (
     COARSE_STEP_UM,
     SHORT_FRAMES,

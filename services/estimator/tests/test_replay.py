@@ -5,12 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack.bench import strategies as registry
 from focustrack_core.domain import Acquisition, FocusFlag, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.timing import TimingModel
-from focustrack_estimator.classic import AfEveryTile, SurveyBilinear
+from focustrack_estimator import registry
 from focustrack_estimator.replay import replay, score, simulated_measurement
 
 PITCH_UM = 200.0
@@ -36,7 +35,9 @@ def test_measurement_inside_at_and_beyond_the_edges() -> None:
 def test_cost_of_a_scan_without_retries() -> None:
     timing = TimingModel(exposure_s=0.1, xy_settle_s=0.2)
     truth = np.zeros((2, 3))
-    run = replay(AfEveryTile(default_settings(ScanGrid(2, 3))), truth, truth, timing)
+    run = replay(
+        registry.create("af-every-tile", default_settings(ScanGrid(2, 3))), truth, truth, timing
+    )
     # Serpentine over 2x3: five one-tile moves, six 41-frame stacks.
     assert run.n_images == 6 * 41
     assert run.scan_time_s == pytest.approx(5 * timing.move_s(PITCH_UM) + 6 * timing.stack_s(41))
@@ -46,7 +47,7 @@ def test_cost_of_a_scan_without_retries() -> None:
 @pytest.mark.parametrize(("height_um", "flag"), [(15.0, "edge_high"), (-15.0, "edge_low")])
 def test_an_edge_peak_costs_a_retry_on_the_same_tile(height_um: float, flag: str) -> None:
     truth = np.full((2, 3), height_um)
-    strategy = AfEveryTile(default_settings(ScanGrid(2, 3), start_z_um=0.0))
+    strategy = registry.create("af-every-tile", default_settings(ScanGrid(2, 3), start_z_um=0.0))
     first = strategy.next_acquisition()
     assert first is not None and not first.z.contains(height_um)
     assert simulated_measurement(first, height_um).flags == {FocusFlag(flag)}
@@ -63,7 +64,12 @@ def test_an_edge_peak_costs_a_retry_on_the_same_tile(height_um: float, flag: str
 def test_a_survey_pass_pays_for_its_moves() -> None:
     timing = TimingModel()
     truth = np.zeros((3, 3))
-    run = replay(SurveyBilinear(default_settings(ScanGrid(3, 3)), n_survey=4), truth, truth, timing)
+    run = replay(
+        registry.create("survey-bilinear", default_settings(ScanGrid(3, 3)), {"n_survey": 4}),
+        truth,
+        truth,
+        timing,
+    )
     # Survey (0,0) -> (0,2) -> (2,2) -> (2,0), back to (0,0), then 8 one-tile serpentine moves.
     expected_s = 4 * timing.move_s(2 * PITCH_UM) + 8 * timing.move_s(PITCH_UM)
     expected_s += 4 * timing.stack_s(41) + 9 * timing.stack_s(1)
@@ -76,7 +82,10 @@ def test_scores_pool_maps() -> None:
     truths = [rng.normal(0.0, 2.0, (4, 5)) for _ in range(2)]
     measured = [t + rng.normal(0.0, 0.6, t.shape) for t in truths]
     settings = default_settings(ScanGrid(4, 5))
-    runs = [replay(AfEveryTile(settings), t, m) for t, m in zip(truths, measured, strict=True)]
+    runs = [
+        replay(registry.create("af-every-tile", settings), t, m)
+        for t, m in zip(truths, measured, strict=True)
+    ]
     scores = score(runs, dof_um=1.0)
 
     error = np.concatenate([(m - t).ravel() for t, m in zip(truths, measured, strict=True)])
@@ -95,7 +104,11 @@ def test_scores_pool_maps() -> None:
 
 def test_replay_refuses_maps_of_another_shape() -> None:
     with pytest.raises(ValueError, match="differ from grid"):
-        replay(AfEveryTile(default_settings(ScanGrid(2, 3))), np.zeros((3, 2)), np.zeros((3, 2)))
+        replay(
+            registry.create("af-every-tile", default_settings(ScanGrid(2, 3))),
+            np.zeros((3, 2)),
+            np.zeros((3, 2)),
+        )
 
 
 def test_a_tile_that_keeps_several_frames_is_in_focus_when_one_of_them_is() -> None:

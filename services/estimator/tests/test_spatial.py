@@ -1,20 +1,21 @@
-"""2-D strategies: complete scans, the row above is used, the oracle is exact GP regression."""
+"""2-D strategies: complete scans, the row above is used, the reduced update and pruning."""
 
 from __future__ import annotations
-
-import math
-from typing import Any
 
 import numpy as np
 import pytest
 
-from focustrack.bench.oracle import gp_oracle
 from focustrack_core.domain import FocusFlag, FocusMap, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_core.surfaces import SurfaceSpec, generate_surfaces, surface_covariance
+from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_estimator import registry
+from focustrack_estimator.nshp import nshp_weights
 from focustrack_estimator.replay import replay
-from focustrack_estimator.spatial import STRATEGIES, kf_2d, nshp_weights
+from focustrack_estimator.spatial import RowBankFilter
+
+#: The 2-D strategies this file checks (kf-2d-lean is kf-2d with the lean rule: test_lean.py).
+STRATEGIES = ("kf-2d", "nshp-wiener0", "nshp-wiener1")
 
 NOISE_UM = 1.5
 
@@ -29,8 +30,8 @@ def _maps(rows: int, cols: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 def test_scan_completes_and_is_deterministic(name: str) -> None:
     truth_um, measured_um = _maps(6, 5, seed=11)
     settings = default_settings(ScanGrid(6, 5))
-    first = replay(STRATEGIES[name](settings), truth_um, measured_um)
-    second = replay(STRATEGIES[name](settings), truth_um, measured_um)
+    first = replay(registry.create(name, settings), truth_um, measured_um)
+    second = replay(registry.create(name, settings), truth_um, measured_um)
     fm = first.focus_map
     for array in (fm.prior_um, fm.prior_sigma_um, fm.posterior_um, fm.z_used_um):
         assert np.all(np.isfinite(array))
@@ -49,7 +50,7 @@ def test_edge_peak_is_reacquired_beyond_the_edge(name: str) -> None:
     truth_um, _ = _maps(4, 4, seed=5)
     measured_um = truth_um.copy()
     measured_um[1, 2] += 8.0  # above a stack centred on the prediction
-    result = replay(STRATEGIES[name](default_settings(ScanGrid(4, 4))), truth_um, measured_um)
+    result = replay(registry.create(name, default_settings(ScanGrid(4, 4))), truth_um, measured_um)
     on_tile = [o for o in result.outcomes if (o.row, o.col) == (1, 2)]
     assert len(on_tile) > 1 and not on_tile[0].accepted and on_tile[-1].accepted
     assert on_tile[-1].innovation_um is not None and on_tile[-1].innovation_um > 5.0
@@ -60,7 +61,7 @@ def test_measurement_sigma_is_used_as_r() -> None:
     settings = default_settings(ScanGrid(3, 3), start_sigma_um=5.0)
     posteriors = []
     for sigma_um in (0.1, 10.0):
-        strategy = kf_2d(settings)
+        strategy = registry.create("kf-2d", settings)
         acquisition = strategy.next_acquisition()
         assert acquisition is not None and acquisition.purpose is Purpose.SCAN
         outcome = strategy.record(acquisition, Measurement(z_um=2.0, sigma_um=sigma_um))
@@ -70,7 +71,7 @@ def test_measurement_sigma_is_used_as_r() -> None:
 
 
 def test_peakless_stacks_are_retried_then_the_prior_stands() -> None:
-    strategy = STRATEGIES["nshp-wiener0"](default_settings(ScanGrid(2, 2)), max_retries=2)
+    strategy = registry.create("nshp-wiener0", default_settings(ScanGrid(2, 2)), {"max_retries": 2})
     edge = Measurement(None, flags=frozenset({FocusFlag.EDGE_HIGH}))
     outcomes = []
     for _ in range(3):
@@ -110,7 +111,7 @@ def test_kf_2d_uses_the_row_above() -> None:
         noise_um = np.random.default_rng(seed).normal(0.0, NOISE_UM, truth_um.shape)
         measured_um = truth_um + noise_um
         settings = default_settings(ScanGrid(rows, cols), noise_sigma_um=NOISE_UM)
-        result = replay(kf_2d(settings), truth_um, measured_um)
+        result = replay(registry.create("kf-2d", settings), truth_um, measured_um)
         kf_2d_mae.append(np.mean(np.abs(result.focus_map.prior_um - truth_um)))
         baseline_mae.append(
             min(
@@ -118,39 +119,6 @@ def test_kf_2d_uses_the_row_above() -> None:
             )
         )
     assert np.mean(kf_2d_mae) < 0.8 * np.mean(baseline_mae)
-
-
-def test_gp_oracle_equals_direct_gaussian_process_regression() -> None:
-    rows, cols = 4, 5
-    spec = SurfaceSpec(rows=rows, cols=cols)
-    truth_um, measured_um = _maps(rows, cols, seed=3)
-    settings = default_settings(ScanGrid(rows, cols), start_z_um=0.5)
-    result = replay(gp_oracle(settings), truth_um, measured_um)
-
-    order = settings.grid.serpentine
-    r = np.array([t.row for t in order])
-    c = np.array([t.col for t in order])
-    K = surface_covariance(spec, r, c)
-    z = measured_um[r, c] - 0.5
-    for i, tile in enumerate(order):
-        if i == 0:
-            mean, var = 0.0, K[0, 0]
-        else:
-            A = K[:i, :i] + NOISE_UM**2 * np.eye(i)
-            mean = K[i, :i] @ np.linalg.solve(A, z[:i])
-            var = K[i, i] - K[i, :i] @ np.linalg.solve(A, K[:i, i])
-        assert result.focus_map.prior_um[tile.row, tile.col] == pytest.approx(mean + 0.5, abs=1e-9)
-        assert result.focus_map.prior_sigma_um[tile.row, tile.col] == pytest.approx(
-            math.sqrt(var), abs=1e-9
-        )
-    A = K + NOISE_UM**2 * np.eye(len(z))
-    final = 0.5 + K @ np.linalg.solve(A, z)
-    np.testing.assert_allclose(result.focus_map.posterior_um[r, c], final, atol=1e-9)
-
-
-def test_gp_oracle_rejects_a_spec_of_another_size() -> None:
-    with pytest.raises(ValueError, match="grid"):
-        gp_oracle(default_settings(ScanGrid(4, 4)), rows=20, cols=20)
 
 
 def test_nshp_weights_reproduce_constants_and_planes() -> None:
@@ -169,9 +137,10 @@ def test_nshp_weights_reproduce_constants_and_planes() -> None:
 
 def _kf_2d_scan(
     rows: int, cols: int, seed: int, **params: float
-) -> tuple[Any, FocusMap, np.ndarray]:
+) -> tuple[RowBankFilter, FocusMap, np.ndarray]:
     truth_um, measured_um = _maps(rows, cols, seed)
-    strategy = kf_2d(default_settings(ScanGrid(rows, cols)), **params)  # type: ignore[arg-type]
+    strategy = registry.create("kf-2d", default_settings(ScanGrid(rows, cols)), params)
+    assert isinstance(strategy, RowBankFilter)
     return strategy, replay(strategy, truth_um, measured_um).focus_map, truth_um
 
 

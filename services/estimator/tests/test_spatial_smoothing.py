@@ -9,9 +9,9 @@ from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
-from focustrack_estimator import spatial
+from focustrack_estimator import registry, spatial
 from focustrack_estimator.replay import replay, simulated_measurement
-from focustrack_estimator.spatial import RowModel, kf_2d, matern32, smooth_member
+from focustrack_estimator.spatial import RowModel, matern32, smooth_member
 
 NOISE_UM = 1.5
 
@@ -26,9 +26,8 @@ def test_one_member_smoother_is_gaussian_process_regression_on_all_measurements(
     truth_um = generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=4)[0]
     measured_um = _measured(truth_um, seed=4)
     settings = default_settings(ScanGrid(rows, cols), start_z_um=start_um)
-    strategy = kf_2d(
-        settings, sigmas_um=(sigma_um,), lengths_tiles=(length,), tilt_sigmas_um_per_tile=(tilt,)
-    )
+    bank = {"sigmas_um": [sigma_um], "lengths_tiles": [length], "tilt_sigmas_um_per_tile": [tilt]}
+    strategy = registry.create("kf-2d", settings, bank)
     fm = replay(strategy, truth_um, measured_um).focus_map
 
     r, c = (a.ravel() for a in np.mgrid[:rows, :cols])
@@ -49,7 +48,9 @@ def test_smoothing_improves_the_final_map_and_its_sigma_matches_the_error() -> N
     size = 12
     filtered_mae, smoothed_mae, z_scores = [], [], []
     for seed, truth_um in enumerate(generate_surfaces(SurfaceSpec(rows=size, cols=size), 3, 21)):
-        strategy = kf_2d(default_settings(ScanGrid(size, size), noise_sigma_um=NOISE_UM))
+        strategy = registry.create(
+            "kf-2d", default_settings(ScanGrid(size, size), noise_sigma_um=NOISE_UM)
+        )
         fm = replay(strategy, truth_um, _measured(truth_um, seed)).focus_map
         assert np.mean(fm.smoothed_sigma_um) < 0.9 * np.mean(fm.posterior_sigma_um)
         filtered_mae.append(np.mean(np.abs(fm.posterior_um - truth_um)))
@@ -67,7 +68,7 @@ def test_smoothed_layers_cover_the_tiles_finished_so_far() -> None:
     truth_um = generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=8)[0]
     measured_um = _measured(truth_um, seed=8)
     settings = default_settings(ScanGrid(rows, cols))
-    strategy = kf_2d(settings)
+    strategy = registry.create("kf-2d", settings)
     assert strategy.focus_map().smoothed_um is None  # nothing finished yet
     while np.isfinite(strategy.map.posterior_um).sum() < cols + 2:  # row 0, 2 tiles of row 1
         acquisition = strategy.next_acquisition()
@@ -84,7 +85,7 @@ def test_smoothed_layers_cover_the_tiles_finished_so_far() -> None:
     )
     # Asking for the map mid-scan changes nothing in the scan.
     final = replay(strategy, truth_um, measured_um).focus_map
-    untouched = replay(kf_2d(settings), truth_um, measured_um).focus_map
+    untouched = replay(registry.create("kf-2d", settings), truth_um, measured_um).focus_map
     np.testing.assert_array_equal(final.smoothed_um, untouched.smoothed_um)
     np.testing.assert_array_equal(final.posterior_um, untouched.posterior_um)
 

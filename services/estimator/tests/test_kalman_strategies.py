@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
-
 import numpy as np
 import pytest
 
@@ -15,7 +13,7 @@ from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import innovation_diagnostics
 from focustrack_estimator.kalman_strategies import STRATEGIES, KalmanStrategy
 from focustrack_estimator.replay import replay, simulated_measurement
-from focustrack_estimator.serpentine import FilterOptions
+from focustrack_estimator.serpentine import FilterParams
 
 
 def noisy(truth_um: np.ndarray, sigma_um: float, seed: int) -> np.ndarray:
@@ -30,7 +28,7 @@ def edge(flag: FocusFlag) -> Measurement:
 def test_every_strategy_completes_a_scan(name: str) -> None:
     truth = generate_surfaces(SurfaceSpec(rows=8, cols=10), 1, seed=0)[0]
     settings = default_settings(ScanGrid(8, 10))
-    strategy = STRATEGIES[name](settings)
+    strategy = registry.create(name, settings)
     result = replay(strategy, truth, noisy(truth, 1.5, seed=0))
     fm = result.focus_map
     for estimate in (fm.prior_um, fm.prior_sigma_um, fm.posterior_um, fm.posterior_sigma_um):
@@ -49,7 +47,7 @@ def test_direction_aware_filter_tracks_a_tilted_plane() -> None:
     rows, cols = np.mgrid[0:12, 0:12]
     truth = 5.0 + 0.4 * cols - 0.3 * rows
     settings = default_settings(ScanGrid(12, 12), noise_sigma_um=0.2)
-    result = replay(STRATEGIES["kf-wiener1-dir"](settings), truth, noisy(truth, 0.2, seed=1))
+    result = replay(registry.create("kf-wiener1-dir", settings), truth, noisy(truth, 0.2, seed=1))
     error = np.abs(result.focus_map.posterior_um - truth)
     prior_error = np.abs(result.focus_map.prior_um - truth)[2:]  # once both slopes are seen
     assert error.mean() < 0.1  # below the measurement noise (MAE 0.16 um)
@@ -63,7 +61,9 @@ def test_zeroth_order_filter_lags_a_slope_the_direction_aware_one_follows() -> N
     settings = default_settings(ScanGrid(6, 20), noise_sigma_um=0.1)
     measured = noisy(truth, 0.1, seed=2)
     errors = {
-        name: np.abs(replay(STRATEGIES[name](settings), truth, measured).focus_map.prior_um - truth)
+        name: np.abs(
+            replay(registry.create(name, settings), truth, measured).focus_map.prior_um - truth
+        )
         for name in ("kf-wiener0", "kf-wiener1-dir")
     }
     assert errors["kf-wiener1-dir"][2:].mean() < 0.5 * errors["kf-wiener0"][2:].mean()
@@ -157,7 +157,7 @@ def test_a_scan_always_ends_even_without_any_peak() -> None:
 
 def run_log(name: str, truth: np.ndarray, measured: np.ndarray) -> list:
     """A scan's (acquisition, measurement) log, with some flat curves among the stacks."""
-    strategy = STRATEGIES[name](default_settings(ScanGrid(*truth.shape)))
+    strategy = registry.create(name, default_settings(ScanGrid(*truth.shape)))
     log = []
     while (acquisition := strategy.next_acquisition()) is not None:
         if acquisition.index % 17 == 5:
@@ -175,8 +175,8 @@ def run_log(name: str, truth: np.ndarray, measured: np.ndarray) -> list:
 def test_replaying_the_measurement_log_rebuilds_the_same_state(name: str) -> None:
     truth = generate_surfaces(SurfaceSpec(rows=6, cols=7), 1, seed=4)[0]
     log = run_log(name, truth, noisy(truth, 1.5, seed=4))
-    original = STRATEGIES[name](default_settings(ScanGrid(6, 7)))
-    rebuilt = STRATEGIES[name](default_settings(ScanGrid(6, 7)))
+    original = registry.create(name, default_settings(ScanGrid(6, 7)))
+    rebuilt = registry.create(name, default_settings(ScanGrid(6, 7)))
     half = len(log) // 2
     for acquisition, measurement in log:
         original.record(acquisition, measurement)
@@ -211,7 +211,9 @@ def test_height_noise_helps_on_an_isolated_jump() -> None:
     settings = default_settings(ScanGrid(1, 60), noise_sigma_um=0.3)
 
     def error_after_jump(q_height_um2: float) -> float:
-        strategy = STRATEGIES["kf-wiener1"](settings, q=1e-4, q_height_um2=q_height_um2)
+        strategy = registry.create(
+            "kf-wiener1", settings, {"q": 1e-4, "q_height_um2": q_height_um2}
+        )
         prior = replay(strategy, truth, measured).focus_map.prior_um
         return float(np.abs(prior - truth)[0, 31:].mean())
 
@@ -229,7 +231,7 @@ def test_innovations_are_white_only_when_the_model_fits() -> None:
     measured = noisy(truth, 1.5, seed=6)
 
     def diagnose(q: float):
-        strategy = STRATEGIES["kf-wiener0"](default_settings(grid), q=q)
+        strategy = registry.create("kf-wiener0", default_settings(grid), {"q": q})
         replay(strategy, truth, measured)
         return innovation_diagnostics(*strategy.innovations())
 
@@ -240,14 +242,11 @@ def test_innovations_are_white_only_when_the_model_fits() -> None:
 
 
 @pytest.mark.parametrize("name", sorted(STRATEGIES))
-def test_factories_take_options_and_keyword_only_parameters_with_defaults(name: str) -> None:
-    parameters = list(inspect.signature(STRATEGIES[name]).parameters.values())
-    assert [p.name for p in parameters[:2]] == ["settings", "options"]
-    assert isinstance(parameters[1].default, FilterOptions)
-    for parameter in parameters[2:]:
-        assert parameter.kind is inspect.Parameter.KEYWORD_ONLY
-        assert parameter.default is not inspect.Parameter.empty
-    assert STRATEGIES[name](default_settings(ScanGrid(2, 2))).name == name
+def test_each_strategy_takes_the_loops_options_as_parameters(name: str) -> None:
+    assert issubclass(STRATEGIES[name].params, FilterParams)
+    strategy = registry.create(name, default_settings(ScanGrid(2, 2)), {"gate_patience": 4})
+    assert isinstance(strategy, KalmanStrategy) and strategy.name == name
+    assert strategy.options.gate_patience == 4  # read by the loop, from construction on
     # To a user, the options are parameters like the others.
     assert {"max_retries", "sqrt", "gate_nis", "gate_patience", "adapt_r"} <= set(
         registry.parameters(name)
@@ -259,9 +258,9 @@ def test_bad_parameters_are_clear_errors() -> None:
     with pytest.raises(ValueError, match="max_retries"):
         registry.create("kf-wiener0", settings, {"max_retries": -1})
     with pytest.raises(ValueError, match="beta"):
-        STRATEGIES["kf-gm1"](settings, beta_per_tile=2.0)
+        registry.create("kf-gm1", settings, {"beta_per_tile": 2.0})
     with pytest.raises(ValueError, match="q"):
-        STRATEGIES["kf-wiener1"](settings, q=-1.0)
+        registry.create("kf-wiener1", settings, {"q": -1.0})
 
 
 @pytest.mark.parametrize("name", sorted(STRATEGIES))
@@ -269,7 +268,7 @@ def test_square_root_form_agrees_with_the_covariance_form(name: str) -> None:
     truth = generate_surfaces(SurfaceSpec(rows=8, cols=9), 1, seed=7)[0]
     measured = noisy(truth, 1.5, seed=7)
     settings = default_settings(ScanGrid(8, 9))
-    plain = replay(STRATEGIES[name](settings), truth, measured).focus_map
+    plain = replay(registry.create(name, settings), truth, measured).focus_map
     root = replay(registry.create(name, settings, {"sqrt": True}), truth, measured).focus_map
     for layer in (
         "prior_um",

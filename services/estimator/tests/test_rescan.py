@@ -5,15 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack.bench import strategies as registry
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_estimator import registry
 from focustrack_estimator.lean import COARSE_STEP_UM
 from focustrack_estimator.replay import Drift, replay, score
 from focustrack_estimator.rescan import RescanFilter
-from focustrack_instrument_sim import simulated
-from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
 GRID = ScanGrid(10, 10)
 SETTINGS = default_settings(GRID, noise_sigma_um=0.1, dof_um=0.9)
@@ -62,12 +60,3 @@ def test_a_prior_map_of_the_wrong_shape_is_refused() -> None:
     without = registry.create("kf-rescan", SETTINGS)  # no map: every tile as unsure as the start
     first = without.next_acquisition()
     assert first is not None and first.z.step_um == COARSE_STEP_UM  # a coarse search
-
-
-def test_the_simulator_moves_a_slide_for_a_second_pass() -> None:
-    def truth(z_offset_um: float = 0.0) -> np.ndarray:
-        options = SimulatorOptions(rows=3, cols=4, width=32, height=32, z_offset_um=z_offset_um)
-        microscope = simulated.microscope_from_options(options)
-        return microscope.truth_um("slide-0")[0]
-
-    assert np.allclose(truth(12.0) - truth(), 12.0)

@@ -10,6 +10,7 @@ from focustrack_core.domain import Measurement
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
+from focustrack_estimator import registry
 from focustrack_estimator.kalman_strategies import STRATEGIES, rts_smooth
 from focustrack_estimator.replay import replay
 
@@ -46,7 +47,7 @@ def test_smoothed_map_beats_the_filtered_one(name: str) -> None:
     rng = np.random.default_rng(11)
     filtered, smoothed = [], []
     for truth in truths:
-        strategy = STRATEGIES[name](default_settings(ScanGrid(12, 12)))
+        strategy = registry.create(name, default_settings(ScanGrid(12, 12)))
         fm = replay(strategy, truth, truth + rng.normal(0.0, 1.5, truth.shape)).focus_map
         assert np.all(fm.smoothed_sigma_um <= fm.posterior_sigma_um + 1e-9)
         last = strategy.grid.serpentine[-1]  # smoothing ends where the filter ends
@@ -59,7 +60,7 @@ def test_smoothed_map_beats_the_filtered_one(name: str) -> None:
 
 
 def test_smoothed_layers_cover_the_tiles_finished_so_far() -> None:
-    strategy = STRATEGIES["kf-wiener0"](default_settings(ScanGrid(3, 4)))
+    strategy = registry.create("kf-wiener0", default_settings(ScanGrid(3, 4)))
     assert strategy.focus_map().smoothed_um is None  # nothing finished yet
     for z_um in (1.0, 2.0, 0.5):
         strategy.record(strategy.next_acquisition(), Measurement(z_um=z_um))
