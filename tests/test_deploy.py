@@ -27,6 +27,7 @@ from focustrack.bus_secrets import PUBLIC_FILES, ROLES, write_bus_files
 from focustrack.cli import main
 from focustrack_core import health
 from focustrack_core.config import with_environment
+from focustrack_core.settings import ServiceSettings
 from focustrack_core.wire import router
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,6 +48,30 @@ def compose() -> dict[str, Any]:
 def defaults(value: Any) -> str:
     """A compose value with every `${NAME:-default}` taken at its default."""
     return re.sub(r"\$\{\w+:-([^}]*)\}", r"\1", str(value))
+
+
+def configured(
+    module_name: str, environ: dict[str, str], monkeypatch: pytest.MonkeyPatch
+) -> tuple[str, set[str], Any]:
+    """A service command's environment prefix, the variables it reads, and its options as
+    `environ` sets them (from its settings model, or from its parser where it has none)."""
+    module = importlib.import_module(module_name)
+    settings_cls = getattr(module, "Settings", None)
+    if isinstance(settings_cls, type) and issubclass(settings_cls, ServiceSettings):
+        variables = {settings_cls.variable(name) for name in settings_cls.model_fields}
+        for name in [*variables, settings_cls.variable("settings")]:
+            monkeypatch.delenv(name, raising=False)
+        for name, value in environ.items():
+            monkeypatch.setenv(name, value)
+        return settings_cls.env_prefix(), variables, settings_cls.load()
+    parser = argparse.ArgumentParser()
+    module.add_arguments(parser)
+    variables = {module.ENV_PREFIX + a.dest.upper() for a in parser._actions if a.option_strings}
+    return (
+        module.ENV_PREFIX,
+        variables,
+        with_environment(parser, module.ENV_PREFIX, environ).parse_args([]),
+    )
 
 
 def test_every_service_is_its_own_image(compose: dict[str, Any]) -> None:
@@ -75,18 +100,14 @@ def test_each_dockerfile_runs_its_distributions_console_script(name: str) -> Non
 
 @pytest.mark.parametrize("name", sorted(SERVICES))
 def test_each_service_is_configured_by_environment_its_command_accepts(
-    compose: dict[str, Any], name: str
+    compose: dict[str, Any], name: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     service = compose["services"][name]
     environ = {key: defaults(value) for key, value in service["environment"].items()}
-    module = importlib.import_module(SERVICES[name][1])
-    unknown = [key for key in environ if not key.startswith(module.ENV_PREFIX)]
+    prefix, options, args = configured(SERVICES[name][1], environ, monkeypatch)
+    unknown = [key for key in environ if not key.startswith(prefix)]
     assert not unknown, f"{name}: variables its command does not read: {unknown}"
-    parser = argparse.ArgumentParser()
-    module.add_arguments(parser)
-    options = {module.ENV_PREFIX + a.dest.upper() for a in parser._actions if a.option_strings}
     assert set(environ) <= options, f"{name}: no such option: {set(environ) - options}"
-    args = with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
     if name != "estimator":
         assert args.connect == ["tcp/zenoh:7447"]
     if name == "estimator":
@@ -141,7 +162,7 @@ def test_services_run_on_a_read_only_root_and_the_router_can_be_ours(
 
 
 def test_the_secure_overlay_configures_every_role_with_options_its_command_accepts(
-    compose: dict[str, Any], tmp_path: Path
+    compose: dict[str, Any], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     secure = yaml.safe_load((ROOT / "compose.secure.yaml").read_text())
     services = secure["services"]
@@ -153,12 +174,9 @@ def test_the_secure_overlay_configures_every_role_with_options_its_command_accep
     assert args.listen == ["tls/0.0.0.0:7447"]
     assert str(args.zenoh_config) == "/run/focustrack/router.json5"
     for name in ("instrument", "focus", "scheduler"):
-        module = importlib.import_module(SERVICES[name][1])
-        parser = argparse.ArgumentParser()
-        module.add_arguments(parser)
         merged = compose["services"][name]["environment"] | services[name]["environment"]
         environ = {key: defaults(value) for key, value in merged.items()}
-        args = with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
+        _, _, args = configured(SERVICES[name][1], environ, monkeypatch)
         assert args.connect == ["tls/zenoh:7447"]
         assert str(args.zenoh_config) == f"/run/focustrack/{name}.json5"
         if name != "instrument":
