@@ -1,9 +1,12 @@
-"""The focus service's options (flags, environment) -> its `FocusSettings` and `FocusLimits`."""
+"""The focus service's command: its options (flags, environment) -> its `FocusSettings` and
+`FocusLimits`, and the modules it leaves until a stack needs them."""
 
 from __future__ import annotations
 
 import argparse
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -70,7 +73,6 @@ def test_the_environment_sets_the_limits_and_a_fixed_low_pass(
         (["--max-frames", "0"], "focus service not started: the focus service's limits must"),
         (["--body-timeout-s", "0"], "focus service not started: the body timeout must be"),
         (["--lowpass-sigma-px", "-1"], "focus service not started: low-pass sigma must be"),
-        (["--host", "0.0.0.0"], "without a token"),
     ],
 )
 def test_values_the_focus_maths_refuse_stop_the_command_with_status_2(
@@ -96,3 +98,17 @@ def test_values_the_options_refuse_are_usage_errors(
         main(argv)
     assert exit_.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_the_command_starts_without_the_modules_only_stacks_need() -> None:
+    """scipy (2 s to import) and tifffile wait for the first stack or curve that needs them,
+    so /healthz answers sooner; the focus maths imports them where it uses them."""
+    heavy = ("scipy", "tifffile", "matplotlib")
+    probe = (
+        "import sys, focustrack_focus.service; "
+        f"print(sorted({{m.split('.')[0] for m in sys.modules}} & {set(heavy)!r}))"
+    )
+    started = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert started.stdout.strip() == "[]", started.stdout
