@@ -413,6 +413,7 @@ def with_bus_health(app: FastAPI, bus_health: Callable[[], dict[str, str]]) -> F
     return app
 
 
+#: The command's settings model (`focustrack serve focus` parses it and calls `run`).
 Settings = FocusServiceSettings
 
 #: The `focustrack-focus` console script (and `python -m focustrack_focus`).
