@@ -6,9 +6,9 @@ import argparse
 import json
 from pathlib import Path
 
-from focustrack.bench import focus
-from focustrack.bench.focus_real import Reading, summarise, windows
-from focustrack_core.domain import FocusFlag
+import numpy as np
+
+from focustrack.bench import focus, focus_real
 
 
 def test_quick_bench_writes_every_figure_per_metric(tmp_path: Path, capsys) -> None:
@@ -27,22 +27,24 @@ def test_quick_bench_writes_every_figure_per_metric(tmp_path: Path, capsys) -> N
     assert "accuracy on simulated stacks" in capsys.readouterr().out
 
 
-def test_real_summary_counts_edges_coverage_and_silent_misses() -> None:
-    """`bench focus --real`'s figures on hand-made readings (errors and sigma in steps)."""
-    high, low = frozenset({FocusFlag.EDGE_HIGH}), frozenset({FocusFlag.EDGE_LOW})
-    rows = [
-        Reading(2, "5x1", 0.4, 0.1, frozenset(), 0),  # within 1, covered (0.4 <= 0.2 + 0.5)
-        Reading(2, "5x1", 1.5, 0.2, frozenset(), 0),  # within 2, not covered
-        Reading(2, "5x1", 5.0, 0.5, frozenset(), 0),  # silent: far, no flag, outside 2 sigma
-        Reading(2, "5x1", 5.0, None, high, 1),  # label above, edge_high: right
-        Reading(2, "5x1", -5.0, None, high, -1),  # label below, edge_high: wrong
-        Reading(2, "5x1", -5.0, 0.3, frozenset({FocusFlag.MULTI_PEAK}), -1),  # warned
-        Reading(2, "5x1", None, None, low, -1),  # right
-    ]
-    figures = summarise(rows)
-    assert figures["within_1_step"] == 1 / 3 and figures["within_2_steps"] == 2 / 3
-    assert figures["coverage_2sigma"] == 1 / 3
-    assert figures["edge_right"] == 2 / 4 and figures["edge_wrong"] == 1 / 4
-    assert figures["silent_miss"] == 1 / 7
-    shapes = {w.kind for w in windows(100, 50)}
-    assert "full" in shapes and {"5x1", "11x3"} <= shapes
+def test_targets_leave_out_unusable_measures_and_say_what_they_meet() -> None:
+    good = {"within_1_step": 1.0, "coverage_2sigma": 1.0, "silent_miss": 0.0}
+    good_windows = good | {"edge_right": 1.0, "edge_wrong": 0.0}
+    flat = {"within_1_step": np.nan, "coverage_2sigma": np.nan, "silent_miss": 0.0}
+    figures = {
+        "BRENNER": {
+            "full": good,
+            "windows": good_windows,
+            "windows_11x3": {"median_sigma_steps": 0.1},
+        },
+        "VOLLATH_F4": {
+            "full": flat,
+            "windows": flat | {"edge_right": 0.0, "edge_wrong": 0.0},
+            "windows_11x3": {"median_sigma_steps": np.nan},
+        },
+    }
+    assert all(misses == [] for misses in focus_real.targets(figures, {"VOLLATH_F4"}).values())
+    assert "VOLLATH_F4" in focus_real.targets(figures)["coverage_2sigma >= 92%"]
+    verdict = focus_real.unusable_targets(figures, {"VOLLATH_F4"})["VOLLATH_F4"]
+    assert verdict["met"] == ["edge flags wrong <= 0.5%", "silent misses <= 1 in 1000"]
+    assert "edge flags right >= 98%" in verdict["not_met"]

@@ -1,6 +1,6 @@
-"""Safe network defaults (issue 13): off loopback the estimator and the focus service refuse
-to start without a token unless --insecure; with one, /v1 requires it; compose takes the
-tokens from a .env file (.env.example documents them)."""
+"""Safe network defaults (issue 13): off loopback the estimator refuses to start without a
+token unless --insecure; with one, /v1 requires it; compose takes the tokens from a .env file
+(.env.example documents them). The focus service's own: services/focus/tests."""
 
 from __future__ import annotations
 
@@ -9,15 +9,12 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import httpx
-from fastapi import FastAPI
 
 from focustrack_core.serving import is_loopback, refuse_open_network
 from focustrack_core.wire.session import free_port
-from focustrack_focus.app import create_app
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,16 +39,14 @@ def test_loopback_is_told_apart_from_the_network() -> None:
     assert message and "FOCUSTRACK_FOCUS_TOKEN" in message and "--insecure" in message
 
 
-def test_both_services_refuse_the_network_without_a_token(tmp_path: Path) -> None:
+def test_the_estimator_refuses_the_network_without_a_token(tmp_path: Path) -> None:
     store = str(tmp_path / "e.sqlite")
-    for module, args in (
-        ("focustrack_estimator", ["--store", store]),
-        ("focustrack_focus", ["--connect", "tcp/127.0.0.1:1"]),  # refused before any Zenoh
-    ):
-        process = _run(module, "--host", "0.0.0.0", "--port", str(free_port()), *args)
-        out, err = process.communicate(timeout=120)
-        assert process.returncode == 2, (out, err)
-        assert "without a token" in err and "--insecure" in err and "Traceback" not in err
+    process = _run(
+        "focustrack_estimator", "--host", "0.0.0.0", "--port", str(free_port()), "--store", store
+    )
+    out, err = process.communicate(timeout=120)
+    assert process.returncode == 2, (out, err)
+    assert "without a token" in err and "--insecure" in err and "Traceback" not in err
     assert not Path(store).exists()  # refused before the store was touched
 
 
@@ -87,17 +82,6 @@ def test_the_estimator_on_the_network_with_a_token_or_insecure(tmp_path: Path) -
         finally:
             process.terminate()
             process.wait(60)
-
-
-def test_the_focus_api_requires_its_token(serve: Callable[[FastAPI], str]) -> None:
-    url = serve(create_app(token="f0cus"))
-    curve = {"z_um": [0, 1, 2], "scores": [1, 2, 1]}
-    assert httpx.post(f"{url}/v1/focus/curve", json=curve).status_code == 401
-    wrong = {"Authorization": "Bearer nope"}
-    assert httpx.post(f"{url}/v1/focus/curve", json=curve, headers=wrong).status_code == 401
-    right = {"Authorization": "Bearer f0cus"}
-    assert httpx.post(f"{url}/v1/focus/curve", json=curve, headers=right).status_code == 200
-    assert httpx.get(f"{url}/healthz").status_code == 200  # health checks need no token
 
 
 def test_compose_takes_every_token_from_the_env_file() -> None:

@@ -39,10 +39,12 @@ from tqdm import tqdm
 from focustrack.bench import focus_real
 from focustrack_core.domain import FocusFlag
 from focustrack_core.geometry import ScanGrid
+from focustrack_focus import calibration
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import MAD_TO_SIGMA, PeakMode
 from focustrack_focus.pipeline import FocusSettings, focus_scores, focus_stack
 from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
+from focustrack_focus.real_data import WSI_STEP_UM, YEAST_FOCUS_PLANE, load_smear, load_yeast
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, Slide
 from focustrack_instrument_sim.specimen import SpecimenSpec
 
@@ -66,7 +68,6 @@ BENCH_SLIDE = "bench"
 _PITCH_UM = 10.0
 
 REAL_DIR = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real"
-YEAST_FOCUS_PLANE = 17  # the source project's label (README of the yeast folder)
 
 
 @dataclass(frozen=True)
@@ -269,31 +270,6 @@ def speed_frames(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return grey, rgb
 
 
-def load_smear(folder: Path) -> tuple[np.ndarray, np.ndarray]:
-    """The lip smear stack: planes (n, h, w, 3) cropped to a common centre, and plane index (n,)."""
-    planes = sorted(folder.glob("*.bmp"), key=lambda path: int(path.stem))
-    images: list[np.ndarray] = [cv2.imread(str(path), cv2.IMREAD_COLOR_RGB) for path in planes]  # type: ignore[misc]
-    height = min(image.shape[0] for image in images)
-    width = min(image.shape[1] for image in images)
-
-    def centre(image: np.ndarray) -> np.ndarray:
-        y0 = (image.shape[0] - height) // 2
-        x0 = (image.shape[1] - width) // 2
-        return image[y0 : y0 + height, x0 : x0 + width]
-
-    return np.stack([centre(image) for image in images]), np.array(
-        [int(p.stem) for p in planes], dtype=np.float64
-    )
-
-
-def load_yeast(folder: Path) -> tuple[np.ndarray, np.ndarray]:
-    """The yeast stack (34, 63, 60) uint16 and its z (um, 0.3 um steps, plane 0 at 0)."""
-    import tifffile
-
-    frames = tifffile.imread(folder / "zstack.tif")
-    return frames, 0.3 * np.arange(frames.shape[0])
-
-
 def real_data(settings_by_metric: dict[str, FocusSettings], real_dir: Path) -> dict[str, dict]:
     """Best plane per metric on the smear (label 0) and the yeast (label 17, both modes)."""
     out: dict[str, dict] = {}
@@ -348,28 +324,31 @@ def run_real(args: argparse.Namespace) -> int:
     folder = args.real_dir / "wsi_focus_curves"
     if not folder.is_dir():
         raise SystemExit(f"focustrack bench focus --real: {folder} is missing (see its README)")
-    calibration = focus_real.calibrate(folder)
-    readings = focus_real.real_curves(folder, calibration=calibration)
-    report = focus_real.report(readings, focus_real.REPORT_FIELDS)
-    fit = focus_real.report(readings, focus_real.FIT_FIELDS)
+    metrics = focus_real.REAL_METRICS
+    constants = calibration.calibrate(folder, tqdm(metrics, desc="real curves", unit="metric"))
+    readings = calibration.real_curves(
+        folder, tqdm(metrics, desc="real curves", unit="metric"), calibration=constants
+    )
+    report = calibration.report(readings, calibration.REPORT_FIELDS)
+    fit = calibration.report(readings, calibration.FIT_FIELDS)
     print(
-        f"source: {folder} (real WSI curves, {focus_real.WSI_STEP_UM} um steps); errors, sigma "
+        f"source: {folder} (real WSI curves, {WSI_STEP_UM} um steps); errors, sigma "
         "in steps against the hand label; coverage allows half a step for its rounding"
     )
-    unusable = {m: c.unusable_because for m, c in calibration.items() if not c.usable}
+    unusable = {m: c.unusable_because for m, c in constants.items() if not c.usable}
 
-    def systematic(c: focus_real.Calibration) -> str:
+    def systematic(c: calibration.Calibration) -> str:
         if c.systematic_sigma_steps is None:  # none up to the cap reached the coverage
-            return f"{'>' + str(focus_real.MEDIAN_SIGMA_TARGET_STEPS):>8}"
+            return f"{'>' + str(calibration.MEDIAN_SIGMA_TARGET_STEPS):>8}"
         return f"{c.systematic_sigma_steps:>8.2f}"
 
     print(
         "learnt on the fit fields per measure: noise (share of the maximum) and systematic "
-        f"sigma (steps, for {focus_real.CALIBRATION_COVERAGE:.0%} coverage):\n  "
+        f"sigma (steps, for {calibration.CALIBRATION_COVERAGE:.0%} coverage):\n  "
         + "\n  ".join(
             f"{metric:<24}{c.relative_noise:>10.2g}{systematic(c)}"
             + ("" if c.usable else f"  UNUSABLE: {c.unusable_because}")
-            for metric, c in calibration.items()
+            for metric, c in constants.items()
         )
     )
     focus_real.print_report(report, "report fields 2, 4, ..., 20 (not used to fit)", unusable)
@@ -393,10 +372,10 @@ def run_real(args: argparse.Namespace) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             "source": "wsi_focus_curves",
-            "step_um": focus_real.WSI_STEP_UM,
-            "report_fields": list(focus_real.REPORT_FIELDS),
-            "fit_fields": list(focus_real.FIT_FIELDS),
-            "calibration": {m: asdict(c) for m, c in calibration.items()},
+            "step_um": WSI_STEP_UM,
+            "report_fields": list(calibration.REPORT_FIELDS),
+            "fit_fields": list(calibration.FIT_FIELDS),
+            "calibration": {m: asdict(c) for m, c in constants.items()},
             "metrics": report,
             "fit_metrics": fit,
             "targets": met,

@@ -29,7 +29,6 @@ from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
 import numpy as np
-import tifffile
 from fastapi import Depends, FastAPI, File, Form, HTTPException, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
@@ -176,8 +175,11 @@ def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
     return tuple(int(side) for side in shape), dtype.itemsize
 
 
-def _tiff_shape(data: bytes, limits: FocusLimits) -> tuple[tuple[int, ...], int]:
-    """Pages and the largest page's shape and item size, from the TIFF's tags alone."""
+def _read_tiff(data: bytes, limits: FocusLimits) -> np.ndarray:
+    """The pages of a TIFF, once their count and the largest page's shape and item size, read
+    from the TIFF's tags alone, are within `limits` (TooLargeError)."""
+    import tifffile  # imported on first use, not at start-up
+
     with tifffile.TiffFile(io.BytesIO(data)) as tiff:
         n_pages, itemsize = 0, 1
         largest: tuple[int, ...] = (0,)
@@ -188,7 +190,8 @@ def _tiff_shape(data: bytes, limits: FocusLimits) -> tuple[tuple[int, ...], int]
             shape = tuple(int(side) for side in page.shape)
             if math.prod(shape) >= math.prod(largest):
                 largest, itemsize = shape, np.dtype(page.dtype).itemsize
-        return (n_pages, *largest), itemsize
+    _check_size((n_pages, *largest), itemsize, limits)
+    return tifffile.imread(io.BytesIO(data))
 
 
 def decode_stack(data: bytes, limits: FocusLimits | None = None) -> np.ndarray:
@@ -207,8 +210,7 @@ def decode_stack(data: bytes, limits: FocusLimits | None = None) -> np.ndarray:
             raise ValueError(f"the .npy file cannot be read: {error}") from None
     if data[:4] in _TIFF_MAGICS:
         try:
-            _check_size(*_tiff_shape(data, limits), limits)
-            return tifffile.imread(io.BytesIO(data))
+            return _read_tiff(data, limits)
         except TooLargeError:
             raise
         except Exception as error:  # tifffile raises many types on a broken file

@@ -41,7 +41,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import curve_fit, minimize_scalar
 
 from focustrack_core.domain import FocusFlag
 from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, score_noise
@@ -94,6 +93,8 @@ def fit_curve(z_um: np.ndarray, scores: np.ndarray, mu0_um: float) -> CurveFit |
         return height * lorentzian(z, mu, gamma, b)
 
     span_um = float(z_um[-1] - z_um[0])
+    from scipy.optimize import curve_fit  # imported on first use: 0.5 s, not at start-up
+
     try:
         params, _ = curve_fit(
             model,
@@ -192,6 +193,8 @@ def _fit_mu(z_um: np.ndarray, s: np.ndarray, gamma_um: float, b: float) -> float
     grid = np.linspace(low, high, 81)
     best = int(np.argmin([_profile(z_um, s, mu, gamma_um, b) for mu in grid]))
     step = grid[1] - grid[0]
+    from scipy.optimize import minimize_scalar  # imported on first use, not at start-up
+
     result = minimize_scalar(
         lambda mu: _profile(z_um, s, mu, gamma_um, b),
         bounds=(grid[best] - step, grid[best] + step),

@@ -67,8 +67,6 @@ from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
-from scipy import special
-from scipy.signal import find_peaks
 
 from focustrack_core.domain import FocusFlag
 
@@ -350,6 +348,8 @@ def _candidates(
     # prominence of every peak is still measured from the curve's own frames
     padded = np.concatenate([[s.min()], s, [s.min()]])
     floor = min(settings.multi_peak_share, settings.end_rise_share) * span
+    from scipy.signal import find_peaks  # imported on first use: 1.5 s, not at start-up
+
     found, props = find_peaks(padded, prominence=max(floor, 3.0 * judged_noise))
     indices, prominences = found - 1, props["prominences"]
     is_end = (indices == 0) | (indices == s.size - 1)
@@ -433,6 +433,8 @@ class _TopChances:
         if judged_noise <= 0.0:  # no noise to judge by (`find_peak`)
             return cls(np.zeros(s.size), far, 1.0)
         drop = np.maximum(s[chosen] - s, 0.0) / (math.sqrt(2.0) * judged_noise)
+        from scipy import special  # imported on first use, not at start-up
+
         chances = 0.5 * special.erfc(drop / math.sqrt(2.0))
         for other in others:
             chances[np.abs(frames - other) < distance] = 0.0

@@ -18,25 +18,26 @@ the router answers, so the service starts before the router (``/healthz`` says
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
 import uvicorn
 import zenoh
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
 
-from focustrack_core.config import command_main
 from focustrack_core.serving import refuse_open_network
+from focustrack_core.settings import command_main
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
@@ -45,16 +46,15 @@ from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
     DEFAULT_ENDPOINT,
     BackgroundSession,
-    add_zenoh_arguments,
-    config_from_args,
+    ZenohSettings,
 )
 from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
-from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
+from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
-from focustrack_focus.preprocess import GREEN, Preprocess, lowpass_sigma_for_optics
+from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
 
 log = logging.getLogger(__name__)
 
@@ -246,138 +246,151 @@ class ZenohFocusWorker:
         self._thread.join(timeout_s)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", default="127.0.0.1", help="HTTP address (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, default=8002, help="HTTP port (default 8002)")
-    add_zenoh_arguments(parser, default_connect=[DEFAULT_ENDPOINT])
-    parser.add_argument("--metric", choices=list(METRICS), default=DEFAULT_METRIC)
-    parser.add_argument(
-        "--focus-mode",
-        choices=[mode.value for mode in PeakMode],
-        default="max",
-        help="max: stained specimens; valley: unstained, phase-like ones",
+# The choices of --metric and --focus-mode: the names of `METRICS` and the `PeakMode`s, as
+# Literals (the settings' choices) built from them; mypy takes no Literal built at run time.
+if TYPE_CHECKING:
+    MetricName = str
+    FocusModeName = PeakMode
+else:
+    MetricName = Literal[tuple(METRICS)]
+    FocusModeName = Literal[tuple(PeakMode)]
+
+
+class FocusServiceSettings(ZenohSettings):
+    """The focus service's options: flags, ``FOCUSTRACK_FOCUS_<OPTION>`` or a settings file.
+
+    The focus maths' defaults are its own dataclasses' (`FocusSettings`, `PeakSettings`,
+    `Preprocess`, and the REST app's `FocusLimits`), which lab software uses without the
+    service: the options read their defaults from there, and `focus_settings` and `limits`
+    give the values back as those dataclasses, which check them.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_FOCUS_")
+    default_connect: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)
+
+    host: str = Field("127.0.0.1", description="HTTP address")
+    port: int = Field(8002, ge=0, le=65535, description="HTTP port")
+    metric: MetricName = Field(FocusSettings.metric, description="the focus metric")
+    focus_mode: FocusModeName = Field(
+        PeakSettings.mode, description="max: stained specimens; valley: unstained, phase-like ones"
     )
-    parser.add_argument(
-        "--lowpass-sigma-px",
-        type=float,
-        default=None,
-        help="Gaussian low-pass sigma, px (default: matched to each stack's "
-        "pixel size and --na; 2 px where a stack gives no pixel size)",
+    lowpass_sigma_px: float | None = Field(
+        None,
+        description="Gaussian low-pass sigma, px (default: matched to each stack's pixel size "
+        f"and --na; {Preprocess.lowpass_sigma_px:g} px where a stack gives no pixel size)",
     )
-    parser.add_argument("--na", type=float, default=0.85, help="numerical aperture (0.85)")
-    parser.add_argument(
-        "--result-key-file",
-        type=Path,
-        metavar="FILE",
-        help="shared key: tag every result with its HMAC, for the scheduler to check "
+    na: float = Field(0.85, gt=0, description="numerical aperture of the objective")
+    result_key_file: Path | None = Field(
+        None,
+        description="shared key: tag every result with its HMAC, for the scheduler to check "
         "(docs/security.md)",
     )
-    parser.add_argument(
-        "--min-structure-snr",
-        type=float,
-        default=FocusSettings.min_structure_snr,
-        help="a stack whose through-focus change stands fewer noise spreads than this above "
-        "its pixel noise is flat (default %(default)g; --min-structure-snr=-inf: never)",
+    min_structure_snr: float = Field(
+        FocusSettings.min_structure_snr,
+        description="a stack whose through-focus change stands fewer noise spreads than this "
+        "above its pixel noise is flat (--min-structure-snr=-inf: never)",
     )
     # the metric's constants on this microscope (`PeakSettings`; `bench focus --real` learns
     # them from labelled curves): without them, short windows of noise can read as peaks
     # and a metric's offset from a person's focus is not in sigma
-    parser.add_argument(
-        "--min-relative-noise",
-        type=float,
-        default=PeakSettings.min_relative_noise,
-        help="the metric's score noise as a share of a curve's maximum (default %(default)g; "
-        "1: the metric is unusable on this microscope, every result is flat)",
+    min_relative_noise: float = Field(
+        PeakSettings.min_relative_noise,
+        description="the metric's score noise as a share of a curve's maximum (1: the metric "
+        "is unusable on this microscope, every result is flat)",
     )
-    parser.add_argument(
-        "--systematic-sigma-um",
-        type=float,
-        default=PeakSettings.systematic_sigma_um,
-        help="the metric's offset from the true focus, a std added to sigma, um "
-        "(default %(default)g)",
+    systematic_sigma_um: float = Field(
+        PeakSettings.systematic_sigma_um,
+        description="the metric's offset from the true focus, a std added to sigma, um",
+    )
+    token: str | None = Field(None, description="require this bearer token on /v1 (unset: no auth)")
+    insecure: bool = Field(
+        False,
+        description="serve REST without a token on a non-loopback address (refused otherwise)",
+    )
+    # the REST API's limits (`FocusLimits`)
+    max_upload_bytes: int = Field(
+        FocusLimits.max_upload_bytes, description="largest request body, bytes (413)"
+    )
+    max_decoded_bytes: int = Field(
+        FocusLimits.max_decoded_bytes,
+        description="largest decoded stack, bytes, read from its header (413)",
+    )
+    max_frames: int = Field(
+        FocusLimits.max_frames, description="most frames of a stack or points of a curve"
+    )
+    max_json_bytes: int = Field(
+        FocusLimits.max_json_bytes, description="largest JSON body of /v1/focus/curve, bytes (413)"
+    )
+    max_json_depth: int = Field(
+        FocusLimits.max_json_depth, description="deepest nesting of a JSON body (422)"
+    )
+    body_timeout_s: float = Field(
+        FocusLimits.body_timeout_s,
+        description="seconds a request body may take to arrive (408)",
     )
 
-    add_rest_arguments(parser)
+    def focus_settings(self) -> FocusSettings:
+        """How the service reads stacks and curves (ValueError if the maths refuses a value)."""
+        preprocess = (
+            Preprocess()
+            if self.lowpass_sigma_px is None
+            else Preprocess(lowpass_sigma_px=self.lowpass_sigma_px)
+        )
+        peak = PeakSettings(
+            mode=self.focus_mode,
+            min_relative_noise=self.min_relative_noise,
+            systematic_sigma_um=self.systematic_sigma_um,
+        )
+        return FocusSettings(preprocess, self.metric, peak, self.min_structure_snr)
+
+    def limits(self) -> FocusLimits:
+        """What one REST request may ask (ValueError if a limit admits nothing)."""
+        return FocusLimits(
+            **{limit.name: getattr(self, limit.name) for limit in fields(FocusLimits)}
+        )
+
+    @property
+    def stack_na(self) -> float | None:
+        """The NA each stack's low-pass is matched to; None where --lowpass-sigma-px fixes it."""
+        return self.na if self.lowpass_sigma_px is None else None
 
 
-def settings_from_args(args: argparse.Namespace) -> FocusSettings:
-    """The service's `FocusSettings` from its command line."""
-    preprocess = Preprocess(channel=GREEN)
-    if args.lowpass_sigma_px is not None:
-        preprocess = replace(preprocess, lowpass_sigma_px=args.lowpass_sigma_px)
-    peak = PeakSettings(
-        mode=PeakMode(args.focus_mode),
-        min_relative_noise=args.min_relative_noise,
-        systematic_sigma_um=args.systematic_sigma_um,
-    )
-    return FocusSettings(preprocess, args.metric, peak, min_structure_snr=args.min_structure_snr)
-
-
-def add_rest_arguments(parser: argparse.ArgumentParser) -> None:
-    """The REST API's token and limits (`FocusLimits`)."""
-    parser.add_argument("--token", help="require this bearer token on /v1 (unset: no auth)")
-    parser.add_argument(
-        "--insecure",
-        action="store_true",
-        help="serve REST without a token on a non-loopback address (refused otherwise)",
-    )
-    limits = FocusLimits()
-    for flag, kind, text in (
-        ("--max-upload-bytes", int, "largest request body, bytes (413)"),
-        ("--max-decoded-bytes", int, "largest decoded stack, bytes, read from its header (413)"),
-        ("--max-frames", int, "most frames of a stack or points of a curve"),
-        ("--max-json-bytes", int, "largest JSON body of /v1/focus/curve, bytes (413)"),
-        ("--max-json-depth", int, "deepest nesting of a JSON body (422)"),
-        ("--body-timeout-s", float, "seconds a request body may take to arrive (408)"),
-    ):
-        field = flag[2:].replace("-", "_")
-        parser.add_argument(flag, type=kind, default=getattr(limits, field), help=text)
-
-
-def run(args: argparse.Namespace) -> int:
-    refusal = refuse_open_network("focus", args.host, args.token, args.insecure)
+def run(settings: FocusServiceSettings) -> int:
+    refusal = refuse_open_network("focus", settings.host, settings.token, settings.insecure)
     if refusal:
         print(refusal, file=sys.stderr)
         return 2
     try:
-        limits = FocusLimits(
-            args.max_upload_bytes,
-            args.max_decoded_bytes,
-            args.max_frames,
-            args.max_json_bytes,
-            args.max_json_depth,
-            args.body_timeout_s,
-        )
+        limits = settings.limits()
+        focus = settings.focus_settings()
     except ValueError as error:
         print(f"focus service not started: {error}", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    settings = settings_from_args(args)
-    na = None if args.lowpass_sigma_px is not None else args.na
     try:
-        config_from_args(args)  # a bad option or config file ends the command here, not later
-        signer = signer_of(args.result_key_file)
+        settings.zenoh()  # a bad option or config file ends the command here, not later
+        signer = signer_of(settings.result_key_file)
     except ValueError as error:
         log.error("%s", error)
         return 2
     workers: list[ZenohFocusWorker] = []
     bus = BackgroundSession(
-        lambda: config_from_args(args, ATTEMPT_TIMEOUT_S),
-        lambda session: workers.append(ZenohFocusWorker(session, settings, na, signer)),
+        lambda: settings.zenoh(ATTEMPT_TIMEOUT_S),
+        lambda session: workers.append(ZenohFocusWorker(session, focus, settings.stack_na, signer)),
     )
     log.info(
         "focus service: zenoh %s -> %s/focus/... (results %s), http://%s:%d (metric %s)",
         ZFRAME_SUBSCRIPTION,
         keys.PREFIX,
         "tagged" if signer is not None else "untagged",
-        args.host,
-        args.port,
-        args.metric,
+        settings.host,
+        settings.port,
+        focus.metric,
     )
     started = time.perf_counter()
     try:
-        app = with_bus_health(create_app(settings, limits, args.token or None), bus.health)
-        uvicorn.run(app, host=args.host, port=args.port, log_level="info")
+        app = with_bus_health(create_app(focus, limits, settings.token or None), bus.health)
+        uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
     finally:
         for worker in workers:
             worker.close()
@@ -400,10 +413,10 @@ def with_bus_health(app: FastAPI, bus_health: Callable[[], dict[str, str]]) -> F
     return app
 
 
-#: Every option's environment variable is this prefix and its name (focustrack_core.config).
-ENV_PREFIX = "FOCUSTRACK_FOCUS_"
+#: The command's settings model (`focustrack serve focus` parses it and calls `run`).
+Settings = FocusServiceSettings
 
 #: The `focustrack-focus` console script (and `python -m focustrack_focus`).
 main = command_main(
-    "focustrack-focus", "the focus service (Zenoh and REST)", add_arguments, run, ENV_PREFIX
+    "focustrack-focus", "the focus service (Zenoh and REST)", FocusServiceSettings, run
 )

@@ -12,8 +12,8 @@ import pytest
 import tifffile
 from fastapi import FastAPI
 
-from focustrack.bench.hostile import BOMB_FRAMES, BOMB_SIDE, npy_with_shape, zlib_tiff_bomb
 from focustrack_focus.app import FocusLimits, create_app, json_depth_exceeds
+from focustrack_focus.bombs import BOMB_FRAMES, BOMB_SIDE, npy_with_shape, zlib_tiff_bomb
 
 Serve = Callable[[FastAPI], str]
 

@@ -7,16 +7,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from focustrack.bench import focus_real
-from focustrack.bench.focus import load_smear, load_yeast
 from focustrack_core.domain import FocusFlag
 from focustrack_core.fusion import fuse_planes
+from focustrack_focus import calibration
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
 from focustrack_focus.preprocess import Preprocess
+from focustrack_focus.real_data import (
+    WSI_STEP_UM,
+    YEAST_FOCUS_PLANE,
+    load_smear,
+    load_wsi_fields,
+    load_yeast,
+)
 
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real"
+#: ../shared/data/real beside the checkout (services/focus/tests/ is three folders down).
+REAL = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "real"
 SMEAR, YEAST = REAL / "lip_smear_zstack", REAL / "yeast_brightfield_zstack"
 WSI = REAL / "wsi_focus_curves"
 pytestmark = pytest.mark.skipif(
@@ -37,7 +44,7 @@ def test_smear_focus_lands_on_plane_zero(metric: str) -> None:
 
 def test_unstained_yeast_focus_is_the_contrast_minimum() -> None:
     frames, z_um = load_yeast(YEAST)
-    label_um = 17 * 0.3  # the source project's focus plane
+    label_um = YEAST_FOCUS_PLANE * 0.3  # the source project's focus plane
     valley = FocusSettings(PREPROCESS, peak=PeakSettings(mode=PeakMode.VALLEY))
     at_valley = focus_stack(frames, z_um, valley)
     assert at_valley.best_z_um == pytest.approx(label_um, abs=0.45)  # 1.5 planes
@@ -51,8 +58,8 @@ def test_unstained_yeast_focus_is_the_contrast_minimum() -> None:
 def test_wsi_curves_gradient_metric_meets_the_targets_on_held_out_fields() -> None:
     """Brenner on the even fields (the constants were chosen on the odd ones): full curves
     and scanner windows land within a step, inside 2 sigma, with edge flags toward focus."""
-    readings = focus_real.real_curves(WSI, ["BRENNER"], numbers=focus_real.REPORT_FIELDS)
-    figures = focus_real.report(readings, focus_real.REPORT_FIELDS)["BRENNER"]
+    readings = calibration.real_curves(WSI, ["BRENNER"], numbers=calibration.REPORT_FIELDS)
+    figures = calibration.report(readings, calibration.REPORT_FIELDS)["BRENNER"]
     for part in ("full", "windows"):
         assert figures[part]["within_1_step"] >= 0.97, part
         assert figures[part]["coverage_2sigma"] >= 0.92, part
@@ -65,74 +72,11 @@ def test_wsi_curves_gradient_metric_meets_the_targets_on_held_out_fields() -> No
 def test_wsi_window_ending_below_focus_points_up() -> None:
     """A 5-frame window just below focus: the curve rises to its last frame, so edge_high
     (toward focus), never a shoulder read as a peak."""
-    field = focus_real.load_wsi_fields(WSI)[1]
+    field = load_wsi_fields(WSI)[1]
     scores = field.scores["BRENNER"]
     below = np.arange(field.label_index - 5, field.label_index)  # ends one step below focus
-    result = focus_from_curve(focus_real.WSI_STEP_UM * below, scores[below], FocusSettings())
+    result = focus_from_curve(WSI_STEP_UM * below, scores[below], FocusSettings())
     assert FocusFlag.EDGE_HIGH in result.flags and result.sigma_um is None
-
-
-def reading(error_steps: float, sigma_steps: float, kind: str = "full") -> focus_real.Reading:
-    return focus_real.Reading(1, kind, error_steps, sigma_steps, frozenset(), 0)
-
-
-def test_the_systematic_sigma_is_the_least_that_covers_the_fit_readings() -> None:
-    covered = [reading(0.4, 0.1), reading(0.3, 0.1, "5x1")]
-    assert focus_real.learn_systematic_sigma(covered) == 0.0  # a clear pick keeps its sigma
-    # one step off with sigma 0.1: |e| <= 2 hypot(0.1, s) + 0.5 from s = 0.24, on the grid 0.25
-    biased = covered + [reading(1.0, 0.1, "5x1")] * 19 + [reading(0.0, 0.1)] * 19
-    assert focus_real.learn_systematic_sigma(biased) == 0.25
-    assert focus_real.coverage_with(biased, 0.2) < focus_real.CALIBRATION_COVERAGE
-
-
-def test_the_systematic_sigma_stops_at_the_median_sigma_target() -> None:
-    """A measure whose picks stray three steps needs more systematic sigma than the median
-    sigma target allows: none is learnt (None), and an all-flat part asks for nothing."""
-    covered = [reading(0.0, 0.1)] * 20
-    straying = covered + [reading(3.0, 0.1, "5x1")] * 20
-    assert focus_real.learn_systematic_sigma(straying) is None
-    assert focus_real.learn_systematic_sigma(straying, cap_steps=2.0) == 1.25
-    flat = focus_real.Reading(1, "5x1", None, None, frozenset({FocusFlag.FLAT}), 0)
-    assert focus_real.learn_systematic_sigma(covered + [flat] * 5) == 0.0
-
-
-def test_a_measure_is_unusable_when_most_windows_are_flat_or_no_sigma_covers() -> None:
-    flat = focus_real.Reading(1, "5x1", None, None, frozenset({FocusFlag.FLAT}), 0)
-    measured = reading(0.0, 0.1, "5x1")
-    full_flat = focus_real.Reading(1, "full", None, None, frozenset({FocusFlag.FLAT}), 0)
-    # full curves do not count towards the flat share: half the windows flat is usable
-    assert focus_real.usability([full_flat] * 9 + [flat, measured], 0.0) == ""
-    assert "flat" in focus_real.usability([flat, flat, measured], 0.0)
-    assert "no systematic sigma" in focus_real.usability([measured], None)
-    # an unusable measure's settings read every curve flat, even a clear peak
-    calibration = focus_real.Calibration(0.003, None, "most windows flat")
-    z_um = np.arange(11.0)
-    peak = 100.0 + 50.0 * np.exp(-0.5 * (z_um - 5.0) ** 2)
-    assert focus_from_curve(z_um, peak, calibration.settings()).flags == {FocusFlag.FLAT}
-    assert focus_from_curve(z_um, peak, focus_real.Calibration(0.003).settings()).flags == set()
-
-
-def test_targets_leave_out_unusable_measures_and_say_what_they_meet() -> None:
-    good = {"within_1_step": 1.0, "coverage_2sigma": 1.0, "silent_miss": 0.0}
-    good_windows = good | {"edge_right": 1.0, "edge_wrong": 0.0}
-    flat = {"within_1_step": np.nan, "coverage_2sigma": np.nan, "silent_miss": 0.0}
-    figures = {
-        "BRENNER": {
-            "full": good,
-            "windows": good_windows,
-            "windows_11x3": {"median_sigma_steps": 0.1},
-        },
-        "VOLLATH_F4": {
-            "full": flat,
-            "windows": flat | {"edge_right": 0.0, "edge_wrong": 0.0},
-            "windows_11x3": {"median_sigma_steps": np.nan},
-        },
-    }
-    assert all(misses == [] for misses in focus_real.targets(figures, {"VOLLATH_F4"}).values())
-    assert "VOLLATH_F4" in focus_real.targets(figures)["coverage_2sigma >= 92%"]
-    verdict = focus_real.unusable_targets(figures, {"VOLLATH_F4"})["VOLLATH_F4"]
-    assert verdict["met"] == ["edge flags wrong <= 0.5%", "silent misses <= 1 in 1000"]
-    assert "edge flags right >= 98%" in verdict["not_met"]
 
 
 @pytest.mark.slow  # about 20 s
@@ -140,14 +84,14 @@ def test_wsi_vollath_is_unusable_on_this_microscope_and_reads_flat() -> None:
     """VOLLATH_F4 is all but blind on this microscope: the fit fields alone declare it
     unusable, and then every full curve and window of every field is flat (no silent miss)
     while the gradient measure next to it stays usable."""
-    calibration = focus_real.calibrate(WSI, ["VOLLATH_F4", "BRENNER"])
-    assert calibration["BRENNER"].usable
-    vollath = calibration["VOLLATH_F4"]
+    constants = calibration.calibrate(WSI, ["VOLLATH_F4", "BRENNER"])
+    assert constants["BRENNER"].usable
+    vollath = constants["VOLLATH_F4"]
     assert vollath.relative_noise > 0.002  # ten times the gradient metrics' noise
     assert not vollath.usable and "flat" in vollath.unusable_because
     settings = vollath.settings()
-    for field in focus_real.load_wsi_fields(WSI):
-        readings = focus_real.read_field(field, "VOLLATH_F4", settings)
+    for field in load_wsi_fields(WSI):
+        readings = calibration.read_field(field, "VOLLATH_F4", settings)
         assert all(r.flags == {FocusFlag.FLAT} for r in readings), field.number
 
 
@@ -155,10 +99,10 @@ def test_wsi_vollath_is_unusable_on_this_microscope_and_reads_flat() -> None:
 def test_wsi_jpeg_systematic_sigma_learnt_on_fit_fields_covers_held_out_fields() -> None:
     """JPEG size peaks up to a step from the plane a person picks, either way: the
     systematic sigma learnt on the odd fields covers the even ones, and stays small."""
-    calibration = focus_real.calibrate(WSI, ["JPEG"])
-    assert 0.1 <= calibration["JPEG"].systematic_sigma_steps <= 0.5
-    readings = focus_real.real_curves(WSI, ["JPEG"], focus_real.REPORT_FIELDS, calibration)
-    figures = focus_real.report(readings, focus_real.REPORT_FIELDS)["JPEG"]
+    constants = calibration.calibrate(WSI, ["JPEG"])
+    assert 0.1 <= constants["JPEG"].systematic_sigma_steps <= 0.5
+    readings = calibration.real_curves(WSI, ["JPEG"], calibration.REPORT_FIELDS, constants)
+    figures = calibration.report(readings, calibration.REPORT_FIELDS)["JPEG"]
     for part in ("full", "windows"):
         assert figures[part]["coverage_2sigma"] >= 0.92, part
         assert figures[part]["silent_miss"] <= 0.001, part

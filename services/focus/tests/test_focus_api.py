@@ -3,18 +3,15 @@
 from __future__ import annotations
 
 import io
-import threading
-import time
+from collections.abc import Callable
 
 import httpx
 import numpy as np
 import pytest
 import tifffile
-import uvicorn
+from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from focustrack.bench.focus import render_stack
-from focustrack_core.wire.session import free_port
 from focustrack_focus.app import FocusLimits, create_app
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
@@ -27,9 +24,9 @@ def client() -> TestClient:
 
 
 @pytest.fixture(scope="module")
-def frames() -> np.ndarray:
-    """A simulated smear's stack, green channel: (13, 96, 96) uint16."""
-    return render_stack("full", 96, Z_UM, TRUTH_UM, seed=5)[..., 1]
+def frames(render: Callable[..., np.ndarray]) -> np.ndarray:
+    """A stack of a field of cells: (13, 96, 96) uint16."""
+    return render(96, Z_UM, TRUTH_UM, 5)
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -156,27 +153,15 @@ def test_bad_stacks(client: TestClient, frames: np.ndarray) -> None:
     check(npy_bytes(big), z_text(np.arange(20.0)), 413, "exceeds")
 
 
-def test_real_uvicorn_server(frames: np.ndarray) -> None:
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(create_app(), port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        for _ in range(100):
-            if server.started:
-                break
-            time.sleep(0.05)
-        base = f"http://127.0.0.1:{port}"
-        assert httpx.get(f"{base}/healthz").json()["status"] == "ok"
-        response = httpx.post(
-            f"{base}/v1/focus/stack",
-            files={"stack": ("stack.tif", tiff_bytes(frames))},
-            data={"z_um": z_text()},
-            timeout=30,
-        )
-        assert response.status_code == 200, response.text
-        assert response.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
-        assert "/v1/focus/stack" in httpx.get(f"{base}/openapi.json").json()["paths"]
-    finally:
-        server.should_exit = True
-        thread.join(10)
+def test_real_uvicorn_server(frames: np.ndarray, serve: Callable[[FastAPI], str]) -> None:
+    base = serve(create_app())
+    assert httpx.get(f"{base}/healthz").json()["status"] == "ok"
+    response = httpx.post(
+        f"{base}/v1/focus/stack",
+        files={"stack": ("stack.tif", tiff_bytes(frames))},
+        data={"z_um": z_text()},
+        timeout=30,
+    )
+    assert response.status_code == 200, response.text
+    assert response.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
+    assert "/v1/focus/stack" in httpx.get(f"{base}/openapi.json").json()["paths"]

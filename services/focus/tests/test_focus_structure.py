@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
-from focustrack.bench.focus import render_stack
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import (
     lowpass_noise_gain,
@@ -48,8 +48,8 @@ def test_pure_noise_stays_far_below_the_threshold(size_px: int) -> None:
     assert max(np.abs(snrs)) < 5.0, snrs  # the service's threshold is 10
 
 
-def test_a_field_with_cells_stands_far_above_it() -> None:
-    frames = render_stack("full", 128, np.array([0.0, 3.0]), 0.0, seed=2)[..., 1]
+def test_a_field_with_cells_stands_far_above_it(render: Callable[..., np.ndarray]) -> None:
+    frames = render(128, np.array([0.0, 3.0]), 0.0, 2)
     assert snr_of(frames) > 100.0
 
 

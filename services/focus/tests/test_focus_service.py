@@ -8,14 +8,13 @@ import queue
 import subprocess
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import httpx
 import numpy as np
 import pytest
 import zenoh
 
-from focustrack.bench.focus import render_stack
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
 from focustrack_core.wire.codec import PixelPublisher, describe_pixels, frame_header, raw_payload
@@ -73,14 +72,16 @@ def collect(session: zenoh.Session) -> tuple[zenoh.Subscriber, queue.Queue]:
     return subscriber, results
 
 
-def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(instrument) -> None:
+def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(
+    instrument, render: Callable[..., np.ndarray]
+) -> None:
     publisher, endpoint = instrument
     service = open_session(connect=[endpoint])
     worker = ZenohFocusWorker(service, FocusSettings(), na=0.85)
     subscriber, results = collect(publisher)
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
-        frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=3)[..., 1]
+        frames = render(96, Z_UM, TRUTH_UM, 3)
         publish_stack(publisher, frames[..., None], Z_UM, sequence=7, order=range(12, -1, -1))
         key, result = results.get(timeout=20)
         assert key == "focustrack/v1/focus/s1/2/3"
@@ -104,16 +105,16 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(instrument) -> No
     assert worker.n_published == 2
 
 
-def test_focustrack_serve_focus_runs_zenoh_and_http_in_one_process(instrument) -> None:
+def test_the_focus_command_runs_zenoh_and_http_in_one_process(
+    instrument, render: Callable[..., np.ndarray]
+) -> None:
     publisher, endpoint = instrument
     port = free_port()
     process = subprocess.Popen(
         [
             sys.executable,
             "-m",
-            "focustrack",
-            "serve",
-            "focus",
+            "focustrack_focus",
             "--port",
             str(port),
             "--connect",
@@ -137,7 +138,7 @@ def test_focustrack_serve_focus_runs_zenoh_and_http_in_one_process(instrument) -
             json={"z_um": [0, 1, 2, 3, 4], "scores": [1, 2, 4, 2, 1]},
         )
         assert curve.status_code == 200 and curve.json()["best_z_um"] == pytest.approx(2.0)
-        frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=4)[..., 1]
+        frames = render(96, Z_UM, TRUTH_UM, 4)
         publish_stack(publisher, frames[..., None], Z_UM, sequence=1)
         _, result = results.get(timeout=20)
         assert result.best_z_um == pytest.approx(TRUTH_UM, abs=0.15)
@@ -167,8 +168,10 @@ def _frame_samples(
     ]
 
 
-def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart() -> None:
-    frames = render_stack("full", 96, Z_UM, TRUTH_UM, seed=3)[..., 1][..., None]
+def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart(
+    render: Callable[..., np.ndarray],
+) -> None:
+    frames = render(96, Z_UM, TRUTH_UM, 3)[..., None]
     analyser = FrameAnalyser(FocusSettings(), na=0.85)
     key = keys.zframe_key("s1", 2, 3)
     first, again = _frame_samples(frames, 4, 1.0), _frame_samples(frames, 4, 2.0)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 import pytest
 
-from focustrack.bench.focus import render_stack
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
 from focustrack_focus.preprocess import (
     Preprocess,
@@ -17,9 +18,9 @@ from focustrack_focus.preprocess import (
 
 
 @pytest.fixture(scope="module")
-def stack() -> np.ndarray:
-    """Frames at defocus -2, 0, +2 um of a simulated smear (green), (3, 128, 128) uint16."""
-    return render_stack("full", 128, np.array([-2.0, 0.0, 2.0]), 0.0, seed=2)[..., 1]
+def stack(render: Callable[..., np.ndarray]) -> np.ndarray:
+    """Frames at defocus -2, 0, +2 um of a field of cells, (3, 128, 128) uint16."""
+    return render(128, np.array([-2.0, 0.0, 2.0]), 0.0, 2)
 
 
 @pytest.mark.parametrize("name", list(METRICS))

@@ -1,0 +1,302 @@
+"""A focus metric's constants on a microscope, learnt from through-focus curves a person
+labelled, and the figures that judge them.
+
+Every curve goes through `focus_from_curve`, the path of POST /v1/focus/curve, read
+as a predictive scanner acquires it (`windows`):
+
+- full curves: all positions;
+- windows: n samples (5, 7, 9, 11) spaced k steps (1, 2, 3), centred at every offset
+  from the label up to one window length either way (so the label lies inside or up
+  to half a window outside), clipped to the curve's positions.
+
+Per metric (`summarise`): share within 1 and 2 steps of the label, the 2-sigma
+coverage (|error| <= 2 sigma + half a step, the label's rounding), median sigma, flag
+rates, and for windows whose label lies outside: the share whose edge flag points
+toward it (right) and away (wrong). "Silent misses": results more than 3 steps off
+with no warning flag and outside 2 sigma.
+
+Honest calibration: the peak model's constants were chosen on the fit fields (1, 3,
+..., 19 of the WSI curves, `real_data`); the held-out fields (2, 4, ..., 20) give the
+headline figures. So are a measure's constants on the microscope (`Calibration`),
+learnt afresh from the fit fields alone (`calibrate`) and then used on all: its score
+noise (`PeakSettings.min_relative_noise`) and its systematic sigma
+(`PeakSettings.systematic_sigma_um`: how far its own peak strays from the plane a
+person picks).
+
+A measure may also be unusable on the microscope, decided on the fit fields alone
+(`usability`): when, read with its learnt noise, most of their windows are flat (it sees
+too little of the specimen to serve a scanner), or when no systematic sigma up to the
+median-sigma target reaches the coverage there (its own peak strays too far from focus
+for any sigma that could meet that target). Such a measure is then given a noise floor
+as large as the curve's maximum, so that every result it gives is `flat`: a warning
+that names no z, never a silent miss.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from focustrack_core.domain import FocusFlag
+from focustrack_focus.peak import PeakSettings, score_noise
+from focustrack_focus.pipeline import FocusSettings, focus_from_curve
+from focustrack_focus.real_data import WSI_STEP_UM, WsiField, load_wsi_fields
+
+#: (samples, spacing in steps) of the windows.
+WINDOW_SHAPES = tuple((n, k) for n in (5, 7, 9, 11) for k in (1, 2, 3))
+FIT_FIELDS = tuple(range(1, 21, 2))  # the constants were chosen on these
+REPORT_FIELDS = tuple(range(2, 21, 2))  # the headline figures
+#: The 2-sigma coverage the systematic sigma is learnt to reach on the fit fields (that of
+#: a normal distribution), on full curves and on windows alike.
+CALIBRATION_COVERAGE = 0.95
+#: The grid (steps) on which the systematic sigma is learnt.
+SYSTEMATIC_GRID_STEPS = 0.05
+#: The target for the median sigma on 11x3 windows (steps; `focustrack bench focus --real`
+#: holds a measure to it). A systematic sigma above it puts every interior sigma above it,
+#: so it is also the largest systematic sigma a usable measure may need (`usability`).
+MEDIAN_SIGMA_TARGET_STEPS = 0.75
+#: A measure whose fit-field windows come back flat more often than this (most of them),
+#: read with its learnt noise, is unusable on the microscope (`usability`).
+MAX_FLAT_SHARE = 0.5
+#: The noise floor (share of a curve's maximum) that turns an unusable measure off: with
+#: noise as large as the maximum, no non-negative curve rises the `min_snr` (10) noise
+#: sigmas a peak needs, so every result is `flat`. `serve focus --min-relative-noise 1`.
+UNUSABLE_RELATIVE_NOISE = 1.0
+#: Flags that warn the caller the z is not an ordinary measurement.
+WARNING_FLAGS = frozenset(
+    {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH, FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
+)
+
+
+@dataclass(frozen=True)
+class Window:
+    """Positions (indices into the curve) of one acquisition and its shape ("full" or n x k)."""
+
+    kind: str
+    indices: np.ndarray
+
+
+def windows(n_positions: int, label_index: int) -> Iterator[Window]:
+    """The full curve, then every window of WINDOW_SHAPES centred up to a window length
+    from the label (module docstring), within the curve's positions."""
+    yield Window("full", np.arange(n_positions))
+    for n, k in WINDOW_SHAPES:
+        length = (n - 1) * k
+        for centre in range(label_index - length, label_index + length + 1):
+            first = centre - length // 2
+            if first >= 0 and first + length < n_positions:
+                yield Window(f"{n}x{k}", first + k * np.arange(n))
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One curve read: errors and sigma in steps (None where no z / no sigma), flags, and
+    where the label lay: -1 below the window, 0 inside, +1 above."""
+
+    field: int
+    kind: str
+    error_steps: float | None
+    sigma_steps: float | None
+    flags: frozenset[FocusFlag]
+    label_side: int
+
+
+def read_field(field: WsiField, metric: str, settings: FocusSettings) -> list[Reading]:
+    """Every window of one field's curve of `metric`, read as POST /v1/focus/curve would."""
+    scores = field.scores[metric]
+    z_um = WSI_STEP_UM * np.arange(scores.size)
+    label_um = WSI_STEP_UM * field.label_index
+    out = []
+    for window in windows(scores.size, field.label_index):
+        result = focus_from_curve(z_um[window.indices], scores[window.indices], settings)
+        lo, hi = window.indices[0], window.indices[-1]
+        side = -1 if field.label_index < lo else 1 if field.label_index > hi else 0
+        error = None if result.best_z_um is None else (result.best_z_um - label_um) / WSI_STEP_UM
+        sigma = None if result.sigma_um is None else result.sigma_um / WSI_STEP_UM
+        out.append(Reading(field.number, window.kind, error, sigma, result.flags, side))
+    return out
+
+
+def summarise(readings: Sequence[Reading]) -> dict[str, float]:
+    """The issue's figures over a set of readings (fractions; sigma in steps)."""
+    inside = [r for r in readings if r.label_side == 0]
+    measured = [r for r in inside if r.error_steps is not None and r.sigma_steps is not None]
+    errors = np.array([abs(r.error_steps or 0.0) for r in measured])
+    sigmas = np.array([r.sigma_steps or 0.0 for r in measured])
+    covered = errors <= 2.0 * sigmas + 0.5
+    outside = [r for r in readings if r.label_side != 0]
+
+    def points(r: Reading, toward: bool) -> bool:
+        flag = FocusFlag.EDGE_HIGH if (r.label_side > 0) == toward else FocusFlag.EDGE_LOW
+        return flag in r.flags
+
+    def silent(r: Reading) -> bool:
+        if r.error_steps is None or r.flags & WARNING_FLAGS:
+            return False
+        if abs(r.error_steps) <= 3.0:
+            return False
+        return r.sigma_steps is None or abs(r.error_steps) > 2.0 * r.sigma_steps + 0.5
+
+    def share(values: Sequence[bool] | np.ndarray) -> float:
+        return float(np.mean(values)) if len(values) else math.nan
+
+    def flag_rate(flag: FocusFlag) -> float:
+        return share([flag in r.flags for r in inside])
+
+    edge = {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH}
+    return {
+        "n_inside": float(len(inside)),
+        "n_outside": float(len(outside)),
+        "measured": share([r in measured for r in inside]) if inside else math.nan,
+        "within_1_step": share(errors <= 1.0),
+        "within_2_steps": share(errors <= 2.0),
+        "coverage_2sigma": share(covered),
+        "median_sigma_steps": float(np.median(sigmas)) if sigmas.size else math.nan,
+        "multi_peak": flag_rate(FocusFlag.MULTI_PEAK),
+        "ambiguous": flag_rate(FocusFlag.AMBIGUOUS),
+        "flat": flag_rate(FocusFlag.FLAT),
+        "edge_when_inside": share([bool(r.flags & edge) for r in inside]),
+        "edge_right": share([points(r, True) for r in outside]),
+        "edge_wrong": share([points(r, False) for r in outside]),
+        "silent_miss": share([silent(r) for r in readings]),
+    }
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A measure's constants on this microscope (`PeakSettings`), learnt on the fit fields:
+    its score noise as a share of a curve's maximum, its systematic sigma (steps; None
+    where none up to `MEDIAN_SIGMA_TARGET_STEPS` reaches the coverage), and why it is
+    unusable there ("" when it is usable)."""
+
+    relative_noise: float = 0.0
+    systematic_sigma_steps: float | None = 0.0
+    unusable_because: str = ""
+
+    @property
+    def usable(self) -> bool:
+        return not self.unusable_because
+
+    def settings(self) -> FocusSettings:
+        """The service's settings for the measure: an unusable one reads every curve flat."""
+        if not self.usable:
+            return FocusSettings(peak=PeakSettings(min_relative_noise=UNUSABLE_RELATIVE_NOISE))
+        peak = PeakSettings(
+            min_relative_noise=self.relative_noise,
+            systematic_sigma_um=WSI_STEP_UM * (self.systematic_sigma_steps or 0.0),
+        )
+        return FocusSettings(peak=peak)
+
+
+def real_curves(
+    folder: Path,
+    metrics: Iterable[str],
+    numbers: Sequence[int] | None = None,
+    calibration: dict[str, Calibration] | None = None,
+) -> dict[str, list[Reading]]:
+    """Every metric's readings over every field (or those `numbers`) and window of the WSI
+    curves in `folder`, each metric read with its calibration (none where not given).
+    `metrics` are taken one by one as they are read (a progress bar may wrap them)."""
+    fields = [f for f in load_wsi_fields(folder) if numbers is None or f.number in numbers]
+    calibration = calibration or {}
+    out: dict[str, list[Reading]] = {}
+    for metric in metrics:
+        settings = calibration.get(metric, Calibration()).settings()
+        out[metric] = [r for field in fields for r in read_field(field, metric, settings)]
+    return out
+
+
+def learn_relative_noise(fields: Sequence[WsiField], metric: str) -> float:
+    """The metric's score noise as a share of a curve's maximum: the median over these
+    fields' full curves (long enough for a clean estimate: `score_noise`), 2 digits."""
+    shares = [score_noise(f.scores[metric])[0] / abs(f.scores[metric].max()) for f in fields]
+    return float(f"{np.median(shares):.2g}")
+
+
+def coverage_with(readings: Sequence[Reading], systematic_steps: float) -> float:
+    """The 2-sigma coverage (`summarise`) of readings made without a systematic sigma, had
+    `systematic_steps` been added to their sigma in quadrature (as `find_peak` adds it)."""
+    inside = [r for r in readings if r.label_side == 0 and r.sigma_steps is not None]
+    if not inside:
+        return math.nan
+    errors = np.array([abs(r.error_steps or 0.0) for r in inside])
+    sigmas = np.hypot([r.sigma_steps or 0.0 for r in inside], systematic_steps)
+    return float(np.mean(errors <= 2.0 * sigmas + 0.5))
+
+
+def learn_systematic_sigma(
+    readings: Sequence[Reading], cap_steps: float = MEDIAN_SIGMA_TARGET_STEPS
+) -> float | None:
+    """The least systematic sigma (steps, on a grid of `SYSTEMATIC_GRID_STEPS`) with which
+    full curves and windows each reach `CALIBRATION_COVERAGE` (readings made without one;
+    pass only fit fields). 0 where they reach it already: a clear pick keeps its sigma.
+    None where even `cap_steps` does not reach it. Parts with no measured reading (all
+    flat) have nothing to cover and ask for nothing."""
+    parts = (
+        [r for r in readings if r.kind == "full"],
+        [r for r in readings if r.kind != "full"],
+    )
+    for step in range(round(cap_steps / SYSTEMATIC_GRID_STEPS) + 1):
+        systematic = round(step * SYSTEMATIC_GRID_STEPS, 2)
+        # NaN (nothing measured) is not below the coverage: such a part needs nothing
+        if not any(coverage_with(part, systematic) < CALIBRATION_COVERAGE for part in parts):
+            return systematic
+    return None
+
+
+def flat_share(readings: Sequence[Reading]) -> float:
+    """The share of the windows (not full curves) among `readings` that came back flat."""
+    flat = [FocusFlag.FLAT in r.flags for r in readings if r.kind != "full"]
+    return float(np.mean(flat)) if flat else math.nan
+
+
+def usability(readings: Sequence[Reading], systematic_steps: float | None) -> str:
+    """Why a measure is unusable on the microscope, from its fit-field readings (made
+    with its learnt noise, no systematic sigma) and the systematic sigma learnt from them;
+    "" when it is usable. Either rule alone keeps it from meeting the targets: a flat
+    window points nowhere (no edge flag, no z), and a systematic sigma above the median
+    sigma target puts every sigma above it."""
+    reasons = []
+    flat = flat_share(readings)
+    if flat > MAX_FLAT_SHARE:
+        reasons.append(f"{flat:.0%} of the fit fields' windows flat (> {MAX_FLAT_SHARE:.0%})")
+    if systematic_steps is None:
+        reasons.append(
+            f"no systematic sigma up to {MEDIAN_SIGMA_TARGET_STEPS} step reaches "
+            f"{CALIBRATION_COVERAGE:.0%} coverage on the fit fields"
+        )
+    return "; ".join(reasons)
+
+
+def calibrate(folder: Path, metrics: Iterable[str]) -> dict[str, Calibration]:
+    """Every metric's calibration, learnt on the fit fields of the WSI curves in `folder`
+    alone: its noise first, then the systematic sigma that the readings with that noise
+    still need, then whether the measure is usable at all (`usability`; an unusable one
+    then reads every curve flat). `metrics` are taken one by one, as by `real_curves`."""
+    fit_fields = [f for f in load_wsi_fields(folder) if f.number in FIT_FIELDS]
+    out = {}
+    for metric in metrics:
+        noise = Calibration(learn_relative_noise(fit_fields, metric))
+        rows = [r for field in fit_fields for r in read_field(field, metric, noise.settings())]
+        systematic = learn_systematic_sigma(rows)
+        out[metric] = replace(
+            noise, systematic_sigma_steps=systematic, unusable_because=usability(rows, systematic)
+        )
+    return out
+
+
+def report(readings: dict[str, list[Reading]], fields: Sequence[int]) -> dict[str, dict]:
+    """Per metric: figures on full curves, on all windows, and on 11x3 windows, over `fields`."""
+    out: dict[str, dict] = {}
+    for metric, rows in readings.items():
+        chosen = [r for r in rows if r.field in fields]
+        out[metric] = {
+            "full": summarise([r for r in chosen if r.kind == "full"]),
+            "windows": summarise([r for r in chosen if r.kind != "full"]),
+            "windows_11x3": summarise([r for r in chosen if r.kind == "11x3"]),
+        }
+    return out

@@ -1,0 +1,81 @@
+"""Learning a metric's constants on a microscope from labelled curves, and the figures that
+judge them, on hand-made readings (errors and sigma in steps); test_focus_real.py learns
+them on the real WSI curves."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from focustrack_core.domain import FocusFlag
+from focustrack_focus.calibration import (
+    CALIBRATION_COVERAGE,
+    Calibration,
+    Reading,
+    coverage_with,
+    learn_systematic_sigma,
+    summarise,
+    usability,
+    windows,
+)
+from focustrack_focus.pipeline import focus_from_curve
+
+
+def test_real_summary_counts_edges_coverage_and_silent_misses() -> None:
+    """The figures of real curves read, on hand-made readings (errors and sigma in steps)."""
+    high, low = frozenset({FocusFlag.EDGE_HIGH}), frozenset({FocusFlag.EDGE_LOW})
+    rows = [
+        Reading(2, "5x1", 0.4, 0.1, frozenset(), 0),  # within 1, covered (0.4 <= 0.2 + 0.5)
+        Reading(2, "5x1", 1.5, 0.2, frozenset(), 0),  # within 2, not covered
+        Reading(2, "5x1", 5.0, 0.5, frozenset(), 0),  # silent: far, no flag, outside 2 sigma
+        Reading(2, "5x1", 5.0, None, high, 1),  # label above, edge_high: right
+        Reading(2, "5x1", -5.0, None, high, -1),  # label below, edge_high: wrong
+        Reading(2, "5x1", -5.0, 0.3, frozenset({FocusFlag.MULTI_PEAK}), -1),  # warned
+        Reading(2, "5x1", None, None, low, -1),  # right
+    ]
+    figures = summarise(rows)
+    assert figures["within_1_step"] == 1 / 3 and figures["within_2_steps"] == 2 / 3
+    assert figures["coverage_2sigma"] == 1 / 3
+    assert figures["edge_right"] == 2 / 4 and figures["edge_wrong"] == 1 / 4
+    assert figures["silent_miss"] == 1 / 7
+    shapes = {w.kind for w in windows(100, 50)}
+    assert "full" in shapes and {"5x1", "11x3"} <= shapes
+
+
+def reading(error_steps: float, sigma_steps: float, kind: str = "full") -> Reading:
+    return Reading(1, kind, error_steps, sigma_steps, frozenset(), 0)
+
+
+def test_the_systematic_sigma_is_the_least_that_covers_the_fit_readings() -> None:
+    covered = [reading(0.4, 0.1), reading(0.3, 0.1, "5x1")]
+    assert learn_systematic_sigma(covered) == 0.0  # a clear pick keeps its sigma
+    # one step off with sigma 0.1: |e| <= 2 hypot(0.1, s) + 0.5 from s = 0.24, on the grid 0.25
+    biased = covered + [reading(1.0, 0.1, "5x1")] * 19 + [reading(0.0, 0.1)] * 19
+    assert learn_systematic_sigma(biased) == 0.25
+    assert coverage_with(biased, 0.2) < CALIBRATION_COVERAGE
+
+
+def test_the_systematic_sigma_stops_at_the_median_sigma_target() -> None:
+    """A measure whose picks stray three steps needs more systematic sigma than the median
+    sigma target allows: none is learnt (None), and an all-flat part asks for nothing."""
+    covered = [reading(0.0, 0.1)] * 20
+    straying = covered + [reading(3.0, 0.1, "5x1")] * 20
+    assert learn_systematic_sigma(straying) is None
+    assert learn_systematic_sigma(straying, cap_steps=2.0) == 1.25
+    flat = Reading(1, "5x1", None, None, frozenset({FocusFlag.FLAT}), 0)
+    assert learn_systematic_sigma(covered + [flat] * 5) == 0.0
+
+
+def test_a_measure_is_unusable_when_most_windows_are_flat_or_no_sigma_covers() -> None:
+    flat = Reading(1, "5x1", None, None, frozenset({FocusFlag.FLAT}), 0)
+    measured = reading(0.0, 0.1, "5x1")
+    full_flat = Reading(1, "full", None, None, frozenset({FocusFlag.FLAT}), 0)
+    # full curves do not count towards the flat share: half the windows flat is usable
+    assert usability([full_flat] * 9 + [flat, measured], 0.0) == ""
+    assert "flat" in usability([flat, flat, measured], 0.0)
+    assert "no systematic sigma" in usability([measured], None)
+    # an unusable measure's settings read every curve flat, even a clear peak
+    unusable = Calibration(0.003, None, "most windows flat")
+    z_um = np.arange(11.0)
+    peak = 100.0 + 50.0 * np.exp(-0.5 * (z_um - 5.0) ** 2)
+    assert focus_from_curve(z_um, peak, unusable.settings()).flags == {FocusFlag.FLAT}
+    assert focus_from_curve(z_um, peak, Calibration(0.003).settings()).flags == set()
