@@ -27,6 +27,7 @@ from focustrack.bus_secrets import PUBLIC_FILES, ROLES, write_bus_files
 from focustrack.cli import main
 from focustrack_core import health
 from focustrack_core.config import with_environment
+from focustrack_core.settings import ServiceSettings
 from focustrack_core.wire import router
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,18 +76,29 @@ def test_each_dockerfile_runs_its_distributions_console_script(name: str) -> Non
 
 @pytest.mark.parametrize("name", sorted(SERVICES))
 def test_each_service_is_configured_by_environment_its_command_accepts(
-    compose: dict[str, Any], name: str
+    compose: dict[str, Any], name: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     service = compose["services"][name]
     environ = {key: defaults(value) for key, value in service["environment"].items()}
     module = importlib.import_module(SERVICES[name][1])
-    unknown = [key for key in environ if not key.startswith(module.ENV_PREFIX)]
+    settings = getattr(module, "Settings", None)
+    if isinstance(settings, type) and issubclass(settings, ServiceSettings):  # its one model
+        prefix = settings.env_prefix()
+        options = {settings.variable(field) for field in settings.model_fields}
+        for field in ("settings", *settings.model_fields):
+            monkeypatch.delenv(settings.variable(field), raising=False)
+        for key, value in environ.items():
+            monkeypatch.setenv(key, value)
+        args: Any = settings.load()
+    else:
+        prefix = module.ENV_PREFIX
+        parser = argparse.ArgumentParser()
+        module.add_arguments(parser)
+        options = {prefix + a.dest.upper() for a in parser._actions if a.option_strings}
+        args = with_environment(parser, prefix, environ).parse_args([])
+    unknown = [key for key in environ if not key.startswith(prefix)]
     assert not unknown, f"{name}: variables its command does not read: {unknown}"
-    parser = argparse.ArgumentParser()
-    module.add_arguments(parser)
-    options = {module.ENV_PREFIX + a.dest.upper() for a in parser._actions if a.option_strings}
     assert set(environ) <= options, f"{name}: no such option: {set(environ) - options}"
-    args = with_environment(parser, module.ENV_PREFIX, environ).parse_args([])
     if name != "estimator":
         assert args.connect == ["tcp/zenoh:7447"]
     if name == "estimator":
