@@ -89,6 +89,8 @@ def test_each_dockerfiles_install_step_works_in_a_plain_venv(tmp_path: Path, fol
     assert "focustrack" not in packages  # the umbrella is not needed to run a service
     if folder == "estimator":
         assert not {p for p in packages if "opencv" in p or "zenoh" in p}, packages
+        # Its strategies load after it starts, so `--help` does not import them: this does.
+        subprocess.run([python, "-c", "import focustrack_estimator.slide"], check=True)
 
 
 def test_the_client_installs_with_httpx_and_pydantic_only(tmp_path: Path) -> None:

@@ -128,11 +128,11 @@ def fill_store(
     """Scan into a store as the service does, and stop `unsnapshotted` measurements after a
     periodic snapshot (as a kill -9 would), near the end of the scan."""
     from focustrack_estimator.params import resolve_params
-    from focustrack_estimator.slides import Slide
-    from focustrack_estimator.store import Store
+    from focustrack_estimator.slide import Slide
+    from focustrack_estimator.sqlite_store import SQLiteStore
 
     measured_um, settings = _surface(size)
-    store = Store(store_path)
+    store = SQLiteStore(store_path)
     store._db.execute("PRAGMA synchronous=OFF")  # a benchmark's shortcut (module docstring)
     config = to_api.slide_create(strategy_name, settings)
     slide_id = "bench"

@@ -1,19 +1,20 @@
-"""The errors of the estimator's domain: requests it refuses, and logs that no longer replay."""
+"""The errors of the estimator's domain: requests it refuses, and logs that no longer replay.
+
+They say what is wrong, not how a protocol reports it: the REST layer maps each type
+to its HTTP status and error code (`handlers`).
+"""
 
 from __future__ import annotations
 
-from focustrack_client import models as api
+import numpy as np
 
 
 class SlideError(Exception):
-    """A request the domain refuses; `status` is the HTTP status that says why.
+    """A request the domain refuses: invalid input, or a slide over the service's limits.
 
     `where` locates the offending input, as a validation error's `loc` does
-    (("body", "params", "q")): a 422 from the domain reads like one from the schema.
+    (("body", "params", "q")): a refusal from the domain reads like one from the schema.
     """
-
-    status = 422
-    code = api.ErrorCode.INVALID_REQUEST
 
     def __init__(self, message: str, where: tuple[str, ...] = ()) -> None:
         super().__init__(message)
@@ -21,20 +22,18 @@ class SlideError(Exception):
 
 
 class SlideNotFoundError(SlideError):
-    status = 404
-    code = api.ErrorCode.NOT_FOUND
+    """No slide of that id."""
 
 
 class SlideConflictError(SlideError):
     """The request contradicts the slide's state (not the pending acquisition, a re-post
-    with a different value, a finished scan)."""
-
-    status = 409
-    code = api.ErrorCode.CONFLICT
+    with a different value, a finished scan, a log another writer moved on)."""
 
 
 class ReplayMismatchError(SlideError):
     """The stored log no longer replays to the logged outcomes (the strategy changed)."""
 
-    status = 500
-    code = api.ErrorCode.REPLAY_MISMATCH
+
+#: Exceptions a strategy may raise on absurd parameters or input (the domain turns them
+#: into a SlideError).
+STRATEGY_ERRORS = (ValueError, TypeError, ArithmeticError, np.linalg.LinAlgError)

@@ -114,7 +114,12 @@ class Gauge:
 class EstimatorMetrics:
     """What the estimator exposes at /metrics."""
 
-    def __init__(self, count_slides: Callable[[], float], count_live: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        count_slides: Callable[[], float],
+        count_live: Callable[[], float],
+        strategies_loaded: Callable[[], float],
+    ) -> None:
         prefix = "focustrack_estimator"
         self.requests = Counter(f"{prefix}_requests_total", "HTTP requests by route and status")
         self.latency = Histogram(
@@ -134,6 +139,11 @@ class EstimatorMetrics:
         self._gauges = (
             Gauge(f"{prefix}_slides", "Slides in the store", count_slides),
             Gauge(f"{prefix}_live_slides", "Slides held in memory", count_live),
+            Gauge(
+                f"{prefix}_strategies_loaded",
+                "1 once the strategies are imported (until then the first slide waits for them)",
+                strategies_loaded,
+            ),
         )
 
     def render(self) -> str:

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, Field
 from pydantic.json_schema import models_json_schema
 
 from focustrack_estimator import registry
 from focustrack_estimator.errors import SlideError
+from focustrack_estimator.routers.strategies import StrategyInfo
 from focustrack_estimator.strategy import StrategyParams
 
 
@@ -31,19 +31,6 @@ def resolve_params(
         raise SlideError(str(error), ("body", "params", error.name)) from None
     except ValueError as error:
         raise SlideError(str(error), ("body", "strategy")) from None
-
-
-class StrategyInfo(BaseModel):
-    """A served strategy and its parameters (`GET /v1/strategies`)."""
-
-    name: str = Field(description="The strategy's name, as `SlideCreate.strategy` takes it")
-    parameters: dict[str, Any] = Field(
-        description="The JSON schema of its parameters: each one's type, default, unit (in "
-        "its name or its description) and bounds"
-    )
-    defaults: dict[str, Any] = Field(
-        description="Every parameter at its default: a slide created without `params` has these"
-    )
 
 
 def strategy_infos(catalogue: registry.Catalogue) -> list[StrategyInfo]:

@@ -3,16 +3,15 @@
     focustrack serve estimator --host 127.0.0.1 --port 8100 --store estimator.sqlite [--token T]
 
 Every option may also come from the environment (`FOCUSTRACK_ESTIMATOR_<OPTION>`,
-e.g. FOCUSTRACK_ESTIMATOR_TOKEN, which keeps the token out of the process list).
-Without a token the API is open: off loopback the service refuses to start without
-one unless --insecure is given. The store is checked at start (a damaged file: exit
-code 2 and a message naming it); SIGTERM, like Ctrl-C, snapshots the live slides,
-checkpoints and closes the store, and exits 0.
+e.g. FOCUSTRACK_ESTIMATOR_TOKEN, which keeps the token out of the process list) or
+a settings file (`EstimatorSettings`). Without a token the API is open: off loopback
+the service refuses to start without one unless --insecure is given. The store is
+checked at start (a damaged file: exit code 2 and a message naming it); SIGTERM,
+like Ctrl-C, snapshots the live slides, checkpoints and closes the store, and exits 0.
 """
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
 import signal
@@ -21,136 +20,58 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 from subprocess import DEVNULL, Popen
+from typing import TYPE_CHECKING
 
 import httpx
 import uvicorn
 
-from focustrack_core.config import command_main
 from focustrack_core.serving import refuse_open_network
-from focustrack_estimator import registry
-from focustrack_estimator.app import Settings, create_app
-from focustrack_estimator.store import StoreError
+from focustrack_core.settings import command_main
+from focustrack_estimator.app import create_app
+from focustrack_estimator.event_store import StoreError, open_store
+from focustrack_estimator.settings import EstimatorSettings
+
+if TYPE_CHECKING:
+    from focustrack_estimator.registry import Catalogue
+
+#: The settings model `focustrack serve estimator` reads (flags, environment, file).
+Settings = EstimatorSettings
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
-    parser.add_argument("--port", type=int, default=8100, help="TCP port (default 8100)")
-    parser.add_argument(
-        "--store",
-        default="estimator.sqlite",
-        help="SQLite file holding every slide and its log (created if missing)",
-    )
-    parser.add_argument("--token", help="require this bearer token on /v1 (unset: no auth)")
-    parser.add_argument(
-        "--insecure",
-        action="store_true",
-        help="serve without a token on a non-loopback address (refused otherwise)",
-    )
-    parser.add_argument(
-        "--max-body-bytes", type=int, default=64 * 1024, help="largest request body accepted"
-    )
-    parser.add_argument(
-        "--max-grid-side",
-        type=int,
-        default=Settings.max_grid_side,
-        help="most tiles per side a slide's grid may have (larger: 422)",
-    )
-    parser.add_argument(
-        "--max-grid-tiles",
-        type=int,
-        default=Settings.max_grid_tiles,
-        help="most tiles a slide's grid may have (larger: 422)",
-    )
-    parser.add_argument(
-        "--snapshot-every",
-        type=int,
-        default=Settings.snapshot_every,
-        help="measurements between snapshots of a slide's state (a restart replays fewer)",
-    )
-    parser.add_argument(
-        "--body-timeout-s",
-        type=float,
-        default=Settings.body_timeout_s,
-        help="seconds a request body may take to arrive (slower: 408)",
-    )
-    parser.add_argument(
-        "--max-slide-bytes",
-        type=int,
-        default=Settings.max_slide_bytes,
-        help="largest projected memory of one slide, bytes (more: 422 at creation)",
-    )
-    parser.add_argument(
-        "--max-tile-seconds",
-        type=float,
-        default=Settings.max_tile_s,
-        help="largest projected computation per tile of a slide, seconds (more: 422)",
-    )
-    parser.add_argument(
-        "--max-live-slides",
-        type=int,
-        default=Settings.max_live_slides,
-        help="slides kept in memory; the least recently used beyond are evicted (reloaded "
-        "from the store on their next request)",
-    )
-    parser.add_argument(
-        "--max-live-bytes",
-        type=int,
-        default=Settings.max_live_bytes,
-        help="projected bytes the slides in memory may hold together (beyond: evicted)",
-    )
-    parser.add_argument(
-        "--strategies-from",
-        metavar="MODULE",
-        help="serve the strategies of MODULE's CATALOGUE instead of the estimator's own "
-        "(opt-in: focustrack.bench.strategies adds gp-oracle, the benchmarks' floor)",
-    )
-    parser.add_argument("--access-log", action="store_true", help="log every request")
+def catalogue_from(module_name: str) -> Catalogue:
+    """The strategies of `module_name`'s CATALOGUE (ValueError if it has none)."""
+    # Imported here, not with the service: the estimator's own strategies load on first use.
+    from focustrack_estimator.registry import Catalogue
 
-
-def catalogue_from(module_name: str | None) -> registry.Catalogue:
-    """The served strategies: the estimator's, or `module_name`'s CATALOGUE (ValueError)."""
-    if not module_name:
-        return registry.SERVED
     try:
         catalogue = importlib.import_module(module_name).CATALOGUE
     except (ImportError, AttributeError) as error:
         raise ValueError(f"--strategies-from {module_name}: no CATALOGUE there ({error})") from None
-    if not isinstance(catalogue, registry.Catalogue):
+    if not isinstance(catalogue, Catalogue):
         raise ValueError(f"--strategies-from {module_name}: CATALOGUE is not a registry.Catalogue")
     return catalogue
 
 
-def run(args: argparse.Namespace) -> int:
-    refusal = refuse_open_network("estimator", args.host, args.token, args.insecure)
+def run(settings: EstimatorSettings) -> int:
+    refusal = refuse_open_network("estimator", settings.host, settings.token, settings.insecure)
     if refusal:
         print(refusal, file=sys.stderr)
         return 2
     try:
-        app = create_app(
-            Settings(
-                args.store,
-                args.token or None,
-                args.max_body_bytes,
-                max_grid_side=args.max_grid_side,
-                max_grid_tiles=args.max_grid_tiles,
-                snapshot_every=args.snapshot_every,
-                body_timeout_s=args.body_timeout_s,
-                max_slide_bytes=args.max_slide_bytes,
-                max_tile_s=args.max_tile_seconds,
-                max_live_slides=args.max_live_slides,
-                max_live_bytes=args.max_live_bytes,
-                catalogue=catalogue_from(args.strategies_from),
-            )
-        )
+        catalogue = None
+        if settings.strategies_from is not None:
+            catalogue = catalogue_from(settings.strategies_from)
+        store = open_store(settings.store)  # last: a bad setting touches no file
     except (StoreError, ValueError) as error:
         print(f"estimator not started: {error}", file=sys.stderr)
         return 2
-    store = app.state.slides.store
     if store.created:
-        print(f"creating a new store at {args.store} (the file was missing or empty)", flush=True)
+        print(
+            f"creating a new store at {settings.store} (the file was missing or empty)", flush=True
+        )
     print(
-        f"estimator on http://{args.host}:{args.port} (store {args.store}, "
-        f"auth {'on' if args.token else 'off'})",
+        f"estimator on http://{settings.host}:{settings.port} (store {settings.store}, "
+        f"auth {'on' if settings.token else 'off'})",
         flush=True,
     )
     # uvicorn shuts down gracefully on SIGTERM and then raises the signal again, which
@@ -159,12 +80,21 @@ def run(args: argparse.Namespace) -> int:
     previous = signal.signal(signal.SIGTERM, lambda *_: None)
     try:
         uvicorn.run(
-            app, host=args.host, port=args.port, log_level="warning", access_log=args.access_log
+            create_app(store, settings, catalogue),
+            host=settings.host,
+            port=settings.port,
+            log_level="warning",
+            access_log=settings.access_log,
+            ws="none",  # no WebSocket routes: importing a WebSocket library would slow the start
         )
     finally:
         store.close()
         signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+#: The line of /metrics that says the service has loaded its strategies.
+READY = "focustrack_estimator_strategies_loaded 1.0"
 
 
 def spawn(
@@ -174,7 +104,8 @@ def spawn(
     timeout_s: float = 60.0,
     options: Sequence[str] = (),
 ) -> Popen:
-    """Start the service on 127.0.0.1:`port` as a child process; return once /healthz answers.
+    """Start the service on 127.0.0.1:`port` as a child process; return once it answers and
+    has loaded its strategies (its /metrics say so), as ready for a first slide as it gets.
 
     For the end-to-end tests and `focustrack bench api`, which need the server in
     a process of its own (to kill it, or to keep its CPU apart from the client's).
@@ -182,7 +113,7 @@ def spawn(
     """
     env = dict(os.environ)
     if token:
-        env[f"{ENV_PREFIX}TOKEN"] = token
+        env[EstimatorSettings.variable("token")] = token
     command = [sys.executable, "-m", "focustrack_estimator"]
     command += ["--port", str(port), "--store", str(store), *options]
     process = Popen(command, env=env, stdout=DEVNULL)
@@ -191,18 +122,15 @@ def spawn(
         if process.poll() is not None:
             raise RuntimeError(f"estimator exited with {process.returncode} before it was ready")
         try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200:
+            metrics = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=1.0)
+            if READY in metrics.text.splitlines():
                 return process
         except httpx.TransportError:
-            time.sleep(0.05)
+            pass
+        time.sleep(0.05)
     process.kill()
     raise RuntimeError(f"estimator did not answer on port {port} within {timeout_s} s")
 
 
-#: Every option's environment variable is this prefix and its name (focustrack_core.config).
-ENV_PREFIX = "FOCUSTRACK_ESTIMATOR_"
-
 #: The `focustrack-estimator` console script (and `python -m focustrack_estimator`).
-main = command_main(
-    "focustrack-estimator", "the estimator REST service", add_arguments, run, ENV_PREFIX
-)
+main = command_main("focustrack-estimator", "the estimator REST service", EstimatorSettings, run)

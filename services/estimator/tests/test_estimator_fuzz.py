@@ -26,11 +26,14 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest import to_api
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
-from focustrack_estimator.app import Settings, create_app
+from focustrack_estimator.app import create_app
+from focustrack_estimator.settings import EstimatorSettings
+from focustrack_estimator.sqlite_store import SQLiteStore
 
 # The schema is read when the module is collected, so the app (and its store) exist by then.
 _DIRECTORY = Path(tempfile.mkdtemp(prefix="estimator-fuzz-"))
-app = create_app(Settings(str(_DIRECTORY / "estimator.sqlite")))
+_STORE = SQLiteStore(_DIRECTORY / "estimator.sqlite")
+app = create_app(_STORE, EstimatorSettings())
 schema = schemathesis.openapi.from_asgi("/openapi.json", app)
 _strategies = itertools.cycle(sorted(registry.STRATEGIES))
 _SETTINGS = default_settings(ScanGrid(5, 5))
@@ -40,7 +43,7 @@ _http = TestClient(app)  # not entered: the app's lifespan (which closes the sto
 @pytest.fixture(scope="module", autouse=True)
 def _store() -> Iterator[None]:
     yield
-    app.state.slides.store.close()
+    _STORE.close()
     shutil.rmtree(_DIRECTORY, ignore_errors=True)
 
 

@@ -1,85 +1,32 @@
-"""The estimator's SQLite store: slides, ordered event logs, durability across connections."""
+"""The estimator's SQLite store beyond the `EventStore` contract (test_event_store.py): its
+file (WAL, schema versions), its URL, and SQLite's errors as the store's own."""
 
 from __future__ import annotations
 
 import sqlite3
-import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from focustrack_estimator.store import SCHEMA_VERSION, Event, Store, StoreError
+from focustrack_estimator.event_store import Event, StoreError, StoreUnavailableError, open_store
+from focustrack_estimator.sqlite_store import SCHEMA_VERSION, SQLiteStore
 
 CONFIG = {"strategy": "kf-wiener0", "grid": {"rows": 2, "cols": 3}}
 
 
-def _event(sequence: int, z_um: float | None = 1.0) -> Event:
-    return Event(
-        sequence,
-        {"index": sequence, "row": 0, "col": sequence},
-        {"z_um": z_um, "sigma_um": None, "flags": []},
-        {"accepted": z_um is not None, "posterior_um": z_um},
-    )
-
-
-@pytest.fixture
-def store(tmp_path: Path) -> Iterator[Store]:
-    store = Store(tmp_path / "estimator.sqlite")
-    yield store
-    store.close()
-
-
-def test_slides_round_trip_and_progress(store: Store) -> None:
-    store.create_slide("a", CONFIG)
-    store.create_slide("b", {**CONFIG, "strategy": "tile-skip"})
-    store.append("a", _event(0), accepted=True, done=False)
-    store.append("a", _event(1, None), accepted=False, done=True)
-
-    a = store.slide("a")
-    assert a is not None and a.config == CONFIG
-    assert (a.n_events, a.n_accepted, a.done) == (2, 1, True)
-    assert [s.id for s in store.slides()] == ["a", "b"]
-    assert store.count_slides() == 2
-    assert store.events("a") == [_event(0), _event(1, None)]
-    assert store.events("b") == [] and store.slide("zzz") is None
-
-
-def test_log_has_no_gaps_and_no_duplicates(store: Store) -> None:
-    store.create_slide("a", CONFIG)
-    with pytest.raises(StoreError, match="expects event 0, got 1"):
-        store.append("a", _event(1), accepted=True, done=False)
-    store.append("a", _event(0), accepted=True, done=False)
-    with pytest.raises(StoreError, match="expects event 1, got 0"):
-        store.append("a", _event(0), accepted=True, done=False)
-    with pytest.raises(StoreError, match="no slide"):
-        store.append("nope", _event(0), accepted=True, done=False)
-    with pytest.raises(StoreError, match="already exists"):
-        store.create_slide("a", CONFIG)
-    record = store.slide("a")
-    assert record is not None and record.n_events == 1  # the refused appends rolled back
-    assert len(store.events("a")) == 1
-
-
-def test_delete_removes_the_log(store: Store) -> None:
-    store.create_slide("a", CONFIG)
-    store.append("a", _event(0), accepted=True, done=False)
-    assert store.delete_slide("a")
-    assert not store.delete_slide("a")
-    assert store.slide("a") is None and store.events("a") == []
-    store.create_slide("a", CONFIG)  # the id is free again, with an empty log
-    assert store.events("a") == []
+def _event(sequence: int, z_um: float) -> Event:
+    return Event(sequence, {"index": sequence}, {"z_um": z_um}, {"posterior_um": z_um})
 
 
 def test_committed_events_survive_a_new_connection(tmp_path: Path) -> None:
     path = tmp_path / "estimator.sqlite"
-    first = Store(path)
+    first = SQLiteStore(path)
     first.create_slide("a", CONFIG)
     for sequence in range(5):
         first.append("a", _event(sequence, float(sequence)), accepted=True, done=False)
     # Read from an independent connection while the first is still open (no close, no
     # checkpoint): what `append` returned from is visible, as after a crash.
-    second = Store(path)
+    second = SQLiteStore(path)
     assert [e.outcome["posterior_um"] for e in second.events("a")] == [0.0, 1.0, 2.0, 3.0, 4.0]
     second.close()
     first.close()
@@ -87,27 +34,50 @@ def test_committed_events_survive_a_new_connection(tmp_path: Path) -> None:
         assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
 
 
-def test_appends_from_many_threads_keep_each_log_whole(store: Store) -> None:
-    slide_ids = [f"s{i}" for i in range(8)]
-    for slide_id in slide_ids:
-        store.create_slide(slide_id, CONFIG)
-
-    def write(slide_id: str) -> None:
-        for sequence in range(25):
-            store.append(slide_id, _event(sequence), accepted=True, done=sequence == 24)
-
-    threads = [threading.Thread(target=write, args=(slide_id,)) for slide_id in slide_ids]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    for slide_id in slide_ids:
-        assert [e.sequence for e in store.events(slide_id)] == list(range(25))
-        record = store.slide(slide_id)
-        assert record is not None and record.done and record.n_events == 25
+def test_a_path_or_a_sqlite_url_opens_the_same_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    by_path = open_store("relative.sqlite")
+    by_path.create_slide("a", CONFIG)
+    by_path.close()
+    for location in ("sqlite:///relative.sqlite", f"sqlite:///{tmp_path}/relative.sqlite"):
+        by_url = open_store(location)
+        assert not by_url.created and [s.id for s in by_url.slides()] == ["a"], location
+        by_url.close()
+    assert f"sqlite:///{tmp_path}".startswith("sqlite:////")  # an absolute path: four slashes
 
 
-# --- schema versions and snapshots ---
+@pytest.mark.parametrize(
+    ("location", "message"),
+    [
+        ("postgresql://db/estimator", "unknown scheme 'postgresql'"),
+        ("sqlite://", "no file named"),
+        ("/no/such/folder/estimator.sqlite", "cannot be opened"),
+    ],
+)
+def test_a_store_that_cannot_be_opened_says_why(location: str, message: str) -> None:
+    with pytest.raises(StoreError, match=message):
+        open_store(location)
+
+
+def test_sqlites_errors_are_the_stores_own(tmp_path: Path) -> None:
+    path = tmp_path / "estimator.sqlite"
+    store = SQLiteStore(path)
+    store.create_slide("a", CONFIG)
+    with sqlite3.connect(path) as db:  # damage behind the store's back
+        db.execute("DROP TABLE snapshots")
+    try:
+        with pytest.raises(StoreUnavailableError, match="no such table: snapshots"):
+            store.snapshot("a")
+        with pytest.raises(StoreUnavailableError):
+            store.put_snapshot("a", 1, b"state")
+        store.append("a", _event(0, 1.0), accepted=True, done=False)  # the rest still works
+    finally:
+        store.close()
+
+
+# --- schema versions ---
 
 _VERSION_1 = """
 CREATE TABLE slides (
@@ -129,7 +99,7 @@ def test_a_file_without_a_schema_version_is_migrated_and_keeps_its_slides(tmp_pa
     path = tmp_path / "old.sqlite"
     with sqlite3.connect(path) as db:  # as the estimator wrote it before schema versions
         db.executescript(_VERSION_1)
-    store = Store(path)
+    store = SQLiteStore(path)
     try:
         assert store.schema_version == SCHEMA_VERSION == 2
         record = store.slide("old")
@@ -139,7 +109,7 @@ def test_a_file_without_a_schema_version_is_migrated_and_keeps_its_slides(tmp_pa
         assert store.snapshot("old") == (1, b"state")
     finally:
         store.close()
-    reopened = Store(path)  # migrating twice changes nothing
+    reopened = SQLiteStore(path)  # migrating twice changes nothing
     try:
         assert reopened.snapshot("old") == (1, b"state")
     finally:
@@ -151,18 +121,4 @@ def test_a_file_of_a_newer_schema_is_refused(tmp_path: Path) -> None:
     with sqlite3.connect(path) as db:
         db.execute(f"PRAGMA user_version = {SCHEMA_VERSION + 1}")
     with pytest.raises(StoreError, match="schema version 3"):
-        Store(path)
-
-
-def test_the_newest_snapshot_is_kept_and_goes_with_its_slide(store: Store) -> None:
-    store.create_slide("a", CONFIG)
-    assert store.snapshot("a") is None
-    store.put_snapshot("a", 5, b"five")
-    store.put_snapshot("a", 9, b"nine")
-    store.put_snapshot("a", 7, b"seven")  # older than the one kept: ignored
-    assert store.snapshot("a") == (9, b"nine")
-    for sequence in range(3):
-        store.append("a", _event(sequence), accepted=True, done=False)
-    assert [e.sequence for e in store.events("a", start=1)] == [1, 2]
-    assert store.delete_slide("a")
-    assert store.snapshot("a") is None
+        SQLiteStore(path)

@@ -16,9 +16,11 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest import to_api
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
-from focustrack_estimator.app import Settings, create_app
+from focustrack_estimator.app import create_app
 from focustrack_estimator.lean_scan import Kf2dLeanParams
+from focustrack_estimator.settings import EstimatorSettings
 from focustrack_estimator.spatial import Kf2dParams, RowBankFilter
+from focustrack_estimator.sqlite_store import SQLiteStore
 
 SETTINGS = default_settings(ScanGrid(4, 5))
 
@@ -182,9 +184,9 @@ def test_kf_2d_lean_is_kf_2d_with_its_own_loop_options_from_construction_on() ->
 
 @pytest.fixture
 def app(tmp_path: Path) -> Iterator[FastAPI]:
-    app = create_app(Settings(str(tmp_path / "estimator.sqlite")))
-    yield app
-    app.state.slides.store.close()
+    store = SQLiteStore(tmp_path / "estimator.sqlite")
+    yield create_app(store, EstimatorSettings())
+    store.close()
 
 
 def _request(app: FastAPI, method: str, path: str, **kwargs: Any) -> httpx.Response:
@@ -202,11 +204,11 @@ def _body(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
 
 
 def test_the_openapi_document_has_each_strategys_parameters() -> None:
-    app = create_app(Settings(":memory:"))
+    store = SQLiteStore(":memory:")
     try:
-        schemas = app.openapi()["components"]["schemas"]
+        schemas = create_app(store, EstimatorSettings()).openapi()["components"]["schemas"]
     finally:
-        app.state.slides.store.close()
+        store.close()
     risk = schemas["Kf2dLeanParams"]["properties"]["risk_out_of_focus"]
     assert "number" in risk["type"] and risk["default"] == 0.01
     assert (risk["minimum"], risk["exclusiveMaximum"]) == (0.0, 1.0)

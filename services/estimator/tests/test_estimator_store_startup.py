@@ -13,15 +13,16 @@ from pathlib import Path
 import httpx
 
 from focustrack_core.wire.session import free_port
+from focustrack_estimator.event_store import Event
 from focustrack_estimator.service import spawn
-from focustrack_estimator.store import Event, Store
+from focustrack_estimator.sqlite_store import SQLiteStore
 
 COMMAND = [sys.executable, "-m", "focustrack_estimator"]
 
 
 def _filled_store(path: Path, n_slides: int = 40) -> None:
     """A store with enough slides and events to span many pages."""
-    store = Store(path)
+    store = SQLiteStore(path)
     try:
         for i in range(n_slides):
             store.create_slide(f"slide-{i}", {"strategy": "kf-wiener0", "pad": "x" * 2000})
@@ -102,7 +103,7 @@ def test_an_empty_or_missing_store_is_announced_as_new(tmp_path: Path) -> None:
         assert code == 0 and f"creating a new store at {path}" in out, out
     code, out = _start_and_stop(empty)  # now it holds a slide: no longer new
     assert code == 0 and "creating a new store" not in out
-    store = Store(empty)
+    store = SQLiteStore(empty)
     assert store.count_slides() == 2
     store.close()
 
@@ -127,7 +128,7 @@ def test_sigterm_closes_the_store_and_checkpoints_its_wal(tmp_path: Path) -> Non
     process.send_signal(signal.SIGTERM)
     assert process.wait(60) == 0  # not -15: the service shut down and closed its store
     assert not wal.exists() or wal.stat().st_size == 0
-    store = Store(path)
+    store = SQLiteStore(path)
     try:
         assert store.slide(slide["id"]).n_events == 3  # type: ignore[union-attr]
         assert store.snapshot(slide["id"]) is not None  # taken at shutdown

@@ -1,12 +1,4 @@
-"""The estimator's durable store: each slide's configuration and its log of events, in SQLite.
-
-Event sourcing: a slide is its configuration plus the ordered log of
-(sequence, acquisition, measurement, outcome) events; strategies are
-deterministic, so replaying the log rebuilds the live state. The log is the
-source of truth; beside it the store keeps each slide's newest snapshot (an
-opaque blob of the strategy's state after its first n events), so that a
-restart replays only the events after it. The store knows nothing of
-strategies: configurations and events are JSON objects, snapshots bytes.
+"""The estimator's embedded store: an `EventStore` in one SQLite file.
 
 Schema versions (``PRAGMA user_version``), migrated forward on open:
 1, the slides and their events; 2, the snapshots. A file of a newer version
@@ -17,6 +9,7 @@ on disk (the WAL is fsynced) before `append` returns. One connection is
 shared by the service's worker threads behind a lock. An fsync costs 0.2 ms
 on an idle development machine but 4-12 ms when other processes write, so
 appends are group-committed: those that arrive during a commit share the next.
+SQLite's own errors leave this module as `StoreUnavailableError`.
 """
 
 from __future__ import annotations
@@ -25,9 +18,20 @@ import json
 import sqlite3
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from focustrack_estimator.event_store import (
+    Event,
+    SequenceConflictError,
+    SlideRecord,
+    Snapshot,
+    StoreError,
+    StoreUnavailableError,
+)
 
 #: Each version's schema change, applied in order to bring an older file up to date.
 _MIGRATIONS: dict[int, str] = {
@@ -68,34 +72,6 @@ WAL_SIZE_LIMIT_BYTES = 64 * 1024 * 1024
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 
-class StoreError(Exception):
-    """A request the store cannot honour (unknown slide, out-of-order event), or a file it
-    refuses to open (damaged, not SQLite, of a newer schema)."""
-
-
-@dataclass(frozen=True)
-class SlideRecord:
-    """A slide's stored configuration and progress (times are Unix seconds)."""
-
-    id: str
-    config: dict[str, Any]
-    created_s: float
-    updated_s: float
-    n_events: int
-    n_accepted: int
-    done: bool
-
-
-@dataclass(frozen=True)
-class Event:
-    """One logged acquisition with the measurement made for it and what it did."""
-
-    sequence: int
-    acquisition: dict[str, Any]
-    measurement: dict[str, Any]
-    outcome: dict[str, Any]
-
-
 @dataclass
 class _Append:
     """An append waiting in the group-commit queue, and how it ended."""
@@ -108,8 +84,8 @@ class _Append:
     error: Exception | None = None
 
 
-class Store:
-    """Slides and their event logs in one SQLite file at `path` (created if missing or empty).
+class SQLiteStore:
+    """An `EventStore` in one SQLite file at `path` (created if missing or empty).
 
     Opening checks the file (``PRAGMA quick_check``): a damaged file, or one that is
     not SQLite, raises StoreError naming it, rather than serving until a read fails.
@@ -120,8 +96,11 @@ class Store:
         self.path = str(path)
         file = Path(self.path)
         self.created = not file.exists() or file.stat().st_size == 0
-        # Autocommit mode: every write below opens its own explicit transaction.
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        try:  # autocommit mode: every write below opens its own explicit transaction
+            self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
+        except sqlite3.Error as error:  # no such folder, no permission
+            message = f"{self.path} cannot be opened as the estimator's store: {error}"
+            raise StoreError(message) from None
         self._lock = threading.Lock()  # the connection, and the one commit under way
         self._queue_lock = threading.Lock()
         self._queue: list[_Append] = []  # appends waiting for the next group commit
@@ -183,10 +162,19 @@ class Store:
         query = "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = ?"
         return self._db.execute(query, (name,)).fetchone() is not None
 
+    @contextmanager
+    def _connection(self) -> Iterator[sqlite3.Connection]:
+        """The shared connection, held alone; SQLite's errors raised as StoreUnavailableError."""
+        with self._lock:
+            try:
+                yield self._db
+            except sqlite3.Error as error:
+                raise StoreUnavailableError(f"store {self.path}: {error}") from error
+
     @property
     def schema_version(self) -> int:
-        with self._lock:
-            return self._db.execute("PRAGMA user_version").fetchone()[0]
+        with self._connection() as db:
+            return db.execute("PRAGMA user_version").fetchone()[0]
 
     def _checkpoints(self, every_s: float) -> None:
         """Copy committed WAL frames into the database now and then, beside the writers.
@@ -207,15 +195,15 @@ class Store:
             return
         self._closing.set()
         self._checkpointer.join()
-        with self._lock:
-            self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-            self._db.close()
+        with self._connection() as db:
+            db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            db.close()
 
     def create_slide(self, slide_id: str, config: dict[str, Any]) -> SlideRecord:
         now_s = time.time()
-        with self._lock:
+        with self._connection() as db:
             try:
-                self._db.execute(
+                db.execute(
                     "INSERT INTO slides (id, config, created_s, updated_s) VALUES (?, ?, ?, ?)",
                     (slide_id, json.dumps(config), now_s, now_s),
                 )
@@ -224,8 +212,8 @@ class Store:
         return SlideRecord(slide_id, config, now_s, now_s, 0, 0, False)
 
     def slide(self, slide_id: str) -> SlideRecord | None:
-        with self._lock:
-            row = self._db.execute(
+        with self._connection() as db:
+            row = db.execute(
                 "SELECT id, config, created_s, updated_s, n_events, n_accepted, done "
                 "FROM slides WHERE id = ?",
                 (slide_id,),
@@ -234,30 +222,31 @@ class Store:
 
     def slides(self) -> list[SlideRecord]:
         """Every slide, oldest first."""
-        with self._lock:
-            rows = self._db.execute(
+        with self._connection() as db:
+            rows = db.execute(
                 "SELECT id, config, created_s, updated_s, n_events, n_accepted, done "
                 "FROM slides ORDER BY created_s, id"
             ).fetchall()
         return [_slide_record(row) for row in rows]
 
     def count_slides(self) -> int:
-        with self._lock:
-            return self._db.execute("SELECT count(*) FROM slides").fetchone()[0]
+        with self._connection() as db:
+            return db.execute("SELECT count(*) FROM slides").fetchone()[0]
 
     def delete_slide(self, slide_id: str) -> bool:
-        """Forget a slide and its log; False if there was no such slide."""
-        with self._lock:
-            cursor = self._db.execute("DELETE FROM slides WHERE id = ?", (slide_id,))
+        """Forget a slide, its log and its snapshot; False if there was no such slide."""
+        with self._connection() as db:
+            cursor = db.execute("DELETE FROM slides WHERE id = ?", (slide_id,))
         return cursor.rowcount > 0
 
     def append(self, slide_id: str, event: Event, *, accepted: bool, done: bool) -> None:
         """Log `event` as the slide's next one and update its progress, durably, atomically.
 
-        The sequence must be the slide's event count (the log has no gaps).
-        Group commit: appends from concurrent threads that queue while a commit
-        is under way go to disk together in the next transaction, one fsync for
-        all of them; each returns once its own event is committed.
+        The sequence must be the slide's event count (the log has no gaps): else a
+        SequenceConflictError. Group commit: appends from concurrent threads that
+        queue while a commit is under way go to disk together in the next
+        transaction, one fsync for all of them; each returns once its own event is
+        committed.
         """
         ticket = _Append(slide_id, event, accepted, done)
         with self._queue_lock:
@@ -287,8 +276,9 @@ class Store:
         except sqlite3.Error as error:
             if self._db.in_transaction:
                 self._db.execute("ROLLBACK")
+            failed = StoreUnavailableError(f"store {self.path}: {error}")
             for ticket in batch:
-                ticket.error = ticket.error or error
+                ticket.error = ticket.error or failed
         finally:
             for ticket in batch:
                 ticket.finished = True
@@ -299,7 +289,7 @@ class Store:
         if row is None:
             raise StoreError(f"no slide {slide_id!r}")
         if event.sequence != row[0]:
-            raise StoreError(f"slide {slide_id!r} expects event {row[0]}, got {event.sequence}")
+            raise SequenceConflictError(slide_id, event.sequence, row[0])
         self._db.execute(
             "INSERT INTO events "
             "(slide_id, sequence, acquisition, measurement, outcome, recorded_s) "
@@ -321,28 +311,33 @@ class Store:
 
     def put_snapshot(self, slide_id: str, n_events: int, state: bytes) -> None:
         """Keep `state` as the slide's snapshot after its first `n_events` events (replacing
-        an older one); a snapshot older than the one kept is ignored."""
-        with self._lock:
-            self._db.execute(
-                "INSERT INTO snapshots (slide_id, n_events, state, created_s) VALUES (?, ?, ?, ?) "
-                "ON CONFLICT (slide_id) DO UPDATE SET n_events = excluded.n_events, "
-                "state = excluded.state, created_s = excluded.created_s "
-                "WHERE excluded.n_events >= snapshots.n_events",
-                (slide_id, n_events, state, time.time()),
-            )
+        an older one); a snapshot older than the one kept is ignored. StoreError if there
+        is no such slide."""
+        with self._connection() as db:
+            try:
+                db.execute(
+                    "INSERT INTO snapshots (slide_id, n_events, state, created_s) "
+                    "VALUES (?, ?, ?, ?) "
+                    "ON CONFLICT (slide_id) DO UPDATE SET n_events = excluded.n_events, "
+                    "state = excluded.state, created_s = excluded.created_s "
+                    "WHERE excluded.n_events >= snapshots.n_events",
+                    (slide_id, n_events, state, time.time()),
+                )
+            except sqlite3.IntegrityError as error:  # the slide's foreign key
+                raise StoreError(f"no slide {slide_id!r}") from error
 
-    def snapshot(self, slide_id: str) -> tuple[int, bytes] | None:
-        """The slide's newest snapshot: (events it covers, state), or None."""
-        with self._lock:
-            row = self._db.execute(
+    def snapshot(self, slide_id: str) -> Snapshot | None:
+        """The slide's newest snapshot, or None."""
+        with self._connection() as db:
+            row = db.execute(
                 "SELECT n_events, state FROM snapshots WHERE slide_id = ?", (slide_id,)
             ).fetchone()
-        return None if row is None else (row[0], bytes(row[1]))
+        return None if row is None else Snapshot(row[0], bytes(row[1]))
 
     def events(self, slide_id: str, start: int = 0) -> list[Event]:
         """The slide's log in sequence order, from sequence `start` on."""
-        with self._lock:
-            rows = self._db.execute(
+        with self._connection() as db:
+            rows = db.execute(
                 "SELECT sequence, acquisition, measurement, outcome FROM events "
                 "WHERE slide_id = ? AND sequence >= ? ORDER BY sequence",
                 (slide_id, start),

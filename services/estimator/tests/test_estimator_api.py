@@ -2,115 +2,44 @@
 
 Every slide scanned here is checked against the same strategy replayed locally
 on the same measurements (`focustrack_estimator.replay`): the service must not
-change a single number.
+change a single number. Restarts on a store: test_estimator_restart.py.
 """
 
 from __future__ import annotations
 
 import asyncio
 import io
-import logging
-import sqlite3
-from collections.abc import Coroutine, Iterator
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import httpx
 import numpy as np
 import pytest
+from estimator_in_process import (
+    COLS,
+    ROWS,
+    SETTINGS,
+    assert_same_maps,
+    client,
+    create,
+    estimator,
+    local_map,
+    maps,
+    run,
+    scan,
+    served_map,
+    slide_config,
+)
 from fastapi import FastAPI
 
 from focustrack_client import models as api
-from focustrack_core.domain import FocusMap, SlideSettings
+from focustrack_core.domain import FocusMap
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import MAP_LAYERS, focus_map_of_npy
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
-from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
-from focustrack_estimator.app import Settings, create_app
 from focustrack_estimator.replay import replay, simulated_measurement
-from focustrack_estimator.slides import Slides, outcome_of
-from focustrack_estimator.store import Event, Store
-
-ROWS, COLS = 6, 5
-SETTINGS = default_settings(ScanGrid(ROWS, COLS, pitch_um=150.0, origin_x_um=1000.0))
-
-
-T = TypeVar("T")
-
-
-def slide_config(strategy: str, settings: SlideSettings) -> dict[str, Any]:
-    """The JSON body of `POST /v1/slides` for a slide with these settings."""
-    return to_api.slide_create(strategy, settings).model_dump(mode="json")
-
-
-def run(coroutine: Coroutine[Any, Any, T]) -> T:
-    return asyncio.run(coroutine)
-
-
-def maps(seed: int, rows: int = ROWS, cols: int = COLS) -> tuple[np.ndarray, np.ndarray]:
-    """A true surface and its measurements (truth + 1.5 um noise), each (rows, cols) in um."""
-    truth = generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed)[0]
-    return truth, truth + np.random.default_rng(seed).normal(0.0, 1.5, truth.shape)
-
-
-def local_map(strategy: str, settings: SlideSettings, seed: int) -> FocusMap:
-    truth, measured = maps(seed, *settings.grid.shape)
-    return replay(registry.create(strategy, settings), truth, measured).focus_map
-
-
-def assert_same_maps(served: FocusMap, local: FocusMap) -> None:
-    names = ("prior_um", "prior_sigma_um", "posterior_um", "posterior_sigma_um", "z_used_um")
-    for name in (*names, "out_of_focus_risk"):
-        np.testing.assert_array_equal(getattr(served, name), getattr(local, name), err_msg=name)
-
-
-@pytest.fixture
-def app(tmp_path: Path) -> Iterator[FastAPI]:
-    app = create_app(Settings(str(tmp_path / "estimator.sqlite")))
-    yield app
-    app.state.slides.store.close()
-
-
-def client(app: FastAPI, token: str | None = None) -> httpx.AsyncClient:
-    headers = {"Authorization": f"Bearer {token}"} if token else {}
-    return httpx.AsyncClient(
-        transport=httpx.ASGITransport(app), base_url="http://estimator", headers=headers
-    )
-
-
-async def create(http: httpx.AsyncClient, strategy: str = "kf-wiener0", **changes: Any) -> str:
-    response = await http.post("/v1/slides", json={**slide_config(strategy, SETTINGS), **changes})
-    assert response.status_code == 201, response.text
-    return response.json()["id"]
-
-
-async def scan(
-    http: httpx.AsyncClient, slide_id: str, measured_um: np.ndarray, limit: int | None = None
-) -> int:
-    """Drive a slide through /next and /measurements (at most `limit` pairs); the pair count."""
-    n_pairs = 0
-    while limit is None or n_pairs < limit:
-        response = await http.get(f"/v1/slides/{slide_id}/next")
-        assert response.status_code == 200, response.text
-        acquisition = to_domain.acquisition(api.Next.model_validate(response.json()))
-        if acquisition is None:
-            break
-        measurement = simulated_measurement(
-            acquisition, measured_um[acquisition.row, acquisition.col]
-        )
-        body = to_api.measurement_in(acquisition, measurement).model_dump(mode="json")
-        response = await http.post(f"/v1/slides/{slide_id}/measurements", json=body)
-        assert response.status_code == 200, response.text
-        n_pairs += 1
-    return n_pairs
-
-
-async def served_map(http: httpx.AsyncClient, slide_id: str) -> FocusMap:
-    response = await http.get(f"/v1/slides/{slide_id}/map", params={"format": "npy"})
-    assert response.status_code == 200
-    return focus_map_of_npy(response.content)
 
 
 def test_create_list_get_delete(app: FastAPI) -> None:
@@ -372,67 +301,6 @@ def test_many_slides_scanned_concurrently_match_local_replays(app: FastAPI) -> N
         assert_same_maps(served, local_map(name, SETTINGS, seed))
 
 
-def test_a_new_app_on_the_same_store_continues_every_slide(tmp_path: Path) -> None:
-    path = str(tmp_path / "estimator.sqlite")
-    names = ["kf-wiener1-dir", "survey-bilinear"]
-    measured = {name: maps(7 + i)[1] for i, name in enumerate(names)}
-
-    async def first_half() -> dict[str, tuple[str, dict]]:
-        app = create_app(Settings(path))
-        async with client(app) as http:
-            state = {}
-            for name in names:
-                slide_id = await create(http, name)
-                await scan(http, slide_id, measured[name], limit=17)
-                state[name] = (slide_id, (await http.get(f"/v1/slides/{slide_id}/next")).json())
-        app.state.slides.store.close()
-        return state
-
-    async def second_half(state: dict[str, tuple[str, dict]]) -> dict[str, FocusMap]:
-        app = create_app(Settings(path))
-        async with client(app) as http:
-            result = {}
-            for name, (slide_id, pending) in state.items():
-                assert (await http.get(f"/v1/slides/{slide_id}/next")).json() == pending
-                await scan(http, slide_id, measured[name])
-                result[name] = await served_map(http, slide_id)
-        app.state.slides.store.close()
-        return result
-
-    for i, (name, served) in enumerate(run(second_half(run(first_half()))).items()):
-        assert_same_maps(served, local_map(name, SETTINGS, 7 + i))
-
-
-def test_a_log_that_no_longer_replays_is_reported(tmp_path: Path) -> None:
-    path = tmp_path / "estimator.sqlite"
-
-    async def start() -> str:
-        app = create_app(Settings(str(path)))
-        async with client(app) as http:
-            slide_id = await create(http)
-            await scan(http, slide_id, maps(2)[1], limit=3)
-        app.state.slides.store.close()
-        return slide_id
-
-    slide_id = run(start())
-    with sqlite3.connect(path) as db:  # as if the strategy had changed since
-        db.execute(
-            "UPDATE events SET outcome = replace(outcome, '\"accepted\": true', "
-            "'\"accepted\": false') WHERE sequence = 1"
-        )
-
-    async def restart() -> httpx.Response:
-        app = create_app(Settings(str(path)))
-        async with client(app) as http:
-            response = await http.get(f"/v1/slides/{slide_id}/next")
-        app.state.slides.store.close()
-        return response
-
-    response = run(restart())
-    assert response.status_code == 500
-    assert "outcome 1 no longer replays" in response.json()["detail"]
-
-
 def test_map_formats_agree(app: FastAPI) -> None:
     async def go() -> dict[str, httpx.Response]:
         async with client(app) as http:
@@ -539,9 +407,7 @@ def test_diagnostics_say_whether_the_stated_risk_is_met(app: FastAPI) -> None:
 
 
 def test_bearer_token_when_configured(tmp_path: Path) -> None:
-    app = create_app(Settings(str(tmp_path / "estimator.sqlite"), token="s3cret"))
-
-    async def go() -> None:
+    async def go(app: FastAPI) -> None:
         async with client(app) as http:
             refused = await http.get("/v1/slides")
             assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
@@ -551,8 +417,8 @@ def test_bearer_token_when_configured(tmp_path: Path) -> None:
         async with client(app, token="s3cret") as http:
             assert (await http.get("/v1/slides")).status_code == 200
 
-    run(go())
-    app.state.slides.store.close()
+    with estimator(tmp_path / "estimator.sqlite", token="s3cret") as app:
+        run(go(app))
 
 
 def test_metrics_count_requests_measurements_and_rejections(app: FastAPI) -> None:
@@ -583,153 +449,3 @@ def test_metrics_count_requests_measurements_and_rejections(app: FastAPI) -> Non
     assert any(
         line.startswith("focustrack_estimator_filter_duration_seconds_count") for line in lines
     )
-
-
-# --- restarts from snapshots, round-off in replays, the grid limit ---
-
-SNAPSHOTTED = "kf-2d"  # the restart tests' strategy
-
-
-def _start(path: Path, n_pairs: int, snapshot_every: int) -> str:
-    async def go() -> str:
-        app = create_app(Settings(str(path), snapshot_every=snapshot_every))
-        async with client(app) as http:
-            slide_id = await create(http, SNAPSHOTTED)
-            await scan(http, slide_id, maps(5)[1], limit=n_pairs)
-        app.state.slides.store.close()
-        return slide_id
-
-    return run(go())
-
-
-def _finish(path: Path, slide_id: str) -> tuple[httpx.Response, object]:
-    """Restart on the store: the first /next, then the rest of the scan and its map."""
-
-    async def go() -> tuple[httpx.Response, object]:
-        app = create_app(Settings(str(path)))
-        async with client(app) as http:
-            first = await http.get(f"/v1/slides/{slide_id}/next")
-            if first.status_code != 200:
-                return first, None
-            await scan(http, slide_id, maps(5)[1])
-            result = await served_map(http, slide_id)
-        app.state.slides.store.close()
-        return first, result
-
-    return run(go())
-
-
-def _tamper(path: Path, sequence: int, before: str, after: str) -> None:
-    with sqlite3.connect(path) as db:
-        cursor = db.execute(
-            "UPDATE events SET outcome = replace(outcome, ?, ?) WHERE sequence = ?",
-            (before, after, sequence),
-        )
-        assert cursor.rowcount == 1
-
-
-def test_a_restart_replays_only_the_events_after_the_snapshot(tmp_path: Path) -> None:
-    path = tmp_path / "estimator.sqlite"
-    slide_id = _start(path, n_pairs=13, snapshot_every=5)
-    store = Store(path)
-    snapshot = store.snapshot(slide_id)
-    store.close()
-    assert snapshot is not None and snapshot[0] == 10
-    # An event the snapshot covers is not replayed (changing it is not noticed) ...
-    _tamper(path, 3, '"accepted": true', '"accepted": false')
-    first, served = _finish(path, slide_id)
-    assert first.status_code == 200
-    assert_same_maps(served, local_map(SNAPSHOTTED, SETTINGS, 5))  # type: ignore[arg-type]
-
-
-def test_a_restart_reads_the_events_a_snapshot_covers_only_when_needed(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    path = tmp_path / "estimator.sqlite"
-    slide_id = _start(path, n_pairs=13, snapshot_every=5)
-    store = Store(path)
-    logged = store.events(slide_id)
-    reads: list[int] = []  # the `start` of every read of the log
-    read_events = store.events
-
-    def events(slide_id: str, start: int = 0) -> list[Event]:
-        reads.append(start)
-        return read_events(slide_id, start)
-
-    monkeypatch.setattr(store, "events", events)
-    slide = Slides(store)._load(slide_id)
-    assert reads == [10]  # the snapshot covers 10 events: only the later ones are read
-    assert len(slide.history) == len(logged)
-    assert slide.history[-1].outcome == outcome_of(logged[-1].outcome)
-    assert reads == [10]
-    assert slide.history[3].outcome == outcome_of(logged[3].outcome)  # now the rest, once
-    assert [entry.outcome for entry in slide.history] == [outcome_of(e.outcome) for e in logged]
-    assert reads == [10, 0]
-    store.close()
-
-
-def test_events_after_the_snapshot_are_checked(tmp_path: Path) -> None:
-    path = tmp_path / "estimator.sqlite"
-    slide_id = _start(path, n_pairs=13, snapshot_every=5)
-    _tamper(path, 11, '"accepted": true', '"accepted": false')
-    first, _ = _finish(path, slide_id)
-    assert first.status_code == 500
-    assert "outcome 11 no longer replays" in first.json()["detail"]
-
-
-def test_a_snapshot_that_does_not_fit_falls_back_to_the_whole_log(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    path = tmp_path / "estimator.sqlite"
-    slide_id = _start(path, n_pairs=13, snapshot_every=5)
-    with sqlite3.connect(path) as db:
-        db.execute("UPDATE snapshots SET state = ?", (b"garbage",))
-    with caplog.at_level(logging.WARNING):
-        first, served = _finish(path, slide_id)
-    assert first.status_code == 200
-    assert "snapshot not used, replaying its log" in caplog.text
-    assert_same_maps(served, local_map(SNAPSHOTTED, SETTINGS, 5))  # type: ignore[arg-type]
-
-
-def test_round_off_in_a_replayed_outcome_is_a_warning(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
-    """A log written with another numpy or BLAS differs in the last digits: it still loads."""
-    path = tmp_path / "estimator.sqlite"
-    slide_id = _start(path, n_pairs=4, snapshot_every=1000)  # no snapshot: the whole log replays
-    with sqlite3.connect(path) as db:
-        (outcome,) = db.execute("SELECT outcome FROM events WHERE sequence = 2").fetchone()
-    value = outcome.split('"posterior_um": ')[1].split(",")[0]
-    _tamper(path, 2, f'"posterior_um": {value}', f'"posterior_um": {float(value) * (1 + 1e-12)!r}')
-    with caplog.at_level(logging.WARNING):
-        first, served = _finish(path, slide_id)
-    assert first.status_code == 200
-    assert "outcome 2 differs from the logged one by round-off only" in caplog.text
-    assert_same_maps(served, local_map(SNAPSHOTTED, SETTINGS, 5))  # type: ignore[arg-type]
-    # More than round-off is still a mismatch (replayed from the log, the snapshot gone).
-    with sqlite3.connect(path) as db:
-        db.execute("UPDATE events SET outcome = json_set(outcome, '$.posterior_um', 1.0)")
-        db.execute("DELETE FROM snapshots")
-    first, _ = _finish(path, slide_id)
-    assert first.status_code == 500
-
-
-def test_a_grid_over_the_service_limit_is_a_422_naming_it(tmp_path: Path) -> None:
-    async def go() -> httpx.Response:
-        app = create_app(Settings(str(tmp_path / "e.sqlite"), max_grid_side=8, max_grid_tiles=40))
-        async with client(app) as http:
-            ok = await create(http, SNAPSHOTTED)  # 6x5: within both limits
-            assert ok
-            body = {"strategy": SNAPSHOTTED, "grid": {"rows": 9, "cols": 2}}
-            too_tall = await http.post("/v1/slides", json=body)
-            assert too_tall.status_code == 422
-            assert "--max-grid-side" in too_tall.json()["detail"][0]["msg"]
-            body = {"strategy": SNAPSHOTTED, "grid": {"rows": 7, "cols": 7}}
-            response = await http.post("/v1/slides", json=body)
-        app.state.slides.store.close()
-        return response
-
-    response = run(go())
-    assert response.status_code == 422
-    detail = response.json()["detail"][0]
-    assert detail["loc"] == ["body", "grid"] and "49 tiles" in detail["msg"]

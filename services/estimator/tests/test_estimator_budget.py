@@ -1,5 +1,6 @@
-"""The cost budget per slide (issue 13): each strategy's cost model, kept honest against
-tracemalloc, and creation refusing what exceeds the budget (real server on loopback)."""
+"""The cost budget per slide: each strategy's cost model, kept honest against
+tracemalloc, and creation refusing what exceeds the budget (real server on loopback).
+The benchmarks' oracle, served on request: tests/test_estimator_serves_the_oracle.py."""
 
 from __future__ import annotations
 
@@ -10,41 +11,48 @@ from pathlib import Path
 
 import httpx
 import pytest
+from pydantic import ValidationError
 
-from focustrack.bench.strategies import CATALOGUE
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
+from focustrack_estimator.budget import Budget
+from focustrack_estimator.errors import SlideError
 from focustrack_estimator.params import resolve_params
 from focustrack_estimator.service import spawn
-from focustrack_estimator.slides import Budget, Slide, cost_of
-from focustrack_estimator.store import Store
+from focustrack_estimator.settings import EstimatorSettings
+from focustrack_estimator.slide import Slide
+from focustrack_estimator.slide_strategy import cost_of
+from focustrack_estimator.sqlite_store import SQLiteStore
 from focustrack_estimator.strategy import Cost
 
 
 def test_every_strategy_states_its_cost() -> None:
-    assert set(CATALOGUE.strategies) > set(registry.STRATEGIES)
-    for name in CATALOGUE.strategies:
-        cost = CATALOGUE.cost(name, default_settings(ScanGrid(20, 20)))
+    for name in registry.STRATEGIES:
+        cost = registry.SERVED.cost(name, default_settings(ScanGrid(20, 20)))
         assert cost.peak_bytes > 20 * 20 and cost.seconds_per_tile >= 0
 
 
 def test_the_defaults_admit_kf_2d_on_200x200_and_refuse_the_issues_slides() -> None:
-    budget = Budget()
+    budget = Budget.of(EstimatorSettings.model_construct())  # the defaults
 
     def slide(strategy: str, rows: int, cols: int, **params: object) -> api.SlideCreate:
         grid = api.Grid(rows=rows, cols=cols)
         return api.SlideCreate(strategy=strategy, grid=grid, params=params)  # type: ignore[arg-type]
 
-    def check(config: api.SlideCreate) -> Cost:
-        return budget.check(config, resolve_params(config.strategy, config.params))
-
     def cost(config: api.SlideCreate) -> Cost:
-        return cost_of(config, resolve_params(config.strategy, config.params))
+        params = resolve_params(config.strategy, config.params)
+        return cost_of(config, params, registry.SERVED)
 
-    assert check(slide("kf-2d", 200, 200)).peak_bytes < budget.max_slide_bytes
+    def checked(config: api.SlideCreate) -> int:
+        """The slide's projected peak bytes, once the budget admitted it."""
+        projected = cost(config)
+        budget.check(config, projected)
+        return projected.peak_bytes
+
+    assert checked(slide("kf-2d", 200, 200)) < budget.max_slide_bytes
     values = [0.1 * (i + 1) for i in range(20)]
     bank = {"sigmas_um": values, "lengths_tiles": values, "tilt_sigmas_um_per_tile": values}
     # 8000 members (the issue: 41 s of CPU and 5.6 GB), the 250x750 slide, nshp at 200x200
@@ -53,14 +61,14 @@ def test_the_defaults_admit_kf_2d_on_200x200_and_refuse_the_issues_slides() -> N
         slide("kf-2d", 250, 750),
         slide("nshp-wiener1", 200, 200),
     ):
-        with pytest.raises(Exception, match="projected to need"):
-            check(config)
+        with pytest.raises(SlideError, match="projected to need"):
+            checked(config)
     # a bank grows its cost with its members: 8000 members cost 8000/18 times 18
     small, large = cost(slide("kf-2d", 50, 50)), cost(slide("kf-2d", 50, 50, **bank))
     assert large.peak_bytes > 100 * small.peak_bytes / 4
 
 
-def _measured_peak_bytes(config: api.SlideCreate, store: Store) -> int:
+def _measured_peak_bytes(config: api.SlideCreate, store: SQLiteStore) -> int:
     """tracemalloc's peak over a whole scan of `config` through a `Slide` (history included)."""
     store.create_slide("s", config.model_dump(mode="json"))
     tracemalloc.start()
@@ -100,12 +108,13 @@ def test_projected_memory_is_within_a_factor_of_the_measured(
     tmp_path: Path, strategy: str, rows: int, cols: int
 ) -> None:
     config = api.SlideCreate(strategy=strategy, grid=api.Grid(rows=rows, cols=cols))
-    store = Store(tmp_path / "budget.sqlite")
+    store = SQLiteStore(tmp_path / "budget.sqlite")
     try:
         measured = _measured_peak_bytes(config, store)
     finally:
         store.close()
-    projected = cost_of(config, resolve_params(config.strategy, config.params)).peak_bytes
+    params = resolve_params(config.strategy, config.params)
+    projected = cost_of(config, params, registry.SERVED).peak_bytes
     # An estimate, not an account: within a factor of two either way of what was measured.
     assert measured / 2 <= projected <= 2 * measured, (projected, measured)
 
@@ -143,22 +152,7 @@ def test_creation_refuses_slides_over_the_budget_with_the_reason(server: str) ->
     assert httpx.get(f"{server}/healthz").json()["slides"] == 1
 
 
-def test_gp_oracle_is_served_only_when_opted_into_and_within_the_budget(tmp_path: Path) -> None:
-    port = free_port()
-    options = ["--strategies-from", "focustrack.bench.strategies"]
-    process = spawn(tmp_path / "oracle.sqlite", port, timeout_s=120, options=options)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        assert _post(url, "gp-oracle", 10, 10).status_code == 201
-        for rows, cols in ((90, 90), (500, 500)):  # the issue's 1 GB and 466 GiB slides
-            refused = _post(url, "gp-oracle", rows, cols)
-            assert refused.status_code == 422 and "projected to need" in refused.text
-    finally:
-        process.terminate()
-        process.wait(60)
-
-
-def test_a_budget_that_admits_nothing_is_a_configuration_error() -> None:
-    for bad in ({"max_live_slides": 0}, {"max_slide_bytes": -1}, {"max_tile_s": 0.0}):
-        with pytest.raises(ValueError, match="must be positive"):
-            Budget(**bad)  # type: ignore[arg-type]
+def test_a_budget_that_admits_nothing_is_refused_by_the_settings() -> None:
+    for name, bad in (("max_live_slides", 0), ("max_slide_bytes", -1), ("max_tile_seconds", 0.0)):
+        with pytest.raises(ValidationError, match=name):
+            EstimatorSettings(**{name: bad})

@@ -1,7 +1,7 @@
 """The estimator as deployed: a real uvicorn process on loopback, a real SQLite file.
 
 A full 20x20 scan through HTTP, driven by the benchmark's own replay loop
-(`RemoteStrategy` makes the served slide look like a local strategy), must give
+(`remote.RemoteStrategy` makes the served slide look like a local strategy), must give
 exactly the benchmark's scores; a scan whose server is killed with SIGKILL in
 the middle and restarted on the same store must finish identically.
 """
@@ -16,7 +16,6 @@ from subprocess import Popen
 import numpy as np
 import pytest
 
-from focustrack.bench.remote import RemoteStrategy
 from focustrack_client import EstimatorClient
 from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.geometry import ScanGrid
@@ -25,9 +24,10 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
+from focustrack_estimator.remote import RemoteStrategy
 from focustrack_estimator.replay import replay, score
 from focustrack_estimator.service import spawn
-from focustrack_estimator.store import Store
+from focustrack_estimator.sqlite_store import SQLiteStore
 
 pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
 
@@ -144,7 +144,7 @@ def test_kf_2d_killed_restarts_from_its_snapshot_and_loses_nothing(
         np.testing.assert_array_equal(remote.focus_map.smoothed_um, local.focus_map.smoothed_um)
         remote_strategy.client.close()
         server.stop()  # a clean shutdown: the scan is complete, its snapshot covers it all
-        store = Store(server.store)
+        store = SQLiteStore(server.store)
         snapshot = store.snapshot(remote_strategy.slide_id)
         store.close()
         assert snapshot is not None and snapshot[0] == len(local.outcomes)

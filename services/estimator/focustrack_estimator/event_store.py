@@ -1,0 +1,150 @@
+"""Where the estimator keeps its slides: the `EventStore` interface and what goes through it.
+
+Event sourcing: a slide is its configuration plus the ordered log of
+(sequence, acquisition, measurement, outcome) events; strategies are
+deterministic, so replaying the log rebuilds the live state. The log is the
+source of truth; beside it a store keeps each slide's newest snapshot (an
+opaque blob of the strategy's state after its first n events), so that a
+restart replays only the events after it. A store knows nothing of
+strategies: configurations and events are JSON objects, snapshots bytes.
+
+Appends are optimistic: each names the sequence it expects to write (the
+slide's event count as its writer last saw it), and a log that has moved on
+since (another writer appended first) refuses it with `SequenceConflictError`,
+which tells the writer to reload the slide. SQLite (`sqlite_store`) is the
+embedded implementation; `open_store` opens one from a path or a URL.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple, Protocol
+
+
+class StoreError(Exception):
+    """A request the store cannot honour (unknown slide, a slide that exists already), or
+    a store it refuses to open (damaged, not a database, of a newer schema)."""
+
+
+class SequenceConflictError(StoreError):
+    """The slide's log is not where the append expected it: `current` events are logged
+    (another writer moved it on, or the caller's sequence is wrong)."""
+
+    def __init__(self, slide_id: str, expected: int, current: int) -> None:
+        super().__init__(f"slide {slide_id!r} expects event {current}, got {expected}")
+        self.slide_id, self.expected, self.current = slide_id, expected, current
+
+
+class StoreUnavailableError(StoreError):
+    """The database failed (I/O error, full disk, locked): what was asked may not be done."""
+
+
+@dataclass(frozen=True)
+class SlideRecord:
+    """A slide's stored configuration and progress (times are Unix seconds)."""
+
+    id: str
+    config: dict[str, Any]
+    created_s: float
+    updated_s: float
+    n_events: int
+    n_accepted: int
+    done: bool
+
+
+@dataclass(frozen=True)
+class Event:
+    """One logged acquisition with the measurement made for it and what it did."""
+
+    sequence: int
+    acquisition: dict[str, Any]
+    measurement: dict[str, Any]
+    outcome: dict[str, Any]
+
+
+class Snapshot(NamedTuple):
+    """A strategy's state after the slide's first `n_events` events (opaque bytes)."""
+
+    n_events: int
+    state: bytes
+
+
+class EventStore(Protocol):
+    """Slides, their event logs and their newest snapshots, durable once a call returns.
+
+    Every method may be called from several threads at once. Any of them may raise
+    `StoreUnavailableError` when the database fails.
+    """
+
+    @property
+    def created(self) -> bool:
+        """Whether the store was new (missing or empty) when it was opened."""
+        ...
+
+    def create_slide(self, slide_id: str, config: dict[str, Any]) -> SlideRecord:
+        """A new slide with an empty log; StoreError if `slide_id` exists."""
+        ...
+
+    def slide(self, slide_id: str) -> SlideRecord | None:
+        """The slide's record, or None if there is no such slide."""
+        ...
+
+    def slides(self) -> list[SlideRecord]:
+        """Every slide, oldest first."""
+        ...
+
+    def count_slides(self) -> int: ...
+
+    def delete_slide(self, slide_id: str) -> bool:
+        """Forget a slide, its log and its snapshot; False if there was no such slide."""
+        ...
+
+    def append(self, slide_id: str, event: Event, *, accepted: bool, done: bool) -> None:
+        """Log `event` as the slide's next one and update its progress, atomically.
+
+        `event.sequence` is the sequence expected: the slide's event count (the log
+        has no gaps). Raises SequenceConflictError (with the current count) if the
+        log is elsewhere, StoreError if there is no such slide.
+        """
+        ...
+
+    def events(self, slide_id: str, start: int = 0) -> list[Event]:
+        """The slide's log in sequence order, from sequence `start` on."""
+        ...
+
+    def put_snapshot(self, slide_id: str, n_events: int, state: bytes) -> None:
+        """Keep `state` as the slide's snapshot after its first `n_events` events (replacing
+        an older one); a snapshot older than the one kept is ignored."""
+        ...
+
+    def snapshot(self, slide_id: str) -> Snapshot | None:
+        """The slide's newest snapshot, or None."""
+        ...
+
+    def close(self) -> None:
+        """Release the store (once; later calls do nothing)."""
+        ...
+
+
+#: The URL scheme of an SQLite store (``sqlite:///relative.db``, ``sqlite:////abs/path.db``).
+SQLITE_SCHEME = "sqlite://"
+
+
+def open_store(location: str) -> EventStore:
+    """The store at `location`: an SQLite file's path, or a ``sqlite:///PATH`` URL (the
+    path after the third slash, so ``sqlite:////data/e.sqlite`` is absolute).
+
+    Raises StoreError for a URL of another scheme, or a file the store refuses.
+    """
+    # Each implementation is imported when chosen: another database brings its driver.
+    from focustrack_estimator.sqlite_store import SQLiteStore
+
+    path = location
+    if location.startswith(SQLITE_SCHEME):
+        path = location.removeprefix(SQLITE_SCHEME).removeprefix("/")
+    elif "://" in location:
+        scheme = location.partition("://")[0]
+        raise StoreError(f"store {location!r}: unknown scheme {scheme!r}; known: sqlite")
+    if not path:
+        raise StoreError(f"store {location!r}: no file named")
+    return SQLiteStore(path)

@@ -1,0 +1,132 @@
+"""The REST API's errors: each domain error's HTTP status and code, and the one reply shape.
+
+Every error reply is an `api.Error`: a `code` for programs and a `detail` naming
+the problem, quoting at most 200 characters of any input (404 unknown slide, 409
+not the pending acquisition or a conflicting re-post, 422 invalid input or a slide
+over the cost budget, 413 oversized body, 408 a body too slow to arrive, 500 a log
+that no longer replays). A 422 from the domain has the shape of FastAPI's own.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
+from starlette.types import Scope
+
+from focustrack_client import models as api
+from focustrack_core.serving import cut
+from focustrack_estimator.errors import (
+    ReplayMismatchError,
+    SlideConflictError,
+    SlideError,
+    SlideNotFoundError,
+)
+
+#: The status and code of each domain error (a subclass takes its nearest ancestor's).
+DOMAIN_ERRORS: dict[type[SlideError], tuple[int, api.ErrorCode]] = {
+    SlideError: (422, api.ErrorCode.INVALID_REQUEST),
+    SlideNotFoundError: (404, api.ErrorCode.NOT_FOUND),
+    SlideConflictError: (409, api.ErrorCode.CONFLICT),
+    ReplayMismatchError: (500, api.ErrorCode.REPLAY_MISMATCH),
+}
+
+#: The error replies every /v1 operation documents (in the OpenAPI schema).
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    status: {"model": api.Error, "description": text}
+    for status, text in (
+        (401, "Missing or wrong bearer token"),
+        (404, "Unknown slide"),
+        (409, "Not the pending acquisition, a conflicting re-post, or a finished scan"),
+        (413, "Request body too large"),
+    )
+}
+
+#: The error code of an HTTP status the service answers without a more specific one.
+_CODE_OF_STATUS = {
+    401: api.ErrorCode.UNAUTHORIZED,
+    404: api.ErrorCode.NOT_FOUND,
+    405: api.ErrorCode.NOT_FOUND,
+    409: api.ErrorCode.CONFLICT,
+    413: api.ErrorCode.PAYLOAD_TOO_LARGE,
+    422: api.ErrorCode.INVALID_REQUEST,
+}
+
+
+def error_response(
+    status: int,
+    code: api.ErrorCode | None,
+    detail: object,
+    headers: dict[str, str] | None = None,
+) -> JSONResponse:
+    """An error reply in the one shape of `api.Error`: a `code` for programs, a `detail`
+    (long inputs quoted in it are cut: `focustrack_core.serving.cut`)."""
+    if code is None:
+        default = api.ErrorCode.INTERNAL if status >= 500 else api.ErrorCode.INVALID_REQUEST
+        code = _CODE_OF_STATUS.get(status, default)
+    return JSONResponse({"code": code, "detail": _cut_quotes(detail)}, status, headers=headers)
+
+
+def _cut_quotes(detail: object) -> object:
+    """`detail` with every string in it (messages, locations: a key may be 1 MB) cut short."""
+    if isinstance(detail, str):
+        return cut(detail)
+    if isinstance(detail, list | tuple):
+        return [_cut_quotes(item) for item in detail]
+    if isinstance(detail, dict):
+        return {key: _cut_quotes(value) for key, value in detail.items()}
+    return detail
+
+
+def status_of(error: SlideError) -> tuple[int, api.ErrorCode]:
+    """The HTTP status and error code of a domain error."""
+    kind = next(kind for kind in type(error).__mro__ if kind in DOMAIN_ERRORS)
+    return DOMAIN_ERRORS[kind]
+
+
+def _allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
+    """Every method some route of the app serves at the request's path."""
+    return sorted(
+        {
+            method
+            for route in app.routes
+            if isinstance(route, APIRoute) and route.matches(scope)[0] is not Match.NONE
+            for method in route.methods or ()
+        }
+    )
+
+
+def install(app: FastAPI) -> None:
+    """Answer the domain's errors, HTTP errors and invalid requests as `api.Error` replies."""
+
+    @app.exception_handler(SlideError)
+    async def slide_error(_: Request, error: SlideError) -> JSONResponse:
+        status, code = status_of(error)
+        if status == 422:  # the shape of FastAPI's own 422: one schema for clients
+            detail = [{"loc": list(error.where), "msg": str(error), "type": "value_error"}]
+            return error_response(status, code, detail)
+        return error_response(status, code, str(error))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:
+        headers = dict(error.headers or {})
+        if error.status_code == 405:  # Starlette names the methods of one route; a path has more
+            headers["Allow"] = ", ".join(_allowed_methods(app, request.scope))
+        if error.status_code == 400:
+            # FastAPI's answer to a body it cannot decode (not UTF-8): malformed input like
+            # any other, so the documented 422 invalid_request rather than an undocumented 400
+            detail = [{"loc": ["body"], "msg": error.detail, "type": "json_invalid"}]
+            return error_response(422, api.ErrorCode.INVALID_REQUEST, detail, headers)
+        return error_response(error.status_code, None, error.detail, headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(_: Request, error: RequestValidationError) -> JSONResponse:
+        # FastAPI's own handler echoes the input, which fails to render when it is NaN or
+        # infinite (a 500 for the very values it rejects): say where and what, not the value.
+        detail = [{"loc": e["loc"], "msg": e["msg"], "type": e["type"]} for e in error.errors()]
+        return error_response(422, api.ErrorCode.INVALID_REQUEST, detail)

@@ -1,0 +1,303 @@
+"""One live slide: its strategy, rebuilt from its durable log, and the history of its scan.
+
+A `Slide` pairs a strategy with the history of what it was asked and told. A new
+slide is checked and stored (`Slide.new`); after a restart (or an eviction) a slide
+is rebuilt from its store (`Slide.load`): from its newest snapshot (the strategy's
+state, written every `snapshot_every` measurements, when the scan completes and at
+shutdown) and the events logged after it, or from the whole log when there is no
+snapshot that fits. Strategies are deterministic, so the replay gives back the same
+state; it checks that every acquisition and outcome comes out as logged, and
+tolerates differences of floating-point noise (another numpy or BLAS) with a
+warning. The log stays the source of truth. A measurement is committed before its
+outcome is returned.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from focustrack_client import models as api
+from focustrack_core.domain import Acquisition, FocusMap, Measurement
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest import to_domain
+from focustrack_estimator import registry
+from focustrack_estimator.budget import Budget, GridLimits
+from focustrack_estimator.diagnose import SlideDiagnostics, diagnose
+from focustrack_estimator.errors import ReplayMismatchError, SlideConflictError, SlideError
+from focustrack_estimator.event_store import Event, EventStore, SlideRecord, StoreError
+from focustrack_estimator.history import History
+from focustrack_estimator.records import (
+    Logged,
+    acquisition_record,
+    event_of,
+    logged_of,
+    measurement_record,
+    outcome_record,
+    same_up_to_round_off,
+)
+from focustrack_estimator.slide_strategy import (
+    cost_of,
+    new_strategy,
+    probe,
+    resolved_params,
+    served,
+    stored_config,
+)
+from focustrack_estimator.snapshot import SnapshotError, encode, restore
+from focustrack_estimator.strategy import StrategyParams
+
+log = logging.getLogger(__name__)
+
+
+def _untimed(_: float) -> None:
+    """A timer that keeps nothing (a slide outside the service)."""
+
+
+class Slide:
+    """One slide's live strategy and its history. Not thread-safe: `Slides` serialises calls.
+
+    `timer` is called with the seconds spent in each strategy call (for /metrics).
+    A snapshot of the strategy is stored every `snapshot_every` measurements
+    and when the scan completes. `catalogue`: the strategies served (None: the
+    estimator's own).
+    """
+
+    def __init__(
+        self,
+        slide_id: str,
+        config: api.SlideCreate,
+        params: StrategyParams,
+        store: EventStore,
+        *,
+        snapshot_every: int,
+        timer: Callable[[float], None] = _untimed,
+        catalogue: registry.Catalogue | None = None,
+    ) -> None:
+        self.id = slide_id
+        self.config = config
+        self.store = store
+        self._timer = timer
+        self.snapshot_every = snapshot_every
+        self.history = History()
+        self.n_snapshot = 0  # events covered by the newest snapshot stored
+        self._snapshots = True  # False once the strategy's state proved impossible to store
+        strategies = served(catalogue)
+        self.cost = cost_of(config, params, strategies)  # its share of the live slides' budget
+        start_s = time.perf_counter()
+        self.strategy = new_strategy(config, params, strategies)
+        self._timer(time.perf_counter() - start_s)
+
+    @classmethod
+    def new(
+        cls,
+        slide_id: str,
+        config: api.SlideCreate,
+        store: EventStore,
+        *,
+        limits: GridLimits,
+        budget: Budget,
+        snapshot_every: int,
+        timer: Callable[[float], None] = _untimed,
+        catalogue: registry.Catalogue | None = None,
+    ) -> Slide:
+        """A new slide, checked (grid, budget, parameters, a trial scan) and then stored
+        with its parameters resolved; a SlideError says what is wrong."""
+        strategies = served(catalogue)
+        limits.check(config.grid)
+        params = resolved_params(config, strategies)  # once, for all that follows
+        budget.check(config, cost_of(config, params, strategies))
+        config = stored_config(config, params)
+        slide = cls(
+            slide_id,
+            config,
+            params,
+            store,
+            snapshot_every=snapshot_every,
+            timer=timer,
+            catalogue=strategies,
+        )
+        probe(config, params, strategies)
+        store.create_slide(slide_id, config.model_dump(mode="json"))
+        return slide
+
+    @classmethod
+    def load(
+        cls,
+        record: SlideRecord,
+        store: EventStore,
+        *,
+        snapshot_every: int,
+        timer: Callable[[float], None] = _untimed,
+        catalogue: registry.Catalogue | None = None,
+    ) -> Slide:
+        """The stored slide of `record`, rebuilt from its newest snapshot and the events after
+        it (or from its whole log). ReplayMismatchError if the log no longer replays."""
+        slide_id, config = record.id, api.SlideCreate.model_validate(record.config)
+        params = resolved_params(config, served(catalogue))
+
+        def built() -> Slide:
+            return cls(
+                slide_id,
+                config,
+                params,
+                store,
+                snapshot_every=snapshot_every,
+                timer=timer,
+                catalogue=catalogue,
+            )
+
+        slide = built()
+        snapshot = store.snapshot(slide_id)
+        if snapshot is not None and snapshot.n_events <= record.n_events:
+            try:
+                restore(slide.strategy, snapshot.state)
+                slide._cover_history(snapshot.n_events)
+                slide.n_snapshot = snapshot.n_events
+            except SnapshotError as error:
+                log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
+                slide = built()
+        # Only the events after the snapshot are read now (the others when first needed).
+        slide._replay(store.events(slide_id, start=len(slide.history)))
+        return slide
+
+    @property
+    def grid(self) -> ScanGrid:
+        return self.strategy.grid
+
+    def next(self) -> Acquisition | None:
+        start_s = time.perf_counter()
+        acquisition = self.strategy.next_acquisition()
+        self._timer(time.perf_counter() - start_s)
+        return acquisition
+
+    def _replay(self, events: list[Event]) -> None:
+        """Rebuild the state from the logged events, checking each comes out as logged.
+
+        A replayed acquisition or outcome that differs from the logged one by
+        round-off only (`same_up_to_round_off`) is logged as a warning and the
+        replay goes on; the history keeps the logged records, which the
+        clients were given. Any other difference is a ReplayMismatchError.
+        """
+        for event in events:
+            acquisition = self.strategy.next_acquisition()
+            replayed = None if acquisition is None else acquisition_record(acquisition)
+            self._check(event, "acquisition", replayed, event.acquisition)
+            assert acquisition is not None  # checked against the logged one
+            logged = logged_of(event)
+            outcome = self.strategy.record(acquisition, logged.measurement)
+            self._check(event, "outcome", outcome_record(outcome), event.outcome)
+            self.history.append(logged)
+
+    def _check(self, event: Event, what: str, replayed: Any, logged: dict[str, Any]) -> None:
+        if replayed == logged:
+            return
+        if replayed is not None and same_up_to_round_off(replayed, logged):
+            log.warning(
+                "slide %s: replayed %s %d differs from the logged one by round-off only "
+                "(another numpy or BLAS?); going on. replayed %s, logged %s",
+                self.id, what, event.sequence, replayed, logged,
+            )  # fmt: skip
+            return
+        raise ReplayMismatchError(
+            f"slide {self.id}: logged {what} {event.sequence} no longer replays "
+            f"(the strategy {self.config.strategy!r} changed since it was logged)"
+        )
+
+    def _cover_history(self, n_events: int) -> None:
+        """Take the first `n_events` logged events as the history without replaying them (a
+        snapshot covers them); they are read from the store when first needed (`History`)."""
+
+        def load() -> list[Logged]:
+            return [logged_of(event) for event in self.store.events(self.id)[:n_events]]
+
+        self.history = History(load, n_events)
+
+    def save_snapshot(self) -> None:
+        """Store the strategy's state as the snapshot after the history's events.
+
+        Never fails the request: a state that cannot be encoded turns snapshots
+        off for this slide (it is then rebuilt from its whole log), a store error
+        leaves the older snapshot (the log has every event either way).
+        """
+        if not self._snapshots or len(self.history) <= self.n_snapshot:
+            return
+        try:
+            blob = encode(self.strategy)
+            self.store.put_snapshot(self.id, len(self.history), blob)
+        except SnapshotError as error:
+            self._snapshots = False
+            log.warning("slide %s: no snapshots for its strategy: %s", self.id, error)
+            return
+        except StoreError as error:
+            log.warning("slide %s: snapshot not stored: %s", self.id, error)
+            return
+        self.n_snapshot = len(self.history)
+
+    def measure(self, request: api.MeasurementIn) -> tuple[Logged, bool]:
+        """Record a measurement (durably) or return the one already recorded for it.
+
+        Returns the logged acquisition with its outcome, and whether it is new
+        (False: an idempotent re-post).
+        Raises SlideError (tile outside the grid), SlideConflictError (not the pending
+        acquisition, a re-post with another value, the scan is complete), and the
+        store's SequenceConflictError if another writer moved the log on.
+        """
+        tile = (request.row, request.col)
+        if not self.grid.contains(*tile):
+            raise SlideError(
+                f"tile ({request.row}, {request.col}) is outside the slide's "
+                f"{self.grid.rows}x{self.grid.cols} grid",
+                ("body", "row" if request.row >= self.grid.rows else "col"),
+            )
+        try:
+            measurement = to_domain.measurement(request)
+        except ValueError as error:
+            raise SlideError(str(error), ("body",)) from None
+        if request.sequence < len(self.history):
+            return self._recorded(request, measurement), False
+        pending = self.next()
+        if pending is None:
+            raise SlideConflictError(
+                f"the scan is complete: sequence {request.sequence} was not asked for"
+            )
+        if request.sequence != pending.index or tile != (pending.row, pending.col):
+            raise SlideConflictError(
+                f"acquisition {request.sequence} at tile ({request.row}, {request.col}) was "
+                f"not asked for: the pending one is {pending.index} at tile "
+                f"({pending.row}, {pending.col})"
+            )
+        start_s = time.perf_counter()
+        outcome = self.strategy.record(pending, measurement)
+        done = self.strategy.next_acquisition() is None
+        self._timer(time.perf_counter() - start_s)
+        logged = Logged(pending, measurement, outcome)
+        self.store.append(self.id, event_of(logged), accepted=outcome.accepted, done=done)
+        self.history.append(logged)
+        if done:  # the final map (smoothed layers included) once, so that its snapshot has it
+            self.strategy.focus_map()
+        if done or len(self.history) - self.n_snapshot >= self.snapshot_every:
+            self.save_snapshot()
+        return logged, True
+
+    def _recorded(self, request: api.MeasurementIn, measurement: Measurement) -> Logged:
+        logged = self.history[request.sequence]
+        same_tile = (logged.acquisition.row, logged.acquisition.col) == (request.row, request.col)
+        if not same_tile or logged.measurement != measurement:
+            raise SlideConflictError(
+                f"acquisition {request.sequence} was already recorded for tile "
+                f"({logged.acquisition.row}, {logged.acquisition.col}) with "
+                f"{measurement_record(logged.measurement)}; a different value cannot replace it"
+            )
+        return logged
+
+    def focus_map(self) -> FocusMap:
+        """A copy of the current maps (safe to read after the lock is released)."""
+        return FocusMap(**dataclasses.asdict(self.strategy.focus_map()))  # asdict deep-copies
+
+    def diagnose(self) -> SlideDiagnostics:
+        """Counts, innovation statistics and the predicted risk of the scan so far."""
+        return diagnose(self.history, self.strategy)

@@ -1,0 +1,25 @@
+"""Fixtures of the estimator's tests: an app in process over a store of its own.
+
+Helper modules of this folder (`estimator_in_process`) are importable by its tests:
+pytest imports test files by path (``--import-mode=importlib``), not this folder.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi import FastAPI
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from estimator_in_process import estimator
+
+
+@pytest.fixture
+def app(tmp_path: Path) -> Iterator[FastAPI]:
+    """The estimator's app on default settings, over a new store."""
+    with estimator(tmp_path / "estimator.sqlite") as app:
+        yield app
