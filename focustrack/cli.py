@@ -7,8 +7,6 @@ own console script (`focustrack-estimator`, ...) uses them; any other module
 provides ``add_arguments(parser: argparse.ArgumentParser) -> None`` and
 ``run(args: argparse.Namespace) -> int``. Only the chosen module is imported,
 so `focustrack bench accuracy` does not pay for starting Zenoh or FastAPI.
-A module with an ``ENV_PREFIX`` also takes every option from the environment
-(`focustrack_core.config`).
 """
 
 from __future__ import annotations
@@ -17,7 +15,6 @@ import argparse
 import importlib
 import sys
 
-from focustrack_core.config import with_environment
 from focustrack_core.settings import ServiceSettings, parse
 
 #: subcommand -> (module, one-line help)
@@ -92,8 +89,6 @@ def main(argv: list[str] | None = None) -> int:
                 settings_cls.add_arguments(parser)
                 return module.run(parse(parser, settings_cls, argv[n_words:]))
             module.add_arguments(parser)
-            if hasattr(module, "ENV_PREFIX"):
-                with_environment(parser, module.ENV_PREFIX)
             return module.run(parser.parse_args(argv[n_words:]))
     print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
     return 0 if not argv or argv[0] in ("-h", "--help") else 2

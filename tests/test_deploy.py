@@ -9,7 +9,6 @@ the containerized end-to-end test's job.)
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import importlib.util
 import os
@@ -26,7 +25,6 @@ import zenoh
 from focustrack.bus_secrets import PUBLIC_FILES, ROLES, write_bus_files
 from focustrack.cli import main
 from focustrack_core import health
-from focustrack_core.config import with_environment
 from focustrack_core.settings import ServiceSettings
 from focustrack_core.wire import router
 
@@ -53,25 +51,16 @@ def defaults(value: Any) -> str:
 def configured(
     module_name: str, environ: dict[str, str], monkeypatch: pytest.MonkeyPatch
 ) -> tuple[str, set[str], Any]:
-    """A service command's environment prefix, the variables it reads, and its options as
-    `environ` sets them (from its settings model, or from its parser where it has none)."""
-    module = importlib.import_module(module_name)
-    settings_cls = getattr(module, "Settings", None)
-    if isinstance(settings_cls, type) and issubclass(settings_cls, ServiceSettings):
-        variables = {settings_cls.variable(name) for name in settings_cls.model_fields}
-        for name in [*variables, settings_cls.variable("settings")]:
-            monkeypatch.delenv(name, raising=False)
-        for name, value in environ.items():
-            monkeypatch.setenv(name, value)
-        return settings_cls.env_prefix(), variables, settings_cls.load()
-    parser = argparse.ArgumentParser()
-    module.add_arguments(parser)
-    variables = {module.ENV_PREFIX + a.dest.upper() for a in parser._actions if a.option_strings}
-    return (
-        module.ENV_PREFIX,
-        variables,
-        with_environment(parser, module.ENV_PREFIX, environ).parse_args([]),
-    )
+    """A service command's environment prefix, the variables it reads, and its settings as
+    `environ` sets them (nothing else in the environment)."""
+    settings_cls = importlib.import_module(module_name).Settings
+    assert issubclass(settings_cls, ServiceSettings), module_name
+    variables = {settings_cls.variable(name) for name in settings_cls.model_fields}
+    for name in [*variables, settings_cls.variable("settings")]:
+        monkeypatch.delenv(name, raising=False)
+    for name, value in environ.items():
+        monkeypatch.setenv(name, value)
+    return settings_cls.env_prefix(), variables, settings_cls.load()
 
 
 def test_every_service_is_its_own_image(compose: dict[str, Any]) -> None:

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Iterator
+from typing import ClassVar
 
 import numpy as np
 import pytest
 import zenoh
+from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.v1 import common_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc, session
@@ -148,15 +151,18 @@ def test_call_returns_replies_and_raises_error_replies(pair) -> None:
         rpc.call(caller, key, instrument_pb2.AcquireRequest(), instrument_pb2.AcquireReply, 0.5)
 
 
-def test_session_arguments_default_and_override() -> None:
-    import argparse
+class _Listener(session.ZenohSettings):
+    """A service that listens on the default endpoint, as the instrument does."""
 
-    parser = argparse.ArgumentParser()
-    session.add_zenoh_arguments(parser, default_listen=[session.DEFAULT_ENDPOINT])
-    args = parser.parse_args([])
-    assert args.connect is None and args.zenoh_default_listen == [session.DEFAULT_ENDPOINT]
-    args = parser.parse_args(["--connect", "tcp/127.0.0.1:1", "--mode", "client"])
-    assert args.connect == ["tcp/127.0.0.1:1"] and args.listen is None
+    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_WIRE_TEST_")
+    default_listen: ClassVar[tuple[str, ...]] = (session.DEFAULT_ENDPOINT,)
+
+
+def test_session_settings_default_and_override() -> None:
+    assert _Listener().endpoints() == ([], [session.DEFAULT_ENDPOINT])
+    chosen = _Listener(connect=["tcp/127.0.0.1:1"], mode="client", shared_memory=2)
+    assert chosen.endpoints() == (["tcp/127.0.0.1:1"], []) and chosen.shared_memory_bytes == 2e6
+    assert json.loads(chosen.zenoh().get_json("mode")) == "client"
     with pytest.raises(ValueError, match="at least one"):
         session.session_config()
 

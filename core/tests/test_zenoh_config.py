@@ -7,15 +7,25 @@ import json
 import shutil
 import socket
 from pathlib import Path
+from typing import ClassVar
 
 import pytest
 import zenoh
+from pydantic_settings import SettingsConfigDict
 
-from focustrack_core.config import with_environment
 from focustrack_core.wire import router, session
 
 
-def test_the_file_is_kept_and_our_options_are_written_over_it(tmp_path: Path) -> None:
+class _Settings(session.ZenohSettings):
+    """A service that connects to the default endpoint, as the focus service does."""
+
+    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_ZENOH_TEST_")
+    default_connect: ClassVar[tuple[str, ...]] = (session.DEFAULT_ENDPOINT,)
+
+
+def test_the_file_is_kept_and_our_options_are_written_over_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     path = tmp_path / "zenoh.json5"
     path.write_text(
         """{
@@ -26,19 +36,18 @@ def test_the_file_is_kept_and_our_options_are_written_over_it(tmp_path: Path) ->
           transport: { auth: { usrpwd: { user: "focus", password: "secret" } } },
         }"""
     )
-    parser = argparse.ArgumentParser()
-    session.add_zenoh_arguments(parser, default_connect=[session.DEFAULT_ENDPOINT])
-    environ = {"FOCUSTRACK_FOCUS_ZENOH_CONFIG": str(path)}  # the environment twin
-    args = with_environment(parser, "FOCUSTRACK_FOCUS_", environ).parse_args([])
-    config = session.config_from_args(args)
+    monkeypatch.setenv("FOCUSTRACK_ZENOH_TEST_ZENOH_CONFIG", str(path))  # the environment twin
+    config = _Settings.load().zenoh()
     assert json.loads(config.get_json("mode")) == "client"  # only connects: a client
     assert json.loads(config.get_json("connect/endpoints")) == [session.DEFAULT_ENDPOINT]
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False
     usrpwd = json.loads(config.get_json("transport/auth/usrpwd"))
     assert (usrpwd["user"], usrpwd["password"]) == ("focus", "secret")  # from the file
 
+    parser = argparse.ArgumentParser()
+    _Settings.add_arguments(parser)
     args = parser.parse_args(["--connect", "tls/zenoh:7447", "--zenoh-config", str(path)])
-    endpoints = json.loads(session.config_from_args(args).get_json("connect/endpoints"))
+    endpoints = json.loads(_Settings.from_args(args).zenoh().get_json("connect/endpoints"))
     assert endpoints == ["tls/zenoh:7447"]
 
 

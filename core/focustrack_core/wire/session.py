@@ -39,7 +39,6 @@ queryables again (checked with zenoh 1.10).
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
@@ -190,53 +189,6 @@ def open_session(
     )
 
 
-def add_zenoh_arguments(
-    parser: argparse.ArgumentParser,
-    *,
-    default_listen: Sequence[str] = (),
-    default_connect: Sequence[str] = (),
-) -> None:
-    """Add ``--connect``, ``--listen`` and ``--mode``; the defaults apply when neither is given."""
-    group = parser.add_argument_group("zenoh")
-    group.add_argument(
-        "--connect",
-        nargs="*",
-        metavar="ENDPOINT",
-        help=f"endpoints to connect to, e.g. {DEFAULT_ENDPOINT} "
-        f"(default: {' '.join(default_connect) or 'none'})",
-    )
-    group.add_argument(
-        "--listen",
-        nargs="*",
-        metavar="ENDPOINT",
-        help=f"endpoints to listen on (default: {' '.join(default_listen) or 'none'})",
-    )
-    group.add_argument(
-        "--mode",
-        choices=MODES,
-        help="Zenoh mode (default: peer when listening, client when only connecting)",
-    )
-    group.add_argument(
-        "--zenoh-config",
-        type=Path,
-        metavar="FILE",
-        help="a Zenoh JSON5 configuration (TLS, user/password, access control; "
-        "docs/security.md); the options above are written over it",
-    )
-    group.add_argument(
-        "--shared-memory",
-        type=int,
-        default=0,
-        metavar="MB",
-        help="Zenoh shared memory with processes on this host: the pool, in MB, that "
-        f"published pixels are written to, e.g. {SHARED_MEMORY_MB} (default 0: off, "
-        "network only; subscribers need it on too, any size)",
-    )
-    parser.set_defaults(
-        zenoh_default_connect=list(default_connect), zenoh_default_listen=list(default_listen)
-    )
-
-
 class ZenohSettings(ServiceSettings):
     """The Zenoh options of every service on the bus (`ServiceSettings` subclasses add theirs).
 
@@ -284,6 +236,11 @@ class ZenohSettings(ServiceSettings):
             return list(self.default_connect), list(self.default_listen)
         return self.connect or [], self.listen or []
 
+    @property
+    def shared_memory_bytes(self) -> int:
+        """The shared-memory pool of a pixel publisher, bytes (0: off)."""
+        return self.shared_memory * 1_000_000
+
     def zenoh(self, connect_timeout_s: float = CONNECT_TIMEOUT_S) -> zenoh.Config:
         """The Zenoh config these options describe (ValueError if it cannot be used)."""
         connect, listen = self.endpoints()
@@ -295,28 +252,6 @@ class ZenohSettings(ServiceSettings):
             shared_memory=self.shared_memory > 0,
             config_file=self.zenoh_config,
         )
-
-
-def config_from_args(
-    args: argparse.Namespace, connect_timeout_s: float = CONNECT_TIMEOUT_S
-) -> zenoh.Config:
-    """The Zenoh config described by the options of `add_zenoh_arguments` (ValueError if bad)."""
-    if args.connect is None and args.listen is None:
-        connect, listen = args.zenoh_default_connect, args.zenoh_default_listen
-    else:
-        connect, listen = args.connect or [], args.listen or []
-    if args.shared_memory < 0:
-        raise ValueError(
-            f"--shared-memory must be 0 (off) or a pool size in MB, got {args.shared_memory}"
-        )
-    return session_config(
-        connect,
-        listen,
-        args.mode,
-        connect_timeout_s,
-        shared_memory=args.shared_memory > 0,
-        config_file=args.zenoh_config,
-    )
 
 
 class BackgroundSession:
@@ -403,8 +338,3 @@ def shared_memory_room_mb(path: str | Path = "/dev/shm") -> int:
     except OSError:
         return 0
     return stat.f_bavail * stat.f_frsize // 1_000_000
-
-
-def shm_pool_bytes(args: argparse.Namespace) -> int:
-    """The shared-memory pool of a pixel publisher, bytes, from ``--shared-memory`` (0: off)."""
-    return max(0, args.shared_memory) * 1_000_000

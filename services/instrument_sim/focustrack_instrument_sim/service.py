@@ -461,7 +461,7 @@ def serve(
         session,
         settings.name,
         realtime=settings.realtime,
-        shm_pool_bytes=settings.shared_memory * 1_000_000,
+        shm_pool_bytes=settings.shared_memory_bytes,
         frame_part_bytes=settings.frame_part_kb * 1024,
         queue_depth=settings.queue_depth,
         serve_truth=settings.serve_truth,
