@@ -4,9 +4,12 @@
 - `SlowBodyTimeout`: an ASGI middleware that aborts a request whose body trickles
   in too slowly (uvicorn's `timeout_keep_alive` only covers idle connections).
 - `cut`: error messages quote at most `MAX_QUOTED_CHARS` of an input.
+- `BackgroundServer`: an ASGI app served by uvicorn on a thread of its own (the live
+  view of a scan, tests).
 
-No web framework is imported: the middleware speaks plain ASGI, so the core
-gains no dependency.
+No web framework is imported: the middleware speaks plain ASGI, and uvicorn is
+imported by `BackgroundServer` alone (what serves an app has it), so the core gains
+no dependency.
 """
 
 from __future__ import annotations
@@ -15,6 +18,8 @@ import asyncio
 import contextlib
 import ipaddress
 import json
+import threading
+import time
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
@@ -188,3 +193,43 @@ class BodyLimit:
                 raise
         if over and not started:
             await self._refuse(send, f"more than {received} bytes")
+
+
+class BackgroundServer:
+    """`app` served on http://`host`:`port`/ by uvicorn in a daemon thread; a context manager.
+
+    `port` 0 takes a free one (`url` says which, once started).
+    """
+
+    def __init__(self, app: ASGIApp, host: str = "127.0.0.1", port: int = 0, name: str = "http"):
+        import uvicorn
+
+        self._server = uvicorn.Server(
+            uvicorn.Config(app, host=host, port=port, log_level="warning")
+        )
+        self._thread = threading.Thread(target=self._server.run, name=name, daemon=True)
+
+    @property
+    def url(self) -> str:
+        host, port = self._server.servers[0].sockets[0].getsockname()[:2]
+        return f"http://{host}:{port}/"
+
+    def start(self, timeout_s: float = 30.0) -> BackgroundServer:
+        """Start serving; RuntimeError if the server is not up within `timeout_s`."""
+        self._thread.start()
+        deadline_s = time.monotonic() + timeout_s
+        while not self._server.started:
+            if not self._thread.is_alive() or time.monotonic() > deadline_s:
+                raise RuntimeError(f"the {self._thread.name} server did not start")
+            time.sleep(0.02)
+        return self
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        self._server.should_exit = True
+        self._thread.join(timeout_s)
+
+    def __enter__(self) -> BackgroundServer:
+        return self.start()
+
+    def __exit__(self, *_: object) -> None:
+        self.stop()

@@ -4,18 +4,15 @@ the REST app on a real uvicorn server on loopback."""
 from __future__ import annotations
 
 import math
-import threading
-import time
 from collections.abc import Callable, Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 
 import cv2
 import numpy as np
 import pytest
-import uvicorn
 from fastapi import FastAPI
 
-from focustrack_core.wire.session import free_port
+from focustrack_core.serving import BackgroundServer
 
 #: The blur of the cells in focus (px, a Gaussian's std) and how fast defocus widens it
 #: (px per um): about a 60x / 0.85 objective's, on 0.1 um pixels.
@@ -60,25 +57,8 @@ def render() -> Render:
     return render_cells
 
 
-@contextmanager
-def _served(app: FastAPI) -> Iterator[str]:
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        deadline_s = time.monotonic() + 30
-        while not server.started:
-            assert time.monotonic() < deadline_s, "the server did not start"
-            time.sleep(0.05)
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        server.should_exit = True
-        thread.join(10)
-
-
 @pytest.fixture
 def serve() -> Iterator[Callable[[FastAPI], str]]:
     """Serve ASGI apps on loopback for the test: `url = serve(app)`; stopped after it."""
     with ExitStack() as servers:
-        yield lambda app: servers.enter_context(_served(app))
+        yield lambda app: servers.enter_context(BackgroundServer(app)).url.rstrip("/")

@@ -16,16 +16,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import threading
-import time
 from collections.abc import AsyncIterator
 from importlib.resources import files
 from typing import Any
 
-import uvicorn
 from fastapi import FastAPI, HTTPException, Query
 from fastapi.responses import HTMLResponse, StreamingResponse
 
+from focustrack_core.serving import BackgroundServer
 from focustrack_scheduler.live import LiveScan
 
 #: Updates sent per second at most: a fast scan's changes are batched, not one event each.
@@ -51,22 +49,14 @@ class LiveServer:
     def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
         self.scan: LiveScan | None = None
         self.app = create_app(self)
-        config = uvicorn.Config(self.app, host=host, port=port, log_level="warning")
-        self._server = uvicorn.Server(config)
-        self._thread = threading.Thread(target=self._server.run, name="live-view", daemon=True)
+        self._server = BackgroundServer(self.app, host, port, name="live-view")
 
     @property
     def url(self) -> str:
-        host, port = self._server.servers[0].sockets[0].getsockname()[:2]
-        return f"http://{host}:{port}/"
+        return self._server.url
 
     def start(self, timeout_s: float = 30.0) -> LiveServer:
-        self._thread.start()
-        deadline_s = time.monotonic() + timeout_s
-        while not self._server.started:
-            if not self._thread.is_alive() or time.monotonic() > deadline_s:
-                raise RuntimeError("the live view's server did not start")
-            time.sleep(0.02)
+        self._server.start(timeout_s)
         return self
 
     def show(self, scan: LiveScan) -> None:
@@ -78,8 +68,7 @@ class LiveServer:
     def stop(self) -> None:
         if self.scan is not None:
             self.scan.finish()
-        self._server.should_exit = True
-        self._thread.join(timeout=10)
+        self._server.stop()
 
     def __enter__(self) -> LiveServer:
         return self.start()
