@@ -151,6 +151,21 @@ class StackTiming:
 
 
 @dataclass(frozen=True)
+class StackRequest:
+    """Frames at z_low_um, z_low_um + z_step_um, ... (n_frames of them, um) of tile (row, col)
+    of `slide`, each exposed `exposure_s` (None: the instrument's default). Unchecked: the
+    instrument's `plan` refuses what it cannot acquire."""
+
+    slide: str
+    row: int
+    col: int
+    z_low_um: float
+    z_step_um: float
+    n_frames: int
+    exposure_s: float | None = None
+
+
+@dataclass(frozen=True)
 class StackPlan:
     """An accepted acquisition of tile (row, col) of `slide`, before its frames exist.
 
@@ -198,20 +213,9 @@ class Instrument(Protocol):
         """The slides, frames, optics and limits of the instrument."""
         ...
 
-    def plan(
-        self,
-        slide: str,
-        row: int,
-        col: int,
-        z_low_um: float,
-        z_step_um: float,
-        n_frames: int,
-        exposure_s: float | None = None,
-    ) -> StackPlan:
-        """Accept frames at z_low_um, z_low_um + z_step_um, ... (n_frames of them, um) of
-        tile (row, col) of `slide`, each exposed `exposure_s` (None: the default); the
-        shell acquires the plan next. Raises AcquisitionRefusedError (nothing changes)
-        or DeviceError."""
+    def plan(self, request: StackRequest) -> StackPlan:
+        """Accept the stack `request` asks for; the shell acquires the plan next. Raises
+        AcquisitionRefusedError (nothing changes) or DeviceError."""
         ...
 
     def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:

@@ -64,6 +64,7 @@ from focustrack_instrument_sim.instrument import (
     NoImageError,
     Refusal,
     StackPlan,
+    StackRequest,
     TargetNotReachedError,
     TruthSource,
 )
@@ -214,13 +215,15 @@ class InstrumentService:
         request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
         with replies_for_instrument_errors():
             plan = self.instrument.plan(
-                request.slide,
-                request.row,
-                request.col,
-                request.z_low_um,
-                request.z_step_um,
-                request.n_frames,
-                request.exposure_s or None,
+                StackRequest(
+                    request.slide,
+                    request.row,
+                    request.col,
+                    request.z_low_um,
+                    request.z_step_um,
+                    request.n_frames,
+                    request.exposure_s or None,  # 0 (unset on the wire): the default
+                )
             )
             header = self._header(plan, request.sequence)
             shape = (plan.n_frames, *plan.frame.shape)

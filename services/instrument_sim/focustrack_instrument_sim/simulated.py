@@ -18,6 +18,7 @@ from focustrack_instrument_sim.instrument import (
     Refusal,
     SlideLayout,
     StackPlan,
+    StackRequest,
 )
 from focustrack_instrument_sim.microscope import (
     Microscope,
@@ -60,17 +61,16 @@ class SimulatedInstrument:
             default_exposure_s=spec.stage.timing.exposure_s,
         )
 
-    def plan(
-        self,
-        slide: str,
-        row: int,
-        col: int,
-        z_low_um: float,
-        z_step_um: float,
-        n_frames: int,
-        exposure_s: float | None = None,
-    ) -> StackPlan:
-        return self.microscope.plan(slide, row, col, z_low_um, z_step_um, n_frames, exposure_s)
+    def plan(self, request: StackRequest) -> StackPlan:
+        return self.microscope.plan(
+            request.slide,
+            request.row,
+            request.col,
+            request.z_low_um,
+            request.z_step_um,
+            request.n_frames,
+            request.exposure_s,
+        )
 
     def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
         if not isinstance(plan, SimulatedPlan):

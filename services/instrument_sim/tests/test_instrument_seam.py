@@ -32,6 +32,7 @@ from focustrack_instrument_sim.instrument import (
     Refusal,
     SlideLayout,
     StackPlan,
+    StackRequest,
     StackTiming,
     TargetNotReachedError,
 )
@@ -62,28 +63,21 @@ class ConstantInstrument:
             hardware_sequenced=True,
         )
 
-    def plan(
-        self,
-        slide: str,
-        row: int,
-        col: int,
-        z_low_um: float,
-        z_step_um: float,
-        n_frames: int,
-        exposure_s: float | None = None,
-    ) -> StackPlan:
+    def plan(self, request: StackRequest) -> StackPlan:
+        n_frames = request.n_frames
         if n_frames > MAX_FRAMES:
             raise AcquisitionRefusedError(
                 Refusal.TOO_MANY_FRAMES, f"at most {MAX_FRAMES} frames", "n_frames"
             )
-        exposure_s = exposure_s or 0.02
+        exposure_s = request.exposure_s or 0.02
         timing = StackTiming(250.0, 0.1, 0.01 * n_frames, exposure_s * n_frames, 0.0)
         self.clock_s += timing.total_s
-        x_um, y_um = GRID.stage_xy_um(row, col)
-        z_um = z_low_um + z_step_um * np.arange(n_frames)
+        x_um, y_um = GRID.stage_xy_um(request.row, request.col)
+        z_um = request.z_low_um + request.z_step_um * np.arange(n_frames)
         return StackPlan(
-            slide, row, col, x_um, y_um, z_um, exposure_s, FRAME, 0.65, timing, self.clock_s
-        )
+            request.slide, request.row, request.col, x_um, y_um, z_um, exposure_s, FRAME,
+            0.65, timing, self.clock_s,
+        )  # fmt: skip
 
     def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
         for k in range(plan.n_frames if self.frames_delivered is None else self.frames_delivered):
