@@ -3,19 +3,45 @@
 `EstimatorClient` (blocking) and `AsyncEstimatorClient` return the typed models of
 `focustrack_client.models`, which the estimator service itself validates with;
 error replies raise the types of `focustrack_client.errors`.
+
+The names below are imported on first use (PEP 562), so that a program that needs
+only the models (the estimator service itself) does not import httpx.
 """
 
-from focustrack_client.client import AsyncEstimatorClient, EstimatorClient
-from focustrack_client.errors import (
-    ConflictError,
-    EstimatorError,
-    InvalidRequestError,
-    PayloadTooLargeError,
-    ServerError,
-    SlideNotFoundError,
-    UnauthorizedError,
-)
-from focustrack_client.models import Grid, MeasurementIn, SlideCreate, ZRangePolicy
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from focustrack_client.client import AsyncEstimatorClient, EstimatorClient
+    from focustrack_client.errors import (
+        ConflictError,
+        EstimatorError,
+        InvalidRequestError,
+        PayloadTooLargeError,
+        ServerError,
+        SlideNotFoundError,
+        UnauthorizedError,
+    )
+    from focustrack_client.models import Grid, MeasurementIn, SlideCreate, ZRangePolicy
+
+#: Each public name and the module that defines it.
+_HOMES = {
+    "AsyncEstimatorClient": "client",
+    "EstimatorClient": "client",
+    "ConflictError": "errors",
+    "EstimatorError": "errors",
+    "InvalidRequestError": "errors",
+    "PayloadTooLargeError": "errors",
+    "ServerError": "errors",
+    "SlideNotFoundError": "errors",
+    "UnauthorizedError": "errors",
+    "Grid": "models",
+    "MeasurementIn": "models",
+    "SlideCreate": "models",
+    "ZRangePolicy": "models",
+}
 
 __all__ = [
     "AsyncEstimatorClient",
@@ -32,3 +58,9 @@ __all__ = [
     "UnauthorizedError",
     "ZRangePolicy",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"focustrack_client.{_HOMES[name]}"), name)

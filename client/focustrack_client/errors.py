@@ -7,9 +7,12 @@ programs. Decide on the type (or on `.code`), never on the message text.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
-import httpx
+if TYPE_CHECKING:
+    import httpx
+
+from typing import Any
 
 from focustrack_client.models import ErrorCode
 

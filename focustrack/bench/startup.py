@@ -7,6 +7,11 @@ demo starts it, and timed from exec until it answers:
 - the instrument: its info queryable answers over Zenoh (it has no HTTP);
 - the scan command, which is no server: ``focustrack scan --help`` exits.
 
+Beside them, in the same run, the floor of an HTTP service on this stack: a FastAPI
+app with nothing but ``/healthz`` under uvicorn (with numpy and pydantic-settings
+imported, as every service has them), timed the same way. What a service takes beyond
+it is its own.
+
 The Zenoh services connect to a router started once beforehand (what they would find
 running). Target: every service answers within 1 s on an idle machine. Most of a
 start is imports (``python -X importtime``): a service imports what it serves when it
@@ -66,7 +71,21 @@ def _instrument_ok(_: int, session: zenoh.Session) -> bool:
     return instrument_answers(session, "startup", timeout_s=0.2)
 
 
+#: The floor: the smallest service on the same stack (its port is the first argument).
+FLOOR_APP = """
+import sys
+import fastapi, numpy, pydantic_settings, uvicorn
+app = fastapi.FastAPI()
+app.get("/healthz")(lambda: {"status": "ok"})
+uvicorn.run(app, port=int(sys.argv[1]), log_level="warning", ws="none")
+"""
+
 SERVICES = (
+    Service(
+        "floor (FastAPI)",
+        lambda port, _, __: ["-c", FLOOR_APP, str(port)],
+        _http_ok,
+    ),
     Service(
         "estimator",
         lambda port, _, folder: [
@@ -165,11 +184,11 @@ def run(args: argparse.Namespace) -> int:
             results[service.name] = summary(times_s)
     results["scan --help"] = summary([time_help(["scan", "--help"]) for _ in range(args.runs)])
     print(f"\nFrom exec to the first answer (s), {args.runs} runs each; target {TARGET_S:g} s:")
-    print(f"{'service':<14}{'median':>9}{'min':>8}{'max':>8}  target")
+    print(f"{'service':<16}{'median':>9}{'min':>8}{'max':>8}  target")
     for name, figures in results.items():
         met = "met" if figures["median_s"] <= TARGET_S else "NOT met"
         print(
-            f"{name:<14}{figures['median_s']:>9.2f}{figures['min_s']:>8.2f}"
+            f"{name:<16}{figures['median_s']:>9.2f}{figures['min_s']:>8.2f}"
             f"{figures['max_s']:>8.2f}  {met}"
         )
     if args.json:

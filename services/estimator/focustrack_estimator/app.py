@@ -38,6 +38,9 @@ if TYPE_CHECKING:
 #: Worker threads for strategy work and the store (a request waiting for its commit holds one).
 WORKER_THREADS = 64
 
+#: Seconds after the service starts serving that its strategies load in the background.
+STRATEGIES_DELAY_S = 0.3
+
 
 class _RequestMetrics:
     """ASGI middleware: count and time every request by method, route template and status."""
@@ -91,9 +94,14 @@ def create_app(
         gc.collect()
         gc.freeze()
         # The strategies (scipy, filterpy: most of the start-up before) load beside the
-        # serving: /healthz answers at once, and the first slide seldom waits for them.
-        threading.Thread(target=load_strategies, name="estimator-strategies", daemon=True).start()
+        # serving, a moment after it starts: /healthz answers at once (their import would
+        # share the interpreter with the first probe), and the first slide seldom waits
+        # for them (a request that needs them before loads them itself).
+        loader = threading.Timer(STRATEGIES_DELAY_S, load_strategies)
+        loader.name, loader.daemon = "estimator-strategies", True
+        loader.start()
         yield
+        loader.cancel()
         # At shutdown every live slide's state is snapshotted, so the next start replays
         # nothing (after a kill -9 it replays the events since the last periodic snapshot).
         await asyncio.to_thread(live.save_snapshots)
@@ -109,10 +117,12 @@ def create_app(
     )
     app.state.settings, app.state.slides, app.state.metrics = settings, live, metrics
     # The token check is only installed when there is a token (it costs a dependency per request).
+    # /healthz first: FastAPI prepares a route when a request is first matched against it,
+    # in order, so the health probe right after start does not wait for the others'.
+    app.include_router(operations.router)
     token = [Depends(require_token)] if settings.token else []
     for router in (slides.router, scan.router, maps.router, strategies.router):
         app.include_router(router, dependencies=token, responses=handlers.ERROR_RESPONSES)
-    app.include_router(operations.router)
     app.add_middleware(
         BodyLimit,
         max_bytes=settings.max_body_bytes,

@@ -22,7 +22,6 @@ from pathlib import Path
 from subprocess import DEVNULL, Popen
 from typing import TYPE_CHECKING
 
-import httpx
 import uvicorn
 
 from focustrack_core.serving import refuse_open_network
@@ -114,6 +113,8 @@ def spawn(
     env = dict(os.environ)
     if token:
         env[EstimatorSettings.variable("token")] = token
+    import httpx  # for the tests and benchmarks that spawn a server, not for the server
+
     command = [sys.executable, "-m", "focustrack_estimator"]
     command += ["--port", str(port), "--store", str(store), *options]
     process = Popen(command, env=env, stdout=DEVNULL)
