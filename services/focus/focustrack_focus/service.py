@@ -355,6 +355,18 @@ class FocusServiceSettings(ZenohSettings):
         return self.na if self.lowpass_sigma_px is None else None
 
 
+#: Seconds after start that the focus maths' scipy parts are imported in the background:
+#: /healthz answers first, and the first stack does not wait the 1-1.5 s they take.
+WARM_UP_DELAY_S = 0.5
+
+
+def _import_the_maths_scipy() -> None:
+    """What `peak` and `curve_model` import on first use (scipy.signal, special, optimize)."""
+    import scipy.optimize
+    import scipy.signal
+    import scipy.special  # noqa: F401
+
+
 def run(settings: FocusServiceSettings) -> int:
     refusal = refuse_open_network("focus", settings.host, settings.token, settings.insecure)
     if refusal:
@@ -388,6 +400,9 @@ def run(settings: FocusServiceSettings) -> int:
         focus.metric,
     )
     started = time.perf_counter()
+    warm_up = threading.Timer(WARM_UP_DELAY_S, _import_the_maths_scipy)
+    warm_up.daemon = True
+    warm_up.start()
     try:
         app = with_bus_health(create_app(focus, limits, settings.token or None), bus.health)
         uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
@@ -403,13 +418,18 @@ def run(settings: FocusServiceSettings) -> int:
 def with_bus_health(app: FastAPI, bus_health: Callable[[], dict[str, str]]) -> FastAPI:
     """`app` whose ``/healthz`` also reports the Zenoh session (``status`` degraded while it
     is not open or has no router). The REST app knows nothing of Zenoh; its shell adds it."""
-    rest = next(r for r in app.router.routes if isinstance(r, APIRoute) and r.path == "/healthz")
-    app.router.routes.remove(rest)
+    routes = app.router.routes
+    rest = next(r for r in routes if isinstance(r, APIRoute) and r.path == "/healthz")
+    where = routes.index(rest)
+    routes.remove(rest)
 
     @app.get("/healthz")
     def healthz() -> dict[str, Any]:
         return rest.endpoint() | bus_health()
 
+    # In the place of the one it replaces: FastAPI prepares each route the first time a
+    # request is matched against it, in order, so the first probe prepares no other.
+    routes.insert(where, routes.pop())
     return app
 
 
