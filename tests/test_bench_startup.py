@@ -19,7 +19,10 @@ def test_every_service_is_timed_to_its_first_answer(tmp_path: Path) -> None:
     assert set(figures["services"]) == services
     for name, times in figures["services"].items():
         assert 0 < times["min_s"] <= times["median_s"] <= times["max_s"] < 60, name
+    assert figures["compared"] == {}
 
 
-def test_a_run_count_below_one_is_refused() -> None:
+def test_a_run_count_below_one_or_a_missing_python_is_refused(tmp_path: Path) -> None:
     assert cli.main(["bench", "startup", "--runs", "0"]) == 2
+    missing = str(tmp_path / "python")
+    assert cli.main(["bench", "startup", "--runs", "1", "--compare", missing]) == 2

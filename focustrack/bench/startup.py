@@ -8,9 +8,12 @@ demo starts it, and timed from exec until it answers:
 - the scan command, which is no server: ``focustrack scan --help`` exits.
 
 Beside them, in the same run, the floor of an HTTP service on this stack: a FastAPI
-app with nothing but ``/healthz`` under uvicorn (with numpy and pydantic-settings
-imported, as every service has them), timed the same way. What a service takes beyond
-it is its own.
+app with nothing but ``/healthz`` under uvicorn (numpy imported, as every service has
+it), timed the same way. What a service takes beyond it is its own.
+
+``--compare PYTHON`` times the same services of another checkout (its virtualenv's
+interpreter, e.g. one of the code before a change) in the same run, each run of one
+interleaved with a run of the other, so that both see the same machine.
 
 The Zenoh services connect to a router started once beforehand (what they would find
 running). Target: every service answers within 1 s on an idle machine. Most of a
@@ -22,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -45,18 +47,28 @@ TARGET_S = 1.0
 #: How long one start may take before the run counts as failed, seconds.
 TIMEOUT_S = 60.0
 
+#: The label of this checkout's interpreter in the results.
+THIS = "this checkout"
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=int, default=5, help="starts per service (5)")
+    parser.add_argument(
+        "--compare",
+        type=Path,
+        metavar="PYTHON",
+        help="also time the services of another checkout: its virtualenv's python",
+    )
     parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
 
 
 @dataclass(frozen=True)
 class Service:
-    """A service to start: its command (given free ports) and how to tell it answers."""
+    """A service to start: its arguments to python (given an HTTP port, the router's
+    endpoint and a folder of its own) and how to tell it answers."""
 
     name: str
-    command: Callable[[int, str, Path], list[str]]  # (HTTP port, router endpoint, a folder)
+    arguments: Callable[[int, str, Path], list[str]]
     answers: Callable[[int, zenoh.Session], bool]  # (HTTP port, a session on the router)
 
 
@@ -71,21 +83,21 @@ def _instrument_ok(_: int, session: zenoh.Session) -> bool:
     return instrument_answers(session, "startup", timeout_s=0.2)
 
 
+def _exits(_: int, __: zenoh.Session) -> bool:
+    return True  # a command that is done when its process is (`time_start` waits for it)
+
+
 #: The floor: the smallest service on the same stack (its port is the first argument).
 FLOOR_APP = """
 import sys
-import fastapi, numpy, pydantic_settings, uvicorn
+import fastapi, numpy, uvicorn
 app = fastapi.FastAPI()
 app.get("/healthz")(lambda: {"status": "ok"})
 uvicorn.run(app, port=int(sys.argv[1]), log_level="warning", ws="none")
 """
 
 SERVICES = (
-    Service(
-        "floor (FastAPI)",
-        lambda port, _, __: ["-c", FLOOR_APP, str(port)],
-        _http_ok,
-    ),
+    Service("floor (FastAPI)", lambda port, _, __: ["-c", FLOOR_APP, str(port)], _http_ok),
     Service(
         "estimator",
         lambda port, _, folder: [
@@ -97,12 +109,7 @@ SERVICES = (
     Service(
         "focus",
         lambda port, router, _: [
-            "-m",
-            "focustrack_focus",
-            "--port",
-            str(port),
-            "--connect",
-            router,
+            *("-m", "focustrack_focus", "--port", str(port), "--connect", router),
         ],
         _http_ok,
     ),
@@ -113,19 +120,23 @@ SERVICES = (
         ],
         _instrument_ok,
     ),
+    Service("scan --help", lambda _, __, ___: ["-m", "focustrack", "scan", "--help"], _exits),
 )
 
 
-def time_start(service: Service, router: str, session: zenoh.Session) -> float:
-    """Seconds from exec of `service` until it answers (it is stopped afterwards)."""
+def time_start(python: Path, service: Service, router: str, session: zenoh.Session) -> float:
+    """Seconds from exec of `service` with `python` until it answers (then it is stopped);
+    for a command that is no server, until it has exited with status 0."""
     port = free_port()
     with tempfile.TemporaryDirectory() as folder:
-        command = [sys.executable, *service.command(port, router, Path(folder))]
+        command = [str(python), *service.arguments(port, router, Path(folder))]
         start_s = time.perf_counter()
-        process = subprocess.Popen(
-            command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ)
-        )
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
+            if service.answers is _exits:
+                if process.wait(TIMEOUT_S) != 0:
+                    raise RuntimeError(f"{service.name} exited with {process.returncode}")
+                return time.perf_counter() - start_s
             while not service.answers(port, session):
                 if process.poll() is not None:
                     raise RuntimeError(f"{service.name} exited with {process.returncode}")
@@ -136,15 +147,6 @@ def time_start(service: Service, router: str, session: zenoh.Session) -> float:
         finally:
             process.terminate()
             process.wait(10)
-
-
-def time_help(argv: list[str]) -> float:
-    """Seconds `python -m focustrack <argv>` takes to run (e.g. print its help)."""
-    start_s = time.perf_counter()
-    subprocess.run(
-        [sys.executable, "-m", "focustrack", *argv], check=True, stdout=subprocess.DEVNULL
-    )
-    return time.perf_counter() - start_s
 
 
 @contextmanager
@@ -161,10 +163,25 @@ def router() -> Iterator[str]:
 
 
 def summary(times_s: list[float]) -> dict[str, float]:
+    return {"median_s": statistics.median(times_s), "min_s": min(times_s), "max_s": max(times_s)}
+
+
+def measure(pythons: dict[str, Path], runs: int) -> dict[str, dict[str, dict[str, float]]]:
+    """{label: {service: summary}}: every service started `runs` times with each python,
+    the pythons' runs interleaved."""
+    times_s: dict[str, dict[str, list[float]]] = {
+        label: {service.name: [] for service in SERVICES} for label in pythons
+    }
+    with router() as endpoint, open_session(connect=[endpoint]) as session:
+        for service in SERVICES:
+            for index in range(runs):
+                for label, python in pythons.items():
+                    seconds = time_start(python, service, endpoint, session)
+                    times_s[label][service.name].append(seconds)
+                    print(f"{label}: {service.name} run {index + 1}/{runs} {seconds:.2f} s")
     return {
-        "median_s": statistics.median(times_s),
-        "min_s": min(times_s),
-        "max_s": max(times_s),
+        label: {name: summary(values) for name, values in by_service.items()}
+        for label, by_service in times_s.items()
     }
 
 
@@ -172,28 +189,31 @@ def run(args: argparse.Namespace) -> int:
     if args.runs < 1:
         print("focustrack bench startup: --runs must be at least 1", file=sys.stderr)
         return 2
-    results: dict[str, dict[str, float]] = {}
-    with router() as endpoint, open_session(connect=[endpoint]) as session:
-        for service in SERVICES:
-            times_s = []
-            for index in range(args.runs):
-                times_s.append(time_start(service, endpoint, session))
-                print(
-                    f"{service.name}: run {index + 1}/{args.runs} {times_s[-1]:.2f} s", flush=True
-                )
-            results[service.name] = summary(times_s)
-    results["scan --help"] = summary([time_help(["scan", "--help"]) for _ in range(args.runs)])
-    print(f"\nFrom exec to the first answer (s), {args.runs} runs each; target {TARGET_S:g} s:")
-    print(f"{'service':<16}{'median':>9}{'min':>8}{'max':>8}  target")
-    for name, figures in results.items():
-        met = "met" if figures["median_s"] <= TARGET_S else "NOT met"
-        print(
-            f"{name:<16}{figures['median_s']:>9.2f}{figures['min_s']:>8.2f}"
-            f"{figures['max_s']:>8.2f}  {met}"
-        )
+    pythons = {THIS: Path(sys.executable)}
+    if args.compare is not None:
+        if not args.compare.is_file():
+            print(f"focustrack bench startup: no python at {args.compare}", file=sys.stderr)
+            return 2
+        pythons[str(args.compare)] = args.compare
+    results = measure(pythons, args.runs)
+    for label, by_service in results.items():
+        print(f"\n{label}: from exec to the first answer (s), {args.runs} runs each; "
+              f"target {TARGET_S:g} s")  # fmt: skip
+        print(f"{'service':<16}{'median':>9}{'min':>8}{'max':>8}  target")
+        for name, figures in by_service.items():
+            met = "met" if figures["median_s"] <= TARGET_S else "NOT met"
+            print(
+                f"{name:<16}{figures['median_s']:>9.2f}{figures['min_s']:>8.2f}"
+                f"{figures['max_s']:>8.2f}  {met}"
+            )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        payload = {"runs": args.runs, "target_s": TARGET_S, "services": results}
+        payload = {
+            "runs": args.runs,
+            "target_s": TARGET_S,
+            "services": results[THIS],
+            "compared": {label: figures for label, figures in results.items() if label != THIS},
+        }
         args.json.write_text(json.dumps(payload, indent=2) + "\n")
         print(f"wrote {args.json}")
     return 0
