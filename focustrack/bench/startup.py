@@ -131,7 +131,11 @@ def time_start(python: Path, service: Service, router: str, session: zenoh.Sessi
     with tempfile.TemporaryDirectory() as folder:
         command = [str(python), *service.arguments(port, router, Path(folder))]
         start_s = time.perf_counter()
-        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # Run from a folder of its own: `-m` puts the working directory first on the path,
+        # and a checkout's root holds the `focustrack` package of that checkout.
+        process = subprocess.Popen(
+            command, cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         try:
             if service.answers is _exits:
                 if process.wait(TIMEOUT_S) != 0:
