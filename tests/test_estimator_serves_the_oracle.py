@@ -35,7 +35,7 @@ def test_gp_oracle_is_served_only_when_opted_into_and_within_the_budget(tmp_path
     url = f"http://127.0.0.1:{port}"
     try:
         assert _post(url, 10, 10).status_code == 201
-        for rows, cols in ((90, 90), (500, 500)):  # the 1 GB and 466 GiB slides
+        for rows, cols in ((90, 90), (500, 500)):  # 1 GB and 466 GiB slides
             refused = _post(url, rows, cols)
             assert refused.status_code == 422 and "projected to need" in refused.text
     finally:

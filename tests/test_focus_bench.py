@@ -1,4 +1,4 @@
-"""`focustrack bench focus --quick`: runs end to end and writes the figures the issue names."""
+"""`focustrack bench focus --quick`: runs end to end and writes the figures it targets."""
 
 from __future__ import annotations
 

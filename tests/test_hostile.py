@@ -1,4 +1,4 @@
-"""The hostile requests of issue 13 (`focustrack.bench.hostile.fire`, which the chaos bench
+"""The hostile requests (`focustrack.bench.hostile.fire`, which the chaos bench
 sends) against a real estimator process and a real focus server: no 5xx, each refused
 with the status that says why, and the slides it may create kept within the budget."""
 

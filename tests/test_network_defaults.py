@@ -1,4 +1,4 @@
-"""Safe network defaults (issue 13): off loopback the estimator refuses to start without a
+"""Safe network defaults: off loopback the estimator refuses to start without a
 token unless --insecure; with one, /v1 requires it; compose takes the tokens from a .env file
 (.env.example documents them). The focus service's own: services/focus/tests."""
 

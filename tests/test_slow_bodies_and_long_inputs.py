@@ -1,4 +1,4 @@
-"""The servers' edges (issue 13): a request body that trickles in is timed out (408) rather
+"""The servers' edges: a request body that trickles in is timed out (408) rather
 than holding a connection forever, and error replies quote at most 200 characters of an
 input (a 1 MB input is not echoed). Real servers on loopback."""
 

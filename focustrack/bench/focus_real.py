@@ -8,7 +8,7 @@ full and in the windows a predictive scanner acquires, goes through
 the windows, the figures, and each measure's constants on this microscope learnt
 afresh on every run from the odd fields alone, a measure unusable there included).
 
-Here: the measures reported, the figures printed and plotted, and the issue's
+Here: the measures reported, the figures printed and plotted, and the
 targets on the even fields (2, 4, ..., 20), the headline figures. A measure found
 unusable is reported as such, with its figures, instead of being counted against
 targets that need a measurement (`targets`).
@@ -68,10 +68,10 @@ def print_report(figures: dict[str, dict], title: str, unusable: Collection[str]
             print(f"  {metric:<24}" + "".join(cells) + mark)
 
 
-#: The issue's targets: name -> (test on a measure's figures, gradient measures only).
+#: The targets: name -> (test on a measure's figures, gradient measures only).
 #: Coverage and sigma count measured results only: a flat result carries no z and no
 #: sigma, so it is neither covered nor a silent miss. The edge figures count every window
-#: whose label lies outside, flat ones included (the issue's definition: how often the edge
+#: whose label lies outside, flat ones included (the targets' definition: how often the edge
 #: flag points the right way and the wrong way), so a measure that never points anywhere
 #: cannot meet "edge right".
 _TARGETS: dict[str, tuple[Callable[[dict[str, dict]], bool], bool]] = {
@@ -97,7 +97,7 @@ _TARGETS: dict[str, tuple[Callable[[dict[str, dict]], bool], bool]] = {
 
 
 def targets(figures: dict[str, dict], unusable: Collection[str] = ()) -> dict[str, list[str]]:
-    """The issue's targets on these figures: each target -> the metrics that miss it
+    """The targets on these figures: each target -> the metrics that miss it
     (an empty list: met by every metric it applies to). Metrics declared `unusable` on the
     microscope are left out: `unusable_targets` says what they meet."""
     usable = [m for m in figures if m not in unusable]

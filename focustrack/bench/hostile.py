@@ -1,4 +1,4 @@
-"""Hostile but fair requests against the estimator and focus REST APIs (issue 13).
+"""Hostile but fair requests against the estimator and focus REST APIs.
 
 `fire(estimator_url, focus_url)` sends each request that once cost gigabytes or
 answered 500, and returns the HTTP status each got (0: the connection was closed

@@ -69,7 +69,7 @@ CEILING_KEY = keys.bench_key("transport-ceiling")
 SOCKET_BUFFER_BYTES = 8 * 1024 * 1024  # as Zenoh's links (session.PIXEL_TUNING)
 FRAME_QUEUE = 64  # frames Zenoh hands over before the consumer holds the publisher back
 
-#: Targets of issue 16 (README): checked and printed beside the figures.
+#: The targets (docs/benchmarks.md): checked and printed beside the figures.
 TCP_MIN_GB_PER_S = 1.5
 TCP_MIN_MEMCPY_RATIO = 1 / 5
 SHM_MIN_MEMCPY_RATIO = 1 / 2

@@ -55,7 +55,7 @@ def test_the_defaults_admit_kf_2d_on_200x200_and_refuse_the_issues_slides() -> N
     assert checked(slide("kf-2d", 200, 200)) < budget.max_slide_bytes
     values = [0.1 * (i + 1) for i in range(20)]
     bank = {"sigmas_um": values, "lengths_tiles": values, "tilt_sigmas_um_per_tile": values}
-    # 8000 members (the issue: 41 s of CPU and 5.6 GB), the 250x750 slide, nshp at 200x200
+    # 8000 members (unbudgeted: 41 s of CPU and 5.6 GB), the 250x750 slide, nshp at 200x200
     for config in (
         slide("kf-2d", 146, 146, **bank),
         slide("kf-2d", 250, 750),
@@ -139,7 +139,7 @@ def test_creation_refuses_slides_over_the_budget_with_the_reason(server: str) ->
     values = [round(0.1 * (i + 1), 1) for i in range(20)]
     bank = {"sigmas_um": values, "lengths_tiles": values, "tilt_sigmas_um_per_tile": values}
     refused = _post(server, "kf-2d", 146, 146, params=bank)
-    assert len(refused.request.content) < 700  # the issue's small request
+    assert len(refused.request.content) < 700  # a small request
     assert refused.status_code == 422, refused.text
     message = refused.json()["detail"][0]["msg"]
     assert "projected to need" in message and "--max-slide-bytes" in message

@@ -1,4 +1,4 @@
-"""Odd values at the estimator's edge (issue 13): non-physical sigmas and parameters are a
+"""Odd values at the estimator's edge: non-physical sigmas and parameters are a
 422 at creation, z-ranges stay within the schema's bounds whatever the steps and retries,
 and no slide gets stuck on a singular matrix (real server process on loopback)."""
 

@@ -1,4 +1,4 @@
-"""Idle slides leave memory (issue 13): least recently used slides are evicted beyond the
+"""Idle slides leave memory : least recently used slides are evicted beyond the
 configured count or bytes, reload from the store on their next request as if never gone,
 and a deleted slide's memory goes back to the system (real server processes on loopback)."""
 

@@ -1,4 +1,4 @@
-"""The estimator's store at start and stop (issue 13): a damaged file is refused with its
+"""The estimator's store at start and stop: a damaged file is refused with its
 name, an empty or missing one announced as a new store, and SIGTERM closes the store and
 checkpoints its WAL (real server processes on loopback)."""
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import struct
 import zlib
 
-#: The issue's numbers: 27 frames of 8192x8192 uint16 are 3.6 GB once decoded.
+#: The attack's numbers: 27 frames of 8192x8192 uint16 are 3.6 GB once decoded.
 BOMB_FRAMES, BOMB_SIDE = 27, 8192
 
 

@@ -122,7 +122,7 @@ def read_field(field: WsiField, metric: str, settings: FocusSettings) -> list[Re
 
 
 def summarise(readings: Sequence[Reading]) -> dict[str, float]:
-    """The issue's figures over a set of readings (fractions; sigma in steps)."""
+    """The targets' figures over a set of readings (fractions; sigma in steps)."""
     inside = [r for r in readings if r.label_side == 0]
     measured = [r for r in inside if r.error_steps is not None and r.sigma_steps is not None]
     errors = np.array([abs(r.error_steps or 0.0) for r in measured])

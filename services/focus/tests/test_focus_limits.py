@@ -1,5 +1,6 @@
-"""The focus REST API's limits (issue 13): every hostile input is a 4xx that says why, on a
-real uvicorn server on loopback. Each exploit of the issue is one check here."""
+"""The focus REST API's limits: every hostile input is a 4xx that says why, on a
+real uvicorn server on loopback. Each exploit found when the API was attacked is one check
+here."""
 
 from __future__ import annotations
 
