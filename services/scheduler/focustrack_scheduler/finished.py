@@ -20,7 +20,7 @@ import numpy as np
 from focustrack_core.domain import FocusMap
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import finite_or_none, map_layers
-from focustrack_scheduler.outputs import MosaicFormat, WallTimes
+from focustrack_scheduler.outputs import PARTIAL_MOSAIC, MosaicFormat, WallTimes
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.report import scan_report
 from focustrack_scheduler.tally import Tile
@@ -158,5 +158,13 @@ class OutputWriter(Protocol):
 
 
 def write_outputs(scan: FinishedScan, writers: Sequence[OutputWriter]) -> list[Path]:
-    """Run each writer on `scan`, in order; every path written."""
-    return [path for writer in writers for path in writer.write(scan)]
+    """Run each writer on `scan`, in order; every path written.
+
+    Once they all have, and the mosaic file is among what they wrote, the record's
+    partial mosaic goes: a writer that fails leaves it, so that running the scan again
+    on its folder writes every output again from it.
+    """
+    paths = [path for writer in writers for path in writer.write(scan)]
+    if scan.out_dir / scan.mosaic_format.file_name in paths:
+        (scan.out_dir / PARTIAL_MOSAIC).unlink(missing_ok=True)
+    return paths

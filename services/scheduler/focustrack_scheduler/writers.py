@@ -2,10 +2,9 @@
 
 `DEFAULT_WRITERS` is what every scan writes (`outputs` lists the files). A writer imports
 its file format's library when it writes (matplotlib, zarr, tifffile), so a scan, or its
-``--help``, does not load them before its end. The order matters twice: the preview reads
-the partial mosaic, which `MosaicWriter` removes once the mosaic file holds it (the scan's
-`mosaic` stays readable: a memory map outlives its file), and `OmeZarrMetadataWriter` adds
-to the OME-Zarr group that `MosaicWriter` made.
+``--help``, does not load them before its end. The order matters once:
+`OmeZarrMetadataWriter` adds to the OME-Zarr group that `MosaicWriter` made. The
+record's partial mosaic goes when every writer is done (`finished.write_outputs`).
 """
 
 from __future__ import annotations
@@ -20,7 +19,6 @@ from focustrack_scheduler.outputs import (
     FOCUS_MAP_CSV,
     FOCUS_MAP_NPY,
     MOSAIC_PREVIEW,
-    PARTIAL_MOSAIC,
     PLOTS,
     REPORT,
     ZARR_MAPS,
@@ -67,7 +65,7 @@ class MosaicPreviewWriter:
 
 class MosaicWriter:
     """The mosaic in the scan's format (``mosaic.ome.zarr`` or ``mosaic.ome.tif``), which then
-    replaces the partial mosaic of the record."""
+    replaces the partial mosaic of the record (`finished.write_outputs` removes it)."""
 
     def write(self, scan: FinishedScan) -> list[Path]:
         if scan.mosaic is None:
@@ -82,7 +80,6 @@ class MosaicWriter:
             from focustrack_scheduler.ome_zarr import write_mosaic
 
             write_mosaic(path, scan.mosaic, pixel_size_um)
-        (scan.out_dir / PARTIAL_MOSAIC).unlink()
         return [path]
 
 

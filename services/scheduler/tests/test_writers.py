@@ -88,10 +88,9 @@ def test_the_plots_and_the_preview_are_pngs_the_preview_pixel_for_pixel(tmp_path
     np.testing.assert_array_equal(pixels, scan.mosaic)
 
 
-def test_the_mosaic_writer_replaces_the_partial_mosaic_in_the_scans_format(tmp_path: Path) -> None:
+def test_the_mosaic_writer_writes_the_mosaic_in_the_scans_format(tmp_path: Path) -> None:
     scan = finished_scan(tmp_path)
     assert MosaicWriter().write(scan) == [tmp_path / outputs.MOSAIC_ZARR]
-    assert not (tmp_path / outputs.PARTIAL_MOSAIC).exists()
     root = zarr.open_group(tmp_path / outputs.MOSAIC_ZARR, mode="r")
     assert scan.mosaic is not None  # still readable: mapped in memory
     np.testing.assert_array_equal(np.asarray(root["s0"]), np.transpose(scan.mosaic, (2, 0, 1)))
@@ -170,6 +169,28 @@ def test_an_added_writer_is_called_with_the_scan_after_the_default_ones(tmp_path
         outputs.MOSAIC_ZARR, outputs.REPORT, "phase.npy",
     }  # fmt: skip
     assert set(names) <= {path.name for path in tmp_path.iterdir()}
+    assert not (tmp_path / outputs.PARTIAL_MOSAIC).exists()  # the mosaic file replaced it
+
+
+class FailingWriter:
+    def write(self, scan: FinishedScan) -> list[Path]:
+        raise OSError("disk full")
+
+
+def test_a_writer_that_fails_leaves_the_partial_mosaic_for_a_second_try(tmp_path: Path) -> None:
+    scan = finished_scan(tmp_path)
+    with pytest.raises(OSError, match="disk full"):
+        write_outputs(scan, (MosaicWriter(), FailingWriter(), OmeZarrMetadataWriter()))
+    assert (tmp_path / outputs.PARTIAL_MOSAIC).exists()
+    written = write_outputs(finished_scan(tmp_path), DEFAULT_WRITERS)  # the scan run again
+    assert tmp_path / outputs.MOSAIC_ZARR in written
+    assert outputs.ZARR_ATTRS in zarr.open_group(tmp_path / outputs.MOSAIC_ZARR, mode="r").attrs
+    assert not (tmp_path / outputs.PARTIAL_MOSAIC).exists()
+
+
+def test_writers_without_the_mosaic_keep_the_partial_mosaic(tmp_path: Path) -> None:
+    write_outputs(finished_scan(tmp_path), (ReportWriter(),))
+    assert (tmp_path / outputs.PARTIAL_MOSAIC).exists()
 
 
 def test_a_finished_scan_does_not_change(tmp_path: Path) -> None:
