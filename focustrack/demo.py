@@ -412,7 +412,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="frames cross Zenoh in a shared-memory pool of this many MB, 0: over TCP "
         f"(default {SHARED_MEMORY_MB} when /dev/shm has room for it, else 0)",
     )
-    ScanOptions.add_arguments(parser)  # the options of a scan, as `focustrack scan` has them
+    # The options of a scan, as `focustrack scan` has them, from the demo's flags alone.
+    ScanOptions.add_arguments(parser, environment=False)
 
 
 def second_pass(
@@ -477,7 +478,7 @@ def run(args: argparse.Namespace) -> int:
         )
         return 2
     try:
-        options = ScanOptions.from_args(args)
+        options = ScanOptions.from_args(args, environment=False)
     except ValueError as error:  # a scan option the settings model refuses
         print(f"focustrack demo: error: {error}", file=sys.stderr)
         return 2

@@ -67,8 +67,10 @@ class ServiceSettings(BaseSettings):
     #: separated by commas or spaces, as lists always read (set by subclasses).
     list_fields: ClassVar[tuple[str, ...]] = ()
 
-    #: The settings file read on construction (`load` sets it for the call).
+    #: The settings file read on construction, and whether the environment is
+    #: (`load` sets both for the call).
     _file: ClassVar[Path | None] = None
+    _environment: ClassVar[bool] = True
 
     @field_validator("*", mode="before")
     @classmethod
@@ -87,6 +89,8 @@ class ServiceSettings(BaseSettings):
         dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
+        if not cls._environment:
+            return (init_settings,)
         sources: tuple[PydanticBaseSettingsSource, ...] = (init_settings, env_settings)
         if cls._file is not None:
             sources += (InitSettingsSource(settings_cls, read_settings_file(cls._file)),)
@@ -108,20 +112,26 @@ class ServiceSettings(BaseSettings):
         return None
 
     @classmethod
-    def add_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        """Add a flag for every field of the model (and ``--settings``) to `parser`."""
-        parser.add_argument(
-            SETTINGS_FILE_OPTION,
-            type=Path,
-            metavar="FILE",
-            dest="settings_file",
-            help=f"a TOML or JSON file of settings by field name [env {cls.variable('settings')}]",
-        )
-        CliSettingsSource(cls, root_parser=parser, add_argument_method=_add_argument(cls))
+    def add_arguments(cls, parser: argparse.ArgumentParser, *, environment: bool = True) -> None:
+        """Add a flag for every field of the model to `parser`, and ``--settings`` where the
+        settings also come from the environment and a file (`environment`)."""
+        if environment:
+            parser.add_argument(
+                SETTINGS_FILE_OPTION,
+                type=Path,
+                metavar="FILE",
+                dest="settings_file",
+                help="a TOML or JSON file of settings by field name "
+                f"[env {cls.variable('settings')}]",
+            )
+        add_argument = _add_argument(cls, environment)
+        CliSettingsSource(cls, root_parser=parser, add_argument_method=add_argument)
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace) -> Self:
-        """The settings of parsed flags over the environment, the file and the defaults.
+    def from_args(cls, args: argparse.Namespace, *, environment: bool = True) -> Self:
+        """The settings of parsed flags over the environment, the file and the defaults
+        (over the defaults alone without `environment`: a command whose options are only
+        its flags, such as the demo's share of a scan's).
 
         Raises `SettingsError` naming each option the model refuses and why.
         """
@@ -130,21 +140,24 @@ class ServiceSettings(BaseSettings):
         source: CliSettingsSource[Any] = CliSettingsSource(
             cls, root_parser=argparse.ArgumentParser(add_help=False)
         )
-        file = None if path is None else Path(path)
         try:
             parsed = source(parsed_args=argparse.Namespace(**flags))
-            return cls.load(file, _cli_settings_source=parsed)
+            if not environment:
+                return cls.load(environment=False, _cli_settings_source=parsed)
+            return cls.load(None if path is None else Path(path), _cli_settings_source=parsed)
         except ValidationError as error:
             raise SettingsError(_describe(cls, error)) from None
 
     @classmethod
-    def load(cls, file: Path | None = None, **values: Any) -> Self:
-        """The settings of `values` over the environment, `file` (if any) and the defaults."""
-        previous, cls._file = cls._file, file
+    def load(cls, file: Path | None = None, *, environment: bool = True, **values: Any) -> Self:
+        """The settings of `values` over the environment, `file` (if any) and the defaults
+        (over the defaults alone without `environment`)."""
+        previous = cls._file, cls._environment
+        cls._file, cls._environment = file, environment
         try:
             return cls(**values)
         finally:
-            cls._file = previous
+            cls._file, cls._environment = previous
 
 
 class SettingsError(ValueError):
@@ -163,7 +176,7 @@ def read_settings_file(path: Path) -> dict[str, Any]:
     return values
 
 
-def _add_argument(cls: type[ServiceSettings]) -> Callable[..., argparse.Action]:
+def _add_argument(cls: type[ServiceSettings], environment: bool) -> Callable[..., argparse.Action]:
     """The `add_argument` of CliSettingsSource, with today's list flags, env names in help,
     choices of Literal fields, and each field under the `help_heading` of the model
     declaring it."""
@@ -181,7 +194,7 @@ def _add_argument(cls: type[ServiceSettings]) -> Callable[..., argparse.Action]:
         text = str(kwargs.get("help", ""))
         if default is not None:
             text = re.sub(r"\(default: [^)]*\)", f"(default: {default})", text)
-        kwargs["help"] = f"{text} [env {cls.variable(dest)}]".strip()
+        kwargs["help"] = f"{text} [env {cls.variable(dest)}]".strip() if environment else text
         choices = _choices(field)
         if choices:
             kwargs["choices"] = choices

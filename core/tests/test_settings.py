@@ -178,3 +178,17 @@ def test_an_enum_takes_its_values_as_choices(capsys: pytest.CaptureFixture[str])
     with pytest.raises(SystemExit):
         parser.parse_args(["--colour", "BLUE"])
     assert "invalid choice: 'BLUE'" in capsys.readouterr().err
+
+
+def test_flags_alone_read_neither_the_environment_nor_a_file(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv("FOCUSTRACK_DEMO_PORT", "9000")
+    parser = argparse.ArgumentParser()
+    DemoSettings.add_arguments(parser, environment=False)
+    text = parser.format_help()
+    assert "--settings" not in text and "FOCUSTRACK_DEMO" not in text
+    got = DemoSettings.from_args(parser.parse_args(["--family", "reduced"]), environment=False)
+    assert (got.port, got.family) == (8100, "reduced")
+    assert DemoSettings.load(environment=False).port == 8100
+    assert DemoSettings.load().port == 9000  # the environment again, as before

@@ -109,9 +109,9 @@ class ScanOptions(ServiceSettings):
 
     @classmethod
     def defaults(cls, **changes: Any) -> ScanOptions:
-        """The options' defaults with `changes` over them, without reading the environment
-        (for scans that code makes: benchmarks, tests)."""
-        return cls.model_construct(**changes)
+        """The options' defaults with `changes` over them, checked, without reading the
+        environment (for scans that code makes: benchmarks, tests)."""
+        return cls.load(environment=False, **changes)
 
     def request(
         self, instrument: str, slide: str, strategy: str, params: Mapping[str, Any] | None = None
@@ -191,13 +191,13 @@ class ScanSettings(ZenohSettings, ScanOptions):
         return items
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace) -> Self:
+    def from_args(cls, args: argparse.Namespace, *, environment: bool = True) -> Self:
         # The --param items reach the model as one JSON list: a list option's items are
         # otherwise split at commas, and a parameter's value may hold some ("[1.0, 2.0]").
         flags = vars(args).copy()
         if flags.get("param") is not None:
             flags["param"] = json.dumps(flags["param"])
-        return super().from_args(argparse.Namespace(**flags))
+        return super().from_args(argparse.Namespace(**flags), environment=environment)
 
     @property
     def params(self) -> dict[str, Any]:
