@@ -26,12 +26,14 @@ import os
 import re
 import sys
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from contextvars import ContextVar
+from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Any, ClassVar, Self, TypeVar
+from typing import Any, ClassVar, Literal, Self, TypeVar, get_args, get_origin
 
-from pydantic import ValidationError, field_validator
+from pydantic import AfterValidator, ValidationError, ValidationInfo, field_validator
 from pydantic.fields import FieldInfo
 from pydantic_settings import (
     BaseSettings,
@@ -67,14 +69,9 @@ class ServiceSettings(BaseSettings):
     #: separated by commas or spaces, as lists always read (set by subclasses).
     list_fields: ClassVar[tuple[str, ...]] = ()
 
-    #: The settings file read on construction, and whether the environment is
-    #: (`load` sets both for the call).
-    _file: ClassVar[Path | None] = None
-    _environment: ClassVar[bool] = True
-
     @field_validator("*", mode="before")
     @classmethod
-    def _split_lists(cls, value: Any, info: Any) -> Any:
+    def _split_lists(cls, value: Any, info: ValidationInfo) -> Any:
         """A list field given as one text (environment, file) is its items."""
         if info.field_name in cls.list_fields and isinstance(value, str):
             return [item for item in re.split(r"[,\s]+", value.strip()) if item]
@@ -89,11 +86,12 @@ class ServiceSettings(BaseSettings):
         dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
-        if not cls._environment:
+        reading = _READING.get() or _Reading()
+        if not reading.environment:
             return (init_settings,)
         sources: tuple[PydanticBaseSettingsSource, ...] = (init_settings, env_settings)
-        if cls._file is not None:
-            sources += (InitSettingsSource(settings_cls, read_settings_file(cls._file)),)
+        if reading.file is not None:
+            sources += (InitSettingsSource(settings_cls, read_settings_file(reading.file)),)
         return sources
 
     @classmethod
@@ -136,28 +134,60 @@ class ServiceSettings(BaseSettings):
         Raises `SettingsError` naming each option the model refuses and why.
         """
         flags = vars(args).copy()
-        path = flags.pop("settings_file", None) or os.environ.get(cls.variable("settings"))
+        file = flags.pop("settings_file", None)
         source: CliSettingsSource[Any] = CliSettingsSource(
             cls, root_parser=argparse.ArgumentParser(add_help=False)
         )
-        try:
-            parsed = source(parsed_args=argparse.Namespace(**flags))
-            if not environment:
-                return cls.load(environment=False, _cli_settings_source=parsed)
-            return cls.load(None if path is None else Path(path), _cli_settings_source=parsed)
-        except ValidationError as error:
-            raise SettingsError(_describe(cls, error)) from None
+        parsed = source(parsed_args=argparse.Namespace(**flags))
+        return cls.load(file, environment=environment, _cli_settings_source=parsed)
 
     @classmethod
     def load(cls, file: Path | None = None, *, environment: bool = True, **values: Any) -> Self:
-        """The settings of `values` over the environment, `file` (if any) and the defaults
-        (over the defaults alone without `environment`)."""
-        previous = cls._file, cls._environment
-        cls._file, cls._environment = file, environment
+        """The settings of `values` over the environment, the settings file (`file`, else the
+        one ``{PREFIX}SETTINGS`` names, if any) and the defaults; over the defaults alone
+        without `environment`. Raises `SettingsError` naming each option refused and why."""
+        if file is None and environment:
+            named = os.environ.get(cls.variable("settings"))
+            file = Path(named) if named else None  # empty: unset, as every variable
+        token = _READING.set(_Reading(file, environment))
         try:
             return cls(**values)
+        except ValidationError as error:
+            raise SettingsError(_describe(cls, error)) from None
         finally:
-            cls._file, cls._environment = previous
+            _READING.reset(token)
+
+
+@dataclass(frozen=True)
+class _Reading:
+    """Where `ServiceSettings.load` reads: a settings file, and whether the environment."""
+
+    file: Path | None = None
+    environment: bool = True
+
+
+#: What the settings being built read (a context variable: builds on two threads at once
+#: each read their own).
+_READING: ContextVar[_Reading | None] = ContextVar("focustrack_settings_reading", default=None)
+
+
+@dataclass(frozen=True)
+class OneOf:
+    """A text setting's choices, known at run time (a table's names): the validator of
+    ``Annotated[str, AfterValidator(OneOf(names))]``, whose flag lists them as choices."""
+
+    names: tuple[str, ...]
+
+    def __call__(self, value: str) -> str:
+        if value not in self.names:
+            raise ValueError(f"{value!r} is not one of {', '.join(self.names)}")
+        return value
+
+
+def one_of(names: Iterable[str]) -> AfterValidator:
+    """The metadata of a text setting that takes one of `names`:
+    ``metric: Annotated[str, one_of(METRICS)]``."""
+    return AfterValidator(OneOf(tuple(names)))
 
 
 class SettingsError(ValueError):
@@ -190,10 +220,12 @@ def _add_argument(cls: type[ServiceSettings], environment: bool) -> Callable[...
         field = cls.model_fields.get(dest)
         if field is None:
             return parser.add_argument(*names, **kwargs)
-        default = cls.default_text(dest)
-        text = str(kwargs.get("help", ""))
-        if default is not None:
-            text = re.sub(r"\(default: [^)]*\)", f"(default: {default})", text)
+        text = _help_text(cls, dest, field, str(kwargs.get("help", "")))
+        extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
+        if "metavar" in extra:  # `Field(json_schema_extra={"metavar": "ENDPOINT"})`
+            kwargs["metavar"] = extra["metavar"]
+        elif kwargs.get("metavar") == "Path":
+            kwargs["metavar"] = "FILE"
         kwargs["help"] = f"{text} [env {cls.variable(dest)}]".strip() if environment else text
         choices = _choices(field)
         if choices:
@@ -210,6 +242,18 @@ def _add_argument(cls: type[ServiceSettings], environment: bool) -> Callable[...
     return add_argument
 
 
+def _help_text(cls: type[ServiceSettings], name: str, field: FieldInfo, text: str) -> str:
+    """pydantic-settings' help of field `name` with its default as a user types it: an
+    enum's value, the service's own words where the model says (`default_text`), nothing
+    where it would say null or name a factory (the description says what unset means)."""
+    stated = cls.default_text(name)
+    if stated is None and isinstance(field.default, Enum):
+        stated = str(field.default.value)
+    if stated is not None:
+        return re.sub(r"\(default: [^)]*\)", f"(default: {stated})", text)
+    return re.sub(r" ?\(default(: null| factory: [^)]*)\)", "", text)
+
+
 def _declaring_model(cls: type, name: str) -> type:
     """The class of `cls`'s hierarchy whose own annotations declare field `name`."""
     return next(
@@ -218,14 +262,15 @@ def _declaring_model(cls: type, name: str) -> type:
 
 
 def _choices(field: FieldInfo) -> list[str] | None:
-    """The values a Literal or enum field takes, as text (argparse then lists them in --help)."""
+    """The values a Literal, enum or `one_of` field takes, as text (argparse lists them)."""
     annotation = field.annotation
     if isinstance(annotation, type) and issubclass(annotation, Enum):
         return [str(member.value) for member in annotation]
-    if getattr(annotation, "__origin__", None) is not None and str(annotation).startswith(
-        "typing.Literal"
-    ):
-        return [str(value) for value in annotation.__args__]  # type: ignore[union-attr]
+    if get_origin(annotation) is Literal:
+        return [str(value) for value in get_args(annotation)]
+    for meta in field.metadata:
+        if isinstance(meta, AfterValidator) and isinstance(meta.func, OneOf):
+            return list(meta.func.names)
     return None
 
 

@@ -6,13 +6,13 @@ import argparse
 import json
 from enum import StrEnum
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 import pytest
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from focustrack_core.settings import ServiceSettings, SettingsError, command_main
+from focustrack_core.settings import ServiceSettings, SettingsError, command_main, one_of
 
 
 class DemoSettings(ServiceSettings):
@@ -192,3 +192,24 @@ def test_flags_alone_read_neither_the_environment_nor_a_file(
     assert (got.port, got.family) == (8100, "reduced")
     assert DemoSettings.load(environment=False).port == 8100
     assert DemoSettings.load().port == 9000  # the environment again, as before
+
+
+def test_a_choice_known_at_run_time_is_checked_and_listed(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    class Chosen(ServiceSettings):
+        model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_CHOSEN_")
+        metric: Annotated[str, one_of(["brenner", "tenengrad"])] = "brenner"
+
+    monkeypatch.setenv("FOCUSTRACK_CHOSEN_METRIC", "sobel")
+    with pytest.raises(SettingsError, match="'sobel' is not one of brenner, tenengrad"):
+        Chosen.load()
+    parser = argparse.ArgumentParser()
+    Chosen.add_arguments(parser)
+    assert "--metric {brenner,tenengrad}" in parser.format_help()
+
+
+def test_an_empty_settings_variable_is_no_file(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FOCUSTRACK_DEMO_SETTINGS", "")
+    monkeypatch.delenv("FOCUSTRACK_DEMO_PORT", raising=False)
+    assert DemoSettings.load().port == 8100

@@ -47,7 +47,7 @@ import socket
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar, Literal, get_args
 
 import zenoh
 from pydantic import Field
@@ -59,7 +59,9 @@ log = logging.getLogger(__name__)
 #: Where the embedded peer listens unless told otherwise.
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
-MODES = ("peer", "client", "router")
+#: A session's Zenoh mode.
+Mode = Literal["peer", "client", "router"]
+MODES: tuple[str, ...] = get_args(Mode)
 
 #: How long opening a session waits for a connect endpoint to come up.
 CONNECT_TIMEOUT_S = 30.0
@@ -203,10 +205,14 @@ class ZenohSettings(ServiceSettings):
     default_listen: ClassVar[tuple[str, ...]] = ()
 
     connect: list[str] | None = Field(
-        None, description=f"endpoints to connect to, e.g. {DEFAULT_ENDPOINT}"
+        None,
+        description=f"endpoints to connect to, e.g. {DEFAULT_ENDPOINT}",
+        json_schema_extra={"metavar": "ENDPOINT"},
     )
-    listen: list[str] | None = Field(None, description="endpoints to listen on")
-    mode: Literal["peer", "client", "router"] | None = Field(
+    listen: list[str] | None = Field(
+        None, description="endpoints to listen on", json_schema_extra={"metavar": "ENDPOINT"}
+    )
+    mode: Mode | None = Field(
         None, description="Zenoh mode (default: peer when listening, client when only connecting)"
     )
     zenoh_config: Path | None = Field(
@@ -217,6 +223,7 @@ class ZenohSettings(ServiceSettings):
     shared_memory: int = Field(
         0,
         ge=0,
+        json_schema_extra={"metavar": "MB"},
         description="Zenoh shared memory with processes on this host: the pool, in MB, that "
         f"published pixels are written to, e.g. {SHARED_MEMORY_MB} (0: off, network only; "
         "subscribers need it on too, any size)",

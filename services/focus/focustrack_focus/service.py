@@ -26,7 +26,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 import uvicorn
@@ -37,7 +37,7 @@ from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.serving import refuse_open_network
-from focustrack_core.settings import command_main
+from focustrack_core.settings import command_main, one_of
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
@@ -246,16 +246,6 @@ class ZenohFocusWorker:
         self._thread.join(timeout_s)
 
 
-# The choices of --metric and --focus-mode: the names of `METRICS` and the `PeakMode`s, as
-# Literals (the settings' choices) built from them; mypy takes no Literal built at run time.
-if TYPE_CHECKING:
-    MetricName = str
-    FocusModeName = PeakMode
-else:
-    MetricName = Literal[tuple(METRICS)]
-    FocusModeName = Literal[tuple(PeakMode)]
-
-
 class FocusServiceSettings(ZenohSettings):
     """The focus service's options: flags, ``FOCUSTRACK_FOCUS_<OPTION>`` or a settings file.
 
@@ -270,8 +260,10 @@ class FocusServiceSettings(ZenohSettings):
 
     host: str = Field("127.0.0.1", description="HTTP address")
     port: int = Field(8002, ge=0, le=65535, description="HTTP port")
-    metric: MetricName = Field(FocusSettings.metric, description="the focus metric")
-    focus_mode: FocusModeName = Field(
+    metric: Annotated[str, one_of(METRICS)] = Field(
+        FocusSettings.metric, description="the focus metric"
+    )
+    focus_mode: PeakMode = Field(
         PeakSettings.mode, description="max: stained specimens; valley: unstained, phase-like ones"
     )
     lowpass_sigma_px: float | None = Field(

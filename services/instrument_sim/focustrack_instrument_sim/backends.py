@@ -13,10 +13,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, TypeVar
 
 from pydantic import BaseModel
 
+from focustrack_core.settings import one_of
 from focustrack_instrument_sim.instrument import Instrument
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
@@ -43,9 +44,5 @@ BACKENDS: dict[str, Backend[Any]] = {
     "sim": Backend("the simulated microscope", open_simulator),
 }
 
-# The choices of --backend: the names of `BACKENDS`, as a Literal built from them (mypy
-# takes no Literal built at run time).
-if TYPE_CHECKING:
-    BackendName = str
-else:
-    BackendName = Literal[tuple(BACKENDS)]
+#: A backend's name (--backend): one of `BACKENDS`.
+BackendName = Annotated[str, one_of(BACKENDS)]

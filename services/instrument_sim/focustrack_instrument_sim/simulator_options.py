@@ -13,19 +13,16 @@ when it opens, which ends the command with exit status 2 and their message.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import Annotated, Any, ClassVar
 
 from pydantic import BaseModel, Field
 
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.settings import one_of
 from focustrack_core.surfaces import FAMILIES, SurfaceSpec
 
-# The choices of --family: the names of `FAMILIES`, as a Literal built from them (mypy
-# takes no Literal built at run time).
-if TYPE_CHECKING:
-    FamilyName = str
-else:
-    FamilyName = Literal[tuple(FAMILIES)]
+#: A map family's name (--family): one of `FAMILIES`.
+FamilyName = Annotated[str, one_of(FAMILIES)]
 
 
 class SimulatorOptions(BaseModel):
