@@ -127,7 +127,6 @@ def fill_store(
 ) -> str:
     """Scan into a store as the service does, and stop `unsnapshotted` measurements after a
     periodic snapshot (as a kill -9 would), near the end of the scan."""
-    from focustrack_estimator.params import resolve_params
     from focustrack_estimator.slide import Slide
     from focustrack_estimator.sqlite_store import SQLiteStore
 
@@ -137,8 +136,9 @@ def fill_store(
     config = to_api.slide_create(strategy_name, settings)
     slide_id = "bench"
     store.create_slide(slide_id, config.model_dump(mode="json"))
-    params = resolve_params(config.strategy, config.params)
-    slide = Slide(slide_id, config, params, store, snapshot_every=every)
+    record = store.slide(slide_id)
+    assert record is not None  # just created
+    slide = Slide.load(record, store, snapshot_every=every)
     while (acquisition := slide.next()) is not None:
         n_logged = len(slide.history)  # every acquisition is at least one per tile
         if n_logged >= settings.grid.n_tiles - every and n_logged % every == unsnapshotted % every:

@@ -10,6 +10,7 @@ depend on in `dependencies`.
 from __future__ import annotations
 
 import asyncio
+import copy
 import gc
 import threading
 import time
@@ -141,16 +142,21 @@ def create_app(
 
 
 def _publish_params_on_first_ask(app: FastAPI, live: Slides) -> None:
-    """Each served strategy's parameters model goes into the OpenAPI document when it is
-    first asked for (`params.publish_params`): building it needs every strategy module,
-    which the service imports after it answers /healthz."""
-    build = app.openapi
+    """Each served strategy's parameters model goes into the OpenAPI document the first
+    time it is asked for once the strategies are loaded (`params.publish_params`; they load
+    a moment after the service starts): until then the document is without them, rather
+    than the event loop waiting for their import."""
+    build = app.openapi  # FastAPI's: built once, then kept
+    published: dict[str, Any] | None = None
 
     def openapi() -> dict[str, Any]:
-        if app.openapi_schema is None:
+        nonlocal published
+        if published is None and strategies_loaded():
             from focustrack_estimator.params import publish_params
 
-            publish_params(build(), live.catalogue())  # FastAPI keeps the document it built
-        return build()
+            document = copy.deepcopy(build())  # a failure leaves FastAPI's document whole
+            publish_params(document, live.catalogue())
+            published = document
+        return build() if published is None else published
 
     app.openapi = openapi  # type: ignore[method-assign]

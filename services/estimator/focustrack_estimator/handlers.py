@@ -3,8 +3,9 @@
 Every error reply is an `api.Error`: a `code` for programs and a `detail` naming
 the problem, quoting at most 200 characters of any input (404 unknown slide, 409
 not the pending acquisition or a conflicting re-post, 422 invalid input or a slide
-over the cost budget, 413 oversized body, 408 a body too slow to arrive, 500 a log
-that no longer replays). A 422 from the domain has the shape of FastAPI's own.
+over the cost budget, 413 oversized body, 408 a body too slow to arrive, 503 a store
+that failed under the request, 500 a log that no longer replays). A 422 from the
+domain has the shape of FastAPI's own.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from focustrack_estimator.errors import (
     SlideError,
     SlideNotFoundError,
 )
+from focustrack_estimator.event_store import StoreUnavailableError
 
 #: The status and code of each domain error (a subclass takes its nearest ancestor's).
 DOMAIN_ERRORS: dict[type[SlideError], tuple[int, api.ErrorCode]] = {
@@ -44,6 +46,7 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
         (404, "Unknown slide"),
         (409, "Not the pending acquisition, a conflicting re-post, or a finished scan"),
         (413, "Request body too large"),
+        (503, "The store failed under the request (nothing was done); ask again later"),
     )
 }
 
@@ -111,6 +114,13 @@ def install(app: FastAPI) -> None:
             detail = [{"loc": list(error.where), "msg": str(error), "type": "value_error"}]
             return error_response(status, code, detail)
         return error_response(status, code, str(error))
+
+    @app.exception_handler(StoreUnavailableError)
+    async def store_unavailable(_: Request, error: StoreUnavailableError) -> JSONResponse:
+        # The database failed under the request (I/O, a full disk, a lock): nothing it asked
+        # was done; the client may ask again later.
+        detail = f"the estimator's store failed: {error}"
+        return error_response(503, api.ErrorCode.INTERNAL, detail, {"Retry-After": "5"})
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:

@@ -48,7 +48,7 @@ from focustrack_estimator.slide_strategy import (
     stored_config,
 )
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
-from focustrack_estimator.strategy import StrategyParams
+from focustrack_estimator.strategy import Cost, StrategyParams
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +71,7 @@ class Slide:
         slide_id: str,
         config: api.SlideCreate,
         params: StrategyParams,
+        cost: Cost,
         store: EventStore,
         *,
         snapshot_every: int,
@@ -85,10 +86,9 @@ class Slide:
         self.history = History()
         self.n_snapshot = 0  # events covered by the newest snapshot stored
         self._snapshots = True  # False once the strategy's state proved impossible to store
-        strategies = served(catalogue)
-        self.cost = cost_of(config, params, strategies)  # its share of the live slides' budget
+        self.cost = cost  # its share of the live slides' budget
         start_s = time.perf_counter()
-        self.strategy = new_strategy(config, params, strategies)
+        self.strategy = new_strategy(config, params, served(catalogue))
         self._timer(time.perf_counter() - start_s)
 
     @classmethod
@@ -109,12 +109,14 @@ class Slide:
         strategies = served(catalogue)
         limits.check(config.grid)
         params = resolved_params(config, strategies)  # once, for all that follows
-        budget.check(config, cost_of(config, params, strategies))
+        cost = cost_of(config, params, strategies)
+        budget.check(config, cost)
         config = stored_config(config, params)
         slide = cls(
             slide_id,
             config,
             params,
+            cost,
             store,
             snapshot_every=snapshot_every,
             timer=timer,
@@ -137,13 +139,22 @@ class Slide:
         """The stored slide of `record`, rebuilt from its newest snapshot and the events after
         it (or from its whole log). ReplayMismatchError if the log no longer replays."""
         slide_id, config = record.id, api.SlideCreate.model_validate(record.config)
-        params = resolved_params(config, served(catalogue))
+        strategies = served(catalogue)
+        try:
+            params = resolved_params(config, strategies)
+        except SlideError as error:  # stored as valid: this version's strategy refuses them
+            raise ReplayMismatchError(
+                f"slide {slide_id}: its stored parameters are refused by this version of "
+                f"strategy {config.strategy!r}: {error}"
+            ) from None
+        cost = cost_of(config, params, strategies)
 
         def built() -> Slide:
             return cls(
                 slide_id,
                 config,
                 params,
+                cost,
                 store,
                 snapshot_every=snapshot_every,
                 timer=timer,

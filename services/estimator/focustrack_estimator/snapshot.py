@@ -33,7 +33,9 @@ from typing import Any
 import numpy as np
 
 #: Version of the encoding; a snapshot of another version is not restored (the log is).
-FORMAT = 2  # 2: FocusMap.out_of_focus_risk (was Strategy.risk)
+# 2: FocusMap.out_of_focus_risk (was Strategy.risk); 3: the strategies' options are their
+# pydantic parameter models (were FilterOptions dataclasses), the NSHP filters in nshp.py.
+FORMAT = 3
 
 #: Packages whose enums, dataclasses and objects a snapshot may name.
 _ALLOWED_MODULES = ("focustrack_core.", "focustrack_estimator.", "filterpy.")

@@ -74,8 +74,9 @@ def _measured_peak_bytes(config: api.SlideCreate, store: SQLiteStore) -> int:
     tracemalloc.start()
     try:
         base_bytes = tracemalloc.get_traced_memory()[0]
-        params = resolve_params(config.strategy, config.params)
-        slide = Slide("s", config, params, store, snapshot_every=10**9)
+        record = store.slide("s")
+        assert record is not None
+        slide = Slide.load(record, store, snapshot_every=10**9)
         while (acquisition := slide.next()) is not None:
             z_um = 0.3 * math.sin(acquisition.row / 5) + 0.02 * acquisition.col
             measurement = api.MeasurementIn(

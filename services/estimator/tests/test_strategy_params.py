@@ -19,6 +19,7 @@ from focustrack_estimator import registry
 from focustrack_estimator.app import create_app
 from focustrack_estimator.lean_scan import Kf2dLeanParams
 from focustrack_estimator.settings import EstimatorSettings
+from focustrack_estimator.slides import load_strategies
 from focustrack_estimator.spatial import Kf2dParams, RowBankFilter
 from focustrack_estimator.sqlite_store import SQLiteStore
 
@@ -204,6 +205,7 @@ def _body(strategy: str, params: dict[str, Any]) -> dict[str, Any]:
 
 
 def test_the_openapi_document_has_each_strategys_parameters() -> None:
+    load_strategies()  # as the service does a moment after it starts
     store = SQLiteStore(":memory:")
     try:
         schemas = create_app(store, EstimatorSettings()).openapi()["components"]["schemas"]
