@@ -17,6 +17,7 @@ from focustrack_core.domain import (
     ZRangePolicy,
 )
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest import to_api
 
 
 def grid(model: api.Grid) -> ScanGrid:
@@ -49,19 +50,9 @@ def default_policy(**changes: Any) -> ZRangePolicy:
 def default_settings(scan_grid: ScanGrid, **changes: Any) -> SlideSettings:
     """The settings of a slide on `scan_grid` with the API's defaults (`api.SlideCreate`),
     `changes` (domain fields by name: `noise_sigma_um`, `policy`, ...) over them."""
-    defaults = {
-        name: api.SlideCreate.model_fields[name].get_default(call_default_factory=True)
-        for name in ("start_z_um", "start_sigma_um", "dof_um", "noise_sigma_um", "z_range")
-    }
-    settings = SlideSettings(
-        grid=scan_grid,
-        start_z_um=defaults["start_z_um"],
-        start_sigma_um=defaults["start_sigma_um"],
-        dof_um=defaults["dof_um"],
-        noise_sigma_um=defaults["noise_sigma_um"],
-        policy=policy(defaults["z_range"]),
-    )
-    return dataclasses.replace(settings, **changes)
+    # Unvalidated on purpose: no strategy is named; only the settings' defaults are read.
+    defaults = api.SlideCreate.model_construct(strategy="", grid=to_api.grid(scan_grid))
+    return dataclasses.replace(slide_settings(defaults), **changes)
 
 
 def flags(values: list[api.FocusFlag]) -> frozenset[FocusFlag]:
