@@ -201,7 +201,9 @@ class BackgroundServer:
     `port` 0 takes a free one (`url` says which, once started).
     """
 
-    def __init__(self, app: ASGIApp, host: str = "127.0.0.1", port: int = 0, name: str = "http"):
+    def __init__(
+        self, app: ASGIApp, host: str = "127.0.0.1", port: int = 0, name: str = "http"
+    ) -> None:
         import uvicorn
 
         self._server = uvicorn.Server(

@@ -345,7 +345,7 @@ class SQLiteStore:
         return [Event(seq, json.loads(a), json.loads(m), json.loads(o)) for seq, a, m, o in rows]
 
 
-def _slide_record(row: tuple) -> SlideRecord:
+def _slide_record(row: tuple[str, str, float, float, int, int, int]) -> SlideRecord:
     slide_id, config, created_s, updated_s, n_events, n_accepted, done = row
     return SlideRecord(
         slide_id, json.loads(config), created_s, updated_s, n_events, n_accepted, bool(done)
