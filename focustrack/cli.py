@@ -47,7 +47,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "bench startup": (
         "focustrack.bench.startup",
-        "seconds from exec to each service's first answer (/healthz, the instrument's info)",
+        "seconds from exec to the first answer of each service, of `scan --help` and of a bare "
+        "FastAPI app (the floor)",
     ),
     "bench chaos": (
         "focustrack.bench.chaos",

@@ -1,14 +1,16 @@
-"""The focus service on the instrument simulator's stacks: an honest sigma, and flags on fields
-with nothing to focus on (the scheduler's small sparse tiles)."""
+"""The focus service on the instrument simulator's stacks: every metric prefers focus, an honest
+sigma, and flags on fields with nothing to focus on (the scheduler's small sparse tiles)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from focustrack.bench.focus import StackShape, bench_settings, simulated_stacks
+from focustrack.bench.focus import StackShape, bench_settings, render_stack, simulated_stacks
 from focustrack_core.domain import FocusFlag
+from focustrack_focus.metrics import METRICS, get_metric
 from focustrack_focus.pipeline import focus_stack
+from focustrack_focus.preprocess import Preprocess
 
 #: Not a seed the sigma model was fitted on (100-102) nor the benchmark's (1).
 SEED = 7
@@ -25,6 +27,21 @@ def read(field: str, size_px: int, shapes: list[StackShape]) -> list[tuple[float
         else:
             out.append((result.best_z_um - stack.truth_um, result.sigma_um))
     return out
+
+
+@pytest.fixture(scope="module")
+def defocus_stack() -> np.ndarray:
+    """Frames at defocus -2, 0, +2 um of a simulated smear (green), (3, 128, 128) uint16: the
+    simulator's physical defocus, where the metrics' own tests beside the focus service
+    blur a toy field with a Gaussian."""
+    return render_stack("full", 128, np.array([-2.0, 0.0, 2.0]), 0.0, seed=2)[..., 1]
+
+
+@pytest.mark.parametrize("name", list(METRICS))
+def test_every_metric_is_largest_in_focus(defocus_stack: np.ndarray, name: str) -> None:
+    metric, preprocess = get_metric(name), Preprocess(lowpass_sigma_px=1.7)
+    scores = [metric(preprocess(frame)) for frame in defocus_stack]
+    assert scores[1] > scores[0] and scores[1] > scores[2], scores
 
 
 def test_sigma_is_honest_on_simulator_stacks() -> None:

@@ -9,7 +9,7 @@ Validation happens here, at the edge: numbers must be finite and within
 sane bounds (so no filter ever sees NaN, infinity or a 1e308 um height),
 sigmas positive, grids bounded, unknown fields rejected (a typo is an error,
 not a silently ignored setting). Checks that need the slide (tile inside its
-grid, the sequence asked for) are the domain's, in `slides.py`.
+grid, the sequence asked for) are the estimator's, in its `slide.py` (`Slide.measure`).
 """
 
 from __future__ import annotations

@@ -61,7 +61,8 @@ MAX_RUNS = 6
 #: Scans at most, however long the fault script runs.
 MAX_SCANS = 50
 
-#: Ride out a minute without a service: the bound set for a restart.
+#: Ride out a minute without a service: the target is a scan that survives any service's
+#: restart within a minute.
 CHAOS_RETRY = RetryPolicy(instrument_timeout_s=15.0, focus_timeout_s=5.0, instrument_outage_s=60.0)
 FOCUS_ATTEMPTS = 12  # x focus_timeout_s: a focus service gone for a minute
 

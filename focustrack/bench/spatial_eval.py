@@ -1,7 +1,7 @@
 """The 2-D estimators on the thesis protocol, as ratios to the Gaussian-process oracle.
 
 Maps: `generate_surfaces(family_spec(family), n_maps, seed)` plus Gaussian
-measurement noise (`focustrack.bench.accuracy.add_measurement_noise`); every
+measurement noise (`focustrack_core.surfaces.add_measurement_noise`); every
 strategy is replayed on the same measurements (`focustrack_estimator.replay`).
 `gp-oracle` is given the family's `SurfaceSpec`; no other strategy knows it.
 

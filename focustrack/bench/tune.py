@@ -28,7 +28,7 @@ import argparse
 import os
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -122,9 +122,8 @@ def evaluate(
 ) -> Scores:
     """Scores of strategy `name` with `params` over every map of `data`."""
     rows, cols = data.truth_um.shape[1:]
-    settings = default_settings(
-        ScanGrid(rows, cols), noise_sigma_um=noise_um, policy=policy or default_policy()
-    )
+    changes = {} if policy is None else {"policy": policy}  # none: the API's default policy
+    settings = default_settings(ScanGrid(rows, cols), noise_sigma_um=noise_um, **changes)
     replays = [
         replay(create(name, settings, params), truth, measured)
         for truth, measured in zip(data.truth_um, data.measured_um, strict=True)
@@ -228,7 +227,7 @@ def tune(
 
             params, scores = coordinate_search(name, SEARCH_SPACE[name], run, log=log)
             log(f"{name}: best {_format(params)}; stack width sweep")
-            policies = [replace(default_policy(), k_sigma=k) for k in k_sigmas]
+            policies = [default_policy(k_sigma=k) for k in k_sigmas]
             sweep = list(pool.map(_evaluate_in_worker, [(name, params, p) for p in policies]))
             for k, swept in zip(k_sigmas, sweep, strict=True):
                 log(

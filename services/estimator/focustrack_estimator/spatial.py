@@ -540,7 +540,7 @@ def kf_2d(settings: SlideSettings, params: Kf2dParams) -> RowBankFilter:
 
 # Cost models are fitted to tracemalloc's peak over a scan (tests/test_estimator_budget.py
 # keeps them within a factor of the measurement); times are counted operations at
-# NOMINAL_FLOPS_PER_S (the budget: focustrack_estimator.slides.Budget).
+# NOMINAL_FLOPS_PER_S (the budget: focustrack_estimator.budget.Budget).
 
 #: Peak bytes of a kf-2d member per element of its (dim x dim) covariance: P itself, the
 #: copies and temporaries of the row prediction, and its model's cached column

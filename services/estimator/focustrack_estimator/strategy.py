@@ -128,7 +128,7 @@ class PeakSearch:
 class Cost:
     """What one slide of a strategy is projected to cost: its peak memory (bytes, the slide's
     whole life: state, transients, history) and its compute per tile (seconds at
-    `NOMINAL_FLOPS_PER_S`). Estimates for the budget (`focustrack_estimator.slides.Budget`),
+    `NOMINAL_FLOPS_PER_S`). Estimates for the budget (`focustrack_estimator.budget.Budget`),
     checked against measurement by tests/test_estimator_budget.py."""
 
     peak_bytes: int

@@ -1,7 +1,7 @@
 """Fixtures of the estimator's tests: an app in process over a store of its own.
 
-Helper modules of this folder (`estimator_in_process`) are importable by its tests:
-pytest imports test files by path (``--import-mode=importlib``), not this folder.
+Helper modules of this folder (`estimator_in_process`, `remote_strategy`) are importable by
+its tests: pytest imports test files by path (``--import-mode=importlib``), not this folder.
 """
 
 from __future__ import annotations

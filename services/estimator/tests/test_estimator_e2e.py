@@ -1,9 +1,9 @@
 """The estimator as deployed: a real uvicorn process on loopback, a real SQLite file.
 
 A full 20x20 scan through HTTP, driven by the benchmark's own replay loop
-(`remote.RemoteStrategy` makes the served slide look like a local strategy), must give
-exactly the benchmark's scores; a scan whose server is killed with SIGKILL in
-the middle and restarted on the same store must finish identically.
+(`remote_strategy.RemoteStrategy`, beside this test, makes the served slide look like a
+local strategy), must give exactly the benchmark's scores; a scan whose server is killed
+with SIGKILL in the middle and restarted on the same store must finish identically.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from subprocess import Popen
 
 import numpy as np
 import pytest
+from remote_strategy import RemoteStrategy
 
 from focustrack_client import EstimatorClient
 from focustrack_core.domain import Acquisition, Measurement, Outcome
@@ -24,7 +25,6 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
-from focustrack_estimator.remote import RemoteStrategy
 from focustrack_estimator.replay import replay, score
 from focustrack_estimator.service import spawn
 from focustrack_estimator.sqlite_store import SQLiteStore

@@ -37,7 +37,9 @@ app = create_app(_STORE, EstimatorSettings())
 schema = schemathesis.openapi.from_asgi("/openapi.json", app)
 _strategies = itertools.cycle(sorted(registry.STRATEGIES))
 _SETTINGS = default_settings(ScanGrid(5, 5))
-_http = TestClient(app)  # not entered: the app's lifespan (which closes the store) stays off
+# Not entered: the app's lifespan stays off. The store is this module's: opened above, closed by
+# `_store` (the app never closes a store it was given).
+_http = TestClient(app)
 
 
 @pytest.fixture(scope="module", autouse=True)

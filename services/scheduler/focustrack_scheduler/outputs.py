@@ -59,7 +59,8 @@ SCAN_FILES = (
 )
 #: Group of the OME-Zarr mosaic that holds the focus-map layers, one NGFF image each.
 ZARR_MAPS = "maps"
-#: Key of FocusTrack's own attributes in the OME-Zarr root (`report.tile_metadata`).
+#: Key of FocusTrack's own attributes in the OME-Zarr root
+#: (`finished.FinishedScan.tile_metadata`).
 ZARR_ATTRS = "focustrack"
 
 

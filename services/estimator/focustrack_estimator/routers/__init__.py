@@ -1,1 +1,1 @@
-"""The REST API's routes, one module per tag: slides, scan, maps, operations."""
+"""The REST API's routes, one module per tag: slides, scan, maps, strategies, operations."""

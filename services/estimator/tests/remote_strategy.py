@@ -1,10 +1,10 @@
-"""A slide served by an estimator, driven as a local `Strategy` (for benchmarks and tests).
+"""A slide served by an estimator, driven as a local `Strategy` (for the end-to-end test).
 
 `RemoteStrategy` turns a slide on an estimator service back into the two calls
 every strategy answers, so anything that drives a strategy (`replay.replay`, the
-benchmarks' driver) drives a served slide the same way; the end-to-end test uses
-that to check that the service reproduces the benchmark exactly. The service
-itself never imports this module (a client of its own API).
+benchmarks' driver) drives a served slide the same way; the end-to-end test
+(test_estimator_e2e.py) uses that to check that the service reproduces the benchmark
+exactly. A client of the service's own API, so a test helper, not part of the service.
 """
 
 from __future__ import annotations
