@@ -34,6 +34,7 @@ from focustrack_scheduler.plan import (
     ScanRequest,
     SlideGeometry,
     Step,
+    execute,
     scan_plan,
     slide_config,
 )
@@ -42,16 +43,13 @@ from focustrack_scheduler.settings import ScanOptions
 
 def drive(request: ScanRequest, answer: Callable[[Step], Any]) -> tuple[list[Step], str]:
     """Run the plan, answering each step with `answer`; the steps and the plan's result."""
-    plan = scan_plan(request)
     steps: list[Step] = []
-    result: Any = None
-    try:
-        while True:
-            step = plan.send(result)
-            steps.append(step)
-            result = answer(step)
-    except StopIteration as finished:
-        return steps, finished.value
+
+    def answer_and_keep(step: Step) -> Any:
+        steps.append(step)
+        return answer(step)
+
+    return steps, execute(scan_plan(request), answer_and_keep)
 
 
 def local_services(

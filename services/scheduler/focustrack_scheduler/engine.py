@@ -60,7 +60,7 @@ from focustrack_scheduler.plan import (
     Plan,
     PostMeasurement,
     SlideGeometry,
-    Step,
+    execute,
 )
 from focustrack_scheduler.record import ScanRecord
 
@@ -196,12 +196,7 @@ class Engine:
         """Execute `plan` to the end; its return value (the estimator's slide id)."""
         started_s = time.perf_counter()
         try:
-            result: Any = None
-            while True:
-                step: Step = plan.send(result)
-                result = self._handlers[type(step)](step)
-        except StopIteration as finished:
-            return finished.value
+            return execute(plan, lambda step: self._handlers[type(step)](step))
         finally:
             self.wall.close(time.perf_counter() - started_s)
             if self._progress is not None:

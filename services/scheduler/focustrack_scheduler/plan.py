@@ -35,7 +35,7 @@ up to `ScanRequest.focus_attempts` times, and then the scan stops with
 from __future__ import annotations
 
 import math
-from collections.abc import Generator, Mapping
+from collections.abc import Callable, Generator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -189,6 +189,18 @@ Step = (
     | KeepPlanes
 )
 Plan = Generator[Step, Any, str]
+
+
+def execute(plan: Plan, answer: Callable[[Step], Any]) -> str:
+    """Run `plan` to its end, sending each step `answer`'s result for it; the plan's return
+    value (the estimator's slide id). The engine answers with the services; tests with
+    stand-ins."""
+    result: Any = None
+    try:
+        while True:
+            result = answer(plan.send(result))
+    except StopIteration as finished:
+        return finished.value
 
 
 class FocusUnavailableError(RuntimeError):
