@@ -58,7 +58,10 @@ def test_the_estimator_on_the_network_with_a_token_or_insecure(tmp_path: Path) -
         try:
             url = f"http://127.0.0.1:{port}"
             _wait_healthy(url, process)
-            assert httpx.post(f"{url}/v1/slides", json=slide, headers=headers).status_code == status
+            # The first slide waits for the strategies, which load once the service serves:
+            # on a busy machine that is longer than httpx's default 5 s.
+            reply = httpx.post(f"{url}/v1/slides", json=slide, headers=headers, timeout=60)
+            assert reply.status_code == status
         finally:
             process.terminate()
             process.wait(60)
