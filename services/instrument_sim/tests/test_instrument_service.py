@@ -269,8 +269,8 @@ def test_the_frames_of_a_recent_stack_are_answered_as_they_were_published(
     [(header, frame)] = _frames_query(client, sequence=77, indices=[3] * 2000)
     assert header.index == 3
     np.testing.assert_array_equal(frame, by_index[3])
-    assert [header.index for header, _ in _frames_query(client, sequence=77,
-                                                        indices=[2, 2, 0, 2])] == [2, 0]  # fmt: skip
+    repeated = _frames_query(client, sequence=77, indices=[2, 2, 0, 2])
+    assert [header.index for header, _ in repeated] == [2, 0]
 
     with pytest.raises(rpc.RemoteError) as gone:
         _frames_query(client, sequence=78)  # never taken
