@@ -207,7 +207,7 @@ def _frame_parts(
 def test_frames_in_parts_are_joined_and_parts_that_do_not_fit_refused() -> None:
     header, pixels = _stack()  # frames of 8 x 6 x 3 uint16: 288 bytes
     codec.describe_pixels(header, pixels)
-    assembler = codec.FrameAssembler(max_open=1)
+    assembler = codec.FrameAssembler()
     whole = codec.frame_header(header, 0, pixels[0])
     np.testing.assert_array_equal(assembler.add("k", whole, pixels[0].tobytes()), pixels[0])
     first, second, third = _frame_parts(header, 1, pixels[1], [0, 100, 200], parts=3)
@@ -234,14 +234,78 @@ def test_frames_in_parts_are_joined_and_parts_that_do_not_fit_refused() -> None:
     assert assembler.add("k", *first) is None
     with pytest.raises(ValueError, match="ends at byte 290 of 288"):
         assembler.add("k", last[0], last[1] + b"xx")
-    # beyond `max_open` frames under way, the oldest is dropped
+    # frames on two keys are joined side by side
     assert assembler.add("k", *first) is None
     assert assembler.add("other", *first) is None
-    with pytest.raises(ValueError, match="expected 0"):
-        assembler.add("k", *last)
+    np.testing.assert_array_equal(assembler.add("k", *last), pixels[1])
     np.testing.assert_array_equal(assembler.add("other", *last), pixels[1])
-    with pytest.raises(ValueError, match="at most 100"):
-        codec.FrameAssembler(max_frame_bytes=100).add("k", *first)
+    assert assembler.open_bytes == 0
+
+
+class _Clock:
+    """A clock the test moves by hand, s."""
+
+    def __init__(self) -> None:
+        self.now_s = 0.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def test_frames_under_way_are_bounded_in_bytes_and_refused_before_their_buffer() -> None:
+    header, pixels = _stack()  # frames of 288 bytes
+    codec.describe_pixels(header, pixels)
+    held = [0]
+    assembler = codec.FrameAssembler(budget_bytes=700, held_elsewhere=lambda: held[0])
+    first, last = _frame_parts(header, 1, pixels[1], [0, 100], parts=2)
+    assert assembler.add("a", *first) is None and assembler.add("b", *first) is None
+    assert assembler.open_bytes == 2 * 288  # whole buffers, though 100 bytes came of each
+    with pytest.raises(ValueError, match="frame of 288 bytes does not fit in the 124 bytes"):
+        assembler.add("c", *first)
+    assert assembler.n_refused == 1 and assembler.open_bytes == 2 * 288  # nothing taken
+    with pytest.raises(ValueError, match="expected 0"):  # nor its later parts
+        assembler.add("c", *last)
+    np.testing.assert_array_equal(assembler.add("a", *last), pixels[1])
+    assert assembler.open_bytes == 288  # a frame done is off the count
+    held[0] = 200  # what the owner holds shares the budget
+    with pytest.raises(ValueError, match="does not fit"):
+        assembler.add("c", *first)
+    held[0] = 0
+    assert assembler.add("c", *first) is None
+    # a declared gigabyte is refused before its buffer is taken
+    huge = instrument_pb2.ZFrameHeader()
+    huge.CopyFrom(first[0])
+    huge.stack.shape[1:] = [16384, 16384, 4]
+    with pytest.raises(ValueError, match="frame of 2147483648 bytes does not fit"):
+        assembler.add("d", huge, first[1])
+    assert assembler.open_bytes == 2 * 288
+    # a whole frame is the caller's to keep: nothing taken here
+    whole = codec.frame_header(header, 0, pixels[0])
+    np.testing.assert_array_equal(assembler.add("e", whole, pixels[0].tobytes()), pixels[0])
+
+
+def test_frames_whose_parts_stop_coming_expire() -> None:
+    header, pixels = _stack()
+    codec.describe_pixels(header, pixels)
+    clock = _Clock()
+    assembler = codec.FrameAssembler(timeout_s=10.0, clock=clock)
+    first, second, third = _frame_parts(header, 1, pixels[1], [0, 100, 200], parts=3)
+    assert assembler.add("a", *first) is None
+    clock.now_s = 6.0
+    assert assembler.add("b", *first) is None
+    clock.now_s = 9.0
+    assert assembler.add("a", *second) is None  # a part came: "a" waits 10 s from now
+    clock.now_s = 16.5
+    assert assembler.expire() == 1 and assembler.open_bytes == 288  # "b": 10.5 s without
+    assert assembler.n_expired == 1
+    np.testing.assert_array_equal(assembler.add("a", *third), pixels[1])
+    with pytest.raises(ValueError, match="expected 0: a part was lost"):
+        assembler.add("b", *second)
+    assert assembler.add("c", *first) is None
+    clock.now_s = 30.0
+    assert assembler.expire() == 1 and assembler.open_bytes == 0
+    with pytest.raises(ValueError, match="must be positive"):
+        codec.FrameAssembler(timeout_s=0)
 
 
 @pytest.mark.parametrize("part_bytes", [0, 100, 288])

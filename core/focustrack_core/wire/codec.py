@@ -28,7 +28,7 @@ import logging
 import math
 import time
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,9 +59,14 @@ Payload = bytes | bytearray | zenoh.ZBytes
 #: parts of 256 KiB to 1 MiB, 1.4-1.6 GB/s with whole frames.
 FRAME_PART_BYTES = 1 << 20
 
-#: The largest frame `FrameAssembler` puts together, bytes: as large as one Zenoh message
-#: may be (transport/link/rx/max_message_size, 1 GiB by default).
-MAX_FRAME_BYTES = 1 << 30
+#: Bytes of open frames a `FrameAssembler` holds at most, by default (the focus service's
+#: --open-frames-mb): thirty 8 MB frames (2048 x 2048 uint16) under way at once.
+OPEN_FRAMES_BYTES = 256_000_000
+
+#: Seconds an open frame waits for its next part before it is dropped, by default (the
+#: focus service's --open-frame-timeout-s): a frame's parts follow each other within
+#: milliseconds, so a frame still open after this will not be finished.
+OPEN_FRAME_TIMEOUT_S = 10.0
 
 
 def pixel_array(shape: tuple[int, ...], dtype: npt.DTypeLike) -> np.ndarray:
@@ -247,8 +252,15 @@ FrameId = tuple[str, int, float, int]
 @dataclass
 class _FrameUnderWay:
     pixels: np.ndarray  # the frame's bytes (uint8), filled up to `received`
+    last_s: float  # when its last part came, by the assembler's clock, s
     received: int = 0
     parts: int = 0
+
+
+def frame_bytes(stack: instrument_pb2.ZStackHeader) -> int:
+    """Bytes of one frame of the stack `stack` describes (its shape and dtype); ValueError
+    for an unknown dtype."""
+    return math.prod(stack.shape[1:]) * _dtype_of(stack).itemsize
 
 
 class FrameAssembler:
@@ -256,15 +268,65 @@ class FrameAssembler:
 
     The parts of a frame come in order on one key; each is copied into the frame as it
     comes (so its bytes are freed at once: keeping the parts to join them at the end
-    halved the rate over TCP), and the frame is whole with its last part. At most
-    `max_open` frames are under way at once (the oldest is dropped, with a warning, when
-    its parts stop coming); their memory is taken as the bytes come.
+    halved the rate over TCP), and the frame is whole with its last part.
+
+    Memory is bounded in bytes, whatever a peer declares or sends: a frame's buffer is
+    taken when its first part comes, only if the whole frame fits in `budget_bytes`
+    beside the open frames and what `held_elsewhere()` reports (bytes its owner holds
+    from earlier frames, on the same budget); otherwise the frame is refused (ValueError,
+    counted in `n_refused`), and so are its later parts. A frame whose next part has not
+    come within `timeout_s` (by `clock`, s) is dropped (counted in `n_expired`) at the next
+    `add` or `expire`.
     """
 
-    def __init__(self, max_open: int = 4, max_frame_bytes: int = MAX_FRAME_BYTES) -> None:
-        self.max_open = max_open
-        self.max_frame_bytes = max_frame_bytes
-        self._open: OrderedDict[FrameId, _FrameUnderWay] = OrderedDict()
+    def __init__(
+        self,
+        budget_bytes: int = OPEN_FRAMES_BYTES,
+        timeout_s: float = OPEN_FRAME_TIMEOUT_S,
+        *,
+        held_elsewhere: Callable[[], int] = lambda: 0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if budget_bytes < 0 or not timeout_s > 0:
+            raise ValueError(
+                f"a budget of {budget_bytes} bytes and a timeout of {timeout_s} s: the budget "
+                "must not be negative and the timeout must be positive"
+            )
+        self.budget_bytes = budget_bytes
+        self.timeout_s = timeout_s
+        self.held_elsewhere = held_elsewhere
+        self.clock = clock
+        self.n_refused = 0  # frames refused: over the budget
+        self.n_expired = 0  # frames dropped: their next part did not come in time
+        self._open: OrderedDict[FrameId, _FrameUnderWay] = OrderedDict()  # oldest part first
+        self._open_bytes = 0
+
+    @property
+    def open_bytes(self) -> int:
+        """Bytes taken by the frames under way (their whole buffers, received or not)."""
+        return self._open_bytes
+
+    def expire(self) -> int:
+        """Drop the frames whose last part came more than `timeout_s` ago; how many."""
+        deadline_s = self.clock() - self.timeout_s
+        expired = 0
+        while self._open:
+            frame_id, oldest = next(iter(self._open.items()))
+            if oldest.last_s >= deadline_s:
+                break
+            self._drop(frame_id)
+            key, sequence, _, index = frame_id
+            log.warning(
+                "frame %d of stack %d on %s dropped: %d part(s) came, then none for %g s",
+                index,
+                sequence,
+                key,
+                oldest.parts,
+                self.timeout_s,
+            )
+            expired += 1
+        self.n_expired += expired
+        return expired
 
     def add(
         self, key: str, header: instrument_pb2.ZFrameHeader, payload: bytes
@@ -272,22 +334,29 @@ class FrameAssembler:
         """The pixels (a read-only array (h, w, channels)) of the frame that this sample
         (on `key`, its attachment read by `zframe_header`) completes, else None.
 
-        ValueError when the sample does not fit its frame; the frame's parts that came
-        before it are dropped. A first part (or a whole frame) starts its frame over.
+        ValueError when the sample does not fit its frame, or its frame does not fit in
+        the budget; the frame's parts that came before it are dropped. A first part (or a
+        whole frame) starts its frame over.
         """
+        self.expire()
         stack = header.stack
         frame_id = (key, stack.sequence, stack.clock_s, header.index)
-        frame = self._open.pop(frame_id, None)
+        frame = self._drop(frame_id)
         if frame is not None and header.part_offset == 0:
             log.warning("frame %d on %s started over before its last part", header.index, key)
             frame = None
         if header.parts <= 1:
             return _whole_frame(header, payload)
-        frame_bytes = math.prod(stack.shape[1:]) * _dtype_of(stack).itemsize
+        size = frame_bytes(stack)
         if frame is None and header.part_offset == 0:
-            if frame_bytes > self.max_frame_bytes:
-                raise ValueError(f"a frame of {frame_bytes} bytes; at most {self.max_frame_bytes}")
-            frame = _FrameUnderWay(np.empty(frame_bytes, np.uint8))  # pages taken as written
+            room = self.budget_bytes - self._open_bytes - self.held_elsewhere()
+            if size > room:
+                self.n_refused += 1
+                raise ValueError(
+                    f"a frame of {size} bytes does not fit in the {room} bytes left of the "
+                    f"budget of {self.budget_bytes} bytes for open frames"
+                )
+            frame = _FrameUnderWay(np.empty(size, np.uint8), self.clock())  # pages taken as written
         received = 0 if frame is None else frame.received
         if frame is None or header.part_offset != received:
             raise ValueError(
@@ -295,28 +364,27 @@ class FrameAssembler:
                 f"{received}: a part was lost or came twice"
             )
         end, parts = received + len(payload), frame.parts + 1
-        if end > frame_bytes or (parts == header.parts) != (end == frame_bytes):
+        if end > size or (parts == header.parts) != (end == size):
             raise ValueError(
                 f"part {parts} of {header.parts} of frame {header.index} ends at byte "
-                f"{end} of {frame_bytes}"
+                f"{end} of {size}"
             )
         frame.pixels[received:end] = np.frombuffer(payload, np.uint8)
         if parts == header.parts:
             pixels = _frame_view(header, frame.pixels)
             pixels.flags.writeable = False  # as a whole frame's view of its payload
             return pixels
-        frame.received, frame.parts = end, parts
+        frame.received, frame.parts, frame.last_s = end, parts, self.clock()
         self._open[frame_id] = frame
-        while len(self._open) > self.max_open:
-            (old_key, sequence, _, index), dropped = self._open.popitem(last=False)
-            log.warning(
-                "frame %d of stack %d on %s dropped: %d part(s) came, then no more",
-                index,
-                sequence,
-                old_key,
-                dropped.parts,
-            )
+        self._open_bytes += size
         return None
+
+    def _drop(self, frame_id: FrameId) -> _FrameUnderWay | None:
+        """Take the frame `frame_id` out of the open ones (its bytes off the count)."""
+        frame = self._open.pop(frame_id, None)
+        if frame is not None:
+            self._open_bytes -= frame.pixels.nbytes
+        return frame
 
     def add_sample(
         self, sample: zenoh.Sample

@@ -177,6 +177,14 @@ def focus_stack(
     )
 
 
+def _memory_of(array: np.ndarray) -> Any:
+    """What owns `array`'s memory: the array itself, or the array or bytes it views."""
+    owner: Any = array
+    while isinstance(owner, np.ndarray) and owner.base is not None:
+        owner = owner.base
+    return owner
+
+
 class FrameByFrame:
     """`focus_stack` built one frame at a time, as frames arrive, so the work overlaps
     acquisition: `add` scores a frame (preprocess and metric, as `scan_stack`); once
@@ -203,6 +211,17 @@ class FrameByFrame:
     def complete(self) -> bool:
         """True once every frame has been added."""
         return not np.isnan(self.scores).any()
+
+    @property
+    def held_bytes(self) -> int:
+        """Bytes it holds: its curve, and the frames it keeps for `result` (the sharpest
+        and blurriest images, and the whole buffer that the blurriest's raw crop views)."""
+        kept = map(_memory_of, (self._sharpest, self._blurriest, self._blurriest_raw))
+        buffers = {
+            id(owner): owner.nbytes if isinstance(owner, np.ndarray) else memoryview(owner).nbytes
+            for owner in kept
+        }
+        return self.z_um.nbytes + self.scores.nbytes + sum(buffers.values())
 
     def add(self, index: int, frame: np.ndarray) -> None:
         """Score frame `index` (H, W) or (H, W, C); ValueError for a bad or repeated frame."""

@@ -5,7 +5,10 @@ frame as it lands, and publishes a FocusResult on ``focustrack/v1/focus/{slide}/
 as soon as the last frame of a stack is in (only the peak fit is left by then); a
 stack that cannot be read gets a FocusResult whose `error` says why (code BAD_STACK).
 Frames are taken from a bounded FIFO by one worker thread, so a burst waits (back
-pressure to the publisher) instead of piling up without bound. Whole-stack messages
+pressure to the publisher) instead of piling up without bound. What a peer's frames make
+the service hold is bounded in bytes and time (`FrameAnalyser`: --open-frames-mb,
+--open-frame-timeout-s), and a frame larger than its instrument's (as the instrument's
+info reply describes them) is refused before anything is allocated for it. Whole-stack messages
 (``focustrack/v1/zstack/...``) are for other subscribers; this service does not read them.
 REST: the FastAPI app of `app.py`, served by uvicorn on --host/--port.
 
@@ -24,7 +27,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
@@ -33,13 +36,14 @@ import uvicorn
 import zenoh
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
+from google.protobuf.message import DecodeError
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main, one_of
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
-from focustrack_core.wire import keys
+from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import (
@@ -61,8 +65,15 @@ log = logging.getLogger(__name__)
 ZFRAME_SUBSCRIPTION = f"{keys.PREFIX}/zframe/**"
 FOCUS_RESULT_ENCODING = protobuf_encoding(focus_pb2.FocusResult)
 QUEUE_FRAMES = 64  # frames waiting for the worker before the publisher is held back
-OPEN_STACKS = 8  # incomplete stacks kept while their frames come in
+FAILED_STACKS = 64  # stacks answered with an error, whose later frames are ignored
+#: What an open stack holds besides its curve and frames (its objects), bytes: counted
+#: against the budget, so stacks of tiny frames cannot add up without bound either (an
+#: open stack of 8 x 8 frames takes about 1.5 KB besides its arrays, by tracemalloc).
+STACK_BYTES = 4096
 CURVE_SLIDES = 16  # slides whose learnt focus curve is kept (the most recent)
+INSTRUMENTS = 16  # instruments whose frame size is kept (the most recent)
+INFO_TIMEOUT_S = 5.0  # an instrument's info query; it is asked again after as long
+INFO_QUERIES = 4  # info queries under way at once, at most
 
 
 def settings_for(
@@ -116,26 +127,96 @@ def result_message(
 StackId = tuple[str, int, float]
 
 
+@dataclass
+class _StackUnderWay:
+    curve: FrameByFrame
+    held_bytes: int  # what it holds (`FrameByFrame.held_bytes` and STACK_BYTES)
+    last_s: float  # when its last frame came, by the analyser's clock, s
+
+
+def _no_frame_size(_instrument: str) -> int | None:
+    return None
+
+
 class FrameAnalyser:
     """Frame samples in (whole, or in parts), a FocusResult out as soon as the last frame
     of a stack lands.
 
     Stacks are told apart by their key, sequence number and simulated clock (an
-    acquisition taken again keeps its sequence); at most `max_open` incomplete stacks
-    are kept (the oldest is dropped with a warning when a frame never comes). A frame
-    that comes twice starts its stack over; one that cannot be read (or a part lost) ends
-    its stack with an error result.
+    acquisition taken again keeps its sequence). A frame that comes twice starts its
+    stack over; one that cannot be read (or a part lost) ends its stack with an error
+    result.
+
+    Memory is bounded in bytes and time, whatever peers send: the frames under way (in
+    parts) and what open stacks hold (each keeps its sharpest and blurriest frames for
+    the structure test) together stay within `budget_bytes`. A frame is refused, and its
+    stack ends with an error result (counted in `n_refused`), when it is larger than
+    `frame_bytes_of(instrument)` says the instrument named in its header takes (None:
+    not known), before anything is allocated for it; when its buffer (a frame in parts)
+    does not fit, before it is taken; and when its stack would keep more of it than
+    fits, once it is scored. A stack whose next frame, or a frame whose next part, has
+    not come within `timeout_s` (by `clock`, s) is dropped (`n_expired` stacks) at the
+    next `add` or `expire`.
     """
 
-    def __init__(self, base: FocusSettings, na: float | None, max_open: int = OPEN_STACKS) -> None:
+    def __init__(
+        self,
+        base: FocusSettings,
+        na: float | None,
+        budget_bytes: int = codec.OPEN_FRAMES_BYTES,
+        timeout_s: float = codec.OPEN_FRAME_TIMEOUT_S,
+        *,
+        frame_bytes_of: Callable[[str], int | None] = _no_frame_size,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.base = base
         self.na = na
-        self.max_open = max_open
-        self._open: OrderedDict[StackId, FrameByFrame] = OrderedDict()  # curves under way
-        self._frames = FrameAssembler(max_open)  # frames in parts (a frame per stack at most)
+        self.budget_bytes = budget_bytes
+        self.timeout_s = timeout_s
+        self.frame_bytes_of = frame_bytes_of
+        self.clock = clock
+        self._refused = 0  # frames refused here (`n_refused`)
+        self.n_expired = 0  # stacks dropped: their next frame did not come in time
+        # curves under way, the one fed longest ago first
+        self._open: OrderedDict[StackId, _StackUnderWay] = OrderedDict()
+        self._stacks_bytes = 0  # what the open stacks hold, bytes
+        self._frames = FrameAssembler(
+            budget_bytes, timeout_s, held_elsewhere=lambda: self._stacks_bytes, clock=clock
+        )
         self._failed: OrderedDict[StackId, None] = OrderedDict()
         # each slide's through-focus curve, learnt from its full stacks, reads its short ones
         self._curves: OrderedDict[str, CurveModel] = OrderedDict()
+
+    @property
+    def n_refused(self) -> int:
+        """Frames refused: larger than their instrument's, or over the budget (each ends
+        its stack)."""
+        return self._refused + self._frames.n_refused
+
+    @property
+    def open_bytes(self) -> int:
+        """Bytes held for stacks under way: their frames in parts, and what open stacks keep."""
+        return self._frames.open_bytes + self._stacks_bytes
+
+    def expire(self) -> None:
+        """Drop the stacks (and frames in parts) that peers stopped sending `timeout_s` ago."""
+        self._frames.expire()
+        deadline_s = self.clock() - self.timeout_s
+        while self._open:
+            stack_id, oldest = next(iter(self._open.items()))
+            if oldest.last_s >= deadline_s:
+                break
+            self._close(stack_id)
+            self.n_expired += 1
+            key, sequence, _ = stack_id
+            missing = int(np.isnan(oldest.curve.scores).sum())
+            log.warning(
+                "stack %d on %s dropped: %d frame(s) did not come within %g s",
+                sequence,
+                key,
+                missing,
+                self.timeout_s,
+            )
 
     def add(
         self, key: str, payload: bytes, attachment: bytes | None
@@ -148,27 +229,31 @@ class FrameAnalyser:
             frame_header = zframe_header(attachment)
             header = frame_header.stack
             stack_id = (key, header.sequence, header.clock_s)
+            self.expire()
             if stack_id in self._failed:
                 return None  # the stack was already answered with an error
+            self._check_frame_size(header)
             frame = self._frames.add(key, frame_header, payload)
             if frame is None:
                 return None  # a part of the frame: more to come
-            curve = self._open.get(stack_id)
-            if curve is not None and not np.isnan(curve.scores[frame_header.index]):
+            stack = self._close(stack_id)
+            if stack is not None and not np.isnan(stack.curve.scores[frame_header.index]):
                 log.warning(
                     "frame %d on %s came again: stack started over", frame_header.index, key
                 )
-                curve = None
-            if curve is None:
-                curve = FrameByFrame(
-                    np.asarray(header.z_um), settings_for(header, self.base, self.na)
-                )
-                self._open[stack_id] = curve
-                self._forget_oldest()
+                stack = None
+            curve = (
+                FrameByFrame(np.asarray(header.z_um), settings_for(header, self.base, self.na))
+                if stack is None
+                else stack.curve
+            )
             curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
             if not curve.complete:
+                held = STACK_BYTES + curve.held_bytes
+                self._fit(held)  # what the stack keeps of this frame, besides the others
+                self._open[stack_id] = _StackUnderWay(curve, held, self.clock())
+                self._stacks_bytes += held
                 return None
-            del self._open[stack_id]
             model = self._curve(tile.slide)
             result = curve.result(model)
             model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
@@ -177,11 +262,39 @@ class FrameAnalyser:
             log.warning("frame on %s: %s", key, error)
             if header is not None:
                 stack_id = (key, header.sequence, header.clock_s)
-                self._open.pop(stack_id, None)
+                self._close(stack_id)
                 self._failed[stack_id] = None
-                while len(self._failed) > self.max_open:
+                while len(self._failed) > FAILED_STACKS:
                     self._failed.popitem(last=False)
             return result_message(tile, header, error=f"{type(error).__name__}: {error}")
+
+    def _check_frame_size(self, header: instrument_pb2.ZStackHeader) -> None:
+        """Refuse a stack whose frames are larger than its instrument's."""
+        size = codec.frame_bytes(header)
+        largest = self.frame_bytes_of(header.instrument)
+        if largest is not None and size > largest:
+            self._refused += 1
+            raise ValueError(
+                f"frames of {size} bytes declared; instrument {header.instrument!r} takes "
+                f"frames of {largest} bytes"
+            )
+
+    def _fit(self, held_bytes: int) -> None:
+        """Refuse (ValueError) a stack that would hold more than the budget has room for."""
+        room = self.budget_bytes - self.open_bytes
+        if held_bytes > room:
+            self._refused += 1
+            raise ValueError(
+                f"the stack would hold {held_bytes} bytes; {room} of the budget of "
+                f"{self.budget_bytes} bytes for open frames are left"
+            )
+
+    def _close(self, stack_id: StackId) -> _StackUnderWay | None:
+        """Take a stack out of the open ones (what it holds off the count)."""
+        stack = self._open.pop(stack_id, None)
+        if stack is not None:
+            self._stacks_bytes -= stack.held_bytes
+        return stack
 
     def _curve(self, slide: str) -> CurveModel:
         """The slide's curve model (a new one for a new slide; the oldest beyond CURVE_SLIDES
@@ -192,11 +305,71 @@ class FrameAnalyser:
             self._curves.popitem(last=False)
         return model
 
-    def _forget_oldest(self) -> None:
-        while len(self._open) > self.max_open:
-            (key, sequence, _), curve = self._open.popitem(last=False)
-            missing = int(np.isnan(curve.scores).sum())
-            log.warning("stack %d on %s dropped: %d frame(s) never came", sequence, key, missing)
+
+def info_frame_bytes(info: instrument_pb2.InstrumentInfo) -> int:
+    """Bytes of one frame of the instrument that `info` describes: height x width x
+    channels (one per letter of its channel order, at least one), each sample in the
+    fewest of 1, 2, 4 or 8 bytes that hold its bit depth."""
+    itemsize = next((size for size in (1, 2, 4) if info.bit_depth <= 8 * size), 8)
+    return info.height * info.width * max(1, len(info.channel_order)) * itemsize
+
+
+class InstrumentFrameSizes:
+    """Each instrument's frame size, bytes (`info_frame_bytes`), from its info reply
+    (``focustrack/v1/instrument/{name}/info``), for `FrameAnalyser.frame_bytes_of`.
+
+    The first frame that names an instrument starts its info query in the background
+    (never holding the frames up); until it answers, its size is not known (None), and
+    it is asked again `timeout_s` after the last time. At most INFO_QUERIES queries are
+    under way and INSTRUMENTS sizes kept, so made-up names cannot grow either.
+    """
+
+    def __init__(self, session: zenoh.Session, timeout_s: float = INFO_TIMEOUT_S) -> None:
+        self.session = session
+        self.timeout_s = timeout_s
+        self._sizes: OrderedDict[str, int] = OrderedDict()
+        self._asked: OrderedDict[str, float] = OrderedDict()  # when each was last asked, s
+        self._lock = threading.Lock()
+
+    def __call__(self, instrument: str) -> int | None:
+        """The frame size of `instrument`, bytes, once it has answered; else None."""
+        with self._lock:
+            if instrument in self._sizes:
+                return self._sizes[instrument]
+            now_s = time.monotonic()
+            asked_s = self._asked.get(instrument)
+            under_way = sum(now_s - s < self.timeout_s for s in self._asked.values())
+            if (asked_s is not None and now_s - asked_s < self.timeout_s) or (
+                under_way >= INFO_QUERIES
+            ):
+                return None
+            self._asked.pop(instrument, None)
+            self._asked[instrument] = now_s
+            while len(self._asked) > INSTRUMENTS:
+                self._asked.popitem(last=False)
+        threading.Thread(target=self._ask, args=(instrument,), daemon=True).start()
+        return None
+
+    def _ask(self, instrument: str) -> None:
+        try:
+            info = rpc.call(
+                self.session,
+                keys.info_key(instrument),
+                instrument_pb2.AcquireRequest(),
+                instrument_pb2.InstrumentInfo,
+                self.timeout_s,
+            )
+        except (ValueError, DecodeError, rpc.RemoteError) as error:  # a bad name or reply; none
+            log.info("instrument %r's frame size is not known: %s", instrument, error)
+            return
+        size = info_frame_bytes(info)
+        if size == 0:  # an info without a frame format: nothing to bound by
+            return
+        log.info("instrument %r takes frames of %d bytes", instrument, size)
+        with self._lock:
+            self._sizes[instrument] = size
+            while len(self._sizes) > INSTRUMENTS:
+                self._sizes.popitem(last=False)
 
 
 class ZenohFocusWorker:
@@ -208,23 +381,43 @@ class ZenohFocusWorker:
         settings: FocusSettings,
         na: float | None = None,
         signer: ResultSigner | None = None,
+        open_frames_bytes: int = codec.OPEN_FRAMES_BYTES,
+        open_frame_timeout_s: float = codec.OPEN_FRAME_TIMEOUT_S,
     ):
         self.session = session
-        self.analyser = FrameAnalyser(settings, na)
+        self.analyser = FrameAnalyser(
+            settings,
+            na,
+            open_frames_bytes,
+            open_frame_timeout_s,
+            frame_bytes_of=InstrumentFrameSizes(session),
+        )
         self.signer = signer
         self.n_published = 0
+        self._analysing = threading.Lock()  # the analyser: its frames, and its expiry
+        self._closed = threading.Event()
         self._subscriber = session.declare_subscriber(
             ZFRAME_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
         )
         self._thread = threading.Thread(target=self._serve, name="focus-zenoh", daemon=True)
         self._thread.start()
+        # frames stop coming when a peer stops sending: their expiry cannot wait for the next
+        self._expiry = threading.Thread(target=self._expire, name="focus-expiry", daemon=True)
+        self._expiry.start()
+
+    def _expire(self) -> None:
+        period_s = min(1.0, self.analyser.timeout_s / 4)
+        while not self._closed.wait(period_s):
+            with self._analysing:
+                self.analyser.expire()
 
     def _serve(self) -> None:
         for sample in self._subscriber:  # ends when the subscriber is undeclared
             key = str(sample.key_expr)
             attachment = None if sample.attachment is None else sample.attachment.to_bytes()
             try:
-                message = self.analyser.add(key, payload_bytes(sample.payload), attachment)
+                with self._analysing:
+                    message = self.analyser.add(key, payload_bytes(sample.payload), attachment)
             except ValueError as error:  # the key names no tile: nowhere to answer
                 log.warning("ignored sample on %s: %s", key, error)
                 continue
@@ -243,7 +436,9 @@ class ZenohFocusWorker:
 
     def close(self, timeout_s: float = 5.0) -> None:
         self._subscriber.undeclare()
+        self._closed.set()
         self._thread.join(timeout_s)
+        self._expiry.join(timeout_s)
 
 
 class FocusServiceSettings(ZenohSettings):
@@ -320,6 +515,19 @@ class FocusServiceSettings(ZenohSettings):
         FocusLimits.body_timeout_s,
         description="seconds a request body may take to arrive (408)",
     )
+    # what peers' frames on Zenoh may make the service hold (`FrameAnalyser`)
+    open_frames_mb: float = Field(
+        codec.OPEN_FRAMES_BYTES / 1_000_000,
+        gt=0,
+        description="frames of stacks under way held at most, MB (frames in parts and what "
+        "open stacks keep); a frame beyond it is refused and its stack answered BAD_STACK",
+    )
+    open_frame_timeout_s: float = Field(
+        codec.OPEN_FRAME_TIMEOUT_S,
+        gt=0,
+        description="seconds a stack under way waits for its next frame (and a frame for "
+        "its next part) before it is dropped",
+    )
 
     def focus_settings(self) -> FocusSettings:
         """How the service reads stacks and curves (ValueError if the maths refuses a value)."""
@@ -380,7 +588,16 @@ def run(settings: FocusServiceSettings) -> int:
     workers: list[ZenohFocusWorker] = []
     bus = BackgroundSession(
         lambda: settings.zenoh(ATTEMPT_TIMEOUT_S),
-        lambda session: workers.append(ZenohFocusWorker(session, focus, settings.stack_na, signer)),
+        lambda session: workers.append(
+            ZenohFocusWorker(
+                session,
+                focus,
+                settings.stack_na,
+                signer,
+                int(settings.open_frames_mb * 1_000_000),
+                settings.open_frame_timeout_s,
+            )
+        ),
     )
     log.info(
         "focus service: zenoh %s -> %s/focus/... (results %s), http://%s:%d (metric %s)",

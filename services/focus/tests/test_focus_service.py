@@ -148,6 +148,16 @@ def test_the_focus_command_runs_zenoh_and_http_in_one_process(
         process.wait(10)
 
 
+class _Clock:
+    """A clock the test moves by hand, s."""
+
+    def __init__(self) -> None:
+        self.now_s = 0.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
 def _frame_samples(
     pixels: np.ndarray, sequence: int, clock_s: float
 ) -> list[tuple[bytes | bytearray, bytes]]:
@@ -172,7 +182,7 @@ def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart(
     render: Callable[..., np.ndarray],
 ) -> None:
     frames = render(96, Z_UM, TRUTH_UM, 3)[..., None]
-    analyser = FrameAnalyser(FocusSettings(), na=0.85)
+    analyser = FrameAnalyser(FocusSettings(), na=0.85, clock=_Clock())  # none expires
     key = keys.zframe_key("s1", 2, 3)
     first, again = _frame_samples(frames, 4, 1.0), _frame_samples(frames, 4, 2.0)
     # a stack taken again (same sequence, later clock) interleaved with the first one
@@ -194,3 +204,110 @@ def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart(
     second_part.parts, second_part.part_offset = 2, PART_BYTES
     lost = analyser.add(key, payload[PART_BYTES:], second_part.SerializeToString())
     assert lost is not None and lost.sequence == 6 and "a part was lost" in lost.error.message
+
+
+def test_open_stacks_stay_within_the_budget_and_are_freed_after_the_timeout(
+    render: Callable[..., np.ndarray],
+) -> None:
+    frames = render(96, Z_UM, TRUTH_UM, 3)[..., None]
+    key = keys.zframe_key("s1", 2, 3)
+    probe = FrameAnalyser(FocusSettings(), na=0.85)
+    assert probe.add(key, *_frame_samples(frames, 1, 0.0)[0]) is None
+    stack_bytes = probe.open_bytes  # one open stack: its curve, a whole frame and its images
+    assert frames[0].nbytes < stack_bytes < 4 * frames[0].nbytes
+
+    clock = _Clock()
+    analyser = FrameAnalyser(FocusSettings(), 0.85, int(2.5 * stack_bytes), 10.0, clock=clock)
+    # stacks whose frames never all come (whole frames: each kept by its stack)
+    for sequence in (1, 2):
+        assert analyser.add(key, *_frame_samples(frames, sequence, 0.0)[0]) is None
+    assert analyser.open_bytes == 2 * stack_bytes
+    refused = analyser.add(key, *_frame_samples(frames, 3, 0.0)[0])
+    assert refused is not None and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+    assert "budget" in refused.error.message and analyser.n_refused == 1
+    assert analyser.open_bytes == 2 * stack_bytes  # nothing of the refused stack is held
+    clock.now_s = 6.0
+    assert analyser.add(key, *_frame_samples(frames, 2, 0.0)[1]) is None  # stack 2 goes on
+    held_bytes = analyser.open_bytes
+    clock.now_s = 10.5
+    analyser.expire()  # stack 1: 10.5 s without a frame
+    assert analyser.n_expired == 1 and analyser.open_bytes == held_bytes - stack_bytes
+    clock.now_s = 16.5
+    analyser.expire()
+    assert analyser.n_expired == 2 and analyser.open_bytes == 0  # nothing a peer sent stays
+    # a frame in parts that stop coming expires too
+    payload, attachment = _frame_samples(frames, 4, 0.0)[0]
+    first_part = instrument_pb2.ZFrameHeader.FromString(attachment)
+    first_part.parts = 2
+    assert analyser.add(key, payload[:PART_BYTES], first_part.SerializeToString()) is None
+    assert analyser.open_bytes == frames[0].nbytes
+    clock.now_s = 27.0
+    analyser.expire()
+    assert analyser.open_bytes == 0
+
+
+def test_a_frame_larger_than_its_instrument_takes_is_refused_before_any_allocation(
+    render: Callable[..., np.ndarray],
+) -> None:
+    frames = render(96, Z_UM, TRUTH_UM, 3)[..., None]
+    sizes = {"sim": frames[0].nbytes}
+    analyser = FrameAnalyser(FocusSettings(), 0.85, frame_bytes_of=sizes.get)
+    key = keys.zframe_key("s1", 2, 3)
+    # a peer declares frames of 2 GiB, to come in parts of 1 MiB (its first part in hand)
+    header = instrument_pb2.ZStackHeader(
+        instrument="sim", slide="s1", row=2, col=3, sequence=9, z_um=list(Z_UM),
+        dtype="<u2", shape=[len(Z_UM), 32768, 32768, 1],
+    )  # fmt: skip
+    part = instrument_pb2.ZFrameHeader(stack=header, index=0, parts=2048)
+    refused = analyser.add(key, bytes(1 << 20), part.SerializeToString())
+    assert refused is not None and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+    assert "frames of 2147483648 bytes declared; instrument 'sim' takes frames of " in (
+        refused.error.message
+    )
+    assert analyser.open_bytes == 0 and analyser.n_refused == 1
+    # its later parts are ignored; an instrument whose size is not known is bounded by the budget
+    part.part_offset = 1 << 20
+    assert analyser.add(key, bytes(1 << 20), part.SerializeToString()) is None
+    part.stack.instrument, part.stack.sequence = "other", 10
+    part.part_offset = 0
+    over = analyser.add(key, bytes(1 << 20), part.SerializeToString())
+    assert over is not None and "does not fit" in over.error.message
+    assert analyser.open_bytes == 0 and analyser.n_refused == 2
+
+
+def test_the_worker_learns_the_instruments_frame_size_and_expires_stacks_on_its_own(
+    instrument, render: Callable[..., np.ndarray]
+) -> None:
+    publisher, endpoint = instrument
+    info = instrument_pb2.InstrumentInfo(
+        instrument="sim", width=96, height=96, channel_order="L", bit_depth=12
+    )
+    info_key = keys.info_key("sim")
+    queryable = publisher.declare_queryable(
+        info_key, lambda query: query.reply(info_key, info.SerializeToString())
+    )
+    service = open_session(connect=[endpoint])
+    worker = ZenohFocusWorker(service, FocusSettings(), 0.85, open_frame_timeout_s=0.5)
+    subscriber, results = collect(publisher)
+    try:
+        time.sleep(0.5)  # let the subscriptions reach each other
+        frames = render(96, Z_UM, TRUTH_UM, 3)[..., None]
+        publish_stack(publisher, frames, Z_UM, sequence=1)  # the first frame asks for info
+        _, result = results.get(timeout=20)
+        assert result.sequence == 1 and not result.HasField("error")
+        larger = render(128, Z_UM, TRUTH_UM, 3)[..., None]  # 32 KiB frames, not 18 KiB
+        publish_stack(publisher, larger, Z_UM, sequence=2)
+        _, refused = results.get(timeout=20)
+        assert refused.sequence == 2 and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+        assert "instrument 'sim' takes frames of 18432 bytes" in refused.error.message
+        # a stack whose frames stop coming is freed by the worker, with no frame to wake it
+        publish_stack(publisher, frames, Z_UM, sequence=3, order=range(4))
+        deadline_s = time.monotonic() + 10
+        while worker.analyser.n_expired == 0 and time.monotonic() < deadline_s:
+            time.sleep(0.05)
+        assert worker.analyser.n_expired == 1 and worker.analyser.open_bytes == 0
+    finally:
+        subscriber.undeclare()
+        queryable.undeclare()
+        worker.close()
+        service.close()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,10 @@ def _copy(frame: np.ndarray) -> np.ndarray:
     copy = codec.pixel_array(frame.shape, frame.dtype)
     copy[...] = frame
     return copy
+
+
+class StackGoneError(LookupError):
+    """A stack was dropped (its buffers to be rendered into again) while its frames were read."""
 
 
 def stack_id(header: instrument_pb2.ZStackHeader) -> StackId:
@@ -98,23 +103,39 @@ class RecentStacks:
 
     def copies(
         self, slide: str, row: int, col: int, sequence: int, indices: list[int]
-    ) -> tuple[instrument_pb2.ZStackHeader, list[tuple[int, np.ndarray]]] | None:
-        """The header of that tile's stack of that sequence and (index, copy of the frame)
-        at `indices` (every frame when empty), or None when it is no longer kept. Copies: a
-        dropped stack's buffers are rendered into again, perhaps while a query replies.
-        IndexError names a frame the stack does not have."""
+    ) -> tuple[instrument_pb2.ZStackHeader, Iterator[tuple[int, np.ndarray]]] | None:
+        """The header of that tile's stack of that sequence and its frames at `indices`
+        (each once, in the order first asked; every frame when empty), or None when it is
+        no longer kept. IndexError names a frame the stack does not have, before any frame
+        is copied.
+
+        The frames are (index, copy of the frame), each copied as it is drawn: a caller
+        that sends each before drawing the next holds one frame at a time, however many
+        a request names. Copies, because a dropped stack's buffers are rendered into
+        again; StackGoneError when the stack is dropped before all are drawn.
+        """
         with self._lock:
             stack = self._stacks.get((slide, row, col, sequence))
             if stack is None:
                 return None
             n = len(stack.frames)
-            wanted = indices or list(range(n))
+            wanted = list(dict.fromkeys(indices)) or list(range(n))
             for index in wanted:
                 if not 0 <= index < n:
                     raise IndexError(f"frame {index} of a stack of {n} frames")
             header = instrument_pb2.ZStackHeader()
             header.CopyFrom(stack.header)
-            return header, [(index, _copy(stack.frames[index])) for index in wanted]
+        return header, self._copies(stack, wanted)
+
+    def _copies(self, stack: KeptStack, indices: list[int]) -> Iterator[tuple[int, np.ndarray]]:
+        for index in indices:
+            with self._lock:
+                if self._stacks.get(stack_id(stack.header)) is not stack:
+                    raise StackGoneError(
+                        f"stack {stack.header.sequence} was dropped while its frames were sent"
+                    )
+                copy = _copy(stack.frames[index])
+            yield index, copy
 
     def _release(self, stack: KeptStack | None) -> None:
         if stack is not None and stack.recyclable:

@@ -68,7 +68,7 @@ from focustrack_instrument_sim.instrument import (
     TargetNotReachedError,
     TruthSource,
 )
-from focustrack_instrument_sim.recent import RecentStacks
+from focustrack_instrument_sim.recent import RecentStacks, StackGoneError
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
 log = logging.getLogger(__name__)
@@ -289,7 +289,9 @@ class InstrumentService:
         return lambda _index: self.recent.buffer(plan.frame.shape, plan.frame.dtype)
 
     def _reply_frames(self, query: zenoh.Query) -> None:
-        """Answer a FramesRequest with one reply per frame, as they were published."""
+        """Answer a FramesRequest with one reply per frame asked for (each once, however
+        often it is named), as they were published: each frame is copied and sent before
+        the next is read, so a request holds one frame's memory at a time."""
         request = rpc.parse_request(query, instrument_pb2.FramesRequest)
         try:
             found = self.recent.copies(
@@ -300,20 +302,26 @@ class InstrumentService:
                 rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST, str(error), "indices"
             ) from error
         if found is None:
-            raise rpc.RequestError(
-                rpc.ErrorCode.ERROR_CODE_FRAMES_GONE,
-                f"stack {request.sequence} of tile ({request.row}, {request.col}) of slide "
-                f"{request.slide!r} is not held (any more): the instrument keeps "
-                f"{self.recent.budget_bytes / 1e6:.0f} MB of past stacks besides the last",
-            )
+            raise self._frames_gone(request)
         header, frames = found
-        for index, frame in frames:
-            query.reply(
-                query.key_expr,
-                self.publisher.payload(frame),
-                attachment=codec.frame_header(header, index, frame).SerializeToString(),
-                encoding=codec.ZFRAME_ENCODING,
-            )
+        try:
+            for index, frame in frames:
+                query.reply(
+                    query.key_expr,
+                    self.publisher.payload(frame),
+                    attachment=codec.frame_header(header, index, frame).SerializeToString(),
+                    encoding=codec.ZFRAME_ENCODING,
+                )
+        except StackGoneError as error:
+            raise self._frames_gone(request) from error
+
+    def _frames_gone(self, request: instrument_pb2.FramesRequest) -> rpc.RequestError:
+        return rpc.RequestError(
+            rpc.ErrorCode.ERROR_CODE_FRAMES_GONE,
+            f"stack {request.sequence} of tile ({request.row}, {request.col}) of slide "
+            f"{request.slide!r} is not held (any more): the instrument keeps "
+            f"{self.recent.budget_bytes / 1e6:.0f} MB of past stacks besides the last",
+        )
 
     def _info(self, _query: zenoh.Query) -> instrument_pb2.InstrumentInfo:
         with replies_for_instrument_errors():

@@ -263,6 +263,14 @@ def test_the_frames_of_a_recent_stack_are_answered_as_they_were_published(
         assert (header.stack.row, header.stack.col, header.stack.sequence) == (3, 4, 77)
         np.testing.assert_array_equal(frame, by_index[header.index])
     assert [header.index for header, _ in _frames_query(client, sequence=77)] == list(range(5))
+    # a frame named 2,000 times (a 2 KB request) is sent once: not 2,000 copies of 96 KiB
+    request_bytes = instrument_pb2.FramesRequest(sequence=77, indices=[3] * 2000).ByteSize()
+    assert request_bytes < 2100
+    [(header, frame)] = _frames_query(client, sequence=77, indices=[3] * 2000)
+    assert header.index == 3
+    np.testing.assert_array_equal(frame, by_index[3])
+    repeated = _frames_query(client, sequence=77, indices=[2, 2, 0, 2])
+    assert [header.index for header, _ in repeated] == [2, 0]
 
     with pytest.raises(rpc.RemoteError) as gone:
         _frames_query(client, sequence=78)  # never taken

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from focustrack_core.v1 import instrument_pb2
-from focustrack_instrument_sim.recent import RecentStacks
+from focustrack_instrument_sim.recent import RecentStacks, StackGoneError
 
 SHAPE = (4, 6, 3)
 DTYPE = np.dtype(np.uint16)
@@ -37,7 +37,7 @@ def test_the_oldest_stacks_go_once_the_budget_is_spent_and_the_newest_always_sta
     assert store.copies("s", 0, 1, 3, []) is not None
     tiny = RecentStacks(budget_bytes=0)
     _stack(tiny, 7, n=10)  # larger than the budget, and the newest: kept
-    assert len(tiny.copies("s", 0, 1, 7, [])[1]) == 10
+    assert len(list(tiny.copies("s", 0, 1, 7, [])[1])) == 10
 
 
 def test_copies_are_the_frames_asked_for_and_outlive_the_reuse_of_their_buffers() -> None:
@@ -52,6 +52,22 @@ def test_copies_are_the_frames_asked_for_and_outlive_the_reuse_of_their_buffers(
     with pytest.raises(IndexError, match="frame 3 of a stack of 3 frames"):
         store.copies("s", 0, 1, 2, [3])
     assert store.copies("s", 5, 1, 2, []) is None  # another tile
+
+
+def test_each_frame_asked_for_is_copied_once_as_it_is_drawn() -> None:
+    store = RecentStacks(budget_bytes=0)
+    _stack(store, 1, n=3)
+    _, frames = store.copies("s", 0, 1, 1, [2] * 2000 + [0, 2])
+    index, frame = next(frames)  # one copy made, whatever the request asks
+    assert index == 2 and int(frame[0, 0, 0]) == 102
+    assert [index for index, _ in frames] == [0]
+    with pytest.raises(IndexError, match="frame 3"):  # refused before any copy
+        store.copies("s", 0, 1, 1, [0, 3])
+    _, frames = store.copies("s", 0, 1, 1, [])
+    assert next(frames)[0] == 0
+    _stack(store, 2, n=3)  # stack 1 dropped, its buffers rendered into again
+    with pytest.raises(StackGoneError, match="stack 1 was dropped"):
+        next(frames)
 
 
 def test_dropped_stacks_buffers_are_rendered_into_again() -> None:
