@@ -75,7 +75,12 @@ def create_app(
 ) -> FastAPI:
     """The estimator service over `store`, as `settings` say; `catalogue`: the strategies
     served (None: the estimator's own, imported once the service serves)."""
-    metrics = EstimatorMetrics(store.count_slides, lambda: live.n_live, strategies_loaded)
+    metrics = EstimatorMetrics(
+        store.count_slides,
+        lambda: live.n_live,
+        strategies_loaded,
+        lambda: store.problem() is not None,
+    )
     live = Slides(
         store,
         limits=GridLimits.of(settings),
@@ -83,6 +88,7 @@ def create_app(
         snapshot_every=settings.snapshot_every,
         timer=metrics.filter.observe,
         catalogue=catalogue,
+        discarded=metrics.snapshots_discarded.inc,
     )
 
     @asynccontextmanager

@@ -7,6 +7,9 @@ source of truth; beside it a store keeps each slide's newest snapshot (an
 opaque blob of the strategy's state after its first n events), so that a
 restart replays only the events after it. A store knows nothing of
 strategies: configurations and events are JSON objects, snapshots bytes.
+A snapshot is stored with its checksum (`snapshot_digest`) and given back only
+if it matches: what a snapshot holds is checked again by its reader
+(`slide.Slide.load`), which falls back to the log.
 
 Appends are optimistic: each names the sequence it expects to write (the
 slide's event count as its writer last saw it), and a log that has moved on
@@ -17,6 +20,7 @@ embedded implementation; `open_store` opens one from a path or a URL.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
@@ -37,6 +41,27 @@ class SequenceConflictError(StoreError):
 
 class StoreUnavailableError(StoreError):
     """The database failed (I/O error, full disk, locked): what was asked may not be done."""
+
+
+class StoreFullError(StoreUnavailableError):
+    """The disk (or the store's file) is full: nothing of the write was kept; it may succeed
+    once there is space again."""
+
+
+class CorruptSnapshotError(StoreError):
+    """A stored snapshot that is not what was written (its checksum does not match, or it was
+    written before snapshots had one): not to be used; the slide's log is."""
+
+
+class CorruptLogError(StoreError):
+    """A slide's stored configuration or log record that fails its own checks (unreadable,
+    of the wrong shape, out of its bounds): that slide cannot be served until it is repaired.
+    `sequence` is the record's (None: the configuration)."""
+
+    def __init__(self, slide_id: str, sequence: int | None, problem: str) -> None:
+        where = "configuration" if sequence is None else f"log record {sequence}"
+        super().__init__(f"slide {slide_id!r}: its stored {where} is corrupt: {problem}")
+        self.slide_id, self.sequence = slide_id, sequence
 
 
 @dataclass(frozen=True)
@@ -69,11 +94,19 @@ class Snapshot(NamedTuple):
     state: bytes
 
 
+def snapshot_digest(slide_id: str, n_events: int, state: bytes) -> str:
+    """The checksum a snapshot is stored with: SHA-256 (hex) of the slide's id, the number of
+    events it stands for and its bytes, so that neither can be swapped for another's."""
+    header = f"{slide_id}\0{n_events}\0".encode()
+    return hashlib.sha256(header + state).hexdigest()
+
+
 class EventStore(Protocol):
     """Slides, their event logs and their newest snapshots, durable once a call returns.
 
     Every method may be called from several threads at once. Any of them may raise
-    `StoreUnavailableError` when the database fails.
+    `StoreUnavailableError` when the database fails (`StoreFullError` when the disk is
+    full), and the readers `CorruptLogError` for a record that does not decode.
     """
 
     @property
@@ -118,7 +151,13 @@ class EventStore(Protocol):
         ...
 
     def snapshot(self, slide_id: str) -> Snapshot | None:
-        """The slide's newest snapshot, or None."""
+        """The slide's newest snapshot, or None; CorruptSnapshotError if it is not what was
+        stored (`snapshot_digest`)."""
+        ...
+
+    def problem(self) -> str | None:
+        """Why the store is degraded (its last write found the disk full, its checkpoints
+        fail), or None while it is well."""
         ...
 
     def close(self) -> None:

@@ -2,14 +2,17 @@
 
 Every error reply is an `api.Error`: a `code` for programs and a `detail` naming
 the problem, quoting at most 200 characters of any input (404 unknown slide, 409
-not the pending acquisition or a conflicting re-post, 422 invalid input or a slide
-over the cost budget, 413 oversized body, 408 a body too slow to arrive, 503 a store
-that failed under the request, 500 a log that no longer replays). A 422 from the
-domain has the shape of FastAPI's own.
+not the pending acquisition or a conflicting re-post, 409 `slide_log_corrupt` a slide
+whose stored log fails its own checks, 422 invalid input or a slide over the cost
+budget, 413 oversized body, 408 a body too slow to arrive, 503 a store that failed
+under the request, 507 `storage_full` a full disk, 500 a log that no longer replays
+or an unexpected failure). A 422 from the domain has the shape of FastAPI's own.
 """
 
 from __future__ import annotations
 
+import errno
+import logging
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -28,7 +31,22 @@ from focustrack_estimator.errors import (
     SlideError,
     SlideNotFoundError,
 )
-from focustrack_estimator.event_store import StoreUnavailableError
+from focustrack_estimator.event_store import (
+    CorruptLogError,
+    StoreFullError,
+    StoreUnavailableError,
+)
+
+log = logging.getLogger(__name__)
+
+#: The codes of the store's failures. They are not (yet) members of the client's
+#: `api.ErrorCode`, which maps an unknown code to `internal` (5xx) or `invalid_request`.
+SLIDE_LOG_CORRUPT = "slide_log_corrupt"
+STORAGE_FULL = "storage_full"
+
+#: Seconds a client is told to wait before it asks again after a 503 or a 507.
+RETRY_AFTER_UNAVAILABLE_S = 5
+RETRY_AFTER_FULL_S = 30
 
 #: The status and code of each domain error (a subclass takes its nearest ancestor's).
 DOMAIN_ERRORS: dict[type[SlideError], tuple[int, api.ErrorCode]] = {
@@ -44,9 +62,14 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     for status, text in (
         (401, "Missing or wrong bearer token"),
         (404, "Unknown slide"),
-        (409, "Not the pending acquisition, a conflicting re-post, or a finished scan"),
+        (
+            409,
+            "Not the pending acquisition, a conflicting re-post, a finished scan, or a slide "
+            "whose stored log is corrupt (`slide_log_corrupt`)",
+        ),
         (413, "Request body too large"),
         (503, "The store failed under the request (nothing was done); ask again later"),
+        (507, "The store's disk is full (nothing was done); ask again after Retry-After s"),
     )
 }
 
@@ -63,7 +86,7 @@ _CODE_OF_STATUS = {
 
 def error_response(
     status: int,
-    code: api.ErrorCode | None,
+    code: api.ErrorCode | str | None,
     detail: object,
     headers: dict[str, str] | None = None,
 ) -> JSONResponse:
@@ -84,6 +107,13 @@ def _cut_quotes(detail: object) -> object:
     if isinstance(detail, dict):
         return {key: _cut_quotes(value) for key, value in detail.items()}
     return detail
+
+
+def _storage_full(detail: str) -> JSONResponse:
+    """The reply to a write refused for lack of disk space: nothing of it was kept, and the
+    same request may succeed once there is space again."""
+    retry = {"Retry-After": str(RETRY_AFTER_FULL_S)}
+    return error_response(507, STORAGE_FULL, f"{detail}; nothing was written", retry)
 
 
 def status_of(error: SlideError) -> tuple[int, api.ErrorCode]:
@@ -119,8 +149,29 @@ def install(app: FastAPI) -> None:
     async def store_unavailable(_: Request, error: StoreUnavailableError) -> JSONResponse:
         # The database failed under the request (I/O, a full disk, a lock): nothing it asked
         # was done; the client may ask again later.
+        if isinstance(error, StoreFullError):
+            return _storage_full(str(error))
         detail = f"the estimator's store failed: {error}"
-        return error_response(503, api.ErrorCode.INTERNAL, detail, {"Retry-After": "5"})
+        retry = {"Retry-After": str(RETRY_AFTER_UNAVAILABLE_S)}
+        return error_response(503, api.ErrorCode.INTERNAL, detail, retry)
+
+    @app.exception_handler(CorruptLogError)
+    async def corrupt_log(_: Request, error: CorruptLogError) -> JSONResponse:
+        # That slide alone stops: asking again will not help until its log is repaired.
+        log.error("%s", error)
+        return error_response(409, SLIDE_LOG_CORRUPT, f"{error}; the other slides are served")
+
+    @app.exception_handler(OSError)
+    async def os_error(_: Request, error: OSError) -> JSONResponse:
+        if error.errno in (errno.ENOSPC, errno.EDQUOT):
+            return _storage_full(f"the estimator's disk is full: {error}")
+        log.error("request failed: %r", error)
+        return error_response(500, api.ErrorCode.INTERNAL, f"the estimator failed: {error}")
+
+    @app.exception_handler(Exception)
+    async def unexpected(_: Request, error: Exception) -> JSONResponse:
+        # Starlette still logs the traceback; the client gets the API's shape, not bare text.
+        return error_response(500, api.ErrorCode.INTERNAL, f"the estimator failed: {error!r}")
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, error: StarletteHTTPException) -> JSONResponse:

@@ -119,6 +119,7 @@ class EstimatorMetrics:
         count_slides: Callable[[], float],
         count_live: Callable[[], float],
         strategies_loaded: Callable[[], float],
+        store_degraded: Callable[[], float],
     ) -> None:
         prefix = "focustrack_estimator"
         self.requests = Counter(f"{prefix}_requests_total", "HTTP requests by route and status")
@@ -136,6 +137,11 @@ class EstimatorMetrics:
             f"{prefix}_rejections_total",
             "Measurements not used as observations (edge peak, flat curve, gated out)",
         )
+        self.snapshots_discarded = Counter(
+            f"{prefix}_snapshots_discarded_total",
+            "Snapshots not used (checksum, contents or the log disagree): the slide was "
+            "rebuilt from its log",
+        )
         self._gauges = (
             Gauge(f"{prefix}_slides", "Slides in the store", count_slides),
             Gauge(f"{prefix}_live_slides", "Slides held in memory", count_live),
@@ -143,6 +149,11 @@ class EstimatorMetrics:
                 f"{prefix}_strategies_loaded",
                 "1 once the strategies are imported (until then the first slide waits for them)",
                 strategies_loaded,
+            ),
+            Gauge(
+                f"{prefix}_store_degraded",
+                "1 while the store is degraded (its disk full, its checkpoints failing)",
+                store_degraded,
             ),
         )
 
@@ -153,6 +164,7 @@ class EstimatorMetrics:
             self.filter,
             self.measurements,
             self.rejections,
+            self.snapshots_discarded,
             *self._gauges,
         )
         return "\n".join(line for metric in metrics for line in metric.render()) + "\n"

@@ -2,7 +2,9 @@
 
 What goes into the store (`event_store.Event`) and comes back on a restart. The
 records are the contract with logs written by earlier versions: a field added
-to a domain type must read from older records too (as `planes_um` does).
+to a domain type must read from older records too (as `planes_um` does). A record
+read back is checked (`checked_logged_of`): one that does not decode, or holds what
+the API would not have accepted, is a corrupt log.
 """
 
 from __future__ import annotations
@@ -11,8 +13,10 @@ import dataclasses
 import math
 from typing import Any
 
+from focustrack_client.models import MAX_ABS_UM, MIN_SIGMA_UM
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
-from focustrack_estimator.event_store import Event
+from focustrack_core.geometry import ScanGrid
+from focustrack_estimator.event_store import CorruptLogError, Event
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +79,40 @@ def logged_of(event: Event) -> Logged:
         measurement_of(event.measurement),
         outcome_of(event.outcome),
     )
+
+
+def checked_logged_of(slide_id: str, event: Event, sequence: int, grid: ScanGrid) -> Logged:
+    """The recorded acquisition of `event`, read back as the slide's record `sequence` on
+    `grid`; CorruptLogError if the record fails its own checks: it does not decode, it is
+    not at its place in the log, its tile is off the grid or not its outcome's, or its
+    measurement is one the API refuses (a height beyond +/-MAX_ABS_UM, a sigma out of range).
+    """
+    try:
+        logged = logged_of(event)
+        problem = _problem(logged, event.sequence, sequence, grid)
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
+        problem = f"{type(error).__name__}: {error}"
+    if problem is not None:
+        raise CorruptLogError(slide_id, sequence, problem)
+    return logged
+
+
+def _problem(logged: Logged, stored_as: int, sequence: int, grid: ScanGrid) -> str | None:
+    """What is wrong with a record read back as record `sequence` (None: nothing)."""
+    acquisition, outcome = logged.acquisition, logged.outcome
+    tile = (acquisition.row, acquisition.col)
+    z_um, sigma_um = logged.measurement.z_um, logged.measurement.sigma_um
+    if not stored_as == acquisition.index == sequence:
+        return f"it is stored as record {stored_as}, of acquisition {acquisition.index}"
+    if not (all(isinstance(i, int) for i in tile) and grid.contains(*tile)):
+        return f"tile {tile} is off the {grid.rows}x{grid.cols} grid"
+    if (outcome.row, outcome.col) != tile:
+        return f"its outcome is of tile ({outcome.row}, {outcome.col}), not {tile}"
+    if z_um is not None and not abs(z_um) <= MAX_ABS_UM:
+        return f"measured height {z_um} um is beyond +/-{MAX_ABS_UM:g} um"
+    if sigma_um is not None and not MIN_SIGMA_UM <= sigma_um <= MAX_ABS_UM:
+        return f"measurement sigma {sigma_um} um is out of {MIN_SIGMA_UM:g}..{MAX_ABS_UM:g} um"
+    return None
 
 
 #: Replayed and logged numbers that differ by at most this (relative, and absolute in um)

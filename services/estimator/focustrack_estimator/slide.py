@@ -8,8 +8,12 @@ shutdown) and the events logged after it, or from the whole log when there is no
 snapshot that fits. Strategies are deterministic, so the replay gives back the same
 state; it checks that every acquisition and outcome comes out as logged, and
 tolerates differences of floating-point noise (another numpy or BLAS) with a
-warning. The log stays the source of truth. A measurement is committed before its
-outcome is returned.
+warning. The log stays the source of truth: a snapshot is used only if its checksum
+matches (the store's check), its state fits the slide (`restored.check_restored`)
+and the events after it replay from it; else it is discarded with a warning, the
+slide rebuilt from its whole log and a new snapshot stored in its place. A log
+record that fails its own checks (`CorruptLogError`) stops its slide alone. A
+measurement is committed before its outcome is returned.
 """
 
 from __future__ import annotations
@@ -27,18 +31,30 @@ from focustrack_core.rest import to_domain
 from focustrack_estimator import registry
 from focustrack_estimator.budget import Budget, GridLimits
 from focustrack_estimator.diagnose import SlideDiagnostics, diagnose
-from focustrack_estimator.errors import ReplayMismatchError, SlideConflictError, SlideError
-from focustrack_estimator.event_store import Event, EventStore, SlideRecord, StoreError
+from focustrack_estimator.errors import (
+    STRATEGY_ERRORS,
+    ReplayMismatchError,
+    SlideConflictError,
+    SlideError,
+)
+from focustrack_estimator.event_store import (
+    CorruptSnapshotError,
+    Event,
+    EventStore,
+    SlideRecord,
+    StoreError,
+)
 from focustrack_estimator.history import History
 from focustrack_estimator.records import (
     Logged,
     acquisition_record,
+    checked_logged_of,
     event_of,
-    logged_of,
     measurement_record,
     outcome_record,
     same_up_to_round_off,
 )
+from focustrack_estimator.restored import check_restored
 from focustrack_estimator.slide_strategy import (
     cost_of,
     new_strategy,
@@ -55,6 +71,10 @@ log = logging.getLogger(__name__)
 
 def _untimed(_: float) -> None:
     """A timer that keeps nothing (a slide outside the service)."""
+
+
+def _uncounted() -> None:
+    """A count of discarded snapshots that keeps nothing (a slide outside the service)."""
 
 
 class Slide:
@@ -85,6 +105,7 @@ class Slide:
         self.snapshot_every = snapshot_every
         self.history = History()
         self.n_snapshot = 0  # events covered by the newest snapshot stored
+        self.restored = False  # True: the state came from a snapshot, not from the log alone
         self._snapshots = True  # False once the strategy's state proved impossible to store
         self.cost = cost  # its share of the live slides' budget
         start_s = time.perf_counter()
@@ -135,9 +156,14 @@ class Slide:
         snapshot_every: int,
         timer: Callable[[float], None] = _untimed,
         catalogue: registry.Catalogue | None = None,
+        use_snapshot: bool = True,
+        discarded: Callable[[], None] = _uncounted,
     ) -> Slide:
         """The stored slide of `record`, rebuilt from its newest snapshot and the events after
-        it (or from its whole log). ReplayMismatchError if the log no longer replays."""
+        it, or from its whole log (when there is no snapshot, or it fails its checks, or
+        not `use_snapshot`: then its log's state replaces the stored snapshot). `discarded`
+        is called for each snapshot found wanting. ReplayMismatchError if the log no
+        longer replays, CorruptLogError if a record of it fails its own checks."""
         slide_id, config = record.id, api.SlideCreate.model_validate(record.config)
         strategies = served(catalogue)
         try:
@@ -162,18 +188,51 @@ class Slide:
             )
 
         slide = built()
-        snapshot = store.snapshot(slide_id)
-        if snapshot is not None and snapshot.n_events <= record.n_events:
+        replace_snapshot = not use_snapshot
+        if use_snapshot:
             try:
-                restore(slide.strategy, snapshot.state)
-                slide._cover_history(snapshot.n_events)
-                slide.n_snapshot = snapshot.n_events
-            except SnapshotError as error:
+                slide._restore(record.n_events)
+            except (SnapshotError, CorruptSnapshotError) as error:
                 log.warning("slide %s: snapshot not used, replaying its log: %s", slide_id, error)
-                slide = built()
-        # Only the events after the snapshot are read now (the others when first needed).
-        slide._replay(store.events(slide_id, start=len(slide.history)))
+                discarded()
+                slide, replace_snapshot = built(), True
+        if not slide.restored:
+            slide._replay(slide._read(0))
+        if replace_snapshot:  # the log's state in the place of a snapshot found wanting
+            slide.save_snapshot()
         return slide
+
+    def _restore(self, n_logged: int) -> None:
+        """Take the state of the slide's snapshot, if it has one, checked against the slide's
+        configuration and log (of `n_logged` events), and replay the events after it; only
+        those are read now (the others when first needed). SnapshotError or
+        CorruptSnapshotError if the snapshot fails a check: the strategy is then
+        half-written, to be discarded."""
+        snapshot = self.store.snapshot(self.id)
+        if snapshot is None:
+            return
+        if not 0 < snapshot.n_events <= n_logged:
+            raise SnapshotError(f"it stands for {snapshot.n_events} events; the log has {n_logged}")
+        settings = self.strategy.settings  # the configuration's, before the snapshot's
+        restore(self.strategy, snapshot.state)
+        events = self._read(snapshot.n_events - 1)  # the last event it covers, then the rest
+        try:
+            check_restored(self.strategy, settings, snapshot.n_events, events[0].outcome)
+            self._cover_history(snapshot.n_events)
+            self._replay(events[1:])
+        except (ReplayMismatchError, *STRATEGY_ERRORS, LookupError) as error:
+            raise SnapshotError(f"its state does not lead to the log's: {error}") from None
+        self.n_snapshot = snapshot.n_events
+        self.restored = True
+
+    def _read(self, start: int) -> list[Logged]:
+        """The slide's logged events from sequence `start` on, each checked
+        (`records.checked_logged_of`: CorruptLogError naming the first that fails)."""
+        events = self.store.events(self.id, start)
+        return [
+            checked_logged_of(self.id, event, start + i, self.grid)
+            for i, event in enumerate(events)
+        ]
 
     @property
     def grid(self) -> ScanGrid:
@@ -185,7 +244,7 @@ class Slide:
         self._timer(time.perf_counter() - start_s)
         return acquisition
 
-    def _replay(self, events: list[Event]) -> None:
+    def _replay(self, events: list[Logged]) -> None:
         """Rebuild the state from the logged events, checking each comes out as logged.
 
         A replayed acquisition or outcome that differs from the logged one by
@@ -193,12 +252,12 @@ class Slide:
         replay goes on; the history keeps the logged records, which the
         clients were given. Any other difference is a ReplayMismatchError.
         """
-        for event in events:
+        for logged in events:
+            event = event_of(logged)
             acquisition = self.strategy.next_acquisition()
             replayed = None if acquisition is None else acquisition_record(acquisition)
             self._check(event, "acquisition", replayed, event.acquisition)
             assert acquisition is not None  # checked against the logged one
-            logged = logged_of(event)
             outcome = self.strategy.record(acquisition, logged.measurement)
             self._check(event, "outcome", outcome_record(outcome), event.outcome)
             self.history.append(logged)
@@ -223,7 +282,7 @@ class Slide:
         snapshot covers them); they are read from the store when first needed (`History`)."""
 
         def load() -> list[Logged]:
-            return [logged_of(event) for event in self.store.events(self.id)[:n_events]]
+            return self._read(0)[:n_events]
 
         self.history = History(load, n_events)
 

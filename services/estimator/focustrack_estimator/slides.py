@@ -9,6 +9,9 @@ in a worker thread (strategy work and the store's commit stay off the event
 loop), so requests on one slide are serialised and different slides proceed
 side by side. A slide whose log another writer moved on (the store's
 SequenceConflictError) is dropped, to be rebuilt from the log on its next request.
+A slide restored from a snapshot whose state then fails under a request (an error
+that is neither the domain's refusal nor the store's) is rebuilt from its log alone,
+its snapshot replaced, and the request done again on it.
 
 The strategies (`slide`, and through it every strategy module) are not imported
 with this module, but by `load_strategies`: in the background once the service
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import logging
 import threading
 import uuid
 from collections import OrderedDict
@@ -34,7 +38,12 @@ from focustrack_estimator.errors import (
     SlideError,
     SlideNotFoundError,
 )
-from focustrack_estimator.event_store import EventStore, SequenceConflictError, SlideRecord
+from focustrack_estimator.event_store import (
+    EventStore,
+    SequenceConflictError,
+    SlideRecord,
+    StoreError,
+)
 from focustrack_estimator.memory import release_memory
 
 if TYPE_CHECKING:
@@ -43,6 +52,8 @@ if TYPE_CHECKING:
     from focustrack_estimator.slide import Slide
 
 T = TypeVar("T")
+
+log = logging.getLogger(__name__)
 
 _LOADING = threading.Lock()
 _loaded = threading.Event()
@@ -71,10 +82,18 @@ def strategies_loaded() -> bool:
     return _loaded.is_set()
 
 
+class _RestoredStateError(Exception):
+    """A slide restored from a snapshot failed under a request (`error`): its log decides."""
+
+    def __init__(self, error: Exception) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
 class Slides:
     """Every slide of the store; live ones cached in memory (least recently used evicted
     beyond the budget), others rebuilt on first use. `catalogue`: the strategies served
-    (None: the estimator's own)."""
+    (None: the estimator's own); `discarded` is called for each snapshot found wanting."""
 
     def __init__(
         self,
@@ -85,8 +104,10 @@ class Slides:
         snapshot_every: int,
         timer: Callable[[float], None] = lambda _: None,
         catalogue: Catalogue | None = None,
+        discarded: Callable[[], None] = lambda: None,
     ) -> None:
         self.store = store
+        self._discarded = discarded
         self.limits = limits
         self.budget = budget
         self.snapshot_every = snapshot_every
@@ -189,12 +210,17 @@ class Slides:
         (strategy advanced, commit failed): it is dropped, to be rebuilt from its log.
         """
         async with self._lock(slide_id):
-            slide = self._live.get(slide_id)
             try:
-                if slide is None:
-                    slide = await asyncio.to_thread(self._load, slide_id)
-                self._keep(slide)
-                result = await asyncio.to_thread(work, slide)
+                try:
+                    result = await self._attempt(slide_id, work, use_snapshot=True)
+                except _RestoredStateError as failed:
+                    log.warning(
+                        "slide %s: its state restored from a snapshot failed (%r); "
+                        "rebuilding it from its log",
+                        slide_id, failed.error,
+                    )  # fmt: skip
+                    self._discarded()
+                    result = await self._attempt(slide_id, work, use_snapshot=False)
             except SlideNotFoundError:
                 self._locks.pop(slide_id, None)  # keep no lock for ids that do not exist
                 raise
@@ -213,7 +239,24 @@ class Slides:
         await self._evict()
         return result
 
-    def _load(self, slide_id: str) -> Slide:
+    async def _attempt(self, slide_id: str, work: Callable[[Slide], T], *, use_snapshot: bool) -> T:
+        """`work(slide)` on the live slide, loaded first if need be (`use_snapshot`: from its
+        snapshot if it has one that checks out, else from its log alone)."""
+        slide = self._live.get(slide_id)
+        if slide is None:
+            slide = await asyncio.to_thread(self._load, slide_id, use_snapshot)
+        self._keep(slide)
+        try:
+            return await asyncio.to_thread(work, slide)
+        except (SlideError, StoreError):
+            raise
+        except Exception as error:
+            if not slide.restored:
+                raise
+            self._live.pop(slide_id, None)
+            raise _RestoredStateError(error) from error
+
+    def _load(self, slide_id: str, use_snapshot: bool) -> Slide:
         record = self.store.slide(slide_id)
         if record is None:
             raise SlideNotFoundError(f"no slide {slide_id!r}")
@@ -223,6 +266,8 @@ class Slides:
             snapshot_every=self.snapshot_every,
             timer=self._timer,
             catalogue=self._catalogue,
+            use_snapshot=use_snapshot,
+            discarded=self._discarded,
         )
 
     def save_snapshots(self) -> None:

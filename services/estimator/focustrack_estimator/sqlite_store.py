@@ -1,20 +1,27 @@
 """The estimator's embedded store: an `EventStore` in one SQLite file.
 
 Schema versions (``PRAGMA user_version``), migrated forward on open:
-1, the slides and their events; 2, the snapshots. A file of a newer version
-than this code knows is refused rather than misread.
+1, the slides and their events; 2, the snapshots; 3, each snapshot's checksum
+(`snapshot_digest`; a snapshot of version 2 has none and is not used). A file of
+a newer version than this code knows is refused rather than misread.
 
 Durability: WAL journal with ``synchronous=FULL``, so a committed event is
 on disk (the WAL is fsynced) before `append` returns. One connection is
 shared by the service's worker threads behind a lock. An fsync costs 0.2 ms
 on an idle development machine but 4-12 ms when other processes write, so
 appends are group-committed: those that arrive during a commit share the next.
-SQLite's own errors leave this module as `StoreUnavailableError`.
+SQLite's own errors leave this module as `StoreUnavailableError`, a full disk
+(SQLITE_FULL) as `StoreFullError`: nothing of that write is kept, and the store says
+it is degraded (`problem`) until a write succeeds again. Checkpoints run on a thread
+of their own that outlives their failures: it logs each, waits longer after each
+(up to `CHECKPOINT_BACKOFF_MAX_S`) and carries on once they succeed again.
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
 import sqlite3
 import threading
 import time
@@ -25,13 +32,19 @@ from pathlib import Path
 from typing import Any
 
 from focustrack_estimator.event_store import (
+    CorruptLogError,
+    CorruptSnapshotError,
     Event,
     SequenceConflictError,
     SlideRecord,
     Snapshot,
     StoreError,
+    StoreFullError,
     StoreUnavailableError,
+    snapshot_digest,
 )
+
+log = logging.getLogger(__name__)
 
 #: Each version's schema change, applied in order to bring an older file up to date.
 _MIGRATIONS: dict[int, str] = {
@@ -63,6 +76,9 @@ CREATE TABLE IF NOT EXISTS snapshots (
     created_s REAL NOT NULL
 );
 """,
+    3: """
+ALTER TABLE snapshots ADD COLUMN sha256 TEXT;
+""",
 }
 
 #: The size a restarted WAL file is truncated to (``PRAGMA journal_size_limit``).
@@ -70,6 +86,21 @@ WAL_SIZE_LIMIT_BYTES = 64 * 1024 * 1024
 
 #: The schema version this code writes (``PRAGMA user_version``).
 SCHEMA_VERSION = max(_MIGRATIONS)
+
+#: The longest pause between two checkpoints that failed, s (the pause doubles from the
+#: checkpoint period after each failure).
+CHECKPOINT_BACKOFF_MAX_S = 30.0
+
+
+def unavailable(path: str, error: sqlite3.Error | OSError) -> StoreUnavailableError:
+    """The store's error for a failure of SQLite or of the file system under it: a
+    StoreFullError for a full disk (SQLITE_FULL, ENOSPC, EDQUOT)."""
+    full = (
+        error.sqlite_errorcode == sqlite3.SQLITE_FULL
+        if isinstance(error, sqlite3.Error)
+        else error.errno in (errno.ENOSPC, errno.EDQUOT)
+    )
+    return (StoreFullError if full else StoreUnavailableError)(f"store {path}: {error}")
 
 
 @dataclass
@@ -102,6 +133,8 @@ class SQLiteStore:
             message = f"{self.path} cannot be opened as the estimator's store: {error}"
             raise StoreError(message) from None
         self._lock = threading.Lock()  # the connection, and the one commit under way
+        self._full: str | None = None  # why the last write found the disk full
+        self._checkpoint_failure: str | None = None  # why the last checkpoint failed
         self._queue_lock = threading.Lock()
         self._queue: list[_Append] = []  # appends waiting for the next group commit
         try:
@@ -163,13 +196,36 @@ class SQLiteStore:
         return self._db.execute(query, (name,)).fetchone() is not None
 
     @contextmanager
-    def _connection(self) -> Iterator[sqlite3.Connection]:
-        """The shared connection, held alone; SQLite's errors raised as StoreUnavailableError."""
+    def _connection(self, *, writes: bool = False) -> Iterator[sqlite3.Connection]:
+        """The shared connection, held alone; SQLite's errors raised as StoreUnavailableError
+        (StoreFullError for a full disk). `writes`: the block writes, so its outcome says
+        whether the disk is full (`problem`)."""
         with self._lock:
             try:
                 yield self._db
-            except sqlite3.Error as error:
-                raise StoreUnavailableError(f"store {self.path}: {error}") from error
+            except (sqlite3.Error, OSError) as error:
+                failure = unavailable(self.path, error)
+                if writes:
+                    self._wrote(failure)
+                raise failure from error
+            if writes:
+                self._wrote(None)
+
+    def _wrote(self, failure: StoreUnavailableError | None) -> None:
+        """Note how a write ended: a full disk degrades the store until a write succeeds."""
+        if isinstance(failure, StoreFullError):
+            if self._full is None:
+                log.warning("%s; writes are refused until there is space again", failure)
+            self._full = str(failure)
+        elif failure is None and self._full is not None:
+            log.warning("store %s: writes succeed again", self.path)
+            self._full = None
+
+    def problem(self) -> str | None:
+        """Why the store is degraded (its last write found the disk full, its last
+        checkpoint failed), or None while it is well."""
+        problems = [p for p in (self._full, self._checkpoint_failure) if p is not None]
+        return "; ".join(problems) or None
 
     @property
     def schema_version(self) -> int:
@@ -181,12 +237,26 @@ class SQLiteStore:
 
         A PASSIVE checkpoint on a connection of its own takes no write lock, so
         commits go on while it copies; the WAL restarts once it has been copied whole.
+        A failure (a full disk, an I/O error) is logged and the next attempt waits
+        twice as long (at most `CHECKPOINT_BACKOFF_MAX_S`): the thread lives as long
+        as the store, or the WAL would grow without bound once the disk has space again.
         """
-        db = sqlite3.connect(self.path, isolation_level=None)
-        try:
-            while not self._closing.wait(every_s):
-                db.execute("PRAGMA wal_checkpoint(PASSIVE)")
-        finally:
+        pause_s = every_s
+        db: sqlite3.Connection | None = None
+        while not self._closing.wait(pause_s):
+            try:
+                db = db or sqlite3.connect(self.path, isolation_level=None)
+                db.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()
+            except (sqlite3.Error, OSError) as error:
+                pause_s = min(2.0 * pause_s, max(every_s, CHECKPOINT_BACKOFF_MAX_S))
+                self._checkpoint_failure = f"checkpoint of store {self.path} failed: {error}"
+                log.warning("%s; next attempt in %.3g s", self._checkpoint_failure, pause_s)
+                continue
+            if self._checkpoint_failure is not None:
+                log.warning("store %s: checkpoints succeed again", self.path)
+                self._checkpoint_failure = None
+            pause_s = every_s
+        if db is not None:
             db.close()
 
     def close(self) -> None:
@@ -195,13 +265,16 @@ class SQLiteStore:
             return
         self._closing.set()
         self._checkpointer.join()
-        with self._connection() as db:
-            db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-            db.close()
+        with self._lock:
+            try:  # a full disk leaves the WAL as it is: the next open recovers from it
+                self._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            except sqlite3.Error as error:
+                log.warning("store %s: last checkpoint failed: %s", self.path, error)
+            self._db.close()
 
     def create_slide(self, slide_id: str, config: dict[str, Any]) -> SlideRecord:
         now_s = time.time()
-        with self._connection() as db:
+        with self._connection(writes=True) as db:
             try:
                 db.execute(
                     "INSERT INTO slides (id, config, created_s, updated_s) VALUES (?, ?, ?, ?)",
@@ -235,7 +308,7 @@ class SQLiteStore:
 
     def delete_slide(self, slide_id: str) -> bool:
         """Forget a slide, its log and its snapshot; False if there was no such slide."""
-        with self._connection() as db:
+        with self._connection(writes=True) as db:
             cursor = db.execute("DELETE FROM slides WHERE id = ?", (slide_id,))
         return cursor.rowcount > 0
 
@@ -260,8 +333,13 @@ class SQLiteStore:
             raise ticket.error
 
     def _commit(self, batch: list[_Append]) -> None:
-        """One transaction for the batch; a refused append (a savepoint) spares the others."""
+        """One transaction for the batch; a refused append (a savepoint) spares the others.
+
+        If the transaction fails (a full disk), every append of the batch fails with it:
+        none was committed, none is acknowledged.
+        """
         now_s = time.time()
+        failed: StoreUnavailableError | None = None
         try:
             self._db.execute("BEGIN IMMEDIATE")
             for ticket in batch:
@@ -273,15 +351,25 @@ class SQLiteStore:
                     ticket.error = error
                 self._db.execute("RELEASE append")
             self._db.execute("COMMIT")
-        except sqlite3.Error as error:
-            if self._db.in_transaction:
-                self._db.execute("ROLLBACK")
-            failed = StoreUnavailableError(f"store {self.path}: {error}")
+        except (sqlite3.Error, OSError) as error:
+            failed = unavailable(self.path, error)
+            self._roll_back()
             for ticket in batch:
-                ticket.error = ticket.error or failed
+                ticket.error = failed  # a refusal in its savepoint was rolled back too
         finally:
             for ticket in batch:
                 ticket.finished = True
+        self._wrote(failed)
+
+    def _roll_back(self) -> None:
+        """End a failed transaction, if SQLite has not already (it rolls back by itself after
+        some errors, a full disk among them); a rollback that fails too is logged."""
+        if not self._db.in_transaction:
+            return
+        try:
+            self._db.execute("ROLLBACK")
+        except sqlite3.Error as error:
+            log.warning("store %s: rollback of a failed commit failed: %s", self.path, error)
 
     def _insert(self, ticket: _Append, now_s: float) -> None:
         slide_id, event = ticket.slide_id, ticket.event
@@ -313,26 +401,43 @@ class SQLiteStore:
         """Keep `state` as the slide's snapshot after its first `n_events` events (replacing
         an older one); a snapshot older than the one kept is ignored. StoreError if there
         is no such slide."""
-        with self._connection() as db:
+        digest = snapshot_digest(slide_id, n_events, state)
+        with self._connection(writes=True) as db:
             try:
                 db.execute(
-                    "INSERT INTO snapshots (slide_id, n_events, state, created_s) "
-                    "VALUES (?, ?, ?, ?) "
+                    "INSERT INTO snapshots (slide_id, n_events, state, created_s, sha256) "
+                    "VALUES (?, ?, ?, ?, ?) "
                     "ON CONFLICT (slide_id) DO UPDATE SET n_events = excluded.n_events, "
-                    "state = excluded.state, created_s = excluded.created_s "
+                    "state = excluded.state, created_s = excluded.created_s, "
+                    "sha256 = excluded.sha256 "
                     "WHERE excluded.n_events >= snapshots.n_events",
-                    (slide_id, n_events, state, time.time()),
+                    (slide_id, n_events, state, time.time(), digest),
                 )
             except sqlite3.IntegrityError as error:  # the slide's foreign key
                 raise StoreError(f"no slide {slide_id!r}") from error
 
     def snapshot(self, slide_id: str) -> Snapshot | None:
-        """The slide's newest snapshot, or None."""
+        """The slide's newest snapshot, or None; CorruptSnapshotError if its checksum does not
+        match what it holds (or it has none: written by schema version 2)."""
         with self._connection() as db:
             row = db.execute(
-                "SELECT n_events, state FROM snapshots WHERE slide_id = ?", (slide_id,)
+                "SELECT n_events, state, sha256 FROM snapshots WHERE slide_id = ?", (slide_id,)
             ).fetchone()
-        return None if row is None else Snapshot(row[0], bytes(row[1]))
+        if row is None:
+            return None
+        n_events, state, digest = row
+        if not isinstance(n_events, int) or not isinstance(state, bytes):
+            raise CorruptSnapshotError(f"slide {slide_id!r}: its snapshot's row is malformed")
+        if digest is None:
+            raise CorruptSnapshotError(
+                f"slide {slide_id!r}: its snapshot has no checksum (an older store's)"
+            )
+        if digest != snapshot_digest(slide_id, n_events, state):
+            raise CorruptSnapshotError(
+                f"slide {slide_id!r}: its snapshot (of {n_events} events) does not match "
+                "its checksum"
+            )
+        return Snapshot(n_events, state)
 
     def events(self, slide_id: str, start: int = 0) -> list[Event]:
         """The slide's log in sequence order, from sequence `start` on."""
@@ -342,11 +447,31 @@ class SQLiteStore:
                 "WHERE slide_id = ? AND sequence >= ? ORDER BY sequence",
                 (slide_id, start),
             ).fetchall()
-        return [Event(seq, json.loads(a), json.loads(m), json.loads(o)) for seq, a, m, o in rows]
+        return [
+            Event(sequence, *(_object(text, slide_id, sequence) for text in texts))
+            for sequence, *texts in rows
+        ]
+
+
+def _object(text: object, slide_id: str, sequence: int | None) -> dict[str, Any]:
+    """The JSON object stored as `text`; CorruptLogError naming the record if it is none."""
+    try:
+        value = json.loads(text) if isinstance(text, str | bytes) else None
+    except ValueError as error:
+        raise CorruptLogError(slide_id, sequence, f"not JSON: {error}") from None
+    if not isinstance(value, dict):
+        raise CorruptLogError(slide_id, sequence, "not a JSON object")
+    return value
 
 
 def _slide_record(row: tuple[str, str, float, float, int, int, int]) -> SlideRecord:
     slide_id, config, created_s, updated_s, n_events, n_accepted, done = row
     return SlideRecord(
-        slide_id, json.loads(config), created_s, updated_s, n_events, n_accepted, bool(done)
+        slide_id,
+        _object(config, slide_id, None),
+        created_s,
+        updated_s,
+        n_events,
+        n_accepted,
+        bool(done),
     )

@@ -15,6 +15,7 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.replay import simulated_measurement
+from focustrack_estimator.restored import check_restored
 from focustrack_estimator.serpentine import SerpentineFilter
 from focustrack_estimator.snapshot import SnapshotError, encode, restore
 from focustrack_estimator.strategy import Strategy
@@ -117,3 +118,26 @@ def test_a_restore_keeps_equal_plain_values_and_stores_float_lists_as_arrays() -
     assert restored.grid is grid
     assert isinstance(restored, SerpentineFilter) and isinstance(original, SerpentineFilter)
     assert restored.innovations()[0].tolist() == original.innovations()[0].tolist()
+
+
+@pytest.mark.parametrize("name", sorted(registry.STRATEGIES))
+@pytest.mark.parametrize("at", [1, 7, 15, 1000])  # 1000: the scan is complete
+def test_every_strategys_own_snapshot_passes_the_checks_of_a_restore(name: str, at: int) -> None:
+    """A genuine snapshot is used (`restored.check_restored`), never discarded for a replay."""
+    settings = default_settings(ScanGrid(ROWS, COLS))
+    original = registry.create(name, settings)
+    measured_um = _measured()
+    outcomes = []
+    for _ in range(at):
+        acquisition = original.next_acquisition()
+        if acquisition is None:
+            break
+        measurement = simulated_measurement(
+            acquisition, measured_um[acquisition.row, acquisition.col]
+        )
+        outcomes.append(original.record(acquisition, measurement))
+    if original.next_acquisition() is None:
+        original.focus_map()  # as a finished slide is snapshotted: with its final map
+    restored = registry.create(name, settings)
+    restore(restored, encode(original))
+    check_restored(restored, settings, len(outcomes), outcomes[-1])

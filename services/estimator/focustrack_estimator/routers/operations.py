@@ -15,7 +15,9 @@ router = APIRouter(tags=["operations"])
 
 @router.get("/healthz")
 async def healthz(slides: SlidesDep) -> api.Health:
-    return api.Health(status="ok", slides=await slides.count())
+    """`degraded` while the store is (its disk full, its checkpoints failing): reads go on."""
+    status = "ok" if slides.store.problem() is None else "degraded"
+    return api.Health(status=status, slides=await slides.count())
 
 
 @router.get("/metrics", response_class=PlainTextResponse)
