@@ -21,7 +21,9 @@ if TYPE_CHECKING:
         InvalidRequestError,
         PayloadTooLargeError,
         ServerError,
+        SlideLogCorruptError,
         SlideNotFoundError,
+        StorageFullError,
         UnauthorizedError,
     )
     from focustrack_client.models import Grid, MeasurementIn, SlideCreate, ZRangePolicy
@@ -35,7 +37,9 @@ _HOMES = {
     "InvalidRequestError": "errors",
     "PayloadTooLargeError": "errors",
     "ServerError": "errors",
+    "SlideLogCorruptError": "errors",
     "SlideNotFoundError": "errors",
+    "StorageFullError": "errors",
     "UnauthorizedError": "errors",
     "Grid": "models",
     "MeasurementIn": "models",
@@ -54,7 +58,9 @@ __all__ = [
     "PayloadTooLargeError",
     "ServerError",
     "SlideCreate",
+    "SlideLogCorruptError",
     "SlideNotFoundError",
+    "StorageFullError",
     "UnauthorizedError",
     "ZRangePolicy",
 ]

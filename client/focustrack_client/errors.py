@@ -41,6 +41,11 @@ class ConflictError(EstimatorError):
     """409: the request contradicts the slide's state (not the pending acquisition, ...)."""
 
 
+class SlideLogCorruptError(ConflictError):
+    """409 `slide_log_corrupt`: the slide's stored log fails its own checks; that slide
+    stops (asking again will not help) while the others are served."""
+
+
 class PayloadTooLargeError(EstimatorError):
     """413: the request body is over the service's limit."""
 
@@ -49,14 +54,20 @@ class ServerError(EstimatorError):
     """5xx: the service failed; the request may be retried."""
 
 
+class StorageFullError(ServerError):
+    """507: the estimator's disk is full; nothing was written, ask again after Retry-After."""
+
+
 _BY_CODE: dict[ErrorCode, type[EstimatorError]] = {
     ErrorCode.INVALID_REQUEST: InvalidRequestError,
     ErrorCode.UNAUTHORIZED: UnauthorizedError,
     ErrorCode.NOT_FOUND: SlideNotFoundError,
     ErrorCode.CONFLICT: ConflictError,
+    ErrorCode.SLIDE_LOG_CORRUPT: SlideLogCorruptError,
     ErrorCode.PAYLOAD_TOO_LARGE: PayloadTooLargeError,
     ErrorCode.REPLAY_MISMATCH: ServerError,
     ErrorCode.INTERNAL: ServerError,
+    ErrorCode.STORAGE_FULL: StorageFullError,
 }
 
 

@@ -278,9 +278,11 @@ class ErrorCode(StrEnum):
     UNAUTHORIZED = "unauthorized"  # 401: no or a wrong bearer token
     NOT_FOUND = "not_found"  # 404: no such slide (or route)
     CONFLICT = "conflict"  # 409: contradicts the slide's state
+    SLIDE_LOG_CORRUPT = "slide_log_corrupt"  # 409: the slide's stored log fails its checks
     PAYLOAD_TOO_LARGE = "payload_too_large"  # 413: the body is over the limit
     REPLAY_MISMATCH = "replay_mismatch"  # 500: the stored log no longer replays
     INTERNAL = "internal"  # 500: the service failed
+    STORAGE_FULL = "storage_full"  # 507: the estimator's disk is full; ask again later
 
 
 class Error(BaseModel):

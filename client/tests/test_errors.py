@@ -11,7 +11,9 @@ from focustrack_client import (
     EstimatorError,
     InvalidRequestError,
     ServerError,
+    SlideLogCorruptError,
     SlideNotFoundError,
+    StorageFullError,
     UnauthorizedError,
 )
 from focustrack_client.models import ErrorCode
@@ -32,6 +34,8 @@ def client_answering(status: int, body: object) -> EstimatorClient:
         (409, "conflict", ConflictError),
         (500, "replay_mismatch", ServerError),
         (503, "internal", ServerError),
+        (409, "slide_log_corrupt", SlideLogCorruptError),
+        (507, "storage_full", StorageFullError),
     ],
 )
 def test_the_code_chooses_the_exception(status: int, code: str, kind: type) -> None:

@@ -39,11 +39,6 @@ from focustrack_estimator.event_store import (
 
 log = logging.getLogger(__name__)
 
-#: The codes of the store's failures. They are not (yet) members of the client's
-#: `api.ErrorCode`, which maps an unknown code to `internal` (5xx) or `invalid_request`.
-SLIDE_LOG_CORRUPT = "slide_log_corrupt"
-STORAGE_FULL = "storage_full"
-
 #: Seconds a client is told to wait before it asks again after a 503 or a 507.
 RETRY_AFTER_UNAVAILABLE_S = 5
 RETRY_AFTER_FULL_S = 30
@@ -86,7 +81,7 @@ _CODE_OF_STATUS = {
 
 def error_response(
     status: int,
-    code: api.ErrorCode | str | None,
+    code: api.ErrorCode | None,
     detail: object,
     headers: dict[str, str] | None = None,
 ) -> JSONResponse:
@@ -113,7 +108,7 @@ def _storage_full(detail: str) -> JSONResponse:
     """The reply to a write refused for lack of disk space: nothing of it was kept, and the
     same request may succeed once there is space again."""
     retry = {"Retry-After": str(RETRY_AFTER_FULL_S)}
-    return error_response(507, STORAGE_FULL, f"{detail}; nothing was written", retry)
+    return error_response(507, api.ErrorCode.STORAGE_FULL, f"{detail}; nothing was written", retry)
 
 
 def status_of(error: SlideError) -> tuple[int, api.ErrorCode]:
@@ -159,7 +154,9 @@ def install(app: FastAPI) -> None:
     async def corrupt_log(_: Request, error: CorruptLogError) -> JSONResponse:
         # That slide alone stops: asking again will not help until its log is repaired.
         log.error("%s", error)
-        return error_response(409, SLIDE_LOG_CORRUPT, f"{error}; the other slides are served")
+        return error_response(
+            409, api.ErrorCode.SLIDE_LOG_CORRUPT, f"{error}; the other slides are served"
+        )
 
     @app.exception_handler(OSError)
     async def os_error(_: Request, error: OSError) -> JSONResponse:
