@@ -553,7 +553,7 @@ def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
     topology = stack.topology
     before = {
         slide["id"]: slide
-        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()["slides"]
+        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
     }
     topology.up("scheduler", "scan-2", SCAN_NAME="scan-2")
     out_dir = topology.volume("scans") / "scan-2"
@@ -573,7 +573,7 @@ def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
     report = complete_report(stack, out_dir)
     after = {
         slide["id"]: slide
-        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()["slides"]
+        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
     }
     # Nothing lost: the slides from before the kill are all there, as they were, and the
     # interrupted scan's slide is complete.

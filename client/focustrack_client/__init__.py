@@ -14,7 +14,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from focustrack_client.client import AsyncEstimatorClient, EstimatorClient
+    from focustrack_client.client import AsyncEstimatorClient, EstimatorClient, SlidePage
     from focustrack_client.errors import (
         ConflictError,
         EstimatorError,
@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 _HOMES = {
     "AsyncEstimatorClient": "client",
     "EstimatorClient": "client",
+    "SlidePage": "client",
     "ConflictError": "errors",
     "EstimatorError": "errors",
     "InvalidRequestError": "errors",
@@ -55,6 +56,7 @@ __all__ = [
     "ServerError",
     "SlideCreate",
     "SlideNotFoundError",
+    "SlidePage",
     "UnauthorizedError",
     "ZRangePolicy",
 ]

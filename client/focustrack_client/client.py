@@ -21,13 +21,14 @@ from __future__ import annotations
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Generic, Literal, Self, TypeVar
+from typing import Generic, Literal, NamedTuple, Self, TypeVar
 
 import httpx
-from pydantic import BaseModel
+from pydantic import BaseModel, TypeAdapter
 
 from focustrack_client.errors import raise_for_error
 from focustrack_client.models import (
+    NEXT_CURSOR_HEADER,
     Diagnostics,
     FocusMapOut,
     Health,
@@ -36,7 +37,6 @@ from focustrack_client.models import (
     OutcomeOut,
     Slide,
     SlideCreate,
-    SlidePage,
     SlideSummary,
 )
 
@@ -46,8 +46,18 @@ MapFormat = Literal["csv", "npy", "png"]
 #: The media type of a file sent as a body (a prior map's .npy), as the map's is served.
 FILE_MEDIA_TYPE = "application/octet-stream"
 
+_SUMMARIES = TypeAdapter(list[SlideSummary])
+
 T = TypeVar("T")
 M = TypeVar("M", bound=BaseModel)
+
+
+class SlidePage(NamedTuple):
+    """One page of the slide listing: its slides, oldest first, and the cursor of the next
+    page (None on the last), which the service sends in a header beside the JSON array."""
+
+    slides: list[SlideSummary]
+    next_cursor: str | None
 
 
 @dataclass(frozen=True)
@@ -82,6 +92,11 @@ def _model(model: type[M]) -> Callable[[httpx.Response], M]:
     return lambda response: model.model_validate_json(response.content)
 
 
+def _slide_page(response: httpx.Response) -> SlidePage:
+    cursor = response.headers.get(NEXT_CURSOR_HEADER)
+    return SlidePage(_SUMMARIES.validate_json(response.content), cursor)
+
+
 def _nothing(_: httpx.Response) -> None:
     return None
 
@@ -98,11 +113,11 @@ class _Endpoints:
         return _Call("POST", "/v1/slides", _model(Slide), body=config)
 
     @staticmethod
-    def list_slides(limit: int | None, cursor: str | None) -> _Call[SlidePage]:
+    def list_slides_page(limit: int | None, cursor: str | None) -> _Call[SlidePage]:
         params = {"limit": str(limit)} if limit is not None else {}
         if cursor is not None:
             params["cursor"] = cursor
-        return _Call("GET", "/v1/slides", _model(SlidePage), params=params)
+        return _Call("GET", "/v1/slides", _slide_page, params=params)
 
     @staticmethod
     def slide(slide_id: str) -> _Call[Slide]:
@@ -186,16 +201,21 @@ class EstimatorClient:
         """A new slide, scanned as `config` says; its id is `.id`."""
         return self._send(_Endpoints.create_slide(config))
 
-    def list_slides(self, limit: int | None = None, cursor: str | None = None) -> SlidePage:
+    def list_slides(self) -> list[SlideSummary]:
+        """Every slide, oldest first (every page of the listing, `iter_slides`)."""
+        return list(self.iter_slides())
+
+    def list_slides_page(self, limit: int | None = None, cursor: str | None = None) -> SlidePage:
         """One page of slides, oldest first (`limit` of them, the service's default if
         None), from `cursor` (the previous page's `next_cursor`; None: the first page)."""
-        return self._send(_Endpoints.list_slides(limit, cursor))
+        return self._send(_Endpoints.list_slides_page(limit, cursor))
 
     def iter_slides(self, page_size: int | None = None) -> Iterator[SlideSummary]:
-        """Every slide, oldest first, a page of `page_size` at a time."""
+        """Every slide, oldest first, fetched a page of `page_size` at a time (the
+        service's default if None) as the iteration reaches it."""
         cursor: str | None = None
         while True:
-            page = self.list_slides(page_size, cursor)
+            page = self.list_slides_page(page_size, cursor)
             yield from page.slides
             if (cursor := page.next_cursor) is None:
                 return
@@ -267,13 +287,18 @@ class AsyncEstimatorClient:
     async def create_slide(self, config: SlideCreate) -> Slide:
         return await self._send(_Endpoints.create_slide(config))
 
-    async def list_slides(self, limit: int | None = None, cursor: str | None = None) -> SlidePage:
-        return await self._send(_Endpoints.list_slides(limit, cursor))
+    async def list_slides(self) -> list[SlideSummary]:
+        return [slide async for slide in self.iter_slides()]
+
+    async def list_slides_page(
+        self, limit: int | None = None, cursor: str | None = None
+    ) -> SlidePage:
+        return await self._send(_Endpoints.list_slides_page(limit, cursor))
 
     async def iter_slides(self, page_size: int | None = None) -> AsyncIterator[SlideSummary]:
         cursor: str | None = None
         while True:
-            page = await self.list_slides(page_size, cursor)
+            page = await self.list_slides_page(page_size, cursor)
             for slide in page.slides:
                 yield slide
             if (cursor := page.next_cursor) is None:

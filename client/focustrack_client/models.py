@@ -62,6 +62,9 @@ PRIOR_SIGMA_PARAM = "prior_map_sigma_um"
 #: Slides per page of `GET /v1/slides`: by default, and at most.
 DEFAULT_PAGE_SLIDES = 100
 MAX_PAGE_SLIDES = 1000
+#: The header of a page of `GET /v1/slides` that holds the cursor of the next page (absent
+#: on the last page), beside the `Link: <...>; rel="next"` header (RFC 8288) with its URL.
+NEXT_CURSOR_HEADER = "X-Next-Cursor"
 #: Most values a list parameter may hold to be shown in the slide listing: a longer one
 #: (a prior map) is left out of it and named in `omitted_params`.
 MAX_LISTED_VALUES = 16
@@ -162,15 +165,6 @@ class SlideSummary(Slide):
         default_factory=list,
         description=f"Parameters left out of `config.params` for holding more than "
         f"{MAX_LISTED_VALUES} values (a prior map): `GET /v1/slides/{{id}}` has them",
-    )
-
-
-class SlidePage(BaseModel):
-    """One page of the slide listing, oldest first."""
-
-    slides: list[SlideSummary]
-    next_cursor: str | None = Field(
-        description="Pass it as `cursor` for the next page; null on the last page"
     )
 
 

@@ -44,7 +44,7 @@ def test_the_blocking_client_scans_a_slide_and_deletes_it(url: str) -> None:
             SlideCreate(strategy="kf-wiener0", grid=Grid(rows=2, cols=3), label="client test")
         )
         assert slide.config.params["q"] == pytest.approx(0.14)  # every default resolved
-        assert slide.id in {s.id for s in estimator.iter_slides()}
+        assert slide.id in {s.id for s in estimator.list_slides()}
         n_posted = 0
         while not (step := estimator.next(slide.id)).done:
             assert step.sequence is not None and step.z_center_um is not None

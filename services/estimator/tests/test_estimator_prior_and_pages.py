@@ -5,6 +5,7 @@ client library; the 413s in process, where the client is not still sending when 
 
 from __future__ import annotations
 
+import asyncio
 import io
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -16,9 +17,16 @@ import numpy as np
 import pytest
 from estimator_in_process import client, estimator, run
 
-from focustrack_client import ConflictError, EstimatorClient, InvalidRequestError
+from focustrack_client import (
+    AsyncEstimatorClient,
+    ConflictError,
+    EstimatorClient,
+    InvalidRequestError,
+    SlidePage,
+)
 from focustrack_client.models import (
     MAX_LISTED_VALUES,
+    NEXT_CURSOR_HEADER,
     PRIOR_MAP_PARAM,
     PRIOR_SIGMA_PARAM,
     Grid,
@@ -152,18 +160,52 @@ def test_21_slides_are_listed_5_at_a_time_without_their_maps(tmp_path: Path) -> 
                 else:
                     config = SlideCreate(strategy="kf-wiener0", grid=Grid(rows=2, cols=2))
                 created.append(estimator.create_slide(config).id)
-            pages, cursor = [], None
-            while True:
-                page = estimator.list_slides(limit=5, cursor=cursor)
-                pages.append([s.id for s in page.slides])
-                if (cursor := page.next_cursor) is None:
-                    break
+            # the slide itself still has its map
+            assert estimator.slide(created[3]).config.params[PRIOR_MAP_PARAM] == [3.0] * 25
+
+        with httpx.Client(base_url=url) as http:
+            # as a script follows the pages: a bare array each, the next one in the headers
+            pages: list[list[str]] = []
+            cursors: list[str] = []
+            next_url: str | None = "/v1/slides?limit=5"
+            while next_url is not None:
+                response = http.get(next_url)
+                assert response.status_code == 200
+                listed = response.json()
+                assert isinstance(listed, list)
+                pages.append([slide["id"] for slide in listed])
+                cursor = response.headers.get(NEXT_CURSOR_HEADER)
+                if cursor is None:
+                    assert "link" not in response.headers  # the last page: no next
+                    next_url = None
+                else:
+                    next_url = f"/v1/slides?limit=5&cursor={cursor}"
+                    assert response.headers["link"] == f'<{next_url}>; rel="next"'
+                    assert response.links["next"]["url"] == next_url
+                    cursors.append(cursor)
             assert [len(ids) for ids in pages] == [5, 5, 5, 5, 1]  # no empty last page
             # oldest first, none twice, none missed
             assert [slide_id for ids in pages for slide_id in ids] == created
-            listed = list(estimator.iter_slides(page_size=5))
-            assert [s.id for s in listed] == created
-            for summary in listed:
+            default = http.get("/v1/slides")  # one page of 100 at most: all 21, no next
+            assert [slide["id"] for slide in default.json()] == created
+            assert "link" not in default.headers and NEXT_CURSOR_HEADER not in default.headers
+            for query in ({"limit": 0}, {"limit": 1001}, {"cursor": "not-a-cursor"}):
+                refused = http.get("/v1/slides", params=query)
+                assert refused.status_code == 422, query
+                assert refused.json()["detail"][0]["loc"][0] == "query"
+
+        with EstimatorClient(url) as estimator:
+            page = estimator.list_slides_page(limit=5)
+            client_pages, client_cursors = [[s.id for s in page.slides]], []
+            while page.next_cursor is not None:
+                client_cursors.append(page.next_cursor)
+                page = estimator.list_slides_page(limit=5, cursor=page.next_cursor)
+                client_pages.append([s.id for s in page.slides])
+            assert (client_pages, client_cursors) == (pages, cursors)
+            assert [s.id for s in estimator.iter_slides(page_size=5)] == created
+            listed_slides = estimator.list_slides()  # every page, as before pages
+            assert [s.id for s in listed_slides] == created
+            for summary in listed_slides:
                 params = summary.config.params
                 assert all(
                     len(value) <= MAX_LISTED_VALUES
@@ -173,15 +215,16 @@ def test_21_slides_are_listed_5_at_a_time_without_their_maps(tmp_path: Path) -> 
                 with_map = summary.config.strategy == "kf-rescan"
                 assert summary.omitted_params == ([PRIOR_MAP_PARAM] if with_map else [])
                 assert params.get(PRIOR_SIGMA_PARAM) == ([0.1] if with_map else None)
-            # the slide itself still has its map
-            assert estimator.slide(created[3]).config.params[PRIOR_MAP_PARAM] == [3.0] * 25
-        with httpx.Client(base_url=url) as http:
-            default = http.get("/v1/slides").json()
-            assert len(default["slides"]) == 21 and default["next_cursor"] is None
-            for query in ({"limit": 0}, {"limit": 1001}, {"cursor": "not-a-cursor"}):
-                refused = http.get("/v1/slides", params=query)
-                assert refused.status_code == 422, query
-                assert refused.json()["detail"][0]["loc"][0] == "query"
+
+        async def listed_async() -> tuple[SlidePage, list[str], list[str]]:
+            async with AsyncEstimatorClient(url) as estimator:
+                first = await estimator.list_slides_page(limit=5)
+                walked = [s.id async for s in estimator.iter_slides(page_size=5)]
+                return first, walked, [s.id for s in await estimator.list_slides()]
+
+        first, walked, every = asyncio.run(listed_async())
+        assert [s.id for s in first.slides] == pages[0] and first.next_cursor == cursors[0]
+        assert walked == every == created
 
 
 def test_a_prior_map_has_its_own_body_limit_and_every_other_route_keeps_its(

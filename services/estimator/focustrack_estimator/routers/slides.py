@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from typing import Annotated
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 
@@ -17,6 +18,19 @@ router = APIRouter(prefix="/v1", tags=["slides"])
 
 #: The OpenAPI schema of a body that is a file.
 _FILE = {"type": "string", "format": "binary"}
+
+#: The headers of a page of the slide listing that is not the last (OpenAPI).
+_PAGE_HEADERS = {
+    "Link": {
+        "description": 'The next page, RFC 8288: `</v1/slides?limit=L&cursor=C>; rel="next"`; '
+        "absent on the last page",
+        "schema": {"type": "string"},
+    },
+    api.NEXT_CURSOR_HEADER: {
+        "description": "The next page's `cursor`, opaque; absent on the last page",
+        "schema": {"type": "string"},
+    },
+}
 
 
 def _slide_out(record: SlideRecord) -> api.Slide:
@@ -59,8 +73,18 @@ async def create_slide(config: api.SlideCreate, slides: SlidesDep) -> api.Slide:
     return _slide_out(await slides.record(slide_id))
 
 
-@router.get("/slides")
+@router.get(
+    "/slides",
+    responses={
+        200: {
+            "description": "The page's slides; the next page's URL and cursor in headers",
+            "headers": _PAGE_HEADERS,
+        }
+    },
+)
 async def list_slides(
+    request: Request,
+    response: Response,
     slides: SlidesDep,
     limit: Annotated[
         int, Query(ge=1, le=api.MAX_PAGE_SLIDES, description="Most slides on the page")
@@ -69,17 +93,19 @@ async def list_slides(
         str | None,
         Query(max_length=512, description="The previous page's `next_cursor`; none: the first"),
     ] = None,
-) -> api.SlidePage:
+) -> list[api.SlideSummary]:
     """A page of slides, oldest first: each one's configuration without large arrays (a
-    prior map: `omitted_params` names them) and its progress."""
+    prior map: `omitted_params` names them) and its progress. Unless it is the last page,
+    the `Link` header (rel="next") has the next page's URL and `X-Next-Cursor` its cursor."""
     after = None if cursor is None else decode_cursor(cursor)
     records = await slides.page(after, limit + 1)  # one more: is there a next page?
     page = records[:limit]
-    more = len(records) > limit
-    return api.SlidePage(
-        slides=[_summary(record) for record in page],
-        next_cursor=encode_cursor(page[-1].created_s, page[-1].id) if more else None,
-    )
+    if len(records) > limit:
+        next_cursor = encode_cursor(page[-1].created_s, page[-1].id)
+        query = urlencode({"limit": limit, "cursor": next_cursor})
+        response.headers["Link"] = f'<{request.url.path}?{query}>; rel="next"'
+        response.headers[api.NEXT_CURSOR_HEADER] = next_cursor
+    return [_summary(record) for record in page]
 
 
 @router.get("/slides/{slide_id}")
