@@ -14,7 +14,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from focustrack_client.client import AsyncEstimatorClient, EstimatorClient
+    from focustrack_client.client import AsyncEstimatorClient, EstimatorClient, SlidePage
     from focustrack_client.errors import (
         ConflictError,
         EstimatorError,
@@ -32,6 +32,7 @@ if TYPE_CHECKING:
 _HOMES = {
     "AsyncEstimatorClient": "client",
     "EstimatorClient": "client",
+    "SlidePage": "client",
     "ConflictError": "errors",
     "EstimatorError": "errors",
     "InvalidRequestError": "errors",
@@ -60,6 +61,7 @@ __all__ = [
     "SlideCreate",
     "SlideLogCorruptError",
     "SlideNotFoundError",
+    "SlidePage",
     "StorageFullError",
     "UnauthorizedError",
     "ZRangePolicy",

@@ -18,16 +18,17 @@ reply); the two clients differ only in how they send it.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Generic, Literal, Self, TypeVar
+from typing import Generic, Literal, NamedTuple, Self, TypeVar
 
 import httpx
 from pydantic import BaseModel, TypeAdapter
 
 from focustrack_client.errors import raise_for_error
 from focustrack_client.models import (
+    NEXT_CURSOR_HEADER,
     Diagnostics,
     FocusMapOut,
     Health,
@@ -36,30 +37,48 @@ from focustrack_client.models import (
     OutcomeOut,
     Slide,
     SlideCreate,
+    SlideSummary,
 )
 
 #: Formats of `GET /v1/slides/{id}/map` other than JSON, as raw bytes.
 MapFormat = Literal["csv", "npy", "png"]
 
-_SLIDES = TypeAdapter(list[Slide])
+#: The media type of a file sent as a body (a prior map's .npy), as the map's is served.
+FILE_MEDIA_TYPE = "application/octet-stream"
+
+_SUMMARIES = TypeAdapter(list[SlideSummary])
 
 T = TypeVar("T")
 M = TypeVar("M", bound=BaseModel)
 
 
+class SlidePage(NamedTuple):
+    """One page of the slide listing: its slides, oldest first, and the cursor of the next
+    page (None on the last), which the service sends in a header beside the JSON array."""
+
+    slides: list[SlideSummary]
+    next_cursor: str | None
+
+
 @dataclass(frozen=True)
 class _Call(Generic[T]):
-    """One request and how to read its reply (`read` gets the successful response)."""
+    """One request and how to read its reply (`read` gets the successful response). `body`:
+    a model (sent as JSON) or a file's bytes."""
 
     method: str
     path: str
     read: Callable[[httpx.Response], T]
-    body: BaseModel | None = None
+    body: BaseModel | bytes | None = None
     params: dict[str, str] = field(default_factory=dict)
 
     def request(self, http: httpx.Client | httpx.AsyncClient) -> httpx.Request:
-        content = None if self.body is None else self.body.model_dump_json(exclude_unset=False)
-        headers = {"Content-Type": "application/json"} if content is not None else {}
+        content: str | bytes | None = None
+        headers: dict[str, str] = {}
+        if isinstance(self.body, bytes):
+            content, headers = self.body, {"Content-Type": FILE_MEDIA_TYPE}
+        elif self.body is not None:
+            content = self.body.model_dump_json(exclude_unset=False)
+            headers = {"Content-Type": "application/json"}
         return http.build_request(
             self.method, self.path, content=content, params=self.params, headers=headers
         )
@@ -71,6 +90,11 @@ class _Call(Generic[T]):
 
 def _model(model: type[M]) -> Callable[[httpx.Response], M]:
     return lambda response: model.model_validate_json(response.content)
+
+
+def _slide_page(response: httpx.Response) -> SlidePage:
+    cursor = response.headers.get(NEXT_CURSOR_HEADER)
+    return SlidePage(_SUMMARIES.validate_json(response.content), cursor)
 
 
 def _nothing(_: httpx.Response) -> None:
@@ -89,12 +113,19 @@ class _Endpoints:
         return _Call("POST", "/v1/slides", _model(Slide), body=config)
 
     @staticmethod
-    def list_slides() -> _Call[list[Slide]]:
-        return _Call("GET", "/v1/slides", lambda r: _SLIDES.validate_json(r.content))
+    def list_slides_page(limit: int | None, cursor: str | None) -> _Call[SlidePage]:
+        params = {"limit": str(limit)} if limit is not None else {}
+        if cursor is not None:
+            params["cursor"] = cursor
+        return _Call("GET", "/v1/slides", _slide_page, params=params)
 
     @staticmethod
     def slide(slide_id: str) -> _Call[Slide]:
         return _Call("GET", f"/v1/slides/{slide_id}", _model(Slide))
+
+    @staticmethod
+    def put_prior(slide_id: str, npy: bytes) -> _Call[None]:
+        return _Call("PUT", f"/v1/slides/{slide_id}/prior", _nothing, body=npy)
 
     @staticmethod
     def delete_slide(slide_id: str) -> _Call[None]:
@@ -170,11 +201,32 @@ class EstimatorClient:
         """A new slide, scanned as `config` says; its id is `.id`."""
         return self._send(_Endpoints.create_slide(config))
 
-    def list_slides(self) -> list[Slide]:
-        return self._send(_Endpoints.list_slides())
+    def list_slides(self) -> list[SlideSummary]:
+        """Every slide, oldest first (every page of the listing, `iter_slides`)."""
+        return list(self.iter_slides())
+
+    def list_slides_page(self, limit: int | None = None, cursor: str | None = None) -> SlidePage:
+        """One page of slides, oldest first (`limit` of them, the service's default if
+        None), from `cursor` (the previous page's `next_cursor`; None: the first page)."""
+        return self._send(_Endpoints.list_slides_page(limit, cursor))
+
+    def iter_slides(self, page_size: int | None = None) -> Iterator[SlideSummary]:
+        """Every slide, oldest first, fetched a page of `page_size` at a time (the
+        service's default if None) as the iteration reaches it."""
+        cursor: str | None = None
+        while True:
+            page = self.list_slides_page(page_size, cursor)
+            yield from page.slides
+            if (cursor := page.next_cursor) is None:
+                return
 
     def slide(self, slide_id: str) -> Slide:
         return self._send(_Endpoints.slide(slide_id))
+
+    def put_prior(self, slide_id: str, npy: bytes) -> None:
+        """Make the .npy file `npy` the prior map of a slide not yet scanned (kf-rescan):
+        heights (rows, cols), or heights and their sigmas (2, rows, cols), um."""
+        self._send(_Endpoints.put_prior(slide_id, npy))
 
     def delete_slide(self, slide_id: str) -> None:
         self._send(_Endpoints.delete_slide(slide_id))
@@ -235,11 +287,28 @@ class AsyncEstimatorClient:
     async def create_slide(self, config: SlideCreate) -> Slide:
         return await self._send(_Endpoints.create_slide(config))
 
-    async def list_slides(self) -> list[Slide]:
-        return await self._send(_Endpoints.list_slides())
+    async def list_slides(self) -> list[SlideSummary]:
+        return [slide async for slide in self.iter_slides()]
+
+    async def list_slides_page(
+        self, limit: int | None = None, cursor: str | None = None
+    ) -> SlidePage:
+        return await self._send(_Endpoints.list_slides_page(limit, cursor))
+
+    async def iter_slides(self, page_size: int | None = None) -> AsyncIterator[SlideSummary]:
+        cursor: str | None = None
+        while True:
+            page = await self.list_slides_page(page_size, cursor)
+            for slide in page.slides:
+                yield slide
+            if (cursor := page.next_cursor) is None:
+                return
 
     async def slide(self, slide_id: str) -> Slide:
         return await self._send(_Endpoints.slide(slide_id))
+
+    async def put_prior(self, slide_id: str, npy: bytes) -> None:
+        await self._send(_Endpoints.put_prior(slide_id, npy))
 
     async def delete_slide(self, slide_id: str) -> None:
         await self._send(_Endpoints.delete_slide(slide_id))

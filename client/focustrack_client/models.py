@@ -54,6 +54,21 @@ MAX_FRAMES = 1001
 #: the filters' covariances singular.
 MIN_SIGMA_UM = 1e-3
 
+#: The strategy parameters that carry a slide's prior map (kf-rescan): its heights and their
+#: sigmas, um, row after row. `PUT /v1/slides/{id}/prior` sets them from an .npy file.
+PRIOR_MAP_PARAM = "prior_map_um"
+PRIOR_SIGMA_PARAM = "prior_map_sigma_um"
+
+#: Slides per page of `GET /v1/slides`: by default, and at most.
+DEFAULT_PAGE_SLIDES = 100
+MAX_PAGE_SLIDES = 1000
+#: The header of a page of `GET /v1/slides` that holds the cursor of the next page (absent
+#: on the last page), beside the `Link: <...>; rel="next"` header (RFC 8288) with its URL.
+NEXT_CURSOR_HEADER = "X-Next-Cursor"
+#: Most values a list parameter may hold to be shown in the slide listing: a longer one
+#: (a prior map) is left out of it and named in `omitted_params`.
+MAX_LISTED_VALUES = 16
+
 Height = Annotated[float, Field(ge=-MAX_ABS_UM, le=MAX_ABS_UM)]
 Length = Annotated[float, Field(gt=0, le=MAX_ABS_UM)]
 Sigma = Annotated[float, Field(ge=MIN_SIGMA_UM, le=MAX_ABS_UM)]
@@ -141,6 +156,16 @@ class Slide(BaseModel):
     done: bool = Field(description="True when every tile has been imaged")
     created_unix_s: float
     updated_unix_s: float
+
+
+class SlideSummary(Slide):
+    """A slide as the listing shows it: its configuration without large arrays, and progress."""
+
+    omitted_params: list[str] = Field(
+        default_factory=list,
+        description=f"Parameters left out of `config.params` for holding more than "
+        f"{MAX_LISTED_VALUES} values (a prior map): `GET /v1/slides/{{id}}` has them",
+    )
 
 
 class Next(BaseModel):

@@ -2,9 +2,9 @@
 
 `create_app(store, settings)` builds the application over a store it is given
 (whoever opened the store closes it): its live slides, its metrics, the optional
-bearer-token check (off unless a token is configured), the request body limit and
-timeout, and the error replies (`handlers`). The routes are in `routers`, what they
-depend on in `dependencies`.
+bearer-token check (off unless a token is configured), the request body limits (a
+prior map's its own) and timeout, and the error replies (`handlers`). The routes are in
+`routers`, what they depend on in `dependencies`.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import copy
 import gc
+import re
 import threading
 import time
 from collections.abc import AsyncIterator
@@ -29,6 +30,7 @@ from focustrack_estimator.budget import Budget, GridLimits
 from focustrack_estimator.dependencies import require_token
 from focustrack_estimator.event_store import EventStore
 from focustrack_estimator.metrics import EstimatorMetrics
+from focustrack_estimator.prior import max_prior_bytes
 from focustrack_estimator.routers import maps, operations, scan, slides, strategies
 from focustrack_estimator.settings import EstimatorSettings
 from focustrack_estimator.slides import Slides, load_strategies, strategies_loaded
@@ -68,6 +70,27 @@ class _RequestMetrics:
             route = getattr(scope.get("route"), "path", "unmatched")  # the template, not the id
             self.metrics.requests.inc(method=scope["method"], route=route, status=str(status))
             self.metrics.latency.observe(time.perf_counter() - start_s, route=route)
+
+
+#: The one route whose body is a file, not JSON: a prior map (`prior`), under a limit of its own.
+_PRIOR_ROUTE = re.compile(r"/v1/slides/[^/]+/prior")
+
+
+class _BodyLimits:
+    """ASGI middleware: a PUT of a prior map may be as large as the largest grid's map and
+    its sigmas (`max_prior_bytes`); every other request body `max_bytes` (the settings')."""
+
+    def __init__(self, app: ASGIApp, *, max_bytes: int, max_prior_bytes: int) -> None:
+        def error_body(detail: str) -> dict[str, str]:
+            return {"code": api.ErrorCode.PAYLOAD_TOO_LARGE, "detail": detail}
+
+        self.default = BodyLimit(app, max_bytes=max_bytes, error_body=error_body)
+        self.prior = BodyLimit(app, max_bytes=max_prior_bytes, error_body=error_body)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        prior = scope["type"] == "http" and scope["method"] == "PUT"
+        limit = self.prior if prior and _PRIOR_ROUTE.fullmatch(scope["path"]) else self.default
+        await limit(scope, receive, send)
 
 
 def create_app(
@@ -131,9 +154,9 @@ def create_app(
     for router in (slides.router, scan.router, maps.router, strategies.router):
         app.include_router(router, dependencies=token, responses=handlers.ERROR_RESPONSES)
     app.add_middleware(
-        BodyLimit,
+        _BodyLimits,
         max_bytes=settings.max_body_bytes,
-        error_body=lambda detail: {"code": api.ErrorCode.PAYLOAD_TOO_LARGE, "detail": detail},
+        max_prior_bytes=max_prior_bytes(settings.max_grid_tiles),
     )
     timeout = f"the request body did not arrive within {settings.body_timeout_s:g} s"
     app.add_middleware(

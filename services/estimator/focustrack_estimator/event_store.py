@@ -126,7 +126,18 @@ class EventStore(Protocol):
         """Every slide, oldest first."""
         ...
 
+    def slides_after(self, after: tuple[float, str] | None, limit: int) -> list[SlideRecord]:
+        """At most `limit` slides, oldest first (by creation time, then id), those after
+        `after` (a slide's (created_s, id)) only when given: one page of the listing."""
+        ...
+
     def count_slides(self) -> int: ...
+
+    def replace_config(self, slide_id: str, config: dict[str, Any]) -> None:
+        """Replace the configuration of a slide whose log is empty, and forget its snapshot
+        (a state of the configuration replaced), atomically. SequenceConflictError if
+        events are logged, StoreError if there is no such slide."""
+        ...
 
     def delete_slide(self, slide_id: str) -> bool:
         """Forget a slide, its log and its snapshot; False if there was no such slide."""

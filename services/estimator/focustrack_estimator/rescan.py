@@ -56,7 +56,8 @@ DEFAULT_MAP_SIGMA_UM = 0.05
 
 #: Lists of numbers, as the REST API's parameters are (any length, possibly empty).
 Heights = Annotated[tuple[float, ...], Strict(False)]
-Sigmas = Annotated[tuple[Annotated[float, Field(ge=0.0)], ...], Strict(False)]
+#: A sigma of zero would claim a tile's height exactly known (its gain 0 with no local change).
+Sigmas = Annotated[tuple[Annotated[float, Field(gt=0.0)], ...], Strict(False)]
 
 
 class KfRescanParams(FilterParams):
@@ -72,7 +73,7 @@ class KfRescanParams(FilterParams):
     )
     prior_map_sigma_um: Sigmas = Field(
         (),
-        description="Its sigma, um: a map likewise, or one for every tile (none: "
+        description="Its sigma, um, each positive: a map likewise, or one for every tile (none: "
         f"{DEFAULT_MAP_SIGMA_UM} um, what kf-2d's smoothed map has on the demo slide)",
     )
     local_sigma_um: float = Field(

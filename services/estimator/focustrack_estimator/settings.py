@@ -30,7 +30,12 @@ class EstimatorSettings(ServiceSettings):
     insecure: bool = Field(
         False, description="serve without a token on a non-loopback address (refused otherwise)"
     )
-    max_body_bytes: int = Field(64 * 1024, ge=1, description="largest request body accepted")
+    max_body_bytes: int = Field(
+        64 * 1024,
+        ge=1,
+        description="largest request body accepted (a prior map's .npy: its own limit, the "
+        "largest grid's map and sigmas)",
+    )
     max_grid_side: int = Field(
         500, ge=1, description="most tiles per side a slide's grid may have (larger: 422)"
     )

@@ -127,6 +127,63 @@ class Slide:
     ) -> Slide:
         """A new slide, checked (grid, budget, parameters, a trial scan) and then stored
         with its parameters resolved; a SlideError says what is wrong."""
+        slide = cls._checked(
+            slide_id,
+            config,
+            store,
+            limits=limits,
+            budget=budget,
+            snapshot_every=snapshot_every,
+            timer=timer,
+            catalogue=catalogue,
+        )
+        store.create_slide(slide_id, slide.config.model_dump(mode="json"))
+        return slide
+
+    @classmethod
+    def reconfigured(
+        cls,
+        slide_id: str,
+        config: api.SlideCreate,
+        store: EventStore,
+        *,
+        limits: GridLimits,
+        budget: Budget,
+        snapshot_every: int,
+        timer: Callable[[float], None] = _untimed,
+        catalogue: registry.Catalogue | None = None,
+    ) -> Slide:
+        """Stored slide `slide_id`, whose log is empty, with a new `config` (its prior map
+        uploaded), checked as a new slide is; the store's SequenceConflictError if events
+        were logged since."""
+        slide = cls._checked(
+            slide_id,
+            config,
+            store,
+            limits=limits,
+            budget=budget,
+            snapshot_every=snapshot_every,
+            timer=timer,
+            catalogue=catalogue,
+        )
+        store.replace_config(slide_id, slide.config.model_dump(mode="json"))
+        return slide
+
+    @classmethod
+    def _checked(
+        cls,
+        slide_id: str,
+        config: api.SlideCreate,
+        store: EventStore,
+        *,
+        limits: GridLimits,
+        budget: Budget,
+        snapshot_every: int,
+        timer: Callable[[float], None],
+        catalogue: registry.Catalogue | None,
+    ) -> Slide:
+        """A slide of `config`, checked (grid, budget, parameters, a trial scan), its
+        parameters resolved, not stored."""
         strategies = served(catalogue)
         limits.check(config.grid)
         params = resolved_params(config, strategies)  # once, for all that follows
@@ -144,7 +201,6 @@ class Slide:
             catalogue=strategies,
         )
         probe(config, params, strategies)
-        store.create_slide(slide_id, config.model_dump(mode="json"))
         return slide
 
     @classmethod

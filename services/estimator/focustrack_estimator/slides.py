@@ -45,6 +45,7 @@ from focustrack_estimator.event_store import (
     StoreError,
 )
 from focustrack_estimator.memory import release_memory
+from focustrack_estimator.prior import BODY_LOC, decode_prior, takes_prior, with_prior
 
 if TYPE_CHECKING:
     from focustrack_estimator.registry import Catalogue
@@ -195,9 +196,10 @@ class Slides:
             raise SlideNotFoundError(f"no slide {slide_id!r}")
         return record
 
-    async def records(self) -> list[SlideRecord]:
-        """Every slide's stored configuration and progress, oldest first."""
-        return await asyncio.to_thread(self.store.slides)
+    async def page(self, after: tuple[float, str] | None, limit: int) -> list[SlideRecord]:
+        """At most `limit` slides' stored configuration and progress, oldest first, after
+        the slide created at `after` (created_s, id) only when given."""
+        return await asyncio.to_thread(self.store.slides_after, after, limit)
 
     async def count(self) -> int:
         """How many slides the store holds."""
@@ -270,6 +272,47 @@ class Slides:
             discarded=self._discarded,
         )
 
+    async def set_prior(self, slide_id: str, npy: bytes) -> None:
+        """Make the .npy file `npy` the prior map of a slide not yet scanned (`prior`):
+        SlideNotFoundError, SlideConflictError once an acquisition is recorded, SlideError
+        for a strategy without a prior map or a map that does not fit the slide."""
+        async with self._lock(slide_id):
+            try:
+                slide = await asyncio.to_thread(self._with_prior, slide_id, npy)
+            except SlideNotFoundError:
+                self._locks.pop(slide_id, None)  # keep no lock for ids that do not exist
+                raise
+            except SequenceConflictError as error:  # another service on the store measured
+                raise _not_before_the_first(slide_id, error.current) from None
+            self._keep(slide)
+        await self._evict()
+
+    def _with_prior(self, slide_id: str, npy: bytes) -> Slide:
+        record = self.store.slide(slide_id)
+        if record is None:
+            raise SlideNotFoundError(f"no slide {slide_id!r}")
+        if record.n_events:
+            raise _not_before_the_first(slide_id, record.n_events)
+        config = api.SlideCreate.model_validate(record.config)
+        takes = [name for name, entry in self.catalogue().strategies.items() if takes_prior(entry)]
+        if config.strategy not in takes:
+            raise SlideError(
+                f"slide {slide_id} is scanned with {config.strategy!r}, which takes no prior "
+                f"map; {', '.join(takes) or 'no strategy served'} does",
+                BODY_LOC,
+            )
+        prior = decode_prior(npy, config.grid.rows, config.grid.cols)
+        return load_strategies().reconfigured(
+            slide_id,
+            with_prior(config, prior),
+            self.store,
+            limits=self.limits,
+            budget=self.budget,
+            snapshot_every=self.snapshot_every,
+            timer=self._timer,
+            catalogue=self._catalogue,
+        )
+
     def save_snapshots(self) -> None:
         """Snapshot every live slide that has events since its last snapshot (at shutdown)."""
         for slide in list(self._live.values()):
@@ -282,3 +325,10 @@ class Slides:
             if self._live.pop(slide_id, None) is not None:
                 await asyncio.to_thread(release_memory)
         self._locks.pop(slide_id, None)
+
+
+def _not_before_the_first(slide_id: str, n_events: int) -> SlideConflictError:
+    return SlideConflictError(
+        f"slide {slide_id} has {n_events} acquisitions recorded: its prior map can only be "
+        "set before the first (create a new slide to scan with another)"
+    )

@@ -302,6 +302,18 @@ class SQLiteStore:
             ).fetchall()
         return [_slide_record(row) for row in rows]
 
+    def slides_after(self, after: tuple[float, str] | None, limit: int) -> list[SlideRecord]:
+        """At most `limit` slides, oldest first, those after `after` (created_s, id) only."""
+        # The first page: after every slide (no creation time is below -inf).
+        created_s, slide_id = after if after is not None else (float("-inf"), "")
+        with self._connection() as db:
+            rows = db.execute(
+                "SELECT id, config, created_s, updated_s, n_events, n_accepted, done "
+                "FROM slides WHERE (created_s, id) > (?, ?) ORDER BY created_s, id LIMIT ?",
+                (created_s, slide_id, limit),
+            ).fetchall()
+        return [_slide_record(row) for row in rows]
+
     def count_slides(self) -> int:
         with self._connection() as db:
             return db.execute("SELECT count(*) FROM slides").fetchone()[0]
@@ -438,6 +450,29 @@ class SQLiteStore:
                 "its checksum"
             )
         return Snapshot(n_events, state)
+
+    def replace_config(self, slide_id: str, config: dict[str, Any]) -> None:
+        """Replace the configuration of a slide whose log is empty and forget its snapshot,
+        in one transaction; SequenceConflictError if events are logged, StoreError if there
+        is no such slide."""
+        with self._connection() as db:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                row = db.execute("SELECT n_events FROM slides WHERE id = ?", (slide_id,)).fetchone()
+                if row is None:
+                    raise StoreError(f"no slide {slide_id!r}")
+                if row[0] != 0:
+                    raise SequenceConflictError(slide_id, 0, row[0])
+                db.execute(
+                    "UPDATE slides SET config = ?, updated_s = ? WHERE id = ?",
+                    (json.dumps(config), time.time(), slide_id),
+                )
+                db.execute("DELETE FROM snapshots WHERE slide_id = ?", (slide_id,))
+            except BaseException:
+                if db.in_transaction:
+                    db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
 
     def events(self, slide_id: str, start: int = 0) -> list[Event]:
         """The slide's log in sequence order, from sequence `start` on."""

@@ -47,8 +47,9 @@ def test_create_list_get_delete(app: FastAPI) -> None:
         async with client(app) as http:
             first = await create(http, "kf-wiener1-dir", params={"q": 0.01}, label="slide 7")
             second = await create(http, "survey-delaunay")
-            listed = (await http.get("/v1/slides")).json()
-            assert [s["id"] for s in listed] == [first, second]
+            listed = await http.get("/v1/slides")
+            assert [s["id"] for s in listed.json()] == [first, second]
+            assert "link" not in listed.headers and "x-next-cursor" not in listed.headers
             slide = (await http.get(f"/v1/slides/{first}")).json()
             # Omitted parameters are resolved to the strategy's defaults, and stored.
             assert slide["config"]["params"] == {

@@ -61,6 +61,7 @@ from focustrack_scheduler.plan import (
     PostMeasurement,
     SlideGeometry,
     execute,
+    prior_upload,
 )
 from focustrack_scheduler.record import ScanRecord
 
@@ -402,9 +403,13 @@ class Engine:
                 )
             log.info("resuming estimator slide %s", slide_id)
             return slide_id
-        slide = self.estimator_call(
-            "the new slide", lambda: self.estimator.create_slide(step.config)
-        )
+        config, prior_npy = prior_upload(step.config)
+        slide = self.estimator_call("the new slide", lambda: self.estimator.create_slide(config))
+        if prior_npy is not None:  # before the state names the slide: a resumed scan has it
+            self.estimator_call(
+                f"the prior map of slide {slide.id}",
+                lambda: self.estimator.put_prior(slide.id, prior_npy),
+            )
         self.record.state.save(slide_id=slide.id)
         return slide.id
 

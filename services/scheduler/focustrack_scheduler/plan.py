@@ -11,9 +11,9 @@ The loop (docs/scheduler.md):
 
 1. `DescribeSlide`: the slide's tile grid and the objective's depth of field,
    from the instrument;
-2. `CreateOrResumeSlide`: a new slide at the estimator, or the one a previous
-   run of this scan created (a restarted scheduler resumes; the estimator's
-   `/next` says where);
+2. `CreateOrResumeSlide`: a new slide at the estimator (its prior map, if any, uploaded
+   as a file: `prior_upload`), or the one a previous run of this scan created (a
+   restarted scheduler resumes; the estimator's `/next` says where);
 3. until the estimator says `done`: `AskNext`, `Acquire` the z-stack it names,
    `AwaitFocus` for the focus service's result of that stack (not when the
    acquisition only images the tile), `KeepTile` the frame nearest the measured
@@ -34,10 +34,13 @@ up to `ScanRequest.focus_attempts` times, and then the scan stops with
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Callable, Generator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 from focustrack_client import models as api
 from focustrack_core.domain import (
@@ -218,6 +221,31 @@ def slide_config(request: ScanRequest, geometry: SlideGeometry) -> api.SlideCrea
         policy=request.policy,
     )
     return to_api.slide_create(request.strategy, settings, request.params)
+
+
+def prior_upload(config: api.SlideCreate) -> tuple[api.SlideCreate, bytes | None]:
+    """`config` without its prior map, and that map as the .npy file the estimator takes
+    after creation (`PUT /v1/slides/{id}/prior`); None and `config` itself when it has none.
+
+    A map (kf-rescan's `prior_map_um`, rows x cols heights, with `prior_map_sigma_um`
+    when those are a map too) makes a large JSON body, over the estimator's limit for a
+    creation from about 40 x 40 tiles; as an .npy file it has a limit of its own. One
+    sigma for every tile stays a parameter; a map that does not fit the grid stays too,
+    for the estimator to refuse in its own words.
+    """
+    params = dict(config.params)
+    map_um = params.get(api.PRIOR_MAP_PARAM)
+    rows, cols = config.grid.rows, config.grid.cols
+    if not isinstance(map_um, list) or len(map_um) != rows * cols:
+        return config, None
+    layers = [params.pop(api.PRIOR_MAP_PARAM)]
+    sigma_um = params.get(api.PRIOR_SIGMA_PARAM)
+    if isinstance(sigma_um, list) and len(sigma_um) == len(map_um):
+        layers.append(params.pop(api.PRIOR_SIGMA_PARAM))
+    stack = np.asarray(layers, dtype=np.float64).reshape(len(layers), rows, cols)
+    npy = io.BytesIO()
+    np.save(npy, stack if len(layers) == 2 else stack[0])
+    return config.model_copy(update={"params": params}), npy.getvalue()
 
 
 def measurement_of(result: focus_pb2.FocusResult) -> Measurement:

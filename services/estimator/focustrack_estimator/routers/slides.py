@@ -1,14 +1,36 @@
-"""Slides: create, list, read and delete them (under /v1)."""
+"""Slides: create, list (a page at a time), read and delete them, and upload a prior map
+(under /v1)."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from typing import Annotated
+from urllib.parse import urlencode
+
+from fastapi import APIRouter, HTTPException, Query, Request, Response
 
 from focustrack_client import models as api
 from focustrack_estimator.dependencies import SlideId, SlidesDep
 from focustrack_estimator.event_store import SlideRecord
+from focustrack_estimator.paging import decode_cursor, encode_cursor
+from focustrack_estimator.prior import PRIOR_MEDIA_TYPE
 
 router = APIRouter(prefix="/v1", tags=["slides"])
+
+#: The OpenAPI schema of a body that is a file.
+_FILE = {"type": "string", "format": "binary"}
+
+#: The headers of a page of the slide listing that is not the last (OpenAPI).
+_PAGE_HEADERS = {
+    "Link": {
+        "description": 'The next page, RFC 8288: `</v1/slides?limit=L&cursor=C>; rel="next"`; '
+        "absent on the last page",
+        "schema": {"type": "string"},
+    },
+    api.NEXT_CURSOR_HEADER: {
+        "description": "The next page's `cursor`, opaque; absent on the last page",
+        "schema": {"type": "string"},
+    },
+}
 
 
 def _slide_out(record: SlideRecord) -> api.Slide:
@@ -23,6 +45,27 @@ def _slide_out(record: SlideRecord) -> api.Slide:
     )
 
 
+def _summary(record: SlideRecord) -> api.SlideSummary:
+    """The slide without its list parameters of more than `api.MAX_LISTED_VALUES` values."""
+    params: dict[str, api.ParamValue] = record.config.get("params", {})
+    omitted = [
+        name
+        for name, value in params.items()
+        if isinstance(value, list) and len(value) > api.MAX_LISTED_VALUES
+    ]
+    kept = {name: value for name, value in params.items() if name not in omitted}
+    return api.SlideSummary(
+        id=record.id,
+        config=api.SlideCreate.model_validate({**record.config, "params": kept}),
+        n_acquisitions=record.n_events,
+        n_accepted=record.n_accepted,
+        done=record.done,
+        created_unix_s=record.created_s,
+        updated_unix_s=record.updated_s,
+        omitted_params=omitted,
+    )
+
+
 @router.post("/slides", status_code=201)
 async def create_slide(config: api.SlideCreate, slides: SlidesDep) -> api.Slide:
     """Create a slide scan; its strategy is built (and its parameters checked) at once."""
@@ -30,15 +73,73 @@ async def create_slide(config: api.SlideCreate, slides: SlidesDep) -> api.Slide:
     return _slide_out(await slides.record(slide_id))
 
 
-@router.get("/slides")
-async def list_slides(slides: SlidesDep) -> list[api.Slide]:
-    """Every slide with its configuration and progress, oldest first."""
-    return [_slide_out(record) for record in await slides.records()]
+@router.get(
+    "/slides",
+    responses={
+        200: {
+            "description": "The page's slides; the next page's URL and cursor in headers",
+            "headers": _PAGE_HEADERS,
+        }
+    },
+)
+async def list_slides(
+    request: Request,
+    response: Response,
+    slides: SlidesDep,
+    limit: Annotated[
+        int, Query(ge=1, le=api.MAX_PAGE_SLIDES, description="Most slides on the page")
+    ] = api.DEFAULT_PAGE_SLIDES,
+    cursor: Annotated[
+        str | None,
+        Query(max_length=512, description="The previous page's `next_cursor`; none: the first"),
+    ] = None,
+) -> list[api.SlideSummary]:
+    """A page of slides, oldest first: each one's configuration without large arrays (a
+    prior map: `omitted_params` names them) and its progress. Unless it is the last page,
+    the `Link` header (rel="next") has the next page's URL and `X-Next-Cursor` its cursor."""
+    after = None if cursor is None else decode_cursor(cursor)
+    records = await slides.page(after, limit + 1)  # one more: is there a next page?
+    page = records[:limit]
+    if len(records) > limit:
+        next_cursor = encode_cursor(page[-1].created_s, page[-1].id)
+        query = urlencode({"limit": limit, "cursor": next_cursor})
+        response.headers["Link"] = f'<{request.url.path}?{query}>; rel="next"'
+        response.headers[api.NEXT_CURSOR_HEADER] = next_cursor
+    return [_summary(record) for record in page]
 
 
 @router.get("/slides/{slide_id}")
 async def get_slide(slide_id: SlideId, slides: SlidesDep) -> api.Slide:
     return _slide_out(await slides.record(slide_id))
+
+
+@router.put(
+    "/slides/{slide_id}/prior",
+    status_code=204,
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {PRIOR_MEDIA_TYPE: {"schema": _FILE}},
+        }
+    },
+    responses={
+        415: {"model": api.Error, "description": "Not an .npy file's media type"},
+        422: {"model": api.Error, "description": "Not an .npy of the slide's grid, or bad values"},
+    },
+)
+async def put_prior(slide_id: SlideId, request: Request, slides: SlidesDep) -> Response:
+    """The slide's prior map (kf-rescan), before its first acquisition: an .npy file of
+    float64 or float32 heights, um, of shape (rows, cols), or (2, rows, cols) with their
+    sigmas. It replaces the `prior_map_um` (and `prior_map_sigma_um`) parameters."""
+    media = request.headers.get("content-type", "").partition(";")[0].strip().lower()
+    if media != PRIOR_MEDIA_TYPE:
+        raise HTTPException(
+            415,
+            f"the prior map is an .npy file sent as {PRIOR_MEDIA_TYPE}; "
+            f"got {media or 'no Content-Type'}",
+        )
+    await slides.set_prior(slide_id, await request.body())
+    return Response(status_code=204)
 
 
 @router.delete("/slides/{slide_id}", status_code=204)
