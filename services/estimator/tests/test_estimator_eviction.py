@@ -52,7 +52,7 @@ def test_idle_slides_are_evicted_and_reload_as_if_never_gone(tmp_path: Path) -> 
     url = f"http://127.0.0.1:{port}"
     try:
         body = {"strategy": "kf-2d", "grid": {"rows": 5, "cols": 6}}
-        ids = [httpx.post(f"{url}/v1/slides", json=body).json()["id"] for _ in range(4)]
+        ids = [httpx.post(f"{url}/v1/slides", json=body, timeout=60).json()["id"] for _ in range(4)]
         assert _live_slides(url) == 2
         # The first slide, long evicted, continues where it was; an identical slide that
         # stays in memory throughout gives the same outcomes, number for number.

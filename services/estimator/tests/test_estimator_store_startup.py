@@ -84,7 +84,7 @@ def _start_and_stop(path: Path) -> tuple[int, str]:
                     break
                 time.sleep(0.1)
         body = {"strategy": "kf-wiener0", "grid": {"rows": 3, "cols": 3}}
-        assert httpx.post(f"{url}/v1/slides", json=body).status_code == 201
+        assert httpx.post(f"{url}/v1/slides", json=body, timeout=60).status_code == 201
         process.send_signal(signal.SIGTERM)
         out, err = process.communicate(timeout=60)
     finally:
@@ -113,7 +113,9 @@ def test_sigterm_closes_the_store_and_checkpoints_its_wal(tmp_path: Path) -> Non
     port = free_port()
     process = spawn(path, port, timeout_s=120)
     url = f"http://127.0.0.1:{port}/v1/slides"
-    slide = httpx.post(url, json={"strategy": "kf-2d", "grid": {"rows": 4, "cols": 4}}).json()
+    slide = httpx.post(
+        url, json={"strategy": "kf-2d", "grid": {"rows": 4, "cols": 4}}, timeout=60
+    ).json()
     for _ in range(3):
         pending = httpx.get(f"{url}/{slide['id']}/next").json()
         measurement = {
