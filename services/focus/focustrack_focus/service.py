@@ -9,8 +9,12 @@ pressure to the publisher) instead of piling up without bound. Whole-stack messa
 (``focustrack/v1/zstack/...``) are for other subscribers; this service does not read them.
 REST: the FastAPI app of `app.py`, served by uvicorn on --host/--port.
 
-With ``--result-key-file`` every result carries an HMAC of it in its attachment, which
-the scheduler checks (`focustrack_core.wire.trust`, docs/security.md). The REST API
+Every result carries the nonce of its stack's acquisition (from the frames' header), and
+with ``--result-key-file`` an HMAC of it in its attachment, which the scheduler checks
+(`focustrack_core.wire.trust`, docs/security.md). With ``--frame-key-file`` only frame
+samples that carry the instrument's tag are scored; the others are dropped, logged and
+counted (`FrameAnalyser.n_untagged`), so frames published by anyone else never become
+a result. The REST API
 comes up at once; the Zenoh session is opened in the background and tried again until
 the router answers, so the service starts before the router (``/healthz`` says
 ``degraded`` until the session is open and linked).
@@ -33,6 +37,7 @@ import uvicorn
 import zenoh
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
+from google.protobuf.message import DecodeError
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
@@ -48,7 +53,7 @@ from focustrack_core.wire.session import (
     BackgroundSession,
     ZenohSettings,
 )
-from focustrack_core.wire.trust import ResultSigner, signer_of
+from focustrack_core.wire.trust import FrameSigner, ResultSigner, frame_signer_of, signer_of
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.metrics import METRICS
@@ -91,6 +96,7 @@ def result_message(
     if header is not None:
         message.sequence = header.sequence
         message.instrument = header.instrument
+        message.nonce = header.nonce
     if result is not None:
         message.metric = result.metric
         message.z_um.extend(result.z_um.tolist())
@@ -112,25 +118,41 @@ def result_message(
     return message
 
 
-#: A stack: the key of its frames, its sequence number and its simulated clock.
-StackId = tuple[str, int, float]
+#: A stack: the key of its frames, its sequence number, its simulated clock and the nonce
+#: of its acquisition.
+StackId = tuple[str, int, float, bytes]
+
+
+def stack_id(key: str, header: instrument_pb2.ZStackHeader) -> StackId:
+    """The stack of a frame on `key` whose header's stack is `header`."""
+    return (key, header.sequence, header.clock_s, header.nonce)
 
 
 class FrameAnalyser:
     """Frame samples in (whole, or in parts), a FocusResult out as soon as the last frame
     of a stack lands.
 
-    Stacks are told apart by their key, sequence number and simulated clock (an
+    Stacks are told apart by their key, sequence number, simulated clock and nonce (an
     acquisition taken again keeps its sequence); at most `max_open` incomplete stacks
     are kept (the oldest is dropped with a warning when a frame never comes). A frame
     that comes twice starts its stack over; one that cannot be read (or a part lost) ends
-    its stack with an error result.
+    its stack with an error result. With a `frame_signer`, a sample whose attachment
+    does not carry that key's tag of it is dropped before anything else (no result, not
+    even an error), logged and counted in `n_untagged`.
     """
 
-    def __init__(self, base: FocusSettings, na: float | None, max_open: int = OPEN_STACKS) -> None:
+    def __init__(
+        self,
+        base: FocusSettings,
+        na: float | None,
+        max_open: int = OPEN_STACKS,
+        frame_signer: FrameSigner | None = None,
+    ) -> None:
         self.base = base
         self.na = na
         self.max_open = max_open
+        self.frame_signer = frame_signer
+        self.n_untagged = 0  # frame samples dropped: their tag was missing or wrong
         self._open: OrderedDict[StackId, FrameByFrame] = OrderedDict()  # curves under way
         self._frames = FrameAssembler(max_open)  # frames in parts (a frame per stack at most)
         self._failed: OrderedDict[StackId, None] = OrderedDict()
@@ -143,17 +165,25 @@ class FrameAnalyser:
         """The stack's FocusResult when this frame completes it (or ends it in error), else
         None. ValueError only when the key names no tile (there is nowhere to answer)."""
         tile = keys.parse_zframe_key(key)
+        if self.frame_signer is not None and not self._tagged(key, payload, attachment):
+            self.n_untagged += 1
+            log.warning(
+                "frame sample on %s dropped (%d so far): no tag of the instrument's frame key",
+                key,
+                self.n_untagged,
+            )
+            return None
         header = None
         try:
             frame_header = zframe_header(attachment)
             header = frame_header.stack
-            stack_id = (key, header.sequence, header.clock_s)
-            if stack_id in self._failed:
+            stack = stack_id(key, header)
+            if stack in self._failed:
                 return None  # the stack was already answered with an error
             frame = self._frames.add(key, frame_header, payload)
             if frame is None:
                 return None  # a part of the frame: more to come
-            curve = self._open.get(stack_id)
+            curve = self._open.get(stack)
             if curve is not None and not np.isnan(curve.scores[frame_header.index]):
                 log.warning(
                     "frame %d on %s came again: stack started over", frame_header.index, key
@@ -163,12 +193,12 @@ class FrameAnalyser:
                 curve = FrameByFrame(
                     np.asarray(header.z_um), settings_for(header, self.base, self.na)
                 )
-                self._open[stack_id] = curve
+                self._open[stack] = curve
                 self._forget_oldest()
             curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
             if not curve.complete:
                 return None
-            del self._open[stack_id]
+            del self._open[stack]
             model = self._curve(tile.slide)
             result = curve.result(model)
             model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
@@ -176,12 +206,24 @@ class FrameAnalyser:
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)
             if header is not None:
-                stack_id = (key, header.sequence, header.clock_s)
-                self._open.pop(stack_id, None)
-                self._failed[stack_id] = None
+                stack = stack_id(key, header)
+                self._open.pop(stack, None)
+                self._failed[stack] = None
                 while len(self._failed) > self.max_open:
                     self._failed.popitem(last=False)
             return result_message(tile, header, error=f"{type(error).__name__}: {error}")
+
+    def _tagged(self, key: str, payload: bytes, attachment: bytes | None) -> bool:
+        """True when the sample's attachment is a frame header followed by the frame key's
+        tag of it and of `payload`."""
+        assert self.frame_signer is not None  # asked only then
+        if not attachment:
+            return False
+        try:
+            header = instrument_pb2.ZFrameHeader.FromString(attachment)
+        except DecodeError:
+            return False
+        return self.frame_signer.verify(key, header, attachment, payload)
 
     def _curve(self, slide: str) -> CurveModel:
         """The slide's curve model (a new one for a new slide; the oldest beyond CURVE_SLIDES
@@ -194,7 +236,7 @@ class FrameAnalyser:
 
     def _forget_oldest(self) -> None:
         while len(self._open) > self.max_open:
-            (key, sequence, _), curve = self._open.popitem(last=False)
+            (key, sequence, _, _), curve = self._open.popitem(last=False)
             missing = int(np.isnan(curve.scores).sum())
             log.warning("stack %d on %s dropped: %d frame(s) never came", sequence, key, missing)
 
@@ -208,9 +250,10 @@ class ZenohFocusWorker:
         settings: FocusSettings,
         na: float | None = None,
         signer: ResultSigner | None = None,
+        frame_signer: FrameSigner | None = None,
     ):
         self.session = session
-        self.analyser = FrameAnalyser(settings, na)
+        self.analyser = FrameAnalyser(settings, na, frame_signer=frame_signer)
         self.signer = signer
         self.n_published = 0
         self._subscriber = session.declare_subscriber(
@@ -276,6 +319,11 @@ class FocusServiceSettings(ZenohSettings):
         None,
         description="shared key: tag every result with its HMAC, for the scheduler to check "
         "(docs/security.md)",
+    )
+    frame_key_file: Path | None = Field(
+        None,
+        description="the instrument's frame key: score only frames tagged with it, drop and "
+        "count the others (docs/security.md)",
     )
     min_structure_snr: float = Field(
         FocusSettings.min_structure_snr,
@@ -374,17 +422,21 @@ def run(settings: FocusServiceSettings) -> int:
     try:
         settings.zenoh()  # a bad option or config file ends the command here, not later
         signer = signer_of(settings.result_key_file)
+        frame_signer = frame_signer_of(settings.frame_key_file)
     except ValueError as error:
         log.error("%s", error)
         return 2
     workers: list[ZenohFocusWorker] = []
     bus = BackgroundSession(
         lambda: settings.zenoh(ATTEMPT_TIMEOUT_S),
-        lambda session: workers.append(ZenohFocusWorker(session, focus, settings.stack_na, signer)),
+        lambda session: workers.append(
+            ZenohFocusWorker(session, focus, settings.stack_na, signer, frame_signer)
+        ),
     )
     log.info(
-        "focus service: zenoh %s -> %s/focus/... (results %s), http://%s:%d (metric %s)",
+        "focus service: zenoh %s (%s) -> %s/focus/... (results %s), http://%s:%d (metric %s)",
         ZFRAME_SUBSCRIPTION,
+        "any frames" if frame_signer is None else "tagged frames only",
         keys.PREFIX,
         "tagged" if signer is not None else "untagged",
         settings.host,
@@ -403,7 +455,13 @@ def run(settings: FocusServiceSettings) -> int:
             worker.close()
         bus.close()
         published = sum(worker.n_published for worker in workers)
-        log.info("published %d results in %.0f s", published, time.perf_counter() - started)
+        untagged = sum(worker.analyser.n_untagged for worker in workers)
+        log.info(
+            "published %d results in %.0f s; dropped %d untagged frame samples",
+            published,
+            time.perf_counter() - started,
+            untagged,
+        )
     return 0
 
 
