@@ -56,12 +56,17 @@ def same_stack(acquisition: Acquisition, row: int, col: int, z_um: list[float]) 
     )
 
 
-def refusal(acquisition: Acquisition, nonce: bytes, result: focus_pb2.FocusResult) -> str | None:
-    """Why `result` is not the focus result of `acquisition` taken under `nonce`, or None
-    when it is: same sequence, same nonce (compared in constant time), and its tile and
-    frames (or its tile and an error: a stack the focus service could not read)."""
+def refusal(
+    slide: str, acquisition: Acquisition, nonce: bytes, result: focus_pb2.FocusResult
+) -> str | None:
+    """Why `result` is not the focus result of `acquisition` of `slide` taken under
+    `nonce`, or None when it is: same slide and sequence, same nonce (compared in constant
+    time), and its tile and frames (or its tile and an error: a stack the focus service
+    could not read)."""
     if result.sequence != acquisition.index:
         return f"no acquisition {result.sequence} is awaited"
+    if result.slide != slide:
+        return f"slide {result.slide!r}, not {slide!r}"
     if not hmac.compare_digest(result.nonce, nonce):
         return "another acquisition's nonce: an old result replayed, or a stale one"
     if not (
@@ -200,20 +205,20 @@ class Inbox:
     """
 
     def __init__(self) -> None:
-        self._expected: dict[int, tuple[Acquisition, bytes]] = {}  # by sequence
+        self._expected: dict[int, tuple[str, Acquisition, bytes]] = {}  # by sequence
         self._taken: dict[int, focus_pb2.FocusResult] = {}
         self._changed = threading.Condition()
 
-    def expect(self, acquisition: Acquisition, nonce: bytes) -> None:
-        """Await the result of `acquisition` taken under `nonce` (instead of any earlier
-        take of it)."""
+    def expect(self, slide: str, acquisition: Acquisition, nonce: bytes) -> None:
+        """Await the result of `acquisition` of `slide` taken under `nonce` (instead of any
+        earlier take of it)."""
         with self._changed:
-            self._expected[acquisition.index] = (acquisition, nonce)
+            self._expected[acquisition.index] = (slide, acquisition, nonce)
             self._taken.pop(acquisition.index, None)
 
     def offer(self, result: focus_pb2.FocusResult) -> str | None:
         """None when `result` is taken, else why it is refused (not awaited, another nonce,
-        another tile, or a second copy)."""
+        slide or tile, or a second copy)."""
         with self._changed:
             expected = self._expected.get(result.sequence)
             if expected is None:

@@ -244,7 +244,7 @@ class Engine:
         """Acquire `acquisition`'s stack of `slide`, under a fresh nonce whose focus result
         alone the listener takes from now on; the z (um) of its frames."""
         request = acquire_request(slide, acquisition, new_nonce())
-        self.listener.focus.expect(acquisition, request.nonce)  # its result may come first
+        self.listener.focus.expect(slide, acquisition, request.nonce)  # its result may come first
         key_expr = keys.acquire_key(self.instrument.name)
         what = f"acquisition {acquisition.index} of tile ({acquisition.row}, {acquisition.col})"
         sent_s = time.time()

@@ -173,20 +173,22 @@ def test_an_instrument_that_drops_the_nonce_is_refused_at_once(
         stand_ins.close()
 
 
-def test_a_result_of_another_tile_or_frames_is_refused_an_error_of_its_tile_taken() -> None:
+def test_a_result_of_another_slide_tile_or_frames_is_refused_an_error_of_its_tile_taken() -> None:
     nonce = b"n" * NONCE_BYTES
     z_um = [-2.0 + 0.5 * i for i in range(9)]
 
     def result(**fields: object) -> focus_pb2.FocusResult:
-        base: dict[str, object] = dict(sequence=3, row=1, col=2, nonce=nonce, z_um=z_um)
+        base: dict[str, object] = dict(
+            slide=SLIDE, sequence=3, row=1, col=2, nonce=nonce, z_um=z_um
+        )
         return focus_pb2.FocusResult(**(base | fields))  # type: ignore[arg-type]
 
     def why(refused: focus_pb2.FocusResult) -> str:
-        return refusal(ACQUISITION, nonce, refused) or "taken"
+        return refusal(SLIDE, ACQUISITION, nonce, refused) or "taken"
 
     assert why(result()) == "taken"
     assert "nonce" in why(result(nonce=b"o" * NONCE_BYTES)) and "nonce" in why(result(nonce=b""))
     assert "tile (1, 3)" in why(result(col=3)) and "frames" in why(result(z_um=z_um[1:]))
-    assert "no acquisition 4" in why(result(sequence=4))
+    assert "no acquisition 4" in why(result(sequence=4)) and "slide" in why(result(slide="s2"))
     unreadable = result(z_um=[], error=common_pb2.Error(code=common_pb2.ERROR_CODE_BAD_STACK))
     assert why(unreadable) == "taken"  # a stack the focus service could not read
