@@ -11,7 +11,9 @@ Writes into OUT, with the openssl command:
 - ``instrument.json5``, ``focus.json5``, ``scheduler.json5``, ``health.json5``: each
   role's Zenoh config (trust the CA, log in as that role), for ``--zenoh-config``;
 - ``result.key``: the key the focus service tags its results with and the scheduler
-  checks them with (``--result-key-file``).
+  checks them with (``--result-key-file``);
+- ``frame.key``: the key the instrument tags its frames with and the focus service
+  checks them with (``--frame-key-file``).
 
 Paths inside the configs are where the services see OUT (`--mount`, e.g.
 /run/focustrack in compose.secure.yaml; default OUT itself).
@@ -42,6 +44,9 @@ ACL_FILE = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "acl.json5
 
 #: The roles of the bus: each a user of the router's password file and a subject of its ACL.
 ROLES = ("instrument", "focus", "scheduler", "health")
+
+#: The shared keys of the tags (`focustrack_core.wire.trust`): results, frames.
+KEY_FILES = ("result.key", "frame.key")
 
 
 def openssl(folder: Path, *args: str) -> None:
@@ -124,7 +129,8 @@ def write_bus_files(
     for role in ROLES:
         config = client_config(mount / "ca.pem", role, passwords[role])
         (folder / f"{role}.json5").write_text(json.dumps(config, indent=2) + "\n")
-    (folder / "result.key").write_text(secrets.token_hex(32) + "\n")
+    for key in KEY_FILES:
+        (folder / key).write_text(secrets.token_hex(32) + "\n")
     return passwords
 
 

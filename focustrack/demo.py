@@ -11,8 +11,9 @@ the instrument's truth, and where the wall time went. While it scans it serves t
 live web view of the scan and prints its address; at the end it saves a screenshot
 of it (live_view.png, where chromium is installed), and each scan's mosaic is an
 OME-Zarr (`--mosaic-format ome-tiff` for the OME-TIFF). A service that dies is
-started again, and the demo says so; the focus service tags its results with a key
-made for the run, and the scans take only tagged results (docs/security.md).
+started again, and the demo says so; the instrument tags its frames and the focus
+service its results with keys made for the run, the focus service scores only tagged
+frames and the scans take only tagged results (docs/security.md).
 Everything is shut down on the way out, also on Ctrl-C.
 
     focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
@@ -147,6 +148,13 @@ def _http_ready(port: int) -> Callable[[], bool]:
     return ready
 
 
+def _new_key(path: Path) -> Path:
+    """`path`, a new random key file (32 bytes in hex) for its owner alone."""
+    path.write_text(secrets.token_hex(32) + "\n")
+    path.chmod(0o600)
+    return path
+
+
 class LocalStack:
     """A Zenoh router and the three services on loopback, as a context manager.
 
@@ -154,7 +162,8 @@ class LocalStack:
     The router runs in this process, or with `router_process` in one of its own (so it
     can be killed and started again: `services["router"]`). With `supervise`, a service
     that dies is started again, and a line on stderr says so. The instrument serves its
-    truth (evaluation); the focus service tags its results with `trust`'s key. With
+    truth (evaluation) and tags its frames with the key in `frame_key_file`, which the
+    focus service checks; the focus service tags its results with `trust`'s key. With
     `shared_memory_mb`, the instrument publishes its frames into a shared-memory pool of
     that size, and every session of the stack takes them from there.
     """
@@ -174,9 +183,8 @@ class LocalStack:
         self.estimator_port = free_port()
         self.estimator_url = f"http://127.0.0.1:{self.estimator_port}"
         self.store = self.work_dir / "estimator.sqlite"
-        self.result_key_file = self.work_dir / "result.key"
-        self.result_key_file.write_text(secrets.token_hex(32) + "\n")
-        self.result_key_file.chmod(0o600)
+        self.result_key_file = _new_key(self.work_dir / "result.key")
+        self.frame_key_file = _new_key(self.work_dir / "frame.key")
         self.trust = ResultSigner.from_file(self.result_key_file)
         self.session: zenoh.Session | None = None
         self.focus_port = free_port()
@@ -203,18 +211,19 @@ class LocalStack:
             self.services["router"] = Service(
                 "router", router, logs / "router.log", _tcp_ready(port)
             )
+        frame_key = ["--frame-key-file", str(self.frame_key_file)]
         instrument = [*serve, "instrument", *connect, "--name", INSTRUMENT, "--serve-truth"]
         focus = [*serve, "focus", *connect, "--result-key-file", str(self.result_key_file)]
         self.services |= {
             "instrument": Service(
                 "instrument",
-                [*instrument, *instrument_args],
+                [*instrument, *frame_key, *instrument_args],
                 logs / "instrument.log",
                 self._instrument_ready,
             ),
             "focus": Service(
                 "focus",
-                [*focus, "--port", str(self.focus_port)],
+                [*focus, *frame_key, "--port", str(self.focus_port)],
                 logs / "focus.log",
                 _http_ready(self.focus_port),
             ),

@@ -172,6 +172,8 @@ def test_the_secure_overlay_configures_every_role_with_options_its_command_accep
             assert str(args.result_key_file) == "/run/focustrack/result.key"
         else:
             assert args.serve_truth is False and args.queue_depth >= 1
+        if name != "scheduler":
+            assert str(args.frame_key_file) == "/run/focustrack/frame.key"
     probe = [defaults(word) for word in services["instrument"]["healthcheck"]["test"]]
     checked = health.parser().parse_args(probe[4:])
     assert checked.connect == ["tls/zenoh:7447"]
@@ -185,6 +187,8 @@ def test_the_secure_overlay_configures_every_role_with_options_its_command_accep
         config = zenoh.Config.from_file(str(tmp_path / f"{role}.json5"))
         assert "/run/focustrack/" in config.get_json("transport")
     assert (tmp_path / "result.key").stat().st_size > 32
+    assert (tmp_path / "frame.key").read_text() != (tmp_path / "result.key").read_text()
+    assert (tmp_path / "frame.key").stat().st_size > 32
     assert not (tmp_path / "ca.key").exists()  # nobody who reads the folder can sign
     users = (tmp_path / "credentials.txt").read_text().split()
     assert sorted(line.split(":")[0] for line in users) == sorted(ROLES)

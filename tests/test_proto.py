@@ -14,7 +14,7 @@ RELEASED_FIELDS = {
     common_pb2.Error: {"code": 1, "message": 2, "field": 3},
     instrument_pb2.AcquireRequest: {
         "slide": 1, "row": 2, "col": 3, "z_low_um": 4, "z_step_um": 5, "n_frames": 6,
-        "sequence": 7, "exposure_s": 8,
+        "sequence": 7, "exposure_s": 8, "nonce": 9,
     },
     instrument_pb2.Timing: {
         "move_s": 1, "z_settle_s": 2, "exposure_s": 3, "readout_s": 4, "total_s": 5,
@@ -24,7 +24,10 @@ RELEASED_FIELDS = {
         "instrument": 1, "slide": 2, "row": 3, "col": 4, "sequence": 5, "stage_x_um": 6,
         "stage_y_um": 7, "z_um": 8, "pixel_size_um": 9, "dtype": 10, "shape": 11,
         "channel_order": 12, "bit_depth": 13, "exposure_s": 14, "timestamp_unix_s": 15,
-        "clock_s": 16,
+        "clock_s": 16, "nonce": 17, "tag": 18,
+    },
+    instrument_pb2.ZFrameHeader: {
+        "stack": 1, "index": 2, "timestamp_unix_s": 3, "parts": 4, "part_offset": 5, "tag": 6,
     },
     instrument_pb2.ZStack: {"header": 1, "pixels": 2},
     instrument_pb2.AcquireReply: {"header": 1, "timing": 2},
@@ -36,6 +39,7 @@ RELEASED_FIELDS = {
         "slide": 1, "row": 2, "col": 3, "sequence": 4, "metric": 5, "z_um": 6, "scores": 7,
         "best_z_um": 8, "sigma_um": 9, "compute_time_s": 11, "error": 12, "instrument": 13,
         "flags": 14,  # v0.2: the FocusFlag enum; number 10 (strings) is reserved
+        "runner_up_z_um": 15, "chosen_probability": 16, "nonce": 17,
     },
 }  # fmt: skip
 

@@ -71,8 +71,9 @@ class RoguePeer:
     """A peer on the bus that publishes a wrong focus result for every stack it sees.
 
     On the first frame of each stack it puts a FocusResult for that stack (same tile,
-    sequence and frames) whose best z is the top of the stack plus `OFFSET_UM`: every
-    other result untagged, the others with a random 32-byte tag.
+    sequence, frames and nonce, all read from the frame's header) whose best z is the top
+    of the stack plus `OFFSET_UM`: every other result untagged, the others with a random
+    32-byte tag.
     """
 
     OFFSET_UM = 5.0
@@ -103,6 +104,7 @@ class RoguePeer:
             row=stack.row,
             col=stack.col,
             sequence=stack.sequence,
+            nonce=stack.nonce,
             instrument=stack.instrument,
             metric="brenner",
             z_um=stack.z_um,

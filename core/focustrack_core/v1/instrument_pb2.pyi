@@ -7,7 +7,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class AcquireRequest(_message.Message):
-    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s")
+    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s", "nonce")
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
     COL_FIELD_NUMBER: _ClassVar[int]
@@ -16,6 +16,7 @@ class AcquireRequest(_message.Message):
     N_FRAMES_FIELD_NUMBER: _ClassVar[int]
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     EXPOSURE_S_FIELD_NUMBER: _ClassVar[int]
+    NONCE_FIELD_NUMBER: _ClassVar[int]
     slide: str
     row: int
     col: int
@@ -24,7 +25,8 @@ class AcquireRequest(_message.Message):
     n_frames: int
     sequence: int
     exposure_s: float
-    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ...) -> None: ...
+    nonce: bytes
+    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ..., nonce: _Optional[bytes] = ...) -> None: ...
 
 class Timing(_message.Message):
     __slots__ = ("move_s", "z_settle_s", "exposure_s", "readout_s", "total_s", "clock_s", "move_distance_um")
@@ -45,7 +47,7 @@ class Timing(_message.Message):
     def __init__(self, move_s: _Optional[float] = ..., z_settle_s: _Optional[float] = ..., exposure_s: _Optional[float] = ..., readout_s: _Optional[float] = ..., total_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., move_distance_um: _Optional[float] = ...) -> None: ...
 
 class ZStackHeader(_message.Message):
-    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s")
+    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
@@ -62,6 +64,8 @@ class ZStackHeader(_message.Message):
     EXPOSURE_S_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMP_UNIX_S_FIELD_NUMBER: _ClassVar[int]
     CLOCK_S_FIELD_NUMBER: _ClassVar[int]
+    NONCE_FIELD_NUMBER: _ClassVar[int]
+    TAG_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     row: int
@@ -78,21 +82,25 @@ class ZStackHeader(_message.Message):
     exposure_s: float
     timestamp_unix_s: float
     clock_s: float
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ...) -> None: ...
+    nonce: bytes
+    tag: bytes
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ...) -> None: ...
 
 class ZFrameHeader(_message.Message):
-    __slots__ = ("stack", "index", "timestamp_unix_s", "parts", "part_offset")
+    __slots__ = ("stack", "index", "timestamp_unix_s", "parts", "part_offset", "tag")
     STACK_FIELD_NUMBER: _ClassVar[int]
     INDEX_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMP_UNIX_S_FIELD_NUMBER: _ClassVar[int]
     PARTS_FIELD_NUMBER: _ClassVar[int]
     PART_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    TAG_FIELD_NUMBER: _ClassVar[int]
     stack: ZStackHeader
     index: int
     timestamp_unix_s: float
     parts: int
     part_offset: int
-    def __init__(self, stack: _Optional[_Union[ZStackHeader, _Mapping]] = ..., index: _Optional[int] = ..., timestamp_unix_s: _Optional[float] = ..., parts: _Optional[int] = ..., part_offset: _Optional[int] = ...) -> None: ...
+    tag: bytes
+    def __init__(self, stack: _Optional[_Union[ZStackHeader, _Mapping]] = ..., index: _Optional[int] = ..., timestamp_unix_s: _Optional[float] = ..., parts: _Optional[int] = ..., part_offset: _Optional[int] = ..., tag: _Optional[bytes] = ...) -> None: ...
 
 class ZStack(_message.Message):
     __slots__ = ("header", "pixels")

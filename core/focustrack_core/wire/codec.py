@@ -37,6 +37,7 @@ import zenoh
 from zenoh import shm
 
 from focustrack_core.v1 import instrument_pb2
+from focustrack_core.wire.trust import FrameSigner, TaggedHeader
 
 log = logging.getLogger(__name__)
 
@@ -443,24 +444,32 @@ class PixelPublisher:
     larger than the pool, or one that finds the pool full of unreleased chunks, takes
     the network path by itself (never blocking on memory). On the network path a frame
     goes in parts of `part_bytes` (`FRAME_PART_BYTES`; 0: whole), which a subscriber
-    joins with a `FrameAssembler`.
+    joins with a `FrameAssembler`. With a `signer` (the instrument's frame key) every
+    sample's header is followed by its tag (`FrameSigner.attachment`).
     """
 
     def __init__(
-        self, session: zenoh.Session, shm_pool_bytes: int = 0, part_bytes: int = FRAME_PART_BYTES
+        self,
+        session: zenoh.Session,
+        shm_pool_bytes: int = 0,
+        part_bytes: int = FRAME_PART_BYTES,
+        signer: FrameSigner | None = None,
     ) -> None:
         if part_bytes < 0:
             raise ValueError(f"frame parts of {part_bytes} bytes; 0 sends frames whole")
         self.session = session
         self.shm_pool_bytes = shm_pool_bytes
         self.part_bytes = part_bytes
+        self.signer = signer
         self._provider = shm.ShmProvider.default_backend(shm_pool_bytes) if shm_pool_bytes else None
         self.n_shared = 0  # payloads that went through shared memory
         self.n_network = 0  # payloads handed to Zenoh as bytes (a frame in parts counts once)
 
     def payload(self, pixels: np.ndarray) -> Payload:
         """What to put for `pixels`: a shared-memory buffer where possible, else its bytes."""
-        data = raw_payload(pixels)
+        return self._payload(raw_payload(pixels))
+
+    def _payload(self, data: bytes | bytearray) -> Payload:
         if self._provider is not None and len(data) <= self.shm_pool_bytes:
             try:
                 chunk = self._provider.alloc(len(data), _SHM_POLICY)
@@ -472,6 +481,13 @@ class PixelPublisher:
                 return zenoh.ZBytes(chunk)
         self.n_network += 1
         return data
+
+    def attachment(self, key_expr: str, header: TaggedHeader, data: bytes | bytearray) -> bytes:
+        """The attachment of a sample of bytes `data` on `key_expr`: `header`, tagged when
+        this publisher has a signer."""
+        if self.signer is None:
+            return header.SerializeToString()
+        return self.signer.attachment(key_expr, header, data)
 
     def has_subscribers(self, key_expr: str) -> bool:
         """True when some subscriber matches `key_expr` (so a message there is not wasted)."""
@@ -489,7 +505,9 @@ class PixelPublisher:
         """Publish a whole stack on `key_expr`, in one sample (fills in the header's dtype
         and shape)."""
         describe_pixels(header, pixels)
-        self._put(key_expr, self.payload(pixels), header.SerializeToString(), ZSTACK_ENCODING)
+        data = raw_payload(pixels)
+        attachment = self.attachment(key_expr, header, data)
+        self._put(key_expr, self._payload(data), attachment, ZSTACK_ENCODING)
 
     def put_frame(
         self, key_expr: str, stack: instrument_pb2.ZStackHeader, index: int, frame: np.ndarray
@@ -497,14 +515,26 @@ class PixelPublisher:
         """Publish frame `index` (h, w, channels) of the stack that `stack` describes: whole
         through shared memory, else in parts of `part_bytes`."""
         header = frame_header(stack, index, frame)
-        payload = self.payload(frame)
-        if isinstance(payload, zenoh.ZBytes) or not 0 < self.part_bytes < len(payload):
-            self._put(key_expr, payload, header.SerializeToString(), ZFRAME_ENCODING)
+        data = raw_payload(frame)
+        payload = self._payload(data)
+        if isinstance(payload, zenoh.ZBytes) or not 0 < self.part_bytes < len(data):
+            attachment = self.attachment(key_expr, header, data)
+            self._put(key_expr, payload, attachment, ZFRAME_ENCODING)
             return
-        header.parts = -(-len(payload) // self.part_bytes)
-        for offset, part in frame_parts(payload, self.part_bytes):
+        header.parts = -(-len(data) // self.part_bytes)
+        for offset, part in frame_parts(data, self.part_bytes):
             header.part_offset = offset
-            self._put(key_expr, part, header.SerializeToString(), ZFRAME_ENCODING)
+            self._put(key_expr, part, self.attachment(key_expr, header, part), ZFRAME_ENCODING)
+
+    def reply_frame(
+        self, query: zenoh.Query, stack: instrument_pb2.ZStackHeader, index: int, frame: np.ndarray
+    ) -> None:
+        """Answer `query` with frame `index` of the stack that `stack` describes, whole, as
+        `put_frame` publishes it (on the query's key)."""
+        key_expr = str(query.key_expr)
+        data = raw_payload(frame)
+        attachment = self.attachment(key_expr, frame_header(stack, index, frame), data)
+        query.reply(key_expr, self._payload(data), attachment=attachment, encoding=ZFRAME_ENCODING)
 
     def _put(
         self, key_expr: str, payload: Payload, attachment: bytes, encoding: zenoh.Encoding

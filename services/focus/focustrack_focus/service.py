@@ -12,8 +12,12 @@ info reply describes them) is refused before anything is allocated for it. Whole
 (``focustrack/v1/zstack/...``) are for other subscribers; this service does not read them.
 REST: the FastAPI app of `app.py`, served by uvicorn on --host/--port.
 
-With ``--result-key-file`` every result carries an HMAC of it in its attachment, which
-the scheduler checks (`focustrack_core.wire.trust`, docs/security.md). The REST API
+Every result carries the nonce of its stack's acquisition (from the frames' header), and
+with ``--result-key-file`` an HMAC of it in its attachment, which the scheduler checks
+(`focustrack_core.wire.trust`, docs/security.md). With ``--frame-key-file`` only frame
+samples that carry the instrument's tag are scored; the others are dropped, logged and
+counted (`FrameAnalyser.n_untagged`), so frames published by anyone else never become
+a result. The REST API
 comes up at once; the Zenoh session is opened in the background and tried again until
 the router answers, so the service starts before the router (``/healthz`` says
 ``degraded`` until the session is open and linked).
@@ -52,7 +56,7 @@ from focustrack_core.wire.session import (
     BackgroundSession,
     ZenohSettings,
 )
-from focustrack_core.wire.trust import ResultSigner, signer_of
+from focustrack_core.wire.trust import FrameSigner, ResultSigner, frame_signer_of, signer_of
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.metrics import METRICS
@@ -102,6 +106,7 @@ def result_message(
     if header is not None:
         message.sequence = header.sequence
         message.instrument = header.instrument
+        message.nonce = header.nonce
     if result is not None:
         message.metric = result.metric
         message.z_um.extend(result.z_um.tolist())
@@ -123,8 +128,14 @@ def result_message(
     return message
 
 
-#: A stack: the key of its frames, its sequence number and its simulated clock.
-StackId = tuple[str, int, float]
+#: A stack: the key of its frames, its sequence number, its simulated clock and the nonce
+#: of its acquisition.
+StackId = tuple[str, int, float, bytes]
+
+
+def stack_id(key: str, header: instrument_pb2.ZStackHeader) -> StackId:
+    """The stack of a frame on `key` whose header's stack is `header`."""
+    return (key, header.sequence, header.clock_s, header.nonce)
 
 
 @dataclass
@@ -142,10 +153,12 @@ class FrameAnalyser:
     """Frame samples in (whole, or in parts), a FocusResult out as soon as the last frame
     of a stack lands.
 
-    Stacks are told apart by their key, sequence number and simulated clock (an
+    Stacks are told apart by their key, sequence number, simulated clock and nonce (an
     acquisition taken again keeps its sequence). A frame that comes twice starts its
     stack over; one that cannot be read (or a part lost) ends its stack with an error
-    result.
+    result. With a `frame_signer`, a sample whose attachment does not carry that key's
+    tag of it is dropped before anything else (no result, not even an error), logged and
+    counted in `n_untagged`.
 
     Memory is bounded in bytes and time, whatever peers send: the frames under way (in
     parts) and what open stacks hold (each keeps its sharpest and blurriest frames for
@@ -168,6 +181,7 @@ class FrameAnalyser:
         *,
         frame_bytes_of: Callable[[str], int | None] = _no_frame_size,
         clock: Callable[[], float] = time.monotonic,
+        frame_signer: FrameSigner | None = None,
     ) -> None:
         self.base = base
         self.na = na
@@ -175,6 +189,8 @@ class FrameAnalyser:
         self.timeout_s = timeout_s
         self.frame_bytes_of = frame_bytes_of
         self.clock = clock
+        self.frame_signer = frame_signer
+        self.n_untagged = 0  # frame samples dropped: their tag was missing or wrong
         self._refused = 0  # frames refused here (`n_refused`)
         self.n_expired = 0  # stacks dropped: their next frame did not come in time
         # curves under way, the one fed longest ago first
@@ -203,12 +219,12 @@ class FrameAnalyser:
         self._frames.expire()
         deadline_s = self.clock() - self.timeout_s
         while self._open:
-            stack_id, oldest = next(iter(self._open.items()))
+            stack, oldest = next(iter(self._open.items()))
             if oldest.last_s >= deadline_s:
                 break
-            self._close(stack_id)
+            self._close(stack)
             self.n_expired += 1
-            key, sequence, _ = stack_id
+            key, sequence, _, _ = stack
             missing = int(np.isnan(oldest.curve.scores).sum())
             log.warning(
                 "stack %d on %s dropped: %d frame(s) did not come within %g s",
@@ -224,34 +240,44 @@ class FrameAnalyser:
         """The stack's FocusResult when this frame completes it (or ends it in error), else
         None. ValueError only when the key names no tile (there is nowhere to answer)."""
         tile = keys.parse_zframe_key(key)
+        if self.frame_signer is not None and not self._tagged(key, payload, attachment):
+            self.n_untagged += 1
+            if self.n_untagged & (self.n_untagged - 1) == 0:  # at 1, 2, 4, 8...: a forger
+                # cannot flood the log
+                log.warning(
+                    "frame sample on %s dropped (%d so far): no tag of the instrument's frame key",
+                    key,
+                    self.n_untagged,
+                )
+            return None
         header = None
         try:
             frame_header = zframe_header(attachment)
             header = frame_header.stack
-            stack_id = (key, header.sequence, header.clock_s)
+            stack = stack_id(key, header)
             self.expire()
-            if stack_id in self._failed:
+            if stack in self._failed:
                 return None  # the stack was already answered with an error
             self._check_frame_size(header)
             frame = self._frames.add(key, frame_header, payload)
             if frame is None:
                 return None  # a part of the frame: more to come
-            stack = self._close(stack_id)
-            if stack is not None and not np.isnan(stack.curve.scores[frame_header.index]):
+            under_way = self._close(stack)
+            if under_way is not None and not np.isnan(under_way.curve.scores[frame_header.index]):
                 log.warning(
                     "frame %d on %s came again: stack started over", frame_header.index, key
                 )
-                stack = None
+                under_way = None
             curve = (
                 FrameByFrame(np.asarray(header.z_um), settings_for(header, self.base, self.na))
-                if stack is None
-                else stack.curve
+                if under_way is None
+                else under_way.curve
             )
             curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
             if not curve.complete:
                 held = STACK_BYTES + curve.held_bytes
                 self._fit(held)  # what the stack keeps of this frame, besides the others
-                self._open[stack_id] = _StackUnderWay(curve, held, self.clock())
+                self._open[stack] = _StackUnderWay(curve, held, self.clock())
                 self._stacks_bytes += held
                 return None
             model = self._curve(tile.slide)
@@ -261,9 +287,9 @@ class FrameAnalyser:
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)
             if header is not None:
-                stack_id = (key, header.sequence, header.clock_s)
-                self._close(stack_id)
-                self._failed[stack_id] = None
+                stack = stack_id(key, header)
+                self._close(stack)
+                self._failed[stack] = None
                 while len(self._failed) > FAILED_STACKS:
                     self._failed.popitem(last=False)
             return result_message(tile, header, error=f"{type(error).__name__}: {error}")
@@ -289,12 +315,24 @@ class FrameAnalyser:
                 f"{self.budget_bytes} bytes for open frames are left"
             )
 
-    def _close(self, stack_id: StackId) -> _StackUnderWay | None:
+    def _close(self, stack: StackId) -> _StackUnderWay | None:
         """Take a stack out of the open ones (what it holds off the count)."""
-        stack = self._open.pop(stack_id, None)
-        if stack is not None:
-            self._stacks_bytes -= stack.held_bytes
-        return stack
+        under_way = self._open.pop(stack, None)
+        if under_way is not None:
+            self._stacks_bytes -= under_way.held_bytes
+        return under_way
+
+    def _tagged(self, key: str, payload: bytes, attachment: bytes | None) -> bool:
+        """True when the sample's attachment is a frame header followed by the frame key's
+        tag of it and of `payload`."""
+        assert self.frame_signer is not None  # asked only then
+        if not attachment:
+            return False
+        try:
+            header = instrument_pb2.ZFrameHeader.FromString(attachment)
+        except DecodeError:
+            return False
+        return self.frame_signer.verify(key, header, attachment, payload)
 
     def _curve(self, slide: str) -> CurveModel:
         """The slide's curve model (a new one for a new slide; the oldest beyond CURVE_SLIDES
@@ -383,6 +421,7 @@ class ZenohFocusWorker:
         signer: ResultSigner | None = None,
         open_frames_bytes: int = codec.OPEN_FRAMES_BYTES,
         open_frame_timeout_s: float = codec.OPEN_FRAME_TIMEOUT_S,
+        frame_signer: FrameSigner | None = None,
     ):
         self.session = session
         self.analyser = FrameAnalyser(
@@ -391,6 +430,7 @@ class ZenohFocusWorker:
             open_frames_bytes,
             open_frame_timeout_s,
             frame_bytes_of=InstrumentFrameSizes(session),
+            frame_signer=frame_signer,
         )
         self.signer = signer
         self.n_published = 0
@@ -471,6 +511,11 @@ class FocusServiceSettings(ZenohSettings):
         None,
         description="shared key: tag every result with its HMAC, for the scheduler to check "
         "(docs/security.md)",
+    )
+    frame_key_file: Path | None = Field(
+        None,
+        description="the instrument's frame key: score only frames tagged with it, drop and "
+        "count the others (docs/security.md)",
     )
     min_structure_snr: float = Field(
         FocusSettings.min_structure_snr,
@@ -582,6 +627,7 @@ def run(settings: FocusServiceSettings) -> int:
     try:
         settings.zenoh()  # a bad option or config file ends the command here, not later
         signer = signer_of(settings.result_key_file)
+        frame_signer = frame_signer_of(settings.frame_key_file)
     except ValueError as error:
         log.error("%s", error)
         return 2
@@ -596,12 +642,14 @@ def run(settings: FocusServiceSettings) -> int:
                 signer,
                 int(settings.open_frames_mb * 1_000_000),
                 settings.open_frame_timeout_s,
+                frame_signer,
             )
         ),
     )
     log.info(
-        "focus service: zenoh %s -> %s/focus/... (results %s), http://%s:%d (metric %s)",
+        "focus service: zenoh %s (%s) -> %s/focus/... (results %s), http://%s:%d (metric %s)",
         ZFRAME_SUBSCRIPTION,
+        "any frames" if frame_signer is None else "tagged frames only",
         keys.PREFIX,
         "tagged" if signer is not None else "untagged",
         settings.host,
@@ -620,7 +668,13 @@ def run(settings: FocusServiceSettings) -> int:
             worker.close()
         bus.close()
         published = sum(worker.n_published for worker in workers)
-        log.info("published %d results in %.0f s", published, time.perf_counter() - started)
+        untagged = sum(worker.analyser.n_untagged for worker in workers)
+        log.info(
+            "published %d results in %.0f s; dropped %d untagged frame samples",
+            published,
+            time.perf_counter() - started,
+            untagged,
+        )
     return 0
 
 

@@ -38,6 +38,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import closing, contextmanager
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
@@ -54,6 +55,7 @@ from focustrack_core.wire.session import (
     BackgroundSession,
     ZenohSettings,
 )
+from focustrack_core.wire.trust import MAX_NONCE_BYTES, FrameSigner, frame_signer_of, new_nonce
 from focustrack_instrument_sim.backends import BACKENDS, BackendName
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
@@ -146,13 +148,16 @@ class InstrumentService:
         queue_depth: int = QUEUE_DEPTH,
         serve_truth: bool = False,
         keep_frames_bytes: int = KEEP_FRAMES_MB * 1_000_000,
+        frame_signer: FrameSigner | None = None,
     ) -> None:
         if queue_depth < 1:
             raise ValueError(f"queue_depth must be at least 1, got {queue_depth}")
         self.instrument = instrument
         self.truth = truth_source(instrument, serve_truth)
         self.session = session
-        self.publisher = codec.PixelPublisher(session, shm_pool_bytes, frame_part_bytes)
+        self.publisher = codec.PixelPublisher(
+            session, shm_pool_bytes, frame_part_bytes, frame_signer
+        )
         self.name = keys.check_name(name, "instrument")
         self.realtime = realtime
         self.stop = threading.Event()
@@ -213,6 +218,12 @@ class InstrumentService:
     def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
         started_s = time.perf_counter()
         request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
+        if len(request.nonce) > MAX_NONCE_BYTES:
+            raise rpc.RequestError(
+                rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST,
+                f"a nonce of {len(request.nonce)} bytes; at most {MAX_NONCE_BYTES}",
+                "nonce",
+            )
         with replies_for_instrument_errors():
             plan = self.instrument.plan(
                 StackRequest(
@@ -225,7 +236,7 @@ class InstrumentService:
                     request.exposure_s or None,  # 0 (unset on the wire): the default
                 )
             )
-            header = self._header(plan, request.sequence)
+            header = self._header(plan, request.sequence, request.nonce or new_nonce())
             shape = (plan.n_frames, *plan.frame.shape)
             codec.describe_stack(header, shape, plan.frame.dtype)
             frame_key = keys.zframe_key(plan.slide, plan.row, plan.col)
@@ -265,7 +276,7 @@ class InstrumentService:
             ),
         )
 
-    def _header(self, plan: StackPlan, sequence: int) -> instrument_pb2.ZStackHeader:
+    def _header(self, plan: StackPlan, sequence: int, nonce: bytes) -> instrument_pb2.ZStackHeader:
         """The header of the stack of `plan` (without its shape and dtype yet)."""
         return instrument_pb2.ZStackHeader(
             instrument=self.name,
@@ -273,6 +284,7 @@ class InstrumentService:
             row=plan.row,
             col=plan.col,
             sequence=sequence,
+            nonce=nonce,
             stage_x_um=plan.stage_x_um,
             stage_y_um=plan.stage_y_um,
             z_um=plan.z_um.tolist(),
@@ -306,12 +318,7 @@ class InstrumentService:
         header, frames = found
         try:
             for index, frame in frames:
-                query.reply(
-                    query.key_expr,
-                    self.publisher.payload(frame),
-                    attachment=codec.frame_header(header, index, frame).SerializeToString(),
-                    encoding=codec.ZFRAME_ENCODING,
-                )
+                self.publisher.reply_frame(query, header, index, frame)
         except StackGoneError as error:
             raise self._frames_gone(request) from error
 
@@ -409,6 +416,11 @@ class InstrumentShellSettings(ZenohSettings):
         description="answer the ground truth (focustrack/v1/eval/truth/...): benchmarks and "
         "tests only",
     )
+    frame_key_file: Path | None = Field(
+        None,
+        description="shared key: tag every frame and stack with its HMAC, for the focus "
+        "service to check (docs/security.md)",
+    )
 
 
 class InstrumentSettings(SimulatorOptions, InstrumentShellSettings):
@@ -436,6 +448,7 @@ def run(settings: InstrumentSettings) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     try:
         settings.zenoh()  # a bad option or config file ends the command here, not later
+        frame_signer = frame_signer_of(settings.frame_key_file)
         instrument = open_instrument(settings)
     except ValueError as error:
         log.error("%s", error)
@@ -453,7 +466,7 @@ def run(settings: InstrumentSettings) -> int:
         while session is None and not stop.is_set():
             session = bus.wait(1.0)
         if session is not None:
-            serve(instrument, session, settings, stop)
+            serve(instrument, session, settings, stop, frame_signer)
     finally:
         bus.close()
         instrument.close()
@@ -465,8 +478,10 @@ def serve(
     session: zenoh.Session,
     settings: InstrumentShellSettings,
     stop: threading.Event,
+    frame_signer: FrameSigner | None = None,
 ) -> None:
-    """Run the instrument on an open session until `stop` is set."""
+    """Run the instrument on an open session until `stop` is set (tagging its frames with
+    `frame_signer`, the key of `settings.frame_key_file`, where there is one)."""
     service = InstrumentService(
         instrument,
         session,
@@ -477,6 +492,7 @@ def serve(
         queue_depth=settings.queue_depth,
         serve_truth=settings.serve_truth,
         keep_frames_bytes=int(settings.keep_frames_mb * 1_000_000),
+        frame_signer=frame_signer,
     )
     service.stop = stop
     service.start()
@@ -484,7 +500,7 @@ def serve(
     first = description.slides[0]
     log.info(
         "instrument %r ready: %d slide(s) of %dx%d tiles, %dx%d px frames, DoF %.2f um, "
-        "queue %d, truth %s",
+        "queue %d, truth %s, frames %s",
         service.name,
         len(description.slides),
         first.grid.rows,
@@ -494,6 +510,7 @@ def serve(
         description.optics.depth_of_field_um,
         settings.queue_depth,
         "served" if settings.serve_truth else "off",
+        "untagged" if frame_signer is None else "tagged",
     )
     service.serve()
     service.close()

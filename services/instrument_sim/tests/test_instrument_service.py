@@ -1,4 +1,5 @@
-"""`focustrack-instrument-sim` over real Zenoh on loopback: stacks, metadata, truth, errors."""
+"""`focustrack-instrument-sim` over real Zenoh on loopback: stacks, metadata, truth, errors,
+and every frame and stack tagged with its frame key."""
 
 from __future__ import annotations
 
@@ -16,20 +17,33 @@ import zenoh
 from focustrack_core import health
 from focustrack_core.v1 import common_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc, session
+from focustrack_core.wire.trust import NONCE_BYTES, FrameSigner
 from focustrack_instrument_sim import service
 
 SIZE = 128
+FRAME_KEY = "5a" * 32  # the instrument's frame key (hex digits: 64 bytes of key)
+SIGNER = FrameSigner(FRAME_KEY.encode())
+
+
+def _tag_checks(sample: zenoh.Sample, header: instrument_pb2.ZFrameHeader) -> bool:
+    """True when the sample carries the frame key's tag of it."""
+    assert sample.attachment is not None
+    payload = codec.payload_bytes(sample.payload)
+    return SIGNER.verify(str(sample.key_expr), header, sample.attachment.to_bytes(), payload)
 
 
 @pytest.fixture(scope="module")
-def instrument() -> Iterator[str]:
+def instrument(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """The service in its own process, listening on a free port; yields the endpoint."""
     endpoint = session.loopback_endpoint()
+    key_file = tmp_path_factory.mktemp("keys") / "frame.key"
+    key_file.write_text(FRAME_KEY + "\n")
     command = [
         sys.executable, "-m", "focustrack_instrument_sim", "--listen", endpoint,
         "--name", "sim", "--seed", "3", "--slides", "2", "--rows", "4", "--cols", "5",
         "--width", str(SIZE), "--height", str(SIZE), "--max-frames", "25", "--serve-truth",
         "--frame-part-kb", "32",  # frames of 96 KiB go in 3 parts
+        "--frame-key-file", str(key_file),
     ]  # fmt: skip
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:
@@ -70,15 +84,19 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
 ) -> None:
     received: list[tuple[instrument_pb2.ZStackHeader, np.ndarray]] = []
     frames: list[tuple[instrument_pb2.ZFrameHeader, np.ndarray]] = []
+    tags_checked: list[bool] = []  # of every sample: frame parts, then the stack
     arrived = threading.Event()
 
     def on_stack(sample: zenoh.Sample) -> None:
         received.append(codec.decode_zstack_sample(sample))
+        tags_checked.append(_tag_checks(sample, received[-1][0]))  # type: ignore[arg-type]
         arrived.set()
 
     assembler = codec.FrameAssembler()
 
     def on_frame(sample: zenoh.Sample) -> None:
+        assert sample.attachment is not None
+        tags_checked.append(_tag_checks(sample, codec.zframe_header(sample.attachment.to_bytes())))
         if (frame := assembler.add_sample(sample)) is not None:
             frames.append(frame)
 
@@ -87,7 +105,7 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
         client.declare_subscriber(keys.zframe_pattern("slide-0"), on_frame),
     ):
         time.sleep(0.5)  # let the subscriptions reach the instrument
-        reply = rpc.call(client, keys.acquire_key("sim"), _request(sequence=42),
+        reply = rpc.call(client, keys.acquire_key("sim"), _request(sequence=42, nonce=b"n" * 16),
                          instrument_pb2.AcquireReply)  # fmt: skip
         assert arrived.wait(10), "the stack was not published"
         for _ in range(100):  # frames and stack may be handed over on different threads
@@ -106,6 +124,11 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
     np.testing.assert_allclose(header.z_um, -2.0 + 0.5 * np.arange(9))
     assert header.channel_order == "RGB" and pixels.max() < 2**header.bit_depth
     assert header.stage_x_um == 400.0 and header.stage_y_um == 200.0
+    # the acquisition's nonce is in every header; each sample carries its frame tag
+    assert header.nonce == b"n" * 16 and header.tag and not reply.header.tag
+    assert all(frame_header.stack.nonce == b"n" * 16 for frame_header, _ in frames)
+    assert tags_checked == [True] * (9 * 3 + 1)
+    header.ClearField("tag")  # the stack sample's alone
     assert reply.header == header
     timing = reply.timing
     assert timing.move_distance_um > 0 and timing.move_s > 0
@@ -201,6 +224,7 @@ def test_truth_is_apart_and_matches_the_slide(client: zenoh.Session) -> None:
         ({"n_frames": 26}, common_pb2.ERROR_CODE_TOO_MANY_FRAMES, "n_frames"),
         ({"n_frames": 0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "n_frames"),
         ({"z_step_um": 0.0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "z_step_um"),
+        ({"nonce": b"n" * 65}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "nonce"),
     ],
 )
 def test_bad_requests_get_error_replies(client: zenoh.Session, fields, code, field) -> None:
@@ -209,6 +233,13 @@ def test_bad_requests_get_error_replies(client: zenoh.Session, fields, code, fie
     assert refused.value.error.code == code
     assert refused.value.error.field == field
     assert refused.value.error.message
+
+
+def test_a_request_without_a_nonce_gets_a_fresh_one(client: zenoh.Session) -> None:
+    request, reply_type = _request(n_frames=1), instrument_pb2.AcquireReply
+    nonces = {rpc.call(client, keys.acquire_key("sim"), request, reply_type).header.nonce
+              for _ in range(2)}  # fmt: skip
+    assert len(nonces) == 2 and all(len(nonce) == NONCE_BYTES for nonce in nonces)
 
 
 def test_malformed_message_gets_an_error_and_the_service_keeps_running(client) -> None:
@@ -235,6 +266,7 @@ def _frames_query(
         if reply.err is not None:
             raise rpc.RemoteError(rpc.error_of(reply.err))
         frames.append(codec.decode_zframe_sample(reply.ok))
+        assert _tag_checks(reply.ok, frames[-1][0])  # tagged as published, on the query's key
     return frames
 
 

@@ -1,19 +1,19 @@
 """The Zenoh side of the scheduler: the instrument's queryables and the focus results.
 
 `InstrumentClient` asks the instrument (info, acquire, the frames a tile keeps, and
-the evaluation-only truth); `Inbox` collects the focus service's results as they
-arrive by subscription, keyed by the acquisition's sequence number, for the engine to
-wait on. The scheduler does not subscribe to the frames: only the focus service needs
-every one, and the scheduler fetches the few it keeps once their tile's focus is known.
+the evaluation-only truth); `Inbox` takes the focus service's results as they arrive by
+subscription, each only for the acquisition the engine awaits (its sequence, tile,
+frames and nonce) and only once, for the engine to wait on. The scheduler does not
+subscribe to the frames: only the focus service needs every one, and the scheduler
+fetches the few it keeps once their tile's focus is known.
 """
 
 from __future__ import annotations
 
+import hmac
 import logging
 import threading
 import time
-from collections.abc import Callable
-from typing import Generic, TypeVar
 
 import numpy as np
 import zenoh
@@ -27,11 +27,12 @@ from focustrack_scheduler.plan import SlideGeometry
 
 log = logging.getLogger(__name__)
 
-T = TypeVar("T")
 
-
-def acquire_request(slide: str, acquisition: Acquisition) -> instrument_pb2.AcquireRequest:
-    """The AcquireRequest of an estimator acquisition (its index is the wire sequence)."""
+def acquire_request(
+    slide: str, acquisition: Acquisition, nonce: bytes
+) -> instrument_pb2.AcquireRequest:
+    """The AcquireRequest of an estimator acquisition (its index is the wire sequence),
+    taken this time under `nonce` (fresh for every request: `trust.new_nonce`)."""
     z = acquisition.z
     return instrument_pb2.AcquireRequest(
         slide=slide,
@@ -41,19 +42,42 @@ def acquire_request(slide: str, acquisition: Acquisition) -> instrument_pb2.Acqu
         z_step_um=z.step_um,
         n_frames=z.n_frames,
         sequence=acquisition.index,
+        nonce=nonce,
     )
 
 
 def same_stack(acquisition: Acquisition, row: int, col: int, z_um: list[float]) -> bool:
-    """True when a focus result at (row, col) of frames at `z_um` is of this acquisition.
-
-    The sequence alone could match a late message of an earlier scan of the same slide.
-    """
+    """True when a focus result at (row, col) of frames at `z_um` is of this acquisition's
+    tile and frames."""
     return (
         (row, col) == (acquisition.row, acquisition.col)
         and len(z_um) == acquisition.z.n_frames
         and abs(z_um[0] - acquisition.z.low_um) < 1e-3
     )
+
+
+def refusal(
+    slide: str, acquisition: Acquisition, nonce: bytes, result: focus_pb2.FocusResult
+) -> str | None:
+    """Why `result` is not the focus result of `acquisition` of `slide` taken under
+    `nonce`, or None when it is: same slide and sequence, same nonce (compared in constant
+    time), and its tile and frames (or its tile and an error: a stack the focus service
+    could not read)."""
+    if result.sequence != acquisition.index:
+        return f"no acquisition {result.sequence} is awaited"
+    if result.slide != slide:
+        return f"slide {result.slide!r}, not {slide!r}"
+    if not hmac.compare_digest(result.nonce, nonce):
+        return "another acquisition's nonce: an old result replayed, or a stale one"
+    if not (
+        same_stack(acquisition, result.row, result.col, list(result.z_um))
+        or (
+            (result.row, result.col) == (acquisition.row, acquisition.col)
+            and result.HasField("error")
+        )
+    ):
+        return f"tile ({result.row}, {result.col}) or frames not of acquisition {acquisition.index}"
+    return None
 
 
 class InstrumentClient:
@@ -170,47 +194,73 @@ def wait_for_instrument(
             time.sleep(0.2)
 
 
-class Inbox(Generic[T]):
-    """Messages by sequence number, the latest of each; `wait` blocks until one is accepted.
+class Inbox:
+    """The focus results the engine awaits, each taken once; filled from a Zenoh callback
+    thread, read by the engine's thread.
 
-    Filled from a Zenoh callback thread, read by the engine's thread.
+    The engine says which acquisition it is about to take, and under which nonce
+    (`expect`), before it asks for it; `offer` takes a result only when it is that
+    acquisition's (`refusal`) and none was taken for it yet, and says why not otherwise;
+    `wait` hands it over and closes the acquisition, so a later copy is refused too.
     """
 
     def __init__(self) -> None:
-        self._items: dict[int, T] = {}
+        self._expected: dict[int, tuple[str, Acquisition, bytes]] = {}  # by sequence
+        self._taken: dict[int, focus_pb2.FocusResult] = {}
         self._changed = threading.Condition()
 
-    def put(self, sequence: int, message: T) -> None:
+    def expect(self, slide: str, acquisition: Acquisition, nonce: bytes) -> None:
+        """Await the result of `acquisition` of `slide` taken under `nonce` (instead of any
+        earlier take of it)."""
         with self._changed:
-            self._items[sequence] = message
-            self._changed.notify_all()
+            self._expected[acquisition.index] = (slide, acquisition, nonce)
+            self._taken.pop(acquisition.index, None)
 
-    def wait(self, sequence: int, accept: Callable[[T], bool], timeout_s: float) -> T | None:
-        """The message of `sequence` that `accept` takes, or None after `timeout_s`."""
+    def offer(self, result: focus_pb2.FocusResult) -> str | None:
+        """None when `result` is taken, else why it is refused (not awaited, another nonce,
+        slide or tile, or a second copy)."""
+        with self._changed:
+            expected = self._expected.get(result.sequence)
+            if expected is None:
+                return f"no acquisition {result.sequence} is awaited (a copy, or a late result)"
+            why = refusal(*expected, result)
+            if why is None and result.sequence in self._taken:
+                why = f"a second result for acquisition {result.sequence}"
+            if why is None:
+                self._taken[result.sequence] = result
+                self._changed.notify_all()
+            return why
+
+    def wait(self, acquisition: Acquisition, timeout_s: float) -> focus_pb2.FocusResult | None:
+        """The result taken for `acquisition` (awaited by `expect`), or None after
+        `timeout_s`; either way it is awaited no longer."""
         deadline_s = time.monotonic() + timeout_s
         with self._changed:
-            while True:
-                item = self._items.get(sequence)
-                if item is not None and accept(item):
-                    return item
-                remaining_s = deadline_s - time.monotonic()
-                if remaining_s <= 0:
-                    return None
-                self._changed.wait(remaining_s)
+            try:
+                while (result := self._taken.get(acquisition.index)) is None:
+                    remaining_s = deadline_s - time.monotonic()
+                    if remaining_s <= 0:
+                        return None
+                    self._changed.wait(remaining_s)
+                return result
+            finally:
+                self._expected.pop(acquisition.index, None)
+                self._taken.pop(acquisition.index, None)
 
 
 class SlideListener:
     """Subscribes to the focus results of one slide; close it when done.
 
-    With a `trust` key, a focus result enters `focus` only when its attachment is that
-    key's tag of it (`focustrack_core.wire.trust`); the others are dropped, logged and
-    counted in `n_rejected`.
+    With a `trust` key, a focus result is read only when its attachment is that key's tag
+    of it (`focustrack_core.wire.trust`); a result enters `focus` only for the
+    acquisition awaited, once (`Inbox.offer`). The others are dropped, logged and counted
+    in `n_rejected`.
     """
 
     def __init__(
         self, session: zenoh.Session, slide: str, trust: ResultSigner | None = None
     ) -> None:
-        self.focus: Inbox[focus_pb2.FocusResult] = Inbox()
+        self.focus = Inbox()
         self.trust = trust
         self.n_rejected = 0
         self._subscribers = [session.declare_subscriber(keys.focus_pattern(slide), self._on_focus)]
@@ -221,11 +271,8 @@ class SlideListener:
         if self.trust is not None:
             tag = None if sample.attachment is None else sample.attachment.to_bytes()
             if not self.trust.verify(key_expr, payload, tag):
-                self.n_rejected += 1  # only Zenoh's callback thread counts
-                log.warning(
-                    "focus result on %s rejected (%d so far): %s",
+                self._reject(
                     key_expr,
-                    self.n_rejected,
                     "no tag" if tag is None else "wrong tag: not from the trusted focus service",
                 )
                 return
@@ -234,7 +281,13 @@ class SlideListener:
         except Exception as error:  # a DecodeError; logged, since Zenoh would swallow it
             log.warning("unreadable focus result on %s: %s", key_expr, error)
             return
-        self.focus.put(result.sequence, result)
+        why = self.focus.offer(result)
+        if why is not None:
+            self._reject(key_expr, why)
+
+    def _reject(self, key_expr: str, why: str) -> None:
+        self.n_rejected += 1  # only Zenoh's callback thread counts
+        log.warning("focus result on %s rejected (%d so far): %s", key_expr, self.n_rejected, why)
 
     def close(self) -> None:
         for subscriber in self._subscribers:

@@ -13,8 +13,10 @@ URL, when one stays gone longer than that:
 - the frames a tile keeps (its image, or its planes) are fetched from the instrument
   by a query once the tile's focus is known (`InstrumentClient.frames`), retried as
   any instrument query; the scheduler does not receive the other frames;
-- focus results: waited for `focus_timeout_s`; a timeout goes back to the plan,
-  which acquires the stack again;
+- focus results: each acquisition is asked for under a fresh nonce, and only a result
+  with that nonce (and its sequence, tile and frames) is taken, once (`clients.Inbox`);
+  waited for `focus_timeout_s`; a timeout goes back to the plan, which acquires the
+  stack again (under a new nonce);
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
@@ -40,12 +42,8 @@ from focustrack_client import EstimatorClient, EstimatorError
 from focustrack_core.domain import Acquisition, Outcome
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.wire import keys, rpc
-from focustrack_scheduler.clients import (
-    InstrumentClient,
-    SlideListener,
-    acquire_request,
-    same_stack,
-)
+from focustrack_core.wire.trust import new_nonce
+from focustrack_scheduler.clients import InstrumentClient, SlideListener, acquire_request
 from focustrack_scheduler.in_focus import InFocusScore
 from focustrack_scheduler.outputs import WallTimes
 from focustrack_scheduler.plan import (
@@ -244,13 +242,20 @@ class Engine:
         return self._take(step.slide, acquisition)
 
     def _take(self, slide: str, acquisition: Acquisition) -> tuple[float, ...]:
-        """Acquire `acquisition`'s stack of `slide`; the z (um) of its frames."""
-        request = acquire_request(slide, acquisition)
+        """Acquire `acquisition`'s stack of `slide`, under a fresh nonce whose focus result
+        alone the listener takes from now on; the z (um) of its frames."""
+        request = acquire_request(slide, acquisition, new_nonce())
+        self.listener.focus.expect(slide, acquisition, request.nonce)  # its result may come first
         key_expr = keys.acquire_key(self.instrument.name)
         what = f"acquisition {acquisition.index} of tile ({acquisition.row}, {acquisition.col})"
         sent_s = time.time()
         reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
         replied_s = time.time()
+        if reply.header.nonce != request.nonce:  # its frames, so its result, would not match
+            raise ScanRefusedError(
+                f"instrument {self.instrument.name!r} took {what} without its nonce: it "
+                "predates acquisition nonces (update it), or is not the instrument asked"
+            )
         # Every stack taken is real images and stage time, kept or not.
         self.record.acquired(acquisition, len(reply.header.z_um), reply.timing.total_s)
         self._show()
@@ -263,14 +268,7 @@ class Engine:
     def _await_focus(self, step: AwaitFocus) -> Any:
         acquisition = step.acquisition
         started_s = time.perf_counter()
-
-        def accept(result: Any) -> bool:
-            return same_stack(acquisition, result.row, result.col, list(result.z_um)) or (
-                (result.row, result.col) == (acquisition.row, acquisition.col)
-                and result.HasField("error")  # a stack the service could not read
-            )
-
-        received = self.listener.focus.wait(acquisition.index, accept, self.policy.focus_timeout_s)
+        received = self.listener.focus.wait(acquisition, self.policy.focus_timeout_s)
         waited_s = time.perf_counter() - started_s
         if received is None:
             log.warning(

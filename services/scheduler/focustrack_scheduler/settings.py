@@ -104,7 +104,7 @@ class ScanOptions(ServiceSettings):
     result_key_file: Path | None = Field(
         None,
         description="the focus service's shared key: accept only focus results tagged with it "
-        "(docs/security.md; default: any result on the bus)",
+        "(docs/security.md; default: any result with the awaited acquisition's nonce)",
     )
 
     @classmethod

@@ -1,0 +1,194 @@
+"""A scan takes a focus result only for the acquisition it waits for, once (real Zenoh on
+loopback, the engine's own waiting code, stand-ins for the instrument and the focus service).
+
+The exploit: results captured during one scan of a slide, re-published during a later scan
+of it after the focus moved, were taken, every one: the result key's HMAC covers the key
+expression and the payload, so an old genuine result is still genuine. Each acquisition
+now goes out under a fresh nonce that its frames and its result carry.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from focustrack_client import EstimatorClient
+from focustrack_core.domain import Acquisition, Purpose, ZRange
+from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
+from focustrack_core.wire import keys, rpc, session
+from focustrack_core.wire.trust import NONCE_BYTES, ResultSigner
+from focustrack_scheduler.clients import InstrumentClient, SlideListener, refusal
+from focustrack_scheduler.engine import Engine, RetryPolicy, ScanRefusedError
+from focustrack_scheduler.plan import Acquire, AwaitFocus, Plan
+from focustrack_scheduler.record import ScanRecord
+
+SLIDE = "s1"
+RESULT_KEY = ResultSigner(b"r" * 32)
+ACQUISITION = Acquisition(3, 1, 2, ZRange(-2.0, 0.5, 9), Purpose.SCAN, measure=True)
+
+#: A result as it went on the bus: key expression, payload, attachment (its tag).
+Sent = tuple[str, bytes, bytes]
+
+
+class StandIns:
+    """An instrument that answers every acquisition, and a focus service that publishes,
+    before the reply, `copies` tagged results of its stack with best focus `best_z_um`;
+    `replays` (results sent before) are put again first, as a replaying peer would."""
+
+    def __init__(self, bus: zenoh.Session, echo_nonce: bool = True) -> None:
+        self.bus = bus
+        self.echo_nonce = echo_nonce
+        self.best_z_um = 1.0
+        self.copies = 1
+        self.replays: list[Sent] = []
+        self.sent: list[Sent] = []  # every genuine result put
+        self._queryable = bus.declare_queryable(
+            keys.acquire_key("sim"),
+            lambda query: rpc.answer(query, keys.acquire_key("sim"), self._acquire),
+        )
+
+    def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
+        request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
+        z_um = [request.z_low_um + i * request.z_step_um for i in range(request.n_frames)]
+        header = instrument_pb2.ZStackHeader(
+            instrument="sim", slide=request.slide, row=request.row, col=request.col,
+            sequence=request.sequence, z_um=z_um,
+            nonce=request.nonce if self.echo_nonce else b"",
+        )  # fmt: skip
+        result = focus_pb2.FocusResult(
+            slide=header.slide, row=header.row, col=header.col, sequence=header.sequence,
+            nonce=header.nonce, metric="normalised_variance", z_um=z_um,
+            scores=[1.0] * len(z_um), best_z_um=self.best_z_um, sigma_um=0.1,
+        )  # fmt: skip
+        key_expr = keys.focus_key(header.slide, header.row, header.col)
+        payload = result.SerializeToString()
+        for replayed in self.replays:
+            self._put(*replayed)
+        for _ in range(self.copies):
+            self._put(key_expr, payload, RESULT_KEY.tag(key_expr, payload))
+            self.sent.append((key_expr, payload, RESULT_KEY.tag(key_expr, payload)))
+        return instrument_pb2.AcquireReply(header=header)
+
+    def _put(self, key_expr: str, payload: bytes, tag: bytes) -> None:
+        self.bus.put(key_expr, payload, attachment=tag)
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
+    """(the stand-ins' session, the scheduler's), linked on loopback."""
+    endpoint = session.loopback_endpoint()
+    with (
+        session.open_session(listen=[endpoint]) as bus,
+        session.open_session(connect=[endpoint]) as scheduler,
+    ):
+        yield bus, scheduler
+
+
+def scan_once(engine: Engine) -> focus_pb2.FocusResult | None:
+    """Acquire `ACQUISITION` and wait for its focus result, with the engine."""
+    received: list[focus_pb2.FocusResult | None] = []
+
+    def plan() -> Plan:
+        yield Acquire(SLIDE, ACQUISITION)
+        received.append((yield AwaitFocus(SLIDE, ACQUISITION)))
+        return "scanned"
+
+    engine.run(plan())
+    return received[0]
+
+
+def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Whether `condition` holds within `timeout_s` (the listener runs on Zenoh's thread)."""
+    deadline_s = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline_s:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@pytest.mark.parametrize("trust", [RESULT_KEY, None], ids=["result-key", "no-key"])
+def test_a_replayed_result_is_not_taken_and_a_duplicate_is_taken_once(
+    sessions: tuple[zenoh.Session, zenoh.Session], trust: ResultSigner | None, tmp_path: Path
+) -> None:
+    bus, scheduler = sessions
+    stand_ins = StandIns(bus)
+    listener = SlideListener(scheduler, SLIDE, trust)
+    engine = Engine(
+        InstrumentClient(scheduler, "sim", timeout_s=10),
+        listener,
+        EstimatorClient("http://127.0.0.1:9"),  # not asked by these plans
+        ScanRecord(tmp_path),
+        RetryPolicy(focus_timeout_s=10.0),
+    )
+    try:
+        time.sleep(0.5)  # let the subscription reach the stand-ins
+        # A first scan: its result comes twice; the second copy is dropped.
+        stand_ins.copies = 2
+        first = scan_once(engine)
+        assert first is not None and first.best_z_um == 1.0 and len(first.nonce) == NONCE_BYTES
+        assert until(lambda: listener.n_rejected == 1)
+
+        # The focus moved by 8 um; a peer replays the first scan's genuine results (right
+        # slide, tile, sequence and frames, a valid tag) before each new one.
+        stand_ins.copies, stand_ins.best_z_um = 1, 9.0
+        stand_ins.replays = list(stand_ins.sent)
+        second = scan_once(engine)
+        assert second is not None and second.best_z_um == 9.0
+        assert second.nonce not in (b"", first.nonce)
+        assert until(lambda: listener.n_rejected == 3)
+
+        # A copy after the wait is over is dropped as well.
+        bus.put(*stand_ins.sent[-1][:2], attachment=stand_ins.sent[-1][2])
+        assert until(lambda: listener.n_rejected == 4)
+    finally:
+        listener.close()
+        stand_ins.close()
+
+
+def test_an_instrument_that_drops_the_nonce_is_refused_at_once(
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path
+) -> None:
+    bus, scheduler = sessions
+    stand_ins = StandIns(bus, echo_nonce=False)
+    listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
+    engine = Engine(
+        InstrumentClient(scheduler, "sim", timeout_s=10),
+        listener,
+        EstimatorClient("http://127.0.0.1:9"),
+        ScanRecord(tmp_path),
+    )
+    try:
+        with pytest.raises(ScanRefusedError, match="without its nonce"):
+            scan_once(engine)
+    finally:
+        listener.close()
+        stand_ins.close()
+
+
+def test_a_result_of_another_slide_tile_or_frames_is_refused_an_error_of_its_tile_taken() -> None:
+    nonce = b"n" * NONCE_BYTES
+    z_um = [-2.0 + 0.5 * i for i in range(9)]
+
+    def result(**fields: object) -> focus_pb2.FocusResult:
+        base: dict[str, object] = dict(
+            slide=SLIDE, sequence=3, row=1, col=2, nonce=nonce, z_um=z_um
+        )
+        return focus_pb2.FocusResult(**(base | fields))  # type: ignore[arg-type]
+
+    def why(refused: focus_pb2.FocusResult) -> str:
+        return refusal(SLIDE, ACQUISITION, nonce, refused) or "taken"
+
+    assert why(result()) == "taken"
+    assert "nonce" in why(result(nonce=b"o" * NONCE_BYTES)) and "nonce" in why(result(nonce=b""))
+    assert "tile (1, 3)" in why(result(col=3)) and "frames" in why(result(z_um=z_um[1:]))
+    assert "no acquisition 4" in why(result(sequence=4)) and "slide" in why(result(slide="s2"))
+    unreadable = result(z_um=[], error=common_pb2.Error(code=common_pb2.ERROR_CODE_BAD_STACK))
+    assert why(unreadable) == "taken"  # a stack the focus service could not read
