@@ -103,7 +103,7 @@ class ResultReplay:
     Keeps the last result of each (row, col, sequence). A replayed result is put as the
     stack's first frame comes, and again right after each genuine result for that stack,
     so that it is the latest one whenever the scheduler looks. `replayed` maps each stack
-    it replayed a result for to that result's best z, um.
+    it replayed a result for to that result's best z, um (NaN where it had none).
     """
 
     def __init__(self, session: zenoh.Session, slide: str) -> None:
