@@ -24,7 +24,7 @@ from focustrack.bench.chaos import (
 )
 from focustrack.demo import LocalStack
 from focustrack_core.v1 import instrument_pb2
-from focustrack_core.wire.session import open_session
+from focustrack_core.wire.session import loopback_endpoint, open_session
 from focustrack_focus.pipeline import FocusSettings, focus_stack
 from focustrack_scheduler.settings import BEST_KALMAN
 
@@ -53,6 +53,26 @@ def test_taken_counts_the_measurements_that_took_a_value_sent(tmp_path: Path) ->
     sent = {(0, 0, 0): 1.5, (0, 1, 1): 2.1, (0, 2, 2): 0.0, (0, 3, 4): 3.0}
     assert bus_attacks.taken(log, sent, 1e-6) == 1  # (0, 3) is another sequence
     assert bus_attacks.taken(log, sent, 0.2) == 2
+
+
+def test_a_replayed_result_is_found_by_its_scores_flat_ones_too(tmp_path: Path) -> None:
+    log = tmp_path / "scan_log.jsonl"
+    entries = [
+        {"event": "measured", "row": 0, "col": 0, "sequence": 0, "curve_scores": [1.0, 2.5, 1.0]},
+        {"event": "measured", "row": 0, "col": 1, "sequence": 1, "curve_scores": [0.1, 0.1, 0.1]},
+        {"event": "measured", "row": 0, "col": 2, "sequence": 2, "curve_scores": [1.0, 2.0, 1.5]},
+        {"event": "measured", "row": 0, "col": 3, "sequence": 3, "curve_scores": None},
+    ]
+    log.write_text("".join(json.dumps(entry) + "\n" for entry in entries))
+    with open_session(listen=[loopback_endpoint()]) as session:
+        replay = bus_attacks.ResultReplay(session, "slide-0")
+        replay.replayed = {
+            (0, 0, 0): [1.0, 2.5, 1.0],  # taken
+            (0, 1, 1): [0.1, 0.1, 0.1],  # taken: a flat result, no best z
+            (0, 2, 2): [1.0, 2.0, 1.4999],  # the new images' curve, not the replayed one
+            (0, 3, 3): [1.0],
+        }
+        assert replay.accepted(log) == 2
 
 
 #: Small enough for a test: what each attack sends, not the issue's gigabytes.

@@ -17,13 +17,12 @@
   times. The bench reads each service's peak memory around each.
 
 `taken(log_path, sent, tolerance_um)` counts the measurements of a scan's log that
-took one of the attack's values.
+took one of the values sent; `ResultReplay.accepted` those that took a replayed result.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import threading
 import time
 from dataclasses import dataclass
@@ -49,10 +48,6 @@ FORGED_FOCUS_WIDTH_UM = 1.0
 #: um: the plane is a frame step (0.5 um in a scan's stacks) or more from the true focus,
 #: and the focus service measures genuine stacks to about 0.03 um.
 FORGED_TOLERANCE_UM = 0.2
-
-#: A value sent (a replayed result's best z) was taken when a measurement is that z to
-#: the last digit, um.
-SAME_Z_TOLERANCE_UM = 1e-6
 
 _RESULT_ENCODING = rpc.protobuf_encoding(focus_pb2.FocusResult)
 
@@ -103,13 +98,13 @@ class ResultReplay:
     Keeps the last result of each (row, col, sequence). A replayed result is put as the
     stack's first frame comes, and again right after each genuine result for that stack,
     so that it is the latest one whenever the scheduler looks. `replayed` maps each stack
-    it replayed a result for to that result's best z, um (NaN where it had none).
+    it replayed a result for to that result's scores (`accepted` finds them in a log).
     """
 
     def __init__(self, session: zenoh.Session, slide: str) -> None:
         self.session, self.slide = session, slide
-        self.captured: dict[StackKey, tuple[str, bytes, bytes | None, float | None]] = {}
-        self.replayed: dict[StackKey, float] = {}
+        self.captured: dict[StackKey, tuple[str, bytes, bytes | None, list[float]]] = {}
+        self.replayed: dict[StackKey, list[float]] = {}
         self.n_replayed = 0  # results put, counting each stack once
         self._lock = threading.Lock()
         self._subscribers: list[zenoh.Subscriber[None]] = []
@@ -146,9 +141,8 @@ class ResultReplay:
         stack = (result.row, result.col, result.sequence)
         if not self._replaying:
             tag = None if sample.attachment is None else sample.attachment.to_bytes()
-            best_z_um = result.best_z_um if result.HasField("best_z_um") else None
             with self._lock:
-                self.captured[stack] = (str(sample.key_expr), payload, tag, best_z_um)
+                self.captured[stack] = (str(sample.key_expr), payload, tag, list(result.scores))
             return
         with self._lock:
             found = self.captured.get(stack) if stack in self.replayed else None
@@ -167,11 +161,24 @@ class ResultReplay:
                 return
             self._answered.add(stack_id)
             self.n_replayed += 1
-            self.replayed[(stack.row, stack.col, stack.sequence)] = (
-                math.nan if found[3] is None else found[3]
-            )
+            self.replayed[(stack.row, stack.col, stack.sequence)] = found[3]
         key_expr, payload, tag, _ = found
         _put(self.session, key_expr, payload, _RESULT_ENCODING, tag)
+
+    def accepted(self, log_path: Path) -> int:
+        """Measurements in a scan's log (`scan_log.jsonl`) that took a replayed result: their
+        curve is its scores to the last digit (the slide's new images score otherwise),
+        which finds flat results, without a best z, as well."""
+        with self._lock:
+            replayed = dict(self.replayed)
+        count = 0
+        for line in log_path.read_text().splitlines():
+            entry = json.loads(line)
+            if entry["event"] != "measured" or not entry.get("curve_scores"):
+                continue
+            scores = replayed.get((entry["row"], entry["col"], entry["sequence"]))
+            count += scores == entry["curve_scores"]
+        return count
 
 
 def forged_stack(

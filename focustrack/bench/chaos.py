@@ -21,7 +21,7 @@ peer that holds no key:
 - replay: a scan of the slide while the peer records its focus results; the slide's
   focus moves by `--replay-offset-um` (the instrument is restarted with it); a second
   scan while the peer re-publishes each recorded result for the stack of the same tile
-  and sequence. A measurement with a replayed best z is a replayed result accepted;
+  and sequence. A measurement whose curve is a replayed result's is one accepted;
 - forgery: a scan while the peer publishes, for every stack, frames of its own that
   are sharpest far from the true focus. A measurement at their sharp plane is a forged
   result accepted;
@@ -152,7 +152,7 @@ class RoguePeer:
         """Measurements in a scan's log that took this peer's wrong z."""
         with self._lock:
             sent = dict(self.sent)
-        return bus_attacks.taken(log_path, sent, bus_attacks.SAME_Z_TOLERANCE_UM)
+        return bus_attacks.taken(log_path, sent, tolerance_um=1e-6)  # its z to the last digit
 
     def close(self) -> None:
         self._subscriber.undeclare()
@@ -518,7 +518,7 @@ def replay_attack(
         replayed, log_path = scan_once(stack, args, "replay", memory)
     finally:
         replay.stop()
-    accepted = bus_attacks.taken(log_path, replay.replayed, bus_attacks.SAME_Z_TOLERANCE_UM)
+    accepted = replay.accepted(log_path)
     replayed["replayed_results_accepted"] = accepted
     _say("replay: the scan after the move", replayed)
     return {
