@@ -99,8 +99,8 @@ def test_each_attack_runs_on_a_small_stack_and_is_counted(tmp_path: Path) -> Non
         open_session(connect=[stack.endpoint]) as attacker,
     ):
         memory = MemoryWatch(stack)
-        replay = replay_attack(stack, args, attacker, memory)
-        forgery = forgery_attack(stack, args, attacker, memory)
+        replay = replay_attack(stack, args, memory)
+        forgery = forgery_attack(stack, args, memory)
         attacks = memory_attacks(stack, attacker, SMALL)
 
     assert replay["results_recorded"] >= 9  # a result for every tile of the recorded scan

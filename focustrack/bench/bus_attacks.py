@@ -23,16 +23,20 @@ took one of the values sent; `ResultReplay.accepted` those that took a replayed 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import threading
 import time
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
 
 from focustrack_core.v1 import focus_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
+from focustrack_core.wire.session import open_session
 
 #: (row, col, sequence) of a stack, as a scan's log names its measurements.
 StackKey = tuple[int, int, int]
@@ -51,15 +55,24 @@ FORGED_TOLERANCE_UM = 0.2
 
 _RESULT_ENCODING = rpc.protobuf_encoding(focus_pb2.FocusResult)
 
+#: Seconds an attacker's process may take to answer the bench (its start-up included).
+PEER_TIMEOUT_S = 60.0
 
-def _first_frame(sample: zenoh.Sample) -> instrument_pb2.ZFrameHeader | None:
-    """The header of `sample` if it is the first frame (or its first part) of a stack."""
+
+def _frame_start(sample: zenoh.Sample) -> instrument_pb2.ZFrameHeader | None:
+    """The header of `sample` if it starts a frame (a whole frame, or its first part)."""
     attachment = sample.attachment
     try:
         header = codec.zframe_header(None if attachment is None else attachment.to_bytes())
     except ValueError:
         return None
-    return header if header.index == 0 and header.part_offset == 0 else None
+    return header if header.part_offset == 0 else None
+
+
+def _first_frame(sample: zenoh.Sample) -> instrument_pb2.ZFrameHeader | None:
+    """The header of `sample` if it starts the first frame of a stack."""
+    header = _frame_start(sample)
+    return header if header is not None and header.index == 0 else None
 
 
 def _put(
@@ -79,6 +92,70 @@ def _put(
     )
 
 
+class PeerProcess:
+    """An attacker (`kind(session, *args)`, e.g. `ResultReplay`) on a session of its own
+    to `endpoint`, in a process of its own, as a context manager.
+
+    A peer on another host takes frames and puts its messages without waiting for the
+    bench's scheduler, which shares this interpreter (and its lock): here, one in the
+    same process saw a stack's first frame after the focus service had scored all of
+    it. `call(name, *args)` runs the attacker's method `name` there (or reads its
+    attribute) and gives back what it returns.
+    """
+
+    def __init__(self, endpoint: str, kind: type, *args: object) -> None:
+        context = multiprocessing.get_context("spawn")  # no copy of this process's threads
+        self._connection, child = context.Pipe()
+        self._process = context.Process(
+            target=_serve_peer, args=(child, endpoint, kind, args), name=kind.__name__
+        )
+        self._process.start()
+        self._answer()  # its session is open and it listens
+
+    def _answer(self) -> Any:
+        if not self._connection.poll(PEER_TIMEOUT_S):
+            raise RuntimeError(f"the {self._process.name} peer did not answer")
+        status, value = self._connection.recv()
+        if status != "ok":
+            raise RuntimeError(f"the {self._process.name} peer failed: {value}")
+        return value
+
+    def call(self, name: str, *args: object) -> Any:
+        self._connection.send((name, args))
+        return self._answer()
+
+    def __enter__(self) -> PeerProcess:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        if self._process.is_alive():
+            self._connection.send(None)
+            self._process.join(PEER_TIMEOUT_S)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join()
+
+
+def _serve_peer(
+    connection: Connection, endpoint: str, kind: type, args: tuple[object, ...]
+) -> None:
+    """The attacker's process: its session, then `PeerProcess.call`s until told to end."""
+    try:
+        with open_session(connect=[endpoint]) as session:
+            peer = kind(session, *args)
+            connection.send(("ok", None))
+            while (request := connection.recv()) is not None:
+                name, call_args = request
+                try:
+                    value = getattr(peer, name)
+                    connection.send(("ok", value(*call_args) if callable(value) else value))
+                except Exception as error:  # said to the bench, which raises it
+                    connection.send(("error", f"{type(error).__name__}: {error}"))
+            peer.close()
+    except Exception as error:  # the session did not open: the bench raises it
+        connection.send(("error", f"{type(error).__name__}: {error}"))
+
+
 def taken(log_path: Path, sent: dict[StackKey, float], tolerance_um: float) -> int:
     """Measurements in a scan's log (`scan_log.jsonl`) of a stack in `sent` whose z is
     within `tolerance_um` of the z sent for it."""
@@ -96,20 +173,29 @@ class ResultReplay:
     """Records a slide's focus results (`record`), then replays them (`replay`).
 
     Keeps the last result of each (row, col, sequence). A replayed result is put as the
-    stack's first frame comes, and again right after each genuine result for that stack,
-    so that it is the latest one whenever the scheduler looks. `replayed` maps each stack
-    it replayed a result for to that result's scores (`accepted` finds them in a log).
+    stack's first frame comes, and again and again from its last frame until just after
+    the genuine result for it (`FLOOD_PERIOD_S`, `FLOOD_AFTER_S`), so that it is the
+    latest one whenever the scheduler looks. `replayed` maps each stack it replayed a
+    result for to that result's scores (`accepted` finds them in a log).
     """
+
+    #: Seconds between copies of a replayed result while the genuine one is due.
+    FLOOD_PERIOD_S = 3e-4
+    #: Copies go on this long after the genuine result came, s.
+    FLOOD_AFTER_S = 3e-3
+    #: And stop this long after the stack's last frame in any case, s.
+    FLOOD_MAX_S = 1.0
 
     def __init__(self, session: zenoh.Session, slide: str) -> None:
         self.session, self.slide = session, slide
         self.captured: dict[StackKey, tuple[str, bytes, bytes | None, list[float]]] = {}
         self.replayed: dict[StackKey, list[float]] = {}
-        self.n_replayed = 0  # results put, counting each stack once
+        self.n_replayed = 0  # stacks it replayed a result for
         self._lock = threading.Lock()
         self._subscribers: list[zenoh.Subscriber[None]] = []
         self._replaying = False
         self._answered: set[tuple[str, int, float]] = set()  # stacks (key, sequence, clock)
+        self._genuine: dict[StackKey, threading.Event] = {}  # set when its result came
 
     def record(self) -> None:
         """Record every focus result of the slide from now on (until `stop`)."""
@@ -131,6 +217,16 @@ class ResultReplay:
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._subscribers, self._replaying = [], False
+        for genuine in self._genuine.values():
+            genuine.set()  # floods end
+
+    close = stop  # the end of it: what `PeerProcess` calls on every attacker
+
+    @property
+    def n_captured(self) -> int:
+        """Results recorded (the last of each stack)."""
+        with self._lock:
+            return len(self.captured)
 
     def _on_result(self, sample: zenoh.Sample) -> None:
         payload = codec.payload_bytes(sample.payload)
@@ -139,31 +235,54 @@ class ResultReplay:
         except Exception:  # a DecodeError: not a result to replay
             return
         stack = (result.row, result.col, result.sequence)
-        if not self._replaying:
-            tag = None if sample.attachment is None else sample.attachment.to_bytes()
-            with self._lock:
-                self.captured[stack] = (str(sample.key_expr), payload, tag, list(result.scores))
-            return
         with self._lock:
-            found = self.captured.get(stack) if stack in self.replayed else None
-        if found is not None and found[1] != payload:  # a genuine result: ours goes after it
-            _put(self.session, found[0], found[1], _RESULT_ENCODING, found[2])
+            if not self._replaying:
+                tag = None if sample.attachment is None else sample.attachment.to_bytes()
+                self.captured[stack] = (str(sample.key_expr), payload, tag, list(result.scores))
+                return
+            found, genuine = self.captured.get(stack), self._genuine.get(stack)
+        if found is not None and genuine is not None and found[1] != payload:
+            genuine.set()  # the genuine result: the flood goes on a little longer, then ends
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
-        header = _first_frame(sample)
+        header = _frame_start(sample)
         if header is None:
             return
         stack = header.stack
+        key = (stack.row, stack.col, stack.sequence)
         stack_id = (str(sample.key_expr), stack.sequence, stack.clock_s)
         with self._lock:
-            found = self.captured.get((stack.row, stack.col, stack.sequence))
-            if found is None or stack_id in self._answered:
+            found = self.captured.get(key)
+            if found is None:
                 return
-            self._answered.add(stack_id)
-            self.n_replayed += 1
-            self.replayed[(stack.row, stack.col, stack.sequence)] = found[3]
+            if header.index == 0 and stack_id not in self._answered:
+                self._answered.add(stack_id)
+                self.n_replayed += 1
+                self.replayed[key] = found[3]
+                self._genuine[key] = threading.Event()
+                first = True
+            elif header.index == stack.shape[0] - 1 and key in self._genuine:
+                first = False
+            else:
+                return
+        if first:
+            _put(self.session, found[0], found[1], _RESULT_ENCODING, found[2])
+        else:
+            genuine = self._genuine[key]
+            threading.Thread(target=self._flood, args=(found, genuine), daemon=True).start()
+
+    def _flood(
+        self, found: tuple[str, bytes, bytes | None, list[float]], genuine: threading.Event
+    ) -> None:
+        """Put `found` every FLOOD_PERIOD_S until FLOOD_AFTER_S after `genuine` is set."""
         key_expr, payload, tag, _ = found
-        _put(self.session, key_expr, payload, _RESULT_ENCODING, tag)
+        end_s = time.monotonic() + self.FLOOD_MAX_S
+        came = False
+        while time.monotonic() < end_s:
+            _put(self.session, key_expr, payload, _RESULT_ENCODING, tag)
+            if not came and genuine.is_set():
+                came, end_s = True, min(end_s, time.monotonic() + self.FLOOD_AFTER_S)
+            time.sleep(self.FLOOD_PERIOD_S)
 
     def accepted(self, log_path: Path) -> int:
         """Measurements in a scan's log (`scan_log.jsonl`) that took a replayed result: their
@@ -245,6 +364,12 @@ class FrameForger:
         with self._lock:
             self.n_forged += 1
             self.forged[(genuine.row, genuine.col, genuine.sequence)] = float(z_um[sharp])
+
+    def accepted(self, log_path: Path) -> int:
+        """Measurements in a scan's log made of its frames: at their sharp plane."""
+        with self._lock:
+            forged = dict(self.forged)
+        return taken(log_path, forged, FORGED_TOLERANCE_UM)
 
     def close(self) -> None:
         self._subscriber.undeclare()

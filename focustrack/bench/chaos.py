@@ -404,10 +404,10 @@ def run(args: argparse.Namespace) -> int:
             hostile = hostile_requests(stack, memory)
             print(f"hostile REST requests: {json.dumps(hostile)}", flush=True)
             memory.sample()
+            replay = replay_attack(stack, args, memory)
+            forgery = forgery_attack(stack, args, memory)
+            memory.sample()  # the run's peaks: before the memory attacks, which reset them
             with open_session(connect=[stack.endpoint]) as attacker:
-                replay = replay_attack(stack, args, attacker, memory)
-                forgery = forgery_attack(stack, args, attacker, memory)
-                memory.sample()  # the run's peaks: before the memory attacks, which reset them
                 attacks = memory_attacks(stack, attacker)
     except KeyboardInterrupt:
         print("focustrack bench chaos: interrupted; services stopped", file=sys.stderr)
@@ -499,32 +499,34 @@ def _say(name: str, figures: dict[str, Any]) -> None:
 
 
 def replay_attack(
-    stack: LocalStack, args: argparse.Namespace, attacker: zenoh.Session, memory: MemoryWatch
+    stack: LocalStack, args: argparse.Namespace, memory: MemoryWatch
 ) -> dict[str, Any]:
     """A scan recorded by a peer; the slide's focus moved; a scan the peer replays it into."""
-    replay = bus_attacks.ResultReplay(attacker, SLIDE)
-    replay.record()
-    try:
-        recorded, _ = scan_once(stack, args, "replay-recorded", memory)
-    finally:
-        replay.stop()
-    _say("replay: the recorded scan", recorded)
-    print(f"replay: {len(replay.captured)} results recorded; the slide's focus moves by "
-          f"{args.replay_offset_um:g} um", flush=True)  # fmt: skip
-    memory.sample("instrument")
-    stack.restart_with("instrument", ["--z-offset-um", str(args.replay_offset_um)])
-    replay.replay()
-    try:
-        replayed, log_path = scan_once(stack, args, "replay", memory)
-    finally:
-        replay.stop()
-    accepted = replay.accepted(log_path)
+    with bus_attacks.PeerProcess(stack.endpoint, bus_attacks.ResultReplay, SLIDE) as replay:
+        replay.call("record")
+        try:
+            recorded, _ = scan_once(stack, args, "replay-recorded", memory)
+        finally:
+            replay.call("stop")
+        _say("replay: the recorded scan", recorded)
+        n_recorded = replay.call("n_captured")
+        print(f"replay: {n_recorded} results recorded; the slide's focus moves by "
+              f"{args.replay_offset_um:g} um", flush=True)  # fmt: skip
+        memory.sample("instrument")
+        stack.restart_with("instrument", ["--z-offset-um", str(args.replay_offset_um)])
+        replay.call("replay")
+        try:
+            replayed, log_path = scan_once(stack, args, "replay", memory)
+        finally:
+            replay.call("stop")
+        accepted = replay.call("accepted", log_path)
+        n_replayed = replay.call("n_replayed")
     replayed["replayed_results_accepted"] = accepted
     _say("replay: the scan after the move", replayed)
     return {
         "offset_um": args.replay_offset_um,
-        "results_recorded": len(replay.captured),
-        "results_replayed": replay.n_replayed,
+        "results_recorded": n_recorded,
+        "results_replayed": n_replayed,
         "replayed_results_accepted": accepted,
         "recorded_scan": recorded,
         "replayed_scan": replayed,
@@ -532,20 +534,19 @@ def replay_attack(
 
 
 def forgery_attack(
-    stack: LocalStack, args: argparse.Namespace, attacker: zenoh.Session, memory: MemoryWatch
+    stack: LocalStack, args: argparse.Namespace, memory: MemoryWatch
 ) -> dict[str, Any]:
     """A scan while a peer publishes forged frames for every stack."""
     assert stack.session is not None
     truth_um = InstrumentClient(stack.session, INSTRUMENT).truth_um(SLIDE)
-    forger = bus_attacks.FrameForger(attacker, SLIDE, truth_um)
-    try:
+    peer = bus_attacks.PeerProcess(stack.endpoint, bus_attacks.FrameForger, SLIDE, truth_um)
+    with peer as forger:
         figures, log_path = scan_once(stack, args, "forgery", memory)
-    finally:
-        forger.close()
-    accepted = bus_attacks.taken(log_path, forger.forged, bus_attacks.FORGED_TOLERANCE_UM)
+        accepted = forger.call("accepted", log_path)
+        n_forged = forger.call("n_forged")
     figures["forged_results_accepted"] = accepted
     _say("forgery: the scan", figures)
-    return {"stacks_forged": forger.n_forged, "forged_results_accepted": accepted, "scan": figures}
+    return {"stacks_forged": n_forged, "forged_results_accepted": accepted, "scan": figures}
 
 
 def memory_attacks(
