@@ -1,5 +1,7 @@
 """`focustrack bench chaos`, small: a scan while the router and the focus service are killed
-and restarted and a rogue peer publishes wrong results; nothing lost, nothing wrong taken."""
+and restarted and a rogue peer publishes wrong results; nothing lost, nothing wrong taken.
+Then the bus attacks (replay, forgery, memory) run and are reported; whether their counts
+are 0 depends on the defences on the branch, and the exit status says so."""
 
 from __future__ import annotations
 
@@ -22,8 +24,15 @@ def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: P
         "--down-max-s", "3", "--out", str(tmp_path / "work"), "--json", str(out),
     ]  # fmt: skip
     chaos = subprocess.run(command, capture_output=True, text=True, timeout=560)
-    assert chaos.returncode == 0, chaos.stdout + chaos.stderr
+    assert chaos.returncode in (0, 1), chaos.stdout + chaos.stderr
     report = json.loads(out.read_text())
+    attacks = report["memory_attacks"]
+    defended = (
+        report["replayed_results_accepted"] == 0
+        and report["forged_results_accepted"] == 0
+        and all(mb <= 1024 for attack in attacks.values() for mb in attack["peak_mb"].values())
+    )
+    assert chaos.returncode == (0 if defended else 1), chaos.stdout + chaos.stderr
     assert out.with_suffix(".png").stat().st_size > 0
     assert report["scans_completed"] == len(report["scans"]) >= 1  # scans go on while faults do
     assert len(report["faults"]) == 2
@@ -34,6 +43,14 @@ def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: P
     assert "chaos: killed router" in chaos.stdout
     assert set(report["peak_rss_mb"]) == {"router", "instrument", "focus", "estimator"}
     assert all(0 < mb < 1024 for mb in report["peak_rss_mb"].values())
+    replay, forgery = report["replay"], report["forgery"]
+    assert replay["results_recorded"] > 0 and replay["results_replayed"] >= 1
+    assert replay["replayed_scan"]["completed"] and forgery["scan"]["completed"]
+    assert forgery["stacks_forged"] > 0
+    assert list(attacks) == ["big-frames", "incomplete-stacks", "repeated-frames-request"]
+    for figures in attacks.values():
+        assert set(figures["peak_mb"]) == set(report["peak_rss_mb"])
+    assert "replayed results taken:" in chaos.stdout and "under big-frames" in chaos.stdout
     hostile = report["hostile_requests"]  # the status of each, or why they were not fired
     if isinstance(hostile, dict):
         assert hostile and all(status < 500 for status in hostile.values()), hostile

@@ -15,11 +15,29 @@ A scan that stops all the same (a service gone longer than its retry policy allo
 run again on its folder, which resumes it. Then the hostile REST requests of
 `focustrack.bench.hostile` (`fire(estimator_url, focus_url)`, where that module exists;
 otherwise the step is skipped and the report says so) are fired at the estimator and
-the focus service. The report: scans completed, measurements lost (posted by a scan
-but not held by the estimator: must be 0), wrong results accepted (a measurement with
-the rogue's z: must be 0), results rejected, the faults, and the largest resident
-memory (VmHWM, /proc) of each service over all its processes; with `--json OUT`, a
-chart beside it (OUT with .png): the faults and scans on a time line, the memory.
+the focus service, and the attacks of `focustrack.bench.bus_attacks` on the bus, from a
+peer that holds no key:
+
+- replay: a scan of the slide while the peer records its focus results; the slide's
+  focus moves by `--replay-offset-um` (the instrument is restarted with it); a second
+  scan while the peer re-publishes each recorded result for the stack of the same tile
+  and sequence. A measurement whose curve is a replayed result's is one accepted;
+- forgery: a scan while the peer publishes, for every stack, frames of its own that
+  are sharpest far from the true focus. A measurement at their sharp plane is a forged
+  result accepted;
+- memory: frames declared at 1 GiB sent part by part and never finished, stacks of
+  32 MiB frames that never get their other frames, a FramesRequest naming one frame
+  2,000 times. Each service's peak memory is reset before each attack (/proc clear_refs)
+  and read when the services are idle again.
+
+The report: scans completed, measurements lost (posted by a scan but not held by the
+estimator: must be 0), wrong results accepted (a measurement with the rogue's z: must
+be 0), results rejected, the faults, replayed and forged results accepted (must be 0),
+the largest resident memory (VmHWM, /proc) of each service over all its processes
+before the memory attacks, and under each memory attack (each at most 1 GB); with
+`--json OUT`, a chart beside it (OUT with .png): the faults and scans on a time line,
+the memory over the run and under the attacks. The exit status is 0 when every figure
+that must be 0 is, and no service went over 1 GB.
 
     focustrack bench chaos [--scans 2 --faults 6 --seed 3] [--json OUT]
 """
@@ -27,6 +45,7 @@ chart beside it (OUT with .png): the faults and scans on a time line, the memory
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import json
 import os
@@ -42,12 +61,14 @@ from typing import Any
 import httpx
 import zenoh
 
+from focustrack.bench import bus_attacks
 from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import open_session
 from focustrack_scheduler import outputs
+from focustrack_scheduler.clients import InstrumentClient
 from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.scan import SCAN_ERRORS, ScanJob, run_scan
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
@@ -65,6 +86,12 @@ MAX_SCANS = 50
 #: restart within a minute.
 CHAOS_RETRY = RetryPolicy(instrument_timeout_s=15.0, focus_timeout_s=5.0, instrument_outage_s=60.0)
 FOCUS_ATTEMPTS = 12  # x focus_timeout_s: a focus service gone for a minute
+
+#: The most resident memory a service may take, MB, under any attack.
+MEMORY_LIMIT_MB = 1024.0
+
+#: A service is idle again once it uses less than this share of a core.
+IDLE_CPU_SHARE = 0.05
 
 
 class RoguePeer:
@@ -127,29 +154,61 @@ class RoguePeer:
         """Measurements in a scan's log that took this peer's wrong z."""
         with self._lock:
             sent = dict(self.sent)
-        count = 0
-        for line in log_path.read_text().splitlines():
-            entry = json.loads(line)
-            if entry["event"] != "measured" or entry["z_um"] is None:
-                continue
-            wrong = sent.get((entry["row"], entry["col"], entry["sequence"]))
-            count += wrong is not None and abs(entry["z_um"] - wrong) < 1e-6
-        return count
+        return bus_attacks.taken(log_path, sent, tolerance_um=1e-6)  # its z to the last digit
 
     def close(self) -> None:
         self._subscriber.undeclare()
         self.session.close()
 
 
-def peak_rss_mb(pid: int) -> float | None:
-    """The largest resident set of process `pid` so far, MB (VmHWM; None if it is gone)."""
+def _status_mb(pid: int, field: str) -> float | None:
+    """A memory figure of /proc/`pid`/status (VmHWM, VmRSS), MB; None if the process is gone."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(f"{field}:"):
                 return int(line.split()[1]) / 1024
     except OSError:
         return None
     return None
+
+
+def peak_rss_mb(pid: int) -> float | None:
+    """The largest resident set of process `pid` so far, MB (VmHWM; None if it is gone)."""
+    return _status_mb(pid, "VmHWM")
+
+
+def rss_mb(pid: int) -> float | None:
+    """The resident set of process `pid` now, MB (VmRSS; None if it is gone)."""
+    return _status_mb(pid, "VmRSS")
+
+
+def reset_peak_rss(pid: int) -> None:
+    """Start process `pid`'s VmHWM over from its resident set now (Linux >= 4.0; where
+    /proc refuses, VmHWM stays the lifetime peak: an upper bound all the same)."""
+    with contextlib.suppress(OSError):
+        Path(f"/proc/{pid}/clear_refs").write_text("5")
+
+
+def cpu_s(pid: int) -> float:
+    """CPU time process `pid` has used, s (user and system; 0 if it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def wait_until_idle(pids: list[int], timeout_s: float = 60.0, period_s: float = 0.5) -> None:
+    """Return once every process in `pids` used under `IDLE_CPU_SHARE` of a core over
+    `period_s` (what was sent to it is dealt with), or after `timeout_s`."""
+    deadline_s = time.monotonic() + timeout_s
+    used_s = [cpu_s(pid) for pid in pids]
+    while time.monotonic() < deadline_s:
+        time.sleep(period_s)
+        now_s = [cpu_s(pid) for pid in pids]
+        if all(b - a < IDLE_CPU_SHARE * period_s for a, b in zip(used_s, now_s, strict=True)):
+            return
+        used_s = now_s
 
 
 @dataclass
@@ -290,6 +349,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--down-max-s", type=float, default=8.0, help="longest outage of a killed service (8 s)"
     )
+    parser.add_argument(
+        "--replay-offset-um",
+        type=float,
+        default=8.0,
+        help="the slide's focus moves by this much between the recorded scan and the one "
+        "the results are replayed into (8 um)",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/chaos"), help="work folder")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the report as JSON")
 
@@ -327,8 +393,12 @@ def run(args: argparse.Namespace) -> int:
             scans: list[dict[str, Any]] = []
             try:
                 while len(scans) < args.scans or (chaos.running() and len(scans) < MAX_SCANS):
-                    scans.append(scan_once(stack, args, len(scans), memory, rogue))
-                    scans[-1]["finished_at_s"] = round(time.monotonic() - chaos.started_s, 1)
+                    name = f"scan-{len(scans)}"
+                    figures, log_path = scan_once(stack, args, name, memory)
+                    figures["wrong_results_accepted"] = rogue.wrong_accepted(log_path)
+                    figures["finished_at_s"] = round(time.monotonic() - chaos.started_s, 1)
+                    _say(name, figures)
+                    scans.append(figures)
             finally:
                 chaos.join()
                 rogue.close()
@@ -336,9 +406,15 @@ def run(args: argparse.Namespace) -> int:
             hostile = hostile_requests(stack, memory)
             print(f"hostile REST requests: {json.dumps(hostile)}", flush=True)
             memory.sample()
+            replay = replay_attack(stack, args, memory)
+            forgery = forgery_attack(stack, args, memory)
+            memory.sample()  # the run's peaks: before the memory attacks, which reset them
+            with open_session(connect=[stack.endpoint]) as attacker:
+                attacks = memory_attacks(stack, attacker)
     except KeyboardInterrupt:
         print("focustrack bench chaos: interrupted; services stopped", file=sys.stderr)
         return 130
+    attack_scans = [replay["recorded_scan"], replay["replayed_scan"], forgery["scan"]]
     report = {
         "scans": scans,
         "scans_completed": sum(scan["completed"] for scan in scans),
@@ -348,7 +424,12 @@ def run(args: argparse.Namespace) -> int:
         "rogue_results_sent": rogue.n_sent,
         "faults": [vars(fault) for fault in chaos.done],
         "hostile_requests": hostile,
+        "replayed_results_accepted": replay["replayed_results_accepted"],
+        "forged_results_accepted": forgery["forged_results_accepted"],
+        "replay": replay,
+        "forgery": forgery,
         "peak_rss_mb": {name: round(mb, 1) for name, mb in sorted(memory.peak_mb.items())},
+        "memory_attacks": attacks,
         "wall_time_s": round(time.perf_counter() - started_s, 1),
     }
     print(summary(report))
@@ -358,19 +439,26 @@ def run(args: argparse.Namespace) -> int:
         chart(report, args.json.with_suffix(".png"))
         print(f"wrote {args.json}, {args.json.with_suffix('.png')}")
     ok = (
-        report["scans_completed"] == len(scans)
-        and report["measurements_lost"] == 0
+        all(scan["completed"] and scan["measurements_lost"] == 0 for scan in scans + attack_scans)
         and report["wrong_results_accepted"] == 0
+        and report["replayed_results_accepted"] == 0
+        and report["forged_results_accepted"] == 0
+        and all(
+            mb <= MEMORY_LIMIT_MB
+            for attack in attacks.values()
+            for mb in attack["peak_mb"].values()
+        )
     )
     return 0 if ok else 1
 
 
 def scan_once(
-    stack: LocalStack, args: argparse.Namespace, index: int, memory: MemoryWatch, rogue: RoguePeer
-) -> dict[str, Any]:
-    """One scan, resumed on its folder after a stop; its figures."""
+    stack: LocalStack, args: argparse.Namespace, name: str, memory: MemoryWatch
+) -> tuple[dict[str, Any], Path]:
+    """One scan in folder `name` of the work folder, resumed there after a stop; its
+    figures and its log."""
     assert stack.session is not None
-    scan_dir = args.out / f"scan-{index}"
+    scan_dir = args.out / name
     shutil.rmtree(scan_dir, ignore_errors=True)  # a fresh scan each run of the bench
     job = ScanJob(
         request=ScanOptions.defaults(focus_attempts=FOCUS_ATTEMPTS).request(
@@ -380,10 +468,9 @@ def scan_once(
         out_dir=scan_dir,
         retry=CHAOS_RETRY,
         progress=False,
-        label=f"chaos scan {index}",
+        label=f"chaos {name}",
         trust=stack.trust,
     )
-    rejected = 0
     report: dict[str, Any] | None = None
     runs = 0
     while report is None and runs < MAX_RUNS:
@@ -391,40 +478,127 @@ def scan_once(
         try:
             report = run_scan(stack.session, job)
         except SCAN_ERRORS as error:
-            print(f"scan {index}: stopped ({error}); resuming it", flush=True)
+            print(f"{name}: stopped ({error}); resuming it", flush=True)
         memory.sample()
-    completed = report is not None
     log_path = scan_dir / outputs.LOG_FILE
-    figures: dict[str, Any] = {
-        "completed": completed,
-        "runs": runs,
-        "wrong_results_accepted": rogue.wrong_accepted(log_path),
-    }
+    figures: dict[str, Any] = {"completed": report is not None, "runs": runs}
     if report is not None:
-        rejected = report["focus_results_rejected"]
         figures |= {
             "measurements_lost": measurements_lost(stack.estimator_url, report, log_path),
-            "focus_results_rejected": rejected,
+            "focus_results_rejected": report["focus_results_rejected"],
             "in_focus_fraction": report["in_focus_fraction"],
             "mae_um": report["mae_um"],
             "images_per_tile": report["images_per_tile"],
         }
     else:
         figures |= {"measurements_lost": args.rows * args.cols, "focus_results_rejected": 0}
-    print(f"scan {index}: {'complete' if completed else 'NOT complete'} in {runs} run(s); "
-          f"{json.dumps(figures)}", flush=True)  # fmt: skip
-    return figures
+    return figures, log_path
+
+
+def _say(name: str, figures: dict[str, Any]) -> None:
+    done = "complete" if figures["completed"] else "NOT complete"
+    print(f"{name}: {done} in {figures['runs']} run(s); {json.dumps(figures)}", flush=True)
+
+
+def replay_attack(
+    stack: LocalStack, args: argparse.Namespace, memory: MemoryWatch
+) -> dict[str, Any]:
+    """A scan recorded by a peer; the slide's focus moved; a scan the peer replays it into."""
+    with bus_attacks.PeerProcess(stack.endpoint, bus_attacks.ResultReplay, SLIDE) as replay:
+        replay.call("record")
+        try:
+            recorded, _ = scan_once(stack, args, "replay-recorded", memory)
+        finally:
+            replay.call("stop")
+        _say("replay: the recorded scan", recorded)
+        n_recorded = replay.call("n_captured")
+        print(f"replay: {n_recorded} results recorded; the slide's focus moves by "
+              f"{args.replay_offset_um:g} um", flush=True)  # fmt: skip
+        memory.sample("instrument")
+        stack.restart_with("instrument", ["--z-offset-um", str(args.replay_offset_um)])
+        replay.call("replay")
+        try:
+            replayed, log_path = scan_once(stack, args, "replay", memory)
+        finally:
+            replay.call("stop")
+        accepted = replay.call("accepted", log_path)
+        n_replayed = replay.call("n_replayed")
+    replayed["replayed_results_accepted"] = accepted
+    _say("replay: the scan after the move", replayed)
+    return {
+        "offset_um": args.replay_offset_um,
+        "results_recorded": n_recorded,
+        "results_replayed": n_replayed,
+        "replayed_results_accepted": accepted,
+        "recorded_scan": recorded,
+        "replayed_scan": replayed,
+    }
+
+
+def forgery_attack(
+    stack: LocalStack, args: argparse.Namespace, memory: MemoryWatch
+) -> dict[str, Any]:
+    """A scan while a peer publishes forged frames for every stack."""
+    assert stack.session is not None
+    truth_um = InstrumentClient(stack.session, INSTRUMENT).truth_um(SLIDE)
+    peer = bus_attacks.PeerProcess(stack.endpoint, bus_attacks.FrameForger, SLIDE, truth_um)
+    with peer as forger:
+        figures, log_path = scan_once(stack, args, "forgery", memory)
+        accepted = forger.call("accepted", log_path)
+        n_forged = forger.call("n_forged")
+    figures["forged_results_accepted"] = accepted
+    _say("forgery: the scan", figures)
+    return {"stacks_forged": n_forged, "forged_results_accepted": accepted, "scan": figures}
+
+
+def memory_attacks(
+    stack: LocalStack,
+    attacker: zenoh.Session,
+    sizes: bus_attacks.MemoryAttackSizes = bus_attacks.ISSUE_SIZES,
+) -> dict[str, dict[str, Any]]:
+    """Each memory attack: what it sent, and each service's resident memory before it
+    (VmRSS) and its peak from then until the services are idle again (VmHWM), MB."""
+    attacks = {
+        "big-frames": lambda: bus_attacks.big_frames(attacker, sizes),
+        "incomplete-stacks": lambda: bus_attacks.incomplete_stacks(attacker, sizes),
+        "repeated-frames-request": lambda: bus_attacks.repeated_frames_request(
+            attacker, INSTRUMENT, SLIDE, sizes
+        ),
+    }
+    results: dict[str, dict[str, Any]] = {}
+    for name, attack in attacks.items():
+        pids = {
+            service_name: service.process.pid
+            for service_name, service in stack.services.items()
+            if service.process is not None
+        }
+        for pid in pids.values():
+            reset_peak_rss(pid)
+        before = {service_name: rss_mb(pid) for service_name, pid in pids.items()}
+        started_s = time.perf_counter()
+        sent = attack()
+        wait_until_idle(list(pids.values()))
+        peak = {service_name: peak_rss_mb(pid) for service_name, pid in pids.items()}
+        results[name] = {
+            "sent": sent,
+            "baseline_mb": {key: round(mb, 1) for key, mb in before.items() if mb is not None},
+            "peak_mb": {key: round(mb, 1) for key, mb in peak.items() if mb is not None},
+        }
+        print(f"memory attack {name} ({time.perf_counter() - started_s:.1f} s): "
+              f"{json.dumps(results[name])}", flush=True)  # fmt: skip
+    return results
 
 
 def chart(report: dict[str, Any], out: Path) -> None:
-    """The faults and scans on a time line; each service's peak memory against 1 GB."""
+    """The faults and scans on a time line; each service's peak memory over the run and
+    under each memory attack, against 1 GB."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (timeline, memory) = plt.subplots(
-        1, 2, figsize=(11, 3.5), gridspec_kw={"width_ratios": [2, 1]}
+    fig, (timeline, memory, attacked) = plt.subplots(
+        1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [2, 1, 1.4]}
     )
     rows = {name: index for index, name in enumerate(VICTIMS)}
     for fault in report["faults"]:
@@ -440,19 +614,41 @@ def chart(report: dict[str, Any], out: Path) -> None:
     )
     timeline.set_title(
         f"{report['scans_completed']} scans complete, {report['measurements_lost']} "
-        f"measurements lost, {report['wrong_results_accepted']} wrong results taken"
+        f"measurements lost, {report['wrong_results_accepted']} wrong results taken",
+        fontsize=10,
     )
     names = list(report["peak_rss_mb"])
     memory.bar(names, [report["peak_rss_mb"][name] for name in names])
-    memory.axhline(1024, color="red", ls="--", label="1 GB")
+    memory.axhline(MEMORY_LIMIT_MB, color="red", ls="--", label="1 GB")
     memory.set_ylabel("peak resident memory, MB")
+    memory.set_title("faults, rogue, REST, replay, forgery", fontsize=10)
     memory.legend()
+    attacks = report["memory_attacks"]
+    width = 0.8 / max(1, len(attacks))
+    for index, (attack, figures) in enumerate(attacks.items()):
+        where = [names.index(name) + (index - (len(attacks) - 1) / 2) * width for name in names]
+        peaks = [figures["peak_mb"].get(name, 0.0) for name in names]
+        baselines = [figures["baseline_mb"].get(name, 0.0) for name in names]
+        attacked.bar(where, peaks, width, label=attack)
+        attacked.scatter(where, baselines, color="black", marker="_", zorder=3)
+    attacked.set_xticks(range(len(names)), names)
+    attacked.axhline(MEMORY_LIMIT_MB, color="red", ls="--")
+    attacked.set_title("under the memory attacks (bar: peak; dash: before)", fontsize=10)
+    attacked.legend(fontsize=8)
+    fig.suptitle(
+        f"replayed results taken: {report['replayed_results_accepted']} (of "
+        f"{report['replay']['results_replayed']} replayed); forged results taken: "
+        f"{report['forged_results_accepted']} ({report['forgery']['stacks_forged']} stacks "
+        "forged); both must be 0",
+        fontsize=11,
+    )
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
 
 
 def summary(report: dict[str, Any]) -> str:
+    replay, forgery = report["replay"], report["forgery"]
     lines = [
         f"scans completed:        {report['scans_completed']} of {len(report['scans'])}",
         f"measurements lost:      {report['measurements_lost']} (must be 0)",
@@ -461,7 +657,25 @@ def summary(report: dict[str, Any]) -> str:
         f"results rejected:       {report['focus_results_rejected']}",
         f"faults:                 {', '.join(f['service'] for f in report['faults']) or 'none'}",
         f"hostile REST requests:  {report['hostile_requests']}",
+        f"replayed results taken: {report['replayed_results_accepted']} (must be 0; "
+        f"{replay['results_replayed']} replayed of {replay['results_recorded']} recorded; "
+        f"MAE after the {replay['offset_um']:g} um move {_um(replay['replayed_scan'])})",
+        f"forged results taken:   {report['forged_results_accepted']} (must be 0; "
+        f"{forgery['stacks_forged']} stacks forged; MAE {_um(forgery['scan'])})",
         "peak RSS (MB):          "
         + ", ".join(f"{name} {mb:.0f}" for name, mb in report["peak_rss_mb"].items()),
     ]
+    for attack, figures in report["memory_attacks"].items():
+        lines.append(
+            f"  under {attack} (at most {MEMORY_LIMIT_MB:.0f}): "
+            + ", ".join(
+                f"{name} {mb:.0f} (from {figures['baseline_mb'].get(name, 0.0):.0f})"
+                for name, mb in figures["peak_mb"].items()
+            )
+        )
     return "\n".join(lines)
+
+
+def _um(scan: dict[str, Any]) -> str:
+    mae_um = scan.get("mae_um")
+    return "n/a" if mae_um is None else f"{mae_um:.3f} um"

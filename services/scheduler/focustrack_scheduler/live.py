@@ -7,7 +7,7 @@ estimator's posterior, else the measured best focus), the images acquired, the
 flags of the last measurement and whether the tile's image is kept (done).
 Every change bumps a version; `changes(since)` gives only the tiles changed
 after it, so a 200x200 grid streams a few tiles per update, not 40 000. Pure
-apart from a condition variable that wakes the waiting server threads.
+apart from a lock: the scheduler's thread writes, the server's event loop reads.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ class LiveScan:
         self.version = 0
         self.finished = False
         self._changed_at = np.zeros(grid.shape, dtype=np.int64)  # version of each tile's change
-        self._condition = threading.Condition()
+        self._lock = threading.Lock()
 
     @classmethod
     def follow(cls, record: ScanRecord, grid: ScanGrid, label: str = "scan") -> LiveScan:
@@ -54,9 +54,9 @@ class LiveScan:
         return live
 
     def take(self, entry: dict[str, Any]) -> None:
-        """Apply one entry of the scan log (`scan_log`) and wake the waiters."""
+        """Apply one entry of the scan log (`scan_log`)."""
         tile = (entry["row"], entry["col"])
-        with self._condition:
+        with self._lock:
             if entry["event"] == "acquired":
                 self.images[tile] += entry["n_frames"]
             elif entry["event"] == "measured":
@@ -82,27 +82,19 @@ class LiveScan:
                 return
             self.version += 1
             self._changed_at[tile] = self.version
-            self._condition.notify_all()
 
     def finish(self) -> None:
-        """The scan is over: waiters return at once from now on."""
-        with self._condition:
+        """The scan is over: one last change, so every stream sends `finished`."""
+        with self._lock:
             self.finished = True
             self.version += 1
-            self._condition.notify_all()
-
-    def wait(self, version: int, timeout_s: float) -> int:
-        """Block until the state is newer than `version` (or `timeout_s`); the version now."""
-        with self._condition:
-            self._condition.wait_for(lambda: self.version > version, timeout_s)
-            return self.version
 
     def changes(self, since: int = 0) -> dict[str, Any]:
         """Plain JSON of the tiles changed after version `since` (all of them for 0).
 
         `tiles` holds [row, col, z_um, sigma_um, images, done, flags] per tile (null for NaN).
         """
-        with self._condition:
+        with self._lock:
             rows, cols = np.nonzero(self._changed_at > since)
             tiles = [
                 [

@@ -5,10 +5,14 @@
     GET /live/state?since=N    the tiles changed after version N (`LiveScan.changes`)
     GET /live/events           server-sent events: `update`, the same JSON, whenever the
                                scan moves on (at most `MAX_UPDATES_PER_S` a second; the
-                               first one holds every tile)
+                               first one holds every tile); `end` when the server stops,
+                               after the last update, and the stream ends
 
 The scheduler serves it while it scans (`focustrack scan --live-port`, and the demo);
 `LiveServer` runs uvicorn on a thread of its own and shows one `LiveScan` at a time.
+A stream looks for changes on the event loop (`MAX_UPDATES_PER_S` times a second), not
+in a waiting thread, so stopping ends every stream within one look and no thread is
+left blocked: the scheduler exits at once with clients connected.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from focustrack_scheduler.live import LiveScan
 MAX_UPDATES_PER_S = 5.0
 #: Seconds between keep-alive comments on an idle event stream.
 KEEPALIVE_S = 15.0
+#: The last event of every stream: the server is stopping (the page stops reconnecting).
+END_EVENT = "event: end\ndata: {}\n\n"
 
 
 def port_number(text: str) -> int:
@@ -48,6 +54,7 @@ class LiveServer:
 
     def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
         self.scan: LiveScan | None = None
+        self.closing = False  # set by `stop`: every event stream sends its last update and ends
         self.app = create_app(self)
         self._server = BackgroundServer(self.app, host, port, name="live-view")
 
@@ -63,11 +70,13 @@ class LiveServer:
         """Show `scan` from now on (the page starts over with its tiles)."""
         previous, self.scan = self.scan, scan
         if previous is not None:
-            previous.finish()  # wakes the streams waiting on it
+            previous.finish()  # a scan no longer shown is over, even one that failed
 
     def stop(self) -> None:
+        """End every event stream (after the scan's last update), then the server."""
         if self.scan is not None:
             self.scan.finish()
+        self.closing = True
         self._server.stop()
 
     def __enter__(self) -> LiveServer:
@@ -102,21 +111,28 @@ def create_app(server: LiveServer) -> FastAPI:
 
 
 async def _stream(server: LiveServer) -> AsyncIterator[str]:
-    """Every change of the shown scan as an `update` event; all tiles again after a swap."""
+    """Every change of the shown scan as an `update` event; all tiles again after a swap.
+
+    Ends with `END_EVENT` once the server is closing, after the scan's last update.
+    """
     scan: LiveScan | None = None
-    version = 0
+    version: int | None = None  # of the last update sent; None: none yet for `scan`
+    idle_s = 0.0
+    period_s = 1.0 / MAX_UPDATES_PER_S
     while True:
+        closing = server.closing  # read first: a stop's last change is then seen below
         if server.scan is not scan:
-            scan, version = server.scan, 0
-        if scan is None:
-            await asyncio.sleep(0.2)
-            continue
-        if scan.version > version or version == 0:
-            update = scan.changes(version)
+            scan, version = server.scan, None
+        if scan is not None and (version is None or scan.version > version):
+            update = scan.changes(version or 0)
             version = update["version"]
             yield f"event: update\ndata: {json.dumps(update)}\n\n"
-            await asyncio.sleep(1.0 / MAX_UPDATES_PER_S)
-            continue
-        newer = await asyncio.to_thread(scan.wait, version, KEEPALIVE_S)
-        if newer == version:
+            idle_s = 0.0
+        elif idle_s >= KEEPALIVE_S:
             yield ": keep-alive\n\n"
+            idle_s = 0.0
+        if closing:
+            yield END_EVENT
+            return
+        await asyncio.sleep(period_s)
+        idle_s += period_s

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import threading
+import time
 from importlib.resources import files
 from pathlib import Path
 
@@ -44,7 +46,7 @@ def test_the_state_follows_the_record_and_streams_only_what_changed(tmp_path: Pa
     assert update["tiles"][1] == [0, 2, None, None, 9, False, ["flat"]]
     assert update["curve"]["row"] == 0 and update["curve"]["col"] == 1  # the latest curve
     assert update["images"] == 19 and update["tiles_total"] == 40_000
-    assert live.wait(update["version"], 0.01) == update["version"]  # nothing newer: times out
+    assert live.changes(update["version"])["tiles"] == []  # nothing newer
 
 
 def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: Path) -> None:
@@ -67,6 +69,57 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
             assert next(lines) == "" and next(lines) == "event: update"
             data = json.loads(next(lines).removeprefix("data: "))
             assert data["tiles"] == [[3, 4, 0.71, 0.2, 5, True, []]] and data["tiles_done"] == 1
+
+
+def follow_events(url: str, events: list[tuple[str, str]], errors: list[Exception]) -> None:
+    """A browser's part: read `url`'s event stream to its end, as (event, data) pairs."""
+    try:
+        with httpx.stream("GET", url, timeout=30) as stream:
+            name = ""
+            for line in stream.iter_lines():
+                if line.startswith("event: "):
+                    name = line.removeprefix("event: ")
+                elif line.startswith("data: "):
+                    events.append((name, line.removeprefix("data: ")))
+    except Exception as error:  # the test reports what the client saw
+        errors.append(error)
+
+
+def test_stopping_ends_every_stream_at_once_with_clients_connected(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """The end of a scan with three browsers still following it: the server stops cleanly."""
+    record = ScanRecord(tmp_path)
+    server = LiveServer().start()
+    server.show(LiveScan.follow(record, GRID, "kf-2d"))
+    seen: list[list[tuple[str, str]]] = [[], [], []]
+    errors: list[Exception] = []
+    url = server.url + "live/events"
+    clients = [
+        threading.Thread(target=follow_events, args=(url, events, errors)) for events in seen
+    ]
+    for client in clients:
+        client.start()
+    deadline_s = time.monotonic() + 10.0
+    while not all(seen) and time.monotonic() < deadline_s:  # each has its first update
+        time.sleep(0.05)
+    acquire_and_measure(record, 0, 1, 2, 0.7)
+    started_s = time.monotonic()
+    server.stop()  # what the scheduler does when the scan is over
+    stop_s = time.monotonic() - started_s
+    for client in clients:
+        client.join(5.0)
+    assert stop_s < 5.0  # a correctness bound: it used to wait 10 s, then 15 s more at exit
+    assert not any(thread.name == "live-view" for thread in threading.enumerate())
+    assert not any(client.is_alive() for client in clients) and errors == []
+    for events in seen:  # each stream: updates, the scan's end, then the server's end
+        assert [name for name, _ in events[:-1]] == ["update"] * (len(events) - 1)
+        last = json.loads(events[-2][1])
+        assert last["finished"] and events[-1] == ("end", "{}")
+        tiles = [tile for _, data in events[:-1] for tile in json.loads(data)["tiles"]]
+        assert [1, 2, 0.71, 0.2, 5, False, []] in tiles  # the change made while they followed
+    logged = capfd.readouterr().err
+    assert "Traceback" not in logged and "ERROR" not in logged, logged
 
 
 @pytest.mark.parametrize("text", ["-1", "65536", "eighty"])
