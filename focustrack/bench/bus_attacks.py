@@ -387,8 +387,21 @@ class MemoryAttackSizes:
     repeated_index: int = 2000  # copies of one index in one FramesRequest
 
 
-#: The sizes of the issue's probe, which `focustrack bench chaos` sends.
+#: The sizes of the attacker's probe, which `focustrack bench chaos` sends by default.
 ISSUE_SIZES = MemoryAttackSizes()
+
+#: Megabytes, not gigabytes: for the tests and a quick look (`--attack-sizes small`).
+SMALL_SIZES = MemoryAttackSizes(
+    big_frames=2,
+    big_frame_bytes=64 << 20,
+    big_frame_sent_bytes=4 << 20,
+    incomplete_stacks=3,
+    incomplete_frame_bytes=1 << 20,
+    repeated_index=50,
+)
+
+#: Each size preset by its name on the command line.
+ATTACK_SIZES = {"issue": ISSUE_SIZES, "small": SMALL_SIZES}
 
 
 def _attack_header(

@@ -356,6 +356,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the slide's focus moves by this much between the recorded scan and the one "
         "the results are replayed into (8 um)",
     )
+    parser.add_argument(
+        "--attack-sizes",
+        choices=sorted(bus_attacks.ATTACK_SIZES),
+        default="issue",
+        help="what the memory attacks send: 'issue', the attacker's gigabytes (default), or "
+        "'small', megabytes for a quick run",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/chaos"), help="work folder")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the report as JSON")
 
@@ -410,7 +417,9 @@ def run(args: argparse.Namespace) -> int:
             forgery = forgery_attack(stack, args, memory)
             memory.sample()  # the run's peaks: before the memory attacks, which reset them
             with open_session(connect=[stack.endpoint]) as attacker:
-                attacks = memory_attacks(stack, attacker)
+                attacks = memory_attacks(
+                    stack, attacker, bus_attacks.ATTACK_SIZES[args.attack_sizes]
+                )
     except KeyboardInterrupt:
         print("focustrack bench chaos: interrupted; services stopped", file=sys.stderr)
         return 130

@@ -44,6 +44,7 @@ from google.protobuf.message import DecodeError
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from focustrack_core.logs import worth_logging
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main, one_of
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
@@ -242,8 +243,7 @@ class FrameAnalyser:
         tile = keys.parse_zframe_key(key)
         if self.frame_signer is not None and not self._tagged(key, payload, attachment):
             self.n_untagged += 1
-            if self.n_untagged & (self.n_untagged - 1) == 0:  # at 1, 2, 4, 8...: a forger
-                # cannot flood the log
+            if worth_logging(self.n_untagged):  # a forger cannot flood the log
                 log.warning(
                     "frame sample on %s dropped (%d so far): no tag of the instrument's frame key",
                     key,

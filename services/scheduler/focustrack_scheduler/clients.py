@@ -20,6 +20,7 @@ import zenoh
 
 from focustrack_core.domain import Acquisition
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.logs import worth_logging
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.trust import ResultSigner
@@ -287,7 +288,10 @@ class SlideListener:
 
     def _reject(self, key_expr: str, why: str) -> None:
         self.n_rejected += 1  # only Zenoh's callback thread counts
-        log.warning("focus result on %s rejected (%d so far): %s", key_expr, self.n_rejected, why)
+        if worth_logging(self.n_rejected):  # replays come by the thousand
+            log.warning(
+                "focus result on %s rejected (%d so far): %s", key_expr, self.n_rejected, why
+            )
 
     def close(self) -> None:
         for subscriber in self._subscribers:
