@@ -90,6 +90,10 @@ FOCUS_ATTEMPTS = 12  # x focus_timeout_s: a focus service gone for a minute
 #: The most resident memory a service may take, MB, under any attack.
 MEMORY_LIMIT_MB = 1024.0
 
+#: What the focus service may hold of a peer's frames, MB: its default budget for frames
+#: under way (the stack runs it with the default `--open-frames-mb`).
+FOCUS_FRAMES_BUDGET_MB = codec.OPEN_FRAMES_BYTES / 1e6
+
 #: A service is idle again once it uses less than this share of a core.
 IDLE_CPU_SHARE = 0.05
 
@@ -457,6 +461,7 @@ def run(args: argparse.Namespace) -> int:
             for attack in attacks.values()
             for mb in attack["peak_mb"].values()
         )
+        and all(_focus_growth_mb(attack) <= FOCUS_FRAMES_BUDGET_MB for attack in attacks.values())
     )
     return 0 if ok else 1
 
@@ -676,13 +681,19 @@ def summary(report: dict[str, Any]) -> str:
     ]
     for attack, figures in report["memory_attacks"].items():
         lines.append(
-            f"  under {attack} (at most {MEMORY_LIMIT_MB:.0f}): "
+            f"  under {attack} (at most {MEMORY_LIMIT_MB:.0f}; the focus service's growth "
+            f"{_focus_growth_mb(figures):.0f}, at most {FOCUS_FRAMES_BUDGET_MB:.0f}): "
             + ", ".join(
                 f"{name} {mb:.0f} (from {figures['baseline_mb'].get(name, 0.0):.0f})"
                 for name, mb in figures["peak_mb"].items()
             )
         )
     return "\n".join(lines)
+
+
+def _focus_growth_mb(attack: dict[str, Any]) -> float:
+    """How much the focus service's resident memory grew under a memory attack, MB."""
+    return max(0.0, float(attack["peak_mb"]["focus"] - attack["baseline_mb"]["focus"]))
 
 
 def _um(scan: dict[str, Any]) -> str:
