@@ -1,7 +1,7 @@
 """One live slide: its strategy, rebuilt from its durable log, and the history of its scan.
 
 A `Slide` pairs a strategy with the history of what it was asked and told. A new
-slide is checked and stored (`Slide.new`); after a restart (or an eviction) a slide
+slide is checked (`Slide.checked`) and stored; after a restart (or an eviction) a slide
 is rebuilt from its store (`Slide.load`): from its newest snapshot (the strategy's
 state, written every `snapshot_every` measurements, when the scan completes and at
 shutdown) and the events logged after it, or from the whole log when there is no
@@ -113,7 +113,7 @@ class Slide:
         self._timer(time.perf_counter() - start_s)
 
     @classmethod
-    def new(
+    def checked(
         cls,
         slide_id: str,
         config: api.SlideCreate,
@@ -124,66 +124,11 @@ class Slide:
         snapshot_every: int,
         timer: Callable[[float], None] = _untimed,
         catalogue: registry.Catalogue | None = None,
-    ) -> Slide:
-        """A new slide, checked (grid, budget, parameters, a trial scan) and then stored
-        with its parameters resolved; a SlideError says what is wrong."""
-        slide = cls._checked(
-            slide_id,
-            config,
-            store,
-            limits=limits,
-            budget=budget,
-            snapshot_every=snapshot_every,
-            timer=timer,
-            catalogue=catalogue,
-        )
-        store.create_slide(slide_id, slide.config.model_dump(mode="json"))
-        return slide
-
-    @classmethod
-    def reconfigured(
-        cls,
-        slide_id: str,
-        config: api.SlideCreate,
-        store: EventStore,
-        *,
-        limits: GridLimits,
-        budget: Budget,
-        snapshot_every: int,
-        timer: Callable[[float], None] = _untimed,
-        catalogue: registry.Catalogue | None = None,
-    ) -> Slide:
-        """Stored slide `slide_id`, whose log is empty, with a new `config` (its prior map
-        uploaded), checked as a new slide is; the store's SequenceConflictError if events
-        were logged since."""
-        slide = cls._checked(
-            slide_id,
-            config,
-            store,
-            limits=limits,
-            budget=budget,
-            snapshot_every=snapshot_every,
-            timer=timer,
-            catalogue=catalogue,
-        )
-        store.replace_config(slide_id, slide.config.model_dump(mode="json"))
-        return slide
-
-    @classmethod
-    def _checked(
-        cls,
-        slide_id: str,
-        config: api.SlideCreate,
-        store: EventStore,
-        *,
-        limits: GridLimits,
-        budget: Budget,
-        snapshot_every: int,
-        timer: Callable[[float], None],
-        catalogue: registry.Catalogue | None,
     ) -> Slide:
         """A slide of `config`, checked (grid, budget, parameters, a trial scan), its
-        parameters resolved, not stored."""
+        parameters resolved (`self.config`), not stored: the caller stores it, as a new
+        slide or as the new configuration of a slide whose log is empty; a SlideError says
+        what is wrong."""
         strategies = served(catalogue)
         limits.check(config.grid)
         params = resolved_params(config, strategies)  # once, for all that follows

@@ -178,7 +178,13 @@ class Slides:
         return slide_id
 
     def _new(self, slide_id: str, config: api.SlideCreate) -> Slide:
-        return load_strategies().new(
+        slide = self._checked(slide_id, config)
+        self.store.create_slide(slide_id, slide.config.model_dump(mode="json"))
+        return slide
+
+    def _checked(self, slide_id: str, config: api.SlideCreate) -> Slide:
+        """Slide `slide_id` of `config`, checked against this service's limits, not stored."""
+        return load_strategies().checked(
             slide_id,
             config,
             self.store,
@@ -302,16 +308,10 @@ class Slides:
                 BODY_LOC,
             )
         prior = decode_prior(npy, config.grid.rows, config.grid.cols)
-        return load_strategies().reconfigured(
-            slide_id,
-            with_prior(config, prior),
-            self.store,
-            limits=self.limits,
-            budget=self.budget,
-            snapshot_every=self.snapshot_every,
-            timer=self._timer,
-            catalogue=self._catalogue,
-        )
+        slide = self._checked(slide_id, with_prior(config, prior))
+        # the store's SequenceConflictError if an event was logged since the check above
+        self.store.replace_config(slide_id, slide.config.model_dump(mode="json"))
+        return slide
 
     def save_snapshots(self) -> None:
         """Snapshot every live slide that has events since its last snapshot (at shutdown)."""
