@@ -108,9 +108,8 @@ def score_setting(
 
 def format_rows(rows: list[dict[str, Any]], with_paper: bool) -> str:
     """A plain-text table; the paper's own figures last when `with_paper`."""
-    lines = [
-        f"{'method':<32} {'gamma':>7} {'planes':>6} {'phase rad':>10} {'intensity':>10} {'time s':>9}"
-    ]
+    header = f"{'method':<32} {'gamma':>7} {'planes':>6} {'phase rad':>10} {'intensity':>10}"
+    lines = [f"{header} {'time s':>9}"]
     for r in rows:
         intensity = "" if r["intensity_rmse"] is None else f"{r['intensity_rmse']:.4f}"
         seconds = "" if r["time_s"] is None else f"{r['time_s']:.4f}"

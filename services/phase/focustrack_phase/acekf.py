@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft
 
-from focustrack_phase.propagation import fresnel_transfer, frequency_sq_per_um2
+from focustrack_phase.propagation import frequency_sq_per_um2, fresnel_transfer
 
 
 @dataclass(frozen=True)
@@ -106,14 +106,11 @@ def validate_stack(
         raise ValueError(f"stack must be a 3-D array (frames, height, width), got shape {shape}")
     frames, height, width = stack_counts.shape
     if frames < 1 or height < 2 or width < 2:
-        raise ValueError(
-            f"stack needs >= 1 frame of >= 2x2 pixels, got shape {stack_counts.shape}"
-        )
+        raise ValueError(f"stack needs >= 1 frame of >= 2x2 pixels, got shape {stack_counts.shape}")
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 1 or z.shape[0] != frames:
-        raise ValueError(
-            f"z_um must list one height per frame: {frames} frames, got {z.shape[0] if z.ndim == 1 else z.shape}"
-        )
+        got = z.shape[0] if z.ndim == 1 else z.shape
+        raise ValueError(f"z_um must list one height per frame: {frames} frames, got {got}")
     if not np.all(np.isfinite(z)):
         raise ValueError("z_um must be finite")
     for name, value in (

@@ -41,7 +41,5 @@ def propagate(field: np.ndarray, dz_um: float, wavelength_um: float, pixel_um: f
     """The complex field (height, width) `dz_um` further along z (eq. 4: b_n = H b_{n-1})."""
     if field.ndim != 2:
         raise ValueError(f"field must be 2-D (height, width), got shape {field.shape}")
-    transfer = fresnel_transfer(
-        frequency_sq_per_um2(field.shape, pixel_um), wavelength_um, dz_um
-    )
+    transfer = fresnel_transfer(frequency_sq_per_um2(field.shape, pixel_um), wavelength_um, dz_um)
     return fft.ifft2(transfer * fft.fft2(field, norm="ortho"), norm="ortho")

@@ -52,7 +52,9 @@ def weak_object(size_px: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng([seed, 29])
     yy, xx = np.mgrid[0:size_px, 0:size_px].astype(np.float64)
 
-    def bumps(count: int, heights: tuple[float, float], widths_px: tuple[float, float]) -> np.ndarray:
+    def bumps(
+        count: int, heights: tuple[float, float], widths_px: tuple[float, float]
+    ) -> np.ndarray:
         total = np.zeros((size_px, size_px))
         for _ in range(count):
             cy, cx = rng.uniform(0.15, 0.85, size=2) * size_px
