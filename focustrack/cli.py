@@ -54,6 +54,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.chaos",
         "scans while the router and services are killed at random and a rogue peer lies",
     ),
+    "bench phase": (
+        "focustrack.bench.phase",
+        "phase from a through-focus stack: the sparse ACEKF against the paper and two baselines",
+    ),
     "serve instrument": (
         "focustrack_instrument_sim.service",
         "the simulated microscope on Zenoh",

@@ -1,0 +1,1 @@
+"""Quantitative phase from a through-focus stack of intensity images (pure numpy/scipy)."""

@@ -1,0 +1,187 @@
+"""The sparse augmented complex extended Kalman filter (Zhong, Dauwels, Vazquez, Waller 2013).
+
+The state is b_n, the unitary 2-D Fourier transform of the complex field a_n at plane n
+(eqs. 1-4); the observation is the intensity image I_n = gamma |a_n|^2 + v (eq. 5), with
+gamma the photons a pixel detects on average, so |a|^2 is the intensity relative to the
+stack's mean. The augmented model (eqs. 7-9) has covariance S^Q and pseudo-covariance S^P;
+with the weak-object approximation of Theorem 1 both stay diagonal (S^Q = Q, S^P = P E), so
+Q and P are stored as vectors (here arrays of the image's shape) and every step is O(N)
+apart from two FFTs: Table 1, eqs. 27-33.
+
+Beyond the paper's equal steps from focus, a plane may sit at any known z (either side of
+focus, any order): the step n-1 -> n propagates by z_n - z_{n-1} (eq. 3 with that dz).
+The planes are filtered nearest focus first (by |z|, then z), so the result does not
+depend on the order they are given in, and the last estimate is propagated back to z = 0.
+
+Memory: the filter holds b, Q, P, 1/(fx^2+fy^2) and a few temporaries, under ten arrays of
+the image's size, besides the stack it reads one frame at a time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft
+
+from focustrack_phase.propagation import frequency_sq_per_um2, fresnel_transfer
+
+
+@dataclass(frozen=True)
+class AcekfOptions:
+    """The filter's prior and safeguard (the field's units: |a|^2 relative to the mean).
+
+    q0: Q_0 = q0 U, the prior variance of each Fourier coefficient of the field's departure
+        from a plane wave (with the unitary FFT, the variance per pixel of a white prior).
+    p0: P_0 = p0 U, its prior pseudo-variance: q0 = var(amplitude) + var(phase) and
+        p0 = var(amplitude) - var(phase) per coefficient, so p0 < q0 favours phase.
+    amplitude_floor: |a_hat| below this is clipped before dividing by it (eq. 33's
+        J_n^-1), so a dark pixel cannot blow up the update.
+
+    The paper studied q0 = 70..7000 and p0 = 50..5000 in its own (unnormalised) units;
+    these defaults were chosen on training stacks of `focustrack_phase.simulate`
+    (seeds other than the benchmark's).
+    """
+
+    q0: float = 0.02
+    p0: float = 0.0
+    amplitude_floor: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not self.q0 > 0:
+            raise ValueError(f"q0 must be > 0, got {self.q0}")
+        if not abs(self.p0) <= self.q0:
+            raise ValueError(f"|p0| must be <= q0 (a covariance), got p0={self.p0}, q0={self.q0}")
+        if not self.amplitude_floor > 0:
+            raise ValueError(f"amplitude_floor must be > 0, got {self.amplitude_floor}")
+
+
+@dataclass(frozen=True)
+class FieldEstimate:
+    """The complex field at the plane z = 0 and the photon scale it was estimated with.
+
+    field: complex128 (height, width), dimensionless: |field|^2 is the intensity relative
+        to the stack's mean intensity, angle(field) the phase in radians.
+    gamma_photons: gamma of eq. 5, the mean photons per pixel of the stack.
+    """
+
+    field: np.ndarray
+    gamma_photons: float
+
+    @property
+    def phase_rad(self) -> np.ndarray:
+        """Phase (rad), float64 (height, width), in (-pi, pi]."""
+        return np.angle(self.field)
+
+    @property
+    def amplitude(self) -> np.ndarray:
+        """Amplitude (dimensionless, sqrt of the relative intensity), float64 (height, width)."""
+        return np.abs(self.field)
+
+    @property
+    def intensity(self) -> np.ndarray:
+        """Intensity relative to the stack's mean, float64 (height, width)."""
+        return np.abs(self.field) ** 2
+
+
+def plane_order(z_um: np.ndarray) -> np.ndarray:
+    """The order the filter visits the planes in: nearest focus first, ties by z."""
+    return np.lexsort((z_um, np.abs(z_um)))
+
+
+def validate_stack(
+    stack_counts: np.ndarray,
+    z_um: np.ndarray | list[float] | tuple[float, ...],
+    wavelength_um: float,
+    pixel_um: float,
+    photons_per_count: float,
+) -> tuple[np.ndarray, float]:
+    """Check a stack (frames, height, width) and its heights; returns z (um) and gamma.
+
+    Raises ValueError naming what is wrong. gamma (eq. 5) is the stack's mean photons per
+    pixel: propagation keeps a field's energy, so every plane has the same mean.
+    """
+    if not isinstance(stack_counts, np.ndarray) or stack_counts.ndim != 3:
+        shape = getattr(stack_counts, "shape", None)
+        raise ValueError(f"stack must be a 3-D array (frames, height, width), got shape {shape}")
+    frames, height, width = stack_counts.shape
+    if frames < 1 or height < 2 or width < 2:
+        raise ValueError(f"stack needs >= 1 frame of >= 2x2 pixels, got shape {stack_counts.shape}")
+    z = np.asarray(z_um, dtype=np.float64)
+    if z.ndim != 1 or z.shape[0] != frames:
+        got = z.shape[0] if z.ndim == 1 else z.shape
+        raise ValueError(f"z_um must list one height per frame: {frames} frames, got {got}")
+    if not np.all(np.isfinite(z)):
+        raise ValueError("z_um must be finite")
+    for name, value in (
+        ("wavelength_um", wavelength_um),
+        ("pixel_um", pixel_um),
+        ("photons_per_count", photons_per_count),
+    ):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a finite number > 0, got {value}")
+    if not np.all(np.isfinite(stack_counts)):
+        raise ValueError("stack must be finite (no NaN or inf)")
+    gamma = float(np.mean(stack_counts, dtype=np.float64)) * photons_per_count
+    if not gamma > 0:
+        raise ValueError(f"stack must have a positive mean, got {gamma / photons_per_count}")
+    return z, gamma
+
+
+def reconstruct(
+    stack_counts: np.ndarray,
+    z_um: np.ndarray | list[float] | tuple[float, ...],
+    wavelength_um: float,
+    pixel_um: float,
+    photons_per_count: float = 1.0,
+    options: AcekfOptions | None = None,
+) -> FieldEstimate:
+    """The complex field at z = 0 from intensity images at heights `z_um` (sparse ACEKF).
+
+    stack_counts: (frames, height, width) raw counts, any real dtype; frame k was taken
+        at z_um[k] (um, relative to the plane to reconstruct; either sign, any order).
+    wavelength_um, pixel_um: the illumination's wavelength and the pixel pitch in the
+        object's plane (um).
+    photons_per_count: the camera's gain (photons per count), which sets the noise (q).
+    """
+    opts = options or AcekfOptions()
+    z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
+    shape = stack_counts.shape[1:]
+    freq_sq = frequency_sq_per_um2(shape, pixel_um)
+    q = 1.0 / gamma  # eq. 31: q = 1/gamma, the noise variance of I/gamma per pixel
+    photons_to_relative = photons_per_count / gamma
+
+    # (1) Initialisation: a plane wave of unit intensity, Q_0 = q0 U, P_0 = p0 U.
+    b = np.zeros(shape, dtype=np.complex128)
+    b[0, 0] = np.sqrt(b.size)  # the unitary FFT of a field of ones
+    Q = np.full(shape, opts.q0, dtype=np.float64)
+    P = np.full(shape, opts.p0, dtype=np.complex128)
+    z_prev = 0.0
+    for k in plane_order(z):
+        H = fresnel_transfer(freq_sq, wavelength_um, float(z[k]) - z_prev)  # eq. 3
+        z_prev = float(z[k])
+        # (2) Prediction.
+        b *= H  # eq. 27: b_hat = H b
+        # eq. 28: Q_hat = Q (H Q H^H with |H| = 1)
+        P *= H * H  # eq. 29: P_hat = H P H
+        # (3) Update.
+        a_hat = fft.ifft2(b, norm="ortho")  # eq. 30: a_hat = K^H b_hat
+        residual = stack_counts[k] * photons_to_relative - (a_hat.real**2 + a_hat.imag**2)
+        # eqs. 31-32 share (Q_hat + P_hat)(2 Re(Q_hat + P_hat) + q)^-1; Q_hat is real, so
+        # (Q_hat + P_hat^*) = (Q_hat + P_hat)^* and (P_hat + Q_hat^*) = (Q_hat + P_hat).
+        QP_hat = Q + P
+        gain = QP_hat / (2.0 * QP_hat.real + q)
+        Q -= (gain * np.conj(QP_hat)).real  # eq. 31
+        P -= gain * QP_hat  # eq. 32
+        # eq. 33: b += (Q + P) J^-1 q^-1 (I - gamma |a_hat|^2), J^-1 = K diag(1/(gamma a_hat^*)),
+        # and (Q_n + P_n)/q = (Q_hat + P_hat)/(2 Re(Q_hat + P_hat) + q) = gain.
+        b += gain * fft.fft2(residual / _floored_conj(a_hat, opts.amplitude_floor), norm="ortho")
+    # Back-propagation to the focal plane: H(-z_last) = H(z_last)^*.
+    b *= fresnel_transfer(freq_sq, wavelength_um, -z_prev)
+    return FieldEstimate(fft.ifft2(b, norm="ortho"), gamma)
+
+
+def _floored_conj(a: np.ndarray, floor: float) -> np.ndarray:
+    """a^* with its modulus raised to at least `floor` (its phase kept)."""
+    modulus = np.abs(a)
+    return np.conj(a) * (np.maximum(modulus, floor) / np.maximum(modulus, np.finfo(float).tiny))
