@@ -11,6 +11,7 @@ model to `service.InstrumentSettings` and its entry to `BACKENDS`.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any, Generic, TypeVar
@@ -49,6 +50,9 @@ def open_mmcore(options: MMCoreOptions) -> Instrument:
 
     if options.mm_config is None:
         raise ValueError("--backend mmcore needs --mm-config FILE (a Micro-Manager configuration)")
+    # pymmcore-plus logs to stderr (WARNING and up, PYMM_LOG_LEVEL) and to a file of its own;
+    # passed on to the service's log as well, every line would show twice, DEBUG included.
+    logging.getLogger("pymmcore-plus").propagate = False
     core = core_from_config(options.mm_config, options.mm_adapter_path)
     try:
         return MMCoreInstrument(core, options)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,12 +61,12 @@ POLL_S = 0.0002
 
 @contextmanager
 def device_errors(device: str, *, image: bool = False) -> Iterator[None]:
-    """A driver's error within (pymmcore raises RuntimeError) as a DeviceError of `device`:
-    DeviceTimeoutError where MMCore says a wait timed out, NoImageError from the calls
-    that read an image (`image`)."""
+    """A driver's error within (pymmcore raises RuntimeError, and OSError for a configuration
+    that does not load) as a DeviceError of `device`: DeviceTimeoutError where MMCore says
+    a wait timed out, NoImageError from the calls that read an image (`image`)."""
     try:
         yield
-    except RuntimeError as error:
+    except (RuntimeError, OSError) as error:
         message = str(error)
         if "timed out" in message:
             raise DeviceTimeoutError(device, message) from error
@@ -194,10 +194,10 @@ class MMCoreInstrument:
             hardware_sequenced=self.sequenced,
         )
         self._grids = {slide.name: slide.grid for slide in self._description.slides}
-        self._exposure_s = self.default_exposure_s  # the camera's, set when a stack differs
         # Snaps run here so that a camera that never returns is waited for no longer than
         # its exposure and the timeout (pymmcore releases the GIL within snapImage).
         self._snapper = ThreadPoolExecutor(1, thread_name_prefix="mmcore-snap")
+        self._snapping: Future[None] | None = None  # the last snap
         self._opened_s = time.perf_counter()
 
     def _z_range_um(self) -> tuple[float, float]:
@@ -323,15 +323,12 @@ class MMCoreInstrument:
 
     def _snap(self, exposure_s: float) -> None:
         """Snap an image, waiting no longer than its exposure and the timeout."""
-        snapping = self._snapper.submit(self.core.snapImage)
+        self._snapping = self._snapper.submit(self.core.snapImage)
         wait_s = exposure_s + self.options.mm_timeout_s
-        try:
-            with device_errors(self.camera):
-                snapping.result(timeout=wait_s)
-        except TimeoutError:
-            raise DeviceTimeoutError(
-                self.camera, f"no image {wait_s:.1f} s after the snap began"
-            ) from None
+        if not wait([self._snapping], timeout=wait_s).done:
+            raise DeviceTimeoutError(self.camera, f"no image {wait_s:.1f} s after the snap began")
+        with device_errors(self.camera):
+            self._snapping.result()
 
     def _sequence(self, plan: MMCorePlan, out: Callable[[int], np.ndarray]) -> Frames:
         """The focus device's sequence of positions, stepped through on the camera's
@@ -380,10 +377,8 @@ class MMCoreInstrument:
         """The camera at `exposure_s`, and the shutter open for the whole stack where the
         core would open and close it for every image (a real shutter takes tens of ms)."""
         core = self.core
-        if exposure_s != self._exposure_s:
-            with device_errors(self.camera):
-                core.setExposure(self.camera, exposure_s * 1000.0)
-            self._exposure_s = exposure_s
+        with device_errors(self.camera):
+            core.setExposure(self.camera, exposure_s * 1000.0)
         shutter = core.getShutterDevice()
         if not (shutter and core.getAutoShutter()):
             yield
@@ -413,4 +408,6 @@ class MMCoreInstrument:
 
     def close(self) -> None:
         self._snapper.shutdown(wait=False, cancel_futures=True)
+        if self._snapping is not None:  # a snap that timed out: unload after it, if it ends
+            wait([self._snapping], timeout=self.options.mm_timeout_s)
         release_core(self.core)

@@ -289,12 +289,14 @@ def test_a_core_without_what_a_stack_needs_is_refused(demo: CMMCorePlus) -> None
 
 
 class _Camera(SimpleCameraDevice):
-    """A camera whose every pixel is the focus position (um) it was snapped at."""
+    """A camera whose every pixel is the focus position (um) it was snapped at; a snap
+    takes `hang_s` besides (a camera that hangs)."""
 
     def __init__(self, focus: _Focus) -> None:
         super().__init__()
         self.focus = focus
         self.exposure_ms = 10.0
+        self.hang_s = 0.0
 
     def sensor_shape(self) -> tuple[int, int]:
         return (8, 6)
@@ -309,6 +311,7 @@ class _Camera(SimpleCameraDevice):
         self.exposure_ms = exposure
 
     def snap(self, buffer: np.ndarray) -> dict[str, object]:
+        time.sleep(self.hang_s)
         buffer[:] = round(self.focus.z_um)
         return {}
 
@@ -354,15 +357,20 @@ class _XY(XYStageDevice):
         """Moves are instantaneous."""
 
 
-def test_a_unimmcore_with_python_devices_is_served() -> None:
+def _python_devices(camera: _Camera) -> UniMMCore:
+    """A UniMMCore with `camera`, its focus stage and an XY stage, pure Python."""
     core = UniMMCore()
-    focus = _Focus()
-    for label, device in (("Camera", _Camera(focus)), ("XY", _XY()), ("Z", focus)):
+    for label, device in (("Camera", camera), ("XY", _XY()), ("Z", camera.focus)):
         core.loadPyDevice(label, device)
         core.initializeDevice(label)
     core.setCameraDevice("Camera")
     core.setXYStageDevice("XY")
     core.setFocusDevice("Z")
+    return core
+
+
+def test_a_unimmcore_with_python_devices_is_served() -> None:
+    core = _python_devices(_Camera(_Focus()))
     options = OPTIONS.model_copy(update={"mm_pixel_size_um": 0.25})
     instrument = MMCoreInstrument(core, options)
     try:
@@ -375,6 +383,21 @@ def test_a_unimmcore_with_python_devices_is_served() -> None:
         assert [int(f[0, 0, 0]) for f in _frames(instrument, plan)] == [3, 5, 7]
     finally:
         instrument.close()
+
+
+def test_a_camera_that_hangs_in_a_snap_is_a_timeout() -> None:
+    camera = _Camera(_Focus())
+    options = OPTIONS.model_copy(update={"mm_pixel_size_um": 0.25, "mm_timeout_s": 0.2})
+    instrument = MMCoreInstrument(_python_devices(camera), options)
+    try:
+        plan = instrument.plan(StackRequest("slide-0", 0, 0, 0.0, 1.0, 2, exposure_s=0.01))
+        camera.hang_s = 1.0
+        started_s = time.perf_counter()
+        with pytest.raises(DeviceTimeoutError, match=r"Camera: no image 0.2 s after the snap"):
+            _frames(instrument, plan)
+        assert time.perf_counter() - started_s < 0.6
+    finally:
+        instrument.close()  # after the hung snap ends
 
 
 @pytest.fixture
@@ -487,6 +510,46 @@ def test_the_command_refuses_what_it_cannot_serve(options: tuple[str, ...], mess
     ran = subprocess.run(_command(*options), capture_output=True, text=True, timeout=60)
     assert ran.returncode == 2 and message in ran.stderr, ran.stderr[-2000:]
     assert "FATAL" not in ran.stderr
+
+
+def test_a_configuration_that_does_not_load_ends_the_command(tmp_path: Path) -> None:
+    config = tmp_path / "MMConfig.cfg"
+    config.write_text("Device,Camera,NoSuchAdapter,DCam\n")
+    ran = subprocess.run(_command("--mm-config", str(config)), capture_output=True, text=True,
+                         timeout=60)  # fmt: skip
+    assert ran.returncode == 1, ran.stderr[-2000:]
+    assert f"the instrument did not open: configuration {config}:" in ran.stderr
+
+
+#: Open the demo, take a snapped and a sequenced stack, close: what every process does.
+ROUND_TRIP = f"""
+from pathlib import Path
+import numpy as np
+from focustrack_instrument_sim.instrument import StackRequest
+from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, core_from_config
+from focustrack_instrument_sim.mmcore_options import MMCoreOptions
+for sequence in (False, True):
+    core = core_from_config(Path({str(DEMO_CONFIG)!r}), [Path({str(ADAPTERS)!r})])
+    core.setProperty("Z", "UseSequences", "Yes")
+    options = MMCoreOptions(mm_z_min_um=-5, mm_z_max_um=5, mm_sequence=sequence)
+    instrument = MMCoreInstrument(core, options)
+    plan = instrument.plan(StackRequest("slide-0", 0, 0, 0.0, 1.0, 3, 0.001))
+    for frame in instrument.acquire(plan, lambda _: np.empty(plan.frame.shape, plan.frame.dtype)):
+        pass
+    instrument.close()
+"""
+
+
+def test_processes_that_close_the_instrument_exit_cleanly() -> None:
+    # Before close() detached the core's callback relay, most such processes aborted at
+    # exit ("FATAL: exception not rethrown"): a few at once catch a regression.
+    processes = [
+        subprocess.Popen([sys.executable, "-c", ROUND_TRIP], stderr=subprocess.PIPE, text=True)
+        for _ in range(4)
+    ]
+    for process in processes:
+        _, stderr = process.communicate(timeout=60)
+        assert process.returncode == 0 and "FATAL" not in stderr, stderr[-2000:]
 
 
 def test_the_mmcore_backend_needs_a_configuration() -> None:
