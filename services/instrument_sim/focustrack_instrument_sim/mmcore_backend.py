@@ -325,10 +325,15 @@ class MMCoreInstrument:
         """Snap an image, waiting no longer than its exposure and the timeout."""
         self._snapping = self._snapper.submit(self.core.snapImage)
         wait_s = exposure_s + self.options.mm_timeout_s
-        if not wait([self._snapping], timeout=wait_s).done:
-            raise DeviceTimeoutError(self.camera, f"no image {wait_s:.1f} s after the snap began")
-        with device_errors(self.camera):
-            self._snapping.result()
+        try:
+            failure = self._snapping.exception(timeout=wait_s)
+        except TimeoutError:  # the snap's own errors are not raised here, only returned
+            raise DeviceTimeoutError(
+                self.camera, f"no image {wait_s:.1f} s after the snap began"
+            ) from None
+        if failure is not None:
+            with device_errors(self.camera):
+                raise failure
 
     def _sequence(self, plan: MMCorePlan, out: Callable[[int], np.ndarray]) -> Frames:
         """The focus device's sequence of positions, stepped through on the camera's
