@@ -9,9 +9,10 @@ pymmcore-plus: `--help` and a bad option cost no Micro-Manager. The names start 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 from pydantic import BaseModel, Field
+from pydantic_settings import NoDecode
 
 
 class MMCoreOptions(BaseModel):
@@ -26,7 +27,9 @@ class MMCoreOptions(BaseModel):
         "camera, the focus device, the XY stage and a pixel size configuration "
         "(needed with --backend mmcore)",
     )
-    mm_adapter_path: list[Path] = Field(
+    # NoDecode: from the environment, a list of folders separated by commas or spaces
+    # (the service's `list_fields`), not JSON
+    mm_adapter_path: Annotated[list[Path], NoDecode] = Field(
         [],
         description="folders holding the device adapters (libmmgr_dal_*); none: the "
         "Micro-Manager installation pymmcore-plus finds",

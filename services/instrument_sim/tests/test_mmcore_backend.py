@@ -556,3 +556,9 @@ def test_the_mmcore_backend_needs_a_configuration() -> None:
     command = [sys.executable, "-m", "focustrack_instrument_sim", "--backend", "mmcore"]
     ran = subprocess.run(command, capture_output=True, text=True, timeout=60)
     assert ran.returncode == 2 and "--backend mmcore needs --mm-config FILE" in ran.stderr
+
+
+def test_adapter_folders_from_the_environment_are_a_list(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FOCUSTRACK_INSTRUMENT_MM_ADAPTER_PATH", "/opt/mm,/opt/more")
+    settings = service.InstrumentSettings.load()
+    assert settings.mm_adapter_path == [Path("/opt/mm"), Path("/opt/more")]
