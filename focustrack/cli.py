@@ -58,9 +58,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.phase",
         "phase from a through-focus stack: the sparse ACEKF against the paper and two baselines",
     ),
+    "bench mmcore": (
+        "focustrack.bench.mmcore",
+        "ms per plane of the MMCore backend's stacks against bare MMCore calls, snapped and "
+        "sequenced",
+    ),
     "serve instrument": (
         "focustrack_instrument_sim.service",
-        "the simulated microscope on Zenoh",
+        "a microscope on Zenoh: the simulator, or one through Micro-Manager (--backend mmcore)",
     ),
     "serve focus": ("focustrack_focus.service", "the focus service (Zenoh and REST)"),
     "serve estimator": ("focustrack_estimator.service", "the estimator REST service"),

@@ -11,6 +11,7 @@ model to `service.InstrumentSettings` and its entry to `BACKENDS`.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any, Generic, TypeVar
@@ -19,6 +20,7 @@ from pydantic import BaseModel
 
 from focustrack_core.settings import one_of
 from focustrack_instrument_sim.instrument import Instrument
+from focustrack_instrument_sim.mmcore_options import MMCoreOptions
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
 Options = TypeVar("Options", bound=BaseModel)
@@ -39,9 +41,30 @@ def open_simulator(options: SimulatorOptions) -> Instrument:
     return SimulatedInstrument(microscope_from_options(options))
 
 
+def open_mmcore(options: MMCoreOptions) -> Instrument:
+    from focustrack_instrument_sim.mmcore_backend import (
+        MMCoreInstrument,
+        core_from_config,
+        release_core,
+    )
+
+    if options.mm_config is None:
+        raise ValueError("--backend mmcore needs --mm-config FILE (a Micro-Manager configuration)")
+    # pymmcore-plus logs to stderr (WARNING and up, PYMM_LOG_LEVEL) and to a file of its own;
+    # passed on to the service's log as well, every line would show twice, DEBUG included.
+    logging.getLogger("pymmcore-plus").propagate = False
+    core = core_from_config(options.mm_config, options.mm_adapter_path)
+    try:
+        return MMCoreInstrument(core, options)
+    except BaseException:
+        release_core(core)
+        raise
+
+
 #: --backend NAME -> the backend.
 BACKENDS: dict[str, Backend[Any]] = {
     "sim": Backend("the simulated microscope", open_simulator),
+    "mmcore": Backend("a microscope through Micro-Manager (pymmcore-plus)", open_mmcore),
 }
 
 #: A backend's name (--backend): one of `BACKENDS`.

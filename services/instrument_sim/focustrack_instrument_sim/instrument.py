@@ -26,7 +26,7 @@ Units: um for x, y, z and lengths; s for times. Frames are numpy arrays
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Protocol, runtime_checkable
@@ -117,6 +117,16 @@ class OpticsInfo:
     depth_of_field_um: float  # lambda n / NA^2 + n e / (M NA)
 
 
+def depth_of_field_um(
+    wavelength_um: float, refractive_index: float, numerical_aperture: float, pixel_size_um: float
+) -> float:
+    """The depth of field, um: lambda n / NA^2 (the Rayleigh quarter-wave criterion) plus
+    n e / (M NA), one camera pixel e seen through magnification M (e / M: `pixel_size_um`,
+    the pixel in the specimen plane)."""
+    na, n = numerical_aperture, refractive_index
+    return wavelength_um * n / na**2 + n * pixel_size_um / na
+
+
 @dataclass(frozen=True)
 class Description:
     """What an instrument offers, as the info queryable (`InstrumentInfo`) reports it."""
@@ -200,6 +210,72 @@ class FocusTruth:
     best_focus_um: np.ndarray
     drift_um: float
     clock_s: float
+
+
+#: The longest exposure a request may ask for, s.
+MAX_EXPOSURE_S = 10.0
+
+
+def check_request(
+    request: StackRequest,
+    exposure_s: float,
+    grids: Mapping[str, ScanGrid],
+    z_range_um: tuple[float, float],
+    max_frames: int,
+) -> ScanGrid:
+    """The grid of the slide `request` names, or AcquisitionRefusedError saying what is wrong
+    with the request: an unknown slide, a tile outside its grid, too many or too few frames,
+    a z or z step that is not finite and positive, frames outside `z_range_um` (low, high),
+    an `exposure_s` (the request's, or the instrument's default) outside (0, 10] s. What
+    every instrument refuses alike; a backend checks its own limits besides."""
+    if request.slide not in grids:
+        known = ", ".join(sorted(grids))
+        raise AcquisitionRefusedError(
+            Refusal.UNKNOWN_SLIDE, f"unknown slide {request.slide!r}; known: {known}", "slide"
+        )
+    grid, row, col, n_frames = grids[request.slide], request.row, request.col, request.n_frames
+    if not grid.contains(row, col):
+        raise AcquisitionRefusedError(
+            Refusal.TILE_OUTSIDE_SLIDE,
+            f"tile ({row}, {col}) is outside slide {request.slide!r} of {grid.rows}x{grid.cols} "
+            "tiles",
+            "row" if not 0 <= row < grid.rows else "col",
+        )
+    if n_frames > max_frames:
+        raise AcquisitionRefusedError(
+            Refusal.TOO_MANY_FRAMES,
+            f"{n_frames} frames requested; the instrument takes at most {max_frames}",
+            "n_frames",
+        )
+    if n_frames < 1:
+        raise AcquisitionRefusedError(
+            Refusal.MALFORMED, f"n_frames must be at least 1, got {n_frames}", "n_frames"
+        )
+    z_low_um, z_step_um = request.z_low_um, request.z_step_um
+    if not np.isfinite(z_low_um):
+        raise AcquisitionRefusedError(Refusal.MALFORMED, "z_low_um must be finite", "z_low_um")
+    if n_frames > 1 and not (np.isfinite(z_step_um) and z_step_um > 0):
+        raise AcquisitionRefusedError(
+            Refusal.MALFORMED,
+            f"z_step_um must be positive for {n_frames} frames, got {z_step_um}",
+            "z_step_um",
+        )
+    z_high_um = z_low_um + (n_frames - 1) * z_step_um
+    z_low, z_high = z_range_um
+    if z_low_um < z_low or z_high_um > z_high:
+        raise AcquisitionRefusedError(
+            Refusal.Z_OUT_OF_RANGE,
+            f"frames span z {z_low_um:.3f}..{z_high_um:.3f} um, outside the stage's travel "
+            f"{z_low:.1f}..{z_high:.1f} um",
+            "z_low_um",
+        )
+    if not (np.isfinite(exposure_s) and 0 < exposure_s <= MAX_EXPOSURE_S):
+        raise AcquisitionRefusedError(
+            Refusal.MALFORMED,
+            f"exposure must be in (0, {MAX_EXPOSURE_S:g}] s, got {exposure_s}",
+            "exposure_s",
+        )
+    return grid
 
 
 #: The frames of a stack as `Instrument.acquire` yields them, (height, width, channels) each.

@@ -34,7 +34,9 @@ from focustrack_instrument_sim.instrument import (
     Frames,
     Refusal,
     StackPlan,
+    StackRequest,
     StackTiming,
+    check_request,
 )
 from focustrack_instrument_sim.simulator_options import default
 from focustrack_instrument_sim.specimen import SpecimenSpec, blood_smear, dust_layer
@@ -257,60 +259,14 @@ class Microscope:
     def pixel_size_um(self) -> float:
         return self.spec.optics.pixel_size_um
 
-    def check(
-        self,
-        slide: str,
-        row: int,
-        col: int,
-        z_low_um: float,
-        z_step_um: float,
-        n_frames: int,
-        exposure_s: float,
-    ) -> Slide:
-        """The slide of a request, or AcquisitionRefusedError saying what is wrong with it."""
-        if slide not in self.slides:
-            known = ", ".join(sorted(self.slides))
-            raise AcquisitionRefusedError(
-                Refusal.UNKNOWN_SLIDE, f"unknown slide {slide!r}; known: {known}", "slide"
-            )
-        grid = self.slides[slide].grid
-        if not grid.contains(row, col):
-            raise AcquisitionRefusedError(
-                Refusal.TILE_OUTSIDE_SLIDE,
-                f"tile ({row}, {col}) is outside slide {slide!r} of {grid.rows}x{grid.cols} tiles",
-                "row" if not 0 <= row < grid.rows else "col",
-            )
-        if n_frames > self.spec.max_frames:
-            raise AcquisitionRefusedError(
-                Refusal.TOO_MANY_FRAMES,
-                f"{n_frames} frames requested; the instrument takes at most {self.spec.max_frames}",
-                "n_frames",
-            )
-        if n_frames < 1:
-            raise AcquisitionRefusedError(
-                Refusal.MALFORMED, f"n_frames must be at least 1, got {n_frames}", "n_frames"
-            )
-        if not np.isfinite(z_low_um):
-            raise AcquisitionRefusedError(Refusal.MALFORMED, "z_low_um must be finite", "z_low_um")
-        if n_frames > 1 and not (np.isfinite(z_step_um) and z_step_um > 0):
-            raise AcquisitionRefusedError(
-                Refusal.MALFORMED,
-                f"z_step_um must be positive for {n_frames} frames, got {z_step_um}",
-                "z_step_um",
-            )
-        z_high_um = z_low_um + (n_frames - 1) * z_step_um
-        z_low, z_high = self.spec.stage.z_range_um
-        if z_low_um < z_low or z_high_um > z_high:
-            raise AcquisitionRefusedError(
-                Refusal.Z_OUT_OF_RANGE,
-                f"frames span z {z_low_um:.3f}..{z_high_um:.3f} um, outside the stage's travel "
-                f"{z_low:.1f}..{z_high:.1f} um",
-                "z_low_um",
-            )
-        if not (np.isfinite(exposure_s) and 0 < exposure_s <= 10.0):
-            raise AcquisitionRefusedError(
-                Refusal.MALFORMED, f"exposure must be in (0, 10] s, got {exposure_s}", "exposure_s"
-            )
+    def check(self, request: StackRequest, exposure_s: float) -> Slide:
+        """The slide of a request, or AcquisitionRefusedError saying what is wrong with it
+        (`instrument.check_request`, and a tile beyond the stage's XY travel)."""
+        grids = {name: slide.grid for name, slide in self.slides.items()}
+        grid = check_request(
+            request, exposure_s, grids, self.spec.stage.z_range_um, self.spec.max_frames
+        )
+        row, col = request.row, request.col
         x_um, y_um = grid.stage_xy_um(row, col)
         (x_low, x_high), (y_low, y_high) = self.spec.stage.x_range_um, self.spec.stage.y_range_um
         if not (x_low <= x_um <= x_high and y_low <= y_um <= y_high):
@@ -319,7 +275,7 @@ class Microscope:
                 f"tile ({row}, {col}) at ({x_um:.0f}, {y_um:.0f}) um is beyond the stage's travel",
                 "row",
             )
-        return self.slides[slide]
+        return self.slides[request.slide]
 
     def plan(
         self,
@@ -337,7 +293,8 @@ class Microscope:
         `exposure_s` defaults to the timing model's. Raises AcquisitionRefusedError.
         """
         exposure_s = self.spec.stage.timing.exposure_s if exposure_s is None else exposure_s
-        chosen = self.check(slide, row, col, z_low_um, z_step_um, n_frames, exposure_s)
+        request = StackRequest(slide, row, col, z_low_um, z_step_um, n_frames, exposure_s)
+        chosen = self.check(request, exposure_s)
         z_um = z_low_um + z_step_um * np.arange(n_frames)
         x_um, y_um = chosen.grid.stage_xy_um(row, col)
         tile = self._tile_spectra(chosen, row, col)

@@ -32,6 +32,7 @@ from functools import cached_property
 import cv2
 import numpy as np
 
+from focustrack_instrument_sim.instrument import depth_of_field_um
 from focustrack_instrument_sim.simulator_options import default
 
 #: Channel order of every rendered image.
@@ -76,10 +77,12 @@ class Optics:
     @property
     def depth_of_field_um(self) -> float:
         """lambda n / NA^2 + n e / (M NA), at the reference (green) wavelength."""
-        na, n = self.numerical_aperture, self.refractive_index
-        wave_um = self.reference_wavelength_um * n / na**2
-        geometric_um = n * self.camera_pixel_um / (self.magnification * na)
-        return wave_um + geometric_um
+        return depth_of_field_um(
+            self.reference_wavelength_um,
+            self.refractive_index,
+            self.numerical_aperture,
+            self.pixel_size_um,
+        )
 
 
 class DefocusOTF:

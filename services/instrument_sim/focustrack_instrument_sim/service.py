@@ -1,4 +1,5 @@
-"""`focustrack serve instrument`: a microscope on Zenoh, the simulator by default.
+"""`focustrack serve instrument`: a microscope on Zenoh, the simulator by default (or a
+real one through Micro-Manager, `--backend mmcore`).
 
 A thin shell over any `instrument.Instrument` (`--backend`, `backends.BACKENDS`): it
 queues acquisitions, publishes their frames and stacks, keeps the last ones' frames
@@ -70,6 +71,7 @@ from focustrack_instrument_sim.instrument import (
     TargetNotReachedError,
     TruthSource,
 )
+from focustrack_instrument_sim.mmcore_options import MMCoreOptions
 from focustrack_instrument_sim.recent import RecentStacks, StackGoneError
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
@@ -423,13 +425,18 @@ class InstrumentShellSettings(ZenohSettings):
     )
 
 
-class InstrumentSettings(SimulatorOptions, InstrumentShellSettings):
+class InstrumentSettings(MMCoreOptions, SimulatorOptions, InstrumentShellSettings):
     """The service's settings: flags, ``FOCUSTRACK_INSTRUMENT_<OPTION>`` or a settings file.
 
     The shell's options and every backend's (`backends.BACKENDS`), flat: a backend opens
     from these settings, which are its options too. A new backend adds its options model
     to the bases (and a list option of it to `list_fields`, after the shell's).
     """
+
+    list_fields: ClassVar[tuple[str, ...]] = (
+        *InstrumentShellSettings.list_fields,
+        "mm_adapter_path",
+    )
 
 
 def open_instrument(settings: InstrumentSettings) -> Instrument:

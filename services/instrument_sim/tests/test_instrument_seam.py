@@ -275,6 +275,9 @@ SIMULATOR = {
     "scipy", "cv2",
 }  # fmt: skip
 
+#: What the MMCore backend loads when it opens: its module and pymmcore-plus.
+MMCORE = {"focustrack_instrument_sim.mmcore_backend", "pymmcore_plus", "pymmcore"}
+
 
 @pytest.mark.parametrize(
     ("command", "status"),
@@ -284,7 +287,7 @@ SIMULATOR = {
         (["-m", "focustrack_instrument_sim", "--queue-depth", "0"], 2),  # refused
     ],
 )
-def test_the_shell_its_help_and_a_bad_option_load_no_simulator(
+def test_the_shell_its_help_and_a_bad_option_load_no_backend(
     command: list[str], status: int
 ) -> None:
     ran = subprocess.run(
@@ -296,5 +299,8 @@ def test_the_shell_its_help_and_a_bad_option_load_no_simulator(
         for line in ran.stderr.splitlines()
         if line.startswith("import time:")
     }
-    assert "focustrack_instrument_sim.simulator_options" in imported  # declarations only
-    assert not SIMULATOR & imported
+    assert {
+        "focustrack_instrument_sim.simulator_options",
+        "focustrack_instrument_sim.mmcore_options",
+    } <= imported  # declarations only
+    assert not (SIMULATOR | MMCORE) & imported
