@@ -14,27 +14,43 @@ by side in one run, and timed per plane:
 The backend's XY move (its `plan`) is not timed: the bare loop has none. The shutter
 stays as it is (auto-shutter off) so both do the same device work, and the demo camera
 reuses its image (FastImage) so that its drawing does not drown the difference.
+
+Then (unless `--no-scan`) one slide is scanned through every service (router, instrument,
+focus service, estimator, scheduler) twice, side by side: with the simulator
+(`--backend sim`) and with the same simulated slide behind Micro-Manager's device layer
+(`--backend mmcore-sim`: pymmcore-plus Python devices served by the MMCore backend). The
+frames are the same, so frames per tile, the in-focus share and the MAE should agree
+within the noise; the wall time says what the device path costs in a scan.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import statistics
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pymmcore_plus import CMMCorePlus
 
+from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack_instrument_sim.instrument import StackRequest
 from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, core_from_config
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
+from focustrack_scheduler.scan import ScanJob, run_scan
+from focustrack_scheduler.settings import ScanOptions
 
 #: The overhead per plane the backend should stay under, ms.
 TARGET_OVERHEAD_MS = 2.0
 Z_STEP_UM = 0.5
+#: The backends a slide is scanned with, side by side.
+SCAN_BACKENDS = ("sim", "mmcore-sim")
+#: What a scan's report says that the comparison shows.
+SCAN_FIGURES = ("images_per_tile", "in_focus_fraction", "mae_um", "scan_time_s")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,6 +62,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--mm-adapter-path", type=Path, nargs="*", default=[], help="device adapter folders"
+    )
+    parser.add_argument("--no-scan", action="store_true", help="time the planes only")
+    # the demo's slide (`focustrack demo`), so that the figures compare with its table
+    parser.add_argument("--rows", type=int, default=10, help="tiles per column of the slide")
+    parser.add_argument("--cols", type=int, default=10, help="tiles per row of the slide")
+    parser.add_argument("--size", type=int, default=512, help="frame side, px")
+    parser.add_argument("--seed", type=int, default=1, help="the slide's seed")
+    parser.add_argument("--strategy", default="kf-2d-lean", help="the scan's strategy")
+    parser.add_argument(
+        "--out", type=Path, default=Path("out/bench-mmcore"), help="the scans' work folder"
     )
     parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
 
@@ -140,9 +166,54 @@ def bench_mode(
     }
 
 
+def scan_backends(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """The figures of one scan of the same slide with each of `SCAN_BACKENDS`, each on a
+    local stack of its own (the scan's report, and its wall time, s)."""
+    figures: dict[str, dict[str, Any]] = {}
+    for backend in SCAN_BACKENDS:
+        work = args.out / backend
+        shutil.rmtree(work, ignore_errors=True)  # a fresh slide and estimator each run
+        instrument_args = [
+            "--backend", backend, "--seed", str(args.seed), "--slides", "1",
+            "--rows", str(args.rows), "--cols", str(args.cols),
+            "--width", str(args.size), "--height", str(args.size),
+        ]  # fmt: skip
+        with LocalStack(work, instrument_args) as stack:
+            assert stack.session is not None
+            job = ScanJob(
+                request=ScanOptions.defaults().request(INSTRUMENT, SLIDE, args.strategy),
+                estimator_url=stack.estimator_url,
+                out_dir=work / "scan",
+                label=f"{args.strategy} on --backend {backend}",
+                trust=stack.trust,
+            )
+            started_s = time.perf_counter()
+            report = run_scan(stack.session, job)
+            wall_s = time.perf_counter() - started_s
+        figures[backend] = {name: report[name] for name in SCAN_FIGURES} | {"wall_s": wall_s}
+    return figures
+
+
+def scan_table(figures: dict[str, dict[str, Any]]) -> str:
+    """The scans' figures side by side, a row per backend (markdown)."""
+    lines = [
+        "| backend | frames/tile | in focus | MAE um | simulated scan s | wall s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for backend, scan in figures.items():
+        lines.append(
+            f"| {backend} | {scan['images_per_tile']:.2f} | {scan['in_focus_fraction']:.1%} | "
+            f"{scan['mae_um']:.3f} | {scan['scan_time_s']:.1f} | {scan['wall_s']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.frames < 1 or args.stacks < 1 or not args.exposure_ms > 0:
         print("--frames and --stacks must be at least 1, --exposure-ms positive")
+        return 2
+    if min(args.rows, args.cols, args.size) < 1:
+        print("--rows, --cols and --size must be at least 1")
         return 2
     if args.mm_config is None:
         try:
@@ -176,6 +247,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"| {mode} | {measured['bare_ms_per_plane']:.2f} | "
               f"{measured['backend_ms_per_plane']:.2f} | "
               f"{measured['overhead_ms_per_plane']:+.2f} |")  # fmt: skip
+    if not args.no_scan:
+        stop_on_sigterm()  # so that the stacks' processes are stopped on the way out
+        print(f"\nscanning a {args.rows}x{args.cols} slide (seed {args.seed}, "
+              f"{args.size} px) with {args.strategy} on each backend", flush=True)  # fmt: skip
+        figures["scan"] = {
+            "rows": args.rows, "cols": args.cols, "size_px": args.size, "seed": args.seed,
+            "strategy": args.strategy,
+        } | scan_backends(args)  # fmt: skip
+        print(scan_table({backend: figures["scan"][backend] for backend in SCAN_BACKENDS}))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(figures, indent=2))

@@ -114,11 +114,14 @@ MIN_SMOOTHED_PX = 4
 
 
 def select_channel(frame: np.ndarray, channel: int | None) -> np.ndarray:
-    """One channel of an (H, W, C) frame (None: the highest-contrast one); (H, W) as is."""
+    """One channel of an (H, W, C) frame (None: the highest-contrast one); (H, W) as is, and
+    the only channel of an (H, W, 1) one (a monochrome camera's, whatever `channel` says)."""
     if frame.ndim == 2:
         return frame
     if frame.ndim != 3:
         raise ValueError(f"a frame is (H, W) or (H, W, C), got shape {frame.shape}")
+    if frame.shape[2] == 1:
+        return frame[:, :, 0]
     if channel is None:
         # Contrast as the coefficient of variation, on a 4x subsample: cheap, and
         # choosing a channel needs no pixel-level precision.

@@ -67,6 +67,11 @@ def test_channel_choice_green_by_default_and_most_contrast_when_asked() -> None:
     assert np.array_equal(select_channel(frame, None), frame[..., 2])
     with pytest.raises(ValueError, match="channel 5"):
         select_channel(frame, 5)
+    # a monochrome camera's frame (the MMCore backend's "L"): its one channel, whichever
+    # channel the settings name (green, by default)
+    mono = frame[..., 2:]
+    assert np.array_equal(select_channel(mono, 1), frame[..., 2])
+    assert np.array_equal(select_channel(mono, None), frame[..., 2])
 
 
 def test_roi_and_bad_settings() -> None:

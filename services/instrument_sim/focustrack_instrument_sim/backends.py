@@ -61,10 +61,31 @@ def open_mmcore(options: MMCoreOptions) -> Instrument:
         raise
 
 
+def open_mmcore_sim(options: SimulatorOptions) -> Instrument:
+    """The simulator's microscope behind the MMCore backend; `options` (the service's
+    settings) hold the MMCore backend's options too."""
+    from focustrack_instrument_sim.mmcore_sim import SimulatedMMCoreInstrument
+    from focustrack_instrument_sim.simulated import microscope_from_options
+
+    logging.getLogger("pymmcore-plus").propagate = False  # as open_mmcore's
+    mmcore_options = MMCoreOptions.model_validate(options, from_attributes=True)
+    microscope = microscope_from_options(options)
+    try:
+        return SimulatedMMCoreInstrument(microscope, mmcore_options)
+    except BaseException:
+        microscope.close()
+        raise
+
+
 #: --backend NAME -> the backend.
 BACKENDS: dict[str, Backend[Any]] = {
     "sim": Backend("the simulated microscope", open_simulator),
     "mmcore": Backend("a microscope through Micro-Manager (pymmcore-plus)", open_mmcore),
+    "mmcore-sim": Backend(
+        "the simulated microscope behind Micro-Manager's device layer (pymmcore-plus "
+        "UniMMCore Python devices, served by the mmcore backend)",
+        open_mmcore_sim,
+    ),
 }
 
 #: A backend's name (--backend): one of `BACKENDS`.
