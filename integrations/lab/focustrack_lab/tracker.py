@@ -11,8 +11,8 @@ best focus, else the prediction. The estimator bounds the stacks of a tile: a
 flat curve (nothing in view, or images that do not change with z) gets one
 widest stack, then the tile is given up and imaged at the prediction; its
 `TileFocus.flags` say so, and `FocusTracker.summary` counts such tiles. The
-pymmcore-plus engine (`mmcore.py`) and the
-Bluesky plan (`bluesky.py`) are built on it.
+pymmcore-plus engine (`mmcore.py`) and the Bluesky plan (`bluesky.py`) are built
+on it.
 """
 
 from __future__ import annotations
@@ -67,9 +67,11 @@ class TileFocus:
         return frozenset() if self.last is None else self.last.flags
 
     @property
-    def measured(self) -> bool:
-        """True when its last measured stack found a best focus (z_um then rests on it)."""
-        return self.last is not None and self.last.best_z_um is not None
+    def unfocused(self) -> bool:
+        """True when its stacks found no focus (the last measured one has no best z): it is
+        imaged at the estimator's prediction. A tile the estimator only asked an image of
+        (it was sure enough) is not."""
+        return self.last is not None and self.last.best_z_um is None
 
 
 @dataclass(frozen=True)
@@ -90,12 +92,12 @@ class ScanSummary:
             f"{self.n_stacks} stacks ({self.n_frames} frames) for focus on {self.n_tiles} tiles"
         )
         if not self.unfocused:
-            return f"{stacks}; every tile's focus was measured"
+            return f"{stacks}; no tile without a focus"
         counts = Counter(flag for flags in self.unfocused.values() for flag in flags)
         named = ", ".join(f"{flag}: {n}" for flag, n in sorted(counts.items()))
         return (
-            f"{stacks}; {len(self.unfocused)} of {self.n_tiles} tiles without a measured "
-            f"focus ({named}), imaged at the estimator's prediction: "
+            f"{stacks}; {len(self.unfocused)} of {self.n_tiles} tiles without a focus "
+            f"({named}), imaged at the estimator's prediction: "
             f"{sorted(self.unfocused)}"
         )
 
@@ -139,9 +141,7 @@ class FocusTracker:
             n_tiles=len(self.tiles),
             n_stacks=sum(tile.n_stacks for tile in self.tiles),
             n_frames=self.n_frames,
-            unfocused={
-                (tile.row, tile.col): tile.flags for tile in self.tiles if not tile.measured
-            },
+            unfocused={(tile.row, tile.col): tile.flags for tile in self.tiles if tile.unfocused},
         )
 
     def focus(self, row: int, col: int, acquire: AcquireStack) -> TileFocus:

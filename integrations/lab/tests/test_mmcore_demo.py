@@ -66,13 +66,13 @@ def test_a_device_that_never_focuses_ends_with_every_tile_flat_and_a_warning(
     tiles = engine.tracker.tiles
     assert len(tiles) == len(recorded.events) == 6
     for tile, event in zip(tiles, recorded.events, strict=True):
-        assert FocusFlag.FLAT in tile.flags and not tile.measured, tile
+        assert FocusFlag.FLAT in tile.flags and tile.unfocused, tile
         assert 1 <= tile.n_stacks <= 2  # the estimator's bound: one widest stack more at most
         assert event.metadata["focustrack_flags"] == sorted(str(f) for f in tile.flags)
         assert event.metadata["focustrack_z_um"] == tile.z_um
     assert sorted(engine.summary.unfocused) == sorted((t.row, t.col) for t in tiles)
-    assert "6 of 6 tiles without a measured focus (flat: 6)" in str(engine.summary)
-    assert "6 of 6 tiles without a measured focus" in caplog.text
+    assert "6 of 6 tiles without a focus (flat: 6)" in str(engine.summary)
+    assert "6 of 6 tiles without a focus" in caplog.text
 
 
 @pytest.mark.slow
