@@ -25,6 +25,10 @@ class Filters(Protocol):
 
     name: str
 
+    def mean(self, image: np.ndarray) -> float:
+        """Mean of the pixels, accumulated in float64."""
+        ...
+
     def mean_std(self, image: np.ndarray) -> tuple[float, float]:
         """Mean and (population) standard deviation of the pixels, accumulated in float64."""
         ...
@@ -57,6 +61,9 @@ class OpenCVFilters:
     def __init__(self, cv2: ModuleType) -> None:
         self.cv2 = cv2
 
+    def mean(self, image: np.ndarray) -> float:
+        return float(self.cv2.mean(image)[0])
+
     def mean_std(self, image: np.ndarray) -> tuple[float, float]:
         mean, std = self.cv2.meanStdDev(image)
         return float(mean.item()), float(std.item())
@@ -84,6 +91,9 @@ class ScipyFilters:
     """The filters with numpy and scipy.ndimage: the lab's backend, no OpenCV needed."""
 
     name = "scipy"
+
+    def mean(self, image: np.ndarray) -> float:
+        return float(image.mean(dtype=np.float64))
 
     def mean_std(self, image: np.ndarray) -> tuple[float, float]:
         return float(image.mean(dtype=np.float64)), float(image.std(dtype=np.float64))

@@ -32,7 +32,7 @@ _SOBEL_X = np.array([[-1, 0, 1], [-2, 0, 2], [-1, 0, 1]], dtype=np.float32)
 
 def _mean(image: np.ndarray) -> float:
     """The frame's mean, floored at the smallest float32 (a black frame divides by it)."""
-    return max(filters.BACKEND.mean_std(image)[0], _TINY)
+    return max(filters.BACKEND.mean(image), _TINY)
 
 
 def normalised_variance(image: np.ndarray) -> float:
@@ -58,16 +58,16 @@ def tenengrad(image: np.ndarray) -> float:
     backend = filters.BACKEND
     gx = backend.correlate(image, _SOBEL_X)
     gy = backend.correlate(image, _SOBEL_X.T)
-    return backend.mean_std(gx * gx + gy * gy)[0] / _mean(image) ** 2
+    return backend.mean(gx * gx + gy * gy) / _mean(image) ** 2
 
 
 def brenner(image: np.ndarray) -> float:
     """Mean squared difference of pixels two apart, both directions, over mu**2
     (Brenner et al. 1976)."""
-    mean_std = filters.BACKEND.mean_std
+    mean = filters.BACKEND.mean
     dx = image[:, 2:] - image[:, :-2]
     dy = image[2:, :] - image[:-2, :]
-    return (mean_std(dx * dx)[0] + mean_std(dy * dy)[0]) / _mean(image) ** 2
+    return (mean(dx * dx) + mean(dy * dy)) / _mean(image) ** 2
 
 
 def vollath_f4(image: np.ndarray) -> float:
@@ -80,12 +80,12 @@ def vollath_f4(image: np.ndarray) -> float:
     image, but on a finite one the mean would multiply the frame's edge terms
     (mean(I(x+1) - I(x+2)) telescopes to them), whose noise then swamps the peak.
     """
-    mean_std = filters.BACKEND.mean_std
-    mean = _mean(image)
-    centred = image - np.float32(mean)
+    backend = filters.BACKEND
+    brightness = _mean(image)
+    centred = image - np.float32(brightness)
     h = centred[:, :-2] * (centred[:, 1:-1] - centred[:, 2:])
     v = centred[:-2, :] * (centred[1:-1, :] - centred[2:, :])
-    return (mean_std(h)[0] + mean_std(v)[0]) / mean**2
+    return (backend.mean(h) + backend.mean(v)) / brightness**2
 
 
 def jpeg_size(image: np.ndarray, quality: int = 90) -> float:

@@ -8,7 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
+from focustrack_core.domain import FocusFlag
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
+from focustrack_focus.pipeline import FocusSettings, focus_stack
 from focustrack_focus.preprocess import (
     Preprocess,
     lowpass,
@@ -85,3 +87,18 @@ def test_roi_and_bad_settings() -> None:
 def test_lowpass_matched_to_the_optics() -> None:
     # thesis: 0.04 um pixels, NA 0.85, 0.70 um: PSF sigma 0.173 um = 4.3 px
     assert lowpass_sigma_for_optics(0.04, 0.85) == pytest.approx(0.21 * 0.70 / 0.85 / 0.04)
+
+
+@pytest.mark.parametrize("metric", [name for name in METRICS if name != "jpeg_size"])
+def test_a_stack_whose_brightness_alone_changes_with_z_is_flat(
+    render: Callable[..., np.ndarray], metric: str
+) -> None:
+    # One field in focus, dimmed away from z = 0 (as Micro-Manager's demo camera does),
+    # each frame with its own photon noise: nothing goes in or out of focus.
+    z_um = np.linspace(-5.0, 5.0, 21)
+    field = render(128, np.zeros(1), 0.0, 5)[0].astype(np.float64)
+    rng = np.random.default_rng(6)
+    gain = 1.0 / (1.0 + np.abs(z_um) / 2.0)
+    stack = np.stack([rng.poisson(g * field) for g in gain]).astype(np.uint16)
+    result = focus_stack(stack, z_um, FocusSettings(metric=metric))
+    assert FocusFlag.FLAT in result.flags and result.best_z_um is None, result
