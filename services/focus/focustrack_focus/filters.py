@@ -5,7 +5,7 @@ OpenCV is an accelerator, not a dependency: the focus service installs it (extra
 backends give the same numbers (OpenCV's borders: reflect-101 is scipy's
 `mirror`, OpenCV's `BORDER_REFLECT` scipy's `reflect`; `services/focus/tests/test_focus_filters.py`
 checks them against each other). Per frame of the default pipeline, numpy/scipy
-costs 5 to 13 times OpenCV's (`scripts/focus_frame_cost.py`, docs/benchmarks.md),
+costs 5 to 8 times OpenCV's (`scripts/focus_frame_cost.py`, docs/benchmarks.md),
 so the service keeps OpenCV. The one thing only OpenCV does is JPEG encoding (the
 `jpeg_size` metric).
 """
