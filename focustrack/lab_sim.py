@@ -2,9 +2,9 @@
 
 Both are backed by `focustrack_instrument_sim.microscope.Microscope` through a
 `SimScope`, whose camera renders the tile under the objective at the focus z:
-- `simulated_core(scope)`: a pymmcore-plus `UniMMCore` with three pure-Python
-  devices, a camera ("Camera"), an XY stage ("XY") and a focus stage ("Z"); no
-  Micro-Manager installation is needed;
+- `simulated_core(scope)`: a pymmcore-plus `UniMMCore` with the lab's three
+  pure-Python devices (`focustrack_lab.demo.scope_core`), a camera ("Camera"), an
+  XY stage ("XY") and a focus stage ("Z"); no Micro-Manager installation is needed;
 - `simulated_ophyd(scope)`: ophyd's simulated motors x, y, z (`ophyd.sim.SynAxis`,
   in um) and a camera (`ophyd.sim.SynSignal`) that images where they stand.
 
@@ -15,19 +15,14 @@ column, y shrinks with the row (useq's `GridRowsColumns` puts row 0 at the top),
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from ophyd.sim import SynAxis, SynSignal
-from pymmcore_plus.experimental.unicore import (
-    SimpleCameraDevice,
-    StageDevice,
-    UniMMCore,
-    XYStageDevice,
-)
+from pymmcore_plus.experimental.unicore import UniMMCore
 
 from focustrack_instrument_sim.microscope import Microscope
+from focustrack_lab.demo import scope_core
 
 #: Which colour channel the monochrome camera sees (green: the sharpest PSF of the three).
 GREEN = 1
@@ -44,6 +39,11 @@ class SimScope:
     z_um: float = 0.0
     exposure_ms: float = 10.0
     n_frames: int = 0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """The camera's frame, (height, width) px."""
+        return self.microscope.spec.shape
 
     def tile(self) -> tuple[int, int]:
         """The (row, col) of the tile under the objective (see the module docstring)."""
@@ -66,88 +66,9 @@ class SimScope:
         return self.microscope.truth_um(self.slide)[0]
 
 
-class SimCamera(SimpleCameraDevice):
-    def __init__(self, scope: SimScope) -> None:
-        super().__init__()
-        self.scope = scope
-
-    def sensor_shape(self) -> tuple[int, int]:
-        return self.scope.microscope.spec.shape
-
-    def dtype(self) -> np.dtype:
-        return np.dtype(np.uint16)
-
-    def get_exposure(self) -> float:
-        return self.scope.exposure_ms
-
-    def set_exposure(self, exposure: float) -> None:
-        self.scope.exposure_ms = exposure
-
-    def snap(self, buffer: np.ndarray) -> Mapping[str, object]:
-        buffer[:] = self.scope.frame()
-        return {"z_um": self.scope.z_um}
-
-
-class SimXYStage(XYStageDevice):
-    def __init__(self, scope: SimScope) -> None:
-        super().__init__()
-        self.scope = scope
-
-    def set_position_um(self, x: float, y: float) -> None:
-        self.scope.x_um, self.scope.y_um = x, y
-
-    def get_position_um(self) -> tuple[float, float]:
-        return self.scope.x_um, self.scope.y_um
-
-    def set_origin_x(self) -> None:
-        self.scope.x_um = 0.0
-
-    def set_origin_y(self) -> None:
-        self.scope.y_um = 0.0
-
-    def home(self) -> None:
-        self.set_position_um(0.0, 0.0)
-
-    def stop(self) -> None:
-        """Moves are instantaneous: nothing to stop."""
-
-
-class SimZStage(StageDevice):
-    def __init__(self, scope: SimScope) -> None:
-        super().__init__()
-        self.scope = scope
-
-    def set_position_um(self, val: float) -> None:
-        self.scope.z_um = val
-
-    def get_position_um(self) -> float:
-        return self.scope.z_um
-
-    def set_origin(self) -> None:
-        self.scope.z_um = 0.0
-
-    def home(self) -> None:
-        self.scope.z_um = 0.0
-
-    def stop(self) -> None:
-        """Moves are instantaneous: nothing to stop."""
-
-
 def simulated_core(scope: SimScope) -> UniMMCore:
     """A UniMMCore whose camera, XY stage and focus stage are `scope`'s."""
-    core = UniMMCore()
-    for label, device in (
-        ("Camera", SimCamera(scope)),
-        ("XY", SimXYStage(scope)),
-        ("Z", SimZStage(scope)),
-    ):
-        core.loadPyDevice(label, device)
-        core.initializeDevice(label)
-    core.setCameraDevice("Camera")
-    core.setXYStageDevice("XY")
-    core.setFocusDevice("Z")
-    core.setAutoShutter(False)  # there is no shutter to open and close
-    return core
+    return scope_core(scope)
 
 
 def simulated_ophyd(scope: SimScope) -> tuple[SynSignal, SynAxis, SynAxis, SynAxis]:

@@ -13,6 +13,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SERVICES = ("estimator", "focus", "instrument_sim", "scheduler")
+#: The extras a service's image installs: the focus distribution's base is its maths alone.
+EXTRAS = {"focus": ("service",)}
 
 
 def export(service: str) -> str:
@@ -21,6 +23,7 @@ def export(service: str) -> str:
     command = [
         "uv", "export", "--package", package, "--frozen", "--no-dev", "--no-hashes",
         "--no-emit-workspace", "--no-annotate", "--no-header", "--quiet",
+        *(f"--extra={extra}" for extra in EXTRAS.get(service, ())),
     ]  # fmt: skip
     uv = Path(sys.executable).with_name("uv")
     command[0] = str(uv) if uv.exists() else "uv"

@@ -3,13 +3,16 @@
 The install step of every service's Dockerfile runs here as written (its /src paths
 pointed at this checkout): exactly the lock file's versions, then the workspace's own
 distributions, and `pip check` must pass. The estimator pulls neither OpenCV nor
-Zenoh; the client pulls httpx and pydantic and what they need, nothing more.
+Zenoh; the client pulls httpx and pydantic and what they need, nothing more. The lab's
+documented install line runs its documented example (docs/integrations/pymmcore-plus.md)
+without the services' Zenoh, FastAPI, uvicorn or OpenCV.
 Slow (a virtualenv and an install each): CI runs them, `make test-fast` skips them.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -17,6 +20,9 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from focustrack_core.wire.session import free_port
+from focustrack_estimator.service import spawn
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -35,6 +41,11 @@ CLIENT_CLOSURE = {
     "pip", "setuptools",
 }  # fmt: skip
 
+
+#: What a lab's acquisition environment must not get: the services' network and image stack.
+SERVICE_ONLY = ("eclipse-zenoh", "fastapi", "uvicorn", "opencv-python-headless", "tifffile")
+#: The page whose install line and example the lab's install test runs.
+LAB_DOC = ROOT / "docs" / "integrations" / "pymmcore-plus.md"
 
 #: uv runs pip's install step with pip's semantics, ten times faster (it is in the dev tools).
 UV = str(Path(sys.executable).with_name("uv"))
@@ -100,3 +111,60 @@ def test_the_client_installs_with_httpx_and_pydantic_only(tmp_path: Path) -> Non
     extra = installed(python) - CLIENT_CLOSURE
     assert not extra, f"the client pulled {sorted(extra)}"
     subprocess.run([python, "-c", "from focustrack_client import AsyncEstimatorClient"], check=True)
+
+
+def documented_lab_install(doc: str) -> list[str]:
+    """The arguments of the page's `pip install` line (its one sh line that has one)."""
+    lines = re.findall(r"^pip install (.+)$", doc, flags=re.MULTILINE)
+    assert len(lines) == 1, f"{LAB_DOC.name} should have one pip install line, has {lines}"
+    return [word.strip("'") for word in lines[0].split()]
+
+
+def documented_example(doc: str) -> str:
+    """The page's example program: its python block that starts `# example_mmcore.py`."""
+    blocks = re.findall(r"```python\n(# example_mmcore\.py\n.*?)```", doc, flags=re.DOTALL)
+    assert len(blocks) == 1, f"{LAB_DOC.name} should have one example_mmcore.py block"
+    return blocks[0]
+
+
+def test_the_documented_lab_install_runs_the_documented_example(tmp_path: Path) -> None:
+    doc = LAB_DOC.read_text()
+    ignore = shutil.ignore_patterns("build", "*.egg-info", "__pycache__", "tests")
+    paths = documented_lab_install(doc)
+    for path in paths:  # copied first, so building them leaves nothing in this checkout
+        folder = path.split("[")[0]
+        shutil.copytree(ROOT / folder, tmp_path / folder, ignore=ignore)
+    # The lock's versions (the ones CI tests), as constraints: the line itself is unchanged.
+    lock = subprocess.run(
+        [UV, "export", "--frozen", "--package", "focustrack-lab", "--extra", "mmcore",
+         "--no-dev", "--no-hashes", "--no-emit-workspace", "--no-annotate", "--no-header",
+         "--quiet"],
+        cwd=ROOT, check=True, capture_output=True, text=True,
+    ).stdout  # fmt: skip
+    (tmp_path / "constraints.txt").write_text(lock)
+    python = venv(tmp_path / "venv")
+    install = ["install", "--quiet", "-c", str(tmp_path / "constraints.txt")]
+    subprocess.run([UV, "pip", *install, "--python", str(python), *paths], cwd=tmp_path, check=True)
+    packages = installed(python)
+    assert not packages & set(SERVICE_ONLY), sorted(packages & set(SERVICE_ONLY))
+    assert "focustrack" not in packages and "focustrack-lab" in packages
+
+    (tmp_path / "example_mmcore.py").write_text(documented_example(doc))
+    port = free_port()
+    estimator = spawn(tmp_path / "estimator.sqlite", port, timeout_s=120)
+    try:
+        run = subprocess.run(
+            [python, "example_mmcore.py"],
+            cwd=tmp_path,
+            env={**os.environ, "FOCUSTRACK_ESTIMATOR_URL": f"http://127.0.0.1:{port}"},
+            check=True,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        estimator.terminate()
+        estimator.wait(timeout=10)
+    assert "on 36 tiles; no tile without a focus" in run.stdout, run.stdout
+    error_um = float(re.findall(r"largest focus error (\S+) um", run.stdout)[0])
+    assert error_um <= 0.5  # half the demo's depth of field (1 um)

@@ -7,13 +7,18 @@ take the stack, measures its focus here with the focus service's pure functions
 (`focustrack_focus.pipeline.focus_stack`), posts the measurement, takes another
 stack when the estimator asks for one (an edge peak, a flat curve), and returns
 the height to image the tile at: the estimator's posterior, else the measured
-best focus, else the prediction. The pymmcore-plus engine (`mmcore.py`) and the
-Bluesky plan (`bluesky.py`) are built on it.
+best focus, else the prediction. The estimator bounds the stacks of a tile: a
+flat curve (nothing in view, or images that do not change with z) gets one
+widest stack, then the tile is given up and imaged at the prediction; its
+`TileFocus.flags` say so, and `FocusTracker.summary` counts such tiles. The
+pymmcore-plus engine (`mmcore.py`) and the Bluesky plan (`bluesky.py`) are built
+on it.
 """
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
@@ -21,6 +26,7 @@ import numpy as np
 
 from focustrack_client import EstimatorClient
 from focustrack_client.models import FocusFlag, MeasurementIn, Next, SlideCreate
+from focustrack_core.domain import FocusFlag as DomainFlag
 from focustrack_core.domain import Measurement
 from focustrack_focus.pipeline import FocusResult, FocusSettings, focus_stack
 
@@ -36,9 +42,10 @@ class TileOrderError(RuntimeError):
 class TileFocus:
     """What the tracker found at one tile (heights in um).
 
-    z_um: where to image the tile. n_frames: frames acquired for focus on it, every
-    stack counted. last: the focus result of its last measured stack (the through-focus
-    curve, best z, sigma, flags), None when the estimator only asked for an image.
+    z_um: where to image the tile. n_frames, n_stacks: frames and stacks acquired for
+    focus on it, every stack counted. last: the focus result of its last measured stack
+    (the through-focus curve, best z, sigma, flags), None when the estimator only asked
+    for an image.
     planes_um: where one image is too unsure to be in focus (the slide's
     risk_out_of_focus), the heights of the frames to image it at instead, ascending, each
     within a depth of field of the next: one of them is in focus. Empty: image at z_um.
@@ -49,8 +56,50 @@ class TileFocus:
     z_um: float
     sigma_um: float | None
     n_frames: int
+    n_stacks: int
     last: FocusResult | None
     planes_um: tuple[float, ...] = ()
+
+    @property
+    def flags(self) -> frozenset[DomainFlag]:
+        """The flags of its last measured stack: empty where it found a focus (flat: nothing
+        that changes with z; edge_low / edge_high: the peak beyond the stack)."""
+        return frozenset() if self.last is None else self.last.flags
+
+    @property
+    def unfocused(self) -> bool:
+        """True when its stacks found no focus (the last measured one has no best z): it is
+        imaged at the estimator's prediction. A tile the estimator only asked an image of
+        (it was sure enough) is not."""
+        return self.last is not None and self.last.best_z_um is None
+
+
+@dataclass(frozen=True)
+class ScanSummary:
+    """What a scan's tiles came to: counts, and the tiles imaged without a measured focus.
+
+    unfocused: (row, col) -> the flags of its last stack, for every tile whose stacks
+    found no best focus (it was imaged at the estimator's prediction).
+    """
+
+    n_tiles: int
+    n_stacks: int
+    n_frames: int
+    unfocused: dict[tuple[int, int], frozenset[DomainFlag]]
+
+    def __str__(self) -> str:
+        stacks = (
+            f"{self.n_stacks} stacks ({self.n_frames} frames) for focus on {self.n_tiles} tiles"
+        )
+        if not self.unfocused:
+            return f"{stacks}; no tile without a focus"
+        counts = Counter(flag for flags in self.unfocused.values() for flag in flags)
+        named = ", ".join(f"{flag}: {n}" for flag, n in sorted(counts.items()))
+        return (
+            f"{stacks}; {len(self.unfocused)} of {self.n_tiles} tiles without a focus "
+            f"({named}), imaged at the estimator's prediction: "
+            f"{sorted(self.unfocused)}"
+        )
 
 
 #: `FocusTracker.tile`: yields the z (n,) um of each stack, is sent its frames, returns the focus.
@@ -86,6 +135,15 @@ class FocusTracker:
         """Frames acquired for focus so far, on every tile."""
         return sum(tile.n_frames for tile in self.tiles)
 
+    def summary(self) -> ScanSummary:
+        """The tiles focused so far: counts, and those without a measured focus."""
+        return ScanSummary(
+            n_tiles=len(self.tiles),
+            n_stacks=sum(tile.n_stacks for tile in self.tiles),
+            n_frames=self.n_frames,
+            unfocused={(tile.row, tile.col): tile.flags for tile in self.tiles if tile.unfocused},
+        )
+
     def focus(self, row: int, col: int, acquire: AcquireStack) -> TileFocus:
         """Every stack the estimator asks of tile (row, col), taken by `acquire`; where to image it.
 
@@ -105,7 +163,7 @@ class FocusTracker:
         Yields the z of every frame of each stack to take, (n,) in um; is sent its
         frames (n, H, W[, C]); returns the TileFocus.
         """
-        n_frames = 0
+        n_frames = n_stacks = 0
         last: FocusResult | None = None
         z_um: float | None = None
         sigma_um: float | None = None
@@ -114,6 +172,7 @@ class FocusTracker:
             frames_z_um = _frames_z_um(step)
             frames = yield frames_z_um
             n_frames += len(frames_z_um)
+            n_stacks += 1
             measurement = Measurement(None)
             if step.measure:
                 last = focus_stack(frames, frames_z_um, self.settings)
@@ -142,7 +201,7 @@ class FocusTracker:
                 f"the estimator expects {expected} next, not tile ({row}, {col}): visit the "
                 "tiles in its serpentine order (row 0 left to right, row 1 right to left, ...)"
             )
-        tile = TileFocus(row, col, z_um, sigma_um, n_frames, last, planes_um)
+        tile = TileFocus(row, col, z_um, sigma_um, n_frames, n_stacks, last, planes_um)
         self.tiles.append(tile)
         return tile
 

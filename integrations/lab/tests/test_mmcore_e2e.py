@@ -70,11 +70,6 @@ def test_an_mda_grid_is_imaged_in_focus_with_fewer_frames_than_autofocus_per_pos
     # The scan is done: another visit is refused, naming why.
     with pytest.raises(TileOrderError, match="the scan is done"):
         engine.tracker.focus(0, 0, lambda z_um: np.zeros((len(z_um), 8, 8)))
-    # FocusTrack chooses z: a sequence with a z plan is refused before anything moves.
-    with pytest.raises(ValueError, match="drop the z_plan"):
-        engine.setup_sequence(
-            useq.MDASequence(grid_plan=grid, z_plan=useq.ZRangeAround(range=4, step=1))
-        )
 
 
 class RecordingEngine(FocusTrackEngine):

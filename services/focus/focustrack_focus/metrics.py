@@ -5,52 +5,74 @@ gives a float; `METRICS` names them (the names are the wire and REST names).
 The operators follow Pertuz, Puig & Garcia 2013 ("Analysis of focus measure
 operators for shape-from-focus") and Sun, Duthaler & Nelson 2004; the JPEG
 size is the thesis' best performer (Appendix A, Table A-1).
+
+Every metric is a contrast: it is unchanged when the frame is multiplied by a
+constant (each divides by the power of the mean that its operator scales with).
+Focus moves contrast, not brightness; a stack whose brightness alone changes
+with z (a lamp's drift, an exposure ramp, Micro-Manager's demo camera, whose
+waves dim away from z = 0 but never blur) then gives a flat curve, not a peak.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-import cv2
 import numpy as np
+
+from focustrack_focus import filters
 
 FocusMetric = Callable[[np.ndarray], float]
 
 _TINY = float(np.finfo(np.float32).tiny)
 
+#: 3x3 Laplacian (OpenCV's `Laplacian` with ksize=1) and Sobel x derivative.
+_LAPLACIAN = np.array([[0, 1, 0], [1, -4, 1], [0, 1, 0]], dtype=np.float32)
+_SOBEL_X = np.array([[-1, 0, 1], [-2, 0, 2], [-1, 0, 1]], dtype=np.float32)
+
+
+def _mean(image: np.ndarray) -> float:
+    """The frame's mean, floored at the smallest float32 (a black frame divides by it)."""
+    return max(filters.BACKEND.mean(image), _TINY)
+
 
 def normalised_variance(image: np.ndarray) -> float:
-    """Grey-level variance over the mean, sum((I - mu)**2) / (N mu) (Groen et al. 1985).
+    """Squared coefficient of variation, var(I) / mu**2.
 
-    Dividing by the mean makes it insensitive to the illumination level and,
-    for photon noise, puts the noise floor near a constant.
+    Groen et al. 1985's normalised variance, var(I) / mu, divided once more by
+    the mean so that it is a contrast (module docstring); for photon noise its
+    floor within a stack (one brightness) is still a constant.
     """
-    mean, std = cv2.meanStdDev(image)
-    return float(std.item() ** 2 / max(mean.item(), _TINY))
+    mean, std = filters.BACKEND.mean_std(image)
+    return std**2 / max(mean, _TINY) ** 2
 
 
 def variance_of_laplacian(image: np.ndarray) -> float:
-    """Variance of the 3x3 Laplacian (Pech-Pacheco et al. 2000)."""
-    _, std = cv2.meanStdDev(cv2.Laplacian(image, cv2.CV_32F, ksize=1))
-    return float(std.item() ** 2)
+    """Variance of the 3x3 Laplacian over mu**2 (Pech-Pacheco et al. 2000)."""
+    backend = filters.BACKEND
+    _, std = backend.mean_std(backend.correlate(image, _LAPLACIAN))
+    return std**2 / _mean(image) ** 2
 
 
 def tenengrad(image: np.ndarray) -> float:
-    """Mean squared Sobel gradient magnitude, mean(Gx**2 + Gy**2) (Tenenbaum 1970)."""
-    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3)
-    return float(cv2.mean(cv2.magnitude(gx, gy) ** 2)[0])
+    """Mean squared Sobel gradient magnitude over mu**2, mean(Gx**2 + Gy**2) (Tenenbaum 1970)."""
+    backend = filters.BACKEND
+    gx = backend.correlate(image, _SOBEL_X)
+    gy = backend.correlate(image, _SOBEL_X.T)
+    return backend.mean(gx * gx + gy * gy) / _mean(image) ** 2
 
 
 def brenner(image: np.ndarray) -> float:
-    """Mean squared difference of pixels two apart, both directions (Brenner et al. 1976)."""
+    """Mean squared difference of pixels two apart, both directions, over mu**2
+    (Brenner et al. 1976)."""
+    mean = filters.BACKEND.mean
     dx = image[:, 2:] - image[:, :-2]
     dy = image[2:, :] - image[:-2, :]
-    return float(cv2.mean(dx * dx)[0] + cv2.mean(dy * dy)[0])
+    return (mean(dx * dx) + mean(dy * dy)) / _mean(image) ** 2
 
 
 def vollath_f4(image: np.ndarray) -> float:
-    """Vollath's autocorrelation F4, mean(I(x) I(x+1) - I(x) I(x+2)), both directions.
+    """Vollath's autocorrelation F4, mean(I(x) I(x+1) - I(x) I(x+2)), both directions,
+    over mu**2.
 
     Noise-robust (white noise is uncorrelated at lags 1 and 2 alike, so it
     cancels), which is why Sun et al. 2004 rank it near the top for brightfield.
@@ -58,24 +80,21 @@ def vollath_f4(image: np.ndarray) -> float:
     image, but on a finite one the mean would multiply the frame's edge terms
     (mean(I(x+1) - I(x+2)) telescopes to them), whose noise then swamps the peak.
     """
-    centred = cv2.subtract(image, cv2.mean(image)[0])
+    backend = filters.BACKEND
+    brightness = _mean(image)
+    centred = image - np.float32(brightness)
     h = centred[:, :-2] * (centred[:, 1:-1] - centred[:, 2:])
     v = centred[:-2, :] * (centred[1:-1, :] - centred[2:, :])
-    return float(cv2.mean(h)[0] + cv2.mean(v)[0])
+    return (backend.mean(h) + backend.mean(v)) / brightness**2
 
 
 def jpeg_size(image: np.ndarray, quality: int = 90) -> float:
     """Size in bytes of the frame JPEG-encoded at `quality` (thesis Table A-1, best: 0.97 um).
 
     The frame is scaled so that its mean is grey level 96 (brightness does not
-    move the size; contrast does), then clipped to 8 bits.
+    move the size; contrast does), then clipped to 8 bits. Needs OpenCV.
     """
-    scale = 96.0 / max(float(cv2.mean(image)[0]), _TINY)
-    grey = cv2.convertScaleAbs(image, alpha=scale)
-    ok, encoded = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise ValueError(f"JPEG encoding failed for a frame of shape {image.shape}")
-    return float(encoded.size)
+    return float(filters.BACKEND.jpeg_bytes(image, 96.0 / _mean(image), quality))
 
 
 #: Metric name -> function. The first is the default.

@@ -9,7 +9,7 @@ aliases the noise back in). Giemsa-stained specimens have their contrast in
 the green channel (A-1-2).
 
 The Gaussian of `lowpass_sigma_px` is applied as an anti-aliased image
-pyramid: each `cv2.pyrDown` is a 5-tap binomial low-pass (variance 1 px**2 at
+pyramid: each pyrDown (`filters`) is a 5-tap binomial low-pass (variance 1 px**2 at
 its input scale) followed by decimation by 2, so L levels low-pass with
 variance (4**L - 1) / 3 input px**2; the rest of the requested variance is a
 small Gaussian at the reduced scale. Same low-pass, 4**L fewer pixels for the
@@ -22,8 +22,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
+
+from focustrack_focus import filters
 
 #: Index of the green channel in an RGB (or BGR) frame: the Giemsa channel.
 GREEN = 1
@@ -140,13 +141,14 @@ def lowpass(image: np.ndarray, sigma_px: float, levels: int) -> np.ndarray:
     """
     if image.dtype not in (np.uint8, np.uint16, np.float32):
         image = image.astype(np.float32)
+    backend = filters.BACKEND
     for _ in range(levels):
         if min(image.shape) < 2:
             break
-        image = cv2.pyrDown(image)  # binomial low-pass, then keep every second pixel
+        image = backend.pyr_down(image)  # binomial low-pass, then keep every second pixel
     image = image.astype(np.float32, copy=False)
     residual_var_px2 = sigma_px**2 - (4**levels - 1) / 3
     residual_sigma = math.sqrt(max(residual_var_px2, 0.0)) / 2**levels
     if residual_sigma > 0.2:  # below that the 3-tap kernel is the identity to 1e-5
-        image = cv2.GaussianBlur(image, (0, 0), residual_sigma, borderType=cv2.BORDER_REFLECT)
+        image = backend.gaussian_blur(image, residual_sigma)
     return image

@@ -29,9 +29,9 @@ from __future__ import annotations
 import functools
 import math
 
-import cv2
 import numpy as np
 
+from focustrack_focus import filters
 from focustrack_focus.peak import MAD_TO_SIGMA
 from focustrack_focus.preprocess import Preprocess, lowpass
 
@@ -59,7 +59,7 @@ def pixel_noise_std(image: np.ndarray) -> float:
     y0 = max((height - _NOISE_REGION_PX) // 2, 0)
     x0 = max((width - _NOISE_REGION_PX) // 2, 0)
     region = image[y0 : y0 + _NOISE_REGION_PX, x0 : x0 + _NOISE_REGION_PX].astype(np.float32)
-    response = cv2.filter2D(region, cv2.CV_32F, _NOISE_KERNEL)[1:-1, 1:-1]
+    response = filters.BACKEND.correlate(region, _NOISE_KERNEL)[1:-1, 1:-1]
     return MAD_TO_SIGMA * float(np.median(np.abs(response))) / _NOISE_KERNEL_NORM
 
 
@@ -90,7 +90,7 @@ def structure_snr(
     gain = lowpass_noise_gain(shape, preprocess.lowpass_sigma_px, preprocess.pyramid_levels)
     if noise_std == 0.0 or gain == 0.0:  # gain 0: a frame the low-pass leaves one pixel of
         return math.inf
-    _, std = cv2.meanStdDev(cv2.subtract(sharpest, blurriest))
-    ratio = std.item() ** 2 / (2.0 * gain * noise_std**2)
+    _, std = filters.BACKEND.mean_std(sharpest - blurriest)
+    ratio = std**2 / (2.0 * gain * noise_std**2)
     spread = math.sqrt(2.0 / (shape[0] * shape[1] * gain))
     return (ratio - 1.0) / spread
