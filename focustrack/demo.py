@@ -162,8 +162,9 @@ class LocalStack:
     The router runs in this process, or with `router_process` in one of its own (so it
     can be killed and started again: `services["router"]`). With `supervise`, a service
     that dies is started again, and a line on stderr says so. The instrument serves its
-    truth (evaluation) and tags its frames with the key in `frame_key_file`, which the
-    focus service checks; the focus service tags its results with `trust`'s key. With
+    truth (evaluation; not with `serve_truth` False, for an instrument that has none) and
+    tags its frames with the key in `frame_key_file`, which the focus service checks; the
+    focus service tags its results with `trust`'s key. With
     `shared_memory_mb`, the instrument publishes its frames into a shared-memory pool of
     that size, and every session of the stack takes them from there.
     """
@@ -176,6 +177,7 @@ class LocalStack:
         router_process: bool = False,
         supervise: bool = False,
         shared_memory_mb: int = 0,
+        serve_truth: bool = True,
     ) -> None:
         self.work_dir = Path(work_dir)
         (self.work_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -212,7 +214,9 @@ class LocalStack:
                 "router", router, logs / "router.log", _tcp_ready(port)
             )
         frame_key = ["--frame-key-file", str(self.frame_key_file)]
-        instrument = [*serve, "instrument", *connect, "--name", INSTRUMENT, "--serve-truth"]
+        instrument = [*serve, "instrument", *connect, "--name", INSTRUMENT]
+        if serve_truth:
+            instrument.append("--serve-truth")
         focus = [*serve, "focus", *connect, "--result-key-file", str(self.result_key_file)]
         self.services |= {
             "instrument": Service(

@@ -59,6 +59,11 @@ def scan_report(
         "retries": sum(entry["purpose"] == Purpose.RETRY for entry in tally.acquisitions),
         "images_acquired": n_images,
         "images_per_tile": n_images / grid.n_tiles,
+        "most_images_on_a_tile": int(tally.images_per_tile(grid).max()),
+        # what the focus service said of the tiles: a device whose images never change with
+        # z (an empty slide, a camera that sees no specimen) ends with every tile here
+        "tiles_flagged": tally.flag_counts(),
+        "tiles_without_focus": len(tally.tiles_without_focus()),
         "frames_kept_per_tile": tally.frames_kept / grid.n_tiles,
         "scan_time_s": tally.scan_time_s,
         "dof_um": dof_um,

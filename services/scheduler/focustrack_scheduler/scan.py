@@ -211,18 +211,26 @@ def live_server(port: int | None) -> Iterator[LiveServer | None]:
 
 
 def summary_line(report: dict[str, Any]) -> str:
-    """One line: the strategy's images per tile, scan time, in-focus fraction and MAE."""
+    """One line: the strategy's images per tile, scan time, in-focus fraction and MAE, and
+    the tiles whose focus was not found, where there are some."""
 
     def number(value: float | None, form: str) -> str:
         return "n/a" if value is None else format(value, form)
 
-    return (
+    line = (
         f"{report['strategy']}: {report['tiles_imaged']} tiles, "
         f"{report['images_per_tile']:.2f} images/tile, "
         f"simulated scan time {report['scan_time_s']:.1f} s, "
         f"in focus {number(report['in_focus_fraction'], '.1%')}, "
         f"MAE {number(report['mae_um'], '.3f')} um"
     )
+    if report["tiles_without_focus"]:
+        flags = ", ".join(f"{flag} {n}" for flag, n in report["tiles_flagged"].items())
+        line += (
+            f"; WARNING: no focus found on {report['tiles_without_focus']} of "
+            f"{report['rows'] * report['cols']} tiles (flags: {flags})"
+        )
+    return line
 
 
 #: The command's settings (`focustrack scan` runs them: focustrack/cli.py).

@@ -51,6 +51,19 @@ class ScanTally:
         """Frames kept over all tiles (one per tile, all of its planes where it keeps some)."""
         return len(self.kept) + sum(len(z_um) - 1 for z_um in self.planes.values())
 
+    def flag_counts(self) -> dict[str, int]:
+        """How many tiles' last measurement carries each flag (flags none carries: absent)."""
+        counts: dict[str, int] = {}
+        for entry in self.measured.values():
+            for flag in entry["flags"]:
+                counts[flag] = counts.get(flag, 0) + 1
+        return dict(sorted(counts.items()))
+
+    def tiles_without_focus(self) -> list[Tile]:
+        """The tiles whose stacks found no focus (their last measurement has no z: a flat
+        or empty stack), row-major."""
+        return sorted(tile for tile, entry in self.measured.items() if entry["z_um"] is None)
+
     def images_per_tile(self, grid: ScanGrid) -> np.ndarray:
         """Images acquired on each tile, (rows, cols)."""
         counts = np.zeros(grid.shape, dtype=int)
