@@ -73,8 +73,9 @@ def with_data_key(
     `dtype` (event-model's `dtype_numpy`, and the JSON `dtype` it implies), `shape`
     (None: a side of any length) and, for arrays, the names of their `dims`.
 
-    The JSON dtype is set from the numpy one because ophyd infers it from the first value:
-    a motor at 0 says "integer", and a reader that trusts it truncates every later um.
+    The JSON dtype is set from the numpy one because ophyd infers it from the value at hand:
+    a motor at integer 0 (SynAxis before its first move) says "integer", and a reader that
+    trusts it truncates every later um.
     """
     described = {}
     for key, data_key in description.items():
@@ -187,12 +188,17 @@ MAP_LAYERS = ("posterior_um", "posterior_sigma_um", "smoothed_um", "smoothed_sig
 
 
 def focus_map_signals(rows: int, cols: int) -> list[DescribedSignal]:
-    """A signal per layer of `MAP_LAYERS`, each a (rows, cols) float64 array in um, row 0
-    first; NaN where the estimator has no value (all NaN for a strategy that smooths none)."""
+    """A signal per layer of `MAP_LAYERS`: (rows, cols) float64 in um, row 0 first, NaN
+    where the estimator has no value (all NaN for a strategy that smooths none).
+
+    Their values are nested lists (rows of cols), not numpy arrays: tiled's writer
+    (`bluesky.callbacks.tiled_writer`) stores event data with pyarrow, which takes nested
+    lists but no 2-D array.
+    """
     return [
         DescribedSignal(
             name=f"focustrack_{layer}",
-            value=np.full((rows, cols), np.nan),
+            value=np.full((rows, cols), np.nan).tolist(),
             units=UM,
             dtype_numpy="<f8",
             shape=(rows, cols),
@@ -296,5 +302,5 @@ def _read_focus_map(tracker: FocusTracker, maps: list[DescribedSignal]) -> Plan:
     for signal, layer in zip(maps, MAP_LAYERS, strict=True):
         values = getattr(focus_map, layer)
         if values is not None:  # None is NaN: the strategy keeps no such layer
-            yield from bps.mv(signal, np.array(values, dtype=np.float64))
+            yield from bps.mv(signal, np.array(values, dtype=np.float64).tolist())
     yield from bps.trigger_and_read(maps, name=MAP_STREAM)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from typing import Any
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 from bluesky import RunEngine
 from bluesky.callbacks import LiveTable
-from event_model import DocumentNames, schema_validators
+from event_model import DocumentNames, NumpyEncoder, schema_validators
 
 from focustrack.lab_sim import SimScope, simulated_ophyd
 from focustrack_client import EstimatorClient
@@ -164,8 +165,11 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
     RE = RunEngine({})
     RE.subscribe(lambda name, document: documents.append((name, document)))
     scan(RE, small_scope, tracker)
+    # What a document store keeps (JSON, as databroker's and tiled's backends do): from
+    # there on, only the descriptors tell each column's dtype and shape.
+    stored = [(name, json.loads(json.dumps(doc, cls=NumpyEncoder))) for name, doc in documents]
 
-    for name, document in documents:  # event-model's JSON schema of each kind of document
+    for name, document in documents + stored:  # event-model's schema of each kind of document
         schema_validators[DocumentNames(name)].validate(document)
     descriptors = descriptors_by_stream(documents)
     assert set(descriptors) == {"primary", STACK_STREAM, MAP_STREAM}
@@ -186,7 +190,7 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
     primary_keys = descriptors["primary"]["data_keys"]
     for key in ("x", "y", "z", "focustrack_z_um", "focustrack_sigma_um"):
         assert primary_keys[key]["units"] == "um"
-        assert primary_keys[key]["dtype"] == "number"  # the motors start at 0, not an integer
+        assert primary_keys[key]["dtype"] == "number"
     assert primary_keys["camera"]["shape"] == list(small_scope.microscope.spec.shape)
     assert primary_keys["camera"]["dtype_numpy"] == "<u2"
     assert primary_keys["focustrack_flags"]["dtype"] == "array"
@@ -199,8 +203,10 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
     # The start document describes the grid as bluesky's grid_scan: y (rows, the slow
     # motor) then x, each from row or column 0, so a viewer draws row 0 at the top as the
     # OME-Zarr mosaic does: y falls with the row (lab_sim's stage, y up).
-    start = documents[0][1]
-    primary = columns(documents, "primary")
+    start = stored[0][1]
+    primary = columns(stored, "primary")
+    assert primary["camera"].dtype == np.uint16
+    np.testing.assert_array_equal(primary["camera"], [data["camera"] for data in events["primary"]])
     first, last_row, last_col = 0, grid.n_tiles - 1, grid.cols - 1  # serpentine order
     assert start["motors"] == ["y", "x"]
     assert start["shape"] == [grid.rows, grid.cols]
@@ -218,7 +224,7 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
     ]
 
     # focus_stack: every frame names its tile, the run's stack number and its place in it.
-    stacks = columns(documents, STACK_STREAM)
+    stacks = columns(stored, STACK_STREAM)
     assert primary_keys["focustrack_row"]["dtype_numpy"] == "<i8"
     tiles = list(
         dict.fromkeys(zip(stacks["focustrack_row"], stacks["focustrack_col"], strict=True))
@@ -234,7 +240,9 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
     assert len(frame) == tracker.n_frames
 
     # focustrack_map: the estimator's final maps, (rows, cols), row 0 first.
-    (focus_map,) = events[MAP_STREAM]
+    (in_memory,) = events[MAP_STREAM]  # nested lists, which tiled's writer (pyarrow) takes
+    assert all(isinstance(in_memory[f"focustrack_{layer}"], list) for layer in MAP_LAYERS)
+    focus_map = {key: column[0] for key, column in columns(stored, MAP_STREAM).items()}
     map_keys = descriptors[MAP_STREAM]["data_keys"]
     estimated = estimator.focus_map(tracker.slide_id)
     for layer in MAP_LAYERS:
