@@ -252,6 +252,7 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
         assert map_keys[key]["units"] == "um"
         expected = np.array(getattr(estimated, layer), dtype=np.float64)
         np.testing.assert_array_equal(focus_map[key], expected)
+    assert np.isfinite(focus_map["focustrack_smoothed_um"]).all()  # kf-2d smooths every tile
     posterior_um = focus_map["focustrack_posterior_um"]
     for row, col, z_um in zip(
         primary["focustrack_row"],
