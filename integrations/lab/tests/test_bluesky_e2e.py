@@ -6,11 +6,15 @@ import json
 from collections.abc import Callable
 from typing import Any
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from bluesky import RunEngine
 from bluesky.callbacks import LiveTable
+from bluesky.callbacks.best_effort import BestEffortCallback
 from event_model import DocumentNames, NumpyEncoder, schema_validators
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from focustrack.lab_sim import SimScope, simulated_ophyd
 from focustrack_client import EstimatorClient
@@ -25,6 +29,8 @@ from focustrack_lab.bluesky import (
     focustrack_grid,
 )
 from focustrack_lab.tracker import FocusTracker
+
+matplotlib.use("Agg")  # BestEffortCallback's figures, off screen
 
 
 def scan(RE: RunEngine, scope: SimScope, tracker: FocusTracker) -> str:
@@ -261,3 +267,53 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
         strict=True,
     ):
         assert posterior_um[row, col] == pytest.approx(z_um)
+
+
+@pytest.mark.slow  # the estimator's start, then 9 tiles and 115 frames: about 10 s
+def test_bluesky_s_own_viewer_draws_the_grid_with_row_0_at_the_top_as_the_mosaic(
+    estimator: EstimatorClient,
+    small_scope: SimScope,
+    slide_of: Callable[[SimScope, str, float], SlideCreate],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    grid = small_scope.microscope.slides[small_scope.slide].grid
+    tracker = FocusTracker.create(estimator, slide_of(small_scope, "kf-2d", 0.1))
+    documents: list[tuple[str, dict[str, Any]]] = []
+    RE = RunEngine({})
+    RE.subscribe(lambda name, document: documents.append((name, document)))
+    scan(RE, small_scope, tracker)
+    # The run's primary stream through the viewer, which lays it out from the start
+    # document's grid hints (a LiveGrid per key). Its figures are checked, not rendered:
+    # it redraws on every event, seconds each; the other streams it would plot against
+    # time are left out.
+    monkeypatch.setattr(FigureCanvasAgg, "draw_idle", lambda *args, **kwargs: None)
+    primary_uid = descriptors_by_stream(documents)["primary"]["uid"]
+    viewer = BestEffortCallback()
+    viewer.disable_table()
+    plt.close("all")
+    for name, document in documents:
+        if name in ("start", "stop") or primary_uid in (
+            document["uid"],
+            document.get("descriptor"),
+        ):
+            viewer(name, document)
+
+    # Each LiveGrid image of the primary stream, by the key its colour bar names.
+    images = {
+        image.colorbar.ax.get_ylabel(): image
+        for number in plt.get_fignums()
+        for axes in plt.figure(number).axes
+        for image in axes.images
+        if image.colorbar is not None
+    }
+    rows, cols = np.indices((grid.rows, grid.cols))
+    # Every tile in its place, the serpentine rows unfolded (the start's snaking).
+    np.testing.assert_array_equal(images["focustrack_row"].get_array(), rows)
+    np.testing.assert_array_equal(images["focustrack_col"].get_array(), cols)
+    # Row 0 (the image's first row, drawn at `bottom` with origin "lower") at the top of
+    # axes whose y grows upwards, as in the OME-Zarr mosaic.
+    image = images["focustrack_row"]
+    _, _, first_row_y, last_row_y = image.get_extent()
+    low_y, high_y = image.axes.get_ylim()
+    assert first_row_y > last_row_y and low_y < high_y
+    plt.close("all")
