@@ -43,7 +43,7 @@ import numpy as np
 from bluesky.utils import Msg
 from ophyd import Component, Device, Signal
 
-from focustrack_client.models import FocusFlag
+from focustrack_core.domain import FocusFlag
 from focustrack_core.geometry import ScanGrid
 from focustrack_lab.tracker import FocusTracker, TileFocus
 
@@ -58,7 +58,7 @@ MAP_STREAM = "focustrack_map"
 
 #: Heights and positions (event-model's `units`).
 UM = "um"
-#: Wide enough for the longest flag's name (numpy's fixed-width unicode).
+#: Wide enough for the longest flag's name (numpy's fixed-width unicode): `TileFocus.last`'s.
 FLAG_DTYPE = np.dtype(f"<U{max(len(flag.value) for flag in FocusFlag)}")
 
 
