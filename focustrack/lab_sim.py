@@ -6,7 +6,8 @@ Both are backed by `focustrack_instrument_sim.microscope.Microscope` through a
   pure-Python devices (`focustrack_lab.demo.scope_core`), a camera ("Camera"), an
   XY stage ("XY") and a focus stage ("Z"); no Micro-Manager installation is needed;
 - `simulated_ophyd(scope)`: ophyd's simulated motors x, y, z (`ophyd.sim.SynAxis`,
-  in um) and a camera (`ophyd.sim.SynSignal`) that images where they stand.
+  in um) and a camera (`ophyd.sim.SynSignal`) that images where they stand, each
+  describing its data keys as a real device does (units, numpy dtype, shape).
 
 Stage coordinates are those of a useq grid centred on (0, 0): x grows with the
 column, y shrinks with the row (useq's `GridRowsColumns` puts row 0 at the top),
@@ -16,12 +17,14 @@ column, y shrinks with the row (useq's `GridRowsColumns` puts row 0 at the top),
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from ophyd.sim import SynAxis, SynSignal
 from pymmcore_plus.experimental.unicore import UniMMCore
 
 from focustrack_instrument_sim.microscope import Microscope
+from focustrack_lab.bluesky import UM, with_data_key
 from focustrack_lab.demo import scope_core
 
 #: Which colour channel the monochrome camera sees (green: the sharpest PSF of the three).
@@ -71,14 +74,36 @@ def simulated_core(scope: SimScope) -> UniMMCore:
     return scope_core(scope)
 
 
+class UmAxis(SynAxis):
+    """ophyd's simulated motor, whose readback and setpoint say um and float64: SynAxis
+    reports neither units nor, before its first move, a float (it starts at integer 0)."""
+
+    def describe(self) -> dict[str, dict[str, Any]]:
+        return with_data_key(super().describe(), UM, np.dtype(np.float64))
+
+
+class SimCameraSignal(SynSignal):
+    """ophyd's simulated detector as the scope's camera: each reading one frame
+    (height, width) uint16 in counts (the camera's digital numbers)."""
+
+    def __init__(self, scope: SimScope, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.frame_shape = scope.microscope.spec.shape
+
+    def describe(self) -> dict[str, dict[str, Any]]:
+        return with_data_key(
+            super().describe(), "counts", np.dtype(np.uint16), self.frame_shape, ("y", "x")
+        )
+
+
 def simulated_ophyd(scope: SimScope) -> tuple[SynSignal, SynAxis, SynAxis, SynAxis]:
     """(camera, x, y, z): ophyd's simulated motors (um) and a camera imaging where they stand."""
-    x, y, z = (SynAxis(name=name, egu="um") for name in ("x", "y", "z"))
+    x, y, z = (UmAxis(name=name, egu=UM) for name in ("x", "y", "z"))
 
     def image() -> np.ndarray:
         scope.x_um, scope.y_um, scope.z_um = x.position, y.position, z.position
         return scope.frame()
 
     scope.n_frames -= 1  # SynSignal reads its function once when it is made
-    camera = SynSignal(func=image, name="camera")
+    camera = SimCameraSignal(scope, func=image, name="camera")
     return camera, x, y, z

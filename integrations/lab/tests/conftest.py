@@ -37,12 +37,20 @@ def scope() -> SimScope:
 
 
 @pytest.fixture
-def scope_slide(scope: SimScope) -> Callable[[str, float], SlideCreate]:
-    """Makes the estimator slide of the scope's slide for a strategy and a noise (um): its
-    grid and depth of field, the start 5 um unsure."""
-    grid = scope.microscope.slides[scope.slide].grid
+def small_scope() -> SimScope:
+    """A 3x3 slide under a microscope with 64 x 64 frames: a run in a second or two."""
+    slides = slides_from_seed(7, 1, SurfaceSpec(3, 3), pitch_um=200.0)
+    spec = MicroscopeSpec(height=64, width=64)
+    return SimScope(Microscope(slides, spec), "slide-0")
 
-    def slide(strategy: str, noise_sigma_um: float) -> SlideCreate:
+
+@pytest.fixture
+def slide_of() -> Callable[[SimScope, str, float], SlideCreate]:
+    """Makes the estimator slide of a scope's slide for a strategy and a noise (um): its
+    grid and depth of field, the start 5 um unsure."""
+
+    def slide(scope: SimScope, strategy: str, noise_sigma_um: float) -> SlideCreate:
+        grid = scope.microscope.slides[scope.slide].grid
         return SlideCreate(
             strategy=strategy,
             grid=Grid(rows=grid.rows, cols=grid.cols, pitch_um=grid.pitch_um),
@@ -52,3 +60,11 @@ def scope_slide(scope: SimScope) -> Callable[[str, float], SlideCreate]:
         )
 
     return slide
+
+
+@pytest.fixture
+def scope_slide(
+    scope: SimScope, slide_of: Callable[[SimScope, str, float], SlideCreate]
+) -> Callable[[str, float], SlideCreate]:
+    """`slide_of` the 6x6 scope."""
+    return lambda strategy, noise_sigma_um: slide_of(scope, strategy, noise_sigma_um)
