@@ -3,7 +3,7 @@
 Both are backed by `focustrack_instrument_sim.microscope.Microscope` through a
 `SimScope`, whose camera renders the tile under the objective at the focus z:
 - `simulated_core(scope)`: a pymmcore-plus `UniMMCore` with the lab's three
-  pure-Python devices (`focustrack_lab.demo.scope_core`), a camera ("Camera"), an
+  pure-Python devices (`focustrack_core.mm_devices.scope_core`), a camera ("Camera"), an
   XY stage ("XY") and a focus stage ("Z"); no Micro-Manager installation is needed;
 - `simulated_ophyd(scope)`: ophyd's simulated motors x, y, z (`ophyd.sim.SynAxis`,
   in um) and a camera (`ophyd.sim.SynSignal`) that images where they stand, each
@@ -23,9 +23,9 @@ import numpy as np
 from ophyd.sim import SynAxis, SynSignal
 from pymmcore_plus.experimental.unicore import UniMMCore
 
+from focustrack_core.mm_devices import scope_core
 from focustrack_instrument_sim.microscope import Microscope
 from focustrack_lab.bluesky import UM, with_data_key
-from focustrack_lab.demo import scope_core
 
 #: Which colour channel the monochrome camera sees (green: the sharpest PSF of the three).
 GREEN = 1

@@ -1,12 +1,14 @@
 """A microscope in pure Python for pymmcore-plus: try the engine without hardware (extra `mmcore`).
 
-`scope_core(scope)` is a pymmcore-plus `UniMMCore` with three Python devices, a
-camera ("Camera"), an XY stage ("XY") and a focus stage ("Z"), backed by any
-`Scope` (where the stages are, and the frame the camera sees there). `DemoScope`
+`scope_core(scope)` (from `focustrack_core.mm_devices`) is a pymmcore-plus `UniMMCore`
+with three Python devices, a camera ("Camera"), an XY stage ("XY") and a focus stage
+("Z"), backed by any `Scope` (where the stages are, and the frame the camera sees
+there). `DemoScope`
 is a small synthetic one, numpy and scipy only: a textured specimen whose focus
 follows a tilted, gently curved surface, blurred in proportion to the defocus,
 with photon noise. FocusTrack's own simulated microscope backs the same devices
-in the umbrella (`focustrack/lab_sim.py`).
+in the umbrella (`focustrack/lab_sim.py`) and in the instrument service
+(`--backend mmcore-sim`).
 
 Stage coordinates are useq's: x grows to the right, y upwards (a `GridRowsColumns`
 puts row 0 at the top), all in um.
@@ -15,35 +17,13 @@ puts row 0 at the top), all in um.
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
-from pymmcore_plus.experimental.unicore import (
-    SimpleCameraDevice,
-    StageDevice,
-    UniMMCore,
-    XYStageDevice,
-)
 
+from focustrack_core.mm_devices import Scope, scope_core
 
-class Scope(Protocol):
-    """What the devices of `scope_core` drive: stages (um), exposure (ms), the camera."""
-
-    x_um: float
-    y_um: float
-    z_um: float
-    exposure_ms: float
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """The camera's frame, (height, width) px."""
-        ...
-
-    def frame(self) -> np.ndarray:
-        """The camera frame (height, width) uint16 at the stages' position."""
-        ...
+__all__ = ["DemoScope", "Scope", "scope_core"]
 
 
 @dataclass
@@ -107,93 +87,3 @@ def _texture(shape: tuple[int, int], seed: int, x_um: int, y_um: int) -> np.ndar
     texture = np.clip(1.0 + 0.5 * field / field.std(), 0.05, None)
     texture.setflags(write=False)  # shared by every later call for this position
     return texture
-
-
-class ScopeCamera(SimpleCameraDevice):
-    """The camera: the scope's frame where its stages are."""
-
-    def __init__(self, scope: Scope) -> None:
-        super().__init__()
-        self.scope = scope
-
-    def sensor_shape(self) -> tuple[int, int]:
-        return self.scope.shape
-
-    def dtype(self) -> np.dtype:
-        return np.dtype(np.uint16)
-
-    def get_exposure(self) -> float:
-        return self.scope.exposure_ms
-
-    def set_exposure(self, exposure: float) -> None:
-        self.scope.exposure_ms = exposure
-
-    def snap(self, buffer: np.ndarray) -> Mapping[str, object]:
-        buffer[:] = self.scope.frame()
-        return {"z_um": self.scope.z_um}
-
-
-class ScopeXYStage(XYStageDevice):
-    """The XY stage: moves are instantaneous."""
-
-    def __init__(self, scope: Scope) -> None:
-        super().__init__()
-        self.scope = scope
-
-    def set_position_um(self, x: float, y: float) -> None:
-        self.scope.x_um, self.scope.y_um = x, y
-
-    def get_position_um(self) -> tuple[float, float]:
-        return self.scope.x_um, self.scope.y_um
-
-    def set_origin_x(self) -> None:
-        self.scope.x_um = 0.0
-
-    def set_origin_y(self) -> None:
-        self.scope.y_um = 0.0
-
-    def home(self) -> None:
-        self.set_position_um(0.0, 0.0)
-
-    def stop(self) -> None:
-        """Moves are instantaneous: nothing to stop."""
-
-
-class ScopeZStage(StageDevice):
-    """The focus stage: moves are instantaneous."""
-
-    def __init__(self, scope: Scope) -> None:
-        super().__init__()
-        self.scope = scope
-
-    def set_position_um(self, val: float) -> None:
-        self.scope.z_um = val
-
-    def get_position_um(self) -> float:
-        return self.scope.z_um
-
-    def set_origin(self) -> None:
-        self.scope.z_um = 0.0
-
-    def home(self) -> None:
-        self.scope.z_um = 0.0
-
-    def stop(self) -> None:
-        """Moves are instantaneous: nothing to stop."""
-
-
-def scope_core(scope: Scope) -> UniMMCore:
-    """A UniMMCore whose camera, XY stage and focus stage are `scope`'s."""
-    core = UniMMCore()
-    for label, device in (
-        ("Camera", ScopeCamera(scope)),
-        ("XY", ScopeXYStage(scope)),
-        ("Z", ScopeZStage(scope)),
-    ):
-        core.loadPyDevice(label, device)
-        core.initializeDevice(label)
-    core.setCameraDevice("Camera")
-    core.setXYStageDevice("XY")
-    core.setFocusDevice("Z")
-    core.setAutoShutter(False)  # there is no shutter to open and close
-    return core

@@ -1,7 +1,8 @@
 """The simulator behind Micro-Manager's device layer (`--backend mmcore-sim`).
 
 A pymmcore-plus `UniMMCore` whose camera, focus stage and XY stage are pure-Python devices
-over the simulated microscope (`microscope.Microscope`), served by the MMCore backend
+(`focustrack_core.mm_devices`) over the simulated microscope (`microscope.Microscope`:
+`SimulatedScope`), served by the MMCore backend
 (`mmcore_backend.MMCoreInstrument`) exactly as a real microscope's core would be: every
 stack goes through MMCore's calls (moves, waits, snaps, images), none through the
 simulator's own stack path. Scanning one slide with `--backend sim` and with
@@ -17,20 +18,15 @@ objective. One slide (`--slides 1`).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
-from pymmcore_plus.experimental.unicore import (
-    SimpleCameraDevice,
-    StageDevice,
-    UniMMCore,
-    XYStageDevice,
-)
+from pymmcore_plus.experimental.unicore import UniMMCore
 
-from focustrack_core.geometry import ScanGrid
+from focustrack_core.mm_devices import scope_core
 from focustrack_instrument_sim.instrument import AcquisitionRefusedError, FocusTruth
 from focustrack_instrument_sim.microscope import Microscope
-from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, release_core
+from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
 from focustrack_instrument_sim.simulated import SimulatedInstrument
 
@@ -38,123 +34,45 @@ from focustrack_instrument_sim.simulated import SimulatedInstrument
 GREEN = 1
 
 
-class Position:
-    """Where the simulated stages stand (um) and the camera's exposure (ms): the state the
-    three devices share, as a real microscope's stand is shared by its devices."""
+@dataclass
+class SimulatedScope:
+    """`slide` of the simulated microscope as a `focustrack_core.mm_devices.Scope`: where
+    the stages stand (um), the exposure (ms) and the frame the camera sees there."""
 
-    def __init__(self, exposure_ms: float) -> None:
-        self.x_um = self.y_um = self.z_um = 0.0
-        self.exposure_ms = exposure_ms
+    microscope: Microscope
+    slide: str
+    exposure_ms: float
+    x_um: float = 0.0
+    y_um: float = 0.0
+    z_um: float = 0.0
 
-
-class SimulatedCamera(SimpleCameraDevice):
-    """The tile of `slide` under the objective, at the focus stage's z: (height, width)
-    uint16 counts, the simulator's green channel."""
-
-    def __init__(self, microscope: Microscope, slide: str, position: Position) -> None:
-        super().__init__()
-        self.microscope, self.slide, self.position = microscope, slide, position
-        self.grid: ScanGrid = microscope.slides[slide].grid
-
-    def sensor_shape(self) -> tuple[int, int]:
+    @property
+    def shape(self) -> tuple[int, int]:
         return self.microscope.spec.shape
 
-    def dtype(self) -> np.dtype:
-        return np.dtype(np.uint16)
-
-    def get_exposure(self) -> float:
-        return self.position.exposure_ms
-
-    def set_exposure(self, exposure: float) -> None:
-        self.position.exposure_ms = exposure
-
-    def snap(self, buffer: np.ndarray) -> Mapping[str, object]:
-        position, grid = self.position, self.grid
-        # The tile whose centre is nearest. The simulator's refusal (a stage off the slide,
-        # a focus out of range) is raised as a C++ camera's failure reaches pymmcore: a
-        # RuntimeError, which the MMCore backend reports as the camera's DeviceError.
-        row = round((position.y_um - grid.origin_y_um) / grid.pitch_um)
-        col = round((position.x_um - grid.origin_x_um) / grid.pitch_um)
+    def frame(self) -> np.ndarray:
+        """The tile under the objective (its centre the nearest) at the focus stage's z:
+        (height, width) uint16 counts, the simulator's green channel."""
+        grid = self.microscope.slides[self.slide].grid
+        row = round((self.y_um - grid.origin_y_um) / grid.pitch_um)
+        col = round((self.x_um - grid.origin_x_um) / grid.pitch_um)
+        # The simulator's refusal (a stage off the slide, a focus out of range) is raised
+        # as a C++ camera's failure reaches pymmcore: a RuntimeError, which the MMCore
+        # backend reports as the camera's DeviceError.
         try:
             stack = self.microscope.acquire(
-                self.slide, row, col, position.z_um, 1.0, 1, position.exposure_ms / 1000.0
+                self.slide, row, col, self.z_um, 1.0, 1, self.exposure_ms / 1000.0
             )
         except AcquisitionRefusedError as refusal:
             raise RuntimeError(f"nothing to image here: {refusal}") from refusal
-        buffer[:] = stack.pixels[0, ..., GREEN]
-        return {"z_um": position.z_um, "row": row, "col": col}
-
-
-class SimulatedXYStage(XYStageDevice):
-    """Moves at once (the simulator's stage times its own moves)."""
-
-    def __init__(self, position: Position) -> None:
-        super().__init__()
-        self.position = position
-
-    def set_position_um(self, x: float, y: float) -> None:
-        self.position.x_um, self.position.y_um = x, y
-
-    def get_position_um(self) -> tuple[float, float]:
-        return self.position.x_um, self.position.y_um
-
-    def set_origin_x(self) -> None:
-        self.position.x_um = 0.0
-
-    def set_origin_y(self) -> None:
-        self.position.y_um = 0.0
-
-    def home(self) -> None:
-        self.set_position_um(0.0, 0.0)
-
-    def stop(self) -> None:
-        """Moves are instantaneous: nothing to stop."""
-
-
-class SimulatedFocusStage(StageDevice):
-    """Moves at once."""
-
-    def __init__(self, position: Position) -> None:
-        super().__init__()
-        self.position = position
-
-    def set_position_um(self, val: float) -> None:
-        self.position.z_um = val
-
-    def get_position_um(self) -> float:
-        return self.position.z_um
-
-    def set_origin(self) -> None:
-        self.position.z_um = 0.0
-
-    def home(self) -> None:
-        self.position.z_um = 0.0
-
-    def stop(self) -> None:
-        """Moves are instantaneous: nothing to stop."""
+        return stack.pixels[0, ..., GREEN]
 
 
 def simulated_core(microscope: Microscope, slide: str) -> UniMMCore:
     """A UniMMCore whose camera ("Camera"), XY stage ("XY") and focus stage ("Z") image
     `slide` of `microscope`."""
-    position = Position(1000.0 * microscope.spec.stage.timing.exposure_s)
-    core = UniMMCore()
-    try:
-        for label, device in (
-            ("Camera", SimulatedCamera(microscope, slide, position)),
-            ("XY", SimulatedXYStage(position)),
-            ("Z", SimulatedFocusStage(position)),
-        ):
-            core.loadPyDevice(label, device)
-            core.initializeDevice(label)
-        core.setCameraDevice("Camera")
-        core.setXYStageDevice("XY")
-        core.setFocusDevice("Z")
-        core.setAutoShutter(False)  # there is no shutter to open and close
-    except BaseException:
-        release_core(core)
-        raise
-    return core
+    exposure_ms = 1000.0 * microscope.spec.stage.timing.exposure_s
+    return scope_core(SimulatedScope(microscope, slide, exposure_ms))
 
 
 class SimulatedMMCoreInstrument(MMCoreInstrument):
