@@ -146,8 +146,9 @@ def _field(
 class TileFocusReading(Device):
     """A tile's focus as ophyd signals, read into each primary event (heights in um).
 
-    `stack` and `stack_frame` number the focus_stack events only (kind "omitted": they
-    are read one by one there, never with the device).
+    `stack`, `stack_frame` and `sequence` (the estimator's sequence number of the
+    acquisition) number the focus_stack events only (kind "omitted": they are read one by
+    one there, never with the device).
     """
 
     row = _field(-1, None, "<i8", "hinted")
@@ -160,6 +161,7 @@ class TileFocusReading(Device):
     planes = _field(0, None, "<i8")  # images kept at planes_um
     stack = _field(-1, None, "<i8", "omitted")
     stack_frame = _field(-1, None, "<i8", "omitted")
+    sequence = _field(-1, None, "<i8", "omitted")
 
     def show(self, tile: TileFocus) -> Plan:
         """Set the signals to `tile`'s values (a plan stub)."""
@@ -282,12 +284,22 @@ def _focus_tile(camera: Any, z: Any, tracker: FocusTracker, reading: TileFocusRe
     try:
         z_um = next(steps)
         while True:
-            yield from bps.mv(reading.stack, reading.stack.get() + 1)
+            yield from bps.mv(
+                reading.stack, reading.stack.get() + 1, reading.sequence, tracker.stack_sequence
+            )
             frames = []
             for index, z_frame_um in enumerate(z_um):
                 yield from bps.mv(z, float(z_frame_um), reading.stack_frame, index)
                 readings = yield from bps.trigger_and_read(
-                    [camera, z, reading.row, reading.col, reading.stack, reading.stack_frame],
+                    [
+                        camera,
+                        z,
+                        reading.row,
+                        reading.col,
+                        reading.stack,
+                        reading.stack_frame,
+                        reading.sequence,
+                    ],
                     name=STACK_STREAM,
                 )
                 frames.append(readings[camera.name]["value"])

@@ -119,6 +119,9 @@ class FocusTracker:
         self.slide_id = slide_id
         self.settings = settings or FocusSettings()
         self.tiles: list[TileFocus] = []
+        # The estimator's sequence number of the stack `tile` last yielded (None before
+        # the first): a plan that records its frames can say which acquisition they are.
+        self.stack_sequence: int | None = None
 
     @classmethod
     def create(
@@ -170,6 +173,7 @@ class FocusTracker:
         planes_um: tuple[float, ...] = ()
         while (step := self.estimator.next(self.slide_id)).row == row and step.col == col:
             frames_z_um = _frames_z_um(step)
+            self.stack_sequence = _required(step.sequence)
             frames = yield frames_z_um
             n_frames += len(frames_z_um)
             n_stacks += 1
@@ -182,7 +186,7 @@ class FocusTracker:
                 MeasurementIn(
                     row=row,
                     col=col,
-                    sequence=_required(step.sequence),
+                    sequence=self.stack_sequence,
                     z_um=measurement.z_um,
                     sigma_um=measurement.sigma_um,
                     flags=[FocusFlag(flag.value) for flag in sorted(measurement.flags)],

@@ -243,9 +243,13 @@ def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
     starts = np.flatnonzero(frame == 0)
     assert stack[0] == 0 and set(np.diff(stack)) <= {0, 1}
     assert np.array_equal(stack[starts], np.arange(len(starts)))  # a new stack at frame 0
+    sequence = stacks["focustrack_sequence"]  # the estimator's, one per acquisition
     for begin, end in zip(starts, [*starts[1:], len(frame)], strict=True):
         assert np.array_equal(frame[begin:end], np.arange(end - begin))
         assert set(stack[begin:end]) == {stack[begin]}
+        assert set(sequence[begin:end]) == {sequence[begin]}
+    assert np.all(np.diff(sequence[starts]) > 0) and sequence[0] >= 0
+    assert sequence[starts[-1]] == tracker.stack_sequence
     assert len(frame) == tracker.n_frames
 
     # focustrack_map: the estimator's final maps, (rows, cols), row 0 first.
