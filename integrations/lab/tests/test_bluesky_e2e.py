@@ -161,6 +161,10 @@ def columns(documents: list[tuple[str, dict[str, Any]]], stream: str) -> dict[st
 
 
 @pytest.mark.slow  # the estimator's start, then 9 tiles and 115 frames: about 10 s
+# databroker 1.x warns of its own v1 insert API (each document) and xarray's dims
+@pytest.mark.filterwarnings("ignore::PendingDeprecationWarning:databroker")
+@pytest.mark.filterwarnings("ignore::FutureWarning:databroker")
+@pytest.mark.filterwarnings("ignore::DeprecationWarning:intake")
 def test_every_document_is_valid_and_says_units_dtypes_shapes_and_the_grid(
     estimator: EstimatorClient,
     small_scope: SimScope,
