@@ -226,7 +226,7 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
             raise HTTPException(422, str(error)) from None
         if format is PhaseFormat.PNG:
             return Response(
-                await run_in_threadpool(phase_png, estimate.phase_rad), 200, media_type="image/png"
+                await run_in_threadpool(phase_png, estimate.phase_rad), media_type="image/png"
             )
         return Response(
             await run_in_threadpool(field_npy, estimate),
