@@ -7,6 +7,7 @@ import io
 import subprocess
 import sys
 import threading
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -216,13 +217,15 @@ def test_the_command_helps_and_refuses_a_bad_option() -> None:
     assert opened.returncode == 2 and "without a token" in opened.stderr, opened.stderr
 
 
-def test_settings_from_the_environment_and_heavy_modules_left_for_later(
-    monkeypatch: pytest.MonkeyPatch,
+def test_settings_from_a_file_and_the_environment_and_heavy_modules_left_for_later(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     monkeypatch.setenv("FOCUSTRACK_PHASE_MAX_FRAMES", "21")
     monkeypatch.setenv("FOCUSTRACK_PHASE_MAX_PIXELS", "4096")
-    settings = PhaseServiceSettings.load()
-    assert settings.port == 8300
+    file = tmp_path / "phase.toml"
+    file.write_text("max_frames = 5\nport = 8301\n")
+    settings = PhaseServiceSettings.load(file)
+    assert settings.port == 8301  # from the file; the environment over it for the frames
     assert settings.limits() == PhaseLimits(max_frames=21, max_pixels=4096)
     with pytest.raises(ValueError, match="must be positive"):
         PhaseServiceSettings.load(max_frames=0).limits()
