@@ -12,9 +12,10 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SERVICES = ("estimator", "focus", "instrument_sim", "scheduler")
-#: The extras a service's image installs: the focus distribution's base is its maths alone.
-EXTRAS = {"focus": ("service",)}
+SERVICES = ("estimator", "focus", "instrument_sim", "phase", "scheduler")
+#: The extras a service's image installs: the focus and phase distributions' bases are their
+#: maths alone.
+EXTRAS = {"focus": ("service",), "phase": ("service",)}
 
 
 def export(service: str) -> str:

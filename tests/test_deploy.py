@@ -34,6 +34,7 @@ SERVICES = {
     "instrument": ("instrument_sim", "focustrack_instrument_sim.service"),
     "focus": ("focus", "focustrack_focus.service"),
     "estimator": ("estimator", "focustrack_estimator.service"),
+    "phase": ("phase", "focustrack_phase.service"),
     "scheduler": ("scheduler", "focustrack_scheduler.scan"),
 }
 
@@ -97,7 +98,7 @@ def test_each_service_is_configured_by_environment_its_command_accepts(
     unknown = [key for key in environ if not key.startswith(prefix)]
     assert not unknown, f"{name}: variables its command does not read: {unknown}"
     assert set(environ) <= options, f"{name}: no such option: {set(environ) - options}"
-    if name != "estimator":
+    if name not in ("estimator", "phase"):  # the two on REST alone
         assert args.connect == ["tcp/zenoh:7447"]
     if name == "estimator":
         assert args.store.startswith("/data/") and args.host == "0.0.0.0"
@@ -108,7 +109,7 @@ def test_each_service_is_configured_by_environment_its_command_accepts(
 
 def test_health_checks_volume_and_the_scheduler_job(compose: dict[str, Any]) -> None:
     services = compose["services"]
-    for name in ("instrument", "focus", "estimator"):
+    for name in ("instrument", "focus", "estimator", "phase"):
         check = services[name]["healthcheck"]
         test = [defaults(word) for word in check["test"]]
         assert test[:4] == ["CMD", "python3", "-m", "focustrack_core.health"]

@@ -32,6 +32,7 @@ SERVICES = {
     "estimator": "focustrack-estimator",
     "focus": "focustrack-focus",
     "instrument_sim": "focustrack-instrument-sim",
+    "phase": "focustrack-phase",
     "scheduler": "focustrack-scheduler",
 }
 #: What the client may bring: httpx, pydantic, and their own dependencies.

@@ -3,7 +3,8 @@
 - `refuse_open_network`: off loopback a service needs a token (or `--insecure`).
 - `SlowBodyTimeout`: an ASGI middleware that aborts a request whose body trickles
   in too slowly (uvicorn's `timeout_keep_alive` only covers idle connections).
-- `cut`: error messages quote at most `MAX_QUOTED_CHARS` of an input.
+- `cut`: error messages quote at most `MAX_QUOTED_CHARS` of an input; `quoted_errors`
+  the validation errors of a 422 likewise, without the inputs.
 - `BackgroundServer`: an ASGI app served by uvicorn on a thread of its own (the live
   view of a scan, tests).
 
@@ -20,7 +21,7 @@ import ipaddress
 import json
 import threading
 import time
-from collections.abc import Awaitable, Callable, MutableMapping
+from collections.abc import Awaitable, Callable, Mapping, MutableMapping, Sequence
 from typing import Any
 
 Scope = MutableMapping[str, Any]
@@ -38,6 +39,20 @@ def cut(text: str, limit: int = MAX_QUOTED_CHARS) -> str:
     if len(text) <= limit:
         return text
     return f"{text[:limit]}... (cut: {len(text)} characters in all)"
+
+
+def quoted_errors(errors: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """A 422's validation errors (pydantic's `errors()`): where and what is wrong, cut."""
+    # FastAPI's own handler echoes each bad input, and a NaN there cannot be written as
+    # JSON (a 500), a long one makes a long reply: give where and what, not the input.
+    return [
+        {
+            "loc": [cut(part) if isinstance(part, str) else part for part in item["loc"]],
+            "msg": cut(item["msg"]),
+            "type": item["type"],
+        }
+        for item in errors
+    ]
 
 
 def is_loopback(host: str) -> bool:

@@ -21,9 +21,6 @@ decoding), frames, JSON size and nesting.
 
 from __future__ import annotations
 
-import io
-import json
-import math
 import secrets
 from dataclasses import dataclass, replace
 from typing import Annotated, Any
@@ -37,7 +34,13 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut
+from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut, quoted_errors
+from focustrack_core.stacks import (
+    TooLargeError,
+    UnsupportedFileError,
+    decode_stack,
+    parse_z_list,
+)
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
@@ -67,10 +70,6 @@ class FocusLimits:
             raise ValueError(f"the focus service's limits must be positive, got {self}")
         if not self.body_timeout_s > 0:
             raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
-
-
-_NPY_MAGIC = b"\x93NUMPY"
-_TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 
 
 class PriorModel(BaseModel):
@@ -122,104 +121,6 @@ class FocusResponse(BaseModel):
     posterior_sigma_um: float | None = None
 
 
-def parse_z_list(text: str) -> np.ndarray:
-    """z values from a form field: a JSON list or comma-separated numbers; ValueError if not."""
-    text = text.strip()
-    try:
-        values = (
-            json.loads(text)
-            if text.startswith("[")
-            else [float(part) for part in text.split(",") if part.strip()]
-        )
-        z = np.asarray(values, dtype=np.float64)
-    except (ValueError, TypeError) as error:
-        raise ValueError(f"z_um must be a JSON list or comma-separated numbers: {error}") from None
-    if z.ndim != 1:
-        raise ValueError(f"z_um must be a flat list of numbers, got shape {z.shape}")
-    return z
-
-
-class UnsupportedFileError(ValueError):
-    """The upload is neither a TIFF nor a .npy file (HTTP 415)."""
-
-
-class TooLargeError(ValueError):
-    """The stack would decode to more than the limits allow (HTTP 413)."""
-
-
-def _check_size(shape: tuple[int, ...], itemsize: int, limits: FocusLimits) -> None:
-    """Refuse a stack of `shape` before its pixels are decoded: too many frames or bytes, none."""
-    if any(side == 0 for side in shape[1:]) or not shape:
-        raise ValueError(f"the stack's frames have no pixels (shape {shape})")
-    if shape[0] > limits.max_frames:
-        raise TooLargeError(f"the stack has {shape[0]} frames; the limit is {limits.max_frames}")
-    decoded = math.prod(shape) * itemsize
-    if decoded > limits.max_decoded_bytes:
-        raise TooLargeError(
-            f"the stack would decode to {decoded} bytes (shape {shape}); the limit is "
-            f"{limits.max_decoded_bytes} bytes"
-        )
-
-
-def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
-    """The shape and item size a .npy file declares in its header (nothing else is read)."""
-    buffer = io.BytesIO(data)
-    version = np.lib.format.read_magic(buffer)
-    readers = {
-        (1, 0): np.lib.format.read_array_header_1_0,
-        (2, 0): np.lib.format.read_array_header_2_0,
-    }
-    if version not in readers:
-        raise ValueError(f".npy format version {version} is not supported (1.0 or 2.0)")
-    shape, _, dtype = readers[version](buffer)  # a header over 10 000 bytes: ValueError
-    return tuple(int(side) for side in shape), dtype.itemsize
-
-
-def _read_tiff(data: bytes, limits: FocusLimits) -> np.ndarray:
-    """The pages of a TIFF, once their count and the largest page's shape and item size, read
-    from the TIFF's tags alone, are within `limits` (TooLargeError)."""
-    import tifffile  # imported on first use, not at start-up
-
-    with tifffile.TiffFile(io.BytesIO(data)) as tiff:
-        n_pages, itemsize = 0, 1
-        largest: tuple[int, ...] = (0,)
-        for page in tiff.pages:
-            n_pages += 1
-            if n_pages > limits.max_frames:
-                break
-            shape = tuple(int(side) for side in page.shape)
-            if math.prod(shape) >= math.prod(largest):
-                largest, itemsize = shape, np.dtype(page.dtype).itemsize
-    _check_size((n_pages, *largest), itemsize, limits)
-    return tifffile.imread(io.BytesIO(data))
-
-
-def decode_stack(data: bytes, limits: FocusLimits | None = None) -> np.ndarray:
-    """A z-stack from the bytes of a .npy or (multi-page) TIFF file; ValueError if it is not.
-
-    Within `limits` (TooLargeError, checked from the file's header before decoding).
-    """
-    limits = limits or FocusLimits()
-    if data.startswith(_NPY_MAGIC):
-        try:
-            _check_size(*_npy_shape(data), limits)
-            return np.load(io.BytesIO(data), allow_pickle=False)
-        except ValueError as error:
-            if isinstance(error, TooLargeError):
-                raise
-            raise ValueError(f"the .npy file cannot be read: {error}") from None
-    if data[:4] in _TIFF_MAGICS:
-        try:
-            return _read_tiff(data, limits)
-        except TooLargeError:
-            raise
-        except Exception as error:  # tifffile raises many types on a broken file
-            raise ValueError(f"the TIFF file cannot be read: {error}") from None
-    raise UnsupportedFileError(
-        "the stack must be a multi-page TIFF or a .npy file (unknown file signature)"
-    )
-
-
 def json_depth_exceeds(text: bytes, max_depth: int) -> bool:
     """Whether JSON `text` nests arrays or objects deeper than `max_depth` (brackets in
     strings aside); checked before parsing, which would recurse that deep."""
@@ -244,19 +145,6 @@ def json_depth_exceeds(text: bytes, max_depth: int) -> bool:
 
 
 _bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
-
-
-def _errors(error: RequestValidationError) -> list[dict[str, Any]]:
-    # FastAPI's own handler echoes each bad input, and a NaN there cannot be written as
-    # JSON (a 500): give where and what is wrong, without the input (and cut long keys).
-    return [
-        {
-            "loc": [cut(part) if isinstance(part, str) else part for part in item["loc"]],
-            "msg": cut(item["msg"]),
-            "type": item["type"],
-        }
-        for item in error.errors()
-    ]
 
 
 def create_app(
@@ -295,7 +183,7 @@ def create_app(
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
-        return JSONResponse({"detail": _errors(error)}, status_code=422)
+        return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_: Request, error: StarletteHTTPException) -> JSONResponse:
@@ -379,7 +267,9 @@ def create_app(
                 metric=metric,
                 peak=replace(base.peak, mode=mode),
             )
-            frames = await run_in_threadpool(decode_stack, data, limits)
+            frames = await run_in_threadpool(
+                decode_stack, data, limits.max_frames, limits.max_decoded_bytes
+            )
             if frames.ndim == 2:
                 raise ValueError(f"the stack holds a single {frames.shape} frame; need >= 3")
             result = await run_in_threadpool(focus_stack, frames, z, chosen)

@@ -1,5 +1,6 @@
 """Uploads whose headers promise far more pixels than they hold: what the REST app's limits
-(`app.FocusLimits`, `app.decode_stack`) must refuse from the header alone, before decoding.
+(`app.FocusLimits`, `focustrack_core.stacks.decode_stack`) must refuse from the header
+alone, before decoding.
 
 `focustrack bench chaos` sends them (`focustrack.bench.hostile`); the service's tests
 check each refusal.

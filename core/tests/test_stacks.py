@@ -1,0 +1,91 @@
+"""Uploaded z-stacks: .npy and TIFF read back, everything else refused with the right error,
+too large a stack refused from its header before it is decoded."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import tifffile
+
+from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
+
+STACK = np.arange(3 * 4 * 5, dtype=np.uint16).reshape(3, 4, 5)
+ROOMY = {"max_frames": 10, "max_decoded_bytes": 1 << 20}
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+def tiff_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, array, photometric="minisblack")
+    return buffer.getvalue()
+
+
+def npy_header_only(shape: tuple[int, ...]) -> bytes:
+    """A .npy file that declares a uint16 array of `shape` and holds none of its pixels."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buffer, {"descr": "<u2", "fortran_order": False, "shape": shape}
+    )
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("encode", [npy_bytes, tiff_bytes])
+def test_npy_and_tiff_read_back(encode) -> None:
+    np.testing.assert_array_equal(decode_stack(encode(STACK), **ROOMY), STACK)
+
+
+def test_other_files_are_unsupported() -> None:
+    with pytest.raises(UnsupportedFileError, match="multi-page TIFF or a"):
+        decode_stack(b"\x89PNG\r\n\x1a\n....", **ROOMY)
+
+
+@pytest.mark.parametrize("encode", [npy_bytes, tiff_bytes])
+def test_too_many_frames_or_bytes(encode) -> None:
+    with pytest.raises(TooLargeError, match="3 frames; the limit is 2"):
+        decode_stack(encode(STACK), max_frames=2, max_decoded_bytes=1 << 20)
+    with pytest.raises(TooLargeError, match="decode to 120 bytes"):
+        decode_stack(encode(STACK), max_frames=10, max_decoded_bytes=119)
+
+
+def test_a_header_promising_gigabytes_is_refused_unread() -> None:
+    with pytest.raises(TooLargeError, match="the limit is 1048576 bytes"):
+        decode_stack(npy_header_only((5, 8192, 8192)), **ROOMY)
+
+
+@pytest.mark.parametrize(
+    "data",
+    [npy_bytes(STACK)[:-7], b"II*\x00" + bytes(20), npy_header_only((2, 0, 3)) + bytes(8)],
+)
+def test_broken_files_are_value_errors(data: bytes) -> None:
+    with pytest.raises(ValueError, match="cannot be read") as caught:
+        decode_stack(data, **ROOMY)
+    assert not isinstance(caught.value, TooLargeError | UnsupportedFileError)
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [("[-1, 0, 2.5]", [-1.0, 0.0, 2.5]), ("-1,0, 2.5", [-1.0, 0.0, 2.5]), ("[]", [])],
+)
+def test_z_lists(text: str, expected: list[float]) -> None:
+    np.testing.assert_array_equal(parse_z_list(text), expected)
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("[1, 2", "JSON list"),
+        ("1,a", "JSON list"),
+        ("[[1, 2]]", "flat list"),
+        ("[" * 100_000, "JSON"),
+    ],
+)
+def test_bad_z_lists(text: str, needle: str) -> None:
+    with pytest.raises(ValueError, match=needle):
+        parse_z_list(text)

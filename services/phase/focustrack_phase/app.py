@@ -1,0 +1,237 @@
+"""The phase service over REST (FastAPI): a through-focus stack in, phase and amplitude out.
+
+- ``POST /v1/phase/stack``: multipart, ``stack`` (a multi-page TIFF or a .npy array of
+  raw counts, frames first: (n, H, W), n >= 2), ``z_um`` (each frame's height relative
+  to the plane to reconstruct, um: a JSON list or comma-separated numbers),
+  ``wavelength_um``, ``pixel_um``; optional ``photons_per_count`` (1) and the filter's
+  settings ``q0``, ``p0``, ``amplitude_floor`` (`AcekfOptions`). ``?format=npy`` (the
+  default) answers a float32 .npy of shape (2, H, W): the phase (rad) and the amplitude
+  (relative to the stack's mean) at z = 0; ``?format=png`` a picture of the phase with
+  a colour bar in radians.
+- ``GET /healthz``. OpenAPI docs at ``/docs``.
+
+Bad input is a 4xx whose detail names the problem, as the focus service's: 413 for an
+oversized body or a stack that would decode to more than the limits (read from the
+file's header), 415 for a file that is neither TIFF nor .npy, 408 for a body that
+arrives too slowly, 401 without the token (when one is set), 422 for the rest, naming
+the field. The reconstruction (and the picture) run on a worker thread, so ``/healthz``
+answers while a stack is being reconstructed.
+"""
+
+from __future__ import annotations
+
+import enum
+import io
+import math
+import secrets
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from focustrack_core.serving import BodyLimit, SlowBodyTimeout, quoted_errors
+from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
+from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
+
+#: Bounds of the filter's settings a request may set: wide around the defaults, finite.
+MAX_Q0 = 1e6
+MAX_AMPLITUDE_FLOOR = 1.0
+
+
+@dataclass(frozen=True)
+class PhaseLimits:
+    """What one request may ask of the service (its settings; each a flag of the command).
+
+    max_upload_bytes: the whole request body; max_decoded_bytes: the pixels a stack
+    decodes to, read from its header before decoding; max_frames: of a stack (the time
+    of a reconstruction grows with them); max_pixels: of one frame, height x width (the
+    filter holds about ten arrays of that size); body_timeout_s: how long a body may
+    take to arrive.
+    """
+
+    max_upload_bytes: int = 256 << 20
+    max_decoded_bytes: int = 512 << 20
+    max_frames: int = 201
+    max_pixels: int = 2048 * 2048
+    body_timeout_s: float = 60.0
+
+    def __post_init__(self) -> None:
+        counts = (self.max_upload_bytes, self.max_decoded_bytes, self.max_frames, self.max_pixels)
+        if min(counts) < 1:
+            raise ValueError(f"the phase service's limits must be positive, got {self}")
+        if not self.body_timeout_s > 0:
+            raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
+
+
+class PhaseFormat(enum.StrEnum):
+    """What `POST /v1/phase/stack` answers."""
+
+    NPY = "npy"  # float32 (2, H, W): phase (rad), amplitude
+    PNG = "png"  # the phase, with a colour bar in radians
+
+
+def field_npy(estimate: FieldEstimate) -> bytes:
+    """A .npy file of float32 (2, H, W): the phase (rad) and the amplitude (relative)."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.stack([estimate.phase_rad, estimate.amplitude]).astype(np.float32))
+    return buffer.getvalue()
+
+
+def phase_png(phase_rad: np.ndarray) -> bytes:
+    """A PNG of `phase_rad` (H, W), on a cyclic colour map over [-pi, pi] with a colour bar
+    labelled in radians."""
+    # matplotlib takes about a second to import: the first picture pays it, not start-up.
+    # A Figure of its own (no pyplot) is safe on the worker threads.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    height, width = phase_rad.shape
+    figure = Figure(figsize=(6.0, 5.0 * height / width + 0.5), dpi=100)
+    FigureCanvasAgg(figure)
+    axes = figure.add_subplot()
+    image = axes.imshow(phase_rad, cmap="twilight", vmin=-math.pi, vmax=math.pi)
+    axes.set_axis_off()
+    bar = figure.colorbar(image, ax=axes, ticks=[-math.pi, -math.pi / 2, 0, math.pi / 2, math.pi])
+    bar.ax.set_yticklabels(["-π", "-π/2", "0", "π/2", "π"])
+    bar.set_label("phase (rad)")
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", bbox_inches="tight")
+    return buffer.getvalue()
+
+
+def checked_stack(frames: np.ndarray, z_um: np.ndarray, limits: PhaseLimits) -> np.ndarray:
+    """`frames` once it is a stack the filter can take: (n >= 2, H, W) of real numbers, one
+    z per frame, within `limits.max_pixels`; ValueError naming what is wrong."""
+    if frames.ndim != 3:
+        raise ValueError(
+            f"stack must be frames of one channel, (frames, height, width); got shape "
+            f"{frames.shape}"
+        )
+    if frames.shape[0] < 2:
+        raise ValueError(f"stack must hold at least 2 frames; got {frames.shape[0]}")
+    if not (np.issubdtype(frames.dtype, np.integer) or np.issubdtype(frames.dtype, np.floating)):
+        raise ValueError(f"stack must hold real numbers (counts); got dtype {frames.dtype}")
+    pixels = frames.shape[1] * frames.shape[2]
+    if pixels > limits.max_pixels:
+        raise TooLargeError(
+            f"stack frames of {frames.shape[1]}x{frames.shape[2]} = {pixels} pixels; the limit "
+            f"is {limits.max_pixels}"
+        )
+    if z_um.size != frames.shape[0]:
+        raise ValueError(
+            f"z_um must list one height per frame: {frames.shape[0]} frames, got {z_um.size}"
+        )
+    return frames
+
+
+_bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
+
+#: The form's numbers: finite, and > 0 where the maths needs it (422 names the field).
+Positive = Annotated[float, Form(gt=0, allow_inf_nan=False)]
+
+
+def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> FastAPI:
+    """The REST app; `limits` what one request may ask, `token` the bearer token /v1
+    requires (None: open)."""
+    limits = limits or PhaseLimits()
+    defaults = AcekfOptions()
+
+    async def require_token(
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    ) -> None:
+        if token is not None and (
+            credentials is None
+            or not secrets.compare_digest(credentials.credentials.encode(), token.encode())
+        ):
+            raise HTTPException(
+                401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
+            )
+
+    app = FastAPI(
+        title="focustrack phase service",
+        version="1",
+        description="Quantitative phase and amplitude from a through-focus stack (sparse ACEKF).",
+    )
+    app.add_middleware(
+        BodyLimit, max_bytes=limits.max_upload_bytes, error_body=lambda d: {"detail": d}
+    )
+    timeout = f"the request body did not arrive within {limits.body_timeout_s:g} s"
+    app.add_middleware(
+        SlowBodyTimeout, timeout_s=limits.body_timeout_s, error_body={"detail": timeout}
+    )
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
+
+    @app.get("/healthz")
+    def healthz() -> dict[str, Any]:
+        return {"status": "ok"}
+
+    @app.post(
+        "/v1/phase/stack",
+        dependencies=[Depends(require_token)],
+        response_class=Response,
+        responses={
+            200: {
+                "content": {"application/octet-stream": {}, "image/png": {}},
+                "description": "float32 .npy (2, H, W): phase (rad), amplitude; or a PNG",
+            }
+        },
+    )
+    async def phase_stack(
+        stack: Annotated[UploadFile, File(description="multi-page TIFF or .npy, frames first")],
+        z_um: Annotated[str, Form(description="each frame's z from the plane, um: JSON list")],
+        wavelength_um: Positive,
+        pixel_um: Positive,
+        photons_per_count: Positive = 1.0,
+        q0: Annotated[float, Form(gt=0, le=MAX_Q0, allow_inf_nan=False)] = defaults.q0,
+        p0: Annotated[float, Form(ge=-MAX_Q0, le=MAX_Q0, allow_inf_nan=False)] = defaults.p0,
+        amplitude_floor: Annotated[
+            float, Form(gt=0, le=MAX_AMPLITUDE_FLOOR, allow_inf_nan=False)
+        ] = defaults.amplitude_floor,
+        format: Annotated[PhaseFormat, Query(description="npy or png")] = PhaseFormat.NPY,
+    ) -> Response:
+        limit = limits.max_upload_bytes
+        if stack.size is not None and stack.size > limit:
+            raise HTTPException(413, f"stack of {stack.size} bytes exceeds {limit}")
+        data = await stack.read(limit + 1)
+        if len(data) > limit:
+            raise HTTPException(413, f"stack exceeds the limit of {limit} bytes")
+        try:
+            z = parse_z_list(z_um)
+            options = AcekfOptions(q0=q0, p0=p0, amplitude_floor=amplitude_floor)
+            frames = await run_in_threadpool(
+                decode_stack, data, limits.max_frames, limits.max_decoded_bytes
+            )
+            estimate = await run_in_threadpool(
+                reconstruct,
+                checked_stack(frames, z, limits),
+                z,
+                wavelength_um,
+                pixel_um,
+                photons_per_count,
+                options,
+            )
+        except UnsupportedFileError as error:
+            raise HTTPException(415, str(error)) from None
+        except TooLargeError as error:
+            raise HTTPException(413, str(error)) from None
+        except ValueError as error:
+            raise HTTPException(422, str(error)) from None
+        if format is PhaseFormat.PNG:
+            return Response(
+                await run_in_threadpool(phase_png, estimate.phase_rad), media_type="image/png"
+            )
+        return Response(
+            await run_in_threadpool(field_npy, estimate),
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": 'attachment; filename="phase.npy"'},
+        )
+
+    return app

@@ -1,0 +1,244 @@
+"""The phase REST API: the maths' answer as .npy or PNG, a 4xx naming the problem for every
+kind of bad input, the command; one stack end to end through a real uvicorn server."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+import tifffile
+from fastapi.testclient import TestClient
+
+from focustrack_core.serving import BackgroundServer
+from focustrack_phase import app as app_module
+from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
+from focustrack_phase.app import PhaseLimits, create_app
+from focustrack_phase.service import PhaseServiceSettings
+from focustrack_phase.simulate import SyntheticStack, data_set_1
+
+#: A small Data Set 1: 4 planes of 32x32 (a few ms to reconstruct).
+PLANES, SIZE_PX = 4, 32
+
+
+@pytest.fixture(scope="module")
+def stack() -> SyntheticStack:
+    return data_set_1(seed=3, planes=PLANES, size_px=SIZE_PX)
+
+
+@pytest.fixture(scope="module")
+def client() -> TestClient:
+    limits = PhaseLimits(max_upload_bytes=200_000, max_frames=8, max_pixels=64 * 64)
+    return TestClient(create_app(limits))
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+def tiff_bytes(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, array, photometric="minisblack")
+    return buffer.getvalue()
+
+
+def form(stack: SyntheticStack, **fields: object) -> dict[str, str]:
+    """The form of a request for `stack` (its z, wavelength and pixel), `fields` added."""
+    values: dict[str, object] = {
+        "z_um": str(stack.z_um.tolist()),
+        "wavelength_um": stack.wavelength_um,
+        "pixel_um": stack.pixel_um,
+    }
+    return {name: str(value) for name, value in (values | fields).items()}
+
+
+def post(
+    client: TestClient | httpx.Client, data: bytes, fields: dict[str, str], query: str = ""
+) -> httpx.Response:
+    return client.post(f"/v1/phase/stack{query}", files={"stack": ("stack.bin", data)}, data=fields)
+
+
+def read_npy(response: httpx.Response) -> np.ndarray:
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/octet-stream"
+    return np.load(io.BytesIO(response.content), allow_pickle=False)
+
+
+def test_healthz(client: TestClient) -> None:
+    response = client.get("/healthz")
+    assert response.status_code == 200 and response.json() == {"status": "ok"}
+
+
+@pytest.mark.parametrize("encode", [npy_bytes, tiff_bytes])
+def test_phase_and_amplitude_are_the_maths_own(
+    client: TestClient, stack: SyntheticStack, encode
+) -> None:
+    answer = read_npy(post(client, encode(stack.stack_counts), form(stack), "?format=npy"))
+    direct = reconstruct(stack.stack_counts, stack.z_um, stack.wavelength_um, stack.pixel_um)
+    assert answer.dtype == np.float32 and answer.shape == (2, SIZE_PX, SIZE_PX)
+    np.testing.assert_allclose(answer[0], direct.phase_rad, atol=1e-6)
+    np.testing.assert_allclose(answer[1], direct.amplitude, rtol=1e-6)
+
+
+def test_the_filter_settings_and_gain_reach_the_maths(
+    client: TestClient, stack: SyntheticStack
+) -> None:
+    options = {"q0": 0.05, "p0": -0.01, "amplitude_floor": 0.1}
+    fields = form(stack, photons_per_count=2.0, **options)
+    answer = read_npy(post(client, npy_bytes(stack.stack_counts), fields))  # npy: the default
+    direct = reconstruct(
+        stack.stack_counts,
+        stack.z_um,
+        stack.wavelength_um,
+        stack.pixel_um,
+        2.0,
+        AcekfOptions(**options),
+    )
+    np.testing.assert_allclose(answer[0], direct.phase_rad, atol=1e-6)
+
+
+def test_png_is_a_picture(client: TestClient, stack: SyntheticStack) -> None:
+    response = post(client, npy_bytes(stack.stack_counts), form(stack), "?format=png")
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "image/png"
+    assert response.content.startswith(b"\x89PNG\r\n\x1a\n")
+
+
+def one_frame(stack: SyntheticStack) -> bytes:
+    return npy_bytes(stack.stack_counts[:1])
+
+
+@pytest.mark.parametrize(
+    ("data", "fields", "status", "needle"),
+    [
+        (lambda s: b"GIF89a" + bytes(64), {}, 415, "multi-page TIFF or a .npy"),
+        (lambda s: npy_bytes(np.zeros((9, 8, 8))), {}, 413, "9 frames; the limit is 8"),
+        (lambda s: npy_bytes(np.zeros((2, 65, 64))), {}, 413, "the limit is 4096"),
+        (lambda s: bytes(200_001), {}, 413, "200000 bytes"),
+        (None, {"z_um": "[1, 2, 3]"}, 422, "4 frames, got 3"),
+        (None, {"z_um": "[1, 2, 3"}, 422, "z_um must be a JSON list"),
+        (None, {"z_um": "[1, NaN, 2, 3]"}, 422, "z_um must be finite"),
+        (None, {"wavelength_um": "-0.5"}, 422, "wavelength_um"),
+        (None, {"pixel_um": "0"}, 422, "pixel_um"),
+        (None, {"photons_per_count": "nan"}, 422, "photons_per_count"),
+        (None, {"q0": "inf"}, 422, "q0"),
+        (None, {"p0": "0.5"}, 422, "|p0| must be <= q0"),
+        (None, {"amplitude_floor": "2"}, 422, "amplitude_floor"),
+        (one_frame, {"z_um": "[1]"}, 422, "at least 2 frames; got 1"),
+        (lambda s: npy_bytes(np.ones((4, 8))), {}, 422, "(frames, height, width)"),
+        (lambda s: npy_bytes(np.full((4, 8, 8), np.nan)), {}, 422, "stack must be finite"),
+        (lambda s: npy_bytes(np.ones((4, 8, 8), complex)), {}, 422, "real numbers"),
+    ],
+)
+def test_bad_requests_say_what_is_wrong(
+    client: TestClient, stack: SyntheticStack, data, fields, status: int, needle: str
+) -> None:
+    body = npy_bytes(stack.stack_counts) if data is None else data(stack)
+    response = post(client, body, form(stack, **fields))
+    assert response.status_code == status, response.text
+    assert needle in response.text, response.text
+
+
+def test_bad_format_and_missing_field(client: TestClient, stack: SyntheticStack) -> None:
+    response = post(client, npy_bytes(stack.stack_counts), form(stack), "?format=tiff")
+    assert response.status_code == 422 and "format" in response.text
+    fields = form(stack)
+    del fields["wavelength_um"]
+    response = post(client, npy_bytes(stack.stack_counts), fields)
+    assert response.status_code == 422 and "wavelength_um" in response.text
+
+
+def test_a_token_is_required_when_set(stack: SyntheticStack) -> None:
+    guarded = TestClient(create_app(token="secret"))
+    body = npy_bytes(stack.stack_counts)
+    assert post(guarded, body, form(stack)).status_code == 401
+    guarded.headers["Authorization"] = "Bearer secret"
+    assert post(guarded, body, form(stack)).status_code == 200
+
+
+def test_end_to_end_on_uvicorn_healthz_answers_while_a_stack_is_reconstructed(
+    stack: SyntheticStack, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A TIFF through a real server on a free loopback port gets the maths' answer, and
+    /healthz answers while the reconstruction is held on its worker thread."""
+    under_way, release = threading.Event(), threading.Event()
+
+    def held_reconstruct(*args: Any) -> FieldEstimate:
+        under_way.set()
+        release.wait(30.0)
+        return reconstruct(*args)
+
+    monkeypatch.setattr(app_module, "reconstruct", held_reconstruct)
+    responses: list[httpx.Response] = []
+    with (
+        BackgroundServer(create_app()) as server,
+        httpx.Client(base_url=server.url, timeout=30.0) as http,
+    ):
+        worker = threading.Thread(
+            target=lambda: responses.append(post(http, tiff_bytes(stack.stack_counts), form(stack)))
+        )
+        worker.start()
+        assert under_way.wait(30.0)
+        health = httpx.get(server.url + "healthz", timeout=5.0)
+        release.set()
+        worker.join(30.0)
+    assert health.status_code == 200 and health.json() == {"status": "ok"}
+    answer = read_npy(responses[0])
+    direct = reconstruct(stack.stack_counts, stack.z_um, stack.wavelength_um, stack.pixel_um)
+    np.testing.assert_allclose(answer[0], direct.phase_rad, atol=1e-6)
+
+
+def run_command(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "focustrack", "serve", "phase", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def test_the_command_helps_and_refuses_a_bad_option() -> None:
+    helped = run_command("--help")
+    assert helped.returncode == 0, helped.stderr
+    for option in ("--port", "--max-upload-bytes", "--max-frames", "--max-pixels", "--settings"):
+        assert option in helped.stdout
+    assert "FOCUSTRACK_PHASE_PORT" in helped.stdout
+    refused = run_command("--port", "70000")
+    assert refused.returncode == 2 and "--port" in refused.stderr, refused.stderr
+    opened = run_command("--host", "0.0.0.0")
+    assert opened.returncode == 2 and "without a token" in opened.stderr, opened.stderr
+
+
+def test_settings_from_a_file_and_the_environment_and_heavy_modules_left_for_later(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setenv("FOCUSTRACK_PHASE_MAX_FRAMES", "21")
+    monkeypatch.setenv("FOCUSTRACK_PHASE_MAX_PIXELS", "4096")
+    file = tmp_path / "phase.toml"
+    file.write_text("max_frames = 5\nport = 8301\n")
+    settings = PhaseServiceSettings.load(file)
+    assert settings.port == 8301  # from the file; the environment over it for the frames
+    assert settings.limits() == PhaseLimits(max_frames=21, max_pixels=4096)
+    with pytest.raises(ValueError, match="must be positive"):
+        PhaseServiceSettings.load(max_frames=0).limits()
+    # matplotlib (the PNG) and tifffile (TIFF uploads) wait for the first request needing them
+    loaded = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys, focustrack_phase.service; "
+            "print(sorted({'matplotlib', 'tifffile'} & set(sys.modules)))",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert loaded.stdout.strip() == "[]"
