@@ -21,7 +21,6 @@ decoding), frames, JSON size and nesting.
 
 from __future__ import annotations
 
-import secrets
 from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
@@ -30,17 +29,17 @@ from fastapi import Depends, FastAPI, File, Form, HTTPException, Request, Upload
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from focustrack_core.serving import BodyLimit, SlowBodyTimeout, cut, quoted_errors
+from focustrack_core.serving import cut
 from focustrack_core.stacks import (
     TooLargeError,
     UnsupportedFileError,
     decode_stack,
     parse_z_list,
 )
+from focustrack_core.web import bearer_token, guarded_app
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
@@ -144,9 +143,6 @@ def json_depth_exceeds(text: bytes, max_depth: int) -> bool:
     return False
 
 
-_bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
-
-
 def create_app(
     settings: FocusSettings | None = None,
     limits: FocusLimits | None = None,
@@ -157,33 +153,13 @@ def create_app(
     base = settings or FocusSettings()
     limits = limits or FocusLimits()
 
-    async def require_token(
-        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-    ) -> None:
-        if token is not None and (
-            credentials is None
-            or not secrets.compare_digest(credentials.credentials.encode(), token.encode())
-        ):
-            raise HTTPException(
-                401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
-            )
-
-    app = FastAPI(
-        title="focustrack focus service",
-        version="1",
-        description="Best focus (with an uncertainty and flags) from a z-stack or a focus curve.",
+    require_token = bearer_token(token)
+    app = guarded_app(
+        "focustrack focus service",
+        "Best focus (with an uncertainty and flags) from a z-stack or a focus curve.",
+        limits.max_upload_bytes,
+        limits.body_timeout_s,
     )
-    app.add_middleware(
-        BodyLimit, max_bytes=limits.max_upload_bytes, error_body=lambda d: {"detail": d}
-    )
-    timeout = f"the request body did not arrive within {limits.body_timeout_s:g} s"
-    app.add_middleware(
-        SlowBodyTimeout, timeout_s=limits.body_timeout_s, error_body={"detail": timeout}
-    )
-
-    @app.exception_handler(RequestValidationError)
-    async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
-        return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_: Request, error: StarletteHTTPException) -> JSONResponse:

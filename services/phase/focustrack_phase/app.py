@@ -23,19 +23,16 @@ from __future__ import annotations
 import enum
 import io
 import math
-import secrets
 from dataclasses import dataclass
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, UploadFile
 from fastapi.concurrency import run_in_threadpool
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.responses import Response
 
-from focustrack_core.serving import BodyLimit, SlowBodyTimeout, quoted_errors
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
+from focustrack_core.web import bearer_token, guarded_app
 from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
 
 #: Bounds of the filter's settings a request may set: wide around the defaults, finite.
@@ -129,8 +126,6 @@ def checked_stack(frames: np.ndarray, z_um: np.ndarray, limits: PhaseLimits) -> 
     return frames
 
 
-_bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
-
 #: The form's numbers: finite, and > 0 where the maths needs it (422 names the field).
 Positive = Annotated[float, Form(gt=0, allow_inf_nan=False)]
 
@@ -141,33 +136,13 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
     limits = limits or PhaseLimits()
     defaults = AcekfOptions()
 
-    async def require_token(
-        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-    ) -> None:
-        if token is not None and (
-            credentials is None
-            or not secrets.compare_digest(credentials.credentials.encode(), token.encode())
-        ):
-            raise HTTPException(
-                401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
-            )
-
-    app = FastAPI(
-        title="focustrack phase service",
-        version="1",
-        description="Quantitative phase and amplitude from a through-focus stack (sparse ACEKF).",
+    require_token = bearer_token(token)
+    app = guarded_app(
+        "focustrack phase service",
+        "Quantitative phase and amplitude from a through-focus stack (sparse ACEKF).",
+        limits.max_upload_bytes,
+        limits.body_timeout_s,
     )
-    app.add_middleware(
-        BodyLimit, max_bytes=limits.max_upload_bytes, error_body=lambda d: {"detail": d}
-    )
-    timeout = f"the request body did not arrive within {limits.body_timeout_s:g} s"
-    app.add_middleware(
-        SlowBodyTimeout, timeout_s=limits.body_timeout_s, error_body={"detail": timeout}
-    )
-
-    @app.exception_handler(RequestValidationError)
-    async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
-        return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
 
     @app.get("/healthz")
     def healthz() -> dict[str, Any]:

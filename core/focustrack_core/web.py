@@ -1,0 +1,56 @@
+"""The FastAPI edge the stack services share (extra `web`): one app with the house's body
+limits and 422 shape, and the bearer-token check of `/v1`.
+
+`serving` holds what needs no web framework (plain ASGI); this module is for the
+services built on FastAPI (the focus and phase services), which import it.
+"""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Awaitable, Callable
+from typing import Annotated
+
+from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from focustrack_core.serving import BodyLimit, SlowBodyTimeout, quoted_errors
+
+_bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
+
+
+def bearer_token(token: str | None) -> Callable[..., Awaitable[None]]:
+    """A dependency that lets a request through only with `token` as its bearer token
+    (401 otherwise; None: every request), compared in constant time."""
+
+    async def require_token(
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+    ) -> None:
+        if token is not None and (
+            credentials is None
+            or not secrets.compare_digest(credentials.credentials.encode(), token.encode())
+        ):
+            raise HTTPException(
+                401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
+            )
+
+    return require_token
+
+
+def guarded_app(
+    title: str, description: str, max_upload_bytes: int, body_timeout_s: float
+) -> FastAPI:
+    """A FastAPI app that refuses a body over `max_upload_bytes` (413) or slower than
+    `body_timeout_s` to arrive (408), and answers invalid requests with the quoted 422."""
+    app = FastAPI(title=title, version="1", description=description)
+    app.add_middleware(BodyLimit, max_bytes=max_upload_bytes, error_body=lambda d: {"detail": d})
+    timeout = f"the request body did not arrive within {body_timeout_s:g} s"
+    app.add_middleware(SlowBodyTimeout, timeout_s=body_timeout_s, error_body={"detail": timeout})
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
+        return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
+
+    return app
