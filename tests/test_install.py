@@ -149,6 +149,12 @@ def test_the_documented_lab_install_runs_the_documented_example(tmp_path: Path) 
     packages = installed(python)
     assert not packages & set(SERVICE_ONLY), sorted(packages & set(SERVICE_ONLY))
     assert "focustrack" not in packages and "focustrack-lab" in packages
+    # the focus service's command is there, and says which extra it needs
+    refused = subprocess.run(
+        [python.parent / "focustrack-focus", "--help"], capture_output=True, text=True
+    )
+    assert refused.returncode == 2
+    assert "pip install 'focustrack-focus[service]'" in refused.stderr, refused.stderr
 
     (tmp_path / "example_mmcore.py").write_text(documented_example(doc))
     port = free_port()

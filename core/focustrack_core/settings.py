@@ -21,6 +21,7 @@ naming the option and what is wrong with it, as argparse does for a bad flag.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import re
@@ -296,6 +297,26 @@ def command_main(
         parser = argparse.ArgumentParser(prog=prog, description=description)
         settings_cls.add_arguments(parser)
         return run(parse(parser, settings_cls, sys.argv[1:] if argv is None else argv))
+
+    return main
+
+
+def main_of_extra(prog: str, requirement: str, module: str) -> Callable[..., int]:
+    """A console script's `main(argv=None)` that runs `module`'s `main`, whose packages come
+    with an extra (`requirement`, as pip spells it): installed without it, the command
+    says which to install (exit 2) instead of failing on an import."""
+
+    def main(argv: list[str] | None = None) -> int:
+        try:
+            service = importlib.import_module(module)
+        except ModuleNotFoundError as missing:
+            print(
+                f"{prog}: {missing.name} is not installed; the service needs "
+                f"pip install '{requirement}'",
+                file=sys.stderr,
+            )
+            return 2
+        return int(service.main(argv))
 
     return main
 

@@ -12,7 +12,13 @@ import pytest
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from focustrack_core.settings import ServiceSettings, SettingsError, command_main, one_of
+from focustrack_core.settings import (
+    ServiceSettings,
+    SettingsError,
+    command_main,
+    main_of_extra,
+    one_of,
+)
 
 
 class DemoSettings(ServiceSettings):
@@ -213,3 +219,11 @@ def test_an_empty_settings_variable_is_no_file(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setenv("FOCUSTRACK_DEMO_SETTINGS", "")
     monkeypatch.delenv("FOCUSTRACK_DEMO_PORT", raising=False)
     assert DemoSettings.load().port == 8100
+
+
+def test_a_command_whose_extra_is_missing_says_which_to_install(capsys) -> None:
+    main = main_of_extra("focustrack-thing", "focustrack-thing[service]", "no_such_module_x")
+    assert main([]) == 2
+    error = capsys.readouterr().err
+    assert "no_such_module_x is not installed" in error
+    assert "pip install 'focustrack-thing[service]'" in error

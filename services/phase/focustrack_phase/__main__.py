@@ -1,5 +1,5 @@
 """`python -m focustrack_phase`: the phase service (REST)."""
 
-from focustrack_phase.service import main
+from focustrack_phase.command import main
 
 raise SystemExit(main())
