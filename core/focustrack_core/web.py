@@ -1,5 +1,5 @@
 """The FastAPI edge the stack services share (extra `web`): one app with the house's body
-limits and 422 shape, and the bearer-token check of `/v1`.
+limits and 422 shape, the bearer-token check of `/v1`, and an upload read within a limit.
 
 `serving` holds what needs no web framework (plain ASGI); this module is for the
 services built on FastAPI (the focus and phase services), which import it.
@@ -11,7 +11,7 @@ import secrets
 from collections.abc import Awaitable, Callable
 from typing import Annotated
 
-from fastapi import Depends, FastAPI, HTTPException, Request
+from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -54,3 +54,14 @@ def guarded_app(
         return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
 
     return app
+
+
+async def read_upload(upload: UploadFile, limit_bytes: int) -> bytes:
+    """The bytes of `upload`, at most `limit_bytes` of them: 413 for a larger file, refused
+    from its declared size where it has one, else after reading one byte past the limit."""
+    if upload.size is not None and upload.size > limit_bytes:
+        raise HTTPException(413, f"stack of {upload.size} bytes exceeds {limit_bytes}")
+    data = await upload.read(limit_bytes + 1)
+    if len(data) > limit_bytes:
+        raise HTTPException(413, f"stack exceeds the limit of {limit_bytes} bytes")
+    return data

@@ -39,7 +39,7 @@ from focustrack_core.stacks import (
     decode_stack,
     parse_z_list,
 )
-from focustrack_core.web import bearer_token, guarded_app
+from focustrack_core.web import bearer_token, guarded_app, read_upload
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
@@ -226,12 +226,7 @@ def create_app(
         channel: Annotated[int | None, Form(ge=0)] = base.preprocess.channel,
         lowpass_sigma_px: Annotated[float, Form(ge=0, le=64)] = base.preprocess.lowpass_sigma_px,
     ) -> dict[str, Any]:
-        limit = limits.max_upload_bytes
-        if stack.size is not None and stack.size > limit:
-            raise HTTPException(413, f"stack of {stack.size} bytes exceeds {limit}")
-        data = await stack.read(limit + 1)
-        if len(data) > limit:
-            raise HTTPException(413, f"stack exceeds the limit of {limit} bytes")
+        data = await read_upload(stack, limits.max_upload_bytes)
         try:
             z = parse_z_list(z_um)
             if metric not in METRICS:

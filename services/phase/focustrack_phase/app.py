@@ -32,7 +32,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
-from focustrack_core.web import bearer_token, guarded_app
+from focustrack_core.web import bearer_token, guarded_app, read_upload
 from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
 
 #: Bounds of the filter's settings a request may set: wide around the defaults, finite.
@@ -172,12 +172,7 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
         ] = defaults.amplitude_floor,
         format: Annotated[PhaseFormat, Query(description="npy or png")] = PhaseFormat.NPY,
     ) -> Response:
-        limit = limits.max_upload_bytes
-        if stack.size is not None and stack.size > limit:
-            raise HTTPException(413, f"stack of {stack.size} bytes exceeds {limit}")
-        data = await stack.read(limit + 1)
-        if len(data) > limit:
-            raise HTTPException(413, f"stack exceeds the limit of {limit} bytes")
+        data = await read_upload(stack, limits.max_upload_bytes)
         try:
             z = parse_z_list(z_um)
             options = AcekfOptions(q0=q0, p0=p0, amplitude_floor=amplitude_floor)
