@@ -7,6 +7,7 @@ kept image and of the frames a tile keeps besides (its planes).
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Any
 
 import numpy as np
@@ -53,10 +54,7 @@ class ScanTally:
 
     def flag_counts(self) -> dict[str, int]:
         """How many tiles' last measurement carries each flag (flags none carries: absent)."""
-        counts: dict[str, int] = {}
-        for entry in self.measured.values():
-            for flag in entry["flags"]:
-                counts[flag] = counts.get(flag, 0) + 1
+        counts = Counter(flag for entry in self.measured.values() for flag in entry["flags"])
         return dict(sorted(counts.items()))
 
     def tiles_without_focus(self) -> list[Tile]:
