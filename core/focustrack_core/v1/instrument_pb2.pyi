@@ -1,4 +1,5 @@
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from collections.abc import Iterable as _Iterable, Mapping as _Mapping
@@ -6,8 +7,15 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class AcquisitionPurpose(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    ACQUISITION_PURPOSE_FOCUS: _ClassVar[AcquisitionPurpose]
+    ACQUISITION_PURPOSE_PHASE: _ClassVar[AcquisitionPurpose]
+ACQUISITION_PURPOSE_FOCUS: AcquisitionPurpose
+ACQUISITION_PURPOSE_PHASE: AcquisitionPurpose
+
 class AcquireRequest(_message.Message):
-    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s", "nonce")
+    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s", "nonce", "purpose", "reference_z_um")
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
     COL_FIELD_NUMBER: _ClassVar[int]
@@ -17,6 +25,8 @@ class AcquireRequest(_message.Message):
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     EXPOSURE_S_FIELD_NUMBER: _ClassVar[int]
     NONCE_FIELD_NUMBER: _ClassVar[int]
+    PURPOSE_FIELD_NUMBER: _ClassVar[int]
+    REFERENCE_Z_UM_FIELD_NUMBER: _ClassVar[int]
     slide: str
     row: int
     col: int
@@ -26,7 +36,9 @@ class AcquireRequest(_message.Message):
     sequence: int
     exposure_s: float
     nonce: bytes
-    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ..., nonce: _Optional[bytes] = ...) -> None: ...
+    purpose: AcquisitionPurpose
+    reference_z_um: float
+    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ...) -> None: ...
 
 class Timing(_message.Message):
     __slots__ = ("move_s", "z_settle_s", "exposure_s", "readout_s", "total_s", "clock_s", "move_distance_um")
@@ -47,7 +59,7 @@ class Timing(_message.Message):
     def __init__(self, move_s: _Optional[float] = ..., z_settle_s: _Optional[float] = ..., exposure_s: _Optional[float] = ..., readout_s: _Optional[float] = ..., total_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., move_distance_um: _Optional[float] = ...) -> None: ...
 
 class ZStackHeader(_message.Message):
-    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag")
+    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag", "purpose", "reference_z_um", "wavelength_um", "condenser_na", "objective_na")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
@@ -66,6 +78,11 @@ class ZStackHeader(_message.Message):
     CLOCK_S_FIELD_NUMBER: _ClassVar[int]
     NONCE_FIELD_NUMBER: _ClassVar[int]
     TAG_FIELD_NUMBER: _ClassVar[int]
+    PURPOSE_FIELD_NUMBER: _ClassVar[int]
+    REFERENCE_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    WAVELENGTH_UM_FIELD_NUMBER: _ClassVar[int]
+    CONDENSER_NA_FIELD_NUMBER: _ClassVar[int]
+    OBJECTIVE_NA_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     row: int
@@ -84,7 +101,12 @@ class ZStackHeader(_message.Message):
     clock_s: float
     nonce: bytes
     tag: bytes
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ...) -> None: ...
+    purpose: AcquisitionPurpose
+    reference_z_um: float
+    wavelength_um: float
+    condenser_na: float
+    objective_na: float
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., condenser_na: _Optional[float] = ..., objective_na: _Optional[float] = ...) -> None: ...
 
 class ZFrameHeader(_message.Message):
     __slots__ = ("stack", "index", "timestamp_unix_s", "parts", "part_offset", "tag")
@@ -203,3 +225,23 @@ class SlideTruth(_message.Message):
     drift_um: float
     clock_s: float
     def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., best_focus_um: _Optional[_Iterable[float]] = ..., drift_um: _Optional[float] = ..., clock_s: _Optional[float] = ...) -> None: ...
+
+class PhaseTruth(_message.Message):
+    __slots__ = ("instrument", "slide", "row", "col", "shape", "dtype", "pixel_size_um", "focus_z_um")
+    INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
+    SLIDE_FIELD_NUMBER: _ClassVar[int]
+    ROW_FIELD_NUMBER: _ClassVar[int]
+    COL_FIELD_NUMBER: _ClassVar[int]
+    SHAPE_FIELD_NUMBER: _ClassVar[int]
+    DTYPE_FIELD_NUMBER: _ClassVar[int]
+    PIXEL_SIZE_UM_FIELD_NUMBER: _ClassVar[int]
+    FOCUS_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    instrument: str
+    slide: str
+    row: int
+    col: int
+    shape: _containers.RepeatedScalarFieldContainer[int]
+    dtype: str
+    pixel_size_um: float
+    focus_z_um: float
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[str] = ..., pixel_size_um: _Optional[float] = ..., focus_z_um: _Optional[float] = ...) -> None: ...

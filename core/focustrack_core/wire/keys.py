@@ -10,9 +10,13 @@
 - ``focustrack/v1/zframe/{slide}/{row}/{col}``: the instrument publishes every frame of
   a stack as soon as it is acquired (raw pixels of the frame, ZFrameHeader as attachment).
 - ``focustrack/v1/focus/{slide}/{row}/{col}``: the focus service publishes a FocusResult.
+- ``focustrack/v1/phase/{slide}/{row}/{col}``: the phase service publishes the amplitude and
+  phase of each phase stack (float32 (2, height, width) payload, PhaseResult attachment).
 - ``focustrack/v1/eval/truth/{instrument}/{slide}``: queryable; SlideTruth out. Ground
   truth for evaluation code only, under its own prefix so that no scanner reads it by
   accident (a scanner subscribes to nothing under ``focustrack/v1/eval``).
+- ``focustrack/v1/eval/phase/{instrument}/{slide}/{row}/{col}``: queryable; the true phase
+  of a tile (float32 payload, PhaseTruth attachment), for evaluation code only.
 - ``focustrack/v1/bench/{name}``: the instrument benchmark's own traffic.
 
 Names (instrument, slide) are single key chunks: letters, digits, ``_``, ``-``, ``.``.
@@ -75,6 +79,20 @@ def focus_key(slide: str, row: int, col: int) -> str:
     return f"{PREFIX}/focus/{_tile(slide, row, col)}"
 
 
+def phase_key(slide: str, row: int, col: int) -> str:
+    return f"{PREFIX}/phase/{_tile(slide, row, col)}"
+
+
+def phase_truth_key(instrument: str, slide: str, row: int, col: int) -> str:
+    instrument = check_name(instrument, "instrument")
+    return f"{PREFIX}/eval/phase/{instrument}/{_tile(slide, row, col)}"
+
+
+def phase_truth_pattern(instrument: str) -> str:
+    """Key expression of the phase-truth queryable of an instrument (every slide and tile)."""
+    return f"{PREFIX}/eval/phase/{check_name(instrument, 'instrument')}/*/*/*"
+
+
 def truth_key(instrument: str, slide: str) -> str:
     instrument = check_name(instrument, "instrument")
     return f"{PREFIX}/eval/truth/{instrument}/{check_name(slide, 'slide')}"
@@ -105,6 +123,11 @@ def focus_pattern(slide: str | None = None) -> str:
     return f"{PREFIX}/focus/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
 
 
+def phase_pattern(slide: str | None = None) -> str:
+    """Key expression matching the phase results of one slide (or of every slide when None)."""
+    return f"{PREFIX}/phase/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
+
+
 def _parse_tile_key(key: str, kind: str) -> TileKey:
     parts = str(key).split("/")
     if len(parts) != 6 or "/".join(parts[:3]) != f"{PREFIX}/{kind}":
@@ -128,3 +151,8 @@ def parse_zframe_key(key: str) -> TileKey:
 def parse_focus_key(key: str) -> TileKey:
     """(slide, row, col) of a ``focustrack/v1/focus/{slide}/{row}/{col}`` key."""
     return _parse_tile_key(key, "focus")
+
+
+def parse_phase_key(key: str) -> TileKey:
+    """(slide, row, col) of a ``focustrack/v1/phase/{slide}/{row}/{col}`` key."""
+    return _parse_tile_key(key, "phase")
