@@ -59,7 +59,7 @@ class Timing(_message.Message):
     def __init__(self, move_s: _Optional[float] = ..., z_settle_s: _Optional[float] = ..., exposure_s: _Optional[float] = ..., readout_s: _Optional[float] = ..., total_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., move_distance_um: _Optional[float] = ...) -> None: ...
 
 class ZStackHeader(_message.Message):
-    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag", "purpose", "reference_z_um", "wavelength_um", "condenser_na", "objective_na")
+    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag", "purpose", "reference_z_um", "wavelength_um", "condenser_na", "objective_na", "photons_per_count", "dark_counts")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
@@ -83,6 +83,8 @@ class ZStackHeader(_message.Message):
     WAVELENGTH_UM_FIELD_NUMBER: _ClassVar[int]
     CONDENSER_NA_FIELD_NUMBER: _ClassVar[int]
     OBJECTIVE_NA_FIELD_NUMBER: _ClassVar[int]
+    PHOTONS_PER_COUNT_FIELD_NUMBER: _ClassVar[int]
+    DARK_COUNTS_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     row: int
@@ -106,7 +108,9 @@ class ZStackHeader(_message.Message):
     wavelength_um: float
     condenser_na: float
     objective_na: float
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., condenser_na: _Optional[float] = ..., objective_na: _Optional[float] = ...) -> None: ...
+    photons_per_count: float
+    dark_counts: float
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., condenser_na: _Optional[float] = ..., objective_na: _Optional[float] = ..., photons_per_count: _Optional[float] = ..., dark_counts: _Optional[float] = ...) -> None: ...
 
 class ZFrameHeader(_message.Message):
     __slots__ = ("stack", "index", "timestamp_unix_s", "parts", "part_offset", "tag")
