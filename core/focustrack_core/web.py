@@ -1,5 +1,6 @@
 """The FastAPI edge the stack services share (extra `web`): one app with the house's body
-limits and 422 shape, the bearer-token check of `/v1`, and an upload read within a limit.
+limits and 422 shape, the bearer-token check of `/v1`, an upload read within a limit, and
+the ``/healthz`` of a service that is on Zenoh too (`with_bus_health`).
 
 `serving` holds what needs no web framework (plain ASGI); this module is for the
 services built on FastAPI (the focus and phase services), which import it.
@@ -9,11 +10,12 @@ from __future__ import annotations
 
 import secrets
 from collections.abc import Awaitable, Callable
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from focustrack_core.serving import BodyLimit, SlowBodyTimeout, quoted_errors
@@ -65,3 +67,21 @@ async def read_upload(upload: UploadFile, limit_bytes: int) -> bytes:
     if len(data) > limit_bytes:
         raise HTTPException(413, f"stack exceeds the limit of {limit_bytes} bytes")
     return data
+
+
+def with_bus_health(app: FastAPI, bus_health: Callable[[], dict[str, str]]) -> FastAPI:
+    """`app` whose ``/healthz`` also reports the Zenoh session (``status`` degraded while it
+    is not open or has no router). The REST app knows nothing of Zenoh; its shell adds it."""
+    routes = app.router.routes
+    rest = next(r for r in routes if isinstance(r, APIRoute) and r.path == "/healthz")
+    where = routes.index(rest)
+    routes.remove(rest)
+
+    @app.get("/healthz")
+    def healthz() -> dict[str, Any]:
+        return rest.endpoint() | bus_health()
+
+    # In the place of the one it replaces: FastAPI prepares each route the first time a
+    # request is matched against it, in order, so the first probe prepares no other.
+    routes.insert(where, routes.pop())
+    return app

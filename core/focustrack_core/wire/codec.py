@@ -143,6 +143,14 @@ def frame_header(
     return instrument_pb2.ZFrameHeader(stack=stack, index=index, timestamp_unix_s=time.time())
 
 
+def green_channel(header: instrument_pb2.ZStackHeader) -> int | None:
+    """The index of the green channel of the stack's frames, where its channel order names
+    one (a stained specimen's contrast is in green: the channel the focus and phase
+    services read); None where it names none."""
+    order = header.channel_order.upper()
+    return order.index("G") if "G" in order else None
+
+
 def _dtype_of(header: instrument_pb2.ZStackHeader) -> np.dtype:
     try:
         return np.dtype(header.dtype)

@@ -1,4 +1,4 @@
-"""Keyed tags on the bus: focus results the scheduler can check, frames the focus service can.
+"""Keyed tags on the bus: results the scheduler can check, frames the services can.
 
 The router's access control (docs/security.md) says who may publish where, but it trusts
 every hop and every holder of a role's password. Two shared keys let the receivers check
@@ -18,6 +18,12 @@ for themselves, each with an HMAC-SHA256:
   only samples whose tag checks, so frames published by anyone else never become a result.
   The tag covers the header's bytes as sent (no re-encoding on either side), and each
   sample alone: a frame in parts, a whole frame, a shared-memory payload alike.
+- **Phase results** (`ResultSigner.attachment`, the phase service's ``--result-key-file``):
+  a phase result's payload is its pixels and its `PhaseResult` header the attachment, so
+  it is tagged as a frame is, with the result key: the attachment is the header (its
+  `tag` empty), then its `tag` field, ``HMAC(key, key expression + NUL + the header's
+  bytes before the tag + SHA-256 of the payload)``. The header names the tile, the
+  stack's sequence and the acquisition's nonce, as a focus result does.
 
 A key is a file of at least `MIN_KEY_BYTES` bytes (surrounding white space ignored), e.g.
 ``python3 -c "import secrets; print(secrets.token_hex(32))" > result.key``; the result
@@ -32,7 +38,7 @@ import secrets
 from pathlib import Path
 from typing import Self
 
-from focustrack_core.v1 import instrument_pb2
+from focustrack_core.v1 import instrument_pb2, phase_pb2
 
 #: The shortest key accepted, bytes (64 hex digits are 32 bytes of entropy).
 MIN_KEY_BYTES = 32
@@ -45,6 +51,8 @@ MAX_NONCE_BYTES = 64
 
 #: The headers that carry a frame tag: a frame sample's, a stack sample's.
 TaggedHeader = instrument_pb2.ZFrameHeader | instrument_pb2.ZStackHeader
+#: The headers tagged with their payload: those, and a phase result's (with the result key).
+Header = TaggedHeader | phase_pb2.PhaseResult
 
 
 def new_nonce() -> bytes:
@@ -81,9 +89,33 @@ class _SharedKey:
             mac.update(part)
         return mac.digest()
 
+    def _tagged(self, key_expr: str, header: Header, payload: bytes | bytearray) -> bytes:
+        """`header` (whose `tag` is empty) followed by its `tag` field: this key's tag of
+        the key expression, the header's bytes and the SHA-256 of `payload`."""
+        if header.tag:
+            raise ValueError("a header to tag has a tag already")
+        unsigned = header.SerializeToString()
+        tag = self._mac(key_expr, unsigned, hashlib.sha256(payload).digest())
+        return unsigned + type(header)(tag=tag).SerializeToString()
+
+    def _checks(
+        self, key_expr: str, header: Header, attachment: bytes, payload: bytes | bytearray
+    ) -> bool:
+        """True when `attachment` (decoded to `header`) ends with this key's `_tagged` tag
+        of the bytes before it and of `payload` (compared in constant time)."""
+        tag = header.tag
+        if not tag:
+            return False
+        tag_field = type(header)(tag=tag).SerializeToString()
+        if not attachment.endswith(tag_field):
+            return False  # the tag must come last, after the bytes it covers
+        unsigned = attachment[: -len(tag_field)]
+        expected = self._mac(key_expr, unsigned, hashlib.sha256(payload).digest())
+        return hmac.compare_digest(expected, tag)
+
 
 class ResultSigner(_SharedKey):
-    """Tags focus results and checks tags with one shared key."""
+    """Tags results (focus and phase) and checks their tags with one shared key."""
 
     kind = "result key"
 
@@ -94,6 +126,19 @@ class ResultSigner(_SharedKey):
     def verify(self, key_expr: str, payload: bytes, tag: bytes | None) -> bool:
         """True when `tag` is this key's tag of the result (in constant time)."""
         return tag is not None and hmac.compare_digest(self.tag(key_expr, payload), tag)
+
+    def attachment(self, key_expr: str, header: Header, payload: bytes | bytearray) -> bytes:
+        """The attachment of a result whose header travels beside its payload (a phase
+        result: a `PhaseResult` and its pixels) on `key_expr`: `header`, its `tag` empty,
+        then the `tag` field (module docstring)."""
+        return self._tagged(key_expr, header, payload)
+
+    def verify_attachment(
+        self, key_expr: str, header: Header, attachment: bytes, payload: bytes
+    ) -> bool:
+        """True when a result on `key_expr` whose `attachment` decoded to `header` carries
+        this key's tag of it and of `payload` (`attachment`)."""
+        return self._checks(key_expr, header, attachment, payload)
 
 
 def signer_of(path: Path | None) -> ResultSigner | None:
@@ -113,25 +158,14 @@ class FrameSigner(_SharedKey):
     def attachment(self, key_expr: str, header: TaggedHeader, payload: bytes | bytearray) -> bytes:
         """The attachment of a sample on `key_expr`: `header` (whose tag is empty), then
         its tag of that header and `payload` (the sample's bytes) as the `tag` field."""
-        if header.tag:
-            raise ValueError("a header to tag has a tag already")
-        unsigned = header.SerializeToString()
-        tag = self._mac(key_expr, unsigned, hashlib.sha256(payload).digest())
-        return unsigned + type(header)(tag=tag).SerializeToString()
+        return self._tagged(key_expr, header, payload)
 
     def verify(
         self, key_expr: str, header: TaggedHeader, attachment: bytes, payload: bytes
     ) -> bool:
         """True when the sample on `key_expr` whose `attachment` decoded to `header` carries
         this key's tag of it and of `payload` (compared in constant time)."""
-        if not header.tag:
-            return False
-        tag_field = type(header)(tag=header.tag).SerializeToString()
-        if not attachment.endswith(tag_field):
-            return False  # the tag must come last, after the bytes it covers
-        unsigned = attachment[: -len(tag_field)]
-        expected = self._mac(key_expr, unsigned, hashlib.sha256(payload).digest())
-        return hmac.compare_digest(expected, header.tag)
+        return self._checks(key_expr, header, attachment, payload)
 
 
 def frame_signer_of(path: Path | None) -> FrameSigner | None:

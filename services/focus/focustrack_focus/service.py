@@ -4,6 +4,8 @@ Zenoh: subscribes to the frames of z-stacks, ``focustrack/v1/zframe/**``, scores
 frame as it lands, and publishes a FocusResult on ``focustrack/v1/focus/{slide}/{row}/{col}``
 as soon as the last frame of a stack is in (only the peak fit is left by then); a
 stack that cannot be read gets a FocusResult whose `error` says why (code BAD_STACK).
+Stacks taken for another purpose than focus (``ZStackHeader.purpose``: phase stacks, which
+the phase service reads) are ignored.
 Frames are taken from a bounded FIFO by one worker thread, so a burst waits (back
 pressure to the publisher) instead of piling up without bound. What a peer's frames make
 the service hold is bounded in bytes and time (`FrameAnalyser`: --open-frames-mb,
@@ -33,13 +35,11 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 import uvicorn
 import zenoh
-from fastapi import FastAPI
-from fastapi.routing import APIRoute
 from google.protobuf.message import DecodeError
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
@@ -48,6 +48,7 @@ from focustrack_core.logs import worth_logging
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main, one_of
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
+from focustrack_core.web import with_bus_health
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
 from focustrack_core.wire.rpc import protobuf_encoding
@@ -87,9 +88,9 @@ def settings_for(
     """`base` adapted to one stack: its green channel, and (with `na`) a low-pass matched to
     its pixel size (thesis A-1-1)."""
     preprocess = base.preprocess
-    order = header.channel_order.upper()
-    if "G" in order:
-        preprocess = replace(preprocess, channel=order.index("G"))
+    green = codec.green_channel(header)
+    if green is not None:
+        preprocess = replace(preprocess, channel=green)
     if na is not None and header.pixel_size_um > 0:
         sigma_px = lowpass_sigma_for_optics(header.pixel_size_um, na)
         preprocess = replace(preprocess, lowpass_sigma_px=sigma_px)
@@ -159,7 +160,8 @@ class FrameAnalyser:
     stack over; one that cannot be read (or a part lost) ends its stack with an error
     result. With a `frame_signer`, a sample whose attachment does not carry that key's
     tag of it is dropped before anything else (no result, not even an error), logged and
-    counted in `n_untagged`.
+    counted in `n_untagged`. A frame of a stack whose purpose is not focus (a phase stack,
+    for the phase service) is ignored, counted in `n_not_focus`.
 
     Memory is bounded in bytes and time, whatever peers send: the frames under way (in
     parts) and what open stacks hold (each keeps its sharpest and blurriest frames for
@@ -192,6 +194,7 @@ class FrameAnalyser:
         self.clock = clock
         self.frame_signer = frame_signer
         self.n_untagged = 0  # frame samples dropped: their tag was missing or wrong
+        self.n_not_focus = 0  # frame samples of stacks taken for another purpose (phase)
         self._refused = 0  # frames refused here (`n_refused`)
         self.n_expired = 0  # stacks dropped: their next frame did not come in time
         # curves under way, the one fed longest ago first
@@ -254,6 +257,9 @@ class FrameAnalyser:
         try:
             frame_header = zframe_header(attachment)
             header = frame_header.stack
+            if header.purpose != instrument_pb2.ACQUISITION_PURPOSE_FOCUS:
+                self.n_not_focus += 1  # a stack for another service (phase): none of ours
+                return None
             stack = stack_id(key, header)
             self.expire()
             if stack in self._failed:
@@ -676,24 +682,6 @@ def run(settings: FocusServiceSettings) -> int:
             untagged,
         )
     return 0
-
-
-def with_bus_health(app: FastAPI, bus_health: Callable[[], dict[str, str]]) -> FastAPI:
-    """`app` whose ``/healthz`` also reports the Zenoh session (``status`` degraded while it
-    is not open or has no router). The REST app knows nothing of Zenoh; its shell adds it."""
-    routes = app.router.routes
-    rest = next(r for r in routes if isinstance(r, APIRoute) and r.path == "/healthz")
-    where = routes.index(rest)
-    routes.remove(rest)
-
-    @app.get("/healthz")
-    def healthz() -> dict[str, Any]:
-        return rest.endpoint() | bus_health()
-
-    # In the place of the one it replaces: FastAPI prepares each route the first time a
-    # request is matched against it, in order, so the first probe prepares no other.
-    routes.insert(where, routes.pop())
-    return app
 
 
 #: The command's settings model (`focustrack serve focus` parses it and calls `run`).

@@ -42,6 +42,7 @@ def publish_stack(
     z_um,
     sequence: int,
     order: Sequence[int] | None = None,
+    purpose: instrument_pb2.AcquisitionPurpose = instrument_pb2.ACQUISITION_PURPOSE_FOCUS,
 ) -> None:
     """Publish the frames of `pixels` (n, h, w, channels) one by one, in `order` (0..n-1)."""
     header = instrument_pb2.ZStackHeader(
@@ -54,6 +55,7 @@ def publish_stack(
         pixel_size_um=0.1,
         channel_order="L",
         bit_depth=12,
+        purpose=purpose,
     )
     describe_pixels(header, pixels)
     publisher = PixelPublisher(session, part_bytes=PART_BYTES)
@@ -103,6 +105,31 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(
         worker.close()
         service.close()
     assert worker.n_published == 2
+
+
+def test_phase_stacks_are_not_focus_stacks_the_service_ignores_them(
+    instrument, render: Callable[..., np.ndarray]
+) -> None:
+    publisher, endpoint = instrument
+    service = open_session(connect=[endpoint])
+    worker = ZenohFocusWorker(service, FocusSettings(), na=0.85)
+    subscriber, results = collect(publisher)
+    try:
+        time.sleep(0.5)  # let the subscriptions reach each other
+        frames = render(96, Z_UM, TRUTH_UM, 5)[..., None]
+        publish_stack(
+            publisher, frames, Z_UM, sequence=9, purpose=instrument_pb2.ACQUISITION_PURPOSE_PHASE
+        )
+        publish_stack(publisher, frames, Z_UM, sequence=10)
+        # one worker takes the frames in order: the phase stack's came first, and got nothing
+        _, result = results.get(timeout=20)
+        assert result.sequence == 10 and result.HasField("best_z_um")
+        assert results.empty()
+    finally:
+        subscriber.undeclare()
+        worker.close()
+        service.close()
+    assert worker.n_published == 1 and worker.analyser.n_not_focus == len(Z_UM) * 4
 
 
 def test_the_focus_command_runs_zenoh_and_http_in_one_process(
