@@ -36,7 +36,7 @@ import numpy.typing as npt
 import zenoh
 from zenoh import shm
 
-from focustrack_core.v1 import instrument_pb2
+from focustrack_core.v1 import instrument_pb2, phase_pb2
 from focustrack_core.wire.trust import FrameSigner, TaggedHeader
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,14 @@ ZSTACK_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema(
 ZFRAME_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema(
     instrument_pb2.ZFrameHeader.DESCRIPTOR.full_name
 )
+
+#: Encoding of a phase result sample: raw float32 pixels, described by the attached
+#: PhaseResult (`phase_field`).
+PHASE_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema(
+    phase_pb2.PhaseResult.DESCRIPTOR.full_name
+)
+#: dtype of a phase result's pixels (float32, little-endian), as `PhaseResult.dtype` names it.
+PHASE_DTYPE = "<f4"
 
 Payload = bytes | bytearray | zenoh.ZBytes
 
@@ -175,6 +183,18 @@ def pixels_from_bytes(header: instrument_pb2.ZStackHeader, data: bytes) -> np.nd
     if len(shape) != 4:
         raise ValueError(f"z-stack header has shape {shape}; expected 4 dimensions")
     return _view(data, dtype, shape, "z-stack")
+
+
+def phase_field(result: phase_pb2.PhaseResult, payload: bytes) -> np.ndarray:
+    """The (read-only) float32 (2, height, width) array of a phase result's payload, viewed
+    without a copy: the phase (rad), then the amplitude. ValueError where the result does
+    not describe such an array or the payload does not fit it."""
+    shape = tuple(result.shape)
+    if len(shape) != 3 or shape[0] != 2 or result.dtype != PHASE_DTYPE:
+        raise ValueError(
+            f"a phase result holds (2, height, width) {PHASE_DTYPE}, not {shape} {result.dtype!r}"
+        )
+    return _view(payload, np.dtype(PHASE_DTYPE), shape, "phase result")
 
 
 def decode_zstack(

@@ -1,4 +1,12 @@
-"""`focustrack serve phase`: the phase service over REST (the FastAPI app of `app.py`).
+"""`focustrack serve phase`: the phase service on Zenoh and over REST, in one process.
+
+Zenoh (`bus.py`): the frames of stacks taken for phase (``ZStackHeader.purpose`` phase)
+in, a PhaseResult per stack out on ``focustrack/v1/phase/{slide}/{row}/{col}``; with
+``--frame-key-file`` only frames tagged by the instrument are read, with
+``--result-key-file`` every result is tagged (`focustrack_core.wire.trust`). The session is
+opened in the background and tried again until the router answers, so the REST API comes
+up at once (``/healthz`` says ``degraded`` until the session is open and linked).
+REST: the FastAPI app of `app.py`, served by uvicorn on --host/--port.
 
 Its options come from flags, ``FOCUSTRACK_PHASE_<OPTION>`` or ``--settings FILE``
 (`PhaseServiceSettings`). Without a token the API is open: off loopback the service
@@ -9,27 +17,42 @@ from __future__ import annotations
 
 import logging
 import sys
+import time
 from dataclasses import fields
+from pathlib import Path
+from typing import ClassVar
 
 import uvicorn
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.serving import refuse_open_network
-from focustrack_core.settings import ServiceSettings, command_main
+from focustrack_core.settings import command_main
+from focustrack_core.web import with_bus_health
+from focustrack_core.wire import codec, keys
+from focustrack_core.wire.session import (
+    ATTEMPT_TIMEOUT_S,
+    DEFAULT_ENDPOINT,
+    BackgroundSession,
+    ZenohSettings,
+)
+from focustrack_core.wire.trust import frame_signer_of, signer_of
 from focustrack_phase.app import PhaseLimits, create_app
+from focustrack_phase.bus import ZFRAME_SUBSCRIPTION, PhaseOptics, PhaseStacks, ZenohPhaseWorker
 
 log = logging.getLogger(__name__)
 
 
-class PhaseServiceSettings(ServiceSettings):
+class PhaseServiceSettings(ZenohSettings):
     """The phase service's options: flags, ``FOCUSTRACK_PHASE_<OPTION>`` or a settings file.
 
     The limits' defaults are the REST app's `PhaseLimits`, which `limits` gives back (and
-    checks); the filter's defaults are `AcekfOptions`', which each request may change.
+    checks), and which bound the stacks taken on Zenoh too; the filter's defaults are
+    `AcekfOptions`', which each REST request may change.
     """
 
     model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_PHASE_")
+    default_connect: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)
 
     host: str = Field("127.0.0.1", description="HTTP address")
     port: int = Field(8300, ge=0, le=65535, description="HTTP port")
@@ -53,6 +76,34 @@ class PhaseServiceSettings(ServiceSettings):
     body_timeout_s: float = Field(
         PhaseLimits.body_timeout_s, description="seconds a request body may take to arrive (408)"
     )
+    # Zenoh: phase stacks in, phase results out (`bus.py`)
+    wavelength_um: float = Field(
+        PhaseOptics.wavelength_um,
+        gt=0,
+        description="illumination wavelength, um, for stacks whose header gives none (an "
+        "instrument that predates the field)",
+    )
+    result_key_file: Path | None = Field(
+        None,
+        description="shared key: tag every phase result, for the scheduler to check "
+        "(docs/security.md)",
+    )
+    frame_key_file: Path | None = Field(
+        None,
+        description="the instrument's frame key: read only frames tagged with it, drop and "
+        "count the others (docs/security.md)",
+    )
+    open_frames_mb: float = Field(
+        codec.OPEN_FRAMES_BYTES / 1_000_000,
+        gt=0,
+        description="phase stacks under way held at most, MB (their frames, as float32 of "
+        "one channel); a stack beyond it is answered with an error",
+    )
+    open_frame_timeout_s: float = Field(
+        codec.OPEN_FRAME_TIMEOUT_S,
+        gt=0,
+        description="seconds a phase stack under way waits for its next frame before it is dropped",
+    )
 
     def limits(self) -> PhaseLimits:
         """What one REST request may ask (ValueError if a limit admits nothing)."""
@@ -72,14 +123,56 @@ def run(settings: PhaseServiceSettings) -> int:
         print(f"phase service not started: {error}", file=sys.stderr)
         return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    try:
+        settings.zenoh()  # a bad option or config file ends the command here, not later
+        signer = signer_of(settings.result_key_file)
+        frame_signer = frame_signer_of(settings.frame_key_file)
+    except ValueError as error:
+        log.error("%s", error)
+        return 2
+    optics = PhaseOptics(settings.wavelength_um)
+    workers: list[ZenohPhaseWorker] = []
+    bus = BackgroundSession(
+        lambda: settings.zenoh(ATTEMPT_TIMEOUT_S),
+        lambda session: workers.append(
+            ZenohPhaseWorker(
+                session,
+                PhaseStacks(
+                    limits,
+                    int(settings.open_frames_mb * 1_000_000),
+                    settings.open_frame_timeout_s,
+                    frame_signer=frame_signer,
+                ),
+                optics,
+                signer=signer,
+            )
+        ),
+    )
     log.info(
-        "phase service: http://%s:%d/v1/phase/stack (auth %s)",
+        "phase service: zenoh %s (%s) -> %s/phase/... (results %s), "
+        "http://%s:%d/v1/phase/stack (auth %s)",
+        ZFRAME_SUBSCRIPTION,
+        "any frames" if frame_signer is None else "tagged frames only",
+        keys.PREFIX,
+        "tagged" if signer is not None else "untagged",
         settings.host,
         settings.port,
         "on" if settings.token else "off",
     )
-    app = create_app(limits, settings.token or None)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+    started_s = time.perf_counter()
+    try:
+        app = with_bus_health(create_app(limits, settings.token or None), bus.health)
+        uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+    finally:
+        for worker in workers:
+            worker.close()
+        bus.close()
+        log.info(
+            "published %d phase results in %.0f s; dropped %d untagged frame samples",
+            sum(worker.n_published for worker in workers),
+            time.perf_counter() - started_s,
+            sum(worker.stacks.n_untagged for worker in workers),
+        )
     return 0
 
 
@@ -87,4 +180,6 @@ def run(settings: PhaseServiceSettings) -> int:
 Settings = PhaseServiceSettings
 
 #: The `focustrack-phase` console script (and `python -m focustrack_phase`).
-main = command_main("focustrack-phase", "the phase service (REST)", PhaseServiceSettings, run)
+main = command_main(
+    "focustrack-phase", "the phase service (Zenoh and REST)", PhaseServiceSettings, run
+)

@@ -1,0 +1,217 @@
+"""The phase service on real Zenoh (loopback): the frames of a phase stack, published as the
+instrument publishes them (tagged, in parts), come back as a PhaseResult whose phase is the
+specimen's; focus stacks are not its business; a stack it cannot read gets an error result."""
+
+from __future__ import annotations
+
+import os
+import queue
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import zenoh
+
+from focustrack_core.v1 import common_pb2, instrument_pb2, phase_pb2
+from focustrack_core.wire import codec, keys
+from focustrack_core.wire.codec import PixelPublisher, describe_stack
+from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_core.wire.trust import FrameSigner, ResultSigner
+from focustrack_phase.app import PhaseLimits
+from focustrack_phase.bus import PhaseOptics, PhaseStacks, ZenohPhaseWorker, phase_input
+from focustrack_phase.simulate import through_focus_stack, weak_object
+
+WAVELENGTH_UM = 0.532
+PIXEL_UM = 1.0
+REFERENCE_Z_UM = 12.0  # the objective z the stack is centred on
+OFFSETS_UM = np.arange(-50.0, 50.1, 5.0)  # 21 planes either side of it
+GAMMA_PHOTONS = 10_000.0
+PHOTONS_PER_COUNT = 2.0
+DARK_COUNTS = 100.0
+SIZE_PX = 64
+PART_BYTES = 3000  # frames of 64 x 64 uint16 go in 3 parts
+FRAME_KEY = b"f" * 32
+RESULT_KEY = b"r" * 32
+PHASE = instrument_pb2.ACQUISITION_PURPOSE_PHASE
+
+
+def header_of(
+    sequence: int, z_um: np.ndarray, purpose: instrument_pb2.AcquisitionPurpose = PHASE
+) -> instrument_pb2.ZStackHeader:
+    """The header an instrument publishes with a phase stack of tile (1, 2) of slide s1."""
+    return instrument_pb2.ZStackHeader(
+        instrument="sim",
+        slide="s1",
+        row=1,
+        col=2,
+        sequence=sequence,
+        z_um=list(z_um),
+        pixel_size_um=PIXEL_UM,
+        channel_order="L",
+        bit_depth=16,
+        nonce=bytes([sequence]) * 16,
+        purpose=purpose,
+        reference_z_um=REFERENCE_Z_UM,
+        wavelength_um=WAVELENGTH_UM,
+        objective_na=0.85,
+        photons_per_count=PHOTONS_PER_COUNT,
+        dark_counts=DARK_COUNTS,
+    )
+
+
+def publish(
+    publisher: PixelPublisher, header: instrument_pb2.ZStackHeader, counts: np.ndarray
+) -> None:
+    """Publish every frame of `counts` (n, h, w) as the instrument does."""
+    pixels = np.ascontiguousarray(counts[..., None])
+    describe_stack(header, pixels.shape, pixels.dtype)
+    for index, frame in enumerate(pixels):
+        publisher.put_frame(keys.zframe_key("s1", 1, 2), header, index, frame)
+
+
+@pytest.fixture
+def bus(tmp_path: Path) -> Iterator[tuple[PixelPublisher, ZenohPhaseWorker, queue.Queue]]:
+    """The instrument's side (a tagging publisher), the phase service's worker, and the
+    phase results it publishes as (key, PhaseResult, attachment, payload)."""
+    endpoint = loopback_endpoint()
+    instrument = open_session(listen=[endpoint])
+    service = open_session(connect=[endpoint])
+    stacks = PhaseStacks(PhaseLimits(), frame_signer=FrameSigner(FRAME_KEY))
+    worker = ZenohPhaseWorker(service, stacks, PhaseOptics(), signer=ResultSigner(RESULT_KEY))
+    results: queue.Queue = queue.Queue()
+
+    def on_result(sample: zenoh.Sample) -> None:
+        attachment = sample.attachment.to_bytes() if sample.attachment is not None else b""
+        results.put(
+            (
+                str(sample.key_expr),
+                phase_pb2.PhaseResult.FromString(attachment),
+                attachment,
+                sample.payload.to_bytes(),
+            )
+        )
+
+    subscriber = instrument.declare_subscriber(keys.phase_pattern("s1"), on_result)
+    time.sleep(0.5)  # let the subscriptions reach each other
+    publisher = PixelPublisher(instrument, part_bytes=PART_BYTES, signer=FrameSigner(FRAME_KEY))
+    yield publisher, worker, results
+    subscriber.undeclare()
+    worker.close()
+    service.close()
+    instrument.close()
+
+
+def camera_counts(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A weak object's true phase (rad, (h, w)) and its through-focus stack as a camera with
+    `PHOTONS_PER_COUNT` and `DARK_COUNTS` counts it, uint16 (n, h, w)."""
+    field = weak_object(SIZE_PX, seed)
+    photons = through_focus_stack(field, OFFSETS_UM, WAVELENGTH_UM, PIXEL_UM, GAMMA_PHOTONS, seed)
+    counts = np.rint(photons / PHOTONS_PER_COUNT + DARK_COUNTS).astype(np.uint16)
+    return np.angle(field), counts
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.corrcoef((a - a.mean()).ravel(), (b - b.mean()).ravel())[0, 1])
+
+
+def test_a_phase_stack_on_the_bus_comes_back_as_its_phase_tagged(bus) -> None:
+    publisher, _, results = bus
+    truth_rad, counts = camera_counts(seed=4)
+    publish(publisher, header_of(7, REFERENCE_Z_UM + OFFSETS_UM), counts)
+    key, result, attachment, payload = results.get(timeout=30)
+    assert key == keys.phase_key("s1", 1, 2)
+    assert (result.slide, result.row, result.col, result.sequence) == ("s1", 1, 2, 7)
+    assert result.instrument == "sim" and result.nonce == bytes([7]) * 16
+    assert result.reference_z_um == REFERENCE_Z_UM and result.pixel_size_um == PIXEL_UM
+    assert not result.HasField("error") and result.compute_time_s > 0
+    assert list(result.shape) == [2, SIZE_PX, SIZE_PX] and result.dtype == "<f4"
+    assert ResultSigner(RESULT_KEY).verify_attachment(key, result, attachment, payload)
+    assert not ResultSigner(b"x" * 32).verify_attachment(key, result, attachment, payload)
+    phase_rad, amplitude = codec.phase_field(result, payload)
+    assert correlation(phase_rad, truth_rad) > 0.8  # the heights, gain and offset were read
+    assert np.mean(amplitude) == pytest.approx(1.0, abs=0.05)  # relative to the stack's mean
+
+
+def test_focus_stacks_are_ignored_and_a_bad_phase_stack_gets_an_error(bus) -> None:
+    publisher, worker, results = bus
+    _, counts = camera_counts(seed=5)
+    z_um = REFERENCE_Z_UM + OFFSETS_UM
+    publish(publisher, header_of(1, z_um, instrument_pb2.ACQUISITION_PURPOSE_FOCUS), counts)
+    publish(publisher, header_of(2, z_um[:1]), counts[:1])  # one frame: no phase from it
+    untagged = PixelPublisher(publisher.session, part_bytes=PART_BYTES)
+    publish(untagged, header_of(3, z_um), counts)  # not the instrument's: dropped
+    publish(publisher, header_of(4, z_um), counts)
+    # one worker takes the frames in order: the focus stack's came first and got nothing
+    _, refused, _, payload = results.get(timeout=30)
+    assert refused.sequence == 2 and payload == b""
+    assert refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+    assert "at least 2 frames" in refused.error.message
+    _, result, _, _ = results.get(timeout=30)
+    assert result.sequence == 4 and not result.HasField("error")
+    assert worker.stacks.n_not_phase == len(z_um) * 3  # every part of every frame
+    assert worker.stacks.n_untagged == len(z_um) * 3
+    assert worker.n_published == 2
+
+
+def test_a_header_without_wavelength_or_gain_takes_the_service_defaults() -> None:
+    header = header_of(1, np.array([11.0, 13.0]))
+    header.wavelength_um = header.photons_per_count = 0.0
+    given = phase_input(header, np.full((2, 4, 4), 150.0, np.float32), PhaseOptics(0.6))
+    assert given.wavelength_um == 0.6 and given.photons_per_count == 1.0
+    assert given.z_um.tolist() == [-1.0, 1.0] and np.all(given.counts == 50.0)
+    header.pixel_size_um = 0.0
+    with pytest.raises(ValueError, match="no pixel size"):
+        phase_input(header, np.ones((2, 4, 4), np.float32), PhaseOptics())
+
+
+def test_the_phase_command_serves_zenoh_and_http_in_one_process(tmp_path: Path) -> None:
+    endpoint = loopback_endpoint()
+    instrument = open_session(listen=[endpoint])
+    (tmp_path / "frame.key").write_bytes(FRAME_KEY)
+    port = free_port()
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "focustrack_phase",
+            "--port",
+            str(port),
+            "--connect",
+            endpoint,
+            "--frame-key-file",
+            str(tmp_path / "frame.key"),
+        ],
+        env=os.environ | {"PYTHONUNBUFFERED": "1"},
+    )
+    results: queue.Queue = queue.Queue()
+    subscriber = instrument.declare_subscriber(keys.phase_pattern("s1"), results.put)
+    try:
+        for _ in range(300):
+            assert process.poll() is None, "the phase service exited"
+            try:
+                health = httpx.get(f"http://127.0.0.1:{port}/healthz").json()
+                if health["status"] == "ok":  # the REST app, and the session linked
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        else:
+            pytest.fail("the phase service did not come up on HTTP and Zenoh")
+        time.sleep(0.5)  # let its subscription reach the instrument's side
+        truth_rad, counts = camera_counts(seed=6)
+        publisher = PixelPublisher(instrument, signer=FrameSigner(FRAME_KEY))
+        publish(publisher, header_of(3, REFERENCE_Z_UM + OFFSETS_UM), counts)
+        sample = results.get(timeout=30)
+        result = phase_pb2.PhaseResult.FromString(sample.attachment.to_bytes())
+        phase_rad, _ = codec.phase_field(result, sample.payload.to_bytes())
+        assert correlation(phase_rad, truth_rad) > 0.8
+    finally:
+        subscriber.undeclare()
+        process.terminate()
+        process.wait(10)
+        instrument.close()
