@@ -1,11 +1,12 @@
-"""The Zenoh side of the scheduler: the instrument's queryables and the focus results.
+"""The Zenoh side of the scheduler: the instrument's queryables, the focus and phase results.
 
 `InstrumentClient` asks the instrument (info, acquire, the frames a tile keeps, and
-the evaluation-only truth); `Inbox` takes the focus service's results as they arrive by
+the evaluation-only truth); an `Inbox` takes the focus service's results as they arrive by
 subscription, each only for the acquisition the engine awaits (its sequence, tile,
-frames and nonce) and only once, for the engine to wait on. The scheduler does not
-subscribe to the frames: only the focus service needs every one, and the scheduler
-fetches the few it keeps once their tile's focus is known.
+frames and nonce) and only once, for the engine to wait on; with phase, another takes the
+phase service's results the same way (`PhaseReceived`, matched by `phase_refusal`).
+The scheduler does not subscribe to the frames: only the focus service needs every one,
+and the scheduler fetches the few it keeps once their tile's focus is known.
 """
 
 from __future__ import annotations
@@ -14,6 +15,9 @@ import hmac
 import logging
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 import zenoh
@@ -21,10 +25,10 @@ import zenoh
 from focustrack_core.domain import Acquisition
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.logs import worth_logging
-from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
+from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.trust import ResultSigner
-from focustrack_scheduler.plan import SlideGeometry
+from focustrack_scheduler.plan import AcquirePhase, SlideGeometry
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +48,22 @@ def acquire_request(
         n_frames=z.n_frames,
         sequence=acquisition.index,
         nonce=nonce,
+    )
+
+
+def phase_request(step: AcquirePhase, nonce: bytes) -> instrument_pb2.AcquireRequest:
+    """The AcquireRequest of a phase stack (purpose phase, its reference plane), under `nonce`."""
+    return instrument_pb2.AcquireRequest(
+        slide=step.slide,
+        row=step.row,
+        col=step.col,
+        z_low_um=step.z.low_um,
+        z_step_um=step.z.step_um,
+        n_frames=step.z.n_frames,
+        sequence=step.sequence,
+        nonce=nonce,
+        purpose=instrument_pb2.ACQUISITION_PURPOSE_PHASE,
+        reference_z_um=step.reference_z_um,
     )
 
 
@@ -78,6 +98,33 @@ def refusal(
         )
     ):
         return f"tile ({result.row}, {result.col}) or frames not of acquisition {acquisition.index}"
+    return None
+
+
+@dataclass(frozen=True)
+class PhaseReceived:
+    """A phase result as the scheduler takes it: its header and, unless it reports an
+    error, its field, float32 (2, height, width): the phase (rad), then the amplitude."""
+
+    result: phase_pb2.PhaseResult
+    field: np.ndarray | None
+
+
+#: A phase stack awaited: its step, and the nonce it was taken under.
+PhaseAwaited = tuple[AcquirePhase, bytes]
+
+
+def phase_refusal(awaited: PhaseAwaited, received: PhaseReceived) -> str | None:
+    """Why `received` is not the result of the phase stack `awaited`, or None when it is:
+    same sequence, slide, tile and nonce (compared in constant time)."""
+    step, nonce = awaited
+    result = received.result
+    if result.sequence != step.sequence:
+        return f"no phase stack {result.sequence} is awaited"
+    if result.slide != step.slide or (result.row, result.col) != (step.row, step.col):
+        return f"tile {result.slide}/({result.row}, {result.col}), not the stack's"
+    if not hmac.compare_digest(result.nonce, nonce):
+        return "another acquisition's nonce: an old result replayed, or a stale one"
     return None
 
 
@@ -195,76 +242,113 @@ def wait_for_instrument(
             time.sleep(0.2)
 
 
-class Inbox:
-    """The focus results the engine awaits, each taken once; filled from a Zenoh callback
+A = TypeVar("A")
+R = TypeVar("R")
+
+
+class Inbox(Generic[A, R]):
+    """The results the engine awaits, each taken once; filled from a Zenoh callback
     thread, read by the engine's thread.
 
-    The engine says which acquisition it is about to take, and under which nonce
-    (`expect`), before it asks for it; `offer` takes a result only when it is that
-    acquisition's (`refusal`) and none was taken for it yet, and says why not otherwise;
-    `wait` hands it over and closes the acquisition, so a later copy is refused too.
+    The engine says which stack it is about to take (its wire sequence, and what it awaits
+    of it `A`: the acquisition and its nonce) before it asks for it (`expect`); `offer`
+    takes a result `R` only when `refusal(awaited, result)` finds nothing wrong and none
+    was taken for that sequence yet, and says why not otherwise; `wait` hands it over and
+    closes the sequence, so a later copy is refused too (`forget` closes it unread).
     """
 
-    def __init__(self) -> None:
-        self._expected: dict[int, tuple[str, Acquisition, bytes]] = {}  # by sequence
-        self._taken: dict[int, focus_pb2.FocusResult] = {}
+    def __init__(
+        self, refusal: Callable[[A, R], str | None], sequence_of: Callable[[R], int]
+    ) -> None:
+        self._refusal = refusal
+        self._sequence_of = sequence_of
+        self._expected: dict[int, A] = {}  # by sequence
+        self._taken: dict[int, R] = {}
         self._changed = threading.Condition()
 
-    def expect(self, slide: str, acquisition: Acquisition, nonce: bytes) -> None:
-        """Await the result of `acquisition` of `slide` taken under `nonce` (instead of any
-        earlier take of it)."""
+    def expect(self, sequence: int, awaited: A) -> None:
+        """Await the result of stack `sequence` as `awaited` (instead of any earlier take)."""
         with self._changed:
-            self._expected[acquisition.index] = (slide, acquisition, nonce)
-            self._taken.pop(acquisition.index, None)
+            self._expected[sequence] = awaited
+            self._taken.pop(sequence, None)
 
-    def offer(self, result: focus_pb2.FocusResult) -> str | None:
+    def offer(self, result: R) -> str | None:
         """None when `result` is taken, else why it is refused (not awaited, another nonce,
         slide or tile, or a second copy)."""
+        sequence = self._sequence_of(result)
         with self._changed:
-            expected = self._expected.get(result.sequence)
+            expected = self._expected.get(sequence)
             if expected is None:
-                return f"no acquisition {result.sequence} is awaited (a copy, or a late result)"
-            why = refusal(*expected, result)
-            if why is None and result.sequence in self._taken:
-                why = f"a second result for acquisition {result.sequence}"
+                return f"no acquisition {sequence} is awaited (a copy, or a late result)"
+            why = self._refusal(expected, result)
+            if why is None and sequence in self._taken:
+                why = f"a second result for acquisition {sequence}"
             if why is None:
-                self._taken[result.sequence] = result
+                self._taken[sequence] = result
                 self._changed.notify_all()
             return why
 
-    def wait(self, acquisition: Acquisition, timeout_s: float) -> focus_pb2.FocusResult | None:
-        """The result taken for `acquisition` (awaited by `expect`), or None after
+    def wait(self, sequence: int, timeout_s: float) -> R | None:
+        """The result taken for stack `sequence` (awaited by `expect`), or None after
         `timeout_s`; either way it is awaited no longer."""
         deadline_s = time.monotonic() + timeout_s
         with self._changed:
             try:
-                while (result := self._taken.get(acquisition.index)) is None:
+                while (result := self._taken.get(sequence)) is None:
                     remaining_s = deadline_s - time.monotonic()
                     if remaining_s <= 0:
                         return None
                     self._changed.wait(remaining_s)
                 return result
             finally:
-                self._expected.pop(acquisition.index, None)
-                self._taken.pop(acquisition.index, None)
+                self.forget(sequence)
+
+    def forget(self, sequence: int) -> None:
+        """Await stack `sequence` no longer (a result for it, taken or to come, is dropped)."""
+        with self._changed:
+            self._expected.pop(sequence, None)
+            self._taken.pop(sequence, None)
+
+
+def focus_inbox() -> Inbox[tuple[str, Acquisition, bytes], focus_pb2.FocusResult]:
+    """The focus results awaited: each acquisition's (slide, acquisition, nonce)."""
+    return Inbox(lambda awaited, result: refusal(*awaited, result), lambda r: r.sequence)
+
+
+def phase_inbox() -> Inbox[PhaseAwaited, PhaseReceived]:
+    """The phase results awaited: each phase stack's step and nonce."""
+    return Inbox(phase_refusal, lambda received: received.result.sequence)
 
 
 class SlideListener:
-    """Subscribes to the focus results of one slide; close it when done.
+    """Subscribes to the focus results of one slide (and with `phase`, its phase results);
+    close it when done.
 
-    With a `trust` key, a focus result is read only when its attachment is that key's tag
-    of it (`focustrack_core.wire.trust`); a result enters `focus` only for the
-    acquisition awaited, once (`Inbox.offer`). The others are dropped, logged and counted
-    in `n_rejected`.
+    With a `trust` key, a result is read only when it carries that key's tag
+    (`focustrack_core.wire.trust`: a focus result's attachment is its tag, a phase
+    result's header ends with it); a result enters `focus` (or `phase`) only for the stack
+    awaited, once (`Inbox.offer`). The others are dropped, logged and counted in
+    `n_rejected` (focus) and `n_phase_rejected`.
     """
 
     def __init__(
-        self, session: zenoh.Session, slide: str, trust: ResultSigner | None = None
+        self,
+        session: zenoh.Session,
+        slide: str,
+        trust: ResultSigner | None = None,
+        *,
+        phase: bool = False,
     ) -> None:
-        self.focus = Inbox()
+        self.focus = focus_inbox()
+        self.phase = phase_inbox()
         self.trust = trust
         self.n_rejected = 0
+        self.n_phase_rejected = 0
         self._subscribers = [session.declare_subscriber(keys.focus_pattern(slide), self._on_focus)]
+        if phase:
+            self._subscribers.append(
+                session.declare_subscriber(keys.phase_pattern(slide), self._on_phase)
+            )
 
     def _on_focus(self, sample: zenoh.Sample) -> None:
         key_expr = str(sample.key_expr)
@@ -285,6 +369,32 @@ class SlideListener:
         why = self.focus.offer(result)
         if why is not None:
             self._reject(key_expr, why)
+
+    def _on_phase(self, sample: zenoh.Sample) -> None:
+        key_expr = str(sample.key_expr)
+        payload = codec.payload_bytes(sample.payload)
+        attachment = b"" if sample.attachment is None else sample.attachment.to_bytes()
+        why: str | None
+        try:
+            result = phase_pb2.PhaseResult.FromString(attachment)
+            if self.trust is not None and not self.trust.verify_attachment(
+                key_expr, result, attachment, payload
+            ):
+                why = "no tag or a wrong tag: not from the trusted phase service"
+            else:
+                field = None if result.HasField("error") else codec.phase_field(result, payload)
+                why = self.phase.offer(PhaseReceived(result, field))
+        except Exception as error:  # unreadable (DecodeError, ValueError): Zenoh would swallow it
+            why = f"unreadable phase result: {error}"
+        if why is not None:
+            self.n_phase_rejected += 1  # only Zenoh's callback thread counts
+            if worth_logging(self.n_phase_rejected):
+                log.warning(
+                    "phase result on %s rejected (%d so far): %s",
+                    key_expr,
+                    self.n_phase_rejected,
+                    why,
+                )
 
     def _reject(self, key_expr: str, why: str) -> None:
         self.n_rejected += 1  # only Zenoh's callback thread counts

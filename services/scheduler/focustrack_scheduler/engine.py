@@ -17,6 +17,11 @@ URL, when one stays gone longer than that:
   with that nonce (and its sequence, tile and frames) is taken, once (`clients.Inbox`);
   waited for `focus_timeout_s`; a timeout goes back to the plan, which acquires the
   stack again (under a new nonce);
+- phase stacks (`AcquirePhase`, with ``--phase``): acquired as any stack, their result
+  taken the same way and waited for `phase_timeout_s`; a result that does not come, or
+  one that reports an error, leaves the tile without phase (logged), never stops the
+  scan; an instrument that takes a phase stack as a focus stack (it predates the field)
+  is not waited for;
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
@@ -41,13 +46,20 @@ import tenacity
 from focustrack_client import EstimatorClient, EstimatorError
 from focustrack_core.domain import Acquisition, Outcome
 from focustrack_core.rest import to_api, to_domain
+from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc
 from focustrack_core.wire.trust import new_nonce
-from focustrack_scheduler.clients import InstrumentClient, SlideListener, acquire_request
+from focustrack_scheduler.clients import (
+    InstrumentClient,
+    SlideListener,
+    acquire_request,
+    phase_request,
+)
 from focustrack_scheduler.in_focus import InFocusScore
 from focustrack_scheduler.outputs import WallTimes
 from focustrack_scheduler.plan import (
     Acquire,
+    AcquirePhase,
     AskNext,
     AwaitFocus,
     CreateOrResumeSlide,
@@ -83,6 +95,7 @@ class RetryPolicy:
     instrument_timeout_s: float = 60.0  # one acquisition: a wide stack of big frames takes seconds
     instrument_outage_s: float = 60.0  # keep retrying a gone (or busy) instrument this long
     focus_timeout_s: float = 15.0
+    phase_timeout_s: float = 15.0  # a phase stack's result; none by then: the tile has no phase
     estimator_timeout_s: float = 10.0  # one HTTP request
     estimator_outage_s: float = 60.0  # keep retrying a gone estimator this long
     backoff_initial_s: float = 0.25  # the first pause between retries; it doubles ...
@@ -93,6 +106,7 @@ class RetryPolicy:
             self.instrument_timeout_s,
             self.instrument_outage_s,
             self.focus_timeout_s,
+            self.phase_timeout_s,
             self.estimator_timeout_s,
             self.estimator_outage_s,
             self.backoff_initial_s,
@@ -189,6 +203,7 @@ class Engine:
             PostMeasurement: self._post,
             KeepTile: self._keep,
             KeepPlanes: self._keep_planes,
+            AcquirePhase: self._acquire_phase,
         }
 
     def run(self, plan: Plan) -> str:
@@ -245,7 +260,8 @@ class Engine:
         """Acquire `acquisition`'s stack of `slide`, under a fresh nonce whose focus result
         alone the listener takes from now on; the z (um) of its frames."""
         request = acquire_request(slide, acquisition, new_nonce())
-        self.listener.focus.expect(slide, acquisition, request.nonce)  # its result may come first
+        # its result may come first
+        self.listener.focus.expect(acquisition.index, (slide, acquisition, request.nonce))
         key_expr = keys.acquire_key(self.instrument.name)
         what = f"acquisition {acquisition.index} of tile ({acquisition.row}, {acquisition.col})"
         sent_s = time.time()
@@ -268,7 +284,7 @@ class Engine:
     def _await_focus(self, step: AwaitFocus) -> Any:
         acquisition = step.acquisition
         started_s = time.perf_counter()
-        received = self.listener.focus.wait(acquisition, self.policy.focus_timeout_s)
+        received = self.listener.focus.wait(acquisition.index, self.policy.focus_timeout_s)
         waited_s = time.perf_counter() - started_s
         if received is None:
             log.warning(
@@ -363,6 +379,54 @@ class Engine:
         z_um = [frame.z_um for frame in step.planes]
         stacked = np.stack([pixels[frame] for frame in step.planes])
         self.record.keep_planes(self.geometry.grid, step.row, step.col, z_um, stacked, bit_depth)
+
+    def _acquire_phase(self, step: AcquirePhase) -> bool:
+        if self.geometry is None:  # described before any acquisition
+            return False
+        started_s = time.perf_counter()
+        try:
+            return self._take_phase(step)
+        finally:
+            self.wall.phase_s += time.perf_counter() - started_s
+
+    def _take_phase(self, step: AcquirePhase) -> bool:
+        """Acquire the phase stack, await its result and keep it; True when it was kept."""
+        assert self.geometry is not None
+        request = phase_request(step, new_nonce())
+        self.listener.phase.expect(step.sequence, (step, request.nonce))  # it may come first
+        what = f"the phase stack of tile ({step.row}, {step.col})"
+        key_expr = keys.acquire_key(self.instrument.name)
+        reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
+        if reply.header.nonce != request.nonce:
+            raise ScanRefusedError(
+                f"instrument {self.instrument.name!r} took {what} without its nonce: it "
+                "predates acquisition nonces (update it), or is not the instrument asked"
+            )
+        error = None
+        received = None
+        if reply.header.purpose != instrument_pb2.ACQUISITION_PURPOSE_PHASE:
+            self.listener.phase.forget(step.sequence)
+            error = "the instrument took it as a focus stack (it predates phase stacks)"
+        else:
+            received = self.listener.phase.wait(step.sequence, self.policy.phase_timeout_s)
+            if received is None:
+                error = f"no phase result within {self.policy.phase_timeout_s:g} s"
+            elif received.field is None:
+                error = f"the phase service: {received.result.error.message}"
+        if error is not None:
+            log.warning("%s: no phase: %s", what, error)
+        self.record.phase(
+            self.geometry.grid,
+            step.row,
+            step.col,
+            sequence=step.sequence,
+            n_frames=len(reply.header.z_um),
+            scan_time_s=reply.timing.total_s,
+            reference_z_um=step.reference_z_um,
+            field=None if received is None else received.field,
+            error=error,
+        )
+        return error is None
 
     def _show(self) -> None:
         if self._progress is not None:

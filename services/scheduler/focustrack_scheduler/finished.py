@@ -3,14 +3,14 @@
 `FinishedScan.of` takes what the record, the estimator and the instrument know at the end
 of a scan into one value that no longer changes; each `OutputWriter` writes one output of
 it (`writers.DEFAULT_WRITERS`: the focus map, the plots, the mosaic and its preview, the
-OME-Zarr metadata, the report). Adding an output is adding a writer to the list a scan is
+OME-Zarr metadata, the phase, the report). Adding an output is adding a writer to the list a scan is
 given (`scan.ScanJob.writers`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -35,7 +35,9 @@ class FinishedScan:
     `kept` the z of each tile's image, `planes` the z of the frames a tile keeps besides,
     `measured` each tile's last measurement as logged; `images_per_tile` (rows, cols);
     `mosaic` the kept images side by side, (rows * h, cols * w, channels) uint8, read-only
-    (None when no tile was kept); `report` the figures of ``report.json``.
+    (None when no tile was kept); `report` the figures of ``report.json``; `phase` the
+    file (relative to `out_dir`) of each tile's phase and amplitude, float32 (2, h, w),
+    where it has one (``--phase``; none by default).
     """
 
     out_dir: Path
@@ -51,6 +53,7 @@ class FinishedScan:
     mosaic: np.ndarray | None
     mosaic_format: MosaicFormat
     report: Mapping[str, Any]
+    phase: Mapping[Tile, str] = field(default_factory=lambda: MappingProxyType({}))
 
     @classmethod
     def of(
@@ -94,6 +97,7 @@ class FinishedScan:
             kept=MappingProxyType(dict(tally.kept)),
             planes=MappingProxyType({tile: tuple(z) for tile, z in tally.planes.items()}),
             measured=MappingProxyType(dict(tally.measured)),
+            phase=MappingProxyType(dict(tally.phase)),
             images_per_tile=images_per_tile,
             mosaic=mosaic,
             mosaic_format=mosaic_format,

@@ -4,6 +4,7 @@
 image lands in its place as it is kept, so a restarted scheduler carries on with the
 tiles already there. ``planes/r{row}_c{col}.npy`` holds a tile's kept frames as the camera
 gave them; the tile's place in the mosaic then shows their fusion (`fusion.fuse_planes`).
+``phase/r{row}_c{col}.npy`` holds a tile's phase and amplitude (with ``--phase``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 
 from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
-from focustrack_scheduler.outputs import PARTIAL_MOSAIC, PLANES
+from focustrack_scheduler.outputs import PARTIAL_MOSAIC, PHASE, PLANES
 
 
 def to_uint8(frame: np.ndarray, bit_depth: int) -> np.ndarray:
@@ -47,15 +48,26 @@ class MosaicStore:
         """Keep tile (row, col)'s `frames` (n, h, w, channels), ascending in z; its place in
         the mosaic becomes their fusion, each pixel from the sharpest. The file, relative to
         the output folder."""
-        folder = self.out_dir / PLANES
+        file = self._save_tile_array(PLANES, row, col, frames)
+        self.write_tile(grid, row, col, fuse_planes(frames), bit_depth)
+        return file
+
+    def save_phase(self, row: int, col: int, field: np.ndarray) -> str:
+        """Keep tile (row, col)'s phase and amplitude, float32 (2, h, w); the file, relative
+        to the output folder."""
+        return self._save_tile_array(PHASE, row, col, field)
+
+    def _save_tile_array(self, folder_name: str, row: int, col: int, array: np.ndarray) -> str:
+        """`array` as ``{folder_name}/r{row}_c{col}.npy``, written whole, then renamed
+        (never half a file); the file, relative to the output folder."""
+        folder = self.out_dir / folder_name
         folder.mkdir(exist_ok=True)
         path = folder / f"r{row}_c{col}.npy"
         temporary = path.with_suffix(".tmp")
-        with temporary.open("wb") as file:  # written whole, then renamed: never half a file
-            np.save(file, frames, allow_pickle=False)
+        with temporary.open("wb") as file:
+            np.save(file, array, allow_pickle=False)
         temporary.replace(path)
-        self.write_tile(grid, row, col, fuse_planes(frames), bit_depth)
-        return f"{PLANES}/{path.name}"
+        return f"{folder_name}/{path.name}"
 
     def read(self) -> np.ndarray | None:
         """The mosaic so far, read-only and mapped from disk; None if no tile was kept."""

@@ -3,18 +3,21 @@
 `write_mosaic` writes the multiscale image (c, y, x); `write_metadata` adds, in the same
 group, FocusTrack's attributes (`ZARR_ATTRS`: the scan, the grid, every tile's numbers) and
 the focus-map layers in `ZARR_MAPS`, one NGFF image each, a pixel per tile, placed over its
-tile of the mosaic (micrometres), so a viewer overlays them.
+tile of the mosaic (micrometres), so a viewer overlays them; `write_phase` the phase
+(radians, with ``--phase``) in `ZARR_PHASE`, an NGFF image of the mosaic's pixels and
+placement.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zarr
 
-from focustrack_scheduler.outputs import ZARR_ATTRS, ZARR_MAPS
+from focustrack_scheduler.outputs import ZARR_ATTRS, ZARR_MAPS, ZARR_PHASE
 from focustrack_scheduler.pyramid import TIFF_TILE_PX, half, n_levels
 
 #: Colours of the mosaic's channels in OME-Zarr's "omero" rendering settings.
@@ -43,6 +46,31 @@ def write_mosaic(path: Path, mosaic: np.ndarray, pixel_size_um: float) -> None:
         origin_um=(0.0, 0.0),
         omero={"channels": channels, "rdefs": {"model": "color"}},
     )
+
+
+def write_phase(path: Path, phase_rad: np.ndarray, pixel_size_um: float) -> None:
+    """Into the OME-Zarr mosaic at `path`: `phase_rad` (height, width) float32, the phase in
+    radians over the whole mosaic (NaN where a tile has none), as an NGFF image (c, y, x) of
+    one channel in `ZARR_PHASE`, with the mosaic's pixels, placement and halvings; its
+    rendering window is [-pi, pi] and its unit ``radian`` (`ZARR_ATTRS`)."""
+    root = zarr.open_group(path, mode="r+", zarr_format=3)
+    levels = [phase_rad[..., None]]
+    for _ in range(n_levels(phase_rad.shape)):
+        levels.append(half(levels[-1]))
+    window = {"start": -math.pi, "end": math.pi, "min": -math.pi, "max": math.pi}
+    group = root.create_group(ZARR_PHASE)
+    _write_ngff_image(
+        group,
+        ZARR_PHASE,
+        [level.transpose(2, 0, 1) for level in levels],
+        pixel_um=(pixel_size_um, pixel_size_um),
+        origin_um=(0.0, 0.0),
+        omero={
+            "channels": [{"label": "phase (rad)", "color": "FFFFFF", "window": window}],
+            "rdefs": {"model": "greyscale"},
+        },
+    )
+    group.attrs[ZARR_ATTRS] = {"layer": ZARR_PHASE, "unit": "radian"}
 
 
 def write_metadata(

@@ -11,8 +11,10 @@ During the scan (the record, `record.ScanRecord`, and its parts):
 - ``mosaic.partial.npy``: the mosaic being filled in, a memory map on disk;
 - ``planes/r{row}_c{col}.npy``: the frames a tile keeps where one is too unsure to be in
   focus (`Outcome.planes_um`), (n, h, w, channels) as the camera gave them, ascending in z;
-  the tile's image in the mosaic is then their fusion (`fusion.fuse_planes`)
-  (both `mosaic_store.MosaicStore`).
+  the tile's image in the mosaic is then their fusion (`fusion.fuse_planes`);
+- ``phase/r{row}_c{col}.npy`` (with ``--phase``): a tile's phase and amplitude, float32
+  (2, h, w), as the phase service reconstructed them at the z of its image
+  (all `mosaic_store.MosaicStore`).
 A scheduler that is restarted on the same folder reads these back and carries on.
 
 At the end, each by its writer (`writers.DEFAULT_WRITERS`, run on a `finished.FinishedScan`):
@@ -21,7 +23,8 @@ At the end, each by its writer (`writers.DEFAULT_WRITERS`, run on a `finished.Fi
 - ``scan.png``: true surface, estimated map, error map, images per tile;
 - the in-focus tile images side by side (8-bit RGB, with a pyramid) for a slide viewer:
   ``mosaic.ome.zarr`` (OME-Zarr, NGFF 0.5: the default; each tile's best z, sigma and flags
-  in its attributes, the focus-map layers as arrays beside it) or ``mosaic.ome.tif``
+  in its attributes, the focus-map layers as arrays beside it, and with ``--phase`` the
+  phase in radians as an image of its own over the mosaic, ``phase``) or ``mosaic.ome.tif``
   (`MosaicFormat`), and ``mosaic.png``, a small preview;
 - ``report.json``: images acquired, simulated scan time, in-focus fraction and MAE against
   the instrument's truth, and the wall-time split (`report.scan_report`).
@@ -43,6 +46,7 @@ PLOTS = "scan.png"
 FOCUS_MAP_CSV = "focus_map.csv"
 FOCUS_MAP_NPY = "focus_map.npy"
 PLANES = "planes"
+PHASE = "phase"
 #: Every file a scan writes in its output folder.
 SCAN_FILES = (
     STATE_FILE,
@@ -56,9 +60,12 @@ SCAN_FILES = (
     FOCUS_MAP_CSV,
     FOCUS_MAP_NPY,
     PLANES,
+    PHASE,
 )
 #: Group of the OME-Zarr mosaic that holds the focus-map layers, one NGFF image each.
 ZARR_MAPS = "maps"
+#: Group of the OME-Zarr mosaic that holds the phase (rad), an NGFF image over the mosaic.
+ZARR_PHASE = "phase"
 #: Key of FocusTrack's own attributes in the OME-Zarr root
 #: (`finished.FinishedScan.tile_metadata`).
 ZARR_ATTRS = "focustrack"
@@ -84,6 +91,7 @@ class WallTimes:
     - focus_computation: the focus service's own compute time of the stacks awaited;
     - estimation: the estimator's HTTP calls (next, measurements, slide creation);
     - waiting: the rest of the wait for focus results (their queueing and travel);
+    - phase: phase stacks (with ``--phase``): acquired, their results awaited and kept;
     - scheduler: everything else (tile images, the log, the progress display).
     """
 
@@ -92,6 +100,7 @@ class WallTimes:
     focus_computation_s: float = 0.0
     estimation_s: float = 0.0
     waiting_s: float = 0.0
+    phase_s: float = 0.0
     scheduler_s: float = 0.0
     total_s: float = 0.0
 
@@ -99,7 +108,8 @@ class WallTimes:
         """Set the total; what no other part accounts for is the scheduler's own."""
         self.total_s = total_s
         parts = (self.rendering_s, self.transport_s, self.focus_computation_s)
-        self.scheduler_s = max(0.0, total_s - sum(parts) - self.estimation_s - self.waiting_s)
+        waits = self.estimation_s + self.waiting_s + self.phase_s
+        self.scheduler_s = max(0.0, total_s - sum(parts) - waits)
 
     def as_dict(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)}

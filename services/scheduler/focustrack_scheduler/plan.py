@@ -25,6 +25,11 @@ The loop (docs/scheduler.md):
    unsure to be in focus), `KeepPlanes` keeps them all beside it. The frames they
    need come first, as an image-only acquisition of purpose `planes`.
 
+With `ScanRequest.phase` (``focustrack scan --phase``), once a tile's image is final
+(`KeepTile` at the posterior), `AcquirePhase` takes a short phase stack of the tile
+centred on the z of that image, for the phase service, and keeps its phase beside the
+tile's image (a tile whose phase does not come is reported without it).
+
 An edge peak or a flat curve is posted as it is; the estimator then asks for
 another stack of the same tile, so a retry is just the next `AskNext`. A focus
 result that does not come is a lost stack: the same acquisition is made again,
@@ -48,7 +53,9 @@ from focustrack_core.domain import (
     FocusFlag,
     Measurement,
     Outcome,
+    Purpose,
     SlideSettings,
+    ZRange,
     ZRangePolicy,
 )
 from focustrack_core.geometry import ScanGrid
@@ -56,6 +63,31 @@ from focustrack_core.rest import to_api
 from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import keys
+
+#: Wire sequence numbers of phase stacks start here (plus the tile's row-major index), far
+#: above the estimator's acquisition indices, so the instrument keeps them apart.
+PHASE_SEQUENCE_BASE = 1 << 40
+
+
+@dataclass(frozen=True)
+class PhaseStacks:
+    """The phase stack of each tile: `planes` frames `step_um` apart, centred on the z the
+    tile is imaged at; `step_um` None: half the objective's depth of field (the instrument's
+    info)."""
+
+    planes: int
+    step_um: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.planes < 2:
+            raise ValueError(f"a phase stack needs at least 2 planes, got {self.planes}")
+        if self.step_um is not None and not self.step_um > 0:
+            raise ValueError(f"the phase stack's step must be positive, got {self.step_um} um")
+
+    def z_range(self, center_um: float, dof_um: float) -> ZRange:
+        """The stack's frames around `center_um` on an objective of depth of field `dof_um`."""
+        step_um = self.step_um if self.step_um is not None else dof_um / 2.0
+        return ZRange.centred(center_um, self.planes, step_um)
 
 
 @dataclass(frozen=True)
@@ -80,6 +112,7 @@ class ScanRequest:
     params: Mapping[str, Any] = field(default_factory=dict)
     policy: ZRangePolicy = field(default_factory=default_policy)
     resume_slide_id: str | None = None  # the estimator slide of a previous run of this scan
+    phase: PhaseStacks | None = None  # a phase stack of every tile (None: none)
 
     def __post_init__(self) -> None:
         keys.check_name(self.instrument, "instrument")
@@ -181,6 +214,20 @@ class KeepPlanes:
     planes: tuple[Frame, ...]
 
 
+@dataclass(frozen=True)
+class AcquirePhase:
+    """-> True when the tile's phase was kept. A phase stack of tile (row, col) at `z`, for
+    the phase service to reconstruct at `reference_z_um` (the z of the tile's image), under
+    wire sequence `sequence`; its result is awaited and kept beside the tile's image."""
+
+    slide: str
+    row: int
+    col: int
+    z: ZRange
+    reference_z_um: float
+    sequence: int
+
+
 Step = (
     DescribeSlide
     | CreateOrResumeSlide
@@ -190,6 +237,7 @@ Step = (
     | PostMeasurement
     | KeepTile
     | KeepPlanes
+    | AcquirePhase
 )
 Plan = Generator[Step, Any, str]
 
@@ -298,6 +346,7 @@ def scan_plan(request: ScanRequest) -> Plan:
     slide_id = yield CreateOrResumeSlide(slide_config(request, geometry), request.resume_slide_id)
     tile: tuple[int, int] | None = None
     frames: list[Frame] = []  # every frame acquired on `tile` so far
+    phased: set[int] = set()  # the tiles (row-major index) whose phase stack was taken
     while (acquisition := (yield AskNext(slide_id))) is not None:
         if (acquisition.row, acquisition.col) != tile:
             tile, frames = (acquisition.row, acquisition.col), []
@@ -319,6 +368,21 @@ def scan_plan(request: ScanRequest) -> Plan:
             if outcome.planes_um:
                 planes = tuple(nearest_frame(frames, z_um) for z_um in outcome.planes_um)
                 yield KeepPlanes(acquisition.row, acquisition.col, planes)
+            tile_index = acquisition.row * geometry.grid.cols + acquisition.col
+            if (
+                request.phase is not None
+                and acquisition.purpose is not Purpose.SURVEY
+                and tile_index not in phased
+            ):
+                phased.add(tile_index)
+                yield AcquirePhase(
+                    request.slide,
+                    acquisition.row,
+                    acquisition.col,
+                    request.phase.z_range(final.z_um, geometry.dof_um),
+                    final.z_um,
+                    PHASE_SEQUENCE_BASE + tile_index,
+                )
     return slide_id
 
 

@@ -17,7 +17,8 @@ def n_levels(shape: tuple[int, ...]) -> int:
 
 def half(image: np.ndarray) -> np.ndarray:
     """`image` (height, width, channels) at half the size: each pixel the mean of 2x2 (a
-    viewer's zoomed-out level without aliasing)."""
+    viewer's zoomed-out level without aliasing), rounded where the image holds integers."""
     height, width = (image.shape[0] // 2) * 2, (image.shape[1] // 2) * 2
     blocks = image[:height, :width].reshape(height // 2, 2, width // 2, 2, -1)
-    return blocks.mean(axis=(1, 3)).round().astype(image.dtype)
+    mean = blocks.mean(axis=(1, 3))
+    return (mean if np.issubdtype(image.dtype, np.floating) else mean.round()).astype(image.dtype)

@@ -110,6 +110,39 @@ class ScanRecord:
         file = self.mosaic.save_planes(grid, row, col, frames, bit_depth)
         self._append({"event": "planes", "row": row, "col": col, "z_um": z_um, "file": file})
 
+    def phase(
+        self,
+        grid: ScanGrid,
+        row: int,
+        col: int,
+        *,
+        sequence: int,
+        n_frames: int,
+        scan_time_s: float,
+        reference_z_um: float,
+        field: np.ndarray | None,
+        error: str | None,
+    ) -> None:
+        """A phase stack of tile (row, col) was taken (`n_frames` images, `scan_time_s`
+        simulated seconds) for the plane at `reference_z_um`; its `field`, float32 (2, h, w):
+        the phase (rad) and amplitude, is kept, or `error` says why there is none."""
+        file = None if field is None else self.mosaic.save_phase(row, col, field)
+        spread_rad = None if field is None else finite_or_none(float(np.std(field[0])))
+        self._append(
+            {
+                "event": "phase",
+                "row": row,
+                "col": col,
+                "sequence": sequence,
+                "n_frames": n_frames,
+                "scan_time_s": scan_time_s,
+                "reference_z_um": reference_z_um,
+                "file": file,
+                "phase_std_rad": spread_rad,
+                "error": error,
+            }
+        )
+
     def close(self) -> None:
         self.log.close()
         self.mosaic.close()

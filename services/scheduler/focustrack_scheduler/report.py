@@ -73,6 +73,10 @@ def scan_report(
         "prior_mae_um": None
         if truth_um is None
         else mean_abs_error_um(focus_map.prior_um, truth_um),
+        # phase stacks (--phase): not in the figures above, which compare focus strategies
+        "tiles_with_phase": len(tally.phase),
+        "phase_images_acquired": sum(entry["n_frames"] for entry in tally.phase_stacks),
+        "phase_scan_time_s": float(sum(entry["scan_time_s"] for entry in tally.phase_stacks)),
         "wall_time_s": dict(wall_time_s),
         "focus_results_rejected": focus_results_rejected,
         "mosaic": mosaic,

@@ -100,7 +100,9 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
     """Scan (or resume) the slide, write the job's outputs, and return the report."""
     record = ScanRecord(job.out_dir)
     estimator = EstimatorClient(job.estimator_url, job.token, job.retry.estimator_timeout_s)
-    listener = SlideListener(session, job.request.slide, job.trust)
+    listener = SlideListener(
+        session, job.request.slide, job.trust, phase=job.request.phase is not None
+    )
     try:
         resume_id = _check_same_scan(record, job)
         request = replace(job.request, resume_slide_id=resume_id)
@@ -211,8 +213,9 @@ def live_server(port: int | None) -> Iterator[LiveServer | None]:
 
 
 def summary_line(report: dict[str, Any]) -> str:
-    """One line: the strategy's images per tile, scan time, in-focus fraction and MAE, and
-    the tiles whose focus was not found, where there are some."""
+    """One line: the strategy's images per tile, scan time, in-focus fraction and MAE, the
+    tiles with phase (where phase stacks were taken), and the tiles whose focus was not
+    found, where there are some."""
 
     def number(value: float | None, form: str) -> str:
         return "n/a" if value is None else format(value, form)
@@ -224,6 +227,10 @@ def summary_line(report: dict[str, Any]) -> str:
         f"in focus {number(report['in_focus_fraction'], '.1%')}, "
         f"MAE {number(report['mae_um'], '.3f')} um"
     )
+    if report["phase_images_acquired"]:
+        line += (
+            f", phase on {report['tiles_with_phase']} of {report['rows'] * report['cols']} tiles"
+        )
     if report["tiles_without_focus"]:
         flags = ", ".join(f"{flag} {n}" for flag, n in report["tiles_flagged"].items())
         line += (

@@ -1,7 +1,8 @@
 """The settings of a scan, in one model: flags, ``FOCUSTRACK_SCAN_<OPTION>`` and a settings file.
 
 `ScanOptions` are the options a scan shares with `focustrack demo` (the prior, the
-z-stacks, timeouts and retries, the mosaic's format, the progress bar, the result key);
+z-stacks, the phase stacks, timeouts and retries, the mosaic's format, the progress bar,
+the result key);
 `ScanSettings`, the `focustrack scan` command's, adds what to scan, where the estimator
 and the bus are, and where the outputs go. Each default is written once: the prior's and
 the z-stacks' are the estimator API's (`focustrack_client.models`), the timeouts are
@@ -27,7 +28,7 @@ from focustrack_core.settings import ServiceSettings
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
 from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.outputs import MosaicFormat
-from focustrack_scheduler.plan import ScanRequest
+from focustrack_scheduler.plan import PhaseStacks, ScanRequest
 
 #: The best Kalman strategy we have, the demo's headline. kf-2d has the lowest prior MAE at
 #: the simulator's focus noise (0.146 um against 0.284 for kf-wiener0 and 0.254 for kf-mmae,
@@ -95,6 +96,31 @@ class ScanOptions(ServiceSettings):
         gt=0,
         description="how long to keep retrying an estimator that does not answer",
     )
+    # phase
+    phase: CliToggleFlag[bool] = Field(
+        False,
+        description="also take a phase stack of every tile, centred on the z its image is "
+        "taken at, for the phase service (`focustrack serve phase`), and keep its phase in "
+        "radians beside the mosaic (docs/phase.md)",
+    )
+    phase_planes: int = Field(
+        11,
+        ge=2,
+        description="frames of a phase stack: 11 at the default step span +/- 2.5 depths of "
+        "field, where the phase contrast of everything the objective resolves has grown "
+        "(the prediction puts the tile's focus in the middle, so a short stack is enough)",
+    )
+    phase_step_um: float | None = Field(
+        None,
+        gt=0,
+        description="between the frames of a phase stack, um (default: half the objective's "
+        "depth of field, from the instrument's info: 0.45 um at the simulator's 60x/0.85)",
+    )
+    phase_timeout_s: float = Field(
+        _RETRY.phase_timeout_s,
+        gt=0,
+        description="the wait for a phase stack's result, s; none by then: the tile has no phase",
+    )
     # outputs and trust
     mosaic_format: MosaicFormat = Field(
         MosaicFormat.OME_ZARR,
@@ -103,8 +129,8 @@ class ScanOptions(ServiceSettings):
     no_progress: CliToggleFlag[bool] = Field(False, description="hide the progress bar")
     result_key_file: Path | None = Field(
         None,
-        description="the focus service's shared key: accept only focus results tagged with it "
-        "(docs/security.md; default: any result with the awaited acquisition's nonce)",
+        description="the focus (and phase) service's shared key: accept only results tagged "
+        "with it (docs/security.md; default: any result with the awaited acquisition's nonce)",
     )
 
     @classmethod
@@ -133,6 +159,7 @@ class ScanOptions(ServiceSettings):
                 max_frames=self.max_frames,
             ),
             focus_attempts=self.focus_attempts,
+            phase=PhaseStacks(self.phase_planes, self.phase_step_um) if self.phase else None,
         )
 
     def retry(self) -> RetryPolicy:
@@ -141,6 +168,7 @@ class ScanOptions(ServiceSettings):
             instrument_timeout_s=self.instrument_timeout_s,
             instrument_outage_s=self.instrument_outage_s,
             focus_timeout_s=self.focus_timeout_s,
+            phase_timeout_s=self.phase_timeout_s,
             estimator_outage_s=self.estimator_outage_s,
         )
 

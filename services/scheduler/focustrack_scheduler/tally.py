@@ -2,7 +2,8 @@
 
 The same entries build it during the scan and, read back, after a restart: acquisitions
 (images and simulated seconds), the last measurement of each tile, the z of each tile's
-kept image and of the frames a tile keeps besides (its planes).
+kept image and of the frames a tile keeps besides (its planes), and the phase stacks
+(with ``--phase``: images, seconds, and the file of each tile's phase).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ class ScanTally:
         self.kept: dict[Tile, float] = {}  # tile -> z (um) of its image
         self.planes: dict[Tile, list[float]] = {}  # tile -> z (um) of its frames
         self.measured: dict[Tile, dict[str, Any]] = {}  # tile -> its last measurement
+        self.phase_stacks: list[dict[str, Any]] = []  # every phase stack taken
+        self.phase: dict[Tile, str] = {}  # tile -> the file of its phase (where it has one)
 
     def take(self, entry: dict[str, Any]) -> None:
         """Fold in one log entry (KeyError if it lacks its event's fields)."""
@@ -38,6 +41,10 @@ class ScanTally:
             self.planes[(entry["row"], entry["col"])] = entry["z_um"]
         elif event == "measured":
             self.measured[(entry["row"], entry["col"])] = entry
+        elif event == "phase":
+            self.phase_stacks.append(entry)
+            if entry["file"] is not None:
+                self.phase[(entry["row"], entry["col"])] = entry["file"]
 
     @property
     def n_images(self) -> int:

@@ -5,6 +5,7 @@ its file format's library when it writes (matplotlib, zarr, tifffile), so a scan
 ``--help``, does not load them before its end. The order matters once:
 `OmeZarrMetadataWriter` adds to the OME-Zarr group that `MosaicWriter` made. The
 record's partial mosaic goes when every writer is done (`finished.write_outputs`).
+`PhaseWriter` adds the phase to the same group, where tiles have one.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+
+import numpy as np
 
 from focustrack_core.maps import MAP_LAYERS, map_csv, map_layers, map_npy
 from focustrack_scheduler.finished import FinishedScan, OutputWriter
@@ -110,6 +113,34 @@ class OmeZarrMetadataWriter:
         return [path]
 
 
+def phase_mosaic(scan: FinishedScan) -> np.ndarray:
+    """The tiles' phase (rad) side by side as the mosaic places their images: float32
+    (rows * h, cols * w), NaN where a tile has none."""
+    tile = scan.state["tile"]
+    height, width = int(tile["height"]), int(tile["width"])
+    mosaic = np.full((scan.grid.rows * height, scan.grid.cols * width), np.nan, np.float32)
+    for (row, col), file in scan.phase.items():
+        phase_rad = np.load(scan.out_dir / file, mmap_mode="r")[0]
+        mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width] = phase_rad
+    return mosaic
+
+
+class PhaseWriter:
+    """Into ``mosaic.ome.zarr``: the tiles' phase in radians (``--phase``), an NGFF image
+    ``phase`` beside the mosaic, each tile where its image is (`phase_mosaic`)."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        if not scan.phase or scan.mosaic is None:
+            return []
+        if scan.mosaic_format is not MosaicFormat.OME_ZARR:
+            return []  # the phase is a layer of the OME-Zarr; its tiles stay in phase/
+        from focustrack_scheduler.ome_zarr import write_phase
+
+        path = scan.out_dir / scan.mosaic_format.file_name
+        write_phase(path, phase_mosaic(scan), float(scan.state["tile"]["pixel_size_um"]))
+        return [path]
+
+
 class ReportWriter:
     """``report.json``: the scan's figures (`FinishedScan.report`)."""
 
@@ -126,5 +157,6 @@ DEFAULT_WRITERS: tuple[OutputWriter, ...] = (
     MosaicPreviewWriter(),
     MosaicWriter(),
     OmeZarrMetadataWriter(),
+    PhaseWriter(),
     ReportWriter(),
 )

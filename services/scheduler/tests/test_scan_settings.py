@@ -16,7 +16,8 @@ from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.settings import BEST_KALMAN, TOKEN_ENV, ScanOptions, ScanSettings
 
-#: Every option of `focustrack scan` before its settings model (flag -> default).
+#: Every option of `focustrack scan` (flag -> default): those before its settings model,
+#: and the phase stacks'.
 OPTIONS = {
     "estimator": "http://127.0.0.1:8100",
     "token": None,
@@ -43,6 +44,10 @@ OPTIONS = {
     "focus_timeout_s": RetryPolicy().focus_timeout_s,
     "focus_attempts": 5,
     "estimator_outage_s": RetryPolicy().estimator_outage_s,
+    "phase": False,
+    "phase_planes": 11,
+    "phase_step_um": None,
+    "phase_timeout_s": RetryPolicy().phase_timeout_s,
     "mosaic_format": MosaicFormat.OME_ZARR,
     "no_progress": False,
     "result_key_file": None,

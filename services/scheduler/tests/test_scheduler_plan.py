@@ -20,7 +20,9 @@ from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome,
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.v1 import common_pb2, focus_pb2
 from focustrack_scheduler.plan import (
+    PHASE_SEQUENCE_BASE,
     Acquire,
+    AcquirePhase,
     AskNext,
     AwaitFocus,
     CreateOrResumeSlide,
@@ -28,6 +30,7 @@ from focustrack_scheduler.plan import (
     FocusUnavailableError,
     KeepPlanes,
     KeepTile,
+    PhaseStacks,
     PostMeasurement,
     ScanRequest,
     SlideGeometry,
@@ -167,6 +170,8 @@ class FakeEstimator:
                     return self.post(step.acquisition, step.measurement)
                 case KeepTile() | KeepPlanes():
                     return None
+                case AcquirePhase():
+                    return True
 
         return answer
 
@@ -196,6 +201,47 @@ def test_every_tile_is_scanned_and_keeps_the_frame_nearest_its_estimate() -> Non
         assert abs(kept.z_um - truth_um[row, col]) <= STEP_UM / 2
     # Every Acquire is answered by exactly one AwaitFocus (all these stacks are measured).
     assert len(acquired) == sum(isinstance(s, AwaitFocus) for s in steps)
+
+
+def test_with_phase_each_tile_takes_one_phase_stack_centred_on_its_image() -> None:
+    """After a tile's image is final (planes and retries included), one phase stack of it,
+    centred on the z of that image, half a depth of field between frames by default."""
+    grid = ScanGrid(3, 3)
+    truth_um = np.random.default_rng(4).normal(0.0, 0.4, grid.shape)
+    geometry = SlideGeometry(grid, dof_um=0.9)
+    fake = FakeEstimator(grid, truth_um, frozenset({(1, 1)}))
+    request = replace(REQUEST, phase=PhaseStacks(planes=11))
+
+    steps, _ = drive(request, fake.answer(geometry))
+    phase = [s for s in steps if isinstance(s, AcquirePhase)]
+    assert [(s.row, s.col) for s in phase] == [(t.row, t.col) for t in grid.serpentine]
+    for step in phase:
+        before = steps[: steps.index(step)]
+        image = [
+            k for k in before if isinstance(k, KeepTile) and (k.row, k.col) == (step.row, step.col)
+        ][-1]
+        assert step.reference_z_um == image.z_um and step.z.center_um == pytest.approx(image.z_um)
+        assert step.z.n_frames == 11 and step.z.step_um == pytest.approx(0.45)
+        assert step.sequence == PHASE_SEQUENCE_BASE + step.row * grid.cols + step.col
+        later = steps[steps.index(step) + 1 :]  # the tile is done: no more of its stacks
+        assert not any(
+            isinstance(a, Acquire)
+            and (a.acquisition.row, a.acquisition.col) == (step.row, step.col)
+            for a in later
+        )
+    # without it, the same scan takes the same steps and no phase stack
+    plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset({(1, 1)})).answer(geometry))
+    assert plain == [s for s in steps if not isinstance(s, AcquirePhase)]
+
+
+def test_a_phase_stack_needs_two_planes_and_a_positive_step() -> None:
+    assert PhaseStacks(3, 0.2).z_range(1.0, dof_um=0.9).z_um().tolist() == pytest.approx(
+        [0.8, 1.0, 1.2]
+    )
+    with pytest.raises(ValueError, match="at least 2 planes"):
+        PhaseStacks(1)
+    with pytest.raises(ValueError, match="positive"):
+        PhaseStacks(5, 0.0)
 
 
 def test_a_tile_too_unsure_for_one_frame_keeps_the_frames_its_outcome_names() -> None:
