@@ -13,7 +13,9 @@ of it (live_view.png, where chromium is installed), and each scan's mosaic is an
 OME-Zarr (`--mosaic-format ome-tiff` for the OME-TIFF). A service that dies is
 started again, and the demo says so; the instrument tags its frames and the focus
 service its results with keys made for the run, the focus service scores only tagged
-frames and the scans take only tagged results (docs/security.md).
+frames and the scans take only tagged results (docs/security.md). With ``--phase`` the
+phase service runs too and every scan takes a phase stack of each tile (docs/phase.md),
+and a line after the table counts the tiles with phase.
 Everything is shut down on the way out, also on Ctrl-C.
 
     focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
@@ -138,12 +140,15 @@ def _tcp_ready(port: int) -> Callable[[], bool]:
     return ready
 
 
-def _http_ready(port: int) -> Callable[[], bool]:
+def _http_ready(port: int, *, linked: bool = False) -> Callable[[], bool]:
+    """Ready when ``/healthz`` answers (with `linked`: and says its Zenoh session is up)."""
+
     def ready() -> bool:
         try:
-            return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200
+            answer = httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0)
         except httpx.TransportError:
             return False
+        return answer.status_code == 200 and (not linked or answer.json()["status"] == "ok")
 
     return ready
 
@@ -178,6 +183,7 @@ class LocalStack:
         supervise: bool = False,
         shared_memory_mb: int = 0,
         serve_truth: bool = True,
+        phase: bool = False,
     ) -> None:
         self.work_dir = Path(work_dir)
         (self.work_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -238,6 +244,15 @@ class LocalStack:
                 _http_ready(self.estimator_port),
             ),
         }
+        if phase:
+            phase_port = free_port()
+            keys = ["--result-key-file", str(self.result_key_file), *frame_key]
+            self.services["phase"] = Service(
+                "phase",
+                [*serve, "phase", *connect, *keys, "--port", str(phase_port)],
+                logs / "phase.log",
+                _http_ready(phase_port, linked=True),
+            )
         self.supervise = supervise
         self.restarts: dict[str, int] = dict.fromkeys(self.services, 0)
         self._closing = threading.Event()
@@ -387,6 +402,17 @@ def wall_time_table(reports: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def phase_line(reports: dict[str, dict[str, Any]]) -> str:
+    """One line on the phase stacks of the scans (``--phase``): tiles with phase, frames."""
+    tiles = sum(report["tiles_with_phase"] for report in reports.values())
+    total = sum(report["rows"] * report["cols"] for report in reports.values())
+    images = sum(report["phase_images_acquired"] for report in reports.values())
+    return (
+        f"Phase: {tiles} of {total} tiles over {len(reports)} scans, {images} phase frames "
+        "(each scan's OME-Zarr holds it in radians, image `phase`)"
+    )
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rows", type=int, default=10, help="tile rows of the slide (10)")
     parser.add_argument("--cols", type=int, default=10, help="tile columns of the slide (10)")
@@ -519,7 +545,11 @@ def run(args: argparse.Namespace) -> int:
         started_s = time.perf_counter()
         with (
             LocalStack(
-                out_dir, instrument_args, supervise=True, shared_memory_mb=shared_memory_mb
+                out_dir,
+                instrument_args,
+                supervise=True,
+                shared_memory_mb=shared_memory_mb,
+                phase=options.phase,
             ) as stack,
             LiveServer(port=args.live_port) as live,
         ):
@@ -567,6 +597,8 @@ def run(args: argparse.Namespace) -> int:
     print()
     print("Where the wall time went (s):")
     print(wall_time_table(reports))
+    if options.phase:
+        print(phase_line(reports))
     for name, report in reports.items():
         if report["mosaic"] is not None:
             scan_dir = out_dir / (RESCAN if name == SECOND_PASS else name)

@@ -1,0 +1,110 @@
+"""`focustrack scan --phase` end to end on loopback: a Zenoh router (this process), the
+instrument, focus, estimator and phase services and the scan, each a real process; the
+OME-Zarr gets the phase in radians beside the mosaic, and a scan without --phase none."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+
+from focustrack.demo import INSTRUMENT, SLIDE, LocalStack
+from focustrack_core.v1 import instrument_pb2
+from focustrack_core.wire.trust import new_nonce
+from focustrack_scheduler import outputs
+from focustrack_scheduler.clients import InstrumentClient
+
+pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` skips them
+
+ROWS = COLS = 2
+SIZE = 128
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalStack]:
+    instrument_args = [
+        "--seed", "3", "--slides", "1", "--rows", str(ROWS), "--cols", str(COLS),
+        "--width", str(SIZE), "--height", str(SIZE),
+    ]  # fmt: skip
+    with LocalStack(tmp_path_factory.mktemp("stack"), instrument_args, phase=True) as running:
+        yield running
+
+
+def takes_phase_stacks(stack: LocalStack) -> bool:
+    """Whether the instrument takes a phase stack as one (its header says so)."""
+    assert stack.session is not None
+    request = instrument_pb2.AcquireRequest(
+        slide=SLIDE, row=0, col=0, z_low_um=0.0, z_step_um=0.5, n_frames=2,
+        sequence=1 << 50, nonce=new_nonce(), reference_z_um=0.25,
+        purpose=instrument_pb2.ACQUISITION_PURPOSE_PHASE,
+    )  # fmt: skip
+    reply = InstrumentClient(stack.session, INSTRUMENT).acquire(request)
+    return reply.header.purpose == instrument_pb2.ACQUISITION_PURPOSE_PHASE
+
+
+def scan(stack: LocalStack, out_dir: Path, *extra: str) -> dict:
+    """Run `focustrack scan` on the stack's slide (results checked with its key); its report."""
+    command = [
+        sys.executable, "-m", "focustrack", "scan", "--no-progress",
+        "--estimator", stack.estimator_url, "--connect", stack.endpoint,
+        "--instrument", INSTRUMENT, "--slide", SLIDE, "--out", str(out_dir),
+        "--result-key-file", str(stack.result_key_file), *extra,
+    ]  # fmt: skip
+    done = subprocess.run(
+        command, capture_output=True, text=True, timeout=300, env=os.environ, check=False
+    )
+    assert done.returncode == 0, done.stderr
+    return json.loads((out_dir / outputs.REPORT).read_text())
+
+
+def logged(out_dir: Path, event: str) -> list[dict]:
+    lines = (out_dir / outputs.LOG_FILE).read_text().splitlines()
+    return [entry for entry in map(json.loads, lines) if entry["event"] == event]
+
+
+def test_scan_phase_writes_the_phase_in_radians_beside_the_mosaic(
+    stack: LocalStack, tmp_path: Path
+) -> None:
+    if not takes_phase_stacks(stack):
+        pytest.skip("this instrument takes phase stacks as focus stacks (it predates them)")
+    report = scan(stack, tmp_path, "--phase", "--phase-planes", "7")
+    assert report["tiles_imaged"] == ROWS * COLS
+    assert report["tiles_with_phase"] == ROWS * COLS
+    assert report["phase_images_acquired"] == 7 * ROWS * COLS
+    kept = {(e["row"], e["col"]): e["z_um"] for e in logged(tmp_path, "kept")}
+    for entry in logged(tmp_path, "phase"):  # each centred on the z the tile is imaged at
+        assert entry["error"] is None and entry["n_frames"] == 7
+        assert entry["reference_z_um"] == kept[(entry["row"], entry["col"])]
+    root = zarr.open_group(tmp_path / outputs.MOSAIC_ZARR, mode="r")
+    phase = root[outputs.ZARR_PHASE]
+    assert phase.attrs["focustrack"] == {"layer": "phase", "unit": "radian"}
+    (channel,) = phase.attrs["ome"]["omero"]["channels"]
+    assert channel["label"] == "phase (rad)" and channel["window"]["end"] == pytest.approx(math.pi)
+    mosaic_pixels = root["s0"].shape[1:]
+    pixels = np.asarray(phase["s0"])
+    assert pixels.shape == (1, *mosaic_pixels) and pixels.dtype == np.float32
+    assert np.isfinite(pixels).all() and np.abs(pixels).max() <= math.pi + 1e-5
+    tiles = pixels[0].reshape(ROWS, SIZE, COLS, SIZE)
+    assert (tiles.std(axis=(1, 3)) > 0).all()  # every tile holds a phase image
+    # the same placement as the mosaic's: same pixel size and origin
+    transforms = phase.attrs["ome"]["multiscales"][0]["datasets"][0]["coordinateTransformations"]
+    mosaic = root.attrs["ome"]["multiscales"][0]["datasets"][0]["coordinateTransformations"]
+    assert transforms == mosaic
+
+
+def test_a_scan_without_phase_takes_no_phase_stack(stack: LocalStack, tmp_path: Path) -> None:
+    report = scan(stack, tmp_path)
+    assert report["tiles_imaged"] == ROWS * COLS
+    assert report["tiles_with_phase"] == report["phase_images_acquired"] == 0
+    assert report["wall_time_s"]["phase_s"] == 0
+    assert logged(tmp_path, "phase") == []
+    assert not (tmp_path / outputs.PHASE).exists()
+    assert outputs.ZARR_PHASE not in zarr.open_group(tmp_path / outputs.MOSAIC_ZARR, mode="r")
