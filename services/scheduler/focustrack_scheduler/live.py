@@ -4,7 +4,8 @@
 measurements with the estimator's outcome and the focus curve, images kept) and
 keeps, per tile (rows, cols): the focus estimate z_um and its sigma_um (the
 estimator's posterior, else the measured best focus), the images acquired, the
-flags of the last measurement and whether the tile's image is kept (done).
+flags of the last measurement, whether the tile's image is kept (done) and, with
+``--phase``, the spread of its phase (std over the tile, rad).
 Every change bumps a version; `changes(since)` gives only the tiles changed
 after it, so a 200x200 grid streams a few tiles per update, not 40 000. Pure
 apart from a lock: the scheduler's thread writes, the server's event loop reads.
@@ -32,6 +33,7 @@ class LiveScan:
         self.sigma_um = np.full(grid.shape, np.nan)
         self.images = np.zeros(grid.shape, dtype=int)
         self.done = np.zeros(grid.shape, dtype=bool)
+        self.phase_std_rad = np.full(grid.shape, np.nan)
         self.flags: dict[tuple[int, int], list[str]] = {}
         self.curve: dict[str, Any] | None = None  # the latest through-focus curve
         self.version = 0
@@ -50,6 +52,8 @@ class LiveScan:
             live.take(entry)
         for (row, col), z_um in tally.kept.items():
             live.take({"event": "kept", "row": row, "col": col, "z_um": z_um})
+        for entry in tally.phase_stacks:
+            live.take(entry)
         record.listeners.add(live.take)
         return live
 
@@ -78,6 +82,9 @@ class LiveScan:
                 self.done[tile] = True
                 if not math.isfinite(self.z_um[tile]):  # no measurement: where it was imaged
                     self.z_um[tile] = entry["z_um"]
+            elif entry["event"] == "phase":
+                spread_rad = entry["phase_std_rad"]
+                self.phase_std_rad[tile] = math.nan if spread_rad is None else spread_rad
             else:
                 return
             self.version += 1
@@ -92,7 +99,8 @@ class LiveScan:
     def changes(self, since: int = 0) -> dict[str, Any]:
         """Plain JSON of the tiles changed after version `since` (all of them for 0).
 
-        `tiles` holds [row, col, z_um, sigma_um, images, done, flags] per tile (null for NaN).
+        `tiles` holds [row, col, z_um, sigma_um, images, done, flags, phase_std_rad] per tile
+        (null for NaN, and for a tile without phase).
         """
         with self._lock:
             rows, cols = np.nonzero(self._changed_at > since)
@@ -105,6 +113,7 @@ class LiveScan:
                     int(self.images[row, col]),
                     bool(self.done[row, col]),
                     self.flags.get((int(row), int(col)), []),
+                    _number(self.phase_std_rad[row, col]),
                 ]
                 for row, col in zip(rows, cols, strict=True)
             ]

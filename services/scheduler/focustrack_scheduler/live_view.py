@@ -1,7 +1,8 @@
 """The live web view of a scan: a page, its state as JSON, and its updates as server-sent events.
 
     GET /                      the page (focus map, sigma, images per tile, flags, the
-                               latest through-focus curve; hover a tile for its numbers)
+                               latest through-focus curve; with phase, a layer of each
+                               tile's phase spread in rad; hover a tile for its numbers)
     GET /live/state?since=N    the tiles changed after version N (`LiveScan.changes`)
     GET /live/events           server-sent events: `update`, the same JSON, whenever the
                                scan moves on (at most `MAX_UPDATES_PER_S` a second; the

@@ -35,7 +35,7 @@ def test_the_state_follows_the_record_and_streams_only_what_changed(tmp_path: Pa
     acquire_and_measure(record, 0, 0, 0, 1.5)
     live = LiveScan.follow(record, GRID, "kf-2d")  # what was logged before is there
     first = live.changes()
-    assert first["tiles"] == [[0, 0, 1.51, 0.2, 5, False, []]]
+    assert first["tiles"] == [[0, 0, 1.51, 0.2, 5, False, [], None]]
     acquire_and_measure(record, 1, 0, 1, 2.5)
     flat = Acquisition(2, 0, 2, ZRange(0.0, 0.5, 9), Purpose.SCAN, True)
     record.acquired(flat, 9, 1.0)
@@ -43,10 +43,28 @@ def test_the_state_follows_the_record_and_streams_only_what_changed(tmp_path: Pa
     record.measurement(flat, Measurement(None, flags=flags), Outcome(0, 2, False), None)
     update = live.changes(first["version"])
     assert [tile[:2] for tile in update["tiles"]] == [[0, 1], [0, 2]]  # only the new tiles
-    assert update["tiles"][1] == [0, 2, None, None, 9, False, ["flat"]]
+    assert update["tiles"][1] == [0, 2, None, None, 9, False, ["flat"], None]
     assert update["curve"]["row"] == 0 and update["curve"]["col"] == 1  # the latest curve
     assert update["images"] == 19 and update["tiles_total"] == 40_000
     assert live.changes(update["version"])["tiles"] == []  # nothing newer
+
+
+def test_a_tiles_phase_shows_as_its_spread_in_radians(tmp_path: Path) -> None:
+    record = ScanRecord(tmp_path)
+    acquire_and_measure(record, 0, 0, 0, 1.5)
+    live = LiveScan.follow(record, GRID, "kf-2d")
+    field = np.zeros((2, 8, 8), np.float32)
+    field[0, :, 4:] = 1.0  # half the tile a radian ahead: a spread of 0.5 rad
+    grid = ScanGrid(2, 2)
+    common = {"sequence": 1 << 40, "n_frames": 11, "scan_time_s": 0.3, "reference_z_um": 1.5}
+    record.phase(grid, 0, 0, **common, field=field, error=None)
+    record.phase(grid, 0, 1, **common, field=None, error="no phase result within 15 s")
+    tiles = {(t[0], t[1]): t for t in live.changes()["tiles"]}
+    assert tiles[(0, 0)][7] == pytest.approx(0.5) and tiles[(0, 1)][7] is None
+    again = LiveScan.follow(ScanRecord(tmp_path), GRID, "kf-2d")  # read back from the log
+    assert again.changes()["tiles"][0][7] == pytest.approx(0.5)
+    page = files("focustrack_scheduler").joinpath("live.html").read_text()
+    assert 'id="phase"' in page and "rad" in page
 
 
 def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: Path) -> None:
@@ -59,7 +77,7 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
         assert page.status_code == 200 and "EventSource" in page.text
         assert httpx.get(server.url + "live/state", params={"since": -1}).status_code == 422
         state = httpx.get(server.url + "live/state").json()
-        assert state["tiles"] == [[3, 4, 0.71, 0.2, 5, False, []]]
+        assert state["tiles"] == [[3, 4, 0.71, 0.2, 5, False, [], None]]
         with httpx.stream("GET", server.url + "live/events", timeout=10) as events:
             lines = events.iter_lines()
             assert next(lines) == "event: update"
@@ -68,7 +86,8 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
             record.keep(GRID, 3, 4, 0.7, np.zeros((2, 2, 3)), 8)
             assert next(lines) == "" and next(lines) == "event: update"
             data = json.loads(next(lines).removeprefix("data: "))
-            assert data["tiles"] == [[3, 4, 0.71, 0.2, 5, True, []]] and data["tiles_done"] == 1
+            assert data["tiles"] == [[3, 4, 0.71, 0.2, 5, True, [], None]]
+            assert data["tiles_done"] == 1
 
 
 def follow_events(url: str, events: list[tuple[str, str]], errors: list[Exception]) -> None:
@@ -117,7 +136,7 @@ def test_stopping_ends_every_stream_at_once_with_clients_connected(
         last = json.loads(events[-2][1])
         assert last["finished"] and events[-1] == ("end", "{}")
         tiles = [tile for _, data in events[:-1] for tile in json.loads(data)["tiles"]]
-        assert [1, 2, 0.71, 0.2, 5, False, []] in tiles  # the change made while they followed
+        assert [1, 2, 0.71, 0.2, 5, False, [], None] in tiles  # the change made while they followed
     logged = capfd.readouterr().err
     assert "Traceback" not in logged and "ERROR" not in logged, logged
 
