@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -171,3 +172,45 @@ def test_the_frames_a_tile_keeps_are_on_disk_read_back_and_judged_for_focus(
     report = finish(again, truth_um)
     assert report["in_focus_fraction"] == pytest.approx(1 / GRID.n_tiles)
     assert report["frames_kept_per_tile"] == pytest.approx((GRID.n_tiles + 2) / GRID.n_tiles)
+
+
+def phase_of(tile: tuple[int, int]) -> np.ndarray:
+    """A tile's field as the phase service sends it: float32 (2, h, w), phase then amplitude."""
+    rng = np.random.default_rng(tile)
+    phase_rad = rng.uniform(-math.pi, math.pi, (TILE_PX, TILE_PX))
+    return np.stack([phase_rad, np.ones_like(phase_rad)]).astype(np.float32)
+
+
+def test_the_phase_of_the_tiles_is_an_image_in_radians_over_the_mosaic(tmp_path: Path) -> None:
+    record, _ = scanned_record(tmp_path)
+    common = {"n_frames": 11, "scan_time_s": 0.4, "reference_z_um": 10.0}
+    for index, tile in enumerate([(0, 0), (0, 2), (1, 1)]):
+        record.phase(GRID, *tile, sequence=100 + index, **common, field=phase_of(tile), error=None)
+    record.phase(GRID, 1, 2, sequence=103, **common, field=None, error="no phase result")
+    record.close()
+    again = ScanRecord(tmp_path)  # read back from the log, as a restarted scheduler does
+    report = finish(again)
+    assert report["tiles_with_phase"] == 3 and report["phase_images_acquired"] == 44
+    assert report["phase_scan_time_s"] == pytest.approx(1.6)
+    assert report["images_acquired"] == 9 * (GRID.n_tiles + 1)  # the focus figures alone
+
+    path = tmp_path / outputs.MOSAIC_ZARR
+    node = next(iter(Reader(parse_url(path / outputs.ZARR_PHASE))()))
+    levels = [np.asarray(level) for level in node.data]
+    assert [level.shape for level in levels] == [(1, 512, 768), (1, 256, 384)]  # as the mosaic's
+    phase = levels[0][0].reshape(2, TILE_PX, 3, TILE_PX).transpose(0, 2, 1, 3)
+    for row, col in np.ndindex(GRID.shape):
+        if (row, col) in again.tally.phase:
+            np.testing.assert_array_equal(phase[row, col], phase_of((row, col))[0])
+        else:
+            assert np.isnan(phase[row, col]).all()
+    assert node.metadata["coordinateTransformations"][0][0]["scale"] == [1.0, PIXEL_UM, PIXEL_UM]
+    group = zarr.open_group(path / outputs.ZARR_PHASE, mode="r")
+    assert group.attrs[outputs.ZARR_ATTRS] == {"layer": "phase", "unit": "radian"}
+    assert group.attrs["ome"]["omero"]["channels"][0]["label"] == "phase (rad)"
+
+
+def test_without_phase_the_ome_zarr_has_no_phase_image(tmp_path: Path) -> None:
+    report, _, _ = write(tmp_path, MosaicFormat.OME_ZARR)
+    assert report["tiles_with_phase"] == 0
+    assert outputs.ZARR_PHASE not in zarr.open_group(tmp_path / outputs.MOSAIC_ZARR, mode="r")
