@@ -51,6 +51,7 @@ from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.web import with_bus_health
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
+from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameWorker
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
@@ -68,9 +69,7 @@ from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
 
 log = logging.getLogger(__name__)
 
-ZFRAME_SUBSCRIPTION = f"{keys.PREFIX}/zframe/**"
 FOCUS_RESULT_ENCODING = protobuf_encoding(focus_pb2.FocusResult)
-QUEUE_FRAMES = 64  # frames waiting for the worker before the publisher is held back
 FAILED_STACKS = 64  # stacks answered with an error, whose later frames are ignored
 #: What an open stack holds besides its curve and frames (its objects), bytes: counted
 #: against the budget, so stacks of tiny frames cannot add up without bound either (an
@@ -417,7 +416,8 @@ class InstrumentFrameSizes:
 
 
 class ZenohFocusWorker:
-    """Subscribes to z-stack frames and publishes their focus results, on its own thread."""
+    """Subscribes to z-stack frames and publishes their focus results, on its own thread
+    (`FrameWorker`)."""
 
     def __init__(
         self,
@@ -440,51 +440,31 @@ class ZenohFocusWorker:
         )
         self.signer = signer
         self.n_published = 0
-        self._analysing = threading.Lock()  # the analyser: its frames, and its expiry
-        self._closed = threading.Event()
-        self._subscriber = session.declare_subscriber(
-            ZFRAME_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
+        self._frames = FrameWorker(
+            session,
+            "focus",
+            lambda key, payload, attachment: self.analyser.add(
+                key, payload_bytes(payload), attachment
+            ),
+            self._publish,
+            self.analyser.expire,
+            min(1.0, self.analyser.timeout_s / 4),
         )
-        self._thread = threading.Thread(target=self._serve, name="focus-zenoh", daemon=True)
-        self._thread.start()
-        # frames stop coming when a peer stops sending: their expiry cannot wait for the next
-        self._expiry = threading.Thread(target=self._expire, name="focus-expiry", daemon=True)
-        self._expiry.start()
 
-    def _expire(self) -> None:
-        period_s = min(1.0, self.analyser.timeout_s / 4)
-        while not self._closed.wait(period_s):
-            with self._analysing:
-                self.analyser.expire()
-
-    def _serve(self) -> None:
-        for sample in self._subscriber:  # ends when the subscriber is undeclared
-            key = str(sample.key_expr)
-            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
-            try:
-                with self._analysing:
-                    message = self.analyser.add(key, payload_bytes(sample.payload), attachment)
-            except ValueError as error:  # the key names no tile: nowhere to answer
-                log.warning("ignored sample on %s: %s", key, error)
-                continue
-            if message is None:
-                continue
-            key_expr = keys.focus_key(message.slide, message.row, message.col)
-            payload = message.SerializeToString()
-            self.session.put(
-                key_expr,
-                payload,
-                encoding=FOCUS_RESULT_ENCODING,
-                congestion_control=zenoh.CongestionControl.BLOCK,
-                attachment=None if self.signer is None else self.signer.tag(key_expr, payload),
-            )
-            self.n_published += 1
+    def _publish(self, message: focus_pb2.FocusResult) -> None:
+        key_expr = keys.focus_key(message.slide, message.row, message.col)
+        payload = message.SerializeToString()
+        self.session.put(
+            key_expr,
+            payload,
+            encoding=FOCUS_RESULT_ENCODING,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            attachment=None if self.signer is None else self.signer.tag(key_expr, payload),
+        )
+        self.n_published += 1
 
     def close(self, timeout_s: float = 5.0) -> None:
-        self._subscriber.undeclare()
-        self._closed.set()
-        self._thread.join(timeout_s)
-        self._expiry.join(timeout_s)
+        self._frames.close(timeout_s)
 
 
 class FocusServiceSettings(ZenohSettings):

@@ -153,13 +153,15 @@ def test_the_focus_command_runs_zenoh_and_http_in_one_process(
     try:
         for _ in range(200):
             assert process.poll() is None, "the focus service exited"
-            try:
-                if httpx.get(f"http://127.0.0.1:{port}/healthz").status_code == 200:
+            try:  # HTTP answers first; "ok" once its Zenoh session is open and subscribed
+                if httpx.get(f"http://127.0.0.1:{port}/healthz").json()["status"] == "ok":
                     break
             except httpx.TransportError:
-                time.sleep(0.1)
+                pass
+            time.sleep(0.1)
         else:
-            pytest.fail("the focus service did not answer on HTTP")
+            pytest.fail("the focus service did not come up on HTTP and Zenoh")
+        time.sleep(0.5)  # let its subscription reach the instrument's side
         curve = httpx.post(
             f"http://127.0.0.1:{port}/v1/focus/curve",
             json={"z_um": [0, 1, 2, 3, 4], "scores": [1, 2, 4, 2, 1]},

@@ -18,7 +18,6 @@ when its last frame is in, and publishes the result on ``focustrack/v1/phase/{sl
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -33,14 +32,13 @@ from focustrack_core.logs import worth_logging
 from focustrack_core.v1 import common_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
+from focustrack_core.wire.frame_worker import FrameWorker
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
 from focustrack_phase.app import PhaseLimits
 
 log = logging.getLogger(__name__)
 
-ZFRAME_SUBSCRIPTION = f"{keys.PREFIX}/zframe/**"
-QUEUE_FRAMES = 64  # frame samples waiting for the worker before the publisher is held back
 FAILED_STACKS = 64  # stacks answered with an error, whose later frames are ignored
 PHASE = instrument_pb2.ACQUISITION_PURPOSE_PHASE
 #: A stack: the key of its frames, its sequence number, its simulated clock and its nonce.
@@ -326,7 +324,7 @@ def reconstruct_stack(
 
 class ZenohPhaseWorker:
     """Subscribes to the frames of stacks and publishes a PhaseResult for each phase stack,
-    on its own thread (module docstring)."""
+    on its own thread (`FrameWorker`; module docstring)."""
 
     def __init__(
         self,
@@ -342,37 +340,23 @@ class ZenohPhaseWorker:
         self.options = options or AcekfOptions()
         self.signer = signer
         self.n_published = 0
-        self._lock = threading.Lock()  # the stacks: the worker's frames, and their expiry
-        self._closed = threading.Event()
-        self._subscriber = session.declare_subscriber(
-            ZFRAME_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
+        self._frames: FrameWorker[PhaseStack | phase_pb2.PhaseResult] = FrameWorker(
+            session,
+            "phase",
+            lambda key, payload, attachment: stacks.add(
+                key, partial(payload_bytes, payload), attachment
+            ),
+            self._answer,
+            stacks.expire,
+            min(1.0, stacks.timeout_s / 4),
         )
-        self._thread = threading.Thread(target=self._serve, name="phase-zenoh", daemon=True)
-        self._thread.start()
-        # frames stop coming when a peer stops sending: their expiry cannot wait for the next
-        self._expiry = threading.Thread(target=self._expire, name="phase-expiry", daemon=True)
-        self._expiry.start()
 
-    def _expire(self) -> None:
-        period_s = min(1.0, self.stacks.timeout_s / 4)
-        while not self._closed.wait(period_s):
-            with self._lock:
-                self.stacks.expire()
-
-    def _serve(self) -> None:
-        for sample in self._subscriber:  # ends when the subscriber is undeclared
-            key = str(sample.key_expr)
-            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
-            try:
-                with self._lock:
-                    done = self.stacks.add(key, partial(payload_bytes, sample.payload), attachment)
-            except ValueError as error:  # the key names no tile: nowhere to answer
-                log.warning("ignored sample on %s: %s", key, error)
-                continue
-            if isinstance(done, PhaseStack):
-                self.publish(*reconstruct_stack(done, self.optics, self.options))
-            elif done is not None:
-                self.publish(done, b"")
+    def _answer(self, done: PhaseStack | phase_pb2.PhaseResult) -> None:
+        """Reconstruct a whole stack and publish its result, or publish an error result."""
+        if isinstance(done, PhaseStack):
+            self.publish(*reconstruct_stack(done, self.optics, self.options))
+        else:
+            self.publish(done, b"")
 
     def publish(self, message: phase_pb2.PhaseResult, payload: bytes) -> None:
         """Put a result on its tile's key: `payload` (the field's pixels, or empty for an
@@ -393,7 +377,4 @@ class ZenohPhaseWorker:
         self.n_published += 1
 
     def close(self, timeout_s: float = 5.0) -> None:
-        self._subscriber.undeclare()
-        self._closed.set()
-        self._thread.join(timeout_s)
-        self._expiry.join(timeout_s)
+        self._frames.close(timeout_s)

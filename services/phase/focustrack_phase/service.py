@@ -30,6 +30,7 @@ from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main
 from focustrack_core.web import with_bus_health
 from focustrack_core.wire import codec, keys
+from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
     DEFAULT_ENDPOINT,
@@ -38,7 +39,7 @@ from focustrack_core.wire.session import (
 )
 from focustrack_core.wire.trust import frame_signer_of, signer_of
 from focustrack_phase.app import PhaseLimits, create_app
-from focustrack_phase.bus import ZFRAME_SUBSCRIPTION, PhaseOptics, PhaseStacks, ZenohPhaseWorker
+from focustrack_phase.bus import PhaseOptics, PhaseStacks, ZenohPhaseWorker
 
 log = logging.getLogger(__name__)
 

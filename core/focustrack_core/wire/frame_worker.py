@@ -1,0 +1,89 @@
+"""The shell of a service that reads the frames of z-stacks as they are published (the focus
+and phase services): a subscription, a bounded queue, a worker thread and an expiry thread.
+
+Every frame sample (``focustrack/v1/zframe/**``) waits in a bounded FIFO (`QUEUE_FRAMES`), so
+a burst holds the publisher back instead of piling up without bound (Zenoh's callbacks
+queue without limit); one thread takes the samples in order and hands each to the
+service's `take`; another calls its `expire` every `expire_period_s`, since frames stop
+coming when a peer stops sending and their expiry cannot wait for the next. The two never
+run at the same time (one lock). What `take` returns, unless None, goes to `publish`,
+outside the lock.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Generic, TypeVar
+
+import zenoh
+
+from focustrack_core.wire import keys
+
+log = logging.getLogger(__name__)
+
+#: Every frame of every stack.
+ZFRAME_SUBSCRIPTION = f"{keys.PREFIX}/zframe/**"
+#: Frame samples waiting for the worker before the publisher is held back.
+QUEUE_FRAMES = 64
+
+T = TypeVar("T")
+
+#: `take(key, payload, attachment)` of a sample: the payload still in Zenoh (copy it out
+#: with `codec.payload_bytes` where it is read), the attachment's bytes (None: none).
+Take = Callable[[str, zenoh.ZBytes, bytes | None], T | None]
+
+
+class FrameWorker(Generic[T]):
+    """Frame samples of `session` to `take` on a thread of its own (module docstring); `name`
+    names the threads. A ValueError from `take` (the key names no tile: nowhere to answer)
+    is logged and the sample skipped."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        name: str,
+        take: Take[T],
+        publish: Callable[[T], None],
+        expire: Callable[[], None],
+        expire_period_s: float,
+    ) -> None:
+        self._take = take
+        self._publish = publish
+        self._expire_stale = expire
+        self._expire_period_s = expire_period_s
+        self._lock = threading.Lock()
+        self._closed = threading.Event()
+        self._subscriber = session.declare_subscriber(
+            ZFRAME_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
+        )
+        self._thread = threading.Thread(target=self._serve, name=f"{name}-zenoh", daemon=True)
+        self._thread.start()
+        self._expiry = threading.Thread(target=self._expire, name=f"{name}-expiry", daemon=True)
+        self._expiry.start()
+
+    def _expire(self) -> None:
+        while not self._closed.wait(self._expire_period_s):
+            with self._lock:
+                self._expire_stale()
+
+    def _serve(self) -> None:
+        for sample in self._subscriber:  # ends when the subscriber is undeclared
+            key = str(sample.key_expr)
+            attachment = None if sample.attachment is None else sample.attachment.to_bytes()
+            try:
+                with self._lock:
+                    done = self._take(key, sample.payload, attachment)
+            except ValueError as error:
+                log.warning("ignored sample on %s: %s", key, error)
+                continue
+            if done is not None:
+                self._publish(done)
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Undeclare the subscription and end both threads."""
+        self._subscriber.undeclare()
+        self._closed.set()
+        self._thread.join(timeout_s)
+        self._expiry.join(timeout_s)
