@@ -33,7 +33,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, fields, replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Annotated, ClassVar
 
@@ -52,6 +52,7 @@ from focustrack_core.web import with_bus_health
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
 from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameWorker
+from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
@@ -70,7 +71,6 @@ from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
 log = logging.getLogger(__name__)
 
 FOCUS_RESULT_ENCODING = protobuf_encoding(focus_pb2.FocusResult)
-FAILED_STACKS = 64  # stacks answered with an error, whose later frames are ignored
 #: What an open stack holds besides its curve and frames (its objects), bytes: counted
 #: against the budget, so stacks of tiny frames cannot add up without bound either (an
 #: open stack of 8 x 8 frames takes about 1.5 KB besides its arrays, by tracemalloc).
@@ -129,23 +129,6 @@ def result_message(
     return message
 
 
-#: A stack: the key of its frames, its sequence number, its simulated clock and the nonce
-#: of its acquisition.
-StackId = tuple[str, int, float, bytes]
-
-
-def stack_id(key: str, header: instrument_pb2.ZStackHeader) -> StackId:
-    """The stack of a frame on `key` whose header's stack is `header`."""
-    return (key, header.sequence, header.clock_s, header.nonce)
-
-
-@dataclass
-class _StackUnderWay:
-    curve: FrameByFrame
-    held_bytes: int  # what it holds (`FrameByFrame.held_bytes` and STACK_BYTES)
-    last_s: float  # when its last frame came, by the analyser's clock, s
-
-
 def _no_frame_size(_instrument: str) -> int | None:
     return None
 
@@ -196,13 +179,11 @@ class FrameAnalyser:
         self.n_not_focus = 0  # frame samples of stacks taken for another purpose (phase)
         self._refused = 0  # frames refused here (`n_refused`)
         self.n_expired = 0  # stacks dropped: their next frame did not come in time
-        # curves under way, the one fed longest ago first
-        self._open: OrderedDict[StackId, _StackUnderWay] = OrderedDict()
-        self._stacks_bytes = 0  # what the open stacks hold, bytes
+        # curves under way (each holding `FrameByFrame.held_bytes` and STACK_BYTES)
+        self._open: OpenStacks[FrameByFrame] = OpenStacks(clock)
         self._frames = FrameAssembler(
-            budget_bytes, timeout_s, held_elsewhere=lambda: self._stacks_bytes, clock=clock
+            budget_bytes, timeout_s, held_elsewhere=lambda: self._open.held_bytes, clock=clock
         )
-        self._failed: OrderedDict[StackId, None] = OrderedDict()
         # each slide's through-focus curve, learnt from its full stacks, reads its short ones
         self._curves: OrderedDict[str, CurveModel] = OrderedDict()
 
@@ -215,20 +196,14 @@ class FrameAnalyser:
     @property
     def open_bytes(self) -> int:
         """Bytes held for stacks under way: their frames in parts, and what open stacks keep."""
-        return self._frames.open_bytes + self._stacks_bytes
+        return self._frames.open_bytes + self._open.held_bytes
 
     def expire(self) -> None:
         """Drop the stacks (and frames in parts) that peers stopped sending `timeout_s` ago."""
         self._frames.expire()
-        deadline_s = self.clock() - self.timeout_s
-        while self._open:
-            stack, oldest = next(iter(self._open.items()))
-            if oldest.last_s >= deadline_s:
-                break
-            self._close(stack)
+        for (key, sequence, _, _), curve in self._open.expired(self.timeout_s):
             self.n_expired += 1
-            key, sequence, _, _ = stack
-            missing = int(np.isnan(oldest.curve.scores).sum())
+            missing = int(np.isnan(curve.scores).sum())
             log.warning(
                 "stack %d on %s dropped: %d frame(s) did not come within %g s",
                 sequence,
@@ -261,14 +236,14 @@ class FrameAnalyser:
                 return None
             stack = stack_id(key, header)
             self.expire()
-            if stack in self._failed:
+            if self._open.failed(stack):
                 return None  # the stack was already answered with an error
             self._check_frame_size(header)
             frame = self._frames.add(key, frame_header, payload)
             if frame is None:
                 return None  # a part of the frame: more to come
-            under_way = self._close(stack)
-            if under_way is not None and not np.isnan(under_way.curve.scores[frame_header.index]):
+            under_way = self._open.pop(stack)
+            if under_way is not None and not np.isnan(under_way.scores[frame_header.index]):
                 log.warning(
                     "frame %d on %s came again: stack started over", frame_header.index, key
                 )
@@ -276,14 +251,13 @@ class FrameAnalyser:
             curve = (
                 FrameByFrame(np.asarray(header.z_um), settings_for(header, self.base, self.na))
                 if under_way is None
-                else under_way.curve
+                else under_way
             )
             curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
             if not curve.complete:
                 held = STACK_BYTES + curve.held_bytes
                 self._fit(held)  # what the stack keeps of this frame, besides the others
-                self._open[stack] = _StackUnderWay(curve, held, self.clock())
-                self._stacks_bytes += held
+                self._open.put(stack, curve, held)
                 return None
             model = self._curve(tile.slide)
             result = curve.result(model)
@@ -292,11 +266,7 @@ class FrameAnalyser:
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)
             if header is not None:
-                stack = stack_id(key, header)
-                self._close(stack)
-                self._failed[stack] = None
-                while len(self._failed) > FAILED_STACKS:
-                    self._failed.popitem(last=False)
+                self._open.fail(stack_id(key, header))
             return result_message(tile, header, error=f"{type(error).__name__}: {error}")
 
     def _check_frame_size(self, header: instrument_pb2.ZStackHeader) -> None:
@@ -319,13 +289,6 @@ class FrameAnalyser:
                 f"the stack would hold {held_bytes} bytes; {room} of the budget of "
                 f"{self.budget_bytes} bytes for open frames are left"
             )
-
-    def _close(self, stack: StackId) -> _StackUnderWay | None:
-        """Take a stack out of the open ones (what it holds off the count)."""
-        under_way = self._open.pop(stack, None)
-        if under_way is not None:
-            self._stacks_bytes -= under_way.held_bytes
-        return under_way
 
     def _tagged(self, key: str, payload: bytes, attachment: bytes | None) -> bool:
         """True when the sample's attachment is a frame header followed by the frame key's

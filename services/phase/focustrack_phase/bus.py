@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -33,16 +32,14 @@ from focustrack_core.v1 import common_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
 from focustrack_core.wire.frame_worker import FrameWorker
+from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
 from focustrack_phase.app import PhaseLimits
 
 log = logging.getLogger(__name__)
 
-FAILED_STACKS = 64  # stacks answered with an error, whose later frames are ignored
 PHASE = instrument_pb2.ACQUISITION_PURPOSE_PHASE
-#: A stack: the key of its frames, its sequence number, its simulated clock and its nonce.
-StackId = tuple[str, int, float, bytes]
 
 
 @dataclass(frozen=True)
@@ -142,7 +139,6 @@ class PhaseStack:
 class _StackUnderWay:
     counts: np.ndarray  # float32 (frames, height, width), filled as frames come
     received: np.ndarray  # bool (frames,)
-    last_s: float  # when its last frame came, by the collector's clock, s
 
 
 def one_channel(header: instrument_pb2.ZStackHeader, frame: np.ndarray) -> np.ndarray:
@@ -189,29 +185,22 @@ class PhaseStacks:
         self.n_untagged = 0
         self.n_not_phase = 0
         self.n_expired = 0
-        self._open: OrderedDict[StackId, _StackUnderWay] = OrderedDict()
-        self._stacks_bytes = 0
+        self._open: OpenStacks[_StackUnderWay] = OpenStacks(clock)
         self._frames = FrameAssembler(
-            budget_bytes, timeout_s, held_elsewhere=lambda: self._stacks_bytes, clock=clock
+            budget_bytes, timeout_s, held_elsewhere=lambda: self._open.held_bytes, clock=clock
         )
-        self._failed: OrderedDict[StackId, None] = OrderedDict()
 
     @property
     def open_bytes(self) -> int:
         """Bytes held for stacks under way and their frames in parts."""
-        return self._frames.open_bytes + self._stacks_bytes
+        return self._frames.open_bytes + self._open.held_bytes
 
     def expire(self) -> None:
         """Drop the stacks (and frames in parts) whose next part stopped coming `timeout_s` ago."""
         self._frames.expire()
-        deadline_s = self.clock() - self.timeout_s
-        while self._open:
-            stack, oldest = next(iter(self._open.items()))
-            if oldest.last_s >= deadline_s:
-                break
-            self._close(stack)
+        for (key, sequence, _, _), _ in self._open.expired(self.timeout_s):
             self.n_expired += 1
-            log.warning("phase stack %d on %s dropped: frames stopped coming", stack[1], stack[0])
+            log.warning("phase stack %d on %s dropped: frames stopped coming", sequence, key)
 
     def add(
         self, key: str, payload: Callable[[], bytes], attachment: bytes | None
@@ -241,32 +230,28 @@ class PhaseStacks:
                     self.n_untagged,
                 )
             return None
-        stack = (key, header.sequence, header.clock_s, header.nonce)
+        stack = stack_id(key, header)
         try:
             self.expire()
-            if stack in self._failed:
+            if self._open.failed(stack):
                 return None
-            under_way = self._open.get(stack) or self._start(stack, header)
+            under_way = self._open.pop(stack) or self._start(header)
+            self._open.put(stack, under_way, under_way.counts.nbytes)  # counted meanwhile
             frame = self._frames.add(key, frame_header, data)
             if frame is None:
                 return None  # a part of the frame: more to come
             under_way.counts[frame_header.index] = one_channel(header, frame)
             under_way.received[frame_header.index] = True
-            under_way.last_s = self.clock()
-            self._open.move_to_end(stack)
             if not under_way.received.all():
                 return None
-            self._close(stack)
+            self._open.pop(stack)
             return PhaseStack(tile, header, under_way.counts)
         except ValueError as error:  # a bad frame or stack: answered, never a crash
             log.warning("phase stack on %s: %s", key, error)
-            self._close(stack)
-            self._failed[stack] = None
-            while len(self._failed) > FAILED_STACKS:
-                self._failed.popitem(last=False)
+            self._open.fail(stack)
             return result_message(header, tile, error=f"{type(error).__name__}: {error}")
 
-    def _start(self, stack: StackId, header: instrument_pb2.ZStackHeader) -> _StackUnderWay:
+    def _start(self, header: instrument_pb2.ZStackHeader) -> _StackUnderWay:
         """A new stack under way, once it is within the limits and the budget (ValueError)."""
         frames, height, width, _ = header.shape
         if frames < 2:
@@ -284,17 +269,7 @@ class PhaseStacks:
                 f"the stack would hold {size} bytes; {room} of the budget of "
                 f"{self.budget_bytes} bytes for open stacks are left"
             )
-        under_way = _StackUnderWay(
-            np.zeros((frames, height, width), np.float32), np.zeros(frames, bool), self.clock()
-        )
-        self._open[stack] = under_way
-        self._stacks_bytes += size
-        return under_way
-
-    def _close(self, stack: StackId) -> None:
-        under_way = self._open.pop(stack, None)
-        if under_way is not None:
-            self._stacks_bytes -= under_way.counts.nbytes
+        return _StackUnderWay(np.zeros((frames, height, width), np.float32), np.zeros(frames, bool))
 
 
 def reconstruct_stack(

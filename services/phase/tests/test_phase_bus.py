@@ -23,7 +23,13 @@ from focustrack_core.wire.codec import PixelPublisher, describe_stack
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_phase.app import PhaseLimits
-from focustrack_phase.bus import PhaseOptics, PhaseStacks, ZenohPhaseWorker, phase_input
+from focustrack_phase.bus import (
+    PhaseOptics,
+    PhaseStack,
+    PhaseStacks,
+    ZenohPhaseWorker,
+    phase_input,
+)
 from focustrack_phase.simulate import through_focus_stack, weak_object
 
 WAVELENGTH_UM = 0.532
@@ -155,7 +161,6 @@ def test_focus_stacks_are_ignored_and_a_bad_phase_stack_gets_an_error(bus) -> No
     assert result.sequence == 4 and not result.HasField("error")
     assert worker.stacks.n_not_phase == len(z_um) * 3  # every part of every frame
     assert worker.stacks.n_untagged == len(z_um) * 3
-    assert worker.n_published == 2
 
 
 def test_a_header_without_wavelength_or_gain_takes_the_service_defaults() -> None:
@@ -215,3 +220,59 @@ def test_the_phase_command_serves_zenoh_and_http_in_one_process(tmp_path: Path) 
         process.terminate()
         process.wait(10)
         instrument.close()
+
+
+class Clock:
+    """A clock the test moves by hand, s."""
+
+    def __init__(self) -> None:
+        self.now_s = 0.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def frame_samples(
+    header: instrument_pb2.ZStackHeader, pixels: np.ndarray
+) -> list[tuple[bytes, bytes]]:
+    """(payload, attachment) of each whole frame of `pixels` (n, h, w, channels), untagged."""
+    describe_stack(header, pixels.shape, pixels.dtype)
+    return [
+        (pixels[i].tobytes(), codec.frame_header(header, i, pixels[i]).SerializeToString())
+        for i in range(len(pixels))
+    ]
+
+
+def test_phase_stacks_are_bounded_in_frames_pixels_bytes_and_time() -> None:
+    clock = Clock()
+    limits = PhaseLimits(max_frames=4, max_pixels=64 * 64)
+    stacks = PhaseStacks(limits, budget_bytes=3 * 64 * 64 * 4, timeout_s=10.0, clock=clock)
+    key = keys.zframe_key("s1", 1, 2)
+    z_um = REFERENCE_Z_UM + np.array([-2.0, 0.0, 2.0])
+    rgb = np.zeros((3, 64, 64, 3), np.uint16)
+    rgb[..., 1] = 7  # green
+    header = header_of(1, z_um)
+    header.channel_order = "RGB"
+    samples = frame_samples(header, rgb)
+    assert stacks.add(key, lambda: samples[0][0], samples[0][1]) is None
+    assert stacks.open_bytes == 3 * 64 * 64 * 4  # the whole stack's counts, taken at once
+    # a second stack does not fit beside it: an error result, once
+    other = frame_samples(header_of(2, z_um), rgb[..., :1])
+    refused = stacks.add(key, lambda: other[0][0], other[0][1])
+    assert isinstance(refused, phase_pb2.PhaseResult) and "budget" in refused.error.message
+    assert stacks.add(key, lambda: other[1][0], other[1][1]) is None  # ignored from now on
+    for payload, attachment in samples[1:]:
+        done = stacks.add(key, lambda payload=payload: payload, attachment)
+    assert isinstance(done, PhaseStack) and np.all(done.counts == 7)  # the green channel
+    assert stacks.open_bytes == 0
+    # too many frames, too large frames: refused before anything is held
+    many = frame_samples(header_of(3, np.arange(5.0)), np.zeros((5, 8, 8, 1), np.uint16))
+    assert "limit is 4" in stacks.add(key, lambda: many[0][0], many[0][1]).error.message
+    large = frame_samples(header_of(4, z_um), np.zeros((3, 65, 64, 1), np.uint16))
+    assert "limit is 4096" in stacks.add(key, lambda: large[0][0], large[0][1]).error.message
+    # a stack whose frames stop coming is dropped after the timeout
+    late = frame_samples(header_of(5, z_um), rgb[..., :1])
+    assert stacks.add(key, lambda: late[0][0], late[0][1]) is None
+    clock.now_s = 10.5
+    stacks.expire()
+    assert stacks.n_expired == 1 and stacks.open_bytes == 0
