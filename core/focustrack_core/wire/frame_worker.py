@@ -7,7 +7,8 @@ queue without limit); one thread takes the samples in order and hands each to th
 service's `take`; another calls its `expire` every `expire_period_s`, since frames stop
 coming when a peer stops sending and their expiry cannot wait for the next. The two never
 run at the same time (one lock). What `take` returns, unless None, goes to `publish`,
-outside the lock.
+outside the lock. `FrameReaderSettings` are the options such a service shares: its keys
+and what peers' frames may make it hold.
 """
 
 from __future__ import annotations
@@ -15,11 +16,14 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Generic, TypeVar
 
 import zenoh
+from pydantic import Field
 
-from focustrack_core.wire import keys
+from focustrack_core.wire import codec, keys
+from focustrack_core.wire.session import ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -87,3 +91,35 @@ class FrameWorker(Generic[T]):
         self._closed.set()
         self._thread.join(timeout_s)
         self._expiry.join(timeout_s)
+
+
+class FrameReaderSettings(ZenohSettings):
+    """The options of a service that reads frames and publishes results (focus, phase)."""
+
+    result_key_file: Path | None = Field(
+        None,
+        description="shared key: tag every result with its HMAC, for the scheduler to check "
+        "(docs/security.md)",
+    )
+    frame_key_file: Path | None = Field(
+        None,
+        description="the instrument's frame key: read only frames tagged with it, drop and "
+        "count the others (docs/security.md)",
+    )
+    open_frames_mb: float = Field(
+        codec.OPEN_FRAMES_BYTES / 1_000_000,
+        gt=0,
+        description="frames of stacks under way held at most, MB (frames in parts and what "
+        "open stacks keep); a frame beyond it is refused and its stack answered with an error",
+    )
+    open_frame_timeout_s: float = Field(
+        codec.OPEN_FRAME_TIMEOUT_S,
+        gt=0,
+        description="seconds a stack under way waits for its next frame (and a frame for "
+        "its next part) before it is dropped",
+    )
+
+    @property
+    def open_frames_bytes(self) -> int:
+        """--open-frames-mb in bytes."""
+        return int(self.open_frames_mb * 1_000_000)

@@ -34,7 +34,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import fields, replace
-from pathlib import Path
 from typing import Annotated, ClassVar
 
 import numpy as np
@@ -51,14 +50,17 @@ from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.web import with_bus_health
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
-from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameWorker
+from focustrack_core.wire.frame_worker import (
+    ZFRAME_SUBSCRIPTION,
+    FrameReaderSettings,
+    FrameWorker,
+)
 from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
     DEFAULT_ENDPOINT,
     BackgroundSession,
-    ZenohSettings,
 )
 from focustrack_core.wire.trust import FrameSigner, ResultSigner, frame_signer_of, signer_of
 from focustrack_focus.app import FocusLimits, create_app
@@ -430,7 +432,7 @@ class ZenohFocusWorker:
         self._frames.close(timeout_s)
 
 
-class FocusServiceSettings(ZenohSettings):
+class FocusServiceSettings(FrameReaderSettings):
     """The focus service's options: flags, ``FOCUSTRACK_FOCUS_<OPTION>`` or a settings file.
 
     The focus maths' defaults are its own dataclasses' (`FocusSettings`, `PeakSettings`,
@@ -456,16 +458,6 @@ class FocusServiceSettings(ZenohSettings):
         f"and --na; {Preprocess.lowpass_sigma_px:g} px where a stack gives no pixel size)",
     )
     na: float = Field(0.85, gt=0, description="numerical aperture of the objective")
-    result_key_file: Path | None = Field(
-        None,
-        description="shared key: tag every result with its HMAC, for the scheduler to check "
-        "(docs/security.md)",
-    )
-    frame_key_file: Path | None = Field(
-        None,
-        description="the instrument's frame key: score only frames tagged with it, drop and "
-        "count the others (docs/security.md)",
-    )
     min_structure_snr: float = Field(
         FocusSettings.min_structure_snr,
         description="a stack whose through-focus change stands fewer noise spreads than this "
@@ -510,18 +502,6 @@ class FocusServiceSettings(ZenohSettings):
         description="seconds a request body may take to arrive (408)",
     )
     # what peers' frames on Zenoh may make the service hold (`FrameAnalyser`)
-    open_frames_mb: float = Field(
-        codec.OPEN_FRAMES_BYTES / 1_000_000,
-        gt=0,
-        description="frames of stacks under way held at most, MB (frames in parts and what "
-        "open stacks keep); a frame beyond it is refused and its stack answered BAD_STACK",
-    )
-    open_frame_timeout_s: float = Field(
-        codec.OPEN_FRAME_TIMEOUT_S,
-        gt=0,
-        description="seconds a stack under way waits for its next frame (and a frame for "
-        "its next part) before it is dropped",
-    )
 
     def focus_settings(self) -> FocusSettings:
         """How the service reads stacks and curves (ValueError if the maths refuses a value)."""
@@ -589,7 +569,7 @@ def run(settings: FocusServiceSettings) -> int:
                 focus,
                 settings.stack_na,
                 signer,
-                int(settings.open_frames_mb * 1_000_000),
+                settings.open_frames_bytes,
                 settings.open_frame_timeout_s,
                 frame_signer,
             )

@@ -19,7 +19,6 @@ import logging
 import sys
 import time
 from dataclasses import fields
-from pathlib import Path
 from typing import ClassVar
 
 import uvicorn
@@ -29,13 +28,12 @@ from pydantic_settings import SettingsConfigDict
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main
 from focustrack_core.web import with_bus_health
-from focustrack_core.wire import codec, keys
-from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION
+from focustrack_core.wire import keys
+from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameReaderSettings
 from focustrack_core.wire.session import (
     ATTEMPT_TIMEOUT_S,
     DEFAULT_ENDPOINT,
     BackgroundSession,
-    ZenohSettings,
 )
 from focustrack_core.wire.trust import frame_signer_of, signer_of
 from focustrack_phase.app import PhaseLimits, create_app
@@ -44,7 +42,7 @@ from focustrack_phase.bus import PhaseOptics, PhaseStacks, ZenohPhaseWorker
 log = logging.getLogger(__name__)
 
 
-class PhaseServiceSettings(ZenohSettings):
+class PhaseServiceSettings(FrameReaderSettings):
     """The phase service's options: flags, ``FOCUSTRACK_PHASE_<OPTION>`` or a settings file.
 
     The limits' defaults are the REST app's `PhaseLimits`, which `limits` gives back (and
@@ -84,27 +82,6 @@ class PhaseServiceSettings(ZenohSettings):
         description="illumination wavelength, um, for stacks whose header gives none (an "
         "instrument that predates the field)",
     )
-    result_key_file: Path | None = Field(
-        None,
-        description="shared key: tag every phase result, for the scheduler to check "
-        "(docs/security.md)",
-    )
-    frame_key_file: Path | None = Field(
-        None,
-        description="the instrument's frame key: read only frames tagged with it, drop and "
-        "count the others (docs/security.md)",
-    )
-    open_frames_mb: float = Field(
-        codec.OPEN_FRAMES_BYTES / 1_000_000,
-        gt=0,
-        description="phase stacks under way held at most, MB (their frames, as float32 of "
-        "one channel); a stack beyond it is answered with an error",
-    )
-    open_frame_timeout_s: float = Field(
-        codec.OPEN_FRAME_TIMEOUT_S,
-        gt=0,
-        description="seconds a phase stack under way waits for its next frame before it is dropped",
-    )
 
     def limits(self) -> PhaseLimits:
         """What one REST request may ask (ValueError if a limit admits nothing)."""
@@ -140,7 +117,7 @@ def run(settings: PhaseServiceSettings) -> int:
                 session,
                 PhaseStacks(
                     limits,
-                    int(settings.open_frames_mb * 1_000_000),
+                    settings.open_frames_bytes,
                     settings.open_frame_timeout_s,
                     frame_signer=frame_signer,
                 ),
