@@ -276,7 +276,7 @@ def reconstruct_stack(
     stack: PhaseStack, optics: PhaseOptics, options: AcekfOptions
 ) -> tuple[phase_pb2.PhaseResult, bytes]:
     """The PhaseResult of a whole stack and its payload (the field's pixels); an error
-    result and no pixels where the filter refuses the stack."""
+    result (naming the exception) and no pixels where the filter refuses the stack or fails."""
     started_s = time.perf_counter()
     try:
         given = phase_input(stack.header, stack.counts, optics)
@@ -288,9 +288,10 @@ def reconstruct_stack(
             photons_per_count=given.photons_per_count,
             options=options,
         )
-    except ValueError as error:
+    except Exception as error:  # refused by the filter (ValueError) or not: answered, never a crash
         log.warning("phase stack %d of %s: %s", stack.header.sequence, stack.tile, error)
-        return result_message(stack.header, stack.tile, error=f"ValueError: {error}"), b""
+        message = f"{type(error).__name__}: {error}"
+        return result_message(stack.header, stack.tile, error=message), b""
     payload = result_pixels(estimate)
     message = result_message(stack.header, stack.tile, shape=stack.counts.shape[1:])
     message.compute_time_s = time.perf_counter() - started_s
