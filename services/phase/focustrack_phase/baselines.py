@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft
 
-from focustrack_phase.acekf import FieldEstimate, plane_order, validate_stack
+from focustrack_phase.acekf import FieldEstimate, nearest_first, validate_stack
 from focustrack_phase.propagation import frequency_sq_per_um2
 
 
@@ -43,7 +43,7 @@ def tie_tikhonov(
     z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
     if len(np.unique(z)) < 2:
         raise ValueError("tie_tikhonov needs two planes at different heights")
-    order = plane_order(z)
+    order = nearest_first(z)
     first = int(order[0])
     second = next(int(k) for k in order[1:] if z[k] != z[first])
     straddle = [k for k in order if np.sign(z[k]) != np.sign(z[first]) and z[k] != 0]
