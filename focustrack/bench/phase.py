@@ -65,7 +65,8 @@ PAPER: dict[str, tuple[float, float, float]] = {
 }
 SWEEP_GAMMAS = (1.0, 10.0, 100.0, 1000.0)
 SWEEP_PLANES = (5, 10, 20, 50, 100)
-TIE_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
+TIE_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
+TIE_MAX_DZ_UM = (0.0, 2.0, 5.0, 10.0, 20.0)
 WOLS_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1000.0)
 
 Method = Callable[[simulate.SyntheticStack], FieldEstimate]
@@ -88,6 +89,17 @@ def _best_alpha(
 ) -> float:
     """The Tikhonov weight with the lowest phase RMSE on the training stack."""
     return min(alphas, key=lambda a: errors(solve(*_args(train), alpha=a), train.field)[0])
+
+
+def _best_tie(train: simulate.SyntheticStack) -> tuple[float, float]:
+    """TIE's (alpha, max_dz_um) with the lowest phase RMSE on the training stack."""
+    grid = [(a, dz) for a in TIE_ALPHAS for dz in TIE_MAX_DZ_UM]
+    return min(
+        grid,
+        key=lambda g: errors(
+            baselines.tie_tikhonov(*_args(train), alpha=g[0], max_dz_um=g[1]), train.field
+        )[0],
+    )
 
 
 def _best_prior(update: acekf.Update, train: simulate.SyntheticStack) -> acekf.AcekfOptions:
@@ -124,7 +136,7 @@ def methods(train: simulate.SyntheticStack) -> dict[str, Method]:
     """The four methods on one setting, each regularised on `train`."""
     ours = _best_prior("phase_frame", train)
     paper = _best_prior("paper", train)
-    tie_alpha = _best_alpha(baselines.tie_tikhonov, TIE_ALPHAS, train)
+    tie_alpha, tie_dz = _best_tie(train)
     wols_alpha = _best_alpha(baselines.weak_object_least_squares, WOLS_ALPHAS, train)
     return {
         f"sparse ACEKF ours q0={ours.q0:g} p0={ours.p0:g}": lambda d: acekf.reconstruct(
@@ -133,8 +145,8 @@ def methods(train: simulate.SyntheticStack) -> dict[str, Method]:
         f"sparse ACEKF eq.33 q0={paper.q0:g} p0={paper.p0:g}": lambda d: acekf.reconstruct(
             *_args(d), options=paper
         ),
-        f"TIE Tikhonov a={tie_alpha:g}": lambda d: baselines.tie_tikhonov(
-            *_args(d), alpha=tie_alpha
+        f"TIE Tikhonov a={tie_alpha:g} dz<={tie_dz:g}": lambda d: baselines.tie_tikhonov(
+            *_args(d), alpha=tie_alpha, max_dz_um=tie_dz
         ),
         f"weak-object LS a={wols_alpha:g}": lambda d: baselines.weak_object_least_squares(
             *_args(d), alpha=wols_alpha

@@ -166,3 +166,14 @@ def test_a_point_source_is_coherent_light() -> None:
     partial = simulate.partially_coherent_stack(truth, z_um, WAVELENGTH_UM, PIXEL_UM, 1e4, 0.0, 9)
     coherent = simulate.through_focus_stack(truth, z_um, WAVELENGTH_UM, PIXEL_UM, 1e4, 9)
     np.testing.assert_array_equal(partial, coherent)
+
+
+def test_tie_fits_its_slope_over_the_window_of_planes_it_is_given() -> None:
+    truth = _weak_field(scale=0.5)
+    z_um = np.arange(1, 41) * 0.25
+    clean = _noiseless_stack(truth, z_um, 1e4)
+    noisy = np.random.default_rng(3).poisson(clean / 100.0).astype(np.float64)  # 100 photons
+    nearest = baselines.tie_tikhonov(noisy, z_um, WAVELENGTH_UM, PIXEL_UM, alpha=1e-2)
+    window = baselines.tie_tikhonov(noisy, z_um, WAVELENGTH_UM, PIXEL_UM, alpha=1e-2, max_dz_um=5.0)
+    # Twenty planes average the shot noise that two planes 0.25 um apart amplify.
+    assert _phase_rmse(window, truth) < 0.5 * _phase_rmse(nearest, truth)
