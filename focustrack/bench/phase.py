@@ -103,15 +103,21 @@ def _best_tie(train: simulate.SyntheticStack) -> tuple[float, float]:
 
 
 def _best_prior(update: acekf.Update, train: simulate.SyntheticStack) -> acekf.AcekfOptions:
-    """The filter's (q0, p0) with the lowest phase RMSE on the training stack."""
+    """The filter's (q0, p0) with the lowest phase RMSE on the training stack (a prior
+    under which it diverges counts as infinitely wrong)."""
+
+    def phase_rmse(options: acekf.AcekfOptions) -> float:
+        try:
+            return errors(acekf.reconstruct(*_args(train), options=options), train.field)[0]
+        except acekf.FilterDivergedError:
+            return float("inf")
+
     grid = [
         acekf.AcekfOptions(q0=q0, p0=ratio * q0, update=update)
         for q0 in FILTER_Q0
         for ratio in FILTER_P0_RATIO
     ]
-    return min(
-        grid, key=lambda o: errors(acekf.reconstruct(*_args(train), options=o), train.field)[0]
-    )
+    return min(grid, key=phase_rmse)
 
 
 def oracle_phase_rmse(data: simulate.SyntheticStack) -> float:

@@ -208,8 +208,24 @@ def reconstruct(
     workers: threads of each FFT (scipy.fft's `workers`).
 
     The filter runs in single precision (complex64): a phase error of 1e-6 rad is far
-    below any noise a camera leaves, and it halves the memory and the time.
+    below any noise a camera leaves, and it halves the memory and the time. Raises
+    ValueError for bad input, FilterDivergedError (a ValueError) when the filter ran away.
     """
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # see the end
+        return _reconstruct(
+            stack_counts, z_um, wavelength_um, pixel_um, photons_per_count, options, workers
+        )
+
+
+def _reconstruct(
+    stack_counts: np.ndarray,
+    z_um: np.ndarray | list[float] | tuple[float, ...],
+    wavelength_um: float,
+    pixel_um: float,
+    photons_per_count: float,
+    options: AcekfOptions | None,
+    workers: int,
+) -> FieldEstimate:
     opts = options or AcekfOptions()
     z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
     shape = stack_counts.shape[1:]
@@ -282,7 +298,22 @@ def reconstruct(
         b += fft2(correction)
     # Back-propagation to the focal plane: H(-z_last) = H(z_last)^*.
     b *= transfer.of(-z_prev)
-    return FieldEstimate(ifft2(b), gamma)
+    field = ifft2(b)
+    # The EKF can run away (a prior far wider than the object at a high photon count): its
+    # field then overflows. Propagation keeps the mean intensity at 1; say so rather than
+    # answer noise.
+    mean_intensity = float(np.mean(np.abs(field) ** 2, dtype=np.float64))
+    if not 0.25 < mean_intensity < 4.0:
+        raise FilterDivergedError(
+            f"the filter diverged (mean intensity {mean_intensity:.3g} of the stack's, not 1): "
+            f"a smaller prior (q0 below {opts.q0:g}) keeps it stable at {gamma:.3g} photons "
+            "per pixel"
+        )
+    return FieldEstimate(field, gamma)
+
+
+class FilterDivergedError(ValueError):
+    """The sparse ACEKF ran away: its field's intensity left any plausible range."""
 
 
 def _update_covariances(
@@ -297,17 +328,16 @@ def _update_covariances(
     takes E once more.
     """
     gain = Q + P  # Q_hat + P_hat, turned into the gain in place below
-    if envelope is None:
-        denominator = 2 * gain.real + noise
-        Q -= (gain.real**2 + gain.imag**2) / denominator  # eq. 31
-        P -= gain * gain / denominator  # eq. 32
-        gain /= denominator
-        return gain
-    squared = envelope * envelope
+    squared = 1.0 if envelope is None else envelope * envelope
     denominator = 2 * squared * gain.real + noise
-    Q -= squared * (gain.real**2 + gain.imag**2) / denominator  # eq. 31 with H_n E
-    P -= squared * gain * gain / denominator  # eq. 32 with H_n E
-    gain *= envelope / denominator
+    Q -= squared * (gain.real**2 + gain.imag**2) / denominator  # eq. 31 (with H_n E)
+    P -= squared * gain * gain / denominator  # eq. 32 (with H_n E)
+    # The pair's covariance [[Q, P], [P^*, Q]] has eigenvalues Q +- |P|. Where a plane has
+    # pinned one direction, Q - |P| -> 0 and single precision's round-off can take it
+    # below: raise Q to |P| (a little more doubt, never a negative variance that would
+    # turn the next gain around).
+    np.maximum(Q, np.abs(P), out=Q)
+    gain *= (1.0 if envelope is None else envelope) / denominator
     return gain
 
 
