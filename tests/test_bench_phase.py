@@ -15,15 +15,28 @@ def test_the_bench_writes_its_table_json_and_figure(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "phase.json"
-    args = argparse.Namespace(json=out, sweep=False, seed=1, size_px=16, repeats=1)
+    args = argparse.Namespace(
+        json=out, sweep=False, seed=1, size_px=16, repeats=1, speed_size_px=32
+    )
     assert run(args) == 0
     result = json.loads(out.read_text())
-    assert set(result) == {"data_set_1", "sweep", "figure", "paper"}
+    assert set(result) == {
+        "data_set_1", "sweep", "coherence", "speed", "figure", "coherence_figure", "paper"
+    }  # fmt: skip
     methods = [row["method"] for row in result["data_set_1"]]
-    assert methods[0] == "sparse ACEKF (ours)" and len(methods) == 4
+    assert methods[0].startswith("sparse ACEKF ours") and len(methods) == 6
+    assert methods[-2:] == ["zero phase (reference)", "oracle Wiener (reference)"]
     row = result["data_set_1"][0]
     assert set(row) == {"method", "gamma", "planes", "phase_rmse_rad", "intensity_rmse", "time_s"}
     assert row["planes"] == 100 and row["time_s"] > 0 and row["phase_rmse_rad"] > 0
     assert result["paper"]["sparse ACEKF (paper)"]["phase_rmse_rad"] == 0.0143
     assert (tmp_path / result["figure"]).stat().st_size > 1000
+    assert (tmp_path / result["coherence_figure"]).stat().st_size > 1000
+    models = [row["model"] for row in result["coherence"]]
+    assert models == ["coherent model (paper)", "coherence envelope (ours)"]
+    for row in result["coherence"]:
+        assert 0 < row["low_frequency_rmse_rad"] <= row["phase_rmse_rad"]
+    speed = {row["update"]: row for row in result["speed"]}
+    assert set(speed) == {"phase_frame", "paper"}
+    assert all(0 < row["peak_memory_images"] < 40 and row["time_s"] > 0 for row in speed.values())
     assert "sparse ACEKF (paper)" in capsys.readouterr().out

@@ -2,17 +2,32 @@
 
 On `focustrack_phase.simulate.data_set_1` (100 planes of 100x100 px, 532 nm, 0.5 um
 steps over 50 um, gamma = 0.998 photons per pixel, our documented weak object), the
-sparse ACEKF with its default options and the two baselines of `focustrack_phase.baselines`
-are scored by phase RMSE (rad, after removing the mean offset), intensity RMSE (relative
-to the mean intensity) and time (median of `--repeats` runs, one core: scipy.fft with one
-worker and numpy's element-wise loops are single-threaded). The baselines' Tikhonov
-weight is chosen per setting from a grid on a training stack (another seed), which
-favours them; the filter keeps its defaults. "zero phase" is the RMSE of a flat phase
-estimate (the phase's own spread): a method is only useful below it.
+sparse ACEKF (with our phase-frame update, and with the paper's eq. 33 as printed) and
+the two baselines of `focustrack_phase.baselines` are scored by phase RMSE (rad, after
+removing the mean offset), intensity RMSE (relative to the mean intensity) and time
+(median of `--repeats` runs, one core: scipy.fft with one worker and numpy's element-wise
+loops are single-threaded). Every method's regularisation (the filter's prior q0, p0;
+the baselines' Tikhonov weight) is chosen per setting from a grid on a training stack of
+another seed, the same way for all. Two references frame the figures: "zero phase", the
+RMSE of a flat estimate (the phase's own spread: a method is only useful below it), and
+"oracle Wiener", the error of the linear weak-object estimate that knows the true
+object's power spectrum (for a Gaussian object no estimator from these frames does better
+on average): it says how far down this object and photon count allow.
 
 `--sweep` adds gamma in (1, 10, 100, 1000) on 100 planes and 5..100 planes at the
-paper's gamma. `--json OUT` writes the scores and a PNG beside OUT (true phase, each
-method's phase and its error).
+paper's gamma. Two more sections always run:
+
+- partial coherence: the same object lit by a disk source (condenser NA 0.05, Abbe's
+  method in `focustrack_phase.simulate.partially_coherent_stack`), 50 planes of 1 um,
+  100 photons, reconstructed with the coherent model (the paper's) and with the filter's
+  coherence envelope; the phase RMSE of each and the part of it below 0.05 cycles/um
+  (the paper's low-frequency "shadow"), and a figure;
+- speed and memory on one core: 21 planes of `--speed-size-px` (2048) squared, both
+  updates, and the filter's peak memory (tracemalloc, on 512 x 512) in images of
+  complex64 (8 bytes a pixel), besides the stack.
+
+`--json OUT` writes the scores and PNGs beside OUT (true phase, each method's phase and
+its error; the partial-coherence figure).
 """
 
 from __future__ import annotations
@@ -21,14 +36,26 @@ import argparse
 import json
 import sys
 import time
+import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import fft
 
 from focustrack_phase import acekf, baselines, simulate
 from focustrack_phase.acekf import FieldEstimate
+from focustrack_phase.propagation import frequency_sq_per_um2
+
+COHERENCE_CONDENSER_NA = 0.05
+COHERENCE_GAMMA = 100.0
+COHERENCE_Z_UM = np.arange(1, 51) * 1.0
+SHADOW_BELOW_PER_UM = 0.05
+SPEED_PLANES = 21
+MEMORY_SIZE_PX = 512
+FILTER_Q0 = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0)
+FILTER_P0_RATIO = (0.0, -0.5, -0.9)
 
 #: The paper's Table 2 (time s, intensity RMSE, phase RMSE rad) on its own Data Set 1.
 PAPER: dict[str, tuple[float, float, float]] = {
@@ -38,7 +65,8 @@ PAPER: dict[str, tuple[float, float, float]] = {
 }
 SWEEP_GAMMAS = (1.0, 10.0, 100.0, 1000.0)
 SWEEP_PLANES = (5, 10, 20, 50, 100)
-TIE_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
+TIE_ALPHAS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0)
+TIE_MAX_DZ_UM = (0.0, 2.0, 5.0, 10.0, 20.0)
 WOLS_ALPHAS = (1e-3, 1e-2, 1e-1, 1.0, 10.0, 100.0, 1000.0)
 
 Method = Callable[[simulate.SyntheticStack], FieldEstimate]
@@ -63,14 +91,68 @@ def _best_alpha(
     return min(alphas, key=lambda a: errors(solve(*_args(train), alpha=a), train.field)[0])
 
 
+def _best_tie(train: simulate.SyntheticStack) -> tuple[float, float]:
+    """TIE's (alpha, max_dz_um) with the lowest phase RMSE on the training stack."""
+    grid = [(a, dz) for a in TIE_ALPHAS for dz in TIE_MAX_DZ_UM]
+    return min(
+        grid,
+        key=lambda g: errors(
+            baselines.tie_tikhonov(*_args(train), alpha=g[0], max_dz_um=g[1]), train.field
+        )[0],
+    )
+
+
+def _best_prior(update: acekf.Update, train: simulate.SyntheticStack) -> acekf.AcekfOptions:
+    """The filter's (q0, p0) with the lowest phase RMSE on the training stack (a prior
+    under which it diverges counts as infinitely wrong)."""
+
+    def phase_rmse(options: acekf.AcekfOptions) -> float:
+        try:
+            return errors(acekf.reconstruct(*_args(train), options=options), train.field)[0]
+        except acekf.FilterDivergedError:
+            return float("inf")
+
+    grid = [
+        acekf.AcekfOptions(q0=q0, p0=ratio * q0, update=update)
+        for q0 in FILTER_Q0
+        for ratio in FILTER_P0_RATIO
+    ]
+    return min(grid, key=phase_rmse)
+
+
+def oracle_phase_rmse(data: simulate.SyntheticStack) -> float:
+    """Phase RMSE (rad) of the linear Wiener estimate that knows the object's power spectrum.
+
+    Per spatial frequency f the planes measure the phase through 2 sin(pi lambda z |f|^2)
+    with noise variance 1/gamma (the weak-object transfer of `focustrack_phase.baselines`),
+    so with the true power |Phi(f)|^2 as its prior the posterior variance is
+    |Phi|^2 / (1 + |Phi|^2 gamma sum_z 4 sin^2(chi)); the amplitude is taken as known.
+    """
+    phase = np.angle(data.field)
+    power = np.abs(fft.fft2(phase - phase.mean(), norm="ortho")) ** 2
+    freq_sq = frequency_sq_per_um2(phase.shape, data.pixel_um)
+    information = np.zeros(phase.shape)
+    for z in data.z_um:
+        information += 4.0 * np.sin(np.pi * data.wavelength_um * z * freq_sq) ** 2
+    posterior = power / (1.0 + power * data.gamma_photons * information)
+    return float(np.sqrt(posterior.sum() / phase.size))
+
+
 def methods(train: simulate.SyntheticStack) -> dict[str, Method]:
-    """The three methods on one setting, the baselines tuned on `train`."""
-    tie_alpha = _best_alpha(baselines.tie_tikhonov, TIE_ALPHAS, train)
+    """The four methods on one setting, each regularised on `train`."""
+    ours = _best_prior("phase_frame", train)
+    paper = _best_prior("paper", train)
+    tie_alpha, tie_dz = _best_tie(train)
     wols_alpha = _best_alpha(baselines.weak_object_least_squares, WOLS_ALPHAS, train)
     return {
-        "sparse ACEKF (ours)": lambda d: acekf.reconstruct(*_args(d)),
-        f"TIE Tikhonov a={tie_alpha:g}": lambda d: baselines.tie_tikhonov(
-            *_args(d), alpha=tie_alpha
+        f"sparse ACEKF ours q0={ours.q0:g} p0={ours.p0:g}": lambda d: acekf.reconstruct(
+            *_args(d), options=ours
+        ),
+        f"sparse ACEKF eq.33 q0={paper.q0:g} p0={paper.p0:g}": lambda d: acekf.reconstruct(
+            *_args(d), options=paper
+        ),
+        f"TIE Tikhonov a={tie_alpha:g} dz<={tie_dz:g}": lambda d: baselines.tie_tikhonov(
+            *_args(d), alpha=tie_alpha, max_dz_um=tie_dz
         ),
         f"weak-object LS a={wols_alpha:g}": lambda d: baselines.weak_object_least_squares(
             *_args(d), alpha=wols_alpha
@@ -103,31 +185,38 @@ def score_setting(
         {"method": "zero phase (reference)", "gamma": gamma, "planes": planes,
          "phase_rmse_rad": errors(zero, data.field)[0], "intensity_rmse": None, "time_s": None}
     )  # fmt: skip
+    rows.append(
+        {"method": "oracle Wiener (reference)", "gamma": gamma, "planes": planes,
+         "phase_rmse_rad": oracle_phase_rmse(data), "intensity_rmse": None, "time_s": None}
+    )  # fmt: skip
     return rows, phases, np.angle(data.field)
 
 
 def format_rows(rows: list[dict[str, Any]], with_paper: bool) -> str:
     """A plain-text table; the paper's own figures last when `with_paper`."""
-    header = f"{'method':<32} {'gamma':>7} {'planes':>6} {'phase rad':>10} {'intensity':>10}"
+    header = f"{'method':<44} {'gamma':>7} {'planes':>6} {'phase rad':>10} {'intensity':>10}"
     lines = [f"{header} {'time s':>9}"]
     for r in rows:
         intensity = "" if r["intensity_rmse"] is None else f"{r['intensity_rmse']:.4f}"
         seconds = "" if r["time_s"] is None else f"{r['time_s']:.4f}"
         lines.append(
-            f"{r['method']:<32} {r['gamma']:>7g} {r['planes']:>6} {r['phase_rmse_rad']:>10.4f} "
+            f"{r['method']:<44} {r['gamma']:>7g} {r['planes']:>6} {r['phase_rmse_rad']:>10.4f} "
             f"{intensity:>10} {seconds:>9}"
         )
     if with_paper:
         for name, (seconds_p, intensity_p, phase_p) in PAPER.items():
             lines.append(
-                f"{name:<32} {0.998:>7g} {100:>6} {phase_p:>10.4f} {intensity_p:>10.4f} "
+                f"{name:<44} {0.998:>7g} {100:>6} {phase_p:>10.4f} {intensity_p:>10.4f} "
                 f"{seconds_p:>9.4g}"
             )
     return "\n".join(lines)
 
 
-def write_figure(path: Path, truth: np.ndarray, phases: dict[str, np.ndarray]) -> None:
-    """True phase, each method's phase (mean offset removed) and its error, in radians."""
+def write_figure(
+    path: Path, truth: np.ndarray, phases: dict[str, np.ndarray], error_rad: float = 0.3
+) -> None:
+    """True phase, each method's phase (mean offset removed) and its error, in radians
+    (the error's colour scale +-`error_rad`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -145,7 +234,9 @@ def write_figure(path: Path, truth: np.ndarray, phases: dict[str, np.ndarray]) -
         image = axes[0, column].imshow(shown, cmap="viridis", vmin=low, vmax=high)
         axes[0, column].set_title(name, fontsize=9)
         fig.colorbar(image, ax=axes[0, column])
-        image = axes[1, column].imshow(shown - truth, cmap="RdBu_r", vmin=-0.3, vmax=0.3)
+        image = axes[1, column].imshow(
+            shown - truth, cmap="RdBu_r", vmin=-error_rad, vmax=error_rad
+        )
         axes[1, column].set_title("error (rad)", fontsize=9)
         fig.colorbar(image, ax=axes[1, column])
     for axis in axes.flat:
@@ -156,6 +247,67 @@ def write_figure(path: Path, truth: np.ndarray, phases: dict[str, np.ndarray]) -
     plt.close(fig)
 
 
+def band_rmse(phase_error: np.ndarray, pixel_um: float, below_per_um: float) -> float:
+    """RMS (rad) of the part of a phase error image below `below_per_um` cycles/um."""
+    spectrum = fft.fft2(phase_error - phase_error.mean(), norm="ortho")
+    low = np.sqrt(frequency_sq_per_um2(phase_error.shape, pixel_um)) < below_per_um
+    return float(np.sqrt(np.sum(np.abs(spectrum[low]) ** 2) / phase_error.size))
+
+
+def score_coherence(
+    seed: int, size_px: int
+) -> tuple[list[dict[str, Any]], np.ndarray, dict[str, np.ndarray]]:
+    """Rows (model, phase RMSE, its low-frequency part), the truth and each model's phase."""
+    field = simulate.weak_object(size_px, seed)
+    wavelength_um, pixel_um = simulate.DATA_SET_1_WAVELENGTH_UM, simulate.DATA_SET_1_PIXEL_UM
+    stack = simulate.partially_coherent_stack(
+        field, COHERENCE_Z_UM, wavelength_um, pixel_um, COHERENCE_GAMMA,
+        COHERENCE_CONDENSER_NA, seed,
+    )  # fmt: skip
+    rows: list[dict[str, Any]] = []
+    phases: dict[str, np.ndarray] = {}
+    for name, condenser_na in (
+        ("coherent model (paper)", 0.0),
+        ("coherence envelope (ours)", COHERENCE_CONDENSER_NA),
+    ):
+        estimate = acekf.reconstruct(
+            stack, COHERENCE_Z_UM, wavelength_um, pixel_um,
+            options=acekf.AcekfOptions(condenser_na=condenser_na),
+        )  # fmt: skip
+        error = np.angle(estimate.field * np.conj(field))
+        rows.append(
+            {"model": name, "condenser_na": COHERENCE_CONDENSER_NA, "gamma": COHERENCE_GAMMA,
+             "planes": len(COHERENCE_Z_UM), "phase_rmse_rad": errors(estimate, field)[0],
+             "low_frequency_rmse_rad": band_rmse(error, pixel_um, SHADOW_BELOW_PER_UM)}
+        )  # fmt: skip
+        phases[name] = estimate.phase_rad
+    return rows, np.angle(field), phases
+
+
+def measure_speed(size_px: int) -> list[dict[str, Any]]:
+    """Seconds for 21 planes of size_px^2 (one core) and peak memory, per update."""
+    rng = np.random.default_rng(0)
+    z_um = np.linspace(-5.0, 5.0, SPEED_PLANES)
+    stack = rng.poisson(100.0, size=(SPEED_PLANES, size_px, size_px)).astype(np.float32)
+    small = stack[:, :MEMORY_SIZE_PX, :MEMORY_SIZE_PX].copy()
+    rows = []
+    for update in ("phase_frame", "paper"):
+        options = acekf.AcekfOptions(update=update)
+        start = time.perf_counter()
+        acekf.reconstruct(stack, z_um, 0.532, 0.108, options=options)
+        seconds = time.perf_counter() - start
+        tracemalloc.start()
+        acekf.reconstruct(small, z_um, 0.532, 0.108, options=options)
+        peak_bytes = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        image_bytes = 8 * small.shape[1] * small.shape[2]
+        rows.append(
+            {"update": update, "planes": SPEED_PLANES, "size_px": size_px, "time_s": seconds,
+             "peak_memory_images": peak_bytes / image_bytes}
+        )  # fmt: skip
+    return rows
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
     parser.add_argument("--sweep", action="store_true", help="also sweep gamma and planes")
@@ -164,11 +316,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--size-px", type=int, default=simulate.DATA_SET_1_SIZE_PX, help="image side (100)"
     )
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per method (5)")
+    parser.add_argument(
+        "--speed-size-px", type=int, default=2048, help="image side of the speed run (2048)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.size_px < 8 or args.repeats < 1:
-        print("focustrack bench phase: error: --size-px >= 8, --repeats >= 1", file=sys.stderr)
+    if args.size_px < 16 or args.repeats < 1 or args.speed_size_px < 16:
+        print(
+            "focustrack bench phase: error: --size-px and --speed-size-px >= 16, --repeats >= 1",
+            file=sys.stderr,
+        )
         return 2
     print("Data Set 1 (gamma 0.998, 100 planes)...", flush=True)
     rows, phases, truth = score_setting(
@@ -184,17 +342,38 @@ def run(args: argparse.Namespace) -> int:
             print(f"sweep: gamma {gamma:g}, {planes} planes...", flush=True)
             sweep += score_setting(gamma, planes, args.seed, args.size_px, 1)[0]
         print(format_rows(sweep, with_paper=False), flush=True)
+    print(
+        f"partial coherence (condenser NA {COHERENCE_CONDENSER_NA}, {COHERENCE_GAMMA:g} "
+        f"photons, {len(COHERENCE_Z_UM)} planes)...",
+        flush=True,
+    )
+    coherence, coherence_truth, coherence_phases = score_coherence(args.seed, args.size_px)
+    for row in coherence:
+        print(
+            f"  {row['model']:<28} phase {row['phase_rmse_rad']:.4f} rad, of which below "
+            f"{SHADOW_BELOW_PER_UM} cycles/um {row['low_frequency_rmse_rad']:.4f} rad"
+        )
+    print(f"speed: {SPEED_PLANES} planes of {args.speed_size_px}^2 on one core...", flush=True)
+    speed = measure_speed(args.speed_size_px)
+    for row in speed:
+        print(
+            f"  {row['update']:<12} {row['time_s']:.2f} s, peak memory "
+            f"{row['peak_memory_images']:.1f} complex64 images"
+        )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         figure = args.json.with_suffix(".png")
+        coherence_figure = args.json.with_name(args.json.stem + "-coherence.png")
         write_figure(figure, truth, phases)
+        write_figure(coherence_figure, coherence_truth, coherence_phases, error_rad=0.15)
         args.json.write_text(
             json.dumps(
-                {"data_set_1": rows, "sweep": sweep, "figure": figure.name,
+                {"data_set_1": rows, "sweep": sweep, "coherence": coherence, "speed": speed,
+                 "figure": figure.name, "coherence_figure": coherence_figure.name,
                  "paper": {name: {"time_s": t, "intensity_rmse": i, "phase_rmse_rad": p}
                            for name, (t, i, p) in PAPER.items()}},
                 indent=2,
             )
         )  # fmt: skip
-        print(f"wrote {args.json} and {figure}")
+        print(f"wrote {args.json}, {figure} and {coherence_figure}")
     return 0

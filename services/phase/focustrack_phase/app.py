@@ -4,7 +4,8 @@
   raw counts, frames first: (n, H, W), n >= 2), ``z_um`` (each frame's height relative
   to the plane to reconstruct, um: a JSON list or comma-separated numbers),
   ``wavelength_um``, ``pixel_um``; optional ``photons_per_count`` (1) and the filter's
-  settings ``q0``, ``p0``, ``amplitude_floor`` (`AcekfOptions`). ``?format=npy`` (the
+  settings ``q0``, ``p0``, ``update``, ``condenser_na``, ``amplitude_floor``
+  (`AcekfOptions`). ``?format=npy`` (the
   default) answers a float32 .npy of shape (2, H, W): the phase (rad) and the amplitude
   (relative to the stack's mean) at z = 0; ``?format=png`` a picture of the phase with
   a colour bar in radians.
@@ -33,7 +34,7 @@ from fastapi.responses import Response
 
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
 from focustrack_core.web import bearer_token, guarded_app, read_upload
-from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
+from focustrack_phase.acekf import AcekfOptions, FieldEstimate, Update, reconstruct
 
 #: Bounds of the filter's settings a request may set: wide around the defaults, finite.
 MAX_Q0 = 1e6
@@ -167,6 +168,12 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
         photons_per_count: Positive = 1.0,
         q0: Annotated[float, Form(gt=0, le=MAX_Q0, allow_inf_nan=False)] = defaults.q0,
         p0: Annotated[float, Form(ge=-MAX_Q0, le=MAX_Q0, allow_inf_nan=False)] = defaults.p0,
+        update: Annotated[
+            Update, Form(description="phase_frame (ours) or paper (eq. 33 as printed)")
+        ] = defaults.update,
+        condenser_na: Annotated[
+            float, Form(ge=0, lt=1.5, allow_inf_nan=False, description="0: coherent light")
+        ] = defaults.condenser_na,
         amplitude_floor: Annotated[
             float, Form(gt=0, le=MAX_AMPLITUDE_FLOOR, allow_inf_nan=False)
         ] = defaults.amplitude_floor,
@@ -175,7 +182,13 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
         data = await read_upload(stack, limits.max_upload_bytes)
         try:
             z = parse_z_list(z_um)
-            options = AcekfOptions(q0=q0, p0=p0, amplitude_floor=amplitude_floor)
+            options = AcekfOptions(
+                q0=q0,
+                p0=p0,
+                update=update,
+                condenser_na=condenser_na,
+                amplitude_floor=amplitude_floor,
+            )
             frames = await run_in_threadpool(
                 decode_stack, data, limits.max_frames, limits.max_decoded_bytes
             )

@@ -8,9 +8,12 @@ per spatial frequency f (chi = pi lambda z |f|^2),
 
 with A, Phi the unitary FFTs of alpha and phi.
 
-- `tie_tikhonov`: transport of intensity, dI/dz at focus = 2 pi lambda |f|^2 Phi, from a
-  central difference of the two planes nearest focus when they straddle it, else their
-  forward difference; inverted with Tikhonov regularisation `alpha`.
+- `tie_tikhonov`: transport of intensity, dI/dz at focus = 2 pi lambda |f|^2 Phi, with
+  dI/dz the least-squares slope of the intensity over the planes within `max_dz_um` of
+  focus (at least the two nearest; a line with an intercept, so one side of focus
+  serves), inverted with Tikhonov regularisation `alpha`; the amplitude is the root of
+  the window's mean intensity. More planes average the noise down, farther ones bend the
+  line: the window is the classic trade-off.
 - `weak_object_least_squares`: every plane's transfer functions, solved per frequency for
   (A, Phi) by least squares with Tikhonov regularisation `alpha` (normal equations of
   2x2, accumulated one frame at a time: five arrays of the image's size).
@@ -21,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft
 
-from focustrack_phase.acekf import FieldEstimate, plane_order, validate_stack
+from focustrack_phase.acekf import FieldEstimate, nearest_first, validate_stack
 from focustrack_phase.propagation import frequency_sq_per_um2
 
 
@@ -32,31 +35,37 @@ def tie_tikhonov(
     pixel_um: float,
     photons_per_count: float = 1.0,
     alpha: float = 1e-2,
+    max_dz_um: float = 0.0,
 ) -> FieldEstimate:
-    """Phase (and the two frames' mean intensity) at z = 0 by a Tikhonov-regularised TIE.
+    """Phase (and the window's mean intensity) at z = 0 by a Tikhonov-regularised TIE.
 
     Arguments as `focustrack_phase.acekf.reconstruct`; `alpha` (1/um^2) is added to
-    (2 pi lambda |f|^2)^2 in the inverse Laplacian. Needs two planes at different z.
+    (2 pi lambda |f|^2)^2 in the inverse Laplacian; the slope is fitted over the planes
+    within `max_dz_um` of focus, and at least the two nearest. Needs two planes at
+    different z.
     """
     if not alpha > 0:
         raise ValueError(f"alpha must be > 0, got {alpha}")
     z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
     if len(np.unique(z)) < 2:
         raise ValueError("tie_tikhonov needs two planes at different heights")
-    order = plane_order(z)
-    first = int(order[0])
-    second = next(int(k) for k in order[1:] if z[k] != z[first])
-    straddle = [k for k in order if np.sign(z[k]) != np.sign(z[first]) and z[k] != 0]
-    if z[first] != 0 and straddle:  # a central difference across focus
-        second = int(straddle[0])
+    order = nearest_first(z)
+    window = [int(k) for k in order if abs(z[k]) <= max_dz_um]
+    for k in order:  # at least two planes at different heights
+        if len(np.unique(z[window])) >= 2:
+            break
+        if int(k) not in window:
+            window.append(int(k))
+    dz = z[window] - z[window].mean()
     scale = photons_per_count / gamma
-    near, far = stack_counts[first] * scale, stack_counts[second] * scale
-    didz = (far - near) / (z[second] - z[first])  # 1/um, relative intensity
+    frames = stack_counts[window] * scale
+    mean_intensity = frames.mean(axis=0)
+    didz = np.tensordot(dz, frames, axes=1) / float(dz @ dz)  # 1/um, relative intensity
     weight = 2.0 * np.pi * wavelength_um * frequency_sq_per_um2(didz.shape, pixel_um)
     phase_rad = fft.ifft2(
         fft.fft2(didz, norm="ortho") * weight / (weight * weight + alpha), norm="ortho"
     ).real
-    amplitude = np.sqrt(np.maximum(0.5 * (near + far), 0.0))
+    amplitude = np.sqrt(np.maximum(mean_intensity, 0.0))
     return FieldEstimate(amplitude * np.exp(1j * phase_rad), gamma)
 
 

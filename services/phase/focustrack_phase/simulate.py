@@ -5,11 +5,19 @@ steps over 50 um from focus (z = 0.5, 1.0, ..., 50 um), Poisson noise with gamma
 by eq. 5 the counts are Poisson(gamma |a|^2) with the field normalised to mean |a|^2 = 1
 (which propagation keeps), so a pixel detects gamma photons on average.
 
-The paper does not give its object. Ours is smooth and weak: the amplitude is 1 minus a
-sum of Gaussian absorbers (depths 0.05-0.15, widths 4-10 px) and the phase a sum of
-Gaussian bumps (heights -0.3..0.6 rad, widths 3-12 px) with a range under 1 rad, the
-whole placed at random by a seed. Propagation is the same periodic angular spectrum the
-filter assumes (the paper's synthetic data are made the same way).
+The paper does not give its object. Ours is a weak blood smear: unstained red cells as
+phase objects (Evans-Fung biconcave discs, 7.0-8.2 um across, 0.8 um thick in the middle
+and 2.6 um at the rim, placed at random without overlapping, 60 of them in 100x100 um),
+their phase scaled to at most `WEAK_PEAK_PHASE_RAD` = 0.5 rad (a real red cell in plasma
+reaches about 1.5-2 rad at 532 nm: the paper's theory is for weak objects) and a weak
+absorption (3% of the amplitude at the rim). Discs of 7-8 um put the phase where these
+planes see it (periods of 4-20 um; periods over 20 um barely change within 50 um). The
+field wraps around the edges, as the periodic angular spectrum the filter assumes does
+(the paper's synthetic data are made the same way).
+
+`through_focus_stack` images it with coherent light; `partially_coherent_stack` with a
+disk source of a given condenser NA (Abbe's method: the intensities of tilted plane waves
+from points of the source, added), for the filter's partial-coherence model.
 """
 
 from __future__ import annotations
@@ -45,30 +53,47 @@ class SyntheticStack:
     gamma_photons: float
 
 
-def weak_object(size_px: int, seed: int) -> np.ndarray:
-    """A smooth weak object (complex (size, size), mean |a|^2 = 1): see the module's text."""
-    if size_px < 8:
-        raise ValueError(f"size_px must be >= 8, got {size_px}")
+WEAK_PEAK_PHASE_RAD = 0.5
+RED_CELLS = 60
+
+
+def red_cell_thickness_um(rho: np.ndarray) -> np.ndarray:
+    """Evans-Fung thickness (um) of a red cell at radius rho (0..1 of the cell's radius)."""
+    rho2 = np.clip(rho * rho, 0.0, 1.0)
+    return np.sqrt(1.0 - rho2) * (0.81 + 7.83 * rho2 - 4.39 * rho2 * rho2)
+
+
+def weak_object(size_px: int, seed: int, peak_phase_rad: float = WEAK_PEAK_PHASE_RAD) -> np.ndarray:
+    """A weak red-cell smear (complex (size, size), mean |a|^2 = 1): see the module's text.
+
+    Pixels are taken as 1 um (Data Set 1's); the cells keep their size in pixels otherwise.
+    """
+    if size_px < 16:
+        raise ValueError(f"size_px must be >= 16, got {size_px}")
     rng = np.random.default_rng([seed, 29])
     yy, xx = np.mgrid[0:size_px, 0:size_px].astype(np.float64)
-
-    def bumps(
-        count: int, heights: tuple[float, float], widths_px: tuple[float, float]
-    ) -> np.ndarray:
-        total = np.zeros((size_px, size_px))
-        for _ in range(count):
-            cy, cx = rng.uniform(0.15, 0.85, size=2) * size_px
-            width = rng.uniform(*widths_px)
-            total += rng.uniform(*heights) * np.exp(
-                -((yy - cy) ** 2 + (xx - cx) ** 2) / (2.0 * width * width)
-            )
-        return total
-
-    amplitude = 1.0 - bumps(6, (0.05, 0.15), (2.0, 6.0))
-    phase_rad = bumps(12, (0.2, 0.6), (2.0, 6.0))
-    phase_rad *= min(1.0, 0.9 / max(float(np.ptp(phase_rad)), 1e-12))  # range under 1 rad
-    field = amplitude * np.exp(1j * phase_rad)
+    thickness_um = np.zeros((size_px, size_px))
+    cells: list[tuple[np.ndarray, float]] = []
+    count = round(RED_CELLS * size_px * size_px / 100.0**2)
+    for _ in range(50 * count):
+        if len(cells) == count:
+            break
+        centre, diameter = rng.uniform(0.0, size_px, size=2), rng.uniform(7.0, 8.2)
+        if any(_wrapped_distance(centre, c, size_px) < 0.5 * (diameter + d) for c, d in cells):
+            continue
+        cells.append((centre, diameter))
+        dy = (yy - centre[0] + size_px / 2) % size_px - size_px / 2
+        dx = (xx - centre[1] + size_px / 2) % size_px - size_px / 2
+        rho = np.sqrt(dx * dx + dy * dy) / (0.5 * diameter)
+        thickness_um += np.where(rho < 1.0, red_cell_thickness_um(rho), 0.0)
+    relative = thickness_um / max(float(thickness_um.max()), 1e-12)
+    field = (1.0 - 0.03 * relative) * np.exp(1j * peak_phase_rad * relative)
     return field / np.sqrt(np.mean(np.abs(field) ** 2))
+
+
+def _wrapped_distance(a: np.ndarray, b: np.ndarray, period: float) -> float:
+    delta = (a - b + period / 2) % period - period / 2
+    return float(np.hypot(*delta))
 
 
 def through_focus_stack(
@@ -85,6 +110,49 @@ def through_focus_stack(
     for k, z in enumerate(z_um):
         intensity = np.abs(propagate(field, float(z), wavelength_um, pixel_um)) ** 2
         stack[k] = rng.poisson(gamma_photons * intensity)
+    return stack
+
+
+def source_points_per_um(
+    condenser_na: float, wavelength_um: float, shape: tuple[int, int], pixel_um: float
+) -> np.ndarray:
+    """Spatial frequencies (1/um, (n, 2) as (fy, fx)) of the source points of a disk source.
+
+    Every frequency of the image's FFT grid within condenser_na / wavelength, so each
+    tilted plane wave is periodic on the grid (the field wraps around, as propagation
+    does); the on-axis point alone for condenser_na = 0 (coherent light).
+    """
+    fy = np.fft.fftfreq(shape[0], d=pixel_um)
+    fx = np.fft.fftfreq(shape[1], d=pixel_um)
+    grid = np.stack(np.meshgrid(fy, fx, indexing="ij"), axis=-1).reshape(-1, 2)
+    radius = condenser_na / wavelength_um
+    return grid[np.hypot(grid[:, 0], grid[:, 1]) <= radius + 1e-12]
+
+
+def partially_coherent_stack(
+    field: np.ndarray,
+    z_um: np.ndarray,
+    wavelength_um: float,
+    pixel_um: float,
+    gamma_photons: float,
+    condenser_na: float,
+    seed: int,
+) -> np.ndarray:
+    """Poisson counts (frames, height, width) of `field` lit by a disk source (Abbe).
+
+    Each source point s lights the object with the plane wave exp(2 pi i s.x); the mean
+    of the propagated intensities over the points is the partially coherent image.
+    """
+    points = source_points_per_um(condenser_na, wavelength_um, field.shape, pixel_um)
+    yy, xx = np.mgrid[0 : field.shape[0], 0 : field.shape[1]] * pixel_um
+    rng = np.random.default_rng([seed, 2])
+    stack = np.empty((len(z_um), *field.shape))
+    for k, z in enumerate(z_um):
+        intensity = np.zeros(field.shape)
+        for fy, fx in points:
+            tilted = field * np.exp(2j * np.pi * (fy * yy + fx * xx))
+            intensity += np.abs(propagate(tilted, float(z), wavelength_um, pixel_um)) ** 2
+        stack[k] = rng.poisson(gamma_photons * intensity / len(points))
     return stack
 
 

@@ -91,7 +91,13 @@ def test_phase_and_amplitude_are_the_maths_own(
 def test_the_filter_settings_and_gain_reach_the_maths(
     client: TestClient, stack: SyntheticStack
 ) -> None:
-    options = {"q0": 0.05, "p0": -0.01, "amplitude_floor": 0.1}
+    options = {
+        "q0": 0.05,
+        "p0": -0.01,
+        "update": "paper",
+        "condenser_na": 0.2,
+        "amplitude_floor": 0.1,
+    }
     fields = form(stack, photons_per_count=2.0, **options)
     answer = read_npy(post(client, npy_bytes(stack.stack_counts), fields))  # npy: the default
     direct = reconstruct(
@@ -132,6 +138,8 @@ def one_frame(stack: SyntheticStack) -> bytes:
         (None, {"q0": "inf"}, 422, "q0"),
         (None, {"p0": "0.5"}, 422, "|p0| must be <= q0"),
         (None, {"amplitude_floor": "2"}, 422, "amplitude_floor"),
+        (None, {"update": "sideways"}, 422, "phase_frame"),
+        (None, {"condenser_na": "-0.1"}, 422, "condenser_na"),
         (one_frame, {"z_um": "[1]"}, 422, "at least 2 frames; got 1"),
         (lambda s: npy_bytes(np.ones((4, 8))), {}, 422, "(frames, height, width)"),
         (lambda s: npy_bytes(np.full((4, 8, 8), np.nan)), {}, 422, "stack must be finite"),
