@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -71,23 +71,32 @@ class PhaseInput:
     wavelength_um: float
     pixel_um: float
     photons_per_count: float
+    options: AcekfOptions
 
 
 def phase_input(
-    header: instrument_pb2.ZStackHeader, counts: np.ndarray, optics: PhaseOptics
+    header: instrument_pb2.ZStackHeader,
+    counts: np.ndarray,
+    optics: PhaseOptics,
+    options: AcekfOptions,
 ) -> PhaseInput:
     """What the filter reads of a stack of raw `counts` (frames, height, width) and its
     header: the counts above the camera's offset (`dark_counts`) with the camera's gain
     (`photons_per_count`, 0: 1), the heights from `reference_z_um`, the header's
-    wavelength (0: `optics`'). ValueError where the header gives no pixel size."""
+    wavelength (0: `optics`'), and `options` with the header's condenser NA (its partial
+    coherence; 0, not stated: `options`' own). ValueError where the header gives no pixel
+    size."""
     if not header.pixel_size_um > 0:
         raise ValueError(f"the stack's header gives no pixel size ({header.pixel_size_um} um)")
+    if header.condenser_na > 0:
+        options = replace(options, condenser_na=header.condenser_na)
     return PhaseInput(
         counts=counts - np.float32(header.dark_counts),
         z_um=np.asarray(header.z_um, dtype=np.float64) - header.reference_z_um,
         wavelength_um=header.wavelength_um or optics.wavelength_um,
         pixel_um=header.pixel_size_um,
         photons_per_count=header.photons_per_count or 1.0,
+        options=options,
     )
 
 
@@ -279,19 +288,19 @@ def reconstruct_stack(
     result (naming the exception) and no pixels where the filter refuses the stack or fails."""
     started_s = time.perf_counter()
     try:
-        given = phase_input(stack.header, stack.counts, optics)
+        given = phase_input(stack.header, stack.counts, optics, options)
         estimate = reconstruct(
             given.counts,
             given.z_um,
             wavelength_um=given.wavelength_um,
             pixel_um=given.pixel_um,
             photons_per_count=given.photons_per_count,
-            options=options,
+            options=given.options,
         )
     except Exception as error:  # refused by the filter (ValueError) or not: answered, never a crash
         log.warning("phase stack %d of %s: %s", stack.header.sequence, stack.tile, error)
-        message = f"{type(error).__name__}: {error}"
-        return result_message(stack.header, stack.tile, error=message), b""
+        why = f"{type(error).__name__}: {error}"
+        return result_message(stack.header, stack.tile, error=why), b""
     payload = result_pixels(estimate)
     message = result_message(stack.header, stack.tile, shape=stack.counts.shape[1:])
     message.compute_time_s = time.perf_counter() - started_s

@@ -22,6 +22,7 @@ from focustrack_core.wire import codec, keys
 from focustrack_core.wire.codec import PixelPublisher, describe_stack
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
+from focustrack_phase.acekf import AcekfOptions
 from focustrack_phase.app import PhaseLimits
 from focustrack_phase.bus import (
     PhaseOptics,
@@ -166,12 +167,17 @@ def test_focus_stacks_are_ignored_and_a_bad_phase_stack_gets_an_error(bus) -> No
 def test_a_header_without_wavelength_or_gain_takes_the_service_defaults() -> None:
     header = header_of(1, np.array([11.0, 13.0]))
     header.wavelength_um = header.photons_per_count = 0.0
-    given = phase_input(header, np.full((2, 4, 4), 150.0, np.float32), PhaseOptics(0.6))
+    counts = np.full((2, 4, 4), 150.0, np.float32)
+    options = AcekfOptions(condenser_na=0.2)
+    given = phase_input(header, counts, PhaseOptics(0.6), options)
     assert given.wavelength_um == 0.6 and given.photons_per_count == 1.0
     assert given.z_um.tolist() == [-1.0, 1.0] and np.all(given.counts == 50.0)
+    assert given.options == options  # the header states no condenser NA
+    header.condenser_na = 0.35  # partially coherent light: the filter is told
+    assert phase_input(header, counts, PhaseOptics(), options).options.condenser_na == 0.35
     header.pixel_size_um = 0.0
     with pytest.raises(ValueError, match="no pixel size"):
-        phase_input(header, np.ones((2, 4, 4), np.float32), PhaseOptics())
+        phase_input(header, counts, PhaseOptics(), options)
 
 
 def test_the_phase_command_serves_zenoh_and_http_in_one_process(tmp_path: Path) -> None:
