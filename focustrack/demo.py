@@ -377,7 +377,8 @@ def comparison_table(reports: dict[str, dict[str, Any]], limit_s: float) -> str:
 
 
 def wall_time_table(reports: dict[str, dict[str, Any]]) -> str:
-    """Where each scan's wall time went, in seconds, and the share of all scans together."""
+    """Where each scan's wall time went, in seconds, and the share of all scans together (the
+    phase stacks' where scans took some)."""
     parts = [
         ("rendering_s", "render"),
         ("transport_s", "transport"),
@@ -387,6 +388,8 @@ def wall_time_table(reports: dict[str, dict[str, Any]]) -> str:
         ("scheduler_s", "scheduler"),
         ("total_s", "total"),
     ]
+    if any(report["wall_time_s"]["phase_s"] for report in reports.values()):  # --phase
+        parts.insert(-2, ("phase_s", "phase"))
     header = f"{'wall time s':<18}" + "".join(f"{label:>11}" for _, label in parts)
     lines = [header, "-" * len(header)]
     sums = WallTimes().as_dict()
