@@ -173,7 +173,7 @@ def red_cells(
     fullness *= rng.uniform(0.75, 1.1)
     red_radius = spec.red_cell_diameter_um / 2.0
     n_red = rng.poisson(spec.red_cell_density * area_k_um2 * fullness)
-    for y, x in _scatter(rng, n_red, canvas.size_um, 1.75 * red_radius, []):
+    for y, x in _scatter(rng, n_red, canvas.size_um, 2.0 * red_radius, []):  # a monolayer
         radius = red_radius * rng.normal(1.0, 0.06)
         scale = rng.uniform(0.85, 1.0)  # thickness: 2.2-2.6 um at the rim
         haemoglobin = _material(rng.uniform(*spec.n_haemoglobin) - spec.n_plasma,
