@@ -12,12 +12,12 @@ so a feature of thickness h and index contrast dn shifts the phase by 2 pi dn h 
 
 - `cell_culture`: flat adherent cells in medium (n 1.335), 10-40 um, cytoplasm
   (n 1.36-1.38) 1-2 um thick with a few thin lamellipodia at its rim and a granular
-  texture, a domed nucleus raising the cell to 3-5 um, and 1-3 nucleoli of higher index.
-  Phase: about 0.3-1 rad over cytoplasm, up to about 2 rad over nucleoli.
+  texture, a domed nucleus raising the cell to 2.5-4 um, and 1-3 nucleoli of higher
+  index. Phase: about 0.3-1 rad over cytoplasm, 1.5-2.5 rad over nucleoli.
 - `red_cells`: an unstained blood smear's red cells in plasma (n 1.345): biconcave
   discs 7-8 um across (the Evans-Fung shape: 2.2-2.6 um at the rim, 0.7-0.8 um in the
-  centre) of haemoglobin solution (n 1.39-1.41), a monolayer as in the stained smear,
-  and platelets. Phase: about 1.5 rad at the rim, 0.5 rad in the centre.
+  centre) of haemoglobin solution (n 1.39-1.41), a monolayer that does not overlap,
+  and platelets. Phase: about 1.5-2 rad at the rim, 0.5 rad in the centre.
 
 Both absorb little (density of 0.01-0.02 per um of cell at 0.53 um). Everything is drawn
 from the given seed: a tile looks the same every time it is imaged.
