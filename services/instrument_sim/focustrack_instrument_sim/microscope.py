@@ -11,9 +11,9 @@ cells, `phase_specimen`) is imaged with partially coherent light instead
 wavelength: its frames are monochrome, the same counts in every channel. Frames render
 on `MicroscopeSpec.workers` threads (OpenCV and numpy release the GIL), each with a
 random generator of its own drawn in frame order, so a stack is the same whichever
-thread renders which frame. `acquire` does
-both at once; `true_phase` gives a tile's true phase (evaluation only).
-`simulated.SimulatedInstrument` serves it as an `instrument.Instrument`.
+thread renders which frame. `acquire` does both at once; `true_phase` gives a tile's
+true phase (evaluation only). `simulated.SimulatedInstrument` serves it as an
+`instrument.Instrument`.
 """
 
 from __future__ import annotations
@@ -107,7 +107,9 @@ class MicroscopeSpec:
     camera: Camera = field(default_factory=Camera)
     stage: StageSpec = field(default_factory=StageSpec)
     specimen: SpecimenSpec = field(default_factory=SpecimenSpec)
-    specimen_kind: str = default("specimen")  # one of simulator_options.SPECIMENS
+    # one of simulator_options.SPECIMENS; it also says how the stack headers describe the
+    # imaging (`imaging`), also for a `Microscope` given a specimen function of its own
+    specimen_kind: str = default("specimen")
     phase_specimen: PhaseSpecimenSpec = field(default_factory=PhaseSpecimenSpec)
     illumination: opt.Illumination = field(default_factory=opt.Illumination)  # phase specimens'
     height: int = default("height")
@@ -248,7 +250,7 @@ class Renderer:
             dust = opt.blurred(tile.dust, otf_map, 1.0, out=work.dust)
         if isinstance(tile, PhaseTileSpectrum):
             if work.abbe is None:
-                work.abbe = opt.AbbeWorkspace(self.spec.shape)
+                work.abbe = self.abbe.workspace()
             plane = self.abbe.intensity(tile.transmittance, dz_um, work.abbe, out=work.plane)
             plane *= np.float32(signal_e)
             if dust is not None:
