@@ -92,15 +92,16 @@ def test_red_cells_are_phase_discs_brighter_at_the_rim() -> None:
 
 @pytest.mark.parametrize(
     ("condenser_na", "magnification", "grid"),
-    [(0.0, 60.0, (36, 48)), (0.3, 60.0, (36, 48)), (0.3, 20.0, (48, 64))],
+    [(0.0, 60.0, (48, 64)), (0.3, 60.0, (36, 48)), (0.3, 20.0, (48, 64))],
 )
 def test_abbe_imaging_is_the_sum_over_tilted_coherent_images(
     condenser_na: float, magnification: float, grid: tuple[int, int]
 ) -> None:
     """The imager against the formula, in plain numpy on the frame's grid: for each source
     point s, IFFT(FFT(t exp(i 2 pi s.x)) P(f) exp(-i pi lambda dz |f|^2)), intensities
-    summed. At 60x the imager's fields are on a coarser grid (`grid`), at 20x (pixels too
-    coarse for the intensity's band) on the frame's."""
+    summed. With 19 source points at 60x the imager's fields are on a coarser grid
+    (`grid`); coherent light (one point) and 20x (pixels too coarse for the intensity's
+    band) use the frame's."""
     shape, dz_um = (48, 64), 1.7
     optics = opt.Optics(magnification=magnification)
     pixel_um = optics.pixel_size_um
