@@ -71,7 +71,7 @@ class AcekfOptions:
     its own (unnormalised) units.
     """
 
-    q0: float = 0.02
+    q0: float = 0.01
     p0: float = 0.0
     update: Update = "phase_frame"
     condenser_na: float = 0.0
