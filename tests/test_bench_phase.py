@@ -21,7 +21,8 @@ def test_the_bench_writes_its_table_json_and_figure(
     assert run(args) == 0
     result = json.loads(out.read_text())
     assert set(result) == {
-        "data_set_1", "sweep", "coherence", "speed", "figure", "coherence_figure", "paper"
+        "data_set_1", "sweep", "coherence", "simulator", "speed", "figure",
+        "coherence_figure", "simulator_figure", "paper",
     }  # fmt: skip
     methods = [row["method"] for row in result["data_set_1"]]
     assert methods[0].startswith("sparse ACEKF ours") and len(methods) == 6
@@ -36,6 +37,9 @@ def test_the_bench_writes_its_table_json_and_figure(
     assert models == ["coherent model (paper)", "coherence envelope (ours)"]
     for row in result["coherence"]:
         assert 0 < row["low_frequency_rmse_rad"] <= row["phase_rmse_rad"]
+    assert (tmp_path / result["simulator_figure"]).stat().st_size > 1000
+    simulator = {(row["specimen"], row["model"]): row["correlation"] for row in result["simulator"]}
+    assert len(simulator) == 4 and all(0.8 < c <= 1 for c in simulator.values())
     speed = {row["update"]: row for row in result["speed"]}
     assert set(speed) == {"phase_frame", "paper"}
     assert all(0 < row["peak_memory_images"] < 40 and row["time_s"] > 0 for row in speed.values())

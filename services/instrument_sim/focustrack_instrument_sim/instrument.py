@@ -13,12 +13,18 @@ another. The shell calls them like this, for each acquisition, one at a time:
    shell hands it, and yields each buffer, in z order, as soon as its frame exists.
    Stage moves happen within (1) and (2): the shell never moves the stage by itself.
 
-`Instrument.describe` (the info queryable) and `TruthSource.truth` (evaluation only)
-are called from Zenoh's threads, also while a stack is being acquired. A device that
-fails raises one of the `DeviceError`s; the shell turns every `InstrumentError` into
-an error reply with its own code (and anything else into an INTERNAL one) and keeps
-serving. A backend bounds its waits on devices: a device that does not answer is a
-`DeviceTimeoutError`, not a call that never returns.
+A request has a `Purpose`: a FOCUS stack (the focus service's) or a PHASE stack (the
+phase service's, reconstructed at the request's `reference_z_um`). The plan echoes both,
+with the `ImagingConditions` a reader of the frames needs (wavelength, condenser and
+objective NA, the camera's gain and offset), which go into every stack's header.
+
+`Instrument.describe` (the info queryable), `TruthSource.truth` and
+`PhaseTruthSource.phase_truth` (evaluation only) are called from Zenoh's threads, also
+while a stack is being acquired. A device that fails raises one of the `DeviceError`s;
+the shell turns every `InstrumentError` into an error reply with its own code (and
+anything else into an INTERNAL one) and keeps serving. A backend bounds its waits on
+devices: a device that does not answer is a `DeviceTimeoutError`, not a call that never
+returns.
 
 Units: um for x, y, z and lengths; s for times. Frames are numpy arrays
 (height, width, channels), C-ordered.
@@ -27,7 +33,7 @@ Units: um for x, y, z and lengths; s for times. Frames are numpy arrays
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Protocol, runtime_checkable
 
@@ -160,10 +166,37 @@ class StackTiming:
         return self.move_s + self.z_settle_s + self.exposure_s + self.readout_s
 
 
+class Purpose(StrEnum):
+    """What a stack is taken for (the wire's AcquisitionPurpose)."""
+
+    FOCUS = "focus"  # the focus service finds the best focus in it
+    PHASE = "phase"  # the phase service reconstructs amplitude and phase at reference_z_um
+
+
+@dataclass(frozen=True)
+class ImagingConditions:
+    """How the frames were formed, for a reader that models them (phase retrieval).
+
+    wavelength_um: the illumination's (centre) wavelength, um; 0: unknown.
+    condenser_na: the illumination's NA; 0: a coherent point source.
+    objective_na: the objective's NA; 0: unknown.
+    photons_per_count: the camera's gain, photons (photo-electrons, at a quantum
+        efficiency of 1) per count; 0: unknown.
+    dark_counts: the camera's offset, the counts of a pixel that receives no light.
+    """
+
+    wavelength_um: float = 0.0
+    condenser_na: float = 0.0
+    objective_na: float = 0.0
+    photons_per_count: float = 0.0
+    dark_counts: float = 0.0
+
+
 @dataclass(frozen=True)
 class StackRequest:
     """Frames at z_low_um, z_low_um + z_step_um, ... (n_frames of them, um) of tile (row, col)
-    of `slide`, each exposed `exposure_s` (None: the instrument's default). Unchecked: the
+    of `slide`, each exposed `exposure_s` (None: the instrument's default), for `purpose`;
+    a PHASE stack names the objective z to reconstruct at, `reference_z_um`. Unchecked: the
     instrument's `plan` refuses what it cannot acquire."""
 
     slide: str
@@ -173,6 +206,8 @@ class StackRequest:
     z_step_um: float
     n_frames: int
     exposure_s: float | None = None
+    purpose: Purpose = Purpose.FOCUS
+    reference_z_um: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -181,8 +216,9 @@ class StackPlan:
 
     z_um (n,): the z of every frame, in acquisition order, um; the stage goes to
     (stage_x_um, stage_y_um). `clock_s` is the instrument's clock, s, when the stack is
-    complete (the simulator's simulated clock). A backend may subclass it to carry
-    what `acquire` needs besides.
+    complete (the simulator's simulated clock). `purpose` and `reference_z_um` echo the
+    request's; `imaging` says how the frames are formed. A backend may subclass it to
+    carry what `acquire` needs besides.
     """
 
     slide: str
@@ -196,6 +232,10 @@ class StackPlan:
     pixel_size_um: float
     timing: StackTiming
     clock_s: float
+    # keyword-only, with defaults: a backend's subclass adds fields without defaults
+    purpose: Purpose = field(default=Purpose.FOCUS, kw_only=True)
+    reference_z_um: float = field(default=0.0, kw_only=True)
+    imaging: ImagingConditions = field(default_factory=ImagingConditions, kw_only=True)
 
     @property
     def n_frames(self) -> int:
@@ -212,8 +252,37 @@ class FocusTruth:
     clock_s: float
 
 
+@dataclass(frozen=True)
+class TilePhase:
+    """The true phase of a tile's specimen (evaluation only): phase_rad (height, width)
+    float32, radians, over the frame's pixels (`pixel_size_um` each); the specimen's
+    true focus height over the tile now, focus_z_um (drift included)."""
+
+    phase_rad: np.ndarray
+    pixel_size_um: float
+    focus_z_um: float
+
+
 #: The longest exposure a request may ask for, s.
 MAX_EXPOSURE_S = 10.0
+
+
+def check_tile(slide: str, row: int, col: int, grids: Mapping[str, ScanGrid]) -> ScanGrid:
+    """The grid of `slide`, or AcquisitionRefusedError for an unknown slide (UNKNOWN_SLIDE)
+    or a tile (row, col) outside its grid (TILE_OUTSIDE_SLIDE)."""
+    if slide not in grids:
+        known = ", ".join(sorted(grids))
+        raise AcquisitionRefusedError(
+            Refusal.UNKNOWN_SLIDE, f"unknown slide {slide!r}; known: {known}", "slide"
+        )
+    grid = grids[slide]
+    if not grid.contains(row, col):
+        raise AcquisitionRefusedError(
+            Refusal.TILE_OUTSIDE_SLIDE,
+            f"tile ({row}, {col}) is outside slide {slide!r} of {grid.rows}x{grid.cols} tiles",
+            "row" if not 0 <= row < grid.rows else "col",
+        )
+    return grid
 
 
 def check_request(
@@ -226,21 +295,11 @@ def check_request(
     """The grid of the slide `request` names, or AcquisitionRefusedError saying what is wrong
     with the request: an unknown slide, a tile outside its grid, too many or too few frames,
     a z or z step that is not finite and positive, frames outside `z_range_um` (low, high),
-    an `exposure_s` (the request's, or the instrument's default) outside (0, 10] s. What
+    an `exposure_s` (the request's, or the instrument's default) outside (0, 10] s, and for
+    a PHASE stack a `reference_z_um` that is not finite or outside `z_range_um`. What
     every instrument refuses alike; a backend checks its own limits besides."""
-    if request.slide not in grids:
-        known = ", ".join(sorted(grids))
-        raise AcquisitionRefusedError(
-            Refusal.UNKNOWN_SLIDE, f"unknown slide {request.slide!r}; known: {known}", "slide"
-        )
-    grid, row, col, n_frames = grids[request.slide], request.row, request.col, request.n_frames
-    if not grid.contains(row, col):
-        raise AcquisitionRefusedError(
-            Refusal.TILE_OUTSIDE_SLIDE,
-            f"tile ({row}, {col}) is outside slide {request.slide!r} of {grid.rows}x{grid.cols} "
-            "tiles",
-            "row" if not 0 <= row < grid.rows else "col",
-        )
+    grid = check_tile(request.slide, request.row, request.col, grids)
+    n_frames = request.n_frames
     if n_frames > max_frames:
         raise AcquisitionRefusedError(
             Refusal.TOO_MANY_FRAMES,
@@ -275,6 +334,19 @@ def check_request(
             f"exposure must be in (0, {MAX_EXPOSURE_S:g}] s, got {exposure_s}",
             "exposure_s",
         )
+    if request.purpose is Purpose.PHASE:
+        reference_z_um = request.reference_z_um
+        if not np.isfinite(reference_z_um):
+            raise AcquisitionRefusedError(
+                Refusal.MALFORMED, "reference_z_um must be finite", "reference_z_um"
+            )
+        if not z_low <= reference_z_um <= z_high:
+            raise AcquisitionRefusedError(
+                Refusal.Z_OUT_OF_RANGE,
+                f"reference_z_um {reference_z_um:.3f} um is outside the stage's travel "
+                f"{z_low:.1f}..{z_high:.1f} um",
+                "reference_z_um",
+            )
     return grid
 
 
@@ -314,4 +386,15 @@ class TruthSource(Protocol):
     def truth(self, slide: str) -> FocusTruth:
         """The ground truth of `slide` now; AcquisitionRefusedError(UNKNOWN_SLIDE) for a
         slide the instrument does not have."""
+        ...
+
+
+@runtime_checkable
+class PhaseTruthSource(Protocol):
+    """An instrument that knows the true phase of its specimens (the simulator): served on
+    ``focustrack/v1/eval/phase/...`` with ``--serve-truth``, for evaluation only."""
+
+    def phase_truth(self, slide: str, row: int, col: int) -> TilePhase:
+        """The true phase of tile (row, col) of `slide`; AcquisitionRefusedError
+        (UNKNOWN_SLIDE, TILE_OUTSIDE_SLIDE) for a tile the instrument does not have."""
         ...

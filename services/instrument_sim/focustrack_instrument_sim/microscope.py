@@ -5,10 +5,15 @@ renders the frames of the z-stack, in order, each as soon as it is done: for eac
 frame, the defocus is the frame's z minus the tile's true focus (plus the stage's z
 drift at that moment), the in-focus spectrum of the tile (cached, as many tiles as
 `MicroscopeSpec.cache_mb` holds) is multiplied by the OTF of that defocus, and the
-camera digitises the result. Frames render on `MicroscopeSpec.workers` threads (OpenCV
-and numpy release the GIL), each with a random generator of its own drawn in frame
-order, so a stack is the same whichever thread renders which frame. `acquire` does
-both at once. `simulated.SimulatedInstrument` serves it as an `instrument.Instrument`.
+camera digitises the result. A phase specimen (`MicroscopeSpec.specimen_kind`: unstained
+cells, `phase_specimen`) is imaged with partially coherent light instead
+(`optics.AbbeImager`: its cached spectrum, one inverse FFT per source point), at one
+wavelength: its frames are monochrome, the same counts in every channel. Frames render
+on `MicroscopeSpec.workers` threads (OpenCV and numpy release the GIL), each with a
+random generator of its own drawn in frame order, so a stack is the same whichever
+thread renders which frame. `acquire` does both at once; `true_phase` gives a tile's
+true phase (evaluation only). `simulated.SimulatedInstrument` serves it as an
+`instrument.Instrument`.
 """
 
 from __future__ import annotations
@@ -32,18 +37,29 @@ from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
     FrameFormat,
     Frames,
+    ImagingConditions,
+    Purpose,
     Refusal,
     StackPlan,
     StackRequest,
     StackTiming,
+    TilePhase,
     check_request,
+    check_tile,
 )
-from focustrack_instrument_sim.simulator_options import default
+from focustrack_instrument_sim.phase_specimen import (
+    PhaseObject,
+    PhaseSpecimenSpec,
+    cell_culture,
+    red_cells,
+)
+from focustrack_instrument_sim.simulator_options import SPECIMENS, default
 from focustrack_instrument_sim.specimen import SpecimenSpec, blood_smear, dust_layer
 from focustrack_instrument_sim.stage import Stage, StageSpec
 
-#: (seed, (height, width), pixel size in um) -> transmission (height, width, 3) float32
-SpecimenFn = Callable[[np.random.SeedSequence, tuple[int, int], float], np.ndarray]
+#: (seed, (height, width), pixel size in um) -> a tile's specimen: an absorbing one's
+#: transmission (height, width, 3) float32 in (0, 1], or a `PhaseObject`.
+SpecimenFn = Callable[[np.random.SeedSequence, tuple[int, int], float], np.ndarray | PhaseObject]
 
 
 @dataclass(frozen=True)
@@ -91,6 +107,11 @@ class MicroscopeSpec:
     camera: Camera = field(default_factory=Camera)
     stage: StageSpec = field(default_factory=StageSpec)
     specimen: SpecimenSpec = field(default_factory=SpecimenSpec)
+    # one of simulator_options.SPECIMENS; it also says how the stack headers describe the
+    # imaging (`imaging`), also for a `Microscope` given a specimen function of its own
+    specimen_kind: str = default("specimen")
+    phase_specimen: PhaseSpecimenSpec = field(default_factory=PhaseSpecimenSpec)
+    illumination: opt.Illumination = field(default_factory=opt.Illumination)  # phase specimens'
     height: int = default("height")
     width: int = default("width")
     max_frames: int = default("max_frames")
@@ -102,6 +123,40 @@ class MicroscopeSpec:
 
     def __post_init__(self) -> None:
         opt.check_frame_shape(self.shape)  # now, not when the renderer is made for a stack
+        if self.specimen_kind not in SPECIMENS:
+            raise ValueError(f"specimen must be one of {', '.join(SPECIMENS)}")
+        if self.illumination.condenser_na > self.optics.numerical_aperture:
+            raise ValueError(
+                f"the condenser NA ({self.illumination.condenser_na}) must not exceed the "
+                f"objective's ({self.optics.numerical_aperture}): that would be darkfield"
+            )
+
+    @property
+    def phase_imaging(self) -> bool:
+        """Whether the specimen is a phase specimen, imaged with partially coherent light."""
+        return self.specimen_kind != "stained-smear"
+
+    @property
+    def imaging(self) -> ImagingConditions:
+        """How the frames are formed, for the stack headers. A stained smear is imaged
+        incoherently (the condenser filled to the objective's NA) at the camera's green
+        wavelength; a phase specimen with `illumination`. Gain and offset are the camera's
+        (photons per count: electrons per count at a quantum efficiency of 1)."""
+        if self.phase_imaging:
+            wavelength_um, condenser_na = (
+                self.illumination.wavelength_um,
+                self.illumination.condenser_na,
+            )
+        else:
+            wavelength_um = self.optics.reference_wavelength_um
+            condenser_na = self.optics.numerical_aperture
+        return ImagingConditions(
+            wavelength_um=wavelength_um,
+            condenser_na=condenser_na,
+            objective_na=self.optics.numerical_aperture,
+            photons_per_count=self.camera.gain_e_per_adu,
+            dark_counts=self.camera.offset_adu,
+        )
 
     @property
     def tiles_cached(self) -> int:
@@ -125,9 +180,19 @@ class MicroscopeSpec:
 
 @dataclass(frozen=True)
 class TileSpectra:
-    """CCS spectra of a tile's in-focus transmission, one per channel, pixel MTF applied."""
+    """CCS spectra of a tile's in-focus transmission, one per channel, pixel MTF applied,
+    and of its dust layer (or None)."""
 
     channels: tuple[np.ndarray, ...]
+    dust: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class PhaseTileSpectrum:
+    """The spectrum of a phase specimen's complex transmittance (`optics.AbbeImager`),
+    complex64 (height, width), and the CCS spectrum of its dust layer (or None)."""
+
+    transmittance: np.ndarray
     dust: np.ndarray | None
 
 
@@ -143,16 +208,30 @@ class Renderer:
         self._bank = NoiseBank(spec.shape, rng)
         self._local = threading.local()  # each rendering thread's _Workspace
 
-    def spectra(self, transmission: np.ndarray, dust: np.ndarray | None) -> TileSpectra:
-        """Spectra of a tile (transmission (height, width, 3)) and its dust layer, if any."""
+    @functools.cached_property
+    def abbe(self) -> opt.AbbeImager:
+        """The partially coherent imaging of phase specimens, made for the first one."""
+        return opt.AbbeImager(self.spec.optics, self.spec.illumination, self.spec.shape)
+
+    def spectra(
+        self, specimen: np.ndarray | PhaseObject, dust: np.ndarray | None
+    ) -> TileSpectra | PhaseTileSpectrum:
+        """Spectra of a tile (an absorbing specimen's transmission (height, width, 3), or a
+        phase specimen) and its dust layer, if any."""
+        dust_spectrum = None if dust is None else opt.spectrum(dust) * self._pixel_mtf
+        if isinstance(specimen, PhaseObject):
+            wavelength_um = self.spec.illumination.wavelength_um
+            return PhaseTileSpectrum(
+                self.abbe.spectrum(specimen.transmittance(wavelength_um)), dust_spectrum
+            )
         channels = tuple(
-            opt.spectrum(transmission[..., c]) * self._pixel_mtf for c in range(len(opt.CHANNELS))
+            opt.spectrum(specimen[..., c]) * self._pixel_mtf for c in range(len(opt.CHANNELS))
         )
-        return TileSpectra(channels, None if dust is None else opt.spectrum(dust) * self._pixel_mtf)
+        return TileSpectra(channels, dust_spectrum)
 
     def render_frame(
         self,
-        tile: TileSpectra,
+        tile: TileSpectra | PhaseTileSpectrum,
         dz_um: float,
         exposure_s: float,
         rng: np.random.Generator,
@@ -169,6 +248,15 @@ class Renderer:
             dz_dust = dz_um - self.spec.dust_dz_um
             otf_map = self._otfs[1].profile(dz_dust).take(self._bins[1], out=work.otf_map)
             dust = opt.blurred(tile.dust, otf_map, 1.0, out=work.dust)
+        if isinstance(tile, PhaseTileSpectrum):
+            if work.abbe is None:
+                work.abbe = self.abbe.workspace()
+            plane = self.abbe.intensity(tile.transmittance, dz_um, work.abbe, out=work.plane)
+            plane *= np.float32(signal_e)
+            if dust is not None:
+                plane *= dust
+            mono = expose(camera, plane, rng, self._bank, out=work.adu[0], scratch=work.scratch)
+            return cv2.merge([mono] * len(opt.CHANNELS), dst=out)  # one wavelength: monochrome
         for c, (otf, bins) in enumerate(zip(self._otfs, self._bins, strict=True)):
             otf_map = otf.profile(dz_um).take(bins, out=work.otf_map)
             plane = opt.blurred(tile.channels[c], otf_map, signal_e, out=work.plane)
@@ -195,6 +283,7 @@ class _Workspace:
         self.dust = np.empty(shape, dtype=np.float32)
         self.scratch = np.empty(shape, dtype=np.float32)
         self.adu = tuple(np.empty(shape, dtype=np.uint16) for _ in range(channels))
+        self.abbe: opt.AbbeWorkspace | None = None  # made for the first phase specimen
 
 
 @dataclass(frozen=True)
@@ -208,7 +297,7 @@ class SimulatedPlan(StackPlan):
 
     dz_um: np.ndarray
     rngs: tuple[np.random.Generator, ...]
-    tile: TileSpectra
+    tile: TileSpectra | PhaseTileSpectrum
 
 
 @dataclass(frozen=True)
@@ -245,8 +334,10 @@ class Microscope:
         self.stage = Stage(self.spec.stage)
         self._rng = np.random.default_rng([seed, 1])
         self._pool = ThreadPoolExecutor(self.spec.workers, thread_name_prefix="render")
-        self._specimen = specimen or functools.partial(blood_smear, self.spec.specimen)
-        self._tiles: OrderedDict[tuple[str, int, int], TileSpectra] = OrderedDict()
+        self._specimen = specimen or specimen_function(self.spec)
+        self._tiles: OrderedDict[tuple[str, int, int], TileSpectra | PhaseTileSpectrum] = (
+            OrderedDict()
+        )
 
     @functools.cached_property
     def renderer(self) -> Renderer:
@@ -286,14 +377,20 @@ class Microscope:
         z_step_um: float,
         n_frames: int,
         exposure_s: float | None = None,
+        purpose: Purpose = Purpose.FOCUS,
+        reference_z_um: float = 0.0,
     ) -> SimulatedPlan:
         """Accept frames at z_low_um, z_low_um + z_step_um, ... (um) of tile (row, col) of
         `slide` and move the stage there; `render` makes the frames.
 
-        `exposure_s` defaults to the timing model's. Raises AcquisitionRefusedError.
+        `exposure_s` defaults to the timing model's. `purpose` and `reference_z_um` (um, the
+        objective z a PHASE stack is reconstructed at) go into the plan as they are; the
+        frames are the same for either purpose. Raises AcquisitionRefusedError.
         """
         exposure_s = self.spec.stage.timing.exposure_s if exposure_s is None else exposure_s
-        request = StackRequest(slide, row, col, z_low_um, z_step_um, n_frames, exposure_s)
+        request = StackRequest(
+            slide, row, col, z_low_um, z_step_um, n_frames, exposure_s, purpose, reference_z_um
+        )
         chosen = self.check(request, exposure_s)
         z_um = z_low_um + z_step_um * np.arange(n_frames)
         x_um, y_um = chosen.grid.stage_xy_um(row, col)
@@ -315,6 +412,9 @@ class Microscope:
             dz_um=z_um - focus_um,
             rngs=tuple(self._rng.spawn(n_frames)),
             tile=tile,
+            purpose=purpose,
+            reference_z_um=reference_z_um,
+            imaging=self.spec.imaging,
         )
 
     def render(self, plan: SimulatedPlan, out: Callable[[int], np.ndarray] | None = None) -> Frames:
@@ -375,19 +475,54 @@ class Microscope:
         drift_um = self.stage.drift_um(self.stage.clock_s)
         return self.slides[slide].focus_um + drift_um, drift_um
 
-    def _tile_spectra(self, slide: Slide, row: int, col: int) -> TileSpectra:
+    def true_phase(self, slide: str, row: int, col: int) -> TilePhase:
+        """The true phase of tile (row, col) of `slide` (radians, float32 (height, width),
+        not wrapped) at the illumination's wavelength, and the tile's true focus now.
+
+        The same specimen its frames show (drawn again from the tile's seed; dust is not
+        part of it). A stained smear is modelled as a pure absorber: its phase is 0.
+        AcquisitionRefusedError for an unknown slide or a tile outside it.
+        """
+        check_tile(slide, row, col, {name: s.grid for name, s in self.slides.items()})
+        specimen_seed, _ = self._tile_seeds(self.slides[slide], row, col)
+        specimen = self._specimen(specimen_seed, self.spec.shape, self.pixel_size_um)
+        if isinstance(specimen, PhaseObject):
+            phase_rad = specimen.phase_rad(self.spec.illumination.wavelength_um)
+        else:
+            phase_rad = np.zeros(self.spec.shape, dtype=np.float32)
+        focus_um, _ = self.truth_um(slide)
+        return TilePhase(phase_rad, self.pixel_size_um, float(focus_um[row, col]))
+
+    @staticmethod
+    def _tile_seeds(
+        slide: Slide, row: int, col: int
+    ) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
+        """The seeds of a tile's specimen and of its dust layer."""
+        specimen_seed, dust_seed = np.random.SeedSequence([*slide.specimen_seed, row, col]).spawn(2)
+        return specimen_seed, dust_seed
+
+    def _tile_spectra(self, slide: Slide, row: int, col: int) -> TileSpectra | PhaseTileSpectrum:
         key = (slide.name, row, col)
         if key in self._tiles:
             self._tiles.move_to_end(key)
             return self._tiles[key]
-        seed = np.random.SeedSequence([*slide.specimen_seed, row, col])
-        specimen_seed, dust_seed = seed.spawn(2)
-        transmission = self._specimen(specimen_seed, self.spec.shape, self.pixel_size_um)
+        specimen_seed, dust_seed = self._tile_seeds(slide, row, col)
+        specimen = self._specimen(specimen_seed, self.spec.shape, self.pixel_size_um)
         dust = None
         if self.spec.specimen.dust_density > 0:
             dust = dust_layer(self.spec.specimen, dust_seed, self.spec.shape, self.pixel_size_um)
-        tile = self.renderer.spectra(transmission, dust)
+        tile = self.renderer.spectra(specimen, dust)
         self._tiles[key] = tile
         while len(self._tiles) > self.spec.tiles_cached:
             self._tiles.popitem(last=False)
         return tile
+
+
+def specimen_function(spec: MicroscopeSpec) -> SpecimenFn:
+    """The specimen of `spec.specimen_kind`, with its composition from `spec`."""
+    kinds: dict[str, SpecimenFn] = {
+        "stained-smear": functools.partial(blood_smear, spec.specimen),
+        "phase-cells": functools.partial(cell_culture, spec.phase_specimen),
+        "phase-blood": functools.partial(red_cells, spec.phase_specimen),
+    }
+    return kinds[spec.specimen_kind]

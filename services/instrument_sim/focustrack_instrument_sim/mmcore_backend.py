@@ -43,6 +43,7 @@ from focustrack_instrument_sim.instrument import (
     DeviceTimeoutError,
     FrameFormat,
     Frames,
+    ImagingConditions,
     NoImageError,
     OpticsInfo,
     SlideLayout,
@@ -194,6 +195,11 @@ class MMCoreInstrument:
             hardware_sequenced=self.sequenced,
         )
         self._grids = {slide.name: slide.grid for slide in self._description.slides}
+        # In every stack's header: what the options say. The condenser's NA and the
+        # camera's gain and offset are not known here (0).
+        self.imaging = ImagingConditions(
+            wavelength_um=options.mm_wavelength_um, objective_na=options.mm_na
+        )
         # Snaps run here so that a camera that never returns is waited for no longer than
         # its exposure and the timeout (pymmcore releases the GIL within snapImage).
         self._snapper = ThreadPoolExecutor(1, thread_name_prefix="mmcore-snap")
@@ -275,6 +281,9 @@ class MMCoreInstrument:
             timing=timing,
             clock_s=time.perf_counter() - self._opened_s + timing.exposure_s,
             sequenced=self.sequenced,
+            purpose=request.purpose,
+            reference_z_um=request.reference_z_um,
+            imaging=self.imaging,
         )
 
     def _move_xy(self, x_um: float, y_um: float) -> float:

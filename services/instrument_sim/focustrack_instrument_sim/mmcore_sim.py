@@ -11,9 +11,11 @@ nothing in the frames, so the same focus, frames per tile and accuracy (`focustr
 mmcore`).
 
 The camera is monochrome: it gives the simulator's green channel, the one the focus
-service reads in a colour frame. The slide's tile (row, col) is at the simulator's stage
-position (`ScanGrid.stage_xy_um`), so the XY stage's position says which tile is under the
-objective. One slide (`--slides 1`).
+service reads in a colour frame (a phase specimen's frames are monochrome already: every
+channel holds the same counts). Its stack headers carry the simulator's imaging conditions
+(wavelength, condenser and objective NA, gain, offset). The slide's tile (row, col) is at
+the simulator's stage position (`ScanGrid.stage_xy_um`), so the XY stage's position says
+which tile is under the objective. One slide (`--slides 1`).
 """
 
 from __future__ import annotations
@@ -24,7 +26,11 @@ import numpy as np
 from pymmcore_plus.experimental.unicore import UniMMCore
 
 from focustrack_core.mm_devices import scope_core
-from focustrack_instrument_sim.instrument import AcquisitionRefusedError, FocusTruth
+from focustrack_instrument_sim.instrument import (
+    AcquisitionRefusedError,
+    FocusTruth,
+    TilePhase,
+)
 from focustrack_instrument_sim.microscope import Microscope
 from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
@@ -78,7 +84,8 @@ def simulated_core(microscope: Microscope, slide: str) -> UniMMCore:
 class SimulatedMMCoreInstrument(MMCoreInstrument):
     """The MMCore backend over `simulated_core(microscope, slide)`, with the simulator's
     grid, focus range and optics as its options (`options` gives the rest: timeouts,
-    tolerances), and the simulator's truth (a `TruthSource`)."""
+    tolerances), the simulator's imaging conditions in its plans, and the simulator's
+    truths (a `TruthSource` and a `PhaseTruthSource`)."""
 
     def __init__(self, microscope: Microscope, options: MMCoreOptions | None = None) -> None:
         if len(microscope.slides) != 1:
@@ -109,9 +116,13 @@ class SimulatedMMCoreInstrument(MMCoreInstrument):
             }
         )
         super().__init__(simulated_core(microscope, slide.name), options)
+        self.imaging = spec.imaging
 
     def truth(self, slide: str) -> FocusTruth:
         return self.simulator.truth(slide)
+
+    def phase_truth(self, slide: str, row: int, col: int) -> TilePhase:
+        return self.simulator.phase_truth(slide, row, col)
 
     def close(self) -> None:
         super().close()

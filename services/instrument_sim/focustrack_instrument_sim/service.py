@@ -19,6 +19,13 @@ Queryables (key space in proto/README.md):
   (ERROR_CODE_FRAMES_GONE when the stack is no longer held).
 - ``focustrack/v1/eval/truth/{name}/{slide}``: SlideTruth, for evaluation code only, and
   only with ``--serve-truth`` (an instrument that is a `TruthSource`: the simulator).
+- ``focustrack/v1/eval/phase/{name}/{slide}/{row}/{col}``: a tile's true phase (raw
+  float32 (height, width) radians, PhaseTruth attached), for evaluation code only, with
+  ``--serve-truth`` (an instrument that is a `PhaseTruthSource`: the simulator).
+
+Every stack header says what the stack is for (`purpose`, and the `reference_z_um` of a
+phase stack, both echoed from the request) and how its frames were formed (wavelength,
+condenser and objective NA, the camera's photons per count and dark counts).
 
 Acquisitions run one at a time on the main thread (there is one stage), which
 publishes each frame while the instrument takes the next ones; info, frames and truth
@@ -65,6 +72,8 @@ from focustrack_instrument_sim.instrument import (
     Instrument,
     InstrumentError,
     NoImageError,
+    PhaseTruthSource,
+    Purpose,
     Refusal,
     StackPlan,
     StackRequest,
@@ -125,6 +134,29 @@ def replies_for_instrument_errors() -> Iterator[None]:
         raise request_error(error) from error
 
 
+#: The wire's AcquisitionPurpose of each purpose.
+PURPOSES = {
+    Purpose.FOCUS: instrument_pb2.ACQUISITION_PURPOSE_FOCUS,
+    Purpose.PHASE: instrument_pb2.ACQUISITION_PURPOSE_PHASE,
+}
+
+#: Encoding of a phase-truth reply: raw float32 pixels, described by the attached header.
+PHASE_TRUTH_ENCODING = zenoh.Encoding.APPLICATION_OCTET_STREAM.with_schema(
+    instrument_pb2.PhaseTruth.DESCRIPTOR.full_name
+)
+
+
+def purpose_of(value: int) -> Purpose:
+    """The purpose of a request's AcquisitionPurpose; RequestError(MALFORMED) for a value
+    this instrument does not know."""
+    for purpose, wire in PURPOSES.items():
+        if wire == value:
+            return purpose
+    raise rpc.RequestError(
+        rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST, f"unknown purpose {value}", "purpose"
+    )
+
+
 def truth_source(instrument: Instrument, serve_truth: bool) -> TruthSource | None:
     """The instrument, to serve its ground truth from (None without `serve_truth`);
     ValueError when it has none."""
@@ -156,6 +188,9 @@ class InstrumentService:
             raise ValueError(f"queue_depth must be at least 1, got {queue_depth}")
         self.instrument = instrument
         self.truth = truth_source(instrument, serve_truth)
+        self.phase_truth = (
+            instrument if serve_truth and isinstance(instrument, PhaseTruthSource) else None
+        )
         self.session = session
         self.publisher = codec.PixelPublisher(
             session, shm_pool_bytes, frame_part_bytes, frame_signer
@@ -186,6 +221,13 @@ class InstrumentService:
                 self.session.declare_queryable(
                     keys.truth_pattern(self.name),
                     lambda query: rpc.answer(query, str(query.key_expr), self._truth),
+                )
+            )
+        if self.phase_truth is not None:
+            self._declared.append(
+                self.session.declare_queryable(
+                    keys.phase_truth_pattern(self.name),
+                    lambda query: rpc.serve(query, str(query.key_expr), self._reply_phase_truth),
                 )
             )
 
@@ -226,6 +268,7 @@ class InstrumentService:
                 f"a nonce of {len(request.nonce)} bytes; at most {MAX_NONCE_BYTES}",
                 "nonce",
             )
+        purpose = purpose_of(request.purpose)
         with replies_for_instrument_errors():
             plan = self.instrument.plan(
                 StackRequest(
@@ -236,6 +279,8 @@ class InstrumentService:
                     request.z_step_um,
                     request.n_frames,
                     request.exposure_s or None,  # 0 (unset on the wire): the default
+                    purpose,
+                    request.reference_z_um,
                 )
             )
             header = self._header(plan, request.sequence, request.nonce or new_nonce())
@@ -280,6 +325,7 @@ class InstrumentService:
 
     def _header(self, plan: StackPlan, sequence: int, nonce: bytes) -> instrument_pb2.ZStackHeader:
         """The header of the stack of `plan` (without its shape and dtype yet)."""
+        imaging = plan.imaging
         return instrument_pb2.ZStackHeader(
             instrument=self.name,
             slide=plan.slide,
@@ -295,6 +341,13 @@ class InstrumentService:
             bit_depth=plan.frame.bit_depth,
             exposure_s=plan.exposure_s,
             clock_s=plan.clock_s,
+            purpose=PURPOSES[plan.purpose],
+            reference_z_um=plan.reference_z_um,
+            wavelength_um=imaging.wavelength_um,
+            condenser_na=imaging.condenser_na,
+            objective_na=imaging.objective_na,
+            photons_per_count=imaging.photons_per_count,
+            dark_counts=imaging.dark_counts,
         )
 
     def _frame_buffers(self, plan: StackPlan) -> Callable[[int], np.ndarray]:
@@ -382,6 +435,38 @@ class InstrumentService:
             clock_s=truth.clock_s,
         )
 
+    def _reply_phase_truth(self, query: zenoh.Query) -> None:
+        """Answer with the true phase of the tile the key names: its raw float32 pixels
+        (height, width), radians, with a PhaseTruth header attached."""
+        assert self.phase_truth is not None  # declared only then
+        key_expr = str(query.key_expr)
+        slide, row, col = key_expr.split("/")[-3:]
+        if not (row.isdigit() and col.isdigit()):
+            raise rpc.RequestError(
+                rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST,
+                f"{key_expr!r}: row and col must be non-negative integers",
+                "row",
+            )
+        with replies_for_instrument_errors():
+            truth = self.phase_truth.phase_truth(slide, int(row), int(col))
+        phase_rad = np.ascontiguousarray(truth.phase_rad, dtype="<f4")
+        header = instrument_pb2.PhaseTruth(
+            instrument=self.name,
+            slide=slide,
+            row=int(row),
+            col=int(col),
+            shape=phase_rad.shape,
+            dtype=phase_rad.dtype.str,
+            pixel_size_um=truth.pixel_size_um,
+            focus_z_um=truth.focus_z_um,
+        )
+        query.reply(
+            key_expr,
+            phase_rad.tobytes(),
+            attachment=header.SerializeToString(),
+            encoding=PHASE_TRUTH_ENCODING,
+        )
+
 
 class InstrumentShellSettings(ZenohSettings):
     """The shell's options, whatever the instrument: its name, queue, frames and truth."""
@@ -415,8 +500,8 @@ class InstrumentShellSettings(ZenohSettings):
     )
     serve_truth: bool = Field(
         False,
-        description="answer the ground truth (focustrack/v1/eval/truth/...): benchmarks and "
-        "tests only",
+        description="answer the ground truth (focustrack/v1/eval/truth/..., and the true "
+        "phase: focustrack/v1/eval/phase/...): benchmarks and tests only",
     )
     frame_key_file: Path | None = Field(
         None,

@@ -19,6 +19,7 @@ from focustrack_instrument_sim.instrument import (
     SlideLayout,
     StackPlan,
     StackRequest,
+    TilePhase,
 )
 from focustrack_instrument_sim.microscope import (
     Microscope,
@@ -27,15 +28,16 @@ from focustrack_instrument_sim.microscope import (
     slides_from_map,
     slides_from_seed,
 )
-from focustrack_instrument_sim.optics import Optics
+from focustrack_instrument_sim.optics import Illumination, Optics
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
 from focustrack_instrument_sim.specimen import SpecimenSpec
 from focustrack_instrument_sim.stage import StageSpec
 
 
 class SimulatedInstrument:
-    """A `Microscope` as an `Instrument` and a `TruthSource`: its frames, simulated timing
-    and refusals, unchanged. Its stage moves (and its clock advances) in `plan`."""
+    """A `Microscope` as an `Instrument`, a `TruthSource` and a `PhaseTruthSource`: its
+    frames, simulated timing and refusals, unchanged. Its stage moves (and its clock
+    advances) in `plan`."""
 
     def __init__(self, scope: Microscope) -> None:
         self.microscope = scope
@@ -70,6 +72,8 @@ class SimulatedInstrument:
             request.z_step_um,
             request.n_frames,
             request.exposure_s,
+            request.purpose,
+            request.reference_z_um,
         )
 
     def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
@@ -84,6 +88,9 @@ class SimulatedInstrument:
             )
         focus_um, drift_um = self.microscope.truth_um(slide)
         return FocusTruth(focus_um, drift_um, self.microscope.stage.clock_s)
+
+    def phase_truth(self, slide: str, row: int, col: int) -> TilePhase:
+        return self.microscope.true_phase(slide, row, col)
 
     def close(self) -> None:
         self.microscope.close()
@@ -102,6 +109,8 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
         optics=Optics(numerical_aperture=options.na, magnification=options.magnification),
         stage=StageSpec(drift_um_per_s=options.drift_um_per_s),
         specimen=SpecimenSpec(dust_density=options.dust_density),
+        specimen_kind=options.specimen,
+        illumination=Illumination(condenser_na=options.condenser_na),
         height=options.height,
         width=options.width,
         max_frames=options.max_frames,

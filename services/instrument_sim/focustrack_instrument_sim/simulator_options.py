@@ -24,6 +24,14 @@ from focustrack_core.surfaces import FAMILIES, SurfaceSpec
 #: A map family's name (--family): one of `FAMILIES`.
 FamilyName = Annotated[str, one_of(FAMILIES)]
 
+#: The specimens a slide may carry (--specimen): a Giemsa-stained blood smear (absorbing,
+#: imaged incoherently), or unstained phase objects imaged with partially coherent light:
+#: cells in culture, or a blood smear's red cells.
+SPECIMENS = ("stained-smear", "phase-cells", "phase-blood")
+
+#: A specimen's name (--specimen): one of `SPECIMENS`.
+SpecimenName = Annotated[str, one_of(SPECIMENS)]
+
 
 class SimulatorOptions(BaseModel):
     """The simulated microscope: generated slides (or a map file's) and its optics."""
@@ -40,6 +48,11 @@ class SimulatorOptions(BaseModel):
         None, description="true focus map(s) in um (.npy, .csv, .tif) to use instead"
     )
     pitch_um: float = Field(ScanGrid.pitch_um, description="tile centre spacing, um")
+    specimen: SpecimenName = Field(
+        "stained-smear",
+        description="what every slide carries: " + ", ".join(SPECIMENS) + " (phase specimens "
+        "are imaged with partially coherent light, see --condenser-na)",
+    )
     z_offset_um: float = Field(
         0.0,
         description="every slide's focus moved by this much, um (a re-scan after drift "
@@ -57,6 +70,12 @@ class SimulatorOptions(BaseModel):
         "4.2 of 512 x 512)",
     )
     na: float = Field(0.85, description="numerical aperture")
+    condenser_na: float = Field(
+        0.2,
+        ge=0,
+        description="the condenser's numerical aperture for phase specimens (0: coherent "
+        "light; at most --na)",
+    )
     magnification: float = Field(60.0, description="magnification of the objective")
     drift_um_per_s: float = Field(0.0, description="thermal z drift, um/s")
     dust_density: float = Field(0.0, ge=0, description="dust specks per 1000 um^2 (0: none)")

@@ -58,10 +58,14 @@ def _smoothstep(x: np.ndarray) -> np.ndarray:
 
 
 class _Canvas:
-    """An optical-density image (height, width, 3) that objects are stamped into, in um."""
+    """An image (height, width, channels) that objects are stamped into, in um: optical
+    densities of the R, G, B channels here, optical path and density for phase specimens
+    (`phase_specimen`)."""
 
-    def __init__(self, shape: tuple[int, int], pixel_um: float, edge_um: float) -> None:
-        self.od = np.zeros((*shape, 3), dtype=np.float32)
+    def __init__(
+        self, shape: tuple[int, int], pixel_um: float, edge_um: float, channels: int = 3
+    ) -> None:
+        self.od = np.zeros((*shape, channels), dtype=np.float32)
         self.pixel_um = pixel_um
         self.edge_um = edge_um
 
@@ -94,7 +98,8 @@ class _Canvas:
         profile=None,
         texture: np.ndarray | None = None,
     ) -> None:
-        """Add an ellipse of optical density `od` x thickness `profile(rho)` (0 centre, 1 rim)."""
+        """Add an ellipse of `od` (one value per channel) x thickness `profile(rho)` (rho: 0
+        at the centre, 1 at the rim)."""
         window = self._window(y_um, x_um, radius_um * max(aspect, 1.0) + self.edge_um)
         if window is None:
             return

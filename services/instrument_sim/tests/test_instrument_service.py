@@ -179,6 +179,7 @@ OPTIONS = [
     "slides", "rows", "cols", "family", "map", "pitch-um", "z-offset-um", "width", "height",
     "max-frames", "workers", "cache-mb", "na", "magnification", "drift-um-per-s",
     "dust-density", "realtime", "keep-frames-mb", "frame-part-kb", "queue-depth", "serve-truth",
+    "specimen", "condenser-na",
 ]  # fmt: skip
 
 

@@ -11,6 +11,8 @@ from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
     DeviceError,
     Instrument,
+    PhaseTruthSource,
+    Purpose,
     StackPlan,
     StackRequest,
     TruthSource,
@@ -95,5 +97,31 @@ def test_a_camera_off_the_slide_is_a_device_error() -> None:
         instrument.core.setXYPosition(-5000.0, 0.0)  # moved away behind the backend's back
         with pytest.raises(DeviceError, match=r"Camera: nothing to image here: tile .* outside"):
             _frames(instrument, plan)
+    finally:
+        instrument.close()
+
+
+def test_a_phase_specimen_comes_through_with_the_simulators_imaging_and_phase_truth() -> None:
+    phase = {**SLIDE, "specimen": "phase-blood", "serve_truth": True}
+    request = StackRequest("slide-0", 1, 1, -1.0, 0.5, 3, purpose=Purpose.PHASE,
+                           reference_z_um=-0.5)  # fmt: skip
+    simulator = open_instrument(InstrumentSettings(backend="sim", **phase))
+    try:
+        expected_plan = simulator.plan(request)
+        expected = _frames(simulator, expected_plan)[..., GREEN]
+        assert isinstance(simulator, PhaseTruthSource)
+        expected_phase = simulator.phase_truth("slide-0", 2, 1)
+    finally:
+        simulator.close()
+    instrument = open_instrument(InstrumentSettings(backend="mmcore-sim", **phase))
+    try:
+        plan = instrument.plan(request)
+        assert np.array_equal(_frames(instrument, plan)[..., 0], expected)
+        assert (plan.purpose, plan.reference_z_um) == (Purpose.PHASE, -0.5)
+        assert plan.imaging == expected_plan.imaging and plan.imaging.condenser_na == 0.2
+        assert isinstance(instrument, PhaseTruthSource)
+        phase_rad = instrument.phase_truth("slide-0", 2, 1).phase_rad
+        assert phase_rad.shape == (64, 96) and phase_rad.max() > 0.5  # red cells
+        np.testing.assert_array_equal(phase_rad, expected_phase.phase_rad)
     finally:
         instrument.close()

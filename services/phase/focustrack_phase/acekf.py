@@ -33,6 +33,7 @@ the image's size, besides the stack it reads one frame at a time.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -71,7 +72,7 @@ class AcekfOptions:
     its own (unnormalised) units.
     """
 
-    q0: float = 0.02
+    q0: float = 0.01
     p0: float = 0.0
     update: Update = "phase_frame"
     condenser_na: float = 0.0
@@ -266,31 +267,30 @@ def _reconstruct(
         a_hat = ifft2(b)  # eq. 30: a_hat = K^H b_hat
         modulus = np.abs(a_hat)
         residual = stack_counts[k] * photons_to_relative - modulus * modulus
-        excess = None
-        if envelope is not None and opts.update == "phase_frame":
-            # The partially coherent prediction is 1 + E (|a_hat|^2 - 1) in Fourier space,
-            # so its residual exceeds the coherent one by (1 - E) (|a_hat|^2 - 1).
-            excess = modulus * modulus - 1
+        # The partially coherent prediction is 1 + E (|a_hat|^2 - 1) in Fourier space, so
+        # its residual exceeds the coherent one by (1 - E) (|a_hat|^2 - 1).
+        excess = None if envelope is None else modulus * modulus - 1
         rotation = a_hat  # becomes e^{i theta}, theta the phase of a_hat
         rotation /= np.maximum(modulus, _TINY)
         np.maximum(modulus, opts.amplitude_floor, out=modulus)
         residual /= modulus
+        if excess is not None:
+            excess /= modulus
+        del modulus  # memory: under ten images' worth at the peak
         # eq. 33: b += (Q + P) J^-1 q^-1 (I - gamma |a_hat|^2), J^-1 = K diag(1/(gamma a_hat^*)),
         # and (Q_n + P_n)/q = `gain`; 1/a_hat^* = e^{i theta} / |a_hat| (|a_hat| floored).
         if opts.update == "paper":
-            rotation *= residual
-            innovation = fft2(rotation)
+            weighted_excess = None if excess is None else rotation * excess
+            rotation *= residual  # in place: the rotation is not needed after this
+            innovation = _innovation(rotation, weighted_excess, envelope, fft2)
             innovation *= gain
             b += innovation
             continue
         # Ours: J^-1 = diag(e^{i theta}) diag(1/|a_hat|); applying the gain between the two
         # factors is eq. 33 for the field e^{-i theta} a, which is real and positive at
         # a_hat: Theorem 1's weak object, whatever the phase theta.
-        innovation = fft2(residual.astype(np.complex64))
-        if excess is not None and envelope is not None:
-            excess /= modulus
-            innovation += (1 - envelope) * fft2(excess.astype(np.complex64))
-        del residual, modulus, excess  # memory: under ten images' worth at the peak
+        innovation = _innovation(residual, excess, envelope, fft2)
+        del residual, excess
         innovation *= gain
         del gain
         correction = ifft2(innovation)
@@ -316,6 +316,20 @@ def _reconstruct(
 
 class FilterDivergedError(ValueError):
     """The sparse ACEKF ran away: its field's intensity left any plausible range."""
+
+
+def _innovation(
+    residual: np.ndarray,
+    excess: np.ndarray | None,
+    envelope: np.ndarray | None,
+    fft2: Callable[[np.ndarray], np.ndarray],
+) -> np.ndarray:
+    """FFT of the (weighted) residual, plus (1 - E) FFT(excess) with partial coherence;
+    complex64 (height, width)."""
+    innovation = fft2(residual.astype(np.complex64, copy=False))
+    if excess is not None and envelope is not None:
+        innovation += (1 - envelope) * fft2(excess.astype(np.complex64, copy=False))
+    return innovation
 
 
 def _update_covariances(
