@@ -13,9 +13,12 @@ of it (live_view.png, where chromium is installed), and each scan's mosaic is an
 OME-Zarr (`--mosaic-format ome-tiff` for the OME-TIFF). A service that dies is
 started again, and the demo says so; the instrument tags its frames and the focus
 service its results with keys made for the run, the focus service scores only tagged
-frames and the scans take only tagged results (docs/security.md). With ``--phase`` the
-phase service runs too and every scan takes a phase stack of each tile (docs/phase.md),
-and a line after the table counts the tiles with phase.
+frames and the scans take only tagged results (docs/security.md). With ``--phase`` a
+phase pass follows on a stack of its own: a 4x4 slide of unstained red cells, its focus
+service looking for the contrast minimum, the phase service reconstructing a phase stack
+centred on each tile's predicted focus; a line after the table says how many tiles came
+out in focus and with phase, and how well their phase correlates with the true phase
+(docs/phase.md).
 Everything is shut down on the way out, also on Ctrl-C.
 
     focustrack demo [--rows 10 --cols 10 --size 512] [--strategies A B ...] [--json OUT]
@@ -40,8 +43,10 @@ from subprocess import STDOUT, Popen, TimeoutExpired
 from typing import Any
 
 import httpx
+import numpy as np
 import zenoh
 
+from focustrack.bench.phase import high_pass_correlation
 from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import focus_map_of_npy
@@ -58,9 +63,17 @@ from focustrack_core.wire.session import (
 from focustrack_core.wire.trust import ResultSigner
 from focustrack_estimator import registry
 from focustrack_estimator.replay import limit_time_s
+from focustrack_instrument_sim.simulated import microscope_from_options
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
 from focustrack_scheduler.clients import wait_for_instrument
 from focustrack_scheduler.live_view import LiveServer, port_number
-from focustrack_scheduler.outputs import FOCUS_MAP_NPY, SCAN_FILES, WallTimes
+from focustrack_scheduler.outputs import (
+    FOCUS_MAP_NPY,
+    MOSAIC_ZARR,
+    PHASE,
+    SCAN_FILES,
+    WallTimes,
+)
 from focustrack_scheduler.scan import SCAN_ERRORS, ScanJob, run_scan
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
@@ -74,6 +87,7 @@ DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, "survey-delaunay", "af-every-tile")
 #: RESCAN_OFFSET_UM (10 minutes of drift at 0.02 um/s).
 RESCAN = "kf-rescan"
 SECOND_PASS = "2nd pass kf-rescan"
+PHASE_PASS = "phase-pass"
 RESCAN_OFFSET_UM = 12.0
 INSTRUMENT = "sim"
 SLIDE = "slide-0"
@@ -163,7 +177,8 @@ def _new_key(path: Path) -> Path:
 class LocalStack:
     """A Zenoh router and the three services on loopback, as a context manager.
 
-    `instrument_args` are extra options of `focustrack serve instrument` (slides, frames).
+    `instrument_args` are extra options of `focustrack serve instrument` (slides, frames),
+    `focus_args` of `focustrack serve focus` (a focus mode).
     The router runs in this process, or with `router_process` in one of its own (so it
     can be killed and started again: `services["router"]`). With `supervise`, a service
     that dies is started again, and a line on stderr says so. The instrument serves its
@@ -184,6 +199,7 @@ class LocalStack:
         shared_memory_mb: int = 0,
         serve_truth: bool = True,
         phase: bool = False,
+        focus_args: tuple[str, ...] = (),
     ) -> None:
         self.work_dir = Path(work_dir)
         (self.work_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -233,7 +249,7 @@ class LocalStack:
             ),
             "focus": Service(
                 "focus",
-                [*focus, *frame_key, "--port", str(self.focus_port)],
+                [*focus, *frame_key, "--port", str(self.focus_port), *focus_args],
                 logs / "focus.log",
                 _http_ready(self.focus_port),
             ),
@@ -405,14 +421,78 @@ def wall_time_table(reports: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def phase_line(reports: dict[str, dict[str, Any]]) -> str:
-    """One line on the phase stacks of the scans (``--phase``): tiles with phase, frames."""
-    tiles = sum(report["tiles_with_phase"] for report in reports.values())
-    total = sum(report["rows"] * report["cols"] for report in reports.values())
-    images = sum(report["phase_images_acquired"] for report in reports.values())
+#: The demo's phase pass: a slide of unstained red cells (phase objects) this size, in tiles.
+PHASE_PASS_TILES = 4
+PHASE_PASS_SPECIMEN = "phase-blood"
+
+
+def phase_pass(
+    args: argparse.Namespace, options: ScanOptions, out_dir: Path, live: LiveServer | None
+) -> tuple[dict[str, Any], list[float]]:
+    """The demo's own phase pass: a small slide of unstained red cells on a stack of its own
+    whose focus service looks for the contrast minimum (a phase object is faintest in
+    focus), scanned with kf-2d-lean and a phase stack on every tile. Returns the report
+    and each tile's correlation of its phase with the simulator's true phase (periods over
+    about 6 um removed: `focustrack.bench.phase.high_pass_correlation`)."""
+    simulator = SimulatorOptions(
+        seed=args.seed, slides=1, rows=PHASE_PASS_TILES, cols=PHASE_PASS_TILES,
+        width=args.size, height=args.size, specimen=PHASE_PASS_SPECIMEN,
+    )  # fmt: skip
+    instrument_args = [
+        "--seed", str(args.seed), "--slides", "1", "--rows", str(PHASE_PASS_TILES),
+        "--cols", str(PHASE_PASS_TILES), "--width", str(args.size), "--height", str(args.size),
+        "--specimen", PHASE_PASS_SPECIMEN,
+    ]  # fmt: skip
+    scan_dir = out_dir / PHASE_PASS
+    _clear(scan_dir)
+    with LocalStack(
+        out_dir / "phase-stack", instrument_args, phase=True,
+        focus_args=("--focus-mode", "valley"),
+    ) as stack:  # fmt: skip
+        assert stack.session is not None
+        job = ScanJob(
+            request=options.request(INSTRUMENT, SLIDE, LEAN),
+            estimator_url=stack.estimator_url,
+            out_dir=scan_dir,
+            retry=options.retry(),
+            progress=not options.no_progress,
+            label=PHASE_PASS,
+            mosaic_format=options.mosaic_format,
+            live=live,
+            trust=stack.trust,
+        )
+        report = run_scan(stack.session, job)
+    scope = microscope_from_options(simulator)
+    try:
+        correlations = [
+            high_pass_correlation(
+                np.load(scan_dir / PHASE / f"r{row}_c{col}.npy")[0].astype(np.float64),
+                scope.true_phase(SLIDE, row, col).phase_rad,
+            )
+            for row in range(PHASE_PASS_TILES)
+            for col in range(PHASE_PASS_TILES)
+            if (scan_dir / PHASE / f"r{row}_c{col}.npy").exists()
+        ]
+    finally:
+        scope.close()
+    return report, correlations
+
+
+def phase_line(report: dict[str, Any], correlations: list[float]) -> str:
+    """One line on the phase pass: tiles in focus and with phase, phase frames, accuracy."""
+    tiles = report["rows"] * report["cols"]
+    in_focus = round(report["in_focus_fraction"] * tiles)
+    accuracy = (
+        f"correlation with the true phase median {np.median(correlations):.2f}, "
+        f"lowest {min(correlations):.2f}"
+        if correlations
+        else "no phase to compare"
+    )
     return (
-        f"Phase: {tiles} of {total} tiles over {len(reports)} scans, {images} phase frames "
-        "(each scan's OME-Zarr holds it in radians, image `phase`)"
+        f"Phase pass (unstained red cells, {report['rows']}x{report['cols']} tiles, focus at "
+        f"the contrast minimum): {in_focus} of {tiles} tiles in focus, "
+        f"{report['tiles_with_phase']} with phase, {report['phase_images_acquired']} phase "
+        f"frames, {accuracy}"
     )
 
 
@@ -544,6 +624,9 @@ def run(args: argparse.Namespace) -> int:
         flush=True,
     )
     reports: dict[str, dict[str, Any]] = {}
+    phased: tuple[dict[str, Any], list[float]] | None = None
+    # the strategies scan the stained slide without phase stacks; --phase adds a pass of its own
+    strategies_options = options.model_copy(update={"phase": False})
     try:
         started_s = time.perf_counter()
         with (
@@ -552,7 +635,6 @@ def run(args: argparse.Namespace) -> int:
                 instrument_args,
                 supervise=True,
                 shared_memory_mb=shared_memory_mb,
-                phase=options.phase,
             ) as stack,
             LiveServer(port=args.live_port) as live,
         ):
@@ -563,7 +645,7 @@ def run(args: argparse.Namespace) -> int:
                 scan_dir = out_dir / name
                 _clear(scan_dir)
                 job = ScanJob(
-                    request=options.request(INSTRUMENT, SLIDE, name),
+                    request=strategies_options.request(INSTRUMENT, SLIDE, name),
                     estimator_url=stack.estimator_url,
                     out_dir=scan_dir,
                     retry=options.retry(),
@@ -581,7 +663,16 @@ def run(args: argparse.Namespace) -> int:
                     f"{RESCAN} with the map of {first}",
                     flush=True,
                 )
-                reports[SECOND_PASS] = second_pass(stack, args, options, out_dir, first, live)
+                reports[SECOND_PASS] = second_pass(
+                    stack, args, strategies_options, out_dir, first, live
+                )
+            if options.phase:
+                print(
+                    f"phase pass: a {PHASE_PASS_TILES}x{PHASE_PASS_TILES} slide of unstained red "
+                    "cells, a phase stack on every tile",
+                    flush=True,
+                )
+                phased = phase_pass(args, options, out_dir, live)
             try:  # the last scan's live view, for a person to look at
                 shot = screenshot_live_view(live.url, out_dir / LIVE_VIEW_PNG)
                 print(f"live view screenshot: {shot}", flush=True)
@@ -600,8 +691,9 @@ def run(args: argparse.Namespace) -> int:
     print()
     print("Where the wall time went (s):")
     print(wall_time_table(reports))
-    if options.phase:
-        print(phase_line(reports))
+    if phased is not None:
+        print(phase_line(*phased))
+        print(f"phase of the phase pass: {out_dir / PHASE_PASS / MOSAIC_ZARR} (image `phase`)")
     for name, report in reports.items():
         if report["mosaic"] is not None:
             scan_dir = out_dir / (RESCAN if name == SECOND_PASS else name)

@@ -23,6 +23,10 @@ def test_the_wall_time_table_shows_phase_only_for_scans_that_took_it() -> None:
     assert "phase" not in plain and plain.splitlines()[0].split()[-1] == "total"
     with_phase = wall_time_table({"kf-2d": report(1.5, 6, 66)})
     assert with_phase.splitlines()[0].split()[-3:] == ["phase", "scheduler", "total"]
-    assert phase_line({"kf-2d": report(1.5, 5, 66), "af": report(1.0, 6, 66)}).startswith(
-        "Phase: 11 of 12 tiles over 2 scans, 132 phase frames"
+    line = phase_line(report(1.5, 5, 66) | {"in_focus_fraction": 1.0}, [0.97, 0.93, 0.99])
+    assert line.startswith("Phase pass (unstained red cells, 2x3 tiles, focus at the contrast")
+    assert "6 of 6 tiles in focus, 5 with phase, 66 phase frames" in line
+    assert line.endswith("correlation with the true phase median 0.97, lowest 0.93")
+    assert phase_line(report(1.5, 0, 66) | {"in_focus_fraction": 0.5}, []).endswith(
+        "3 of 6 tiles in focus, 0 with phase, 66 phase frames, no phase to compare"
     )
