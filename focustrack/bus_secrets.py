@@ -8,9 +8,10 @@ Writes into OUT, with the openssl command:
 - ``credentials.txt``, the router's password file: one random password per role;
 - ``router.json5``: TLS, the password file and the access-control list of
   deploy/zenoh/acl.json5;
-- ``instrument.json5``, ``focus.json5``, ``scheduler.json5``, ``health.json5``: each
-  role's Zenoh config (trust the CA, log in as that role), for ``--zenoh-config``;
-- ``result.key``: the key the focus service tags its results with and the scheduler
+- ``instrument.json5``, ``focus.json5``, ``phase.json5``, ``scheduler.json5``,
+  ``health.json5``: each role's Zenoh config (trust the CA, log in as that role), for
+  ``--zenoh-config``;
+- ``result.key``: the key the focus and phase services tag their results with and the scheduler
   checks them with (``--result-key-file``);
 - ``frame.key``: the key the instrument tags its frames with and the focus service
   checks them with (``--frame-key-file``).
@@ -43,7 +44,7 @@ import zenoh
 ACL_FILE = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "acl.json5"
 
 #: The roles of the bus: each a user of the router's password file and a subject of its ACL.
-ROLES = ("instrument", "focus", "scheduler", "health")
+ROLES = ("instrument", "focus", "phase", "scheduler", "health")
 
 #: The shared keys of the tags (`focustrack_core.wire.trust`): results, frames.
 KEY_FILES = ("result.key", "frame.key")

@@ -195,6 +195,28 @@ def test_only_the_scheduler_may_acquire_and_only_the_focus_service_publish_resul
     assert "intruder" not in received and len(received) == 2
 
 
+def test_only_the_phase_service_publishes_phase_results_and_the_scheduler_reads_them(
+    bus: Bus, stack: dict[str, str]
+) -> None:
+    received: list[str] = []
+    with bus.open("scheduler") as scheduler:
+        subscriber = scheduler.declare_subscriber(
+            keys.phase_pattern("slide-0"),
+            lambda sample: received.append(bytes(sample.payload.to_bytes()).decode()),
+        )
+        with bus.open("focus") as focus, bus.open("phase") as phase:
+            time.sleep(1.0)  # let the subscriber's declaration reach both
+            focus.put(keys.phase_key("slide-0", 0, 0), b"focus")
+            phase.put(keys.phase_key("slide-0", 0, 0), b"phase")
+            deadline_s = time.monotonic() + 10
+            while "phase" not in received and time.monotonic() < deadline_s:
+                time.sleep(0.05)
+            phase.put(keys.focus_key("slide-0", 0, 0), b"phase as focus")  # not its key
+            time.sleep(0.5)
+        subscriber.undeclare()
+    assert received == ["phase"]
+
+
 def test_a_scan_through_the_secured_router_completes(
     bus: Bus, stack: dict[str, str], tmp_path: Path
 ) -> None:

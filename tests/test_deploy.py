@@ -157,14 +157,14 @@ def test_the_secure_overlay_configures_every_role_with_options_its_command_accep
 ) -> None:
     secure = yaml.safe_load((ROOT / "compose.secure.yaml").read_text())
     services = secure["services"]
-    assert set(services) == {"zenoh", "instrument", "focus", "scheduler"}  # not the estimator
+    assert set(services) == {"zenoh", "instrument", "focus", "phase", "scheduler"}  # no estimator
     for spec in services.values():
         assert [defaults(v) for v in spec["volumes"]] == ["./deploy/secrets:/run/focustrack:ro"]
         assert "ports" not in spec
     args = router.parser().parse_args(services["zenoh"]["command"])
     assert args.listen == ["tls/0.0.0.0:7447"]
     assert str(args.zenoh_config) == "/run/focustrack/router.json5"
-    for name in ("instrument", "focus", "scheduler"):
+    for name in ("instrument", "focus", "phase", "scheduler"):
         merged = compose["services"][name]["environment"] | services[name]["environment"]
         environ = {key: defaults(value) for key, value in merged.items()}
         _, _, args = configured(SERVICES[name][1], environ, monkeypatch)
