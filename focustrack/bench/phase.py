@@ -115,7 +115,9 @@ def _best_tie(train: simulate.SyntheticStack) -> tuple[float, float]:
     )
 
 
-def _best_prior(update: acekf.Update, train: simulate.SyntheticStack) -> acekf.AcekfOptions:
+def _best_prior(
+    update: acekf.Update, train: simulate.SyntheticStack, condenser_na: float = 0.0
+) -> acekf.AcekfOptions:
     """The filter's (q0, p0) with the lowest phase RMSE on the training stack (a prior
     under which it diverges counts as infinitely wrong)."""
 
@@ -126,7 +128,7 @@ def _best_prior(update: acekf.Update, train: simulate.SyntheticStack) -> acekf.A
             return float("inf")
 
     grid = [
-        acekf.AcekfOptions(q0=q0, p0=ratio * q0, update=update)
+        acekf.AcekfOptions(q0=q0, p0=ratio * q0, update=update, condenser_na=condenser_na)
         for q0 in FILTER_Q0
         for ratio in FILTER_P0_RATIO
     ]
@@ -267,34 +269,43 @@ def band_rmse(phase_error: np.ndarray, pixel_um: float, below_per_um: float) -> 
     return float(np.sqrt(np.sum(np.abs(spectrum[low]) ** 2) / phase_error.size))
 
 
-def score_coherence(
-    seed: int, size_px: int
-) -> tuple[list[dict[str, Any]], np.ndarray, dict[str, np.ndarray]]:
-    """Rows (model, phase RMSE, its low-frequency part), the truth and each model's phase."""
+def coherence_stack(seed: int, size_px: int) -> simulate.SyntheticStack:
+    """Data Set 1's object lit by a disk source of COHERENCE_CONDENSER_NA (Abbe)."""
     field = simulate.weak_object(size_px, seed)
     wavelength_um, pixel_um = simulate.DATA_SET_1_WAVELENGTH_UM, simulate.DATA_SET_1_PIXEL_UM
     stack = simulate.partially_coherent_stack(
         field, COHERENCE_Z_UM, wavelength_um, pixel_um, COHERENCE_GAMMA,
         COHERENCE_CONDENSER_NA, seed,
     )  # fmt: skip
+    return simulate.SyntheticStack(
+        field, stack, COHERENCE_Z_UM, wavelength_um, pixel_um, COHERENCE_GAMMA
+    )
+
+
+def score_coherence(
+    seed: int, size_px: int
+) -> tuple[list[dict[str, Any]], np.ndarray, dict[str, np.ndarray]]:
+    """Rows (model, phase RMSE, its low-frequency part), the truth and each model's phase;
+    each model's prior chosen on a training stack of another seed."""
+    data = coherence_stack(seed, size_px)
+    train = coherence_stack(seed + 1000, size_px)
     rows: list[dict[str, Any]] = []
     phases: dict[str, np.ndarray] = {}
     for name, condenser_na in (
         ("coherent model (paper)", 0.0),
         ("coherence envelope (ours)", COHERENCE_CONDENSER_NA),
     ):
-        estimate = acekf.reconstruct(
-            stack, COHERENCE_Z_UM, wavelength_um, pixel_um,
-            options=acekf.AcekfOptions(condenser_na=condenser_na),
-        )  # fmt: skip
-        error = np.angle(estimate.field * np.conj(field))
+        options = _best_prior("phase_frame", train, condenser_na)
+        estimate = acekf.reconstruct(*_args(data), options=options)
+        error = np.angle(estimate.field * np.conj(data.field))
         rows.append(
             {"model": name, "condenser_na": COHERENCE_CONDENSER_NA, "gamma": COHERENCE_GAMMA,
-             "planes": len(COHERENCE_Z_UM), "phase_rmse_rad": errors(estimate, field)[0],
-             "low_frequency_rmse_rad": band_rmse(error, pixel_um, SHADOW_BELOW_PER_UM)}
+             "planes": len(COHERENCE_Z_UM), "q0": options.q0, "p0": options.p0,
+             "phase_rmse_rad": errors(estimate, data.field)[0],
+             "low_frequency_rmse_rad": band_rmse(error, data.pixel_um, SHADOW_BELOW_PER_UM)}
         )  # fmt: skip
         phases[name] = estimate.phase_rad
-    return rows, np.angle(field), phases
+    return rows, np.angle(data.field), phases
 
 
 @dataclass(frozen=True)
