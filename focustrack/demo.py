@@ -74,6 +74,7 @@ from focustrack_scheduler.outputs import (
     SCAN_FILES,
     WallTimes,
 )
+from focustrack_scheduler.plan import ScanRequest
 from focustrack_scheduler.scan import SCAN_ERRORS, ScanJob, run_scan
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
@@ -421,6 +422,30 @@ def wall_time_table(reports: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def scan_on(
+    stack: LocalStack,
+    options: ScanOptions,
+    request: ScanRequest,
+    scan_dir: Path,
+    label: str,
+    live: LiveServer | None,
+) -> dict[str, Any]:
+    """Run one scan of `request` on the stack (outputs in `scan_dir`); its report."""
+    assert stack.session is not None
+    job = ScanJob(
+        request=request,
+        estimator_url=stack.estimator_url,
+        out_dir=scan_dir,
+        retry=options.retry(),
+        progress=not options.no_progress,
+        label=label,
+        mosaic_format=options.mosaic_format,
+        live=live,
+        trust=stack.trust,
+    )
+    return run_scan(stack.session, job)
+
+
 #: The demo's phase pass: a slide of unstained red cells (phase objects) this size, in tiles.
 PHASE_PASS_TILES = 4
 PHASE_PASS_SPECIMEN = "phase-blood"
@@ -449,19 +474,8 @@ def phase_pass(
         out_dir / "phase-stack", instrument_args, phase=True,
         focus_args=("--focus-mode", "valley"),
     ) as stack:  # fmt: skip
-        assert stack.session is not None
-        job = ScanJob(
-            request=options.request(INSTRUMENT, SLIDE, LEAN),
-            estimator_url=stack.estimator_url,
-            out_dir=scan_dir,
-            retry=options.retry(),
-            progress=not options.no_progress,
-            label=PHASE_PASS,
-            mosaic_format=options.mosaic_format,
-            live=live,
-            trust=stack.trust,
-        )
-        report = run_scan(stack.session, job)
+        request = options.request(INSTRUMENT, SLIDE, LEAN)
+        report = scan_on(stack, options, request, scan_dir, PHASE_PASS, live)
     scope = microscope_from_options(simulator)
     try:
         correlations = [
@@ -560,19 +574,8 @@ def second_pass(
         "prior_map_um": base_um.ravel().tolist(),
         "prior_map_sigma_um": base_sigma_um.ravel().tolist(),
     }
-    assert stack.session is not None
-    job = ScanJob(
-        request=options.request(INSTRUMENT, SLIDE, RESCAN, params),
-        estimator_url=stack.estimator_url,
-        out_dir=scan_dir,
-        retry=options.retry(),
-        progress=not options.no_progress,
-        label=f"{RESCAN} (2nd pass)",
-        mosaic_format=options.mosaic_format,
-        live=live,
-        trust=stack.trust,
-    )
-    return run_scan(stack.session, job)
+    request = options.request(INSTRUMENT, SLIDE, RESCAN, params)
+    return scan_on(stack, options, request, scan_dir, f"{RESCAN} (2nd pass)", live)
 
 
 def stop_on_sigterm() -> None:
@@ -644,18 +647,8 @@ def run(args: argparse.Namespace) -> int:
             for name in names:
                 scan_dir = out_dir / name
                 _clear(scan_dir)
-                job = ScanJob(
-                    request=strategies_options.request(INSTRUMENT, SLIDE, name),
-                    estimator_url=stack.estimator_url,
-                    out_dir=scan_dir,
-                    retry=options.retry(),
-                    progress=not options.no_progress,
-                    label=name,
-                    mosaic_format=options.mosaic_format,
-                    live=live,
-                    trust=stack.trust,
-                )
-                reports[name] = run_scan(stack.session, job)
+                request = strategies_options.request(INSTRUMENT, SLIDE, name)
+                reports[name] = scan_on(stack, options, request, scan_dir, name, live)
             if not args.no_rescan:
                 first = LEAN if LEAN in reports else names[0]
                 print(
