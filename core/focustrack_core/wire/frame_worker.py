@@ -8,7 +8,8 @@ service's `take`; another calls its `expire` every `expire_period_s`, since fram
 coming when a peer stops sending and their expiry cannot wait for the next. The two never
 run at the same time (one lock). What `take` returns, unless None, goes to `publish`,
 outside the lock. `FrameReaderSettings` are the options such a service shares: its keys
-and what peers' frames may make it hold.
+and what peers' frames may make it hold; `WorkerBus` its session, opened in the
+background, and the worker made on it.
 """
 
 from __future__ import annotations
@@ -17,13 +18,14 @@ import logging
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import Generic, TypeVar
+from typing import Generic, Protocol, TypeVar
 
 import zenoh
 from pydantic import Field
 
 from focustrack_core.wire import codec, keys
-from focustrack_core.wire.session import ZenohSettings
+from focustrack_core.wire.session import ATTEMPT_TIMEOUT_S, BackgroundSession, ZenohSettings
+from focustrack_core.wire.trust import FrameSigner, ResultSigner, frame_signer_of, signer_of
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +35,7 @@ ZFRAME_SUBSCRIPTION = f"{keys.PREFIX}/zframe/**"
 QUEUE_FRAMES = 64
 
 T = TypeVar("T")
+W = TypeVar("W", bound="Closable")
 
 #: `take(key, payload, attachment)` of a sample: the payload still in Zenoh (copy it out
 #: with `codec.payload_bytes` where it is read), the attachment's bytes (None: none).
@@ -123,3 +126,32 @@ class FrameReaderSettings(ZenohSettings):
     def open_frames_bytes(self) -> int:
         """--open-frames-mb in bytes."""
         return int(self.open_frames_mb * 1_000_000)
+
+    def signers(self) -> tuple[ResultSigner | None, FrameSigner | None]:
+        """The result and frame keys read from their files (None: no file). A bad Zenoh
+        option or config file, or a bad key file, is a ValueError here, not later."""
+        self.zenoh()
+        return signer_of(self.result_key_file), frame_signer_of(self.frame_key_file)
+
+
+class Closable(Protocol):
+    def close(self) -> None: ...
+
+
+class WorkerBus(Generic[W]):
+    """A frame reader's Zenoh session, opened in the background and tried again until the
+    router answers (`BackgroundSession`), and the worker `make_worker` builds on it when it
+    opens. `health` is the session's; `close` closes the workers, then the session."""
+
+    def __init__(self, settings: ZenohSettings, make_worker: Callable[[zenoh.Session], W]) -> None:
+        self.workers: list[W] = []
+        self._session = BackgroundSession(
+            lambda: settings.zenoh(ATTEMPT_TIMEOUT_S),
+            lambda session: self.workers.append(make_worker(session)),
+        )
+        self.health = self._session.health
+
+    def close(self) -> None:
+        for worker in self.workers:
+            worker.close()
+        self._session.close()

@@ -54,15 +54,12 @@ from focustrack_core.wire.frame_worker import (
     ZFRAME_SUBSCRIPTION,
     FrameReaderSettings,
     FrameWorker,
+    WorkerBus,
 )
 from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.rpc import protobuf_encoding
-from focustrack_core.wire.session import (
-    ATTEMPT_TIMEOUT_S,
-    DEFAULT_ENDPOINT,
-    BackgroundSession,
-)
-from focustrack_core.wire.trust import FrameSigner, ResultSigner, frame_signer_of, signer_of
+from focustrack_core.wire.session import DEFAULT_ENDPOINT
+from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.metrics import METRICS
@@ -554,25 +551,20 @@ def run(settings: FocusServiceSettings) -> int:
         return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
-        settings.zenoh()  # a bad option or config file ends the command here, not later
-        signer = signer_of(settings.result_key_file)
-        frame_signer = frame_signer_of(settings.frame_key_file)
+        signer, frame_signer = settings.signers()
     except ValueError as error:
         log.error("%s", error)
         return 2
-    workers: list[ZenohFocusWorker] = []
-    bus = BackgroundSession(
-        lambda: settings.zenoh(ATTEMPT_TIMEOUT_S),
-        lambda session: workers.append(
-            ZenohFocusWorker(
-                session,
-                focus,
-                settings.stack_na,
-                signer,
-                settings.open_frames_bytes,
-                settings.open_frame_timeout_s,
-                frame_signer,
-            )
+    bus = WorkerBus(
+        settings,
+        lambda session: ZenohFocusWorker(
+            session,
+            focus,
+            settings.stack_na,
+            signer,
+            settings.open_frames_bytes,
+            settings.open_frame_timeout_s,
+            frame_signer,
         ),
     )
     log.info(
@@ -593,11 +585,9 @@ def run(settings: FocusServiceSettings) -> int:
         app = with_bus_health(create_app(focus, limits, settings.token or None), bus.health)
         uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
     finally:
-        for worker in workers:
-            worker.close()
         bus.close()
-        published = sum(worker.n_published for worker in workers)
-        untagged = sum(worker.analyser.n_untagged for worker in workers)
+        published = sum(worker.n_published for worker in bus.workers)
+        untagged = sum(worker.analyser.n_untagged for worker in bus.workers)
         log.info(
             "published %d results in %.0f s; dropped %d untagged frame samples",
             published,

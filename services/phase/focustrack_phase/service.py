@@ -29,13 +29,8 @@ from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main
 from focustrack_core.web import with_bus_health
 from focustrack_core.wire import keys
-from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameReaderSettings
-from focustrack_core.wire.session import (
-    ATTEMPT_TIMEOUT_S,
-    DEFAULT_ENDPOINT,
-    BackgroundSession,
-)
-from focustrack_core.wire.trust import frame_signer_of, signer_of
+from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameReaderSettings, WorkerBus
+from focustrack_core.wire.session import DEFAULT_ENDPOINT
 from focustrack_phase.app import PhaseLimits, create_app
 from focustrack_phase.bus import PhaseOptics, PhaseStacks, ZenohPhaseWorker
 
@@ -102,28 +97,23 @@ def run(settings: PhaseServiceSettings) -> int:
         return 2
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
-        settings.zenoh()  # a bad option or config file ends the command here, not later
-        signer = signer_of(settings.result_key_file)
-        frame_signer = frame_signer_of(settings.frame_key_file)
+        signer, frame_signer = settings.signers()
     except ValueError as error:
         log.error("%s", error)
         return 2
     optics = PhaseOptics(settings.wavelength_um)
-    workers: list[ZenohPhaseWorker] = []
-    bus = BackgroundSession(
-        lambda: settings.zenoh(ATTEMPT_TIMEOUT_S),
-        lambda session: workers.append(
-            ZenohPhaseWorker(
-                session,
-                PhaseStacks(
-                    limits,
-                    settings.open_frames_bytes,
-                    settings.open_frame_timeout_s,
-                    frame_signer=frame_signer,
-                ),
-                optics,
-                signer=signer,
-            )
+    bus = WorkerBus(
+        settings,
+        lambda session: ZenohPhaseWorker(
+            session,
+            PhaseStacks(
+                limits,
+                settings.open_frames_bytes,
+                settings.open_frame_timeout_s,
+                frame_signer=frame_signer,
+            ),
+            optics,
+            signer=signer,
         ),
     )
     log.info(
@@ -142,14 +132,12 @@ def run(settings: PhaseServiceSettings) -> int:
         app = with_bus_health(create_app(limits, settings.token or None), bus.health)
         uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
     finally:
-        for worker in workers:
-            worker.close()
         bus.close()
         log.info(
             "published %d phase results in %.0f s; dropped %d untagged frame samples",
-            sum(worker.n_published for worker in workers),
+            sum(worker.n_published for worker in bus.workers),
             time.perf_counter() - started_s,
-            sum(worker.stacks.n_untagged for worker in workers),
+            sum(worker.stacks.n_untagged for worker in bus.workers),
         )
     return 0
 
