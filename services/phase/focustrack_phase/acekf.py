@@ -192,6 +192,7 @@ def coherence_envelope(
     return envelope.astype(np.float32)
 
 
+@np.errstate(over="ignore", invalid="ignore", divide="ignore")  # a runaway is caught below
 def reconstruct(
     stack_counts: np.ndarray,
     z_um: np.ndarray | list[float] | tuple[float, ...],
@@ -214,21 +215,6 @@ def reconstruct(
     below any noise a camera leaves, and it halves the memory and the time. Raises
     ValueError for bad input, FilterDivergedError (a ValueError) when the filter ran away.
     """
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # see the end
-        return _reconstruct(
-            stack_counts, z_um, wavelength_um, pixel_um, photons_per_count, options, workers
-        )
-
-
-def _reconstruct(
-    stack_counts: np.ndarray,
-    z_um: np.ndarray | list[float] | tuple[float, ...],
-    wavelength_um: float,
-    pixel_um: float,
-    photons_per_count: float,
-    options: AcekfOptions | None,
-    workers: int,
-) -> FieldEstimate:
     opts = options or AcekfOptions()
     z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
     shape = stack_counts.shape[1:]
