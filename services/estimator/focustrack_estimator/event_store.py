@@ -15,12 +15,15 @@ Appends are optimistic: each names the sequence it expects to write (the
 slide's event count as its writer last saw it), and a log that has moved on
 since (another writer appended first) refuses it with `SequenceConflictError`,
 which tells the writer to reload the slide. SQLite (`sqlite_store`) is the
-embedded implementation; `open_store` opens one from a path or a URL.
+embedded implementation, PostgreSQL (`postgres_store`) the one that replicas share;
+`open_store` opens one from a path or a URL.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
@@ -122,6 +125,11 @@ class EventStore(Protocol):
         """The slide's record, or None if there is no such slide."""
         ...
 
+    def n_events(self, slide_id: str) -> int | None:
+        """How many events the slide's log holds, or None if there is no such slide: the
+        cheap check of a slide cached in memory against what other writers logged."""
+        ...
+
     def slides(self) -> list[SlideRecord]:
         """Every slide, oldest first."""
         ...
@@ -181,12 +189,17 @@ SQLITE_SCHEME = "sqlite://"
 
 
 def open_store(location: str) -> EventStore:
-    """The store at `location`: an SQLite file's path, or a ``sqlite:///PATH`` URL (the
-    path after the third slash, so ``sqlite:////data/e.sqlite`` is absolute).
+    """The store at `location`: an SQLite file's path, a ``sqlite:///PATH`` URL (the path
+    after the third slash, so ``sqlite:////data/e.sqlite`` is absolute), or a PostgreSQL
+    database's ``postgresql://USER:PASS@HOST:PORT/DB`` (shared by replicas).
 
     Raises StoreError for a URL of another scheme, or a file the store refuses.
     """
     # Each implementation is imported when chosen: another database brings its driver.
+    if location.startswith(("postgresql://", "postgres://")):
+        from focustrack_estimator.postgres_store import PostgresStore
+
+        return PostgresStore(location)
     from focustrack_estimator.sqlite_store import SQLiteStore
 
     path = location
@@ -194,7 +207,34 @@ def open_store(location: str) -> EventStore:
         path = location.removeprefix(SQLITE_SCHEME).removeprefix("/")
     elif "://" in location:
         scheme = location.partition("://")[0]
-        raise StoreError(f"store {location!r}: unknown scheme {scheme!r}; known: sqlite")
+        raise StoreError(
+            f"store {location!r}: unknown scheme {scheme!r}; known: sqlite, postgresql"
+        )
     if not path:
         raise StoreError(f"store {location!r}: no file named")
     return SQLiteStore(path)
+
+
+def json_object(text: object, slide_id: str, sequence: int | None) -> dict[str, Any]:
+    """The JSON object stored as `text`; CorruptLogError naming the record if it is none."""
+    try:
+        value = json.loads(text) if isinstance(text, str | bytes) else None
+    except ValueError as error:
+        raise CorruptLogError(slide_id, sequence, f"not JSON: {error}") from None
+    if not isinstance(value, dict):
+        raise CorruptLogError(slide_id, sequence, "not a JSON object")
+    return value
+
+
+def slide_record(row: Sequence[Any]) -> SlideRecord:
+    """The record of a row (id, config, created_s, updated_s, n_events, n_accepted, done)."""
+    slide_id, config, created_s, updated_s, n_events, n_accepted, done = row
+    return SlideRecord(
+        slide_id,
+        json_object(config, slide_id, None),
+        created_s,
+        updated_s,
+        n_events,
+        n_accepted,
+        bool(done),
+    )

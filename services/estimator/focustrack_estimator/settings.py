@@ -24,7 +24,8 @@ class EstimatorSettings(ServiceSettings):
         "estimator.sqlite",
         min_length=1,
         description="SQLite file holding every slide and its log (created if missing), "
-        "or its sqlite:///PATH URL",
+        "its sqlite:///PATH URL, or a PostgreSQL database shared by replicas "
+        "(postgresql://USER:PASS@HOST:PORT/DB; the tables are created in it)",
     )
     token: str | None = Field(None, description="require this bearer token on /v1 (unset: no auth)")
     insecure: bool = Field(

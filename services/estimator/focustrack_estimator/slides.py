@@ -7,8 +7,11 @@ when the live slides exceed the budget's count or bytes.
 Concurrency: every operation on a slide runs under that slide's asyncio lock,
 in a worker thread (strategy work and the store's commit stay off the event
 loop), so requests on one slide are serialised and different slides proceed
-side by side. A slide whose log another writer moved on (the store's
-SequenceConflictError) is dropped, to be rebuilt from the log on its next request.
+side by side. Several estimators may share one store (replicas on PostgreSQL): a
+cached slide is checked against the store's event count before each request
+(`Slides._current`) and rebuilt from its snapshot and log if another writer moved it
+on; an append that loses the race for a sequence (the store's SequenceConflictError)
+rebuilds the slide the same way and does the request again on the log's state.
 A slide restored from a snapshot whose state then fails under a request (an error
 that is neither the domain's refusal nor the store's) is rebuilt from its log alone,
 its snapshot replaced, and the request done again on it.
@@ -221,6 +224,12 @@ class Slides:
             try:
                 try:
                     result = await self._attempt(slide_id, work, use_snapshot=True)
+                except SequenceConflictError:
+                    # Another replica logged first: this state is behind the log. Take the
+                    # log's and do the work again on it (a measurement it already holds is
+                    # answered as recorded, or refused if it differs): one history, no fork.
+                    self._live.pop(slide_id, None)
+                    result = await self._attempt(slide_id, work, use_snapshot=True)
                 except _RestoredStateError as failed:
                     log.warning(
                         "slide %s: its state restored from a snapshot failed (%r); "
@@ -230,6 +239,7 @@ class Slides:
                     self._discarded()
                     result = await self._attempt(slide_id, work, use_snapshot=False)
             except SlideNotFoundError:
+                self._live.pop(slide_id, None)  # deleted through another estimator
                 self._locks.pop(slide_id, None)  # keep no lock for ids that do not exist
                 raise
             except SlideError:
@@ -251,7 +261,7 @@ class Slides:
         """`work(slide)` on the live slide, loaded first if need be (`use_snapshot`: from its
         snapshot if it has one that checks out, else from its log alone)."""
         slide = self._live.get(slide_id)
-        if slide is None:
+        if slide is None or not await asyncio.to_thread(self._current, slide):
             slide = await asyncio.to_thread(self._load, slide_id, use_snapshot)
         self._keep(slide)
         try:
@@ -263,6 +273,21 @@ class Slides:
                 raise
             self._live.pop(slide_id, None)
             raise _RestoredStateError(error) from error
+
+    def _current(self, slide: Slide) -> bool:
+        """Whether the cached `slide` is what the store holds (another estimator on the same
+        store may have logged events, or set a prior before the first); SlideNotFoundError
+        if the slide was deleted there. One indexed read of the event count; the
+        configuration is compared only while the log is empty (the only time it changes)."""
+        n_events = self.store.n_events(slide.id)
+        if n_events is None:
+            raise SlideNotFoundError(f"no slide {slide.id!r}")
+        if n_events != len(slide.history):
+            return False
+        if n_events:
+            return True
+        record = self.store.slide(slide.id)
+        return record is not None and record.config == slide.config.model_dump(mode="json")
 
     def _load(self, slide_id: str, use_snapshot: bool) -> Slide:
         record = self.store.slide(slide_id)

@@ -32,7 +32,6 @@ from pathlib import Path
 from typing import Any
 
 from focustrack_estimator.event_store import (
-    CorruptLogError,
     CorruptSnapshotError,
     Event,
     SequenceConflictError,
@@ -41,6 +40,8 @@ from focustrack_estimator.event_store import (
     StoreError,
     StoreFullError,
     StoreUnavailableError,
+    json_object,
+    slide_record,
     snapshot_digest,
 )
 
@@ -291,7 +292,12 @@ class SQLiteStore:
                 "FROM slides WHERE id = ?",
                 (slide_id,),
             ).fetchone()
-        return None if row is None else _slide_record(row)
+        return None if row is None else slide_record(row)
+
+    def n_events(self, slide_id: str) -> int | None:
+        with self._connection() as db:
+            row = db.execute("SELECT n_events FROM slides WHERE id = ?", (slide_id,)).fetchone()
+        return None if row is None else row[0]
 
     def slides(self) -> list[SlideRecord]:
         """Every slide, oldest first."""
@@ -300,7 +306,7 @@ class SQLiteStore:
                 "SELECT id, config, created_s, updated_s, n_events, n_accepted, done "
                 "FROM slides ORDER BY created_s, id"
             ).fetchall()
-        return [_slide_record(row) for row in rows]
+        return [slide_record(row) for row in rows]
 
     def slides_after(self, after: tuple[float, str] | None, limit: int) -> list[SlideRecord]:
         """At most `limit` slides, oldest first, those after `after` (created_s, id) only."""
@@ -312,7 +318,7 @@ class SQLiteStore:
                 "FROM slides WHERE (created_s, id) > (?, ?) ORDER BY created_s, id LIMIT ?",
                 (created_s, slide_id, limit),
             ).fetchall()
-        return [_slide_record(row) for row in rows]
+        return [slide_record(row) for row in rows]
 
     def count_slides(self) -> int:
         with self._connection() as db:
@@ -483,30 +489,6 @@ class SQLiteStore:
                 (slide_id, start),
             ).fetchall()
         return [
-            Event(sequence, *(_object(text, slide_id, sequence) for text in texts))
+            Event(sequence, *(json_object(text, slide_id, sequence) for text in texts))
             for sequence, *texts in rows
         ]
-
-
-def _object(text: object, slide_id: str, sequence: int | None) -> dict[str, Any]:
-    """The JSON object stored as `text`; CorruptLogError naming the record if it is none."""
-    try:
-        value = json.loads(text) if isinstance(text, str | bytes) else None
-    except ValueError as error:
-        raise CorruptLogError(slide_id, sequence, f"not JSON: {error}") from None
-    if not isinstance(value, dict):
-        raise CorruptLogError(slide_id, sequence, "not a JSON object")
-    return value
-
-
-def _slide_record(row: tuple[str, str, float, float, int, int, int]) -> SlideRecord:
-    slide_id, config, created_s, updated_s, n_events, n_accepted, done = row
-    return SlideRecord(
-        slide_id,
-        _object(config, slide_id, None),
-        created_s,
-        updated_s,
-        n_events,
-        n_accepted,
-        bool(done),
-    )

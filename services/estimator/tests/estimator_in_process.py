@@ -1,4 +1,4 @@
-"""The estimator in process (ASGI transport) for its API tests: an app over an SQLite store,
+"""The estimator in process (ASGI transport) for its API tests: an app over a store,
 and the calls that drive a slide through it, checked against local replays.
 
 Every slide scanned in these tests is compared with the same strategy replayed locally
@@ -27,9 +27,9 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.app import create_app
+from focustrack_estimator.event_store import open_store
 from focustrack_estimator.replay import replay, simulated_measurement
 from focustrack_estimator.settings import EstimatorSettings
-from focustrack_estimator.sqlite_store import SQLiteStore
 
 ROWS, COLS = 6, 5
 SETTINGS = default_settings(ScanGrid(ROWS, COLS, pitch_um=150.0, origin_x_um=1000.0))
@@ -65,9 +65,10 @@ def assert_same_maps(served: FocusMap, local: FocusMap) -> None:
 
 
 @contextmanager
-def estimator(path: Path, **settings: Any) -> Iterator[FastAPI]:
-    """The app over the SQLite store at `path` with these settings; the store closed after."""
-    store = SQLiteStore(path)
+def estimator(location: Path | str, **settings: Any) -> Iterator[FastAPI]:
+    """The app over the store at `location` (an SQLite file, or a PostgreSQL URL) with these
+    settings; the store closed after."""
+    store = open_store(str(location))
     try:
         yield create_app(store, EstimatorSettings(**settings))
     finally:

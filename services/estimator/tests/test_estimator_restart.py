@@ -234,27 +234,3 @@ def test_a_grid_over_the_service_limit_is_a_422_naming_it(tmp_path: Path) -> Non
     assert response.status_code == 422
     detail = response.json()["detail"][0]
     assert detail["loc"] == ["body", "grid"] and "49 tiles" in detail["msg"]
-
-
-def test_a_slide_another_replica_moved_on_is_a_409_and_reloads(tmp_path: Path) -> None:
-    """Two services on one store: what the other recorded wins; this one reloads the slide."""
-    path = tmp_path / "estimator.sqlite"
-
-    async def go() -> None:
-        with estimator(path) as first, estimator(path) as second:
-            async with client(first) as one, client(second) as other:
-                slide_id = await create(one)
-                assert (await other.get(f"/v1/slides/{slide_id}/next")).status_code == 200
-                url = f"/v1/slides/{slide_id}/measurements"
-                body = {"row": 0, "col": 0, "sequence": 0, "z_um": 0.5}
-                assert (await one.post(url, json=body)).status_code == 200
-                stale = await other.post(url, json={**body, "z_um": 0.7})  # its slide is live
-                assert stale.status_code == 409, stale.text
-                assert "recorded elsewhere" in stale.json()["detail"]
-                again = await other.post(url, json=body)  # reloaded: the other's value stands
-                assert again.status_code == 200
-                assert again.json() == (await one.post(url, json=body)).json()
-                pending = (await other.get(f"/v1/slides/{slide_id}/next")).json()
-                assert pending["sequence"] == 1
-
-    run(go())

@@ -59,7 +59,7 @@ def test_a_path_or_a_sqlite_url_opens_the_same_file(
 @pytest.mark.parametrize(
     ("location", "message"),
     [
-        ("postgresql://db/estimator", "unknown scheme 'postgresql'"),
+        ("mysql://db/estimator", "unknown scheme .mysql.; known: sqlite, postgresql"),
         ("sqlite://", "no file named"),
         ("/no/such/folder/estimator.sqlite", "cannot be opened"),
     ],

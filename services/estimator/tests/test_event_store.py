@@ -21,12 +21,12 @@ from focustrack_estimator.event_store import (
     Snapshot,
     StoreError,
 )
+from focustrack_estimator.postgres_store import PostgresStore
 from focustrack_estimator.sqlite_store import SQLiteStore
 
-#: Each implementation, opened on a test's folder (opening it again: the same store).
-STORES: dict[str, Callable[[Path], EventStore]] = {
-    "sqlite": lambda folder: SQLiteStore(folder / "estimator.sqlite"),
-}
+#: Each implementation, opened on a test's folder or database (opening it again: the same
+#: store); PostgreSQL's tests run on a real server (`conftest.postgres`).
+STORES = ("postgresql", "sqlite")
 
 CONFIG = {"strategy": "kf-wiener0", "grid": {"rows": 2, "cols": 3}}
 
@@ -42,13 +42,18 @@ def _event(sequence: int, z_um: float | None = 1.0) -> Event:
     )
 
 
-@pytest.fixture(params=sorted(STORES))
+@pytest.fixture(params=STORES)
 def open_store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[OpenStore]:
     """Open the test's store (again); each one opened is closed after the test."""
     opened: list[EventStore] = []
+    if request.param == "postgresql":
+        url = request.getfixturevalue("postgres").new_database()
 
     def open_() -> EventStore:
-        opened.append(STORES[request.param](tmp_path))
+        if request.param == "postgresql":
+            opened.append(PostgresStore(url))
+        else:
+            opened.append(SQLiteStore(tmp_path / "estimator.sqlite"))
         return opened[-1]
 
     yield open_
