@@ -292,8 +292,9 @@ class Diagnostics(BaseModel):
 
 
 class Health(BaseModel):
-    status: str
-    slides: int
+    status: str = Field(description="`ok`, or `degraded` while the store is (see `problem`)")
+    slides: int | None = Field(description="Slides in the store; None while it cannot be read")
+    problem: str | None = Field(None, description="Why the store is degraded")
 
 
 class ErrorCode(StrEnum):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import copy
 import gc
+import math
 import re
 import threading
 import time
@@ -28,7 +29,7 @@ from focustrack_core.serving import BodyLimit, SlowBodyTimeout
 from focustrack_estimator import handlers
 from focustrack_estimator.budget import Budget, GridLimits
 from focustrack_estimator.dependencies import require_token
-from focustrack_estimator.event_store import EventStore
+from focustrack_estimator.event_store import EventStore, StoreUnavailableError
 from focustrack_estimator.metrics import EstimatorMetrics
 from focustrack_estimator.prior import max_prior_bytes
 from focustrack_estimator.routers import maps, operations, scan, slides, strategies
@@ -98,8 +99,17 @@ def create_app(
 ) -> FastAPI:
     """The estimator service over `store`, as `settings` say; `catalogue`: the strategies
     served (None: the estimator's own, imported once the service serves)."""
+
+    def slides_in_store() -> float:
+        if store.problem() is not None:
+            return math.nan  # not known; asking would wait for the store's timeout
+        try:
+            return store.count_slides()
+        except StoreUnavailableError:
+            return math.nan
+
     metrics = EstimatorMetrics(
-        store.count_slides,
+        slides_in_store,
         lambda: live.n_live,
         strategies_loaded,
         lambda: store.problem() is not None,

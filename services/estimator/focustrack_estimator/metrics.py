@@ -152,7 +152,8 @@ class EstimatorMetrics:
             ),
             Gauge(
                 f"{prefix}_store_degraded",
-                "1 while the store is degraded (its disk full, its checkpoints failing)",
+                "1 while the store is degraded (its disk full, its checkpoints failing, "
+                "its database unreachable)",
                 store_degraded,
             ),
         )

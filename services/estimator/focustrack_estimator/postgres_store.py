@@ -93,6 +93,13 @@ SCHEMA_VERSION = max(_MIGRATIONS)
 #: users do not take: the bytes of "focustra").
 _MIGRATION_LOCK = int.from_bytes(b"focustra", "big") & 0x7FFF_FFFF_FFFF_FFFF
 
+#: How often an unreachable database is tried again in the background, s.
+PROBE_EVERY_S = 1.0
+
+#: How long the pool keeps trying to open one connection (backing off) before it gives up
+#: that attempt and the next call starts another, s.
+RECONNECT_TIMEOUT_S = 30.0
+
 _RECORD = "SELECT id, config, created_s, updated_s, n_events, n_accepted, done FROM slides"
 
 
@@ -133,7 +140,7 @@ class PostgresStore:
             max_size=max_connections,
             open=False,
             timeout=timeout_s,
-            reconnect_timeout=0,  # keep trying in the background for as long as it takes
+            reconnect_timeout=RECONNECT_TIMEOUT_S,
             kwargs={"connect_timeout": max(1, round(timeout_s))},
             check=ConnectionPool.check_connection,  # a connection the server dropped is replaced
             name="focustrack-estimator",
@@ -144,6 +151,21 @@ class PostgresStore:
                 pass  # migrate now if the database is up; if not, the first call will
         except StoreUnavailableError as error:
             log.warning("%s; the estimator starts and retries", error)
+        self._closing = threading.Event()
+        self._watchdog = threading.Thread(target=self._watch, daemon=True)
+        self._watchdog.start()
+
+    def _watch(self) -> None:
+        """While the database is unreachable, try it every `PROBE_EVERY_S`: `problem` (the
+        service's /healthz) clears when it answers again, with no request needed."""
+        while not self._closing.wait(PROBE_EVERY_S):
+            if self._failure is None:
+                continue
+            try:
+                with self._transaction():
+                    pass
+            except StoreError:
+                continue  # still down (and said), or a newer schema: the calls say which
 
     @contextmanager
     def _transaction(self) -> Iterator[psycopg.Connection[Any]]:
@@ -201,8 +223,11 @@ class PostgresStore:
 
     def close(self) -> None:
         """Close the pool's connections (once; later calls do nothing)."""
-        if not self._pool.closed:
-            self._pool.close()
+        if self._closing.is_set():
+            return
+        self._closing.set()
+        self._watchdog.join()
+        self._pool.close()
 
     def create_slide(self, slide_id: str, config: dict[str, Any]) -> SlideRecord:
         now_s = time.time()

@@ -9,15 +9,24 @@ from fastapi.responses import PlainTextResponse
 
 from focustrack_client import models as api
 from focustrack_estimator.dependencies import MetricsDep, SlidesDep
+from focustrack_estimator.event_store import StoreUnavailableError
 
 router = APIRouter(tags=["operations"])
 
 
 @router.get("/healthz")
 async def healthz(slides: SlidesDep) -> api.Health:
-    """`degraded` while the store is (its disk full, its checkpoints failing): reads go on."""
-    status = "ok" if slides.store.problem() is None else "degraded"
-    return api.Health(status=status, slides=await slides.count())
+    """`degraded` while the store is (its disk full, its checkpoints failing, its database
+    unreachable), saying why; the store is not asked again while it is known to fail (the
+    probe answers at once, and the store's own watch says when it is back)."""
+    problem, n_slides = slides.store.problem(), None
+    if problem is None:
+        try:
+            n_slides = await slides.count()
+        except StoreUnavailableError as error:
+            problem = str(error)
+    status = "ok" if problem is None else "degraded"
+    return api.Health(status=status, slides=n_slides, problem=problem)
 
 
 @router.get("/metrics", response_class=PlainTextResponse)
