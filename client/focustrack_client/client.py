@@ -13,12 +13,18 @@ as a context manager so its connections are closed::
                                                       sequence=step.sequence, z_um=z_um))
 
 Each endpoint is described once (`_Call`: method, path, body, how to read the
-reply); the two clients differ only in how they send it.
+reply); the two clients differ only in how they send it. A request that may be sent
+twice with one effect (every read, a prior map, a measurement: the estimator answers
+a repeat as it answered the first) is sent again after a connection error, after the
+pauses of `retry_pauses_s`: behind a balancer, to another replica. Creating and
+deleting a slide are not.
 """
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Callable, Iterator
+import asyncio
+import time
+from collections.abc import AsyncIterator, Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Generic, Literal, NamedTuple, Self, TypeVar
@@ -43,6 +49,9 @@ from focustrack_client.models import (
 #: Formats of `GET /v1/slides/{id}/map` other than JSON, as raw bytes.
 MapFormat = Literal["csv", "npy", "png"]
 
+#: Pauses before each new attempt of an idempotent request that met a connection error, s.
+RETRY_PAUSES_S = (0.1, 0.3, 1.0)
+
 #: The media type of a file sent as a body (a prior map's .npy), as the map's is served.
 FILE_MEDIA_TYPE = "application/octet-stream"
 
@@ -63,13 +72,15 @@ class SlidePage(NamedTuple):
 @dataclass(frozen=True)
 class _Call(Generic[T]):
     """One request and how to read its reply (`read` gets the successful response). `body`:
-    a model (sent as JSON) or a file's bytes."""
+    a model (sent as JSON) or a file's bytes. `idempotent`: sending it twice has the effect
+    of once, so it may be sent again after a connection error."""
 
     method: str
     path: str
     read: Callable[[httpx.Response], T]
     body: BaseModel | bytes | None = None
     params: dict[str, str] = field(default_factory=dict)
+    idempotent: bool = True
 
     def request(self, http: httpx.Client | httpx.AsyncClient) -> httpx.Request:
         content: str | bytes | None = None
@@ -110,7 +121,7 @@ class _Endpoints:
 
     @staticmethod
     def create_slide(config: SlideCreate) -> _Call[Slide]:
-        return _Call("POST", "/v1/slides", _model(Slide), body=config)
+        return _Call("POST", "/v1/slides", _model(Slide), body=config, idempotent=False)
 
     @staticmethod
     def list_slides_page(limit: int | None, cursor: str | None) -> _Call[SlidePage]:
@@ -129,7 +140,8 @@ class _Endpoints:
 
     @staticmethod
     def delete_slide(slide_id: str) -> _Call[None]:
-        return _Call("DELETE", f"/v1/slides/{slide_id}", _nothing)
+        # a repeat after a lost reply would be a 404 for a slide that was deleted
+        return _Call("DELETE", f"/v1/slides/{slide_id}", _nothing, idempotent=False)
 
     @staticmethod
     def next(slide_id: str) -> _Call[Next]:
@@ -158,6 +170,11 @@ class _Endpoints:
         return _Call("GET", "/healthz", _model(Health))
 
 
+def _pauses(call: _Call[T], retry_pauses_s: tuple[float, ...]) -> tuple[float | None, ...]:
+    """Each attempt's pause before the next (None: the last attempt, whose error is raised)."""
+    return (*(retry_pauses_s if call.idempotent else ()), None)
+
+
 def _headers(token: str | None) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"} if token else {}
 
@@ -166,7 +183,9 @@ class EstimatorClient:
     """Blocking client of one estimator service (`base_url` such as http://127.0.0.1:8100).
 
     `token` is the service's bearer token, where it has one; `timeout_s` bounds
-    every request. `transport` replaces the network (for an in-process app).
+    every request; `retry_pauses_s`: the pauses before each new attempt of an idempotent
+    request after a connection error (empty: none). `transport` replaces the network
+    (for an in-process app).
     """
 
     def __init__(
@@ -175,10 +194,12 @@ class EstimatorClient:
         token: str | None = None,
         timeout_s: float = 10.0,
         transport: httpx.BaseTransport | None = None,
+        retry_pauses_s: Sequence[float] = RETRY_PAUSES_S,
     ) -> None:
         self.http = httpx.Client(
             base_url=base_url, headers=_headers(token), timeout=timeout_s, transport=transport
         )
+        self.retry_pauses_s = tuple(retry_pauses_s)
 
     def __enter__(self) -> Self:
         return self
@@ -195,7 +216,14 @@ class EstimatorClient:
         self.http.close()
 
     def _send(self, call: _Call[T]) -> T:
-        return call.result(self.http.send(call.request(self.http)))
+        for pause_s in _pauses(call, self.retry_pauses_s):
+            try:
+                return call.result(self.http.send(call.request(self.http)))
+            except httpx.TransportError:
+                if pause_s is None:
+                    raise
+                time.sleep(pause_s)
+        raise AssertionError("unreachable: the last attempt returns or raises")
 
     def create_slide(self, config: SlideCreate) -> Slide:
         """A new slide, scanned as `config` says; its id is `.id`."""
@@ -262,10 +290,12 @@ class AsyncEstimatorClient:
         token: str | None = None,
         timeout_s: float = 10.0,
         transport: httpx.AsyncBaseTransport | None = None,
+        retry_pauses_s: Sequence[float] = RETRY_PAUSES_S,
     ) -> None:
         self.http = httpx.AsyncClient(
             base_url=base_url, headers=_headers(token), timeout=timeout_s, transport=transport
         )
+        self.retry_pauses_s = tuple(retry_pauses_s)
 
     async def __aenter__(self) -> Self:
         return self
@@ -282,7 +312,14 @@ class AsyncEstimatorClient:
         await self.http.aclose()
 
     async def _send(self, call: _Call[T]) -> T:
-        return call.result(await self.http.send(call.request(self.http)))
+        for pause_s in _pauses(call, self.retry_pauses_s):
+            try:
+                return call.result(await self.http.send(call.request(self.http)))
+            except httpx.TransportError:
+                if pause_s is None:
+                    raise
+                await asyncio.sleep(pause_s)
+        raise AssertionError("unreachable: the last attempt returns or raises")
 
     async def create_slide(self, config: SlideCreate) -> Slide:
         return await self._send(_Endpoints.create_slide(config))
