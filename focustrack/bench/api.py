@@ -1,7 +1,7 @@
 """`focustrack bench api`: latency and throughput of the estimator's REST API over loopback.
 
 The service runs in a process of its own (`focustrack serve estimator`, uvicorn)
-on a fresh SQLite store; this process plays the scanners, each driving one
+on a fresh SQLite store (or the PostgreSQL database of `--store`); this process plays the scanners, each driving one
 slide through the `/next` + `/measurements` pair with measurements simulated
 from a generated focus map (`focustrack_estimator.replay.simulated_measurement`).
 
@@ -230,6 +230,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1.0,
         help="acquisition time of the paced case, as a multiple of the TimingModel's (default 1)",
     )
+    parser.add_argument(
+        "--store",
+        help="the estimator's store: a PostgreSQL database's URL (postgresql://...; its "
+        "tables must not hold other slides) or an SQLite file (default: a new one)",
+    )
     parser.add_argument("--json", type=Path, help="write the results here")
 
 
@@ -237,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
     port = free_port()
     base_url = f"http://127.0.0.1:{port}"
     with tempfile.TemporaryDirectory() as directory:
-        server = spawn(Path(directory) / "bench.sqlite", port)
+        server = spawn(args.store or Path(directory) / "bench.sqlite", port)
         try:
             cases = [
                 ("1-slide", 1, None),
