@@ -69,8 +69,8 @@ class _RequestMetrics:
             await self.app(scope, receive, send_status)
         finally:
             route = getattr(scope.get("route"), "path", "unmatched")  # the template, not the id
-            self.metrics.requests.inc(method=scope["method"], route=route, status=str(status))
-            self.metrics.latency.observe(time.perf_counter() - start_s, route=route)
+            self.metrics.requests.labels(scope["method"], route, str(status)).inc()
+            self.metrics.latency.labels(route).observe(time.perf_counter() - start_s)
 
 
 #: The one route whose body is a file, not JSON: a prior map (`prior`), under a limit of its own.
