@@ -1,8 +1,8 @@
 """`focustrack bench api`: latency and throughput of the estimator's REST API over loopback.
 
 The service runs in a process of its own (`focustrack serve estimator`, uvicorn)
-on a fresh SQLite store (or the PostgreSQL database of `--store`); this process plays the scanners, each driving one
-slide through the `/next` + `/measurements` pair with measurements simulated
+on a fresh SQLite store (or the PostgreSQL database of `--store`); this process
+plays the scanners, each driving one slide through the `/next` + `/measurements` pair with measurements simulated
 from a generated focus map (`focustrack_estimator.replay.simulated_measurement`).
 
 Cases:

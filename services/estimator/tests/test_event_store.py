@@ -87,6 +87,7 @@ def test_appends_at_the_expected_sequence_log_events_and_progress(store: EventSt
     assert record is not None and (record.n_events, record.n_accepted, record.done) == (2, 1, True)
     assert record.updated_s >= record.created_s
     assert store.events("a") == [_event(0), _event(1, None)]
+    assert (store.n_events("a"), store.n_events("no such slide")) == (2, None)
 
 
 def test_an_append_where_the_log_is_not_is_a_conflict_naming_the_current_sequence(
