@@ -2,8 +2,9 @@
 
 The service runs in a process of its own (`focustrack serve estimator`, uvicorn)
 on a fresh SQLite store (or the PostgreSQL database of `--store`); this process
-plays the scanners, each driving one slide through the `/next` + `/measurements` pair with measurements simulated
-from a generated focus map (`focustrack_estimator.replay.simulated_measurement`).
+plays the scanners, each driving one slide through the `/next` + `/measurements`
+pair with measurements simulated from a generated focus map
+(`focustrack_estimator.replay.simulated_measurement`).
 
 Cases:
 - `1-slide`: one scanner, back to back (no acquisition time): the latency floor;
