@@ -7,15 +7,13 @@ read typed models back; every refusal arrives as the exception of its code.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import socket
-import threading
 from collections.abc import Iterator
 from subprocess import Popen
 
 import httpx
 import numpy as np
 import pytest
+from tcp_relay import TcpRelay
 
 from focustrack_client import (
     AsyncEstimatorClient,
@@ -107,46 +105,8 @@ def test_refusals_are_typed_by_their_code(url: str) -> None:
             estimator.measure(slide.id, MeasurementIn(row=0, col=1, sequence=5, z_um=1.0))
 
 
-class ReplyDroppingRelay:
-    """A TCP relay to the estimator on loopback that can lose one reply: the request reaches
-    the server (which acts on it), the reply's bytes are dropped and the client's
-    connection closed, as when a replica dies right after it committed."""
-
-    def __init__(self, upstream_port: int) -> None:
-        self.upstream_port = upstream_port
-        self.drop_next_reply = threading.Event()
-        self.listener = socket.create_server(("127.0.0.1", 0))
-        self.port = self.listener.getsockname()[1]
-        threading.Thread(target=self._accept, daemon=True).start()
-
-    def _accept(self) -> None:
-        while True:
-            try:
-                client, _ = self.listener.accept()
-            except OSError:
-                return  # closed
-            server = socket.create_connection(("127.0.0.1", self.upstream_port))
-            threading.Thread(target=self._pump, args=(client, server, False), daemon=True).start()
-            threading.Thread(target=self._pump, args=(server, client, True), daemon=True).start()
-
-    def _pump(self, source: socket.socket, sink: socket.socket, replies: bool) -> None:
-        with contextlib.suppress(OSError):
-            while data := source.recv(65536):
-                if replies and self.drop_next_reply.is_set():
-                    self.drop_next_reply.clear()
-                    break
-                sink.sendall(data)
-        for end in (source, sink):
-            with contextlib.suppress(OSError):
-                end.shutdown(socket.SHUT_RDWR)
-            end.close()
-
-    def close(self) -> None:
-        self.listener.close()
-
-
 def test_a_lost_reply_is_asked_again_only_where_a_repeat_is_harmless(url: str) -> None:
-    relay = ReplyDroppingRelay(int(url.rpartition(":")[2]))
+    relay = TcpRelay(int(url.rpartition(":")[2]))
     try:
         with EstimatorClient(f"http://127.0.0.1:{relay.port}", token=TOKEN) as estimator:
             slide = estimator.create_slide(

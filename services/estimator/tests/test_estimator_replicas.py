@@ -29,12 +29,16 @@ from estimator_in_process import (
     served_map,
 )
 from postgres_server import PostgresServer
+from tcp_relay import TcpRelay
 
 from focustrack_client import models as api
 from focustrack_core.rest import to_api, to_domain
+from focustrack_estimator.app import create_app
 from focustrack_estimator.event_store import open_store
+from focustrack_estimator.postgres_store import PostgresStore
 from focustrack_estimator.prior import PRIOR_MEDIA_TYPE
 from focustrack_estimator.replay import simulated_measurement
+from focustrack_estimator.settings import EstimatorSettings
 
 STRATEGY = "kf-wiener0"
 
@@ -163,3 +167,42 @@ def _npy(array: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, array)
     return buffer.getvalue()
+
+
+def test_a_replica_cut_off_from_the_database_acknowledges_no_write(
+    postgres: PostgresServer,
+) -> None:
+    """No split brain: the replica that cannot reach the database refuses (503) while the
+    other goes on, and once reconnected it answers from the history the other wrote."""
+    database = postgres.new_database()
+    relay = TcpRelay(postgres.port)  # the cut-off replica's only way to the database
+    through_relay = database.replace(f":{postgres.port}/", f":{relay.port}/")
+
+    async def go() -> None:
+        cut_store = PostgresStore(through_relay, timeout_s=1.0)
+        try:
+            with estimator(database) as healthy:
+                cut_app = create_app(cut_store, EstimatorSettings())
+                async with client(cut_app) as cut, client(healthy) as other:
+                    slide_id = await create(other, STRATEGY)
+                    next_url = f"/v1/slides/{slide_id}/next"
+                    assert (await cut.get(next_url)).json()["sequence"] == 0
+                    relay.cut()
+                    url = f"/v1/slides/{slide_id}/measurements"
+                    body = {"row": 0, "col": 0, "sequence": 0, "z_um": 0.5}
+                    refused = await cut.post(url, json=body)
+                    assert refused.status_code == 503, refused.text
+                    assert "Retry-After" in refused.headers
+                    assert (await cut.get("/healthz")).json()["status"] == "degraded"
+                    assert (await other.post(url, json=body)).status_code == 200
+                    relay.restore()
+                    for _ in range(50):  # the store's probe runs every second
+                        if (await cut.get("/healthz")).json()["status"] == "ok":
+                            break
+                        await asyncio.sleep(0.2)
+                    assert (await cut.get(next_url)).json()["sequence"] == 1
+        finally:
+            cut_store.close()
+            relay.close()
+
+    run(go())
