@@ -1,10 +1,11 @@
 """A real PostgreSQL server for the tests, on loopback, in a folder of its own.
 
 Debian's PostgreSQL (``apt-get install -y postgresql``) is installed when it is missing
-and the tests run as root (one pytest worker at a time, under a file lock); elsewhere
-the tests that need it skip, saying why. The server is initialised with trust
-authentication for loopback, started on a free port, and each test gets a database of
-its own (`PostgresServer.new_database`). Start and stop take about a second each.
+and the tests run as root (`ensure_debian_package`, which installs HAProxy for the
+failover test too); elsewhere the tests that need it skip, saying why. The server is
+initialised with trust authentication for loopback, started on a free port, and each
+test gets a database of its own (`PostgresServer.new_database`). Start and stop take
+about a second each.
 """
 
 from __future__ import annotations
@@ -16,16 +17,19 @@ import socket
 import subprocess
 import tempfile
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TypeVar
 
 import psycopg
 import pytest
 
+T = TypeVar("T")
+
 #: Where Debian puts each major version's server programs.
 _DEBIAN_BIN = Path("/usr/lib/postgresql")
-_INSTALL_LOCK = Path(tempfile.gettempdir()) / "focustrack-apt-postgresql.lock"
+_INSTALL_LOCK = Path(tempfile.gettempdir()) / "focustrack-apt-install.lock"
 
 
 def server_bin() -> Path | None:
@@ -34,26 +38,30 @@ def server_bin() -> Path | None:
     return found[-1].parent if found else None
 
 
-def ensure_postgresql() -> Path:
-    """The server programs' folder, installed with apt-get if missing; skip if impossible."""
+def ensure_debian_package(package: str, found: Callable[[], T | None]) -> T:
+    """`found()`, once Debian's `package` is installed with apt-get if `found()` says it is
+    missing (one pytest worker at a time, under a file lock); skip if impossible."""
     with _INSTALL_LOCK.open("w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # pytest's workers install once, one after the other
-        found = server_bin()
-        if found is not None:
-            return found
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if (present := found()) is not None:
+            return present
         if os.geteuid() != 0 or shutil.which("apt-get") is None:
-            pytest.skip("postgresql: not installed, and no root with apt-get to install it")
+            pytest.skip(f"{package}: not installed, and no root with apt-get to install it")
         env = os.environ | {"DEBIAN_FRONTEND": "noninteractive"}
-        install = ["apt-get", "install", "-y", "postgresql"]
+        install = ["apt-get", "install", "-y", package]
         if subprocess.run(install, capture_output=True, env=env).returncode != 0:
             subprocess.run(["apt-get", "update"], capture_output=True, env=env)
             done = subprocess.run(install, capture_output=True, text=True, env=env)
             if done.returncode != 0:
-                pytest.skip(f"postgresql: apt-get could not install it: {done.stderr[-500:]}")
-        found = server_bin()
-        if found is None:
-            pytest.skip("postgresql: installed, but no initdb under /usr/lib/postgresql")
-        return found
+                pytest.skip(f"{package}: apt-get could not install it: {done.stderr[-500:]}")
+        if (present := found()) is None:
+            pytest.skip(f"{package}: installed, but not where it was looked for")
+        return present
+
+
+def ensure_postgresql() -> Path:
+    """The server programs' folder, installed with apt-get if missing; skip if impossible."""
+    return ensure_debian_package("postgresql", server_bin)
 
 
 def free_port() -> int:

@@ -9,7 +9,6 @@ when missing and the tests run as root; elsewhere the test skips, saying why.
 
 from __future__ import annotations
 
-import os
 import shutil
 import signal
 import subprocess
@@ -22,7 +21,7 @@ from typing import NamedTuple
 import httpx
 import pytest
 from estimator_in_process import SETTINGS, local_map, maps
-from postgres_server import PostgresServer
+from postgres_server import PostgresServer, ensure_debian_package
 
 from focustrack_client import EstimatorClient
 from focustrack_core.maps import focus_map_of_npy
@@ -63,22 +62,6 @@ backend replicas
 """
 
 
-def ensure_haproxy() -> str:
-    """The haproxy program, installed with apt-get if missing; skip if impossible."""
-    if (found := shutil.which("haproxy")) is not None:
-        return found
-    if os.geteuid() != 0 or shutil.which("apt-get") is None:
-        pytest.skip("haproxy: not installed, and no root with apt-get to install it")
-    env = os.environ | {"DEBIAN_FRONTEND": "noninteractive"}
-    install = ["apt-get", "install", "-y", "haproxy"]
-    if subprocess.run(install, capture_output=True, env=env).returncode != 0:
-        subprocess.run(["apt-get", "update"], capture_output=True, env=env)
-        done = subprocess.run(install, capture_output=True, text=True, env=env)
-        if done.returncode != 0:
-            pytest.skip(f"haproxy: apt-get could not install it: {done.stderr[-500:]}")
-    return shutil.which("haproxy") or pytest.skip("haproxy: installed but not on PATH")
-
-
 class Balanced(NamedTuple):
     url: str  # the balancer's
     replicas: list[Popen]
@@ -89,7 +72,7 @@ class Balanced(NamedTuple):
 @pytest.fixture
 def balanced(postgres: PostgresServer, tmp_path: Path) -> Iterator[Balanced]:
     """Two replicas on a new database, behind HAProxy."""
-    haproxy = ensure_haproxy()
+    haproxy = ensure_debian_package("haproxy", lambda: shutil.which("haproxy"))
     database = postgres.new_database()
     ports = [free_port(), free_port()]
     replicas = [spawn(database, port, timeout_s=START_TIMEOUT_S) for port in ports]
