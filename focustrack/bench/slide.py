@@ -15,8 +15,8 @@ the tile is empty glass and where its dust lies. Per strategy:
   stage moves and one frame per tile);
 - tiles_focused_on_dust: tiles whose kept frame lies nearer their dust than their tissue;
 - empty_tiles_frames: frames acquired per empty tile;
-- seam_error_px: the stitched mosaic's seams (`stitch.seam_errors`): the RMS of what the
-  overlaps' cross-correlation moves each neighbour pair from where the stage put it.
+- seam_error_px: the stitched mosaic's seams (the scan report's, `stitch.Placement`): the
+  RMS of how far neighbours' overlaps still disagree once placed by the stage and refined.
 
     focustrack bench slide [--seeds 1 2] [--rows 10 --cols 10 --size 256] [--json OUT]
 """
@@ -40,10 +40,8 @@ from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc
 from focustrack_estimator import registry
 from focustrack_estimator.replay import limit_time_s
-from focustrack_scheduler.mosaic_store import MosaicStore
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
-from focustrack_scheduler.stitch import seam_errors, tiles_of_mosaic
 
 DEFAULT_STRATEGIES = (BEST_KALMAN, "kf-2d-lean", "survey-delaunay", "af-every-tile")
 #: Kalman strategies: the best of them is held to the targets.
@@ -190,9 +188,6 @@ def scan_slide(
         part = tile_scores(
             contents, tally.z_kept_um(grid), tally.planes, frames, info.depth_of_field_um
         )
-        mosaic = MosaicStore(scan_dir).read()
-        tiles = {} if mosaic is None else tiles_of_mosaic(mosaic, grid, tally.kept)
-        errors = seam_errors(tiles, grid, info.pixel_size_um)
     finally:
         record.close()
     return part | {
@@ -200,7 +195,7 @@ def scan_slide(
         "tiles": grid.n_tiles,
         "scan_time_s": report["scan_time_s"],
         "limit_time_s": limit_time_s(grid, TimingModel()),
-        "seam_error_px": float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan"),
+        "seam_error_px": report.get("seam_error_px") or float("nan"),
     }
 
 

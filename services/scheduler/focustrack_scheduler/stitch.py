@@ -166,17 +166,42 @@ def refine(
     }
 
 
-def seam_errors(
+@dataclass(frozen=True)
+class Placement:
+    """Where the kept tiles lie: each one's corner (y, x) in px from tile (0, 0)'s stage
+    place, refined (`refine`); and the seams' errors: per matched neighbour pair, how far
+    (px) its overlaps still disagree at those places."""
+
+    places_px: dict[Tile, tuple[float, float]]
+    seam_errors_px: tuple[float, ...]
+
+    @property
+    def seam_error_px(self) -> float | None:
+        """The RMS of the seams' errors (None without a matched pair)."""
+        if not self.seam_errors_px:
+            return None
+        return float(np.sqrt(np.mean(np.square(self.seam_errors_px))))
+
+
+def overlapping(grid: ScanGrid, tile_width_px: int, pixel_um: float) -> bool:
+    """Whether neighbouring tiles share pixels (the pitch is below a tile's width)."""
+    return grid.pitch_um < tile_width_px * pixel_um
+
+
+def place_tiles(
     tiles: Mapping[Tile, np.ndarray],
     grid: ScanGrid,
     pixel_um: float,
     max_shift_px: int = MAX_SHIFT_PX,
-) -> list[float]:
-    """Per matched neighbour pair, how far (px) its overlaps still disagree once the tiles
-    are placed by the stage and refined (`refine`); empty without a matched pair."""
-    places = stage_places_px(grid, pixel_um)
-    refined = refine(places, pair_shifts(tiles, places, max_shift_px), max_shift_px)
-    return [float(np.hypot(s.dy_px, s.dx_px)) for s in pair_shifts(tiles, refined, max_shift_px)]
+) -> Placement:
+    """The tiles placed by the stage and refined by their overlaps (see `Placement`)."""
+    stage = stage_places_px(grid, pixel_um)
+    refined = refine(stage, pair_shifts(tiles, stage, max_shift_px), max_shift_px)
+    kept = {tile: refined[tile] for tile in tiles}
+    errors = tuple(
+        float(np.hypot(s.dy_px, s.dx_px)) for s in pair_shifts(tiles, refined, max_shift_px)
+    )
+    return Placement(kept, errors)
 
 
 def compose(

@@ -10,8 +10,8 @@ from focustrack_scheduler.stitch import (
     compose,
     pair_shift,
     pair_shifts,
+    place_tiles,
     refine,
-    seam_errors,
     stage_places_px,
     tiles_of_mosaic,
 )
@@ -45,9 +45,9 @@ GRID = ScanGrid(3, 4, STEP * PIXEL_UM)
 
 def test_tiles_where_the_stage_put_them_have_no_seams() -> None:
     tiles = _cut(_specimen(), GRID)
-    errors = seam_errors(tiles, GRID, PIXEL_UM)
-    assert len(errors) == 3 * 3 + 2 * 4  # every neighbour pair matched
-    assert max(errors) < 0.3
+    placement = place_tiles(tiles, GRID, PIXEL_UM)
+    assert len(placement.seam_errors_px) == 3 * 3 + 2 * 4  # every neighbour pair matched
+    assert placement.seam_error_px is not None and placement.seam_error_px < 0.3
     mosaic, corner = compose(tiles, stage_places_px(GRID, PIXEL_UM))
     assert corner == (0.0, 0.0)
     np.testing.assert_array_equal(
@@ -65,7 +65,7 @@ def test_a_tile_off_its_stage_place_is_found_and_moved_back() -> None:
     y, x = refined[(1, 2)]
     assert (y - places[(1, 2)][0], x - places[(1, 2)][1]) == pytest.approx((3.0, -2.0), abs=0.3)
     assert refined[(0, 0)] == pytest.approx(places[(0, 0)], abs=1e-9)
-    assert max(seam_errors(tiles, GRID, PIXEL_UM)) < 0.5  # stage places: a seam of 3.6 px
+    assert max(place_tiles(tiles, GRID, PIXEL_UM).seam_errors_px) < 0.5  # unrefined: 3.6 px
 
 
 def test_the_refinement_is_bounded_and_glass_says_nothing() -> None:
