@@ -534,13 +534,11 @@ class Microscope:
             assert isinstance(spectra, TileSpectra)  # a stained section
             fold = None
             if layers.fold is not None:
-                fold = self.renderer.spectra(layers.fold, None)
-                assert isinstance(fold, TileSpectra)
+                upper = self.renderer.spectra(layers.fold, None)
+                assert isinstance(upper, TileSpectra)
+                fold = upper.channels
             return replace(
-                spectra,
-                dust_dz_um=layers.dust_dz_um,
-                fold=None if fold is None else fold.channels,
-                fold_dz_um=layers.fold_dz_um,
+                spectra, dust_dz_um=layers.dust_dz_um, fold=fold, fold_dz_um=layers.fold_dz_um
             )
         specimen_seed, dust_seed = self._tile_seeds(slide, row, col)
         specimen = self._specimen(specimen_seed, self.spec.shape, self.pixel_size_um)

@@ -116,8 +116,8 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
         surface = family_spec(options.family, options.rows, options.cols)
         pixel_um = Optics(magnification=options.magnification).pixel_size_um
         shape = (options.height, options.width)
-        spec = TissueSlideSpec(overlap=options.overlap)
-        slides = list(tissue_slides(options.seed, options.slides, surface, shape, pixel_um, spec))
+        tissue = TissueSlideSpec(overlap=options.overlap)
+        slides = list(tissue_slides(options.seed, options.slides, surface, shape, pixel_um, tissue))
     else:
         surface = family_spec(options.family, options.rows, options.cols)
         slides = slides_from_seed(options.seed, options.slides, surface, options.pitch_um)

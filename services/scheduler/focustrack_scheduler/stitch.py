@@ -107,14 +107,14 @@ def pair_shift(
             std = window.std()
             if std > 0:
                 scores[i, j] = float(np.mean(strip * (window - window.mean()) / std))
-    i, j = np.unravel_index(int(np.argmax(scores)), scores.shape)
-    best = float(scores[i, j])
-    dy, dx = float(i - m), float(j - m)
-    if 0 < i < 2 * m:
-        dy += _vertex(scores[i - 1, j], best, scores[i + 1, j])
-    if 0 < j < 2 * m:
-        dx += _vertex(scores[i, j - 1], best, scores[i, j + 1])
-    return dy, dx, best
+    top_i, top_j = (int(k) for k in np.unravel_index(int(np.argmax(scores)), scores.shape))
+    best = float(scores[top_i, top_j])
+    shift_y, shift_x = float(top_i - m), float(top_j - m)
+    if 0 < top_i < 2 * m:
+        shift_y += _vertex(scores[top_i - 1, top_j], best, scores[top_i + 1, top_j])
+    if 0 < top_j < 2 * m:
+        shift_x += _vertex(scores[top_i, top_j - 1], best, scores[top_i, top_j + 1])
+    return shift_y, shift_x, best
 
 
 def pair_shifts(

@@ -71,7 +71,9 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
     record = ScanRecord(tmp_path)
     with LiveServer() as server:
         assert httpx.get(server.url + "live/state").status_code == 503  # no scan yet
+        assert httpx.get(server.url + "healthz").json() == {"status": "ok", "scan": None}
         server.show(LiveScan.follow(record, GRID, "kf-2d"))
+        assert httpx.get(server.url + "healthz").json() == {"status": "ok", "scan": "kf-2d"}
         acquire_and_measure(record, 0, 3, 4, 0.7)
         page = httpx.get(server.url)
         assert page.status_code == 200 and "EventSource" in page.text
