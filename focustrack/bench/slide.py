@@ -133,7 +133,7 @@ def combine(parts: list[dict[str, Any]]) -> SlideScore:
         time_over_limit=total("scan_time_s") / total("limit_time_s"),
         tiles_focused_on_dust=int(total("on_dust")),
         empty_tiles_frames=total("empty_frames") / max(total("empty_tiles"), 1.0),
-        seam_error_px=float(np.sqrt(np.mean([part["seam_error_px"] ** 2 for part in parts]))),
+        seam_error_px=float(np.sqrt(np.nanmean([part["seam_error_px"] ** 2 for part in parts]))),
         tissue_tiles=int(total("tissue_tiles")),
         empty_tiles=int(total("empty_tiles")),
         dust_tiles=int(total("dust_tiles")),
@@ -195,7 +195,9 @@ def scan_slide(
         "tiles": grid.n_tiles,
         "scan_time_s": report["scan_time_s"],
         "limit_time_s": limit_time_s(grid, TimingModel()),
-        "seam_error_px": report.get("seam_error_px") or float("nan"),
+        "seam_error_px": (
+            float("nan") if report.get("seam_error_px") is None else report["seam_error_px"]
+        ),
     }
 
 

@@ -5,11 +5,15 @@ A tile's place comes first from its stage position (`ScanGrid.stage_xy_um`, over
 size). Where neighbours overlap (a virtual slide's tiles share `overlap` of their side),
 the shift that best aligns the shared strip (`pair_shift`: normalised cross-correlation,
 searched over +/- `max_shift_px`, refined below a pixel by a parabola) says how far the
-stage's placement is off for that pair; a strip with no texture (empty glass) says
-nothing and is left out. `refine` then moves every tile by the least-squares solution of
-all pairs' shifts (the first tile held still), each move bounded by `max_shift_px`: a
-wrong match can pull a tile no further than that. `seam_errors` is what remains: per
-pair, the shift still measured at the refined places (0 where the overlaps agree).
+stage's placement is off for that pair; a strip with no texture (empty glass) or no match
+(correlation below `MIN_CORRELATION`) says nothing and is left out, and a shift that
+matches hardly better than the stage's place (`MIN_GAIN`) is not taken. The search
+reaches a third of the overlap at most, so that two thirds of it are compared at every
+shift. `refine` then moves every tile by the least-squares solution of all pairs' shifts
+(the first tile held still, false matches left out), each move bounded by
+`max_shift_px`: a wrong match can pull a tile no further than that. `place_tiles` gives
+the places and what remains, the seams' errors: per pair, the shift still measured at the
+refined places (0 where the overlaps agree).
 """
 
 from __future__ import annotations
@@ -28,6 +32,14 @@ Tile = tuple[int, int]
 MAX_SHIFT_PX = 8
 #: A strip whose grey std is below this share of its mean has no texture to match.
 MIN_TEXTURE = 0.01
+#: A match below this normalised correlation is no match.
+MIN_CORRELATION = 0.5
+#: A shift is taken where it correlates better than the stage's place by this much; else
+#: the content matches about as well anywhere (smooth, or stripes along the shift) and the
+#: stage's place stands.
+MIN_GAIN = 0.05
+#: A pair whose shift the least-squares places miss by more than this (px) is a false match.
+OUTLIER_PX = 2.0
 
 
 @dataclass(frozen=True)
@@ -85,15 +97,16 @@ def pair_shift(
 ) -> tuple[float, float, float] | None:
     """The shift (dy, dx, correlation) of tile `b` (h, w[, c]) placed at `offset_px` (its
     corner from `a`'s, whole pixels) that best matches `a` over their overlap, searched
-    within +/- `max_shift_px`; None where the overlap is too small or has no texture."""
+    within +/- `max_shift_px` (and a third of the overlap); None where the overlap is too
+    small, has no texture or nothing matches."""
     ga, gb = _grey(a), _grey(b)
     height, width = ga.shape
     oy, ox = offset_px
-    m = max_shift_px
+    m = min(max_shift_px, (height - abs(oy)) // 3, (width - abs(ox)) // 3)
     # the part of a's pixels that b covers at every shift searched
     y0, y1 = max(0, oy + m), min(height, oy + height - m)
     x0, x1 = max(0, ox + m), min(width, ox + width - m)
-    if y1 - y0 < 4 or x1 - x0 < 4:
+    if m < 1 or y1 - y0 < 4 or x1 - x0 < 4:
         return None
     strip = ga[y0:y1, x0:x1]
     if strip.std() < MIN_TEXTURE * max(float(strip.mean()), 1e-9):
@@ -109,6 +122,10 @@ def pair_shift(
                 scores[i, j] = float(np.mean(strip * (window - window.mean()) / std))
     top_i, top_j = (int(k) for k in np.unravel_index(int(np.argmax(scores)), scores.shape))
     best = float(scores[top_i, top_j])
+    if best < MIN_CORRELATION:  # noise on glass, or nothing alike: the overlap says nothing
+        return None
+    if best - float(scores[m, m]) < MIN_GAIN:  # smooth content matches anywhere: the stage's
+        return 0.0, 0.0, float(scores[m, m])
     shift_y, shift_x = float(top_i - m), float(top_j - m)
     if 0 < top_i < 2 * m:
         shift_y += _vertex(scores[top_i - 1, top_j], best, scores[top_i + 1, top_j])
@@ -146,7 +163,9 @@ def refine(
     max_shift_px: int = MAX_SHIFT_PX,
 ) -> dict[Tile, tuple[float, float]]:
     """The places moved by the least-squares solution of the pairs' shifts (each tile's move
-    bounded by `max_shift_px`; a tile in no pair, and the first tile, stay)."""
+    bounded by `max_shift_px`; a tile in no pair, and the first tile, stay). Pairs that
+    disagree with the solution by more than `OUTLIER_PX` (a false match) are left out and
+    the rest solved again."""
     order = sorted(places_px)
     index = {tile: k for k, tile in enumerate(order)}
     if not shifts:
@@ -159,6 +178,8 @@ def refine(
         targets[k] = (pair.dy_px, pair.dx_px)
     rows[-1, 0] = 1.0  # the first tile holds still
     moves, *_ = np.linalg.lstsq(rows, targets, rcond=None)
+    kept = np.hypot(*(rows @ moves - targets).T) <= OUTLIER_PX
+    moves, *_ = np.linalg.lstsq(rows[kept], targets[kept], rcond=None)
     moves = np.clip(moves, -max_shift_px, max_shift_px)
     return {
         tile: (y + float(moves[index[tile], 0]), x + float(moves[index[tile], 1]))
