@@ -80,6 +80,7 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
         assert httpx.get(server.url + "live/state", params={"since": -1}).status_code == 422
         state = httpx.get(server.url + "live/state").json()
         assert state["tiles"] == [[3, 4, 0.71, 0.2, 5, False, [], None]]
+        assert (state["pitch_um"], state["origin_x_um"]) == (GRID.pitch_um, GRID.origin_x_um)
         with httpx.stream("GET", server.url + "live/events", timeout=10) as events:
             lines = events.iter_lines()
             assert next(lines) == "event: update"
