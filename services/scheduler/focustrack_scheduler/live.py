@@ -77,6 +77,7 @@ class LiveScan:
                         "z_um": entry["curve_z_um"],
                         "scores": entry["curve_scores"],
                         "best_z_um": entry["z_um"],
+                        "sigma_um": entry["sigma_um"],
                     }
             elif entry["event"] == "kept":
                 self.done[tile] = True

@@ -45,6 +45,7 @@ def test_the_state_follows_the_record_and_streams_only_what_changed(tmp_path: Pa
     assert [tile[:2] for tile in update["tiles"]] == [[0, 1], [0, 2]]  # only the new tiles
     assert update["tiles"][1] == [0, 2, None, None, 9, False, ["flat"], None]
     assert update["curve"]["row"] == 0 and update["curve"]["col"] == 1  # the latest curve
+    assert update["curve"]["sigma_um"] == 0.3  # with the measurement's sigma, for its model
     assert update["images"] == 19 and update["tiles_total"] == 40_000
     assert live.changes(update["version"])["tiles"] == []  # nothing newer
 
