@@ -58,7 +58,7 @@ def test_the_peak_near_the_prior_is_taken(
     assert FocusFlag.MULTI_PEAK.proto in result.flags
 
 
-def test_a_prior_far_from_both_peaks_or_none_leaves_the_choice_to_the_curve(
+def test_without_a_prior_the_curve_alone_chooses(
     render: Callable[..., np.ndarray],
 ) -> None:
     frames = _two_planes(render)
