@@ -63,6 +63,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "ms per plane of the MMCore backend's stacks against bare MMCore calls, snapped and "
         "sequenced",
     ),
+    "bench slide": (
+        "focustrack.bench.slide",
+        "virtual tissue slides (empty glass, dust, folds, tilt) scanned by every strategy",
+    ),
     "serve instrument": (
         "focustrack_instrument_sim.service",
         "a microscope on Zenoh: the simulator, or one through Micro-Manager (--backend mmcore)",

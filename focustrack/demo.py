@@ -2,7 +2,9 @@
 
 Starts a Zenoh router in this process and the instrument, focus and estimator
 services as separate processes (`python -m focustrack serve ...`) on free ports,
-waits until each answers, then scans the same simulated slide once per strategy
+waits until each answers, then scans the same simulated slide (with `--tissue-slide`,
+a virtual slide: one tissue section with empty glass, holes, a fold, tilt and coverslip
+dust, cut into tiles that overlap by `--overlap`) once per strategy
 (the best Kalman filter, the same with the lean risk rule, Delaunay focus-map
 surveying and autofocus on every tile by default; then a second pass of kf-rescan
 with the lean scan's map after the slide's focus moved by 12 um) and prints, per
@@ -515,6 +517,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cols", type=int, default=10, help="tile columns of the slide (10)")
     parser.add_argument("--size", type=int, default=512, help="frame side in pixels (512)")
     parser.add_argument("--seed", type=int, default=1, help="seed of the slide (1)")
+    parser.add_argument(
+        "--tissue-slide",
+        action="store_true",
+        help="scan a virtual tissue slide (empty glass, holes, a fold, tilt, coverslip dust, "
+        "overlapping tiles) instead of the simulator's slide of independent tiles",
+    )
+    parser.add_argument(
+        "--overlap",
+        type=float,
+        default=0.1,
+        help="with --tissue-slide: share of a tile its neighbours share (0.1)",
+    )
     parser.add_argument("--family", choices=list(FAMILIES), default="standard")
     parser.add_argument(
         "--strategies",
@@ -617,13 +631,17 @@ def run(args: argparse.Namespace) -> int:
         "--rows", str(args.rows), "--cols", str(args.cols),
         "--width", str(args.size), "--height", str(args.size),
     ]  # fmt: skip
+    if args.tissue_slide:
+        instrument_args += ["--tissue-slide", "--overlap", str(args.overlap)]
     shared_memory_mb = args.shared_memory
     if shared_memory_mb is None:  # the stack is on one host: shared memory where there is room
         shared_memory_mb = SHARED_MEMORY_MB if shared_memory_room_mb() >= SHARED_MEMORY_MB else 0
     path = f"shared memory ({shared_memory_mb} MB pool)" if shared_memory_mb else "TCP loopback"
+    kind = f"virtual tissue slide overlapping by {args.overlap:g}" if args.tissue_slide else "slide"
     print(
-        f"focustrack demo: a {args.rows}x{args.cols} slide of {args.size}x{args.size} px tiles "
-        f"(family {args.family}, seed {args.seed}); frames over {path}; outputs in {out_dir}",
+        f"focustrack demo: a {args.rows}x{args.cols} {kind} of {args.size}x{args.size} px "
+        f"tiles (family {args.family}, seed {args.seed}); frames over {path}; outputs in "
+        f"{out_dir}",
         flush=True,
     )
     reports: dict[str, dict[str, Any]] = {}
@@ -643,6 +661,8 @@ def run(args: argparse.Namespace) -> int:
         ):
             assert stack.session is not None
             print(f"services ready in {time.perf_counter() - started_s:.1f} s", flush=True)
+            layout = wait_for_instrument(stack.session, INSTRUMENT, READY_TIMEOUT_S).slides[0]
+            grid = ScanGrid(layout.rows, layout.cols, layout.pitch_um)
             print(f"live view at {live.url}", flush=True)
             for name in names:
                 scan_dir = out_dir / name
@@ -679,8 +699,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print()
     print(f"Strategies on the same slide ({args.rows}x{args.cols} tiles, seed {args.seed}):")
-    # the instrument's default tile pitch and timing (`focustrack serve instrument`)
-    print(comparison_table(reports, limit_time_s(ScanGrid(args.rows, args.cols), TimingModel())))
+    # the slide's tile pitch and the instrument's default timing (`focustrack serve instrument`)
+    print(comparison_table(reports, limit_time_s(grid, TimingModel())))
     print()
     print("Where the wall time went (s):")
     print(wall_time_table(reports))

@@ -106,11 +106,12 @@ def test_each_service_is_configured_by_environment_its_command_accepts(
     if name == "scheduler":
         assert args.estimator == "http://estimator:8100" and args.out.parts[1] == "out"
         assert args.no_progress is True
+        assert args.live_port == 8200 and args.live_host == "0.0.0.0"  # published: /healthz
 
 
 def test_health_checks_volume_and_the_scheduler_job(compose: dict[str, Any]) -> None:
     services = compose["services"]
-    for name in ("instrument", "focus", "estimator", "phase"):
+    for name in ("instrument", "focus", "estimator", "phase", "scheduler"):
         check = services[name]["healthcheck"]
         test = [defaults(word) for word in check["test"]]
         assert test[:4] == ["CMD", "python3", "-m", "focustrack_core.health"]

@@ -15,7 +15,7 @@ ACQUISITION_PURPOSE_FOCUS: AcquisitionPurpose
 ACQUISITION_PURPOSE_PHASE: AcquisitionPurpose
 
 class AcquireRequest(_message.Message):
-    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s", "nonce", "purpose", "reference_z_um")
+    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s", "nonce", "purpose", "reference_z_um", "prior_z_um", "prior_sigma_um")
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
     COL_FIELD_NUMBER: _ClassVar[int]
@@ -27,6 +27,8 @@ class AcquireRequest(_message.Message):
     NONCE_FIELD_NUMBER: _ClassVar[int]
     PURPOSE_FIELD_NUMBER: _ClassVar[int]
     REFERENCE_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    PRIOR_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    PRIOR_SIGMA_UM_FIELD_NUMBER: _ClassVar[int]
     slide: str
     row: int
     col: int
@@ -38,7 +40,9 @@ class AcquireRequest(_message.Message):
     nonce: bytes
     purpose: AcquisitionPurpose
     reference_z_um: float
-    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ...) -> None: ...
+    prior_z_um: float
+    prior_sigma_um: float
+    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., prior_z_um: _Optional[float] = ..., prior_sigma_um: _Optional[float] = ...) -> None: ...
 
 class Timing(_message.Message):
     __slots__ = ("move_s", "z_settle_s", "exposure_s", "readout_s", "total_s", "clock_s", "move_distance_um")
@@ -59,7 +63,7 @@ class Timing(_message.Message):
     def __init__(self, move_s: _Optional[float] = ..., z_settle_s: _Optional[float] = ..., exposure_s: _Optional[float] = ..., readout_s: _Optional[float] = ..., total_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., move_distance_um: _Optional[float] = ...) -> None: ...
 
 class ZStackHeader(_message.Message):
-    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag", "purpose", "reference_z_um", "wavelength_um", "condenser_na", "objective_na", "photons_per_count", "dark_counts")
+    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag", "purpose", "reference_z_um", "wavelength_um", "condenser_na", "objective_na", "photons_per_count", "dark_counts", "prior_z_um", "prior_sigma_um")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
@@ -85,6 +89,8 @@ class ZStackHeader(_message.Message):
     OBJECTIVE_NA_FIELD_NUMBER: _ClassVar[int]
     PHOTONS_PER_COUNT_FIELD_NUMBER: _ClassVar[int]
     DARK_COUNTS_FIELD_NUMBER: _ClassVar[int]
+    PRIOR_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    PRIOR_SIGMA_UM_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     row: int
@@ -110,7 +116,9 @@ class ZStackHeader(_message.Message):
     objective_na: float
     photons_per_count: float
     dark_counts: float
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., condenser_na: _Optional[float] = ..., objective_na: _Optional[float] = ..., photons_per_count: _Optional[float] = ..., dark_counts: _Optional[float] = ...) -> None: ...
+    prior_z_um: float
+    prior_sigma_um: float
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., condenser_na: _Optional[float] = ..., objective_na: _Optional[float] = ..., photons_per_count: _Optional[float] = ..., dark_counts: _Optional[float] = ..., prior_z_um: _Optional[float] = ..., prior_sigma_um: _Optional[float] = ...) -> None: ...
 
 class ZFrameHeader(_message.Message):
     __slots__ = ("stack", "index", "timestamp_unix_s", "parts", "part_offset", "tag")
@@ -213,7 +221,7 @@ class InstrumentInfo(_message.Message):
     def __init__(self, instrument: _Optional[str] = ..., slides: _Optional[_Iterable[_Union[SlideInfo, _Mapping]]] = ..., z_min_um: _Optional[float] = ..., z_max_um: _Optional[float] = ..., max_frames: _Optional[int] = ..., pixel_size_um: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., numerical_aperture: _Optional[float] = ..., magnification: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., refractive_index: _Optional[float] = ..., depth_of_field_um: _Optional[float] = ..., default_exposure_s: _Optional[float] = ..., hardware_sequenced: _Optional[bool] = ...) -> None: ...
 
 class SlideTruth(_message.Message):
-    __slots__ = ("instrument", "slide", "rows", "cols", "best_focus_um", "drift_um", "clock_s")
+    __slots__ = ("instrument", "slide", "rows", "cols", "best_focus_um", "drift_um", "clock_s", "tissue_share", "empty", "dust_z_um", "fold_z_um")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROWS_FIELD_NUMBER: _ClassVar[int]
@@ -221,6 +229,10 @@ class SlideTruth(_message.Message):
     BEST_FOCUS_UM_FIELD_NUMBER: _ClassVar[int]
     DRIFT_UM_FIELD_NUMBER: _ClassVar[int]
     CLOCK_S_FIELD_NUMBER: _ClassVar[int]
+    TISSUE_SHARE_FIELD_NUMBER: _ClassVar[int]
+    EMPTY_FIELD_NUMBER: _ClassVar[int]
+    DUST_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    FOLD_Z_UM_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     rows: int
@@ -228,7 +240,11 @@ class SlideTruth(_message.Message):
     best_focus_um: _containers.RepeatedScalarFieldContainer[float]
     drift_um: float
     clock_s: float
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., best_focus_um: _Optional[_Iterable[float]] = ..., drift_um: _Optional[float] = ..., clock_s: _Optional[float] = ...) -> None: ...
+    tissue_share: _containers.RepeatedScalarFieldContainer[float]
+    empty: _containers.RepeatedScalarFieldContainer[bool]
+    dust_z_um: _containers.RepeatedScalarFieldContainer[float]
+    fold_z_um: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., best_focus_um: _Optional[_Iterable[float]] = ..., drift_um: _Optional[float] = ..., clock_s: _Optional[float] = ..., tissue_share: _Optional[_Iterable[float]] = ..., empty: _Optional[_Iterable[bool]] = ..., dust_z_um: _Optional[_Iterable[float]] = ..., fold_z_um: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class PhaseTruth(_message.Message):
     __slots__ = ("instrument", "slide", "row", "col", "shape", "dtype", "pixel_size_um", "focus_z_um")

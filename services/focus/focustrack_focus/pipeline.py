@@ -248,9 +248,9 @@ class FrameByFrame:
             self._low, self._blurriest, self._blurriest_raw = index, image, raw
         self._busy_s += time.perf_counter() - started_s
 
-    def result(self, curve: CurveModel | None = None) -> FocusResult:
-        """The focus of the stack (a short one read with `curve`, where given and ready);
-        ValueError while frames are missing."""
+    def result(self, curve: CurveModel | None = None, prior: Prior | None = None) -> FocusResult:
+        """The focus of the stack (a short one read with `curve`, where given and ready;
+        its peaks weighed with `prior`, where given); ValueError while frames are missing."""
         if not self.complete:
             missing = np.flatnonzero(np.isnan(self.scores)).tolist()
             raise ValueError(f"frames {missing} have not arrived")
@@ -264,5 +264,6 @@ class FrameByFrame:
             self.settings,
             started_s=started_s,
             structure_snr=snr,
+            prior=prior,
             curve=curve,
         )

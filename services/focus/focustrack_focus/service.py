@@ -63,7 +63,7 @@ from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.metrics import METRICS
-from focustrack_focus.peak import PeakMode, PeakSettings
+from focustrack_focus.peak import PeakMode, PeakSettings, Prior
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
 from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
 
@@ -93,6 +93,14 @@ def settings_for(
         sigma_px = lowpass_sigma_for_optics(header.pixel_size_um, na)
         preprocess = replace(preprocess, lowpass_sigma_px=sigma_px)
     return replace(base, preprocess=preprocess)
+
+
+def prior_of(header: instrument_pb2.ZStackHeader) -> Prior | None:
+    """The estimator's prediction the stack came with (None: none); ValueError for one that
+    is not a finite z with a positive sigma."""
+    if not (header.HasField("prior_z_um") and header.HasField("prior_sigma_um")):
+        return None
+    return Prior(header.prior_z_um, header.prior_sigma_um)
 
 
 def result_message(
@@ -259,7 +267,7 @@ class FrameAnalyser:
                 self._open.put(stack, curve, held)
                 return None
             model = self._curve(tile.slide)
-            result = curve.result(model)
+            result = curve.result(model, prior_of(header))
             model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
             return result_message(tile, header, result)
         except Exception as error:  # a bad frame is answered with an error, never a crash

@@ -250,6 +250,20 @@ class FocusTruth:
     best_focus_um: np.ndarray
     drift_um: float
     clock_s: float
+    #: a virtual slide's contents, (rows, cols) each (None: a slide of separate fields):
+    #: tissue share of the tile's area, whether it is empty glass, the height (um, now,
+    #: as best_focus_um) of its coverslip dust and of a fold's upper layer (NaN: none)
+    tiles: TileContents | None = None
+
+
+@dataclass(frozen=True)
+class TileContents:
+    """What lies in each tile of a virtual slide, (rows, cols) each (see FocusTruth)."""
+
+    tissue_share: np.ndarray
+    empty: np.ndarray
+    dust_z_um: np.ndarray
+    fold_z_um: np.ndarray
 
 
 @dataclass(frozen=True)

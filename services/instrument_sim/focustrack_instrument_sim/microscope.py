@@ -23,7 +23,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -181,10 +181,15 @@ class MicroscopeSpec:
 @dataclass(frozen=True)
 class TileSpectra:
     """CCS spectra of a tile's in-focus transmission, one per channel, pixel MTF applied,
-    and of its dust layer (or None)."""
+    and of its dust layer (or None). A virtual slide's tile (`virtual_slide`) says how high
+    its dust lies above it (um; None: `MicroscopeSpec.dust_dz_um`), and may carry a fold:
+    a second layer's spectra, one per channel, `fold_dz_um` above the first."""
 
     channels: tuple[np.ndarray, ...]
     dust: np.ndarray | None
+    dust_dz_um: float | None = None
+    fold: tuple[np.ndarray, ...] | None = None
+    fold_dz_um: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -245,7 +250,8 @@ class Renderer:
         work = self._workspace()
         dust = None
         if tile.dust is not None:  # the dust plane sits dust_dz_um above the specimen
-            dz_dust = dz_um - self.spec.dust_dz_um
+            above_um = getattr(tile, "dust_dz_um", None)
+            dz_dust = dz_um - (self.spec.dust_dz_um if above_um is None else above_um)
             otf_map = self._otfs[1].profile(dz_dust).take(self._bins[1], out=work.otf_map)
             dust = opt.blurred(tile.dust, otf_map, 1.0, out=work.dust)
         if isinstance(tile, PhaseTileSpectrum):
@@ -260,6 +266,9 @@ class Renderer:
         for c, (otf, bins) in enumerate(zip(self._otfs, self._bins, strict=True)):
             otf_map = otf.profile(dz_um).take(bins, out=work.otf_map)
             plane = opt.blurred(tile.channels[c], otf_map, signal_e, out=work.plane)
+            if tile.fold is not None:  # a fold's upper layer, at its own defocus
+                fold_map = otf.profile(dz_um - tile.fold_dz_um).take(bins, out=work.otf_map)
+                plane *= opt.blurred(tile.fold[c], fold_map, 1.0, out=work.fold)
             if dust is not None:
                 plane *= dust
             expose(camera, plane, rng, self._bank, out=work.adu[c], scratch=work.scratch)
@@ -281,6 +290,7 @@ class _Workspace:
         self.otf_map = np.empty(shape, dtype=np.float32)
         self.plane = np.empty(shape, dtype=np.float32)
         self.dust = np.empty(shape, dtype=np.float32)
+        self.fold = np.empty(shape, dtype=np.float32)
         self.scratch = np.empty(shape, dtype=np.float32)
         self.adu = tuple(np.empty(shape, dtype=np.uint16) for _ in range(channels))
         self.abbe: opt.AbbeWorkspace | None = None  # made for the first phase specimen
@@ -506,16 +516,36 @@ class Microscope:
         if key in self._tiles:
             self._tiles.move_to_end(key)
             return self._tiles[key]
+        tile = self._new_tile_spectra(slide, row, col)
+        self._tiles[key] = tile
+        while len(self._tiles) > self.spec.tiles_cached:
+            self._tiles.popitem(last=False)
+        return tile
+
+    def _new_tile_spectra(
+        self, slide: Slide, row: int, col: int
+    ) -> TileSpectra | PhaseTileSpectrum:
+        # Imported here: virtual_slide builds on this module's Slide.
+        from focustrack_instrument_sim.virtual_slide import TissueSlide
+
+        if isinstance(slide, TissueSlide):  # a window of one continuous section
+            layers = slide.tile(row, col, self.spec.shape, self.pixel_size_um)
+            spectra = self.renderer.spectra(layers.section, layers.dust)
+            assert isinstance(spectra, TileSpectra)  # a stained section
+            fold = None
+            if layers.fold is not None:
+                upper = self.renderer.spectra(layers.fold, None)
+                assert isinstance(upper, TileSpectra)
+                fold = upper.channels
+            return replace(
+                spectra, dust_dz_um=layers.dust_dz_um, fold=fold, fold_dz_um=layers.fold_dz_um
+            )
         specimen_seed, dust_seed = self._tile_seeds(slide, row, col)
         specimen = self._specimen(specimen_seed, self.spec.shape, self.pixel_size_um)
         dust = None
         if self.spec.specimen.dust_density > 0:
             dust = dust_layer(self.spec.specimen, dust_seed, self.spec.shape, self.pixel_size_um)
-        tile = self.renderer.spectra(specimen, dust)
-        self._tiles[key] = tile
-        while len(self._tiles) > self.spec.tiles_cached:
-            self._tiles.popitem(last=False)
-        return tile
+        return self.renderer.spectra(specimen, dust)
 
 
 def specimen_function(spec: MicroscopeSpec) -> SpecimenFn:

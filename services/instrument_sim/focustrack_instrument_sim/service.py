@@ -284,6 +284,9 @@ class InstrumentService:
                 )
             )
             header = self._header(plan, request.sequence, request.nonce or new_nonce())
+            for name in ("prior_z_um", "prior_sigma_um"):  # the prediction, for the focus service
+                if request.HasField(name):
+                    setattr(header, name, getattr(request, name))
             shape = (plan.n_frames, *plan.frame.shape)
             codec.describe_stack(header, shape, plan.frame.dtype)
             frame_key = keys.zframe_key(plan.slide, plan.row, plan.col)
@@ -425,7 +428,7 @@ class InstrumentService:
         with replies_for_instrument_errors():
             truth = self.truth.truth(slide)
         rows, cols = truth.best_focus_um.shape
-        return instrument_pb2.SlideTruth(
+        message = instrument_pb2.SlideTruth(
             instrument=self.name,
             slide=slide,
             rows=rows,
@@ -434,6 +437,12 @@ class InstrumentService:
             drift_um=truth.drift_um,
             clock_s=truth.clock_s,
         )
+        if (tiles := truth.tiles) is not None:  # a virtual slide: what lies in each tile
+            message.tissue_share.extend(tiles.tissue_share.ravel().tolist())
+            message.empty.extend(tiles.empty.ravel().tolist())
+            message.dust_z_um.extend(tiles.dust_z_um.ravel().tolist())
+            message.fold_z_um.extend(tiles.fold_z_um.ravel().tolist())
+        return message
 
     def _reply_phase_truth(self, query: zenoh.Query) -> None:
         """Answer with the true phase of the tile the key names: its raw float32 pixels

@@ -19,6 +19,7 @@ from focustrack_instrument_sim.instrument import (
     SlideLayout,
     StackPlan,
     StackRequest,
+    TileContents,
     TilePhase,
 )
 from focustrack_instrument_sim.microscope import (
@@ -32,6 +33,7 @@ from focustrack_instrument_sim.optics import Illumination, Optics
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
 from focustrack_instrument_sim.specimen import SpecimenSpec
 from focustrack_instrument_sim.stage import StageSpec
+from focustrack_instrument_sim.virtual_slide import TissueSlide, TissueSlideSpec, tissue_slides
 
 
 class SimulatedInstrument:
@@ -87,7 +89,17 @@ class SimulatedInstrument:
                 Refusal.UNKNOWN_SLIDE, f"unknown slide {slide!r}", "slide"
             )
         focus_um, drift_um = self.microscope.truth_um(slide)
-        return FocusTruth(focus_um, drift_um, self.microscope.stage.clock_s)
+        chosen = self.microscope.slides[slide]
+        tiles = None
+        if isinstance(chosen, TissueSlide):
+            contents = chosen.truth()
+            tiles = TileContents(
+                contents.tissue_share,
+                contents.empty,
+                focus_um + contents.dust_dz_um,
+                focus_um + contents.fold_dz_um,
+            )
+        return FocusTruth(focus_um, drift_um, self.microscope.stage.clock_s, tiles)
 
     def phase_truth(self, slide: str, row: int, col: int) -> TilePhase:
         return self.microscope.true_phase(slide, row, col)
@@ -100,6 +112,12 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
     """The microscope the simulator's options describe."""
     if options.map is not None:
         slides = slides_from_map(options.map, options.seed, options.pitch_um)
+    elif options.tissue_slide:
+        surface = family_spec(options.family, options.rows, options.cols)
+        pixel_um = Optics(magnification=options.magnification).pixel_size_um
+        shape = (options.height, options.width)
+        tissue = TissueSlideSpec(overlap=options.overlap)
+        slides = list(tissue_slides(options.seed, options.slides, surface, shape, pixel_um, tissue))
     else:
         surface = family_spec(options.family, options.rows, options.cols)
         slides = slides_from_seed(options.seed, options.slides, surface, options.pitch_um)

@@ -58,6 +58,18 @@ class SimulatorOptions(BaseModel):
         description="every slide's focus moved by this much, um (a re-scan after drift "
         "between passes)",
     )
+    tissue_slide: bool = Field(
+        False,
+        description="continuous virtual slides instead: one tissue section per slide with "
+        "empty glass, holes, folds, tilt and coverslip dust, cut into tiles that overlap by "
+        "--overlap (the pitch follows from the frame size; --pitch-um is not used)",
+    )
+    overlap: float = Field(
+        0.1,
+        ge=0,
+        lt=0.5,
+        description="share of a tile's side its neighbours share (--tissue-slide)",
+    )
     # the microscope
     width: int = Field(1024, description="frame width in pixels (even)")
     height: int = Field(1024, description="frame height in pixels (even)")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hmac
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -37,9 +38,11 @@ def acquire_request(
     slide: str, acquisition: Acquisition, nonce: bytes
 ) -> instrument_pb2.AcquireRequest:
     """The AcquireRequest of an estimator acquisition (its index is the wire sequence),
-    taken this time under `nonce` (fresh for every request: `trust.new_nonce`)."""
+    taken this time under `nonce` (fresh for every request: `trust.new_nonce`), with the
+    estimator's prediction of the tile's focus as its prior where it has a finite one (the
+    focus service weighs the stack's peaks with it)."""
     z = acquisition.z
-    return instrument_pb2.AcquireRequest(
+    request = instrument_pb2.AcquireRequest(
         slide=slide,
         row=acquisition.row,
         col=acquisition.col,
@@ -49,6 +52,15 @@ def acquire_request(
         sequence=acquisition.index,
         nonce=nonce,
     )
+    z_um, sigma_um = acquisition.predicted_um, acquisition.predicted_sigma_um
+    if (
+        z_um is not None
+        and sigma_um is not None
+        and math.isfinite(z_um + sigma_um)
+        and sigma_um > 0
+    ):
+        request.prior_z_um, request.prior_sigma_um = z_um, sigma_um
+    return request
 
 
 def phase_request(step: AcquirePhase, nonce: bytes) -> instrument_pb2.AcquireRequest:

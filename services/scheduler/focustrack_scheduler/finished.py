@@ -23,6 +23,7 @@ from focustrack_core.maps import finite_or_none, map_layers
 from focustrack_scheduler.outputs import PARTIAL_MOSAIC, MosaicFormat, WallTimes
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.report import scan_report
+from focustrack_scheduler.stitch import Placement, overlapping, place_tiles, tiles_of_mosaic
 from focustrack_scheduler.tally import Tile
 
 
@@ -54,6 +55,9 @@ class FinishedScan:
     mosaic_format: MosaicFormat
     report: Mapping[str, Any]
     phase: Mapping[Tile, str] = field(default_factory=lambda: MappingProxyType({}))
+    #: where the kept tiles lie, stitched by the stage and their overlaps, where tiles
+    #: overlap (a virtual slide's); None: side by side, as in `mosaic`
+    placement: Placement | None = None
 
     @classmethod
     def of(
@@ -76,6 +80,12 @@ class FinishedScan:
         has_mosaic = mosaic is not None or (record.out_dir / mosaic_format.file_name).exists()
         images_per_tile = tally.images_per_tile(grid)
         images_per_tile.setflags(write=False)
+        placement = None
+        if mosaic is not None:
+            tile = state["tile"]
+            pixel_um = float(tile["pixel_size_um"])
+            if overlapping(grid, int(tile["width"]), pixel_um):
+                placement = place_tiles(tiles_of_mosaic(mosaic, grid, tally.kept), grid, pixel_um)
         report = scan_report(
             tally,
             state,
@@ -87,6 +97,8 @@ class FinishedScan:
             focus_results_rejected,
             mosaic_format.file_name if has_mosaic else None,
         )
+        if placement is not None:
+            report["seam_error_px"] = placement.seam_error_px
         return cls(
             out_dir=record.out_dir,
             grid=grid,
@@ -102,6 +114,7 @@ class FinishedScan:
             mosaic=mosaic,
             mosaic_format=mosaic_format,
             report=MappingProxyType(report),
+            placement=placement,
         )
 
     @property

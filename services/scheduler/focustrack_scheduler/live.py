@@ -77,6 +77,7 @@ class LiveScan:
                         "z_um": entry["curve_z_um"],
                         "scores": entry["curve_scores"],
                         "best_z_um": entry["z_um"],
+                        "sigma_um": entry["sigma_um"],
                     }
             elif entry["event"] == "kept":
                 self.done[tile] = True
@@ -125,6 +126,10 @@ class LiveScan:
                 "since": since,
                 "tiles_done": int(self.done.sum()),
                 "tiles_total": self.grid.n_tiles,
+                # where the tiles are: the map's axes in the stage's micrometres
+                "pitch_um": self.grid.pitch_um,
+                "origin_x_um": self.grid.origin_x_um,
+                "origin_y_um": self.grid.origin_y_um,
                 "images": int(self.images.sum()),
                 "finished": self.finished,
                 "curve": self.curve,

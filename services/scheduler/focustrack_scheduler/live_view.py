@@ -100,6 +100,11 @@ def create_app(server: LiveServer) -> FastAPI:
     def index() -> str:
         return page
 
+    @app.get("/healthz")
+    def healthz() -> dict[str, Any]:
+        """The server answers; the scan it shows, if any."""
+        return {"status": "ok", "scan": None if server.scan is None else server.scan.label}
+
     @app.get("/live/state")
     def state(since: int = Query(0, ge=0)) -> dict[str, Any]:
         return current().changes(since)

@@ -24,7 +24,10 @@ At the end, each by its writer (`writers.DEFAULT_WRITERS`, run on a `finished.Fi
 - the in-focus tile images side by side (8-bit RGB, with a pyramid) for a slide viewer:
   ``mosaic.ome.zarr`` (OME-Zarr, NGFF 0.5: the default; each tile's best z, sigma and flags
   in its attributes, the focus-map layers as arrays beside it, and with ``--phase`` the
-  phase in radians as an image of its own over the mosaic, ``phase``) or ``mosaic.ome.tif``
+  phase in radians as an image of its own over the mosaic, ``phase``, and the frames an
+  uncertain tile keeps as images of their own, ``planes``; where tiles overlap, a virtual
+  slide's, the tiles stitched at their stage positions, `stitch`, and every image placed
+  in the stage's micrometres) or ``mosaic.ome.tif``
   (`MosaicFormat`), and ``mosaic.png``, a small preview;
 - ``report.json``: images acquired, simulated scan time, in-focus fraction and MAE against
   the instrument's truth, and the wall-time split (`report.scan_report`).
@@ -66,6 +69,9 @@ SCAN_FILES = (
 ZARR_MAPS = "maps"
 #: Group of the OME-Zarr mosaic that holds the phase (rad), an NGFF image over the mosaic.
 ZARR_PHASE = "phase"
+#: Group of the OME-Zarr mosaic that holds the frames uncertain tiles keep, an NGFF image
+#: (c, z, y, x) each (``r{row}_c{col}``), their z in its attributes.
+ZARR_PLANES = "planes"
 #: Key of FocusTrack's own attributes in the OME-Zarr root
 #: (`finished.FinishedScan.tile_metadata`).
 ZARR_ATTRS = "focustrack"

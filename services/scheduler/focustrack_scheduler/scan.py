@@ -183,7 +183,10 @@ def run(settings: ScanSettings) -> int:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 2
     try:
-        with zenoh.open(config) as session, live_server(settings.live_port) as live:
+        with (
+            zenoh.open(config) as session,
+            live_server(settings.live_port, settings.live_host) as live,
+        ):
             if live is not None:
                 print(f"live view at {live.url}", flush=True)
             report = run_scan(session, replace(job, live=live))
@@ -201,14 +204,14 @@ def run(settings: ScanSettings) -> int:
 
 
 @contextlib.contextmanager
-def live_server(port: int | None) -> Iterator[LiveServer | None]:
-    """The live web view on 127.0.0.1:`port` while the block runs (None: no view)."""
+def live_server(port: int | None, host: str = "127.0.0.1") -> Iterator[LiveServer | None]:
+    """The live web view on `host`:`port` while the block runs (None: no view)."""
     if port is None:
         yield None
         return
     from focustrack_scheduler.live_view import LiveServer  # FastAPI: only when it is asked for
 
-    with LiveServer(port=port) as server:
+    with LiveServer(host=host, port=port) as server:
         yield server
 
 

@@ -197,8 +197,14 @@ class ScanSettings(ZenohSettings, ScanOptions):
         None,
         ge=0,
         le=65535,
-        description="serve the live web view of the scan on this port of 127.0.0.1 "
+        description="serve the live web view of the scan on this port of --live-host "
         "(0: any free one)",
+    )
+    live_host: str = Field(
+        "127.0.0.1",
+        min_length=1,
+        description="the address the live web view listens on (0.0.0.0: every interface, "
+        "as in a container whose port is published)",
     )
 
     @field_validator("param", mode="before")

@@ -22,11 +22,13 @@ from focustrack_scheduler.outputs import (
     FOCUS_MAP_CSV,
     FOCUS_MAP_NPY,
     MOSAIC_PREVIEW,
+    PLANES,
     PLOTS,
     REPORT,
     ZARR_MAPS,
     MosaicFormat,
 )
+from focustrack_scheduler.stitch import compose, tiles_of_mosaic
 
 #: Longest side of the PNG preview of the mosaic, in pixels.
 PREVIEW_PX = 1600
@@ -82,7 +84,12 @@ class MosaicWriter:
         else:
             from focustrack_scheduler.ome_zarr import write_mosaic
 
-            write_mosaic(path, scan.mosaic, pixel_size_um)
+            if scan.placement is None:
+                write_mosaic(path, scan.mosaic, pixel_size_um)
+            else:  # stitched at the stage's positions, in its micrometres
+                tiles = tiles_of_mosaic(scan.mosaic, scan.grid, scan.kept)
+                mosaic, corner_px = compose(tiles, scan.placement.places_px)
+                write_mosaic(path, mosaic, pixel_size_um, stage_origin_um(scan, corner_px))
         return [path]
 
 
@@ -109,7 +116,51 @@ class OmeZarrMetadataWriter:
         }
         layers = {**map_layers(scan.focus_map), "images": scan.images_per_tile}
         path = scan.out_dir / scan.mosaic_format.file_name
-        write_metadata(path, scan.mosaic.shape, pixel_size_um, attributes, layers)
+        stage = None
+        if scan.placement is not None:  # a value per tile at the tile's stage position
+            x_um, y_um = grid.stage_xy_um(0, 0)
+            stage = (grid.pitch_um, (y_um, x_um))
+        write_metadata(path, scan.mosaic.shape, pixel_size_um, attributes, layers, stage)
+        return [path]
+
+
+def stage_origin_um(scan: FinishedScan, corner_px: tuple[float, float]) -> tuple[float, float]:
+    """Stage coordinates (y, x), um, of the centre of the pixel `corner_px` (y, x) from tile
+    (0, 0)'s first pixel, where the stage placed that tile."""
+    tile = scan.state["tile"]
+    pixel_um = float(tile["pixel_size_um"])
+    x_um, y_um = scan.grid.stage_xy_um(0, 0)
+    return (
+        y_um - (int(tile["height"]) / 2 - 0.5 - corner_px[0]) * pixel_um,
+        x_um - (int(tile["width"]) / 2 - 0.5 - corner_px[1]) * pixel_um,
+    )
+
+
+class PlanesWriter:
+    """Into ``mosaic.ome.zarr``: the frames each uncertain tile keeps (``planes/`` of the
+    record), an NGFF image (c, z, y, x) each where the tile lies, their z in its attributes."""
+
+    def write(self, scan: FinishedScan) -> list[Path]:
+        if not scan.planes or scan.mosaic is None:
+            return []
+        if scan.mosaic_format is not MosaicFormat.OME_ZARR:
+            return []  # the planes stay in planes/
+        from focustrack_scheduler.ome_zarr import write_planes
+
+        tile = scan.state["tile"]
+        height, width = int(tile["height"]), int(tile["width"])
+        pixel_um = float(tile["pixel_size_um"])
+        path = scan.out_dir / scan.mosaic_format.file_name
+        for (row, col), z_um in scan.planes.items():
+            file = scan.out_dir / PLANES / f"r{row}_c{col}.npy"
+            if not file.exists():  # its frames were gone when the scan kept them (logged)
+                continue
+            if scan.placement is None:  # where its image lies in the mosaic, side by side
+                origin_um = (row * height * pixel_um, col * width * pixel_um)
+            else:
+                origin_um = stage_origin_um(scan, scan.placement.places_px[(row, col)])
+            frames = np.load(file)
+            write_planes(path, (row, col), frames, list(z_um), pixel_um, origin_um)
         return [path]
 
 
@@ -157,6 +208,7 @@ DEFAULT_WRITERS: tuple[OutputWriter, ...] = (
     MosaicPreviewWriter(),
     MosaicWriter(),
     OmeZarrMetadataWriter(),
+    PlanesWriter(),
     PhaseWriter(),
     ReportWriter(),
 )

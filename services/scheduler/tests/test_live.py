@@ -45,6 +45,7 @@ def test_the_state_follows_the_record_and_streams_only_what_changed(tmp_path: Pa
     assert [tile[:2] for tile in update["tiles"]] == [[0, 1], [0, 2]]  # only the new tiles
     assert update["tiles"][1] == [0, 2, None, None, 9, False, ["flat"], None]
     assert update["curve"]["row"] == 0 and update["curve"]["col"] == 1  # the latest curve
+    assert update["curve"]["sigma_um"] == 0.3  # with the measurement's sigma, for its model
     assert update["images"] == 19 and update["tiles_total"] == 40_000
     assert live.changes(update["version"])["tiles"] == []  # nothing newer
 
@@ -71,13 +72,16 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
     record = ScanRecord(tmp_path)
     with LiveServer() as server:
         assert httpx.get(server.url + "live/state").status_code == 503  # no scan yet
+        assert httpx.get(server.url + "healthz").json() == {"status": "ok", "scan": None}
         server.show(LiveScan.follow(record, GRID, "kf-2d"))
+        assert httpx.get(server.url + "healthz").json() == {"status": "ok", "scan": "kf-2d"}
         acquire_and_measure(record, 0, 3, 4, 0.7)
         page = httpx.get(server.url)
         assert page.status_code == 200 and "EventSource" in page.text
         assert httpx.get(server.url + "live/state", params={"since": -1}).status_code == 422
         state = httpx.get(server.url + "live/state").json()
         assert state["tiles"] == [[3, 4, 0.71, 0.2, 5, False, [], None]]
+        assert (state["pitch_um"], state["origin_x_um"]) == (GRID.pitch_um, GRID.origin_x_um)
         with httpx.stream("GET", server.url + "live/events", timeout=10) as events:
             lines = events.iter_lines()
             assert next(lines) == "event: update"

@@ -32,6 +32,7 @@ OPTIONS = {
     "param": [],
     "out": Path("out/scan"),
     "live_port": None,
+    "live_host": "127.0.0.1",
     "start_z_um": 0.0,
     "start_sigma_um": 10.0,
     "noise_sigma_um": 0.1,

@@ -1,0 +1,285 @@
+"""`focustrack bench slide`: realistic virtual slides scanned by every strategy through the
+real services.
+
+Each seed is one continuous tissue section (`--tissue-slide` of the simulator: empty glass,
+holes, folds, tilt, a wedged coverslip with dust 10-170 um above the section, bubbles),
+cut into tiles that overlap. The instrument, focus and estimator services run as
+processes on loopback (`focustrack.demo.LocalStack`); every strategy scans every slide,
+and the instrument's truth (evaluation only) says per tile the section's height, whether
+the tile is empty glass and where its dust lies. Per strategy:
+
+- tissue_in_focus_fraction: tissue tiles (not empty) whose kept frame (or one of its kept
+  planes) lies within half the depth of field of the section (or of a fold's upper layer);
+- frames_per_tile: frames acquired over tiles;
+- time_over_limit: the simulated scan time over the physical limit (the serpentine's
+  stage moves and one frame per tile);
+- tiles_focused_on_dust: tiles whose kept frame lies nearer their dust than their tissue;
+- empty_tiles_frames: frames acquired per empty tile;
+- seam_error_px: the stitched mosaic's seams (the scan report's, `stitch.Placement`): the
+  RMS of how far neighbours' overlaps still disagree once placed by the stage and refined.
+
+    focustrack bench slide [--seeds 1 2] [--rows 10 --cols 10 --size 256] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, scan_on
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.timing import TimingModel
+from focustrack_core.v1 import instrument_pb2
+from focustrack_core.wire import keys, rpc
+from focustrack_estimator import registry
+from focustrack_estimator.replay import limit_time_s
+from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
+
+DEFAULT_STRATEGIES = (BEST_KALMAN, "kf-2d-lean", "survey-delaunay", "af-every-tile")
+#: Kalman strategies: the best of them is held to the targets.
+KALMAN_PREFIX = "kf-"
+
+
+@dataclass(frozen=True)
+class SlideContents:
+    """The instrument's truth of a virtual slide, (rows, cols) each: the section's height
+    (um), empty glass, the height of the dust in view and of a fold's upper layer (um, NaN:
+    none)."""
+
+    focus_um: np.ndarray
+    empty: np.ndarray
+    dust_z_um: np.ndarray
+    fold_z_um: np.ndarray
+
+    @classmethod
+    def of(cls, truth: instrument_pb2.SlideTruth) -> SlideContents:
+        shape = (truth.rows, truth.cols)
+        if len(truth.empty) != truth.rows * truth.cols:
+            raise ValueError(f"slide {truth.slide!r} is no virtual slide: no contents per tile")
+        return cls(
+            np.array(truth.best_focus_um).reshape(shape),
+            np.array(truth.empty, dtype=bool).reshape(shape),
+            np.array(truth.dust_z_um).reshape(shape),
+            np.array(truth.fold_z_um).reshape(shape),
+        )
+
+
+@dataclass(frozen=True)
+class SlideScore:
+    """One strategy on one or more slides (see the module docstring)."""
+
+    tissue_in_focus_fraction: float
+    frames_per_tile: float
+    time_over_limit: float
+    tiles_focused_on_dust: int
+    empty_tiles_frames: float
+    seam_error_px: float
+    tissue_tiles: int
+    empty_tiles: int
+    dust_tiles: int
+
+
+def tile_scores(
+    contents: SlideContents,
+    kept_z_um: np.ndarray,
+    planes_um: dict[tuple[int, int], list[float]],
+    frames: np.ndarray,
+    dof_um: float,
+) -> dict[str, Any]:
+    """Per slide: tissue tiles in focus, tiles focused on dust, frames on empty tiles.
+
+    kept_z_um (rows, cols): the z of each tile's image (NaN: none); planes_um: the z of the
+    frames a tile keeps besides; frames (rows, cols): frames acquired per tile.
+    """
+    in_focus = np.abs(kept_z_um - contents.focus_um) <= dof_um / 2.0
+    # a fold is section too: a tile imaged at its upper layer is in focus as well
+    in_focus |= np.abs(kept_z_um - contents.fold_z_um) <= dof_um / 2.0
+    for (row, col), z_um in planes_um.items():
+        in_focus[row, col] |= bool(
+            np.any(np.abs(np.array(z_um) - contents.focus_um[row, col]) <= dof_um / 2.0)
+        )
+    tissue = ~contents.empty
+    has_dust = np.isfinite(contents.dust_z_um)
+    to_dust = np.abs(kept_z_um - np.where(has_dust, contents.dust_z_um, np.inf))
+    on_dust = has_dust & (to_dust < np.abs(kept_z_um - contents.focus_um))
+    return {
+        "tissue_in_focus": int(np.sum(in_focus & tissue)),
+        "tissue_tiles": int(tissue.sum()),
+        "on_dust": int(on_dust.sum()),
+        "dust_tiles": int(has_dust.sum()),
+        "empty_tiles": int(contents.empty.sum()),
+        "empty_frames": int(frames[contents.empty].sum()),
+    }
+
+
+def combine(parts: list[dict[str, Any]]) -> SlideScore:
+    """One strategy's score over its slides (each part: `tile_scores` plus frames, tiles,
+    scan and limit time, and the seam error)."""
+
+    def total(key: str) -> float:
+        return float(sum(part[key] for part in parts))
+
+    return SlideScore(
+        tissue_in_focus_fraction=total("tissue_in_focus") / max(total("tissue_tiles"), 1.0),
+        frames_per_tile=total("frames") / total("tiles"),
+        time_over_limit=total("scan_time_s") / total("limit_time_s"),
+        tiles_focused_on_dust=int(total("on_dust")),
+        empty_tiles_frames=total("empty_frames") / max(total("empty_tiles"), 1.0),
+        seam_error_px=float(np.sqrt(np.nanmean([part["seam_error_px"] ** 2 for part in parts]))),
+        tissue_tiles=int(total("tissue_tiles")),
+        empty_tiles=int(total("empty_tiles")),
+        dust_tiles=int(total("dust_tiles")),
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2], help="slides' seeds (1 2)")
+    parser.add_argument("--rows", type=int, default=10, help="tile rows (10)")
+    parser.add_argument("--cols", type=int, default=10, help="tile columns (10)")
+    parser.add_argument("--size", type=int, default=256, help="frame side in pixels (256)")
+    parser.add_argument("--overlap", type=float, default=0.1, help="tiles' overlap (0.1)")
+    parser.add_argument("--family", default="standard", help="map family of the section (standard)")
+    parser.add_argument(
+        "--strategies", nargs="+", default=list(DEFAULT_STRATEGIES), metavar="NAME",
+        help=f"strategies (default: {' '.join(DEFAULT_STRATEGIES)})",
+    )  # fmt: skip
+    parser.add_argument("--out", type=Path, default=Path("out/bench-slide"), help="work folder")
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
+
+
+def scan_slide(
+    stack: LocalStack, options: ScanOptions, strategy: str, scan_dir: Path
+) -> dict[str, Any]:
+    """Scan the stack's slide with `strategy`; the part of `combine` it makes."""
+    assert stack.session is not None
+    request = options.request(INSTRUMENT, SLIDE, strategy)
+    report = scan_on(stack, options, request, scan_dir, strategy, None)
+    truth = rpc.call(
+        stack.session,
+        keys.truth_key(INSTRUMENT, SLIDE),
+        instrument_pb2.AcquireRequest(),
+        instrument_pb2.SlideTruth,
+        10.0,
+    )
+    info = rpc.call(
+        stack.session,
+        keys.info_key(INSTRUMENT),
+        instrument_pb2.AcquireRequest(),
+        instrument_pb2.InstrumentInfo,
+        10.0,
+    )
+    layout = info.slides[0]
+    grid = ScanGrid(
+        layout.rows, layout.cols, layout.pitch_um, layout.origin_x_um, layout.origin_y_um
+    )
+    contents = SlideContents.of(truth)
+    record = ScanRecord(scan_dir)
+    try:
+        tally = record.tally
+        frames = tally.images_per_tile(grid)
+        part = tile_scores(
+            contents, tally.z_kept_um(grid), tally.planes, frames, info.depth_of_field_um
+        )
+    finally:
+        record.close()
+    return part | {
+        "frames": int(frames.sum()),
+        "tiles": grid.n_tiles,
+        "scan_time_s": report["scan_time_s"],
+        "limit_time_s": limit_time_s(grid, TimingModel()),
+        "seam_error_px": (
+            float("nan") if report.get("seam_error_px") is None else report["seam_error_px"]
+        ),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    unknown = [name for name in args.strategies if name not in registry.STRATEGIES]
+    if unknown or min(args.rows, args.cols) < 2 or args.size < 64:
+        print(
+            f"focustrack bench slide: error: unknown strategy {unknown} or a grid below 2x2 "
+            "or frames below 64 px",
+            file=sys.stderr,
+        )
+        return 2
+    options = ScanOptions.defaults(no_progress=True)
+    parts: dict[str, list[dict[str, Any]]] = {name: [] for name in args.strategies}
+    started_s = time.perf_counter()
+    for seed in args.seeds:
+        instrument_args = [
+            "--tissue-slide", "--overlap", str(args.overlap), "--seed", str(seed),
+            "--family", args.family, "--slides", "1", "--rows", str(args.rows),
+            "--cols", str(args.cols), "--width", str(args.size), "--height", str(args.size),
+        ]  # fmt: skip
+        work = args.out / f"seed-{seed}"
+        with LocalStack(work, instrument_args) as stack:
+            for name in args.strategies:
+                part = scan_slide(stack, options, name, work / name)
+                parts[name].append(part)
+                print(
+                    f"seed {seed} {name}: {part['tissue_in_focus']}/{part['tissue_tiles']} "
+                    f"tissue tiles in focus, {part['frames'] / part['tiles']:.2f} frames/tile, "
+                    f"{part['on_dust']} on dust ({time.perf_counter() - started_s:.0f} s)",
+                    flush=True,
+                )
+    scores = {name: combine(runs) for name, runs in parts.items()}
+    title = (
+        f"virtual slides of seeds {' '.join(map(str, args.seeds))}: {args.rows}x{args.cols} "
+        f"tiles of {args.size} px, overlap {args.overlap:g}, family {args.family}"
+    )
+    print(format_scores(title, scores))
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        report = {"title": title, "scores": {name: asdict(s) for name, s in scores.items()}}
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        print(f"wrote {args.json}")
+        figure(scores, args.json.with_suffix(".png"), title)
+    return 0
+
+
+def format_scores(title: str, scores: dict[str, SlideScore]) -> str:
+    """One row per strategy."""
+    header = (
+        f"{'strategy':<18}{'tissue in focus':>16}{'frames/tile':>12}{'/ limit':>9}"
+        f"{'on dust':>9}{'empty fr':>10}{'seam px':>9}"
+    )
+    lines = [title, header, "-" * len(header)]
+    for name, s in scores.items():
+        lines.append(
+            f"{name:<18}{s.tissue_in_focus_fraction:>16.1%}{s.frames_per_tile:>12.2f}"
+            f"{s.time_over_limit:>9.2f}{s.tiles_focused_on_dust:>9d}"
+            f"{s.empty_tiles_frames:>10.2f}{s.seam_error_px:>9.2f}"
+        )
+    first = next(iter(scores.values()))
+    lines.append(
+        f"tiles: {first.tissue_tiles} tissue, {first.empty_tiles} empty, {first.dust_tiles} "
+        "with dust in view"
+    )
+    return "\n".join(lines)
+
+
+def figure(scores: dict[str, SlideScore], path: Path, title: str) -> None:
+    """Tissue in focus against time over the limit, one point per strategy."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, s in scores.items():
+        ax.scatter(s.time_over_limit, 100 * s.tissue_in_focus_fraction)
+        ax.annotate(name, (s.time_over_limit, 100 * s.tissue_in_focus_fraction), fontsize=8)
+    ax.set_xlabel("scan time / physical limit")
+    ax.set_ylabel("tissue tiles in focus (%)")
+    ax.set_title(title, fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,54 @@
+"""`focustrack bench slide`, small: a virtual slide scanned through the real services by a
+Kalman strategy and autofocus on every tile; and its scoring of tiles on dust, on folds and
+on empty glass."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from focustrack.bench.slide import SlideContents, tile_scores
+
+
+def test_tiles_are_scored_against_what_lies_in_them() -> None:
+    nan = np.nan
+    contents = SlideContents(
+        focus_um=np.array([[0.0, 0.0, 0.0, 0.0]]),
+        empty=np.array([[False, False, False, True]]),
+        dust_z_um=np.array([[30.0, 30.0, nan, 30.0]]),
+        fold_z_um=np.array([[nan, nan, 3.0, nan]]),
+    )
+    kept_um = np.array([[0.2, 29.0, 3.1, 28.0]])  # in focus, on dust, on the fold, empty
+    frames = np.array([[5, 9, 5, 1]])
+    scores = tile_scores(contents, kept_um, {(0, 0): [0.2, 5.0]}, frames, 0.9)
+    assert scores["tissue_in_focus"] == 2 and scores["tissue_tiles"] == 3
+    assert scores["on_dust"] == 2 and scores["dust_tiles"] == 3
+    assert (scores["empty_tiles"], scores["empty_frames"]) == (1, 1)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_small_slide_bench_scans_through_the_services(tmp_path: Path) -> None:
+    out = tmp_path / "slide.json"
+    command = [
+        sys.executable, "-m", "focustrack", "bench", "slide", "--seeds", "4", "--rows", "3",
+        "--cols", "4", "--size", "128", "--strategies", "kf-2d-lean", "af-every-tile",
+        "--out", str(tmp_path / "work"), "--json", str(out),
+    ]  # fmt: skip
+    bench = subprocess.run(command, capture_output=True, text=True, timeout=560)
+    assert bench.returncode == 0, bench.stdout + bench.stderr
+    scores = json.loads(out.read_text())["scores"]
+    lean, every = scores["kf-2d-lean"], scores["af-every-tile"]
+    assert every["frames_per_tile"] > 4 * lean["frames_per_tile"] > 0
+    assert every["time_over_limit"] > lean["time_over_limit"] > 1.0
+    for score in (lean, every):
+        assert 0.0 <= score["tissue_in_focus_fraction"] <= 1.0
+        assert score["tiles_focused_on_dust"] >= 0
+        assert score["seam_error_px"] < 1.0  # one specimen, placed by the stage
+    assert out.with_suffix(".png").stat().st_size > 0
+    assert "tissue in focus" in bench.stdout
