@@ -47,6 +47,12 @@ from focustrack_estimator.strategy import (
     StrategyParams,
     tile_cost,
 )
+from focustrack_estimator.time_state import (
+    N_DRIFT,
+    DriftModel,
+    TimeStateParams,
+    elapse,
+)
 
 # --- kf-2d: a bank of row-state (strip) filters ------------------------------------------
 
@@ -168,8 +174,10 @@ class RowBankFilter(SerpentineFilter):
       once a row, O(cols) per tile.
 
     The members' states are kept stacked: x (n_members, dim_x) and covariances
-    P (n_members, dim_x, dim_x), dim_x = N_PLANE + 2 cols; `active` holds each
-    row's index into `models`.
+    P (n_members, dim_x, dim_x), dim_x = N_PLANE + 2 cols (`n_surface`), plus the
+    time state's drift and rate where `options` set one (`time_state`: the drift
+    moves on with the scan's clock before each tile's prior, and every measurement
+    sees it); `active` holds each row's index into `models`.
     """
 
     def __init__(
@@ -188,9 +196,19 @@ class RowBankFilter(SerpentineFilter):
             for tilt in bank.tilt_sigmas_um_per_tile
         ]
         self.active = np.arange(len(self.models))  # members still in the bank
-        self.x = np.zeros((len(self.models), N_PLANE + 2 * cols))
+        self.drift = DriftModel.of(options)
+        self._state_s = 0.0  # the time the drift states hold at
+        self.n_surface = N_PLANE + 2 * cols  # the surface's states; the drift's follow
+        initial = [model.initial(settings.start_sigma_um) for model in self.models]
+        if self.drift is not None:
+            drift_P = self.drift.initial_covariance()
+            initial = [scipy.linalg.block_diag(P, drift_P) for P in initial]
+        self.x = np.zeros((len(self.models), initial[0].shape[0]))
         self.x[:, 0] = settings.start_z_um
-        self.P = np.stack([model.initial(settings.start_sigma_um) for model in self.models])
+        self.P = np.stack(initial)
+        # The drift each tile was finished with (um, NaN before): the smoother's
+        # measurements are of the surface, the drift at their time taken off.
+        self.tile_drift_um = np.zeros(self.grid.shape)
         self.log_weights = np.zeros(len(self.models))  # log posterior model probabilities
         self._row = 0
         # The accepted measurements (um) and their R (um^2), NaN elsewhere: the smoother
@@ -212,16 +230,32 @@ class RowBankFilter(SerpentineFilter):
         A tile's height is the plane at its centre (offset, x-tilt times the
         column's distance from the centre, y-tilt likewise) plus its column's field.
         """
-        indices = np.array([0, 1, 2, N_PLANE + 2 * tile.col])
-        values = np.array(
-            [
-                1.0,
-                tile.col - (self.grid.cols - 1) / 2.0,
-                tile.row - (self.grid.rows - 1) / 2.0,
-                1.0,
-            ]
-        )
-        return indices, values
+        indices = [0, 1, 2, N_PLANE + 2 * tile.col]
+        values = [
+            1.0,
+            tile.col - (self.grid.cols - 1) / 2.0,
+            tile.row - (self.grid.rows - 1) / 2.0,
+            1.0,
+        ]
+        if self.drift is not None:  # and the drift since the scan began
+            indices.append(self.n_surface)
+            values.append(1.0)
+        return np.array(indices), np.array(values)
+
+    def drift_um(self) -> tuple[float, float]:
+        """The drift since the scan began as the bank sees it now: mean (um), variance (um^2);
+        (0, 0) without a time state."""
+        if self.drift is None:
+            return 0.0, 0.0
+        d = self.n_surface
+        mean, var = mixture(self.x[:, d], self.P[:, d, d], self.weights)
+        return float(mean), float(var)
+
+    def _elapse_to(self, t_s: float) -> None:
+        """Move the drift states on to the scan's time `t_s` (no time state: nothing)."""
+        if self.drift is not None:
+            elapse(self.x, self.P, self.drift, self.n_surface, t_s - self._state_s)
+            self._state_s = max(self._state_s, t_s)
 
     def _mixture(self, tile: Tile) -> Gaussian:
         indices, values = self._h(tile)
@@ -235,17 +269,19 @@ class RowBankFilter(SerpentineFilter):
             self._predict_row()
             self._prune()
             self._row = tile.row
+        self._elapse_to(self.clock.arrival_s(self.grid, tile))
         return self._mixture(tile)
 
     def _predict_row(self) -> None:
         """x <- F x, P <- F P F' + Q for every member (`RowModel.F`, `.Q`), in place."""
         A = np.stack([self.models[i].step_y for i in self.active])  # (m, 2, 2)
-        step_rows(self.x[:, :, None], A)
-        step_rows(self.P, A)
-        step_rows(self.P.transpose(0, 2, 1), A)  # F (F P)' = F P F' (P symmetric)
+        n = self.n_surface  # the drift's states do not move from row to row
+        step_rows(self.x[:, :n, None], A)
+        step_rows(self.P[:, :n], A)
+        step_rows(self.P.transpose(0, 2, 1)[:, :n], A)  # F (F P)' = F P F' (P symmetric)
         for m, i in enumerate(self.active):
             model = self.models[i]
-            self.P[m, N_PLANE:, N_PLANE:] += model.sigma_um**2 * model.field_noise_per_um2
+            self.P[m, N_PLANE:n, N_PLANE:n] += model.sigma_um**2 * model.field_noise_per_um2
 
     def _prune(self) -> None:
         keep = self.log_weights >= self.log_weights.max() - self.prune_log_weight
@@ -255,6 +291,7 @@ class RowBankFilter(SerpentineFilter):
 
     def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
         self._n_finished += 1
+        self.tile_drift_um[tile.row, tile.col] = self.drift_um()[0]
         if z_um is None:
             return prior
         self.z_um[tile.row, tile.col], self.R_um2[tile.row, tile.col] = z_um, R_um2
@@ -270,8 +307,13 @@ class RowBankFilter(SerpentineFilter):
         # zero elsewhere (o). With that gain the Joseph form gives P_ww - u_w u_w'/s,
         # P_wo - u_w u_o'/s and P_oo unchanged (docs/spatial.md); where the window spans the
         # row, o is empty and this is the full update. In place on slices: no copies of P.
-        window = (slice(0, N_PLANE), slice(N_PLANE + 2 * lo, N_PLANE + 2 * hi))
-        others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, None))
+        n = self.n_surface  # the drift's states (after n) are in every window
+        window = (
+            slice(0, N_PLANE),
+            slice(N_PLANE + 2 * lo, N_PLANE + 2 * hi),
+            slice(n, n + (N_DRIFT if self.drift is not None else 0)),
+        )
+        others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, n))
         # u u' / s as v v' with v = u / sqrt(s): one outer product per row block, and
         # v_i v_j = v_j v_i exactly, so the update adds no asymmetry to P.
         v = u / np.sqrt(s)[:, None]
@@ -297,18 +339,19 @@ class RowBankFilter(SerpentineFilter):
         weights = self.weights
         kept = weights >= SMOOTH_MIN_WEIGHT
         reached = self._row + 1
+        drift_um = self.tile_drift_um[:reached]
         smoothed = [
             smooth_member(
                 self.models[i],
                 self.settings,
-                self.z_um[:reached],
+                self.z_um[:reached] - drift_um,
                 self.R_um2[:reached],
                 block_cols=self.smooth_block_cols,
                 margin_cols=self.smooth_margin_cols,
             )
             for i in self.active[kept]
         ]
-        means = np.array([mean for mean, _ in smoothed])
+        means = np.array([mean for mean, _ in smoothed]) + drift_um
         variances = np.array([var for _, var in smoothed])
         return mixture(means, variances, weights[kept] / weights[kept].sum())
 
@@ -526,8 +569,9 @@ class RowBankParams(StrategyParams):
     )
 
 
-class Kf2dParams(RowBankParams, RetryParams):
-    """kf-2d: the strip-filter bank, learning the slide's field and tilt (docs/spatial.md)."""
+class Kf2dParams(RowBankParams, RetryParams, TimeStateParams):
+    """kf-2d: the strip-filter bank, learning the slide's field and tilt (docs/spatial.md),
+    and with a time state the instrument's drift (`time_state`)."""
 
 
 def kf_2d(settings: SlideSettings, params: Kf2dParams) -> RowBankFilter:

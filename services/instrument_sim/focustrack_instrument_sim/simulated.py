@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from focustrack_core.drift import ThermalDrift
 from focustrack_core.surfaces import family_spec
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
@@ -107,7 +108,7 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
         slides = [replace(slide, focus_um=slide.focus_um + options.z_offset_um) for slide in slides]
     spec = MicroscopeSpec(
         optics=Optics(numerical_aperture=options.na, magnification=options.magnification),
-        stage=StageSpec(drift_um_per_s=options.drift_um_per_s),
+        stage=StageSpec(drift_um_per_s=options.drift_um_per_s, thermal=thermal_drift(options)),
         specimen=SpecimenSpec(dust_density=options.dust_density),
         specimen_kind=options.specimen,
         illumination=Illumination(condenser_na=options.condenser_na),
@@ -118,3 +119,15 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
         workers=options.workers,
     )
     return Microscope(slides, spec, seed=options.seed)
+
+
+def thermal_drift(options: SimulatorOptions) -> ThermalDrift | None:
+    """The settling and random walk of the options' z drift (per seed), None if neither."""
+    if not (options.drift_settle_um or options.drift_walk_um_per_sqrt_min):
+        return None
+    return ThermalDrift(
+        settle_um=options.drift_settle_um,
+        settle_tau_s=options.drift_settle_tau_s,
+        walk_um_per_sqrt_min=options.drift_walk_um_per_sqrt_min,
+        seed=options.seed,
+    )

@@ -78,6 +78,15 @@ class SimulatorOptions(BaseModel):
     )
     magnification: float = Field(60.0, description="magnification of the objective")
     drift_um_per_s: float = Field(0.0, description="thermal z drift, um/s")
+    drift_settle_um: float = Field(
+        0.0, description="warm-up settling of the z drift after start, um (exponential)"
+    )
+    drift_settle_tau_s: float = Field(
+        200.0, gt=0, description="time constant of the warm-up settling, s"
+    )
+    drift_walk_um_per_sqrt_min: float = Field(
+        0.0, ge=0, description="random walk of the z drift: its std after one minute, um"
+    )
     dust_density: float = Field(0.0, ge=0, description="dust specks per 1000 um^2 (0: none)")
 
 
