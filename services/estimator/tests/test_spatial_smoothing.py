@@ -9,7 +9,7 @@ from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
-from focustrack_estimator import registry, row_model, spatial
+from focustrack_estimator import registry, row_model
 from focustrack_estimator.replay import replay, simulated_measurement
 from focustrack_estimator.row_model import RowModel, matern32, smooth_member
 
