@@ -28,15 +28,25 @@ Heights are in um, lengths in tiles.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Annotated, Any
 
 import numpy as np
 import scipy.linalg
 from pydantic import Field, Strict
 
-from focustrack_core.domain import FocusMap, SlideSettings
+from focustrack_core.domain import (
+    Acquisition,
+    FocusMap,
+    Measurement,
+    Outcome,
+    Purpose,
+    SlideSettings,
+    ZRange,
+)
 from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
+from focustrack_estimator.lean import SHORT_FRAMES, skip_risk
 from focustrack_estimator.row_model import N_PLANE, RowModel, smooth_member, step_rows
 from focustrack_estimator.serpentine import Gaussian, RetryParams, SerpentineFilter
 from focustrack_estimator.strategy import (
@@ -115,6 +125,10 @@ class RowBankFilter(SerpentineFilter):
         self.active = np.arange(len(self.models))  # members still in the bank
         self.drift = DriftModel.of(options)
         self._state_s = 0.0  # the time the drift states hold at
+        revisits = self.drift is not None and isinstance(options, TimeStateParams)
+        self.revisit_share = options.revisit_drift_share if revisits else 0.0
+        self.revisit_max_tiles = options.revisit_max_tiles if revisits else 0
+        self._revisited_at = -1  # the serpentine position a revisit was last made before
         self.n_surface = N_PLANE + 2 * cols  # the surface's states; the drift's follow
         initial = [model.initial(settings.start_sigma_um) for model in self.models]
         if self.drift is not None:
@@ -123,7 +137,7 @@ class RowBankFilter(SerpentineFilter):
         self.x = np.zeros((len(self.models), initial[0].shape[0]))
         self.x[:, 0] = settings.start_z_um
         self.P = np.stack(initial)
-        # The drift each tile was finished with (um, NaN before): the smoother's
+        # The drift each tile was finished with (um, 0 before): the smoother's
         # measurements are of the surface, the drift at their time taken off.
         self.tile_drift_um = np.zeros(self.grid.shape)
         self.log_weights = np.zeros(len(self.models))  # log posterior model probabilities
@@ -212,6 +226,11 @@ class RowBankFilter(SerpentineFilter):
         if z_um is None:
             return prior
         self.z_um[tile.row, tile.col], self.R_um2[tile.row, tile.col] = z_um, R_um2
+        self._update(tile, z_um, R_um2)
+        return self._mixture(tile)
+
+    def _update(self, tile: Tile, z_um: float, R_um2: float) -> None:
+        """Every member's Kalman update with `z_um` (variance `R_um2`) measured on `tile`."""
         indices, values = self._h(tile)
         u = np.einsum("i,min->mn", values, self.P[:, indices])  # P h' of each member (m, n)
         s = u[:, indices] @ values + R_um2  # innovation variances
@@ -242,7 +261,89 @@ class RowBankFilter(SerpentineFilter):
                 self.P[:, o, w] = self.P[:, w, o].transpose(0, 2, 1)
         self.log_weights -= 0.5 * (np.log(2.0 * math.pi * s) + y**2 / s)
         self.log_weights -= self.log_weights.max()
-        return self._mixture(tile)
+
+    # --- revisits: a tile of the row measured again to pin the drift down --------------------
+
+    def _plan(self) -> Acquisition | None:
+        return self._revisit() or super()._plan()
+
+    def _revisit(self) -> Acquisition | None:
+        """A revisit to make before the next tile's own acquisition, None if none.
+
+        Asked once per tile, before its first stack: where the drift holds at least
+        `revisit_share` of the tile's predicted variance, the tile could not be imaged
+        unmeasured at the stated risk (`lean.skip_risk`) but could after the revisit (the
+        variance the revisit's measurement would leave it, `_variance_after`), the
+        measured tile of the row nearest it (within `revisit_max_tiles`) gets a short
+        stack at its predicted focus now. Its surface is known from its own measurement, so the
+        innovation is mostly the drift since: a cleaner measure of it than the new
+        tile's, whose surface is unknown too. Cost-aware: a revisit (a stage move there
+        and back, 3 frames) is made only where it lets the tile, and the tiles after it
+        whose uncertainty is the drift's, be imaged unmeasured.
+        """
+        risk = self.options.risk_out_of_focus
+        position = self._position
+        if not (self.revisit_share and risk) or position in (self._revisited_at, self.grid.n_tiles):
+            return None
+        if self._planes is not None or self._search or self._centre_um is not None:
+            return None
+        tile = self.grid.serpentine[position]
+        prior = self._predict(tile)  # moves the state onto the tile; again in _plan: a no-op
+        dof_um, sigma_scale = self.settings.dof_um, self.options.skip_sigma_scale
+        if self.drift_um()[1] < self.revisit_share * prior.var_um2 or (
+            skip_risk(prior.sigma_um, dof_um, sigma_scale) <= risk
+        ):
+            return None
+        measured = np.flatnonzero(np.isfinite(self.z_um[tile.row]))
+        near = measured[np.abs(measured - tile.col) <= self.revisit_max_tiles]
+        if near.size == 0:
+            return None
+        target = Tile(tile.row, int(near[np.argmin(np.abs(near - tile.col))]))
+        after_um2 = self._variance_after(tile, target, self.expected_r_um2)
+        if skip_risk(math.sqrt(after_um2), dof_um, sigma_scale) > risk:
+            return None
+        self._revisited_at = position
+        self._elapse_to(self.clock.arrival_s(self.grid, target))
+        predicted = self._mixture(target)
+        z = ZRange.centred(predicted.mean_um, SHORT_FRAMES, self.settings.policy.z_step_um)
+        return self._acquisition(
+            target.row,
+            target.col,
+            z,
+            Purpose.REVISIT,
+            measure=True,
+            predicted_um=predicted.mean_um,
+            predicted_sigma_um=predicted.sigma_um,
+        )
+
+    def _variance_after(self, tile: Tile, target: Tile, R_um2: float) -> float:
+        """The variance of `tile`'s prediction (um^2) once `target` is measured (variance
+        `R_um2`): each member's h P h' - (h P g')^2 / (g P g' + R), mixed by weight."""
+        (i, a), (j, b) = self._h(tile), self._h(target)
+        cross = np.einsum("i,mij,j->m", a, self.P[:, i[:, None], j], b)
+        target_var = np.einsum("i,mij,j->m", b, self.P[:, j[:, None], j], b) + R_um2
+        tile_var = np.einsum("i,mij,j->m", a, self.P[:, i[:, None], i], a)
+        means = self.x[:, i] @ a
+        _, var = mixture(means, np.maximum(tile_var - cross**2 / target_var, 0.0), self.weights)
+        return float(var)
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        if acquisition.purpose != Purpose.REVISIT:
+            return super()._take(acquisition, measurement)
+        tile = Tile(acquisition.row, acquisition.col)
+        self.clock.advance(self.grid, tile, acquisition.z.n_frames)
+        outcome = Outcome(
+            tile.row, tile.col, accepted=False, prior_um=acquisition.predicted_um,
+            prior_sigma_um=acquisition.predicted_sigma_um,
+        )  # fmt: skip
+        if measurement.z_um is None or not measurement.is_observation:
+            return outcome  # no peak in 3 frames: the drift is left as it was
+        predicted = self._mixture(tile)
+        R_um2 = self.default_r_um2 if measurement.sigma_um is None else measurement.sigma_um**2
+        innovation_um = measurement.z_um - predicted.mean_um
+        self._update(tile, measurement.z_um, R_um2)
+        nis = innovation_um**2 / (predicted.var_um2 + R_um2)
+        return replace(outcome, accepted=True, innovation_um=innovation_um, nis=nis)
 
     def _smoothed(self) -> tuple[np.ndarray, np.ndarray]:
         """Smoothed heights (um) and variances (um^2) given every measurement so far.

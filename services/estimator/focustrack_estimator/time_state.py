@@ -61,6 +61,18 @@ class TimeStateParams(StrategyParams):
     drift_rate_q_um2_per_s3: float = Field(
         0.0, ge=0.0, description="Spectral density of the random walk of the drift's rate, um^2/s^3"
     )
+    revisit_drift_share: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="With a time state and a stated risk: where the drift holds at least this "
+        "share of a tile's predicted variance and the tile could not be imaged unmeasured, a "
+        "tile measured before nearby is measured again first (purpose revisit: a stage move "
+        "and a short stack) to pin the drift down (0: never)",
+    )
+    revisit_max_tiles: int = Field(
+        3, ge=1, description="How far back along the row a revisited tile may lie, tiles"
+    )
 
 
 @dataclass(frozen=True)

@@ -348,6 +348,10 @@ def scan_plan(request: ScanRequest) -> Plan:
     frames: list[Frame] = []  # every frame acquired on `tile` so far
     phased: set[int] = set()  # the tiles (row-major index) whose phase stack was taken
     while (acquisition := (yield AskNext(slide_id))) is not None:
+        if acquisition.purpose is Purpose.REVISIT:  # a measured tile again, for the drift:
+            measurement, _ = yield from _acquire_and_measure(request, acquisition)
+            yield PostMeasurement(slide_id, acquisition, measurement)  # its image stays
+            continue
         if (acquisition.row, acquisition.col) != tile:
             tile, frames = (acquisition.row, acquisition.col), []
         measurement, z_um = yield from _acquire_and_measure(request, acquisition)

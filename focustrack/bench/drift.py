@@ -1,0 +1,199 @@
+"""`focustrack bench drift`: focus that moves in time while a slide is scanned.
+
+Scenario `thermal`: generated maps of `--size` x `--size` tiles scanned once while the
+instrument warms up (`focustrack_core.drift.ThermalDrift`: settling of `--settle-um`
+with time constant `--settle-tau-s`, then a random walk of `--walk-um-per-sqrt-min`,
+drawn per map), by `kf-2d-lean` as served (no time state), with the time state
+(`focustrack_estimator.time_state`) and with it and revisits. Scans are replayed in
+process (`focustrack_estimator.replay`): every acquisition's time is the timing
+model's, as the simulator's clock counts it, and a stack sees the map plus the drift
+at that time; a tile is scored on its height when it was imaged.
+
+Per scenario and strategy: `in_focus_fraction`, `frames_per_tile`, `time_over_limit`
+(scan time over the stage moves plus one frame per tile) and `revisits` per map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from focustrack.bench import strategies as registry
+from focustrack_core.domain import SlideSettings
+from focustrack_core.drift import ThermalDrift
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
+from focustrack_estimator.replay import Replay, replay, score
+from focustrack_estimator.strategy import Strategy
+
+#: The time state the benchmark gives a strategy: the walk as simulated, a rate prior of
+#: twice the simulated settling's start (2 um / 200 s), and a settling time constant
+#: deliberately not the simulator's (300 s against 200 s): the estimator does not know it.
+TIME_STATE: dict[str, Any] = {
+    "drift_walk_um2_per_s": 0.0015,
+    "drift_rate_sigma_um_per_s": 0.02,
+    "drift_settle_tau_s": 300.0,
+}
+
+#: The strategies of the thermal scenario: label -> (served strategy, parameters).
+THERMAL: dict[str, tuple[str, dict[str, Any]]] = {
+    "kf-2d-lean": ("kf-2d-lean", {}),
+    "kf-2d-lean +time": ("kf-2d-lean", TIME_STATE),
+    "kf-2d-lean +time +revisits": ("kf-2d-lean", {**TIME_STATE, "revisit_drift_share": 0.3}),
+}
+
+
+@dataclass(frozen=True)
+class DriftScore:
+    """One strategy in one scenario, over its maps."""
+
+    in_focus_fraction: float
+    frames_per_tile: float
+    time_over_limit: float
+    revisits: float  # per map
+    post_mae_um: float
+
+
+def drift_score(runs: list[Replay], dof_um: float) -> DriftScore:
+    s = score(runs, dof_um)
+    return DriftScore(
+        in_focus_fraction=s.in_focus_fraction,
+        frames_per_tile=s.images_per_tile,
+        time_over_limit=s.scan_time_s / s.limit_time_s,
+        revisits=float(np.mean([r.n_revisits for r in runs])),
+        post_mae_um=s.post_mae_um,
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--family", default="standard", choices=sorted(FAMILIES))
+    parser.add_argument("--maps", type=int, default=4, help="number of maps (default 4)")
+    parser.add_argument("--size", type=int, default=50, help="tiles per side (default 50)")
+    parser.add_argument("--seed", type=int, default=3000, help="seed (default 3000)")
+    parser.add_argument("--noise-um", type=float, default=0.1, help="measurement noise (0.1)")
+    parser.add_argument("--dof-um", type=float, default=0.89, help="depth of field (0.89)")
+    parser.add_argument("--settle-um", type=float, default=2.0, help="drift settling (2 um)")
+    parser.add_argument(
+        "--settle-tau-s", type=float, default=200.0, help="settling time constant (200 s)"
+    )
+    parser.add_argument(
+        "--walk-um-per-sqrt-min", type=float, default=0.3, help="random walk (0.3 um/sqrt min)"
+    )
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
+
+
+def _run_scenario(
+    name: str,
+    strategies: dict[str, tuple[str, dict[str, Any]]],
+    settings: SlideSettings,
+    maps: list[tuple[np.ndarray, np.ndarray, ThermalDrift]],
+    dof_um: float,
+    inspect: Callable[[str, Strategy, Replay], None] | None = None,
+) -> dict[str, DriftScore]:
+    scores = {}
+    for label, (strategy_name, params) in strategies.items():
+        runs = []
+        for truth_um, measured_um, drift in maps:
+            strategy = registry.create(strategy_name, settings, params)
+            run = replay(strategy, truth_um, measured_um, drift=drift)
+            if inspect is not None:
+                inspect(label, strategy, run)
+            runs.append(run)
+        scores[label] = drift_score(runs, dof_um)
+        print(f"  {name}: {label} done", flush=True)
+    return scores
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.maps < 1 or args.size < 2 or not (args.noise_um > 0 and args.dof_um > 0):
+        print("focustrack bench drift: error: bad sizes, noise or depth of field", file=sys.stderr)
+        return 2
+    size = args.size
+    grid = ScanGrid(size, size)
+    settings = default_settings(grid, dof_um=args.dof_um, noise_sigma_um=args.noise_um)
+    truth_um = generate_surfaces(family_spec(args.family, size, size), args.maps, args.seed)
+    measured_um = add_measurement_noise(truth_um, args.noise_um, args.seed)
+    drifts = [
+        ThermalDrift(args.settle_um, args.settle_tau_s, args.walk_um_per_sqrt_min, args.seed + i)
+        for i in range(args.maps)
+    ]
+    maps = list(zip(truth_um, measured_um, drifts, strict=True))
+    traces: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def trace(label: str, strategy: Strategy, run_: Replay) -> None:
+        """The first map's true drift and the estimate at each tile, in serpentine order."""
+        if label in traces or getattr(strategy, "drift", None) is None:
+            return
+        tile_drift = getattr(strategy, "tile_drift_um")  # noqa: B009 (kf-2d's, with a drift)
+        order = [(t.row, t.col) for t in grid.serpentine]
+        true_um = np.array([run_.truth_um[rc] - maps[0][0][rc] for rc in order])
+        traces[label] = (true_um, np.array([tile_drift[rc] for rc in order]))
+
+    title = (
+        f"{args.family}: {args.maps} maps of {size}x{size}, seed {args.seed}; noise "
+        f"{args.noise_um} um, depth of field {args.dof_um} um; thermal drift: settling "
+        f"{args.settle_um} um (tau {args.settle_tau_s:g} s), random walk "
+        f"{args.walk_um_per_sqrt_min} um/sqrt(min)"
+    )
+    print(title, flush=True)
+    results = {"thermal": _run_scenario("thermal", THERMAL, settings, maps, args.dof_um, trace)}
+    print(format_scores(results))
+    if args.json is not None:
+        report = {
+            "title": title,
+            "scenarios": {
+                scenario: {label: asdict(s) for label, s in scores.items()}
+                for scenario, scores in results.items()
+            },
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        figure = args.json.with_suffix(".png")
+        plot_traces(traces, figure)
+        print(f"wrote {args.json} and {figure}")
+    return 0
+
+
+def format_scores(results: dict[str, dict[str, DriftScore]]) -> str:
+    """One row per scenario and strategy."""
+    header = (
+        f"{'scenario, strategy':<40}{'in focus':>10}{'frames/tile':>13}{'time/limit':>12}"
+        f"{'revisits':>10}{'post MAE':>10}"
+    )
+    lines = [header, "-" * len(header)]
+    for scenario, scores in results.items():
+        for label, s in scores.items():
+            lines.append(
+                f"{scenario + ': ' + label:<40}{s.in_focus_fraction:>10.2%}"
+                f"{s.frames_per_tile:>13.2f}{s.time_over_limit:>12.2f}{s.revisits:>10.1f}"
+                f"{s.post_mae_um:>10.3f}"
+            )
+    return "\n".join(lines)
+
+
+def plot_traces(traces: dict[str, tuple[np.ndarray, np.ndarray]], path: Path) -> None:
+    """The first map's true drift against each strategy's estimate, tile by tile."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for i, (label, (true_um, estimate_um)) in enumerate(traces.items()):
+        if i == 0:
+            ax.plot(true_um, color="black", lw=1.5, label="true drift")
+        ax.plot(estimate_um, lw=1, label=f"{label}: estimate")
+    ax.set_xlabel("tile (serpentine order)")
+    ax.set_ylabel("drift since the scan began, um")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
