@@ -32,6 +32,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
 from focustrack_estimator.replay import Replay, replay, score
+from focustrack_estimator.spatial import RowBankFilter
 from focustrack_estimator.strategy import Strategy
 
 #: The time state the benchmark gives a strategy: the walk as simulated, a rate prior of
@@ -130,9 +131,9 @@ def run(args: argparse.Namespace) -> int:
 
     def trace(label: str, strategy: Strategy, run_: Replay) -> None:
         """The first map's true drift and the estimate at each tile, in serpentine order."""
-        if label in traces or getattr(strategy, "drift", None) is None:
+        if label in traces or not isinstance(strategy, RowBankFilter) or strategy.drift is None:
             return
-        tile_drift = getattr(strategy, "tile_drift_um")  # noqa: B009 (kf-2d's, with a drift)
+        tile_drift = strategy.tile_drift_um
         order = [(t.row, t.col) for t in grid.serpentine]
         true_um = np.array([run_.truth_um[rc] - maps[0][0][rc] for rc in order])
         traces[label] = (true_um, np.array([tile_drift[rc] for rc in order]))
