@@ -67,6 +67,7 @@ class Purpose(StrEnum):
     RETRY = "retry"  # the same tile again, after an edge peak or a flat curve
     PLANES = "planes"  # more frames of a measured tile, kept where one is too unsure
     REVISIT = "revisit"  # a tile measured before, measured again to track the drift in time
+    LASER = "laser"  # a reading of the reflection autofocus (the coverslip's height), no image
 
 
 @dataclass(frozen=True)

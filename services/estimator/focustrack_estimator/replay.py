@@ -13,7 +13,10 @@ service are stood in for by a measured map:
 - a single-frame acquisition only images the tile (no measurement);
 - a revisit (purpose revisit: a tile measured again, to track the drift) is a new
   measurement: the truth plus the drift now plus its own noise (the slide's
-  `noise_sigma_um`, drawn per acquisition), and it leaves the tile's image as it was.
+  `noise_sigma_um`, drawn per acquisition), and it leaves the tile's image as it was;
+- a laser reading (purpose laser) is `ReplayLaser`'s: the coverslip under the tile
+  (the truth plus the drift now minus the tile's offset) with the laser's noise; it
+  takes no frame, only the move and the reading's time.
 
 Cost follows `focustrack_core.timing.TimingModel`: the XY move from the previous
 acquisition's tile, then the stack's frames. The physical limit of a scan
@@ -39,6 +42,7 @@ from focustrack_core.domain import (
     kept_in_focus,
 )
 from focustrack_core.geometry import ScanGrid, Tile
+from focustrack_core.laser import LaserSpec, laser_reading
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.lean import out_of_focus_risk
 from focustrack_estimator.strategy import Strategy
@@ -68,6 +72,7 @@ class Replay:
     # tiles that keep several frames (`Outcome.planes_um`): (row, col) -> their z, in um
     planes_um: dict[tuple[int, int], tuple[float, ...]]
     n_revisits: int = 0  # acquisitions of purpose revisit
+    n_laser_readings: int = 0  # acquisitions of purpose laser
 
     def in_focus(self, dof_um: float) -> np.ndarray:
         """(rows, cols) bool: a frame the tile keeps lies within dof/2 of its truth."""
@@ -88,6 +93,15 @@ def limit_time_s(grid: ScanGrid, timing: TimingModel) -> float:
     path = grid.serpentine
     moves_s = sum(timing.move_s(grid.distance_um(a, b)) for a, b in itertools.pairwise(path))
     return moves_s + grid.n_tiles * timing.stack_s(1)
+
+
+@dataclass(frozen=True)
+class ReplayLaser:
+    """The laser autofocus of a replay: each tile's offset from the coverslip to the tissue's
+    focal plane, (rows, cols) um (`focustrack_core.laser.coverslip_offsets`), and the sensor."""
+
+    offsets_um: np.ndarray
+    spec: LaserSpec
 
 
 class DriftPath(Protocol):
@@ -114,6 +128,7 @@ def replay(
     measured_um: np.ndarray,
     timing: TimingModel | None = None,
     drift: DriftPath | None = None,
+    laser: ReplayLaser | None = None,
 ) -> Replay:
     """Run `strategy` to completion on one map; `truth_um` and `measured_um` are (rows, cols).
 
@@ -121,6 +136,7 @@ def replay(
     the measured map plus the drift at the stack's start on the scan's clock, and
     the truth a tile is scored on is its height when its last stack started (the
     `Replay.truth_um`). `drift` may be any `DriftPath` (`focustrack_core.drift.ThermalDrift`).
+    `laser` answers a strategy's laser readings (a ValueError where one is asked without it).
     """
     timing = timing or TimingModel()
     drift = drift or Drift(0.0, 0.0)
@@ -131,7 +147,7 @@ def replay(
         )
     max_acquisitions = 50 * grid.n_tiles  # a strategy that never finishes is a bug, not a slow scan
     outcomes: list[Outcome] = []
-    n_images, scan_time_s, n_revisits = 0, 0.0, 0
+    n_images, scan_time_s, n_revisits, n_laser = 0, 0.0, 0, 0
     here: Tile | None = None
     truth_now_um = truth_um.astype(float)  # each tile's truth when its last stack started
     while (acquisition := strategy.next_acquisition()) is not None:
@@ -142,6 +158,20 @@ def replay(
             scan_time_s += timing.move_s(grid.distance_um(here, tile))
         here = tile
         drift_um = drift.at(scan_time_s)
+        if acquisition.purpose is Purpose.LASER:
+            if laser is None:
+                raise ValueError(f"{strategy.name} asks for laser readings: give replay a laser")
+            n_laser += 1
+            scan_time_s += laser.spec.reading_s
+            reading_um = laser_reading(
+                truth_um[tile.row, tile.col] + drift_um,
+                laser.offsets_um[tile.row, tile.col],
+                laser.spec.noise_um,
+                np.random.default_rng([acquisition.index, 9]),
+            )
+            reading = Measurement(z_um=reading_um, sigma_um=laser.spec.noise_um or None)
+            outcomes.append(strategy.record(acquisition, reading))
+            continue
         n_images += acquisition.z.n_frames
         scan_time_s += timing.stack_s(acquisition.z.n_frames)
         if acquisition.purpose is Purpose.REVISIT:
@@ -162,6 +192,7 @@ def replay(
         limit_time_s(grid, timing),
         {(o.row, o.col): o.planes_um for o in outcomes if o.planes_um},
         n_revisits,
+        n_laser,
     )
 
 

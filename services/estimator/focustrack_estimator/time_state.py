@@ -142,7 +142,11 @@ class ScanClock:
 
     def advance(self, grid: ScanGrid, tile: Tile, n_frames: int) -> None:
         """Book an acquisition of `n_frames` frames on `tile`."""
-        self.clock_s = self.arrival_s(grid, tile) + self.timing.stack_s(n_frames)
+        self.advance_by(grid, tile, self.timing.stack_s(n_frames))
+
+    def advance_by(self, grid: ScanGrid, tile: Tile, seconds: float) -> None:
+        """Book the move to `tile` and `seconds` there (a laser reading: no frames)."""
+        self.clock_s = self.arrival_s(grid, tile) + seconds
         self.here = tile
 
 
