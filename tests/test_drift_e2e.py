@@ -1,7 +1,8 @@
-"""End to end on loopback: a drifting simulated instrument (settling and a random walk), the
-focus and estimator services and `focustrack scan` with a time state and revisits, each a
-real process: the estimator asks for revisits (`purpose: revisit` in `/next`), the scheduler
-makes and posts them, and every tile is imaged once."""
+"""End to end on loopback: a drifting simulated instrument (settling and a random walk) with a
+laser autofocus, the focus and estimator services and `focustrack scan`, each a real process:
+with a time state the estimator asks for revisits (`purpose: revisit` in `/next`), which the
+scheduler makes and posts; `kf-2d-laser` asks for a laser reading on every tile, which the
+scheduler takes from the instrument's laser queryable; every tile is imaged once."""
 
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalStack]:
     instrument_args = [
         "--seed", str(SEED), "--slides", "1", "--rows", str(ROWS), "--cols", str(COLS),
         "--width", str(SIZE), "--height", str(SIZE), "--drift-settle-um", "3",
-        "--drift-settle-tau-s", "5", "--drift-walk-um-per-sqrt-min", "1.5",
+        "--drift-settle-tau-s", "5", "--drift-walk-um-per-sqrt-min", "1.5", "--laser",
     ]  # fmt: skip
     with LocalStack(tmp_path_factory.mktemp("stack"), instrument_args) as running:
         yield running
@@ -105,4 +106,22 @@ def test_a_drifting_scan_revisits_tiles_through_the_services(
     slide = httpx.get(f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}").json()
     assert slide["done"] is True
     # a drift of 0.6 um/s at the start: most tiles, not all, in focus when imaged
+    assert in_focus_when_imaged(stack, tmp_path, report["dof_um"]) >= 0.8
+
+
+def test_a_laser_scan_reads_every_tile_and_images_most_once(
+    stack: LocalStack, tmp_path: Path
+) -> None:
+    report = scan(stack, tmp_path, "kf-2d-laser")
+    assert report["tiles_imaged"] == ROWS * COLS
+    acquired = logged(tmp_path)
+    readings = [e for e in acquired if e["purpose"] == "laser"]
+    assert sorted((e["row"], e["col"]) for e in readings) == [
+        (row, col) for row in range(ROWS) for col in range(COLS)
+    ]
+    assert all(e["n_frames"] == 0 and e["scan_time_s"] > 0 for e in readings)
+    # the first tiles learn the offset from the glass with stacks; then single frames
+    assert report["images_acquired"] < 4 * ROWS * COLS
+    single = [e for e in acquired if e["purpose"] == "scan" and e["n_frames"] == 1]
+    assert len(single) >= ROWS * COLS / 3
     assert in_focus_when_imaged(stack, tmp_path, report["dof_um"]) >= 0.8

@@ -47,20 +47,24 @@ def coverslip_offsets(shape: tuple[int, int], seed: int, spec: LaserSpec) -> np.
     """The tissue's focal plane above the coverslip interface at each tile, (rows, cols) um.
 
     White noise smoothed by a Gaussian of `offset_length_tiles` (in Fourier space, on a
-    grid twice the size so that the edges do not wrap), scaled to `offset_sigma_um`
-    about `offset_um`.
+    grid twice the size so that the edges do not wrap), scaled so that the field's std
+    (over slides, not over one small grid) is `offset_sigma_um`, about `offset_um`.
     """
     rows, cols = shape
     rng = np.random.default_rng([seed, 11])
     noise = rng.standard_normal((2 * rows, 2 * cols))
     fy = np.fft.fftfreq(2 * rows)[:, None]
-    fx = np.fft.rfftfreq(2 * cols)[None, :]
     sigma = spec.offset_length_tiles
-    transfer = np.exp(-2.0 * (np.pi * sigma) ** 2 * (fx**2 + fy**2))
-    field = np.fft.irfft2(np.fft.rfft2(noise) * transfer, s=noise.shape)[:rows, :cols]
-    std = field.std()
-    scaled = field / std if std > 0 else np.zeros_like(field)
-    return spec.offset_um + spec.offset_sigma_um * scaled
+
+    def transfer(fx: np.ndarray) -> np.ndarray:
+        return np.exp(-2.0 * (np.pi * sigma) ** 2 * (fx**2 + fy**2))
+
+    smoothed = np.fft.irfft2(
+        np.fft.rfft2(noise) * transfer(np.fft.rfftfreq(2 * cols)), s=noise.shape
+    )
+    # unit white noise through the filter: variance = the mean of |transfer|^2 over the grid
+    std = float(np.sqrt(np.mean(transfer(np.fft.fftfreq(2 * cols)) ** 2)))
+    return spec.offset_um + spec.offset_sigma_um / std * smoothed[:rows, :cols]
 
 
 def laser_reading(

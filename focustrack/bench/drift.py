@@ -4,7 +4,15 @@ Scenario `thermal`: generated maps of `--size` x `--size` tiles scanned once whi
 instrument warms up (`focustrack_core.drift.ThermalDrift`: settling of `--settle-um`
 with time constant `--settle-tau-s`, then a random walk of `--walk-um-per-sqrt-min`,
 drawn per map), by `kf-2d-lean` as served (no time state), with the time state
-(`focustrack_estimator.time_state`) and with it and revisits. Scans are replayed in
+(`focustrack_estimator.time_state`) and with it and revisits.
+
+Scenario `laser`: the same maps and drift, with a reflection autofocus
+(`focustrack_core.laser`: the coverslip read with `--laser-noise-um`, the tissue an
+offset of 4 +/- 0.4 um from it, smooth over 10 tiles, drawn per map), scanned by
+`kf-2d-laser` (a reading per tile, the offset learned, a stack only where the risk rule
+asks).
+
+Scans are replayed in
 process (`focustrack_estimator.replay`): every acquisition's time is the timing
 model's, as the simulator's clock counts it, and a stack sees the map plus the drift
 at that time; a tile is scored on its height when it was imaged.
@@ -19,7 +27,7 @@ import argparse
 import json
 import sys
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,9 +37,10 @@ from focustrack.bench import strategies as registry
 from focustrack_core.domain import SlideSettings
 from focustrack_core.drift import ThermalDrift
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.laser import LaserSpec, coverslip_offsets
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
-from focustrack_estimator.replay import Replay, replay, score
+from focustrack_estimator.replay import Replay, ReplayLaser, replay, score
 from focustrack_estimator.spatial import RowBankFilter
 from focustrack_estimator.strategy import Strategy
 
@@ -50,6 +59,19 @@ THERMAL: dict[str, tuple[str, dict[str, Any]]] = {
     "kf-2d-lean +time": ("kf-2d-lean", TIME_STATE),
     "kf-2d-lean +time +revisits": ("kf-2d-lean", {**TIME_STATE, "revisit_drift_share": 0.3}),
 }
+
+#: The strategies of the laser scenario.
+LASER: dict[str, tuple[str, dict[str, Any]]] = {"kf-2d-laser": ("kf-2d-laser", {})}
+
+
+@dataclass(frozen=True)
+class DriftMap:
+    """One map of a scenario: its truth and measurements (rows, cols) um, its drift and laser."""
+
+    truth_um: np.ndarray
+    measured_um: np.ndarray
+    drift: ThermalDrift
+    laser: ReplayLaser | None = None
 
 
 @dataclass(frozen=True)
@@ -88,6 +110,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--walk-um-per-sqrt-min", type=float, default=0.3, help="random walk (0.3 um/sqrt min)"
     )
+    parser.add_argument(
+        "--laser-noise-um", type=float, default=0.05, help="laser reading noise (0.05 um)"
+    )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
 
 
@@ -95,16 +120,16 @@ def _run_scenario(
     name: str,
     strategies: dict[str, tuple[str, dict[str, Any]]],
     settings: SlideSettings,
-    maps: list[tuple[np.ndarray, np.ndarray, ThermalDrift]],
+    maps: list[DriftMap],
     dof_um: float,
     inspect: Callable[[str, Strategy, Replay], None] | None = None,
 ) -> dict[str, DriftScore]:
     scores = {}
     for label, (strategy_name, params) in strategies.items():
         runs = []
-        for truth_um, measured_um, drift in maps:
+        for m in maps:
             strategy = registry.create(strategy_name, settings, params)
-            run = replay(strategy, truth_um, measured_um, drift=drift)
+            run = replay(strategy, m.truth_um, m.measured_um, drift=m.drift, laser=m.laser)
             if inspect is not None:
                 inspect(label, strategy, run)
             runs.append(run)
@@ -126,7 +151,13 @@ def run(args: argparse.Namespace) -> int:
         ThermalDrift(args.settle_um, args.settle_tau_s, args.walk_um_per_sqrt_min, args.seed + i)
         for i in range(args.maps)
     ]
-    maps = list(zip(truth_um, measured_um, drifts, strict=True))
+    maps = [DriftMap(*m) for m in zip(truth_um, measured_um, drifts, strict=True)]
+    spec = LaserSpec(noise_um=args.laser_noise_um)
+    lasers = [
+        ReplayLaser(coverslip_offsets(grid.shape, args.seed + i, spec), spec)
+        for i in range(args.maps)
+    ]
+    laser_maps = [replace(m, laser=laser) for m, laser in zip(maps, lasers, strict=True)]
     traces: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def trace(label: str, strategy: Strategy, run_: Replay) -> None:
@@ -135,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
             return
         tile_drift = strategy.tile_drift_um
         order = [(t.row, t.col) for t in grid.serpentine]
-        true_um = np.array([run_.truth_um[rc] - maps[0][0][rc] for rc in order])
+        true_um = np.array([run_.truth_um[rc] - maps[0].truth_um[rc] for rc in order])
         traces[label] = (true_um, np.array([tile_drift[rc] for rc in order]))
 
     title = (
@@ -145,7 +176,10 @@ def run(args: argparse.Namespace) -> int:
         f"{args.walk_um_per_sqrt_min} um/sqrt(min)"
     )
     print(title, flush=True)
-    results = {"thermal": _run_scenario("thermal", THERMAL, settings, maps, args.dof_um, trace)}
+    results = {
+        "thermal": _run_scenario("thermal", THERMAL, settings, maps, args.dof_um, trace),
+        "laser": _run_scenario("laser", LASER, settings, laser_maps, args.dof_um),
+    }
     print(format_scores(results))
     if args.json is not None:
         report = {

@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from focustrack_core.drift import ThermalDrift
+from focustrack_core.laser import LaserSpec
 from focustrack_core.surfaces import family_spec
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
@@ -22,6 +23,7 @@ from focustrack_instrument_sim.instrument import (
     StackRequest,
     TilePhase,
 )
+from focustrack_instrument_sim.laser import SimulatedLaser
 from focustrack_instrument_sim.microscope import (
     Microscope,
     MicroscopeSpec,
@@ -40,8 +42,9 @@ class SimulatedInstrument:
     frames, simulated timing and refusals, unchanged. Its stage moves (and its clock
     advances) in `plan`."""
 
-    def __init__(self, scope: Microscope) -> None:
+    def __init__(self, scope: Microscope, laser: SimulatedLaser | None = None) -> None:
         self.microscope = scope
+        self.laser = laser  # the reflection autofocus, where it has one
 
     def describe(self) -> Description:
         spec = self.microscope.spec
@@ -131,3 +134,16 @@ def thermal_drift(options: SimulatorOptions) -> ThermalDrift | None:
         walk_um_per_sqrt_min=options.drift_walk_um_per_sqrt_min,
         seed=options.seed,
     )
+
+
+def simulated_instrument(options: SimulatorOptions) -> SimulatedInstrument:
+    """The microscope of the options, with its laser autofocus where `--laser` asks."""
+    scope = microscope_from_options(options)
+    if not options.laser:
+        return SimulatedInstrument(scope)
+    spec = LaserSpec(
+        noise_um=options.laser_noise_um,
+        offset_um=options.laser_offset_um,
+        offset_sigma_um=options.laser_offset_sigma_um,
+    )
+    return SimulatedInstrument(scope, SimulatedLaser(scope, spec, options.seed))
