@@ -12,6 +12,15 @@ offset of 4 +/- 0.4 um from it, smooth over 10 tiles, drawn per map), scanned by
 `kf-2d-laser` (a reading per tile, the offset learned, a stack only where the risk rule
 asks).
 
+Scenario `second pass`: each map scanned again after its first pass (`kf-2d-lean` with
+the time state; its smoothed map less the drift it estimated is the prior), the slide
+moved by `--axial-offset-um` in z and `--lateral-offset-um` in a random direction in x
+and y, the walk going on. z: `kf-rescan` with that prior (offset and rate estimated).
+x, y: the first `--lateral-tiles` tiles of the second pass are phase-correlated with the
+first pass's (`focustrack_scheduler.lateral.pass_offset`, bounded), on a synthetic
+textured specimen (smoothed noise, 256 x 256 px of 0.108 um, camera noise): the error of
+the estimated offset, px (`lateral_error_px`).
+
 Scans are replayed in
 process (`focustrack_estimator.replay`): every acquisition's time is the timing
 model's, as the simulator's clock counts it, and a stack sees the map plus the drift
@@ -83,6 +92,7 @@ class DriftScore:
     time_over_limit: float
     revisits: float  # per map
     post_mae_um: float
+    lateral_error_px: float | None = None  # the second pass: the largest over the maps
 
 
 def drift_score(runs: list[Replay], dof_um: float) -> DriftScore:
@@ -112,6 +122,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--laser-noise-um", type=float, default=0.05, help="laser reading noise (0.05 um)"
+    )
+    parser.add_argument(
+        "--axial-offset-um", type=float, default=12.0, help="second pass: z offset (12 um)"
+    )
+    parser.add_argument(
+        "--lateral-offset-um", type=float, default=5.0, help="second pass: xy offset (5 um)"
+    )
+    parser.add_argument(
+        "--lateral-tiles", type=int, default=8, help="second pass: tiles correlated (8)"
     )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
 
@@ -179,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
     results = {
         "thermal": _run_scenario("thermal", THERMAL, settings, maps, args.dof_um, trace),
         "laser": _run_scenario("laser", LASER, settings, laser_maps, args.dof_um),
+        "second pass": {RESCAN: second_pass(args, settings, maps)},
     }
     print(format_scores(results))
     if args.json is not None:
@@ -201,7 +221,7 @@ def format_scores(results: dict[str, dict[str, DriftScore]]) -> str:
     """One row per scenario and strategy."""
     header = (
         f"{'scenario, strategy':<40}{'in focus':>10}{'frames/tile':>13}{'time/limit':>12}"
-        f"{'revisits':>10}{'post MAE':>10}"
+        f"{'revisits':>10}{'post MAE':>10}{'lateral px':>12}"
     )
     lines = [header, "-" * len(header)]
     for scenario, scores in results.items():
@@ -210,6 +230,7 @@ def format_scores(results: dict[str, dict[str, DriftScore]]) -> str:
                 f"{scenario + ': ' + label:<40}{s.in_focus_fraction:>10.2%}"
                 f"{s.frames_per_tile:>13.2f}{s.time_over_limit:>12.2f}{s.revisits:>10.1f}"
                 f"{s.post_mae_um:>10.3f}"
+                + ("" if s.lateral_error_px is None else f"{s.lateral_error_px:>12.2f}")
             )
     return "\n".join(lines)
 
@@ -232,3 +253,73 @@ def plot_traces(traces: dict[str, tuple[np.ndarray, np.ndarray]], path: Path) ->
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+RESCAN = "kf-rescan"
+
+#: Camera pixel of the simulated 60x objective, um (`focustrack_instrument_sim.optics.Optics`).
+PIXEL_UM = 0.108
+
+#: Side of the synthetic tiles correlated for the lateral offset, px.
+TILE_PX = 256
+
+
+@dataclass(frozen=True)
+class Offset:
+    """A drift moved by `offset_um`: the second pass's axial offset on top of the walk."""
+
+    base: ThermalDrift
+    offset_um: float
+
+    def at(self, t_s: float) -> float:
+        return self.offset_um + self.base.at(t_s)
+
+
+def second_pass(
+    args: argparse.Namespace, settings: SlideSettings, maps: list[DriftMap]
+) -> DriftScore:
+    """The second-pass scenario (module docstring): kf-rescan's scores, and the largest
+    error of the lateral offset over the maps."""
+    from scipy import ndimage
+
+    from focustrack_scheduler.lateral import pass_offset
+
+    runs, errors_px = [], []
+    max_shift_px = 2 * args.lateral_offset_um / PIXEL_UM
+    for i, m in enumerate(maps):
+        first = registry.create("kf-2d-lean", settings, TIME_STATE)
+        assert isinstance(first, RowBankFilter)
+        run_1 = replay(first, m.truth_um, m.measured_um, drift=m.drift)
+        smoothed = run_1.focus_map.smoothed_um
+        smoothed_sigma = run_1.focus_map.smoothed_sigma_um
+        assert smoothed is not None and smoothed_sigma is not None
+        params = {
+            "prior_map_um": (smoothed - first.tile_drift_um).ravel().tolist(),
+            "prior_map_sigma_um": smoothed_sigma.ravel().tolist(),
+        }
+        walk = ThermalDrift(
+            walk_um_per_sqrt_min=m.drift.walk_um_per_sqrt_min, seed=m.drift.seed + 100
+        )
+        drift = Offset(walk, args.axial_offset_um + m.drift.at(run_1.scan_time_s))
+        rescan = registry.create(RESCAN, settings, params)
+        runs.append(replay(rescan, m.truth_um, m.measured_um, drift=drift))
+        # x, y: a textured specimen, its first-pass tiles and the second pass's, shifted
+        rng = np.random.default_rng([args.seed, i, 17])
+        angle = rng.uniform(0, 2 * np.pi)
+        shift_px = args.lateral_offset_um / PIXEL_UM * np.array([np.sin(angle), np.cos(angle)])
+        side = TILE_PX * (args.lateral_tiles + 1)
+        specimen = ndimage.gaussian_filter(rng.standard_normal((TILE_PX * 3, side)), 2.0)
+        moved = ndimage.shift(specimen, shift_px, order=3, mode="wrap")
+        pairs = []
+        for k in range(args.lateral_tiles):
+            x0 = TILE_PX // 2 + k * TILE_PX  # a row of tiles, margins in x and y for the wrap
+            window = np.s_[TILE_PX : 2 * TILE_PX, x0 : x0 + TILE_PX]
+            noise = 0.05 * rng.standard_normal((2, TILE_PX, TILE_PX))
+            pairs.append((specimen[window] + noise[0], moved[window] + noise[1]))
+        estimate = pass_offset(pairs, max_shift_px)
+        assert estimate is not None
+        errors_px.append(
+            float(np.hypot(estimate.dy_px - shift_px[0], estimate.dx_px - shift_px[1]))
+        )
+        print(f"  second pass: map {i} done", flush=True)
+    return replace(drift_score(runs, args.dof_um), lateral_error_px=max(errors_px))
