@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from focustrack_scheduler.lateral import MIN_PEAK, pass_offset, phase_shift
+from focustrack_scheduler.lateral import MIN_SHARPNESS, pass_offset, phase_shift
 
 SIDE = 128
 
@@ -41,12 +41,12 @@ def test_the_search_is_bounded() -> None:
     assert inside.dy_px == pytest.approx(25.0, abs=0.3)
     bounded = phase_shift(first, second, max_shift_px=10)  # the true peak is out of bounds
     assert abs(bounded.dy_px) <= 10.5 and abs(bounded.dx_px) <= 10.5
-    assert bounded.peak < inside.peak / 2
+    assert bounded.sharpness < MIN_SHARPNESS <= inside.sharpness
 
 
 def test_unrelated_or_flat_tiles_say_nothing() -> None:
     a, b = _texture(3)[:SIDE, :SIDE], _texture(4)[:SIDE, :SIDE]
-    assert phase_shift(a, b, max_shift_px=40).peak < MIN_PEAK
+    assert phase_shift(a, b, max_shift_px=40).sharpness < MIN_SHARPNESS
     flat = np.ones((SIDE, SIDE))
     assert pass_offset([(a, b), (flat, flat)], max_shift_px=40) is None
     with pytest.raises(ValueError, match="shape"):
