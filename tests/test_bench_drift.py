@@ -14,7 +14,8 @@ def test_every_scenario_is_scored_and_written(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "drift.json"
-    args = ["--maps", "1", "--size", "8", "--lateral-tiles", "3", "--json", str(out)]
+    args = ["--maps", "1", "--size", "8", "--lateral-tiles", "3", "--ekf-trials", "20"]
+    args += ["--json", str(out)]
     assert main(["bench", "drift", *args]) == 0
     table = capsys.readouterr().out
     for row in ("thermal: kf-2d-lean", "+time +revisits", "laser: kf-2d-laser", "second pass"):
@@ -31,6 +32,9 @@ def test_every_scenario_is_scored_and_written(
     assert scenarios["laser"]["kf-2d-laser"]["frames_per_tile"] < 2.0
     second = scenarios["second pass"]["kf-rescan"]
     assert second["lateral_error_px"] < 1.0
+    for scores in report["ekf"].values():  # the EKF and the linear fit on the same samples
+        assert set(scores) == {"linear fit", "ekf"}
+        assert all(s["frames_per_tile"] >= 3 and s["mae_um"] >= 0 for s in scores.values())
     assert out.with_suffix(".png").stat().st_size > 0
 
 

@@ -22,6 +22,10 @@ first pass's (`focustrack_scheduler.lateral.pass_offset`, bounded), on a synthet
 textured specimen (smoothed noise, 256 x 256 px of 0.108 um, camera noise): the error of
 the estimated offset, px (`lateral_error_px`).
 
+Part `ekf` (`focustrack.bench.stream_ekf`): best focus from a stream of raw metric
+samples, the focus service's EKF on the curve model against today's linear fit, on the
+same samples: frames per tile and error, on simulator-shaped and real curves.
+
 Scans are replayed in
 process (`focustrack_estimator.replay`): every acquisition's time is the timing
 model's, as the simulator's clock counts it, and a stack sees the map plus the drift
@@ -44,6 +48,8 @@ from typing import Any
 import numpy as np
 
 from focustrack.bench import strategies as registry
+from focustrack.bench import stream_ekf
+from focustrack.bench.focus import REAL_DIR
 from focustrack_core.domain import SlideSettings
 from focustrack_core.drift import ThermalDrift
 from focustrack_core.geometry import ScanGrid
@@ -133,6 +139,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--lateral-tiles", type=int, default=8, help="second pass: tiles correlated (8)"
     )
+    parser.add_argument(
+        "--ekf-trials", type=int, default=200, help="EKF: simulator-shaped streams (200)"
+    )
+    parser.add_argument(
+        "--real-dir", type=Path, default=REAL_DIR, help="EKF: the shared real data's folder"
+    )
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
 
 
@@ -202,12 +214,20 @@ def run(args: argparse.Namespace) -> int:
         "second pass": {RESCAN: second_pass(args, settings, maps)},
     }
     print(format_scores(results))
+    streams = stream_ekf.compare(
+        args.seed, args.real_dir, n_sim=args.ekf_trials, per_field=args.ekf_trials // 20
+    )
+    print(format_streams(streams))
     if args.json is not None:
         report = {
             "title": title,
             "scenarios": {
                 scenario: {label: asdict(s) for label, s in scores.items()}
                 for scenario, scores in results.items()
+            },
+            "ekf": {
+                source: {name: asdict(s) for name, s in scores.items()}
+                for source, scores in streams.items()
             },
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -232,6 +252,19 @@ def format_scores(results: dict[str, dict[str, DriftScore]]) -> str:
                 f"{s.frames_per_tile:>13.2f}{s.time_over_limit:>12.2f}{s.revisits:>10.1f}"
                 f"{s.post_mae_um:>10.3f}"
                 + ("" if s.lateral_error_px is None else f"{s.lateral_error_px:>12.2f}")
+            )
+    return "\n".join(lines)
+
+
+def format_streams(streams: dict[str, dict[str, stream_ekf.StreamScore]]) -> str:
+    """One row per source and reading of the EKF comparison."""
+    header = f"{'raw samples: source, reading':<48}{'frames':>8}{'MAE um':>9}{'max um':>9}"
+    lines = [header, "-" * len(header)]
+    for source, scores in streams.items():
+        for name, s in scores.items():
+            lines.append(
+                f"{source + ': ' + name:<48}{s.frames_per_tile:>8.2f}{s.mae_um:>9.3f}"
+                f"{s.max_error_um:>9.2f}"
             )
     return "\n".join(lines)
 
