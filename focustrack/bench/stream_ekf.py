@@ -46,14 +46,17 @@ class StreamScore:
 
 def linear_stream(z_um: np.ndarray, scores: np.ndarray) -> tuple[float, int]:
     """Today's reading of a stream: frames until the best is followed by two lower ones,
-    then `find_peak` on them; (z um, frames used)."""
-    best = 0
-    for n in range(z_um.size):
-        if scores[n] > scores[best]:
-            best = n
-        if n - best >= 2 and n >= 4:
-            return find_peak(z_um[: n + 1], scores[: n + 1]).z_um, n + 1
-    return find_peak(z_um, scores).z_um, z_um.size
+    then `find_peak` on them; (z um, frames used). Where it reads an edge (no z), the best
+    sample's z."""
+    best, n = 0, z_um.size
+    for i in range(z_um.size):
+        if scores[i] > scores[best]:
+            best = i
+        if i - best >= 2 and i >= 4:
+            n = i + 1
+            break
+    z_peak_um = find_peak(z_um[:n], scores[:n]).z_um
+    return (float(z_um[best]) if z_peak_um is None else z_peak_um), n
 
 
 def _scores(errors: list[float], frames: list[int]) -> StreamScore:

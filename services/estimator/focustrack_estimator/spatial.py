@@ -125,9 +125,9 @@ class RowBankFilter(SerpentineFilter):
         self.active = np.arange(len(self.models))  # members still in the bank
         self.drift = DriftModel.of(options)
         self._state_s = 0.0  # the time the drift states hold at
-        revisits = self.drift is not None and isinstance(options, TimeStateParams)
-        self.revisit_share = options.revisit_drift_share if revisits else 0.0
-        self.revisit_max_tiles = options.revisit_max_tiles if revisits else 0
+        timed = options if self.drift is not None and isinstance(options, TimeStateParams) else None
+        self.revisit_share = timed.revisit_drift_share if timed is not None else 0.0
+        self.revisit_max_tiles = timed.revisit_max_tiles if timed is not None else 0
         self._revisited_at = -1  # the serpentine position a revisit was last made before
         self.n_surface = N_PLANE + 2 * cols  # the surface's states; the drift's follow
         initial = [model.initial(settings.start_sigma_um) for model in self.models]
