@@ -353,6 +353,9 @@ class RowBankFilter(SerpentineFilter):
         smoother over rows, column block by column block) and the members are
         blended with their current weights, which for fixed models are the
         model probabilities given every measurement (the exact smoothed mixture).
+        With a time state, the smoother reads each measurement less the drift its tile
+        was finished with, and adds that drift back to the tile's smoothed surface (the
+        focus when it was imaged); the drift's own uncertainty is not in the variances.
         """
         weights = self.weights
         kept = weights >= SMOOTH_MIN_WEIGHT
