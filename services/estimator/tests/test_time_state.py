@@ -13,7 +13,10 @@ from focustrack_core.surfaces import add_measurement_noise, family_spec, generat
 from focustrack_estimator import registry
 from focustrack_estimator.replay import replay, score, simulated_measurement
 from focustrack_estimator.row_model import N_PLANE
+from focustrack_estimator.serpentine import SerpentineFilter
+from focustrack_estimator.snapshot import encode, restore
 from focustrack_estimator.spatial import RowBankFilter
+from focustrack_estimator.strategy import Strategy
 from focustrack_estimator.time_state import N_DRIFT, DriftModel, ScanClock, TimeStateParams
 
 DOF_UM = 0.89
@@ -134,3 +137,38 @@ def test_revisits_measure_a_tile_of_the_row_again_and_only_where_asked() -> None
     quiet = registry.create("kf-2d-lean", settings, {**params, "revisit_drift_share": 0.0})
     run = replay(quiet, truth, measured, drift=drift)
     assert run.n_revisits == 0
+
+
+@pytest.mark.parametrize(
+    ("name", "params"),
+    [
+        ("kf-2d-lean", {**TIME, "revisit_drift_share": 0.2, "drift_walk_um2_per_s": 0.05}),
+        ("kf-wiener1", TIME),
+        ("kf-2d-laser", {}),
+    ],
+)
+def test_a_snapshot_holds_the_clock_and_the_drift(name: str, params: dict) -> None:
+    size = 8
+    _, measured = _maps(size, 11)
+    settings = default_settings(ScanGrid(size, size), dof_um=DOF_UM, noise_sigma_um=NOISE_UM)
+
+    def steps(strategy: Strategy, n: int) -> list[tuple]:
+        done = []
+        for _ in range(n):
+            acquisition = strategy.next_acquisition()
+            if acquisition is None:
+                break
+            z_um = measured[acquisition.row, acquisition.col] + 0.01 * strategy.clock.clock_s
+            outcome = strategy.record(acquisition, simulated_measurement(acquisition, z_um))
+            done.append((acquisition, outcome))
+        return done
+
+    original = registry.create(name, settings, params)
+    steps(original, 40)
+    original.next_acquisition()
+    restored = registry.create(name, settings, params)
+    restored.next_acquisition()
+    restore(restored, encode(original))
+    assert isinstance(restored, SerpentineFilter)
+    assert restored.clock.clock_s == original.clock.clock_s > 0
+    assert steps(restored, 1000) == steps(original, 1000)
