@@ -59,7 +59,7 @@ from focustrack_estimator.strategy import (
 from focustrack_estimator.time_state import (
     N_DRIFT,
     DriftModel,
-    TimeStateParams,
+    RevisitParams,
     elapse,
 )
 
@@ -125,7 +125,7 @@ class RowBankFilter(SerpentineFilter):
         self.active = np.arange(len(self.models))  # members still in the bank
         self.drift = DriftModel.of(options)
         self._state_s = 0.0  # the time the drift states hold at
-        timed = options if self.drift is not None and isinstance(options, TimeStateParams) else None
+        timed = options if self.drift is not None and isinstance(options, RevisitParams) else None
         self.revisit_share = timed.revisit_drift_share if timed is not None else 0.0
         self.revisit_max_tiles = timed.revisit_max_tiles if timed is not None else 0
         self._revisited_at = -1  # the serpentine position a revisit was last made before
@@ -436,7 +436,7 @@ class RowBankParams(StrategyParams):
     )
 
 
-class Kf2dParams(RowBankParams, RetryParams, TimeStateParams):
+class Kf2dParams(RowBankParams, RetryParams, RevisitParams):
     """kf-2d: the strip-filter bank, learning the slide's field and tilt (docs/spatial.md),
     and with a time state the instrument's drift (`time_state`)."""
 

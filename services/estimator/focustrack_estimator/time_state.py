@@ -61,6 +61,11 @@ class TimeStateParams(StrategyParams):
     drift_rate_q_um2_per_s3: float = Field(
         0.0, ge=0.0, description="Spectral density of the random walk of the drift's rate, um^2/s^3"
     )
+
+
+class RevisitParams(TimeStateParams):
+    """The time state and revisits (`kf-2d`'s family: `spatial.RowBankFilter._revisit`)."""
+
     revisit_drift_share: float = Field(
         0.0,
         ge=0.0,

@@ -43,6 +43,7 @@ TIME = {  # the time state, off by default
     "drift_settle_tau_s": 200.0,
     "drift_rate_q_um2_per_s3": 0.0,
 }
+REVISITS = {**TIME, "revisit_drift_share": 0.0, "revisit_max_tiles": 3}  # kf-2d's family
 DEFAULTS: dict[str, dict[str, Any]] = {
     "kf-wiener0": {**LOOP, **TIME, "q": 0.14},
     "kf-wiener1": {**LOOP, **TIME, "q": 1e-8, "q_height_um2": 0.2, "slope_sigma_um_per_tile": 0.5},
@@ -82,7 +83,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     },
     "kf-2d": {
         **RETRIES,
-        **TIME,
+        **REVISITS,
         "sigmas_um": [0.7, 1.4, 2.8],
         "lengths_tiles": [4.0, 8.0, 16.0],
         "tilt_sigmas_um_per_tile": [0.3, 1.5],
@@ -96,9 +97,17 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     "kf-2d-lean": {
         **RETRIES,
         **LEAN,
-        **TIME,
+        **REVISITS,
         "risk_out_of_focus": 0.01,
         "max_kept_planes": 5,
+    },
+    "kf-2d-laser": {
+        **RETRIES,
+        **LEAN,
+        "risk_out_of_focus": 0.01,
+        "max_kept_planes": 5,
+        "laser_sigma_um": 0.05,
+        "laser_reading_s": 0.001,
     },
     "kf-rescan": {
         **LOOP,
