@@ -27,6 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "focustrack.bench.rescan",
         "a slide scanned twice with drift: the second pass learning from the first",
     ),
+    "bench drift": (
+        "focustrack.bench.drift",
+        "focus drifting in time during a scan: the time state, revisits, against kf-2d-lean",
+    ),
     "bench tune": (
         "focustrack.bench.tune",
         "choose the Kalman strategies' defaults on training seeds",

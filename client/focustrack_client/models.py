@@ -38,6 +38,8 @@ class Purpose(StrEnum):
     SURVEY = "survey"  # a survey point of a focus-map strategy, before the scan
     RETRY = "retry"  # the same tile again, after an edge peak or a flat curve
     PLANES = "planes"  # more frames of a measured tile, kept where one is too unsure
+    REVISIT = "revisit"  # a tile measured before, measured again to track the focus drift
+    LASER = "laser"  # a reading of the reflection autofocus (the coverslip's height), no image
 
 
 #: Largest grid side and tile count a slide may have (a 25 x 75 mm slide at 100 um tiles

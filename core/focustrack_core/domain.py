@@ -66,6 +66,8 @@ class Purpose(StrEnum):
     SURVEY = "survey"  # a survey point of a focus-map strategy, before the scan
     RETRY = "retry"  # the same tile again, after an edge peak or a flat curve
     PLANES = "planes"  # more frames of a measured tile, kept where one is too unsure
+    REVISIT = "revisit"  # a tile measured before, measured again to track the drift in time
+    LASER = "laser"  # a reading of the reflection autofocus (the coverslip's height), no image
 
 
 @dataclass(frozen=True)

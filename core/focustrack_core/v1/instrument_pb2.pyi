@@ -265,3 +265,31 @@ class PhaseTruth(_message.Message):
     pixel_size_um: float
     focus_z_um: float
     def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[str] = ..., pixel_size_um: _Optional[float] = ..., focus_z_um: _Optional[float] = ...) -> None: ...
+
+class LaserRequest(_message.Message):
+    __slots__ = ("slide", "row", "col")
+    SLIDE_FIELD_NUMBER: _ClassVar[int]
+    ROW_FIELD_NUMBER: _ClassVar[int]
+    COL_FIELD_NUMBER: _ClassVar[int]
+    slide: str
+    row: int
+    col: int
+    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ...) -> None: ...
+
+class LaserReading(_message.Message):
+    __slots__ = ("instrument", "slide", "row", "col", "z_um", "sigma_um", "timing")
+    INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
+    SLIDE_FIELD_NUMBER: _ClassVar[int]
+    ROW_FIELD_NUMBER: _ClassVar[int]
+    COL_FIELD_NUMBER: _ClassVar[int]
+    Z_UM_FIELD_NUMBER: _ClassVar[int]
+    SIGMA_UM_FIELD_NUMBER: _ClassVar[int]
+    TIMING_FIELD_NUMBER: _ClassVar[int]
+    instrument: str
+    slide: str
+    row: int
+    col: int
+    z_um: float
+    sigma_um: float
+    timing: Timing
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_um: _Optional[float] = ..., sigma_um: _Optional[float] = ..., timing: _Optional[_Union[Timing, _Mapping]] = ...) -> None: ...

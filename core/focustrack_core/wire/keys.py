@@ -59,6 +59,11 @@ def acquire_key(instrument: str) -> str:
     return f"{PREFIX}/instrument/{check_name(instrument, 'instrument')}/acquire"
 
 
+def laser_key(instrument: str) -> str:
+    """Key expression of an instrument's reflection (laser) autofocus queryable."""
+    return f"{PREFIX}/instrument/{check_name(instrument, 'instrument')}/laser"
+
+
 def info_key(instrument: str) -> str:
     return f"{PREFIX}/instrument/{check_name(instrument, 'instrument')}/info"
 

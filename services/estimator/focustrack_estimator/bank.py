@@ -97,9 +97,9 @@ class ModelBank(PathEstimator):
         mean_um, var_um2 = mixture(*self._heights(), self.weights)
         return float(mean_um), float(var_um2)
 
-    def predict(self, step: Step) -> None:
+    def predict(self, step: Step, dt_s: float = 0.0) -> None:
         for member in self.members:
-            member.predict(step)
+            member.predict(step, dt_s)
 
     def update(self, z_um: float, R_um2: float) -> None:
         means_um, vars_um2 = self._heights()

@@ -27,6 +27,7 @@ from abc import ABC, abstractmethod
 from typing import Annotated, Any
 
 import numpy as np
+import scipy.linalg
 from filterpy.kalman import KalmanFilter
 from pydantic import AfterValidator, Field
 
@@ -36,6 +37,7 @@ from focustrack_estimator.models import (
     DirectionAwareModel,
     GaussMarkovModel,
     StateSpaceModel,
+    Transition,
     WienerModel,
     gauss_markov_process_noise,
 )
@@ -48,6 +50,7 @@ from focustrack_estimator.strategy import (
     StrategyParams,
     tile_cost,
 )
+from focustrack_estimator.time_state import N_DRIFT, DriftModel, TimeStateParams
 
 
 def rts_smooth(
@@ -73,7 +76,7 @@ def rts_smooth(
 class PathEstimator(ABC):
     """The height along the serpentine path, as `KalmanStrategy` drives it (heights in um).
 
-    Calls per tile: `predict(step)` (not on the first tile), then either
+    Calls per tile: `predict(step, dt_s)` (not on the first tile), then either
     `update(z_um, R_um2)` or `skip()`; `inflate` may come between them.
     """
 
@@ -83,8 +86,9 @@ class PathEstimator(ABC):
         """The current tile's height estimate: mean in um and variance in um^2."""
 
     @abstractmethod
-    def predict(self, step: Step) -> None:
-        """Move the estimate onto the next tile, reached by `step`."""
+    def predict(self, step: Step, dt_s: float = 0.0) -> None:
+        """Move the estimate onto the next tile, reached by `step` `dt_s` seconds after the
+        last tile (the time matters to a filter with a time state only)."""
 
     @abstractmethod
     def update(self, z_um: float, R_um2: float) -> None:
@@ -109,20 +113,36 @@ class PathFilter(PathEstimator):
     Both forms run the same model through the same predict(F, Q) / update(z, R)
     calls; the square-root form (`sqrt_filter.SqrtKalmanFilter`) keeps P
     symmetric and positive definite where round-off breaks the covariance form.
+    With a `drift` (`time_state`), the state ends with the drift since the scan
+    began and its rate: each step moves them on by its time, and a tile's focus is
+    its height plus the drift (H = [1, 0, ..., 1, 0]).
     """
 
-    def __init__(self, model: StateSpaceModel, settings: SlideSettings, *, sqrt: bool) -> None:
+    def __init__(
+        self,
+        model: StateSpaceModel,
+        settings: SlideSettings,
+        *,
+        sqrt: bool,
+        drift: DriftModel | None = None,
+    ) -> None:
         self.model = model
-        n = model.n_states
+        self.drift = drift
+        n = model.n_states + (N_DRIFT if drift is not None else 0)
         self._kf: KalmanFilter | SqrtKalmanFilter = (
             SqrtKalmanFilter(dim_x=n, dim_z=1) if sqrt else KalmanFilter(dim_x=n, dim_z=1)
         )
         x = np.zeros((n, 1))
         x[0, 0] = settings.start_z_um
         self._kf.x = x
-        self._kf.P = model.initial_covariance(settings.start_sigma_um)
-        self._kf.H = model.measurement_matrix
-        self._transition = model.transition(Step.START)
+        P = model.initial_covariance(settings.start_sigma_um)
+        H = model.measurement_matrix
+        if drift is not None:
+            P = scipy.linalg.block_diag(P, drift.initial_covariance())
+            H = np.hstack([H, [[1.0, 0.0]]])
+        self._kf.P = P
+        self._kf.H = H
+        self._transition = self._timed(Step.START, 0.0)
         # Per tile in path order (RTS): prior and posterior state and covariance, F onto it.
         self._x_prior: list[np.ndarray] = [self._kf.x.copy()]
         self._P_prior: list[np.ndarray] = [self._kf.P.copy()]
@@ -142,10 +162,25 @@ class PathFilter(PathEstimator):
 
     @property
     def height(self) -> tuple[float, float]:
-        return self._kf.x[0, 0].item(), self._kf.P[0, 0].item()
+        if self.drift is None:
+            return self._kf.x[0, 0].item(), self._kf.P[0, 0].item()
+        H = self._kf.H
+        return (H @ self._kf.x).item(), (H @ self._kf.P @ H.T).item()
 
-    def predict(self, step: Step) -> None:
-        self._transition = self.model.transition(step)
+    def _timed(self, step: Step, dt_s: float) -> Transition:
+        """The model's transition for `step`, with the drift's over `dt_s` where there is one."""
+        transition = self.model.transition(step)
+        if self.drift is None:
+            return transition
+        F, Q = self.drift.transition(dt_s)
+        return Transition(
+            scipy.linalg.block_diag(transition.F, F),
+            scipy.linalg.block_diag(transition.Q, Q),
+            np.concatenate([transition.updated, np.ones(N_DRIFT, dtype=bool)]),
+        )
+
+    def predict(self, step: Step, dt_s: float = 0.0) -> None:
+        self._transition = self._timed(step, dt_s)
         self._kf.predict(F=self._transition.F, Q=self._transition.Q)
         self._x_prior.append(self._kf.x.copy())
         self._P_prior.append(self._kf.P.copy())
@@ -166,12 +201,12 @@ class PathFilter(PathEstimator):
         that sub-optimal gain (as FilterPy's own update does). In the square-root
         form the new P is factored again, as it has no triangular update.
         """
-        x, P, H = self._kf.x, self._kf.P, self.model.measurement_matrix
+        x, P, H = self._kf.x, self._kf.P, self._kf.H
         PHT = P @ H.T
         S_um2 = (H @ PHT).item() + R_um2
         K = np.where(updated[:, None], PHT / S_um2, 0.0)
         I_KH = np.eye(x.shape[0]) - K @ H
-        self._kf.x = x + K * (z_um - x[0, 0])
+        self._kf.x = x + K * (z_um - (H @ x).item())
         self._kf.P = I_KH @ P @ I_KH.T + R_um2 * (K @ K.T)
 
     def skip(self) -> None:
@@ -180,7 +215,7 @@ class PathFilter(PathEstimator):
     def inflate(self, var_um2: float) -> None:
         # An extra identity step with noise at the height only: a triangular update in the
         # square-root form, P[0, 0] += var in the covariance form.
-        n = self.model.n_states
+        n = self._kf.x.shape[0]
         Q = np.zeros((n, n))
         Q[0, 0] = var_um2
         self._kf.predict(F=np.eye(n), Q=Q)
@@ -201,7 +236,10 @@ class PathFilter(PathEstimator):
             np.array(self._P_post),
             np.array(self._F[:n]),
         )
-        return xs[:, 0], Ps[:, 0, 0]
+        if self.drift is None:
+            return xs[:, 0], Ps[:, 0, 0]
+        h = self._kf.H[0]  # the focus: the height plus the drift
+        return xs @ h, np.einsum("i,nij,j->n", h, Ps, h)
 
 
 class KalmanStrategy(SerpentineFilter):
@@ -225,6 +263,7 @@ class KalmanStrategy(SerpentineFilter):
         self.name = name
         self.estimator = estimator
         self._smoothed_at = -1  # tiles finished when the smoothed layers were last filled
+        self._state_s = 0.0  # the scan's time of the estimator's state
 
     def focus_map(self) -> FocusMap:
         """The estimates so far, with the RTS-smoothed layers over the tiles finished so far."""
@@ -242,7 +281,9 @@ class KalmanStrategy(SerpentineFilter):
 
     def _predict(self, tile: Tile) -> Gaussian:
         if self._position > 0:
-            self.estimator.predict(self.grid.steps[self._position])
+            arrival_s = self.clock.arrival_s(self.grid, tile)
+            self.estimator.predict(self.grid.steps[self._position], arrival_s - self._state_s)
+            self._state_s = arrival_s
         return Gaussian(*self.estimator.height)
 
     def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
@@ -274,7 +315,7 @@ SlopeSigmaUmPerTile = Annotated[
 ]
 
 
-class KfWiener0Params(FilterParams):
+class KfWiener0Params(FilterParams, TimeStateParams):
     """kf-wiener0: Zhang et al.'s random walk (thesis eq. 3-23, order 0)."""
 
     q: float = Field(
@@ -284,7 +325,7 @@ class KfWiener0Params(FilterParams):
     )
 
 
-class KfWiener1Params(FilterParams):
+class KfWiener1Params(FilterParams, TimeStateParams):
     """kf-wiener1: height and gradient along the path; the gradient is a Wiener process."""
 
     q: float = Field(
@@ -296,7 +337,7 @@ class KfWiener1Params(FilterParams):
     slope_sigma_um_per_tile: SlopeSigmaUmPerTile = 0.5
 
 
-class KfWiener2Params(FilterParams):
+class KfWiener2Params(FilterParams, TimeStateParams):
     """kf-wiener2: height, gradient and curvature along the path; the curvature is a Wiener
     process."""
 
@@ -330,7 +371,7 @@ BetaPerTile = Field(
 )
 
 
-class KfGm1Params(FilterParams):
+class KfGm1Params(FilterParams, TimeStateParams):
     """kf-gm1: height and a Gauss-Markov gradient (thesis eq. 3-33..3-47, order 1)."""
 
     sigma: float = Field(
@@ -340,7 +381,7 @@ class KfGm1Params(FilterParams):
     q_height_um2: QHeightUm2 = 0.01
 
 
-class KfGm2Params(FilterParams):
+class KfGm2Params(FilterParams, TimeStateParams):
     """kf-gm2: height, gradient and a Gauss-Markov curvature (order 2)."""
 
     sigma: float = Field(
@@ -351,7 +392,7 @@ class KfGm2Params(FilterParams):
     slope_sigma_um_per_tile: SlopeSigmaUmPerTile = 0.5
 
 
-class KfWiener1DirParams(FilterParams):
+class KfWiener1DirParams(FilterParams, TimeStateParams):
     """kf-wiener1-dir: the direction-aware first-order filter (thesis eq. 3-54, 3-55,
     Algorithm 2): x and y gradients in slide coordinates."""
 
@@ -373,9 +414,8 @@ def kalman_strategy(
     settings: SlideSettings, model: StateSpaceModel, name: str, params: FilterParams
 ) -> KalmanStrategy:
     """A `KalmanStrategy` over one model's `PathFilter` (the factories' common tail)."""
-    return KalmanStrategy(
-        settings, PathFilter(model, settings, sqrt=params.sqrt), name=name, options=params
-    )
+    estimator = PathFilter(model, settings, sqrt=params.sqrt, drift=DriftModel.of(params))
+    return KalmanStrategy(settings, estimator, name=name, options=params)
 
 
 def kf_wiener0(settings: SlideSettings, params: KfWiener0Params) -> KalmanStrategy:

@@ -15,6 +15,7 @@ from focustrack_core.domain import SlideSettings
 from focustrack_estimator.serpentine import LeanParams, MaxKeptPlanes, RiskOutOfFocus
 from focustrack_estimator.spatial import RowBankFilter, RowBankParams, kf_2d_cost
 from focustrack_estimator.strategy import Cost, StrategyEntry
+from focustrack_estimator.time_state import RevisitParams
 
 #: The stated risk of the lean strategies by default: at most 1% of tiles out of focus.
 DEFAULT_RISK = 0.01
@@ -24,8 +25,9 @@ DEFAULT_RISK = 0.01
 MAX_KEPT_PLANES = 5
 
 
-class Kf2dLeanParams(LeanParams):
-    """kf-2d-lean: kf-2d at its default bank, each tile's frames chosen by the risk rule."""
+class Kf2dLeanParams(LeanParams, RevisitParams):
+    """kf-2d-lean: kf-2d at its default bank, each tile's frames chosen by the risk rule
+    (with a time state: the instrument's drift estimated too, `time_state`)."""
 
     risk_out_of_focus: RiskOutOfFocus = DEFAULT_RISK
     max_kept_planes: MaxKeptPlanes = MAX_KEPT_PLANES

@@ -21,6 +21,7 @@ from focustrack_estimator import (
     bank,
     classic,
     kalman_strategies,
+    laser,
     lean_scan,
     nshp,
     rescan,
@@ -34,6 +35,7 @@ STRATEGIES: dict[str, StrategyEntry[Any]] = {
     **spatial.STRATEGIES,
     **nshp.STRATEGIES,
     **lean_scan.STRATEGIES,
+    **laser.STRATEGIES,
     **rescan.STRATEGIES,
     **classic.STRATEGIES,
 }

@@ -10,7 +10,13 @@ service are stood in for by a measured map:
 - if that peak lies outside the acquired z-range, the stack has no peak inside:
   the measurement is an edge flag pointing towards it, and the strategy must
   re-acquire (and pay for it);
-- a single-frame acquisition only images the tile (no measurement).
+- a single-frame acquisition only images the tile (no measurement);
+- a revisit (purpose revisit: a tile measured again, to track the drift) is a new
+  measurement: the truth plus the drift now plus its own noise (the slide's
+  `noise_sigma_um`, drawn per acquisition), and it leaves the tile's image as it was;
+- a laser reading (purpose laser) is `ReplayLaser`'s: the coverslip under the tile
+  (the truth plus the drift now minus the tile's offset) with the laser's noise; it
+  takes no frame, only the move and the reading's time.
 
 Cost follows `focustrack_core.timing.TimingModel`: the XY move from the previous
 acquisition's tile, then the stack's frames. The physical limit of a scan
@@ -22,6 +28,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -31,9 +38,11 @@ from focustrack_core.domain import (
     FocusMap,
     Measurement,
     Outcome,
+    Purpose,
     kept_in_focus,
 )
 from focustrack_core.geometry import ScanGrid, Tile
+from focustrack_core.laser import LaserSpec, laser_reading
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.lean import out_of_focus_risk
 from focustrack_estimator.strategy import Strategy
@@ -62,6 +71,8 @@ class Replay:
     limit_time_s: float  # stage moves along the serpentine plus one frame per tile
     # tiles that keep several frames (`Outcome.planes_um`): (row, col) -> their z, in um
     planes_um: dict[tuple[int, int], tuple[float, ...]]
+    n_revisits: int = 0  # acquisitions of purpose revisit
+    n_laser_readings: int = 0  # acquisitions of purpose laser
 
     def in_focus(self, dof_um: float) -> np.ndarray:
         """(rows, cols) bool: a frame the tile keeps lies within dof/2 of its truth."""
@@ -85,6 +96,21 @@ def limit_time_s(grid: ScanGrid, timing: TimingModel) -> float:
 
 
 @dataclass(frozen=True)
+class ReplayLaser:
+    """The laser autofocus of a replay: each tile's offset from the coverslip to the tissue's
+    focal plane, (rows, cols) um (`focustrack_core.laser.coverslip_offsets`), and the sensor."""
+
+    offsets_um: np.ndarray
+    spec: LaserSpec
+
+
+class DriftPath(Protocol):
+    """The whole slide's z drift over a scan: `at(t_s)` in um, t_s seconds into the scan."""
+
+    def at(self, t_s: float) -> float: ...
+
+
+@dataclass(frozen=True)
 class Drift:
     """The whole slide moving in z while it is scanned: offset_um + rate_um_per_s * t."""
 
@@ -101,14 +127,16 @@ def replay(
     truth_um: np.ndarray,
     measured_um: np.ndarray,
     timing: TimingModel | None = None,
-    drift: Drift | None = None,
+    drift: DriftPath | None = None,
+    laser: ReplayLaser | None = None,
 ) -> Replay:
     """Run `strategy` to completion on one map; `truth_um` and `measured_um` are (rows, cols).
 
     With `drift`, the slide moves while it is scanned (a re-scan): a stack sees
     the measured map plus the drift at the stack's start on the scan's clock, and
     the truth a tile is scored on is its height when its last stack started (the
-    `Replay.truth_um`).
+    `Replay.truth_um`). `drift` may be any `DriftPath` (`focustrack_core.drift.ThermalDrift`).
+    `laser` answers a strategy's laser readings (a ValueError where one is asked without it).
     """
     timing = timing or TimingModel()
     drift = drift or Drift(0.0, 0.0)
@@ -119,7 +147,7 @@ def replay(
         )
     max_acquisitions = 50 * grid.n_tiles  # a strategy that never finishes is a bug, not a slow scan
     outcomes: list[Outcome] = []
-    n_images, scan_time_s = 0, 0.0
+    n_images, scan_time_s, n_revisits, n_laser = 0, 0.0, 0, 0
     here: Tile | None = None
     truth_now_um = truth_um.astype(float)  # each tile's truth when its last stack started
     while (acquisition := strategy.next_acquisition()) is not None:
@@ -130,10 +158,30 @@ def replay(
             scan_time_s += timing.move_s(grid.distance_um(here, tile))
         here = tile
         drift_um = drift.at(scan_time_s)
-        truth_now_um[tile.row, tile.col] = truth_um[tile.row, tile.col] + drift_um
+        if acquisition.purpose is Purpose.LASER:
+            if laser is None:
+                raise ValueError(f"{strategy.name} asks for laser readings: give replay a laser")
+            n_laser += 1
+            scan_time_s += laser.spec.reading_s
+            reading_um = laser_reading(
+                truth_um[tile.row, tile.col] + drift_um,
+                laser.offsets_um[tile.row, tile.col],
+                laser.spec.noise_um,
+                np.random.default_rng([acquisition.index, 9]),
+            )
+            reading = Measurement(z_um=reading_um, sigma_um=laser.spec.noise_um or None)
+            outcomes.append(strategy.record(acquisition, reading))
+            continue
         n_images += acquisition.z.n_frames
         scan_time_s += timing.stack_s(acquisition.z.n_frames)
-        measured = measured_um[tile.row, tile.col] + drift_um
+        if acquisition.purpose is Purpose.REVISIT:
+            n_revisits += 1
+            noise_um = np.random.default_rng([acquisition.index, 5]).standard_normal()
+            noise_um *= strategy.settings.noise_sigma_um
+            measured = truth_um[tile.row, tile.col] + drift_um + noise_um
+        else:
+            truth_now_um[tile.row, tile.col] = truth_um[tile.row, tile.col] + drift_um
+            measured = measured_um[tile.row, tile.col] + drift_um
         outcomes.append(strategy.record(acquisition, simulated_measurement(acquisition, measured)))
     return Replay(
         truth_now_um,
@@ -143,6 +191,8 @@ def replay(
         scan_time_s,
         limit_time_s(grid, timing),
         {(o.row, o.col): o.planes_um for o in outcomes if o.planes_um},
+        n_revisits,
+        n_laser,
     )
 
 

@@ -36,7 +36,7 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import Field, Strict
 
-from focustrack_core.domain import Acquisition, Measurement, Outcome, SlideSettings
+from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_core.timing import TimingModel
 from focustrack_estimator.kalman_strategies import path_cost
@@ -49,6 +49,7 @@ from focustrack_estimator.serpentine import (
     SerpentineFilter,
 )
 from focustrack_estimator.strategy import StrategyEntry
+from focustrack_estimator.time_state import ScanClock
 
 #: The sigma of a prior map given without one (um).
 DEFAULT_MAP_SIGMA_UM = 0.05
@@ -107,13 +108,11 @@ class RescanFilter(SerpentineFilter):
         self.base_var_um2 = np.square(base_sigma_um)
         self.local_var_um2 = params.local_sigma_um**2
         self.rate_q_um2_per_s3 = params.rate_q_um2_per_s3
-        self.timing = timing or TimingModel()
+        self.clock = ScanClock(timing)
         # drift state [offset um, rate um/s] and its covariance, at time _state_s
         self.x = np.array([settings.start_z_um, 0.0])
         self.P = np.diag([settings.start_sigma_um**2, params.rate_sigma_um_per_s**2])
         self._state_s = 0.0
-        self._clock_s = 0.0  # the end of the last acquisition, s since the scan began
-        self._here: Tile | None = None
 
     @property
     def drift_um(self) -> float:
@@ -125,17 +124,11 @@ class RescanFilter(SerpentineFilter):
         """The drift's rate estimated so far."""
         return float(self.x[1])
 
-    def _arrival_s(self, tile: Tile) -> float:
-        """When the next acquisition on `tile` starts: the clock plus the move there."""
-        if self._here is None:
-            return self._clock_s
-        return self._clock_s + self.timing.move_s(self.grid.distance_um(self._here, tile))
-
     def _tile_var_um2(self, tile: Tile) -> float:
         return self.base_var_um2[tile.row, tile.col] + self.local_var_um2
 
     def _predict(self, tile: Tile) -> Gaussian:
-        t_s = self._arrival_s(tile)
+        t_s = self.clock.arrival_s(self.grid, tile)
         dt = t_s - self._state_s
         F = np.array([[1.0, dt], [0.0, 1.0]])
         Q = self.rate_q_um2_per_s3 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
@@ -153,12 +146,6 @@ class RescanFilter(SerpentineFilter):
         self.P = self.P - np.outer(gain, self.P[0, :])
         k = prior.var_um2 / S  # the tile's height: drift, prior map and local change together
         return Gaussian(prior.mean_um + k * y, prior.var_um2 * (1.0 - k))
-
-    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
-        tile = Tile(acquisition.row, acquisition.col)
-        self._clock_s = self._arrival_s(tile) + self.timing.stack_s(acquisition.z.n_frames)
-        self._here = tile
-        return super()._take(acquisition, measurement)
 
 
 def prior_map(settings: SlideSettings, params: KfRescanParams) -> tuple[np.ndarray, np.ndarray]:

@@ -60,6 +60,7 @@ from focustrack_estimator.lean import (
     planes_stack,
 )
 from focustrack_estimator.strategy import MAX_RETRIES, PeakSearch, Strategy, StrategyParams
+from focustrack_estimator.time_state import ScanClock
 
 #: How many measurements the configured default R counts as when `adapt_r` estimates it.
 R_PRIOR_COUNT = 20
@@ -223,6 +224,7 @@ class SerpentineFilter(Strategy):
         self._skip_risk = math.nan  # the current tile's risk if imaged at its prediction
         self._centre_um: float | None = None  # a coarse stack's peak on the current tile
         self._planes: PendingPlanes | None = None  # frames the current tile still needs
+        self.clock = ScanClock()  # the scan's time, for filters with a time state
 
     @abstractmethod
     def _predict(self, tile: Tile) -> Gaussian:
@@ -365,12 +367,13 @@ class SerpentineFilter(Strategy):
         )
 
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        tile = Tile(acquisition.row, acquisition.col)
+        self.clock.advance(self.grid, tile, acquisition.z.n_frames)
         if acquisition.purpose == Purpose.PLANES:
             assert self._planes is not None  # planned by _plan for the pending planes
             # image only: the measurement's innovation was the outcome before this one
             outcome = replace(self._planes.outcome, accepted=False, innovation_um=None, nis=None)
             return self._finish_tile(acquisition, outcome, self._planes.posterior)
-        tile = Tile(acquisition.row, acquisition.col)
         prior = self._prior
         assert prior is not None  # set by _plan for the pending acquisition
         outcome = Outcome(

@@ -28,17 +28,26 @@ Heights are in um, lengths in tiles.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from functools import cached_property
+from dataclasses import replace
 from typing import Annotated, Any
 
 import numpy as np
 import scipy.linalg
 from pydantic import Field, Strict
 
-from focustrack_core.domain import FocusMap, SlideSettings
+from focustrack_core.domain import (
+    Acquisition,
+    FocusMap,
+    Measurement,
+    Outcome,
+    Purpose,
+    SlideSettings,
+    ZRange,
+)
 from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
+from focustrack_estimator.lean import SHORT_FRAMES, skip_risk
+from focustrack_estimator.row_model import N_PLANE, RowModel, smooth_member, step_rows
 from focustrack_estimator.serpentine import Gaussian, RetryParams, SerpentineFilter
 from focustrack_estimator.strategy import (
     NOMINAL_FLOPS_PER_S,
@@ -47,96 +56,20 @@ from focustrack_estimator.strategy import (
     StrategyParams,
     tile_cost,
 )
+from focustrack_estimator.time_state import (
+    N_DRIFT,
+    DriftModel,
+    RevisitParams,
+    elapse,
+)
 
 # --- kf-2d: a bank of row-state (strip) filters ------------------------------------------
-
-
-#: State elements of the plane in `RowModel`: offset (um), tilt along x and y (um/tile).
-N_PLANE = 3
-
-
-def matern32(distance: np.ndarray, length: float) -> np.ndarray:
-    """Matern-3/2 correlation at `distance` for length scale `length` (same units)."""
-    a = math.sqrt(3.0) * np.abs(distance) / length
-    return (1.0 + a) * np.exp(-a)
-
-
-@dataclass(frozen=True)
-class RowModel:
-    """A separable Gaussian field sigma^2 k(dy) k(dx), Matern-3/2 in both, plus a plane.
-
-    As a state-space model over rows (a strip processor): the state is
-    [offset, tilt_x, tilt_y, (f, df/dy) of column 0, (f, df/dy) of column 1, ...]
-    (the plane's three coefficients are constant over the slide); from one row
-    to the next each column's (f, df/dy) follows the exact discretisation of the
-    Matern-3/2 stochastic differential equation (a 2-state Markov process in y),
-    with process noise correlated across columns by k(dx). The filter over this
-    state is exact Gaussian-process regression for the separable covariance
-    plus a plane with a Gaussian prior (universal kriging when that prior is vague).
-    """
-
-    sigma_um: float
-    length_tiles: float
-    tilt_sigma_um_per_tile: float  # prior std of each tilt coefficient
-    cols: int
-
-    @cached_property
-    def _lam(self) -> float:
-        return math.sqrt(3.0) / self.length_tiles
-
-    @cached_property
-    def _column_corr(self) -> np.ndarray:
-        c = np.arange(self.cols)
-        return matern32(c[:, None] - c[None, :], self.length_tiles)
-
-    @cached_property
-    def _stationary_y(self) -> np.ndarray:
-        """Stationary covariance of (f, df/dy) of one column per unit sigma^2."""
-        return np.diag([1.0, self._lam**2])
-
-    @cached_property
-    def step_y(self) -> np.ndarray:
-        """exp(A) of the Matern-3/2 SDE matrix A = [[0, 1], [-lam^2, -2 lam]] (one row), 2x2."""
-        lam = self._lam
-        return math.exp(-lam) * np.array([[1.0 + lam, 1.0], [-(lam**2), 1.0 - lam]])
-
-    @cached_property
-    def F(self) -> np.ndarray:  # noqa: N802 (the equations' names)
-        """Row-to-row transition, (N_PLANE + 2 cols) square."""
-        return scipy.linalg.block_diag(np.eye(N_PLANE), np.kron(np.eye(self.cols), self.step_y))
-
-    @cached_property
-    def field_noise_per_um2(self) -> np.ndarray:
-        """Row-to-row process noise of the field states per unit sigma^2, (2 cols) square.
-
-        Stationary minus propagated covariance of (f, df/dy), correlated across x by k(dx).
-        """
-        A, P = self.step_y, self._stationary_y
-        return np.kron(self._column_corr, P - A @ P @ A.T)
-
-    @cached_property
-    def Q(self) -> np.ndarray:  # noqa: N802 (the equations' names)
-        """Row-to-row process noise (um^2), (N_PLANE + 2 cols) square; the plane has none."""
-        return scipy.linalg.block_diag(
-            np.zeros((N_PLANE, N_PLANE)), self.sigma_um**2 * self.field_noise_per_um2
-        )
-
-    def initial(self, offset_sigma_um: float) -> np.ndarray:
-        """Covariance of the first row's state: the plane and the stationary field."""
-        tilt_var = self.tilt_sigma_um_per_tile**2
-        plane = np.diag([offset_sigma_um**2, tilt_var, tilt_var])
-        field = self.sigma_um**2 * np.kron(self._column_corr, self._stationary_y)
-        return scipy.linalg.block_diag(plane, field)
 
 
 #: Members whose posterior probability is below this (normalised) are left out of the
 #: smoothed map (the others' weights renormalised): each member costs a smoother pass, and
 #: a 0.1% share moves the blend by 0.1% of the members' difference.
 SMOOTH_MIN_WEIGHT = 1e-3
-
-#: Column blocks the smoother runs at once (one batch): their row states, rows x blocks x
-#: (N_PLANE + 2 x 32)^2 floats with the default blocks, are what it holds (57 MB at 200 rows).
-SMOOTH_BATCH_BLOCKS = 8
 
 
 class RowBankFilter(SerpentineFilter):
@@ -168,8 +101,10 @@ class RowBankFilter(SerpentineFilter):
       once a row, O(cols) per tile.
 
     The members' states are kept stacked: x (n_members, dim_x) and covariances
-    P (n_members, dim_x, dim_x), dim_x = N_PLANE + 2 cols; `active` holds each
-    row's index into `models`.
+    P (n_members, dim_x, dim_x), dim_x = N_PLANE + 2 cols (`n_surface`), plus the
+    time state's drift and rate where `options` set one (`time_state`: the drift
+    moves on with the scan's clock before each tile's prior, and every measurement
+    sees it); `active` holds each row's index into `models`.
     """
 
     def __init__(
@@ -188,9 +123,23 @@ class RowBankFilter(SerpentineFilter):
             for tilt in bank.tilt_sigmas_um_per_tile
         ]
         self.active = np.arange(len(self.models))  # members still in the bank
-        self.x = np.zeros((len(self.models), N_PLANE + 2 * cols))
+        self.drift = DriftModel.of(options)
+        self._state_s = 0.0  # the time the drift states hold at
+        timed = options if self.drift is not None and isinstance(options, RevisitParams) else None
+        self.revisit_share = timed.revisit_drift_share if timed is not None else 0.0
+        self.revisit_max_tiles = timed.revisit_max_tiles if timed is not None else 0
+        self._revisited_at = -1  # the serpentine position a revisit was last made before
+        self.n_surface = N_PLANE + 2 * cols  # the surface's states; the drift's follow
+        initial = [model.initial(settings.start_sigma_um) for model in self.models]
+        if self.drift is not None:
+            drift_P = self.drift.initial_covariance()
+            initial = [scipy.linalg.block_diag(P, drift_P) for P in initial]
+        self.x = np.zeros((len(self.models), initial[0].shape[0]))
         self.x[:, 0] = settings.start_z_um
-        self.P = np.stack([model.initial(settings.start_sigma_um) for model in self.models])
+        self.P = np.stack(initial)
+        # The drift each tile was finished with (um, 0 before): the smoother's
+        # measurements are of the surface, the drift at their time taken off.
+        self.tile_drift_um = np.zeros(self.grid.shape)
         self.log_weights = np.zeros(len(self.models))  # log posterior model probabilities
         self._row = 0
         # The accepted measurements (um) and their R (um^2), NaN elsewhere: the smoother
@@ -212,16 +161,32 @@ class RowBankFilter(SerpentineFilter):
         A tile's height is the plane at its centre (offset, x-tilt times the
         column's distance from the centre, y-tilt likewise) plus its column's field.
         """
-        indices = np.array([0, 1, 2, N_PLANE + 2 * tile.col])
-        values = np.array(
-            [
-                1.0,
-                tile.col - (self.grid.cols - 1) / 2.0,
-                tile.row - (self.grid.rows - 1) / 2.0,
-                1.0,
-            ]
-        )
-        return indices, values
+        indices = [0, 1, 2, N_PLANE + 2 * tile.col]
+        values = [
+            1.0,
+            tile.col - (self.grid.cols - 1) / 2.0,
+            tile.row - (self.grid.rows - 1) / 2.0,
+            1.0,
+        ]
+        if self.drift is not None:  # and the drift since the scan began
+            indices.append(self.n_surface)
+            values.append(1.0)
+        return np.array(indices), np.array(values)
+
+    def drift_um(self) -> tuple[float, float]:
+        """The drift since the scan began as the bank sees it now: mean (um), variance (um^2);
+        (0, 0) without a time state."""
+        if self.drift is None:
+            return 0.0, 0.0
+        d = self.n_surface
+        mean, var = mixture(self.x[:, d], self.P[:, d, d], self.weights)
+        return float(mean), float(var)
+
+    def _elapse_to(self, t_s: float) -> None:
+        """Move the drift states on to the scan's time `t_s` (no time state: nothing)."""
+        if self.drift is not None:
+            elapse(self.x, self.P, self.drift, self.n_surface, t_s - self._state_s)
+            self._state_s = max(self._state_s, t_s)
 
     def _mixture(self, tile: Tile) -> Gaussian:
         indices, values = self._h(tile)
@@ -235,17 +200,19 @@ class RowBankFilter(SerpentineFilter):
             self._predict_row()
             self._prune()
             self._row = tile.row
+        self._elapse_to(self.clock.arrival_s(self.grid, tile))
         return self._mixture(tile)
 
     def _predict_row(self) -> None:
         """x <- F x, P <- F P F' + Q for every member (`RowModel.F`, `.Q`), in place."""
         A = np.stack([self.models[i].step_y for i in self.active])  # (m, 2, 2)
-        step_rows(self.x[:, :, None], A)
-        step_rows(self.P, A)
-        step_rows(self.P.transpose(0, 2, 1), A)  # F (F P)' = F P F' (P symmetric)
+        n = self.n_surface  # the drift's states do not move from row to row
+        step_rows(self.x[:, :n, None], A)
+        step_rows(self.P[:, :n], A)
+        step_rows(self.P.transpose(0, 2, 1)[:, :n], A)  # F (F P)' = F P F' (P symmetric)
         for m, i in enumerate(self.active):
             model = self.models[i]
-            self.P[m, N_PLANE:, N_PLANE:] += model.sigma_um**2 * model.field_noise_per_um2
+            self.P[m, N_PLANE:n, N_PLANE:n] += model.sigma_um**2 * model.field_noise_per_um2
 
     def _prune(self) -> None:
         keep = self.log_weights >= self.log_weights.max() - self.prune_log_weight
@@ -255,9 +222,15 @@ class RowBankFilter(SerpentineFilter):
 
     def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
         self._n_finished += 1
+        self.tile_drift_um[tile.row, tile.col] = self.drift_um()[0]
         if z_um is None:
             return prior
         self.z_um[tile.row, tile.col], self.R_um2[tile.row, tile.col] = z_um, R_um2
+        self._update(tile, z_um, R_um2)
+        return self._mixture(tile)
+
+    def _update(self, tile: Tile, z_um: float, R_um2: float) -> None:
+        """Every member's Kalman update with `z_um` (variance `R_um2`) measured on `tile`."""
         indices, values = self._h(tile)
         u = np.einsum("i,min->mn", values, self.P[:, indices])  # P h' of each member (m, n)
         s = u[:, indices] @ values + R_um2  # innovation variances
@@ -270,8 +243,13 @@ class RowBankFilter(SerpentineFilter):
         # zero elsewhere (o). With that gain the Joseph form gives P_ww - u_w u_w'/s,
         # P_wo - u_w u_o'/s and P_oo unchanged (docs/spatial.md); where the window spans the
         # row, o is empty and this is the full update. In place on slices: no copies of P.
-        window = (slice(0, N_PLANE), slice(N_PLANE + 2 * lo, N_PLANE + 2 * hi))
-        others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, None))
+        n = self.n_surface  # the drift's states (after n) are in every window
+        window = (
+            slice(0, N_PLANE),
+            slice(N_PLANE + 2 * lo, N_PLANE + 2 * hi),
+            slice(n, n + (N_DRIFT if self.drift is not None else 0)),
+        )
+        others = (slice(N_PLANE, N_PLANE + 2 * lo), slice(N_PLANE + 2 * hi, n))
         # u u' / s as v v' with v = u / sqrt(s): one outer product per row block, and
         # v_i v_j = v_j v_i exactly, so the update adds no asymmetry to P.
         v = u / np.sqrt(s)[:, None]
@@ -283,7 +261,89 @@ class RowBankFilter(SerpentineFilter):
                 self.P[:, o, w] = self.P[:, w, o].transpose(0, 2, 1)
         self.log_weights -= 0.5 * (np.log(2.0 * math.pi * s) + y**2 / s)
         self.log_weights -= self.log_weights.max()
-        return self._mixture(tile)
+
+    # --- revisits: a tile of the row measured again to pin the drift down --------------------
+
+    def _plan(self) -> Acquisition | None:
+        return self._revisit() or super()._plan()
+
+    def _revisit(self) -> Acquisition | None:
+        """A revisit to make before the next tile's own acquisition, None if none.
+
+        Asked once per tile, before its first stack: where the drift holds at least
+        `revisit_share` of the tile's predicted variance, the tile could not be imaged
+        unmeasured at the stated risk (`lean.skip_risk`) but could after the revisit (the
+        variance the revisit's measurement would leave it, `_variance_after`), the
+        measured tile of the row nearest it (within `revisit_max_tiles`) gets a short
+        stack at its predicted focus now. Its surface is known from its own measurement, so the
+        innovation is mostly the drift since: a cleaner measure of it than the new
+        tile's, whose surface is unknown too. Cost-aware: a revisit (a stage move there
+        and back, 3 frames) is made only where it lets the tile, and the tiles after it
+        whose uncertainty is the drift's, be imaged unmeasured.
+        """
+        risk = self.options.risk_out_of_focus
+        position = self._position
+        if not (self.revisit_share and risk) or position in (self._revisited_at, self.grid.n_tiles):
+            return None
+        if self._planes is not None or self._search or self._centre_um is not None:
+            return None
+        tile = self.grid.serpentine[position]
+        prior = self._predict(tile)  # moves the state onto the tile; again in _plan: a no-op
+        dof_um, sigma_scale = self.settings.dof_um, self.options.skip_sigma_scale
+        if self.drift_um()[1] < self.revisit_share * prior.var_um2 or (
+            skip_risk(prior.sigma_um, dof_um, sigma_scale) <= risk
+        ):
+            return None
+        measured = np.flatnonzero(np.isfinite(self.z_um[tile.row]))
+        near = measured[np.abs(measured - tile.col) <= self.revisit_max_tiles]
+        if near.size == 0:
+            return None
+        target = Tile(tile.row, int(near[np.argmin(np.abs(near - tile.col))]))
+        after_um2 = self._variance_after(tile, target, self.expected_r_um2)
+        if skip_risk(math.sqrt(after_um2), dof_um, sigma_scale) > risk:
+            return None
+        self._revisited_at = position
+        self._elapse_to(self.clock.arrival_s(self.grid, target))
+        predicted = self._mixture(target)
+        z = ZRange.centred(predicted.mean_um, SHORT_FRAMES, self.settings.policy.z_step_um)
+        return self._acquisition(
+            target.row,
+            target.col,
+            z,
+            Purpose.REVISIT,
+            measure=True,
+            predicted_um=predicted.mean_um,
+            predicted_sigma_um=predicted.sigma_um,
+        )
+
+    def _variance_after(self, tile: Tile, target: Tile, R_um2: float) -> float:
+        """The variance of `tile`'s prediction (um^2) once `target` is measured (variance
+        `R_um2`): each member's h P h' - (h P g')^2 / (g P g' + R), mixed by weight."""
+        (i, a), (j, b) = self._h(tile), self._h(target)
+        cross = np.einsum("i,mij,j->m", a, self.P[:, i[:, None], j], b)
+        target_var = np.einsum("i,mij,j->m", b, self.P[:, j[:, None], j], b) + R_um2
+        tile_var = np.einsum("i,mij,j->m", a, self.P[:, i[:, None], i], a)
+        means = self.x[:, i] @ a
+        _, var = mixture(means, np.maximum(tile_var - cross**2 / target_var, 0.0), self.weights)
+        return float(var)
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        if acquisition.purpose != Purpose.REVISIT:
+            return super()._take(acquisition, measurement)
+        tile = Tile(acquisition.row, acquisition.col)
+        self.clock.advance(self.grid, tile, acquisition.z.n_frames)
+        outcome = Outcome(
+            tile.row, tile.col, accepted=False, prior_um=acquisition.predicted_um,
+            prior_sigma_um=acquisition.predicted_sigma_um,
+        )  # fmt: skip
+        if measurement.z_um is None or not measurement.is_observation:
+            return outcome  # no peak in 3 frames: the drift is left as it was
+        predicted = self._mixture(tile)
+        R_um2 = self.default_r_um2 if measurement.sigma_um is None else measurement.sigma_um**2
+        innovation_um = measurement.z_um - predicted.mean_um
+        self._update(tile, measurement.z_um, R_um2)
+        nis = innovation_um**2 / (predicted.var_um2 + R_um2)
+        return replace(outcome, accepted=True, innovation_um=innovation_um, nis=nis)
 
     def _smoothed(self) -> tuple[np.ndarray, np.ndarray]:
         """Smoothed heights (um) and variances (um^2) given every measurement so far.
@@ -293,22 +353,26 @@ class RowBankFilter(SerpentineFilter):
         smoother over rows, column block by column block) and the members are
         blended with their current weights, which for fixed models are the
         model probabilities given every measurement (the exact smoothed mixture).
+        With a time state, the smoother reads each measurement less the drift its tile
+        was finished with, and adds that drift back to the tile's smoothed surface (the
+        focus when it was imaged); the drift's own uncertainty is not in the variances.
         """
         weights = self.weights
         kept = weights >= SMOOTH_MIN_WEIGHT
         reached = self._row + 1
+        drift_um = self.tile_drift_um[:reached]
         smoothed = [
             smooth_member(
                 self.models[i],
                 self.settings,
-                self.z_um[:reached],
+                self.z_um[:reached] - drift_um,
                 self.R_um2[:reached],
                 block_cols=self.smooth_block_cols,
                 margin_cols=self.smooth_margin_cols,
             )
             for i in self.active[kept]
         ]
-        means = np.array([mean for mean, _ in smoothed])
+        means = np.array([mean for mean, _ in smoothed]) + drift_um
         variances = np.array([var for _, var in smoothed])
         return mixture(means, variances, weights[kept] / weights[kept].sum())
 
@@ -330,160 +394,6 @@ class RowBankFilter(SerpentineFilter):
             )
             self._smoothed_at = self._n_finished
         return self.map
-
-
-def step_rows(M: np.ndarray, step: np.ndarray) -> None:
-    """M <- F M in place, F = block_diag(I (N_PLANE), `step` for each column's (f, df/dy)):
-    `RowModel.F` applied without forming it.
-
-    `M` (n, N_PLANE + 2 cols, k); `step` (n, 2, 2), one per leading index, or (2, 2).
-    Element-wise on the rows of each column's pair: a batch of 2x2 matrix products
-    (one per column and member) costs many times more.
-    """
-    a, b, c, d = (
-        np.asarray(step)[..., i, j, None, None] for i, j in ((0, 0), (0, 1), (1, 0), (1, 1))
-    )
-    f, g = M[:, N_PLANE::2], M[:, N_PLANE + 1 :: 2]
-    f_new = a * f + b * g
-    g *= d
-    g += c * f
-    f[...] = f_new
-
-
-def smooth_member(
-    model: RowModel,
-    settings: SlideSettings,
-    z_um: np.ndarray,
-    R_um2: np.ndarray,
-    *,
-    block_cols: int,
-    margin_cols: int,
-) -> tuple[np.ndarray, np.ndarray]:
-    """One strip model's smoothed heights (um) and variances (um^2) given the measurements.
-
-    `z_um` and `R_um2` (rows reached, cols) hold each measured tile's height and
-    variance, NaN where there is none. The model is filtered and RTS-smoothed
-    over rows (step k is row k, its posterior the state after the row's
-    measurements, which for this model is exactly the Gaussian-process
-    posterior) on column blocks: the tiles of each block of `block_cols`
-    columns are read from a strip filter over a window of `block_cols` + 2
-    `margin_cols` columns around it (shifted inward at the slide's edges, so
-    every window has the same width). A block's margins stand in for the
-    columns beyond, whose measurements a Matern field a few lengths away barely
-    feels; where one window spans the grid the result is the exact smoother.
-
-    The blocks run `SMOOTH_BATCH_BLOCKS` at a time, as one batch (their windows
-    have the same model and width), so that memory is rows x
-    `SMOOTH_BATCH_BLOCKS` x (N_PLANE + 2 width)^2 floats whatever the slide's
-    width: per row one prediction and one batch update with the row's
-    measurements (the same as the tile-by-tile updates), and the backward pass
-    of Rauch-Tung-Striebel, C_k = P+_k F' (P-_{k+1})^-1, with P-_{k+1} = F P+_k
-    F' + Q recomputed instead of stored. A tile without a measurement has a zero
-    measurement row (and unit R): it then adds nothing to the update, exactly.
-    """
-    rows, cols = z_um.shape
-    width = min(cols, block_cols + 2 * margin_cols)
-    if width == cols:  # one window spans the grid: one block, the exact smoother
-        block_cols = cols
-    starts = np.arange(0, cols, block_cols)
-    los = np.clip(starts - margin_cols, 0, cols - width)  # each window's first column
-    window = RowModel(model.sigma_um, model.length_tiles, model.tilt_sigma_um_per_tile, width)
-    mean_um, var_um2 = np.full((rows, cols), np.nan), np.full((rows, cols), np.nan)
-    for first in range(0, len(starts), SMOOTH_BATCH_BLOCKS):
-        batch = slice(first, first + SMOOTH_BATCH_BLOCKS)
-        _smooth_windows(
-            window, settings, z_um, R_um2, starts[batch], los[batch], block_cols, mean_um, var_um2
-        )
-    return mean_um, var_um2
-
-
-def _smooth_windows(
-    window: RowModel,
-    settings: SlideSettings,
-    z_um: np.ndarray,
-    R_um2: np.ndarray,
-    starts: np.ndarray,
-    los: np.ndarray,
-    block_cols: int,
-    mean_um: np.ndarray,
-    var_um2: np.ndarray,
-) -> None:
-    """`smooth_member` on the blocks starting at columns `starts` (windows from `los`), as one
-    batch; writes each block's smoothed heights (um) and variances (um^2) into the maps."""
-    rows, cols = z_um.shape
-    grid = settings.grid
-    width = window.cols
-    n_blocks, dim = len(starts), N_PLANE + 2 * width
-    columns = los[:, None] + np.arange(width)  # (n_blocks, width) each window's columns
-    # Measurement rows of the windows' tiles: the plane at each tile plus its column's field.
-    H = np.zeros((n_blocks, width, dim))
-    H[:, :, 0] = 1.0
-    H[:, :, 1] = columns - (grid.cols - 1) / 2.0
-    H[:, np.arange(width), N_PLANE + 2 * np.arange(width)] = 1.0
-    Q = window.Q
-
-    def predict(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """F x and F P F' + Q for the batch (copies)."""
-        x, P = x.copy(), P.copy()
-        step_rows(x[:, :, None], window.step_y)
-        step_rows(P, window.step_y)
-        step_rows(P.transpose(0, 2, 1), window.step_y)
-        return x, P + Q
-
-    def rows_h(r: int) -> np.ndarray:
-        H[:, :, 2] = r - (grid.rows - 1) / 2.0
-        return H
-
-    x_prior = np.zeros((rows, n_blocks, dim))
-    x_post, P_post = np.zeros((rows, n_blocks, dim)), np.zeros((rows, n_blocks, dim, dim))
-    x = np.zeros((n_blocks, dim))
-    x[:, 0] = settings.start_z_um
-    P = np.broadcast_to(window.initial(settings.start_sigma_um), (n_blocks, dim, dim)).copy()
-    for r in range(rows):
-        if r:
-            x, P = predict(x, P)
-        x_prior[r] = x
-        z, R = z_um[r, columns], R_um2[r, columns]  # (n_blocks, width)
-        measured = np.isfinite(z)
-        if measured.any():  # the row's tiles at once: the same as one by one
-            Hr = rows_h(r) * measured[:, :, None]
-            HP = Hr @ P
-            S = HP @ Hr.transpose(0, 2, 1)
-            S[:, np.arange(width), np.arange(width)] += np.where(measured, R, 1.0)
-            L = np.linalg.cholesky(S)
-            # np.linalg.solve on the triangular L: scipy's solve_triangular took 18 ms a
-            # call here on a loaded 2-core machine, LAPACK's gesv well under one.
-            B = np.linalg.solve(L, HP)  # L^-1 H P
-            innovation = np.where(measured, z, 0.0) - np.einsum("bwd,bd->bw", Hr, x)
-            e = np.linalg.solve(L, innovation[:, :, None])[:, :, 0]
-            x = x + np.einsum("bwd,bw->bd", B, e)
-            P = P - B.transpose(0, 2, 1) @ B
-            P = (P + P.transpose(0, 2, 1)) / 2.0
-        x_post[r], P_post[r] = x, P
-
-    # Each block's own columns within its window.
-    core = [
-        slice(s - lo, min(cols, s + block_cols) - lo) for s, lo in zip(starts, los, strict=True)
-    ]
-
-    def read(r: int, xs: np.ndarray, Ps: np.ndarray) -> None:
-        Hs = rows_h(r)
-        means = np.einsum("bwd,bd->bw", Hs, xs)
-        variances = np.sum((Hs @ Ps) * Hs, axis=-1)
-        for b, own in enumerate(core):
-            mean_um[r, los[b] + own.start : los[b] + own.stop] = means[b, own]
-            var_um2[r, los[b] + own.start : los[b] + own.stop] = variances[b, own]
-
-    xs, Ps = x_post[-1], P_post[-1]
-    read(rows - 1, xs, Ps)
-    for k in range(rows - 2, -1, -1):
-        x_next, P_next = predict(x_post[k], P_post[k])  # row k+1's prior
-        FP = P_post[k].copy()
-        step_rows(FP, window.step_y)  # F P+_k
-        C = np.linalg.solve(P_next, FP).transpose(0, 2, 1)  # P+_k F' (P-_{k+1})^-1
-        xs = x_post[k] + np.einsum("bij,bj->bi", C, xs - x_next)
-        Ps = P_post[k] + C @ (Ps - P_next) @ C.transpose(0, 2, 1)
-        read(k, xs, Ps)
 
 
 # --- kf-2d's parameters, factory and cost model ---------------------------------------------
@@ -526,8 +436,9 @@ class RowBankParams(StrategyParams):
     )
 
 
-class Kf2dParams(RowBankParams, RetryParams):
-    """kf-2d: the strip-filter bank, learning the slide's field and tilt (docs/spatial.md)."""
+class Kf2dParams(RowBankParams, RetryParams, RevisitParams):
+    """kf-2d: the strip-filter bank, learning the slide's field and tilt (docs/spatial.md),
+    and with a time state the instrument's drift (`time_state`)."""
 
 
 def kf_2d(settings: SlideSettings, params: Kf2dParams) -> RowBankFilter:

@@ -9,9 +9,9 @@ from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
-from focustrack_estimator import registry, spatial
+from focustrack_estimator import registry, row_model
 from focustrack_estimator.replay import replay, simulated_measurement
-from focustrack_estimator.spatial import RowModel, matern32, smooth_member
+from focustrack_estimator.row_model import RowModel, matern32, smooth_member
 
 NOISE_UM = 1.5
 
@@ -138,7 +138,7 @@ def test_the_smoother_gives_the_same_map_whatever_the_batch_of_blocks(
     z_um = _measured(generate_surfaces(SurfaceSpec(rows=rows, cols=cols), 1, seed=6)[0], seed=6)
     R_um2 = np.full(z_um.shape, NOISE_UM**2)
     batched = smooth_member(model, settings, z_um, R_um2, block_cols=4, margin_cols=4)
-    monkeypatch.setattr(spatial, "SMOOTH_BATCH_BLOCKS", 1)
+    monkeypatch.setattr(row_model, "SMOOTH_BATCH_BLOCKS", 1)
     one_by_one = smooth_member(model, settings, z_um, R_um2, block_cols=4, margin_cols=4)
     for got, expected in zip(batched, one_by_one, strict=True):
         assert np.isfinite(got).all()

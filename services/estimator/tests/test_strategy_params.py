@@ -37,19 +37,28 @@ LOOP = {
     "adapt_r": False,
     "sqrt": False,
 }
+TIME = {  # the time state, off by default
+    "drift_walk_um2_per_s": 0.0,
+    "drift_rate_sigma_um_per_s": 0.0,
+    "drift_settle_tau_s": 200.0,
+    "drift_rate_q_um2_per_s3": 0.0,
+}
+REVISITS = {**TIME, "revisit_drift_share": 0.0, "revisit_max_tiles": 3}  # kf-2d's family
 DEFAULTS: dict[str, dict[str, Any]] = {
-    "kf-wiener0": {**LOOP, "q": 0.14},
-    "kf-wiener1": {**LOOP, "q": 1e-8, "q_height_um2": 0.2, "slope_sigma_um_per_tile": 0.5},
+    "kf-wiener0": {**LOOP, **TIME, "q": 0.14},
+    "kf-wiener1": {**LOOP, **TIME, "q": 1e-8, "q_height_um2": 0.2, "slope_sigma_um_per_tile": 0.5},
     "kf-wiener2": {
         **LOOP,
+        **TIME,
         "q": 1e-10,
         "q_height_um2": 0.2,
         "slope_sigma_um_per_tile": 0.5,
         "curvature_sigma_um_per_tile2": 0.1,
     },
-    "kf-gm1": {**LOOP, "sigma": 0.7, "beta_per_tile": 8.0, "q_height_um2": 0.01},
+    "kf-gm1": {**LOOP, **TIME, "sigma": 0.7, "beta_per_tile": 8.0, "q_height_um2": 0.01},
     "kf-gm2": {
         **LOOP,
+        **TIME,
         "sigma": 0.01,
         "beta_per_tile": 100.0,
         "q_height_um2": 0.2,
@@ -57,6 +66,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     },
     "kf-wiener1-dir": {
         **LOOP,
+        **TIME,
         "q": 1e-4,
         "q_height_um2": 0.0,
         "slope_sigma_um_per_tile": 0.5,
@@ -73,6 +83,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     },
     "kf-2d": {
         **RETRIES,
+        **REVISITS,
         "sigmas_um": [0.7, 1.4, 2.8],
         "lengths_tiles": [4.0, 8.0, 16.0],
         "tilt_sigmas_um_per_tile": [0.3, 1.5],
@@ -83,7 +94,21 @@ DEFAULTS: dict[str, dict[str, Any]] = {
     },
     "nshp-wiener0": {**RETRIES, "support": 1, "q_um2": 0.5},
     "nshp-wiener1": {**RETRIES, "support": 2, "q_um2": 0.03},
-    "kf-2d-lean": {**RETRIES, **LEAN, "risk_out_of_focus": 0.01, "max_kept_planes": 5},
+    "kf-2d-lean": {
+        **RETRIES,
+        **LEAN,
+        **REVISITS,
+        "risk_out_of_focus": 0.01,
+        "max_kept_planes": 5,
+    },
+    "kf-2d-laser": {
+        **RETRIES,
+        **LEAN,
+        "risk_out_of_focus": 0.01,
+        "max_kept_planes": 5,
+        "laser_sigma_um": 0.05,
+        "laser_reading_s": 0.001,
+    },
     "kf-rescan": {
         **LOOP,
         "risk_out_of_focus": 0.01,

@@ -36,9 +36,9 @@ class Backend(Generic[Options]):
 
 
 def open_simulator(options: SimulatorOptions) -> Instrument:
-    from focustrack_instrument_sim.simulated import SimulatedInstrument, microscope_from_options
+    from focustrack_instrument_sim.simulated import simulated_instrument
 
-    return SimulatedInstrument(microscope_from_options(options))
+    return simulated_instrument(options)
 
 
 def open_mmcore(options: MMCoreOptions) -> Instrument:

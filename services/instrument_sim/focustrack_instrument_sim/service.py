@@ -64,6 +64,7 @@ from focustrack_core.wire.session import (
     ZenohSettings,
 )
 from focustrack_core.wire.trust import MAX_NONCE_BYTES, FrameSigner, frame_signer_of, new_nonce
+from focustrack_instrument_sim import laser
 from focustrack_instrument_sim.backends import BACKENDS, BackendName
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
@@ -80,6 +81,7 @@ from focustrack_instrument_sim.instrument import (
     TargetNotReachedError,
     TruthSource,
 )
+from focustrack_instrument_sim.laser import LaserSensor
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
 from focustrack_instrument_sim.recent import RecentStacks, StackGoneError
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
@@ -199,6 +201,8 @@ class InstrumentService:
         self.realtime = realtime
         self.stop = threading.Event()
         self._acquire_key = keys.acquire_key(name)
+        self._laser_key = keys.laser_key(name)
+        self.laser: LaserSensor | None = getattr(instrument, "laser", None)
         self._pending: queue.Queue[zenoh.Query] = queue.Queue(maxsize=queue_depth)
         self.n_busy = 0  # acquisitions refused because the queue was full
         self._declared: list = []
@@ -223,6 +227,8 @@ class InstrumentService:
                     lambda query: rpc.answer(query, str(query.key_expr), self._truth),
                 )
             )
+        if self.laser is not None:  # its readings queue for the stage, as acquisitions do
+            self._declared.append(self.session.declare_queryable(self._laser_key, self._enqueue))
         if self.phase_truth is not None:
             self._declared.append(
                 self.session.declare_queryable(
@@ -252,7 +258,16 @@ class InstrumentService:
                 query = self._pending.get(timeout=0.1)
             except queue.Empty:
                 continue
-            rpc.answer(query, self._acquire_key, self._acquire)
+            if self.laser is not None and str(query.key_expr) == self._laser_key:
+                rpc.answer(query, self._laser_key, self._read_laser)
+            else:
+                rpc.answer(query, self._acquire_key, self._acquire)
+
+    def _read_laser(self, query: zenoh.Query) -> instrument_pb2.LaserReading:
+        assert self.laser is not None  # declared only then
+        request = rpc.parse_request(query, instrument_pb2.LaserRequest)
+        with replies_for_instrument_errors():
+            return laser.reply(self.name, self.laser, request)
 
     def close(self) -> None:
         for entity in self._declared:

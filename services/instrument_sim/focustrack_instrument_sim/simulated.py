@@ -8,6 +8,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from focustrack_core.drift import ThermalDrift
+from focustrack_core.laser import LaserSpec
 from focustrack_core.surfaces import family_spec
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
@@ -22,6 +24,7 @@ from focustrack_instrument_sim.instrument import (
     TileContents,
     TilePhase,
 )
+from focustrack_instrument_sim.laser import SimulatedLaser
 from focustrack_instrument_sim.microscope import (
     Microscope,
     MicroscopeSpec,
@@ -41,8 +44,9 @@ class SimulatedInstrument:
     frames, simulated timing and refusals, unchanged. Its stage moves (and its clock
     advances) in `plan`."""
 
-    def __init__(self, scope: Microscope) -> None:
+    def __init__(self, scope: Microscope, laser: SimulatedLaser | None = None) -> None:
         self.microscope = scope
+        self.laser = laser  # the reflection autofocus, where it has one
 
     def describe(self) -> Description:
         spec = self.microscope.spec
@@ -125,7 +129,7 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
         slides = [replace(slide, focus_um=slide.focus_um + options.z_offset_um) for slide in slides]
     spec = MicroscopeSpec(
         optics=Optics(numerical_aperture=options.na, magnification=options.magnification),
-        stage=StageSpec(drift_um_per_s=options.drift_um_per_s),
+        stage=StageSpec(drift_um_per_s=options.drift_um_per_s, thermal=thermal_drift(options)),
         specimen=SpecimenSpec(dust_density=options.dust_density),
         specimen_kind=options.specimen,
         illumination=Illumination(condenser_na=options.condenser_na),
@@ -136,3 +140,28 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
         workers=options.workers,
     )
     return Microscope(slides, spec, seed=options.seed)
+
+
+def thermal_drift(options: SimulatorOptions) -> ThermalDrift | None:
+    """The settling and random walk of the options' z drift (per seed), None if neither."""
+    if not (options.drift_settle_um or options.drift_walk_um_per_sqrt_min):
+        return None
+    return ThermalDrift(
+        settle_um=options.drift_settle_um,
+        settle_tau_s=options.drift_settle_tau_s,
+        walk_um_per_sqrt_min=options.drift_walk_um_per_sqrt_min,
+        seed=options.seed,
+    )
+
+
+def simulated_instrument(options: SimulatorOptions) -> SimulatedInstrument:
+    """The microscope of the options, with its laser autofocus where `--laser` asks."""
+    scope = microscope_from_options(options)
+    if not options.laser:
+        return SimulatedInstrument(scope)
+    spec = LaserSpec(
+        noise_um=options.laser_noise_um,
+        offset_um=options.laser_offset_um,
+        offset_sigma_um=options.laser_offset_sigma_um,
+    )
+    return SimulatedInstrument(scope, SimulatedLaser(scope, spec, options.seed))

@@ -90,7 +90,28 @@ class SimulatorOptions(BaseModel):
     )
     magnification: float = Field(60.0, description="magnification of the objective")
     drift_um_per_s: float = Field(0.0, description="thermal z drift, um/s")
+    drift_settle_um: float = Field(
+        0.0, description="warm-up settling of the z drift after start, um (exponential)"
+    )
+    drift_settle_tau_s: float = Field(
+        200.0, gt=0, description="time constant of the warm-up settling, s"
+    )
+    drift_walk_um_per_sqrt_min: float = Field(
+        0.0, ge=0, description="random walk of the z drift: its std after one minute, um"
+    )
     dust_density: float = Field(0.0, ge=0, description="dust specks per 1000 um^2 (0: none)")
+    laser: bool = Field(
+        False,
+        description="a reflection (laser) autofocus: the coverslip's height under a tile, "
+        "queried on focustrack/v1/instrument/{name}/laser",
+    )
+    laser_noise_um: float = Field(0.05, ge=0, description="the laser reading's noise (std), um")
+    laser_offset_um: float = Field(
+        4.0, description="the tissue's focus above the coverslip interface, mean, um"
+    )
+    laser_offset_sigma_um: float = Field(
+        0.4, ge=0, description="the spatial std of that offset (smooth over 10 tiles), um"
+    )
 
 
 def default(option: str) -> Any:

@@ -14,6 +14,7 @@ from typing import TypeVar
 
 import numpy as np
 
+from focustrack_core.drift import ThermalDrift
 from focustrack_core.timing import TimingModel
 from focustrack_instrument_sim.instrument import StackTiming
 from focustrack_instrument_sim.simulator_options import default
@@ -32,6 +33,8 @@ class StageSpec:
     # slow thermal z drift: focus moves by this much per second
     drift_um_per_s: float = default("drift_um_per_s")
     timing: TimingModel = field(default_factory=TimingModel)
+    # warm-up settling and a random walk on top (`focustrack_core.drift`); None: neither
+    thermal: ThermalDrift | None = None
 
     def __post_init__(self) -> None:
         for name in ("x_range_um", "y_range_um", "z_range_um"):
@@ -51,7 +54,12 @@ class Stage:
 
     def drift_um(self, clock_s: Clock) -> Clock:
         """z drift of the focus at simulated time(s) `clock_s` (a float, or an array of them)."""
-        return self.spec.drift_um_per_s * clock_s
+        thermal = self.spec.thermal
+        if thermal is None:
+            return self.spec.drift_um_per_s * clock_s
+        if isinstance(clock_s, np.ndarray):
+            return self.spec.drift_um_per_s * clock_s + thermal.array(clock_s)
+        return self.spec.drift_um_per_s * clock_s + thermal.at(clock_s)
 
     def acquire(
         self, x_um: float, y_um: float, n_frames: int, exposure_s: float

@@ -179,7 +179,9 @@ OPTIONS = [
     "slides", "rows", "cols", "family", "map", "pitch-um", "z-offset-um", "width", "height",
     "max-frames", "workers", "cache-mb", "na", "magnification", "drift-um-per-s",
     "dust-density", "realtime", "keep-frames-mb", "frame-part-kb", "queue-depth", "serve-truth",
-    "specimen", "condenser-na",
+    "specimen", "condenser-na", "drift-settle-um", "drift-settle-tau-s",
+    "drift-walk-um-per-sqrt-min", "laser", "laser-noise-um", "laser-offset-um",
+    "laser-offset-sigma-um",
 ]  # fmt: skip
 
 

@@ -44,7 +44,7 @@ import numpy as np
 import tenacity
 
 from focustrack_client import EstimatorClient, EstimatorError
-from focustrack_core.domain import Acquisition, Outcome
+from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc
@@ -56,6 +56,7 @@ from focustrack_scheduler.clients import (
     phase_request,
 )
 from focustrack_scheduler.in_focus import InFocusScore
+from focustrack_scheduler.laser import read_laser
 from focustrack_scheduler.outputs import WallTimes
 from focustrack_scheduler.plan import (
     Acquire,
@@ -69,6 +70,7 @@ from focustrack_scheduler.plan import (
     KeepTile,
     Plan,
     PostMeasurement,
+    ReadLaser,
     SlideGeometry,
     execute,
     prior_upload,
@@ -204,6 +206,7 @@ class Engine:
             KeepTile: self._keep,
             KeepPlanes: self._keep_planes,
             AcquirePhase: self._acquire_phase,
+            ReadLaser: self._read_laser,
         }
 
     def run(self, plan: Plan) -> str:
@@ -280,6 +283,17 @@ class Engine:
         self.wall.rendering_s += published_s - sent_s
         self.wall.transport_s += replied_s - published_s
         return tuple(reply.header.z_um)
+
+    def _read_laser(self, step: ReadLaser) -> Measurement:
+        acquisition = step.acquisition
+        what = f"the laser reading of tile ({acquisition.row}, {acquisition.col})"
+        measurement, seconds = self._instrument_call(
+            what,
+            keys.laser_key(self.instrument.name),
+            lambda: read_laser(self.instrument, step.slide, acquisition),
+        )
+        self.record.acquired(acquisition, 0, seconds)  # stage time, no image
+        return measurement
 
     def _await_focus(self, step: AwaitFocus) -> Any:
         acquisition = step.acquisition

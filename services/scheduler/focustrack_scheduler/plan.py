@@ -23,7 +23,10 @@ The loop (docs/scheduler.md):
    the posterior: that frame is the tile's image (the strategy's `z_used_um`);
    where the outcome names several frames to keep (`planes_um`: one frame is too
    unsure to be in focus), `KeepPlanes` keeps them all beside it. The frames they
-   need come first, as an image-only acquisition of purpose `planes`.
+   need come first, as an image-only acquisition of purpose `planes`. A revisit
+   (purpose `revisit`: a measured tile again, for the drift in time) is acquired,
+   measured and posted, and the tile keeps its image; a laser reading (purpose `laser`)
+   is `ReadLaser`, posted as the acquisition's measurement.
 
 With `ScanRequest.phase` (``focustrack scan --phase``), once a tile's image is final
 (`KeepTile` at the posterior), `AcquirePhase` takes a short phase stack of the tile
@@ -185,6 +188,15 @@ class PostMeasurement:
 
 
 @dataclass(frozen=True)
+class ReadLaser:
+    """-> the Measurement of a laser reading (purpose laser) of `acquisition`'s tile of
+    `slide`: the coverslip's height with the sensor's sigma (`laser.read_laser`)."""
+
+    slide: str
+    acquisition: Acquisition
+
+
+@dataclass(frozen=True)
 class Frame:
     """One acquired frame of the tile being scanned."""
 
@@ -238,6 +250,7 @@ Step = (
     | KeepTile
     | KeepPlanes
     | AcquirePhase
+    | ReadLaser
 )
 Plan = Generator[Step, Any, str]
 
@@ -348,6 +361,14 @@ def scan_plan(request: ScanRequest) -> Plan:
     frames: list[Frame] = []  # every frame acquired on `tile` so far
     phased: set[int] = set()  # the tiles (row-major index) whose phase stack was taken
     while (acquisition := (yield AskNext(slide_id))) is not None:
+        if acquisition.purpose is Purpose.REVISIT:  # a measured tile again, for the drift:
+            measurement, _ = yield from _acquire_and_measure(request, acquisition)
+            yield PostMeasurement(slide_id, acquisition, measurement)  # its image stays
+            continue
+        if acquisition.purpose is Purpose.LASER:  # a reading of the coverslip: no frame
+            reading = yield ReadLaser(request.slide, acquisition)
+            yield PostMeasurement(slide_id, acquisition, reading)
+            continue
         if (acquisition.row, acquisition.col) != tile:
             tile, frames = (acquisition.row, acquisition.col), []
         measurement, z_um = yield from _acquire_and_measure(request, acquisition)

@@ -418,3 +418,37 @@ def test_bad_requests_are_refused_before_any_step() -> None:
         DEFAULTS.request("no/slash", "slide-0", "kf-wiener0")
     with pytest.raises(ValueError, match="focus_attempts"):
         replace(REQUEST, focus_attempts=0)
+
+
+def test_a_revisit_is_measured_and_posted_and_leaves_the_tiles_image() -> None:
+    a = acquisition(0, 0, 0, low_um=-1.0)
+    b = acquisition(1, 0, 1, low_um=-1.0)
+    revisit = replace(acquisition(2, 0, 0, low_um=2.0, n=3), purpose=Purpose.REVISIT)
+    c = acquisition(3, 1, 1, low_um=-1.0)
+    nexts = iter([a, b, revisit, c, None])
+    posted: list[Acquisition] = []
+
+    def answer(step: Step) -> Any:
+        match step:
+            case DescribeSlide():
+                return GEOMETRY
+            case CreateOrResumeSlide():
+                return "s"
+            case AskNext():
+                return next(nexts)
+            case Acquire():
+                return tuple(step.acquisition.z.z_um())
+            case AwaitFocus():
+                return focus(step.acquisition, step.acquisition.z.center_um)
+            case PostMeasurement():
+                acq = step.acquisition
+                posted.append(acq)
+                if acq.purpose is Purpose.REVISIT:
+                    assert step.measurement.z_um == pytest.approx(2.5)
+                    return Outcome(acq.row, acq.col, accepted=True, innovation_um=0.1)
+                return Outcome(acq.row, acq.col, accepted=True, posterior_um=0.0)
+
+    steps, _ = drive(REQUEST, answer)
+    assert [acq.index for acq in posted] == [0, 1, 2, 3]
+    kept = [(s.row, s.col, s.sequence) for s in steps if isinstance(s, KeepTile)]
+    assert kept == [(0, 0, 0), (0, 1, 1), (1, 1, 3)]  # tile (0, 0) keeps its first image

@@ -1,0 +1,366 @@
+"""`focustrack bench drift`: focus that moves in time while a slide is scanned.
+
+Scenario `thermal`: generated maps of `--size` x `--size` tiles scanned once while the
+instrument warms up (`focustrack_core.drift.ThermalDrift`: settling of `--settle-um`
+with time constant `--settle-tau-s`, then a random walk of `--walk-um-per-sqrt-min`,
+drawn per map), by `kf-2d-lean` as served (no time state), with the time state
+(`focustrack_estimator.time_state`) and with it and revisits.
+
+Scenario `laser`: the same maps and drift, with a reflection autofocus
+(`focustrack_core.laser`: the coverslip read with `--laser-noise-um`, the tissue an
+offset of 4 +/- 0.4 um from it, smooth over 10 tiles, drawn per map), scanned by
+`kf-2d-laser` (a reading per tile, the offset learned, a stack only where the risk rule
+asks).
+
+Scenario `second pass`: each map scanned again after its first pass (`kf-2d-lean` with
+the time state; its smoothed map is the prior), the slide
+moved by `--axial-offset-um` in z and `--lateral-offset-um` in a random direction in x
+and y, the walk going on. z: `kf-rescan` with that prior (offset and rate estimated,
+`RESCAN_PARAMS`).
+x, y: the first `--lateral-tiles` tiles of the second pass are phase-correlated with the
+first pass's (`focustrack_scheduler.lateral.pass_offset`, bounded), on a synthetic
+textured specimen (smoothed noise, 256 x 256 px of 0.108 um, camera noise): the error of
+the estimated offset, px (`lateral_error_px`).
+
+Part `ekf` (`focustrack.bench.stream_ekf`): best focus from a stream of raw metric
+samples, the focus service's EKF on the curve model against today's linear fit, on the
+same samples: frames per tile and error, on simulator-shaped and real curves.
+
+Scans are replayed in
+process (`focustrack_estimator.replay`): every acquisition's time is the timing
+model's, as the simulator's clock counts it, and a stack sees the map plus the drift
+at that time; a tile is scored on its height when it was imaged.
+
+Per scenario and strategy: `in_focus_fraction`, `frames_per_tile`, `time_over_limit`
+(scan time over the stage moves plus one frame per tile) and `revisits` per map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from focustrack.bench import strategies as registry
+from focustrack.bench import stream_ekf
+from focustrack.bench.focus import REAL_DIR
+from focustrack_core.domain import SlideSettings
+from focustrack_core.drift import ThermalDrift
+from focustrack_core.geometry import ScanGrid
+from focustrack_core.laser import LaserSpec, coverslip_offsets
+from focustrack_core.rest.to_domain import default_settings
+from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
+from focustrack_estimator.replay import Replay, ReplayLaser, replay, score
+from focustrack_estimator.spatial import RowBankFilter
+from focustrack_estimator.strategy import Strategy
+
+#: The time state the benchmark gives a strategy: the walk as simulated, a rate prior of
+#: twice the simulated settling's start (2 um / 200 s), and a settling time constant
+#: deliberately not the simulator's (300 s against 200 s): the estimator does not know it.
+TIME_STATE: dict[str, Any] = {
+    "drift_walk_um2_per_s": 0.0015,
+    "drift_rate_sigma_um_per_s": 0.02,
+    "drift_settle_tau_s": 300.0,
+}
+
+#: The strategies of the thermal scenario: label -> (served strategy, parameters).
+THERMAL: dict[str, tuple[str, dict[str, Any]]] = {
+    "kf-2d-lean": ("kf-2d-lean", {}),
+    "kf-2d-lean +time": ("kf-2d-lean", TIME_STATE),
+    "kf-2d-lean +time +revisits": ("kf-2d-lean", {**TIME_STATE, "revisit_drift_share": 0.3}),
+}
+
+#: The strategies of the laser scenario.
+LASER: dict[str, tuple[str, dict[str, Any]]] = {"kf-2d-laser": ("kf-2d-laser", {})}
+
+
+@dataclass(frozen=True)
+class DriftMap:
+    """One map of a scenario: its truth and measurements (rows, cols) um, its drift and laser."""
+
+    truth_um: np.ndarray
+    measured_um: np.ndarray
+    drift: ThermalDrift
+    laser: ReplayLaser | None = None
+
+
+@dataclass(frozen=True)
+class DriftScore:
+    """One strategy in one scenario, over its maps."""
+
+    in_focus_fraction: float
+    frames_per_tile: float
+    time_over_limit: float
+    revisits: float  # per map
+    post_mae_um: float
+    lateral_error_px: float | None = None  # the second pass: the largest over the maps
+
+
+def drift_score(runs: list[Replay], dof_um: float) -> DriftScore:
+    s = score(runs, dof_um)
+    return DriftScore(
+        in_focus_fraction=s.in_focus_fraction,
+        frames_per_tile=s.images_per_tile,
+        time_over_limit=s.scan_time_s / s.limit_time_s,
+        revisits=float(np.mean([r.n_revisits for r in runs])),
+        post_mae_um=s.post_mae_um,
+    )
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--family", default="standard", choices=sorted(FAMILIES))
+    parser.add_argument("--maps", type=int, default=4, help="number of maps (default 4)")
+    parser.add_argument("--size", type=int, default=50, help="tiles per side (default 50)")
+    parser.add_argument("--seed", type=int, default=3000, help="seed (default 3000)")
+    parser.add_argument("--noise-um", type=float, default=0.1, help="measurement noise (0.1)")
+    parser.add_argument("--dof-um", type=float, default=0.89, help="depth of field (0.89)")
+    parser.add_argument("--settle-um", type=float, default=2.0, help="drift settling (2 um)")
+    parser.add_argument(
+        "--settle-tau-s", type=float, default=200.0, help="settling time constant (200 s)"
+    )
+    parser.add_argument(
+        "--walk-um-per-sqrt-min", type=float, default=0.3, help="random walk (0.3 um/sqrt min)"
+    )
+    parser.add_argument(
+        "--laser-noise-um", type=float, default=0.05, help="laser reading noise (0.05 um)"
+    )
+    parser.add_argument(
+        "--axial-offset-um", type=float, default=12.0, help="second pass: z offset (12 um)"
+    )
+    parser.add_argument(
+        "--lateral-offset-um", type=float, default=5.0, help="second pass: xy offset (5 um)"
+    )
+    parser.add_argument(
+        "--lateral-tiles", type=int, default=8, help="second pass: tiles correlated (8)"
+    )
+    parser.add_argument(
+        "--ekf-trials", type=int, default=200, help="EKF: simulator-shaped streams (200)"
+    )
+    parser.add_argument(
+        "--real-dir", type=Path, default=REAL_DIR, help="EKF: the shared real data's folder"
+    )
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
+
+
+def _run_scenario(
+    name: str,
+    strategies: dict[str, tuple[str, dict[str, Any]]],
+    settings: SlideSettings,
+    maps: list[DriftMap],
+    dof_um: float,
+    inspect: Callable[[str, Strategy, Replay], None] | None = None,
+) -> dict[str, DriftScore]:
+    scores = {}
+    for label, (strategy_name, params) in strategies.items():
+        runs = []
+        for m in maps:
+            strategy = registry.create(strategy_name, settings, params)
+            run = replay(strategy, m.truth_um, m.measured_um, drift=m.drift, laser=m.laser)
+            if inspect is not None:
+                inspect(label, strategy, run)
+            runs.append(run)
+        scores[label] = drift_score(runs, dof_um)
+        print(f"  {name}: {label} done", flush=True)
+    return scores
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.maps < 1 or args.size < 2 or not (args.noise_um > 0 and args.dof_um > 0):
+        print("focustrack bench drift: error: bad sizes, noise or depth of field", file=sys.stderr)
+        return 2
+    size = args.size
+    grid = ScanGrid(size, size)
+    settings = default_settings(grid, dof_um=args.dof_um, noise_sigma_um=args.noise_um)
+    truth_um = generate_surfaces(family_spec(args.family, size, size), args.maps, args.seed)
+    measured_um = add_measurement_noise(truth_um, args.noise_um, args.seed)
+    drifts = [
+        ThermalDrift(args.settle_um, args.settle_tau_s, args.walk_um_per_sqrt_min, args.seed + i)
+        for i in range(args.maps)
+    ]
+    maps = [DriftMap(*m) for m in zip(truth_um, measured_um, drifts, strict=True)]
+    spec = LaserSpec(noise_um=args.laser_noise_um)
+    lasers = [
+        ReplayLaser(coverslip_offsets(grid.shape, args.seed + i, spec), spec)
+        for i in range(args.maps)
+    ]
+    laser_maps = [replace(m, laser=laser) for m, laser in zip(maps, lasers, strict=True)]
+    traces: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def trace(label: str, strategy: Strategy, run_: Replay) -> None:
+        """The first map's true drift and the estimate at each tile, in serpentine order."""
+        if label in traces or not isinstance(strategy, RowBankFilter) or strategy.drift is None:
+            return
+        tile_drift = strategy.tile_drift_um
+        order = [(t.row, t.col) for t in grid.serpentine]
+        true_um = np.array([run_.truth_um[rc] - maps[0].truth_um[rc] for rc in order])
+        traces[label] = (true_um, np.array([tile_drift[rc] for rc in order]))
+
+    title = (
+        f"{args.family}: {args.maps} maps of {size}x{size}, seed {args.seed}; noise "
+        f"{args.noise_um} um, depth of field {args.dof_um} um; thermal drift: settling "
+        f"{args.settle_um} um (tau {args.settle_tau_s:g} s), random walk "
+        f"{args.walk_um_per_sqrt_min} um/sqrt(min)"
+    )
+    print(title, flush=True)
+    results = {
+        "thermal": _run_scenario("thermal", THERMAL, settings, maps, args.dof_um, trace),
+        "laser": _run_scenario("laser", LASER, settings, laser_maps, args.dof_um),
+        "second pass": {RESCAN: second_pass(args, settings, maps)},
+    }
+    print(format_scores(results))
+    streams = stream_ekf.compare(
+        args.seed, args.real_dir, n_sim=args.ekf_trials, per_field=args.ekf_trials // 20
+    )
+    print(format_streams(streams))
+    if args.json is not None:
+        report = {
+            "title": title,
+            "scenarios": {
+                scenario: {label: asdict(s) for label, s in scores.items()}
+                for scenario, scores in results.items()
+            },
+            "ekf": {
+                source: {name: asdict(s) for name, s in scores.items()}
+                for source, scores in streams.items()
+            },
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        figure = args.json.with_suffix(".png")
+        plot_traces(traces, figure)
+        print(f"wrote {args.json} and {figure}")
+    return 0
+
+
+def format_scores(results: dict[str, dict[str, DriftScore]]) -> str:
+    """One row per scenario and strategy."""
+    header = (
+        f"{'scenario, strategy':<40}{'in focus':>10}{'frames/tile':>13}{'time/limit':>12}"
+        f"{'revisits':>10}{'post MAE':>10}{'lateral px':>12}"
+    )
+    lines = [header, "-" * len(header)]
+    for scenario, scores in results.items():
+        for label, s in scores.items():
+            lines.append(
+                f"{scenario + ': ' + label:<40}{s.in_focus_fraction:>10.2%}"
+                f"{s.frames_per_tile:>13.2f}{s.time_over_limit:>12.2f}{s.revisits:>10.1f}"
+                f"{s.post_mae_um:>10.3f}"
+                + ("" if s.lateral_error_px is None else f"{s.lateral_error_px:>12.2f}")
+            )
+    return "\n".join(lines)
+
+
+def format_streams(streams: dict[str, dict[str, stream_ekf.StreamScore]]) -> str:
+    """One row per source and reading of the EKF comparison."""
+    header = f"{'raw samples: source, reading':<48}{'frames':>8}{'MAE um':>9}{'max um':>9}"
+    lines = [header, "-" * len(header)]
+    for source, scores in streams.items():
+        for name, s in scores.items():
+            lines.append(
+                f"{source + ': ' + name:<48}{s.frames_per_tile:>8.2f}{s.mae_um:>9.3f}"
+                f"{s.max_error_um:>9.2f}"
+            )
+    return "\n".join(lines)
+
+
+def plot_traces(traces: dict[str, tuple[np.ndarray, np.ndarray]], path: Path) -> None:
+    """The first map's true drift against each strategy's estimate, tile by tile."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for i, (label, (true_um, estimate_um)) in enumerate(traces.items()):
+        if i == 0:
+            ax.plot(true_um, color="black", lw=1.5, label="true drift")
+        ax.plot(estimate_um, lw=1, label=f"{label}: estimate")
+    ax.set_xlabel("tile (serpentine order)")
+    ax.set_ylabel("drift since the scan began, um")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+RESCAN = "kf-rescan"
+
+#: kf-rescan's parameters in the second pass. Its prior map is the first pass's smoothed
+#: map, which holds the first pass's drift at each tile and the time state's errors in
+#: tracking it: a pattern along the serpentine, so along the second pass's time too, that
+#: a faster-wandering drift rate absorbs (1e-4 um^2/s^3 against the default 1e-6); and a
+#: stated risk of 0.2%, so that the few tiles such a pattern still moves are measured.
+RESCAN_PARAMS: dict[str, Any] = {"rate_q_um2_per_s3": 1e-4, "risk_out_of_focus": 0.002}
+
+#: Camera pixel of the simulated 60x objective, um (`focustrack_instrument_sim.optics.Optics`).
+PIXEL_UM = 0.108
+
+#: Side of the synthetic tiles correlated for the lateral offset, px.
+TILE_PX = 256
+
+
+@dataclass(frozen=True)
+class Offset:
+    """A drift moved by `offset_um`: the second pass's axial offset on top of the walk."""
+
+    base: ThermalDrift
+    offset_um: float
+
+    def at(self, t_s: float) -> float:
+        return self.offset_um + self.base.at(t_s)
+
+
+def second_pass(
+    args: argparse.Namespace, settings: SlideSettings, maps: list[DriftMap]
+) -> DriftScore:
+    """The second-pass scenario (module docstring): kf-rescan's scores, and the largest
+    error of the lateral offset over the maps."""
+    from scipy import ndimage
+
+    from focustrack_scheduler.lateral import pass_offset
+
+    runs, errors_px = [], []
+    max_shift_px = 2 * args.lateral_offset_um / PIXEL_UM
+    for i, m in enumerate(maps):
+        first = registry.create("kf-2d-lean", settings, TIME_STATE)
+        run_1 = replay(first, m.truth_um, m.measured_um, drift=m.drift)
+        smoothed = run_1.focus_map.smoothed_um
+        smoothed_sigma = run_1.focus_map.smoothed_sigma_um
+        assert smoothed is not None and smoothed_sigma is not None
+        params = {
+            **RESCAN_PARAMS,
+            "prior_map_um": smoothed.ravel().tolist(),
+            "prior_map_sigma_um": smoothed_sigma.ravel().tolist(),
+        }
+        walk = ThermalDrift(
+            walk_um_per_sqrt_min=m.drift.walk_um_per_sqrt_min, seed=m.drift.seed + 100
+        )
+        drift = Offset(walk, args.axial_offset_um + m.drift.at(run_1.scan_time_s))
+        rescan = registry.create(RESCAN, settings, params)
+        runs.append(replay(rescan, m.truth_um, m.measured_um, drift=drift))
+        # x, y: a textured specimen, its first-pass tiles and the second pass's, shifted
+        rng = np.random.default_rng([args.seed, i, 17])
+        angle = rng.uniform(0, 2 * np.pi)
+        shift_px = args.lateral_offset_um / PIXEL_UM * np.array([np.sin(angle), np.cos(angle)])
+        side = TILE_PX * (args.lateral_tiles + 1)
+        specimen = ndimage.gaussian_filter(rng.standard_normal((TILE_PX * 3, side)), 2.0)
+        moved = ndimage.shift(specimen, shift_px, order=3, mode="wrap")
+        pairs = []
+        for k in range(args.lateral_tiles):
+            x0 = TILE_PX // 2 + k * TILE_PX  # a row of tiles, margins in x and y for the wrap
+            window = np.s_[TILE_PX : 2 * TILE_PX, x0 : x0 + TILE_PX]
+            noise = 0.05 * rng.standard_normal((2, TILE_PX, TILE_PX))
+            pairs.append((specimen[window] + noise[0], moved[window] + noise[1]))
+        estimate = pass_offset(pairs, max_shift_px)
+        assert estimate is not None
+        errors_px.append(
+            float(np.hypot(estimate.dy_px - shift_px[0], estimate.dx_px - shift_px[1]))
+        )
+        print(f"  second pass: map {i} done", flush=True)
+    return replace(drift_score(runs, args.dof_um), lateral_error_px=max(errors_px))

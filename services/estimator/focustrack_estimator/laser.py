@@ -1,0 +1,132 @@
+"""`kf-2d-laser`: a reflection (laser) autofocus fused with the image measurements.
+
+A laser autofocus reads the coverslip interface in about a millisecond
+(`focustrack_core.laser`); the tissue's focal plane lies an unknown offset from it
+that varies slowly over the slide. So on each tile the strategy first asks for a
+laser reading (purpose `laser`: no image), and models
+
+    focus(r, c, t) = laser(r, c, t) + offset(r, c),
+
+the offset a smooth field learned by `kf-2d`'s strip-filter bank (`RowBankFilter`:
+the offset in place of the surface). The drift needs no time state: the glass moves
+with it, and the reading carries it. A tile's prior is the reading plus the offset's
+prediction, with the variances of both (the reading's sigma, or `laser_sigma_um`);
+the risk rule (`lean.choose_stack`) then images the tile once at that prior where it
+is sure enough, and measures a short stack only where it is not (the first tiles,
+and wherever the offset bends). A measurement z corrects the offset field with
+z - laser (variance R + the reading's) and the tile's focus as a scalar update.
+The smoothed layers are the readings plus the smoothed offsets. Heights in um.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from focustrack_core.domain import (
+    Acquisition,
+    Measurement,
+    Outcome,
+    Purpose,
+    SlideSettings,
+    ZRangePolicy,
+)
+from focustrack_core.geometry import Tile
+from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
+from focustrack_estimator.serpentine import Gaussian, LeanParams, MaxKeptPlanes, RiskOutOfFocus
+from focustrack_estimator.spatial import RowBankFilter, RowBankParams, kf_2d_cost
+from focustrack_estimator.strategy import Cost, StrategyEntry
+
+
+class Kf2dLaserParams(LeanParams):
+    """kf-2d-laser: a laser reading on every tile, the offset to the tissue learned by kf-2d's
+    bank, each tile's frames chosen by the risk rule."""
+
+    risk_out_of_focus: RiskOutOfFocus = DEFAULT_RISK
+    max_kept_planes: MaxKeptPlanes = MAX_KEPT_PLANES
+    laser_sigma_um: float = Field(
+        0.05, gt=0.0, description="Std of a laser reading that comes without its own sigma, um"
+    )
+    laser_reading_s: float = Field(
+        0.001, ge=0.0, description="Time of one laser reading (the scan's clock), s"
+    )
+
+
+class LaserFilter(RowBankFilter):
+    """kf-2d's bank over the offset from the laser's reading to the focus (module docstring)."""
+
+    def __init__(self, settings: SlideSettings, params: Kf2dLaserParams) -> None:
+        super().__init__(settings, RowBankParams(), params, name="kf-2d-laser")
+        self.laser_sigma_um = params.laser_sigma_um
+        self.laser_reading_s = params.laser_reading_s
+        self.laser_um = np.full(self.grid.shape, np.nan)  # each tile's reading
+        self.laser_var_um2 = np.full(self.grid.shape, np.nan)
+        self._read_at = -1  # the serpentine position of the last reading
+        self._last_reading_um = settings.start_z_um
+
+    def _plan(self) -> Acquisition | None:
+        position = self._position
+        if position in (self.grid.n_tiles, self._read_at):  # read: the tile's own stacks
+            return super()._plan()
+        tile = self.grid.serpentine[position]
+        return self._acquisition(
+            tile.row,
+            tile.col,
+            ZRangePolicy.single(self._last_reading_um, self.settings.policy.z_step_um),
+            Purpose.LASER,
+            measure=True,
+        )
+
+    def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:
+        if acquisition.purpose != Purpose.LASER:
+            return super()._take(acquisition, measurement)
+        tile = Tile(acquisition.row, acquisition.col)
+        self.clock.advance_by(self.grid, tile, self.laser_reading_s)
+        self._read_at = self._position
+        if measurement.z_um is None or not measurement.is_observation:
+            return Outcome(tile.row, tile.col, accepted=False)  # no glass seen: images decide
+        sigma_um = measurement.sigma_um or self.laser_sigma_um
+        self.laser_um[tile.row, tile.col] = self._last_reading_um = measurement.z_um
+        self.laser_var_um2[tile.row, tile.col] = sigma_um**2
+        return Outcome(tile.row, tile.col, accepted=True)
+
+    def _reading(self, tile: Tile) -> tuple[float, float]:
+        """The tile's reading and its variance; without one, the last reading, as unsure as
+        the slide's start."""
+        reading_um = self.laser_um[tile.row, tile.col]
+        if math.isnan(reading_um):
+            return self._last_reading_um, self.settings.start_sigma_um**2
+        return float(reading_um), float(self.laser_var_um2[tile.row, tile.col])
+
+    def _predict(self, tile: Tile) -> Gaussian:
+        offset = super()._predict(tile)
+        reading_um, reading_var_um2 = self._reading(tile)
+        return Gaussian(reading_um + offset.mean_um, offset.var_um2 + reading_var_um2)
+
+    def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        reading_um, reading_var_um2 = self._reading(tile)
+        if z_um is None:
+            super()._correct(tile, prior, None, R_um2)
+            return prior
+        super()._correct(tile, prior, z_um - reading_um, R_um2 + reading_var_um2)
+        gain = prior.var_um2 / (prior.var_um2 + R_um2)
+        return Gaussian(prior.mean_um + gain * (z_um - prior.mean_um), (1 - gain) * prior.var_um2)
+
+    def _smoothed(self) -> tuple[np.ndarray, np.ndarray]:
+        mean_um, var_um2 = super()._smoothed()
+        reached = len(mean_um)
+        reading_um, reading_var_um2 = self.laser_um[:reached], self.laser_var_um2[:reached]
+        return mean_um + reading_um, var_um2 + reading_var_um2
+
+
+def kf_2d_laser_cost(settings: SlideSettings, params: Kf2dLaserParams) -> Cost:
+    """kf-2d's at its default bank (the readings: two more floats a tile)."""
+    return kf_2d_cost(settings, RowBankParams())
+
+
+STRATEGIES: dict[str, StrategyEntry[Any]] = {
+    "kf-2d-laser": StrategyEntry(Kf2dLaserParams, LaserFilter, kf_2d_laser_cost),
+}
