@@ -46,26 +46,17 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import closing, contextmanager
-from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 import zenoh
-from pydantic import Field
-from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.settings import command_main
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
-from focustrack_core.wire.session import (
-    ATTEMPT_TIMEOUT_S,
-    DEFAULT_ENDPOINT,
-    BackgroundSession,
-    ZenohSettings,
-)
+from focustrack_core.wire.session import ATTEMPT_TIMEOUT_S, BackgroundSession
 from focustrack_core.wire.trust import MAX_NONCE_BYTES, FrameSigner, frame_signer_of, new_nonce
 from focustrack_instrument_sim import laser
-from focustrack_instrument_sim.backends import BACKENDS, BackendName
+from focustrack_instrument_sim.backends import BACKENDS
 from focustrack_instrument_sim.instrument import (
     AcquisitionRefusedError,
     DeviceError,
@@ -82,18 +73,15 @@ from focustrack_instrument_sim.instrument import (
     TruthSource,
 )
 from focustrack_instrument_sim.laser import LaserSensor
-from focustrack_instrument_sim.mmcore_options import MMCoreOptions
 from focustrack_instrument_sim.recent import RecentStacks, StackGoneError
-from focustrack_instrument_sim.simulator_options import SimulatorOptions
+from focustrack_instrument_sim.settings import (
+    KEEP_FRAMES_MB,
+    QUEUE_DEPTH,
+    InstrumentSettings,
+    InstrumentShellSettings,
+)
 
 log = logging.getLogger(__name__)
-
-#: Acquisitions that may wait for the stage; one more is refused BUSY.
-QUEUE_DEPTH = 4
-
-#: Frames of past stacks kept for queries, MB, besides the last stack (`RecentStacks`):
-#: two stacks of 41 frames of 1024 x 1024 RGB uint16.
-KEEP_FRAMES_MB = 512
 
 #: The error reply of each refusal.
 REFUSAL_CODES = {
@@ -490,62 +478,6 @@ class InstrumentService:
             attachment=header.SerializeToString(),
             encoding=PHASE_TRUTH_ENCODING,
         )
-
-
-class InstrumentShellSettings(ZenohSettings):
-    """The shell's options, whatever the instrument: its name, queue, frames and truth."""
-
-    model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_INSTRUMENT_")
-    default_listen: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)
-
-    name: str = Field("sim", description="instrument name in the key space")
-    backend: BackendName = Field(
-        "sim",
-        description="the instrument served: "
-        + ", ".join(f"{name} ({backend.help})" for name, backend in BACKENDS.items()),
-    )
-    realtime: bool = Field(False, description="pace acquisitions at their simulated duration")
-    keep_frames_mb: float = Field(
-        KEEP_FRAMES_MB,
-        ge=0,
-        description="frames of past stacks kept for the frames queryable, MB, besides the "
-        "last stack",
-    )
-    frame_part_kb: int = Field(
-        codec.FRAME_PART_BYTES // 1024,
-        ge=0,
-        description="frames go over the network in parts of this many KiB, 0: whole (the "
-        "default is the fastest over TCP; see proto/README.md)",
-    )
-    queue_depth: int = Field(
-        QUEUE_DEPTH,
-        ge=1,
-        description="acquisitions that may wait for the stage; more are refused BUSY",
-    )
-    serve_truth: bool = Field(
-        False,
-        description="answer the ground truth (focustrack/v1/eval/truth/..., and the true "
-        "phase: focustrack/v1/eval/phase/...): benchmarks and tests only",
-    )
-    frame_key_file: Path | None = Field(
-        None,
-        description="shared key: tag every frame and stack with its HMAC, for the focus "
-        "service to check (docs/security.md)",
-    )
-
-
-class InstrumentSettings(MMCoreOptions, SimulatorOptions, InstrumentShellSettings):
-    """The service's settings: flags, ``FOCUSTRACK_INSTRUMENT_<OPTION>`` or a settings file.
-
-    The shell's options and every backend's (`backends.BACKENDS`), flat: a backend opens
-    from these settings, which are its options too. A new backend adds its options model
-    to the bases (and a list option of it to `list_fields`, after the shell's).
-    """
-
-    list_fields: ClassVar[tuple[str, ...]] = (
-        *InstrumentShellSettings.list_fields,
-        "mm_adapter_path",
-    )
 
 
 def open_instrument(settings: InstrumentSettings) -> Instrument:
