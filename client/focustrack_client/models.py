@@ -289,6 +289,11 @@ class Diagnostics(BaseModel):
     risk: RiskStats | None = Field(
         None, description="Predicted out-of-focus risk; null before a tile with one is imaged"
     )
+    sigma_scale: float = Field(
+        1.0,
+        description="The slide's factor on the focus service's sigmas, learnt from the "
+        "innovations (1 until they show the sigmas too small; at most 5)",
+    )
 
 
 class Health(BaseModel):

@@ -63,12 +63,13 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
 
 from focustrack_core.domain import FocusFlag
+from focustrack_focus.curve_checks import low_contrast_flat, oversampled_floor_um, phase_valley
 
 #: Std of a normal distribution per unit of its median absolute deviation.
 MAD_TO_SIGMA = 1.4826
@@ -253,10 +254,22 @@ def find_peak(
     floor = settings.min_relative_noise * top
     judged_noise = max(noise if clean else 0.0, floor)
     noise = max(noise, floor)
-    if span <= settings.min_contrast * top or span <= settings.min_snr * judged_noise:
+    contrast_flat = low_contrast_flat(
+        span, top, noise, clean, settings.min_contrast, settings.min_snr
+    )
+    if contrast_flat or span <= settings.min_snr * judged_noise:
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     s = despike(z, s, judged_noise, settings.min_peak_sigma_um)
-    return _read_peaks(z, s, noise, judged_noise, settings, prior)
+    fit = _read_peaks(z, s, noise, judged_noise, settings, prior)
+    valley_z = phase_valley(z, s) if settings.mode is PeakMode.MAX else None
+    if valley_z is None:
+        return fit
+    # an unstained specimen's focus is this minimum: never a confident maximum
+    flags = fit.flags | {FocusFlag.VALLEY, FocusFlag.AMBIGUOUS}
+    probability = min(fit.chosen_probability or 1.0, 0.5)
+    return replace(
+        fit, flags=frozenset(flags), runner_up_z_um=valley_z, chosen_probability=probability
+    )
 
 
 #: How `despike` predicts a frame from its neighbours (offsets in frames -> weights), and
@@ -514,7 +527,9 @@ def _fit_vertex(
         + asymmetry_um**2
         + settings.systematic_sigma_um**2
     )
-    return fit.z_um, math.sqrt(variance)
+    return fit.z_um, max(
+        math.sqrt(variance), oversampled_floor_um(step_um, settings.min_peak_sigma_um)
+    )
 
 
 def _log_slope_about(z: np.ndarray, s: np.ndarray, z0: float) -> float:
