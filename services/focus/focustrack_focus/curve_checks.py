@@ -10,6 +10,15 @@
   tiny step) says nothing of how far the metric's own peak lies from the true focus,
   which is a matter of the optics, not of the step: sigma is kept above a share of the
   depth of field (`PeakSettings.min_peak_sigma_um` is half of it).
+- A hidden top on the way to an edge (`shoulder`): a window near focus may see the foot of
+  a sharper peak beyond its end (debris on another plane) rise over its own top, which
+  then shows only as a shoulder, where the rise slows and speeds up again. The edge
+  flag then names the far peak's side with no certainty: the shoulder is the runner-up.
+- A top resting on a window's end frame (`narrow_at_end`): a peak read on the frame next
+  to a window's end has one frame for its outer flank; where its fit is far narrower than
+  the metric's peaks on this microscope (a profile's `curve_fwhm_um`), that end frame may
+  be a one-frame dip and the curve falling from beyond the end: ambiguous, the end the
+  runner-up.
 - A contrast too low to call, measured against the curve's own noise (`low_contrast_flat`):
   a share of the maximum is a stand-in for the noise where the curve is too short to
   measure it; a long clean curve whose peak stands many of its own noise spreads above
@@ -69,6 +78,48 @@ def oversampled_floor_um(step_um: float, min_peak_sigma_um: float) -> float:
     if step_um >= OVERSAMPLED_STEP_SHARE * min_peak_sigma_um:
         return 0.0
     return OVERSAMPLED_FLOOR_SHARE * min_peak_sigma_um
+
+
+#: A shoulder: the rise slows to at most this share of its steepest slope before it ...
+SHOULDER_SLOW_SHARE = 0.35
+#: ... and then speeds up again to at least this many times the slow slope.
+SHOULDER_SPEED_UP = 3.0
+
+
+def shoulder(s: np.ndarray, rising_to_high: bool, noise: float) -> int | None:
+    """The frame of a shoulder on a curve (n,) that rises toward one end (`rising_to_high`:
+    the high-z end), or None (module docstring): an interior frame where the step to the
+    next frame is at most SHOULDER_SLOW_SHARE of an earlier, steeper step of the rise and
+    SHOULDER_SPEED_UP times smaller than a later one, every step compared beyond 3 noise
+    sigmas of the difference of two frames."""
+    rise = np.diff(s if rising_to_high else s[::-1])
+    margin = 3.0 * np.sqrt(2.0) * noise
+    for i in range(1, rise.size - 1):
+        earlier, later = rise[:i].max(), rise[i + 1 :].max()
+        slow = max(rise[i], 0.0)
+        if (
+            earlier > margin
+            and slow <= SHOULDER_SLOW_SHARE * earlier
+            and later >= SHOULDER_SPEED_UP * slow + margin
+        ):
+            return i if rising_to_high else s.size - 1 - i
+    return None
+
+
+#: A top's fit narrower than this share of the metric's usual peak (Gaussian stds) is
+#: suspect where it rests on an end frame.
+NARROW_SHARE = 0.5
+#: A Gaussian's full width at half maximum over its std.
+FWHM_PER_SIGMA = 2.0 * float(np.sqrt(2.0 * np.log(2.0)))
+
+
+def narrow_at_end(width_var_um2: float, curve_fwhm_um: float) -> bool:
+    """Whether a top fitted as a Gaussian of variance `width_var_um2` (um**2; 0: not a
+    log fit) is narrower than NARROW_SHARE of the metric's usual peak, `curve_fwhm_um` wide
+    at half maximum (module docstring)."""
+    if width_var_um2 <= 0.0:
+        return False
+    return float(np.sqrt(width_var_um2)) < NARROW_SHARE * curve_fwhm_um / FWHM_PER_SIGMA
 
 
 def low_contrast_flat(

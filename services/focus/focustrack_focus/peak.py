@@ -69,7 +69,13 @@ from enum import StrEnum
 import numpy as np
 
 from focustrack_core.domain import FocusFlag
-from focustrack_focus.curve_checks import low_contrast_flat, oversampled_floor_um, phase_valley
+from focustrack_focus.curve_checks import (
+    low_contrast_flat,
+    narrow_at_end,
+    oversampled_floor_um,
+    phase_valley,
+    shoulder,
+)
 
 #: Std of a normal distribution per unit of its median absolute deviation.
 MAD_TO_SIGMA = 1.4826
@@ -117,6 +123,10 @@ class PeakSettings:
         picks, by an amount no single curve shows. It belongs to a metric on a
         microscope: 0 unless learnt from labelled curves (`focustrack bench focus --real`
         learns it per metric on its fit fields; docs/focus.md).
+    curve_fwhm_um: the metric's usual peak width on this microscope (full width at half
+        maximum, um; a microscope profile's, `focustrack focus calibrate`), or None. A peak
+        read next to a window's end whose fit is far narrower rests on that one end frame
+        (`curve_checks.narrow_at_end`).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -131,6 +141,7 @@ class PeakSettings:
     end_rise_share: float = 0.05
     min_relative_noise: float = 0.0
     systematic_sigma_um: float = 0.0
+    curve_fwhm_um: float | None = None
 
 
 @dataclass(frozen=True)
@@ -408,11 +419,23 @@ def _read_peaks(
         flags.add(FocusFlag.AMBIGUOUS)
     if chosen.index in (0, z.size - 1):
         edge = FocusFlag.EDGE_LOW if chosen.index == 0 else FocusFlag.EDGE_HIGH
+        hidden = shoulder(s, chosen.index > 0, judged_noise) if len(candidates) == 1 else None
+        if hidden is not None:  # a top of its own under a far peak's foot: no certainty
+            flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
+            runner_up_z, probability = float(z[hidden]), min(probability, 0.5)
         return PeakFit(
             float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, probability
         )
     z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
     sigma = math.hypot(sigma, top.spread_um(z, z0))
+    end = 0 if chosen.index == 1 else z.size - 1 if chosen.index == z.size - 2 else None
+    if end is not None and settings.curve_fwhm_um is not None:
+        top_fit = _fit_window(z, s, chosen.index, 1, noise)
+        if top_fit is not None and narrow_at_end(top_fit.width_var_um2, settings.curve_fwhm_um):
+            # the top rests on the end frame alone: were it a one-frame dip, the focus
+            # would lie beyond that end
+            flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
+            runner_up_z, probability = float(z[end]), min(probability, 0.5)
     return PeakFit(z0, sigma, frozenset(flags), runner_up_z, probability)
 
 

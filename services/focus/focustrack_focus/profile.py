@@ -71,6 +71,7 @@ class MetricProfile:
             base,
             min_relative_noise=self.relative_noise,
             systematic_sigma_um=self.systematic_sigma_um,
+            curve_fwhm_um=self.curve_fwhm_um,
         )
 
 

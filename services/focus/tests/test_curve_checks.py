@@ -121,3 +121,39 @@ def test_a_low_contrast_5x_stack_is_not_flat(metric: str, render) -> None:
     assert result.best_z_um is not None
     within_a_frame = abs(result.best_z_um) <= 2.0
     assert within_a_frame or result.flags & {FocusFlag.AMBIGUOUS, FocusFlag.MULTI_PEAK}
+
+
+def test_a_top_hidden_under_a_far_peaks_foot_makes_the_edge_uncertain() -> None:
+    """Focus at 20 um, and debris 12 um above it whose broad foot rises over the focus's top:
+    an 11x3 window around the focus sees no top of its own, only a shoulder on the way to
+    its high end. The edge flag toward the debris comes with the shoulder as the runner-up
+    and no certainty; on the focus's own flank, with no debris, the edge stays certain."""
+    z = np.arange(0.0, 50.0, 0.5)
+    rng = np.random.default_rng(1)
+    focus = 50.0 + 1000.0 * gaussian(z, 20.0, 1.5) + rng.normal(0.0, 1.0, z.size)
+    debris = focus + 8000.0 * gaussian(z, 32.0, 4.0)
+    window = 32 + 3 * np.arange(11)  # 16 .. 31 um
+    fit = find_peak(z[window], debris[window])
+    assert {FocusFlag.EDGE_HIGH, FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS} <= fit.flags
+    assert fit.runner_up_z_um is not None and abs(fit.runner_up_z_um - 20.0) <= 1.0
+    assert fit.chosen_probability is not None and fit.chosen_probability <= 0.5
+    below = np.arange(20, 38, 2)  # 10 .. 18 um: the focus's rising flank alone
+    flank = find_peak(z[below], focus[below])
+    assert flank.flags == {FocusFlag.EDGE_HIGH} and flank.chosen_probability == 1.0
+
+
+@needs_real
+def test_a_top_resting_on_a_one_frame_dip_at_the_window_end_is_ambiguous() -> None:
+    """WSI field 5 has a one-frame dip 4 steps above its focus: a window that starts on it
+    sees a 'peak' on its second frame, narrower than any of this microscope's peaks. With the
+    metric's usual width (a profile's) that top is ambiguous, the window's low end (toward
+    the focus) the runner-up; without it, nothing tells it from a real top."""
+    (field,) = [f for f in load_wsi_fields(REAL / "wsi_focus_curves") if f.number == 5]
+    scores = field.scores["BRENNER"]
+    window = np.arange(field.label_index + 4, field.label_index + 13)  # 9 x 1 from the dip
+    z_um = 0.5 * window
+    blind = find_peak(z_um, scores[window])
+    assert blind.flags == frozenset() and blind.z_um is not None  # the false top, confident
+    informed = find_peak(z_um, scores[window], PeakSettings(curve_fwhm_um=4.4))
+    assert {FocusFlag.AMBIGUOUS, FocusFlag.MULTI_PEAK} <= informed.flags
+    assert informed.runner_up_z_um == z_um[0] and informed.chosen_probability == 0.5
