@@ -139,8 +139,9 @@ def write_plot(
     curves: list[LabelledCurve],
     results: dict[str, tuple[calibration.Calibration, list]],
 ) -> None:
-    """Per metric: its curves aligned on their labels (scaled to their range) with the
-    median width at half maximum, and the held-out windows' error / sigma against N(0, 1)."""
+    """Per metric: its curves aligned on their labels (scaled to their range), and the
+    held-out readings' error over the coverage's bound (2 sigma + half a step; inside
+    +-1: covered)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -155,18 +156,23 @@ def write_plot(
             top.plot(curve.z_um - curve.focus_z_um, (s - s.min()) / np.ptp(s), lw=0.6, alpha=0.5)
         top.axvline(0.0, color="k", ls="--", lw=0.8)
         top.set(title=metric, xlabel="z - label (um)", ylabel="score (scaled)")
-        zscores = [
-            r.error_steps / r.sigma_steps
-            for fold in results[metric][1]
-            for r in fold.readings
-            if r.label_side == 0 and r.error_steps is not None and r.sigma_steps
-        ]
-        if zscores:  # an unusable metric measures nothing
-            bottom.hist(np.clip(zscores, -6, 6), bins=48, range=(-6, 6), density=True)
-        grid = np.linspace(-6, 6, 200)
-        bottom.plot(grid, np.exp(-(grid**2) / 2) / math.sqrt(2 * math.pi), "k--", label="N(0,1)")
-        bottom.set(xlabel="held-out error / sigma", ylabel="density")
-        bottom.legend(fontsize=7)
+        # the coverage's own test: |error| <= 2 sigma + half a step (the label's rounding)
+        ratios = np.array(
+            [
+                r.error_steps / (2.0 * r.sigma_steps + 0.5)
+                for fold in results[metric][1]
+                for r in fold.readings
+                if r.label_side == 0 and r.error_steps is not None and r.sigma_steps is not None
+            ]
+        )
+        if ratios.size:  # an unusable metric measures nothing
+            bottom.hist(np.clip(ratios, -3, 3), bins=60, range=(-3, 3))
+            covered = float(np.mean(np.abs(ratios) <= 1.0))
+            bottom.set_title(f"held out: {covered:.1%} covered", fontsize=9)
+        else:
+            bottom.set_title("unusable: nothing measured", fontsize=9)
+        bottom.axvspan(-1.0, 1.0, color="green", alpha=0.1)
+        bottom.set(xlabel="error / (2 sigma + half a step)", ylabel="readings", xlim=(-3, 3))
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
