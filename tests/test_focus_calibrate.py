@@ -80,3 +80,28 @@ def test_calibrate_on_odd_fields_then_hold_out_the_even_ones(tmp_path: Path) -> 
     assert with_profile["windows_11x3"]["n_inside"] > 100
     assert all(misses == [] for misses in result["targets"].values()), result["targets"]
     assert all(misses == [] for misses in result["no_profile_targets"].values())
+
+
+def test_calibrate_from_stacks_and_their_labels_file(tmp_path: Path) -> None:
+    """`--stacks DIR`: .npy stacks scored with the service's metric, labels from labels.json."""
+    import cv2
+
+    z_um = np.arange(-4.0, 4.01, 0.5)
+    labels = {}
+    for number in range(3):
+        rng = np.random.default_rng(number)
+        texture = rng.uniform(0.0, 1000.0, (64, 64)).astype(np.float32)
+        focus = float(rng.uniform(-1.0, 1.0))
+        frames = [
+            cv2.GaussianBlur(texture, (0, 0), 0.6 + 1.5 * abs(z - focus)) + 500.0 for z in z_um
+        ]
+        np.save(tmp_path / f"stack{number}.npy", np.array(frames).astype(np.uint16))
+        labels[f"stack{number}.npy"] = {"z_um": z_um.tolist(), "focus_z_um": focus}
+    (tmp_path / "labels.json").write_text(json.dumps(labels))
+    out = tmp_path / "p.json"
+    argv = ["focus", "calibrate", "--stacks", str(tmp_path), "--out", str(out), "--folds", "3"]
+    assert main([*argv, "--metrics", "tenengrad"]) == 0
+    entry = MicroscopeProfile.load(out).metrics["tenengrad"]
+    assert entry.usable and entry.curve_fwhm_um is not None
+    (tmp_path / "labels.json").write_text(json.dumps({"missing.npy": labels["stack0.npy"]}))
+    assert main([*argv, "--metrics", "tenengrad"]) == 2
