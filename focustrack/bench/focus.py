@@ -406,7 +406,7 @@ def run_real(args: argparse.Namespace) -> int:
 def run_calibrated(args: argparse.Namespace) -> int:
     """`--real --calibrate-on`: the calibrate command on one half, the other half reported."""
     halves = ("odd", "even") if args.calibrate_on == "both" else (args.calibrate_on,)
-    metrics = focus_real.REAL_METRICS
+    metrics = focus_real.HOLDOUT_METRICS
     with tempfile.TemporaryDirectory() as scratch:
         workdir = args.json.parent if args.json else Path(scratch)
         results = []

@@ -11,7 +11,9 @@ afresh on every run from the odd fields alone, a measure unusable there included
 Here: the measures reported, the figures printed and plotted, and the
 targets on the even fields (2, 4, ..., 20), the headline figures. A measure found
 unusable is reported as such, with its figures, instead of being counted against
-targets that need a measurement (`targets`).
+targets that need a measurement (`targets`). With `--calibrate-on`, the whole loop a user
+runs (`calibrate_and_hold_out`): the curves file of one half, `focustrack focus
+calibrate` on it, the other half read with the profile it wrote and without one.
 """
 
 from __future__ import annotations
@@ -162,6 +164,17 @@ def write_wsi_curves(real_dir: Path, numbers: Collection[int], path: Path) -> Pa
     return path
 
 
+#: The measures `--calibrate-on` runs through the command (a 3-5 minute default run): the
+#: three gradient measures of the targets, and one of each other kind (broad, offset,
+#: unusable on this microscope).
+HOLDOUT_METRICS = (
+    "BRENNER",
+    "_3_3_SOBEL",
+    "SQUARED_GRADIENT",
+    "NORMALIZED_VARIANCE",
+    "JPEG",
+    "VOLLATH_F4",
+)
 #: The halves of the shared WSI fields: name -> field numbers.
 HALVES = {"odd": tuple(range(1, 21, 2)), "even": tuple(range(2, 21, 2))}
 #: The targets on the held-out half after `calibrate` on the other: (name, part, key, test).

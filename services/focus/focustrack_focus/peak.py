@@ -56,7 +56,11 @@ kinds, frame sizes, exposures and stack shapes) so that the z-scores (error /
 sigma) of the metrics have a spread near one; the benchmark reports them on
 seed 1. The two per-metric constants (`min_relative_noise`,
 `systematic_sigma_um`) belong to a metric on a microscope and are 0 by default;
-`focustrack bench focus --real` learns them on its fit fields.
+`focustrack focus calibrate` learns them from a user's labelled curves (a microscope
+profile), `focustrack bench focus --real` on its fit fields. Shape checks for curves of
+a microscope never seen (a phase-like valley, an oversampled curve's sigma floor, a
+contrast judged by the curve's own noise, a top hidden under a far peak's foot or
+resting on a window's end frame) are `curve_checks`.
 """
 
 from __future__ import annotations
