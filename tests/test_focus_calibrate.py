@@ -105,3 +105,21 @@ def test_calibrate_from_stacks_and_their_labels_file(tmp_path: Path) -> None:
     assert entry.usable and entry.curve_fwhm_um is not None
     (tmp_path / "labels.json").write_text(json.dumps({"missing.npy": labels["stack0.npy"]}))
     assert main([*argv, "--metrics", "tenengrad"]) == 2
+
+
+@needs_real
+@pytest.mark.slow  # about 20 s
+def test_the_bench_runs_the_loop_and_writes_its_figures_and_plot(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`focustrack bench focus --real --calibrate-on odd --json OUT`, on one measure."""
+    monkeypatch.setattr(focus_real, "HOLDOUT_METRICS", ("BRENNER",))
+    out = tmp_path / "holdout.json"
+    argv = ["bench", "focus", "--real", "--calibrate-on", "odd", "--folds", "2"]
+    assert main([*argv, "--json", str(out)]) == 0
+    (run,) = json.loads(out.read_text())["runs"]
+    assert run["calibrate_on"] == "odd" and set(run["with_profile"]) == {"BRENNER"}
+    assert out.with_suffix(".png").is_file() and (tmp_path / "profile_odd.png").is_file()
+    printed = capsys.readouterr().out
+    assert "held-out even fields, profile learnt on the odd ones" in printed
+    assert "targets with the profile" in printed and "targets with no profile" in printed
