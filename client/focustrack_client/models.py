@@ -29,6 +29,7 @@ class FocusFlag(StrEnum):
     EMPTY = "empty"  # with FLAT: nothing in view in any frame
     MULTI_PEAK = "multi_peak"  # more than one peak: the measurement is less certain
     AMBIGUOUS = "ambiguous"  # the chosen peak not clearly the focus (two peaks, or noise)
+    VALLEY = "valley"  # with AMBIGUOUS: a sharp contrast minimum between two maxima (unstained)
 
 
 class Purpose(StrEnum):
