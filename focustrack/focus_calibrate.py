@@ -186,10 +186,10 @@ def calibrate_profile(
     entries, results = {}, {}
     for metric in metrics:
         constants, folds = calibration.cross_validate(curves, metric, n_folds)
-        widths = [w for c in curves if (w := calibration.curve_fwhm_um(c, metric)) is not None]
-        fwhm = float(np.median(widths)) if widths else None
+        widths = calibration.curve_widths_um(curves, metric)
         # the narrowest tenth of the peaks still has a frame above its half maximum
         coarse = float(np.percentile(widths, 10)) if widths else None
+        fwhm = constants.curve_fwhm_um
         width_text = "width unknown" if fwhm is None else f"curve FWHM {fwhm:.2f} um"
         print_folds(metric, constants, folds, width_text)
         pooled = calibration.parts([r for fold in folds for r in fold.readings])
@@ -198,7 +198,6 @@ def calibrate_profile(
             "pooled": pooled,
         }
         entries[metric] = constants.entry(
-            curve_fwhm_um=None if fwhm is None else round(fwhm, 3),
             coarse_step_um=None if coarse is None else round(coarse, 2),
             cross_validation=_finite(record),
         )

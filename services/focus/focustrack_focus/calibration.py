@@ -178,6 +178,9 @@ class Calibration:
     systematic_sigma_steps: float | None = 0.0
     unusable_because: str = ""
     step_um: float = WSI_STEP_UM
+    #: the median width at half maximum of the fields' peaks, um (`curve_widths_um`);
+    #: the peak model reads tops at a window's end against it
+    curve_fwhm_um: float | None = None
 
     @property
     def usable(self) -> bool:
@@ -189,6 +192,7 @@ class Calibration:
             self.relative_noise,
             self.step_um * (self.systematic_sigma_steps or 0.0),
             self.unusable_because,
+            curve_fwhm_um=self.curve_fwhm_um,
             **record,
         )
 
@@ -231,11 +235,19 @@ def learn_relative_noise(fields: Sequence[LabelledCurve], metric: str) -> float:
 
 
 def label_free(fields: Sequence[LabelledCurve], metric: str) -> Calibration:
-    """What the fields' curves say of the metric without their labels' help: its noise (and
-    the curves' step)."""
+    """What the fields' curves say of the metric before its systematic sigma: its noise,
+    the curves' step and their peaks' median width (3 digits)."""
+    widths = curve_widths_um(fields, metric)
     return Calibration(
-        learn_relative_noise(fields, metric), step_um=float(np.median([f.step_um for f in fields]))
+        learn_relative_noise(fields, metric),
+        step_um=float(np.median([f.step_um for f in fields])),
+        curve_fwhm_um=round(float(np.median(widths)), 3) if widths else None,
     )
+
+
+def curve_widths_um(fields: Sequence[LabelledCurve], metric: str) -> list[float]:
+    """The widths at half maximum (um) of the fields' peaks, where measured (`curve_fwhm_um`)."""
+    return [w for f in fields if (w := curve_fwhm_um(f, metric)) is not None]
 
 
 def coverage_with(readings: Sequence[Reading], systematic_steps: float) -> float:
