@@ -80,6 +80,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve phase": ("focustrack_phase.service", "the phase service (REST)"),
     "scan": ("focustrack_scheduler.scan", "scan one slide through the services"),
     "demo": ("focustrack.demo", "embedded stack: scan a simulated slide"),
+    "focus calibrate": (
+        "focustrack.focus_calibrate",
+        "a microscope profile (each focus metric's constants) from labelled curves or stacks",
+    ),
     "bus secrets": (
         "focustrack.bus_secrets",
         "certificates, passwords and Zenoh configs of an authenticated bus",

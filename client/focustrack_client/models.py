@@ -29,6 +29,7 @@ class FocusFlag(StrEnum):
     EMPTY = "empty"  # with FLAT: nothing in view in any frame
     MULTI_PEAK = "multi_peak"  # more than one peak: the measurement is less certain
     AMBIGUOUS = "ambiguous"  # the chosen peak not clearly the focus (two peaks, or noise)
+    VALLEY = "valley"  # with AMBIGUOUS: a sharp contrast minimum between two maxima (unstained)
 
 
 class Purpose(StrEnum):
@@ -290,6 +291,11 @@ class Diagnostics(BaseModel):
     innovations_note: str | None = Field(description="Why there are no innovation statistics")
     risk: RiskStats | None = Field(
         None, description="Predicted out-of-focus risk; null before a tile with one is imaged"
+    )
+    sigma_scale: float = Field(
+        1.0,
+        description="The slide's factor on the focus service's sigmas, learnt from the "
+        "innovations (1 until they show the sigmas too small; at most 5)",
     )
 
 

@@ -42,6 +42,10 @@ class FocusFlag(StrEnum):
     # threshold): two peaks (z and sigma are the chosen one's, the runner-up is given), or
     # a top drowned in noise (frames far from the chosen one as likely the top)
     AMBIGUOUS = "ambiguous"
+    # with AMBIGUOUS: the curve falls to a sharp minimum between two maxima, below its far
+    # frames: an unstained (phase-like) specimen, whose focus is that minimum (the
+    # runner-up z; read it with mode valley), not the maximum
+    VALLEY = "valley"
 
     @property
     def proto(self) -> common_pb2.FocusFlag:

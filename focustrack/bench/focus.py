@@ -27,6 +27,7 @@ import argparse
 import json
 import math
 import os
+import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
@@ -317,6 +318,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="instead of the simulator: real WSI focus curves (full and windows) from "
         "--real-dir/wsi_focus_curves, read as POST /v1/focus/curve reads them",
     )
+    parser.add_argument(
+        "--calibrate-on",
+        choices=("odd", "even", "both"),
+        help="with --real: run `focustrack focus calibrate` on that half of the fields and "
+        "report the other half with its profile and without one (both: each way)",
+    )
+    parser.add_argument(
+        "--folds", type=int, default=5, help="with --calibrate-on: the command's --folds"
+    )
 
 
 def run_real(args: argparse.Namespace) -> int:
@@ -324,6 +334,8 @@ def run_real(args: argparse.Namespace) -> int:
     folder = args.real_dir / "wsi_focus_curves"
     if not folder.is_dir():
         raise SystemExit(f"focustrack bench focus --real: {folder} is missing (see its README)")
+    if args.calibrate_on:
+        return run_calibrated(args)
     metrics = focus_real.REAL_METRICS
     constants = calibration.calibrate(folder, tqdm(metrics, desc="real curves", unit="metric"))
     readings = calibration.real_curves(
@@ -388,6 +400,29 @@ def run_real(args: argparse.Namespace) -> int:
     if args.plots:
         focus_real.write_plot(args.plots / "real_curves.png", report)
         print(f"wrote {args.plots / 'real_curves.png'}")
+    return 0
+
+
+def run_calibrated(args: argparse.Namespace) -> int:
+    """`--real --calibrate-on`: the calibrate command on one half, the other half reported."""
+    halves = ("odd", "even") if args.calibrate_on == "both" else (args.calibrate_on,)
+    metrics = focus_real.HOLDOUT_METRICS
+    with tempfile.TemporaryDirectory() as scratch:
+        workdir = args.json.parent if args.json else Path(scratch)
+        results = []
+        for half in halves:
+            print(f"\n== focustrack focus calibrate on the {half} fields ==")
+            results.append(
+                focus_real.calibrate_and_hold_out(args.real_dir, half, metrics, workdir, args.folds)
+            )
+        for result in results:
+            focus_real.print_holdout(result)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"source": "wsi_focus_curves", "runs": results}, indent=2))
+        png = args.json.with_suffix(".png")
+        focus_real.write_holdout_plot(png, results)
+        print(f"wrote {args.json}, {png}")
     return 0
 
 

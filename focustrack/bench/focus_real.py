@@ -11,7 +11,9 @@ afresh on every run from the odd fields alone, a measure unusable there included
 Here: the measures reported, the figures printed and plotted, and the
 targets on the even fields (2, 4, ..., 20), the headline figures. A measure found
 unusable is reported as such, with its figures, instead of being counted against
-targets that need a measurement (`targets`).
+targets that need a measurement (`targets`). With `--calibrate-on`, the whole loop a user
+runs (`calibrate_and_hold_out`): the curves file of one half, `focustrack focus
+calibrate` on it, the other half read with the profile it wrote and without one.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from focustrack_focus.calibration import MEDIAN_SIGMA_TARGET_STEPS
+from focustrack_focus.labelled_curves import write_curves, wsi_curves
+from focustrack_focus.real_data import load_wsi_fields
 
 #: The measures reported (the data set's names). Gradient ones carry the 97 % target.
 GRADIENT_METRICS = ("BRENNER", "SQUARED_GRADIENT", "_3_3_SOBEL", "_5_5_SOBEL")
@@ -145,6 +149,144 @@ def write_plot(path: Path, figures: dict[str, dict]) -> None:
         ax.set(title=key, xlim=(0, 1))
     axes[0].set_yticks(np.arange(len(names)), names, fontsize=7)
     axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_wsi_curves(real_dir: Path, numbers: Collection[int], path: Path) -> Path:
+    """The shared WSI fields `numbers` as a curves file for `focustrack focus calibrate
+    --curves` (JSONL, every measure of REAL_METRICS): what a user of another microscope
+    would write from their own labelled curves."""
+    fields = [f for f in load_wsi_fields(real_dir / "wsi_focus_curves") if f.number in numbers]
+    write_curves(path, wsi_curves(fields, REAL_METRICS))
+    return path
+
+
+#: The measures `--calibrate-on` runs through the command (a 3-5 minute default run): the
+#: three gradient measures of the targets, and one of each other kind (broad, offset,
+#: unusable on this microscope).
+HOLDOUT_METRICS = (
+    "BRENNER",
+    "_3_3_SOBEL",
+    "SQUARED_GRADIENT",
+    "NORMALIZED_VARIANCE",
+    "JPEG",
+    "VOLLATH_F4",
+)
+#: The halves of the shared WSI fields: name -> field numbers.
+HALVES = {"odd": tuple(range(1, 21, 2)), "even": tuple(range(2, 21, 2))}
+#: The targets on the held-out half after `calibrate` on the other: (name, part, key, test).
+HOLDOUT_TARGETS = (
+    ("2-sigma coverage on 11x3 windows >= 92%", "windows_11x3", "coverage_2sigma", 0.92, 1),
+    ("edge flags right >= 98%", "windows", "edge_right", 0.98, 1),
+    ("edge flags wrong <= 0.5%", "windows", "edge_wrong", 0.005, -1),
+    ("confident-wrong <= 0.1%", "windows", "silent_miss", 0.001, -1),
+)
+#: ... and with no profile at all.
+NO_PROFILE_TARGETS = (
+    ("2-sigma coverage on 11x3 windows >= 85%", "windows_11x3", "coverage_2sigma", 0.85, 1),
+    ("confident-wrong <= 0.2%", "windows", "silent_miss", 0.002, -1),
+)
+
+
+def holdout_misses(
+    figures: dict[str, dict], targets: tuple, unusable: Collection[str] = ()
+) -> dict[str, list[str]]:
+    """Each target -> the usable metrics whose figures miss it (NaN misses)."""
+    out: dict[str, list[str]] = {}
+    for name, part, key, bound, sense in targets:
+        out[name] = [
+            metric
+            for metric, parts in figures.items()
+            if metric not in unusable and not sense * (parts[part][key] - bound) >= 0
+        ]
+    return out
+
+
+def calibrate_and_hold_out(
+    real_dir: Path, calibrate_on: str, metrics: Collection[str], workdir: Path, folds: int
+) -> dict:
+    """`focustrack focus calibrate` on one half of the WSI fields, run as a user runs it (its
+    curves file written first, the command's own entry point), then the other half read
+    through the focus service's curve path with the profile it wrote, and without one."""
+    from focustrack.cli import main  # the command as a user calls it
+    from focustrack_focus.calibration import parts, read_fields
+    from focustrack_focus.pipeline import FocusSettings
+    from focustrack_focus.profile import MicroscopeProfile
+
+    held_out = next(name for name in HALVES if name != calibrate_on)
+    curves = write_wsi_curves(real_dir, HALVES[calibrate_on], workdir / f"{calibrate_on}.jsonl")
+    profile_path = workdir / f"profile_{calibrate_on}.json"
+    argv = ["focus", "calibrate", "--curves", str(curves), "--out", str(profile_path)]
+    if main([*argv, "--folds", str(folds), "--metrics", *metrics]) != 0:
+        raise SystemExit(f"focustrack focus calibrate failed on {curves}")
+    profile = MicroscopeProfile.load(profile_path)
+    fields = wsi_curves(
+        [f for f in load_wsi_fields(real_dir / "wsi_focus_curves") if f.number in HALVES[held_out]]
+    )
+    with_profile, without = {}, {}
+    for metric in metrics:
+        base = FocusSettings()
+        with_profile[metric] = parts(
+            read_fields(fields, metric, profile.settings_for(metric, base))
+        )
+        without[metric] = parts(read_fields(fields, metric, base))
+    unusable = [m for m, entry in profile.metrics.items() if not entry.usable]
+    return {
+        "calibrate_on": calibrate_on,
+        "held_out": held_out,
+        "profile": str(profile_path),
+        "unusable": unusable,
+        "with_profile": with_profile,
+        "no_profile": without,
+        "targets": holdout_misses(with_profile, HOLDOUT_TARGETS, unusable),
+        "no_profile_targets": holdout_misses(without, NO_PROFILE_TARGETS),
+    }
+
+
+def print_holdout(result: dict) -> None:
+    """One direction's held-out figures and targets."""
+    title = (
+        f"held-out {result['held_out']} fields, profile learnt on the {result['calibrate_on']} "
+        f"ones ({result['profile']})"
+    )
+    print_report(result["with_profile"], title, result["unusable"])
+    print_report(result["no_profile"], f"held-out {result['held_out']} fields, no profile")
+    for heading, misses in (
+        ("with the profile (usable metrics)", result["targets"]),
+        ("with no profile", result["no_profile_targets"]),
+    ):
+        print(f"  targets {heading}:")
+        for target, missed in misses.items():
+            print(f"    {'NOT met' if missed else 'met    '}  {target}  {' '.join(missed)}")
+
+
+def write_holdout_plot(path: Path, results: list[dict]) -> None:
+    """Held-out coverage (11x3), edge right and wrong, confident-wrong per metric, both ways,
+    with and without the profile."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [(part, key) for _, part, key, _, _ in HOLDOUT_TARGETS]
+    fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 4), sharey=True)
+    names = list(results[0]["with_profile"])
+    bars = [
+        (f"{r['calibrate_on']}->{r['held_out']}{suffix}", r[which])
+        for r in results
+        for which, suffix in (("with_profile", ""), ("no_profile", " (none)"))
+    ]
+    height = 0.8 / len(bars)
+    for ax, (part, key) in zip(axes, keys, strict=True):
+        for i, (label, figures) in enumerate(bars):
+            values = [figures[m][part][key] for m in names]
+            ax.barh(np.arange(len(names)) + i * height, values, height=height, label=label)
+        ax.set(title=f"{key} ({part})")
+    axes[0].set_yticks(np.arange(len(names)) + 0.4, names, fontsize=7)
+    axes[0].legend(fontsize=6)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

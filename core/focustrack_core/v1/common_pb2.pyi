@@ -33,6 +33,7 @@ class FocusFlag(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     FOCUS_FLAG_EMPTY: _ClassVar[FocusFlag]
     FOCUS_FLAG_MULTI_PEAK: _ClassVar[FocusFlag]
     FOCUS_FLAG_AMBIGUOUS: _ClassVar[FocusFlag]
+    FOCUS_FLAG_VALLEY: _ClassVar[FocusFlag]
 ERROR_CODE_UNSPECIFIED: ErrorCode
 ERROR_CODE_MALFORMED_REQUEST: ErrorCode
 ERROR_CODE_UNKNOWN_SLIDE: ErrorCode
@@ -56,6 +57,7 @@ FOCUS_FLAG_FLAT: FocusFlag
 FOCUS_FLAG_EMPTY: FocusFlag
 FOCUS_FLAG_MULTI_PEAK: FocusFlag
 FOCUS_FLAG_AMBIGUOUS: FocusFlag
+FOCUS_FLAG_VALLEY: FocusFlag
 
 class Error(_message.Message):
     __slots__ = ("code", "message", "field")

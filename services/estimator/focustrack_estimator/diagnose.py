@@ -28,6 +28,7 @@ class SlideDiagnostics:
     innovations: InnovationDiagnostics | None
     innovations_note: str | None  # why `innovations` is None
     risk: RiskSummary | None
+    sigma_scale: float = 1.0  # the slide's factor on measured sigmas (`sigma_scale`)
 
 
 def diagnose(history: Sequence[Logged], strategy: Strategy) -> SlideDiagnostics:
@@ -65,6 +66,7 @@ def diagnose(history: Sequence[Logged], strategy: Strategy) -> SlideDiagnostics:
         innovations,
         note,
         risk_summary(strategy),
+        strategy.sigma_scale.scale,
     )
 
 

@@ -41,6 +41,7 @@ from focustrack_core.domain import (
     ZRange,
     ZRangePolicy,
 )
+from focustrack_estimator.sigma_scale import SigmaScale
 
 _EDGES = frozenset({FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH})
 
@@ -232,6 +233,7 @@ class Strategy(ABC):
         self.map = FocusMap.empty(settings.grid)
         self.n_recorded = 0
         self._pending: Acquisition | None = None
+        self.sigma_scale = SigmaScale()  # the slide's scale on measured sigmas (adaptive R)
 
     def next_acquisition(self) -> Acquisition | None:
         """The next acquisition to make, or None when every tile has been imaged."""
@@ -250,7 +252,8 @@ class Strategy(ABC):
                 f"({acquisition.row}, {acquisition.col}), but the pending one is "
                 f"{pending.index} at ({pending.row}, {pending.col})"
             )
-        outcome = self._take(pending, measurement)
+        outcome = self._take(pending, self.sigma_scale.scaled(measurement))
+        self.sigma_scale.learn(measurement, outcome)
         self._pending = None
         self.n_recorded += 1
         return outcome

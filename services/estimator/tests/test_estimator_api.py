@@ -350,6 +350,7 @@ def test_diagnostics_summarise_the_innovations(app: FastAPI) -> None:
     assert innovations["nis_low"] < 1.0 < innovations["nis_high"]
     assert 0.0 < innovations["mean_nis"] < 10.0
     assert diagnostics["innovations_note"] is None
+    assert diagnostics["sigma_scale"] == 1.0  # measurements without a sigma: none to scale
 
 
 def test_diagnostics_say_whether_the_stated_risk_is_met(app: FastAPI) -> None:

@@ -5,7 +5,8 @@
   frame in um: a JSON list or comma-separated numbers); optional ``metric``,
   ``mode``, ``channel``, ``lowpass_sigma_px``.
 - ``POST /v1/focus/curve``: JSON ``{"z_um": [...], "scores": [...]}`` (optional
-  ``metric`` label, ``mode`` and ``prior``: ``{"z_um": m, "sigma_um": s}``, the
+  ``metric`` label, which picks the metric's entry of the service's microscope
+  profile where it has one, ``mode`` and ``prior``: ``{"z_um": m, "sigma_um": s}``, the
   estimator's belief before this stack), for lab software that computes its own
   scores. ``best_z_um``/``sigma_um`` are always the curve's own measurement; with
   a prior the reply adds ``posterior_z_um``/``posterior_sigma_um`` (both combined).
@@ -43,6 +44,7 @@ from focustrack_core.web import bearer_token, guarded_app, read_upload
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
+from focustrack_focus.profile import MicroscopeProfile
 
 
 @dataclass(frozen=True)
@@ -87,7 +89,10 @@ class CurveRequest(BaseModel):
 
     z_um: list[Annotated[float, Field(allow_inf_nan=False)]] = Field(min_length=3)
     scores: list[Annotated[float, Field(allow_inf_nan=False)]] = Field(min_length=3)
-    metric: str = Field(DEFAULT_METRIC, description="label of the metric that made the scores")
+    metric: str = Field(
+        DEFAULT_METRIC,
+        description="label of the metric that made the scores (picks its profile entry)",
+    )
     mode: PeakMode = PeakMode.MAX
     prior: PriorModel | None = Field(
         None, description="the estimator's prior; weighs peaks, adds the posterior"
@@ -147,11 +152,14 @@ def create_app(
     settings: FocusSettings | None = None,
     limits: FocusLimits | None = None,
     token: str | None = None,
+    profile: MicroscopeProfile | None = None,
 ) -> FastAPI:
     """The REST app; `settings` are the defaults that request fields override, `limits`
-    what one request may ask, `token` the bearer token /v1 requires (None: open)."""
+    what one request may ask, `token` the bearer token /v1 requires (None: open);
+    `profile`: the microscope's constants per metric, picked by a request's metric."""
     base = settings or FocusSettings()
     limits = limits or FocusLimits()
+    profile = profile or MicroscopeProfile({})
 
     require_token = bearer_token(token)
     app = guarded_app(
@@ -205,7 +213,8 @@ def create_app(
         return await run_in_threadpool(_curve, request)
 
     def _curve(request: CurveRequest) -> dict[str, Any]:
-        chosen = replace(base, peak=replace(base.peak, mode=request.mode))
+        for_metric = profile.settings_for(request.metric, base)
+        chosen = replace(for_metric, peak=replace(for_metric.peak, mode=request.mode))
         prior = None if request.prior is None else Prior(request.prior.z_um, request.prior.sigma_um)
         try:
             result = focus_from_curve(
@@ -236,7 +245,7 @@ def create_app(
                     base.preprocess, channel=channel, lowpass_sigma_px=lowpass_sigma_px
                 ),
                 metric=metric,
-                peak=replace(base.peak, mode=mode),
+                peak=replace(profile.settings_for(metric, base).peak, mode=mode),
             )
             frames = await run_in_threadpool(
                 decode_stack, data, limits.max_frames, limits.max_decoded_bytes

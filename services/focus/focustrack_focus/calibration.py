@@ -38,13 +38,16 @@ import math
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from focustrack_core.domain import FocusFlag
+from focustrack_focus.labelled_curves import LabelledCurve, wsi_curves
 from focustrack_focus.peak import PeakSettings, score_noise
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve
-from focustrack_focus.real_data import WSI_STEP_UM, WsiField, load_wsi_fields
+from focustrack_focus.profile import MetricProfile
+from focustrack_focus.real_data import WSI_STEP_UM, load_wsi_fields
 
 #: (samples, spacing in steps) of the windows.
 WINDOW_SHAPES = tuple((n, k) for n in (5, 7, 9, 11) for k in (1, 2, 3))
@@ -62,10 +65,6 @@ MEDIAN_SIGMA_TARGET_STEPS = 0.75
 #: A measure whose fit-field windows come back flat more often than this (most of them),
 #: read with its learnt noise, is unusable on the microscope (`usability`).
 MAX_FLAT_SHARE = 0.5
-#: The noise floor (share of a curve's maximum) that turns an unusable measure off: with
-#: noise as large as the maximum, no non-negative curve rises the `min_snr` (10) noise
-#: sigmas a peak needs, so every result is `flat`. `serve focus --min-relative-noise 1`.
-UNUSABLE_RELATIVE_NOISE = 1.0
 #: Flags that warn the caller the z is not an ordinary measurement.
 WARNING_FLAGS = frozenset(
     {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH, FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
@@ -105,18 +104,20 @@ class Reading:
     label_side: int
 
 
-def read_field(field: WsiField, metric: str, settings: FocusSettings) -> list[Reading]:
-    """Every window of one field's curve of `metric`, read as POST /v1/focus/curve would."""
-    scores = field.scores[metric]
-    z_um = WSI_STEP_UM * np.arange(scores.size)
-    label_um = WSI_STEP_UM * field.label_index
+def read_field(field: LabelledCurve, metric: str, settings: FocusSettings) -> list[Reading]:
+    """Every window of one field's curve of `metric`, read as POST /v1/focus/curve would;
+    errors and sigma in the curve's steps."""
+    scores, z_um, step_um = field.scores[metric], field.z_um, field.step_um
+    label_index = field.label_index
     out = []
-    for window in windows(scores.size, field.label_index):
+    for window in windows(scores.size, label_index):
         result = focus_from_curve(z_um[window.indices], scores[window.indices], settings)
         lo, hi = window.indices[0], window.indices[-1]
-        side = -1 if field.label_index < lo else 1 if field.label_index > hi else 0
-        error = None if result.best_z_um is None else (result.best_z_um - label_um) / WSI_STEP_UM
-        sigma = None if result.sigma_um is None else result.sigma_um / WSI_STEP_UM
+        side = -1 if label_index < lo else 1 if label_index > hi else 0
+        error = (
+            None if result.best_z_um is None else (result.best_z_um - field.focus_z_um) / step_um
+        )
+        sigma = None if result.sigma_um is None else result.sigma_um / step_um
         out.append(Reading(field.number, window.kind, error, sigma, result.flags, side))
     return out
 
@@ -169,27 +170,42 @@ def summarise(readings: Sequence[Reading]) -> dict[str, float]:
 @dataclass(frozen=True)
 class Calibration:
     """A measure's constants on this microscope (`PeakSettings`), learnt on the fit fields:
-    its score noise as a share of a curve's maximum, its systematic sigma (steps; None
-    where none up to `MEDIAN_SIGMA_TARGET_STEPS` reaches the coverage), and why it is
-    unusable there ("" when it is usable)."""
+    its score noise as a share of a curve's maximum, its systematic sigma (steps of
+    `step_um`; None where none up to `MEDIAN_SIGMA_TARGET_STEPS` reaches the coverage), and
+    why it is unusable there ("" when it is usable)."""
 
     relative_noise: float = 0.0
     systematic_sigma_steps: float | None = 0.0
     unusable_because: str = ""
+    step_um: float = WSI_STEP_UM
+    #: the median width at half maximum of the fields' peaks, um (`curve_widths_um`);
+    #: the peak model reads tops at a window's end against it
+    curve_fwhm_um: float | None = None
 
     @property
     def usable(self) -> bool:
         return not self.unusable_because
 
+    def entry(self, **record: Any) -> MetricProfile:
+        """The measure's entry in a microscope profile (`record`: its other fields)."""
+        return MetricProfile(
+            self.relative_noise,
+            self.step_um * (self.systematic_sigma_steps or 0.0),
+            self.unusable_because,
+            curve_fwhm_um=self.curve_fwhm_um,
+            **record,
+        )
+
     def settings(self) -> FocusSettings:
         """The service's settings for the measure: an unusable one reads every curve flat."""
-        if not self.usable:
-            return FocusSettings(peak=PeakSettings(min_relative_noise=UNUSABLE_RELATIVE_NOISE))
-        peak = PeakSettings(
-            min_relative_noise=self.relative_noise,
-            systematic_sigma_um=WSI_STEP_UM * (self.systematic_sigma_steps or 0.0),
-        )
-        return FocusSettings(peak=peak)
+        return FocusSettings(peak=self.entry().peak_settings(PeakSettings()))
+
+
+def read_fields(
+    fields: Sequence[LabelledCurve], metric: str, settings: FocusSettings
+) -> list[Reading]:
+    """`read_field` over every field."""
+    return [r for field in fields for r in read_field(field, metric, settings)]
 
 
 def real_curves(
@@ -201,20 +217,37 @@ def real_curves(
     """Every metric's readings over every field (or those `numbers`) and window of the WSI
     curves in `folder`, each metric read with its calibration (none where not given).
     `metrics` are taken one by one as they are read (a progress bar may wrap them)."""
-    fields = [f for f in load_wsi_fields(folder) if numbers is None or f.number in numbers]
+    fields = wsi_curves(
+        [f for f in load_wsi_fields(folder) if numbers is None or f.number in numbers]
+    )
     calibration = calibration or {}
-    out: dict[str, list[Reading]] = {}
-    for metric in metrics:
-        settings = calibration.get(metric, Calibration()).settings()
-        out[metric] = [r for field in fields for r in read_field(field, metric, settings)]
-    return out
+    return {
+        metric: read_fields(fields, metric, calibration.get(metric, Calibration()).settings())
+        for metric in metrics
+    }
 
 
-def learn_relative_noise(fields: Sequence[WsiField], metric: str) -> float:
+def learn_relative_noise(fields: Sequence[LabelledCurve], metric: str) -> float:
     """The metric's score noise as a share of a curve's maximum: the median over these
     fields' full curves (long enough for a clean estimate: `score_noise`), 2 digits."""
     shares = [score_noise(f.scores[metric])[0] / abs(f.scores[metric].max()) for f in fields]
     return float(f"{np.median(shares):.2g}")
+
+
+def label_free(fields: Sequence[LabelledCurve], metric: str) -> Calibration:
+    """What the fields' curves say of the metric before its systematic sigma: its noise,
+    the curves' step and their peaks' median width (3 digits)."""
+    widths = curve_widths_um(fields, metric)
+    return Calibration(
+        learn_relative_noise(fields, metric),
+        step_um=float(np.median([f.step_um for f in fields])),
+        curve_fwhm_um=round(float(np.median(widths)), 3) if widths else None,
+    )
+
+
+def curve_widths_um(fields: Sequence[LabelledCurve], metric: str) -> list[float]:
+    """The widths at half maximum (um) of the fields' peaks, where measured (`curve_fwhm_um`)."""
+    return [w for f in fields if (w := curve_fwhm_um(f, metric)) is not None]
 
 
 def coverage_with(readings: Sequence[Reading], systematic_steps: float) -> float:
@@ -272,31 +305,113 @@ def usability(readings: Sequence[Reading], systematic_steps: float | None) -> st
     return "; ".join(reasons)
 
 
+def learn_constants(noise: Calibration, readings: Sequence[Reading]) -> Calibration:
+    """`noise` with the systematic sigma and the usability that `readings` (made with that
+    noise, no systematic sigma, on labelled fields) ask for."""
+    systematic = learn_systematic_sigma(readings)
+    return replace(
+        noise, systematic_sigma_steps=systematic, unusable_because=usability(readings, systematic)
+    )
+
+
+def calibrate_metric(
+    fields: Sequence[LabelledCurve], metric: str
+) -> tuple[Calibration, list[Reading]]:
+    """One metric's calibration learnt on `fields` (all of one z step): its noise first,
+    then the systematic sigma that the readings with that noise still need, then whether
+    it is usable at all (`usability`); with those readings (no systematic sigma in them)."""
+    noise = label_free(fields, metric)
+    readings = read_fields(fields, metric, noise.settings())
+    return learn_constants(noise, readings), readings
+
+
 def calibrate(folder: Path, metrics: Iterable[str]) -> dict[str, Calibration]:
     """Every metric's calibration, learnt on the fit fields of the WSI curves in `folder`
-    alone: its noise first, then the systematic sigma that the readings with that noise
-    still need, then whether the measure is usable at all (`usability`; an unusable one
-    then reads every curve flat). `metrics` are taken one by one, as by `real_curves`."""
-    fit_fields = [f for f in load_wsi_fields(folder) if f.number in FIT_FIELDS]
-    out = {}
-    for metric in metrics:
-        noise = Calibration(learn_relative_noise(fit_fields, metric))
-        rows = [r for field in fit_fields for r in read_field(field, metric, noise.settings())]
-        systematic = learn_systematic_sigma(rows)
-        out[metric] = replace(
-            noise, systematic_sigma_steps=systematic, unusable_because=usability(rows, systematic)
-        )
-    return out
+    alone (`calibrate_metric`; an unusable one then reads every curve flat). `metrics` are
+    taken one by one, as by `real_curves`."""
+    fit_fields = wsi_curves([f for f in load_wsi_fields(folder) if f.number in FIT_FIELDS])
+    return {metric: calibrate_metric(fit_fields, metric)[0] for metric in metrics}
 
 
 def report(readings: dict[str, list[Reading]], fields: Sequence[int]) -> dict[str, dict]:
     """Per metric: figures on full curves, on all windows, and on 11x3 windows, over `fields`."""
     out: dict[str, dict] = {}
     for metric, rows in readings.items():
-        chosen = [r for r in rows if r.field in fields]
-        out[metric] = {
-            "full": summarise([r for r in chosen if r.kind == "full"]),
-            "windows": summarise([r for r in chosen if r.kind != "full"]),
-            "windows_11x3": summarise([r for r in chosen if r.kind == "11x3"]),
-        }
+        out[metric] = parts([r for r in rows if r.field in fields])
     return out
+
+
+def with_constants(readings: Sequence[Reading], constants: Calibration) -> list[Reading]:
+    """Readings made with `constants`' noise and no systematic sigma, as they read with its
+    systematic sigma too (added to sigma in quadrature, as `find_peak` adds it), or, where
+    the measure is unusable, flat (as it reads every curve then)."""
+    if not constants.usable:
+        flat = frozenset({FocusFlag.FLAT})
+        return [replace(r, error_steps=None, sigma_steps=None, flags=flat) for r in readings]
+    systematic = constants.systematic_sigma_steps or 0.0
+    return [
+        r
+        if r.sigma_steps is None
+        else replace(r, sigma_steps=math.hypot(r.sigma_steps, systematic))
+        for r in readings
+    ]
+
+
+@dataclass(frozen=True)
+class Fold:
+    """One fold of a cross-validation: the fields held out, the constants learnt on the
+    others, and the held-out fields' figures with them (`parts`)."""
+
+    held_out: tuple[int, ...]
+    constants: Calibration
+    figures: dict[str, dict[str, float]]
+    readings: list[Reading]
+
+
+def parts(readings: Sequence[Reading]) -> dict[str, dict[str, float]]:
+    """The figures (`summarise`) on full curves, on all windows and on 11x3 windows."""
+    return {
+        "full": summarise([r for r in readings if r.kind == "full"]),
+        "windows": summarise([r for r in readings if r.kind != "full"]),
+        "windows_11x3": summarise([r for r in readings if r.kind == "11x3"]),
+    }
+
+
+def cross_validate(
+    fields: Sequence[LabelledCurve], metric: str, n_folds: int
+) -> tuple[Calibration, list[Fold]]:
+    """A metric's constants learnt on every field, and `n_folds` folds (fields dealt in turn)
+    each learning the label-dependent constants (systematic sigma, usability) on the other
+    folds and reporting on its own fields. The noise is learnt once on every field: it
+    needs no label (a user could measure it on the held-out curves themselves), so every
+    field is read once with it and the folds only re-weigh those readings
+    (`with_constants`)."""
+    if not 2 <= n_folds <= len(fields):
+        raise ValueError(f"{n_folds} folds over {len(fields)} fields: need 2 .. {len(fields)}")
+    noise = label_free(fields, metric)
+    readings = read_fields(fields, metric, noise.settings())
+    folds = []
+    for fold in range(n_folds):
+        held_out = tuple(f.number for f in fields[fold::n_folds])
+        learnt = learn_constants(noise, [r for r in readings if r.field not in held_out])
+        tested = with_constants([r for r in readings if r.field in held_out], learnt)
+        folds.append(Fold(held_out, learnt, parts(tested), tested))
+    return learn_constants(noise, readings), folds
+
+
+def curve_fwhm_um(field: LabelledCurve, metric: str) -> float | None:
+    """The full width at half maximum (um) of the peak nearest the label on the field's full
+    curve, above the curve's lowest score (the background); None where the peak does not
+    fall to half on both sides within the curve. Linear interpolation between frames."""
+    s, z = field.scores[metric], field.z_um
+    near = np.abs(np.arange(s.size) - field.label_index) <= 2
+    top = int(np.argmax(np.where(near, s, -np.inf)))
+    half = s.min() + (s[top] - s.min()) / 2.0
+    below = np.flatnonzero(s < half)
+    left, right = below[below < top], below[below > top]
+    if left.size == 0 or right.size == 0:
+        return None
+    i, j = left[-1], right[0]
+    z_left = z[i] + (half - s[i]) / (s[i + 1] - s[i]) * (z[i + 1] - z[i])
+    z_right = z[j - 1] + (s[j - 1] - half) / (s[j - 1] - s[j]) * (z[j] - z[j - 1])
+    return float(z_right - z_left)

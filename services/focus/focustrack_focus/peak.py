@@ -56,19 +56,30 @@ kinds, frame sizes, exposures and stack shapes) so that the z-scores (error /
 sigma) of the metrics have a spread near one; the benchmark reports them on
 seed 1. The two per-metric constants (`min_relative_noise`,
 `systematic_sigma_um`) belong to a metric on a microscope and are 0 by default;
-`focustrack bench focus --real` learns them on its fit fields.
+`focustrack focus calibrate` learns them from a user's labelled curves (a microscope
+profile), `focustrack bench focus --real` on its fit fields. Shape checks for curves of
+a microscope never seen (a phase-like valley, an oversampled curve's sigma floor, a
+contrast judged by the curve's own noise, a top hidden under a far peak's foot or
+resting on a window's end frame) are `curve_checks`.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
 
 from focustrack_core.domain import FocusFlag
+from focustrack_focus.curve_checks import (
+    low_contrast_flat,
+    narrow_at_end,
+    oversampled_floor_um,
+    phase_valley,
+    shoulder,
+)
 
 #: Std of a normal distribution per unit of its median absolute deviation.
 MAD_TO_SIGMA = 1.4826
@@ -116,6 +127,10 @@ class PeakSettings:
         picks, by an amount no single curve shows. It belongs to a metric on a
         microscope: 0 unless learnt from labelled curves (`focustrack bench focus --real`
         learns it per metric on its fit fields; docs/focus.md).
+    curve_fwhm_um: the metric's usual peak width on this microscope (full width at half
+        maximum, um; a microscope profile's, `focustrack focus calibrate`), or None. A peak
+        read next to a window's end whose fit is far narrower rests on that one end frame
+        (`curve_checks.narrow_at_end`).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -130,6 +145,7 @@ class PeakSettings:
     end_rise_share: float = 0.05
     min_relative_noise: float = 0.0
     systematic_sigma_um: float = 0.0
+    curve_fwhm_um: float | None = None
 
 
 @dataclass(frozen=True)
@@ -253,10 +269,22 @@ def find_peak(
     floor = settings.min_relative_noise * top
     judged_noise = max(noise if clean else 0.0, floor)
     noise = max(noise, floor)
-    if span <= settings.min_contrast * top or span <= settings.min_snr * judged_noise:
+    contrast_flat = low_contrast_flat(
+        span, top, noise, clean, settings.min_contrast, settings.min_snr
+    )
+    if contrast_flat or span <= settings.min_snr * judged_noise:
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     s = despike(z, s, judged_noise, settings.min_peak_sigma_um)
-    return _read_peaks(z, s, noise, judged_noise, settings, prior)
+    fit = _read_peaks(z, s, noise, judged_noise, settings, prior)
+    valley_z = phase_valley(z, s) if settings.mode is PeakMode.MAX else None
+    if valley_z is None:
+        return fit
+    # an unstained specimen's focus is this minimum: never a confident maximum
+    flags = fit.flags | {FocusFlag.VALLEY, FocusFlag.AMBIGUOUS}
+    probability = min(fit.chosen_probability or 1.0, 0.5)
+    return replace(
+        fit, flags=frozenset(flags), runner_up_z_um=valley_z, chosen_probability=probability
+    )
 
 
 #: How `despike` predicts a frame from its neighbours (offsets in frames -> weights), and
@@ -395,11 +423,23 @@ def _read_peaks(
         flags.add(FocusFlag.AMBIGUOUS)
     if chosen.index in (0, z.size - 1):
         edge = FocusFlag.EDGE_LOW if chosen.index == 0 else FocusFlag.EDGE_HIGH
+        hidden = shoulder(s, chosen.index > 0, judged_noise) if len(candidates) == 1 else None
+        if hidden is not None:  # a top of its own under a far peak's foot: no certainty
+            flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
+            runner_up_z, probability = float(z[hidden]), min(probability, 0.5)
         return PeakFit(
             float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, probability
         )
     z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
     sigma = math.hypot(sigma, top.spread_um(z, z0))
+    end = 0 if chosen.index == 1 else z.size - 1 if chosen.index == z.size - 2 else None
+    if end is not None and settings.curve_fwhm_um is not None:
+        top_fit = _fit_window(z, s, chosen.index, 1, noise)
+        if top_fit is not None and narrow_at_end(top_fit.width_var_um2, settings.curve_fwhm_um):
+            # the top rests on the end frame alone: were it a one-frame dip, the focus
+            # would lie beyond that end
+            flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
+            runner_up_z, probability = float(z[end]), min(probability, 0.5)
     return PeakFit(z0, sigma, frozenset(flags), runner_up_z, probability)
 
 
@@ -514,7 +554,9 @@ def _fit_vertex(
         + asymmetry_um**2
         + settings.systematic_sigma_um**2
     )
-    return fit.z_um, math.sqrt(variance)
+    return fit.z_um, max(
+        math.sqrt(variance), oversampled_floor_um(step_um, settings.min_peak_sigma_um)
+    )
 
 
 def _log_slope_about(z: np.ndarray, s: np.ndarray, z0: float) -> float:

@@ -34,6 +34,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import fields, replace
+from pathlib import Path
 from typing import Annotated, ClassVar
 
 import numpy as np
@@ -66,6 +67,7 @@ from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings, Prior
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
 from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
+from focustrack_focus.profile import MicroscopeProfile
 
 log = logging.getLogger(__name__)
 
@@ -480,6 +482,11 @@ class FocusServiceSettings(FrameReaderSettings):
         PeakSettings.systematic_sigma_um,
         description="the metric's offset from the true focus, a std added to sigma, um",
     )
+    profile: Path | None = Field(
+        None,
+        description="a microscope profile (`focustrack focus calibrate --out`): each metric's "
+        "constants, picked by a curve's metric label; they replace the two options above",
+    )
     token: str | None = Field(None, description="require this bearer token on /v1 (unset: no auth)")
     insecure: bool = Field(
         False,
@@ -554,6 +561,7 @@ def run(settings: FocusServiceSettings) -> int:
     try:
         limits = settings.limits()
         focus = settings.focus_settings()
+        profile = MicroscopeProfile.load(settings.profile) if settings.profile else None
     except ValueError as error:
         print(f"focus service not started: {error}", file=sys.stderr)
         return 2
@@ -567,7 +575,7 @@ def run(settings: FocusServiceSettings) -> int:
         settings,
         lambda session: ZenohFocusWorker(
             session,
-            focus,
+            profile.settings_for(focus.metric, focus) if profile else focus,
             settings.stack_na,
             signer,
             settings.open_frames_bytes,
@@ -590,7 +598,8 @@ def run(settings: FocusServiceSettings) -> int:
     warm_up.daemon = True
     warm_up.start()
     try:
-        app = with_bus_health(create_app(focus, limits, settings.token or None), bus.health)
+        app = create_app(focus, limits, settings.token or None, profile)
+        app = with_bus_health(app, bus.health)
         uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
     finally:
         bus.close()

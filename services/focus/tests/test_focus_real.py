@@ -10,6 +10,7 @@ import pytest
 from focustrack_core.domain import FocusFlag
 from focustrack_core.fusion import fuse_planes
 from focustrack_focus import calibration
+from focustrack_focus.labelled_curves import wsi_curves
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
@@ -90,7 +91,7 @@ def test_wsi_vollath_is_unusable_on_this_microscope_and_reads_flat() -> None:
     assert vollath.relative_noise > 0.002  # ten times the gradient metrics' noise
     assert not vollath.usable and "flat" in vollath.unusable_because
     settings = vollath.settings()
-    for field in load_wsi_fields(WSI):
+    for field in wsi_curves(load_wsi_fields(WSI)):
         readings = calibration.read_field(field, "VOLLATH_F4", settings)
         assert all(r.flags == {FocusFlag.FLAT} for r in readings), field.number
 

@@ -57,6 +57,7 @@ def _diagnostics_out(result: SlideDiagnostics) -> api.Diagnostics:
         n_accepted=result.n_accepted,
         n_rejected=result.n_rejected,
         innovations_note=result.innovations_note,
+        sigma_scale=result.sigma_scale,
         innovations=None
         if stats is None
         else api.InnovationStats(

@@ -1,0 +1,133 @@
+"""Checks of a focus curve's shape that `peak.find_peak` applies besides its fit.
+
+- A phase-like valley (`phase_valley`): an unstained specimen in brightfield loses its
+  contrast in focus and reverses it across focus, so its curve falls to a sharp minimum
+  at focus between two maxima, below the contrast of the far-out frames. A maximum-
+  contrast reading of it lands one or two depths of field away; the curve is flagged
+  `valley` (with `ambiguous`), and the minimum's z is given as the runner-up.
+- An oversampled curve's sigma floor (`oversampled_floor_um`): where frames are far
+  closer than the optics' depth of field, the fit's sub-step precision (a fraction of a
+  tiny step) says nothing of how far the metric's own peak lies from the true focus,
+  which is a matter of the optics, not of the step: sigma is kept above a share of the
+  depth of field (`PeakSettings.min_peak_sigma_um` is half of it).
+- A hidden top on the way to an edge (`shoulder`): a window near focus may see the foot of
+  a sharper peak beyond its end (debris on another plane) rise over its own top, which
+  then shows only as a shoulder, where the rise slows and speeds up again. The edge
+  flag then names the far peak's side with no certainty: the shoulder is the runner-up.
+- A top resting on a window's end frame (`narrow_at_end`): a peak read on the frame next
+  to a window's end has one frame for its outer flank; where its fit is far narrower than
+  the metric's peaks on this microscope (a profile's `curve_fwhm_um`), that end frame may
+  be a one-frame dip and the curve falling from beyond the end: ambiguous, the end the
+  runner-up.
+- A contrast too low to call, measured against the curve's own noise (`low_contrast_flat`):
+  a share of the maximum is a stand-in for the noise where the curve is too short to
+  measure it; a long clean curve whose peak stands many of its own noise spreads above
+  its floor is no flat curve, however small its contrast (a 5x objective on pale tissue).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: A valley: both maxima rise at least this share of the range above the minimum, and
+#: both end frames at least `VALLEY_BELOW_ENDS` of it (the far-out frames keep contrast).
+VALLEY_RISE_SHARE = 0.5
+VALLEY_BELOW_ENDS = 0.25
+#: ... and it is narrow: its width at half depth is at most this share of the distance
+#: between the two maxima (two peaks on a background leave a broad trough between them).
+VALLEY_WIDTH_SHARE = 0.5
+#: A curve is oversampled where its step is below this share of `min_peak_sigma_um` (an
+#: eighth of the depth of field: 0.06 um for a 100x oil objective, whose 0.25-0.5 um steps
+#: keep the step-based parts of sigma) ...
+OVERSAMPLED_STEP_SHARE = 0.25
+#: ... and then its sigma is at least this share of `min_peak_sigma_um` (a quarter of the
+#: depth of field).
+OVERSAMPLED_FLOOR_SHARE = 0.5
+
+
+def phase_valley(z: np.ndarray, s: np.ndarray) -> float | None:
+    """The z (um) of a phase-like valley of the curve (module docstring), or None.
+
+    z (n,) sorted, s (n,) scores. The minimum must be interior, the highest frame on each
+    side of it must rise `VALLEY_RISE_SHARE` of the range above it, both end frames
+    `VALLEY_BELOW_ENDS`, and its width at half the lower side's depth must be at most
+    `VALLEY_WIDTH_SHARE` of the distance between the two maxima."""
+    low = int(np.argmin(s))
+    if low in (0, s.size - 1):
+        return None
+    span = float(s.max() - s.min())
+    if span <= 0:
+        return None
+    left_top = int(np.argmax(s[:low]))
+    right_top = low + 1 + int(np.argmax(s[low + 1 :]))
+    rise = min(s[left_top], s[right_top]) - s[low]
+    if rise < VALLEY_RISE_SHARE * span or min(s[0], s[-1]) - s[low] < VALLEY_BELOW_ENDS * span:
+        return None
+    half = s[low] + rise / 2.0
+    above = np.flatnonzero(s >= half)
+    left_edge, right_edge = above[above < low][-1], above[above > low][0]
+    if z[right_edge] - z[left_edge] > VALLEY_WIDTH_SHARE * (z[right_top] - z[left_top]):
+        return None
+    return float(z[low])
+
+
+def oversampled_floor_um(step_um: float, min_peak_sigma_um: float) -> float:
+    """The sigma floor (um) of a peak read from frames `step_um` apart by optics whose
+    narrowest peak has std `min_peak_sigma_um`: OVERSAMPLED_FLOOR_SHARE of it where the
+    step is below OVERSAMPLED_STEP_SHARE of it, else 0 (module docstring)."""
+    if step_um >= OVERSAMPLED_STEP_SHARE * min_peak_sigma_um:
+        return 0.0
+    return OVERSAMPLED_FLOOR_SHARE * min_peak_sigma_um
+
+
+#: A shoulder: the rise slows to at most this share of its steepest slope before it ...
+SHOULDER_SLOW_SHARE = 0.35
+#: ... and then speeds up again to at least this many times the slow slope.
+SHOULDER_SPEED_UP = 3.0
+
+
+def shoulder(s: np.ndarray, rising_to_high: bool, noise: float) -> int | None:
+    """The frame of a shoulder on a curve (n,) that rises toward one end (`rising_to_high`:
+    the high-z end), or None (module docstring): an interior frame where the step to the
+    next frame is at most SHOULDER_SLOW_SHARE of an earlier, steeper step of the rise and
+    SHOULDER_SPEED_UP times smaller than a later one, every step compared beyond 3 noise
+    sigmas of the difference of two frames."""
+    rise = np.diff(s if rising_to_high else s[::-1])
+    margin = 3.0 * np.sqrt(2.0) * noise
+    for i in range(1, rise.size - 1):
+        earlier, later = rise[:i].max(), rise[i + 1 :].max()
+        slow = max(rise[i], 0.0)
+        if (
+            earlier > margin
+            and slow <= SHOULDER_SLOW_SHARE * earlier
+            and later >= SHOULDER_SPEED_UP * slow + margin
+        ):
+            return i if rising_to_high else s.size - 1 - i
+    return None
+
+
+#: A top's fit narrower than this share of the metric's usual peak (Gaussian stds) is
+#: suspect where it rests on an end frame.
+NARROW_SHARE = 0.5
+#: A Gaussian's full width at half maximum over its std.
+FWHM_PER_SIGMA = 2.0 * float(np.sqrt(2.0 * np.log(2.0)))
+
+
+def narrow_at_end(width_var_um2: float, curve_fwhm_um: float) -> bool:
+    """Whether a top fitted as a Gaussian of variance `width_var_um2` (um**2; 0: not a
+    log fit) is narrower than NARROW_SHARE of the metric's usual peak, `curve_fwhm_um` wide
+    at half maximum (module docstring)."""
+    if width_var_um2 <= 0.0:
+        return False
+    return float(np.sqrt(width_var_um2)) < NARROW_SHARE * curve_fwhm_um / FWHM_PER_SIGMA
+
+
+def low_contrast_flat(
+    span: float, top: float, noise: float, clean: bool, min_contrast: float, min_snr: float
+) -> bool:
+    """Whether a curve of range `span` and maximum `top` is too low in contrast to hold a
+    peak: below `min_contrast` of its maximum, unless its own noise estimate is clean and
+    the range stands `min_snr` of those noise spreads above it (module docstring)."""
+    if span > min_contrast * top:
+        return False
+    return not (clean and span > min_snr * noise)

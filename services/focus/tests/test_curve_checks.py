@@ -1,0 +1,159 @@
+"""The curve's shape checks (`curve_checks`): a phase-like valley is flagged, an oversampled
+curve keeps a sigma tied to the optics, and a low contrast is judged against the curve's
+own noise; on real curves (../shared/data/real) where they exist."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from focustrack_core.domain import FocusFlag
+from focustrack_focus.curve_checks import (
+    OVERSAMPLED_FLOOR_SHARE,
+    low_contrast_flat,
+    oversampled_floor_um,
+    phase_valley,
+)
+from focustrack_focus.metrics import METRICS
+from focustrack_focus.peak import PeakMode, PeakSettings, find_peak
+from focustrack_focus.pipeline import FocusSettings, focus_stack
+from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_wsi_fields, load_yeast
+
+REAL = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "real"
+needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} is missing (its README)")
+
+
+def gaussian(z: np.ndarray, centre: float, width: float) -> np.ndarray:
+    return np.exp(-0.5 * ((z - centre) / width) ** 2)
+
+
+def test_a_sharp_minimum_between_two_maxima_is_a_valley_two_peaks_on_a_floor_are_not() -> None:
+    z = np.arange(0.0, 10.01, 0.3)
+    # contrast reversing across focus at 5 um: high far out, zero in focus
+    phase = 1.0 - gaussian(z, 5.0, 0.6) + 0.2 * gaussian(z, 3.5, 1.0) + 0.2 * gaussian(z, 6.5, 1)
+    assert phase_valley(z, phase) == pytest.approx(5.0, abs=0.3)
+    two_peaks = 0.05 + gaussian(z, 2.5, 0.8) + 0.8 * gaussian(z, 7.5, 0.8)  # a broad trough
+    assert phase_valley(z, two_peaks) is None
+    single = 0.05 + gaussian(z, 5.0, 1.0)
+    assert phase_valley(z, single) is None
+    fit = find_peak(z, 100.0 * phase)
+    assert {FocusFlag.VALLEY, FocusFlag.AMBIGUOUS} <= fit.flags
+    assert fit.runner_up_z_um == pytest.approx(5.0, abs=0.3)
+    assert fit.chosen_probability is not None and fit.chosen_probability <= 0.5
+    # read as a valley (the mode for unstained specimens), it is the focus, not a warning
+    valley = find_peak(z, 100.0 * phase, PeakSettings(mode=PeakMode.VALLEY))
+    assert FocusFlag.VALLEY not in valley.flags and abs(valley.z_um - 5.0) < 0.15
+
+
+@needs_real
+@pytest.mark.parametrize("metric", ["tenengrad", "brenner", "vollath_f4"])
+def test_the_real_unstained_yeast_is_recognised_as_a_valley(metric: str) -> None:
+    frames, z_um = load_yeast(REAL / "yeast_brightfield_zstack")
+    result = focus_stack(frames, z_um, FocusSettings(metric=metric))
+    assert {FocusFlag.VALLEY, FocusFlag.AMBIGUOUS} <= result.flags
+    assert result.runner_up_z_um is not None
+    assert abs(result.runner_up_z_um / 0.3 - YEAST_FOCUS_PLANE) <= 1.0  # within a frame
+
+
+@needs_real
+def test_no_real_wsi_curve_reads_as_a_valley() -> None:
+    """The stained whole-slide fields (two peaks on many: debris) never look phase-like."""
+    for field in load_wsi_fields(REAL / "wsi_focus_curves"):
+        z_um = 0.5 * np.arange(field.n_positions)
+        for metric in ("BRENNER", "_3_3_SOBEL", "SQUARED_GRADIENT", "NORMALIZED_VARIANCE"):
+            assert FocusFlag.VALLEY not in find_peak(z_um, field.scores[metric]).flags
+
+
+def test_the_oversampled_floor_is_a_share_of_the_depth_of_field_only_below_its_eighth() -> None:
+    assert oversampled_floor_um(0.25, 0.25) == 0.0  # a 100x objective's usual steps
+    assert oversampled_floor_um(0.05, 0.25) == OVERSAMPLED_FLOOR_SHARE * 0.25
+
+
+def test_fine_steps_cannot_make_a_one_frame_sigma_over_a_three_frame_miss() -> None:
+    """0.05 um steps over a peak whose metric lies 0.14 um (2.8 frames) from the focus
+    (a lopsided peak: the metric weighs other frequencies than the eye): without the floor
+    the fit's sigma is about a frame, a confident miss; with it the miss is inside 2 sigma."""
+    z = np.arange(-1.5, 1.501, 0.05)
+    truth_um = 0.0
+    scores = 1000.0 * (0.1 + gaussian(z, truth_um + 0.14, 0.35))
+    scores += np.random.default_rng(3).normal(0.0, 0.5, z.size)
+    fit = find_peak(z, scores)
+    assert fit.sigma_um is not None and fit.z_um is not None
+    assert fit.sigma_um >= OVERSAMPLED_FLOOR_SHARE * PeakSettings().min_peak_sigma_um
+    assert abs(fit.z_um - truth_um) <= 2.0 * fit.sigma_um
+    coarse = find_peak(z[::6], scores[::6])  # 0.3 um steps: the step-based sigma, no floor
+    assert coarse.sigma_um is not None and coarse.sigma_um < 0.1
+
+
+def test_a_low_contrast_peak_clear_of_its_own_noise_is_not_flat() -> None:
+    """A pale specimen under a 5x objective: the curve changes by 0.5 % of its level, but
+    smoothly, 50 of its own noise spreads; pure noise of the same level stays flat."""
+    z = np.arange(-20.0, 20.01, 2.0)
+    rng = np.random.default_rng(4)
+    pale = 1000.0 * (1.0 + 0.005 * gaussian(z, 3.0, 6.0)) + rng.normal(0.0, 0.1, z.size)
+    fit = find_peak(z, pale)
+    assert FocusFlag.FLAT not in fit.flags
+    assert fit.z_um is not None and abs(fit.z_um - 3.0) <= 2.0  # within a frame
+    noise = 1000.0 + rng.normal(0.0, 0.5, z.size)
+    assert FocusFlag.FLAT in find_peak(z, noise).flags
+    # a short window: no clean noise of its own, so the contrast share still decides
+    assert low_contrast_flat(4.0, 1000.0, 0.01, False, 0.01, 10.0)
+    assert not low_contrast_flat(4.0, 1000.0, 0.01, True, 0.01, 10.0)
+    assert not low_contrast_flat(50.0, 1000.0, 100.0, False, 0.01, 10.0)  # contrast enough
+
+
+@pytest.mark.parametrize("metric", sorted(METRICS))
+def test_a_low_contrast_5x_stack_is_not_flat(metric: str, render) -> None:
+    """Simulated cells seen through a 5x objective (defocus blurs slowly: a deep depth of
+    field, 2 um steps) at 3 % of their contrast, with a camera's noise: a person sees the
+    focus at plane 10 of 19; no metric may call the stack flat."""
+    z_um = np.arange(-18.0, 18.01, 2.0)
+    sharp = render(96, z_um, 0.0, 11).astype(np.float64)
+    level = float(np.median(sharp))
+    rng = np.random.default_rng(5)
+    pale = level + 0.03 * (sharp - level) + rng.normal(0.0, 2.0, sharp.shape)
+    result = focus_stack(
+        np.clip(pale, 0, 4095).astype(np.uint16), z_um, FocusSettings(metric=metric)
+    )
+    assert FocusFlag.FLAT not in result.flags, metric
+    assert result.best_z_um is not None
+    within_a_frame = abs(result.best_z_um) <= 2.0
+    assert within_a_frame or result.flags & {FocusFlag.AMBIGUOUS, FocusFlag.MULTI_PEAK}
+
+
+def test_a_top_hidden_under_a_far_peaks_foot_makes_the_edge_uncertain() -> None:
+    """Focus at 20 um, and debris 12 um above it whose broad foot rises over the focus's top:
+    an 11x3 window around the focus sees no top of its own, only a shoulder on the way to
+    its high end. The edge flag toward the debris comes with the shoulder as the runner-up
+    and no certainty; on the focus's own flank, with no debris, the edge stays certain."""
+    z = np.arange(0.0, 50.0, 0.5)
+    rng = np.random.default_rng(1)
+    focus = 50.0 + 1000.0 * gaussian(z, 20.0, 1.5) + rng.normal(0.0, 1.0, z.size)
+    debris = focus + 8000.0 * gaussian(z, 32.0, 4.0)
+    window = 32 + 3 * np.arange(11)  # 16 .. 31 um
+    fit = find_peak(z[window], debris[window])
+    assert {FocusFlag.EDGE_HIGH, FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS} <= fit.flags
+    assert fit.runner_up_z_um is not None and abs(fit.runner_up_z_um - 20.0) <= 1.0
+    assert fit.chosen_probability is not None and fit.chosen_probability <= 0.5
+    below = np.arange(20, 38, 2)  # 10 .. 18 um: the focus's rising flank alone
+    flank = find_peak(z[below], focus[below])
+    assert flank.flags == {FocusFlag.EDGE_HIGH} and flank.chosen_probability == 1.0
+
+
+@needs_real
+def test_a_top_resting_on_a_one_frame_dip_at_the_window_end_is_ambiguous() -> None:
+    """WSI field 5 has a one-frame dip 4 steps above its focus: a window that starts on it
+    sees a 'peak' on its second frame, narrower than any of this microscope's peaks. With the
+    metric's usual width (a profile's) that top is ambiguous, the window's low end (toward
+    the focus) the runner-up; without it, nothing tells it from a real top."""
+    (field,) = [f for f in load_wsi_fields(REAL / "wsi_focus_curves") if f.number == 5]
+    scores = field.scores["BRENNER"]
+    window = np.arange(field.label_index + 4, field.label_index + 13)  # 9 x 1 from the dip
+    z_um = 0.5 * window
+    blind = find_peak(z_um, scores[window])
+    assert blind.flags == frozenset() and blind.z_um is not None  # the false top, confident
+    informed = find_peak(z_um, scores[window], PeakSettings(curve_fwhm_um=4.4))
+    assert {FocusFlag.AMBIGUOUS, FocusFlag.MULTI_PEAK} <= informed.flags
+    assert informed.runner_up_z_um == z_um[0] and informed.chosen_probability == 0.5
