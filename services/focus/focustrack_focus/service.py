@@ -49,7 +49,7 @@ from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main, one_of
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.web import with_bus_health
-from focustrack_core.wire import codec, keys, rpc
+from focustrack_core.wire import codec, keys
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
 from focustrack_core.wire.frame_worker import (
     ZFRAME_SUBSCRIPTION,
@@ -63,6 +63,7 @@ from focustrack_core.wire.session import DEFAULT_ENDPOINT
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
+from focustrack_focus.instrument_frames import InstrumentFrameSizes
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings, Prior
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
@@ -77,9 +78,6 @@ FOCUS_RESULT_ENCODING = protobuf_encoding(focus_pb2.FocusResult)
 #: open stack of 8 x 8 frames takes about 1.5 KB besides its arrays, by tracemalloc).
 STACK_BYTES = 4096
 CURVE_SLIDES = 16  # slides whose learnt focus curve is kept (the most recent)
-INSTRUMENTS = 16  # instruments whose frame size is kept (the most recent)
-INFO_TIMEOUT_S = 5.0  # an instrument's info query; it is asked again after as long
-INFO_QUERIES = 4  # info queries under way at once, at most
 
 
 def settings_for(
@@ -319,72 +317,6 @@ class FrameAnalyser:
         while len(self._curves) > CURVE_SLIDES:
             self._curves.popitem(last=False)
         return model
-
-
-def info_frame_bytes(info: instrument_pb2.InstrumentInfo) -> int:
-    """Bytes of one frame of the instrument that `info` describes: height x width x
-    channels (one per letter of its channel order, at least one), each sample in the
-    fewest of 1, 2, 4 or 8 bytes that hold its bit depth."""
-    itemsize = next((size for size in (1, 2, 4) if info.bit_depth <= 8 * size), 8)
-    return info.height * info.width * max(1, len(info.channel_order)) * itemsize
-
-
-class InstrumentFrameSizes:
-    """Each instrument's frame size, bytes (`info_frame_bytes`), from its info reply
-    (``focustrack/v1/instrument/{name}/info``), for `FrameAnalyser.frame_bytes_of`.
-
-    The first frame that names an instrument starts its info query in the background
-    (never holding the frames up); until it answers, its size is not known (None), and
-    it is asked again `timeout_s` after the last time. At most INFO_QUERIES queries are
-    under way and INSTRUMENTS sizes kept, so made-up names cannot grow either.
-    """
-
-    def __init__(self, session: zenoh.Session, timeout_s: float = INFO_TIMEOUT_S) -> None:
-        self.session = session
-        self.timeout_s = timeout_s
-        self._sizes: OrderedDict[str, int] = OrderedDict()
-        self._asked: OrderedDict[str, float] = OrderedDict()  # when each was last asked, s
-        self._lock = threading.Lock()
-
-    def __call__(self, instrument: str) -> int | None:
-        """The frame size of `instrument`, bytes, once it has answered; else None."""
-        with self._lock:
-            if instrument in self._sizes:
-                return self._sizes[instrument]
-            now_s = time.monotonic()
-            asked_s = self._asked.get(instrument)
-            under_way = sum(now_s - s < self.timeout_s for s in self._asked.values())
-            if (asked_s is not None and now_s - asked_s < self.timeout_s) or (
-                under_way >= INFO_QUERIES
-            ):
-                return None
-            self._asked.pop(instrument, None)
-            self._asked[instrument] = now_s
-            while len(self._asked) > INSTRUMENTS:
-                self._asked.popitem(last=False)
-        threading.Thread(target=self._ask, args=(instrument,), daemon=True).start()
-        return None
-
-    def _ask(self, instrument: str) -> None:
-        try:
-            info = rpc.call(
-                self.session,
-                keys.info_key(instrument),
-                instrument_pb2.AcquireRequest(),
-                instrument_pb2.InstrumentInfo,
-                self.timeout_s,
-            )
-        except (ValueError, DecodeError, rpc.RemoteError) as error:  # a bad name or reply; none
-            log.info("instrument %r's frame size is not known: %s", instrument, error)
-            return
-        size = info_frame_bytes(info)
-        if size == 0:  # an info without a frame format: nothing to bound by
-            return
-        log.info("instrument %r takes frames of %d bytes", instrument, size)
-        with self._lock:
-            self._sizes[instrument] = size
-            while len(self._sizes) > INSTRUMENTS:
-                self._sizes.popitem(last=False)
 
 
 class ZenohFocusWorker:
