@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from focustrack.bench import strategies as registry
+from focustrack.bench.accuracy import ELSEWHERE
 from focustrack.cli import main
 from focustrack_core.surfaces import Outliers, add_outliers, family_spec, generate_surfaces
 
@@ -52,7 +53,7 @@ def test_generated_maps_json_table_and_plots(
     strategies = report["strategies"]
     smoothed = {name for name in strategies if name.endswith("-rts")}
     assert set(REQUIRED) <= set(strategies)
-    assert set(strategies) - smoothed == set(registry.STRATEGIES) - {"kf-rescan"}
+    assert set(strategies) - smoothed == set(registry.STRATEGIES) - ELSEWHERE
     # Every 1-D Kalman strategy fills the smoothed layers: a -rts row each.
     assert {f"{name}-rts" for name in REQUIRED if name.startswith("kf-")} <= smoothed
     for name, fields in strategies.items():

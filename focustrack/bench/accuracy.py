@@ -50,9 +50,11 @@ DEFAULT_FAMILY = "standard"
 #: parameters, and every strategy's MAE is also printed as a ratio to its MAE.
 ORACLE = "gp-oracle"
 
-#: Strategies that re-scan a slide with the last pass's map: replayed by `focustrack bench
-#: rescan`, here only when named (without a map they only track a drift).
-RESCANS = frozenset({"kf-rescan"})
+#: Strategies replayed by another benchmark, by default not here: those that re-scan a
+#: slide with the last pass's map (`focustrack bench rescan`; without a map they only track
+#: a drift), and those that fuse a reflection autofocus's readings (`focustrack bench
+#: drift`; these maps have no laser).
+ELSEWHERE = frozenset({"kf-rescan", "kf-2d-laser"})
 
 #: Suffix of the rows scored on a strategy's RTS-smoothed final map.
 SMOOTHED_SUFFIX = "-rts"
@@ -417,7 +419,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(
                 f"--noise-um and --dof-um must be positive, got {args.noise_um}, {args.dof_um}"
             )
-        default = [name for name in registry.STRATEGIES if name not in RESCANS]
+        default = [name for name in registry.STRATEGIES if name not in ELSEWHERE]
         names = [n for item in args.strategies or default for n in item.split(",")]
         names = list(dict.fromkeys(n for n in names if n))
         unknown = [n for n in names if n not in registry.STRATEGIES]

@@ -22,7 +22,10 @@
 - A contrast too low to call, measured against the curve's own noise (`low_contrast_flat`):
   a share of the maximum is a stand-in for the noise where the curve is too short to
   measure it; a long clean curve whose peak stands many of its own noise spreads above
-  its floor is no flat curve, however small its contrast (a 5x objective on pale tissue).
+  both end frames is no flat curve, however small its contrast (a 5x objective on pale
+  tissue). A pale curve that does not rise so far above its ends is flat still: a camera
+  whose brightness alone changes with z (Micro-Manager's demo camera, a lamp warming up)
+  draws a clean, slow wander with no focus in it.
 """
 
 from __future__ import annotations
@@ -123,11 +126,13 @@ def narrow_at_end(width_var_um2: float, curve_fwhm_um: float) -> bool:
 
 
 def low_contrast_flat(
-    span: float, top: float, noise: float, clean: bool, min_contrast: float, min_snr: float
+    s: np.ndarray, top: float, noise: float, clean: bool, min_contrast: float, min_snr: float
 ) -> bool:
-    """Whether a curve of range `span` and maximum `top` is too low in contrast to hold a
-    peak: below `min_contrast` of its maximum, unless its own noise estimate is clean and
-    the range stands `min_snr` of those noise spreads above it (module docstring)."""
-    if span > min_contrast * top:
+    """Whether the curve `s` (n,) as read (its focus a maximum), whose scores' maximum is
+    `top`, is too low in contrast to hold a peak: its range below `min_contrast` of `top`,
+    unless its own noise estimate is clean and its maximum stands `min_snr` of those noise
+    spreads above both end frames (a peak inside the stack; module docstring)."""
+    if float(s.max() - s.min()) > min_contrast * top:
         return False
-    return not (clean and span > min_snr * noise)
+    rise_from_ends = float(s.max() - max(s[0], s[-1]))
+    return not (clean and rise_from_ends > min_snr * noise)

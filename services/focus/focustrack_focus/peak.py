@@ -269,9 +269,7 @@ def find_peak(
     floor = settings.min_relative_noise * top
     judged_noise = max(noise if clean else 0.0, floor)
     noise = max(noise, floor)
-    contrast_flat = low_contrast_flat(
-        span, top, noise, clean, settings.min_contrast, settings.min_snr
-    )
+    contrast_flat = low_contrast_flat(s, top, noise, clean, settings.min_contrast, settings.min_snr)
     if contrast_flat or span <= settings.min_snr * judged_noise:
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     s = despike(z, s, judged_noise, settings.min_peak_sigma_um)

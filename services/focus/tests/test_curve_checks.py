@@ -99,9 +99,15 @@ def test_a_low_contrast_peak_clear_of_its_own_noise_is_not_flat() -> None:
     noise = 1000.0 + rng.normal(0.0, 0.5, z.size)
     assert FocusFlag.FLAT in find_peak(z, noise).flags
     # a short window: no clean noise of its own, so the contrast share still decides
-    assert low_contrast_flat(4.0, 1000.0, 0.01, False, 0.01, 10.0)
-    assert not low_contrast_flat(4.0, 1000.0, 0.01, True, 0.01, 10.0)
-    assert not low_contrast_flat(50.0, 1000.0, 100.0, False, 0.01, 10.0)  # contrast enough
+    peaked = np.array([996.0, 998.0, 1000.0, 998.0, 996.0])
+    assert low_contrast_flat(peaked, 1000.0, 0.01, False, 0.01, 10.0)
+    assert not low_contrast_flat(peaked, 1000.0, 0.01, True, 0.01, 10.0)
+    # a clean, pale wander that hardly rises above its ends (brightness alone changing
+    # with z, Micro-Manager's demo camera): flat still
+    wander = np.array([1000.0, 999.0, 1001.5, 998.0, 999.5, 1001.0])
+    assert low_contrast_flat(wander, 1001.5, 0.1, True, 0.01, 10.0)
+    contrasted = np.array([950.0, 1000.0, 950.0])
+    assert not low_contrast_flat(contrasted, 1000.0, 100.0, False, 0.01, 10.0)
 
 
 @pytest.mark.parametrize("metric", sorted(METRICS))

@@ -13,6 +13,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 import zenoh
+from instrument_process import wait_until_it_answers
 
 from focustrack_core import health
 from focustrack_core.v1 import common_pb2, instrument_pb2
@@ -48,11 +49,7 @@ def instrument(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:
         with session.open_session(connect=[endpoint], connect_timeout_s=60) as probe:
-            for _ in range(100):
-                if health.instrument_answers(probe, "sim"):
-                    break
-                assert process.poll() is None, process.stderr.read()
-                time.sleep(0.2)
+            wait_until_it_answers(probe, "sim", process)
         yield endpoint
     finally:
         process.terminate()

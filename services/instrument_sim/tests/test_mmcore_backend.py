@@ -16,6 +16,7 @@ import mm_test_adapters
 import numpy as np
 import pytest
 import zenoh
+from instrument_process import wait_until_it_answers
 from pymmcore_plus import CMMCorePlus
 from pymmcore_plus.experimental.unicore import (
     SimpleCameraDevice,
@@ -25,7 +26,6 @@ from pymmcore_plus.experimental.unicore import (
 )
 from pymmcore_plus.seq_tester import decode_image
 
-from focustrack_core import health
 from focustrack_core.v1 import common_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc, session
 from focustrack_instrument_sim import service
@@ -485,11 +485,7 @@ def test_the_command_serves_the_configuration_and_exits_cleanly() -> None:
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:
         with session.open_session(connect=[endpoint], connect_timeout_s=60) as client:
-            for _ in range(100):
-                if health.instrument_answers(client, "mm"):
-                    break
-                assert process.poll() is None, process.stderr.read()  # type: ignore[union-attr]
-                time.sleep(0.2)
+            wait_until_it_answers(client, "mm", process)
             reply = _acquire(client, "mm", row=1, sequence=5)
         assert reply.header.stage_y_um == 512.0 and len(reply.header.z_um) == 3
     finally:

@@ -6,13 +6,12 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 
 import pytest
 import zenoh
+from instrument_process import wait_until_it_answers
 
-from focustrack_core import health
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc, session
 
@@ -30,11 +29,7 @@ def client() -> Iterator[zenoh.Session]:
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:
         with session.open_session(connect=[endpoint], connect_timeout_s=60) as opened:
-            for _ in range(100):
-                if health.instrument_answers(opened, "sim"):
-                    break
-                assert process.poll() is None, process.stderr.read()
-                time.sleep(0.2)
+            wait_until_it_answers(opened, "sim", process)
             yield opened
     finally:
         process.terminate()
