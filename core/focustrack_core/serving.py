@@ -7,6 +7,8 @@
   the validation errors of a 422 likewise, without the inputs.
 - `BackgroundServer`: an ASGI app served by uvicorn on a thread of its own (the live
   view of a scan, tests).
+- `RequestTimer`: an ASGI middleware that hands each request's method, route template,
+  status and seconds to a callback (the services' Prometheus metrics).
 
 No web framework is imported: the middleware speaks plain ASGI, and uvicorn is
 imported by `BackgroundServer` alone (what serves an app has it), so the core gains
@@ -147,6 +149,34 @@ class SlowBodyTimeout:
             await send({"type": "http.response.body", "body": self.error})
             return
         await route
+
+
+class RequestTimer:
+    """ASGI middleware: `observe(method, route, status, seconds)` after every HTTP request,
+    with the route's template (``/v1/slides/{slide_id}``, not the id; ``unmatched`` where
+    no route matched) and the status sent (500 if none was)."""
+
+    def __init__(self, app: ASGIApp, observe: Callable[[str, str, int, float], None]) -> None:
+        self.app, self.observe = app, observe
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start_s = time.perf_counter()
+        status = 500
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            route = getattr(scope.get("route"), "path", "unmatched")
+            self.observe(scope["method"], route, status, time.perf_counter() - start_s)
 
 
 class _BodyTooLargeError(Exception):

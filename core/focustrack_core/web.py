@@ -1,6 +1,7 @@
 """The FastAPI edge the stack services share (extra `web`): one app with the house's body
-limits and 422 shape, the bearer-token check of `/v1`, an upload read within a limit, and
-the ``/healthz`` of a service that is on Zenoh too (`with_bus_health`).
+limits, 422 shape and Prometheus metrics at ``/metrics``, the bearer-token check of `/v1`,
+an upload read within a limit, and the ``/healthz`` of a service that is on Zenoh too
+(`with_bus_health`).
 
 `serving` holds what needs no web framework (plain ASGI); this module is for the
 services built on FastAPI (the focus and phase services), which import it.
@@ -14,11 +15,12 @@ from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from focustrack_core.serving import BodyLimit, SlowBodyTimeout, quoted_errors
+from focustrack_core.http_metrics import CONTENT_TYPE, HttpMetrics
+from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout, quoted_errors
 
 _bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
 
@@ -42,18 +44,30 @@ def bearer_token(token: str | None) -> Callable[..., Awaitable[None]]:
 
 
 def guarded_app(
-    title: str, description: str, max_upload_bytes: int, body_timeout_s: float
+    title: str,
+    description: str,
+    max_upload_bytes: int,
+    body_timeout_s: float,
+    metrics: HttpMetrics,
 ) -> FastAPI:
     """A FastAPI app that refuses a body over `max_upload_bytes` (413) or slower than
-    `body_timeout_s` to arrive (408), and answers invalid requests with the quoted 422."""
+    `body_timeout_s` to arrive (408), answers invalid requests with the quoted 422, and
+    counts and times every request into `metrics`, served at ``GET /metrics`` (Prometheus
+    text, no token: as ``/healthz``)."""
     app = FastAPI(title=title, version="1", description=description)
     app.add_middleware(BodyLimit, max_bytes=max_upload_bytes, error_body=lambda d: {"detail": d})
     timeout = f"the request body did not arrive within {body_timeout_s:g} s"
     app.add_middleware(SlowBodyTimeout, timeout_s=body_timeout_s, error_body={"detail": timeout})
+    # outermost: it counts the 413s and 408s too
+    app.add_middleware(RequestTimer, observe=metrics.observe_request)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
         return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
+
+    @app.get("/metrics", response_class=PlainTextResponse, include_in_schema=False)
+    async def _metrics() -> PlainTextResponse:
+        return PlainTextResponse(metrics.render(), media_type=CONTENT_TYPE)
 
     return app
 

@@ -15,17 +15,16 @@ import gc
 import math
 import re
 import threading
-import time
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from typing import TYPE_CHECKING, Any
 
 from fastapi import Depends, FastAPI
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from focustrack_client import models as api
-from focustrack_core.serving import BodyLimit, SlowBodyTimeout
+from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout
 from focustrack_estimator import handlers
 from focustrack_estimator.budget import Budget, GridLimits
 from focustrack_estimator.dependencies import require_token
@@ -44,33 +43,6 @@ WORKER_THREADS = 64
 
 #: Seconds after the service starts serving that its strategies load in the background.
 STRATEGIES_DELAY_S = 0.3
-
-
-class _RequestMetrics:
-    """ASGI middleware: count and time every request by method, route template and status."""
-
-    def __init__(self, app: ASGIApp, metrics: EstimatorMetrics) -> None:
-        self.app, self.metrics = app, metrics
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        start_s = time.perf_counter()
-        status = 500
-
-        async def send_status(message: Message) -> None:
-            nonlocal status
-            if message["type"] == "http.response.start":
-                status = message["status"]
-            await send(message)
-
-        try:
-            await self.app(scope, receive, send_status)
-        finally:
-            route = getattr(scope.get("route"), "path", "unmatched")  # the template, not the id
-            self.metrics.requests.labels(scope["method"], route, str(status)).inc()
-            self.metrics.latency.labels(route).observe(time.perf_counter() - start_s)
 
 
 #: The one route whose body is a file, not JSON: a prior map (`prior`), under a limit of its own.
@@ -174,7 +146,8 @@ def create_app(
         timeout_s=settings.body_timeout_s,
         error_body={"code": api.ErrorCode.INVALID_REQUEST, "detail": timeout},
     )
-    app.add_middleware(_RequestMetrics, metrics=metrics)  # outermost: it counts the 413s too
+    # outermost: it counts the 413s too
+    app.add_middleware(RequestTimer, observe=metrics.observe_request)
     handlers.install(app)
     _publish_params_on_first_ask(app, live)
     return app

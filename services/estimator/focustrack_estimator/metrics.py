@@ -9,33 +9,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
-from prometheus_client.metrics import disable_created_metrics
+from prometheus_client import Counter, Gauge, Histogram
 
-# A `_created` series beside every counter doubles the text and no dashboard reads it.
-disable_created_metrics()
-
-#: Latency buckets in seconds: 0.1 ms to 2.5 s.
-LATENCY_BUCKETS_S = (
-    0.0001,
-    0.00025,
-    0.0005,
-    0.001,
-    0.0025,
-    0.005,
-    0.01,
-    0.025,
-    0.05,
-    0.1,
-    0.25,
-    0.5,
-    1.0,
-    2.5,
-)
+from focustrack_core.http_metrics import LATENCY_BUCKETS_S, HttpMetrics
 
 
-class EstimatorMetrics:
-    """What the estimator exposes at /metrics; the gauges' values are read at each scrape."""
+class EstimatorMetrics(HttpMetrics):
+    """What the estimator exposes at /metrics: its HTTP requests, and its own counters and
+    gauges (the gauges' values read at each scrape)."""
 
     def __init__(
         self,
@@ -44,22 +25,8 @@ class EstimatorMetrics:
         strategies_loaded: Callable[[], float],
         store_degraded: Callable[[], float],
     ) -> None:
-        prefix = "focustrack_estimator"
-        self.registry = CollectorRegistry()
-        registry = self.registry
-        self.requests = Counter(
-            f"{prefix}_requests_total",
-            "HTTP requests by route and status",
-            ["method", "route", "status"],
-            registry=registry,
-        )
-        self.latency = Histogram(
-            f"{prefix}_request_duration_seconds",
-            "HTTP request latency by route",
-            ["route"],
-            buckets=LATENCY_BUCKETS_S,
-            registry=registry,
-        )
+        super().__init__("focustrack_estimator")
+        prefix, registry = self.prefix, self.registry
         self.filter = Histogram(
             f"{prefix}_filter_duration_seconds",
             "Time spent in strategy calls (planning and taking measurements)",
@@ -95,7 +62,3 @@ class EstimatorMetrics:
         }
         for name, (help_text, read) in gauges.items():
             Gauge(f"{prefix}_{name}", help_text, registry=registry).set_function(read)
-
-    def render(self) -> str:
-        """The text exposition of every metric."""
-        return generate_latest(self.registry).decode()

@@ -33,6 +33,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.serving import cut
 from focustrack_core.stacks import (
     TooLargeError,
@@ -167,6 +168,7 @@ def create_app(
         "Best focus (with an uncertainty and flags) from a z-stack or a focus curve.",
         limits.max_upload_bytes,
         limits.body_timeout_s,
+        HttpMetrics("focustrack_focus"),
     )
 
     @app.exception_handler(StarletteHTTPException)

@@ -165,3 +165,19 @@ def test_real_uvicorn_server(frames: np.ndarray, serve: Callable[[FastAPI], str]
     assert response.status_code == 200, response.text
     assert response.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
     assert "/v1/focus/stack" in httpx.get(f"{base}/openapi.json").json()["paths"]
+
+
+def test_metrics_count_and_time_each_route_and_status() -> None:
+    """Prometheus text at /metrics: requests by route template and status, with latencies."""
+    client = TestClient(create_app())  # a registry of its own: counts start at zero
+    curve = {"z_um": [-2.0, -1.0, 0.0, 1.0, 2.0], "scores": [1.0, 3.0, 5.0, 3.0, 1.0]}
+    assert client.post("/v1/focus/curve", json=curve).status_code == 200
+    assert client.post("/v1/focus/curve", json={"z_um": [0.0]}).status_code == 422
+    lines = client.get("/metrics").text.splitlines()
+    route = 'route="/v1/focus/curve"'
+    for status in ("200", "422"):
+        assert (
+            f'focustrack_focus_requests_total{{method="POST",{route},status="{status}"}} 1.0'
+            in lines
+        )
+    assert f"focustrack_focus_request_duration_seconds_count{{{route}}} 2.0" in lines

@@ -32,6 +32,7 @@ from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, UploadFi
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
+from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
 from focustrack_core.web import bearer_token, guarded_app, read_upload
 from focustrack_phase.acekf import AcekfOptions, FieldEstimate, Update, reconstruct
@@ -143,6 +144,7 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
         "Quantitative phase and amplitude from a through-focus stack (sparse ACEKF).",
         limits.max_upload_bytes,
         limits.body_timeout_s,
+        HttpMetrics("focustrack_phase"),
     )
 
     @app.get("/healthz")

@@ -250,3 +250,13 @@ def test_settings_from_a_file_and_the_environment_and_heavy_modules_left_for_lat
         check=True,
     )
     assert loaded.stdout.strip() == "[]"
+
+
+def test_metrics_count_each_route_and_status() -> None:
+    client = TestClient(create_app())  # a registry of its own: counts start at zero
+    assert client.post("/v1/phase/stack", data={"z_um": "[0]"}).status_code == 422
+    lines = client.get("/metrics").text.splitlines()
+    expected = (
+        'focustrack_phase_requests_total{method="POST",route="/v1/phase/stack",status="422"} 1.0'
+    )
+    assert expected in lines
