@@ -104,6 +104,20 @@ def snapshot_digest(slide_id: str, n_events: int, state: bytes) -> str:
     return hashlib.sha256(header + state).hexdigest()
 
 
+def checked_snapshot(slide_id: str, n_events: int, state: bytes, digest: str | None) -> Snapshot:
+    """The snapshot read back with its stored checksum `digest`; CorruptSnapshotError if it
+    has none (an older store's) or it does not match (`snapshot_digest`)."""
+    if digest is None:
+        raise CorruptSnapshotError(
+            f"slide {slide_id!r}: its snapshot has no checksum (an older store's)"
+        )
+    if digest != snapshot_digest(slide_id, n_events, state):
+        raise CorruptSnapshotError(
+            f"slide {slide_id!r}: its snapshot (of {n_events} events) does not match its checksum"
+        )
+    return Snapshot(n_events, state)
+
+
 class EventStore(Protocol):
     """Slides, their event logs and their newest snapshots, durable once a call returns.
 

@@ -38,7 +38,6 @@ from psycopg.conninfo import conninfo_to_dict
 from psycopg_pool import ConnectionPool
 
 from focustrack_estimator.event_store import (
-    CorruptSnapshotError,
     Event,
     SequenceConflictError,
     SlideRecord,
@@ -46,6 +45,7 @@ from focustrack_estimator.event_store import (
     StoreError,
     StoreFullError,
     StoreUnavailableError,
+    checked_snapshot,
     json_object,
     slide_record,
     snapshot_digest,
@@ -345,13 +345,7 @@ class PostgresStore:
             ).fetchone()
         if row is None:
             return None
-        n_events, state, digest = int(row[0]), bytes(row[1]), row[2]
-        if digest != snapshot_digest(slide_id, n_events, state):
-            raise CorruptSnapshotError(
-                f"slide {slide_id!r}: its snapshot (of {n_events} events) does not match "
-                "its checksum"
-            )
-        return Snapshot(n_events, state)
+        return checked_snapshot(slide_id, int(row[0]), bytes(row[1]), row[2])
 
     def replace_config(self, slide_id: str, config: dict[str, Any]) -> None:
         with self._transaction() as db:

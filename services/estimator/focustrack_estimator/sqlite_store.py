@@ -40,6 +40,7 @@ from focustrack_estimator.event_store import (
     StoreError,
     StoreFullError,
     StoreUnavailableError,
+    checked_snapshot,
     json_object,
     slide_record,
     snapshot_digest,
@@ -446,16 +447,7 @@ class SQLiteStore:
         n_events, state, digest = row
         if not isinstance(n_events, int) or not isinstance(state, bytes):
             raise CorruptSnapshotError(f"slide {slide_id!r}: its snapshot's row is malformed")
-        if digest is None:
-            raise CorruptSnapshotError(
-                f"slide {slide_id!r}: its snapshot has no checksum (an older store's)"
-            )
-        if digest != snapshot_digest(slide_id, n_events, state):
-            raise CorruptSnapshotError(
-                f"slide {slide_id!r}: its snapshot (of {n_events} events) does not match "
-                "its checksum"
-            )
-        return Snapshot(n_events, state)
+        return checked_snapshot(slide_id, n_events, state, digest)
 
     def replace_config(self, slide_id: str, config: dict[str, Any]) -> None:
         """Replace the configuration of a slide whose log is empty and forget its snapshot,
