@@ -117,12 +117,15 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         truth: dict[str, np.ndarray | None] = {"um": None}
 
         def start(geometry: SlideGeometry) -> ScanProgress | None:
-            if job.live is not None:
-                job.live.show(LiveScan.follow(record, geometry.grid, job.label))
             try:  # evaluation only: the plan never sees it
                 truth["um"] = instrument.truth_um(request.slide)
             except rpc.RemoteError as error:
                 log.warning("no truth from the instrument (%s): no in-focus figures", error)
+            if job.live is not None:  # in focus by the truth, else by the focus service
+                live = LiveScan.follow(
+                    record, geometry.grid, job.label, dof_um=geometry.dof_um, truth_um=truth["um"]
+                )
+                job.live.show(live)
             if not job.progress:
                 return None
             return ScanProgress(
