@@ -17,8 +17,11 @@ import pytest
 from matplotlib.image import imread
 
 from focustrack.demo import INSTRUMENT, SLIDE, LocalStack
+from focustrack_core.domain import kept_in_focus
+from focustrack_scheduler.clients import InstrumentClient, truth_empty
 from focustrack_scheduler.live import BY_TRUTH
 from focustrack_scheduler.live_view import LiveServer
+from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.scan import ScanJob, run_scan
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
@@ -84,13 +87,28 @@ def test_the_live_view_shows_thumbnails_and_the_in_focus_share_during_a_real_sca
             done[row, col] = is_done
         assert (opaque_cells(png) >= done).all()
         share = state["in_focus"]
-        assert share["by"] == BY_TRUTH and share["judged"] == state["tiles_done"]
+        assert share["by"] == BY_TRUTH and share["tissue_only"]
+        assert 0 <= share["tiles"] <= share["judged"] <= state["tiles_done"]
     assert final["finished"] and final["tiles_done"] == ROWS * COLS
     assert opaque_cells(thumbnails).all()
     assert final["thumbnails_version"] >= ROWS * COLS
-    # by the truth, every kept tile judged: the report's in-focus fraction, to the tile
-    share, report = final["in_focus"], reports[0]
-    assert share["by"] == BY_TRUTH and share["judged"] == ROWS * COLS
-    assert share["tiles"] / share["judged"] == pytest.approx(report["in_focus_fraction"])
+    # by the truth, the tissue tiles judged (empty glass left out), each on its kept frames
+    instrument = InstrumentClient(session, INSTRUMENT)
+    truth_um, glass = instrument.truth_um(SLIDE), truth_empty(instrument.slide_truth(SLIDE))
+    assert glass is not None and 0 < glass.sum() < ROWS * COLS  # the slide has both
+    record = ScanRecord(tmp_path)  # the scan's log, read back
+    tally = record.tally
+    record.close()
+    in_focus = [
+        kept_in_focus(tally.planes.get(tile, [z_um]), truth_um[tile], reports[0]["dof_um"])
+        for tile, z_um in tally.kept.items()
+        if not glass[tile]
+    ]
+    assert final["in_focus"] == {
+        "tiles": sum(in_focus),
+        "judged": ROWS * COLS - int(glass.sum()),
+        "by": BY_TRUTH,
+        "tissue_only": True,
+    }
     rgba = imread(io.BytesIO(thumbnails))
     assert rgba[..., :3].std() > 0.01  # images of the slide, not blank cells

@@ -7,8 +7,9 @@ estimator's posterior, else the measured best focus), the images acquired, the
 flags of the last measurement, whether the tile's image is kept (done) and, with
 ``--phase``, the spread of its phase (std over the tile, rad). Given the depth of field,
 it also judges each kept tile in focus or not: against the instrument's truth where there
-is one (evaluation), else against the focus service's best z for the tile (its last
-measurement, where that found one not at an end of the stack); and followed, it keeps a
+is one (evaluation; tissue tiles only where the truth says which tiles are empty glass),
+else against the focus service's best z for the tile (its last measurement, where that
+found one not at an end of the stack); and followed, it keeps a
 thumbnail of each kept tile's image at its stage position (`thumbnails.Thumbnails`).
 Every change bumps a version; `changes(since)` gives only the tiles changed
 after it, so a 200x200 grid streams a few tiles per update, not 40 000. Pure
@@ -48,15 +49,18 @@ class LiveScan:
         *,
         dof_um: float | None = None,
         truth_um: np.ndarray | None = None,
+        empty_glass: np.ndarray | None = None,
         tile_image: TileImage | None = None,
     ) -> None:
         """`dof_um`: the depth of field, to judge tiles in focus (None: not judged);
-        `truth_um` (rows, cols): the true focus, evaluation only; `tile_image`: where a kept
-        tile's image is read for its thumbnail (None: no thumbnails)."""
+        `truth_um` (rows, cols): the true focus, evaluation only, and `empty_glass` (rows,
+        cols) bool: the truth's tiles without tissue, not judged (None: every tile has some);
+        `tile_image`: where a kept tile's image is read for its thumbnail (None: none)."""
         self.grid = grid
         self.label = label
         self.dof_um = dof_um
         self.truth_um = truth_um
+        self.empty_glass = empty_glass
         self.thumbnails = Thumbnails(grid)
         self._tile_image = tile_image
         self.z_kept_um = np.full(grid.shape, np.nan)  # the z of each tile's image
@@ -84,6 +88,7 @@ class LiveScan:
         *,
         dof_um: float | None = None,
         truth_um: np.ndarray | None = None,
+        empty_glass: np.ndarray | None = None,
     ) -> LiveScan:
         """The live state of `record` so far, kept up to date as the scheduler logs more,
         with thumbnails of its tiles (read from the record's mosaic as they are kept)."""
@@ -95,7 +100,14 @@ class LiveScan:
                 return None
             return image, float(tile_format["pixel_size_um"])
 
-        live = cls(grid, label, dof_um=dof_um, truth_um=truth_um, tile_image=tile_image)
+        live = cls(
+            grid,
+            label,
+            dof_um=dof_um,
+            truth_um=truth_um,
+            empty_glass=empty_glass,
+            tile_image=tile_image,
+        )
         tally = record.tally
         for entry in tally.acquisitions:
             live.take(entry)
@@ -158,8 +170,9 @@ class LiveScan:
         if self.dof_um is None:
             return
         reference_um = (self.truth_um if self.truth_um is not None else self.best_z_um)[tile]
-        if not (math.isfinite(reference_um) and math.isfinite(self.z_kept_um[tile])):
-            self.in_focus[tile] = -1  # not kept yet, or nothing to judge it by
+        glass = self.empty_glass is not None and bool(self.empty_glass[tile])
+        if glass or not (math.isfinite(reference_um) and math.isfinite(self.z_kept_um[tile])):
+            self.in_focus[tile] = -1  # not kept yet, no tissue, or nothing to judge it by
             return
         kept_um = self.planes_um.get(tile) or [float(self.z_kept_um[tile])]  # planes: with it
         self.in_focus[tile] = kept_in_focus(kept_um, float(reference_um), self.dof_um)
@@ -222,14 +235,15 @@ class LiveScan:
             }
 
     def _in_focus_share(self) -> dict[str, Any] | None:
-        """Tiles in focus among those judged so far and by whom; None without a depth of
-        field (not judged)."""
+        """Tiles in focus among those judged so far, by whom, and whether only tissue tiles
+        are (the truth's empty glass left out); None without a depth of field (not judged)."""
         if self.dof_um is None:
             return None
         return {
             "tiles": int(np.count_nonzero(self.in_focus == 1)),
             "judged": int(np.count_nonzero(self.in_focus >= 0)),
             "by": BY_TRUTH if self.truth_um is not None else BY_FOCUS_SERVICE,
+            "tissue_only": self.empty_glass is not None,
         }
 
 

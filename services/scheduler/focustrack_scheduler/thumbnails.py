@@ -2,12 +2,13 @@
 
 One RGBA image of the whole grid, `cell_px` pixels per pitch (`ScanGrid.pitch_um`), so its
 cells line up with the maps' tiles: cell (row, col) is centred on the tile's stage
-position. A tile's thumbnail is the part of its image that lies within its cell: where
-tiles overlap (a virtual slide's), the middle `pitch_um` of the tile, so neighbours meet
-without seams; where they lie apart, the whole tile at its true size on a white cell
-(glass), so the gaps between tiles show as they are on the stage. Cells of tiles not yet
-kept are transparent. Memory is bounded whatever the grid: the image is at most
-`MAX_SIDE_PX` on its longest side (one pixel per tile beyond that many tiles).
+position. Where tiles overlap (a virtual slide's), a cell shows the middle `pitch_um` of
+its tile, so neighbours meet without seams and the mosaic is to the stage's scale; where
+they lie apart (fields far smaller than the pitch), a cell shows its whole tile, enlarged
+to fill it (at the stage's scale it would be a dot), on white (glass) where the tile is
+not square. Cells of tiles not yet kept are transparent. Memory is bounded whatever the
+grid: the image is at most `MAX_SIDE_PX` on its longest side (one pixel per tile beyond
+that many tiles).
 """
 
 from __future__ import annotations
@@ -72,14 +73,11 @@ class Thumbnails:
     def put(self, row: int, col: int, image: np.ndarray, pixel_um: float) -> None:
         """Tile (row, col)'s image (h, w, channels) uint8, `pixel_um` wide pixels, in its cell."""
         cell = self.cell_px
-        pitch_px = self.grid.pitch_um / pixel_um  # the tile's pixels within its cell
-        parts = []
-        for side in image.shape[:2]:
-            shown = min(side, max(1, round(pitch_px)))
-            start = (side - shown) // 2
-            size_px = max(1, min(cell, round(cell * shown / pitch_px)))
-            parts.append((start, shown, size_px))
-        (y0, h, ny), (x0, w, nx) = parts
+        pitch_px = max(1, round(self.grid.pitch_um / pixel_um))  # a tile's pixels in its cell
+        h, w = min(image.shape[0], pitch_px), min(image.shape[1], pitch_px)
+        y0, x0 = (image.shape[0] - h) // 2, (image.shape[1] - w) // 2
+        scale = cell / max(h, w)  # the longer side fills the cell
+        ny, nx = max(1, round(h * scale)), max(1, round(w * scale))
         step = max(1, min(h // (OVERSAMPLE * ny), w // (OVERSAMPLE * nx)))
         crop = np.asarray(image[y0 : y0 + h : step, x0 : x0 + w : step])
         small = shrink(as_rgb(crop), ny, nx)

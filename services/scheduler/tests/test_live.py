@@ -183,14 +183,21 @@ def test_kept_tiles_are_judged_in_focus_by_the_truth_or_else_by_the_focus_servic
     record.keep(grid, 1, 1, 0.0, frame, 8)  # no measurement: not judged by the focus service
     assert LiveScan.follow(record, grid).changes()["in_focus"] is None  # no depth of field
     by_focus = LiveScan.follow(record, grid, dof_um=1.0).changes()["in_focus"]
-    assert by_focus == {"tiles": 1, "judged": 2, "by": BY_FOCUS_SERVICE}
+    assert by_focus == {"tiles": 1, "judged": 2, "by": BY_FOCUS_SERVICE, "tissue_only": False}
     truth_um = np.array([[0.0, 3.4, 2.2], [0.0, 3.1, 9.0], [0.0, 0.0, 0.0]])
     live = LiveScan.follow(record, grid, dof_um=1.0, truth_um=truth_um)
     # by the truth every kept tile is judged, (1, 1) on its planes: the progress bar's figure
-    assert live.changes()["in_focus"] == {"tiles": 3, "judged": 5, "by": BY_TRUTH}
+    by_truth = {"by": BY_TRUTH, "tissue_only": False}
+    assert live.changes()["in_focus"] == {"tiles": 3, "judged": 5} | by_truth
     assert InFocusScore(truth_um, 1.0).tiles(record.tally.kept, record.tally.planes) == 3
     record.keep(grid, 1, 2, 9.2, frame, 8)  # while it follows: one more, in focus
-    assert live.changes()["in_focus"] == {"tiles": 4, "judged": 6, "by": BY_TRUTH}
+    assert live.changes()["in_focus"] == {"tiles": 4, "judged": 6} | by_truth
+    glass = np.zeros(grid.shape, bool)
+    glass[0, 0] = glass[0, 1] = True  # the truth's empty glass: not judged, in focus or not
+    tissue = LiveScan.follow(record, grid, dof_um=1.0, truth_um=truth_um, empty_glass=glass)
+    assert tissue.changes()["in_focus"] == {"tiles": 3, "judged": 4} | by_truth | {
+        "tissue_only": True
+    }
 
 
 def test_the_server_serves_thumbnails_of_the_tiles_kept(tmp_path: Path) -> None:
