@@ -76,6 +76,11 @@ def test_the_live_view_fills_in_during_a_demo_scan(tmp_path: Path) -> None:
             page.mouse.move(box["x"] + 3, box["y"] + 3)  # tile (0, 0), the first scanned
             assert "tile (0, 0)" in page.inner_text("#tip") and "um" in page.inner_text("#tip")
             page.wait_for_function("document.getElementById('curve-tile').textContent !== ''")
+            # the kept tiles' thumbnails, and the in-focus share by the simulator's truth
+            page.wait_for_function("document.getElementById('thumbs').naturalWidth > 0")
+            assert "in focus" in page.inner_text("#status") and "truth" in page.inner_text(
+                "#status"
+            )
             SCREENSHOT.parent.mkdir(exist_ok=True)
             page.screenshot(path=str(SCREENSHOT), full_page=True)
         assert demo.wait(timeout=300) == 0

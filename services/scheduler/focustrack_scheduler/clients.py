@@ -227,16 +227,29 @@ class InstrumentClient:
             )
         return header, [frames[index] for index in indices]
 
-    def truth_um(self, slide: str, timeout_s: float = 5.0) -> np.ndarray:
-        """The true best focus (rows, cols) in um, from the evaluation-only truth queryable."""
-        truth = rpc.call(
+    def slide_truth(self, slide: str, timeout_s: float = 5.0) -> instrument_pb2.SlideTruth:
+        """The evaluation-only truth of `slide`: each tile's best focus and, for a virtual
+        slide, its contents (`truth_empty`)."""
+        return rpc.call(
             self.session,
             keys.truth_key(self.name, slide),
             instrument_pb2.AcquireRequest(),
             instrument_pb2.SlideTruth,
             timeout_s,
         )
+
+    def truth_um(self, slide: str, timeout_s: float = 5.0) -> np.ndarray:
+        """The true best focus (rows, cols) in um, from the evaluation-only truth queryable."""
+        truth = self.slide_truth(slide, timeout_s)
         return np.array(truth.best_focus_um, dtype=float).reshape(truth.rows, truth.cols)
+
+
+def truth_empty(truth: instrument_pb2.SlideTruth) -> np.ndarray | None:
+    """Which tiles of a virtual slide are empty glass, (rows, cols) bool; None for a slide
+    of separate fields (its truth says nothing of contents)."""
+    if len(truth.empty) != truth.rows * truth.cols:
+        return None
+    return np.array(truth.empty, dtype=bool).reshape(truth.rows, truth.cols)
 
 
 def wait_for_instrument(

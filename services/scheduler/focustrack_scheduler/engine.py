@@ -358,10 +358,9 @@ class Engine:
         if found is None:  # logged: no image kept
             return
         header, (pixels,) = found
-        self.record.keep(
-            self.geometry.grid, step.row, step.col, step.z_um, pixels, header.bit_depth
-        )
-        if not self._tile_format_saved:  # what the mosaic is made of, for the OME-TIFF
+        # Saved before the first tile is kept: what the mosaic is made of, for the OME-TIFF,
+        # and the pixel size for the live view's thumbnails, which follow the `kept` entry.
+        if not self._tile_format_saved:
             height, width, channels = pixels.shape
             self._tile_format_saved = True
             self.record.state.save(
@@ -372,6 +371,9 @@ class Engine:
                     "pixel_size_um": header.pixel_size_um,
                 }
             )
+        self.record.keep(
+            self.geometry.grid, step.row, step.col, step.z_um, pixels, header.bit_depth
+        )
         self._show()
 
     def _keep_planes(self, step: KeepPlanes) -> None:

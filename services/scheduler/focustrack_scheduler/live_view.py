@@ -1,6 +1,7 @@
 """The live web view of a scan: a page, its state as JSON, and its updates as server-sent events.
 
-    GET /                      the page (focus map, sigma, images per tile, flags, the
+    GET /                      the page (the tiles' thumbnails, focus map, sigma, the
+                               in-focus share so far, images per tile, flags, the
                                latest through-focus curve; with phase, a layer of each
                                tile's phase spread in rad; hover a tile for its numbers)
     GET /live/state?since=N    the tiles changed after version N (`LiveScan.changes`)
@@ -8,6 +9,9 @@
                                scan moves on (at most `MAX_UPDATES_PER_S` a second; the
                                first one holds every tile); `end` when the server stops,
                                after the last update, and the stream ends
+    GET /live/thumbnails.png   a thumbnail of each kept tile at its stage position, one
+                               PNG (`thumbnails.Thumbnails`; transparent: not yet kept),
+                               encoded again only when a tile was kept since
 
 The scheduler serves it while it scans (`focustrack scan --live-port`, and the demo);
 `LiveServer` runs uvicorn on a thread of its own and shows one `LiveScan` at a time.
@@ -26,7 +30,7 @@ from importlib.resources import files
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Query
-from fastapi.responses import HTMLResponse, StreamingResponse
+from fastapi.responses import HTMLResponse, Response, StreamingResponse
 
 from focustrack_core.serving import BackgroundServer
 from focustrack_scheduler.live import LiveScan
@@ -112,6 +116,11 @@ def create_app(server: LiveServer) -> FastAPI:
     @app.get("/live/events")
     async def events() -> StreamingResponse:
         return StreamingResponse(_stream(server), media_type="text/event-stream")
+
+    @app.get("/live/thumbnails.png")
+    def thumbnails() -> Response:
+        png = current().thumbnails.png()
+        return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
 
     return app
 

@@ -75,6 +75,17 @@ class MosaicStore:
             self._mosaic.flush()
         return np.load(self.path, mmap_mode="r") if self.path.exists() else None
 
+    def tile(self, grid: ScanGrid, row: int, col: int) -> np.ndarray | None:
+        """Tile (row, col)'s place in the mosaic (h, w, channels), uint8, a view of the memory
+        map (zeros where nothing was kept yet); None before any tile was kept."""
+        mosaic = self._mosaic
+        if mosaic is None:  # nothing kept by this process yet: the tiles of an earlier run
+            if not self.path.exists():
+                return None
+            mosaic = np.load(self.path, mmap_mode="r")
+        height, width = mosaic.shape[0] // grid.rows, mosaic.shape[1] // grid.cols
+        return mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width]
+
     def _open(self, grid: ScanGrid, tile_shape: tuple[int, ...]) -> np.memmap:
         if self._mosaic is None:
             height, width, channels = tile_shape

@@ -27,7 +27,7 @@ from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.settings import command_main
 from focustrack_core.wire import rpc
 from focustrack_core.wire.trust import ResultSigner, signer_of
-from focustrack_scheduler.clients import InstrumentClient, SlideListener
+from focustrack_scheduler.clients import InstrumentClient, SlideListener, truth_empty
 from focustrack_scheduler.engine import (
     Engine,
     RetryPolicy,
@@ -114,15 +114,24 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
             params=dict(request.params),
         )
         instrument = InstrumentClient(session, request.instrument, job.retry.instrument_timeout_s)
-        truth: dict[str, np.ndarray | None] = {"um": None}
+        truth: dict[str, np.ndarray | None] = {"um": None, "empty": None}
 
         def start(geometry: SlideGeometry) -> ScanProgress | None:
-            if job.live is not None:
-                job.live.show(LiveScan.follow(record, geometry.grid, job.label))
             try:  # evaluation only: the plan never sees it
                 truth["um"] = instrument.truth_um(request.slide)
+                truth["empty"] = truth_empty(instrument.slide_truth(request.slide))
             except rpc.RemoteError as error:
                 log.warning("no truth from the instrument (%s): no in-focus figures", error)
+            if job.live is not None:  # in focus by the truth, else by the focus service
+                live = LiveScan.follow(
+                    record,
+                    geometry.grid,
+                    job.label,
+                    dof_um=geometry.dof_um,
+                    truth_um=truth["um"],
+                    empty_glass=truth["empty"],
+                )
+                job.live.show(live)
             if not job.progress:
                 return None
             return ScanProgress(

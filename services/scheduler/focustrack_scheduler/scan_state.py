@@ -2,7 +2,7 @@
 
 Its entries: ``estimator`` (URL), ``instrument``, ``slide``, ``strategy``, ``params``,
 ``slide_id`` (the estimator's, once created) and ``tile`` (height, width, channels and
-pixel_size_um of the tile images, once the first is kept).
+pixel_size_um of the tile images, saved just before the first is kept).
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import threading
 import time
@@ -12,10 +13,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from matplotlib.image import imread
 
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
-from focustrack_scheduler.live import LiveScan
+from focustrack_scheduler.in_focus import InFocusScore
+from focustrack_scheduler.live import BY_FOCUS_SERVICE, BY_TRUTH, LiveScan
 from focustrack_scheduler.live_view import LiveServer, port_number
 from focustrack_scheduler.record import ScanRecord
 
@@ -158,3 +161,77 @@ def test_the_flag_legend_lists_every_flag() -> None:
     legend = page.split("const FLAG_COLOURS = {", 1)[1].split("};", 1)[0]
     for flag in FocusFlag:
         assert f"{flag.value}:" in legend, flag
+
+
+def test_kept_tiles_are_judged_in_focus_by_the_truth_or_else_by_the_focus_service(
+    tmp_path: Path,
+) -> None:
+    record = ScanRecord(tmp_path)
+    grid, frame = ScanGrid(3, 3), np.zeros((2, 2, 3))
+    acquire_and_measure(record, 0, 0, 0, 1.5)
+    record.keep(grid, 0, 0, 1.6, frame, 8)  # 0.1 um from the focus service's best z
+    acquire_and_measure(record, 1, 0, 1, 2.5)
+    record.keep(grid, 0, 1, 3.5, frame, 8)  # 1 um off
+    for index, (col, flag) in enumerate([(2, FocusFlag.FLAT), (0, FocusFlag.EDGE_HIGH)], 2):
+        row = 0 if flag is FocusFlag.FLAT else 1
+        acquisition = Acquisition(index, row, col, ZRange(0.0, 0.5, 5), Purpose.SCAN, True)
+        z_um = None if flag is FocusFlag.FLAT else 2.0
+        measurement = Measurement(z_um, None if z_um is None else 0.3, frozenset({flag}))
+        record.measurement(acquisition, measurement, Outcome(row, col, False), None)
+        record.keep(grid, row, col, 2.0, frame, 8)  # no best z to judge it by
+    record.keep_planes(grid, 1, 1, [0.0, 3.0], np.zeros((2, 2, 2, 3)), 8)
+    record.keep(grid, 1, 1, 0.0, frame, 8)  # no measurement: not judged by the focus service
+    assert LiveScan.follow(record, grid).changes()["in_focus"] is None  # no depth of field
+    by_focus = LiveScan.follow(record, grid, dof_um=1.0).changes()["in_focus"]
+    assert by_focus == {"tiles": 1, "judged": 2, "by": BY_FOCUS_SERVICE, "tissue_only": False}
+    truth_um = np.array([[0.0, 3.4, 2.2], [0.0, 3.1, 9.0], [0.0, 0.0, 0.0]])
+    live = LiveScan.follow(record, grid, dof_um=1.0, truth_um=truth_um)
+    # by the truth every kept tile is judged, (1, 1) on its planes: the progress bar's figure
+    by_truth = {"by": BY_TRUTH, "tissue_only": False}
+    assert live.changes()["in_focus"] == {"tiles": 3, "judged": 5} | by_truth
+    assert InFocusScore(truth_um, 1.0).tiles(record.tally.kept, record.tally.planes) == 3
+    record.keep(grid, 1, 2, 9.2, frame, 8)  # while it follows: one more, in focus
+    assert live.changes()["in_focus"] == {"tiles": 4, "judged": 6} | by_truth
+    glass = np.zeros(grid.shape, bool)
+    glass[0, 0] = glass[0, 1] = True  # the truth's empty glass: not judged, in focus or not
+    tissue = LiveScan.follow(record, grid, dof_um=1.0, truth_um=truth_um, empty_glass=glass)
+    assert tissue.changes()["in_focus"] == {"tiles": 3, "judged": 4} | by_truth | {
+        "tissue_only": True
+    }
+
+
+def test_the_server_serves_thumbnails_of_the_tiles_kept(tmp_path: Path) -> None:
+    """Each tile's image shows in its cell of the PNG as it is kept, and again after a
+    restart (read from the partial mosaic on disk)."""
+    grid = ScanGrid(3, 3, pitch_um=16.0)  # tiles of 16 px of 1 um, side by side
+    record = ScanRecord(tmp_path)
+    record.state.save(tile={"height": 16, "width": 16, "channels": 3, "pixel_size_um": 1.0})
+    with LiveServer() as server:
+        assert httpx.get(server.url + "live/thumbnails.png").status_code == 503  # no scan yet
+        server.show(LiveScan.follow(record, grid, "kf-2d"))
+        before = httpx.get(server.url + "live/state").json()["thumbnails_version"]
+        record.keep(grid, 1, 2, 0.5, np.full((16, 16, 3), 4095, np.uint16), 12)
+        state = httpx.get(server.url + "live/state").json()
+        assert state["thumbnails_version"] == before + 1
+        response = httpx.get(server.url + "live/thumbnails.png")
+        assert response.headers["content-type"] == "image/png"
+        thumbnails = imread(io.BytesIO(response.content))
+        cell = thumbnails.shape[0] // grid.rows
+        assert thumbnails.shape == (3 * cell, 3 * cell, 4)
+        assert (thumbnails[cell : 2 * cell, 2 * cell :] == 1.0).all()  # white, opaque
+        assert (thumbnails[:cell, ..., 3] == 0).all()  # not kept: transparent
+    record.close()
+    again = LiveScan.follow(ScanRecord(tmp_path), grid)  # a restarted scheduler's view
+    assert (again.thumbnails.rgba[cell : 2 * cell, 2 * cell :] == 255).all()
+
+
+def test_every_map_layer_has_a_colour_scale_of_its_own_with_its_unit() -> None:
+    """Each numeric layer: its own bar, low and high ends and unit; the flags: a legend."""
+    page = files("focustrack_scheduler").joinpath("live.html").read_text()
+    units = {"z": "um", "sigma": "um", "images": "images", "phase": "rad"}
+    for layer, unit in units.items():
+        panel = page.split(f'id="{layer}"></canvas>', 1)[1].split("</div></div>", 1)[0]
+        assert f'id="{layer}-bar"' in panel and f'id="{layer}-low"' in panel, layer
+        assert f"<span>{unit}</span>" in panel, layer
+    assert 'id="flag-legend"' in page and 'id="thumbs"' in page
+    assert "live/thumbnails.png" in page and "ticks(zl, zh" in page  # the curve's z ticks
