@@ -35,6 +35,9 @@ class StageSpec:
     timing: TimingModel = field(default_factory=TimingModel)
     # warm-up settling and a random walk on top (`focustrack_core.drift`); None: neither
     thermal: ThermalDrift | None = None
+    # where the slides lie against where they lay at the start, (x, y) um (a second pass
+    # after lateral drift): the stage at (x, y) shows the slide's (x - dx, y - dy)
+    slide_offset_um: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         for name in ("x_range_um", "y_range_um", "z_range_um"):
