@@ -11,7 +11,11 @@ b the previous pass's map (its smoothed estimate, with its sigma), l an
 independent local change of std `local_sigma_um`, and d the drift, whose state
 is [offset um, rate um/s]: the rate a random walk of spectral density
 `rate_q_um2_per_s3`, the offset integrating it (the continuous white-noise
-acceleration model, Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]). A measurement z of a
+acceleration model, Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]), plus, with
+`offset_q_um2_per_s`, a random walk of the offset itself (q_o dt on P_dd): a thermal
+drift wanders in its offset, and the last pass's own walk, held in its map along the
+serpentine, comes back along this pass's (an integrated walk lags such a drift over
+runs of unmeasured tiles: the rule sees no growing sigma). A measurement z of a
 tile gives the innovation y = z - b - d with S = P_dd + sigma_b^2 + sigma_l^2 + R,
 which corrects the drift state (gain P[:, 0] / S) and the tile's height
 (prior variance V = P_dd + sigma_b^2 + sigma_l^2, the scalar update).
