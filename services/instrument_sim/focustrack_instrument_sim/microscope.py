@@ -345,9 +345,10 @@ class Microscope:
         self._rng = np.random.default_rng([seed, 1])
         self._pool = ThreadPoolExecutor(self.spec.workers, thread_name_prefix="render")
         self._specimen = specimen or specimen_function(self.spec)
-        self._tiles: OrderedDict[tuple[str, int, int], TileSpectra | PhaseTileSpectrum] = (
-            OrderedDict()
-        )
+        #: (slide, row, col, view y um, view x um) -> the tile's spectra
+        self._tiles: OrderedDict[
+            tuple[str, int, int, float, float], TileSpectra | PhaseTileSpectrum
+        ] = OrderedDict()
 
     @functools.cached_property
     def renderer(self) -> Renderer:
@@ -559,21 +560,18 @@ class Microscope:
         dust = None
         if self.spec.specimen.dust_density > 0:
             dust = dust_layer(self.spec.specimen, dust_seed, self.spec.shape, self.pixel_size_um)
-        if view_um != (0.0, 0.0):  # a field of its own, seen elsewhere: it repeats
+        if view_um != (0.0, 0.0):  # a field of its own, seen elsewhere: it repeats (a phase
+            # specimen's fields are drawn in place)
             shift_px = (-view_um[0] / self.pixel_size_um, -view_um[1] / self.pixel_size_um)
-            specimen = wrapped_shift(specimen, shift_px)
+            if not isinstance(specimen, PhaseObject):
+                specimen = wrapped_shift(specimen, shift_px)
             dust = None if dust is None else wrapped_shift(dust, shift_px)
         return self.renderer.spectra(specimen, dust)
 
 
-def wrapped_shift(
-    image: np.ndarray | PhaseObject, shift_px: tuple[float, float]
-) -> np.ndarray | PhaseObject:
-    """An absorbing specimen's transmission (height, width[, channels]) moved by `shift_px`
-    (rows, columns), periodic at its edges (the optics' FFTs treat it so already); a phase
-    specimen as it is (its fields are drawn in place)."""
-    if isinstance(image, PhaseObject):
-        return image
+def wrapped_shift(image: np.ndarray, shift_px: tuple[float, float]) -> np.ndarray:
+    """A transmission (height, width[, channels]) moved by `shift_px` (rows, columns),
+    periodic at its edges (the optics' FFTs treat it so already)."""
     from scipy import ndimage
 
     shift = (*shift_px, *([0.0] * (image.ndim - 2)))

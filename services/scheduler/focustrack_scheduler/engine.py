@@ -257,7 +257,10 @@ class Engine:
             raise ScanRefusedError(str(error)) from error
         self.geometry, self._slide = geometry, step.slide
         if self._realign is not None:
-            first = FirstPassImages(self._realign.first_pass, geometry.grid)
+            try:
+                first = FirstPassImages(self._realign.first_pass, geometry.grid)
+            except ValueError as error:
+                raise ScanRefusedError(f"--first-pass: {error}") from error
             offset = (self.record.state.read() or {}).get("lateral_offset_um")  # a resumed scan's
             self.placement = LateralPlacement(first, self._realign, offset and tuple(offset))
         self._progress = self._on_geometry(geometry)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -66,17 +67,25 @@ class FirstPassImages:
         if not path.exists():
             raise ValueError(f"{path} does not exist: --first-pass takes the output folder of "
                              "a finished scan whose mosaic is OME-Zarr")  # fmt: skip
-        root = zarr.open_group(path, mode="r")
-        attributes = dict(root.attrs)
-        dataset = attributes["ome"]["multiscales"][0]["datasets"][0]
-        transforms = {t["type"]: t[t["type"]] for t in dataset["coordinateTransformations"]}
-        self.mosaic = root[dataset["path"]]  # (c, y, x), read a window at a time
+        try:
+            root = zarr.open_group(path, mode="r")
+            attributes: dict[str, Any] = dict(root.attrs)
+            dataset = attributes["ome"]["multiscales"][0]["datasets"][0]
+            transforms = {t["type"]: t[t["type"]] for t in dataset["coordinateTransformations"]}
+            mosaic = root[dataset["path"]]
+            tile_px = attributes[ZARR_ATTRS]["tile_px"]
+        except (KeyError, IndexError, TypeError, FileNotFoundError) as error:
+            raise ValueError(
+                f"{path} is not the mosaic of a FocusTrack scan ({error!r})"
+            ) from error
+        if not isinstance(mosaic, zarr.Array) or mosaic.ndim != 3:
+            raise ValueError(f"{path}: its level 0 is not an image (c, y, x)")
+        self.mosaic = mosaic  # (c, y, x), read a window at a time
         self.pixel_um = float(transforms["scale"][-1])
         self.origin_um = (
             float(transforms["translation"][-2]),
             float(transforms["translation"][-1]),
         )
-        tile_px = attributes[ZARR_ATTRS]["tile_px"]
         self.shape = (int(tile_px["height"]), int(tile_px["width"]))
         self.grid = grid
         side_by_side = self.mosaic.shape[-2:] == (

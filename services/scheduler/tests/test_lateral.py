@@ -97,3 +97,11 @@ def test_a_second_pass_finds_its_offset_against_the_first_pass_mosaic(tmp_path: 
 
 def to_8_bits(image: np.ndarray) -> np.ndarray:
     return np.clip(128 + 60 * image / image.std(), 0, 255).astype(np.uint8)
+
+
+def test_a_first_pass_without_a_mosaic_is_refused_in_words(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="does not exist"):
+        FirstPassImages(tmp_path, ScanGrid(2, 2))
+    zarr.open_group(tmp_path / MOSAIC_ZARR, mode="w")  # a zarr, but no mosaic in it
+    with pytest.raises(ValueError, match="not the mosaic of a FocusTrack scan"):
+        FirstPassImages(tmp_path, ScanGrid(2, 2))
