@@ -470,10 +470,11 @@ class Engine:
     def _match_tile(self, step: MatchTile) -> list[tuple[int, int, float]]:
         if self.placement is None or self._kept is None or self.placement.offset_um is not None:
             return []
+        image = step.image
         which, pixels = self._kept
-        if which != (step.row, step.col, step.sequence, step.frame):  # its fetch failed
+        if which != (image.row, image.col, image.sequence, image.frame):  # its fetch failed
             return []
-        again = self.placement.observe(step.row, step.col, step.z_um, pixels)
+        again = self.placement.observe(image.row, image.col, image.z_um, pixels)
         if self.placement.offset_um is not None:  # a resumed scan goes on at it
             self.record.state.save(lateral_offset_um=list(self.placement.offset_um))
         return again

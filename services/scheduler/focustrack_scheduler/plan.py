@@ -250,16 +250,12 @@ class AcquirePhase:
 
 @dataclass(frozen=True)
 class MatchTile:
-    """-> the tiles to take again, (row, col, z um) each. Tile (row, col)'s image (frame
-    `frame` of acquisition `sequence`, at `z_um`) is final: compared with the first pass's,
-    it may make the pass's lateral offset known (`realign.LateralPlacement`), and then the
-    tiles imaged before it are taken again at that offset."""
+    """-> the tiles to take again, (row, col, z um) each. The tile's image (`image`: the frame
+    its last `KeepTile` kept) is final: compared with the first pass's, it may make the
+    pass's lateral offset known (`realign.LateralPlacement`), and then the tiles imaged
+    before it are taken again at that offset."""
 
-    row: int
-    col: int
-    sequence: int
-    frame: int
-    z_um: float
+    image: KeepTile
 
 
 @dataclass(frozen=True)
@@ -427,9 +423,10 @@ def scan_plan(request: ScanRequest) -> Plan:
                 yield KeepPlanes(acquisition.row, acquisition.col, planes)
             tile_index = acquisition.row * geometry.grid.cols + acquisition.col
             if request.realign is not None and acquisition.purpose is not Purpose.SURVEY:
-                again = yield MatchTile(
+                image = KeepTile(
                     acquisition.row, acquisition.col, final.sequence, final.index, final.z_um
                 )
+                again = yield MatchTile(image)
                 for row, col, z_um in again:
                     sequence = RETAKE_SEQUENCE_BASE + row * geometry.grid.cols + col
                     yield Retake(request.slide, row, col, z_um, sequence)

@@ -474,24 +474,20 @@ def test_a_second_pass_matches_each_final_image_and_retakes_the_tiles_before_the
         if isinstance(step, MatchTile):  # the offset is known at the second tile
             matched.append(step)
             if len(matched) == 2:
-                return [(m.row, m.col, m.z_um) for m in matched]
+                return [(m.image.row, m.image.col, m.image.z_um) for m in matched]
             return []
         return None if isinstance(step, Retake) else answer(step)
 
     request = replace(REQUEST, realign=Realign(Path("first-pass")))
     steps, _ = drive(request, with_matches)
     kept = {(s.row, s.col): s for s in steps if isinstance(s, KeepTile)}
-    assert [(m.row, m.col) for m in matched] == [(t.row, t.col) for t in grid.serpentine]
-    for match in matched:  # the tile's final image
-        image = kept[(match.row, match.col)]
-        assert (match.sequence, match.frame, match.z_um) == (
-            image.sequence,
-            image.frame,
-            image.z_um,
-        )
+    assert [kept[(m.image.row, m.image.col)] for m in matched] == [m.image for m in matched]
+    assert [(m.image.row, m.image.col) for m in matched] == [
+        (t.row, t.col) for t in grid.serpentine
+    ]
     retaken = [s for s in steps if isinstance(s, Retake)]
     assert [(r.row, r.col, r.z_um) for r in retaken] == [
-        (m.row, m.col, m.z_um) for m in matched[:2]
+        (m.image.row, m.image.col, m.image.z_um) for m in matched[:2]
     ]
     assert all(r.sequence == RETAKE_SEQUENCE_BASE + r.row * grid.cols + r.col for r in retaken)
     plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset()).answer(geometry))
