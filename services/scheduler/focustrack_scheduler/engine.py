@@ -262,7 +262,8 @@ class Engine:
             except ValueError as error:
                 raise ScanRefusedError(f"--first-pass: {error}") from error
             offset = (self.record.state.read() or {}).get("lateral_offset_um")  # a resumed scan's
-            self.placement = LateralPlacement(first, self._realign, offset and tuple(offset))
+            known = (float(offset[0]), float(offset[1])) if offset else None
+            self.placement = LateralPlacement(first, self._realign, known)
         self._progress = self._on_geometry(geometry)
         if self._progress is not None:
             self._progress.update(self.record)

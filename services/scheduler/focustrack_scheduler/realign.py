@@ -4,8 +4,9 @@ applied to the stage.
 Between passes the slide moves on the stage by a few um (repeatability, thermal
 expansion). With ``focustrack scan --first-pass DIR`` the scheduler compares the images
 of the pass's first tiles with the first pass's images of the same places (its mosaic,
-``DIR/mosaic.ome.zarr``) by bounded phase correlation (`lateral.pass_offset`); once
-`Realign.tiles` of them agree on an offset, every later acquisition asks the instrument
+``DIR/mosaic.ome.zarr``) by bounded phase correlation (`lateral.phase_shift`, each tile
+as it is kept); once `Realign.tiles` of them are confident, their median
+(`lateral.combined`) is the offset, and every later acquisition asks the instrument
 to move the stage by it (the AcquireRequest's ``stage_offset_x_um``/``_y_um``), and the
 tiles imaged before are taken again there, one frame at their image's z (`Retake`).
 
