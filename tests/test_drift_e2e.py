@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import httpx
@@ -42,12 +42,14 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LocalStack]:
         yield running
 
 
-def scan(stack: LocalStack, out_dir: Path, strategy: str, *params: str) -> dict:
+def scan(
+    stack: LocalStack, out_dir: Path, strategy: str, *params: str, extra: Sequence[str] = ()
+) -> dict:
     command = [
         sys.executable, "-m", "focustrack", "scan", "--no-progress",
         "--estimator", stack.estimator_url, "--connect", stack.endpoint,
         "--instrument", "sim", "--slide", "slide-0", "--strategy", strategy,
-        "--out", str(out_dir), *[arg for p in params for arg in ("--param", p)],
+        "--out", str(out_dir), *[arg for p in params for arg in ("--param", p)], *extra,
     ]  # fmt: skip
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
@@ -125,3 +127,61 @@ def test_a_laser_scan_reads_every_tile_and_images_most_once(
     single = [e for e in acquired if e["purpose"] == "scan" and e["n_frames"] == 1]
     assert len(single) >= ROWS * COLS / 3
     assert in_focus_when_imaged(stack, tmp_path, report["dof_um"]) >= 0.8
+
+
+#: The second pass's slide, moved on the stage between the passes (x, y) um and in z.
+LATERAL_UM = (2.5, 1.5)
+AXIAL_UM = 4.0
+
+
+def test_a_second_pass_lands_its_tiles_where_the_first_passs_were(tmp_path: Path) -> None:
+    """A virtual tissue slide scanned, then moved by a few um in x, y and z (the instrument
+    restarted with it): the second pass (`kf-rescan`, the first's map, `--first-pass`) finds
+    the offset from its first tiles, takes those again at it, and every tile's final image
+    is taken within half a pixel of the place of the first pass's (the simulator's truth:
+    where the stage went, less where the slide lies)."""
+    instrument_args = [
+        "--seed", str(SEED), "--slides", "1", "--rows", "4", "--cols", "4",
+        "--width", str(SIZE), "--height", str(SIZE), "--tissue-slide",
+    ]  # fmt: skip
+    with LocalStack(tmp_path / "stack", instrument_args) as lateral_stack:
+        first_dir, second_dir = tmp_path / "first", tmp_path / "second"
+        scan(lateral_stack, first_dir, "kf-2d-lean")
+        table = np.load(first_dir / outputs.FOCUS_MAP_NPY)
+        lateral_stack.restart_with("instrument", [
+            "--lateral-offset-x-um", str(LATERAL_UM[0]),
+            "--lateral-offset-y-um", str(LATERAL_UM[1]), "--z-offset-um", str(AXIAL_UM),
+        ])  # fmt: skip
+        report = scan(
+            lateral_stack, second_dir, "kf-rescan",
+            f"prior_map_um={json.dumps(table['smoothed_um'].ravel().tolist())}",
+            f"prior_map_sigma_um={json.dumps(table['smoothed_sigma_um'].ravel().tolist())}",
+            extra=["--first-pass", str(first_dir), "--lateral-tiles", "2"],
+        )  # fmt: skip
+        assert lateral_stack.session is not None
+        truth = rpc.call(
+            lateral_stack.session, keys.truth_key("sim", "slide-0"),
+            instrument_pb2.AcquireRequest(), instrument_pb2.SlideTruth, 5.0,
+        )  # fmt: skip
+    assert (truth.lateral_offset_x_um, truth.lateral_offset_y_um) == LATERAL_UM
+    assert report["tiles_imaged"] == 16
+    retaken = [e for e in logged(second_dir) if e["purpose"] == "retake"]
+    assert retaken, "the tiles imaged before the offset was known were not taken again"
+    first_places, second_places = final_places(first_dir), final_places(second_dir)
+    assert set(second_places) == set(first_places) and len(second_places) == 16
+    pixel_um = json.loads((second_dir / outputs.STATE_FILE).read_text())["tile"]["pixel_size_um"]
+    for tile, (x_um, y_um) in second_places.items():
+        first_x_um, first_y_um = first_places[tile]
+        # the slide's place under the camera, against the first pass's
+        error_px = (
+            np.hypot(x_um - LATERAL_UM[0] - first_x_um, y_um - LATERAL_UM[1] - first_y_um)
+            / pixel_um
+        )
+        assert error_px <= 0.5, (tile, error_px)
+
+
+def final_places(out_dir: Path) -> dict[tuple[int, int], tuple[float, float]]:
+    """Where the stage stood (x, y) um for each tile's final image, from the scan's log."""
+    lines = (out_dir / outputs.LOG_FILE).read_text().splitlines()
+    kept = [e for e in map(json.loads, lines) if e["event"] == "kept"]
+    return {(e["row"], e["col"]): (e["stage_x_um"], e["stage_y_um"]) for e in kept}

@@ -15,7 +15,7 @@ ACQUISITION_PURPOSE_FOCUS: AcquisitionPurpose
 ACQUISITION_PURPOSE_PHASE: AcquisitionPurpose
 
 class AcquireRequest(_message.Message):
-    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s", "nonce", "purpose", "reference_z_um", "prior_z_um", "prior_sigma_um")
+    __slots__ = ("slide", "row", "col", "z_low_um", "z_step_um", "n_frames", "sequence", "exposure_s", "nonce", "purpose", "reference_z_um", "stage_offset_x_um", "stage_offset_y_um", "prior_z_um", "prior_sigma_um")
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
     COL_FIELD_NUMBER: _ClassVar[int]
@@ -27,6 +27,8 @@ class AcquireRequest(_message.Message):
     NONCE_FIELD_NUMBER: _ClassVar[int]
     PURPOSE_FIELD_NUMBER: _ClassVar[int]
     REFERENCE_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    STAGE_OFFSET_X_UM_FIELD_NUMBER: _ClassVar[int]
+    STAGE_OFFSET_Y_UM_FIELD_NUMBER: _ClassVar[int]
     PRIOR_Z_UM_FIELD_NUMBER: _ClassVar[int]
     PRIOR_SIGMA_UM_FIELD_NUMBER: _ClassVar[int]
     slide: str
@@ -40,9 +42,11 @@ class AcquireRequest(_message.Message):
     nonce: bytes
     purpose: AcquisitionPurpose
     reference_z_um: float
+    stage_offset_x_um: float
+    stage_offset_y_um: float
     prior_z_um: float
     prior_sigma_um: float
-    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., prior_z_um: _Optional[float] = ..., prior_sigma_um: _Optional[float] = ...) -> None: ...
+    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., z_low_um: _Optional[float] = ..., z_step_um: _Optional[float] = ..., n_frames: _Optional[int] = ..., sequence: _Optional[int] = ..., exposure_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., stage_offset_x_um: _Optional[float] = ..., stage_offset_y_um: _Optional[float] = ..., prior_z_um: _Optional[float] = ..., prior_sigma_um: _Optional[float] = ...) -> None: ...
 
 class Timing(_message.Message):
     __slots__ = ("move_s", "z_settle_s", "exposure_s", "readout_s", "total_s", "clock_s", "move_distance_um")
@@ -221,7 +225,7 @@ class InstrumentInfo(_message.Message):
     def __init__(self, instrument: _Optional[str] = ..., slides: _Optional[_Iterable[_Union[SlideInfo, _Mapping]]] = ..., z_min_um: _Optional[float] = ..., z_max_um: _Optional[float] = ..., max_frames: _Optional[int] = ..., pixel_size_um: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., numerical_aperture: _Optional[float] = ..., magnification: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., refractive_index: _Optional[float] = ..., depth_of_field_um: _Optional[float] = ..., default_exposure_s: _Optional[float] = ..., hardware_sequenced: _Optional[bool] = ...) -> None: ...
 
 class SlideTruth(_message.Message):
-    __slots__ = ("instrument", "slide", "rows", "cols", "best_focus_um", "drift_um", "clock_s", "tissue_share", "empty", "dust_z_um", "fold_z_um")
+    __slots__ = ("instrument", "slide", "rows", "cols", "best_focus_um", "drift_um", "clock_s", "tissue_share", "empty", "dust_z_um", "fold_z_um", "lateral_offset_x_um", "lateral_offset_y_um")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROWS_FIELD_NUMBER: _ClassVar[int]
@@ -233,6 +237,8 @@ class SlideTruth(_message.Message):
     EMPTY_FIELD_NUMBER: _ClassVar[int]
     DUST_Z_UM_FIELD_NUMBER: _ClassVar[int]
     FOLD_Z_UM_FIELD_NUMBER: _ClassVar[int]
+    LATERAL_OFFSET_X_UM_FIELD_NUMBER: _ClassVar[int]
+    LATERAL_OFFSET_Y_UM_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     rows: int
@@ -244,7 +250,9 @@ class SlideTruth(_message.Message):
     empty: _containers.RepeatedScalarFieldContainer[bool]
     dust_z_um: _containers.RepeatedScalarFieldContainer[float]
     fold_z_um: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., best_focus_um: _Optional[_Iterable[float]] = ..., drift_um: _Optional[float] = ..., clock_s: _Optional[float] = ..., tissue_share: _Optional[_Iterable[float]] = ..., empty: _Optional[_Iterable[bool]] = ..., dust_z_um: _Optional[_Iterable[float]] = ..., fold_z_um: _Optional[_Iterable[float]] = ...) -> None: ...
+    lateral_offset_x_um: float
+    lateral_offset_y_um: float
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., best_focus_um: _Optional[_Iterable[float]] = ..., drift_um: _Optional[float] = ..., clock_s: _Optional[float] = ..., tissue_share: _Optional[_Iterable[float]] = ..., empty: _Optional[_Iterable[bool]] = ..., dust_z_um: _Optional[_Iterable[float]] = ..., fold_z_um: _Optional[_Iterable[float]] = ..., lateral_offset_x_um: _Optional[float] = ..., lateral_offset_y_um: _Optional[float] = ...) -> None: ...
 
 class PhaseTruth(_message.Message):
     __slots__ = ("instrument", "slide", "row", "col", "shape", "dtype", "pixel_size_um", "focus_z_um")

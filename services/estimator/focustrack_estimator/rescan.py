@@ -11,7 +11,11 @@ b the previous pass's map (its smoothed estimate, with its sigma), l an
 independent local change of std `local_sigma_um`, and d the drift, whose state
 is [offset um, rate um/s]: the rate a random walk of spectral density
 `rate_q_um2_per_s3`, the offset integrating it (the continuous white-noise
-acceleration model, Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]). A measurement z of a
+acceleration model, Q = q [[dt^3/3, dt^2/2], [dt^2/2, dt]]), plus, with
+`offset_q_um2_per_s`, a random walk of the offset itself (q_o dt on P_dd): a thermal
+drift wanders in its offset, and the last pass's own walk, held in its map along the
+serpentine, comes back along this pass's (an integrated walk lags such a drift over
+runs of unmeasured tiles: the rule sees no growing sigma). A measurement z of a
 tile gives the innovation y = z - b - d with S = P_dd + sigma_b^2 + sigma_l^2 + R,
 which corrects the drift state (gain P[:, 0] / S) and the tile's height
 (prior variance V = P_dd + sigma_b^2 + sigma_l^2, the scalar update).
@@ -88,6 +92,13 @@ class KfRescanParams(FilterParams):
         ge=0.0,
         description="Spectral density of the random walk of the drift's rate, um^2/s^3",
     )
+    offset_q_um2_per_s: float = Field(
+        0.0,
+        ge=0.0,
+        description="Spectral density of a random walk of the drift's offset itself, um^2/s "
+        "(a drift that wanders, as a thermal one does, and the last pass's own drift held in "
+        "its map; 0: none, the offset only integrates the rate)",
+    )
 
 
 class RescanFilter(SerpentineFilter):
@@ -108,6 +119,7 @@ class RescanFilter(SerpentineFilter):
         self.base_var_um2 = np.square(base_sigma_um)
         self.local_var_um2 = params.local_sigma_um**2
         self.rate_q_um2_per_s3 = params.rate_q_um2_per_s3
+        self.offset_q_um2_per_s = params.offset_q_um2_per_s
         self.clock = ScanClock(timing)
         # drift state [offset um, rate um/s] and its covariance, at time _state_s
         self.x = np.array([settings.start_z_um, 0.0])
@@ -132,6 +144,7 @@ class RescanFilter(SerpentineFilter):
         dt = t_s - self._state_s
         F = np.array([[1.0, dt], [0.0, 1.0]])
         Q = self.rate_q_um2_per_s3 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+        Q[0, 0] += self.offset_q_um2_per_s * dt
         self.x, self.P, self._state_s = F @ self.x, F @ self.P @ F.T + Q, t_s
         mean_um = self.base_um[tile.row, tile.col] + self.x[0]
         return Gaussian(float(mean_um), float(self.P[0, 0] + self._tile_var_um2(tile)))

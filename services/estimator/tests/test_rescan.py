@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from focustrack_core.drift import ThermalDrift
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
@@ -60,3 +61,25 @@ def test_a_prior_map_of_the_wrong_shape_is_refused() -> None:
     without = registry.create("kf-rescan", SETTINGS)  # no map: every tile as unsure as the start
     first = without.next_acquisition()
     assert first is not None and first.z.step_um == COARSE_STEP_UM  # a coarse search
+
+
+def test_a_wandering_offset_is_followed_where_an_integrated_walk_lags() -> None:
+    """A drift that walks in its offset (the last pass's walk frozen in its map, this
+    pass's own): with `offset_q_um2_per_s` the unmeasured tiles' sigma grows with time as
+    the walk's, and the tiles are kept in focus; with the rate's noise alone the sigma
+    stays small between measurements while the offset wanders off."""
+    truth = np.zeros(GRID.shape)
+    walk = ThermalDrift(walk_um_per_sqrt_min=2.0, seed=3)  # 0.067 um^2/s
+    base = {"prior_map_um": truth.ravel().tolist(), "prior_map_sigma_um": [0.03]}
+    common = {**base, "local_sigma_um": 0.0, "risk_out_of_focus": 0.002}
+
+    def run(**params: float) -> tuple[float, float]:
+        strategy = registry.create("kf-rescan", SETTINGS, {**common, **params})
+        done = replay(strategy, truth, truth, drift=walk)
+        errors = np.abs(done.focus_map.z_used_um - done.truth_um)
+        return float(np.mean(errors <= SETTINGS.dof_um / 2)), done.n_images / GRID.n_tiles
+
+    walked, walked_frames = run(offset_q_um2_per_s=2.0**2 / 60.0)  # the walk, as simulated
+    integrated, integrated_frames = run()
+    assert walked == 1.0  # at the price of the frames such a walk needs
+    assert integrated < 0.8 and integrated_frames < walked_frames

@@ -118,6 +118,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "local_sigma_um": 0.05,
         "rate_sigma_um_per_s": 0.05,
         "rate_q_um2_per_s3": 1e-6,
+        "offset_q_um2_per_s": 0.0,
     },
     "af-every-tile": {},
     "tile-skip": {"every": 2},

@@ -196,8 +196,9 @@ class ImagingConditions:
 class StackRequest:
     """Frames at z_low_um, z_low_um + z_step_um, ... (n_frames of them, um) of tile (row, col)
     of `slide`, each exposed `exposure_s` (None: the instrument's default), for `purpose`;
-    a PHASE stack names the objective z to reconstruct at, `reference_z_um`. Unchecked: the
-    instrument's `plan` refuses what it cannot acquire."""
+    a PHASE stack names the objective z to reconstruct at, `reference_z_um`. The stage goes
+    `stage_offset_x_um`, `stage_offset_y_um` from the tile's place (a second pass's lateral
+    correction, um). Unchecked: the instrument's `plan` refuses what it cannot acquire."""
 
     slide: str
     row: int
@@ -208,6 +209,8 @@ class StackRequest:
     exposure_s: float | None = None
     purpose: Purpose = Purpose.FOCUS
     reference_z_um: float = 0.0
+    stage_offset_x_um: float = 0.0
+    stage_offset_y_um: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -254,6 +257,9 @@ class FocusTruth:
     #: tissue share of the tile's area, whether it is empty glass, the height (um, now,
     #: as best_focus_um) of its coverslip dust and of a fold's upper layer (NaN: none)
     tiles: TileContents | None = None
+    #: where the slide lies on the stage against where it lay at the start (x, y), um:
+    #: the stage at (x, y) shows the slide's (x - dx, y - dy)
+    lateral_offset_um: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -279,6 +285,10 @@ class TilePhase:
 
 #: The longest exposure a request may ask for, s.
 MAX_EXPOSURE_S = 10.0
+
+#: The farthest a request may send the stage from its tile's place, um (a lateral
+#: correction is a few um; more is a mistake, not drift).
+MAX_STAGE_OFFSET_UM = 1000.0
 
 
 def check_tile(slide: str, row: int, col: int, grids: Mapping[str, ScanGrid]) -> ScanGrid:
@@ -310,9 +320,18 @@ def check_request(
     with the request: an unknown slide, a tile outside its grid, too many or too few frames,
     a z or z step that is not finite and positive, frames outside `z_range_um` (low, high),
     an `exposure_s` (the request's, or the instrument's default) outside (0, 10] s, and for
-    a PHASE stack a `reference_z_um` that is not finite or outside `z_range_um`. What
-    every instrument refuses alike; a backend checks its own limits besides."""
+    a PHASE stack a `reference_z_um` that is not finite or outside `z_range_um`, and a
+    stage offset that is not finite or beyond `MAX_STAGE_OFFSET_UM`. What every
+    instrument refuses alike; a backend checks its own limits besides."""
     grid = check_tile(request.slide, request.row, request.col, grids)
+    for name in ("stage_offset_x_um", "stage_offset_y_um"):
+        offset_um = getattr(request, name)
+        if not (np.isfinite(offset_um) and abs(offset_um) <= MAX_STAGE_OFFSET_UM):
+            raise AcquisitionRefusedError(
+                Refusal.MALFORMED,
+                f"{name} must be finite and at most {MAX_STAGE_OFFSET_UM:g} um, got {offset_um}",
+                name,
+            )
     n_frames = request.n_frames
     if n_frames > max_frames:
         raise AcquisitionRefusedError(

@@ -345,9 +345,10 @@ class Microscope:
         self._rng = np.random.default_rng([seed, 1])
         self._pool = ThreadPoolExecutor(self.spec.workers, thread_name_prefix="render")
         self._specimen = specimen or specimen_function(self.spec)
-        self._tiles: OrderedDict[tuple[str, int, int], TileSpectra | PhaseTileSpectrum] = (
-            OrderedDict()
-        )
+        #: (slide, row, col, view y um, view x um) -> the tile's spectra
+        self._tiles: OrderedDict[
+            tuple[str, int, int, float, float], TileSpectra | PhaseTileSpectrum
+        ] = OrderedDict()
 
     @functools.cached_property
     def renderer(self) -> Renderer:
@@ -369,6 +370,7 @@ class Microscope:
         )
         row, col = request.row, request.col
         x_um, y_um = grid.stage_xy_um(row, col)
+        x_um, y_um = x_um + request.stage_offset_x_um, y_um + request.stage_offset_y_um
         (x_low, x_high), (y_low, y_high) = self.spec.stage.x_range_um, self.spec.stage.y_range_um
         if not (x_low <= x_um <= x_high and y_low <= y_um <= y_high):
             raise AcquisitionRefusedError(
@@ -389,22 +391,31 @@ class Microscope:
         exposure_s: float | None = None,
         purpose: Purpose = Purpose.FOCUS,
         reference_z_um: float = 0.0,
+        *,
+        stage_offset_um: tuple[float, float] = (0.0, 0.0),
     ) -> SimulatedPlan:
         """Accept frames at z_low_um, z_low_um + z_step_um, ... (um) of tile (row, col) of
-        `slide` and move the stage there; `render` makes the frames.
+        `slide` and move the stage there, `stage_offset_um` (x, y) from the tile's place;
+        `render` makes the frames.
 
         `exposure_s` defaults to the timing model's. `purpose` and `reference_z_um` (um, the
         objective z a PHASE stack is reconstructed at) go into the plan as they are; the
-        frames are the same for either purpose. Raises AcquisitionRefusedError.
+        frames are the same for either purpose. The frames show the slide where the stage
+        went, less where the slide lies on it (`StageSpec.slide_offset_um`). Raises
+        AcquisitionRefusedError.
         """
         exposure_s = self.spec.stage.timing.exposure_s if exposure_s is None else exposure_s
         request = StackRequest(
-            slide, row, col, z_low_um, z_step_um, n_frames, exposure_s, purpose, reference_z_um
-        )
+            slide, row, col, z_low_um, z_step_um, n_frames, exposure_s, purpose, reference_z_um,
+            *stage_offset_um,
+        )  # fmt: skip
         chosen = self.check(request, exposure_s)
         z_um = z_low_um + z_step_um * np.arange(n_frames)
         x_um, y_um = chosen.grid.stage_xy_um(row, col)
-        tile = self._tile_spectra(chosen, row, col)
+        x_um, y_um = x_um + stage_offset_um[0], y_um + stage_offset_um[1]
+        slide_x_um, slide_y_um = self.spec.stage.slide_offset_um
+        view_um = (stage_offset_um[1] - slide_y_um, stage_offset_um[0] - slide_x_um)
+        tile = self._tile_spectra(chosen, row, col, view_um)
         timing, frame_times_s = self.stage.acquire(x_um, y_um, n_frames, exposure_s)
         focus_um = chosen.focus_um[row, col] + self.stage.drift_um(frame_times_s)
         return SimulatedPlan(
@@ -511,25 +522,29 @@ class Microscope:
         specimen_seed, dust_seed = np.random.SeedSequence([*slide.specimen_seed, row, col]).spawn(2)
         return specimen_seed, dust_seed
 
-    def _tile_spectra(self, slide: Slide, row: int, col: int) -> TileSpectra | PhaseTileSpectrum:
-        key = (slide.name, row, col)
+    def _tile_spectra(
+        self, slide: Slide, row: int, col: int, view_um: tuple[float, float] = (0.0, 0.0)
+    ) -> TileSpectra | PhaseTileSpectrum:
+        """The spectra of tile (row, col) seen `view_um` (y, x) from its place on the slide."""
+        view_um = (round(view_um[0], 4), round(view_um[1], 4))  # one key for one place
+        key = (slide.name, row, col, *view_um)
         if key in self._tiles:
             self._tiles.move_to_end(key)
             return self._tiles[key]
-        tile = self._new_tile_spectra(slide, row, col)
+        tile = self._new_tile_spectra(slide, row, col, view_um)
         self._tiles[key] = tile
         while len(self._tiles) > self.spec.tiles_cached:
             self._tiles.popitem(last=False)
         return tile
 
     def _new_tile_spectra(
-        self, slide: Slide, row: int, col: int
+        self, slide: Slide, row: int, col: int, view_um: tuple[float, float]
     ) -> TileSpectra | PhaseTileSpectrum:
         # Imported here: virtual_slide builds on this module's Slide.
         from focustrack_instrument_sim.virtual_slide import TissueSlide
 
         if isinstance(slide, TissueSlide):  # a window of one continuous section
-            layers = slide.tile(row, col, self.spec.shape, self.pixel_size_um)
+            layers = slide.tile(row, col, self.spec.shape, self.pixel_size_um, view_um)
             spectra = self.renderer.spectra(layers.section, layers.dust)
             assert isinstance(spectra, TileSpectra)  # a stained section
             fold = None
@@ -545,7 +560,22 @@ class Microscope:
         dust = None
         if self.spec.specimen.dust_density > 0:
             dust = dust_layer(self.spec.specimen, dust_seed, self.spec.shape, self.pixel_size_um)
+        if view_um != (0.0, 0.0):  # a field of its own, seen elsewhere: it repeats (a phase
+            # specimen's fields are drawn in place)
+            shift_px = (-view_um[0] / self.pixel_size_um, -view_um[1] / self.pixel_size_um)
+            if not isinstance(specimen, PhaseObject):
+                specimen = wrapped_shift(specimen, shift_px)
+            dust = None if dust is None else wrapped_shift(dust, shift_px)
         return self.renderer.spectra(specimen, dust)
+
+
+def wrapped_shift(image: np.ndarray, shift_px: tuple[float, float]) -> np.ndarray:
+    """A transmission (height, width[, channels]) moved by `shift_px` (rows, columns),
+    periodic at its edges (the optics' FFTs treat it so already)."""
+    from scipy import ndimage
+
+    shift = (*shift_px, *([0.0] * (image.ndim - 2)))
+    return ndimage.shift(image, shift, order=1, mode="grid-wrap").astype(image.dtype, copy=False)
 
 
 def specimen_function(spec: MicroscopeSpec) -> SpecimenFn:

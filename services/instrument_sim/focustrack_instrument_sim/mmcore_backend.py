@@ -256,13 +256,15 @@ class MMCoreInstrument:
         return self._description
 
     def plan(self, request: StackRequest) -> MMCorePlan:
-        """Check `request` and move the XY stage to its tile (the move is timed; the frames'
-        cost is their exposures, their clock an estimate)."""
+        """Check `request` and move the XY stage to its tile, off its place by the request's
+        stage offset (the move is timed; the frames' cost is their exposures, their clock
+        an estimate)."""
         exposure_s = self.default_exposure_s if request.exposure_s is None else request.exposure_s
         grid = check_request(
             request, exposure_s, self._grids, self.z_range_um, self._description.max_frames
         )
         x_um, y_um = grid.stage_xy_um(request.row, request.col)
+        x_um, y_um = x_um + request.stage_offset_x_um, y_um + request.stage_offset_y_um
         started_s = time.perf_counter()
         distance_um = self._move_xy(x_um, y_um) if self.xy_stage else 0.0
         move_s = time.perf_counter() - started_s

@@ -57,21 +57,25 @@ class SimulatedScope:
         return self.microscope.spec.shape
 
     def frame(self) -> np.ndarray:
-        """The tile under the objective (its centre the nearest) at the focus stage's z:
+        """The tile under the objective (its centre the nearest), seen where the stage
+        stands (off the tile's centre: a lateral correction), at the focus stage's z:
         (height, width) uint16 counts, the simulator's green channel."""
         grid = self.microscope.slides[self.slide].grid
         row = round((self.y_um - grid.origin_y_um) / grid.pitch_um)
         col = round((self.x_um - grid.origin_x_um) / grid.pitch_um)
+        x_um, y_um = grid.stage_xy_um(row, col)
         # The simulator's refusal (a stage off the slide, a focus out of range) is raised
         # as a C++ camera's failure reaches pymmcore: a RuntimeError, which the MMCore
         # backend reports as the camera's DeviceError.
         try:
-            stack = self.microscope.acquire(
-                self.slide, row, col, self.z_um, 1.0, 1, self.exposure_ms / 1000.0
-            )
+            plan = self.microscope.plan(
+                self.slide, row, col, self.z_um, 1.0, 1, self.exposure_ms / 1000.0,
+                stage_offset_um=(self.x_um - x_um, self.y_um - y_um),
+            )  # fmt: skip
         except AcquisitionRefusedError as refusal:
             raise RuntimeError(f"nothing to image here: {refusal}") from refusal
-        return stack.pixels[0, ..., GREEN]
+        (frame,) = self.microscope.render(plan)
+        return frame[..., GREEN]
 
 
 def simulated_core(microscope: Microscope, slide: str) -> UniMMCore:

@@ -284,6 +284,8 @@ class InstrumentService:
                     request.exposure_s or None,  # 0 (unset on the wire): the default
                     purpose,
                     request.reference_z_um,
+                    request.stage_offset_x_um,
+                    request.stage_offset_y_um,
                 )
             )
             header = self._header(plan, request.sequence, request.nonce or new_nonce())
@@ -439,6 +441,8 @@ class InstrumentService:
             best_focus_um=truth.best_focus_um.ravel().tolist(),
             drift_um=truth.drift_um,
             clock_s=truth.clock_s,
+            lateral_offset_x_um=truth.lateral_offset_um[0],
+            lateral_offset_y_um=truth.lateral_offset_um[1],
         )
         if (tiles := truth.tiles) is not None:  # a virtual slide: what lies in each tile
             message.tissue_share.extend(tiles.tissue_share.ravel().tolist())

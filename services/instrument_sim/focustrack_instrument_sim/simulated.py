@@ -80,6 +80,7 @@ class SimulatedInstrument:
             request.exposure_s,
             request.purpose,
             request.reference_z_um,
+            stage_offset_um=(request.stage_offset_x_um, request.stage_offset_y_um),
         )
 
     def acquire(self, plan: StackPlan, out: Callable[[int], np.ndarray]) -> Frames:
@@ -103,7 +104,8 @@ class SimulatedInstrument:
                 focus_um + contents.dust_dz_um,
                 focus_um + contents.fold_dz_um,
             )
-        return FocusTruth(focus_um, drift_um, self.microscope.stage.clock_s, tiles)
+        offset_um = self.microscope.spec.stage.slide_offset_um
+        return FocusTruth(focus_um, drift_um, self.microscope.stage.clock_s, tiles, offset_um)
 
     def phase_truth(self, slide: str, row: int, col: int) -> TilePhase:
         return self.microscope.true_phase(slide, row, col)
@@ -129,7 +131,11 @@ def microscope_from_options(options: SimulatorOptions) -> Microscope:
         slides = [replace(slide, focus_um=slide.focus_um + options.z_offset_um) for slide in slides]
     spec = MicroscopeSpec(
         optics=Optics(numerical_aperture=options.na, magnification=options.magnification),
-        stage=StageSpec(drift_um_per_s=options.drift_um_per_s, thermal=thermal_drift(options)),
+        stage=StageSpec(
+            drift_um_per_s=options.drift_um_per_s,
+            thermal=thermal_drift(options),
+            slide_offset_um=(options.lateral_offset_x_um, options.lateral_offset_y_um),
+        ),
         specimen=SpecimenSpec(dust_density=options.dust_density),
         specimen_kind=options.specimen,
         illumination=Illumination(condenser_na=options.condenser_na),

@@ -58,6 +58,14 @@ class SimulatorOptions(BaseModel):
         description="every slide's focus moved by this much, um (a re-scan after drift "
         "between passes)",
     )
+    lateral_offset_x_um: float = Field(
+        0.0,
+        description="every slide moved along x on the stage by this much, um (a re-scan after "
+        "lateral drift between passes: the stage at x shows the slide's x minus this)",
+    )
+    lateral_offset_y_um: float = Field(
+        0.0, description="the same along y, um (see --lateral-offset-x-um)"
+    )
     tissue_slide: bool = Field(
         False,
         description="continuous virtual slides instead: one tissue section per slide with "

@@ -25,16 +25,20 @@ Clock = TypeVar("Clock", float, np.ndarray)
 
 @dataclass(frozen=True)
 class StageSpec:
-    """Travel limits in um (a 75 x 25 mm slide; +/- 100 um of focus) and z drift."""
+    """Travel limits in um (a 75 x 25 mm slide, tile (0, 0) at its corner, and a margin of
+    1 mm around it for a stage sent off a tile's place; +/- 100 um of focus) and z drift."""
 
-    x_range_um: tuple[float, float] = (0.0, 75_000.0)
-    y_range_um: tuple[float, float] = (0.0, 25_000.0)
+    x_range_um: tuple[float, float] = (-1000.0, 76_000.0)
+    y_range_um: tuple[float, float] = (-1000.0, 26_000.0)
     z_range_um: tuple[float, float] = (-100.0, 100.0)
     # slow thermal z drift: focus moves by this much per second
     drift_um_per_s: float = default("drift_um_per_s")
     timing: TimingModel = field(default_factory=TimingModel)
     # warm-up settling and a random walk on top (`focustrack_core.drift`); None: neither
     thermal: ThermalDrift | None = None
+    # where the slides lie against where they lay at the start, (x, y) um (a second pass
+    # after lateral drift): the stage at (x, y) shows the slide's (x - dx, y - dy)
+    slide_offset_um: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         for name in ("x_range_um", "y_range_um", "z_range_um"):
@@ -44,12 +48,13 @@ class StageSpec:
 
 
 class Stage:
-    """Where the stage is and what time the simulated clock shows (starts at x = y = 0, t = 0)."""
+    """Where the stage is and what time the simulated clock shows (starts at x = y = 0, or the
+    nearest point of its travel, t = 0)."""
 
     def __init__(self, spec: StageSpec) -> None:
         self.spec = spec
-        self.x_um = spec.x_range_um[0]
-        self.y_um = spec.y_range_um[0]
+        self.x_um = min(max(0.0, spec.x_range_um[0]), spec.x_range_um[1])
+        self.y_um = min(max(0.0, spec.y_range_um[0]), spec.y_range_um[1])
         self.clock_s = 0.0
 
     def drift_um(self, clock_s: Clock) -> Clock:

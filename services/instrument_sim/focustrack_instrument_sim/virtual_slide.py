@@ -290,9 +290,18 @@ class TissueSlide(Slide):
                 canvas.ellipse(cy + dy, cx + dx, 0.35 * radius, 0.5 * _HEMATOXYLIN_OD)
         return canvas.od + _GLASS_OD
 
-    def tile(self, row: int, col: int, shape: tuple[int, int], pixel_um: float) -> TissueTile:
-        """The layers of tile (row, col) as a camera of `shape` pixels of `pixel_um` sees it."""
+    def tile(
+        self,
+        row: int,
+        col: int,
+        shape: tuple[int, int],
+        pixel_um: float,
+        view_um: tuple[float, float] = (0.0, 0.0),
+    ) -> TissueTile:
+        """The layers of tile (row, col) as a camera of `shape` pixels of `pixel_um` sees it,
+        its window moved by `view_um` (y, x) on the slide (a stage off the tile's place)."""
         y0, x0 = self._tile_origin_um(row, col)
+        y0, x0 = y0 + view_um[0], x0 + view_um[1]
         section = np.exp(-self._section_od(y0, x0, shape, pixel_um, False))
         yy = (y0 + (np.arange(shape[0]) + 0.5) * pixel_um)[:, None]
         xx = (x0 + (np.arange(shape[1]) + 0.5) * pixel_um)[None, :]

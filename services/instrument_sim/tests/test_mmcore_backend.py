@@ -212,6 +212,11 @@ def test_a_sequenced_stack_takes_each_frame_at_its_z() -> None:
         (StackRequest("slide-0", 0, 0, 45.0, 1.0, 10), Refusal.Z_OUT_OF_RANGE, "z_low_um"),
         (StackRequest("slide-0", 0, 0, 0.0, 0.1, 65), Refusal.TOO_MANY_FRAMES, "n_frames"),
         (StackRequest("slide-0", 0, 0, 0.0, 1.0, 3, 11.0), Refusal.MALFORMED, "exposure_s"),
+        (
+            StackRequest("slide-0", 0, 0, 0.0, 1.0, 3, stage_offset_y_um=float("nan")),
+            Refusal.MALFORMED,
+            "stage_offset_y_um",
+        ),
     ],
 )
 def test_refusals_leave_the_stage_where_it_is(

@@ -125,3 +125,27 @@ def test_a_phase_specimen_comes_through_with_the_simulators_imaging_and_phase_tr
         np.testing.assert_array_equal(phase_rad, expected_phase.phase_rad)
     finally:
         instrument.close()
+
+
+def test_a_stage_offset_goes_through_micro_managers_xy_stage() -> None:
+    """A request's stage offset (a second pass's lateral correction) moves MMCore's XY stage
+    off the tile's place, and the camera shows what the simulator shows there, bit for bit."""
+    slide = {**SLIDE, "tissue_slide": True, "lateral_offset_x_um": 1.5, "lateral_offset_y_um": 0.5}
+    request = StackRequest(
+        "slide-0", 1, 1, -0.5, 0.5, 3, exposure_s=0.004, stage_offset_x_um=1.0,
+        stage_offset_y_um=0.25,
+    )  # fmt: skip
+    simulator = open_instrument(InstrumentSettings(backend="sim", **slide))
+    try:
+        expected = _stack(simulator, request)[..., GREEN]
+        x_um, y_um = simulator.describe().slides[0].grid.stage_xy_um(1, 1)
+    finally:
+        simulator.close()
+    instrument = open_instrument(InstrumentSettings(backend="mmcore-sim", **slide))
+    try:
+        frames = _stack(instrument, request)
+        assert np.array_equal(frames[..., 0], expected)
+        assert isinstance(instrument, SimulatedMMCoreInstrument)
+        assert instrument.core.getXYPosition() == pytest.approx((x_um + 1.0, y_um + 0.25))
+    finally:
+        instrument.close()

@@ -68,13 +68,16 @@ from focustrack_scheduler.plan import (
     Frame,
     KeepPlanes,
     KeepTile,
+    MatchTile,
     Plan,
     PostMeasurement,
     ReadLaser,
+    Retake,
     SlideGeometry,
     execute,
     prior_upload,
 )
+from focustrack_scheduler.realign import FirstPassImages, LateralPlacement, Realign
 from focustrack_scheduler.record import ScanRecord
 
 log = logging.getLogger(__name__)
@@ -179,6 +182,7 @@ class Engine:
         *,
         estimator_url: str = "",
         on_geometry: Callable[[SlideGeometry], ScanProgress | None] = lambda _: None,
+        realign: Realign | None = None,
     ) -> None:
         self.instrument = instrument
         self.listener = listener
@@ -189,6 +193,10 @@ class Engine:
         self.wall = WallTimes()
         self.geometry: SlideGeometry | None = None
         self._on_geometry = on_geometry
+        self._realign = realign
+        #: the second pass's lateral offset (with `realign`), made once the grid is known
+        self.placement: LateralPlacement | None = None
+        self._kept: tuple[tuple[int, int, int, int], np.ndarray] | None = None  # the last image
         self._progress: ScanProgress | None = None
         self._slide = ""  # the slide being scanned (DescribeSlide)
         #: the acquisitions of the tile being scanned, by sequence: to take one again
@@ -207,6 +215,8 @@ class Engine:
             KeepPlanes: self._keep_planes,
             AcquirePhase: self._acquire_phase,
             ReadLaser: self._read_laser,
+            MatchTile: self._match_tile,
+            Retake: self._retake,
         }
 
     def run(self, plan: Plan) -> str:
@@ -246,6 +256,14 @@ class Engine:
         except ValueError as error:
             raise ScanRefusedError(str(error)) from error
         self.geometry, self._slide = geometry, step.slide
+        if self._realign is not None:
+            try:
+                first = FirstPassImages(self._realign.first_pass, geometry.grid)
+            except ValueError as error:
+                raise ScanRefusedError(f"--first-pass: {error}") from error
+            offset = (self.record.state.read() or {}).get("lateral_offset_um")  # a resumed scan's
+            known = (float(offset[0]), float(offset[1])) if offset else None
+            self.placement = LateralPlacement(first, self._realign, known)
         self._progress = self._on_geometry(geometry)
         if self._progress is not None:
             self._progress.update(self.record)
@@ -262,7 +280,7 @@ class Engine:
     def _take(self, slide: str, acquisition: Acquisition) -> tuple[float, ...]:
         """Acquire `acquisition`'s stack of `slide`, under a fresh nonce whose focus result
         alone the listener takes from now on; the z (um) of its frames."""
-        request = acquire_request(slide, acquisition, new_nonce())
+        request = self._offset(acquire_request(slide, acquisition, new_nonce()))
         # its result may come first
         self.listener.focus.expect(acquisition.index, (slide, acquisition, request.nonce))
         key_expr = keys.acquire_key(self.instrument.name)
@@ -371,9 +389,11 @@ class Engine:
                     "pixel_size_um": header.pixel_size_um,
                 }
             )
+        self._kept = ((step.row, step.col, step.sequence, step.frame), pixels)
         self.record.keep(
-            self.geometry.grid, step.row, step.col, step.z_um, pixels, header.bit_depth
-        )
+            self.geometry.grid, step.row, step.col, step.z_um, pixels, header.bit_depth,
+            stage_um=(header.stage_x_um, header.stage_y_um),
+        )  # fmt: skip
         self._show()
 
     def _keep_planes(self, step: KeepPlanes) -> None:
@@ -408,7 +428,7 @@ class Engine:
     def _take_phase(self, step: AcquirePhase) -> bool:
         """Acquire the phase stack, await its result and keep it; True when it was kept."""
         assert self.geometry is not None
-        request = phase_request(step, new_nonce())
+        request = self._offset(phase_request(step, new_nonce()))
         self.listener.phase.expect(step.sequence, (step, request.nonce))  # it may come first
         what = f"the phase stack of tile ({step.row}, {step.col})"
         key_expr = keys.acquire_key(self.instrument.name)
@@ -443,6 +463,38 @@ class Engine:
             error=error,
         )
         return error is None
+
+    def _offset(self, request: instrument_pb2.AcquireRequest) -> instrument_pb2.AcquireRequest:
+        """`request` at the pass's lateral offset, where it is known."""
+        if self.placement is not None and self.placement.offset_um is not None:
+            request.stage_offset_x_um, request.stage_offset_y_um = self.placement.offset_um
+        return request
+
+    def _match_tile(self, step: MatchTile) -> list[tuple[int, int, float]]:
+        if self.placement is None or self._kept is None or self.placement.offset_um is not None:
+            return []
+        image = step.image
+        which, pixels = self._kept
+        if which != (image.row, image.col, image.sequence, image.frame):  # its fetch failed
+            return []
+        again = self.placement.observe(image.row, image.col, image.z_um, pixels)
+        if self.placement.offset_um is not None:  # a resumed scan goes on at it
+            self.record.state.save(lateral_offset_um=list(self.placement.offset_um))
+        return again
+
+    def _retake(self, step: Retake) -> None:
+        assert self.geometry is not None  # described before any acquisition
+        request = instrument_pb2.AcquireRequest(
+            slide=step.slide, row=step.row, col=step.col, z_low_um=step.z_um, n_frames=1,
+            sequence=step.sequence, nonce=new_nonce(),
+        )  # fmt: skip
+        what = f"tile ({step.row}, {step.col}) again at the lateral offset"
+        key_expr = keys.acquire_key(self.instrument.name)
+        reply = self._instrument_call(
+            what, key_expr, lambda: self.instrument.acquire(self._offset(request))
+        )
+        self.record.retaken(step.row, step.col, step.sequence, reply.timing.total_s)
+        self._keep(KeepTile(step.row, step.col, step.sequence, 0, step.z_um))
 
     def _show(self) -> None:
         if self._progress is not None:

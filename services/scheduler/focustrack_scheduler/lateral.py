@@ -108,9 +108,14 @@ def pass_offset(
 ) -> Shift | None:
     """The second pass's offset from (first-pass tile, second-pass tile) pairs: the median
     shift of the tiles whose peak is at least `MIN_SHARPNESS` sharp, None if there is none."""
-    shifts = [phase_shift(first, second, max_shift_px) for first, second in pairs]
+    return combined([phase_shift(first, second, max_shift_px) for first, second in pairs])
+
+
+def combined(shifts: Sequence[Shift], min_confident: int = 1) -> Shift | None:
+    """The median of the `shifts` whose peak is at least `MIN_SHARPNESS` sharp, None if
+    fewer than `min_confident` are."""
     confident = [s for s in shifts if s.sharpness >= MIN_SHARPNESS]
-    if not confident:
+    if len(confident) < max(min_confident, 1):
         return None
     return Shift(
         float(np.median([s.dy_px for s in confident])),

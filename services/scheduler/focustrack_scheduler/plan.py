@@ -26,7 +26,10 @@ The loop (docs/scheduler.md):
    need come first, as an image-only acquisition of purpose `planes`. A revisit
    (purpose `revisit`: a measured tile again, for the drift in time) is acquired,
    measured and posted, and the tile keeps its image; a laser reading (purpose `laser`)
-   is `ReadLaser`, posted as the acquisition's measurement.
+   is `ReadLaser`, posted as the acquisition's measurement. With `ScanRequest.realign` (a
+   second pass), each final image is compared with the first pass's (`MatchTile`); once
+   the pass's lateral offset is known, the tiles imaged before are taken again at it
+   (`Retake`, one frame at their image's z), and every acquisition after goes there.
 
 With `ScanRequest.phase` (``focustrack scan --phase``), once a tile's image is final
 (`KeepTile` at the posterior), `AcquirePhase` takes a short phase stack of the tile
@@ -66,10 +69,14 @@ from focustrack_core.rest import to_api
 from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import keys
+from focustrack_scheduler.realign import Realign
 
 #: Wire sequence numbers of phase stacks start here (plus the tile's row-major index), far
 #: above the estimator's acquisition indices, so the instrument keeps them apart.
 PHASE_SEQUENCE_BASE = 1 << 40
+#: Wire sequence numbers of tiles taken again at a second pass's lateral offset (`Retake`),
+#: likewise.
+RETAKE_SEQUENCE_BASE = 1 << 41
 
 
 @dataclass(frozen=True)
@@ -116,6 +123,7 @@ class ScanRequest:
     policy: ZRangePolicy = field(default_factory=default_policy)
     resume_slide_id: str | None = None  # the estimator slide of a previous run of this scan
     phase: PhaseStacks | None = None  # a phase stack of every tile (None: none)
+    realign: Realign | None = None  # a second pass placed where the first's tiles were
 
     def __post_init__(self) -> None:
         keys.check_name(self.instrument, "instrument")
@@ -240,6 +248,28 @@ class AcquirePhase:
     sequence: int
 
 
+@dataclass(frozen=True)
+class MatchTile:
+    """-> the tiles to take again, (row, col, z um) each. The tile's image (`image`: the frame
+    its last `KeepTile` kept) is final: compared with the first pass's, it may make the
+    pass's lateral offset known (`realign.LateralPlacement`), and then the tiles imaged
+    before it are taken again at that offset."""
+
+    image: KeepTile
+
+
+@dataclass(frozen=True)
+class Retake:
+    """-> None. One frame of tile (row, col) of `slide` at `z_um`, at the pass's lateral
+    offset, under wire sequence `sequence`: it becomes the tile's image."""
+
+    slide: str
+    row: int
+    col: int
+    z_um: float
+    sequence: int
+
+
 Step = (
     DescribeSlide
     | CreateOrResumeSlide
@@ -251,6 +281,8 @@ Step = (
     | KeepPlanes
     | AcquirePhase
     | ReadLaser
+    | MatchTile
+    | Retake
 )
 Plan = Generator[Step, Any, str]
 
@@ -390,6 +422,14 @@ def scan_plan(request: ScanRequest) -> Plan:
                 planes = tuple(nearest_frame(frames, z_um) for z_um in outcome.planes_um)
                 yield KeepPlanes(acquisition.row, acquisition.col, planes)
             tile_index = acquisition.row * geometry.grid.cols + acquisition.col
+            if request.realign is not None and acquisition.purpose is not Purpose.SURVEY:
+                image = KeepTile(
+                    acquisition.row, acquisition.col, final.sequence, final.index, final.z_um
+                )
+                again = yield MatchTile(image)
+                for row, col, z_um in again:
+                    sequence = RETAKE_SEQUENCE_BASE + row * geometry.grid.cols + col
+                    yield Retake(request.slide, row, col, z_um, sequence)
             if (
                 request.phase is not None
                 and acquisition.purpose is not Purpose.SURVEY

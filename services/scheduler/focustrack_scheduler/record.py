@@ -89,12 +89,37 @@ class ScanRecord:
             }
         )
 
+    def retaken(self, row: int, col: int, sequence: int, scan_time_s: float) -> None:
+        """Tile (row, col) was taken again, one frame, at a second pass's lateral offset."""
+        self._append(
+            {
+                "event": "acquired",
+                "row": row,
+                "col": col,
+                "sequence": sequence,
+                "purpose": "retake",
+                "n_frames": 1,
+                "scan_time_s": scan_time_s,
+            }
+        )
+
     def keep(
-        self, grid: ScanGrid, row: int, col: int, z_um: float, image: np.ndarray, bit_depth: int
+        self,
+        grid: ScanGrid,
+        row: int,
+        col: int,
+        z_um: float,
+        image: np.ndarray,
+        bit_depth: int,
+        stage_um: tuple[float, float] | None = None,
     ) -> None:
-        """Tile (row, col)'s image (h, w, channels) at `z_um` goes into the mosaic."""
+        """Tile (row, col)'s image (h, w, channels) at `z_um` goes into the mosaic; the stage
+        stood at `stage_um` (x, y) for it, where the instrument says."""
         self.mosaic.write_tile(grid, row, col, image, bit_depth)
-        self._append({"event": "kept", "row": row, "col": col, "z_um": z_um})
+        entry: dict[str, Any] = {"event": "kept", "row": row, "col": col, "z_um": z_um}
+        if stage_um is not None:
+            entry["stage_x_um"], entry["stage_y_um"] = stage_um
+        self._append(entry)
 
     def keep_planes(
         self,

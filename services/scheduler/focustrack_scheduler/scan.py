@@ -146,6 +146,7 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
             job.retry,
             estimator_url=job.estimator_url,
             on_geometry=start,
+            realign=request.realign,
         )
         slide_id = engine.run(scan_plan(request))
         assert engine.geometry is not None  # the plan's first step described the slide

@@ -13,6 +13,7 @@ to the scan's own objects.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 from collections.abc import Mapping
@@ -29,6 +30,7 @@ from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
 from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.plan import PhaseStacks, ScanRequest
+from focustrack_scheduler.realign import Realign
 
 #: The best Kalman strategy we have, the demo's headline. kf-2d has the lowest prior MAE at
 #: the simulator's focus noise (0.146 um against 0.284 for kf-wiener0 and 0.254 for kf-mmae,
@@ -40,6 +42,7 @@ BEST_KALMAN = "kf-2d"
 TOKEN_ENV = "FOCUSTRACK_ESTIMATOR_TOKEN"
 
 _RETRY = RetryPolicy()
+_REALIGN = Realign(Path())
 
 
 def _api_field(model: type[BaseModel], name: str, description: str) -> Any:
@@ -193,6 +196,20 @@ class ScanSettings(ZenohSettings, ScanOptions):
         "(repeat the option)",
     )
     out: Path = Field(Path("out/scan"), description="output folder")
+    first_pass: Path | None = Field(
+        None,
+        description="a second pass: the first pass's output folder (its mosaic.ome.zarr); this "
+        "pass's lateral offset is measured against its images and the stage moved by it, so "
+        "that the tiles land where the first pass's were (docs/drift.md)",
+    )
+    lateral_tiles: int = Field(
+        _REALIGN.tiles,
+        ge=1,
+        description="with --first-pass: tiles whose images must agree on the offset",
+    )
+    lateral_max_um: float = Field(
+        _REALIGN.max_offset_um, gt=0, description="with --first-pass: the largest offset, um"
+    )
     live_port: int | None = Field(
         None,
         ge=0,
@@ -247,4 +264,8 @@ class ScanSettings(ZenohSettings, ScanOptions):
 
     def scan_request(self) -> ScanRequest:
         """The scan these settings describe (ValueError on a bad name or z-stack policy)."""
-        return self.request(self.instrument, self.slide, self.strategy, self.params)
+        request = self.request(self.instrument, self.slide, self.strategy, self.params)
+        if self.first_pass is None:
+            return request
+        realign = Realign(self.first_pass, self.lateral_tiles, self.lateral_max_um)
+        return dataclasses.replace(request, realign=realign)

@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+import zarr
 from scipy import ndimage
 
+from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler.lateral import MIN_SHARPNESS, pass_offset, phase_shift
+from focustrack_scheduler.ome_zarr import write_mosaic
+from focustrack_scheduler.outputs import MOSAIC_ZARR, ZARR_ATTRS
+from focustrack_scheduler.realign import FirstPassImages, LateralPlacement, Realign
 
 SIDE = 128
 
@@ -51,3 +58,50 @@ def test_unrelated_or_flat_tiles_say_nothing() -> None:
     assert pass_offset([(a, b), (flat, flat)], max_shift_px=40) is None
     with pytest.raises(ValueError, match="shape"):
         phase_shift(a, b[:, :-1], max_shift_px=5)
+
+
+def test_a_second_pass_finds_its_offset_against_the_first_pass_mosaic(tmp_path: Path) -> None:
+    """`LateralPlacement` against a first pass's OME-Zarr mosaic (tiles side by side): a
+    flat tile says nothing; once two tiles agree, the offset (x, y) um is known and every
+    tile seen so far is handed back to be taken again."""
+    grid = ScanGrid(2, 3)
+    pixel_um = 0.1
+    specimen = _texture(7, (2 * SIDE + 64, 3 * SIDE + 64))
+    moved = ndimage.shift(specimen, (3.4, -6.2), order=3, mode="wrap")  # (y, x) px
+    first = np.zeros((2 * SIDE, 3 * SIDE, 3), dtype=np.uint8)
+    second = {}
+    for row in range(2):
+        for col in range(3):
+            window = np.s_[
+                32 + row * SIDE : 32 + (row + 1) * SIDE, 32 + col * SIDE : 32 + (col + 1) * SIDE
+            ]
+            first[row * SIDE : (row + 1) * SIDE, col * SIDE : (col + 1) * SIDE] = to_8_bits(
+                specimen[window]
+            )[..., None]
+            second[(row, col)] = to_8_bits(moved[window])
+    first[:SIDE, :SIDE] = 128  # tile (0, 0): empty glass
+    path = tmp_path / MOSAIC_ZARR
+    write_mosaic(path, first, pixel_um)
+    zarr.open_group(path, mode="r+").attrs[ZARR_ATTRS] = {
+        "tile_px": {"height": SIDE, "width": SIDE}
+    }
+    placement = LateralPlacement(FirstPassImages(tmp_path, grid), Realign(tmp_path, tiles=2))
+    assert placement.observe(0, 0, 1.0, np.full((SIDE, SIDE), 128.0)) == []
+    assert placement.observe(0, 1, 2.0, second[(0, 1)]) == []
+    assert placement.offset_um is None
+    again = placement.observe(0, 2, 3.0, second[(0, 2)])
+    assert again == [(0, 0, 1.0), (0, 1, 2.0), (0, 2, 3.0)]
+    assert placement.offset_um == pytest.approx((-0.62, 0.34), abs=0.02)
+    assert placement.observe(1, 2, 4.0, second[(1, 2)]) == []  # known: nothing more to do
+
+
+def to_8_bits(image: np.ndarray) -> np.ndarray:
+    return np.clip(128 + 60 * image / image.std(), 0, 255).astype(np.uint8)
+
+
+def test_a_first_pass_without_a_mosaic_is_refused_in_words(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="does not exist"):
+        FirstPassImages(tmp_path, ScanGrid(2, 2))
+    zarr.open_group(tmp_path / MOSAIC_ZARR, mode="w")  # a zarr, but no mosaic in it
+    with pytest.raises(ValueError, match="not the mosaic of a FocusTrack scan"):
+        FirstPassImages(tmp_path, ScanGrid(2, 2))

@@ -14,6 +14,7 @@ from focustrack_core.settings import parse
 from focustrack_scheduler import scan
 from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.outputs import MosaicFormat
+from focustrack_scheduler.realign import Realign
 from focustrack_scheduler.settings import BEST_KALMAN, TOKEN_ENV, ScanOptions, ScanSettings
 
 #: Every option of `focustrack scan` (flag -> default): those before its settings model,
@@ -33,6 +34,9 @@ OPTIONS = {
     "out": Path("out/scan"),
     "live_port": None,
     "live_host": "127.0.0.1",
+    "first_pass": None,
+    "lateral_tiles": 4,
+    "lateral_max_um": 10.0,
     "start_z_um": 0.0,
     "start_sigma_um": 10.0,
     "noise_sigma_um": 0.1,
@@ -120,6 +124,7 @@ def test_the_token_defaults_to_the_estimators_variable(monkeypatch: pytest.Monke
         (["--start-sigma-um", "0"], "--start-sigma-um (FOCUSTRACK_SCAN_START_SIGMA_UM)"),
         (["--k-sigma", "0"], "--k-sigma (FOCUSTRACK_SCAN_K_SIGMA): Input should be greater"),
         (["--mosaic-format", "png"], "invalid choice: 'png'"),
+        (["--lateral-max-um", "0"], "--lateral-max-um (FOCUSTRACK_SCAN_LATERAL_MAX_UM)"),
     ],
 )
 def test_a_refused_value_exits_2_naming_its_option(
@@ -166,3 +171,9 @@ def test_the_scan_command_loads_no_plotting_image_or_web_library() -> None:
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert run.stdout.splitlines()[-1] == "[]"
+
+
+def test_a_first_pass_makes_the_scan_a_realigned_second_pass(tmp_path: Path) -> None:
+    assert settings().scan_request().realign is None
+    request = settings("--first-pass", str(tmp_path), "--lateral-tiles", "3").scan_request()
+    assert request.realign == Realign(tmp_path, tiles=3, max_offset_um=10.0)

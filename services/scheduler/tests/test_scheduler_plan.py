@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.v1 import common_pb2, focus_pb2
 from focustrack_scheduler.plan import (
     PHASE_SEQUENCE_BASE,
+    RETAKE_SEQUENCE_BASE,
     Acquire,
     AcquirePhase,
     AskNext,
@@ -30,8 +32,10 @@ from focustrack_scheduler.plan import (
     FocusUnavailableError,
     KeepPlanes,
     KeepTile,
+    MatchTile,
     PhaseStacks,
     PostMeasurement,
+    Retake,
     ScanRequest,
     SlideGeometry,
     Step,
@@ -39,6 +43,7 @@ from focustrack_scheduler.plan import (
     measurement_of,
     scan_plan,
 )
+from focustrack_scheduler.realign import Realign
 from focustrack_scheduler.settings import ScanOptions
 
 GEOMETRY = SlideGeometry(ScanGrid(2, 2), dof_um=0.9)
@@ -452,3 +457,38 @@ def test_a_revisit_is_measured_and_posted_and_leaves_the_tiles_image() -> None:
     assert [acq.index for acq in posted] == [0, 1, 2, 3]
     kept = [(s.row, s.col, s.sequence) for s in steps if isinstance(s, KeepTile)]
     assert kept == [(0, 0, 0), (0, 1, 1), (1, 1, 3)]  # tile (0, 0) keeps its first image
+
+
+def test_a_second_pass_matches_each_final_image_and_retakes_the_tiles_before_the_offset() -> None:
+    """With `realign`, every tile's final image is matched against the first pass's; the
+    tiles the answer names (those imaged before the offset was known) are taken again, one
+    frame at their image's z, each under its own wire sequence."""
+    grid = ScanGrid(2, 3)
+    truth_um = np.random.default_rng(5).normal(0.0, 0.4, grid.shape)
+    geometry = SlideGeometry(grid, dof_um=0.9)
+    fake = FakeEstimator(grid, truth_um, frozenset())
+    answer = fake.answer(geometry)
+    matched: list[MatchTile] = []
+
+    def with_matches(step: Step) -> Any:
+        if isinstance(step, MatchTile):  # the offset is known at the second tile
+            matched.append(step)
+            if len(matched) == 2:
+                return [(m.image.row, m.image.col, m.image.z_um) for m in matched]
+            return []
+        return None if isinstance(step, Retake) else answer(step)
+
+    request = replace(REQUEST, realign=Realign(Path("first-pass")))
+    steps, _ = drive(request, with_matches)
+    kept = {(s.row, s.col): s for s in steps if isinstance(s, KeepTile)}
+    assert [kept[(m.image.row, m.image.col)] for m in matched] == [m.image for m in matched]
+    assert [(m.image.row, m.image.col) for m in matched] == [
+        (t.row, t.col) for t in grid.serpentine
+    ]
+    retaken = [s for s in steps if isinstance(s, Retake)]
+    assert [(r.row, r.col, r.z_um) for r in retaken] == [
+        (m.image.row, m.image.col, m.image.z_um) for m in matched[:2]
+    ]
+    assert all(r.sequence == RETAKE_SEQUENCE_BASE + r.row * grid.cols + r.col for r in retaken)
+    plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset()).answer(geometry))
+    assert plain == [s for s in steps if not isinstance(s, MatchTile | Retake)]
