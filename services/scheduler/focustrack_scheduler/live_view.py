@@ -8,6 +8,7 @@
                                scan moves on (at most `MAX_UPDATES_PER_S` a second; the
                                first one holds every tile); `end` when the server stops,
                                after the last update, and the stream ends
+    GET /metrics               the scan's Prometheus metrics (`telemetry.ScanMetrics`)
 
 The scheduler serves it while it scans (`focustrack scan --live-port`, and the demo);
 `LiveServer` runs uvicorn on a thread of its own and shows one `LiveScan` at a time.
@@ -26,8 +27,9 @@ from importlib.resources import files
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Query
-from fastapi.responses import HTMLResponse, StreamingResponse
+from fastapi.responses import HTMLResponse, PlainTextResponse, StreamingResponse
 
+from focustrack_core.http_metrics import CONTENT_TYPE, RegistryMetrics
 from focustrack_core.serving import BackgroundServer
 from focustrack_scheduler.live import LiveScan
 
@@ -56,6 +58,7 @@ class LiveServer:
     def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
         self.scan: LiveScan | None = None
         self.closing = False  # set by `stop`: every event stream sends its last update and ends
+        self.metrics: RegistryMetrics | None = None  # the scan's, served at /metrics
         self.app = create_app(self)
         self._server = BackgroundServer(self.app, host, port, name="live-view")
 
@@ -112,6 +115,11 @@ def create_app(server: LiveServer) -> FastAPI:
     @app.get("/live/events")
     async def events() -> StreamingResponse:
         return StreamingResponse(_stream(server), media_type="text/event-stream")
+
+    @app.get("/metrics", response_class=PlainTextResponse)
+    def metrics() -> PlainTextResponse:
+        text = "" if server.metrics is None else server.metrics.render()
+        return PlainTextResponse(text, media_type=CONTENT_TYPE)
 
     return app
 
