@@ -9,7 +9,7 @@ and records nothing, so no trace context is sent either.
 
 The W3C trace context (``traceparent``, ``tracestate``) goes with every hop of a tile:
 - HTTP: the client library (`focustrack_client`) sends the caller's span in headers;
-  `TraceRequests` (ASGI) serves each request in a server span, the caller's its parent.
+  `TraceRequests` (ASGI) serves such a request in a server span, the caller's its parent.
 - Zenoh queries: `query_span` is a client span whose context `rpc.call` attaches to the
   query (a `TraceContext`, serialised); the queryable answers inside `joined`, a server span
   whose parent is that context (`focustrack_core.wire.rpc`).
@@ -17,8 +17,9 @@ The W3C trace context (``traceparent``, ``tracestate``) goes with every hop of a
   (`to_wire`), so every frame carries it; the focus service's span of the stack is its
   child and goes, in turn, into the FocusResult.
 
-Zenoh messages join a trace, they never start one: a query or a stack without a trace
-context is answered without a span, so health probes and info queries make no traces.
+The services' spans join a trace, they never start one (the scheduler starts one per
+tile): a request, a query or a stack without a trace context is answered without a span, so
+health probes, scrapes and info queries make no traces.
 """
 
 from __future__ import annotations
@@ -164,10 +165,10 @@ def fail(span: Span, why: str) -> None:
 
 
 class TraceRequests:
-    """ASGI middleware: each HTTP request is served in a server span, a child of the caller's
-    span where its headers carry a trace context (``traceparent``), named by its method and
-    route template (``POST /v1/slides/{slide_id}/measurements``), with the status sent; a
-    5xx fails the span."""
+    """ASGI middleware: an HTTP request whose headers carry a trace context (``traceparent``)
+    is served in a server span, the caller's its child, named by its method and route
+    template (``POST /v1/slides/{slide_id}/measurements``), with the status sent (a 5xx fails
+    it); a request without one (a probe, a scrape, a caller that does not trace) in none."""
 
     def __init__(self, app: ASGIApp) -> None:
         self.app = RequestTimer(app, _describe_request)
@@ -179,9 +180,11 @@ class TraceRequests:
         headers = {
             name.decode("latin-1"): value.decode("latin-1") for name, value in scope["headers"]
         }
-        with tracer().start_as_current_span(
-            scope["method"], propagate.extract(headers), SpanKind.SERVER
-        ):
+        parent = propagate.extract(headers)
+        if not trace.get_current_span(parent).get_span_context().is_valid:
+            await self.app(scope, receive, send)
+            return
+        with tracer().start_as_current_span(scope["method"], parent, SpanKind.SERVER):
             await self.app(scope, receive, send)
 
 

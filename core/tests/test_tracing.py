@@ -6,8 +6,6 @@ spans themselves are checked end to end (tests/test_traces_e2e.py)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import httpx
 import pytest
 import zenoh
@@ -18,7 +16,7 @@ from opentelemetry.trace import NonRecordingSpan, SpanContext, TraceFlags
 from focustrack_core import tracing
 from focustrack_core.serving import BackgroundServer
 from focustrack_core.v1 import common_pb2, instrument_pb2
-from focustrack_core.wire import rpc, session
+from focustrack_core.wire import rpc
 
 TRACE_ID = 0x4BF92F3577B34DA6A3CE929D0E0E4736
 SPAN_ID = 0x00F067AA0BA902B7
@@ -60,20 +58,10 @@ def test_a_span_joins_only_a_trace_that_comes_in() -> None:
         assert _current_traceparent().split("-")[1] == f"{TRACE_ID:032x}"
 
 
-@pytest.fixture
-def pair() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    endpoint = session.loopback_endpoint()
-    with (
-        session.open_session(listen=[endpoint]) as hub,
-        session.open_session(connect=[endpoint]) as caller,
-    ):
-        yield hub, caller
-
-
 def test_a_query_carries_the_callers_trace_to_the_queryable(
-    pair: tuple[zenoh.Session, zenoh.Session],
+    pair: tuple[zenoh.Session, zenoh.Session, zenoh.Session],
 ) -> None:
-    hub, caller = pair
+    hub, caller, _ = pair
     seen: list[tuple[bool, str]] = []
 
     def handle(query: zenoh.Query) -> instrument_pb2.AcquireReply:

@@ -27,8 +27,8 @@ URL, when one stays gone longer than that:
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
   and stops the scan with the estimator's own `detail`.
 
-The engine also keeps the scan's record (`record.ScanRecord`), the progress bar
-and the wall-time split.
+The engine also keeps the scan's record (`record.ScanRecord`), the progress bar,
+the wall-time split, the scan's metrics and each tile's trace (`telemetry`).
 """
 
 from __future__ import annotations
