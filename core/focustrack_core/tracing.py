@@ -9,7 +9,7 @@ and records nothing, so no trace context is sent either.
 
 The W3C trace context (``traceparent``, ``tracestate``) goes with every hop of a tile:
 - HTTP: the client library (`focustrack_client`) sends the caller's span in headers;
-  `TraceRequests` (ASGI) serves such a request in a server span, the caller's its parent.
+  `TraceRequests` (ASGI) serves such a request in a server span, a child of the caller's.
 - Zenoh queries: `query_span` is a client span whose context `rpc.call` attaches to the
   query (a `TraceContext`, serialised); the queryable answers inside `joined`, a server span
   whose parent is that context (`focustrack_core.wire.rpc`).
@@ -166,7 +166,7 @@ def fail(span: Span, why: str) -> None:
 
 class TraceRequests:
     """ASGI middleware: an HTTP request whose headers carry a trace context (``traceparent``)
-    is served in a server span, the caller's its child, named by its method and route
+    is served in a server span, a child of the caller's, named by its method and route
     template (``POST /v1/slides/{slide_id}/measurements``), with the status sent (a 5xx fails
     it); a request without one (a probe, a scrape, a caller that does not trace) in none."""
 
