@@ -19,10 +19,11 @@ a repeat as it answered the first) is sent again after a connection error, after
 pauses of `retry_pauses_s`: behind a balancer, to another replica. Creating and
 deleting a slide are not.
 
-Each attempt is a client span of OpenTelemetry (``GET /v1/slides/{slide_id}/next``) whose
-W3C trace context goes in the request's headers (``traceparent``), so the estimator's span
-of it joins the caller's trace: a no-op unless the caller has configured an OpenTelemetry
-SDK (the FocusTrack services do, when told where to send traces).
+Within the caller's trace, each attempt is a client span of OpenTelemetry
+(``GET /v1/slides/{slide_id}/next``) whose W3C trace context goes in the request's headers
+(``traceparent``), so the estimator's span of it joins that trace; a no-op unless the caller
+has configured an OpenTelemetry SDK (the FocusTrack services do, when told where to send
+traces).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import AsyncIterator, Callable, Iterator, Sequence
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Generic, Literal, NamedTuple, Self, TypeVar
@@ -98,7 +99,10 @@ class _Call(Generic[T]):
         return self.route.format(slide_id=self.slide_id)
 
     def span(self) -> AbstractContextManager[trace.Span]:
-        """A client span of one attempt, current while the block runs."""
+        """A client span of one attempt, current while the block runs: in the caller's trace,
+        none outside one (which costs nothing, as when the caller does not trace)."""
+        if not trace.get_current_span().get_span_context().is_valid:
+            return nullcontext(trace.INVALID_SPAN)
         return _tracer.start_as_current_span(
             f"{self.method} {self.route}",
             kind=trace.SpanKind.CLIENT,
