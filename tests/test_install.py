@@ -35,11 +35,13 @@ SERVICES = {
     "phase": "focustrack-phase",
     "scheduler": "focustrack-scheduler",
 }
-#: What the client may bring: httpx, pydantic, and their own dependencies.
+#: What the client may bring: httpx, pydantic, the OpenTelemetry API (pure Python: the
+#: caller's trace context goes with each request; a no-op without an SDK), and their own
+#: dependencies.
 CLIENT_CLOSURE = {
     "focustrack-client", "httpx", "httpcore", "h11", "anyio", "idna", "certifi", "sniffio",
     "pydantic", "pydantic-core", "annotated-types", "typing-extensions", "typing-inspection",
-    "pip", "setuptools",
+    "opentelemetry-api", "pip", "setuptools",
 }  # fmt: skip
 
 
@@ -106,7 +108,9 @@ def test_each_dockerfiles_install_step_works_in_a_plain_venv(tmp_path: Path, fol
         subprocess.run([python, "-c", "import focustrack_estimator.slide"], check=True)
 
 
-def test_the_client_installs_with_httpx_and_pydantic_only(tmp_path: Path) -> None:
+def test_the_client_installs_with_httpx_pydantic_and_the_opentelemetry_api_only(
+    tmp_path: Path,
+) -> None:
     python = venv(tmp_path / "venv")
     shutil.copytree(ROOT / "client", tmp_path / "client", ignore=shutil.ignore_patterns("build"))
     pip(python, "install", "--quiet", str(tmp_path / "client"))

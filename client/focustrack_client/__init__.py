@@ -1,4 +1,5 @@
-"""A slim client of FocusTrack's estimator REST API for lab software (httpx and pydantic only).
+"""A slim client of FocusTrack's estimator REST API for lab software (httpx, pydantic and the
+OpenTelemetry API only: the caller's trace context goes with each request).
 
 `EstimatorClient` (blocking) and `AsyncEstimatorClient` return the typed models of
 `focustrack_client.models`, which the estimator service itself validates with;

@@ -12,12 +12,18 @@ as a context manager so its connections are closed::
             estimator.measure(slide.id, MeasurementIn(row=step.row, col=step.col,
                                                       sequence=step.sequence, z_um=z_um))
 
-Each endpoint is described once (`_Call`: method, path, body, how to read the
+Each endpoint is described once (`_Call`: method, route, body, how to read the
 reply); the two clients differ only in how they send it. A request that may be sent
 twice with one effect (every read, a prior map, a measurement: the estimator answers
 a repeat as it answered the first) is sent again after a connection error, after the
 pauses of `retry_pauses_s`: behind a balancer, to another replica. Creating and
 deleting a slide are not.
+
+Within the caller's trace, each attempt is a client span of OpenTelemetry
+(``GET /v1/slides/{slide_id}/next``) whose W3C trace context goes in the request's headers
+(``traceparent``), so the estimator's span of it joins that trace; a no-op unless the caller
+has configured an OpenTelemetry SDK (the FocusTrack services do, when told where to send
+traces).
 """
 
 from __future__ import annotations
@@ -25,11 +31,13 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import AsyncIterator, Callable, Iterator, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Generic, Literal, NamedTuple, Self, TypeVar
 
 import httpx
+from opentelemetry import propagate, trace
 from pydantic import BaseModel, TypeAdapter
 
 from focustrack_client.errors import raise_for_error
@@ -57,6 +65,8 @@ FILE_MEDIA_TYPE = "application/octet-stream"
 
 _SUMMARIES = TypeAdapter(list[SlideSummary])
 
+_tracer = trace.get_tracer("focustrack_client")
+
 T = TypeVar("T")
 M = TypeVar("M", bound=BaseModel)
 
@@ -71,30 +81,50 @@ class SlidePage(NamedTuple):
 
 @dataclass(frozen=True)
 class _Call(Generic[T]):
-    """One request and how to read its reply (`read` gets the successful response). `body`:
-    a model (sent as JSON) or a file's bytes. `idempotent`: sending it twice has the effect
-    of once, so it may be sent again after a connection error."""
+    """One request and how to read its reply (`read` gets the successful response). `route`:
+    the path, with ``{slide_id}`` standing for `slide_id`. `body`: a model (sent as JSON) or
+    a file's bytes. `idempotent`: sending it twice has the effect of once, so it may be sent
+    again after a connection error."""
 
     method: str
-    path: str
+    route: str
     read: Callable[[httpx.Response], T]
     body: BaseModel | bytes | None = None
     params: dict[str, str] = field(default_factory=dict)
     idempotent: bool = True
+    slide_id: str = ""
+
+    @property
+    def path(self) -> str:
+        return self.route.format(slide_id=self.slide_id)
+
+    def span(self) -> AbstractContextManager[trace.Span]:
+        """A client span of one attempt, current while the block runs: in the caller's trace,
+        none outside one (which costs nothing, as when the caller does not trace)."""
+        if not trace.get_current_span().get_span_context().is_valid:
+            return nullcontext(trace.INVALID_SPAN)
+        return _tracer.start_as_current_span(
+            f"{self.method} {self.route}",
+            kind=trace.SpanKind.CLIENT,
+            attributes={"http.request.method": self.method, "url.template": self.route},
+        )
 
     def request(self, http: httpx.Client | httpx.AsyncClient) -> httpx.Request:
+        """The request, with the current span's trace context in its headers."""
         content: str | bytes | None = None
         headers: dict[str, str] = {}
+        propagate.inject(headers)
         if isinstance(self.body, bytes):
-            content, headers = self.body, {"Content-Type": FILE_MEDIA_TYPE}
+            content, headers["Content-Type"] = self.body, FILE_MEDIA_TYPE
         elif self.body is not None:
             content = self.body.model_dump_json(exclude_unset=False)
-            headers = {"Content-Type": "application/json"}
+            headers["Content-Type"] = "application/json"
         return http.build_request(
             self.method, self.path, content=content, params=self.params, headers=headers
         )
 
     def result(self, response: httpx.Response) -> T:
+        trace.get_current_span().set_attribute("http.response.status_code", response.status_code)
         raise_for_error(response)
         return self.read(response)
 
@@ -132,38 +162,41 @@ class _Endpoints:
 
     @staticmethod
     def slide(slide_id: str) -> _Call[Slide]:
-        return _Call("GET", f"/v1/slides/{slide_id}", _model(Slide))
+        return _Call("GET", "/v1/slides/{slide_id}", _model(Slide), slide_id=slide_id)
 
     @staticmethod
     def put_prior(slide_id: str, npy: bytes) -> _Call[None]:
-        return _Call("PUT", f"/v1/slides/{slide_id}/prior", _nothing, body=npy)
+        route = "/v1/slides/{slide_id}/prior"
+        return _Call("PUT", route, _nothing, body=npy, slide_id=slide_id)
 
     @staticmethod
     def delete_slide(slide_id: str) -> _Call[None]:
         # a repeat after a lost reply would be a 404 for a slide that was deleted
-        return _Call("DELETE", f"/v1/slides/{slide_id}", _nothing, idempotent=False)
+        route = "/v1/slides/{slide_id}"
+        return _Call("DELETE", route, _nothing, idempotent=False, slide_id=slide_id)
 
     @staticmethod
     def next(slide_id: str) -> _Call[Next]:
-        return _Call("GET", f"/v1/slides/{slide_id}/next", _model(Next))
+        return _Call("GET", "/v1/slides/{slide_id}/next", _model(Next), slide_id=slide_id)
 
     @staticmethod
     def measure(slide_id: str, measurement: MeasurementIn) -> _Call[OutcomeOut]:
-        path = f"/v1/slides/{slide_id}/measurements"
-        return _Call("POST", path, _model(OutcomeOut), body=measurement)
+        route = "/v1/slides/{slide_id}/measurements"
+        return _Call("POST", route, _model(OutcomeOut), body=measurement, slide_id=slide_id)
 
     @staticmethod
     def focus_map(slide_id: str) -> _Call[FocusMapOut]:
-        return _Call("GET", f"/v1/slides/{slide_id}/map", _model(FocusMapOut))
+        return _Call("GET", "/v1/slides/{slide_id}/map", _model(FocusMapOut), slide_id=slide_id)
 
     @staticmethod
     def focus_map_file(slide_id: str, map_format: MapFormat) -> _Call[bytes]:
-        path = f"/v1/slides/{slide_id}/map"
-        return _Call("GET", path, _content, params={"format": map_format})
+        route = "/v1/slides/{slide_id}/map"
+        return _Call("GET", route, _content, params={"format": map_format}, slide_id=slide_id)
 
     @staticmethod
     def diagnostics(slide_id: str) -> _Call[Diagnostics]:
-        return _Call("GET", f"/v1/slides/{slide_id}/diagnostics", _model(Diagnostics))
+        route = "/v1/slides/{slide_id}/diagnostics"
+        return _Call("GET", route, _model(Diagnostics), slide_id=slide_id)
 
     @staticmethod
     def health() -> _Call[Health]:
@@ -218,7 +251,8 @@ class EstimatorClient:
     def _send(self, call: _Call[T]) -> T:
         for pause_s in _pauses(call, self.retry_pauses_s):
             try:
-                return call.result(self.http.send(call.request(self.http)))
+                with call.span():
+                    return call.result(self.http.send(call.request(self.http)))
             except httpx.TransportError:
                 if pause_s is None:
                     raise
@@ -314,7 +348,8 @@ class AsyncEstimatorClient:
     async def _send(self, call: _Call[T]) -> T:
         for pause_s in _pauses(call, self.retry_pauses_s):
             try:
-                return call.result(await self.http.send(call.request(self.http)))
+                with call.span():
+                    return call.result(await self.http.send(call.request(self.http)))
             except httpx.TransportError:
                 if pause_s is None:
                     raise

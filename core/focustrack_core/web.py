@@ -21,6 +21,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from focustrack_core.http_metrics import CONTENT_TYPE, HttpMetrics
 from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout, quoted_errors
+from focustrack_core.tracing import TraceRequests
 
 _bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
 
@@ -51,15 +52,16 @@ def guarded_app(
     metrics: HttpMetrics,
 ) -> FastAPI:
     """A FastAPI app that refuses a body over `max_upload_bytes` (413) or slower than
-    `body_timeout_s` to arrive (408), answers invalid requests with the quoted 422, and
-    counts and times every request into `metrics`, served at ``GET /metrics`` (Prometheus
-    text, no token: as ``/healthz``)."""
+    `body_timeout_s` to arrive (408), answers invalid requests with the quoted 422, counts
+    and times every request into `metrics`, served at ``GET /metrics`` (Prometheus text, no
+    token: as ``/healthz``), and serves each in a span of the caller's trace (`TraceRequests`)."""
     app = FastAPI(title=title, version="1", description=description)
     app.add_middleware(BodyLimit, max_bytes=max_upload_bytes, error_body=lambda d: {"detail": d})
     timeout = f"the request body did not arrive within {body_timeout_s:g} s"
     app.add_middleware(SlowBodyTimeout, timeout_s=body_timeout_s, error_body={"detail": timeout})
     # outermost: it counts the 413s and 408s too
     app.add_middleware(RequestTimer, observe=metrics.observe_request)
+    app.add_middleware(TraceRequests)  # each request in a span, the caller's its parent
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Iterator
 from typing import ClassVar
 
 import numpy as np
@@ -69,18 +68,6 @@ def test_codec_refuses_inconsistent_stacks() -> None:
         codec.decode_zstack(payload, None)
     with pytest.raises(ValueError, match="z values"):
         codec.encode_zstack(header, pixels[:2])
-
-
-@pytest.fixture
-def pair() -> Iterator[tuple[zenoh.Session, zenoh.Session, zenoh.Session]]:
-    """A listening peer and two clients connected to it, on a free loopback port."""
-    endpoint = session.loopback_endpoint()
-    with (
-        session.open_session(listen=[endpoint]) as hub,
-        session.open_session(connect=[endpoint]) as one,
-        session.open_session(connect=[endpoint]) as two,
-    ):
-        yield hub, one, two
 
 
 def test_zstack_travels_between_clients(pair) -> None:

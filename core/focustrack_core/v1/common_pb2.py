@@ -24,17 +24,19 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1a\x66ocustrack/v1/common.proto\x12\rfocustrack.v1\"O\n\x05\x45rror\x12&\n\x04\x63ode\x18\x01 \x01(\x0e\x32\x18.focustrack.v1.ErrorCode\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\r\n\x05\x66ield\x18\x03 \x01(\t*\xdb\x03\n\tErrorCode\x12\x1a\n\x16\x45RROR_CODE_UNSPECIFIED\x10\x00\x12 \n\x1c\x45RROR_CODE_MALFORMED_REQUEST\x10\x01\x12\x1c\n\x18\x45RROR_CODE_UNKNOWN_SLIDE\x10\x02\x12!\n\x1d\x45RROR_CODE_TILE_OUTSIDE_SLIDE\x10\x03\x12\x1d\n\x19\x45RROR_CODE_Z_OUT_OF_RANGE\x10\x04\x12\x1e\n\x1a\x45RROR_CODE_TOO_MANY_FRAMES\x10\x05\x12\x17\n\x13\x45RROR_CODE_INTERNAL\x10\x06\x12\x18\n\x14\x45RROR_CODE_BAD_STACK\x10\x07\x12\x16\n\x12\x45RROR_CODE_TIMEOUT\x10\x08\x12\x1a\n\x16\x45RROR_CODE_UNAVAILABLE\x10\t\x12\x13\n\x0f\x45RROR_CODE_BUSY\x10\n\x12\x1a\n\x16\x45RROR_CODE_FRAMES_GONE\x10\x0b\x12\x1d\n\x19\x45RROR_CODE_DEVICE_FAILURE\x10\x0c\x12\x1d\n\x19\x45RROR_CODE_DEVICE_TIMEOUT\x10\r\x12!\n\x1d\x45RROR_CODE_TARGET_NOT_REACHED\x10\x0e\x12\x17\n\x13\x45RROR_CODE_NO_IMAGE\x10\x0f*\xd1\x01\n\tFocusFlag\x12\x1a\n\x16\x46OCUS_FLAG_UNSPECIFIED\x10\x00\x12\x17\n\x13\x46OCUS_FLAG_EDGE_LOW\x10\x01\x12\x18\n\x14\x46OCUS_FLAG_EDGE_HIGH\x10\x02\x12\x13\n\x0f\x46OCUS_FLAG_FLAT\x10\x03\x12\x14\n\x10\x46OCUS_FLAG_EMPTY\x10\x04\x12\x19\n\x15\x46OCUS_FLAG_MULTI_PEAK\x10\x05\x12\x18\n\x14\x46OCUS_FLAG_AMBIGUOUS\x10\x06\x12\x15\n\x11\x46OCUS_FLAG_VALLEY\x10\x07\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1a\x66ocustrack/v1/common.proto\x12\rfocustrack.v1\"O\n\x05\x45rror\x12&\n\x04\x63ode\x18\x01 \x01(\x0e\x32\x18.focustrack.v1.ErrorCode\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\r\n\x05\x66ield\x18\x03 \x01(\t\"7\n\x0cTraceContext\x12\x13\n\x0btraceparent\x18\x01 \x01(\t\x12\x12\n\ntracestate\x18\x02 \x01(\t*\xdb\x03\n\tErrorCode\x12\x1a\n\x16\x45RROR_CODE_UNSPECIFIED\x10\x00\x12 \n\x1c\x45RROR_CODE_MALFORMED_REQUEST\x10\x01\x12\x1c\n\x18\x45RROR_CODE_UNKNOWN_SLIDE\x10\x02\x12!\n\x1d\x45RROR_CODE_TILE_OUTSIDE_SLIDE\x10\x03\x12\x1d\n\x19\x45RROR_CODE_Z_OUT_OF_RANGE\x10\x04\x12\x1e\n\x1a\x45RROR_CODE_TOO_MANY_FRAMES\x10\x05\x12\x17\n\x13\x45RROR_CODE_INTERNAL\x10\x06\x12\x18\n\x14\x45RROR_CODE_BAD_STACK\x10\x07\x12\x16\n\x12\x45RROR_CODE_TIMEOUT\x10\x08\x12\x1a\n\x16\x45RROR_CODE_UNAVAILABLE\x10\t\x12\x13\n\x0f\x45RROR_CODE_BUSY\x10\n\x12\x1a\n\x16\x45RROR_CODE_FRAMES_GONE\x10\x0b\x12\x1d\n\x19\x45RROR_CODE_DEVICE_FAILURE\x10\x0c\x12\x1d\n\x19\x45RROR_CODE_DEVICE_TIMEOUT\x10\r\x12!\n\x1d\x45RROR_CODE_TARGET_NOT_REACHED\x10\x0e\x12\x17\n\x13\x45RROR_CODE_NO_IMAGE\x10\x0f*\xd1\x01\n\tFocusFlag\x12\x1a\n\x16\x46OCUS_FLAG_UNSPECIFIED\x10\x00\x12\x17\n\x13\x46OCUS_FLAG_EDGE_LOW\x10\x01\x12\x18\n\x14\x46OCUS_FLAG_EDGE_HIGH\x10\x02\x12\x13\n\x0f\x46OCUS_FLAG_FLAT\x10\x03\x12\x14\n\x10\x46OCUS_FLAG_EMPTY\x10\x04\x12\x19\n\x15\x46OCUS_FLAG_MULTI_PEAK\x10\x05\x12\x18\n\x14\x46OCUS_FLAG_AMBIGUOUS\x10\x06\x12\x15\n\x11\x46OCUS_FLAG_VALLEY\x10\x07\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'focustrack.v1.common_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_ERRORCODE']._serialized_start=127
-  _globals['_ERRORCODE']._serialized_end=602
-  _globals['_FOCUSFLAG']._serialized_start=605
-  _globals['_FOCUSFLAG']._serialized_end=814
+  _globals['_ERRORCODE']._serialized_start=184
+  _globals['_ERRORCODE']._serialized_end=659
+  _globals['_FOCUSFLAG']._serialized_start=662
+  _globals['_FOCUSFLAG']._serialized_end=871
   _globals['_ERROR']._serialized_start=45
   _globals['_ERROR']._serialized_end=124
+  _globals['_TRACECONTEXT']._serialized_start=126
+  _globals['_TRACECONTEXT']._serialized_end=181
 # @@protoc_insertion_point(module_scope)

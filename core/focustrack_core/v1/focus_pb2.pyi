@@ -8,7 +8,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class FocusResult(_message.Message):
-    __slots__ = ("slide", "row", "col", "sequence", "metric", "z_um", "scores", "best_z_um", "sigma_um", "flags", "compute_time_s", "error", "instrument", "runner_up_z_um", "chosen_probability", "nonce")
+    __slots__ = ("slide", "row", "col", "sequence", "metric", "z_um", "scores", "best_z_um", "sigma_um", "flags", "compute_time_s", "error", "instrument", "runner_up_z_um", "chosen_probability", "nonce", "trace")
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
     COL_FIELD_NUMBER: _ClassVar[int]
@@ -25,6 +25,7 @@ class FocusResult(_message.Message):
     RUNNER_UP_Z_UM_FIELD_NUMBER: _ClassVar[int]
     CHOSEN_PROBABILITY_FIELD_NUMBER: _ClassVar[int]
     NONCE_FIELD_NUMBER: _ClassVar[int]
+    TRACE_FIELD_NUMBER: _ClassVar[int]
     slide: str
     row: int
     col: int
@@ -41,4 +42,5 @@ class FocusResult(_message.Message):
     runner_up_z_um: float
     chosen_probability: float
     nonce: bytes
-    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., metric: _Optional[str] = ..., z_um: _Optional[_Iterable[float]] = ..., scores: _Optional[_Iterable[float]] = ..., best_z_um: _Optional[float] = ..., sigma_um: _Optional[float] = ..., flags: _Optional[_Iterable[_Union[_common_pb2.FocusFlag, str]]] = ..., compute_time_s: _Optional[float] = ..., error: _Optional[_Union[_common_pb2.Error, _Mapping]] = ..., instrument: _Optional[str] = ..., runner_up_z_um: _Optional[float] = ..., chosen_probability: _Optional[float] = ..., nonce: _Optional[bytes] = ...) -> None: ...
+    trace: _common_pb2.TraceContext
+    def __init__(self, slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., metric: _Optional[str] = ..., z_um: _Optional[_Iterable[float]] = ..., scores: _Optional[_Iterable[float]] = ..., best_z_um: _Optional[float] = ..., sigma_um: _Optional[float] = ..., flags: _Optional[_Iterable[_Union[_common_pb2.FocusFlag, str]]] = ..., compute_time_s: _Optional[float] = ..., error: _Optional[_Union[_common_pb2.Error, _Mapping]] = ..., instrument: _Optional[str] = ..., runner_up_z_um: _Optional[float] = ..., chosen_probability: _Optional[float] = ..., nonce: _Optional[bytes] = ..., trace: _Optional[_Union[_common_pb2.TraceContext, _Mapping]] = ...) -> None: ...

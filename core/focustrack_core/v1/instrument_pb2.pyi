@@ -1,3 +1,4 @@
+from focustrack_core.v1 import common_pb2 as _common_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
@@ -67,7 +68,7 @@ class Timing(_message.Message):
     def __init__(self, move_s: _Optional[float] = ..., z_settle_s: _Optional[float] = ..., exposure_s: _Optional[float] = ..., readout_s: _Optional[float] = ..., total_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., move_distance_um: _Optional[float] = ...) -> None: ...
 
 class ZStackHeader(_message.Message):
-    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag", "purpose", "reference_z_um", "wavelength_um", "condenser_na", "objective_na", "photons_per_count", "dark_counts", "prior_z_um", "prior_sigma_um")
+    __slots__ = ("instrument", "slide", "row", "col", "sequence", "stage_x_um", "stage_y_um", "z_um", "pixel_size_um", "dtype", "shape", "channel_order", "bit_depth", "exposure_s", "timestamp_unix_s", "clock_s", "nonce", "tag", "purpose", "reference_z_um", "wavelength_um", "condenser_na", "objective_na", "photons_per_count", "dark_counts", "prior_z_um", "prior_sigma_um", "trace")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
@@ -95,6 +96,7 @@ class ZStackHeader(_message.Message):
     DARK_COUNTS_FIELD_NUMBER: _ClassVar[int]
     PRIOR_Z_UM_FIELD_NUMBER: _ClassVar[int]
     PRIOR_SIGMA_UM_FIELD_NUMBER: _ClassVar[int]
+    TRACE_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     row: int
@@ -122,7 +124,8 @@ class ZStackHeader(_message.Message):
     dark_counts: float
     prior_z_um: float
     prior_sigma_um: float
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., condenser_na: _Optional[float] = ..., objective_na: _Optional[float] = ..., photons_per_count: _Optional[float] = ..., dark_counts: _Optional[float] = ..., prior_z_um: _Optional[float] = ..., prior_sigma_um: _Optional[float] = ...) -> None: ...
+    trace: _common_pb2.TraceContext
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., z_um: _Optional[_Iterable[float]] = ..., pixel_size_um: _Optional[float] = ..., dtype: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., exposure_s: _Optional[float] = ..., timestamp_unix_s: _Optional[float] = ..., clock_s: _Optional[float] = ..., nonce: _Optional[bytes] = ..., tag: _Optional[bytes] = ..., purpose: _Optional[_Union[AcquisitionPurpose, str]] = ..., reference_z_um: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., condenser_na: _Optional[float] = ..., objective_na: _Optional[float] = ..., photons_per_count: _Optional[float] = ..., dark_counts: _Optional[float] = ..., prior_z_um: _Optional[float] = ..., prior_sigma_um: _Optional[float] = ..., trace: _Optional[_Union[_common_pb2.TraceContext, _Mapping]] = ...) -> None: ...
 
 class ZFrameHeader(_message.Message):
     __slots__ = ("stack", "index", "timestamp_unix_s", "parts", "part_offset", "tag")

@@ -6,6 +6,9 @@ message (or to `serve` with one that replies itself, as often as it needs); a
 (payload an `Error`, encoding ``application/protobuf;focustrack_core.v1.Error``), and
 any other exception an INTERNAL error reply, so the service keeps running. A caller
 uses `call`, which returns the reply message or raises `RemoteError`.
+
+Within a trace, `call` attaches its client span's context to the query and the queryable
+answers in a span of that trace (`focustrack_core.tracing`: `query_span`, `joined`).
 """
 
 from __future__ import annotations
@@ -16,7 +19,9 @@ from typing import TypeVar
 
 import zenoh
 from google.protobuf.message import DecodeError, Message
+from opentelemetry.trace import SpanKind
 
+from focustrack_core import tracing
 from focustrack_core.v1 import common_pb2
 
 M = TypeVar("M", bound=Message)
@@ -93,15 +98,19 @@ def answer(query: zenoh.Query, key_expr: str, handle: Callable[[zenoh.Query], Me
 def serve(query: zenoh.Query, key_expr: str, respond: Callable[[zenoh.Query], None]) -> None:
     """Let `respond` reply to `query` (as many replies as it likes); a `RequestError` it
     raises becomes that error reply, any other exception an INTERNAL one. Always
-    finishes the query."""
-    with query:
+    finishes the query; in the trace the query's attachment names, in a span of its own."""
+    attachment = None if query.attachment is None else query.attachment.to_bytes()
+    parent = tracing.of_attachment(attachment)
+    with query, tracing.joined(f"query {key_expr}", parent, SpanKind.SERVER) as span:
         try:
             respond(query)
         except RequestError as refused:
             log.info("refused query on %s: %s", key_expr, refused)
+            tracing.fail(span, str(refused))
             reply_error(query, refused.error)
         except Exception as failure:
             log.exception("query on %s failed", key_expr)
+            tracing.fail(span, f"{type(failure).__name__}: {failure}")
             reply_error(
                 query,
                 common_pb2.Error(
@@ -137,19 +146,22 @@ def call(
 
     Raises RemoteError on an error reply, on a timeout and when nobody answers.
     """
-    replies = session.get(
-        key_expr,
-        payload=request.SerializeToString(),
-        encoding=protobuf_encoding(type(request)),
-        timeout=timeout_s,
-    )
-    for reply in replies:
-        if reply.ok is not None:
-            return reply_type.FromString(reply.ok.payload.to_bytes())
-        if reply.err is not None:
-            raise RemoteError(error_of(reply.err))
-    raise RemoteError(
-        common_pb2.Error(
-            code=ErrorCode.ERROR_CODE_UNAVAILABLE, message=f"no queryable answered on {key_expr}"
+    with tracing.query_span(key_expr) as attachment:
+        replies = session.get(
+            key_expr,
+            payload=request.SerializeToString(),
+            encoding=protobuf_encoding(type(request)),
+            timeout=timeout_s,
+            attachment=attachment,
         )
-    )
+        for reply in replies:
+            if reply.ok is not None:
+                return reply_type.FromString(reply.ok.payload.to_bytes())
+            if reply.err is not None:
+                raise RemoteError(error_of(reply.err))
+        raise RemoteError(
+            common_pb2.Error(
+                code=ErrorCode.ERROR_CODE_UNAVAILABLE,
+                message=f"no queryable answered on {key_expr}",
+            )
+        )

@@ -25,6 +25,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from focustrack_client import models as api
 from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout
+from focustrack_core.tracing import TraceRequests
 from focustrack_estimator import handlers
 from focustrack_estimator.budget import Budget, GridLimits
 from focustrack_estimator.dependencies import require_token
@@ -148,6 +149,7 @@ def create_app(
     )
     # outermost: it counts the 413s too
     app.add_middleware(RequestTimer, observe=metrics.observe_request)
+    app.add_middleware(TraceRequests)  # each request in a span, the caller's its parent
     handlers.install(app)
     _publish_params_on_first_ask(app, live)
     return app

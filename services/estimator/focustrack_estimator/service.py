@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 
 import uvicorn
 
+from focustrack_core import tracing
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main
 from focustrack_estimator.app import create_app
@@ -68,9 +69,10 @@ def run(settings: EstimatorSettings) -> int:
         print(
             f"creating a new store at {settings.store} (the file was missing or empty)", flush=True
         )
+    traced = tracing.configure("focustrack-estimator", settings.otlp_endpoint)
     print(
         f"estimator on http://{settings.host}:{settings.port} (store {settings.store}, "
-        f"auth {'on' if settings.token else 'off'})",
+        f"auth {'on' if settings.token else 'off'}, traces {'on' if traced else 'off'})",
         flush=True,
     )
     # uvicorn shuts down gracefully on SIGTERM and then raises the signal again, which

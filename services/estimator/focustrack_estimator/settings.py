@@ -10,11 +10,12 @@ from __future__ import annotations
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
-from focustrack_core.settings import ServiceSettings
+from focustrack_core.tracing import TracingSettings
 
 
-class EstimatorSettings(ServiceSettings):
-    """How the estimator service runs: where, on which store, with which limits."""
+class EstimatorSettings(TracingSettings):
+    """How the estimator service runs: where, on which store, with which limits, and where
+    its traces go."""
 
     model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_ESTIMATOR_")
 

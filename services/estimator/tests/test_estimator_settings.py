@@ -12,9 +12,9 @@ from focustrack_estimator.settings import EstimatorSettings
 
 #: The command's options, as its users know them (flags and FOCUSTRACK_ESTIMATOR_ variables).
 OPTIONS = [
-    "host", "port", "store", "token", "insecure", "max-body-bytes", "max-grid-side",
-    "max-grid-tiles", "snapshot-every", "body-timeout-s", "max-slide-bytes", "max-tile-seconds",
-    "max-live-slides", "max-live-bytes", "strategies-from", "access-log",
+    "otlp-endpoint", "host", "port", "store", "token", "insecure", "max-body-bytes",
+    "max-grid-side", "max-grid-tiles", "snapshot-every", "body-timeout-s", "max-slide-bytes",
+    "max-tile-seconds", "max-live-slides", "max-live-bytes", "strategies-from", "access-log",
 ]  # fmt: skip
 
 

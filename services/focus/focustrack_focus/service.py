@@ -41,12 +41,15 @@ import numpy as np
 import uvicorn
 import zenoh
 from google.protobuf.message import DecodeError
+from opentelemetry.trace import SpanKind
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from focustrack_core import tracing
 from focustrack_core.logs import worth_logging
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main, one_of
+from focustrack_core.tracing import TracingSettings
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.web import with_bus_health
 from focustrack_core.wire import codec, keys
@@ -109,12 +112,15 @@ def result_message(
     result: FocusResult | None = None,
     error: str = "",
 ) -> focus_pb2.FocusResult:
-    """The wire FocusResult of a stack: its result, or an error saying why there is none."""
+    """The wire FocusResult of a stack: its result, or an error saying why there is none;
+    with the current span's trace context, where there is one."""
     message = focus_pb2.FocusResult(slide=tile.slide, row=tile.row, col=tile.col)
     if header is not None:
         message.sequence = header.sequence
         message.instrument = header.instrument
         message.nonce = header.nonce
+    if (trace := tracing.to_wire()) is not None:  # the current span: the analysis's
+        message.trace.CopyFrom(trace)
     if result is not None:
         message.metric = result.metric
         message.z_um.extend(result.z_um.tolist())
@@ -266,10 +272,12 @@ class FrameAnalyser:
                 self._fit(held)  # what the stack keeps of this frame, besides the others
                 self._open.put(stack, curve, held)
                 return None
-            model = self._curve(tile.slide)
-            result = curve.result(model, prior_of(header))
-            model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
-            return result_message(tile, header, result)
+            parent = header.trace if header.HasField("trace") else None
+            with tracing.joined("focus stack", parent, SpanKind.CONSUMER, sequence=header.sequence):
+                model = self._curve(tile.slide)
+                result = curve.result(model, prior_of(header))
+                model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
+                return result_message(tile, header, result)  # with this span's context
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)
             if header is not None:
@@ -371,7 +379,7 @@ class ZenohFocusWorker:
         self._frames.close(timeout_s)
 
 
-class FocusServiceSettings(FrameReaderSettings):
+class FocusServiceSettings(FrameReaderSettings, TracingSettings):
     """The focus service's options: flags, ``FOCUSTRACK_FOCUS_<OPTION>`` or a settings file.
 
     The focus maths' defaults are its own dataclasses' (`FocusSettings`, `PeakSettings`,
@@ -503,6 +511,7 @@ def run(settings: FocusServiceSettings) -> int:
     except ValueError as error:
         log.error("%s", error)
         return 2
+    tracing.configure("focustrack-focus", settings.otlp_endpoint)
     bus = WorkerBus(
         settings,
         lambda session: ZenohFocusWorker(

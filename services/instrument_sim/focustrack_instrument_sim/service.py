@@ -50,6 +50,8 @@ from contextlib import closing, contextmanager
 import numpy as np
 import zenoh
 
+from focustrack_core import tracing
+from focustrack_core.http_metrics import metrics_server
 from focustrack_core.settings import command_main
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
@@ -73,6 +75,7 @@ from focustrack_instrument_sim.instrument import (
     TruthSource,
 )
 from focustrack_instrument_sim.laser import LaserSensor
+from focustrack_instrument_sim.metrics import InstrumentMetrics
 from focustrack_instrument_sim.recent import RecentStacks, StackGoneError
 from focustrack_instrument_sim.settings import (
     KEEP_FRAMES_MB,
@@ -192,7 +195,7 @@ class InstrumentService:
         self._laser_key = keys.laser_key(name)
         self.laser: LaserSensor | None = getattr(instrument, "laser", None)
         self._pending: queue.Queue[zenoh.Query] = queue.Queue(maxsize=queue_depth)
-        self.n_busy = 0  # acquisitions refused because the queue was full
+        self.metrics = InstrumentMetrics(self._pending.qsize)
         self._declared: list = []
         self.recent = RecentStacks(keep_frames_bytes)
 
@@ -230,7 +233,7 @@ class InstrumentService:
         try:
             self._pending.put_nowait(query)
         except queue.Full:
-            self.n_busy += 1
+            self.metrics.busy.inc()
             rpc.answer(query, self._acquire_key, self._busy)
 
     def _busy(self, _query: zenoh.Query) -> instrument_pb2.AcquireReply:
@@ -249,7 +252,7 @@ class InstrumentService:
             if self.laser is not None and str(query.key_expr) == self._laser_key:
                 rpc.answer(query, self._laser_key, self._read_laser)
             else:
-                rpc.answer(query, self._acquire_key, self._acquire)
+                rpc.answer(query, self._acquire_key, self.metrics.observed(self._acquire))
 
     def _read_laser(self, query: zenoh.Query) -> instrument_pb2.LaserReading:
         assert self.laser is not None  # declared only then
@@ -356,6 +359,7 @@ class InstrumentService:
             objective_na=imaging.objective_na,
             photons_per_count=imaging.photons_per_count,
             dark_counts=imaging.dark_counts,
+            trace=tracing.to_wire(),  # the acquisition's span, for the focus service's to join
         )
 
     def _frame_buffers(self, plan: StackPlan) -> Callable[[int], np.ndarray]:
@@ -508,6 +512,7 @@ def run(settings: InstrumentSettings) -> int:
     except InstrumentError as error:
         log.error("the instrument did not open: %s", error)
         return 1
+    tracing.configure("focustrack-instrument", settings.otlp_endpoint)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
@@ -564,7 +569,8 @@ def serve(
         "served" if settings.serve_truth else "off",
         "untagged" if frame_signer is None else "tagged",
     )
-    service.serve()
+    with metrics_server(service.metrics.registry, settings.metrics_host, settings.metrics_port):
+        service.serve()
     service.close()
 
 

@@ -11,6 +11,8 @@ from typing import ClassVar
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from focustrack_core.http_metrics import MetricsPortSettings
+from focustrack_core.tracing import TracingSettings
 from focustrack_core.wire import codec
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
 from focustrack_instrument_sim.backends import BACKENDS, BackendName
@@ -25,8 +27,9 @@ QUEUE_DEPTH = 4
 KEEP_FRAMES_MB = 512
 
 
-class InstrumentShellSettings(ZenohSettings):
-    """The shell's options, whatever the instrument: its name, queue, frames and truth."""
+class InstrumentShellSettings(ZenohSettings, MetricsPortSettings, TracingSettings):
+    """The shell's options, whatever the instrument: its name, queue, frames and truth, its
+    metrics and traces."""
 
     model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_INSTRUMENT_")
     default_listen: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)

@@ -10,6 +10,7 @@ import threading
 import time
 from collections.abc import Iterator
 
+import httpx
 import numpy as np
 import pytest
 import zenoh
@@ -33,6 +34,10 @@ def _tag_checks(sample: zenoh.Sample, header: instrument_pb2.ZFrameHeader) -> bo
     return SIGNER.verify(str(sample.key_expr), header, sample.attachment.to_bytes(), payload)
 
 
+#: The port of the instrument's metrics (`--metrics-port`).
+METRICS_PORT = session.free_port()
+
+
 @pytest.fixture(scope="module")
 def instrument(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """The service in its own process, listening on a free port; yields the endpoint."""
@@ -44,7 +49,7 @@ def instrument(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         "--name", "sim", "--seed", "3", "--slides", "2", "--rows", "4", "--cols", "5",
         "--width", str(SIZE), "--height", str(SIZE), "--max-frames", "25", "--serve-truth",
         "--frame-part-kb", "32",  # frames of 96 KiB go in 3 parts
-        "--frame-key-file", str(key_file),
+        "--frame-key-file", str(key_file), "--metrics-port", str(METRICS_PORT),
     ]  # fmt: skip
     process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     try:
@@ -314,3 +319,28 @@ def test_the_frames_of_a_recent_stack_are_answered_as_they_were_published(
     assert outside.value.error.field == "indices"
     replies = list(client.get(keys.frames_key("sim"), payload=b"\x08\xff\xff", timeout=10))
     assert rpc.error_of(replies[0].err).code == common_pb2.ERROR_CODE_MALFORMED_REQUEST
+
+
+def _metrics() -> dict[str, float]:
+    """The instrument's metrics now, by sample (name and labels)."""
+    text = httpx.get(f"http://127.0.0.1:{METRICS_PORT}/metrics").text
+    return {
+        sample: float(value)
+        for sample, value in (line.rsplit(" ", 1) for line in text.splitlines() if line[0] != "#")
+    }
+
+
+def test_the_metrics_port_counts_stacks_frames_and_errors_by_code(client: zenoh.Session) -> None:
+    before = _metrics()
+    rpc.call(client, keys.acquire_key("sim"), _request(n_frames=7), instrument_pb2.AcquireReply)
+    with pytest.raises(rpc.RemoteError):
+        rpc.call(client, keys.acquire_key("sim"), _request(row=4), instrument_pb2.AcquireReply)
+    after = _metrics()
+    grown = {sample: after[sample] - before.get(sample, 0.0) for sample in after}
+    assert grown["focustrack_instrument_acquisitions_total"] == 1
+    assert grown["focustrack_instrument_frames_total"] == 7
+    refused = 'focustrack_instrument_errors_total{code="ERROR_CODE_TILE_OUTSIDE_SLIDE"}'
+    assert grown[refused] == 1
+    assert grown["focustrack_instrument_acquisition_duration_seconds_count"] == 2
+    assert after["focustrack_instrument_busy_total"] == 0
+    assert after["focustrack_instrument_queued"] == 0

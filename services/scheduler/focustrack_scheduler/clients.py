@@ -23,6 +23,7 @@ from typing import Generic, TypeVar
 import numpy as np
 import zenoh
 
+from focustrack_core import tracing
 from focustrack_core.domain import Acquisition
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.logs import worth_logging
@@ -195,18 +196,21 @@ class InstrumentClient:
             slide=slide, row=row, col=col, sequence=sequence, indices=indices
         )
         key_expr = keys.frames_key(self.name)
-        replies = self.session.get(
-            key_expr,
-            payload=request.SerializeToString(),
-            encoding=rpc.protobuf_encoding(instrument_pb2.FramesRequest),
-            timeout=self.timeout_s,
-            consolidation=zenoh.ConsolidationMode.NONE,  # every frame replies on the same key
-        )
         header, frames = None, {}
-        for reply in replies:
-            if reply.err is not None:
-                raise rpc.RemoteError(rpc.error_of(reply.err))
-            if reply.ok is not None:
+        with tracing.query_span(key_expr) as attachment:
+            replies = self.session.get(
+                key_expr,
+                payload=request.SerializeToString(),
+                encoding=rpc.protobuf_encoding(instrument_pb2.FramesRequest),
+                timeout=self.timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE,  # every frame replies on one key
+                attachment=attachment,
+            )
+            for reply in replies:
+                if reply.err is not None:
+                    raise rpc.RemoteError(rpc.error_of(reply.err))
+                if reply.ok is None:
+                    continue
                 try:
                     frame_header, frame = codec.decode_zframe_sample(reply.ok)
                 except ValueError as error:
@@ -353,7 +357,7 @@ class SlideListener:
     (`focustrack_core.wire.trust`: a focus result's attachment is its tag, a phase
     result's header ends with it); a result enters `focus` (or `phase`) only for the stack
     awaited, once (`Inbox.offer`). The others are dropped, logged and counted in
-    `n_rejected` (focus) and `n_phase_rejected`.
+    `n_rejected` (focus) and `n_phase_rejected`, and `on_rejected` is called for each.
     """
 
     def __init__(
@@ -363,12 +367,14 @@ class SlideListener:
         trust: ResultSigner | None = None,
         *,
         phase: bool = False,
+        on_rejected: Callable[[], None] = lambda: None,
     ) -> None:
         self.focus = focus_inbox()
         self.phase = phase_inbox()
         self.trust = trust
         self.n_rejected = 0
         self.n_phase_rejected = 0
+        self.on_rejected = on_rejected
         self._subscribers = [session.declare_subscriber(keys.focus_pattern(slide), self._on_focus)]
         if phase:
             self._subscribers.append(
@@ -413,6 +419,7 @@ class SlideListener:
             why = f"unreadable phase result: {error}"
         if why is not None:
             self.n_phase_rejected += 1  # only Zenoh's callback thread counts
+            self.on_rejected()
             if worth_logging(self.n_phase_rejected):
                 log.warning(
                     "phase result on %s rejected (%d so far): %s",
@@ -423,6 +430,7 @@ class SlideListener:
 
     def _reject(self, key_expr: str, why: str) -> None:
         self.n_rejected += 1  # only Zenoh's callback thread counts
+        self.on_rejected()
         if worth_logging(self.n_rejected):  # replays come by the thousand
             log.warning(
                 "focus result on %s rejected (%d so far): %s", key_expr, self.n_rejected, why

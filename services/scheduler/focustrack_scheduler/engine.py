@@ -27,8 +27,8 @@ URL, when one stays gone longer than that:
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
   and stops the scan with the estimator's own `detail`.
 
-The engine also keeps the scan's record (`record.ScanRecord`), the progress bar
-and the wall-time split.
+The engine also keeps the scan's record (`record.ScanRecord`), the progress bar,
+the wall-time split, the scan's metrics and each tile's trace (`telemetry`).
 """
 
 from __future__ import annotations
@@ -79,6 +79,7 @@ from focustrack_scheduler.plan import (
 )
 from focustrack_scheduler.realign import FirstPassImages, LateralPlacement, Realign
 from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.telemetry import ScanMetrics, TileSpans
 
 log = logging.getLogger(__name__)
 
@@ -121,22 +122,31 @@ class RetryPolicy:
             raise ValueError(f"timeouts must be positive, got {times}")
 
     def retrying(
-        self, outage_s: float, retry_on: Callable[[BaseException], bool], what: str
+        self,
+        outage_s: float,
+        retry_on: Callable[[BaseException], bool],
+        what: str,
+        on_retry: Callable[[], None] = lambda: None,
     ) -> tenacity.Retrying:
         """Calls retried while `retry_on` says so, pauses doubling, for up to `outage_s`;
-        the last error is raised when that runs out."""
+        the last error is raised when that runs out. `on_retry` is called before each pause."""
+
+        def before_sleep(state: tenacity.RetryCallState) -> None:
+            on_retry()
+            log.warning(
+                "%s: attempt %d failed (%s); retrying",
+                what,
+                state.attempt_number,
+                state.outcome.exception() if state.outcome is not None else "?",
+            )
+
         return tenacity.Retrying(
             stop=tenacity.stop_after_delay(outage_s),
             wait=tenacity.wait_exponential(
                 multiplier=self.backoff_initial_s, max=self.backoff_max_s
             ),
             retry=tenacity.retry_if_exception(retry_on),
-            before_sleep=lambda state: log.warning(
-                "%s: attempt %d failed (%s); retrying",
-                what,
-                state.attempt_number,
-                state.outcome.exception() if state.outcome is not None else "?",
-            ),
+            before_sleep=before_sleep,
             reraise=True,
         )
 
@@ -183,6 +193,7 @@ class Engine:
         estimator_url: str = "",
         on_geometry: Callable[[SlideGeometry], ScanProgress | None] = lambda _: None,
         realign: Realign | None = None,
+        metrics: ScanMetrics | None = None,
     ) -> None:
         self.instrument = instrument
         self.listener = listener
@@ -202,6 +213,10 @@ class Engine:
         #: the acquisitions of the tile being scanned, by sequence: to take one again
         self._taken: dict[int, tuple[str, Acquisition]] = {}
         self._tile_format_saved = "tile" in (record.state.read() or {})
+        self.metrics = metrics or ScanMetrics()
+        self.metrics.follow(record.tally.kept)
+        record.listeners.add(self.metrics.take)
+        self._tiles = TileSpans(self.metrics)  # each tile's trace
         #: acquisition index -> its focus curve (z um, scores), until it is posted
         self._curves: dict[int, tuple[list[float], list[float]]] = {}
         self._handlers: dict[type, Callable[[Any], Any]] = {
@@ -222,12 +237,19 @@ class Engine:
     def run(self, plan: Plan) -> str:
         """Execute `plan` to the end; its return value (the estimator's slide id)."""
         started_s = time.perf_counter()
+        self.metrics.running.set(1)
         try:
-            return execute(plan, lambda step: self._handlers[type(step)](step))
+            return execute(plan, self._answer)
         finally:
+            self._tiles.close()
+            self.metrics.running.set(0)
             self.wall.close(time.perf_counter() - started_s)
             if self._progress is not None:
                 self._progress.close()
+
+    def _answer(self, step: Any) -> Any:
+        with self._tiles.step(step, self._slide):
+            return self._handlers[type(step)](step)
 
     # --- instrument -------------------------------------------------------------------
 
@@ -235,7 +257,9 @@ class Engine:
         """`call()`, sent again while nobody answers or the instrument is busy; any other
         Error reply is a refusal."""
         outage_s = self.policy.instrument_outage_s
-        retrying = self.policy.retrying(outage_s, instrument_retryable, f"instrument: {what}")
+        retrying = self.policy.retrying(
+            outage_s, instrument_retryable, f"instrument: {what}", self._retried("instrument")
+        )
         try:
             return retrying(call)
         except rpc.RemoteError as error:
@@ -264,6 +288,7 @@ class Engine:
             offset = (self.record.state.read() or {}).get("lateral_offset_um")  # a resumed scan's
             known = (float(offset[0]), float(offset[1])) if offset else None
             self.placement = LateralPlacement(first, self._realign, known)
+        self.metrics.tiles.set(geometry.grid.n_tiles)
         self._progress = self._on_geometry(geometry)
         if self._progress is not None:
             self._progress.update(self.record)
@@ -319,6 +344,7 @@ class Engine:
         received = self.listener.focus.wait(acquisition.index, self.policy.focus_timeout_s)
         waited_s = time.perf_counter() - started_s
         if received is None:
+            self.metrics.faults.labels("focus_timeout").inc()
             log.warning(
                 "no focus result for acquisition %d within %.0f s: acquiring it again",
                 acquisition.index,
@@ -358,6 +384,8 @@ class Engine:
                 raise
 
         found = self._instrument_call(what, key_expr, fetch)
+        if found is None:
+            self.metrics.faults.labels("frames_gone").inc()
         if found is None and sequence in self._taken:
             log.warning("%s: the instrument no longer holds them; taking the stack again", what)
             self.wall.transport_s += time.perf_counter() - started_s
@@ -507,7 +535,10 @@ class Engine:
         started_s = time.perf_counter()
         outage_s = self.policy.estimator_outage_s
         try:
-            return self.policy.retrying(outage_s, _estimator_retryable, f"estimator: {what}")(call)
+            retrying = self.policy.retrying(
+                outage_s, _estimator_retryable, f"estimator: {what}", self._retried("estimator")
+            )
+            return retrying(call)
         except EstimatorError as error:
             if error.status < 500:
                 raise ScanRefusedError(f"estimator refused {what}: {error}") from error
@@ -516,6 +547,9 @@ class Engine:
             raise self._estimator_gone(what, f"{type(error).__name__}: {error}") from error
         finally:
             self.wall.estimation_s += time.perf_counter() - started_s
+
+    def _retried(self, service: str) -> Callable[[], None]:
+        return self.metrics.retries.labels(service).inc
 
     def _estimator_gone(self, what: str, problem: str) -> ServiceUnavailableError:
         return ServiceUnavailableError(

@@ -12,6 +12,7 @@
     GET /live/thumbnails.png   a thumbnail of each kept tile at its stage position, one
                                PNG (`thumbnails.Thumbnails`; transparent: not yet kept),
                                encoded again only when a tile was kept since
+    GET /metrics               the scan's Prometheus metrics (`telemetry.ScanMetrics`)
 
 The scheduler serves it while it scans (`focustrack scan --live-port`, and the demo);
 `LiveServer` runs uvicorn on a thread of its own and shows one `LiveScan` at a time.
@@ -30,8 +31,9 @@ from importlib.resources import files
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Query
-from fastapi.responses import HTMLResponse, Response, StreamingResponse
+from fastapi.responses import HTMLResponse, PlainTextResponse, Response, StreamingResponse
 
+from focustrack_core.http_metrics import CONTENT_TYPE, RegistryMetrics
 from focustrack_core.serving import BackgroundServer
 from focustrack_scheduler.live import LiveScan
 
@@ -60,6 +62,7 @@ class LiveServer:
     def __init__(self, host: str = "127.0.0.1", port: int = 0) -> None:
         self.scan: LiveScan | None = None
         self.closing = False  # set by `stop`: every event stream sends its last update and ends
+        self.metrics: RegistryMetrics | None = None  # the scan's, served at /metrics
         self.app = create_app(self)
         self._server = BackgroundServer(self.app, host, port, name="live-view")
 
@@ -121,6 +124,11 @@ def create_app(server: LiveServer) -> FastAPI:
     def thumbnails() -> Response:
         png = current().thumbnails.png()
         return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
+
+    @app.get("/metrics", response_class=PlainTextResponse)
+    def metrics() -> PlainTextResponse:
+        text = "" if server.metrics is None else server.metrics.render()
+        return PlainTextResponse(text, media_type=CONTENT_TYPE)
 
     return app
 

@@ -23,6 +23,8 @@ import numpy as np
 import zenoh
 
 from focustrack_client import EstimatorClient
+from focustrack_core import tracing
+from focustrack_core.http_metrics import metrics_server
 from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.settings import command_main
 from focustrack_core.wire import rpc
@@ -41,6 +43,7 @@ from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.plan import FocusUnavailableError, ScanRequest, SlideGeometry, scan_plan
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.settings import ScanOptions, ScanSettings
+from focustrack_scheduler.telemetry import ScanMetrics
 from focustrack_scheduler.writers import DEFAULT_WRITERS
 
 if TYPE_CHECKING:
@@ -74,6 +77,7 @@ class ScanJob:
     writers: Sequence[OutputWriter] = DEFAULT_WRITERS  # the outputs written at the end
     live: LiveServer | None = None  # the live web view that shows this scan, if any
     trust: ResultSigner | None = None  # focus results count only with this key's tag
+    metrics: ScanMetrics = field(default_factory=ScanMetrics)  # the live view serves them
 
 
 def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
@@ -101,8 +105,14 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
     record = ScanRecord(job.out_dir)
     estimator = EstimatorClient(job.estimator_url, job.token, job.retry.estimator_timeout_s)
     listener = SlideListener(
-        session, job.request.slide, job.trust, phase=job.request.phase is not None
+        session,
+        job.request.slide,
+        job.trust,
+        phase=job.request.phase is not None,
+        on_rejected=job.metrics.faults.labels("result_rejected").inc,
     )
+    if job.live is not None:
+        job.live.metrics = job.metrics
     try:
         resume_id = _check_same_scan(record, job)
         request = replace(job.request, resume_slide_id=resume_id)
@@ -147,6 +157,7 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
             estimator_url=job.estimator_url,
             on_geometry=start,
             realign=request.realign,
+            metrics=job.metrics,
         )
         slide_id = engine.run(scan_plan(request))
         assert engine.geometry is not None  # the plan's first step described the slide
@@ -192,10 +203,12 @@ def run(settings: ScanSettings) -> int:
     except ValueError as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 2
+    tracing.configure("focustrack-scheduler", settings.otlp_endpoint)
     try:
         with (
             zenoh.open(config) as session,
             live_server(settings.live_port, settings.live_host) as live,
+            metrics_server(job.metrics.registry, settings.metrics_host, settings.metrics_port),
         ):
             if live is not None:
                 print(f"live view at {live.url}", flush=True)

@@ -24,8 +24,10 @@ from pydantic import BaseModel, Field, field_validator
 from pydantic_settings import CliToggleFlag, NoDecode, SettingsConfigDict
 
 from focustrack_client import models as api
+from focustrack_core.http_metrics import MetricsPortSettings
 from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.settings import ServiceSettings
+from focustrack_core.tracing import TracingSettings
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
 from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.outputs import MosaicFormat
@@ -176,7 +178,7 @@ class ScanOptions(ServiceSettings):
         )
 
 
-class ScanSettings(ZenohSettings, ScanOptions):
+class ScanSettings(ZenohSettings, ScanOptions, MetricsPortSettings, TracingSettings):
     """The settings of `focustrack scan` (and `focustrack-scheduler`)."""
 
     model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_SCAN_")

@@ -56,6 +56,9 @@ OPTIONS = {
     "mosaic_format": MosaicFormat.OME_ZARR,
     "no_progress": False,
     "result_key_file": None,
+    "metrics_port": None,
+    "metrics_host": "127.0.0.1",
+    "otlp_endpoint": None,
 }
 
 
