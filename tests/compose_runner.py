@@ -225,12 +225,16 @@ class Topology:
             args += ["--entrypoint", json.dumps(words)]
         return [*args, spec["image"], *spec.get("command", [])]
 
-    def up(self, service: str, container: str | None = None, **variables: str) -> str:
+    def up(
+        self, service: str, container: str | None = None, *, checked: bool = True, **variables: str
+    ) -> str:
         """Start `service` detached (as `container`, by default the service's name) once
-        what it depends on is started or healthy; the container's full name."""
+        what it depends on is started or healthy (`checked` False: the caller knows it is,
+        and the start is not held up by health checks run again); the container's full
+        name."""
         container = container or service
         for dependency, condition in self.spec(service).get("depends_on", {}).items():
-            if condition["condition"] == "service_healthy":
+            if checked and condition["condition"] == "service_healthy":
                 self.wait_healthy(dependency)
         self.started_s[container] = time.monotonic()
         self.containers.append(self.name(container))
