@@ -1,9 +1,12 @@
-"""Deployment files agree with the code: compose.yaml, each service's Dockerfile and lock export.
+"""Deployment files agree with the code: compose.yaml and compose.facility.yaml, each
+service's Dockerfile and lock export.
 
 What is checked without a container engine: every compose service builds from its own
 Dockerfile, runs its own console script configured by environment variables that the
 script's parser accepts, and probes its health with flags the probe accepts; each
-image installs exactly the versions of uv.lock. (Building and running the images is
+image installs exactly the versions of uv.lock. The facility's replicas, routers and
+scanners are wired as docs/facility.md says (routers meshed, HAProxy's backends the
+replicas, each scanner's services on one router). (Building and running the images is
 the containerized end-to-end test's job.)
 """
 
@@ -216,3 +219,97 @@ def test_bus_secrets_are_their_owners_alone_and_given_to_the_containers_user(
     theirs = tmp_path / "theirs"
     assert main(["bus", "secrets", str(theirs), "--owner", "10001"]) == 0
     assert {path.stat().st_uid for path in [theirs, *theirs.iterdir()]} == {10001}
+
+
+# --- compose.facility.yaml: replicas on PostgreSQL, two routers, three scanners ------------
+
+
+@pytest.fixture(scope="module")
+def facility() -> dict[str, Any]:
+    return yaml.safe_load((ROOT / "compose.facility.yaml").read_text())
+
+
+def focustrack_service(name: str) -> str:
+    """The compose.yaml service that a facility service is one of: `instrument-2` is an
+    `instrument`, `estimator-a` an `estimator` (the facility's `estimator` is HAProxy: none)."""
+    return name.rpartition("-")[0]
+
+
+def test_the_facility_configures_each_service_with_environment_its_command_accepts(
+    facility: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    services = facility["services"]
+    routers = {"tcp/zenoh-a:7447", "tcp/zenoh-b:7447"}
+    used: dict[str, set[str]] = {}
+    for name, service in services.items():
+        kind = focustrack_service(name)
+        if kind not in SERVICES:
+            continue
+        assert service["build"]["dockerfile"] == f"services/{SERVICES[kind][0]}/Dockerfile"
+        environ = {key: defaults(value) for key, value in service["environment"].items()}
+        prefix, options, args = configured(SERVICES[kind][1], environ, monkeypatch)
+        assert all(key.startswith(prefix) for key in environ), name
+        assert set(environ) <= options, f"{name}: no such option: {set(environ) - options}"
+        if kind == "estimator":
+            assert args.store == "postgresql://focustrack:@postgres:5432/focustrack"
+            assert args.host == "0.0.0.0" and args.port == 8100
+            continue
+        (endpoint,) = args.connect
+        assert endpoint in routers, name
+        used.setdefault(endpoint, set()).add(name)
+        if kind == "instrument":
+            probe = health.parser().parse_args(
+                [defaults(w) for w in service["healthcheck"]["test"][4:]]
+            )
+            assert probe.instrument == args.name and probe.connect == [endpoint]
+        if kind == "scheduler":
+            assert args.estimator == "http://estimator:8100"  # HAProxy
+            scanner = name.rsplit("-", 1)[1]
+            assert args.instrument == f"scanner-{scanner}" and args.out.name == f"scanner-{scanner}"
+            # a slide its own instrument holds (the simulator's slide-0, slide-1, ...)
+            held = services[f"instrument-{scanner}"]["environment"]["FOCUSTRACK_INSTRUMENT_SLIDES"]
+            assert args.slide in {f"slide-{i}" for i in range(int(held))}
+    assert set(used) == routers  # the scanners' services spread over both routers
+    slides = {
+        defaults(services[f"scheduler-{n}"]["environment"]["FOCUSTRACK_SCAN_SLIDE"])
+        for n in (1, 2, 3)
+    }
+    assert len(slides) == 3  # each scanner on a slide of its own
+
+
+def test_the_facility_meshes_its_routers_and_balances_its_replicas(
+    facility: dict[str, Any],
+) -> None:
+    services = facility["services"]
+    for name, other in (("zenoh-a", "zenoh-b"), ("zenoh-b", "zenoh-a")):
+        args = router.parser().parse_args(services[name]["command"])
+        assert args.listen == ["tcp/0.0.0.0:7447"] and args.connect == [f"tcp/{other}:7447"]
+        assert defaults(services[name]["entrypoint"]) == "/entrypoint.sh"  # zenohd's image
+    postgres = services["postgres"]["environment"]
+    assert postgres["POSTGRES_USER"] == postgres["POSTGRES_DB"] == "focustrack"
+    assert (ROOT / services["postgres"]["build"]["dockerfile"]).exists()
+    balancer = services["estimator"]
+    assert (ROOT / balancer["build"]["dockerfile"]).exists()
+    (mount,) = balancer["volumes"]
+    source, target, mode = mount.split(":")
+    assert target == "/usr/local/etc/haproxy/haproxy.cfg" and mode == "ro"
+    config = (ROOT / source).read_text()
+    backends = re.findall(r"^\s*server (\S+) (\S+):(\d+)", config, re.M)
+    assert backends == [
+        ("estimator-a", "estimator-a", "8100"),
+        ("estimator-b", "estimator-b", "8100"),
+    ]
+    assert all(
+        services[name]["environment"]["FOCUSTRACK_ESTIMATOR_PORT"] == "8100"
+        for name, *_ in backends
+    )
+    assert re.search(r"^\s*bind :8100$", config, re.M)
+    assert defaults(balancer["ports"][0]).endswith(":8100")
+
+
+def test_the_facility_takes_its_secrets_from_the_env_file() -> None:
+    text = (ROOT / "compose.facility.yaml").read_text()
+    secrets = set(re.findall(r"\$\{(\w+_(?:TOKEN|PASSWORD))", text))
+    assert secrets == {"FOCUSTRACK_ESTIMATOR_TOKEN", "POSTGRES_PASSWORD"}
+    example = (ROOT / ".env.example").read_text()
+    assert all(re.search(rf"^{name}=\S+", example, re.M) for name in secrets)

@@ -85,3 +85,40 @@ def test_the_router_hands_on_shared_memory_only_when_told(shared_memory: bool) -
     finally:
         router.kill()
         router.wait(timeout=10)
+
+
+def test_two_routers_connected_to_each_other_route_between_their_clients_after_a_kill() -> None:
+    """A client of each router sees the other's puts (the facility's mesh), and again once
+    either router is killed and started anew: each keeps trying to reach the other."""
+    endpoints = [loopback_endpoint(), loopback_endpoint()]
+
+    def start(mine: int) -> subprocess.Popen[str]:
+        command = [sys.executable, "-m", "focustrack_core.wire.router"]
+        listen, connect = endpoints[mine], endpoints[1 - mine]
+        return subprocess.Popen(
+            [*command, "--listen", listen, "--connect", connect], stderr=subprocess.PIPE, text=True
+        )
+
+    routers = [start(0), start(1)]
+    try:
+        received = threading.Event()
+        with (
+            open_session(connect=[endpoints[0]]) as subscriber,
+            open_session(connect=[endpoints[1]]) as pub,
+        ):
+            subscriber.declare_subscriber("test/mesh", lambda sample: received.set())
+            for killed in (None, 0, 1):
+                if killed is not None:
+                    routers[killed].kill()
+                    routers[killed].wait(timeout=10)
+                    received.clear()
+                    routers[killed] = start(killed)
+                for _ in range(200):  # until the subscription has crossed both routers
+                    pub.put("test/mesh", b"hello")
+                    if received.wait(0.1):
+                        break
+                assert received.is_set(), f"nothing routed after killing router {killed}"
+    finally:
+        for router in routers:
+            router.kill()
+            router.wait(timeout=10)

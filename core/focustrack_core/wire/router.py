@@ -3,12 +3,14 @@
     python3 -m focustrack_core.wire.router --listen tcp/0.0.0.0:7447 --no-multicast-scouting
 
 It takes the official router's (zenohd's) flags that compose.yaml passes, so the
-`zenoh` service keeps one command whichever image runs it: `--listen` (repeatable)
-and `--no-multicast-scouting` (accepted for that reason; multicast scouting is always
-off in our sessions), and `--config FILE` (zenohd's name; `--zenoh-config` as our
-services call it, or FOCUSTRACK_ROUTER_ZENOH_CONFIG): a Zenoh JSON5 file for TLS,
-user/password authentication and access control (docs/security.md), which the listen
-endpoints and the mode are written over. `--shared-memory` hands Zenoh shared-memory
+`zenoh` service keeps one command whichever image runs it: `--listen` (repeatable),
+`--connect` (repeatable: other routers to mesh with, as compose.facility.yaml's two do;
+each is tried again for as long as it is down) and `--no-multicast-scouting` (accepted
+for that reason; multicast scouting is always off in our sessions), and `--config FILE`
+(zenohd's name; `--zenoh-config` as our services call it, or
+FOCUSTRACK_ROUTER_ZENOH_CONFIG): a Zenoh JSON5 file for TLS, user/password
+authentication and access control (docs/security.md), which the endpoints and the mode
+are written over. `--shared-memory` hands Zenoh shared-memory
 buffers on between sessions on this host that have it on (`focustrack demo` with its
 router in a process of its own); without it they cross the router as bytes, as between
 hosts. It routes until SIGTERM or SIGINT, then
@@ -47,6 +49,15 @@ def parser() -> argparse.ArgumentParser:
         help="an endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
     )
     router.add_argument(
+        "-e",
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="another router to connect to, e.g. tcp/zenoh-a:7447 (repeatable): routers "
+        "connected so route between their clients",
+    )
+    router.add_argument(
         "--no-multicast-scouting",
         action="store_true",
         help="accepted for zenohd compatibility; multicast scouting is always off",
@@ -66,7 +77,8 @@ def parser() -> argparse.ArgumentParser:
         default=os.environ.get(CONFIG_ENV) or None,
         metavar="FILE",
         help="a Zenoh JSON5 configuration: TLS, user/password, access control "
-        f"(docs/security.md); --listen and the mode are written over it [env {CONFIG_ENV}]",
+        f"(docs/security.md); --listen, --connect and the mode are written over it "
+        f"[env {CONFIG_ENV}]",
     )
     return router
 
@@ -75,6 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
         config = session_config(
+            connect=args.connect,
             listen=args.listen,
             mode="router",
             shared_memory=args.shared_memory,
