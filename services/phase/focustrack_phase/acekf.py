@@ -27,8 +27,10 @@ Beyond the paper, three changes, each measured by `focustrack bench phase`:
   linear response at defocus z by 2 J1(v)/v, v = 2 pi z NA_c |f|; the gain and the
   predicted intensity carry that envelope.
 
-Memory: the filter holds b, Q, P, fx^2+fy^2 and a few temporaries, under ten arrays of
-the image's size, besides the stack it reads one frame at a time.
+Memory: the filter holds b, a_hat, H, three float32 images (and with our update one more
+complex image) at the image's size, and Q, P, the gain and fx^2+fy^2 on a quarter of the
+grid (`FoldedGrid`): under ten arrays of the image's size, besides the stack it reads one
+frame at a time.
 """
 
 from __future__ import annotations
@@ -71,9 +73,9 @@ class AcekfOptions:
     The defaults hold at every photon count we tried, on the instrument simulator's phase
     specimens up to 2 rad (cells in culture, red cells) at 10^4 photons a pixel, where
     a wider prior (q0 0.05 and up, or p0 < 0) makes the filter run away; on the paper's
-    Data Set 1 at one photon `focustrack bench phase` prefers q0 = 0.3, p0 = -0.27 (it
-    tunes every method per setting). The paper studied q0 = 70..7000 and p0 = 50..5000 in
-    its own (unnormalised) units.
+    Data Set 1 at one photon `focustrack bench phase` prefers q0 = 1, p0 = -0.9 with
+    prior_length_um = 2 (it tunes every method per setting). The paper studied q0 =
+    70..7000 and p0 = 50..5000 in its own (unnormalised) units.
     """
 
     q0: float = 0.01
@@ -287,9 +289,8 @@ def reconstruct(
             # eq. 33: b += (Q + P) J^-1 q^-1 (I - gamma |a_hat|^2), J^-1 = K diag(1/(gamma
             # a_hat^*)), (Q_n + P_n)/q = `gain`, 1/a_hat^* = a_hat / (|a_hat| |a_hat|_floored).
             scratch *= modulus
-            np.reciprocal(scratch, out=scratch)
-            residual *= scratch
-            weighted_excess = None if excess is None else a_hat * (excess * scratch)
+            residual /= scratch
+            weighted_excess = None if excess is None else a_hat * (excess / scratch)
             a_hat *= residual
             innovation = _with_excess(
                 _fft2(a_hat, workers), weighted_excess, envelope, grid, workers
