@@ -14,8 +14,9 @@ RMSE of a flat estimate (the phase's own spread: a method is only useful below i
 object's power spectrum (for a Gaussian object no estimator from these frames does better
 on average): it says how far down this object and photon count allow.
 
-`--sweep` adds gamma in (1, 10, 100, 1000) on 100 planes and 5..100 planes at the
-paper's gamma. Two more sections always run:
+`--sweep` adds the smear weaker and smoothed (OBJECTS: flat, oracle, ours and the
+weak-object least squares at the paper's setting), gamma in (1, 10, 100, 1000) on 100
+planes and 5..100 planes at the paper's gamma. Three more sections always run:
 
 - partial coherence: the same object lit by a disk source (condenser NA 0.05, Abbe's
   method in `focustrack_phase.simulate.partially_coherent_stack`), 50 planes of 1 um,
@@ -477,16 +478,18 @@ def run(args: argparse.Namespace) -> int:
         args.repeats,
     )  # fmt: skip
     print(format_rows(rows, with_paper=True), flush=True)
-    print("Data Set 1 with weaker and smoother objects (gamma 0.998, 100 planes)...", flush=True)
-    objects = score_objects(args.seed, args.size_px)
-    print(f"  {'peak rad':>8} {'smooth um':>9} {'flat':>7} {'oracle':>7} {'ours':>7} {'LS':>7}")
-    for row in objects:
-        print(
-            f"  {row['peak_phase_rad']:>8g} {row['smooth_um']:>9g} {row['flat_rad']:>7.4f} "
-            f"{row['oracle_rad']:>7.4f} {row['ours_rad']:>7.4f} {row['weak_object_ls_rad']:>7.4f}"
-        )
+    objects: list[dict[str, Any]] = []
     sweep: list[dict[str, Any]] = []
     if args.sweep:
+        print("Data Set 1, weaker and smoother objects (gamma 0.998, 100 planes)...", flush=True)
+        objects = score_objects(args.seed, args.size_px)
+        print(f"  {'peak rad':>8} {'smooth um':>9} {'flat':>7} {'oracle':>7} {'ours':>7} {'LS':>7}")
+        for row in objects:
+            print(
+                f"  {row['peak_phase_rad']:>8g} {row['smooth_um']:>9g} {row['flat_rad']:>7.4f} "
+                f"{row['oracle_rad']:>7.4f} {row['ours_rad']:>7.4f} "
+                f"{row['weak_object_ls_rad']:>7.4f}"
+            )
         settings = [(g, simulate.DATA_SET_1_PLANES) for g in SWEEP_GAMMAS]
         settings += [(simulate.DATA_SET_1_GAMMA, n) for n in SWEEP_PLANES]
         for gamma, planes in settings:

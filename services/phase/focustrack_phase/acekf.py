@@ -288,6 +288,7 @@ def reconstruct(
         if opts.update == "paper":
             # eq. 33: b += (Q + P) J^-1 q^-1 (I - gamma |a_hat|^2), J^-1 = K diag(1/(gamma
             # a_hat^*)), (Q_n + P_n)/q = `gain`, 1/a_hat^* = a_hat / (|a_hat| |a_hat|_floored).
+            np.maximum(modulus, _TINY, out=modulus)  # a_hat = 0 exactly: no 0 / 0
             scratch *= modulus
             residual /= scratch
             weighted_excess = None if excess is None else a_hat * (excess / scratch)
