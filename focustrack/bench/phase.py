@@ -30,7 +30,8 @@ planes and 5..100 planes at the paper's gamma. Three more sections always run:
   envelope; the correlation with the true phase after removing periods over ~6 um (a
   Gaussian of 10 pixels), and a figure;
 - speed and memory on one core: 21 planes of `--speed-size-px` (2048) squared, both
-  updates, and the filter's peak memory (tracemalloc, on 512 x 512) in images of
+  updates, in wall time and in the process's CPU time (which a machine shared with other
+  jobs stretches far less), and the filter's peak memory (tracemalloc, on 512 x 512) in images of
   complex64 (8 bytes a pixel), besides the stack.
 
 `--json OUT` writes the scores and PNGs beside OUT (true phase, each method's phase and
