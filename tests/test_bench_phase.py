@@ -1,4 +1,4 @@
-"""`focustrack bench phase` on a tiny setting: its table, JSON keys and figure."""
+"""`focustrack bench phase --sweep` on a tiny setting: its table, JSON keys and figure."""
 
 from __future__ import annotations
 
@@ -8,20 +8,18 @@ from pathlib import Path
 
 import pytest
 
-from focustrack.bench.phase import run
+from focustrack.bench.phase import OBJECTS, run
 
 
 def test_the_bench_writes_its_table_json_and_figure(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "phase.json"
-    args = argparse.Namespace(
-        json=out, sweep=False, seed=1, size_px=16, repeats=1, speed_size_px=32
-    )
+    args = argparse.Namespace(json=out, sweep=True, seed=1, size_px=16, repeats=1, speed_size_px=32)
     assert run(args) == 0
     result = json.loads(out.read_text())
     assert set(result) == {
-        "data_set_1", "sweep", "coherence", "simulator", "speed", "figure",
+        "data_set_1", "objects", "sweep", "coherence", "simulator", "speed", "figure",
         "coherence_figure", "simulator_figure", "paper",
     }  # fmt: skip
     methods = [row["method"] for row in result["data_set_1"]]
@@ -30,7 +28,12 @@ def test_the_bench_writes_its_table_json_and_figure(
     row = result["data_set_1"][0]
     assert set(row) == {"method", "gamma", "planes", "phase_rmse_rad", "intensity_rmse", "time_s"}
     assert row["planes"] == 100 and row["time_s"] > 0 and row["phase_rmse_rad"] > 0
+    assert {row["gamma"] for row in result["sweep"]} == {0.998, 1.0, 10.0, 100.0, 1000.0}
     assert result["paper"]["sparse ACEKF (paper)"]["phase_rmse_rad"] == 0.0143
+    objects = result["objects"]
+    assert [(row["peak_phase_rad"], row["smooth_um"]) for row in objects] == list(OBJECTS)
+    for row in objects:
+        assert 0 < row["oracle_rad"] < row["flat_rad"] and row["ours_rad"] > 0
     assert (tmp_path / result["figure"]).stat().st_size > 1000
     assert (tmp_path / result["coherence_figure"]).stat().st_size > 1000
     models = [row["model"] for row in result["coherence"]]
@@ -43,4 +46,5 @@ def test_the_bench_writes_its_table_json_and_figure(
     speed = {row["update"]: row for row in result["speed"]}
     assert set(speed) == {"phase_frame", "paper"}
     assert all(0 < row["peak_memory_images"] < 40 and row["time_s"] > 0 for row in speed.values())
+    assert all(row["cpu_s"] > 0 for row in speed.values())
     assert "sparse ACEKF (paper)" in capsys.readouterr().out

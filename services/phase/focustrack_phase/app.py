@@ -4,10 +4,10 @@
   raw counts, frames first: (n, H, W), n >= 2), ``z_um`` (each frame's height relative
   to the plane to reconstruct, um: a JSON list or comma-separated numbers),
   ``wavelength_um``, ``pixel_um``; optional ``photons_per_count`` (1) and the filter's
-  settings ``q0``, ``p0``, ``update``, ``condenser_na``, ``amplitude_floor``
-  (`AcekfOptions`). ``?format=npy`` (the
-  default) answers a float32 .npy of shape (2, H, W): the phase (rad) and the amplitude
-  (relative to the stack's mean) at z = 0; ``?format=png`` a picture of the phase with
+  settings ``q0``, ``p0``, ``update``, ``condenser_na``, ``amplitude_floor``,
+  ``prior_length_um`` (`AcekfOptions`). ``?format=npy`` (the default) answers a float32
+  .npy of shape (2, H, W): the phase (rad) and the amplitude (relative to the stack's
+  mean) at z = 0; ``?format=png`` a picture of the phase with
   a colour bar in radians.
 - ``GET /healthz``. OpenAPI docs at ``/docs``.
 
@@ -40,6 +40,7 @@ from focustrack_phase.acekf import AcekfOptions, FieldEstimate, Update, reconstr
 #: Bounds of the filter's settings a request may set: wide around the defaults, finite.
 MAX_Q0 = 1e6
 MAX_AMPLITUDE_FLOOR = 1.0
+MAX_PRIOR_LENGTH_UM = 1e4
 
 
 @dataclass(frozen=True)
@@ -179,6 +180,15 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
         amplitude_floor: Annotated[
             float, Form(gt=0, le=MAX_AMPLITUDE_FLOOR, allow_inf_nan=False)
         ] = defaults.amplitude_floor,
+        prior_length_um: Annotated[
+            float,
+            Form(
+                ge=0,
+                le=MAX_PRIOR_LENGTH_UM,
+                allow_inf_nan=False,
+                description="the prior's correlation length, um (0: white, the paper's)",
+            ),
+        ] = defaults.prior_length_um,
         format: Annotated[PhaseFormat, Query(description="npy or png")] = PhaseFormat.NPY,
     ) -> Response:
         data = await read_upload(stack, limits.max_upload_bytes)
@@ -190,6 +200,7 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
                 update=update,
                 condenser_na=condenser_na,
                 amplitude_floor=amplitude_floor,
+                prior_length_um=prior_length_um,
             )
             frames = await run_in_threadpool(
                 decode_stack, data, limits.max_frames, limits.max_decoded_bytes

@@ -47,3 +47,73 @@ def propagate(field: np.ndarray, dz_um: float, wavelength_um: float, pixel_um: f
         raise ValueError(f"field must be 2-D (height, width), got shape {field.shape}")
     transfer = fresnel_transfer(frequency_sq_per_um2(field.shape, pixel_um), wavelength_um, dz_um)
     return fft.ifft2(transfer * fft.fft2(field, norm="ortho"), norm="ortho")
+
+
+class FoldedGrid:
+    """An image's FFT grid folded onto its non-negative frequencies.
+
+    fx^2 + fy^2, and so everything of the filter's that depends on it alone (H of eq. 3, Q
+    and P, the gain: Lemma 1's symmetry), is the same at (+-fy, +-fx): a quarter array of
+    shape (height // 2 + 1, width // 2 + 1) holds every value. `multiply` applies such a
+    quarter to a full (height, width) spectrum, or to an rfft's half (height, width // 2 + 1),
+    in place through strided views, so the full grid is never expanded: a quarter of the
+    element-wise work and of the memory.
+    """
+
+    def __init__(self, shape: tuple[int, int], pixel_um: float) -> None:
+        if len(shape) != 2 or min(shape) < 1:
+            raise ValueError(f"shape must be (height, width) with both >= 1, got {shape}")
+        if not pixel_um > 0:
+            raise ValueError(f"pixel_um must be > 0, got {pixel_um}")
+        height, width = shape
+        self.shape = shape
+        fy = np.arange(height // 2 + 1) / (height * pixel_um)
+        fx = np.arange(width // 2 + 1) / (width * pixel_um)
+        #: fx^2 + fy^2 (1/um^2), (height // 2 + 1, width // 2 + 1): the FFT's bins with
+        #: fx, fy >= 0 (fftfreq's values, up to the sign).
+        self.freq_sq_per_um2 = np.add.outer(fy * fy, fx * fx)
+        self._rows = _mirrored(height)
+        self._cols = _mirrored(width)
+        self._row_weights = _multiplicity(height)
+        self._col_weights = _multiplicity(width)
+
+    def multiply(self, spectrum: np.ndarray, quarter: np.ndarray) -> None:
+        """spectrum *= the quarter's values at each bin's |fy|, |fx|, in place; spectrum is
+        (height, width) or an rfft's (height, width // 2 + 1)."""
+        full_width = spectrum.shape[1] == self.shape[1]
+        cols = self._cols if full_width else ((slice(None), slice(None)),)
+        for spectrum_rows, quarter_rows in self._rows:
+            for spectrum_cols, quarter_cols in cols:
+                block = spectrum[spectrum_rows, spectrum_cols]
+                block *= quarter[quarter_rows, quarter_cols]
+
+    def expand(self, quarter: np.ndarray) -> np.ndarray:
+        """The full (height, width) array of a quarter's values."""
+        full = np.empty(self.shape, dtype=quarter.dtype)
+        for full_rows, quarter_rows in self._rows:
+            for full_cols, quarter_cols in self._cols:
+                full[full_rows, full_cols] = quarter[quarter_rows, quarter_cols]
+        return full
+
+    def mean(self, quarter: np.ndarray) -> float:
+        """The mean over the full grid of a quarter's values (each counted as often as it
+        appears)."""
+        total = self._row_weights @ quarter.astype(np.float64) @ self._col_weights
+        return float(total) / (self.shape[0] * self.shape[1])
+
+
+def _mirrored(n: int) -> tuple[tuple[slice, slice], ...]:
+    """(full axis, folded axis) slice pairs: bins 0..n//2 are the folded ones; bins above
+    n//2 hold the frequencies -(n - bin), found at folded index n - bin, in reverse."""
+    half = n // 2
+    return (
+        (slice(0, half + 1), slice(0, half + 1)),
+        (slice(half + 1, n), slice(n - 1 - half, 0, -1)),
+    )
+
+
+def _multiplicity(n: int) -> np.ndarray:
+    """How many bins of an axis of n fold onto each folded index (1 or 2)."""
+    weights = np.ones(n // 2 + 1)
+    weights[1 : n - n // 2] += 1
+    return weights

@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from focustrack_phase.propagation import propagate
 
@@ -63,10 +64,14 @@ def red_cell_thickness_um(rho: np.ndarray) -> np.ndarray:
     return np.sqrt(1.0 - rho2) * (0.81 + 7.83 * rho2 - 4.39 * rho2 * rho2)
 
 
-def weak_object(size_px: int, seed: int, peak_phase_rad: float = WEAK_PEAK_PHASE_RAD) -> np.ndarray:
+def weak_object(
+    size_px: int, seed: int, peak_phase_rad: float = WEAK_PEAK_PHASE_RAD, smooth_um: float = 0.0
+) -> np.ndarray:
     """A weak red-cell smear (complex (size, size), mean |a|^2 = 1): see the module's text.
 
     Pixels are taken as 1 um (Data Set 1's); the cells keep their size in pixels otherwise.
+    smooth_um > 0 blurs the cells' thickness by a Gaussian of that sigma (periodic) before
+    scaling to `peak_phase_rad`: a smooth, low-bandwidth object without sharp rims.
     """
     if size_px < 16:
         raise ValueError(f"size_px must be >= 16, got {size_px}")
@@ -86,6 +91,8 @@ def weak_object(size_px: int, seed: int, peak_phase_rad: float = WEAK_PEAK_PHASE
         dx = (xx - centre[1] + size_px / 2) % size_px - size_px / 2
         rho = np.sqrt(dx * dx + dy * dy) / (0.5 * diameter)
         thickness_um += np.where(rho < 1.0, red_cell_thickness_um(rho), 0.0)
+    if smooth_um > 0:
+        thickness_um = ndimage.gaussian_filter(thickness_um, smooth_um, mode="wrap")
     relative = thickness_um / max(float(thickness_um.max()), 1e-12)
     field = (1.0 - 0.03 * relative) * np.exp(1j * peak_phase_rad * relative)
     return field / np.sqrt(np.mean(np.abs(field) ** 2))
@@ -161,16 +168,19 @@ def data_set_1(
     gamma_photons: float = DATA_SET_1_GAMMA,
     planes: int = DATA_SET_1_PLANES,
     size_px: int = DATA_SET_1_SIZE_PX,
+    peak_phase_rad: float = WEAK_PEAK_PHASE_RAD,
+    smooth_um: float = 0.0,
 ) -> SyntheticStack:
     """The paper's Data Set 1; fewer `planes` spread over the same 50 um (every k-th plane).
 
-    planes must divide 100 evenly for the planes to be a subset of the full stack.
+    planes must divide 100 evenly for the planes to be a subset of the full stack. The
+    object is `weak_object(size_px, seed, peak_phase_rad, smooth_um)`.
     """
     if not 1 <= planes <= DATA_SET_1_PLANES:
         raise ValueError(f"planes must be in 1..{DATA_SET_1_PLANES}, got {planes}")
     span_um = DATA_SET_1_PLANES * DATA_SET_1_STEP_UM
     z_um = np.arange(1, planes + 1) * (span_um / planes)
-    field = weak_object(size_px, seed)
+    field = weak_object(size_px, seed, peak_phase_rad, smooth_um)
     stack = through_focus_stack(
         field, z_um, DATA_SET_1_WAVELENGTH_UM, DATA_SET_1_PIXEL_UM, gamma_photons, seed
     )

@@ -7,7 +7,7 @@ import pytest
 from scipy import special
 
 from focustrack_phase import acekf, baselines, simulate
-from focustrack_phase.propagation import propagate
+from focustrack_phase.propagation import FoldedGrid, frequency_sq_per_um2, propagate
 
 WAVELENGTH_UM = 0.532
 PIXEL_UM = 1.0
@@ -36,6 +36,56 @@ def test_propagation_is_unitary_and_back_propagation_returns_the_field() -> None
     assert np.sum(np.abs(ahead) ** 2) == pytest.approx(np.sum(np.abs(field) ** 2), rel=1e-12)
     assert not np.allclose(ahead, field, atol=1e-3)  # it did propagate
     np.testing.assert_allclose(propagate(ahead, -17.5, WAVELENGTH_UM, PIXEL_UM), field, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(8, 8), (7, 10), (1, 5), (2, 3)])
+def test_the_folded_grid_stands_for_the_full_one(shape: tuple[int, int]) -> None:
+    grid = FoldedGrid(shape, 0.5)
+    full_freq_sq = frequency_sq_per_um2(shape, 0.5)
+    np.testing.assert_allclose(grid.expand(grid.freq_sq_per_um2), full_freq_sq, rtol=1e-12)
+    quarter = np.random.default_rng(1).normal(size=grid.freq_sq_per_um2.shape) + 1j
+    full = grid.expand(quarter)
+    assert grid.mean(quarter.real) == pytest.approx(float(np.mean(full.real)), rel=1e-12)
+    spectrum = np.random.default_rng(2).normal(size=shape) + 0j
+    expected = spectrum * full
+    grid.multiply(spectrum, quarter)
+    np.testing.assert_allclose(spectrum, expected, rtol=1e-12)
+    half = np.fft.rfft2(np.random.default_rng(3).normal(size=shape))
+    expected_half = half * full[:, : half.shape[1]]
+    grid.multiply(half, quarter)
+    np.testing.assert_allclose(half, expected_half, rtol=1e-12)
+
+
+def test_the_filter_leaves_the_stack_alone_and_a_zero_prior_length_is_the_white_prior() -> None:
+    data = simulate.data_set_1(seed=3, gamma_photons=100.0, planes=20, size_px=32)
+    before = data.stack_counts.copy()
+    white = acekf.reconstruct(data.stack_counts, data.z_um, WAVELENGTH_UM, PIXEL_UM)
+    np.testing.assert_array_equal(data.stack_counts, before)
+    zero = acekf.AcekfOptions(prior_length_um=0.0)
+    again = acekf.reconstruct(data.stack_counts, data.z_um, WAVELENGTH_UM, PIXEL_UM, options=zero)
+    np.testing.assert_array_equal(again.field, white.field)
+    smooth = acekf.AcekfOptions(prior_length_um=4.0)
+    shaped = acekf.reconstruct(
+        data.stack_counts, data.z_um, WAVELENGTH_UM, PIXEL_UM, options=smooth
+    )
+    assert not np.allclose(shaped.field, white.field, atol=1e-4)
+    assert acekf.prior_shape(np.array([0.0, 1.0]), 4.0)[0] == 1.0
+    with pytest.raises(ValueError, match="prior_length_um"):
+        acekf.AcekfOptions(prior_length_um=-1.0)
+
+
+def test_a_smooth_prior_helps_on_a_smooth_object() -> None:
+    data = simulate.data_set_1(4, 10.0, 50, 48, peak_phase_rad=0.3, smooth_um=2.0)
+
+    def phase_rmse(options: acekf.AcekfOptions) -> float:
+        estimate = acekf.reconstruct(
+            data.stack_counts, data.z_um, WAVELENGTH_UM, PIXEL_UM, options=options
+        )
+        return _phase_rmse(estimate, data.field)
+
+    best_white = min(phase_rmse(acekf.AcekfOptions(q0=q0)) for q0 in (0.003, 0.01, 0.03))
+    # Measured 0.050 against 0.072 rad (of a 0.087 rad spread).
+    assert phase_rmse(acekf.AcekfOptions(q0=1.0, prior_length_um=2.0)) < 0.8 * best_white
 
 
 def test_the_filter_recovers_a_known_weak_phase_from_a_noiseless_stack() -> None:
