@@ -136,3 +136,29 @@ def low_contrast_flat(
         return False
     rise_from_ends = float(s.max() - max(s[0], s[-1]))
     return not (clean and rise_from_ends > min_snr * noise)
+
+
+#: A one-frame excursion narrower than this share of the metric's usual peak (Gaussian
+#: stds) is an outlier where that peak's width is known (`peak.despike`).
+SPIKE_SHARE = 0.25
+
+
+def narrowest_peak_sigma_um(min_peak_sigma_um: float, curve_fwhm_um: float | None) -> float:
+    """The std (um) of the narrowest peak a curve may hold: the optics' (`min_peak_sigma_um`)
+    or, where the metric's usual peak width on this microscope is known (a profile's
+    `curve_fwhm_um`), SPIKE_SHARE of that peak's std if wider (module docstring)."""
+    if curve_fwhm_um is None:
+        return min_peak_sigma_um
+    return max(min_peak_sigma_um, SPIKE_SHARE * curve_fwhm_um / FWHM_PER_SIGMA)
+
+
+#: Windows of fewer frames are the lean scan's short stacks (`curve_model` reads them).
+TIED_MIN_FRAMES = 5
+
+
+def tied_with_end(s: np.ndarray, top: int, end: int, share: float) -> bool:
+    """Whether the top at frame `top` of a window `s` (n,) next to its end frame `end` stands
+    less than `share` of the window's range above that end frame (module docstring)."""
+    if s.size < TIED_MIN_FRAMES:
+        return False
+    return float(s[top] - s[end]) < share * float(s.max() - s.min())

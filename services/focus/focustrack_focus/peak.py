@@ -76,9 +76,11 @@ from focustrack_core.domain import FocusFlag
 from focustrack_focus.curve_checks import (
     low_contrast_flat,
     narrow_at_end,
+    narrowest_peak_sigma_um,
     oversampled_floor_um,
     phase_valley,
     shoulder,
+    tied_with_end,
 )
 
 #: Std of a normal distribution per unit of its median absolute deviation.
@@ -272,7 +274,12 @@ def find_peak(
     contrast_flat = low_contrast_flat(s, top, noise, clean, settings.min_contrast, settings.min_snr)
     if contrast_flat or span <= settings.min_snr * judged_noise:
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
-    s = despike(z, s, judged_noise, settings.min_peak_sigma_um)
+    s = despike(
+        z,
+        s,
+        judged_noise,
+        narrowest_peak_sigma_um(settings.min_peak_sigma_um, settings.curve_fwhm_um),
+    )
     fit = _read_peaks(z, s, noise, judged_noise, settings, prior)
     valley_z = phase_valley(z, s) if settings.mode is PeakMode.MAX else None
     if valley_z is None:
@@ -330,20 +337,38 @@ def despike(z: np.ndarray, s: np.ndarray, noise: float, min_peak_sigma_um: float
     span = float(s.max() - s.min())
     n = s.size
     kinds = ["end", "second"] + ["interior"] * (n - 4) + ["second", "end"]
-    out = s.copy()
-    # one outlier at a time, the worst first: an outlier spoils its neighbours' predictions
-    for _ in range(n // 4):
-        excess = np.empty(n)
+    allowance = np.array(
+        [
+            max(_outlier_allowance(ratio, kind) * span, 4.0 * _PREDICTORS[kind][1] * noise)
+            for kind in kinds
+        ]
+    )
+
+    def excess(curve: np.ndarray) -> np.ndarray:
+        """Each frame's departure from its prediction over its allowance (n,)."""
         predicted = np.empty(n)
         for i, kind in enumerate(kinds):
-            weights, noise_gain = _PREDICTORS[kind]
             mirror = -1 if i > n // 2 else 1  # near the high end, offsets point downwards
-            predicted[i] = sum(w * out[i + mirror * k] for k, w in weights.items())
-            allowance = max(_outlier_allowance(ratio, kind) * span, 4.0 * noise_gain * noise)
-            excess[i] = abs(out[i] - predicted[i]) / allowance if allowance > 0 else 0.0
-        worst = int(np.argmax(excess))
-        if excess[worst] <= 1.0:
+            weights = _PREDICTORS[kind][0]
+            predicted[i] = sum(w * curve[i + mirror * k] for k, w in weights.items())
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(allowance > 0, np.abs(curve - predicted) / allowance, 0.0), predicted
+
+    out = s.copy()
+    # one outlier at a time: an outlier spoils its neighbours' predictions too, so of the
+    # frames beyond their allowance the one replaced is that whose replacement leaves the
+    # others' worst departure least (a dip next to an end frame makes the end look wrong)
+    for _ in range(n // 4):
+        departures, predicted = excess(out)
+        suspects = np.flatnonzero(departures > 1.0)
+        if suspects.size == 0:
             break
+        trials = []
+        for i in suspects:
+            trial = out.copy()
+            trial[i] = predicted[i]
+            trials.append((float(np.delete(excess(trial)[0], i).max()), int(i)))
+        worst = min(trials)[1]
         out[worst] = predicted[worst]
     return out
 
@@ -431,14 +456,26 @@ def _read_peaks(
     z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
     sigma = math.hypot(sigma, top.spread_um(z, z0))
     end = 0 if chosen.index == 1 else z.size - 1 if chosen.index == z.size - 2 else None
-    if end is not None and settings.curve_fwhm_um is not None:
-        top_fit = _fit_window(z, s, chosen.index, 1, noise)
-        if top_fit is not None and narrow_at_end(top_fit.width_var_um2, settings.curve_fwhm_um):
-            # the top rests on the end frame alone: were it a one-frame dip, the focus
-            # would lie beyond that end
-            flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
-            runner_up_z, probability = float(z[end]), min(probability, 0.5)
+    if end is not None and _rests_on_end(z, s, chosen.index, end, noise, settings):
+        # the top rests on the end frame alone: were it a one-frame dip, the focus
+        # would lie beyond that end
+        flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
+        runner_up_z, probability = float(z[end]), min(probability, 0.5)
     return PeakFit(z0, sigma, frozenset(flags), runner_up_z, probability)
+
+
+def _rests_on_end(
+    z: np.ndarray, s: np.ndarray, top: int, end: int, noise: float, settings: PeakSettings
+) -> bool:
+    """Whether the top at frame `top`, next to the window's end frame `end`, has that frame
+    alone for its outer flank and too little of it to tell a top from a one-frame dip
+    (`curve_checks.narrow_at_end`, `curve_checks.tied_with_end`)."""
+    if tied_with_end(s, top, end, settings.end_rise_share):
+        return True
+    if settings.curve_fwhm_um is None:
+        return False
+    top_fit = _fit_window(z, s, top, 1, noise)
+    return top_fit is not None and narrow_at_end(top_fit.width_var_um2, settings.curve_fwhm_um)
 
 
 @dataclass(frozen=True)
