@@ -1,10 +1,9 @@
 """Whether several focus metrics computed on the same frames agree on a peak.
 
 A stack that one metric reads as flat (its curve's range a small share of its level or
-within its own noise, `peak.find_peak`; or no structure above the pixel noise,
-`structure.structure_snr`) may still hold a plane a person sees in focus: a pale specimen
-under a low-magnification objective changes a low-frequency contrast (normalised
-variance) by a fraction of a percent while its edges sharpen. Metrics that weigh
+within its own noise, `peak.find_peak`) may still hold a plane a person sees in focus: a
+pale specimen under a low-magnification objective changes a low-frequency contrast
+(normalised variance) by a fraction of a percent while its edges sharpen. Metrics that weigh
 different spatial frequencies (`metrics.METRICS`) then peak on the same frame.
 
 What they do not share is noise: a frame's noise moves each metric its own way. A camera

@@ -176,7 +176,7 @@ def focus_stack(
     result = focus_from_curve(
         z, scan.scores, settings, started_s=started_s, structure_snr=snr, prior=prior
     )
-    if FocusFlag.FLAT not in result.flags:
+    if result.flags != {FocusFlag.FLAT}:
         return result
     preprocess = settings.preprocess
     scores = np.stack([agreement_scores(preprocess.smooth(preprocess.crop(f))) for f in frames])
@@ -186,10 +186,14 @@ def focus_stack(
 def unflattened(
     flat: FocusResult, agreement: np.ndarray, settings: FocusSettings, prior: Prior | None
 ) -> FocusResult:
-    """A stack read `flat` (by the structure test or the contrast rule), read again without
-    either where the metrics on its frames, `agreement` (n, len(METRICS)) of
-    `agreement.agreement_scores`, agree on a peak (`agreement.agreed_peak`: a person sees
-    one) and the reading lands within a frame of it; else `flat` as it is."""
+    """A stack read `flat` by the contrast rule alone (`peak.find_peak`; a stack the
+    structure test found `empty` holds nothing in view, and its frames' shared noise may
+    make the metrics agree) read again without that rule where the metrics on its frames,
+    `agreement` (n, len(METRICS)) of `agreement.agreement_scores`, agree on a peak
+    (`agreement.agreed_peak`: a person sees one) and the reading lands within a frame of
+    it; else `flat` as it is."""
+    if settings.peak.min_relative_noise >= 1.0:
+        return flat  # a metric turned off on this microscope (`PeakSettings`) stays off
     agreed = agreed_peak(dict(zip(METRICS, agreement.T, strict=True)))
     if agreed is None:
         return flat
@@ -296,6 +300,6 @@ class FrameByFrame:
             prior=prior,
             curve=curve,
         )
-        if FocusFlag.FLAT not in result.flags:
+        if result.flags != {FocusFlag.FLAT}:
             return result
         return unflattened(result, self._agreement, self.settings, prior)
