@@ -269,16 +269,29 @@ def learn_systematic_sigma(
     pass only fit fields). 0 where they reach it already: a clear pick keeps its sigma.
     None where even `cap_steps` does not reach it. Parts with no measured reading (all
     flat) have nothing to cover and ask for nothing."""
-    parts = (
-        [r for r in readings if r.kind == "full"],
-        [r for r in readings if r.kind != "full"],
-    )
+    full = [r for r in readings if r.kind == "full"]
+    parts = (full, [r for r in readings if r.kind != "full"])
     for step in range(round(cap_steps / SYSTEMATIC_GRID_STEPS) + 1):
         systematic = round(step * SYSTEMATIC_GRID_STEPS, 2)
         # NaN (nothing measured) is not below the coverage: such a part needs nothing
-        if not any(coverage_with(part, systematic) < CALIBRATION_COVERAGE for part in parts):
+        if any(coverage_with(part, systematic) < CALIBRATION_COVERAGE for part in parts):
+            continue
+        if not field_offsets_covered(full, systematic) < CALIBRATION_COVERAGE:
             return systematic
     return None
+
+
+def field_offsets_covered(full: Sequence[Reading], systematic_steps: float) -> float:
+    """The share of fields whose full curve's offset from the label lies within 2
+    `systematic_steps` and half a step (the label's rounding): the systematic sigma alone,
+    without the full curve's own sigma. A metric's offset from the plane a person picks
+    belongs to the field (its specimen), so every window of it carries the same offset,
+    and a window, which sees less of the curve than the full one, may state a sigma far
+    below it: the systematic sigma must cover the offset by itself. NaN without any."""
+    offsets = np.array([abs(r.error_steps) for r in full if r.error_steps is not None])
+    if offsets.size == 0:
+        return math.nan
+    return float(np.mean(offsets <= 2.0 * systematic_steps + 0.5))
 
 
 def flat_share(readings: Sequence[Reading]) -> float:

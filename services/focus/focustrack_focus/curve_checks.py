@@ -14,11 +14,19 @@
   a sharper peak beyond its end (debris on another plane) rise over its own top, which
   then shows only as a shoulder, where the rise slows and speeds up again. The edge
   flag then names the far peak's side with no certainty: the shoulder is the runner-up.
-- A top resting on a window's end frame (`narrow_at_end`): a peak read on the frame next
-  to a window's end has one frame for its outer flank; where its fit is far narrower than
-  the metric's peaks on this microscope (a profile's `curve_fwhm_um`), that end frame may
-  be a one-frame dip and the curve falling from beyond the end: ambiguous, the end the
-  runner-up.
+- A top resting on a window's end frame (`narrow_at_end`, `tied_with_end`): a peak read on
+  the frame next to a window's end has one frame for its outer flank, and an end frame is
+  the one frame `despike.despike` cannot check (it has neighbours on one side only). Where
+  the top's fit is far narrower than the metric's peaks on this microscope (a profile's
+  `curve_fwhm_um`), or where the top stands above that end frame by less than the share
+  of the range that makes a rising end frame a candidate peak (`end_rise_share`: a near
+  tie), that end frame may be a one-frame dip and the curve falling from beyond the end:
+  ambiguous, the end the runner-up. Windows of fewer than 5 frames are the lean scan's
+  short stacks, which the slide's curve model reads (`curve_model`).
+- A one-frame excursion narrower than the metric's peaks (`narrowest_peak_sigma_um`):
+  where a profile gives the metric's usual peak width on this microscope, a frame that
+  departs from its neighbours more than a peak of a quarter of that width could make it
+  is an outlier (`despike.despike`), not only one beyond the optics' narrowest peak.
 - A contrast too low to call, measured against the curve's own noise (`low_contrast_flat`):
   a share of the maximum is a stand-in for the noise where the curve is too short to
   measure it; a long clean curve whose peak stands many of its own noise spreads above
@@ -136,3 +144,30 @@ def low_contrast_flat(
         return False
     rise_from_ends = float(s.max() - max(s[0], s[-1]))
     return not (clean and rise_from_ends > min_snr * noise)
+
+
+#: A one-frame excursion narrower than this share of the metric's usual peak (Gaussian
+#: stds) is an outlier where that peak's width is known (`despike.despike`).
+SPIKE_SHARE = 0.25
+
+
+def narrowest_peak_sigma_um(min_peak_sigma_um: float, curve_fwhm_um: float | None) -> float:
+    """The std (um) of the narrowest peak a curve may hold: the optics' (`min_peak_sigma_um`)
+    or, where the metric's usual peak width on this microscope is known (a profile's
+    `curve_fwhm_um`), SPIKE_SHARE of that peak's std if wider (module docstring)."""
+    if curve_fwhm_um is None:
+        return min_peak_sigma_um
+    return max(min_peak_sigma_um, SPIKE_SHARE * curve_fwhm_um / FWHM_PER_SIGMA)
+
+
+#: Windows of fewer frames are the lean scan's short stacks (`curve_model` reads them).
+TIED_MIN_FRAMES = 5
+
+
+def tied_with_end(s: np.ndarray, top: int, end: int, share: float) -> bool:
+    """Whether the top at frame `top` of a window `s` (n,) next to its end frame `end` stands
+    less than `share` of the window's range above that end frame (module docstring); never
+    for windows of fewer than TIED_MIN_FRAMES frames."""
+    if s.size < TIED_MIN_FRAMES:
+        return False
+    return float(s[top] - s[end]) < share * float(s.max() - s.min())

@@ -33,8 +33,9 @@ Its standard deviation has six parts, added in quadrature:
 Which peak (`_candidates`): real curves carry one-frame spikes and dips, second
 peaks (dust, another layer), and backgrounds that rise towards an end. First,
 frames that depart from their neighbours by more than a peak as wide as the
-optics' depth of field could make them are replaced by their neighbours'
-prediction (`despike`). Then every local maximum with enough prominence is a
+optics' depth of field (or, with a profile, a quarter of the metric's usual peak:
+`curve_checks.narrowest_peak_sigma_um`) could make them are replaced by their
+neighbours' prediction (`despike`). Then every local maximum with enough prominence is a
 candidate, and so is an end frame that rises outwards (the peak may lie beyond
 it). The rule: the weight of a candidate is its prominence squared, times the
 request's prior density at it where there is a prior; the heaviest is chosen,
@@ -65,7 +66,6 @@ resting on a window's end frame) are `curve_checks`.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, replace
 from enum import StrEnum
@@ -76,10 +76,13 @@ from focustrack_core.domain import FocusFlag
 from focustrack_focus.curve_checks import (
     low_contrast_flat,
     narrow_at_end,
+    narrowest_peak_sigma_um,
     oversampled_floor_um,
     phase_valley,
     shoulder,
+    tied_with_end,
 )
+from focustrack_focus.despike import despike
 
 #: Std of a normal distribution per unit of its median absolute deviation.
 MAD_TO_SIGMA = 1.4826
@@ -130,7 +133,10 @@ class PeakSettings:
     curve_fwhm_um: the metric's usual peak width on this microscope (full width at half
         maximum, um; a microscope profile's, `focustrack focus calibrate`), or None. A peak
         read next to a window's end whose fit is far narrower rests on that one end frame
-        (`curve_checks.narrow_at_end`).
+        (`curve_checks.narrow_at_end`), and a one-frame excursion narrower than a quarter
+        of it is an outlier (`despike`). A top on the frame next to a window's end that
+        stands less than `end_rise_share` of the range above that end frame rests on it
+        too, with or without a profile (`curve_checks.tied_with_end`).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -272,7 +278,12 @@ def find_peak(
     contrast_flat = low_contrast_flat(s, top, noise, clean, settings.min_contrast, settings.min_snr)
     if contrast_flat or span <= settings.min_snr * judged_noise:
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
-    s = despike(z, s, judged_noise, settings.min_peak_sigma_um)
+    s = despike(
+        z,
+        s,
+        judged_noise,
+        narrowest_peak_sigma_um(settings.min_peak_sigma_um, settings.curve_fwhm_um),
+    )
     fit = _read_peaks(z, s, noise, judged_noise, settings, prior)
     valley_z = phase_valley(z, s) if settings.mode is PeakMode.MAX else None
     if valley_z is None:
@@ -283,69 +294,6 @@ def find_peak(
     return replace(
         fit, flags=frozenset(flags), runner_up_z_um=valley_z, chosen_probability=probability
     )
-
-
-#: How `despike` predicts a frame from its neighbours (offsets in frames -> weights), and
-#: the std of the prediction's residual on white noise of unit std.
-_PREDICTORS: dict[str, tuple[dict[int, float], float]] = {
-    # cubic interpolation from two frames each side
-    "interior": ({-2: -1 / 6, -1: 4 / 6, 1: 4 / 6, 2: -1 / 6}, math.sqrt(1 + 34 / 36)),
-    # second frame: quadratic interpolation from the end frame and the next two
-    "second": ({-1: 1 / 3, 1: 1.0, 2: -1 / 3}, math.sqrt(1 + 1 / 9 + 1 + 1 / 9)),
-    # end frame: linear extrapolation from the next two
-    "end": ({1: 2.0, 2: -1.0}, math.sqrt(1 + 4 + 1)),
-}
-
-
-@functools.lru_cache(maxsize=64)
-def _outlier_allowance(step_over_width: float, predictor: str) -> float:
-    """The largest residual, as a share of the peak's height, that a Gaussian peak of std w
-    sampled every `step_over_width` * w leaves against `predictor`, over every phase."""
-    weights, _ = _PREDICTORS[predictor]
-    phases = np.linspace(-4.0, 4.0, 161)
-
-    def gaussian(offset: int) -> np.ndarray:
-        return np.exp(-0.5 * (phases + step_over_width * offset) ** 2)
-
-    residual = gaussian(0) - sum(w * gaussian(k) for k, w in weights.items())
-    return float(np.abs(residual).max())
-
-
-def despike(z: np.ndarray, s: np.ndarray, noise: float, min_peak_sigma_um: float) -> np.ndarray:
-    """The curve (n,) with one-frame outliers (spikes and dips) replaced by their prediction.
-
-    A frame is an outlier when it departs from what its neighbours predict
-    (`_PREDICTORS`: cubic interpolation from two frames each side; near an end,
-    quadratic interpolation or linear extrapolation) by more than any real peak
-    could make it: a peak is at least as wide as the optics' depth of field (a
-    Gaussian of std `min_peak_sigma_um`), and the largest residual such a peak
-    leaves is `_outlier_allowance` times its height, at most the curve's range;
-    and by more than 4 noise sigmas. Where frames are as far apart as the depth of
-    field, a one-frame peak is possible and nothing is removed. Curves of fewer
-    than 5 frames are returned as they are.
-    """
-    if s.size < 5:
-        return s
-    ratio = round(float(np.median(np.diff(z))) / min_peak_sigma_um, 3)
-    span = float(s.max() - s.min())
-    n = s.size
-    kinds = ["end", "second"] + ["interior"] * (n - 4) + ["second", "end"]
-    out = s.copy()
-    # one outlier at a time, the worst first: an outlier spoils its neighbours' predictions
-    for _ in range(n // 4):
-        excess = np.empty(n)
-        predicted = np.empty(n)
-        for i, kind in enumerate(kinds):
-            weights, noise_gain = _PREDICTORS[kind]
-            mirror = -1 if i > n // 2 else 1  # near the high end, offsets point downwards
-            predicted[i] = sum(w * out[i + mirror * k] for k, w in weights.items())
-            allowance = max(_outlier_allowance(ratio, kind) * span, 4.0 * noise_gain * noise)
-            excess[i] = abs(out[i] - predicted[i]) / allowance if allowance > 0 else 0.0
-        worst = int(np.argmax(excess))
-        if excess[worst] <= 1.0:
-            break
-        out[worst] = predicted[worst]
-    return out
 
 
 @dataclass(frozen=True)
@@ -431,14 +379,26 @@ def _read_peaks(
     z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
     sigma = math.hypot(sigma, top.spread_um(z, z0))
     end = 0 if chosen.index == 1 else z.size - 1 if chosen.index == z.size - 2 else None
-    if end is not None and settings.curve_fwhm_um is not None:
-        top_fit = _fit_window(z, s, chosen.index, 1, noise)
-        if top_fit is not None and narrow_at_end(top_fit.width_var_um2, settings.curve_fwhm_um):
-            # the top rests on the end frame alone: were it a one-frame dip, the focus
-            # would lie beyond that end
-            flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
-            runner_up_z, probability = float(z[end]), min(probability, 0.5)
+    if end is not None and _rests_on_end(z, s, chosen.index, end, noise, settings):
+        # the top rests on the end frame alone: were it a one-frame dip, the focus
+        # would lie beyond that end
+        flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
+        runner_up_z, probability = float(z[end]), min(probability, 0.5)
     return PeakFit(z0, sigma, frozenset(flags), runner_up_z, probability)
+
+
+def _rests_on_end(
+    z: np.ndarray, s: np.ndarray, top: int, end: int, noise: float, settings: PeakSettings
+) -> bool:
+    """Whether the top at frame `top`, next to the window's end frame `end`, has that frame
+    alone for its outer flank and too little of it to tell a top from a one-frame dip
+    (`curve_checks.narrow_at_end`, `curve_checks.tied_with_end`)."""
+    if tied_with_end(s, top, end, settings.end_rise_share):
+        return True
+    if settings.curve_fwhm_um is None:
+        return False
+    top_fit = _fit_window(z, s, top, 1, noise)
+    return top_fit is not None and narrow_at_end(top_fit.width_var_um2, settings.curve_fwhm_um)
 
 
 @dataclass(frozen=True)

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from focustrack_core.domain import FocusFlag, Measurement
+from focustrack_focus.agreement import agreed_peak, agreement_scores
 from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
-from focustrack_focus.metrics import DEFAULT_METRIC, get_metric
+from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
 from focustrack_focus.peak import PeakFit, PeakSettings, Prior, find_peak, validate_curve
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import structure_snr
@@ -172,9 +173,38 @@ def focus_stack(
         raise ValueError("pixels must be finite (NaN or infinity found)")
     scan = scan_stack(frames, settings)
     snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
-    return focus_from_curve(
+    result = focus_from_curve(
         z, scan.scores, settings, started_s=started_s, structure_snr=snr, prior=prior
     )
+    if result.flags != {FocusFlag.FLAT}:
+        return result
+    preprocess = settings.preprocess
+    scores = np.stack([agreement_scores(preprocess.smooth(preprocess.crop(f))) for f in frames])
+    return unflattened(result, scores, settings, prior)
+
+
+def unflattened(
+    flat: FocusResult, agreement: np.ndarray, settings: FocusSettings, prior: Prior | None
+) -> FocusResult:
+    """A stack read `flat` by the contrast rule alone (`peak.find_peak`; a stack the
+    structure test found `empty` holds nothing in view, and its frames' shared noise may
+    make the metrics agree) read again without that rule where the metrics on its frames,
+    `agreement` (n, len(METRICS)) of `agreement.agreement_scores`, agree on a peak
+    (`agreement.agreed_peak`: a person sees one) and the reading lands within a frame of
+    it; else `flat` as it is."""
+    if settings.peak.min_relative_noise >= 1.0:
+        return flat  # a metric turned off on this microscope (`PeakSettings`) stays off
+    agreed = agreed_peak(dict(zip(METRICS, agreement.T, strict=True)))
+    if agreed is None:
+        return flat
+    no_flat_rule = replace(settings, peak=replace(settings.peak, min_contrast=0.0, min_snr=0.0))
+    again = focus_from_curve(flat.z_um, flat.scores, no_flat_rule, prior=prior)
+    if again.best_z_um is None:
+        return flat
+    frame_um = float(np.max(np.diff(flat.z_um[max(agreed - 1, 0) : agreed + 2])))
+    if abs(again.best_z_um - float(flat.z_um[agreed])) > frame_um:
+        return flat
+    return replace(again, compute_time_s=flat.compute_time_s)
 
 
 def _memory_of(array: np.ndarray) -> Any:
@@ -202,6 +232,7 @@ class FrameByFrame:
         validate_curve(self.z_um, np.zeros_like(self.z_um))  # frame count and z values
         self.settings = settings
         self.scores = np.full(self.z_um.size, np.nan)
+        self._agreement = np.full((self.z_um.size, len(METRICS)), np.nan)
         self._metric = get_metric(settings.metric)
         self._top = self._low = -1
         self._sharpest = self._blurriest = self._blurriest_raw = np.empty(0, np.float32)
@@ -221,7 +252,8 @@ class FrameByFrame:
             id(owner): owner.nbytes if isinstance(owner, np.ndarray) else memoryview(owner).nbytes
             for owner in kept
         }
-        return self.z_um.nbytes + self.scores.nbytes + sum(buffers.values())
+        curves = self.z_um.nbytes + self.scores.nbytes + self._agreement.nbytes
+        return curves + sum(buffers.values())
 
     def add(self, index: int, frame: np.ndarray) -> None:
         """Score frame `index` (H, W) or (H, W, C); ValueError for a bad or repeated frame."""
@@ -242,6 +274,7 @@ class FrameByFrame:
         image = preprocess.smooth(raw)
         score = self._metric(image)
         self.scores[index] = score
+        self._agreement[index] = agreement_scores(image)
         if self._top < 0 or score > self.scores[self._top]:
             self._top, self._sharpest = index, image
         if self._low < 0 or score < self.scores[self._low]:
@@ -258,7 +291,7 @@ class FrameByFrame:
         snr = structure_snr(
             self._sharpest, self._blurriest, self._blurriest_raw, self.settings.preprocess
         )
-        return focus_from_curve(
+        result = focus_from_curve(
             self.z_um,
             self.scores,
             self.settings,
@@ -267,3 +300,6 @@ class FrameByFrame:
             prior=prior,
             curve=curve,
         )
+        if result.flags != {FocusFlag.FLAT}:
+            return result
+        return unflattened(result, self._agreement, self.settings, prior)

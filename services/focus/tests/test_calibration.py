@@ -12,6 +12,7 @@ from focustrack_focus.calibration import (
     Calibration,
     Reading,
     coverage_with,
+    field_offsets_covered,
     learn_systematic_sigma,
     summarise,
     usability,
@@ -79,3 +80,15 @@ def test_a_measure_is_unusable_when_most_windows_are_flat_or_no_sigma_covers() -
     peak = 100.0 + 50.0 * np.exp(-0.5 * (z_um - 5.0) ** 2)
     assert focus_from_curve(z_um, peak, unusable.settings()).flags == {FocusFlag.FLAT}
     assert focus_from_curve(z_um, peak, Calibration(0.003).settings()).flags == set()
+
+
+def test_the_systematic_sigma_alone_covers_each_fields_offset() -> None:
+    """A field whose full curve peaks 0.85 steps from the label, well inside its own sigma:
+    its windows carry the same offset with far less sigma, so the systematic sigma alone
+    must cover it (2 s + 0.5 >= 0.85: s = 0.2 on the grid), whatever the windows say."""
+    fields = [Reading(n, "full", 0.1, 0.3, frozenset(), 0) for n in range(1, 10)]
+    offset = Reading(10, "full", -0.85, 0.3, frozenset(), 0)
+    windows_near = [reading(0.1, 0.1, "11x3")] * 50
+    assert learn_systematic_sigma(fields + windows_near) == 0.0
+    assert field_offsets_covered([*fields, offset], 0.15) == 0.9
+    assert learn_systematic_sigma([*fields, offset, *windows_near]) == 0.2

@@ -12,10 +12,14 @@ import pytest
 from focustrack_core.domain import FocusFlag
 from focustrack_focus.curve_checks import (
     OVERSAMPLED_FLOOR_SHARE,
+    SPIKE_SHARE,
     low_contrast_flat,
+    narrowest_peak_sigma_um,
     oversampled_floor_um,
     phase_valley,
+    tied_with_end,
 )
+from focustrack_focus.despike import despike
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings, find_peak
 from focustrack_focus.pipeline import FocusSettings, focus_stack
@@ -163,3 +167,40 @@ def test_a_top_resting_on_a_one_frame_dip_at_the_window_end_is_ambiguous() -> No
     informed = find_peak(z_um, scores[window], PeakSettings(curve_fwhm_um=4.4))
     assert {FocusFlag.AMBIGUOUS, FocusFlag.MULTI_PEAK} <= informed.flags
     assert informed.runner_up_z_um == z_um[0] and informed.chosen_probability == 0.5
+
+
+@needs_real
+def test_a_top_tied_with_the_window_end_frame_is_ambiguous_without_a_profile() -> None:
+    """WSI field 5's one-frame dip, as the first frame of a 5 x 2 window: the next frame
+    stands 2 % of the window's range above it, a 'top' that one dipped end frame makes. With
+    no profile the window says so (ambiguous, the end the runner-up); a top that stands
+    clear of the end frame, and a three-frame stack, are not touched."""
+    (field,) = [f for f in load_wsi_fields(REAL / "wsi_focus_curves") if f.number == 5]
+    scores = field.scores["BRENNER"]
+    window = field.label_index + 4 + 2 * np.arange(5)
+    fit = find_peak(0.5 * window, scores[window])
+    assert {FocusFlag.AMBIGUOUS, FocusFlag.MULTI_PEAK} <= fit.flags
+    assert fit.runner_up_z_um == 0.5 * window[0] and fit.chosen_probability == 0.5
+    assert fit.sigma_um is not None  # still the window's reading, with its own sigma
+    z = np.arange(9.0)
+    clear = find_peak(z, gaussian(z, 1.4, 1.5))
+    assert clear.flags == frozenset() and clear.chosen_probability == 1.0
+    assert tied_with_end(np.array([0.99, 1.0, 0.5, 0.2, 0.1]), 1, 0, 0.05)
+    assert not tied_with_end(np.array([0.99, 1.0, 0.5]), 1, 0, 0.05)
+
+
+@needs_real
+def test_despike_replaces_the_dip_not_the_end_frame_its_dip_spoils() -> None:
+    """WSI field 5's one-frame dip as the second frame of a 9 x 1 window on the falling
+    flank: the end frame's extrapolation runs through the dip, so judged one at a time the
+    end frame looks the worse outlier. The dip is the frame whose replacement explains
+    the others; with the metric's usual peak width (4.3 um, a profile's) it is no peak."""
+    (field,) = [f for f in load_wsi_fields(REAL / "wsi_focus_curves") if f.number == 5]
+    window = field.label_index + 3 + np.arange(9)
+    z, scores = 0.5 * window, field.scores["BRENNER"][window]
+    out = despike(z, scores, 0.0, narrowest_peak_sigma_um(0.25, 4.3))
+    assert out[0] == scores[0] and scores[2] < out[1] < scores[0]  # the dip, filled in
+    assert np.array_equal(out[2:], scores[2:])
+    # with the optics' narrowest peak alone (no profile), 0.5 um steps may hold a dip
+    assert np.array_equal(despike(z, scores, 0.0, narrowest_peak_sigma_um(0.25, None)), scores)
+    assert narrowest_peak_sigma_um(0.25, 4.3) == pytest.approx(SPIKE_SHARE * 4.3 / 2.3548, 1e-3)
