@@ -31,7 +31,9 @@ def test_a_look_tells_empty_glass_from_tissue(seed: int) -> None:
             z_um = float(slide.focus_um[row, col]) + 0.7  # a prediction 0.7 um off
             layers = slide.tile(row, col, (256, 256), pixel_um)
             stained[row, col] = layers.section.min() < 0.95 or layers.fold is not None
-            frame = next(iter(microscope.render(microscope.plan("slide-0", row, col, z_um, 0.5, 1))))
+            frame = next(
+                iter(microscope.render(microscope.plan("slide-0", row, col, z_um, 0.5, 1)))
+            )
             result = focus_stack(frame[None], np.array([z_um]), settings)
             assert result.best_z_um is None and result.sigma_um is None
             called_empty[row, col] = FocusFlag.EMPTY in result.flags

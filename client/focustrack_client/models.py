@@ -204,7 +204,10 @@ class MeasurementIn(_Model):
         None, description="With multi_peak: the next most likely peak's z in um (never taken)"
     )
     chosen_probability: float | None = Field(
-        None, ge=0.0, le=1.0, description="With multi_peak: the chance that z_um's peak is the focus"
+        None,
+        ge=0.0,
+        le=1.0,
+        description="With multi_peak: the chance that z_um's peak is the focus",
     )
 
 

@@ -25,10 +25,11 @@ A `SerpentineFilter` walks the grid in serpentine order. On each tile:
 
 Empty glass (a stack the focus service flags `empty`: nothing in view) is given up at
 once and leaves the surface as it was. Glass lies in regions (around the section, in its
-holes), so a tile next to one found empty is first looked at: one frame at its prediction
-(`look_at`), which the focus service answers `empty` or not (`focustrack_focus.look`). An
-empty look is the tile's image, one frame in all; otherwise the tile's stack follows and
-the look's frame is one of its frames.
+holes), so a tile with `EMPTY_AROUND` tiles found empty within `EMPTY_REACH` tiles of it is
+first looked at: one frame at its prediction (`look_at`), which the focus service answers
+`empty` or not (`focustrack_focus.look`). An empty look is the tile's image, one frame in
+all; otherwise the tile's stack follows and the look's frame is one of its frames. A field
+found empty alone (a sparse field among others) does not make its neighbours look.
 
 With `adapt_r` the default R (for measurements without their own sigma) is
 estimated online by covariance matching of the innovations (E[y^2] = H P H' +
@@ -76,6 +77,11 @@ R_PRIOR_COUNT = 20
 
 #: How many recent measurements' R give the R a lean stack expects (`expected_r_um2`).
 RECENT_R_COUNT = 20
+
+#: A tile is looked at first (one frame: is anything in view?) where this many tiles within
+#: EMPTY_REACH tiles of it (rows and columns) were found empty: a region of glass.
+EMPTY_AROUND = 2
+EMPTY_REACH = 2
 
 
 @dataclass(frozen=True)
@@ -323,14 +329,14 @@ class SerpentineFilter(Strategy):
         self._skip_risk = choice.skip_risk
         return choice.z, choice.measure
 
-    def _next_to_empty(self, tile: Tile) -> bool:
-        """Whether a tile around `tile` (its eight neighbours) was found empty."""
-        rows, cols = self.grid.shape
+    def _in_glass(self, tile: Tile) -> bool:
+        """Whether EMPTY_AROUND tiles within EMPTY_REACH of `tile` were found empty."""
+        rows, cols, reach = self.grid.rows, self.grid.cols, EMPTY_REACH
         around = self.empty[
-            max(tile.row - 1, 0) : min(tile.row + 2, rows),
-            max(tile.col - 1, 0) : min(tile.col + 2, cols),
+            max(tile.row - reach, 0) : min(tile.row + reach + 1, rows),
+            max(tile.col - reach, 0) : min(tile.col + reach + 1, cols),
         ]
-        return bool(around.any())
+        return int(around.sum()) >= EMPTY_AROUND
 
     def innovations(self) -> tuple[np.ndarray, np.ndarray]:
         """Accepted innovations (n,) in um and their predicted variances S (n,) in um^2.
@@ -362,7 +368,7 @@ class SerpentineFilter(Strategy):
         measure = True
         if not self._search:
             (z, measure), purpose = self._first_stack(prior), Purpose.SCAN
-            if measure and self._look is None and self._next_to_empty(tile):
+            if measure and self._look is None and self._in_glass(tile):
                 z = look_at(prior.mean_um, self.settings.policy.z_step_um)
         else:
             z, purpose = self._search.next_range(), Purpose.RETRY

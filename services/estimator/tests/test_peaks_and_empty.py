@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 
 from focustrack_client import models as api
-from focustrack_core.domain import FocusFlag, Measurement
+from focustrack_core.domain import FocusFlag, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
@@ -43,9 +42,7 @@ def kalman_update(prior_sigma_um: float, z_um: float, r_um2: float) -> tuple[flo
 
 
 def multi_peak(z_um: float, runner_up_um: float, probability: float) -> Measurement:
-    return Measurement(
-        z_um, SIGMA_UM, frozenset({FocusFlag.MULTI_PEAK}), runner_up_um, probability
-    )
+    return Measurement(z_um, SIGMA_UM, frozenset({FocusFlag.MULTI_PEAK}), runner_up_um, probability)
 
 
 @pytest.mark.parametrize("name", ["kf-2d", "kf-wiener0"])
@@ -110,3 +107,44 @@ def test_the_choice_between_peaks_survives_the_api_and_the_store() -> None:
     assert measurement_of(record) == Measurement(1.0, SIGMA_UM)
     with pytest.raises(ValueError, match="chosen probability"):
         Measurement(1.0, SIGMA_UM, chosen_probability=1.5)
+
+
+EMPTY = Measurement(None, flags=frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
+
+
+@pytest.mark.parametrize("name", ["kf-2d", "kf-2d-lean"])
+def test_a_tile_in_a_region_of_glass_is_looked_at_with_one_frame(name: str) -> None:
+    settings = default_settings(ScanGrid(1, 6), start_z_um=0.0, start_sigma_um=0.5)
+    strategy = registry.create(name, settings)
+    assert isinstance(strategy, SerpentineFilter)
+    for col in (0, 1):  # glass found by a stack each (one found empty alone makes no look)
+        stack = strategy.next_acquisition()
+        assert stack is not None and stack.col == col and stack.z.n_frames > 1
+        strategy.record(stack, EMPTY)
+    look = strategy.next_acquisition()
+    assert look is not None and look.col == 2 and look.measure
+    assert (look.z.n_frames, look.purpose) == (1, Purpose.SCAN)
+    assert look.z.center_um == look.predicted_um
+    outcome = strategy.record(look, EMPTY)  # nothing in view: imaged there, one frame
+    assert outcome.posterior_um == outcome.prior_um == strategy.map.z_used_um[0, 2]
+    assert strategy.empty[0, :3].all()
+    look = strategy.next_acquisition()
+    assert look is not None and look.col == 3 and look.z.n_frames == 1
+    assert not strategy.record(look, Measurement(None)).accepted  # something in view
+    stack = strategy.next_acquisition()
+    assert stack is not None and stack.col == 3 and stack.z.n_frames > 1
+    assert stack.purpose is Purpose.SCAN
+    outcome = strategy.record(stack, Measurement(look.z.center_um + 0.01, SIGMA_UM))
+    assert outcome.accepted
+    # the look's frame is one of the tile's: the one nearest its focus here
+    assert strategy.map.z_used_um[0, 3] == look.z.center_um
+    assert not strategy.empty[0, 3]
+
+
+def test_a_field_found_empty_alone_makes_no_look() -> None:
+    strategy = registry.create("kf-2d", default_settings(ScanGrid(1, 4)))
+    first = strategy.next_acquisition()
+    assert first is not None
+    strategy.record(first, EMPTY)
+    following = strategy.next_acquisition()
+    assert following is not None and following.col == 1 and following.z.n_frames > 1

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from focustrack_core.domain import FocusFlag, Measurement
 from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
+from focustrack_focus.layers import layers_sigma_um
 from focustrack_focus.look import MIN_LOOK_SNR, look_snr
 from focustrack_focus.metrics import DEFAULT_METRIC, get_metric
 from focustrack_focus.peak import (
@@ -137,7 +138,8 @@ def focus_from_curve(
     curve is flat and the field empty (no other stack of this tile would find a peak).
     `prior`: the estimator's belief (um); it weighs the choice between peaks and
     gives the posterior. `curve`: the slide's learnt curve; a short stack (at most
-    SHORT_MAX_FRAMES frames) is read with it once it is ready (`curve_model`).
+    SHORT_MAX_FRAMES frames) is read with it once it is ready (`curve_model`), and a top
+    broader than its tops is two layers (`layers`: the sigma widens).
     """
     started_s = time.perf_counter() if started_s is None else started_s
     z, s = validate_curve(z_um, scores)
@@ -147,6 +149,10 @@ def focus_from_curve(
         fit = find_peak(z, s, settings.peak, prior)
         if curve is not None and curve.ready and z.size <= SHORT_MAX_FRAMES:
             fit = fit_short_stack(z, s, curve, fit)
+        if curve is not None and fit.z_um is not None and fit.sigma_um is not None:
+            # a top broader than the slide's: two layers (a fold), the vertex between them
+            layers_um = layers_sigma_um(curve.top_widths_um, z, s, fit.z_um)
+            fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
     posterior = fit.posterior(prior) if prior is not None else None
     return FocusResult(
         z_um=z,
