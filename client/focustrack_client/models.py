@@ -200,6 +200,15 @@ class MeasurementIn(_Model):
     z_um: Height | None = Field(description="Best focus in um; null when there is none")
     sigma_um: Sigma | None = Field(None, description="Its std; null: the slide's noise sigma")
     flags: list[Flag] = Field(default_factory=list, max_length=len(FocusFlag))
+    runner_up_z_um: Height | None = Field(
+        None, description="With multi_peak: the next most likely peak's z in um (never taken)"
+    )
+    chosen_probability: float | None = Field(
+        None,
+        ge=0.0,
+        le=1.0,
+        description="With multi_peak: the chance that z_um's peak is the focus",
+    )
 
 
 class OutcomeOut(BaseModel):

@@ -192,17 +192,29 @@ class Acquisition:
 
 @dataclass(frozen=True)
 class Measurement:
-    """The result of an acquisition: the best focus found in it, or why there is none."""
+    """The result of an acquisition: the best focus found in it, or why there is none.
+
+    With `FocusFlag.MULTI_PEAK`, `runner_up_z_um` is the next most likely peak's z (um) and
+    `chosen_probability` the chance (0..1) that the chosen peak at `z_um` is the focus, as
+    the focus service weighed them (with the prior it was sent); None where not given.
+    """
 
     z_um: float | None
     sigma_um: float | None = None
     flags: frozenset[FocusFlag] = frozenset()
+    runner_up_z_um: float | None = None
+    chosen_probability: float | None = None
 
     def __post_init__(self) -> None:
         if self.z_um is not None and not math.isfinite(self.z_um):
             raise ValueError(f"measured z must be finite, got {self.z_um}")
         if self.sigma_um is not None and not (math.isfinite(self.sigma_um) and self.sigma_um > 0):
             raise ValueError(f"measurement sigma must be positive and finite, got {self.sigma_um}")
+        if self.runner_up_z_um is not None and not math.isfinite(self.runner_up_z_um):
+            raise ValueError(f"runner-up z must be finite, got {self.runner_up_z_um}")
+        probability = self.chosen_probability
+        if probability is not None and not 0.0 <= probability <= 1.0:
+            raise ValueError(f"chosen probability must be in [0, 1], got {probability}")
 
     @property
     def is_observation(self) -> bool:

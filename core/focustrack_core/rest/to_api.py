@@ -92,6 +92,8 @@ def measurement_in(acquisition: Acquisition, measurement: Measurement) -> api.Me
         z_um=measurement.z_um,
         sigma_um=measurement.sigma_um,
         flags=[api.FocusFlag(flag) for flag in sorted(measurement.flags)],
+        runner_up_z_um=measurement.runner_up_z_um,
+        chosen_probability=measurement.chosen_probability,
     )
 
 

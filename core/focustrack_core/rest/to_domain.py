@@ -62,7 +62,9 @@ def flags(values: list[api.FocusFlag]) -> frozenset[FocusFlag]:
 
 def measurement(body: api.MeasurementIn) -> Measurement:
     """The measurement a `POST /measurements` body reports (ValueError if it is not one)."""
-    return Measurement(body.z_um, body.sigma_um, flags(body.flags))
+    return Measurement(
+        body.z_um, body.sigma_um, flags(body.flags), body.runner_up_z_um, body.chosen_probability
+    )
 
 
 def acquisition(step: api.Next) -> Acquisition | None:

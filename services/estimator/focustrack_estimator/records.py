@@ -39,16 +39,26 @@ def acquisition_of(record: dict[str, Any]) -> Acquisition:
 
 
 def measurement_record(measurement: Measurement) -> dict[str, Any]:
-    return {
+    record: dict[str, Any] = {
         "z_um": measurement.z_um,
         "sigma_um": measurement.sigma_um,
         "flags": sorted(measurement.flags),
     }
+    # the choice between peaks, where the focus service gave it (else as recorded before)
+    for key in ("runner_up_z_um", "chosen_probability"):
+        if (value := getattr(measurement, key)) is not None:
+            record[key] = value
+    return record
 
 
 def measurement_of(record: dict[str, Any]) -> Measurement:
+    # records written before the runner-up was kept have neither key: they replay as before
     return Measurement(
-        record["z_um"], record["sigma_um"], frozenset(FocusFlag(f) for f in record["flags"])
+        record["z_um"],
+        record["sigma_um"],
+        frozenset(FocusFlag(f) for f in record["flags"]),
+        record.get("runner_up_z_um"),
+        record.get("chosen_probability"),
     )
 
 

@@ -12,7 +12,8 @@ A `SerpentineFilter` walks the grid in serpentine order. On each tile:
    the same tile is acquired again beyond that edge (`PeakSearch`); when the
    search ends without a peak the tile is given up (`gave_up`) and imaged at
    its prediction, so that a scan always ends;
-4. a peak corrects the filter (`_correct`), unless the NIS gate rejects it
+4. a peak corrects the filter (`_correct`), with its variance widened where a second peak
+   could be the focus (`peaks.between_peaks_var_um2`: multi_peak), unless the NIS gate rejects it
    (`gated`): with `gate_nis` > 0, a measurement whose normalised innovation
    squared exceeds it is an outlier (dust, a parasite in another plane) and
    the tile keeps its prediction, unless `gate_patience` measurements in a row
@@ -21,6 +22,14 @@ A `SerpentineFilter` walks the grid in serpentine order. On each tile:
    by the squared innovation (`_inflate`);
 5. the tile is imaged (`FocusMap.z_used_um`) at the acquired frame nearest its
    posterior, among all the stacks taken on it.
+
+Empty glass (a stack the focus service flags `empty`: nothing in view) is given up at
+once and leaves the surface as it was. Glass lies in regions (around the section, in its
+holes), so a tile with `EMPTY_AROUND` tiles found empty within `EMPTY_REACH` tiles of it is
+first looked at: one frame at its prediction (`look_at`), which the focus service answers
+`empty` or not (`focustrack_focus.look`). An empty look is the tile's image, one frame in
+all; otherwise the tile's stack follows and the look's frame is one of its frames. A field
+found empty alone (a sparse field among others) does not make its neighbours look.
 
 With `adapt_r` the default R (for measurements without their own sigma) is
 estimated online by covariance matching of the innovations (E[y^2] = H P H' +
@@ -59,6 +68,7 @@ from focustrack_estimator.lean import (
     planes_risk,
     planes_stack,
 )
+from focustrack_estimator.peaks import between_peaks_var_um2
 from focustrack_estimator.strategy import MAX_RETRIES, PeakSearch, Strategy, StrategyParams
 from focustrack_estimator.time_state import ScanClock
 
@@ -67,6 +77,11 @@ R_PRIOR_COUNT = 20
 
 #: How many recent measurements' R give the R a lean stack expects (`expected_r_um2`).
 RECENT_R_COUNT = 20
+
+#: A tile is looked at first (one frame: is anything in view?) where this many tiles within
+#: EMPTY_REACH tiles of it (rows and columns) were found empty: a region of glass.
+EMPTY_AROUND = 2
+EMPTY_REACH = 2
 
 
 @dataclass(frozen=True)
@@ -186,6 +201,19 @@ class FilterParams(LeanParams):
         return cls.model_validate(params.model_dump(include=set(cls.model_fields)))
 
 
+def look_at(z_um: float, step_um: float) -> ZRange:
+    """A look: one frame at `z_um`, measured (the focus service says whether anything is in
+    view: `focustrack_focus.look`)."""
+    return ZRange.centred(z_um, 1, step_um)
+
+
+def is_look(acquisition: Acquisition) -> bool:
+    """Whether `acquisition` is a look (one measured frame of a tile's first acquisition)."""
+    return (
+        acquisition.measure and acquisition.z.n_frames == 1 and acquisition.purpose == Purpose.SCAN
+    )
+
+
 @dataclass(frozen=True)
 class PendingPlanes:
     """A measured tile waiting for the frames it keeps (`lean.planes_stack`): the stack to
@@ -224,6 +252,8 @@ class SerpentineFilter(Strategy):
         self._skip_risk = math.nan  # the current tile's risk if imaged at its prediction
         self._centre_um: float | None = None  # a coarse stack's peak on the current tile
         self._planes: PendingPlanes | None = None  # frames the current tile still needs
+        self.empty = np.zeros(self.grid.shape, dtype=bool)  # tiles found empty (nothing in view)
+        self._look: ZRange | None = None  # the current tile's look, once it saw something
         self.clock = ScanClock()  # the scan's time, for filters with a time state
 
     @abstractmethod
@@ -299,6 +329,15 @@ class SerpentineFilter(Strategy):
         self._skip_risk = choice.skip_risk
         return choice.z, choice.measure
 
+    def _in_glass(self, tile: Tile) -> bool:
+        """Whether EMPTY_AROUND tiles within EMPTY_REACH of `tile` were found empty."""
+        rows, cols, reach = self.grid.rows, self.grid.cols, EMPTY_REACH
+        around = self.empty[
+            max(tile.row - reach, 0) : min(tile.row + reach + 1, rows),
+            max(tile.col - reach, 0) : min(tile.col + reach + 1, cols),
+        ]
+        return int(around.sum()) >= EMPTY_AROUND
+
     def innovations(self) -> tuple[np.ndarray, np.ndarray]:
         """Accepted innovations (n,) in um and their predicted variances S (n,) in um^2.
 
@@ -329,6 +368,8 @@ class SerpentineFilter(Strategy):
         measure = True
         if not self._search:
             (z, measure), purpose = self._first_stack(prior), Purpose.SCAN
+            if measure and self._look is None and self._in_glass(tile):
+                z = look_at(prior.mean_um, self.settings.policy.z_step_um)
         else:
             z, purpose = self._search.next_range(), Purpose.RETRY
         return self._acquisition(
@@ -382,6 +423,9 @@ class SerpentineFilter(Strategy):
         )  # fmt: skip
         if not acquisition.measure:  # the kept image only: a missing measurement, predict only
             return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
+        if is_look(acquisition) and FocusFlag.EMPTY not in measurement.flags:
+            self._look = acquisition.z  # something is in view: the tile's stack follows
+            return outcome
         if acquisition.z.step_um > self.settings.policy.z_step_um and measurement.is_observation:
             # found, but too coarsely to image the tile or correct the filter: a short stack
             # centred there follows, and measures the tile
@@ -393,10 +437,15 @@ class SerpentineFilter(Strategy):
             self.gave_up[tile.row, tile.col] = True
             # an empty field holds nothing to be in focus: no more of its frames are worth keeping
             empty = FocusFlag.EMPTY in measurement.flags
+            self.empty[tile.row, tile.col] = empty
             posterior = self._correct(tile, prior, None, 0.0)
             return self._finish_tile(acquisition, outcome, posterior, keep_planes=not empty)
 
         R_um2 = self.default_r_um2 if measurement.sigma_um is None else measurement.sigma_um**2
+        # a second peak that could be the focus widens R (the chosen peak's z is kept)
+        R_um2 += between_peaks_var_um2(
+            measurement, prior.mean_um, prior.var_um2 + R_um2, self.settings.policy.k_sigma
+        )
         self._recent_r_um2 = [*self._recent_r_um2[1 - RECENT_R_COUNT :], R_um2]
         innovation_um = measurement.z_um - prior.mean_um
         variance_um2 = prior.var_um2 + R_um2
@@ -439,7 +488,8 @@ class SerpentineFilter(Strategy):
         outcome in between has the final posterior.
         """
         row, col = acquisition.row, acquisition.col
-        stacks = (*self._search.stacks, acquisition.z)
+        looked = () if self._look is None else (self._look,)
+        stacks = (*looked, *self._search.stacks, acquisition.z)
         if self._planes is not None:  # the frames it asked for came: finish with them
             stacks = (*self._planes.stacks, acquisition.z)
             self._planes = None
@@ -480,6 +530,7 @@ class SerpentineFilter(Strategy):
         self._prior = None
         self._search.clear()
         self._centre_um = None
+        self._look = None
         if self._position == self.grid.n_tiles:
             self._finish()
         return replace(

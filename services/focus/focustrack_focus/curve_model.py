@@ -121,6 +121,8 @@ class CurveModel:
     backgrounds: list[float] = field(default_factory=list)
     noise_shares: list[float] = field(default_factory=list)
     misfit_shares: list[float] = field(default_factory=list)
+    #: the widths of the slide's clean tops, um (`layers.learn_top`): any stack, short ones too
+    top_widths_um: list[float] = field(default_factory=list)
 
     @property
     def ready(self) -> bool:

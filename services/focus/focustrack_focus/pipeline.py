@@ -12,8 +12,17 @@ import numpy as np
 from focustrack_core.domain import FocusFlag, Measurement
 from focustrack_focus.agreement import agreed_peak, agreement_scores
 from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
+from focustrack_focus.layers import layers_sigma_um
+from focustrack_focus.look import MIN_LOOK_SNR, look_snr
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
-from focustrack_focus.peak import PeakFit, PeakSettings, Prior, find_peak, validate_curve
+from focustrack_focus.peak import (
+    MAX_ABS_Z_UM,
+    PeakFit,
+    PeakSettings,
+    Prior,
+    find_peak,
+    validate_curve,
+)
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import structure_snr
 
@@ -130,7 +139,8 @@ def focus_from_curve(
     curve is flat and the field empty (no other stack of this tile would find a peak).
     `prior`: the estimator's belief (um); it weighs the choice between peaks and
     gives the posterior. `curve`: the slide's learnt curve; a short stack (at most
-    SHORT_MAX_FRAMES frames) is read with it once it is ready (`curve_model`).
+    SHORT_MAX_FRAMES frames) is read with it once it is ready (`curve_model`), and a top
+    broader than its tops is two layers (`layers`: the sigma widens).
     """
     started_s = time.perf_counter() if started_s is None else started_s
     z, s = validate_curve(z_um, scores)
@@ -140,6 +150,10 @@ def focus_from_curve(
         fit = find_peak(z, s, settings.peak, prior)
         if curve is not None and curve.ready and z.size <= SHORT_MAX_FRAMES:
             fit = fit_short_stack(z, s, curve, fit)
+        if curve is not None and fit.z_um is not None and fit.sigma_um is not None:
+            # a top broader than the slide's: two layers (a fold), the vertex between them
+            layers_um = layers_sigma_um(curve.top_widths_um, z, s, fit.z_um)
+            fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
     posterior = fit.posterior(prior) if prior is not None else None
     return FocusResult(
         z_um=z,
@@ -156,22 +170,52 @@ def focus_from_curve(
     )
 
 
+def check_z(z_um: np.ndarray) -> None:
+    """ValueError unless `z_um` (n,) is a stack's z: one frame (a look) or a curve's frames
+    (`validate_curve`: at least 3, finite, ascending)."""
+    if z_um.size == 1 and math.isfinite(z_um[0]) and abs(z_um[0]) <= MAX_ABS_Z_UM:
+        return
+    validate_curve(z_um, np.zeros_like(z_um))
+
+
+def look_result(
+    z_um: np.ndarray, scores: np.ndarray, snr: float, settings: FocusSettings, started_s: float
+) -> FocusResult:
+    """The answer to a look, one frame at z_um (1,) with its score (1,): no focus (one frame
+    has no curve), and flat and empty where its structure test (`look.look_snr`, `snr`)
+    sees nothing in view; no flag where it does (a stack there will find the focus)."""
+    empty = snr < MIN_LOOK_SNR
+    return FocusResult(
+        z_um=z_um,
+        scores=scores,
+        best_z_um=None,
+        sigma_um=None,
+        flags=frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}) if empty else frozenset(),
+        metric=settings.metric,
+        compute_time_s=time.perf_counter() - started_s,
+    )
+
+
 def focus_stack(
     frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings, prior: Prior | None = None
 ) -> FocusResult:
-    """The focus of a z-stack: frames (n, H, W) or (n, H, W, C) taken at z_um (n,)."""
+    """The focus of a z-stack: frames (n, H, W) or (n, H, W, C) taken at z_um (n,); one
+    frame is a look (`look_result`)."""
     started_s = time.perf_counter()
     if frames.ndim not in (3, 4):
         raise ValueError(f"a z-stack is (n, H, W) or (n, H, W, C), got shape {frames.shape}")
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 1 or z.size != frames.shape[0]:
         raise ValueError(f"{frames.shape[0]} frames but {z.size} z values: one z per frame needed")
-    validate_curve(z, np.zeros_like(z))  # frame count and z values, before any pixel work
+    check_z(z)  # frame count and z values, before any pixel work
     if frames.dtype.kind not in "uif":
         raise ValueError(f"pixels must be integers or floats, got dtype {frames.dtype}")
     if frames.dtype.kind == "f" and not np.all(np.isfinite(frames)):
         raise ValueError("pixels must be finite (NaN or infinity found)")
     scan = scan_stack(frames, settings)
+    if z.size == 1:
+        snr = look_snr(scan.sharpest, scan.blurriest_raw, settings.preprocess)
+        return look_result(z, scan.scores, snr, settings, started_s)
     snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
     result = focus_from_curve(
         z, scan.scores, settings, started_s=started_s, structure_snr=snr, prior=prior
@@ -220,7 +264,8 @@ class FrameByFrame:
     acquisition: `add` scores a frame (preprocess and metric, as `scan_stack`); once
     every frame is in, `result` only reads the curve (structure test and peak fit).
 
-    z_um (n,): the z of every frame of the stack, um. Frames may come in any order;
+    z_um (n,): the z of every frame of the stack, um (one frame: a look, `look_result`).
+    Frames may come in any order;
     each is (H, W) or (H, W, C). `result` gives what `focus_stack` gives for the whole
     stack; its compute_time_s is the time spent in `add` and `result` together.
     """
@@ -229,7 +274,7 @@ class FrameByFrame:
         self.z_um = np.asarray(z_um, dtype=np.float64)
         if self.z_um.ndim != 1:
             raise ValueError(f"z_um must be one z per frame, shape (n,), got {self.z_um.shape}")
-        validate_curve(self.z_um, np.zeros_like(self.z_um))  # frame count and z values
+        check_z(self.z_um)  # frame count and z values
         self.settings = settings
         self.scores = np.full(self.z_um.size, np.nan)
         self._agreement = np.full((self.z_um.size, len(METRICS)), np.nan)
@@ -288,6 +333,9 @@ class FrameByFrame:
             missing = np.flatnonzero(np.isnan(self.scores)).tolist()
             raise ValueError(f"frames {missing} have not arrived")
         started_s = time.perf_counter() - self._busy_s
+        if self.z_um.size == 1:
+            snr = look_snr(self._sharpest, self._blurriest_raw, self.settings.preprocess)
+            return look_result(self.z_um, self.scores, snr, self.settings, started_s)
         snr = structure_snr(
             self._sharpest, self._blurriest, self._blurriest_raw, self.settings.preprocess
         )

@@ -67,6 +67,7 @@ from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_focus.app import FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.instrument_frames import InstrumentFrameSizes
+from focustrack_focus.layers import learn_top
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings, Prior
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
@@ -277,6 +278,9 @@ class FrameAnalyser:
                 model = self._curve(tile.slide)
                 result = curve.result(model, prior_of(header))
                 model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
+                learn_top(
+                    model.top_widths_um, result.z_um, result.scores, result.best_z_um, result.flags
+                )
                 return result_message(tile, header, result)  # with this span's context
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)

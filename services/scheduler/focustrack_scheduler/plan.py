@@ -357,7 +357,13 @@ def measurement_of(result: focus_pb2.FocusResult) -> Measurement:
     sigma_um = result.sigma_um if result.HasField("sigma_um") else None
     if sigma_um is not None and not (math.isfinite(sigma_um) and sigma_um > 0):
         sigma_um = None
-    return Measurement(z_um=result.best_z_um, sigma_um=sigma_um, flags=flags)
+    runner_up_um = result.runner_up_z_um if result.HasField("runner_up_z_um") else None
+    if runner_up_um is not None and not math.isfinite(runner_up_um):
+        runner_up_um = None
+    probability = result.chosen_probability if result.HasField("chosen_probability") else None
+    if probability is not None and not 0.0 <= probability <= 1.0:
+        probability = None
+    return Measurement(result.best_z_um, sigma_um, flags, runner_up_um, probability)
 
 
 def nearest_frame(frames: list[Frame], z_um: float) -> Frame:

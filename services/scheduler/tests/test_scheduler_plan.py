@@ -413,6 +413,14 @@ def test_measurement_of_focus_results() -> None:
     )
     # a sigma the estimator would refuse is left out; a flag from a newer service is ignored
     assert measurement_of(focus(acq, 0.8, 99, sigma_um=0.0)) == Measurement(0.8)
+    # the choice between peaks travels on; one the estimator would refuse is left out
+    chosen = focus(acq, 0.8, FocusFlag.MULTI_PEAK.proto)
+    chosen.runner_up_z_um, chosen.chosen_probability = 3.5, 0.7
+    assert measurement_of(chosen) == Measurement(
+        0.8, 0.05, frozenset({FocusFlag.MULTI_PEAK}), runner_up_z_um=3.5, chosen_probability=0.7
+    )
+    chosen.runner_up_z_um, chosen.chosen_probability = float("nan"), 1.5
+    assert measurement_of(chosen) == Measurement(0.8, 0.05, frozenset({FocusFlag.MULTI_PEAK}))
     broken = focus(acq, 0.8)
     broken.error.CopyFrom(common_pb2.Error(code=common_pb2.ERROR_CODE_BAD_STACK, message="x"))
     assert measurement_of(broken) == Measurement(None)
