@@ -118,7 +118,7 @@ def slides_chunk(slides: str) -> str:
     """The key chunk matching the slides `slides` names: a slide's name in which ``*``
     stands for any characters (``scanner-1-*``; ``*`` alone: every slide; Zenoh's own
     ``$*`` is taken too). ValueError saying why if it cannot be one chunk."""
-    glob = re.sub(r"\$?\*+", "*", slides) if isinstance(slides, str) else ""
+    glob = re.sub(r"\$?\*+", "*", slides)
     if not _SLIDES.fullmatch(glob):
         raise ValueError(
             f"slides {slides!r} is not a slide name or pattern (letters, digits, '_', '-', "
