@@ -269,6 +269,11 @@ def test_the_facility_configures_each_service_with_environment_its_command_accep
             # a slide its own instrument holds (the simulator's slide-0, slide-1, ...)
             held = services[f"instrument-{scanner}"]["environment"]["FOCUSTRACK_INSTRUMENT_SLIDES"]
             assert args.slide in {f"slide-{i}" for i in range(int(held))}
+        if kind == "focus":  # it reads the slide its scanner's scheduler scans, only
+            scheduler = services[f"scheduler-{name.rsplit('-', 1)[1]}"]["environment"]
+            assert args.slides == defaults(scheduler["FOCUSTRACK_SCAN_SLIDE"]), name
+        if kind in {"instrument", "scheduler"}:  # metrics for a Prometheus on the network
+            assert args.metrics_port == 9100 and args.metrics_host == "0.0.0.0", name
     assert set(used) == routers  # the scanners' services spread over both routers
     slides = {
         defaults(services[f"scheduler-{n}"]["environment"]["FOCUSTRACK_SCAN_SLIDE"])

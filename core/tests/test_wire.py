@@ -27,6 +27,30 @@ def test_keys_build_and_parse() -> None:
     assert not zenoh.KeyExpr(keys.focus_pattern("x")).intersects(keys.focus_key("y", 1, 2))
 
 
+@pytest.mark.parametrize(
+    ("slides", "matched", "missed"),
+    [
+        ("*", ["scanner-1-a", "x"], []),
+        ("scanner-1-*", ["scanner-1-a", "scanner-1-"], ["scanner-10-a", "x-scanner-1-a"]),
+        ("scanner-1-$*", ["scanner-1-a"], ["scanner-2-a"]),  # Zenoh's own spelling
+        ("*-b*", ["a-b", "x-bc"], ["ab"]),
+        ("slide-0", ["slide-0"], ["slide-01", "slide-1"]),
+    ],
+)
+def test_a_slides_pattern_matches_the_frames_of_its_slides(
+    slides: str, matched: list[str], missed: list[str]
+) -> None:
+    pattern = zenoh.KeyExpr(keys.zframe_pattern(slides))
+    assert all(pattern.intersects(keys.zframe_key(slide, 1, 2)) for slide in matched)
+    assert not any(pattern.intersects(keys.zframe_key(slide, 1, 2)) for slide in missed)
+
+
+@pytest.mark.parametrize("slides", ["", "a/b", "a b", "a$", "$x", "**/x"])
+def test_bad_slides_patterns_are_refused(slides: str) -> None:
+    with pytest.raises(ValueError, match="not a slide name or pattern"):
+        keys.zframe_pattern(slides)
+
+
 @pytest.mark.parametrize("name", ["", "a/b", "*", "a b", "x$"])
 def test_bad_names_are_refused(name: str) -> None:
     with pytest.raises(ValueError, match="key chunk"):

@@ -43,9 +43,10 @@ Take = Callable[[str, zenoh.ZBytes, bytes | None], T | None]
 
 
 class FrameWorker(Generic[T]):
-    """Frame samples of `session` to `take` on a thread of its own (module docstring); `name`
-    names the threads. A ValueError from `take` (the key names no tile: nowhere to answer)
-    is logged and the sample skipped."""
+    """Frame samples of `session` (those on `subscription`, a key expression: every frame by
+    default) to `take` on a thread of its own (module docstring); `name` names the threads.
+    A ValueError from `take` (the key names no tile: nowhere to answer) is logged and the
+    sample skipped."""
 
     def __init__(
         self,
@@ -55,6 +56,7 @@ class FrameWorker(Generic[T]):
         publish: Callable[[T], None],
         expire: Callable[[], None],
         expire_period_s: float,
+        subscription: str = ZFRAME_SUBSCRIPTION,
     ) -> None:
         self._take = take
         self._publish = publish
@@ -63,7 +65,7 @@ class FrameWorker(Generic[T]):
         self._lock = threading.Lock()
         self._closed = threading.Event()
         self._subscriber = session.declare_subscriber(
-            ZFRAME_SUBSCRIPTION, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
+            subscription, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
         )
         self._thread = threading.Thread(target=self._serve, name=f"{name}-zenoh", daemon=True)
         self._thread.start()

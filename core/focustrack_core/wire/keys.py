@@ -30,6 +30,7 @@ from typing import NamedTuple
 PREFIX = "focustrack/v1"
 
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")
+_SLIDES = re.compile(r"[A-Za-z0-9_.*-]+")
 
 
 class TileKey(NamedTuple):
@@ -113,14 +114,29 @@ def bench_key(name: str) -> str:
     return f"{PREFIX}/bench/{check_name(name, 'bench key')}"
 
 
-def zstack_pattern(slide: str | None = None) -> str:
-    """Key expression matching the stacks of one slide (or of every slide when None)."""
-    return f"{PREFIX}/zstack/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
+def slides_chunk(slides: str) -> str:
+    """The key chunk matching the slides `slides` names: a slide's name in which ``*``
+    stands for any characters (``scanner-1-*``; ``*`` alone: every slide; Zenoh's own
+    ``$*`` is taken too). ValueError saying why if it cannot be one chunk."""
+    glob = re.sub(r"\$?\*+", "*", slides)
+    if not _SLIDES.fullmatch(glob):
+        raise ValueError(
+            f"slides {slides!r} is not a slide name or pattern (letters, digits, '_', '-', "
+            "'.', and '*' for any characters)"
+        )
+    return glob if glob == "*" else glob.replace("*", "$*")
 
 
-def zframe_pattern(slide: str | None = None) -> str:
-    """Key expression matching the frames of one slide's stacks (or of every slide when None)."""
-    return f"{PREFIX}/zframe/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
+def zstack_pattern(slides: str | None = None) -> str:
+    """Key expression matching the stacks of the slides `slides` names (`slides_chunk`: one
+    slide, or a pattern) or of every slide when None."""
+    return f"{PREFIX}/zstack/{'*' if slides is None else slides_chunk(slides)}/*/*"
+
+
+def zframe_pattern(slides: str | None = None) -> str:
+    """Key expression matching the frames of the stacks of the slides `slides` names
+    (`slides_chunk`: one slide, or a pattern) or of every slide when None."""
+    return f"{PREFIX}/zframe/{'*' if slides is None else slides_chunk(slides)}/*/*"
 
 
 def focus_pattern(slide: str | None = None) -> str:

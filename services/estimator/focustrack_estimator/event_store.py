@@ -131,6 +131,12 @@ class EventStore(Protocol):
         """Whether the store was new (missing or empty) when it was opened."""
         ...
 
+    @property
+    def address(self) -> str:
+        """Where the store is, fit for a log: a file's path, or a database's URL without
+        its password."""
+        ...
+
     def create_slide(self, slide_id: str, config: dict[str, Any]) -> SlideRecord:
         """A new slide with an empty log; StoreError if `slide_id` exists."""
         ...

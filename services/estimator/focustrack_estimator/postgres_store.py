@@ -141,7 +141,9 @@ class PostgresStore:
             open=False,
             timeout=timeout_s,
             reconnect_timeout=RECONNECT_TIMEOUT_S,
-            kwargs={"connect_timeout": max(1, round(timeout_s))},
+            # UTF8 whatever the database's encoding: on an SQL_ASCII database psycopg would
+            # otherwise return text as bytes (and compare it with text: "text = bytea")
+            kwargs={"connect_timeout": max(1, round(timeout_s)), "client_encoding": "utf8"},
             check=ConnectionPool.check_connection,  # a connection the server dropped is replaced
             name="focustrack-estimator",
         )

@@ -28,8 +28,9 @@ from focustrack_core import tracing
 from focustrack_core.serving import refuse_open_network
 from focustrack_core.settings import command_main
 from focustrack_estimator.app import create_app
-from focustrack_estimator.event_store import StoreError, open_store
+from focustrack_estimator.event_store import EventStore, StoreError, open_store
 from focustrack_estimator.settings import EstimatorSettings
+from focustrack_estimator.sqlite_store import SQLiteStore
 
 if TYPE_CHECKING:
     from focustrack_estimator.registry import Catalogue
@@ -52,6 +53,13 @@ def catalogue_from(module_name: str) -> Catalogue:
     return catalogue
 
 
+def new_store_note(store: EventStore) -> str:
+    """What the service says at start of a store it has just made (no password in it)."""
+    if isinstance(store, SQLiteStore):
+        return f"creating a new store at {store.address} (the file was missing or empty)"
+    return f"created the estimator's tables in {store.address} (the database had none)"
+
+
 def run(settings: EstimatorSettings) -> int:
     refusal = refuse_open_network("estimator", settings.host, settings.token, settings.insecure)
     if refusal:
@@ -66,12 +74,10 @@ def run(settings: EstimatorSettings) -> int:
         print(f"estimator not started: {error}", file=sys.stderr)
         return 2
     if store.created:
-        print(
-            f"creating a new store at {settings.store} (the file was missing or empty)", flush=True
-        )
+        print(new_store_note(store), flush=True)
     traced = tracing.configure("focustrack-estimator", settings.otlp_endpoint)
     print(
-        f"estimator on http://{settings.host}:{settings.port} (store {settings.store}, "
+        f"estimator on http://{settings.host}:{settings.port} (store {store.address}, "
         f"auth {'on' if settings.token else 'off'}, traces {'on' if traced else 'off'})",
         flush=True,
     )

@@ -127,6 +127,7 @@ class SQLiteStore:
 
     def __init__(self, path: str | Path, checkpoint_every_s: float = 1.0) -> None:
         self.path = str(path)
+        self.address = self.path
         file = Path(self.path)
         self.created = not file.exists() or file.stat().st_size == 0
         try:  # autocommit mode: every write below opens its own explicit transaction

@@ -102,11 +102,13 @@ class PostgresServer:
     def url(self, database: str = "postgres") -> str:
         return f"postgresql://postgres@127.0.0.1:{self.port}/{database}"
 
-    def new_database(self) -> str:
-        """A new, empty database's URL."""
+    def new_database(self, encoding: str | None = None) -> str:
+        """A new, empty database's URL (in `encoding`, e.g. SQL_ASCII: the server's default
+        otherwise)."""
         name = f"test_{uuid.uuid4().hex[:12]}"
+        options = "" if encoding is None else f" ENCODING '{encoding}' TEMPLATE template0"
         with psycopg.connect(self.url(), autocommit=True) as admin:
-            admin.execute(f'CREATE DATABASE "{name}"')
+            admin.execute(f'CREATE DATABASE "{name}"{options}')
         return self.url(name)
 
 

@@ -1,6 +1,7 @@
 """The estimator's store at start and stop: a damaged file is refused with its
-name, an empty or missing one announced as a new store, and SIGTERM closes the store and
-checkpoints its WAL (real server processes on loopback)."""
+name, an empty or missing one announced as a new store (a PostgreSQL database too, its
+password never said), and SIGTERM closes the store and checkpoints its WAL (real server
+processes on loopback)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import time
 from pathlib import Path
 
 import httpx
+from postgres_server import PostgresServer
 
 from focustrack_core.wire.session import free_port
 from focustrack_estimator.event_store import Event
@@ -64,11 +66,12 @@ def test_a_file_that_is_not_sqlite_is_refused_naming_the_file(tmp_path: Path) ->
     assert "Traceback" not in started.stderr
 
 
-def _start_and_stop(path: Path) -> tuple[int, str]:
-    """Start the service on `path`, create a slide, SIGTERM it; (exit code, its stdout)."""
+def _start_and_stop(store: Path | str) -> tuple[int, str, str]:
+    """Start the service on `store`, create a slide, SIGTERM it; (exit code, its stdout, its
+    stderr)."""
     port = free_port()
     process = subprocess.Popen(
-        [*COMMAND, "--port", str(port), "--store", str(path)],
+        [*COMMAND, "--port", str(port), "--store", str(store)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -92,20 +95,36 @@ def _start_and_stop(path: Path) -> tuple[int, str]:
             process.kill()
             process.wait()
     assert "Traceback" not in err, err
-    return process.returncode, out
+    return process.returncode, out, err
 
 
 def test_an_empty_or_missing_store_is_announced_as_new(tmp_path: Path) -> None:
     empty = tmp_path / "empty.sqlite"
     empty.write_bytes(b"")
     for path in (empty, tmp_path / "missing.sqlite"):
-        code, out = _start_and_stop(path)
+        code, out, _ = _start_and_stop(path)
         assert code == 0 and f"creating a new store at {path}" in out, out
-    code, out = _start_and_stop(empty)  # now it holds a slide: no longer new
+    code, out, _ = _start_and_stop(empty)  # now it holds a slide: no longer new
     assert code == 0 and "creating a new store" not in out
     store = SQLiteStore(empty)
     assert store.count_slides() == 2
     store.close()
+
+
+def test_a_database_is_announced_by_its_address_never_its_password(
+    postgres: PostgresServer,
+) -> None:
+    password = "never-in-the-log-8e2f"  # the test server trusts loopback: any password logs in
+    url = postgres.new_database()
+    with_password = url.replace("postgres@", f"postgres:{password}@", 1)
+    address = url.removeprefix("postgresql://")
+    for new in (True, False):
+        code, out, err = _start_and_stop(with_password)
+        assert code == 0, err
+        assert password not in out + err
+        assert f"store postgresql://{address}," in out, out
+        assert ("created the estimator's tables" in out) is new, out
+        assert "file" not in out, out
 
 
 def test_sigterm_closes_the_store_and_checkpoints_its_wal(tmp_path: Path) -> None:

@@ -25,8 +25,9 @@ from focustrack_estimator.postgres_store import PostgresStore
 from focustrack_estimator.sqlite_store import SQLiteStore
 
 #: Each implementation, opened on a test's folder or database (opening it again: the same
-#: store); PostgreSQL's tests run on a real server (`conftest.postgres`).
-STORES = ("postgresql", "sqlite")
+#: store); PostgreSQL's tests run on a real server (`conftest.postgres`), on a database of
+#: the server's encoding and on one made SQL_ASCII (which stores bytes, not characters).
+STORES = ("postgresql", "postgresql-sql_ascii", "sqlite")
 
 CONFIG = {"strategy": "kf-wiener0", "grid": {"rows": 2, "cols": 3}}
 
@@ -46,11 +47,12 @@ def _event(sequence: int, z_um: float | None = 1.0) -> Event:
 def open_store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[OpenStore]:
     """Open the test's store (again); each one opened is closed after the test."""
     opened: list[EventStore] = []
-    if request.param == "postgresql":
-        url = request.getfixturevalue("postgres").new_database()
+    if request.param.startswith("postgresql"):
+        encoding = "SQL_ASCII" if request.param.endswith("sql_ascii") else None
+        url = request.getfixturevalue("postgres").new_database(encoding)
 
     def open_() -> EventStore:
-        if request.param == "postgresql":
+        if request.param.startswith("postgresql"):
             opened.append(PostgresStore(url))
         else:
             opened.append(SQLiteStore(tmp_path / "estimator.sqlite"))
@@ -77,6 +79,16 @@ def test_slides_are_created_read_listed_and_counted(store: EventStore) -> None:
     assert store.slide("zzz") is None and store.events("zzz") == []
     with pytest.raises(StoreError, match="already exists"):
         store.create_slide("a", CONFIG)
+
+
+def test_text_beyond_ascii_comes_back_as_written(store: EventStore) -> None:
+    config = {**CONFIG, "note": "z in µm, Ø 25 mm"}
+    store.create_slide("slide-µ", config)
+    store.append("slide-µ", _event(0), accepted=True, done=False)
+    record = store.slide("slide-µ")
+    assert record is not None and record.id == "slide-µ" and record.config == config
+    assert [record.id for record in store.slides()] == ["slide-µ"]
+    assert store.n_events("slide-µ") == 1 and store.events("slide-µ") == [_event(0)]
 
 
 def test_appends_at_the_expected_sequence_log_events_and_progress(store: EventStore) -> None:

@@ -1,6 +1,7 @@
 """`focustrack serve focus`: the focus service on Zenoh and over REST, in one process.
 
-Zenoh: subscribes to the frames of z-stacks, ``focustrack/v1/zframe/**``, scores each
+Zenoh: subscribes to the frames of z-stacks, ``focustrack/v1/zframe/{slide}/...`` of every
+slide or of those --slides names (one focus service per scanner), scores each
 frame as it lands, and publishes a FocusResult on ``focustrack/v1/focus/{slide}/{row}/{col}``
 as soon as the last frame of a stack is in (only the peak fit is left by then); a
 stack that cannot be read gets a FocusResult whose `error` says why (code BAD_STACK).
@@ -42,7 +43,7 @@ import uvicorn
 import zenoh
 from google.protobuf.message import DecodeError
 from opentelemetry.trace import SpanKind
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from focustrack_core import tracing
@@ -54,12 +55,7 @@ from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.web import with_bus_health
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
-from focustrack_core.wire.frame_worker import (
-    ZFRAME_SUBSCRIPTION,
-    FrameReaderSettings,
-    FrameWorker,
-    WorkerBus,
-)
+from focustrack_core.wire.frame_worker import FrameReaderSettings, FrameWorker, WorkerBus
 from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import DEFAULT_ENDPOINT
@@ -344,6 +340,7 @@ class ZenohFocusWorker:
         open_frames_bytes: int = codec.OPEN_FRAMES_BYTES,
         open_frame_timeout_s: float = codec.OPEN_FRAME_TIMEOUT_S,
         frame_signer: FrameSigner | None = None,
+        slides: str = "*",
     ):
         self.session = session
         self.analyser = FrameAnalyser(
@@ -365,6 +362,7 @@ class ZenohFocusWorker:
             self._publish,
             self.analyser.expire,
             min(1.0, self.analyser.timeout_s / 4),
+            keys.zframe_pattern(slides),
         )
 
     def _publish(self, message: focus_pb2.FocusResult) -> None:
@@ -409,6 +407,11 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
         f"and --na; {Preprocess.lowpass_sigma_px:g} px where a stack gives no pixel size)",
     )
     na: float = Field(0.85, gt=0, description="numerical aperture of the objective")
+    slides: str = Field(
+        "*",
+        description="read the stacks of these slides only: a name, '*' standing for any "
+        "characters (scanner-1-*: one focus service per scanner; *: every slide)",
+    )
     min_structure_snr: float = Field(
         FocusSettings.min_structure_snr,
         description="a stack whose through-focus change stands fewer noise spreads than this "
@@ -458,6 +461,12 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
         description="seconds a request body may take to arrive (408)",
     )
     # what peers' frames on Zenoh may make the service hold (`FrameAnalyser`)
+
+    @field_validator("slides")
+    @classmethod
+    def _slides_key_chunk(cls, slides: str) -> str:
+        keys.slides_chunk(slides)  # a ValueError names what is wrong
+        return slides
 
     def focus_settings(self) -> FocusSettings:
         """How the service reads stacks and curves (ValueError if the maths refuses a value)."""
@@ -526,11 +535,12 @@ def run(settings: FocusServiceSettings) -> int:
             settings.open_frames_bytes,
             settings.open_frame_timeout_s,
             frame_signer,
+            settings.slides,
         ),
     )
     log.info(
         "focus service: zenoh %s (%s) -> %s/focus/... (results %s), http://%s:%d (metric %s)",
-        ZFRAME_SUBSCRIPTION,
+        keys.zframe_pattern(settings.slides),
         "any frames" if frame_signer is None else "tagged frames only",
         keys.PREFIX,
         "tagged" if signer is not None else "untagged",

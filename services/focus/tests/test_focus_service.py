@@ -43,11 +43,13 @@ def publish_stack(
     sequence: int,
     order: Sequence[int] | None = None,
     purpose: instrument_pb2.AcquisitionPurpose = instrument_pb2.ACQUISITION_PURPOSE_FOCUS,
+    slide: str = "s1",
 ) -> None:
-    """Publish the frames of `pixels` (n, h, w, channels) one by one, in `order` (0..n-1)."""
+    """Publish the frames of `pixels` (n, h, w, channels) of tile (2, 3) of `slide` one by
+    one, in `order` (0..n-1)."""
     header = instrument_pb2.ZStackHeader(
         instrument="sim",
-        slide="s1",
+        slide=slide,
         row=2,
         col=3,
         sequence=sequence,
@@ -60,7 +62,7 @@ def publish_stack(
     describe_pixels(header, pixels)
     publisher = PixelPublisher(session, part_bytes=PART_BYTES)
     for index in range(len(pixels)) if order is None else order:
-        publisher.put_frame(keys.zframe_key("s1", 2, 3), header, index, pixels[index])
+        publisher.put_frame(keys.zframe_key(slide, 2, 3), header, index, pixels[index])
 
 
 def collect(session: zenoh.Session) -> tuple[zenoh.Subscriber, queue.Queue]:
@@ -105,6 +107,37 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(
         worker.close()
         service.close()
     assert worker.n_published == 2
+
+
+def test_focus_services_of_two_scanners_each_answer_their_own_slides_once(
+    instrument, render: Callable[..., np.ndarray]
+) -> None:
+    publisher, endpoint = instrument
+    services = [open_session(connect=[endpoint]) for _ in range(2)]
+    workers = [
+        ZenohFocusWorker(session, FocusSettings(), na=0.85, slides=slides)
+        for session, slides in zip(services, ("scanner-1-*", "scanner-2-$*"), strict=True)
+    ]
+    results: queue.Queue = queue.Queue()
+    subscriber = publisher.declare_subscriber(
+        keys.focus_pattern(), lambda sample: results.put(str(sample.key_expr))
+    )
+    slides = ("scanner-1-slide-0", "scanner-2-slide-0", "scanner-1-slide-1", "scanner-3-slide-0")
+    try:
+        time.sleep(0.5)  # let the subscriptions reach each other
+        frames = render(96, Z_UM, TRUTH_UM, 4)[..., None]
+        for sequence, slide in enumerate(slides):
+            publish_stack(publisher, frames, Z_UM, sequence=sequence, slide=slide)
+        answered = sorted(results.get(timeout=20) for _ in range(3))
+        time.sleep(1.0)  # time for a second answer to any of them, or one to scanner 3's
+        assert results.empty()
+    finally:
+        subscriber.undeclare()
+        for worker, session in zip(workers, services, strict=True):
+            worker.close()
+            session.close()
+    assert answered == sorted(keys.focus_key(slide, 2, 3) for slide in slides[:3])
+    assert [worker.n_published for worker in workers] == [2, 1]
 
 
 def test_phase_stacks_are_not_focus_stacks_the_service_ignores_them(

@@ -89,6 +89,8 @@ def test_values_the_focus_maths_refuse_stop_the_command_with_status_2(
         (["--na", "0"], "--na (FOCUSTRACK_FOCUS_NA): Input should be greater than 0"),
         (["--metric", "nope"], "argument --metric: invalid choice: 'nope'"),
         (["--focus-mode", "min"], "argument --focus-mode: invalid choice: 'min'"),
+        (["--slides", "scanner-1/*"], "--slides (FOCUSTRACK_FOCUS_SLIDES): Value error, slides"),
+        (["--slides", "a$b"], "'a$b' is not a slide name or pattern"),
     ],
 )
 def test_values_the_options_refuse_are_usage_errors(
