@@ -171,3 +171,24 @@ def tied_with_end(s: np.ndarray, top: int, end: int, share: float) -> bool:
     if s.size < TIED_MIN_FRAMES:
         return False
     return float(s[top] - s[end]) < share * float(s.max() - s.min())
+
+
+#: A top whose fitted Gaussian's std is wider than this share of the window's span ...
+BROAD_TOP_SHARE = 1.0
+#: ... in a window of more frames than this (a shorter one is a stack placed around a
+#: confident prediction, which sees only the top by design).
+SHORT_STACK_FRAMES = 5
+
+
+def broader_than_window(width_var_um2: float, span_um: float, n_frames: int) -> bool:
+    """Whether a top fitted as a Gaussian of variance `width_var_um2` (um**2; 0: not a log
+    fit) is broader than BROAD_TOP_SHARE of the span `span_um` of a window of `n_frames`
+    frames (module docstring); never for windows of at most SHORT_STACK_FRAMES frames."""
+    if n_frames <= SHORT_STACK_FRAMES or width_var_um2 <= 0.0:
+        return False
+    return float(np.sqrt(width_var_um2)) > BROAD_TOP_SHARE * span_um
+
+
+def uniform_sigma_um(span_um: float) -> float:
+    """The std (um) of a focus equally likely anywhere in a window `span_um` wide."""
+    return span_um / float(np.sqrt(12.0))
