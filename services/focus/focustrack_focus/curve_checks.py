@@ -34,6 +34,16 @@
   tissue). A pale curve that does not rise so far above its ends is flat still: a camera
   whose brightness alone changes with z (Micro-Manager's demo camera, a lamp warming up)
   draws a clean, slow wander with no focus in it.
+- A top broader than its window (`broader_than_window`): where the Gaussian fitted to the
+  chosen top has a std wider than the whole window, the window sees a gentle curvature
+  and no top of its own (a metric blind to this specimen: a faint bump under noise). The
+  fit's vertex then rests on the frames' noise and on how the metric's broad response
+  leans, not on the focus: the reading is ambiguous, and its sigma at least that of a
+  focus equally likely anywhere in the window (`uniform_sigma_um`). It needs no profile
+  and no constant of a microscope: a width compared with the window that measured it.
+  Stacks of at most 5 frames are exempt: the scheduler places them around a confident
+  prediction to see the top alone (on the simulator, every top broader than its window
+  was such a stack).
 """
 
 from __future__ import annotations

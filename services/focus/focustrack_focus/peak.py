@@ -61,7 +61,7 @@ seed 1. The two per-metric constants (`min_relative_noise`,
 profile), `focustrack bench focus --real` on its fit fields. Shape checks for curves of
 a microscope never seen (a phase-like valley, an oversampled curve's sigma floor, a
 contrast judged by the curve's own noise, a top hidden under a far peak's foot or
-resting on a window's end frame) are `curve_checks`.
+resting on a window's end frame, a top broader than its window) are `curve_checks`.
 """
 
 from __future__ import annotations
