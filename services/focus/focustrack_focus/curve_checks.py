@@ -34,6 +34,16 @@
   tissue). A pale curve that does not rise so far above its ends is flat still: a camera
   whose brightness alone changes with z (Micro-Manager's demo camera, a lamp warming up)
   draws a clean, slow wander with no focus in it.
+- A top broader than its window (`broader_than_window`): where the Gaussian fitted to the
+  chosen top has a std wider than the whole window, the window sees a gentle curvature
+  and no top of its own (a metric blind to this specimen: a faint bump under noise). The
+  fit's vertex then rests on the frames' noise and on how the metric's broad response
+  leans, not on the focus: the reading is ambiguous, and its sigma at least that of a
+  focus equally likely anywhere in the window (`uniform_sigma_um`). It needs no profile
+  and no constant of a microscope: a width compared with the window that measured it.
+  Stacks of at most 5 frames are exempt: the scheduler places them around a confident
+  prediction to see the top alone (on the simulator, every top broader than its window
+  was such a stack).
 """
 
 from __future__ import annotations
@@ -171,3 +181,24 @@ def tied_with_end(s: np.ndarray, top: int, end: int, share: float) -> bool:
     if s.size < TIED_MIN_FRAMES:
         return False
     return float(s[top] - s[end]) < share * float(s.max() - s.min())
+
+
+#: A top whose fitted Gaussian's std is wider than this share of the window's span ...
+BROAD_TOP_SHARE = 1.0
+#: ... in a window of more frames than this (a shorter one is a stack placed around a
+#: confident prediction, which sees only the top by design).
+SHORT_STACK_FRAMES = 5
+
+
+def broader_than_window(width_var_um2: float, span_um: float, n_frames: int) -> bool:
+    """Whether a top fitted as a Gaussian of variance `width_var_um2` (um**2; 0: not a log
+    fit) is broader than BROAD_TOP_SHARE of the span `span_um` of a window of `n_frames`
+    frames (module docstring); never for windows of at most SHORT_STACK_FRAMES frames."""
+    if n_frames <= SHORT_STACK_FRAMES or width_var_um2 <= 0.0:
+        return False
+    return float(np.sqrt(width_var_um2)) > BROAD_TOP_SHARE * span_um
+
+
+def uniform_sigma_um(span_um: float) -> float:
+    """The std (um) of a focus equally likely anywhere in a window `span_um` wide."""
+    return span_um / float(np.sqrt(12.0))

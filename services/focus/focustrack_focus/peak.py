@@ -61,7 +61,7 @@ seed 1. The two per-metric constants (`min_relative_noise`,
 profile), `focustrack bench focus --real` on its fit fields. Shape checks for curves of
 a microscope never seen (a phase-like valley, an oversampled curve's sigma floor, a
 contrast judged by the curve's own noise, a top hidden under a far peak's foot or
-resting on a window's end frame) are `curve_checks`.
+resting on a window's end frame, a top broader than its window) are `curve_checks`.
 """
 
 from __future__ import annotations
@@ -74,6 +74,7 @@ import numpy as np
 
 from focustrack_core.domain import FocusFlag
 from focustrack_focus.curve_checks import (
+    broader_than_window,
     low_contrast_flat,
     narrow_at_end,
     narrowest_peak_sigma_um,
@@ -81,6 +82,7 @@ from focustrack_focus.curve_checks import (
     phase_valley,
     shoulder,
     tied_with_end,
+    uniform_sigma_um,
 )
 from focustrack_focus.despike import despike
 
@@ -376,8 +378,14 @@ def _read_peaks(
         return PeakFit(
             float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, probability
         )
-    z0, sigma = _fit_vertex(z, s, chosen.index, noise, settings)
+    z0, sigma, width_var_um2 = _fit_vertex(z, s, chosen.index, noise, settings)
     sigma = math.hypot(sigma, top.spread_um(z, z0))
+    span_um = float(z[-1] - z[0])
+    if broader_than_window(width_var_um2, span_um, z.size):
+        # the window sees a gentle curvature, no top of its own: anywhere in it
+        flags.add(FocusFlag.AMBIGUOUS)
+        sigma = max(sigma, uniform_sigma_um(span_um))
+        probability = min(probability, 0.5)
     end = 0 if chosen.index == 1 else z.size - 1 if chosen.index == z.size - 2 else None
     if end is not None and _rests_on_end(z, s, chosen.index, end, noise, settings):
         # the top rests on the end frame alone: were it a one-frame dip, the focus
@@ -485,8 +493,9 @@ def _fit_window(
 
 def _fit_vertex(
     z: np.ndarray, s: np.ndarray, best: int, noise: float, settings: PeakSettings
-) -> tuple[float, float]:
-    """Vertex z (um) of the Gaussian fit around interior frame `best`, and its sigma (um)."""
+) -> tuple[float, float, float]:
+    """Vertex z (um) of the Gaussian fit around interior frame `best`, its sigma (um) and the
+    fitted Gaussian's variance (um**2; 0 where the fit is not of log-scores)."""
     step_um = float(np.median(np.diff(z)))
     fits: list[_Vertex] = []
     for reach in range(1, min(best, z.size - 1 - best, settings.max_reach) + 1):
@@ -495,7 +504,7 @@ def _fit_vertex(
             break
         fits.append(fit)
     if not fits:  # not a peak even over three frames (a plateau): the best frame, a step of doubt
-        return float(z[best]), math.hypot(step_um, settings.systematic_sigma_um)
+        return float(z[best]), math.hypot(step_um, settings.systematic_sigma_um), 0.0
     chosen, limit = 0, settings.consistency_sigmas
     for wider in range(1, len(fits)):
         if any(abs(fits[wider].z_um - f.z_um) > limit * f.noise_sigma_um for f in fits[:wider]):
@@ -512,9 +521,8 @@ def _fit_vertex(
         + asymmetry_um**2
         + settings.systematic_sigma_um**2
     )
-    return fit.z_um, max(
-        math.sqrt(variance), oversampled_floor_um(step_um, settings.min_peak_sigma_um)
-    )
+    sigma = max(math.sqrt(variance), oversampled_floor_um(step_um, settings.min_peak_sigma_um))
+    return fit.z_um, sigma, fit.width_var_um2
 
 
 def _log_slope_about(z: np.ndarray, s: np.ndarray, z0: float) -> float:

@@ -13,11 +13,13 @@ from focustrack_core.domain import FocusFlag
 from focustrack_focus.curve_checks import (
     OVERSAMPLED_FLOOR_SHARE,
     SPIKE_SHARE,
+    broader_than_window,
     low_contrast_flat,
     narrowest_peak_sigma_um,
     oversampled_floor_um,
     phase_valley,
     tied_with_end,
+    uniform_sigma_um,
 )
 from focustrack_focus.despike import despike
 from focustrack_focus.metrics import METRICS
@@ -204,3 +206,38 @@ def test_despike_replaces_the_dip_not_the_end_frame_its_dip_spoils() -> None:
     # with the optics' narrowest peak alone (no profile), 0.5 um steps may hold a dip
     assert np.array_equal(despike(z, scores, 0.0, narrowest_peak_sigma_um(0.25, None)), scores)
     assert narrowest_peak_sigma_um(0.25, 4.3) == pytest.approx(SPIKE_SHARE * 4.3 / 2.3548, 1e-3)
+
+
+def test_a_top_broader_than_its_window_is_ambiguous_anywhere_in_it() -> None:
+    """A window of 9 frames on a gentle bump whose Gaussian std is twice the window's span
+    sees curvature and no top of its own: ambiguous, its sigma at least that of a focus
+    equally likely anywhere in the window. A peak that fits in the window, and a 5-frame
+    stack placed around a prediction (which sees only the top by design), are untouched."""
+    z = np.arange(9.0)  # span 8 um
+    broad = find_peak(z, 1.0 + gaussian(z, 3.0, 16.0))
+    assert FocusFlag.AMBIGUOUS in broad.flags and broad.sigma_um is not None
+    assert broad.sigma_um >= uniform_sigma_um(8.0) == pytest.approx(8.0 / np.sqrt(12.0))
+    assert broad.chosen_probability is not None and broad.chosen_probability <= 0.5
+    narrow = find_peak(z, gaussian(z, 3.7, 1.5))
+    assert narrow.flags == frozenset() and narrow.sigma_um is not None
+    assert narrow.sigma_um < 0.5
+    short = find_peak(z[:5], 1.0 + gaussian(z[:5], 2.2, 16.0))
+    assert FocusFlag.AMBIGUOUS not in short.flags
+    assert broader_than_window(5.0**2, 4.0, 9) and not broader_than_window(3.0**2, 4.0, 9)
+    assert not broader_than_window(5.0**2, 4.0, 5) and not broader_than_window(0.0, 4.0, 9)
+
+
+@needs_real
+def test_vollath_f4s_faint_real_bumps_are_not_read_as_located_tops() -> None:
+    """Vollath F4 on the shared WSI curves is a faint bump under noise: without a profile,
+    the 11 x 3 windows whose fitted top is broader than the window say so (ambiguous), and
+    their 2-sigma coverage holds (it was 69-78 % before the rule)."""
+    from focustrack_focus.calibration import parts, read_fields
+    from focustrack_focus.labelled_curves import wsi_curves
+
+    fields = wsi_curves(
+        [f for f in load_wsi_fields(REAL / "wsi_focus_curves") if f.number % 2 == 1]
+    )
+    figures = parts(read_fields(fields, "VOLLATH_F4", FocusSettings()))["windows_11x3"]
+    assert figures["coverage_2sigma"] >= 0.85
+    assert figures["ambiguous"] > 0.1
