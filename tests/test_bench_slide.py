@@ -57,9 +57,9 @@ def test_a_small_slide_bench_scans_through_the_services(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_glass_is_imaged_with_one_frame_once_a_region_of_it_is_found(tmp_path: Path) -> None:
-    """Through the real services: once two tiles of glass are found (a stack each), the tiles
-    around them are looked at first, and a look the focus service calls empty is the tile's
-    only frame."""
+    """Through the real services: once a tile of glass is found (by a stack), the tiles
+    beside it where glass is half of what the scan saw are looked at first, and a look the
+    focus service calls empty is the tile's only frame."""
     command = [
         sys.executable, "-m", "focustrack", "bench", "slide", "--seeds", "3", "--rows", "6",
         "--cols", "6", "--size", "128", "--strategies", "kf-2d-lean",
