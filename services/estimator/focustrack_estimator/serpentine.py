@@ -27,8 +27,9 @@ Empty glass (a stack the focus service flags `empty`: nothing in view) is given 
 once and leaves the surface as it was. Glass lies in regions (around the section, in its
 holes), so a tile is first looked at where glass is at least half of what the scan has seen
 beside it: one or more of its scanned neighbours (the eight tiles around it) were found
-empty, and no more of them were found with something in view (`in_glass`). The look is one
-frame at its prediction (`look_at`), which the focus service answers `empty` or not
+empty, and no more of them were found with something in view (`in_glass`); or where the
+last two tiles the scan imaged were found empty (a row of glass along tissue). The look is
+one frame at its prediction (`look_at`), which the focus service answers `empty` or not
 (`focustrack_focus.look`). An empty look is the tile's image, one frame in all; otherwise
 the tile's stack follows and the look's frame is one of its frames. A field found empty
 alone among scanned tissue (a sparse field among others) does not make its neighbours look,
@@ -83,9 +84,13 @@ RECENT_R_COUNT = 20
 
 #: A tile is looked at first (one frame: is anything in view?) where at least this share of
 #: its scanned neighbours (the eight around it) were found empty, and one at least: glass.
-#: Chosen on the truth of virtual slides of seeds 1 and 2 against wider reaches and other
-#: shares: a stack on glass costs about three frames more than a look, a look on tissue one.
+#: Chosen offline on the truth maps of virtual slides of seeds 1-4 against wider reaches and
+#: other shares: a stack on glass costs about three frames more than a look, a look on
+#: tissue one.
 GLASS_SHARE = 0.5
+#: ... or where this many tiles the scan imaged last were found empty: a row of glass along
+#: tissue (each of its tiles has more tissue than glass beside it).
+GLASS_IN_A_ROW = 2
 
 
 @dataclass(frozen=True)
@@ -348,6 +353,13 @@ class SerpentineFilter(Strategy):
         self._skip_risk = choice.skip_risk
         return choice.z, choice.measure
 
+    def _in_glass(self, tile: Tile) -> bool:
+        """Whether `tile` is to be looked at first: glass beside it (`in_glass`), or the
+        GLASS_IN_A_ROW tiles the scan imaged last were found empty (glass along its path)."""
+        behind = self.grid.serpentine[max(self._position - GLASS_IN_A_ROW, 0) : self._position]
+        along = len(behind) == GLASS_IN_A_ROW and all(self.empty[t.row, t.col] for t in behind)
+        return along or in_glass(self.empty, self.scanned, tile)
+
     def innovations(self) -> tuple[np.ndarray, np.ndarray]:
         """Accepted innovations (n,) in um and their predicted variances S (n,) in um^2.
 
@@ -378,7 +390,7 @@ class SerpentineFilter(Strategy):
         measure = True
         if not self._search:
             (z, measure), purpose = self._first_stack(prior), Purpose.SCAN
-            if measure and self._look is None and in_glass(self.empty, self.scanned, tile):
+            if measure and self._look is None and self._in_glass(tile):
                 z = look_at(prior.mean_um, self.settings.policy.z_step_um)
         else:
             z, purpose = self._search.next_range(), Purpose.RETRY

@@ -173,3 +173,18 @@ def test_glass_is_half_at_least_of_what_the_scanned_neighbours_showed() -> None:
     assert not in_glass(empty, scanned, Tile(1, 2))  # one of three
     assert not in_glass(empty, scanned, Tile(1, 3))  # glass two tiles away
     assert not in_glass(empty, scanned, Tile(2, 0))  # nothing scanned beside it
+
+
+def test_a_row_of_glass_along_tissue_is_looked_at_from_its_third_tile() -> None:
+    strategy = registry.create("kf-2d", default_settings(ScanGrid(2, 4)))
+    for col in range(4):  # tissue in the first row
+        stack = strategy.next_acquisition()
+        assert stack is not None and stack.col == col
+        strategy.record(stack, Measurement(stack.predicted_um, SIGMA_UM))
+    for col in (3, 2):  # glass below it, by a stack each: more tissue than glass beside them
+        stack = strategy.next_acquisition()
+        assert stack is not None and (stack.row, stack.col) == (1, col)
+        assert stack.z.n_frames > 1
+        strategy.record(stack, EMPTY)
+    look = strategy.next_acquisition()  # the last two tiles imaged were glass
+    assert look is not None and (look.row, look.col) == (1, 1) and is_look(look)
