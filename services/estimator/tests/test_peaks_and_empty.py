@@ -1,22 +1,24 @@
 """What the Kalman strategies learn from `multi_peak` and `empty` measurements: a second
 peak that could be the focus widens the measurement's variance (the chosen peak is kept);
-one far from the prior (dust) does not; an empty field leaves the surface as it was."""
+one far from the prior (dust) does not; an empty field leaves the surface as it was, and a
+tile where glass is half at least of what its scanned neighbours showed is looked at first."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from focustrack_client import models as api
 from focustrack_core.domain import FocusFlag, Measurement, Purpose
-from focustrack_core.geometry import ScanGrid
+from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
 from focustrack_estimator.peaks import between_peaks_var_um2
 from focustrack_estimator.records import measurement_of, measurement_record
-from focustrack_estimator.serpentine import SerpentineFilter
+from focustrack_estimator.serpentine import SerpentineFilter, in_glass, is_look
 
 START_SIGMA_UM = 2.0
 SIGMA_UM = 0.1
@@ -77,6 +79,10 @@ def test_an_empty_field_does_not_pull_the_surface() -> None:
         strategy = registry.create("kf-2d", settings)
         for col in range(5):
             acquisition = strategy.next_acquisition()
+            if col == 3 and middle == "empty":  # glass beside it: looked at, tissue seen
+                assert acquisition is not None and is_look(acquisition)
+                strategy.record(acquisition, Measurement(None))
+                acquisition = strategy.next_acquisition()
             assert acquisition is not None and acquisition.col == col  # one stack a tile
             if col == 2 and middle == "empty":
                 outcome = strategy.record(acquisition, empty)
@@ -117,16 +123,16 @@ def test_a_tile_in_a_region_of_glass_is_looked_at_with_one_frame(name: str) -> N
     settings = default_settings(ScanGrid(1, 6), start_z_um=0.0, start_sigma_um=0.5)
     strategy = registry.create(name, settings)
     assert isinstance(strategy, SerpentineFilter)
-    for col in (0, 1):  # glass found by a stack each (one found empty alone makes no look)
-        stack = strategy.next_acquisition()
-        assert stack is not None and stack.col == col and stack.z.n_frames > 1
-        strategy.record(stack, EMPTY)
-    look = strategy.next_acquisition()
-    assert look is not None and look.col == 2 and look.measure
-    assert (look.z.n_frames, look.purpose) == (1, Purpose.SCAN)
-    assert look.z.center_um == look.predicted_um
-    outcome = strategy.record(look, EMPTY)  # nothing in view: imaged there, one frame
-    assert outcome.posterior_um == outcome.prior_um == strategy.map.z_used_um[0, 2]
+    stack = strategy.next_acquisition()  # the first tile of glass is found by a stack
+    assert stack is not None and stack.col == 0 and stack.z.n_frames > 1
+    strategy.record(stack, EMPTY)
+    for col in (1, 2):  # glass is all the scan has seen beside them
+        look = strategy.next_acquisition()
+        assert look is not None and look.col == col and look.measure
+        assert (look.z.n_frames, look.purpose) == (1, Purpose.SCAN)
+        assert look.z.center_um == look.predicted_um
+        outcome = strategy.record(look, EMPTY)  # nothing in view: imaged there, one frame
+        assert outcome.posterior_um == outcome.prior_um == strategy.map.z_used_um[0, col]
     assert strategy.empty[0, :3].all()
     look = strategy.next_acquisition()
     assert look is not None and look.col == 3 and look.z.n_frames == 1
@@ -142,9 +148,43 @@ def test_a_tile_in_a_region_of_glass_is_looked_at_with_one_frame(name: str) -> N
 
 
 def test_a_field_found_empty_alone_makes_no_look() -> None:
-    strategy = registry.create("kf-2d", default_settings(ScanGrid(1, 4)))
-    first = strategy.next_acquisition()
-    assert first is not None
-    strategy.record(first, EMPTY)
-    following = strategy.next_acquisition()
-    assert following is not None and following.col == 1 and following.z.n_frames > 1
+    """A sparse field among tissue: glass is not half of what its neighbours saw."""
+    strategy = registry.create("kf-2d", default_settings(ScanGrid(3, 3)))
+    for col in (0, 1, 2):  # tissue in the first row
+        stack = strategy.next_acquisition()
+        assert stack is not None and stack.col == col
+        assert strategy.record(stack, Measurement(stack.predicted_um, SIGMA_UM)).accepted
+    stack = strategy.next_acquisition()
+    assert stack is not None and (stack.row, stack.col) == (1, 2)
+    strategy.record(stack, EMPTY)  # beside it: three tissue tiles scanned above
+    for col in (1, 0):  # beside one glass tile and three, then two, tissue tiles
+        following = strategy.next_acquisition()
+        assert following is not None and (following.row, following.col) == (1, col)
+        assert following.z.n_frames > 1
+        strategy.record(following, Measurement(following.predicted_um, SIGMA_UM))
+
+
+def test_glass_is_half_at_least_of_what_the_scanned_neighbours_showed() -> None:
+    empty, scanned = np.zeros((3, 4), dtype=bool), np.zeros((3, 4), dtype=bool)
+    scanned[0] = True
+    empty[0, :2] = True  # the first row: glass, glass, tissue, tissue
+    assert in_glass(empty, scanned, Tile(1, 0))  # two of two
+    assert in_glass(empty, scanned, Tile(1, 1))  # two of three
+    assert not in_glass(empty, scanned, Tile(1, 2))  # one of three
+    assert not in_glass(empty, scanned, Tile(1, 3))  # glass two tiles away
+    assert not in_glass(empty, scanned, Tile(2, 0))  # nothing scanned beside it
+
+
+def test_a_row_of_glass_along_tissue_is_looked_at_from_its_third_tile() -> None:
+    strategy = registry.create("kf-2d", default_settings(ScanGrid(2, 4)))
+    for col in range(4):  # tissue in the first row
+        stack = strategy.next_acquisition()
+        assert stack is not None and stack.col == col
+        strategy.record(stack, Measurement(stack.predicted_um, SIGMA_UM))
+    for col in (3, 2):  # glass below it, by a stack each: more tissue than glass beside them
+        stack = strategy.next_acquisition()
+        assert stack is not None and (stack.row, stack.col) == (1, col)
+        assert stack.z.n_frames > 1
+        strategy.record(stack, EMPTY)
+    look = strategy.next_acquisition()  # the last two tiles imaged were glass
+    assert look is not None and (look.row, look.col) == (1, 1) and is_look(look)
