@@ -8,12 +8,17 @@ from pathlib import Path
 
 import pytest
 
+from focustrack.bench import phase
 from focustrack.bench.phase import OBJECTS, run
 
 
 def test_the_bench_writes_its_table_json_and_figure(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    # the filter's settings searched on a small grid: this checks the bench, not the search
+    monkeypatch.setattr(phase, "FILTER_Q0", (0.1, 1.0))
+    monkeypatch.setattr(phase, "FILTER_P0_RATIO", (0.0,))
+    monkeypatch.setattr(phase, "FILTER_PRIOR_LENGTH_UM", (0.0, 2.0))
     out = tmp_path / "phase.json"
     args = argparse.Namespace(json=out, sweep=True, seed=1, size_px=16, repeats=1, speed_size_px=32)
     assert run(args) == 0
