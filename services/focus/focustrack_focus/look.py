@@ -37,7 +37,7 @@ import numpy as np
 
 from focustrack_focus import filters
 from focustrack_focus.preprocess import Preprocess, lowpass
-from focustrack_focus.structure import pixel_noise_std
+from focustrack_focus.structure import pixel_noise_std, unit_noise_patch
 
 #: Sigma (px of the low-passed frame) of the blur whose removal leaves the scales a section
 #: shows out of focus, without the illumination's slow changes or the coverslip's blurred dust.
@@ -45,8 +45,6 @@ BACKGROUND_PX = 8.0
 #: A look whose structure stands less than this many noise spreads above its pixel noise
 #: sees empty glass (the module docstring says how it was chosen).
 MIN_LOOK_SNR = 60.0
-#: Side (px) of the white-noise patch the filters' gain is measured on.
-_GAIN_PATCH_PX = 256
 
 
 def _band(image: np.ndarray) -> np.ndarray:
@@ -56,9 +54,7 @@ def _band(image: np.ndarray) -> np.ndarray:
 @functools.lru_cache(maxsize=16)
 def _band_noise_gain(shape: tuple[int, int], sigma_px: float, levels: int) -> float:
     """Variance the low-pass and `_band` leave of unit white noise on `shape` frames (seed 0)."""
-    patch = (min(shape[0], _GAIN_PATCH_PX), min(shape[1], _GAIN_PATCH_PX))
-    noise = np.random.default_rng(0).standard_normal(patch, dtype=np.float32)
-    return float(_band(lowpass(noise, sigma_px, levels)).var())
+    return float(_band(lowpass(unit_noise_patch(shape), sigma_px, levels)).var())
 
 
 def look_snr(image: np.ndarray, raw: np.ndarray, preprocess: Preprocess) -> float:

@@ -70,9 +70,14 @@ def lowpass_noise_gain(shape: tuple[int, int], sigma_px: float, levels: int) -> 
     Measured (once per shape and filter) on a patch of at most 256x256 px, seed 0:
     the pyramid's borders make it depend a little on the frame size.
     """
+    return float(lowpass(unit_noise_patch(shape), sigma_px, levels).var())
+
+
+def unit_noise_patch(shape: tuple[int, int]) -> np.ndarray:
+    """Unit white noise (seed 0, float32) on a patch of `shape` frames, at most 256x256 px:
+    what a filter's noise gain is measured on."""
     patch = (min(shape[0], _GAIN_PATCH_PX), min(shape[1], _GAIN_PATCH_PX))
-    noise = np.random.default_rng(0).standard_normal(patch, dtype=np.float32)
-    return float(lowpass(noise, sigma_px, levels).var())
+    return np.random.default_rng(0).standard_normal(patch, dtype=np.float32)
 
 
 def structure_snr(
