@@ -19,8 +19,7 @@ import numpy as np
 
 from focustrack_instrument_sim import simulated
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
-from focustrack_scheduler.lateral import combined, phase_shift
-from focustrack_scheduler.realign import grey
+from focustrack_scheduler.lateral import combined, grey, phase_shift
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,13 @@ class Shift:
     sharpness: float
 
 
-def _parabola(minus: float, centre: float, plus: float) -> float:
+def grey(image: np.ndarray) -> np.ndarray:
+    """A frame (height, width[, channels]) as float grey (height, width): the channels' mean."""
+    image = np.asarray(image, dtype=np.float64)
+    return image.mean(axis=-1) if image.ndim == 3 else image
+
+
+def parabola_vertex(minus: float, centre: float, plus: float) -> float:
     """The offset (-0.5..0.5) of a parabola's vertex through three equally spaced values."""
     curvature = minus - 2.0 * centre + plus
     if curvature >= 0:  # not a maximum: keep the sample
@@ -98,8 +104,8 @@ def _correlate(reference: np.ndarray, moving: np.ndarray, max_shift_px: float) -
     peak = float(correlation[i, j])
     spread = float(correlation[inside].std())
     sharpness = (peak - float(correlation[inside].mean())) / spread if spread > 0 else 0.0
-    sub_y = _parabola(correlation[i - 1, j], peak, correlation[(i + 1) % rows, j])
-    sub_x = _parabola(correlation[i, j - 1], peak, correlation[i, (j + 1) % cols])
+    sub_y = parabola_vertex(correlation[i - 1, j], peak, correlation[(i + 1) % rows, j])
+    sub_x = parabola_vertex(correlation[i, j - 1], peak, correlation[i, (j + 1) % cols])
     return Shift(float(dy[i, 0]) + sub_y, float(dx[0, j]) + sub_x, sharpness)
 
 

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from focustrack_core.geometry import ScanGrid
-from focustrack_scheduler.lateral import Shift, combined, phase_shift
+from focustrack_scheduler.lateral import Shift, combined, grey, phase_shift
 from focustrack_scheduler.outputs import MOSAIC_ZARR, ZARR_ATTRS
 
 log = logging.getLogger(__name__)
@@ -49,12 +49,6 @@ class Realign:
                 f"realign needs at least one tile and a positive bound, got {self.tiles} "
                 f"and {self.max_offset_um} um"
             )
-
-
-def grey(image: np.ndarray) -> np.ndarray:
-    """A frame (height, width[, channels]) as float grey (height, width): the channels' mean."""
-    image = np.asarray(image, dtype=np.float64)
-    return image.mean(axis=-1) if image.ndim == 3 else image
 
 
 class FirstPassImages:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from focustrack_core.geometry import ScanGrid
+from focustrack_scheduler.lateral import grey, parabola_vertex
 
 #: A tile: (row, col).
 Tile = tuple[int, int]
@@ -79,16 +80,6 @@ def tiles_of_mosaic(
     }
 
 
-def _grey(tile: np.ndarray) -> np.ndarray:
-    return tile.astype(np.float64).mean(axis=-1) if tile.ndim == 3 else tile.astype(np.float64)
-
-
-def _vertex(minus: float, centre: float, plus: float) -> float:
-    """The offset (-0.5..0.5) of a parabola's vertex through three equally spaced values."""
-    curvature = minus - 2.0 * centre + plus
-    return 0.0 if curvature >= 0 else float(np.clip(0.5 * (minus - plus) / curvature, -0.5, 0.5))
-
-
 def pair_shift(
     a: np.ndarray,
     b: np.ndarray,
@@ -99,7 +90,7 @@ def pair_shift(
     corner from `a`'s, whole pixels) that best matches `a` over their overlap, searched
     within +/- `max_shift_px` (and a third of the overlap); None where the overlap is too
     small, has no texture or nothing matches."""
-    ga, gb = _grey(a), _grey(b)
+    ga, gb = grey(a), grey(b)
     height, width = ga.shape
     oy, ox = offset_px
     m = min(max_shift_px, (height - abs(oy)) // 3, (width - abs(ox)) // 3)
@@ -128,9 +119,9 @@ def pair_shift(
         return 0.0, 0.0, float(scores[m, m])
     shift_y, shift_x = float(top_i - m), float(top_j - m)
     if 0 < top_i < 2 * m:
-        shift_y += _vertex(scores[top_i - 1, top_j], best, scores[top_i + 1, top_j])
+        shift_y += parabola_vertex(scores[top_i - 1, top_j], best, scores[top_i + 1, top_j])
     if 0 < top_j < 2 * m:
-        shift_x += _vertex(scores[top_i, top_j - 1], best, scores[top_i, top_j + 1])
+        shift_x += parabola_vertex(scores[top_i, top_j - 1], best, scores[top_i, top_j + 1])
     return shift_y, shift_x, best
 
 
