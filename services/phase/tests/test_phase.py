@@ -88,6 +88,39 @@ def test_a_smooth_prior_helps_on_a_smooth_object() -> None:
     assert phase_rmse(acekf.AcekfOptions(q0=1.0, prior_length_um=2.0)) < 0.8 * best_white
 
 
+@pytest.mark.parametrize("shape", [(8, 8), (7, 10), (9, 5), (2, 3)])
+def test_the_real_fft_gives_the_full_spectrum_of_a_real_image(shape: tuple[int, int]) -> None:
+    image = np.random.default_rng(5).normal(size=shape).astype(np.float32)
+    out = np.empty(shape, dtype=np.complex64)
+    spectrum = acekf._real_fft2(image, out, workers=1)
+    assert spectrum is out
+    np.testing.assert_allclose(spectrum, np.fft.fft2(image, norm="ortho"), atol=1e-5)
+
+
+def test_a_prior_that_knows_the_object_s_spectra_replaces_q0_and_p0() -> None:
+    data = simulate.data_set_1(seed=3, gamma_photons=10.0, planes=30, size_px=32)
+    freq_sq = FoldedGrid((32, 32), PIXEL_UM).freq_sq_per_um2
+    white = acekf.AcekfOptions(q0=0.3, p0=-0.1)
+    q0, p0 = acekf.initial_covariances(white, freq_sq)
+    assert np.all(q0 == np.float32(0.3)) and np.all(p0 == np.complex64(-0.1))
+    given = acekf.initial_covariances(white, freq_sq, (np.full(freq_sq.shape, 2.0), -q0))
+    np.testing.assert_array_equal(given[0], 2.0)
+    np.testing.assert_array_equal(given[1], -q0)
+    same = acekf.reconstruct(
+        data.stack_counts, data.z_um, WAVELENGTH_UM, PIXEL_UM, options=white, prior=(q0, p0)
+    )
+    plain = acekf.reconstruct(data.stack_counts, data.z_um, WAVELENGTH_UM, PIXEL_UM, options=white)
+    np.testing.assert_array_equal(same.field, plain.field)
+    for prior, message in (
+        ((q0[:-1], p0[:-1]), "folded grid's shape"),
+        ((q0, 2 * q0), "Q_0 >= |P_0|"),
+        ((q0 + 0j, p0), "real"),
+        ((np.full_like(q0, np.nan), p0), "finite"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            acekf.initial_covariances(white, freq_sq, prior)
+
+
 def test_the_filter_recovers_a_known_weak_phase_from_a_noiseless_stack() -> None:
     truth = _weak_field()
     z_um = np.arange(1, 41) * 1.0
@@ -129,6 +162,8 @@ def test_the_paper_s_data_set_1_has_its_photon_count_and_planes() -> None:
         (np.ones((2, 8, 8)), [1.0, np.nan], "finite"),
         (np.zeros((2, 8, 8)), [1.0, 2.0], "positive mean"),
         (np.full((2, 8, 8), np.inf), [1.0, 2.0], "finite"),
+        (np.full((2, 8, 8), np.nan), [1.0, 2.0], "finite"),
+        (np.full((2, 8, 8), 1e308), [1.0, 2.0], "overflows"),
     ],
 )
 def test_bad_inputs_raise_a_clear_value_error(
