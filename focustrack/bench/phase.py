@@ -16,8 +16,12 @@ on average): it says how far down this object and photon count allow.
 
 `--sweep` adds the smear weaker and smoothed (OBJECTS: flat, oracle, ours and the
 weak-object least squares at the paper's setting), gamma in (1, 10, 100, 1000) on 100
-planes and 5..100 planes at the paper's gamma. Three more sections always run:
+planes and 5..100 planes at the paper's gamma. Four more sections always run:
 
+- the filter against the Wiener estimate with the same knowledge (`known_spectra`): on
+  Data Set 1's object and OBJECTS, the Wiener estimate of amplitude and phase that knows
+  their spectra as the filter's diagonal covariances can hold them (realised on the stack
+  and expected), and the filter with those spectra as its prior, beside the oracle;
 - partial coherence: the same object lit by a disk source (condenser NA 0.05, Abbe's
   method in `focustrack_phase.simulate.partially_coherent_stack`), 50 planes of 1 um,
   100 photons, reconstructed with the coherent model (the paper's) and with the filter's
