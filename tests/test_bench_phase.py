@@ -33,8 +33,11 @@ def test_the_bench_writes_its_table_json_and_figure(
     assert methods[0].startswith("sparse ACEKF ours") and len(methods) == 6
     assert methods[-2:] == ["zero phase (reference)", "oracle Wiener (reference)"]
     row = result["data_set_1"][0]
-    assert set(row) == {"method", "gamma", "planes", "phase_rmse_rad", "intensity_rmse", "time_s"}
+    assert set(row) == {
+        "method", "gamma", "planes", "phase_rmse_rad", "intensity_rmse", "time_s", "cpu_s"
+    }  # fmt: skip
     assert row["planes"] == 100 and row["time_s"] > 0 and row["phase_rmse_rad"] > 0
+    assert row["cpu_s"] > 0 and result["data_set_1"][-1]["cpu_s"] is None
     assert {row["gamma"] for row in result["sweep"]} == {0.998, 1.0, 10.0, 100.0, 1000.0}
     assert result["paper"]["sparse ACEKF (paper)"]["phase_rmse_rad"] == 0.0143
     known = result["known_spectra"]
