@@ -180,11 +180,11 @@ def symmetrised(power: np.ndarray) -> np.ndarray:
 def known_spectra(field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """|A|^2 and |Phi|^2 (height, width): the symmetrised unitary power spectra of a
     field's amplitude and phase departures from their means."""
-    amplitude, phase = np.abs(field), np.angle(field)
-    return tuple(  # type: ignore[return-value]
-        symmetrised(np.abs(fft.fft2(part - part.mean(), norm="ortho")) ** 2)
-        for part in (amplitude, phase)
-    )
+
+    def power(part: np.ndarray) -> np.ndarray:
+        return symmetrised(np.abs(fft.fft2(part - part.mean(), norm="ortho")) ** 2)
+
+    return power(np.abs(field)), power(np.angle(field))
 
 
 def wiener_known_spectra(data: simulate.SyntheticStack) -> tuple[float, float]:
