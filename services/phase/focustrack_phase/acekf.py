@@ -28,9 +28,9 @@ Beyond the paper, three changes, each measured by `focustrack bench phase`:
   predicted intensity carry that envelope.
 
 Memory: the filter holds b, a_hat, H, three float32 images (and with our update one more
-complex image) at the image's size, and Q, P, the gain and fx^2+fy^2 on a quarter of the
-grid (`FoldedGrid`): under ten arrays of the image's size, besides the stack it reads one
-frame at a time.
+complex image, and for a moment the real residual's half spectrum) at the image's size,
+and Q, P, the gain and fx^2+fy^2 on a quarter of the grid (`FoldedGrid`): under ten
+arrays of the image's size, besides the stack it reads one frame at a time.
 """
 
 from __future__ import annotations
