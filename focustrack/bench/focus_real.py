@@ -232,7 +232,10 @@ def calibrate_and_hold_out(
         with_profile[metric] = parts(
             read_fields(fields, metric, profile.settings_for(metric, base))
         )
-        without[metric] = parts(read_fields(fields, metric, base))
+        # no profile: as the curve endpoint reads a curve labelled `metric` (`unprofiled`)
+        without[metric] = parts(
+            read_fields(fields, metric, MicroscopeProfile({}).settings_for(metric, base))
+        )
     unusable = [m for m, entry in profile.metrics.items() if not entry.usable]
     return {
         "calibrate_on": calibrate_on,

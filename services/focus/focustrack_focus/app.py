@@ -6,7 +6,8 @@
   ``mode``, ``channel``, ``lowpass_sigma_px``.
 - ``POST /v1/focus/curve``: JSON ``{"z_um": [...], "scores": [...]}`` (optional
   ``metric`` label, which picks the metric's entry of the service's microscope
-  profile where it has one, ``mode`` and ``prior``: ``{"z_um": m, "sigma_um": s}``, the
+  profile where it has one, else `unprofiled` where it is none of the service's metrics,
+  ``mode`` and ``prior``: ``{"z_um": m, "sigma_um": s}``, the
   estimator's belief before this stack), for lab software that computes its own
   scores. ``best_z_um``/``sigma_um`` are always the curve's own measurement; with
   a prior the reply adds ``posterior_z_um``/``posterior_sigma_um`` (both combined).

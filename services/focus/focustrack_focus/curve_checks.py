@@ -190,11 +190,14 @@ BROAD_TOP_SHARE = 1.0
 SHORT_STACK_FRAMES = 5
 
 
-def broader_than_window(width_var_um2: float, span_um: float, n_frames: int) -> bool:
+def broader_than_window(
+    width_var_um2: float, span_um: float, n_frames: int, exempt_frames: int = SHORT_STACK_FRAMES
+) -> bool:
     """Whether a top fitted as a Gaussian of variance `width_var_um2` (um**2; 0: not a log
     fit) is broader than BROAD_TOP_SHARE of the span `span_um` of a window of `n_frames`
-    frames (module docstring); never for windows of at most SHORT_STACK_FRAMES frames."""
-    if n_frames <= SHORT_STACK_FRAMES or width_var_um2 <= 0.0:
+    frames (module docstring); never for windows of at most `exempt_frames` frames
+    (`PeakSettings.broad_top_exempt_frames`)."""
+    if n_frames <= exempt_frames or width_var_um2 <= 0.0:
         return False
     return float(np.sqrt(width_var_um2)) > BROAD_TOP_SHARE * span_um
 

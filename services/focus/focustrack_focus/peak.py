@@ -74,6 +74,7 @@ import numpy as np
 
 from focustrack_core.domain import FocusFlag
 from focustrack_focus.curve_checks import (
+    SHORT_STACK_FRAMES,
     broader_than_window,
     low_contrast_flat,
     narrow_at_end,
@@ -139,6 +140,11 @@ class PeakSettings:
         of it is an outlier (`despike`). A top on the frame next to a window's end that
         stands less than `end_rise_share` of the range above that end frame rests on it
         too, with or without a profile (`curve_checks.tied_with_end`).
+    broad_top_exempt_frames: windows of at most this many frames are exempt from the rule on
+        a top broader than its window (`curve_checks.broader_than_window`): the scheduler's
+        short stacks around a confident prediction see the top alone by design, which the
+        service's own metrics read honestly there (the simulator's z-scores). 0 for a metric
+        the service has no entry for (`unprofiled`).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -154,6 +160,7 @@ class PeakSettings:
     min_relative_noise: float = 0.0
     systematic_sigma_um: float = 0.0
     curve_fwhm_um: float | None = None
+    broad_top_exempt_frames: int = SHORT_STACK_FRAMES
 
 
 @dataclass(frozen=True)
@@ -381,7 +388,7 @@ def _read_peaks(
     z0, sigma, width_var_um2 = _fit_vertex(z, s, chosen.index, noise, settings)
     sigma = math.hypot(sigma, top.spread_um(z, z0))
     span_um = float(z[-1] - z[0])
-    if broader_than_window(width_var_um2, span_um, z.size):
+    if broader_than_window(width_var_um2, span_um, z.size, settings.broad_top_exempt_frames):
         # the window sees a gentle curvature, no top of its own: anywhere in it
         flags.add(FocusFlag.AMBIGUOUS)
         sigma = max(sigma, uniform_sigma_um(span_um))

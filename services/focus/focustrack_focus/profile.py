@@ -2,7 +2,8 @@
 
 `focustrack focus calibrate` learns it from a user's labelled curves; `serve focus
 --profile FILE` loads it, and a curve's (or stack's) `metric` names the entry that reads
-it. A metric without an entry is read with the service's own settings.
+it. A metric without an entry is read with the service's own settings if it is one of the
+service's metrics, else as a metric the service knows nothing of (`unprofiled`).
 
 The file: ``{"version": 1, "source": "...", "metrics": {"METRIC": {"relative_noise": r,
 "systematic_sigma_um": s, "unusable_because": "", "curve_fwhm_um": w, "coarse_step_um": c,
@@ -20,6 +21,7 @@ from typing import Any
 
 from focustrack_focus.peak import PeakSettings
 from focustrack_focus.pipeline import FocusSettings
+from focustrack_focus.unprofiled import settings_without_entry
 
 PROFILE_VERSION = 1
 #: The noise floor (share of a curve's maximum) that turns an unusable metric off: with
@@ -83,10 +85,13 @@ class MicroscopeProfile:
     source: str = ""
 
     def settings_for(self, metric: str, base: FocusSettings) -> FocusSettings:
-        """How a curve labelled `metric` is read: `base` with the metric's entry, or `base`
-        where the profile has none."""
+        """How a curve labelled `metric` is read: `base` with the metric's entry, or where
+        the profile has none, `base` for one of the service's own metrics and the reading
+        of a metric it knows nothing of for any other (`unprofiled`)."""
         entry = self.metrics.get(metric)
-        return base if entry is None else replace(base, peak=entry.peak_settings(base.peak))
+        if entry is None:
+            return settings_without_entry(metric, base)
+        return replace(base, peak=entry.peak_settings(base.peak))
 
     def to_json(self) -> dict[str, Any]:
         return {
