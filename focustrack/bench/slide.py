@@ -18,7 +18,8 @@ the tile is empty glass and where its dust lies. Per strategy:
 - seam_error_px: the stitched mosaic's seams (the scan report's, `stitch.Placement`): the
   RMS of how far neighbours' overlaps still disagree once placed by the stage and refined.
 
-Strategies that take `look_first` (the Kalman ones) scan with it on: a tile's first stack
+Strategies that take `look_first` (kf-2d-lean and the other filters with the lean rule's
+parameters; not kf-2d) scan with it on: a tile's first stack
 is its lowest frame alone, then the rest where the focus service sees something in view
 (`focustrack_estimator.look_first`); `--no-look-first` takes whole stacks, as before.
 

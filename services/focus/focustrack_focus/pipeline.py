@@ -390,7 +390,7 @@ class LastLooks:
 
     @property
     def held_bytes(self) -> int:
-        """Bytes the looks held hold (`FrameByFrame.held_bytes`)."""
+        """Bytes the held looks keep (`FrameByFrame.held_bytes`)."""
         return sum(look.held_bytes for _, look in self._last.values())
 
     def keep(self, slide: str, tile: tuple[int, int], curve: FrameByFrame) -> None:

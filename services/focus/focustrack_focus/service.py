@@ -159,16 +159,19 @@ class FrameAnalyser:
     result. With a `frame_signer`, a sample whose attachment does not carry that key's
     tag of it is dropped before anything else (no result, not even an error), logged and
     counted in `n_untagged`. A frame of a stack whose purpose is not focus (a phase stack,
-    for the phase service) is ignored, counted in `n_not_focus`.
+    for the phase service) is ignored, counted in `n_not_focus`. A look (a stack of one
+    frame) is held until its slide's next stack, which reads it as its first frame where it
+    is the rest of the look's stack (`pipeline.LastLooks`); one that does not fit in the
+    budget is not held.
 
     Memory is bounded in bytes and time, whatever peers send: the frames under way (in
-    parts) and what open stacks hold (each keeps its sharpest and blurriest frames for
-    the structure test) together stay within `budget_bytes`. A frame is refused, and its
-    stack ends with an error result (counted in `n_refused`), when it is larger than
-    `frame_bytes_of(instrument)` says the instrument named in its header takes (None:
-    not known), before anything is allocated for it; when its buffer (a frame in parts)
-    does not fit, before it is taken; and when its stack would keep more of it than
-    fits, once it is scored. A stack whose next frame, or a frame whose next part, has
+    parts), what open stacks hold (each keeps its sharpest and blurriest frames for
+    the structure test) and the held looks together stay within `budget_bytes`. A frame
+    is refused, and its stack ends with an error result (counted in `n_refused`), when it
+    is larger than `frame_bytes_of(instrument)` says the instrument named in its header
+    takes (None: not known), before anything is allocated for it; when its buffer (a
+    frame in parts) does not fit, before it is taken; and when its stack would keep more
+    of it than fits, once it is scored. A stack whose next frame, or a frame whose next part, has
     not come within `timeout_s` (by `clock`, s) is dropped (`n_expired` stacks) at the
     next `add` or `expire`.
     """
@@ -283,7 +286,8 @@ class FrameAnalyser:
             with tracing.joined("focus stack", parent, SpanKind.CONSUMER, sequence=header.sequence):
                 model = self._curve(tile.slide)
                 result = curve.result(model, prior_of(header))
-                self._looks.keep(tile.slide, (tile.row, tile.col), curve)
+                if curve.held_bytes <= self.budget_bytes - self.open_bytes:
+                    self._looks.keep(tile.slide, (tile.row, tile.col), curve)
                 model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
                 learn_top(
                     model.top_widths_um, result.z_um, result.scores, result.best_z_um, result.flags
