@@ -62,7 +62,7 @@ def test_glass_is_imaged_with_one_frame_once_a_region_of_it_is_found(tmp_path: P
     are looked at first, and a look the focus service calls empty is the tile's only frame."""
     command = [
         sys.executable, "-m", "focustrack", "bench", "slide", "--seeds", "3", "--rows", "6",
-        "--cols", "6", "--size", "256", "--strategies", "kf-2d-lean",
+        "--cols", "6", "--size", "256", "--strategies", "kf-2d-lean", "--no-look-first",
         "--out", str(tmp_path / "work"), "--json", str(tmp_path / "slide.json"),
     ]  # fmt: skip
     bench = subprocess.run(command, capture_output=True, text=True, timeout=560)
@@ -81,3 +81,38 @@ def test_glass_is_imaged_with_one_frame_once_a_region_of_it_is_found(tmp_path: P
     assert all(frames[tile] == 1 for tile in looked_empty)
     score = json.loads((tmp_path / "slide.json").read_text())["scores"]["kf-2d-lean"]
     assert score["empty_tiles"] > 0 and score["tiles_focused_on_dust"] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_with_look_first_an_empty_tile_costs_one_frame_and_tissue_its_stack(
+    tmp_path: Path,
+) -> None:
+    """Through the real services, with look_first (the bench's default): every tile found
+    empty after the scan's first (a wide stack: its prediction is unsure) cost one frame,
+    the rest of a look's stack is read with the look's frame as one curve, and every
+    tissue tile is in focus."""
+    command = [
+        sys.executable, "-m", "focustrack", "bench", "slide", "--seeds", "3", "--rows", "6",
+        "--cols", "6", "--size", "256", "--strategies", "kf-2d-lean",
+        "--out", str(tmp_path / "work"), "--json", str(tmp_path / "slide.json"),
+    ]  # fmt: skip
+    bench = subprocess.run(command, capture_output=True, text=True, timeout=560)
+    assert bench.returncode == 0, bench.stdout + bench.stderr
+    frames: dict[tuple[int, int], list[int]] = {}
+    found_empty, joined = set(), 0
+    log = tmp_path / "work" / "seed-3" / "kf-2d-lean" / "scan_log.jsonl"
+    for entry in map(json.loads, log.read_text().splitlines()):
+        tile = (entry.get("row"), entry.get("col"))
+        if entry["event"] == "acquired":
+            frames.setdefault(tile, []).append(entry["n_frames"])
+        if entry["event"] == "measured" and "empty" in entry["flags"]:
+            found_empty.add(tile)
+        if entry["event"] == "measured" and entry["curve_z_um"] is not None:
+            # a curve of one frame more than its acquisition: the look's frame joined
+            joined += len(entry["curve_z_um"]) == frames[tile][-1] + 1
+    assert len(found_empty - {(0, 0)}) >= 3
+    assert all(frames[tile] == [1] for tile in found_empty - {(0, 0)})
+    assert joined >= 10
+    score = json.loads((tmp_path / "slide.json").read_text())["scores"]["kf-2d-lean"]
+    assert score["tissue_in_focus_fraction"] == 1.0 and score["tiles_focused_on_dust"] == 0

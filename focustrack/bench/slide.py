@@ -18,7 +18,13 @@ the tile is empty glass and where its dust lies. Per strategy:
 - seam_error_px: the stitched mosaic's seams (the scan report's, `stitch.Placement`): the
   RMS of how far neighbours' overlaps still disagree once placed by the stage and refined.
 
-    focustrack bench slide [--seeds 1 2] [--rows 10 --cols 10 --size 256] [--json OUT]
+Strategies that take `look_first` (kf-2d-lean and the other filters with the lean rule's
+parameters; not kf-2d) scan with it on: a tile's first stack
+is its lowest frame alone, then the rest where the focus service sees something in view
+(`focustrack_estimator.look_first`); `--no-look-first` takes whole stacks, as before.
+
+    focustrack bench slide [--seeds 1 2] [--rows 10 --cols 10 --size 256]
+                           [--no-look-first] [--json OUT]
 """
 
 from __future__ import annotations
@@ -151,16 +157,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--strategies", nargs="+", default=list(DEFAULT_STRATEGIES), metavar="NAME",
         help=f"strategies (default: {' '.join(DEFAULT_STRATEGIES)})",
     )  # fmt: skip
+    parser.add_argument(
+        "--no-look-first", dest="look_first", action="store_false",
+        help="whole first stacks (strategies that take look_first otherwise scan with it)",
+    )  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("out/bench-slide"), help="work folder")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
 
 
+def look_first_params(strategy: str, look_first: bool) -> dict[str, Any]:
+    """`strategy`'s parameters in the bench: `look_first` where it takes it."""
+    takes = "look_first" in registry.STRATEGIES[strategy].params.model_fields
+    return {"look_first": look_first} if takes else {}
+
+
 def scan_slide(
-    stack: LocalStack, options: ScanOptions, strategy: str, scan_dir: Path
+    stack: LocalStack, options: ScanOptions, strategy: str, scan_dir: Path, look_first: bool
 ) -> dict[str, Any]:
-    """Scan the stack's slide with `strategy`; the part of `combine` it makes."""
+    """Scan the stack's slide with `strategy` (`look_first` where it takes it); the part of
+    `combine` it makes."""
     assert stack.session is not None
-    request = options.request(INSTRUMENT, SLIDE, strategy)
+    request = options.request(INSTRUMENT, SLIDE, strategy, look_first_params(strategy, look_first))
     report = scan_on(stack, options, request, scan_dir, strategy, None)
     truth = rpc.call(
         stack.session,
@@ -222,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
         work = args.out / f"seed-{seed}"
         with LocalStack(work, instrument_args) as stack:
             for name in args.strategies:
-                part = scan_slide(stack, options, name, work / name)
+                part = scan_slide(stack, options, name, work / name, args.look_first)
                 parts[name].append(part)
                 print(
                     f"seed {seed} {name}: {part['tissue_in_focus']}/{part['tissue_tiles']} "
@@ -234,6 +251,7 @@ def run(args: argparse.Namespace) -> int:
     title = (
         f"virtual slides of seeds {' '.join(map(str, args.seeds))}: {args.rows}x{args.cols} "
         f"tiles of {args.size} px, overlap {args.overlap:g}, family {args.family}"
+        f"{'' if args.look_first else ', without look_first'}"
     )
     print(format_scores(title, scores))
     if args.json is not None:

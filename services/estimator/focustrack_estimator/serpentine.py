@@ -72,6 +72,7 @@ from focustrack_estimator.lean import (
     planes_risk,
     planes_stack,
 )
+from focustrack_estimator.look_first import first_part, with_look
 from focustrack_estimator.peaks import between_peaks_var_um2
 from focustrack_estimator.strategy import MAX_RETRIES, PeakSearch, Strategy, StrategyParams
 from focustrack_estimator.time_state import ScanClock
@@ -141,6 +142,15 @@ CoarseStepUm = Annotated[
         "too unsure for fine stacks, um (`lean.coarse_stack`)",
     ),
 ]
+LookFirst = Annotated[
+    bool,
+    Field(
+        description="Acquire a tile's first stack in two parts where its lowest frame lies "
+        "near its centre: that frame alone, then (where the focus service sees something in "
+        "view) the rest, which it reads with that frame as one curve: an empty tile costs "
+        "one frame (`look_first.first_part`)",
+    ),
+]
 MaxKeptPlanes = Annotated[
     int,
     Field(
@@ -188,6 +198,7 @@ class LeanParams(RetryParams):
     skip_sigma_scale: SkipSigmaScale = 1.0
     coarse_step_um: CoarseStepUm = COARSE_STEP_UM
     max_kept_planes: MaxKeptPlanes = 1
+    look_first: LookFirst = False
 
 
 class FilterParams(LeanParams):
@@ -390,7 +401,9 @@ class SerpentineFilter(Strategy):
         measure = True
         if not self._search:
             (z, measure), purpose = self._first_stack(prior), Purpose.SCAN
-            if measure and self._look is None and self._in_glass(tile):
+            if measure and self.options.look_first and (part := first_part(z, self._look)) != z:
+                z = part  # a look that costs no frame where something is in view
+            elif measure and self._look is None and self._in_glass(tile):
                 z = look_at(prior.mean_um, self.settings.policy.z_step_um)
         else:
             z, purpose = self._search.next_range(), Purpose.RETRY
@@ -454,7 +467,9 @@ class SerpentineFilter(Strategy):
             self._centre_um = measurement.z_um
             return outcome
         if measurement.z_um is None or not measurement.is_observation:
-            if self._search.failed(acquisition.z, measurement):
+            # the first stack after a look at its lowest frame was read with that frame
+            measured = with_look(None if self._search else self._look, acquisition.z)
+            if self._search.failed(measured, measurement):
                 return outcome  # another stack of this tile follows
             self.gave_up[tile.row, tile.col] = True
             # an empty field holds nothing to be in focus: no more of its frames are worth keeping

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -351,3 +352,64 @@ class FrameByFrame:
         if result.flags != {FocusFlag.FLAT}:
             return result
         return unflattened(result, self._agreement, self.settings, prior)
+
+    def continued(self, z_um: np.ndarray) -> FrameByFrame:
+        """This look (one frame, added) as the first frame of a stack whose other frames lie
+        at z_um (n,), um, one step above it and on (`continues`): they are added as frames
+        1..n of the curve it returns. Its frame was answered as a look already (its compute
+        time counted there)."""
+        if self.z_um.size != 1 or not self.complete or not continues(float(self.z_um[0]), z_um):
+            raise ValueError(f"frames at {z_um.tolist()} do not continue a look at {self.z_um}")
+        joined = FrameByFrame(np.concatenate([self.z_um, z_um]), self.settings)
+        joined.scores[0], joined._agreement[0] = self.scores[0], self._agreement[0]
+        joined._top = joined._low = 0
+        joined._sharpest, joined._blurriest = self._sharpest, self._blurriest
+        joined._blurriest_raw = self._blurriest_raw
+        return joined
+
+
+def continues(look_z_um: float, z_um: np.ndarray) -> bool:
+    """Whether frames at z_um (n,), um, continue a look at `look_z_um`: two at least, evenly
+    stepped upwards, the first one step above the look (to 1 nm)."""
+    if z_um.size < 2:
+        return False
+    steps_um = np.diff(np.concatenate([[look_z_um], z_um]))
+    return bool(steps_um[0] > 0 and np.all(np.abs(steps_um - steps_um[0]) < 1e-3))
+
+
+class LastLooks:
+    """Each slide's last look (a tile's first frame, taken alone: is anything in view?),
+    until the next stack of that slide arrives: where that stack is the rest of the look's
+    (the same tile, its frames one step above the look's and on: `continues`), the look is
+    its first frame (`FrameByFrame.continued`), so a tile whose look saw something costs no
+    frame more than its stack. Holds one look per slide, of at most `slides` slides."""
+
+    def __init__(self, slides: int) -> None:
+        self.slides = slides
+        self._last: OrderedDict[str, tuple[tuple[int, int], FrameByFrame]] = OrderedDict()
+
+    @property
+    def held_bytes(self) -> int:
+        """Bytes the held looks keep (`FrameByFrame.held_bytes`)."""
+        return sum(look.held_bytes for _, look in self._last.values())
+
+    def keep(self, slide: str, tile: tuple[int, int], curve: FrameByFrame) -> None:
+        """Hold `curve` as the slide's last look, if it is one (a single frame, added)."""
+        if curve.z_um.size == 1 and curve.complete:
+            self._last.pop(slide, None)
+            self._last[slide] = (tile, curve)
+            while len(self._last) > self.slides:
+                self._last.popitem(last=False)
+
+    def curve(
+        self, slide: str, tile: tuple[int, int], z_um: np.ndarray, settings: FocusSettings
+    ) -> FrameByFrame:
+        """The curve of a stack at z_um (n,) of `tile` of `slide` whose first frame is
+        arriving: the slide's last look continued by it where it is the rest of that look's
+        stack, else its own (the look is let go either way)."""
+        tile_and_look = self._last.pop(slide, None)
+        if tile_and_look is not None:
+            looked, look = tile_and_look
+            if looked == tile and continues(float(look.z_um[0]), z_um):
+                return look.continued(z_um)
+        return FrameByFrame(z_um, settings)

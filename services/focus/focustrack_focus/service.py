@@ -66,7 +66,7 @@ from focustrack_focus.instrument_frames import InstrumentFrameSizes
 from focustrack_focus.layers import learn_top
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings, Prior
-from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame
+from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame, LastLooks
 from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
 from focustrack_focus.profile import MicroscopeProfile
 
@@ -139,6 +139,12 @@ def result_message(
     return message
 
 
+def _place(curve: FrameByFrame, frame: instrument_pb2.ZFrameHeader) -> int:
+    """Where `frame` lies in `curve`: its index in its stack, after the look joined before
+    the stack's frames where there is one (`LastLooks`)."""
+    return frame.index + curve.z_um.size - len(frame.stack.z_um)
+
+
 def _no_frame_size(_instrument: str) -> int | None:
     return None
 
@@ -153,16 +159,19 @@ class FrameAnalyser:
     result. With a `frame_signer`, a sample whose attachment does not carry that key's
     tag of it is dropped before anything else (no result, not even an error), logged and
     counted in `n_untagged`. A frame of a stack whose purpose is not focus (a phase stack,
-    for the phase service) is ignored, counted in `n_not_focus`.
+    for the phase service) is ignored, counted in `n_not_focus`. A look (a stack of one
+    frame) is held until its slide's next stack, which reads it as its first frame where it
+    is the rest of the look's stack (`pipeline.LastLooks`); one that does not fit in the
+    budget is not held.
 
     Memory is bounded in bytes and time, whatever peers send: the frames under way (in
-    parts) and what open stacks hold (each keeps its sharpest and blurriest frames for
-    the structure test) together stay within `budget_bytes`. A frame is refused, and its
-    stack ends with an error result (counted in `n_refused`), when it is larger than
-    `frame_bytes_of(instrument)` says the instrument named in its header takes (None:
-    not known), before anything is allocated for it; when its buffer (a frame in parts)
-    does not fit, before it is taken; and when its stack would keep more of it than
-    fits, once it is scored. A stack whose next frame, or a frame whose next part, has
+    parts), what open stacks hold (each keeps its sharpest and blurriest frames for
+    the structure test) and the held looks together stay within `budget_bytes`. A frame
+    is refused, and its stack ends with an error result (counted in `n_refused`), when it
+    is larger than `frame_bytes_of(instrument)` says the instrument named in its header
+    takes (None: not known), before anything is allocated for it; when its buffer (a
+    frame in parts) does not fit, before it is taken; and when its stack would keep more
+    of it than fits, once it is scored. A stack whose next frame, or a frame whose next part, has
     not come within `timeout_s` (by `clock`, s) is dropped (`n_expired` stacks) at the
     next `add` or `expire`.
     """
@@ -191,8 +200,12 @@ class FrameAnalyser:
         self.n_expired = 0  # stacks dropped: their next frame did not come in time
         # curves under way (each holding `FrameByFrame.held_bytes` and STACK_BYTES)
         self._open: OpenStacks[FrameByFrame] = OpenStacks(clock)
+        self._looks = LastLooks(CURVE_SLIDES)  # each slide's last look, for the stack after it
         self._frames = FrameAssembler(
-            budget_bytes, timeout_s, held_elsewhere=lambda: self._open.held_bytes, clock=clock
+            budget_bytes,
+            timeout_s,
+            held_elsewhere=lambda: self._open.held_bytes + self._looks.held_bytes,
+            clock=clock,
         )
         # each slide's through-focus curve, learnt from its full stacks, reads its short ones
         self._curves: OrderedDict[str, CurveModel] = OrderedDict()
@@ -205,8 +218,9 @@ class FrameAnalyser:
 
     @property
     def open_bytes(self) -> int:
-        """Bytes held for stacks under way: their frames in parts, and what open stacks keep."""
-        return self._frames.open_bytes + self._open.held_bytes
+        """Bytes held for stacks under way: their frames in parts, what open stacks keep,
+        and the slides' last looks."""
+        return self._frames.open_bytes + self._open.held_bytes + self._looks.held_bytes
 
     def expire(self) -> None:
         """Drop the stacks (and frames in parts) that peers stopped sending `timeout_s` ago."""
@@ -252,18 +266,17 @@ class FrameAnalyser:
             frame = self._frames.add(key, frame_header, payload)
             if frame is None:
                 return None  # a part of the frame: more to come
-            under_way = self._open.pop(stack)
-            if under_way is not None and not np.isnan(under_way.scores[frame_header.index]):
+            curve = self._open.pop(stack)
+            if curve is not None and not np.isnan(curve.scores[_place(curve, frame_header)]):
                 log.warning(
                     "frame %d on %s came again: stack started over", frame_header.index, key
                 )
-                under_way = None
-            curve = (
-                FrameByFrame(np.asarray(header.z_um), settings_for(header, self.base, self.na))
-                if under_way is None
-                else under_way
-            )
-            curve.add(frame_header.index, frame[..., 0] if frame.shape[-1] == 1 else frame)
+                curve = None
+            if curve is None:  # the stack's first frame (joined to its look, where it had one)
+                settings = settings_for(header, self.base, self.na)
+                place = (tile.row, tile.col)
+                curve = self._looks.curve(tile.slide, place, np.asarray(header.z_um), settings)
+            curve.add(_place(curve, frame_header), frame[..., 0] if frame.shape[-1] == 1 else frame)
             if not curve.complete:
                 held = STACK_BYTES + curve.held_bytes
                 self._fit(held)  # what the stack keeps of this frame, besides the others
@@ -273,6 +286,8 @@ class FrameAnalyser:
             with tracing.joined("focus stack", parent, SpanKind.CONSUMER, sequence=header.sequence):
                 model = self._curve(tile.slide)
                 result = curve.result(model, prior_of(header))
+                if curve.held_bytes <= self.budget_bytes - self.open_bytes:
+                    self._looks.keep(tile.slide, (tile.row, tile.col), curve)
                 model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
                 learn_top(
                     model.top_widths_um, result.z_um, result.scores, result.best_z_um, result.flags

@@ -221,14 +221,14 @@ class _Clock:
 
 
 def _frame_samples(
-    pixels: np.ndarray, sequence: int, clock_s: float
+    pixels: np.ndarray, sequence: int, clock_s: float, z_um: np.ndarray = Z_UM
 ) -> list[tuple[bytes | bytearray, bytes]]:
     header = instrument_pb2.ZStackHeader(
         slide="s1",
         row=2,
         col=3,
         sequence=sequence,
-        z_um=list(Z_UM),
+        z_um=list(z_um),
         clock_s=clock_s,
         pixel_size_um=0.1,
         channel_order="L",
@@ -266,6 +266,35 @@ def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart(
     second_part.parts, second_part.part_offset = 2, PART_BYTES
     lost = analyser.add(key, payload[PART_BYTES:], second_part.SerializeToString())
     assert lost is not None and lost.sequence == 6 and "a part was lost" in lost.error.message
+
+
+def test_a_look_and_the_rest_of_its_stack_are_answered_as_one_curve(
+    render: Callable[..., np.ndarray],
+) -> None:
+    """A tile's lowest frame taken alone (a look), then its other frames: the look is
+    answered at once, the rest with the curve of all of them, as the whole stack is."""
+    frames = render(96, Z_UM, TRUTH_UM, 3)[..., None]
+    analyser = FrameAnalyser(FocusSettings(), na=0.85, clock=_Clock())
+    key = keys.zframe_key("s1", 2, 3)
+    whole = _frame_samples(frames, 4, 1.0)
+    assert all(analyser.add(key, *sample) is None for sample in whole[:-1])
+    whole_result = analyser.add(key, *whole[-1])
+    (look_sample,) = _frame_samples(frames[:1], 5, 2.0, Z_UM[:1])
+    look = analyser.add(key, *look_sample)
+    assert look is not None and list(look.z_um) == [Z_UM[0]] and not look.flags  # in view
+    assert analyser.open_bytes > 0  # the look is held for the rest of its stack
+    rest = _frame_samples(frames[1:], 6, 3.0, Z_UM[1:])
+    assert all(analyser.add(key, *sample) is None for sample in rest[:-1])
+    joined = analyser.add(key, *rest[-1])
+    assert joined is not None and whole_result is not None and joined.sequence == 6
+    assert list(joined.z_um) == list(Z_UM) and joined.best_z_um == whole_result.best_z_um
+    assert analyser.open_bytes == 0
+    # the rest of a stack whose look came on another tile is no curve: an error result
+    analyser.add(keys.zframe_key("s1", 2, 4), *_frame_samples(frames[:1], 7, 4.0, Z_UM[:1])[0])
+    alone = [
+        analyser.add(key, *sample) for sample in _frame_samples(frames[1:3], 8, 5.0, Z_UM[1:3])
+    ]
+    assert alone[0] is not None and alone[0].HasField("error")
 
 
 def test_open_stacks_stay_within_the_budget_and_are_freed_after_the_timeout(

@@ -1,11 +1,18 @@
-"""Frame-by-frame focus gives what `focus_stack` gives for the whole stack."""
+"""Frame-by-frame focus gives what `focus_stack` gives for the whole stack, a look and the
+rest of its stack included."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from focustrack_focus.pipeline import FocusSettings, FrameByFrame, focus_stack
+from focustrack_focus.pipeline import (
+    FocusSettings,
+    FrameByFrame,
+    LastLooks,
+    continues,
+    focus_stack,
+)
 
 
 def _stack(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -52,3 +59,46 @@ def test_missing_repeated_and_bad_frames_are_refused() -> None:
         incremental.result()
     with pytest.raises(ValueError):
         FrameByFrame(np.array([0.0, 1.0]), FocusSettings())  # too few frames for a curve
+
+
+def test_a_look_continued_by_the_rest_of_its_stack_reads_as_the_whole_stack() -> None:
+    frames, z_um = _stack()
+    settings = FocusSettings()
+    whole = focus_stack(frames, z_um, settings)
+    look = FrameByFrame(z_um[:1], settings)
+    look.add(0, frames[0])
+    assert look.result().best_z_um is None  # a look: something in view, no focus
+    joined = look.continued(z_um[1:])
+    for index in range(1, len(z_um)):
+        joined.add(index, frames[index])
+    result = joined.result()
+    np.testing.assert_allclose(result.scores, whole.scores)
+    assert result.best_z_um == pytest.approx(whole.best_z_um)
+    assert result.flags == whole.flags
+    with pytest.raises(ValueError, match="do not continue"):
+        look.continued(z_um[2:])  # a frame is missing between them
+
+
+def test_continues_needs_the_rest_one_step_above_the_look_and_evenly_stepped() -> None:
+    assert continues(0.0, np.array([0.5, 1.0]))
+    assert not continues(0.0, np.array([1.0, 1.5]))  # a gap
+    assert not continues(0.0, np.array([-1.0, -0.5]))  # below it
+    assert not continues(0.0, np.array([0.5]))  # no step to compare
+    assert not continues(0.0, np.array([0.5, 1.5]))  # uneven
+
+
+def test_a_slides_last_look_joins_only_the_next_stack_of_its_tile() -> None:
+    frames, z_um = _stack()
+    settings = FocusSettings()
+    looks = LastLooks(slides=1)
+    look = FrameByFrame(z_um[:1], settings)
+    look.add(0, frames[0])
+    looks.keep("s1", (2, 3), look)
+    assert looks.held_bytes == look.held_bytes > 0
+    elsewhere = looks.curve("s1", (2, 4), z_um[1:], settings)  # another tile: its own curve
+    assert elsewhere.z_um.size == len(z_um) - 1 and looks.held_bytes == 0
+    looks.keep("s1", (2, 3), look)
+    looks.keep("s2", (0, 0), look)  # one slide's looks at most: s1's is let go
+    assert looks.curve("s1", (2, 3), z_um[1:], settings).z_um.size == len(z_um) - 1
+    joined = looks.curve("s2", (0, 0), z_um[1:], settings)
+    assert joined.z_um.size == len(z_um) and not joined.complete

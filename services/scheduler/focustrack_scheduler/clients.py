@@ -82,11 +82,13 @@ def phase_request(step: AcquirePhase, nonce: bytes) -> instrument_pb2.AcquireReq
 
 def same_stack(acquisition: Acquisition, row: int, col: int, z_um: list[float]) -> bool:
     """True when a focus result at (row, col) of frames at `z_um` is of this acquisition's
-    tile and frames."""
+    tile and frames: those alone, or after the frame of the tile's look taken just before
+    them (the focus service reads a look and the rest of its stack as one curve)."""
+    looked = len(z_um) - acquisition.z.n_frames
     return (
         (row, col) == (acquisition.row, acquisition.col)
-        and len(z_um) == acquisition.z.n_frames
-        and abs(z_um[0] - acquisition.z.low_um) < 1e-3
+        and looked in (0, 1)
+        and abs(z_um[looked] - acquisition.z.low_um) < 1e-3
     )
 
 

@@ -189,6 +189,9 @@ def test_a_result_of_another_slide_tile_or_frames_is_refused_an_error_of_its_til
     assert why(result()) == "taken"
     assert "nonce" in why(result(nonce=b"o" * NONCE_BYTES)) and "nonce" in why(result(nonce=b""))
     assert "tile (1, 3)" in why(result(col=3)) and "frames" in why(result(z_um=z_um[1:]))
+    # the rest of a stack, read with the frame of its look one step below it, is taken
+    assert why(result(z_um=[-2.5, *z_um])) == "taken"
+    assert "frames" in why(result(z_um=[-3.0, -2.5, *z_um]))  # two frames more: not a look
     assert "no acquisition 4" in why(result(sequence=4)) and "slide" in why(result(slide="s2"))
     unreadable = result(z_um=[], error=common_pb2.Error(code=common_pb2.ERROR_CODE_BAD_STACK))
     assert why(unreadable) == "taken"  # a stack the focus service could not read
