@@ -16,10 +16,11 @@ Scenario `second pass`: each map scanned again after its first pass (`kf-2d-lean
 the time state; its smoothed map is the prior), the slide
 moved by `--axial-offset-um` in z and `--lateral-offset-um` in a random direction in x
 and y, the walk going on. z: `kf-rescan` with that prior (the drift's offset a random walk,
-`RESCAN_PARAMS`), at a stated risk of 0.2% and of 0.05% per tile (`SECOND_PASS`), and at
-0.2% with the scheduler's first-frame check (`CHECKED`: a tile's one frame at its
-prediction compared with the first pass's image of it, `--frame-check-ratio`; on the
-simulator's frames, `focustrack.bench.frame_check`).
+`RESCAN_PARAMS`), at a stated risk of 0.2% and of 0.05% per tile (`SECOND_PASS`), and
+with the scheduler's first-frame check (`CHECKED`: a tile's one frame at its prediction
+compared with the first pass's image of it, `--frame-check-ratio`, as `focustrack scan
+--first-pass` does; on the simulator's frames of `--check-textures` tiles,
+`focustrack.bench.frame_check`).
 x, y (`focustrack.bench.lateral_drift`): on the simulator, a virtual tissue slide moved on
 the stage by that offset; `--lateral-tiles` tiles of 256 x 256 px imaged before and after
 are phase-correlated (`focustrack_scheduler.lateral`, bounded, as the scheduler's
@@ -156,6 +157,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"second pass: the first-frame check's least sharpness ratio ({MIN_SHARPNESS_RATIO})",
     )
     parser.add_argument(
+        "--check-textures",
+        type=int,
+        default=8,
+        help="second pass: the simulator's tiles the first-frame check's frames show (8)",
+    )
+    parser.add_argument(
         "--ekf-trials", type=int, default=200, help="EKF: simulator-shaped streams (200)"
     )
     parser.add_argument(
@@ -189,6 +196,13 @@ def _run_scenario(
 def run(args: argparse.Namespace) -> int:
     if args.maps < 1 or args.size < 2 or not (args.noise_um > 0 and args.dof_um > 0):
         print("focustrack bench drift: error: bad sizes, noise or depth of field", file=sys.stderr)
+        return 2
+    if args.check_textures < 1 or not 0 <= args.frame_check_ratio < 1:
+        print(
+            "focustrack bench drift: error: the first-frame check needs a texture and a "
+            "ratio in [0, 1)",
+            file=sys.stderr,
+        )
         return 2
     size = args.size
     grid = ScanGrid(size, size)
@@ -332,14 +346,17 @@ SECOND_PASS: dict[str, dict[str, Any]] = {
     f"{RESCAN} risk 0.05%": {**RESCAN_PARAMS, "risk_out_of_focus": 0.0005},
 }
 
-#: The second pass with the scheduler's first-frame check, at `RESCAN_PARAMS`' stated risk.
-CHECKED = f"{RESCAN} +frame check"
+#: The second pass with the scheduler's first-frame check: at the stated risk above, and at
+#: a higher one, whose tail the check catches (docs/drift.md).
+CHECKED: dict[str, dict[str, Any]] = {
+    f"{RESCAN} +frame check": RESCAN_PARAMS,
+    f"{RESCAN} risk 0.5% +frame check": {**RESCAN_PARAMS, "risk_out_of_focus": 0.005},
+}
 
 #: Side of the simulator's tiles correlated for the lateral offset, px.
 TILE_PX = 256
-#: The simulator's tiles whose frames the first-frame check compares (`frame_check`), and
-#: their side, px (smaller than a camera's: noisier, and rendered in seconds).
-TEXTURES = 8
+#: The side of the simulator's tiles whose frames the first-frame check compares
+#: (`frame_check`), px: smaller than a camera's (noisier), rendered in seconds.
 CHECK_TILE_PX = 128
 
 
@@ -360,9 +377,9 @@ def second_pass(
     """The second-pass scenario (module docstring): kf-rescan's scores by label
     (`SECOND_PASS`), the first with the largest lateral placement error over the maps,
     corrected and not."""
-    runs: dict[str, list[Replay]] = {label: [] for label in [*SECOND_PASS, CHECKED]}
+    runs: dict[str, list[Replay]] = {label: [] for label in [*SECOND_PASS, *CHECKED]}
     placed: list[lateral_drift.Placement] = []
-    table = frame_check.sharpness_table(args.seed, TEXTURES, CHECK_TILE_PX)
+    table = frame_check.sharpness_table(args.seed, args.check_textures, CHECK_TILE_PX)
     for i, m in enumerate(maps):
         first = registry.create("kf-2d-lean", settings, TIME_STATE)
         run_1 = replay(first, m.truth_um, m.measured_um, drift=m.drift)
@@ -377,18 +394,18 @@ def second_pass(
             walk_um_per_sqrt_min=m.drift.walk_um_per_sqrt_min, seed=m.drift.seed + 100
         )
         drift = Offset(walk, args.axial_offset_um + m.drift.at(run_1.scan_time_s))
-        for label, params in SECOND_PASS.items():
-            rescan = registry.create(RESCAN, settings, {**params, **prior})
-            runs[label].append(replay(rescan, m.truth_um, m.measured_um, drift=drift))
         # the first pass's image of a tile: its kept frame, off its truth when imaged by
         reference_dz_um = run_1.focus_map.z_used_um - run_1.truth_um
-        check = frame_check.SimulatedFrameCheck(
-            table, reference_dz_um, args.frame_check_ratio, args.seed + i
-        )
-        rescan = registry.create(RESCAN, settings, {**RESCAN_PARAMS, **prior})
-        runs[CHECKED].append(
-            replay(rescan, m.truth_um, m.measured_um, drift=drift, frame_check=check)
-        )
+        for label, params in {**SECOND_PASS, **CHECKED}.items():
+            check = None
+            if label in CHECKED:
+                check = frame_check.SimulatedFrameCheck(
+                    table, reference_dz_um, args.frame_check_ratio, args.seed + i
+                )
+            rescan = registry.create(RESCAN, settings, {**params, **prior})
+            runs[label].append(
+                replay(rescan, m.truth_um, m.measured_um, drift=drift, frame_check=check)
+            )
         # x, y: a virtual slide moved on the simulator's stage, placed again by the stage
         angle = np.random.default_rng([args.seed, i, 17]).uniform(0, 2 * np.pi)
         offset_um = (args.lateral_offset_um * np.cos(angle), args.lateral_offset_um * np.sin(angle))

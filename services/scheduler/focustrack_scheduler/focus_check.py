@@ -28,7 +28,7 @@ from focustrack_scheduler.lateral import shared_parts
 
 #: The default `min_ratio` (`focustrack scan --frame-check-ratio`): chosen with `focustrack
 #: bench drift`'s second pass on seeds 4000-4002 (docs/drift.md), not the seeds it reports.
-MIN_SHARPNESS_RATIO = 0.9
+MIN_SHARPNESS_RATIO = 0.94
 
 #: The fewest pixels a side of the part both images show may have to be compared.
 MIN_SHARED_PX = 16
