@@ -37,7 +37,7 @@ def test_every_scenario_is_scored_and_written(
     assert second["lateral_uncorrected_px"] == pytest.approx(5.0 / 0.1083, rel=0.01)
     assert second["lateral_error_px"] <= 0.5
     # with the first-frame check: a row per stated risk, scored like the others
-    checked = [label for label in scenarios["second pass"] if label.endswith("+frame check")]
+    checked = [label for label in scenarios["second pass"] if label.endswith("+check")]
     assert len(checked) == 2 and all(label in table for label in checked)
     for scores in report["ekf"].values():  # the EKF and the linear fit on the same samples
         assert set(scores) == {"linear fit", "ekf"}

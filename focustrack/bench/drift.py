@@ -349,8 +349,8 @@ SECOND_PASS: dict[str, dict[str, Any]] = {
 #: The second pass with the scheduler's first-frame check: at the stated risk above, and at
 #: a higher one, whose tail the check catches (docs/drift.md).
 CHECKED: dict[str, dict[str, Any]] = {
-    f"{RESCAN} +frame check": RESCAN_PARAMS,
-    f"{RESCAN} risk 0.5% +frame check": {**RESCAN_PARAMS, "risk_out_of_focus": 0.005},
+    f"{RESCAN} +check": RESCAN_PARAMS,
+    f"{RESCAN} risk 0.5% +check": {**RESCAN_PARAMS, "risk_out_of_focus": 0.005},
 }
 
 #: Side of the simulator's tiles correlated for the lateral offset, px.
