@@ -15,6 +15,7 @@ def test_every_scenario_is_scored_and_written(
 ) -> None:
     out = tmp_path / "drift.json"
     args = ["--maps", "1", "--size", "8", "--lateral-tiles", "3", "--ekf-trials", "20"]
+    args += ["--check-textures", "1"]
     args += ["--json", str(out)]
     assert main(["bench", "drift", *args]) == 0
     table = capsys.readouterr().out
@@ -35,6 +36,9 @@ def test_every_scenario_is_scored_and_written(
     # puts the tiles back within half a pixel of the first pass's, by the simulator's truth
     assert second["lateral_uncorrected_px"] == pytest.approx(5.0 / 0.1083, rel=0.01)
     assert second["lateral_error_px"] <= 0.5
+    # with the first-frame check: a row per stated risk, scored like the others
+    checked = [label for label in scenarios["second pass"] if label.endswith("+check")]
+    assert len(checked) == 2 and all(label in table for label in checked)
     for scores in report["ekf"].values():  # the EKF and the linear fit on the same samples
         assert set(scores) == {"linear fit", "ekf"}
         assert all(s["frames_per_tile"] >= 3 and s["mae_um"] >= 0 for s in scores.values())
@@ -44,3 +48,5 @@ def test_every_scenario_is_scored_and_written(
 def test_bad_sizes_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "drift", "--size", "1"]) == 2
     assert "bad sizes" in capsys.readouterr().err
+    assert main(["bench", "drift", "--frame-check-ratio", "1"]) == 2
+    assert "first-frame check" in capsys.readouterr().err

@@ -209,6 +209,12 @@ class MeasurementIn(_Model):
         le=1.0,
         description="With multi_peak: the chance that z_um's peak is the focus",
     )
+    frame_out_of_focus: bool = Field(
+        False,
+        description="Only for an acquisition that images the tile (measure false): its frame "
+        "was found out of focus (less sharp than the first pass's image of the tile); the "
+        "tile is then measured",
+    )
 
 
 class OutcomeOut(BaseModel):

@@ -197,6 +197,9 @@ class Measurement:
     With `FocusFlag.MULTI_PEAK`, `runner_up_z_um` is the next most likely peak's z (um) and
     `chosen_probability` the chance (0..1) that the chosen peak at `z_um` is the focus, as
     the focus service weighed them (with the prior it was sent); None where not given.
+    `frame_out_of_focus`: an image-only acquisition's frame (no best focus) that the
+    scheduler found out of focus, less sharp than the first pass's image of the tile
+    (`focustrack_scheduler.focus_check`): the tile is to be measured.
     """
 
     z_um: float | None
@@ -204,6 +207,7 @@ class Measurement:
     flags: frozenset[FocusFlag] = frozenset()
     runner_up_z_um: float | None = None
     chosen_probability: float | None = None
+    frame_out_of_focus: bool = False
 
     def __post_init__(self) -> None:
         if self.z_um is not None and not math.isfinite(self.z_um):

@@ -16,7 +16,11 @@ Scenario `second pass`: each map scanned again after its first pass (`kf-2d-lean
 the time state; its smoothed map is the prior), the slide
 moved by `--axial-offset-um` in z and `--lateral-offset-um` in a random direction in x
 and y, the walk going on. z: `kf-rescan` with that prior (the drift's offset a random walk,
-`RESCAN_PARAMS`), at a stated risk of 0.2% and of 0.05% per tile (`SECOND_PASS`).
+`RESCAN_PARAMS`), at a stated risk of 0.2% and of 0.05% per tile (`SECOND_PASS`), and
+with the scheduler's first-frame check (`CHECKED`: a tile's one frame at its prediction
+compared with the first pass's image of it, `--frame-check-ratio`, as `focustrack scan
+--first-pass` does; on the simulator's frames of `--check-textures` tiles,
+`focustrack.bench.frame_check`).
 x, y (`focustrack.bench.lateral_drift`): on the simulator, a virtual tissue slide moved on
 the stage by that offset; `--lateral-tiles` tiles of 256 x 256 px imaged before and after
 are phase-correlated (`focustrack_scheduler.lateral`, bounded, as the scheduler's
@@ -50,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.bench import lateral_drift, stream_ekf
+from focustrack.bench import frame_check, lateral_drift, stream_ekf
 from focustrack.bench import strategies as registry
 from focustrack.bench.focus import REAL_DIR
 from focustrack_core.domain import SlideSettings
@@ -62,6 +66,7 @@ from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spe
 from focustrack_estimator.replay import Replay, ReplayLaser, replay, score
 from focustrack_estimator.spatial import RowBankFilter
 from focustrack_estimator.strategy import Strategy
+from focustrack_scheduler.focus_check import MIN_SHARPNESS_RATIO
 
 #: The time state the benchmark gives a strategy: the walk as simulated, a rate prior of
 #: twice the simulated settling's start (2 um / 200 s), and a settling time constant
@@ -146,6 +151,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--lateral-tiles", type=int, default=8, help="second pass: tiles correlated (8)"
     )
     parser.add_argument(
+        "--frame-check-ratio",
+        type=float,
+        default=MIN_SHARPNESS_RATIO,
+        help=f"second pass: the first-frame check's least sharpness ratio ({MIN_SHARPNESS_RATIO})",
+    )
+    parser.add_argument(
+        "--check-textures",
+        type=int,
+        default=8,
+        help="second pass: the simulator's tiles the first-frame check's frames show (8)",
+    )
+    parser.add_argument(
         "--ekf-trials", type=int, default=200, help="EKF: simulator-shaped streams (200)"
     )
     parser.add_argument(
@@ -179,6 +196,13 @@ def _run_scenario(
 def run(args: argparse.Namespace) -> int:
     if args.maps < 1 or args.size < 2 or not (args.noise_um > 0 and args.dof_um > 0):
         print("focustrack bench drift: error: bad sizes, noise or depth of field", file=sys.stderr)
+        return 2
+    if args.check_textures < 1 or not 0 <= args.frame_check_ratio < 1:
+        print(
+            "focustrack bench drift: error: the first-frame check needs a texture and a "
+            "ratio in [0, 1)",
+            file=sys.stderr,
+        )
         return 2
     size = args.size
     grid = ScanGrid(size, size)
@@ -322,8 +346,18 @@ SECOND_PASS: dict[str, dict[str, Any]] = {
     f"{RESCAN} risk 0.05%": {**RESCAN_PARAMS, "risk_out_of_focus": 0.0005},
 }
 
+#: The second pass with the scheduler's first-frame check: at the stated risk above, and at
+#: a higher one, whose tail the check catches (docs/drift.md).
+CHECKED: dict[str, dict[str, Any]] = {
+    f"{RESCAN} +check": RESCAN_PARAMS,
+    f"{RESCAN} risk 0.5% +check": {**RESCAN_PARAMS, "risk_out_of_focus": 0.005},
+}
+
 #: Side of the simulator's tiles correlated for the lateral offset, px.
 TILE_PX = 256
+#: The side of the simulator's tiles whose frames the first-frame check compares
+#: (`frame_check`), px: smaller than a camera's (noisier), rendered in seconds.
+CHECK_TILE_PX = 128
 
 
 @dataclass(frozen=True)
@@ -343,8 +377,9 @@ def second_pass(
     """The second-pass scenario (module docstring): kf-rescan's scores by label
     (`SECOND_PASS`), the first with the largest lateral placement error over the maps,
     corrected and not."""
-    runs: dict[str, list[Replay]] = {label: [] for label in SECOND_PASS}
+    runs: dict[str, list[Replay]] = {label: [] for label in [*SECOND_PASS, *CHECKED]}
     placed: list[lateral_drift.Placement] = []
+    table = frame_check.sharpness_table(args.seed, args.check_textures, CHECK_TILE_PX)
     for i, m in enumerate(maps):
         first = registry.create("kf-2d-lean", settings, TIME_STATE)
         run_1 = replay(first, m.truth_um, m.measured_um, drift=m.drift)
@@ -359,9 +394,18 @@ def second_pass(
             walk_um_per_sqrt_min=m.drift.walk_um_per_sqrt_min, seed=m.drift.seed + 100
         )
         drift = Offset(walk, args.axial_offset_um + m.drift.at(run_1.scan_time_s))
-        for label, params in SECOND_PASS.items():
+        # the first pass's image of a tile: its kept frame, off its truth when imaged by
+        reference_dz_um = run_1.focus_map.z_used_um - run_1.truth_um
+        for label, params in {**SECOND_PASS, **CHECKED}.items():
+            check = None
+            if label in CHECKED:
+                check = frame_check.SimulatedFrameCheck(
+                    table, reference_dz_um, args.frame_check_ratio, args.seed + i
+                )
             rescan = registry.create(RESCAN, settings, {**params, **prior})
-            runs[label].append(replay(rescan, m.truth_um, m.measured_um, drift=drift))
+            runs[label].append(
+                replay(rescan, m.truth_um, m.measured_um, drift=drift, frame_check=check)
+            )
         # x, y: a virtual slide moved on the simulator's stage, placed again by the stage
         angle = np.random.default_rng([args.seed, i, 17]).uniform(0, 2 * np.pi)
         offset_um = (args.lateral_offset_um * np.cos(angle), args.lateral_offset_um * np.sin(angle))

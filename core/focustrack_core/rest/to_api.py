@@ -94,6 +94,7 @@ def measurement_in(acquisition: Acquisition, measurement: Measurement) -> api.Me
         flags=[api.FocusFlag(flag) for flag in sorted(measurement.flags)],
         runner_up_z_um=measurement.runner_up_z_um,
         chosen_probability=measurement.chosen_probability,
+        frame_out_of_focus=measurement.frame_out_of_focus,
     )
 
 

@@ -63,7 +63,12 @@ def flags(values: list[api.FocusFlag]) -> frozenset[FocusFlag]:
 def measurement(body: api.MeasurementIn) -> Measurement:
     """The measurement a `POST /measurements` body reports (ValueError if it is not one)."""
     return Measurement(
-        body.z_um, body.sigma_um, flags(body.flags), body.runner_up_z_um, body.chosen_probability
+        body.z_um,
+        body.sigma_um,
+        flags(body.flags),
+        body.runner_up_z_um,
+        body.chosen_probability,
+        body.frame_out_of_focus,
     )
 
 

@@ -48,6 +48,8 @@ def measurement_record(measurement: Measurement) -> dict[str, Any]:
     for key in ("runner_up_z_um", "chosen_probability"):
         if (value := getattr(measurement, key)) is not None:
             record[key] = value
+    if measurement.frame_out_of_focus:  # else as recorded before the first-frame check
+        record["frame_out_of_focus"] = True
     return record
 
 
@@ -59,6 +61,7 @@ def measurement_of(record: dict[str, Any]) -> Measurement:
         frozenset(FocusFlag(f) for f in record["flags"]),
         record.get("runner_up_z_um"),
         record.get("chosen_probability"),
+        bool(record.get("frame_out_of_focus", False)),
     )
 
 

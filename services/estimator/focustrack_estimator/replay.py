@@ -14,6 +14,9 @@ service are stood in for by a measured map:
 - a revisit (purpose revisit: a tile measured again, to track the drift) is a new
   measurement: the truth plus the drift now plus its own noise (the slide's
   `noise_sigma_um`, drawn per acquisition), and it leaves the tile's image as it was;
+- with a `FrameCheck` (a second pass's first-frame check, as the scheduler's
+  `focus_check` makes it), a tile imaged once at its prediction without a measurement
+  is posted `frame_out_of_focus` where the check finds its frame so;
 - a laser reading (purpose laser) is `ReplayLaser`'s: the coverslip under the tile
   (the truth plus the drift now minus the tile's offset) with the laser's noise; it
   takes no frame, only the move and the reading's time.
@@ -26,6 +29,7 @@ kept image), with no search at all.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Protocol
@@ -122,6 +126,13 @@ class Drift:
         return self.offset_um + self.rate_um_per_s * t_s
 
 
+class FrameCheck(Protocol):
+    """A second pass's first-frame check: whether tile (row, col)'s one frame at `z_um` is
+    found out of focus, its true focus then at `truth_um` (um)."""
+
+    def __call__(self, row: int, col: int, z_um: float, truth_um: float) -> bool: ...
+
+
 def replay(
     strategy: Strategy,
     truth_um: np.ndarray,
@@ -129,6 +140,7 @@ def replay(
     timing: TimingModel | None = None,
     drift: DriftPath | None = None,
     laser: ReplayLaser | None = None,
+    frame_check: FrameCheck | None = None,
 ) -> Replay:
     """Run `strategy` to completion on one map; `truth_um` and `measured_um` are (rows, cols).
 
@@ -137,6 +149,7 @@ def replay(
     the truth a tile is scored on is its height when its last stack started (the
     `Replay.truth_um`). `drift` may be any `DriftPath` (`focustrack_core.drift.ThermalDrift`).
     `laser` answers a strategy's laser readings (a ValueError where one is asked without it).
+    `frame_check` checks each frame a tile is imaged with unmeasured (module docstring).
     """
     timing = timing or TimingModel()
     drift = drift or Drift(0.0, 0.0)
@@ -182,7 +195,17 @@ def replay(
         else:
             truth_now_um[tile.row, tile.col] = truth_um[tile.row, tile.col] + drift_um
             measured = measured_um[tile.row, tile.col] + drift_um
-        outcomes.append(strategy.record(acquisition, simulated_measurement(acquisition, measured)))
+        measurement = simulated_measurement(acquisition, measured)
+        if (
+            frame_check is not None
+            and not acquisition.measure
+            and acquisition.purpose is Purpose.SCAN
+            and frame_check(
+                tile.row, tile.col, acquisition.z.center_um, truth_now_um[tile.row, tile.col]
+            )
+        ):
+            measurement = dataclasses.replace(measurement, frame_out_of_focus=True)
+        outcomes.append(strategy.record(acquisition, measurement))
     return Replay(
         truth_now_um,
         strategy.focus_map(),

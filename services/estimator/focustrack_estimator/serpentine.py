@@ -35,6 +35,12 @@ the tile's stack follows and the look's frame is one of its frames. A field foun
 alone among scanned tissue (a sparse field among others) does not make its neighbours look,
 nor does glass two tiles away: a look that sees tissue costs its frame.
 
+A second pass's scheduler compares a tile's one frame taken at its prediction (the kept
+image, not measured) with the first pass's image of the tile (`focustrack_scheduler.
+focus_check`); a frame it finds out of focus (`Measurement.frame_out_of_focus`) does not
+finish the tile: the policy's stack about the prediction follows (`ZRangePolicy.around`, the
+innovation's sigma), measured as any other, and the frame is one of the tile's frames.
+
 With `adapt_r` the default R (for measurements without their own sigma) is
 estimated online by covariance matching of the innovations (E[y^2] = H P H' +
 R), as a running mean that starts from `R_PRIOR_COUNT` copies of the
@@ -289,6 +295,7 @@ class SerpentineFilter(Strategy):
         self.empty = np.zeros(self.grid.shape, dtype=bool)  # tiles found empty (nothing in view)
         self.scanned = np.zeros(self.grid.shape, dtype=bool)  # tiles done
         self._look: ZRange | None = None  # the current tile's look, once it saw something
+        self._blurred: ZRange | None = None  # its unmeasured frame, once found out of focus
         self.clock = ScanClock()  # the scan's time, for filters with a time state
 
     @abstractmethod
@@ -338,7 +345,7 @@ class SerpentineFilter(Strategy):
     def _first_stack(self, prior: Gaussian) -> tuple[ZRange, bool]:
         """The first acquisition of a tile with this prior: its frames and whether to measure."""
         risk, policy = self.options.risk_out_of_focus, self.settings.policy
-        if not risk:
+        if not risk or self._blurred is not None:  # a frame out of focus: measure the tile
             innovation_sigma_um = math.sqrt(prior.var_um2 + self.default_r_um2)
             return policy.around(prior.mean_um, innovation_sigma_um), True
         if self._centre_um is not None:  # a coarse stack's peak centres a short one
@@ -401,10 +408,11 @@ class SerpentineFilter(Strategy):
         measure = True
         if not self._search:
             (z, measure), purpose = self._first_stack(prior), Purpose.SCAN
-            if measure and self.options.look_first and (part := first_part(z, self._look)) != z:
-                z = part  # a look that costs no frame where something is in view
-            elif measure and self._look is None and self._in_glass(tile):
-                z = look_at(prior.mean_um, self.settings.policy.z_step_um)
+            if measure and self._blurred is None:  # a frame out of focus: its stack, whole
+                if self.options.look_first and (part := first_part(z, self._look)) != z:
+                    z = part  # a look that costs no frame where something is in view
+                elif self._look is None and self._in_glass(tile):
+                    z = look_at(prior.mean_um, self.settings.policy.z_step_um)
         else:
             z, purpose = self._search.next_range(), Purpose.RETRY
         return self._acquisition(
@@ -456,6 +464,13 @@ class SerpentineFilter(Strategy):
             tile.row, tile.col, accepted=False, prior_um=prior.mean_um,
             prior_sigma_um=prior.sigma_um,
         )  # fmt: skip
+        if (
+            not acquisition.measure
+            and measurement.frame_out_of_focus
+            and acquisition.purpose == Purpose.SCAN
+        ):
+            self._blurred = acquisition.z  # a stack of the tile follows
+            return outcome
         if not acquisition.measure:  # the kept image only: a missing measurement, predict only
             return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
         if is_look(acquisition) and FocusFlag.EMPTY not in measurement.flags:
@@ -525,7 +540,7 @@ class SerpentineFilter(Strategy):
         outcome in between has the final posterior.
         """
         row, col = acquisition.row, acquisition.col
-        looked = () if self._look is None else (self._look,)
+        looked = tuple(z for z in (self._look, self._blurred) if z is not None)
         stacks = (*looked, *self._search.stacks, acquisition.z)
         if self._planes is not None:  # the frames it asked for came: finish with them
             stacks = (*self._planes.stacks, acquisition.z)
@@ -569,6 +584,7 @@ class SerpentineFilter(Strategy):
         self._search.clear()
         self._centre_um = None
         self._look = None
+        self._blurred = None
         if self._position == self.grid.n_tiles:
             self._finish()
         return replace(

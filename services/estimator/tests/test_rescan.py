@@ -83,3 +83,46 @@ def test_a_wandering_offset_is_followed_where_an_integrated_walk_lags() -> None:
     integrated, integrated_frames = run()
     assert walked == 1.0  # at the price of the frames such a walk needs
     assert integrated < 0.8 and integrated_frames < walked_frames
+
+
+def test_a_frame_found_out_of_focus_is_followed_by_a_measured_stack_of_its_tile() -> None:
+    """The scheduler's first-frame check: a tile imaged once at its prediction whose frame
+    is posted `frame_out_of_focus` is not finished; the policy's stack about the
+    prediction follows, is measured as any, and the tile is imaged at the frame nearest
+    its posterior. The replay's `frame_check` posts it so: a tile 0.6 um off the map (4.4
+    sigma), which the rule images once, ends in focus with the check and out of focus
+    without."""
+    truth = np.zeros(GRID.shape)
+    off = GRID.serpentine[-1]
+    moved = truth.copy()
+    moved[off.row, off.col] = 0.6  # the slide changed there since the last pass
+
+    def check(row: int, col: int, z_um: float, truth_um: float) -> bool:
+        return abs(z_um - truth_um) > SETTINGS.dof_um / 2
+
+    unchecked = replay(_rescan(truth), moved, moved)
+    checked = replay(_rescan(truth), moved, moved, frame_check=check)
+    assert not unchecked.in_focus(SETTINGS.dof_um)[off.row, off.col]
+    assert checked.in_focus(SETTINGS.dof_um).all()
+    tile_outcomes = [o for o in checked.outcomes if (o.row, o.col) == (off.row, off.col)]
+    assert len(tile_outcomes) == 2 and tile_outcomes[0].posterior_um is None
+    assert tile_outcomes[1].accepted
+    policy = SETTINGS.policy
+    assert checked.n_images - unchecked.n_images == policy.min_frames  # the stack, 1 um wide
+    # every other tile as without the check
+    others = np.ones(GRID.shape, dtype=bool)
+    others[off.row, off.col] = False
+    np.testing.assert_array_equal(
+        checked.focus_map.z_used_um[others], unchecked.focus_map.z_used_um[others]
+    )
+
+
+def test_a_frame_out_of_focus_survives_the_log() -> None:
+    from focustrack_core.domain import Measurement
+    from focustrack_estimator.records import measurement_of, measurement_record
+
+    for flagged in (True, False):
+        measurement = Measurement(z_um=None, frame_out_of_focus=flagged)
+        record = measurement_record(measurement)
+        assert ("frame_out_of_focus" in record) is flagged  # older logs read as before
+        assert measurement_of(record) == measurement

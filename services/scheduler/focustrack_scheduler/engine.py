@@ -63,6 +63,7 @@ from focustrack_scheduler.plan import (
     AcquirePhase,
     AskNext,
     AwaitFocus,
+    CompareFrame,
     CreateOrResumeSlide,
     DescribeSlide,
     Frame,
@@ -231,6 +232,7 @@ class Engine:
             AcquirePhase: self._acquire_phase,
             ReadLaser: self._read_laser,
             MatchTile: self._match_tile,
+            CompareFrame: self._compare_frame,
             Retake: self._retake,
         }
 
@@ -498,17 +500,29 @@ class Engine:
             request.stage_offset_x_um, request.stage_offset_y_um = self.placement.offset_um
         return request
 
+    def _kept_pixels(self, image: KeepTile) -> np.ndarray | None:
+        """The pixels `image` kept; None where its fetch failed."""
+        if self._kept is None:
+            return None
+        which, pixels = self._kept
+        return pixels if which == (image.row, image.col, image.sequence, image.frame) else None
+
     def _match_tile(self, step: MatchTile) -> list[tuple[int, int, float]]:
-        if self.placement is None or self._kept is None or self.placement.offset_um is not None:
+        if self.placement is None or self.placement.offset_um is not None:
             return []
         image = step.image
-        which, pixels = self._kept
-        if which != (image.row, image.col, image.sequence, image.frame):  # its fetch failed
+        if (pixels := self._kept_pixels(image)) is None:
             return []
         again = self.placement.observe(image.row, image.col, image.z_um, pixels)
         if self.placement.offset_um is not None:  # a resumed scan goes on at it
             self.record.state.save(lateral_offset_um=list(self.placement.offset_um))
         return again
+
+    def _compare_frame(self, step: CompareFrame) -> float | None:
+        image = step.image
+        if self.placement is None or (pixels := self._kept_pixels(image)) is None:
+            return None
+        return self.placement.sharpness_ratio(image.row, image.col, pixels)
 
     def _retake(self, step: Retake) -> None:
         assert self.geometry is not None  # described before any acquisition

@@ -61,6 +61,20 @@ def parabola_vertex(minus: float, centre: float, plus: float) -> float:
     return float(np.clip(0.5 * (minus - plus) / curvature, -0.5, 0.5))
 
 
+def shared_parts(
+    reference: np.ndarray, moving: np.ndarray, shift_px: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The parts of `reference` and `moving` (one 2-D shape) that show the same place, where
+    a feature at pixel p of `reference` lies at p + `shift_px` (dy, dx; whole pixels) in
+    `moving`: (reference's, moving's), of one shape."""
+    dy, dx = shift_px
+    rows, cols = reference.shape
+    return (
+        reference[max(0, -dy) : rows - max(0, dy), max(0, -dx) : cols - max(0, dx)],
+        moving[max(0, dy) : rows - max(0, -dy), max(0, dx) : cols - max(0, -dx)],
+    )
+
+
 def phase_shift(reference: np.ndarray, moving: np.ndarray, max_shift_px: float) -> Shift:
     """The shift of `moving` against `reference` (same shape, 2-D), at most `max_shift_px`
     in each axis; see the module docstring.
@@ -74,9 +88,7 @@ def phase_shift(reference: np.ndarray, moving: np.ndarray, max_shift_px: float) 
     rows, cols = reference.shape
     if min(rows - abs(iy), cols - abs(ix)) < MIN_SHARED_PX:
         return coarse
-    shared_ref = reference[max(0, -iy) : rows - max(0, iy), max(0, -ix) : cols - max(0, ix)]
-    shared_mov = moving[max(0, iy) : rows - max(0, -iy), max(0, ix) : cols - max(0, -ix)]
-    fine = _correlate(shared_ref, shared_mov, 2.0)
+    fine = _correlate(*shared_parts(reference, moving, (iy, ix)), 2.0)
     return Shift(iy + fine.dy_px, ix + fine.dx_px, coarse.sharpness)
 
 

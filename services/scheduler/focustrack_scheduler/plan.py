@@ -29,7 +29,11 @@ The loop (docs/scheduler.md):
    is `ReadLaser`, posted as the acquisition's measurement. With `ScanRequest.realign` (a
    second pass), each final image is compared with the first pass's (`MatchTile`); once
    the pass's lateral offset is known, the tiles imaged before are taken again at it
-   (`Retake`, one frame at their image's z), and every acquisition after goes there.
+   (`Retake`, one frame at their image's z), and every acquisition after goes there. A
+   tile imaged with one frame at its prediction (no measurement) is compared with the
+   first pass's image of it first (`CompareFrame`): a frame less sharp than
+   `Realign.min_sharpness_ratio` of it is posted out of focus
+   (`Measurement.frame_out_of_focus`), and the estimator then asks for a stack of the tile.
 
 With `ScanRequest.phase` (``focustrack scan --phase``), once a tile's image is final
 (`KeepTile` at the posterior), `AcquirePhase` takes a short phase stack of the tile
@@ -45,6 +49,7 @@ up to `ScanRequest.focus_attempts` times, and then the scan stops with
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 from collections.abc import Callable, Generator, Mapping
@@ -69,6 +74,7 @@ from focustrack_core.rest import to_api
 from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import keys
+from focustrack_scheduler.focus_check import out_of_focus
 from focustrack_scheduler.realign import Realign
 
 #: Wire sequence numbers of phase stacks start here (plus the tile's row-major index), far
@@ -259,6 +265,15 @@ class MatchTile:
 
 
 @dataclass(frozen=True)
+class CompareFrame:
+    """-> the sharpness of the tile's frame kept by `image` over the first pass's image of
+    the tile (`realign.LateralPlacement.sharpness_ratio`), None where it cannot be
+    compared."""
+
+    image: KeepTile
+
+
+@dataclass(frozen=True)
 class Retake:
     """-> None. One frame of tile (row, col) of `slide` at `z_um`, at the pass's lateral
     offset, under wire sequence `sequence`: it becomes the tile's image."""
@@ -282,6 +297,7 @@ Step = (
     | AcquirePhase
     | ReadLaser
     | MatchTile
+    | CompareFrame
     | Retake
 )
 Plan = Generator[Step, Any, str]
@@ -414,7 +430,13 @@ def scan_plan(request: ScanRequest) -> Plan:
         # Keep an image before posting: a scheduler killed right after the post (the
         # estimator has moved on) still leaves this tile with its best guess.
         kept = nearest_frame(frames, _best_guess_um(acquisition, measurement))
-        yield KeepTile(acquisition.row, acquisition.col, kept.sequence, kept.index, kept.z_um)
+        keep = KeepTile(acquisition.row, acquisition.col, kept.sequence, kept.index, kept.z_um)
+        yield keep
+        if _checked(request, acquisition):
+            ratio = yield CompareFrame(keep)
+            assert request.realign is not None  # _checked
+            if ratio is not None and out_of_focus(ratio, request.realign.min_sharpness_ratio):
+                measurement = dataclasses.replace(measurement, frame_out_of_focus=True)
         outcome: Outcome = yield PostMeasurement(slide_id, acquisition, measurement)
         if outcome.posterior_um is not None and math.isfinite(outcome.posterior_um):
             # The tile's estimate is final: its image is the frame nearest it (the frame
@@ -451,6 +473,17 @@ def scan_plan(request: ScanRequest) -> Plan:
                     PHASE_SEQUENCE_BASE + tile_index,
                 )
     return slide_id
+
+
+def _checked(request: ScanRequest, acquisition: Acquisition) -> bool:
+    """Whether `acquisition`'s frame is compared with the first pass's image: a tile imaged
+    once at its prediction, on a second pass that checks (`focus_check`)."""
+    return (
+        request.realign is not None
+        and request.realign.min_sharpness_ratio > 0
+        and not acquisition.measure
+        and acquisition.purpose is Purpose.SCAN
+    )
 
 
 def _best_guess_um(acquisition: Acquisition, measurement: Measurement) -> float:

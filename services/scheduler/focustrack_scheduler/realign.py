@@ -9,6 +9,9 @@ as it is kept); once `Realign.tiles` of them are confident, their median
 (`lateral.combined`) is the offset, and every later acquisition asks the instrument
 to move the stage by it (the AcquireRequest's ``stage_offset_x_um``/``_y_um``), and the
 tiles imaged before are taken again there, one frame at their image's z (`Retake`).
+A tile imaged with one frame at its prediction is compared with the first pass's image of
+it (`LateralPlacement.sharpness_ratio`, `focus_check`): a frame found out of focus is
+measured.
 
 Sign: a feature that lay at image pixel p in the first pass lies at p + s in the second
 (s = (dy, dx) px, `lateral.Shift`): the slide moved by s on the stage, so the stage goes
@@ -25,7 +28,8 @@ from typing import Any
 import numpy as np
 
 from focustrack_core.geometry import ScanGrid
-from focustrack_scheduler.lateral import Shift, combined, grey, phase_shift
+from focustrack_scheduler.focus_check import MIN_SHARPNESS_RATIO, sharpness_ratio
+from focustrack_scheduler.lateral import MIN_SHARPNESS, Shift, combined, grey, phase_shift
 from focustrack_scheduler.outputs import MOSAIC_ZARR, ZARR_ATTRS
 
 log = logging.getLogger(__name__)
@@ -37,17 +41,25 @@ Tile = tuple[int, int]
 @dataclass(frozen=True)
 class Realign:
     """Place a second pass's tiles where the first pass's were: the first pass's output
-    folder, how many confident tiles make the offset, and the farthest it may be, um."""
+    folder, how many confident tiles make the offset, and the farthest it may be, um; and
+    the sharpness (over the first pass's image) below which a tile's one frame taken at its
+    prediction is out of focus (`focus_check`; 0: no check)."""
 
     first_pass: Path
     tiles: int = 4
     max_offset_um: float = 10.0
+    min_sharpness_ratio: float = MIN_SHARPNESS_RATIO
 
     def __post_init__(self) -> None:
         if self.tiles < 1 or not self.max_offset_um > 0:
             raise ValueError(
                 f"realign needs at least one tile and a positive bound, got {self.tiles} "
                 f"and {self.max_offset_um} um"
+            )
+        if not 0.0 <= self.min_sharpness_ratio < 1.0:
+            raise ValueError(
+                f"the sharpness ratio of a frame in focus lies in [0, 1), got "
+                f"{self.min_sharpness_ratio}"
             )
 
 
@@ -127,6 +139,30 @@ class LateralPlacement:
         self.offset_um = offset_um
         self._shifts: list[Shift] = []  # of the tiles compared so far
         self._before: dict[Tile, float] = {}  # tiles imaged without the offset -> their z, um
+
+    def sharpness_ratio(self, row: int, col: int, image: np.ndarray) -> float | None:
+        """The sharpness of tile (row, col)'s frame `image` (height, width[, channels]) over
+        the first pass's image of the tile, on the part both show (`focus_check`); None
+        where the first pass's mosaic does not hold the tile, or its place is unknown.
+
+        Once the pass's offset is known the stage went there: the frame shows the first
+        pass's place. Before, the tile's own phase correlation places it (None where its
+        peak is not confident)."""
+        reference = self.first.tile(row, col)
+        if reference is None or reference.shape != image.shape[:2]:
+            return None
+        frame = grey(image)
+        shift_px = (0, 0)
+        if self.offset_um is None:
+            max_shift_px = self.settings.max_offset_um / self.first.pixel_um
+            shift = phase_shift(reference, frame, max_shift_px)
+            if shift.sharpness < MIN_SHARPNESS:
+                return None
+            shift_px = (round(shift.dy_px), round(shift.dx_px))
+        try:
+            return sharpness_ratio(frame, reference, shift_px)
+        except ValueError:  # too little of the tile shared to compare
+            return None
 
     def observe(
         self, row: int, col: int, z_um: float, image: np.ndarray

@@ -86,6 +86,8 @@ class ScanRecord:
                 "posterior_sigma_um": finite_or_none(outcome.posterior_sigma_um),
                 "curve_z_um": None if curve is None else curve[0],
                 "curve_scores": None if curve is None else curve[1],
+                # where the first-frame check found the tile's one frame out of focus
+                **({"frame_out_of_focus": True} if measurement.frame_out_of_focus else {}),
             }
         )
 

@@ -212,6 +212,14 @@ class ScanSettings(ZenohSettings, ScanOptions, MetricsPortSettings, TracingSetti
     lateral_max_um: float = Field(
         _REALIGN.max_offset_um, gt=0, description="with --first-pass: the largest offset, um"
     )
+    frame_check_ratio: float = Field(
+        _REALIGN.min_sharpness_ratio,
+        ge=0,
+        lt=1,
+        description="with --first-pass: a tile imaged with one frame at its prediction is "
+        "measured where that frame's sharpness is below this share of the first pass's image "
+        "of the tile (0: no check; docs/drift.md)",
+    )
     live_port: int | None = Field(
         None,
         ge=0,
@@ -269,5 +277,7 @@ class ScanSettings(ZenohSettings, ScanOptions, MetricsPortSettings, TracingSetti
         request = self.request(self.instrument, self.slide, self.strategy, self.params)
         if self.first_pass is None:
             return request
-        realign = Realign(self.first_pass, self.lateral_tiles, self.lateral_max_um)
+        realign = Realign(
+            self.first_pass, self.lateral_tiles, self.lateral_max_um, self.frame_check_ratio
+        )
         return dataclasses.replace(request, realign=realign)

@@ -37,6 +37,7 @@ OPTIONS = {
     "first_pass": None,
     "lateral_tiles": 4,
     "lateral_max_um": 10.0,
+    "frame_check_ratio": 0.94,
     "start_z_um": 0.0,
     "start_sigma_um": 10.0,
     "noise_sigma_um": 0.1,

@@ -27,6 +27,7 @@ from focustrack_scheduler.plan import (
     AcquirePhase,
     AskNext,
     AwaitFocus,
+    CompareFrame,
     CreateOrResumeSlide,
     DescribeSlide,
     FocusUnavailableError,
@@ -500,3 +501,59 @@ def test_a_second_pass_matches_each_final_image_and_retakes_the_tiles_before_the
     assert all(r.sequence == RETAKE_SEQUENCE_BASE + r.row * grid.cols + r.col for r in retaken)
     plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset()).answer(geometry))
     assert plain == [s for s in steps if not isinstance(s, MatchTile | Retake)]
+
+
+@pytest.mark.parametrize(
+    ("ratio", "min_ratio", "flagged"),
+    [(0.7, 0.9, True), (0.95, 0.9, False), (None, 0.9, False), (0.7, 0.0, False)],
+)
+def test_a_second_pass_compares_a_tiles_one_frame_and_posts_it_out_of_focus(
+    ratio: float | None, min_ratio: float, flagged: bool
+) -> None:
+    """With `realign`, a tile imaged once at its prediction (no measurement) is compared with
+    the first pass's image after its frame is kept and before it is posted: a sharpness
+    ratio below `min_sharpness_ratio` posts it `frame_out_of_focus` (none compared: as it
+    was; a ratio of 0 compares nothing). A measured stack is never compared."""
+    single = acquisition(3, 1, 1, low_um=0.25, n=1, measure=False)
+    stack = acquisition(4, 1, 1, low_um=-0.75)
+    nexts = iter([single, stack, None])
+    posted: list[Measurement] = []
+    compared: list[CompareFrame] = []
+
+    def answer(step: Step) -> Any:
+        match step:
+            case DescribeSlide():
+                return GEOMETRY
+            case CreateOrResumeSlide():
+                return "slide-id"
+            case AskNext():
+                return next(nexts)
+            case Acquire():
+                return tuple(step.acquisition.z.z_um())
+            case AwaitFocus():
+                return focus(step.acquisition, 0.3)
+            case CompareFrame():
+                compared.append(step)
+                return ratio
+            case PostMeasurement():
+                posted.append(step.measurement)
+                if not step.acquisition.measure:
+                    return Outcome(1, 1, accepted=False, posterior_um=None)
+                return Outcome(1, 1, accepted=True, posterior_um=0.3)
+            case MatchTile():
+                return []
+
+    realign = Realign(Path("first-pass"), min_sharpness_ratio=min_ratio)
+    steps, _ = drive(replace(REQUEST, realign=realign), answer)
+    assert compared == ([] if min_ratio == 0 else [CompareFrame(KeepTile(1, 1, 3, 0, 0.25))])
+    if compared:  # after its frame is kept, before it is posted
+        at = steps.index(compared[0])
+        assert steps[at - 1] == compared[0].image and isinstance(steps[at + 1], PostMeasurement)
+    assert posted == [Measurement(z_um=None, frame_out_of_focus=flagged), measurement_of(
+        focus(stack, 0.3)
+    )]  # fmt: skip
+
+
+def test_a_sharpness_ratio_is_a_share_below_one() -> None:
+    with pytest.raises(ValueError, match="sharpness ratio"):
+        Realign(Path("first-pass"), min_sharpness_ratio=1.0)
