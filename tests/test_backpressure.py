@@ -22,7 +22,7 @@ from focustrack_core.v1 import common_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.session import loopback_endpoint, open_session
 from focustrack_scheduler.clients import InstrumentClient
-from focustrack_scheduler.engine import RetryPolicy, instrument_retryable
+from focustrack_scheduler.retry import RetryPolicy, instrument_retryable
 
 pytestmark = pytest.mark.slow  # the instrument in its own process
 

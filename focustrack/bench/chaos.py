@@ -69,7 +69,7 @@ from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import open_session
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
-from focustrack_scheduler.engine import RetryPolicy
+from focustrack_scheduler.retry import RetryPolicy
 from focustrack_scheduler.scan import SCAN_ERRORS, ScanJob, run_scan
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 

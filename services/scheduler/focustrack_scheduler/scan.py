@@ -32,7 +32,6 @@ from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_scheduler.clients import InstrumentClient, SlideListener, truth_empty
 from focustrack_scheduler.engine import (
     Engine,
-    RetryPolicy,
     ScanProgress,
     ScanRefusedError,
     ServiceUnavailableError,
@@ -42,6 +41,7 @@ from focustrack_scheduler.live import LiveScan
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.plan import FocusUnavailableError, ScanRequest, SlideGeometry, scan_plan
 from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.retry import RetryPolicy
 from focustrack_scheduler.settings import ScanOptions, ScanSettings
 from focustrack_scheduler.telemetry import ScanMetrics
 from focustrack_scheduler.writers import DEFAULT_WRITERS

@@ -6,7 +6,7 @@ the result key);
 `ScanSettings`, the `focustrack scan` command's, adds what to scan, where the estimator
 and the bus are, and where the outputs go. Each default is written once: the prior's and
 the z-stacks' are the estimator API's (`focustrack_client.models`), the timeouts are
-`engine.RetryPolicy`'s, and the others are here; `ScanOptions.request` and `retry` hand them
+`retry.RetryPolicy`'s, and the others are here; `ScanOptions.request` and `retry` hand them
 to the scan's own objects.
 """
 
@@ -29,10 +29,10 @@ from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.settings import ServiceSettings
 from focustrack_core.tracing import TracingSettings
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
-from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.plan import PhaseStacks, ScanRequest
 from focustrack_scheduler.realign import Realign
+from focustrack_scheduler.retry import RetryPolicy
 
 #: The best Kalman strategy we have, the demo's headline. kf-2d has the lowest prior MAE at
 #: the simulator's focus noise (0.146 um against 0.284 for kf-wiener0 and 0.254 for kf-mmae,

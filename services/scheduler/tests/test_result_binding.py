@@ -22,9 +22,10 @@ from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys, rpc, session
 from focustrack_core.wire.trust import NONCE_BYTES, ResultSigner
 from focustrack_scheduler.clients import InstrumentClient, SlideListener, refusal
-from focustrack_scheduler.engine import Engine, RetryPolicy, ScanRefusedError
+from focustrack_scheduler.engine import Engine, ScanRefusedError
 from focustrack_scheduler.plan import Acquire, AwaitFocus, Plan
 from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.retry import RetryPolicy
 
 SLIDE = "s1"
 RESULT_KEY = ResultSigner(b"r" * 32)

@@ -6,7 +6,7 @@ import pytest
 
 from focustrack_core.v1 import common_pb2
 from focustrack_core.wire import rpc
-from focustrack_scheduler.engine import RetryPolicy, instrument_retryable
+from focustrack_scheduler.retry import RetryPolicy, instrument_retryable
 
 
 def remote(code: int) -> rpc.RemoteError:

@@ -12,9 +12,9 @@ import pytest
 from focustrack_client import models as api
 from focustrack_core.settings import parse
 from focustrack_scheduler import scan
-from focustrack_scheduler.engine import RetryPolicy
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.realign import Realign
+from focustrack_scheduler.retry import RetryPolicy
 from focustrack_scheduler.settings import BEST_KALMAN, TOKEN_ENV, ScanOptions, ScanSettings
 
 #: Every option of `focustrack scan` (flag -> default): those before its settings model,

@@ -13,10 +13,10 @@ from focustrack_core.domain import Acquisition, Measurement, Outcome, Purpose, Z
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.v1 import common_pb2
 from focustrack_core.wire import rpc
-from focustrack_scheduler.engine import RetryPolicy, instrument_retryable
 from focustrack_scheduler.live_view import LiveServer
 from focustrack_scheduler.plan import Acquire, AskNext, KeepTile, PostMeasurement
 from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.retry import RetryPolicy, instrument_retryable
 from focustrack_scheduler.telemetry import ScanMetrics, TileSpans
 
 GRID = ScanGrid(2, 2)
