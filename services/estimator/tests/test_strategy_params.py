@@ -27,7 +27,12 @@ SETTINGS = default_settings(ScanGrid(4, 5))
 
 # The product's contract: every served strategy's parameters with their defaults.
 RETRIES = {"max_retries": 3}
-LEAN = {"risk_out_of_focus": 0.0, "skip_sigma_scale": 1.0, "coarse_step_um": 4.0}
+LEAN = {
+    "risk_out_of_focus": 0.0,
+    "skip_sigma_scale": 1.0,
+    "coarse_step_um": 4.0,
+    "short_frames": 3,
+}
 LOOP = {
     **RETRIES,
     **LEAN,

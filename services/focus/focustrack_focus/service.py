@@ -259,7 +259,11 @@ class FrameAnalyser:
                 )
                 under_way = None
             curve = (
-                FrameByFrame(np.asarray(header.z_um), settings_for(header, self.base, self.na))
+                FrameByFrame(
+                    np.asarray(header.z_um),
+                    settings_for(header, self.base, self.na),
+                    pairs=self._curve(tile.slide).ready,  # a pair is read with the slide's curve
+                )
                 if under_way is None
                 else under_way
             )
