@@ -4,12 +4,14 @@ Starts a Zenoh router in this process and the instrument, focus and estimator
 services as separate processes (`python -m focustrack serve ...`) on free ports,
 waits until each answers, then scans the same simulated slide (with `--tissue-slide`,
 a virtual slide: one tissue section with empty glass, holes, a fold, tilt and coverslip
-dust, cut into tiles that overlap by `--overlap`) once per strategy
-(the best Kalman filter, the same with the lean risk rule, Delaunay focus-map
-surveying and autofocus on every tile by default; then a second pass of kf-rescan
-with the lean scan's map after the slide's focus moved by 12 um) and prints, per
-strategy, images per tile, simulated scan time, in-focus fraction and MAE against
-the instrument's truth, and where the wall time went. While it scans it serves the
+dust, cut into tiles that overlap by `--overlap`; `make demo` scans it) once per strategy
+(the best Kalman filter, the same with the lean risk rule measuring with pairs of
+frames, kf-2d-laser reading the instrument's laser autofocus on every tile, Delaunay
+focus-map surveying and autofocus on every tile by default; then a second pass of
+kf-rescan with the lean scan's map after the slide's focus moved by 12 um) and prints,
+per strategy, images per tile, simulated scan time, in-focus fraction and MAE against
+the instrument's truth (on a virtual slide, the tissue tiles in focus too), and where
+the wall time went. While it scans it serves the
 live web view of the scan and prints its address; at the end it saves a screenshot
 of it (live_view.png, where chromium is installed), and each scan's mosaic is an
 OME-Zarr (`--mosaic-format ome-tiff` for the OME-TIFF). A service that dies is

@@ -155,10 +155,23 @@ def focus_from_curve(
             # a top broader than the slide's: two layers (a fold), the vertex between them
             layers_um = layers_sigma_um(curve.top_widths_um, z, s, fit.z_um)
             fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
+    return _answer(z, s, fit, settings, started_s, prior)
+
+
+def _answer(
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    fit: PeakFit,
+    settings: FocusSettings,
+    started_s: float,
+    prior: Prior | None,
+) -> FocusResult:
+    """The result of a curve (z (n,) ascending, scores (n,)) read as `fit`, with the
+    posterior where there is a `prior`; its compute time counts from `started_s`."""
     posterior = fit.posterior(prior) if prior is not None else None
     return FocusResult(
-        z_um=z,
-        scores=s,
+        z_um=z_um,
+        scores=scores,
         best_z_um=fit.z_um,
         sigma_um=fit.sigma_um,
         flags=fit.flags,
@@ -203,19 +216,7 @@ def pair_result(
     else:
         higher = int(np.argmax(s))
         fit = PeakFit(float(z[higher]), None, frozenset({_PAIR_EDGES[higher]}))
-    posterior = fit.posterior(prior) if prior is not None else None
-    return FocusResult(
-        z_um=z,
-        scores=s,
-        best_z_um=fit.z_um,
-        sigma_um=fit.sigma_um,
-        flags=fit.flags,
-        metric=settings.metric,
-        compute_time_s=time.perf_counter() - started_s,
-        chosen_probability=fit.chosen_probability,
-        posterior_z_um=None if posterior is None else posterior[0],
-        posterior_sigma_um=None if posterior is None else posterior[1],
-    )
+    return _answer(z, s, fit, settings, started_s, prior)
 
 
 #: The edge a pair without the slide's curve points to: towards its higher frame.
