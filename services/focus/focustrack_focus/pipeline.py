@@ -194,6 +194,10 @@ def check_z(z_um: np.ndarray, *, pairs: bool = False) -> None:
     validate_curve(z_um, np.zeros_like(z_um))
 
 
+#: The edge a pair without the slide's curve points to: towards its higher frame.
+_PAIR_EDGES = (FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH)
+
+
 def pair_result(
     z_um: np.ndarray,
     scores: np.ndarray,
@@ -217,10 +221,6 @@ def pair_result(
         higher = int(np.argmax(s))
         fit = PeakFit(float(z[higher]), None, frozenset({_PAIR_EDGES[higher]}))
     return _answer(z, s, fit, settings, started_s, prior)
-
-
-#: The edge a pair without the slide's curve points to: towards its higher frame.
-_PAIR_EDGES = (FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH)
 
 
 def look_result(
