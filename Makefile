@@ -23,7 +23,7 @@ $(STAMP): $(MANIFESTS)
 
 ## The main job: a demo scan of a simulated slide.
 demo: $(STAMP)
-	$(BIN)/focustrack demo --out out/demo --json out/demo/demo.json
+	$(BIN)/focustrack demo --tissue-slide --out out/demo --json out/demo/demo.json
 
 # One pytest worker per core; a test file's tests stay on one worker (they share fixtures).
 PYTEST := $(BIN)/pytest -n auto --dist loadfile

@@ -4,12 +4,14 @@ Starts a Zenoh router in this process and the instrument, focus and estimator
 services as separate processes (`python -m focustrack serve ...`) on free ports,
 waits until each answers, then scans the same simulated slide (with `--tissue-slide`,
 a virtual slide: one tissue section with empty glass, holes, a fold, tilt and coverslip
-dust, cut into tiles that overlap by `--overlap`) once per strategy
-(the best Kalman filter, the same with the lean risk rule, Delaunay focus-map
-surveying and autofocus on every tile by default; then a second pass of kf-rescan
-with the lean scan's map after the slide's focus moved by 12 um) and prints, per
-strategy, images per tile, simulated scan time, in-focus fraction and MAE against
-the instrument's truth, and where the wall time went. While it scans it serves the
+dust, cut into tiles that overlap by `--overlap`; `make demo` scans it) once per strategy
+(the best Kalman filter, the same with the lean risk rule measuring with pairs of
+frames, kf-2d-laser reading the instrument's laser autofocus on every tile, Delaunay
+focus-map surveying and autofocus on every tile by default; then a second pass of
+kf-rescan with the lean scan's map after the slide's focus moved by 12 um) and prints,
+per strategy, images per tile, simulated scan time, in-focus fraction and MAE against
+the instrument's truth (on a virtual slide, the tissue tiles in focus too), and where
+the wall time went. While it scans it serves the
 live web view of the scan and prints its address; at the end it saves a screenshot
 of it (live_view.png, where chromium is installed), and each scan's mosaic is an
 OME-Zarr (`--mosaic-format ome-tiff` for the OME-TIFF). A service that dies is
@@ -85,7 +87,15 @@ log = logging.getLogger(__name__)
 #: The screenshot of the live view the demo leaves in its output folder.
 LIVE_VIEW_PNG = "live_view.png"
 LEAN = "kf-2d-lean"
-DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, "survey-delaunay", "af-every-tile")
+#: The reflection autofocus (the instrument's laser sensor reads the coverslip on each tile).
+LASER = "kf-2d-laser"
+DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, LASER, "survey-delaunay", "af-every-tile")
+#: The demo's lean scan measures a tile with a pair of frames where the rule takes a short
+#: stack (`short_frames` 2: the focus service reads the pair with the slide's learnt curve),
+#: and images a tile without measuring it only where its prediction is sure with a sigma
+#: 1.5 times the filter's (`skip_sigma_scale`: on the tissue slide kf-2d's prior errors
+#: spread 1.4 times its sigma, docs/benchmarks.md).
+STRATEGY_PARAMS: dict[str, dict[str, Any]] = {LEAN: {"short_frames": 2, "skip_sigma_scale": 1.5}}
 #: The second pass: kf-rescan with the first pass's map, after the slide's focus moved by
 #: RESCAN_OFFSET_UM (10 minutes of drift at 0.02 um/s).
 RESCAN = "kf-rescan"
@@ -372,27 +382,48 @@ class LocalStack:
 def comparison_table(reports: dict[str, dict[str, Any]], limit_s: float) -> str:
     """Images per tile, simulated scan time (also over `limit_s`, the physical limit: stage
     moves and one frame per tile), in-focus fraction (and as the estimator predicted it) and
-    MAE of each strategy."""
+    MAE of each strategy; on a virtual slide (reports with `tissue_tiles`), the tissue tiles
+    in focus too (`tissue_scores`)."""
 
     def number(value: float | None, form: str) -> str:
         return "n/a" if value is None else format(value, form)
 
+    tissue = any("tissue_tiles" in report for report in reports.values())
     header = (
         f"{'strategy':<18}{'images/tile':>12}{'scan time s':>13}{'/ limit':>9}{'in focus':>10}"
-        f"{'predicted':>11}{'MAE um':>9}"
+        f"{'predicted':>11}{'MAE um':>9}" + (f"{'tissue':>9}" if tissue else "")
     )
     lines = [header, "-" * len(header)]
     for name, report in reports.items():
+        tissue_cell = (
+            f"{report['tissue_in_focus']}/{report['tissue_tiles']}"
+            if "tissue_tiles" in report
+            else "n/a"
+        )
         lines.append(
             f"{name:<18}{report['images_per_tile']:>12.2f}{report['scan_time_s']:>13.1f}"
             f"{report['scan_time_s'] / limit_s:>9.2f}"
             f"{number(report['in_focus_fraction'], '.1%'):>10}"
             f"{number(report['predicted_in_focus_fraction'], '.1%'):>11}"
-            f"{number(report['mae_um'], '.3f'):>9}"
+            f"{number(report['mae_um'], '.3f'):>9}" + (f"{tissue_cell:>9}" if tissue else "")
         )
     lines.append(f"physical limit (stage moves and one frame per tile): {limit_s:.1f} s")
     lines.append("predicted: in focus as the estimator expected (1 - the mean out-of-focus risk)")
+    if tissue:
+        lines.append(
+            "tissue: tissue tiles (not empty glass) with a kept frame within half the depth of "
+            "field of the section or a fold's upper layer, by the instrument's truth"
+        )
     return "\n".join(lines)
+
+
+def tissue_scores(stack: LocalStack, scan_dir: Path, report: dict[str, Any]) -> dict[str, int]:
+    """The tissue tiles in focus of the scan of the stack's virtual slide in `scan_dir` (its
+    `report`), and how many there are: `focustrack bench slide`'s scoring."""
+    from focustrack.bench.slide import scored_scan  # that module imports this one
+
+    part = scored_scan(stack, scan_dir, report)
+    return {"tissue_in_focus": part["tissue_in_focus"], "tissue_tiles": part["tissue_tiles"]}
 
 
 def wall_time_table(reports: dict[str, dict[str, Any]]) -> str:
@@ -629,7 +660,7 @@ def run(args: argparse.Namespace) -> int:
     instrument_args = [
         "--seed", str(args.seed), "--family", args.family, "--slides", "1",
         "--rows", str(args.rows), "--cols", str(args.cols),
-        "--width", str(args.size), "--height", str(args.size),
+        "--width", str(args.size), "--height", str(args.size), "--laser",
     ]  # fmt: skip
     if args.tissue_slide:
         instrument_args += ["--tissue-slide", "--overlap", str(args.overlap)]
@@ -667,8 +698,11 @@ def run(args: argparse.Namespace) -> int:
             for name in names:
                 scan_dir = out_dir / name
                 _clear(scan_dir)
-                request = strategies_options.request(INSTRUMENT, SLIDE, name)
+                params = STRATEGY_PARAMS.get(name)
+                request = strategies_options.request(INSTRUMENT, SLIDE, name, params)
                 reports[name] = scan_on(stack, options, request, scan_dir, name, live)
+                if args.tissue_slide:
+                    reports[name] |= tissue_scores(stack, scan_dir, reports[name])
             if not args.no_rescan:
                 first = LEAN if LEAN in reports else names[0]
                 print(
@@ -679,6 +713,10 @@ def run(args: argparse.Namespace) -> int:
                 reports[SECOND_PASS] = second_pass(
                     stack, args, strategies_options, out_dir, first, live
                 )
+                if args.tissue_slide:
+                    reports[SECOND_PASS] |= tissue_scores(
+                        stack, out_dir / RESCAN, reports[SECOND_PASS]
+                    )
             if options.phase:
                 print(
                     f"phase pass: a {PHASE_PASS_TILES}x{PHASE_PASS_TILES} slide of unstained red "
@@ -718,10 +756,13 @@ def run(args: argparse.Namespace) -> int:
             "in_focus_fraction",
             "predicted_in_focus_fraction",
             "mae_um",
+            "tissue_in_focus",  # on a virtual slide
+            "tissue_tiles",
         )
         summary = {
             "strategies": {
-                name: {key: report[key] for key in keys} for name, report in reports.items()
+                name: {key: report[key] for key in keys if key in report}
+                for name, report in reports.items()
             },
             "wall_time_s": {name: report["wall_time_s"] for name, report in reports.items()},
         }

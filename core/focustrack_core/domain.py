@@ -65,6 +65,13 @@ NOT_AN_OBSERVATION = frozenset(
 )
 
 
+#: How far beyond its frames a pair (two frames one z step apart, a lean scan's short stack
+#: with `short_frames` 2) places a peak: the focus service reads it from their scores' ratio
+#: with the slide's learnt curve (`focustrack_focus.pair`), as far as the ratio stays
+#: one-to-one (about a curve's half width: 1.75-3 um for the metrics' curves), in um.
+PAIR_REACH_UM = 1.0
+
+
 class Purpose(StrEnum):
     SCAN = "scan"  # image the tile (and measure its focus where the strategy asks)
     SURVEY = "survey"  # a survey point of a focus-map strategy, before the scan

@@ -176,9 +176,16 @@ def scan_slide(
 ) -> dict[str, Any]:
     """Scan the stack's slide with `strategy` (`look_first` where it takes it); the part of
     `combine` it makes."""
-    assert stack.session is not None
     request = options.request(INSTRUMENT, SLIDE, strategy, look_first_params(strategy, look_first))
     report = scan_on(stack, options, request, scan_dir, strategy, None)
+    return scored_scan(stack, scan_dir, report)
+
+
+def scored_scan(stack: LocalStack, scan_dir: Path, report: dict[str, Any]) -> dict[str, Any]:
+    """The part of `combine` of the scan in `scan_dir` (its `report`), scored against the
+    stack's instrument's truth of its virtual slide (ValueError for a slide of separate
+    fields: no contents per tile)."""
+    assert stack.session is not None
     truth = rpc.call(
         stack.session,
         keys.truth_key(INSTRUMENT, SLIDE),

@@ -50,10 +50,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from focustrack_core.domain import ZRange, ZRangePolicy
+from focustrack_core.domain import PAIR_REACH_UM, ZRange, ZRangePolicy
 
 #: Frames of a short stack: the fewest that locate a peak of known shape (curve_model).
 SHORT_FRAMES = 3
+#: Frames of a pair, the short stack with `short_frames` 2: its scores' ratio places the peak
+#: up to PAIR_REACH_UM beyond them, with the slide's learnt curve (`focustrack_focus.pair`).
+PAIR_FRAMES = 2
 
 #: z step of the coarse search, um: at most the focus curve's full width at half maximum,
 #: so that one frame always lies above half the peak. The simulator's gradient metrics are
@@ -104,13 +107,17 @@ def choose_stack(
     risk: float,
     skip_sigma_scale: float,
     max_retries: int,
+    short_frames: int = SHORT_FRAMES,
 ) -> StackChoice:
     """The acquisition of a tile predicted at N(mean_um, var_um2); see the module docstring.
 
     `r_um2`: the variance expected of a measurement (the recent measurements' R);
     `risk`: the out-of-focus probability allowed for a tile, in (0, 1);
     `skip_sigma_scale`: how much wider than the filter's the sigma of a skipped tile is;
-    `max_retries`: the retries a search may take after its first stack (`PeakSearch`).
+    `max_retries`: the retries a search may take after its first stack (`PeakSearch`);
+    `short_frames`: frames of the short stack, SHORT_FRAMES or PAIR_FRAMES (a pair reads
+    peaks up to PAIR_REACH_UM beyond its frames, one more frame imaging them there:
+    `frame_at_peak`).
     """
     if not 0.0 < risk < 1.0:
         raise ValueError(f"risk must lie in (0, 1), got {risk}")
@@ -120,11 +127,12 @@ def choose_stack(
         return StackChoice(ZRangePolicy.single(mean_um, policy.z_step_um), False, if_skipped, 1.0)
     innovation_sigma_um = math.sqrt(max(var_um2, 0.0) + r_um2)
     full = policy.around(mean_um, innovation_sigma_um)
-    short = ZRange.centred(mean_um, SHORT_FRAMES, policy.z_step_um)
+    short = ZRange.centred(mean_um, short_frames, policy.z_step_um)
     options = [
         (frames, z)
         for z in (short, full)
-        if (frames := search_cost(z, innovation_sigma_um, policy, max_retries, risk)) is not None
+        if (frames := search_cost(z, innovation_sigma_um, policy, max_retries, risk, dof_um))
+        is not None
     ]
     frames, z = min(options, key=lambda option: option[0], default=(math.nan, full))
     return StackChoice(z, True, if_skipped, frames)
@@ -150,7 +158,12 @@ def coarse_stack(
 
 
 def search_cost(
-    z: ZRange, innovation_sigma_um: float, policy: ZRangePolicy, max_retries: int, risk: float
+    z: ZRange,
+    innovation_sigma_um: float,
+    policy: ZRangePolicy,
+    max_retries: int,
+    risk: float,
+    dof_um: float = 0.0,
 ) -> float | None:
     """Expected frames of a search that starts with `z`, None where it may end without a peak.
 
@@ -159,11 +172,16 @@ def search_cost(
     `min_frames`, each reaching (n - 2) z steps further); the k-th is taken when
     |y| lies beyond what the first stack and k - 1 retries reached. A start whose
     `max_retries` retries still miss the peak with a probability above `risk` (the
-    tile is then given up, likely out of focus) is not an option.
+    tile is then given up, likely out of focus) is not an option. A pair (PAIR_FRAMES)
+    reaches PAIR_REACH_UM beyond its frames, and takes one more frame where the peak
+    lies beyond their depth of field (`dof_um`) there (`frame_at_peak`).
     """
     n_retry = max(z.n_frames, policy.min_frames)
     reach_um = (z.high_um - z.low_um) / 2.0
     frames = float(z.n_frames)
+    if z.n_frames == PAIR_FRAMES:
+        frames += 2.0 * float(ndtr(-(reach_um + dof_um / 2.0) / innovation_sigma_um))
+        reach_um += PAIR_REACH_UM
     for _ in range(max_retries):
         p_miss = 2.0 * float(ndtr(-reach_um / innovation_sigma_um))
         frames += p_miss * n_retry
@@ -171,6 +189,17 @@ def search_cost(
     if 2.0 * float(ndtr(-reach_um / innovation_sigma_um)) > risk:
         return None
     return frames
+
+
+def frame_at_peak(
+    mean_um: float, sigma_um: float, dof_um: float, z_step_um: float, risk: float
+) -> ZRange | None:
+    """One frame at the posterior N(mean_um, sigma_um^2) of a tile whose frames do not hold
+    its peak (a pair reads it up to PAIR_REACH_UM beyond them), where that frame alone is
+    in focus within `risk`; None where it is not (the tile keeps planes instead)."""
+    if float(out_of_focus_risk(mean_um, sigma_um, mean_um, dof_um)) > risk:
+        return None
+    return ZRangePolicy.single(mean_um, z_step_um)
 
 
 def planes_risk(

@@ -71,9 +71,11 @@ from focustrack_core.domain import (
 from focustrack_core.geometry import Tile
 from focustrack_estimator.lean import (
     COARSE_STEP_UM,
+    PAIR_FRAMES,
     SHORT_FRAMES,
     choose_stack,
     coarse_stack,
+    frame_at_peak,
     kept_planes,
     planes_risk,
     planes_stack,
@@ -157,6 +159,17 @@ LookFirst = Annotated[
         "one frame (`look_first.first_part`)",
     ),
 ]
+ShortFrames = Annotated[
+    int,
+    Field(
+        ge=PAIR_FRAMES,
+        le=SHORT_FRAMES,
+        description="Frames of the lean rule's short stack: 3 (the focus service reads a peak "
+        "between the outer two), or 2 one z step apart, a pair, whose scores' ratio the focus "
+        "service reads with the slide's learnt curve up to PAIR_REACH_UM beyond them (a peak "
+        "beyond the frames is then imaged by one more frame there: docs/lean.md)",
+    ),
+]
 MaxKeptPlanes = Annotated[
     int,
     Field(
@@ -205,6 +218,7 @@ class LeanParams(RetryParams):
     coarse_step_um: CoarseStepUm = COARSE_STEP_UM
     max_kept_planes: MaxKeptPlanes = 1
     look_first: LookFirst = False
+    short_frames: ShortFrames = SHORT_FRAMES
 
 
 class FilterParams(LeanParams):
@@ -245,6 +259,12 @@ def in_glass(empty: np.ndarray, scanned: np.ndarray, tile: Tile) -> bool:
     )
     found_empty = int(empty[window].sum())
     return found_empty >= 1 and found_empty >= GLASS_SHARE * int(scanned[window].sum())
+
+
+def is_pair(acquisition: Acquisition) -> bool:
+    """Whether `acquisition` is a pair (two measured frames: the lean rule's short stack with
+    `short_frames` 2)."""
+    return acquisition.measure and acquisition.z.n_frames == PAIR_FRAMES
 
 
 def is_look(acquisition: Acquisition) -> bool:
@@ -367,6 +387,7 @@ class SerpentineFilter(Strategy):
             risk,
             self.options.skip_sigma_scale,
             self.options.max_retries,
+            self.options.short_frames,
         )
         self._skip_risk = choice.skip_risk
         return choice.z, choice.measure
@@ -438,6 +459,18 @@ class SerpentineFilter(Strategy):
         stated = self.options.risk_out_of_focus
         if not stated or risk <= stated or acquisition.purpose == Purpose.PLANES:
             return None
+        if is_pair(acquisition):
+            # a pair places a peak beyond its frames: one more frame there, where that is
+            # enough (`lean.frame_at_peak`)
+            at_peak = frame_at_peak(
+                posterior.mean_um,
+                posterior.sigma_um,
+                self.settings.dof_um,
+                self.settings.policy.z_step_um,
+                stated,
+            )
+            if at_peak is not None:
+                return at_peak
         if len(planes_um) >= self.options.max_kept_planes:
             return None
         return planes_stack(

@@ -32,6 +32,7 @@ LEAN = {
     "skip_sigma_scale": 1.0,
     "coarse_step_um": 4.0,
     "look_first": False,
+    "short_frames": 3,
 }
 LOOP = {
     **RETRIES,

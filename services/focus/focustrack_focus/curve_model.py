@@ -206,7 +206,7 @@ def _fit_mu(z_um: np.ndarray, s: np.ndarray, gamma_um: float, b: float) -> float
     return float(result.x)
 
 
-def _information_sigma_um(
+def information_sigma_um(
     z_um: np.ndarray, mu_um: float, gamma_um: float, b: float, noise_share: float
 ) -> float:
     """The std of mu from scores with noise `noise_share` x A (Gauss-Newton, A profiled out).
@@ -239,7 +239,7 @@ def fit_short_stack(
     gamma_um, b = model.gamma_um, model.background
     s = np.asarray(scores, dtype=float)
     if free.is_observation and free.z_um is not None and free.sigma_um is not None:
-        noise_sigma_um = _information_sigma_um(z_um, free.z_um, gamma_um, b, model.noise_share)
+        noise_sigma_um = information_sigma_um(z_um, free.z_um, gamma_um, b, model.noise_share)
         return PeakFit(
             free.z_um,
             math.hypot(free.sigma_um, noise_sigma_um),
@@ -258,7 +258,7 @@ def fit_short_stack(
     low, high = float(z_um[0]), float(z_um[-1])
     if not low <= mu_um <= high:
         return free  # the model agrees: the peak lies beyond the edge that `free` flagged
-    misfit_sigma_um = _information_sigma_um(z_um, mu_um, gamma_um, b, model.misfit_share)
+    misfit_sigma_um = information_sigma_um(z_um, mu_um, gamma_um, b, model.misfit_share)
     spread = model.gamma_spread_um
     shape_sigma_um = 0.0
     if spread > 0:

@@ -73,7 +73,7 @@ def learn_top(
 ) -> None:
     """Add the width of a clean top (a single peak inside its stack, no flag) to `widths_um`,
     unless it is already read as two layers; keep the last MAX_TOPS."""
-    if flags or best_z_um is None:
+    if flags or best_z_um is None or z_um.size < 3:  # a pair has no top of its own
         return
     width_um = top_width_um(z_um, scores, best_z_um)
     if width_um is None or layers_sigma_um(widths_um, z_um, scores, best_z_um) > 0:

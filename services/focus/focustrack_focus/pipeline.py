@@ -16,6 +16,7 @@ from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short
 from focustrack_focus.layers import layers_sigma_um
 from focustrack_focus.look import MIN_LOOK_SNR, look_snr
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
+from focustrack_focus.pair import PAIR_FRAMES, read_pair
 from focustrack_focus.peak import (
     MAX_ABS_Z_UM,
     PeakFit,
@@ -155,10 +156,23 @@ def focus_from_curve(
             # a top broader than the slide's: two layers (a fold), the vertex between them
             layers_um = layers_sigma_um(curve.top_widths_um, z, s, fit.z_um)
             fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
+    return _answer(z, s, fit, settings, started_s, prior)
+
+
+def _answer(
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    fit: PeakFit,
+    settings: FocusSettings,
+    started_s: float,
+    prior: Prior | None,
+) -> FocusResult:
+    """The result of a curve (z (n,) ascending, scores (n,)) read as `fit`, with the
+    posterior where there is a `prior`; its compute time counts from `started_s`."""
     posterior = fit.posterior(prior) if prior is not None else None
     return FocusResult(
-        z_um=z,
-        scores=s,
+        z_um=z_um,
+        scores=scores,
         best_z_um=fit.z_um,
         sigma_um=fit.sigma_um,
         flags=fit.flags,
@@ -171,12 +185,43 @@ def focus_from_curve(
     )
 
 
-def check_z(z_um: np.ndarray) -> None:
+def check_z(z_um: np.ndarray, *, pairs: bool = False) -> None:
     """ValueError unless `z_um` (n,) is a stack's z: one frame (a look) or a curve's frames
-    (`validate_curve`: at least 3, finite, ascending)."""
-    if z_um.size == 1 and math.isfinite(z_um[0]) and abs(z_um[0]) <= MAX_ABS_Z_UM:
+    (`validate_curve`: at least 3, finite, ascending); with `pairs` (the slide's curve is
+    learnt), two frames as well (a pair, `pair_result`)."""
+    pair = pairs and z_um.size == PAIR_FRAMES and z_um[0] != z_um[1]
+    if (z_um.size == 1 or pair) and np.all(np.abs(z_um) <= MAX_ABS_Z_UM):  # NaN fails too
         return
     validate_curve(z_um, np.zeros_like(z_um))
+
+
+#: The edge a pair without the slide's curve points to: towards its higher frame.
+_PAIR_EDGES = (FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH)
+
+
+def pair_result(
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    snr: float,
+    settings: FocusSettings,
+    started_s: float,
+    curve: CurveModel | None = None,
+    prior: Prior | None = None,
+) -> FocusResult:
+    """The answer to a pair, two frames at z_um (2,) with their scores (2,): flat and empty
+    where the structure test (`snr`) sees nothing in view; else the peak their scores' ratio
+    gives with the slide's learnt curve (`pair.read_pair`), or without one an edge flag
+    towards the higher frame (a retry continues that way)."""
+    order = np.argsort(z_um)
+    z, s = z_um[order], scores[order]
+    if snr < settings.min_structure_snr:
+        fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
+    elif curve is not None and curve.ready:
+        fit = read_pair(z, s, curve)
+    else:
+        higher = int(np.argmax(s))
+        fit = PeakFit(float(z[higher]), None, frozenset({_PAIR_EDGES[higher]}))
+    return _answer(z, s, fit, settings, started_s, prior)
 
 
 def look_result(
@@ -265,17 +310,17 @@ class FrameByFrame:
     acquisition: `add` scores a frame (preprocess and metric, as `scan_stack`); once
     every frame is in, `result` only reads the curve (structure test and peak fit).
 
-    z_um (n,): the z of every frame of the stack, um (one frame: a look, `look_result`).
-    Frames may come in any order;
+    z_um (n,): the z of every frame of the stack, um (one frame: a look, `look_result`; with
+    `pairs`, two frames: a pair, `pair_result`). Frames may come in any order;
     each is (H, W) or (H, W, C). `result` gives what `focus_stack` gives for the whole
     stack; its compute_time_s is the time spent in `add` and `result` together.
     """
 
-    def __init__(self, z_um: np.ndarray, settings: FocusSettings) -> None:
+    def __init__(self, z_um: np.ndarray, settings: FocusSettings, *, pairs: bool = False) -> None:
         self.z_um = np.asarray(z_um, dtype=np.float64)
         if self.z_um.ndim != 1:
             raise ValueError(f"z_um must be one z per frame, shape (n,), got {self.z_um.shape}")
-        check_z(self.z_um)  # frame count and z values
+        check_z(self.z_um, pairs=pairs)  # frame count and z values
         self.settings = settings
         self.scores = np.full(self.z_um.size, np.nan)
         self._agreement = np.full((self.z_um.size, len(METRICS)), np.nan)
@@ -340,6 +385,8 @@ class FrameByFrame:
         snr = structure_snr(
             self._sharpest, self._blurriest, self._blurriest_raw, self.settings.preprocess
         )
+        if self.z_um.size == PAIR_FRAMES:
+            return pair_result(self.z_um, self.scores, snr, self.settings, started_s, curve, prior)
         result = focus_from_curve(
             self.z_um,
             self.scores,
@@ -402,14 +449,20 @@ class LastLooks:
                 self._last.popitem(last=False)
 
     def curve(
-        self, slide: str, tile: tuple[int, int], z_um: np.ndarray, settings: FocusSettings
+        self,
+        slide: str,
+        tile: tuple[int, int],
+        z_um: np.ndarray,
+        settings: FocusSettings,
+        *,
+        pairs: bool = False,
     ) -> FrameByFrame:
         """The curve of a stack at z_um (n,) of `tile` of `slide` whose first frame is
         arriving: the slide's last look continued by it where it is the rest of that look's
-        stack, else its own (the look is let go either way)."""
+        stack, else its own (the look is let go either way; `pairs` as `FrameByFrame`'s)."""
         tile_and_look = self._last.pop(slide, None)
         if tile_and_look is not None:
             looked, look = tile_and_look
             if looked == tile and continues(float(look.z_um[0]), z_um):
                 return look.continued(z_um)
-        return FrameByFrame(z_um, settings)
+        return FrameByFrame(z_um, settings, pairs=pairs)

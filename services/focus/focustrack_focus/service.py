@@ -275,7 +275,13 @@ class FrameAnalyser:
             if curve is None:  # the stack's first frame (joined to its look, where it had one)
                 settings = settings_for(header, self.base, self.na)
                 place = (tile.row, tile.col)
-                curve = self._looks.curve(tile.slide, place, np.asarray(header.z_um), settings)
+                curve = self._looks.curve(
+                    tile.slide,
+                    place,
+                    np.asarray(header.z_um),
+                    settings,
+                    pairs=self._curve(tile.slide).ready,  # a pair is read with the slide's curve
+                )
             curve.add(_place(curve, frame_header), frame[..., 0] if frame.shape[-1] == 1 else frame)
             if not curve.complete:
                 held = STACK_BYTES + curve.held_bytes

@@ -86,6 +86,13 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
         frames = render(96, Z_UM, TRUTH_UM, 3)
+        # two frames while the slide has no learnt curve: not a stack the service can read
+        publish_stack(publisher, frames[:2, ..., None], Z_UM[:2], sequence=6)
+        _, refused = results.get(timeout=20)
+        assert refused.sequence == 6 and not refused.HasField("best_z_um")
+        assert refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+        assert "at least 3" in refused.error.message
+
         publish_stack(publisher, frames[..., None], Z_UM, sequence=7, order=range(12, -1, -1))
         key, result = results.get(timeout=20)
         assert key == "focustrack/v1/focus/s1/2/3"
@@ -96,17 +103,15 @@ def test_stack_in_focus_result_out_and_bad_stack_gets_an_error(
         assert list(result.z_um) == pytest.approx(Z_UM.tolist()) and len(result.scores) == 13
         assert not result.HasField("error") and result.compute_time_s > 0
 
-        # two frames only: not a stack the service can read; the reply says so
-        publish_stack(publisher, frames[:2, ..., None], Z_UM[:2], sequence=8)
-        _, refused = results.get(timeout=20)
-        assert refused.sequence == 8 and not refused.HasField("best_z_um")
-        assert refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
-        assert "at least 3" in refused.error.message
+        # that stack taught the slide's curve: two frames now are a pair, read with it
+        publish_stack(publisher, frames[5:7, ..., None], Z_UM[5:7], sequence=8)
+        _, pair = results.get(timeout=20)
+        assert pair.sequence == 8 and not pair.HasField("error") and len(pair.scores) == 2
     finally:
         subscriber.undeclare()
         worker.close()
         service.close()
-    assert worker.n_published == 2
+    assert worker.n_published == 3
 
 
 def test_focus_services_of_two_scanners_each_answer_their_own_slides_once(

@@ -1,0 +1,51 @@
+"""`focustrack demo` on a small virtual tissue slide: the instrument has a laser autofocus
+that kf-2d-laser reads on every tile, the lean scan measures with pairs of frames, and the
+table says how many tissue tiles each scan kept in focus, by the instrument's truth."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from focustrack.demo import DEFAULT_STRATEGIES, LASER, LEAN, STRATEGY_PARAMS
+from focustrack_scheduler import outputs
+
+
+def _acquisitions(scan_dir: Path) -> list[dict]:
+    entries = [json.loads(line) for line in (scan_dir / outputs.LOG_FILE).read_text().splitlines()]
+    return [entry for entry in entries if entry["event"] == "acquired"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_the_demo_scans_a_tissue_slide_with_a_laser_and_scores_its_tissue(tmp_path: Path) -> None:
+    assert LASER in DEFAULT_STRATEGIES and LEAN in DEFAULT_STRATEGIES
+    assert STRATEGY_PARAMS[LEAN]["short_frames"] == 2
+    out_json = tmp_path / "demo.json"
+    command = [
+        sys.executable, "-m", "focustrack", "demo", "--tissue-slide", "--seed", "4",
+        "--rows", "3", "--cols", "4", "--size", "128", "--strategies", LEAN, LASER,
+        "--no-rescan", "--no-progress", "--out", str(tmp_path / "demo"), "--json", str(out_json),
+    ]  # fmt: skip
+    demo = subprocess.run(command, capture_output=True, text=True, timeout=540)
+    assert demo.returncode == 0, demo.stderr
+    assert "virtual tissue slide" in demo.stdout and "tissue tiles (not empty glass)" in demo.stdout
+    strategies = json.loads(out_json.read_text())["strategies"]
+    assert list(strategies) == [LEAN, LASER]
+    for figures in strategies.values():
+        assert 0 < figures["tissue_tiles"] <= 12
+        assert 0 <= figures["tissue_in_focus"] <= figures["tissue_tiles"]
+    # the instrument has a laser: kf-2d-laser reads it once on every tile, without an image
+    laser = _acquisitions(tmp_path / "demo" / LASER)
+    readings = [entry for entry in laser if entry["purpose"] == "laser"]
+    assert len(readings) == 12 and all(entry["n_frames"] == 0 for entry in readings)
+    # the lean scan's short stacks are pairs, read by the focus service with the slide's curve
+    # (three frames only where a coarse search's peak centres them, on the slide's first tiles)
+    frames = [entry["n_frames"] for entry in _acquisitions(tmp_path / "demo" / LEAN)
+              if entry["purpose"] == "scan"]  # fmt: skip
+    assert frames.count(2) > 0
+    assert frames.count(3) <= sum(n >= 7 for n in frames)
