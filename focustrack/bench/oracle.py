@@ -18,7 +18,8 @@ from pydantic import Field
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_core.surfaces import SurfaceSpec, surface_covariance
-from focustrack_estimator.serpentine import Gaussian, RetryParams, SerpentineFilter
+from focustrack_estimator.filter_params import RetryParams
+from focustrack_estimator.serpentine import Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import NOMINAL_FLOPS_PER_S, Cost, StrategyEntry, tile_cost
 
 _SPEC = SurfaceSpec()

@@ -40,6 +40,7 @@ from pydantic import Field
 
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Step
+from focustrack_estimator.filter_params import FilterParams, GateNis
 from focustrack_estimator.kalman_strategies import (
     KalmanStrategy,
     PathEstimator,
@@ -48,7 +49,6 @@ from focustrack_estimator.kalman_strategies import (
     path_cost,
 )
 from focustrack_estimator.models import DirectionAwareModel
-from focustrack_estimator.serpentine import FilterParams, GateNis
 from focustrack_estimator.strategy import StrategyEntry
 
 

@@ -33,6 +33,7 @@ from pydantic import AfterValidator, Field
 
 from focustrack_core.domain import FocusMap, SlideSettings
 from focustrack_core.geometry import Step, Tile
+from focustrack_estimator.filter_params import FilterParams
 from focustrack_estimator.models import (
     DirectionAwareModel,
     GaussMarkovModel,
@@ -41,7 +42,7 @@ from focustrack_estimator.models import (
     WienerModel,
     gauss_markov_process_noise,
 )
-from focustrack_estimator.serpentine import FilterParams, Gaussian, SerpentineFilter
+from focustrack_estimator.serpentine import Gaussian, SerpentineFilter
 from focustrack_estimator.sqrt_filter import SqrtKalmanFilter
 from focustrack_estimator.strategy import (
     Cost,

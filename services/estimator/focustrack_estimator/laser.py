@@ -35,8 +35,9 @@ from focustrack_core.domain import (
     ZRangePolicy,
 )
 from focustrack_core.geometry import Tile
+from focustrack_estimator.filter_params import LeanParams, MaxKeptPlanes, RiskOutOfFocus
 from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
-from focustrack_estimator.serpentine import Gaussian, LeanParams, MaxKeptPlanes, RiskOutOfFocus
+from focustrack_estimator.serpentine import Gaussian
 from focustrack_estimator.spatial import RowBankFilter, RowBankParams, kf_2d_cost
 from focustrack_estimator.strategy import Cost, StrategyEntry
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any
 
 from focustrack_core.domain import SlideSettings
-from focustrack_estimator.serpentine import LeanParams, MaxKeptPlanes, RiskOutOfFocus
+from focustrack_estimator.filter_params import LeanParams, MaxKeptPlanes, RiskOutOfFocus
 from focustrack_estimator.spatial import RowBankFilter, RowBankParams, kf_2d_cost
 from focustrack_estimator.strategy import Cost, StrategyEntry
 from focustrack_estimator.time_state import RevisitParams

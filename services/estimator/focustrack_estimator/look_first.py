@@ -1,6 +1,6 @@
 """A tile's first frame alone, then the rest of its stack: an empty tile costs one frame.
 
-With `look_first` (`serpentine.LeanParams`), a tile's first stack is acquired in two parts
+With `look_first` (`filter_params.LeanParams`), a tile's first stack is acquired in two parts
 where its lowest frame lies within `LOOK_REACH_UM` of its centre (where the focus is
 expected: the prediction, or a coarse search's peak): that frame alone (a
 look: the focus service says whether anything is in view, `focustrack_focus.look`), then,

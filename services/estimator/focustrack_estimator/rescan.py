@@ -43,15 +43,10 @@ from pydantic import Field, Strict
 from focustrack_core.domain import SlideSettings
 from focustrack_core.geometry import Tile
 from focustrack_core.timing import TimingModel
+from focustrack_estimator.filter_params import FilterParams, MaxKeptPlanes, RiskOutOfFocus
 from focustrack_estimator.kalman_strategies import path_cost
 from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
-from focustrack_estimator.serpentine import (
-    FilterParams,
-    Gaussian,
-    MaxKeptPlanes,
-    RiskOutOfFocus,
-    SerpentineFilter,
-)
+from focustrack_estimator.serpentine import Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import StrategyEntry
 from focustrack_estimator.time_state import ScanClock
 

@@ -54,10 +54,8 @@ from __future__ import annotations
 import math
 from abc import abstractmethod
 from dataclasses import dataclass, replace
-from typing import Annotated
 
 import numpy as np
-from pydantic import Field
 
 from focustrack_core.domain import (
     Acquisition,
@@ -69,8 +67,8 @@ from focustrack_core.domain import (
     ZRange,
 )
 from focustrack_core.geometry import Tile
+from focustrack_estimator.filter_params import FilterParams, RetryParams
 from focustrack_estimator.lean import (
-    COARSE_STEP_UM,
     PAIR_FRAMES,
     SHORT_FRAMES,
     choose_stack,
@@ -82,7 +80,7 @@ from focustrack_estimator.lean import (
 )
 from focustrack_estimator.look_first import first_part, with_look
 from focustrack_estimator.peaks import between_peaks_var_um2
-from focustrack_estimator.strategy import MAX_RETRIES, PeakSearch, Strategy, StrategyParams
+from focustrack_estimator.strategy import PeakSearch, Strategy
 from focustrack_estimator.time_state import ScanClock
 
 #: How many measurements the configured default R counts as when `adapt_r` estimates it.
@@ -112,133 +110,6 @@ class Gaussian:
     @property
     def sigma_um(self) -> float:
         return math.sqrt(max(self.var_um2, 0.0))
-
-
-MaxRetries = Annotated[
-    int,
-    Field(
-        ge=0,
-        le=MAX_RETRIES,
-        description="Stacks taken after the first on a tile without a peak before the tile "
-        "is given up (imaged at its prediction)",
-    ),
-]
-RiskOutOfFocus = Annotated[
-    float,
-    Field(
-        ge=0.0,
-        lt=1.0,
-        description="Share of tiles allowed outside the depth of field. 0: a stack of +/- "
-        "k innovation sigmas on every tile; above 0, each tile's frames are chosen so that "
-        "at most this share is imaged out of focus (the kept image alone, 3 frames or a "
-        "full stack: `lean.choose_stack`)",
-    ),
-]
-SkipSigmaScale = Annotated[
-    float,
-    Field(
-        ge=1.0,
-        description="Factor by which the lean rule widens the predicted sigma of a tile it "
-        "would image without measuring it (`lean.skip_risk`)",
-    ),
-]
-CoarseStepUm = Annotated[
-    float,
-    Field(
-        gt=0.0,
-        description="z step of the lean rule's coarse search where the prediction is far "
-        "too unsure for fine stacks, um (`lean.coarse_stack`)",
-    ),
-]
-LookFirst = Annotated[
-    bool,
-    Field(
-        description="Acquire a tile's first stack in two parts where its lowest frame lies "
-        "near its centre: that frame alone, then (where the focus service sees something in "
-        "view) the rest, which it reads with that frame as one curve: an empty tile costs "
-        "one frame (`look_first.first_part`)",
-    ),
-]
-ShortFrames = Annotated[
-    int,
-    Field(
-        ge=PAIR_FRAMES,
-        le=SHORT_FRAMES,
-        description="Frames of the lean rule's short stack: 3 (the focus service reads a peak "
-        "between the outer two), or 2 one z step apart, a pair, whose scores' ratio the focus "
-        "service reads with the slide's learnt curve up to PAIR_REACH_UM beyond them (a peak "
-        "beyond the frames is then imaged by one more frame there: docs/lean.md)",
-    ),
-]
-MaxKeptPlanes = Annotated[
-    int,
-    Field(
-        ge=1,
-        description="With risk_out_of_focus set, most frames a measured tile keeps where its "
-        "kept frame alone would exceed that risk, each within a depth of field of the next "
-        "(`lean.kept_planes`): the tile is in focus when one of them is",
-    ),
-]
-GateNis = Annotated[
-    float,
-    Field(
-        ge=0.0,
-        description="NIS threshold of the outlier gate (0: no gating; chi-square with one "
-        "degree of freedom for a consistent filter, `diagnostics.nis_gate`)",
-    ),
-]
-GatePatience = Annotated[
-    int,
-    Field(
-        ge=0,
-        description="Measurements rejected by the gate in a row after which the next one is "
-        "taken as a real step of the surface",
-    ),
-]
-AdaptR = Annotated[
-    bool,
-    Field(description="Estimate the default measurement variance R online from the innovations"),
-]
-Sqrt = Annotated[
-    bool, Field(description="Run the filter in square-root form (where the filter has one)")
-]
-
-
-class RetryParams(StrategyParams):
-    """What every filter strategy takes: the search after a stack without a peak."""
-
-    max_retries: MaxRetries = 3
-
-
-class LeanParams(RetryParams):
-    """The lean rule's parameters (`lean.choose_stack`, docs/lean.md): off by default."""
-
-    risk_out_of_focus: RiskOutOfFocus = 0.0
-    skip_sigma_scale: SkipSigmaScale = 1.0
-    coarse_step_um: CoarseStepUm = COARSE_STEP_UM
-    max_kept_planes: MaxKeptPlanes = 1
-    look_first: LookFirst = False
-    short_frames: ShortFrames = SHORT_FRAMES
-
-
-class FilterParams(LeanParams):
-    """How the loop treats measurements, whatever the filter: retries, the lean rule, the
-    NIS gate, the adaptive R and the square-root form (off by default: the thesis' filters).
-
-    The loop (`SerpentineFilter`) reads its options from this model; a strategy whose
-    parameters hold fewer of them runs with the others at these defaults (`of`).
-    """
-
-    gate_nis: GateNis = 0.0
-    gate_patience: GatePatience = 1
-    adapt_r: AdaptR = False
-    sqrt: Sqrt = False
-
-    @classmethod
-    def of(cls, params: RetryParams) -> FilterParams:
-        """The loop's options in a strategy's `params`: those it has, the others at their
-        defaults."""
-        return cls.model_validate(params.model_dump(include=set(cls.model_fields)))
 
 
 def look_at(z_um: float, step_um: float) -> ZRange:

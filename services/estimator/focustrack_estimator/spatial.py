@@ -46,9 +46,10 @@ from focustrack_core.domain import (
 )
 from focustrack_core.geometry import Tile
 from focustrack_estimator.bank import mixture
+from focustrack_estimator.filter_params import RetryParams
 from focustrack_estimator.lean import SHORT_FRAMES, skip_risk
 from focustrack_estimator.row_model import N_PLANE, RowModel, smooth_member, step_rows
-from focustrack_estimator.serpentine import Gaussian, RetryParams, SerpentineFilter
+from focustrack_estimator.serpentine import Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import (
     NOMINAL_FLOPS_PER_S,
     Cost,

@@ -17,10 +17,10 @@ from focustrack_core.surfaces import (
 )
 from focustrack_estimator import registry
 from focustrack_estimator.bank import ModelBank
+from focustrack_estimator.filter_params import FilterParams
 from focustrack_estimator.kalman_strategies import KalmanStrategy, PathFilter
 from focustrack_estimator.models import WienerModel
 from focustrack_estimator.replay import replay, score
-from focustrack_estimator.serpentine import FilterParams
 
 
 def random_walk_surface(grid: ScanGrid, q: float, seed: int) -> np.ndarray:

@@ -11,9 +11,9 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.diagnostics import innovation_diagnostics
+from focustrack_estimator.filter_params import FilterParams
 from focustrack_estimator.kalman_strategies import STRATEGIES, KalmanStrategy
 from focustrack_estimator.replay import replay, simulated_measurement
-from focustrack_estimator.serpentine import FilterParams
 
 
 def noisy(truth_um: np.ndarray, sigma_um: float, seed: int) -> np.ndarray:

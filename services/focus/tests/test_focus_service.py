@@ -294,12 +294,14 @@ def test_a_look_and_the_rest_of_its_stack_are_answered_as_one_curve(
     assert joined is not None and whole_result is not None and joined.sequence == 6
     assert list(joined.z_um) == list(Z_UM) and joined.best_z_um == whole_result.best_z_um
     assert analyser.open_bytes == 0
-    # the rest of a stack whose look came on another tile is no curve: an error result
+    # the rest of a stack whose look came on another tile is not joined to it: its two
+    # frames are read alone, as a pair (the slide's curve is learnt from the stacks above)
     analyser.add(keys.zframe_key("s1", 2, 4), *_frame_samples(frames[:1], 7, 4.0, Z_UM[:1])[0])
     alone = [
         analyser.add(key, *sample) for sample in _frame_samples(frames[1:3], 8, 5.0, Z_UM[1:3])
     ]
-    assert alone[0] is not None and alone[0].HasField("error")
+    assert alone[0] is None and alone[1] is not None and not alone[1].HasField("error")
+    assert list(alone[1].z_um) == list(Z_UM[1:3])
 
 
 def test_open_stacks_stay_within_the_budget_and_are_freed_after_the_timeout(
