@@ -65,6 +65,9 @@ NOT_AN_OBSERVATION = frozenset(
 )
 
 
+#: Frames of a pair: a lean scan's short stack with `short_frames` 2, two frames one z step
+#: apart whose scores' ratio places the peak (`focustrack_focus.pair`).
+PAIR_FRAMES = 2
 #: How far beyond its frames a pair (two frames one z step apart, a lean scan's short stack
 #: with `short_frames` 2) places a peak: the focus service reads it from their scores' ratio
 #: with the slide's learnt curve (`focustrack_focus.pair`), as far as the ratio stays

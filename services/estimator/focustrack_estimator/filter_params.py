@@ -13,7 +13,8 @@ from typing import Annotated
 
 from pydantic import Field
 
-from focustrack_estimator.lean import COARSE_STEP_UM, PAIR_FRAMES, SHORT_FRAMES
+from focustrack_core.domain import PAIR_FRAMES
+from focustrack_estimator.lean import COARSE_STEP_UM, SHORT_FRAMES
 from focustrack_estimator.strategy import MAX_RETRIES, StrategyParams
 
 MaxRetries = Annotated[

@@ -50,13 +50,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from focustrack_core.domain import PAIR_REACH_UM, ZRange, ZRangePolicy
+from focustrack_core.domain import PAIR_FRAMES, PAIR_REACH_UM, ZRange, ZRangePolicy
 
 #: Frames of a short stack: the fewest that locate a peak of known shape (curve_model).
 SHORT_FRAMES = 3
-#: Frames of a pair, the short stack with `short_frames` 2: its scores' ratio places the peak
-#: up to PAIR_REACH_UM beyond them, with the slide's learnt curve (`focustrack_focus.pair`).
-PAIR_FRAMES = 2
 
 #: z step of the coarse search, um: at most the focus curve's full width at half maximum,
 #: so that one frame always lies above half the peak. The simulator's gradient metrics are

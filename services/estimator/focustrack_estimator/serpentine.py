@@ -58,6 +58,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from focustrack_core.domain import (
+    PAIR_FRAMES,
     Acquisition,
     FocusFlag,
     Measurement,
@@ -69,7 +70,6 @@ from focustrack_core.domain import (
 from focustrack_core.geometry import Tile
 from focustrack_estimator.filter_params import FilterParams, RetryParams
 from focustrack_estimator.lean import (
-    PAIR_FRAMES,
     SHORT_FRAMES,
     choose_stack,
     coarse_stack,

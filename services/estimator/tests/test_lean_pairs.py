@@ -9,12 +9,11 @@ import math
 import pytest
 from scipy.stats import norm
 
-from focustrack_core.domain import PAIR_REACH_UM, Measurement, Purpose
+from focustrack_core.domain import PAIR_FRAMES, PAIR_REACH_UM, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
 from focustrack_estimator import registry
 from focustrack_estimator.lean import (
-    PAIR_FRAMES,
     SHORT_FRAMES,
     choose_stack,
     frame_at_peak,

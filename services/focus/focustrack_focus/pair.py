@@ -32,8 +32,6 @@ from focustrack_core.domain import PAIR_REACH_UM, FocusFlag
 from focustrack_focus.curve_model import CurveModel, information_sigma_um, lorentzian
 from focustrack_focus.peak import PeakFit
 
-#: Frames of a pair.
-PAIR_FRAMES = 2
 #: Points of the grid on which the ratio's branch is found (over +/- BRANCH_WIDTHS widths).
 BRANCH_POINTS = 801
 BRANCH_WIDTHS = 4.0

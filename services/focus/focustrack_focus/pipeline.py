@@ -10,13 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from focustrack_core.domain import FocusFlag, Measurement
+from focustrack_core.domain import PAIR_FRAMES, FocusFlag, Measurement
 from focustrack_focus.agreement import agreed_peak, agreement_scores
 from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
 from focustrack_focus.layers import layers_sigma_um
 from focustrack_focus.look import MIN_LOOK_SNR, look_snr
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
-from focustrack_focus.pair import PAIR_FRAMES, read_pair
+from focustrack_focus.pair import read_pair
 from focustrack_focus.peak import (
     MAX_ABS_Z_UM,
     PeakFit,
