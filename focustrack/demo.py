@@ -52,6 +52,7 @@ import zenoh
 
 from focustrack.bench.phase import high_pass_correlation
 from focustrack.browser import NoBrowserError, screenshot_live_view
+from focustrack.slide_scores import scored_scan
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.surfaces import FAMILIES
@@ -419,10 +420,9 @@ def comparison_table(reports: dict[str, dict[str, Any]], limit_s: float) -> str:
 
 def tissue_scores(stack: LocalStack, scan_dir: Path, report: dict[str, Any]) -> dict[str, int]:
     """The tissue tiles in focus of the scan of the stack's virtual slide in `scan_dir` (its
-    `report`), and how many there are: `focustrack bench slide`'s scoring."""
-    from focustrack.bench.slide import scored_scan  # that module imports this one
-
-    part = scored_scan(stack, scan_dir, report)
+    `report`), and how many there are (`slide_scores.scored_scan`)."""
+    assert stack.session is not None
+    part = scored_scan(stack.session, INSTRUMENT, SLIDE, scan_dir, report)
     return {"tissue_in_focus": part["tissue_in_focus"], "tissue_tiles": part["tissue_tiles"]}
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from focustrack.bench.slide import SlideContents, tile_scores
+from focustrack.slide_scores import SlideContents, tile_scores
 
 
 def test_tiles_are_scored_against_what_lies_in_them() -> None:

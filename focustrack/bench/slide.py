@@ -40,42 +40,13 @@ from typing import Any
 import numpy as np
 
 from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, scan_on
-from focustrack_core.geometry import ScanGrid
-from focustrack_core.timing import TimingModel
-from focustrack_core.v1 import instrument_pb2
-from focustrack_core.wire import keys, rpc
+from focustrack.slide_scores import scored_scan
 from focustrack_estimator import registry
-from focustrack_estimator.replay import limit_time_s
-from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
 DEFAULT_STRATEGIES = (BEST_KALMAN, "kf-2d-lean", "survey-delaunay", "af-every-tile")
 #: Kalman strategies: the best of them is held to the targets.
 KALMAN_PREFIX = "kf-"
-
-
-@dataclass(frozen=True)
-class SlideContents:
-    """The instrument's truth of a virtual slide, (rows, cols) each: the section's height
-    (um), empty glass, the height of the dust in view and of a fold's upper layer (um, NaN:
-    none)."""
-
-    focus_um: np.ndarray
-    empty: np.ndarray
-    dust_z_um: np.ndarray
-    fold_z_um: np.ndarray
-
-    @classmethod
-    def of(cls, truth: instrument_pb2.SlideTruth) -> SlideContents:
-        shape = (truth.rows, truth.cols)
-        if len(truth.empty) != truth.rows * truth.cols:
-            raise ValueError(f"slide {truth.slide!r} is no virtual slide: no contents per tile")
-        return cls(
-            np.array(truth.best_focus_um).reshape(shape),
-            np.array(truth.empty, dtype=bool).reshape(shape),
-            np.array(truth.dust_z_um).reshape(shape),
-            np.array(truth.fold_z_um).reshape(shape),
-        )
 
 
 @dataclass(frozen=True)
@@ -93,42 +64,9 @@ class SlideScore:
     dust_tiles: int
 
 
-def tile_scores(
-    contents: SlideContents,
-    kept_z_um: np.ndarray,
-    planes_um: dict[tuple[int, int], list[float]],
-    frames: np.ndarray,
-    dof_um: float,
-) -> dict[str, Any]:
-    """Per slide: tissue tiles in focus, tiles focused on dust, frames on empty tiles.
-
-    kept_z_um (rows, cols): the z of each tile's image (NaN: none); planes_um: the z of the
-    frames a tile keeps besides; frames (rows, cols): frames acquired per tile.
-    """
-    in_focus = np.abs(kept_z_um - contents.focus_um) <= dof_um / 2.0
-    # a fold is section too: a tile imaged at its upper layer is in focus as well
-    in_focus |= np.abs(kept_z_um - contents.fold_z_um) <= dof_um / 2.0
-    for (row, col), z_um in planes_um.items():
-        in_focus[row, col] |= bool(
-            np.any(np.abs(np.array(z_um) - contents.focus_um[row, col]) <= dof_um / 2.0)
-        )
-    tissue = ~contents.empty
-    has_dust = np.isfinite(contents.dust_z_um)
-    to_dust = np.abs(kept_z_um - np.where(has_dust, contents.dust_z_um, np.inf))
-    on_dust = has_dust & (to_dust < np.abs(kept_z_um - contents.focus_um))
-    return {
-        "tissue_in_focus": int(np.sum(in_focus & tissue)),
-        "tissue_tiles": int(tissue.sum()),
-        "on_dust": int(on_dust.sum()),
-        "dust_tiles": int(has_dust.sum()),
-        "empty_tiles": int(contents.empty.sum()),
-        "empty_frames": int(frames[contents.empty].sum()),
-    }
-
-
 def combine(parts: list[dict[str, Any]]) -> SlideScore:
-    """One strategy's score over its slides (each part: `tile_scores` plus frames, tiles,
-    scan and limit time, and the seam error)."""
+    """One strategy's score over its slides (each part one slide's scan, scored by
+    `slide_scores.scored_scan`)."""
 
     def total(key: str) -> float:
         return float(sum(part[key] for part in parts))
@@ -178,51 +116,8 @@ def scan_slide(
     `combine` it makes."""
     request = options.request(INSTRUMENT, SLIDE, strategy, look_first_params(strategy, look_first))
     report = scan_on(stack, options, request, scan_dir, strategy, None)
-    return scored_scan(stack, scan_dir, report)
-
-
-def scored_scan(stack: LocalStack, scan_dir: Path, report: dict[str, Any]) -> dict[str, Any]:
-    """The part of `combine` of the scan in `scan_dir` (its `report`), scored against the
-    stack's instrument's truth of its virtual slide (ValueError for a slide of separate
-    fields: no contents per tile)."""
     assert stack.session is not None
-    truth = rpc.call(
-        stack.session,
-        keys.truth_key(INSTRUMENT, SLIDE),
-        instrument_pb2.AcquireRequest(),
-        instrument_pb2.SlideTruth,
-        10.0,
-    )
-    info = rpc.call(
-        stack.session,
-        keys.info_key(INSTRUMENT),
-        instrument_pb2.AcquireRequest(),
-        instrument_pb2.InstrumentInfo,
-        10.0,
-    )
-    layout = info.slides[0]
-    grid = ScanGrid(
-        layout.rows, layout.cols, layout.pitch_um, layout.origin_x_um, layout.origin_y_um
-    )
-    contents = SlideContents.of(truth)
-    record = ScanRecord(scan_dir)
-    try:
-        tally = record.tally
-        frames = tally.images_per_tile(grid)
-        part = tile_scores(
-            contents, tally.z_kept_um(grid), tally.planes, frames, info.depth_of_field_um
-        )
-    finally:
-        record.close()
-    return part | {
-        "frames": int(frames.sum()),
-        "tiles": grid.n_tiles,
-        "scan_time_s": report["scan_time_s"],
-        "limit_time_s": limit_time_s(grid, TimingModel()),
-        "seam_error_px": (
-            float("nan") if report.get("seam_error_px") is None else report["seam_error_px"]
-        ),
-    }
+    return scored_scan(stack.session, INSTRUMENT, SLIDE, scan_dir, report)
 
 
 def run(args: argparse.Namespace) -> int:
