@@ -35,9 +35,8 @@ planes and 5..100 planes at the paper's gamma. Four more sections always run:
   envelope; the correlation with the true phase after removing periods over ~6 um (a
   Gaussian of 10 pixels), and a figure;
 - speed and memory on one core: 21 planes of `--speed-size-px` (2048) squared, both
-  updates, in wall time and in the process's CPU time (which a machine shared with other
-  jobs stretches far less), and the filter's peak memory (tracemalloc, on 512 x 512) in images of
-  complex64 (8 bytes a pixel), besides the stack.
+  updates, in wall time and CPU time beside their FFTs' alone, and peak memory
+  (`focustrack.bench.phase_speed`).
 
 `--json OUT` writes the scores and PNGs beside OUT (true phase, each method's phase and
 its error; the partial-coherence figure).
@@ -49,7 +48,6 @@ import argparse
 import json
 import sys
 import time
-import tracemalloc
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +56,7 @@ from typing import Any
 import numpy as np
 from scipy import fft, ndimage
 
+from focustrack.bench.phase_speed import SPEED_PLANES, measure_speed
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_instrument_sim.instrument import Purpose
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
@@ -72,8 +71,6 @@ SHADOW_BELOW_PER_UM = 0.05
 SIMULATOR_OFFSETS_UM = 0.25 * np.arange(1, 33)
 SIMULATOR_TILES = (("phase-cells", 512), ("phase-blood", 256))
 HIGH_PASS_SIGMA_PX = 10.0
-SPEED_PLANES = 21
-MEMORY_SIZE_PX = 512
 FILTER_Q0 = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 FILTER_P0_RATIO = (0.0, -0.5, -0.9)
 FILTER_PRIOR_LENGTH_UM = (0.0, 1.0, 2.0, 4.0)
@@ -527,30 +524,6 @@ def score_simulator() -> tuple[list[dict[str, Any]], np.ndarray, dict[str, np.nd
     return rows, figure_truth, figure_phases
 
 
-def measure_speed(size_px: int) -> list[dict[str, Any]]:
-    """Seconds for 21 planes of size_px^2 (one core) and peak memory, per update."""
-    rng = np.random.default_rng(0)
-    z_um = np.linspace(-5.0, 5.0, SPEED_PLANES)
-    stack = rng.poisson(100.0, size=(SPEED_PLANES, size_px, size_px)).astype(np.float32)
-    small = stack[:, :MEMORY_SIZE_PX, :MEMORY_SIZE_PX].copy()
-    rows = []
-    for update in ("phase_frame", "paper"):
-        options = acekf.AcekfOptions(update=update)
-        start, start_cpu = time.perf_counter(), time.process_time()
-        acekf.reconstruct(stack, z_um, 0.532, 0.108, options=options)
-        seconds, cpu_s = time.perf_counter() - start, time.process_time() - start_cpu
-        tracemalloc.start()
-        acekf.reconstruct(small, z_um, 0.532, 0.108, options=options)
-        peak_bytes = tracemalloc.get_traced_memory()[1]
-        tracemalloc.stop()
-        image_bytes = 8 * small.shape[1] * small.shape[2]
-        rows.append(
-            {"update": update, "planes": SPEED_PLANES, "size_px": size_px, "time_s": seconds,
-             "cpu_s": cpu_s, "peak_memory_images": peak_bytes / image_bytes}
-        )  # fmt: skip
-    return rows
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
     parser.add_argument("--sweep", action="store_true", help="also sweep gamma and planes")
@@ -627,8 +600,8 @@ def run(args: argparse.Namespace) -> int:
     speed = measure_speed(args.speed_size_px)
     for row in speed:
         print(
-            f"  {row['update']:<12} {row['time_s']:.2f} s ({row['cpu_s']:.2f} s of CPU), "
-            "peak memory "
+            f"  {row['update']:<12} {row['time_s']:.2f} s ({row['cpu_s']:.2f} s of CPU; its "
+            f"FFTs alone {row['fft_cpu_s']:.2f} s), peak memory "
             f"{row['peak_memory_images']:.1f} complex64 images"
         )
     if args.json:

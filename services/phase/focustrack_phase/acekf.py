@@ -27,10 +27,11 @@ Beyond the paper, three changes, each measured by `focustrack bench phase`:
   linear response at defocus z by 2 J1(v)/v, v = 2 pi z NA_c |f|; the gain and the
   predicted intensity carry that envelope.
 
-Memory: the filter holds b, a_hat, H, three float32 images (and with our update one more
-complex image, and for a moment the real residual's half spectrum) at the image's size,
-and Q, P, the gain and fx^2+fy^2 on a quarter of the grid (`FoldedGrid`): under ten
-arrays of the image's size, besides the stack it reads one frame at a time.
+Memory: the filter holds b, H and three float32 images at the image's size, and a_hat
+(eq. 33: a copy of b; ours: b itself, transformed in place and back) or the filtered
+residual (ours, and for a moment the real residual's half spectrum), and Q, P, the gain
+and fx^2+fy^2 on a quarter of the grid (`FoldedGrid`): under ten arrays of the image's
+size, besides the stack it reads one frame at a time.
 """
 
 from __future__ import annotations
@@ -275,9 +276,10 @@ def reconstruct(
     same inverse, then the forward FFT of the real residual (`_real_fft2`, half the cost
     of a complex one), an inverse to apply the gain in the field's phase frame and a
     forward back to the state: three and a half complex FFTs' worth, the least that update
-    allows, as the phase rotation sits between the gain and the state. Q, P and the gain
-    depend on |f| alone, so they live on a quarter of the grid (`FoldedGrid`). Raises
-    ValueError for bad input, FilterDivergedError (a ValueError) when the filter ran away.
+    allows (docs/phase.md, "The cost of an update"): each transform's input needs the
+    previous one's output, so no two can share one FFT. Q, P and the gain depend on |f|
+    alone, so they live on a quarter of the grid (`FoldedGrid`). Raises ValueError for bad
+    input, FilterDivergedError (a ValueError) when the filter ran away.
     """
     opts = options or AcekfOptions()
     z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
@@ -293,23 +295,25 @@ def reconstruct(
     b = np.zeros(shape, dtype=np.complex64)
     b[0, 0] = np.sqrt(b.size)  # the unitary FFT of a field of ones
     Q, P = initial_covariances(opts, freq_sq, prior)
-    # The working images, reused every plane (no allocation in the loop): a_hat, then
-    # what is transformed in its place; |a_hat|, the residual and a scratch image; our
-    # update's filtered residual.
-    a_hat = np.empty(shape, dtype=np.complex64)
+    # The working images, reused every plane (no allocation in the loop): eq. 33's a_hat,
+    # a copy of b_hat transformed in place (ours transforms b_hat itself, below); |a_hat|,
+    # the residual and a scratch image; our update's filtered residual.
+    a_hat = np.empty(shape if opts.update == "paper" else 0, dtype=np.complex64)
     modulus = np.empty(shape, dtype=np.float32)
     residual = np.empty(shape, dtype=np.float32)
     scratch = np.empty(shape, dtype=np.float32)
     filtered = np.empty(shape if opts.update == "phase_frame" else 0, dtype=np.complex64)
     z_prev = 0.0
     for k in plane_order(z):
-        H, H_full = transfer.of(float(z[k]) - z_prev)  # eq. 3
+        dz_um = float(z[k]) - z_prev
         z_prev = float(z[k])
-        # (2) Prediction.
-        b *= H_full  # eq. 27: b_hat = H b
-        # eq. 28: Q_hat = Q (H Q H^H with |H| = 1)
-        P *= H  # eq. 29: P_hat = H P H (two products: no H^2 kept)
-        P *= H
+        # (2) Prediction; a plane at the previous one's height has H = 1 (eq. 3), none.
+        if dz_um != 0:
+            H, H_full = transfer.of(dz_um)  # eq. 3
+            b *= H_full  # eq. 27: b_hat = H b
+            # eq. 28: Q_hat = Q (H Q H^H with |H| = 1)
+            P *= H  # eq. 29: P_hat = H P H (two products: no H^2 kept)
+            P *= H
         # (3) Update. The measurement noise: eq. 31's q, plus the variance of the term the
         # linearisation drops, |a - a_hat|^2, whose per-pixel variance is (mean Q)^2 for a
         # complex Gaussian error (a second-order EKF's correction; without it a confident
@@ -317,8 +321,13 @@ def reconstruct(
         noise = np.float32(q + grid.mean(Q) ** 2)
         envelope = coherence_envelope(freq_sq, float(z[k]), opts.condenser_na)
         gain = _update_covariances(Q, P, noise, envelope)
-        np.copyto(a_hat, b)
-        a_hat = _ifft2(a_hat, workers)  # eq. 30: a_hat = K^H b_hat (in place)
+        # eq. 30: a_hat = K^H b_hat, in place: on a copy for eq. 33, which adds to b_hat;
+        # on b_hat itself for ours, which rebuilds b from the corrected field.
+        if opts.update == "paper":
+            np.copyto(a_hat, b)
+            a_hat = _ifft2(a_hat, workers)
+        else:
+            a_hat = _ifft2(b, workers)
         np.abs(a_hat, out=modulus)
         np.multiply(stack_counts[k], photons_to_relative, out=residual)
         np.square(modulus, out=scratch)
@@ -354,9 +363,12 @@ def reconstruct(
         # e^{i theta} = a_hat / |a_hat|: the correction in the field's own phase frame.
         np.maximum(modulus, _TINY, out=modulus)
         np.reciprocal(modulus, out=modulus)
-        a_hat *= modulus
+        correction *= modulus
         correction *= a_hat
-        b += _fft2(correction, workers)
+        # b_n = b_hat + K (e^{i theta} correction) = K (a_hat + e^{i theta} correction): the
+        # sum taken in space, where a_hat is, so b_hat needs no copy (K is linear).
+        a_hat += correction
+        b = _fft2(a_hat, workers)
     # Back-propagation to the focal plane: H(-z_last) = H(z_last)^*.
     b *= transfer.of(-z_prev)[1]
     field = _ifft2(b, workers)
