@@ -62,7 +62,7 @@ def test_the_bench_writes_its_table_json_and_figure(
     assert set(speed) == {"phase_frame", "paper"}
     assert all(0 < row["peak_memory_images"] < 40 and row["time_s"] > 0 for row in speed.values())
     assert all(row["cpu_s"] > 0 for row in speed.values())
-    assert all(0 < row["fft_cpu_s"] for row in speed.values())
+    assert all(row["fft_cpu_s"] > 0 for row in speed.values())
     assert "sparse ACEKF (paper)" in capsys.readouterr().out
 
 
