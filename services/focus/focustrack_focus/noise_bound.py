@@ -4,7 +4,7 @@
 away from the top (a third difference vanishes on any locally quadratic curve). On a full
 curve that median rests on dozens of differences; on a scanner's window of 7-11 frames, on
 2-5, which overlap (the third differences of white noise are correlated: -0.75 at lag one),
-and one window in twenty finds a noise 2.6-4.5 times smaller than the truth. A window of
+and one window in twenty finds a noise 2.7-4.4 times smaller than the truth. A window of
 a metric that barely sees the specimen (a faint bump a few noise spreads high) then reads a
 "clean", quiet curve: its vertex gets a small sigma, and frames far from it, as high as its
 top within the true noise, no chance of being the top.
