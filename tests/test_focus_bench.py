@@ -67,3 +67,41 @@ def test_calibrate_on_even_fields_then_the_odd_ones_meet_every_target(tmp_path: 
     ]
     for metric in metrics:
         assert result["with_profile"][metric]["windows"]["silent_miss"] <= 0.001, metric
+
+
+@pytest.mark.skipif(not focus.REAL_DIR.is_dir(), reason=f"{focus.REAL_DIR} is missing")
+def test_vollath_faint_bump_on_field_10_is_no_confident_miss_without_a_profile() -> None:
+    """WSI field 10's VOLLATH_F4, read with no profile (a metric the service knows nothing
+    of): five windows read its faint bump 3.4-16 steps from the label with a noise estimate
+    from a few third differences, confidently, before that estimate was bounded
+    (`noise_bound`); none now."""
+    fields = [f for f in focus_real.half_fields(focus.REAL_DIR, "even") if f.number == 10]
+    figures = focus_real.read_without_profile(fields, ["VOLLATH_F4"])["VOLLATH_F4"]
+    assert figures["windows"]["n_inside"] > 0 and figures["windows"]["measured"] > 0.1
+    assert figures["windows"]["silent_miss"] == 0.0
+
+
+@pytest.mark.skipif(not focus.REAL_DIR.is_dir(), reason=f"{focus.REAL_DIR} is missing")
+@pytest.mark.slow  # about 30 s on the loaded 2-core machine
+def test_calibrate_on_none_reads_each_half_with_no_profile_alone(tmp_path: Path) -> None:
+    """`--real --calibrate-on none`: no command run, each half read as curves labelled with
+    the measures' names and no profile (here one field of each half): the figures and the
+    no-profile targets that `--calibrate-on both` prints in its "none" columns."""
+    real_dir = tmp_path / "real"
+    (real_dir / "wsi_focus_curves").mkdir(parents=True)
+    for number in (9, 10):
+        name = f"group{number:02d}.json"
+        (real_dir / "wsi_focus_curves" / name).symlink_to(
+            focus.REAL_DIR / "wsi_focus_curves" / name
+        )
+    parser = argparse.ArgumentParser()
+    focus.add_arguments(parser)
+    out = tmp_path / "none.json"
+    argv = ["--real", "--calibrate-on", "none", "--real-dir", str(real_dir), "--json", str(out)]
+    assert focus.run(parser.parse_args(argv)) == 0
+    runs = json.loads(out.read_text())["runs"]
+    assert [run["held_out"] for run in runs] == ["odd", "even"]
+    for run in runs:
+        assert set(run["no_profile"]) == set(focus_real.HOLDOUT_METRICS)
+        assert set(run["no_profile_targets"]) == {t[0] for t in focus_real.NO_PROFILE_TARGETS}
+        assert run["no_profile"]["BRENNER"]["windows"]["n_inside"] > 0

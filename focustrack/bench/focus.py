@@ -27,10 +27,9 @@ import argparse
 import json
 import math
 import os
-import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -40,12 +39,11 @@ from tqdm import tqdm
 from focustrack.bench import focus_real
 from focustrack_core.domain import FocusFlag
 from focustrack_core.geometry import ScanGrid
-from focustrack_focus import calibration
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import MAD_TO_SIGMA, PeakMode
 from focustrack_focus.pipeline import FocusSettings, focus_scores, focus_stack
 from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
-from focustrack_focus.real_data import WSI_STEP_UM, YEAST_FOCUS_PLANE, load_smear, load_yeast
+from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_smear, load_yeast
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, Slide
 from focustrack_instrument_sim.specimen import SpecimenSpec
 
@@ -320,116 +318,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--calibrate-on",
-        choices=("odd", "even", "both"),
+        choices=("odd", "even", "both", "none"),
         help="with --real: run `focustrack focus calibrate` on that half of the fields and "
-        "report the other half with its profile and without one (both: each way)",
+        "report the other half with its profile and without one (both: each way; none: no "
+        "command, each half with no profile alone, about a minute)",
     )
     parser.add_argument(
         "--folds", type=int, default=5, help="with --calibrate-on: the command's --folds"
     )
 
 
-def run_real(args: argparse.Namespace) -> int:
-    """`--real`: the WSI curves' figures on the report fields (and the fit fields), targets."""
-    folder = args.real_dir / "wsi_focus_curves"
-    if not folder.is_dir():
-        raise SystemExit(f"focustrack bench focus --real: {folder} is missing (see its README)")
-    if args.calibrate_on:
-        return run_calibrated(args)
-    metrics = focus_real.REAL_METRICS
-    constants = calibration.calibrate(folder, tqdm(metrics, desc="real curves", unit="metric"))
-    readings = calibration.real_curves(
-        folder, tqdm(metrics, desc="real curves", unit="metric"), calibration=constants
-    )
-    report = calibration.report(readings, calibration.REPORT_FIELDS)
-    fit = calibration.report(readings, calibration.FIT_FIELDS)
-    print(
-        f"source: {folder} (real WSI curves, {WSI_STEP_UM} um steps); errors, sigma "
-        "in steps against the hand label; coverage allows half a step for its rounding"
-    )
-    unusable = {m: c.unusable_because for m, c in constants.items() if not c.usable}
-
-    def systematic(c: calibration.Calibration) -> str:
-        if c.systematic_sigma_steps is None:  # none up to the cap reached the coverage
-            return f"{'>' + str(calibration.MEDIAN_SIGMA_TARGET_STEPS):>8}"
-        return f"{c.systematic_sigma_steps:>8.2f}"
-
-    print(
-        "learnt on the fit fields per measure: noise (share of the maximum) and systematic "
-        f"sigma (steps, for {calibration.CALIBRATION_COVERAGE:.0%} coverage):\n  "
-        + "\n  ".join(
-            f"{metric:<24}{c.relative_noise:>10.2g}{systematic(c)}"
-            + ("" if c.usable else f"  UNUSABLE: {c.unusable_because}")
-            for metric, c in constants.items()
-        )
-    )
-    focus_real.print_report(report, "report fields 2, 4, ..., 20 (not used to fit)", unusable)
-    focus_real.print_report(
-        fit, "fit fields 1, 3, ..., 19 (the constants were chosen here)", unusable
-    )
-    met = focus_real.targets(report, unusable)
-    print("\ntargets on the report fields (measures usable on this microscope):")
-    for target, misses in met.items():
-        print(f"  {'NOT met' if misses else 'met    '}  {target}  {' '.join(misses)}")
-    unusable_met = focus_real.unusable_targets(report, unusable)
-    for metric, verdict in unusable_met.items():
-        print(
-            f"\n{metric}: unusable on this microscope (learnt on the fit fields: "
-            f"{unusable[metric]}); every result it gives is flat, a warning with no z.\n"
-            f"  meets: {'; '.join(verdict['met']) or '-'}\n"
-            f"  cannot meet: {'; '.join(verdict['not_met']) or '-'} (a flat result has no z "
-            "or sigma to cover, and a measure that points nowhere never points the right way)"
-        )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        payload = {
-            "source": "wsi_focus_curves",
-            "step_um": WSI_STEP_UM,
-            "report_fields": list(calibration.REPORT_FIELDS),
-            "fit_fields": list(calibration.FIT_FIELDS),
-            "calibration": {m: asdict(c) for m, c in constants.items()},
-            "metrics": report,
-            "fit_metrics": fit,
-            "targets": met,
-            "unusable": {
-                m: {"because": unusable[m]} | verdict for m, verdict in unusable_met.items()
-            },
-        }
-        args.json.write_text(json.dumps(payload, indent=2))
-        print(f"wrote {args.json}")
-    if args.plots:
-        focus_real.write_plot(args.plots / "real_curves.png", report)
-        print(f"wrote {args.plots / 'real_curves.png'}")
-    return 0
-
-
-def run_calibrated(args: argparse.Namespace) -> int:
-    """`--real --calibrate-on`: the calibrate command on one half, the other half reported."""
-    halves = ("odd", "even") if args.calibrate_on == "both" else (args.calibrate_on,)
-    metrics = focus_real.HOLDOUT_METRICS
-    with tempfile.TemporaryDirectory() as scratch:
-        workdir = args.json.parent if args.json else Path(scratch)
-        results = []
-        for half in halves:
-            print(f"\n== focustrack focus calibrate on the {half} fields ==")
-            results.append(
-                focus_real.calibrate_and_hold_out(args.real_dir, half, metrics, workdir, args.folds)
-            )
-        for result in results:
-            focus_real.print_holdout(result)
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"source": "wsi_focus_curves", "runs": results}, indent=2))
-        png = args.json.with_suffix(".png")
-        focus_real.write_holdout_plot(png, results)
-        print(f"wrote {args.json}, {png}")
-    return 0
-
-
 def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)  # the target: a 100 frames/s camera kept up with on one core
     if args.real:
-        return run_real(args)
+        return focus_real.run(args)
     reps = args.reps or (1 if args.quick else 4)
     if reps < 1 or not args.metrics:
         raise SystemExit("focustrack bench focus: --reps must be >= 1 and --metrics not empty")

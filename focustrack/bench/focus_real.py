@@ -13,19 +13,29 @@ targets on the even fields (2, 4, ..., 20), the headline figures. A measure foun
 unusable is reported as such, with its figures, instead of being counted against
 targets that need a measurement (`targets`). With `--calibrate-on`, the whole loop a user
 runs (`calibrate_and_hold_out`): the curves file of one half, `focustrack focus
-calibrate` on it, the other half read with the profile it wrote and without one.
+calibrate` on it, the other half read with the profile it wrote and without one; with
+`--calibrate-on none`, each half read with no profile alone (`run_without_profile`: the
+"none" columns in about a minute, where the whole loop takes ten).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Collection
+import argparse
+import json
+import tempfile
+from collections.abc import Callable, Collection, Sequence
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
-from focustrack_focus.calibration import MEDIAN_SIGMA_TARGET_STEPS
-from focustrack_focus.labelled_curves import write_curves, wsi_curves
-from focustrack_focus.real_data import load_wsi_fields
+from focustrack_focus import calibration
+from focustrack_focus.calibration import MEDIAN_SIGMA_TARGET_STEPS, parts, read_fields
+from focustrack_focus.labelled_curves import LabelledCurve, write_curves, wsi_curves
+from focustrack_focus.pipeline import FocusSettings
+from focustrack_focus.profile import MicroscopeProfile
+from focustrack_focus.real_data import WSI_STEP_UM, load_wsi_fields
 
 #: The measures reported (the data set's names). Gradient ones carry the 97 % target.
 GRADIENT_METRICS = ("BRENNER", "SQUARED_GRADIENT", "_3_3_SOBEL", "_5_5_SOBEL")
@@ -62,8 +72,8 @@ def print_report(figures: dict[str, dict], title: str, unusable: Collection[str]
     for part in ("full", "windows", "windows_11x3"):
         print(f"  {part}:")
         print(f"  {'metric':<24}" + "".join(f"{head:>10}" for _, head, _ in _COLUMNS))
-        for metric, parts in figures.items():
-            row = parts[part]
+        for metric, by_part in figures.items():
+            row = by_part[part]
             cells = [
                 f"{row[key]:>10.2%}" if kind == "%" else f"{row[key]:>10.2f}"
                 for key, _, kind in _COLUMNS
@@ -205,6 +215,25 @@ def holdout_misses(
     return out
 
 
+def half_fields(real_dir: Path, half: str) -> list[LabelledCurve]:
+    """The shared WSI fields of one half (`HALVES`) as labelled curves."""
+    folder = real_dir / "wsi_focus_curves"
+    return wsi_curves([f for f in load_wsi_fields(folder) if f.number in HALVES[half]])
+
+
+def read_without_profile(
+    fields: Sequence[LabelledCurve], metrics: Collection[str]
+) -> dict[str, dict]:
+    """Per metric, the figures (`calibration.parts`) of `fields` read as the curve endpoint
+    reads a curve labelled with the metric's name and no profile: none of the WSI names is a
+    service metric, so each is a metric the service knows nothing of (`unprofiled`)."""
+    empty = MicroscopeProfile({})
+    return {
+        metric: parts(read_fields(fields, metric, empty.settings_for(metric, FocusSettings())))
+        for metric in metrics
+    }
+
+
 def calibrate_and_hold_out(
     real_dir: Path, calibrate_on: str, metrics: Collection[str], workdir: Path, folds: int
 ) -> dict:
@@ -212,9 +241,6 @@ def calibrate_and_hold_out(
     curves file written first, the command's own entry point), then the other half read
     through the focus service's curve path with the profile it wrote, and without one."""
     from focustrack.cli import main  # the command as a user calls it
-    from focustrack_focus.calibration import parts, read_fields
-    from focustrack_focus.pipeline import FocusSettings
-    from focustrack_focus.profile import MicroscopeProfile
 
     held_out = next(name for name in HALVES if name != calibrate_on)
     curves = write_wsi_curves(real_dir, HALVES[calibrate_on], workdir / f"{calibrate_on}.jsonl")
@@ -223,19 +249,12 @@ def calibrate_and_hold_out(
     if main([*argv, "--folds", str(folds), "--metrics", *metrics]) != 0:
         raise SystemExit(f"focustrack focus calibrate failed on {curves}")
     profile = MicroscopeProfile.load(profile_path)
-    fields = wsi_curves(
-        [f for f in load_wsi_fields(real_dir / "wsi_focus_curves") if f.number in HALVES[held_out]]
-    )
-    with_profile, without = {}, {}
-    for metric in metrics:
-        base = FocusSettings()
-        with_profile[metric] = parts(
-            read_fields(fields, metric, profile.settings_for(metric, base))
-        )
-        # no profile: as the curve endpoint reads a curve labelled `metric` (`unprofiled`)
-        without[metric] = parts(
-            read_fields(fields, metric, MicroscopeProfile({}).settings_for(metric, base))
-        )
+    fields = half_fields(real_dir, held_out)
+    with_profile = {
+        metric: parts(read_fields(fields, metric, profile.settings_for(metric, FocusSettings())))
+        for metric in metrics
+    }
+    without = read_without_profile(fields, metrics)
     unusable = [m for m, entry in profile.metrics.items() if not entry.usable]
     return {
         "calibrate_on": calibrate_on,
@@ -294,3 +313,119 @@ def write_holdout_plot(path: Path, results: list[dict]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    """`--real`: the WSI curves' figures on the report fields (and the fit fields), targets."""
+    folder = args.real_dir / "wsi_focus_curves"
+    if not folder.is_dir():
+        raise SystemExit(f"focustrack bench focus --real: {folder} is missing (see its README)")
+    if args.calibrate_on == "none":
+        return run_without_profile(args)
+    if args.calibrate_on:
+        return run_calibrated(args)
+    metrics = REAL_METRICS
+    constants = calibration.calibrate(folder, tqdm(metrics, desc="real curves", unit="metric"))
+    readings = calibration.real_curves(
+        folder, tqdm(metrics, desc="real curves", unit="metric"), calibration=constants
+    )
+    report = calibration.report(readings, calibration.REPORT_FIELDS)
+    fit = calibration.report(readings, calibration.FIT_FIELDS)
+    print(
+        f"source: {folder} (real WSI curves, {WSI_STEP_UM} um steps); errors, sigma "
+        "in steps against the hand label; coverage allows half a step for its rounding"
+    )
+    unusable = {m: c.unusable_because for m, c in constants.items() if not c.usable}
+
+    def systematic(c: calibration.Calibration) -> str:
+        if c.systematic_sigma_steps is None:  # none up to the cap reached the coverage
+            return f"{'>' + str(calibration.MEDIAN_SIGMA_TARGET_STEPS):>8}"
+        return f"{c.systematic_sigma_steps:>8.2f}"
+
+    print(
+        "learnt on the fit fields per measure: noise (share of the maximum) and systematic "
+        f"sigma (steps, for {calibration.CALIBRATION_COVERAGE:.0%} coverage):\n  "
+        + "\n  ".join(
+            f"{metric:<24}{c.relative_noise:>10.2g}{systematic(c)}"
+            + ("" if c.usable else f"  UNUSABLE: {c.unusable_because}")
+            for metric, c in constants.items()
+        )
+    )
+    print_report(report, "report fields 2, 4, ..., 20 (not used to fit)", unusable)
+    print_report(fit, "fit fields 1, 3, ..., 19 (the constants were chosen here)", unusable)
+    met = targets(report, unusable)
+    print("\ntargets on the report fields (measures usable on this microscope):")
+    for target, misses in met.items():
+        print(f"  {'NOT met' if misses else 'met    '}  {target}  {' '.join(misses)}")
+    unusable_met = unusable_targets(report, unusable)
+    for metric, verdict in unusable_met.items():
+        print(
+            f"\n{metric}: unusable on this microscope (learnt on the fit fields: "
+            f"{unusable[metric]}); every result it gives is flat, a warning with no z.\n"
+            f"  meets: {'; '.join(verdict['met']) or '-'}\n"
+            f"  cannot meet: {'; '.join(verdict['not_met']) or '-'} (a flat result has no z "
+            "or sigma to cover, and a measure that points nowhere never points the right way)"
+        )
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        payload = {
+            "source": "wsi_focus_curves",
+            "step_um": WSI_STEP_UM,
+            "report_fields": list(calibration.REPORT_FIELDS),
+            "fit_fields": list(calibration.FIT_FIELDS),
+            "calibration": {m: asdict(c) for m, c in constants.items()},
+            "metrics": report,
+            "fit_metrics": fit,
+            "targets": met,
+            "unusable": {
+                m: {"because": unusable[m]} | verdict for m, verdict in unusable_met.items()
+            },
+        }
+        args.json.write_text(json.dumps(payload, indent=2))
+        print(f"wrote {args.json}")
+    if args.plots:
+        write_plot(args.plots / "real_curves.png", report)
+        print(f"wrote {args.plots / 'real_curves.png'}")
+    return 0
+
+
+def run_calibrated(args: argparse.Namespace) -> int:
+    """`--real --calibrate-on`: the calibrate command on one half, the other half reported."""
+    halves = ("odd", "even") if args.calibrate_on == "both" else (args.calibrate_on,)
+    metrics = HOLDOUT_METRICS
+    with tempfile.TemporaryDirectory() as scratch:
+        workdir = args.json.parent if args.json else Path(scratch)
+        results = []
+        for half in halves:
+            print(f"\n== focustrack focus calibrate on the {half} fields ==")
+            results.append(
+                calibrate_and_hold_out(args.real_dir, half, metrics, workdir, args.folds)
+            )
+        for result in results:
+            print_holdout(result)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"source": "wsi_focus_curves", "runs": results}, indent=2))
+        png = args.json.with_suffix(".png")
+        write_holdout_plot(png, results)
+        print(f"wrote {args.json}, {png}")
+    return 0
+
+
+def run_without_profile(args: argparse.Namespace) -> int:
+    """`--real --calibrate-on none`: each half of the WSI fields read with no profile alone
+    (the "none" columns of `--calibrate-on both`, without the command's runs)."""
+    results = []
+    for half in HALVES:
+        figures = read_without_profile(half_fields(args.real_dir, half), HOLDOUT_METRICS)
+        misses = holdout_misses(figures, NO_PROFILE_TARGETS)
+        print_report(figures, f"{half} fields, no profile")
+        print("  targets with no profile:")
+        for target, missed in misses.items():
+            print(f"    {'NOT met' if missed else 'met    '}  {target}  {' '.join(missed)}")
+        results.append({"held_out": half, "no_profile": figures, "no_profile_targets": misses})
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"source": "wsi_focus_curves", "runs": results}, indent=2))
+        print(f"wrote {args.json}")
+    return 0

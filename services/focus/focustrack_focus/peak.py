@@ -11,8 +11,9 @@ on a noisy one more frames average the noise.
 
 Its standard deviation has six parts, added in quadrature:
 - noise: the score noise (estimated from the curve itself, as the robust
-  spread of its third differences: `score_noise`, but never below the metric's
-  known noise, `PeakSettings.min_relative_noise`) propagated through the
+  spread of its third differences: `score_noise`, or that estimate's upper confidence
+  bound where `PeakSettings.own_noise_confidence` asks for it, `noise_bound`; never below
+  the metric's known noise, `PeakSettings.min_relative_noise`) propagated through the
   weighted fit to the vertex z0 = -b1 / (2 b2) by the delta method;
 - sampling: a floor of `model_floor_steps` z steps (a Gaussian fitted to a
   peak of another shape, sampled at an arbitrary phase);
@@ -86,9 +87,8 @@ from focustrack_focus.curve_checks import (
     uniform_sigma_um,
 )
 from focustrack_focus.despike import despike
-
-#: Std of a normal distribution per unit of its median absolute deviation.
-MAD_TO_SIGMA = 1.4826
+from focustrack_focus.noise_bound import MAD_TO_SIGMA as MAD_TO_SIGMA  # its home: noise_bound
+from focustrack_focus.noise_bound import away_from_top, bound_factor, noise_from_differences
 
 
 class PeakMode(StrEnum):
@@ -145,6 +145,12 @@ class PeakSettings:
         short stacks around a confident prediction see the top alone by design, which the
         service's own metrics read honestly there (the simulator's z-scores). 0 for a metric
         the service has no entry for (`unprofiled`).
+    own_noise_confidence: where above 0, the noise that sigma and the top's chances take is
+        the upper bound at this confidence of the curve's own noise estimate, which on a
+        short window rests on a few differences and may fall far short of the noise
+        (`noise_bound`; the flat test and the candidates keep the estimate). 0, the estimate
+        itself, for the service's own metrics (fitted so on the simulator); 0.95 for a metric
+        the service has no entry for (`unprofiled`).
     """
 
     mode: PeakMode = PeakMode.MAX
@@ -161,6 +167,7 @@ class PeakSettings:
     systematic_sigma_um: float = 0.0
     curve_fwhm_um: float | None = None
     broad_top_exempt_frames: int = SHORT_STACK_FRAMES
+    own_noise_confidence: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -250,13 +257,11 @@ def score_noise(scores: np.ndarray) -> tuple[float, bool]:
     if scores.size < 4:
         return 0.0, False
     d3 = np.diff(scores, 3)
-    first = np.arange(d3.size)  # difference i spans frames i .. i + 3
-    best = int(np.argmax(scores))
-    away = (first + 3 < best - 1) | (first > best + 1)
+    away = away_from_top(scores.size, int(np.argmax(scores)))
     clean = np.count_nonzero(away) >= 2
     if clean:
         d3 = d3[away]
-    return MAD_TO_SIGMA * float(np.median(np.abs(d3))) / math.sqrt(20.0), bool(clean)
+    return float(noise_from_differences(d3)), bool(clean)
 
 
 def find_peak(
@@ -277,23 +282,26 @@ def find_peak(
         # the valley is the peak of the curve turned upside down (lifted to stay
         # positive for the log fit: scores in [span, 2 span], nearly a plain parabola)
         s = float(s.max()) - s + span
-    noise, clean = score_noise(s)
+    own, clean = score_noise(s)
     # a noise estimate that is not clean took in the peak's own shape: too large to judge
     # which bumps are noise, so then only the metric's known noise floor judges (and
     # where there is none, the prominence share alone decides: `_candidates`)
     floor = settings.min_relative_noise * top
-    judged_noise = max(noise if clean else 0.0, floor)
-    noise = max(noise, floor)
+    judged_noise = max(own if clean else 0.0, floor)
+    noise = max(own, floor)
     contrast_flat = low_contrast_flat(s, top, noise, clean, settings.min_contrast, settings.min_snr)
     if contrast_flat or span <= settings.min_snr * judged_noise:
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
+    # sigma and the top's chances: the own estimate's upper bound where asked (`noise_bound`)
+    bound = own * bound_factor(s.size, int(np.argmax(s)), settings.own_noise_confidence)
+    read_noise = _Noise(max(bound, floor), judged_noise, max(bound if clean else 0.0, floor))
     s = despike(
         z,
         s,
         judged_noise,
         narrowest_peak_sigma_um(settings.min_peak_sigma_um, settings.curve_fwhm_um),
     )
-    fit = _read_peaks(z, s, noise, judged_noise, settings, prior)
+    fit = _read_peaks(z, s, read_noise, settings, prior)
     valley_z = phase_valley(z, s) if settings.mode is PeakMode.MAX else None
     if valley_z is None:
         return fit
@@ -356,15 +364,23 @@ def _candidates(
     ]
 
 
+@dataclass(frozen=True)
+class _Noise:
+    """The score noise each part of a reading takes (`find_peak`), each at least the metric's
+    known floor: the fit's sigma (`fit`: the curve's own estimate), the candidates and the
+    shoulder test (`judged`: the own estimate where it is clean, else none) and the top's
+    chances (`top`: as `judged`). Where `PeakSettings.own_noise_confidence` asks for it,
+    `fit` and `top` take the own estimate's upper bound instead (`noise_bound`)."""
+
+    fit: float
+    judged: float
+    top: float
+
+
 def _read_peaks(
-    z: np.ndarray,
-    s: np.ndarray,
-    noise: float,
-    judged_noise: float,
-    settings: PeakSettings,
-    prior: Prior | None,
+    z: np.ndarray, s: np.ndarray, noise: _Noise, settings: PeakSettings, prior: Prior | None
 ) -> PeakFit:
-    candidates = _candidates(z, s, judged_noise, settings, prior)
+    candidates = _candidates(z, s, noise.judged, settings, prior)
     chosen = candidates[0]
     flags: set[FocusFlag] = set()
     runner_up_z = None
@@ -372,20 +388,20 @@ def _read_peaks(
         flags.add(FocusFlag.MULTI_PEAK)
         runner_up_z = float(z[candidates[1].index])
     others = [c.index for c in candidates[1:]]
-    top = _TopChances.of(s, chosen.index, others, judged_noise, settings.max_reach)
+    top = _TopChances.of(s, chosen.index, others, noise.top, settings.max_reach)
     probability = chosen.weight * top.located
     if probability < settings.ambiguous_below:
         flags.add(FocusFlag.AMBIGUOUS)
     if chosen.index in (0, z.size - 1):
         edge = FocusFlag.EDGE_LOW if chosen.index == 0 else FocusFlag.EDGE_HIGH
-        hidden = shoulder(s, chosen.index > 0, judged_noise) if len(candidates) == 1 else None
+        hidden = shoulder(s, chosen.index > 0, noise.judged) if len(candidates) == 1 else None
         if hidden is not None:  # a top of its own under a far peak's foot: no certainty
             flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}
             runner_up_z, probability = float(z[hidden]), min(probability, 0.5)
         return PeakFit(
             float(z[chosen.index]), None, frozenset(flags | {edge}), runner_up_z, probability
         )
-    z0, sigma, width_var_um2 = _fit_vertex(z, s, chosen.index, noise, settings)
+    z0, sigma, width_var_um2 = _fit_vertex(z, s, chosen.index, noise.fit, settings)
     sigma = math.hypot(sigma, top.spread_um(z, z0))
     span_um = float(z[-1] - z[0])
     if broader_than_window(width_var_um2, span_um, z.size, settings.broad_top_exempt_frames):
@@ -394,7 +410,7 @@ def _read_peaks(
         sigma = max(sigma, uniform_sigma_um(span_um))
         probability = min(probability, 0.5)
     end = 0 if chosen.index == 1 else z.size - 1 if chosen.index == z.size - 2 else None
-    if end is not None and _rests_on_end(z, s, chosen.index, end, noise, settings):
+    if end is not None and _rests_on_end(z, s, chosen.index, end, noise.fit, settings):
         # the top rests on the end frame alone: were it a one-frame dip, the focus
         # would lie beyond that end
         flags |= {FocusFlag.MULTI_PEAK, FocusFlag.AMBIGUOUS}

@@ -17,6 +17,11 @@ record, and its reading assumes nothing that its curve cannot show:
   by an amount no single curve shows: the optics bound it, the metric's name does not.
 - whether a short window sees a top of its own: the rule on a top broader than its window
   (`curve_checks.broader_than_window`) applies to windows of every length.
+- its noise: none on record, so a window's own estimate, from a few third differences, is
+  all there is, and it may fall far short of the noise (a faint bump then reads as a clean
+  top). Sigma and the top's chances take its upper bound at `UNPROFILED_NOISE_CONFIDENCE`
+  (`noise_bound`; the confidence of a normal 2-sigma interval, which sigma stands for); the
+  flat test and the candidates keep the estimate.
 """
 
 from __future__ import annotations
@@ -31,17 +36,22 @@ from focustrack_focus.pipeline import FocusSettings
 #: The systematic sigma of a metric the service has no entry for, as a share of
 #: `PeakSettings.min_peak_sigma_um` (half the depth of field): a quarter of the depth of field.
 UNPROFILED_SYSTEMATIC_SHARE = OVERSAMPLED_FLOOR_SHARE
+#: The confidence of the upper bound on a curve's own noise estimate that sigma and the top's
+#: chances take for such a metric (`PeakSettings.own_noise_confidence`).
+UNPROFILED_NOISE_CONFIDENCE = 0.95
 
 
 def unprofiled(peak: PeakSettings) -> PeakSettings:
     """`peak` for a metric the service has no entry for (module docstring): its systematic
-    sigma at least UNPROFILED_SYSTEMATIC_SHARE of `min_peak_sigma_um`, and no window exempt
-    from the broad-top rule."""
+    sigma at least UNPROFILED_SYSTEMATIC_SHARE of `min_peak_sigma_um`, no window exempt
+    from the broad-top rule, and its own noise estimate bounded at (at least)
+    UNPROFILED_NOISE_CONFIDENCE."""
     floor_um = UNPROFILED_SYSTEMATIC_SHARE * peak.min_peak_sigma_um
     return replace(
         peak,
         systematic_sigma_um=max(peak.systematic_sigma_um, floor_um),
         broad_top_exempt_frames=0,
+        own_noise_confidence=max(peak.own_noise_confidence, UNPROFILED_NOISE_CONFIDENCE),
     )
 
 
