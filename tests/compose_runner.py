@@ -12,6 +12,7 @@ root (`ensure_engine`); elsewhere they skip, saying what is missing.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import re
@@ -20,7 +21,8 @@ import shutil
 import subprocess
 import tempfile
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +55,10 @@ PODMAN = ["podman", "--runtime", "runc", "--cgroup-manager", "cgroupfs"]
 ULIMITS = ["--ulimit", "nofile=1024:1024", "--ulimit", "nproc=1000:1000"]
 TOOLS = ("podman", "runc", "debootstrap")  # Debian packages, each named as its command
 HEALTHY_TIMEOUT_S = 120.0
+#: Held while an image is built: the test files that build the same images (test_containers,
+#: test_facility) run on two pytest workers at once, and two builds of one layer at the same
+#: time both do the work; one after the other, the second finds the layer in Podman's cache.
+BUILD_LOCK = Path(tempfile.gettempdir()) / "focustrack-podman-build.lock"
 
 
 def say(config: pytest.Config, message: str, topic: str = "containers") -> None:
@@ -69,6 +75,14 @@ def podman(*args: str, check: bool = True, timeout_s: float = 600) -> subprocess
     if check and run.returncode != 0:
         raise AssertionError(f"podman {' '.join(args)} failed:\n{run.stdout}\n{run.stderr}")
     return run
+
+
+@contextmanager
+def build_lock() -> Iterator[None]:
+    """BUILD_LOCK held (an exclusive flock, let go when the block ends or the process dies)."""
+    with BUILD_LOCK.open("a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
 
 
 def ensure_engine() -> None:
@@ -94,6 +108,12 @@ def ensure_base_image(config: pytest.Config) -> tuple[str, float]:
     seconds the build took (0: there was one)."""
     if os.environ.get("BASE_IMAGE"):
         return os.environ["BASE_IMAGE"], 0.0
+    with build_lock():  # a test file on the other worker may be building it
+        return _debootstrap_base_image(config)
+
+
+def _debootstrap_base_image(config: pytest.Config) -> tuple[str, float]:
+    """BASE_TAG, built with debootstrap unless Podman's store has it; seconds the build took."""
     if podman("image", "exists", BASE_TAG, check=False).returncode == 0:
         return BASE_TAG, 0.0
     if os.geteuid() != 0:
@@ -185,12 +205,13 @@ class Topology:
         """Build `service`'s image as compose would, on `base_image`; seconds taken."""
         spec = self.spec(service, BASE_IMAGE=base_image)
         build_args = [f"--build-arg={key}={value}" for key, value in spec["build"]["args"].items()]
-        started_s = time.monotonic()
-        podman(
-            "build", *ULIMITS, *build_args, "-f", spec["build"]["dockerfile"],
-            "-t", spec["image"], str(ROOT / spec["build"]["context"]), timeout_s=1200,
-        )  # fmt: skip
-        return time.monotonic() - started_s
+        with build_lock():  # seconds taken: the build's own, not the wait for the lock
+            started_s = time.monotonic()
+            podman(
+                "build", *ULIMITS, *build_args, "-f", spec["build"]["dockerfile"],
+                "-t", spec["image"], str(ROOT / spec["build"]["context"]), timeout_s=1200,
+            )  # fmt: skip
+            return time.monotonic() - started_s
 
     def run_arguments(self, service: str, container: str, **variables: str) -> list[str]:
         """`podman run` arguments for `service`: all compose.yaml says of it but `restart`."""

@@ -1,7 +1,10 @@
 """`focustrack bench chaos`, small: a scan while the router and the focus service are killed
 and restarted and a rogue peer publishes wrong results; nothing lost, nothing wrong taken.
-Then the bus attacks, with megabytes instead of gigabytes: no replayed or forged result is
-taken, a frames request naming one frame 50 times gets it once, and the bench exits 0."""
+Then the hostile REST requests, with 12 slides created one after another instead of the
+bench's 2,000 (tests/test_hostile.py checks each request's status and the live-slide budget
+with as many), and the bus attacks, with megabytes instead of gigabytes: no replayed or forged
+result is taken, a frames request naming one frame 50 times gets it once, and the bench
+exits 0."""
 
 from __future__ import annotations
 
@@ -21,8 +24,8 @@ def test_a_small_chaos_run_loses_nothing_and_accepts_no_wrong_result(tmp_path: P
     command = [
         sys.executable, "-m", "focustrack", "bench", "chaos", "--rows", "3", "--cols", "4",
         "--size", "96", "--scans", "1", "--seed", "1", "--faults", "2", "--gap-max-s", "3",
-        "--down-max-s", "3", "--attack-sizes", "small", "--out", str(tmp_path / "work"),
-        "--json", str(out),
+        "--down-max-s", "3", "--attack-sizes", "small", "--hostile-slides", "12",
+        "--out", str(tmp_path / "work"), "--json", str(out),
     ]  # fmt: skip
     chaos = subprocess.run(command, capture_output=True, text=True, timeout=560)
     assert chaos.returncode == 0, chaos.stdout + chaos.stderr

@@ -1,5 +1,9 @@
 """The live web view in a real headless browser (Debian's chromium) during a real demo scan.
 
+The demo scans one strategy and no second pass (`--no-rescan`): the page is checked during
+that one scan, which is all the live view needs; the second pass is the demo's own
+(tests/test_scan_e2e.py runs it).
+
 Runs when /usr/bin/chromium is installed (`apt-get install -y chromium`; README, set-up)
 and skips otherwise. The screenshot is left in out/live_view.png for a person to look at.
 """
@@ -44,7 +48,7 @@ def test_the_live_view_fills_in_during_a_demo_scan(tmp_path: Path) -> None:
     pytest.importorskip("playwright.sync_api")
     command = [sys.executable, "-m", "focustrack", "demo", "--rows", str(ROWS), "--cols", str(COLS)]
     command += ["--size", "128", "--strategies", "kf-2d", "--out", str(tmp_path / "demo")]
-    command += ["--no-progress"]
+    command += ["--no-rescan", "--no-progress"]
     env = os.environ | {"PYTHONUNBUFFERED": "1"}
     demo = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env=env)
     try:

@@ -310,9 +310,10 @@ def measurements_lost(estimator_url: str, report: dict[str, Any], log_path: Path
     return max(0, len(posted) - int(slide["n_acquisitions"]))
 
 
-def hostile_requests(stack: LocalStack, memory: MemoryWatch) -> dict[str, int] | str:
-    """Fire `focustrack.bench.hostile`'s requests at the REST services: the status each got,
-    or why they were not fired. VmHWM keeps each service's peak, so sampling after is exact.
+def hostile_requests(stack: LocalStack, memory: MemoryWatch, n_slides: int) -> dict[str, int] | str:
+    """Fire `focustrack.bench.hostile`'s requests at the REST services (`n_slides` slides
+    created one after another among them): the status each got, or why they were not
+    fired. VmHWM keeps each service's peak, so sampling after is exact.
     """
     try:
         hostile = importlib.import_module("focustrack.bench.hostile")
@@ -320,7 +321,7 @@ def hostile_requests(stack: LocalStack, memory: MemoryWatch) -> dict[str, int] |
         return "skipped: focustrack.bench.hostile is not on this branch"
     focus_url = f"http://127.0.0.1:{stack.focus_port}"
     print(f"hostile REST requests at {stack.estimator_url} and {focus_url}", flush=True)
-    statuses: dict[str, int] = hostile.fire(stack.estimator_url, focus_url)
+    statuses: dict[str, int] = hostile.fire(stack.estimator_url, focus_url, n_slides=n_slides)
     memory.sample()
     return statuses
 
@@ -367,13 +368,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="what the memory attacks send: 'issue', the attacker's gigabytes (default), or "
         "'small', megabytes for a quick run",
     )
+    parser.add_argument(
+        "--hostile-slides",
+        type=int,
+        default=2000,
+        help="slides the hostile REST requests create one after another (2000; a quick "
+        "run: a dozen)",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/chaos"), help="work folder")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the report as JSON")
 
 
 def run(args: argparse.Namespace) -> int:
-    if min(args.rows, args.cols, args.size, args.scans) < 1 or args.faults < 0:
-        print("focustrack bench chaos: error: sizes and --scans must be >= 1", file=sys.stderr)
+    if min(args.rows, args.cols, args.size, args.scans, args.hostile_slides) < 1 or args.faults < 0:
+        print(
+            "focustrack bench chaos: error: sizes, --scans and --hostile-slides must be >= 1",
+            file=sys.stderr,
+        )
         return 2
     instrument_args = [
         "--seed", "1", "--slides", "1", "--rows", str(args.rows),
@@ -414,7 +425,7 @@ def run(args: argparse.Namespace) -> int:
                 chaos.join()
                 rogue.close()
             memory.sample()
-            hostile = hostile_requests(stack, memory)
+            hostile = hostile_requests(stack, memory, args.hostile_slides)
             print(f"hostile REST requests: {json.dumps(hostile)}", flush=True)
             memory.sample()
             replay = replay_attack(stack, args, memory)
