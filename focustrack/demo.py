@@ -96,7 +96,7 @@ DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, LASER, "survey-delaunay", "af-every-til
 #: and images a tile without measuring it only where its prediction is sure with a sigma
 #: 1.5 times the filter's (`skip_sigma_scale`: on the tissue slide kf-2d's prior errors
 #: spread 1.4 times its sigma, docs/benchmarks.md); the laser scan measures with pairs too
-#: (its prior errors are the offset's, so its skip sigma is the filter's).
+#: (its skip sigma stays the filter's, as in the drift bench).
 STRATEGY_PARAMS: dict[str, dict[str, Any]] = {
     LEAN: {"short_frames": 2, "skip_sigma_scale": 1.5},
     LASER: {"short_frames": 2},
