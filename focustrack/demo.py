@@ -95,8 +95,12 @@ DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, LASER, "survey-delaunay", "af-every-til
 #: stack (`short_frames` 2: the focus service reads the pair with the slide's learnt curve),
 #: and images a tile without measuring it only where its prediction is sure with a sigma
 #: 1.5 times the filter's (`skip_sigma_scale`: on the tissue slide kf-2d's prior errors
-#: spread 1.4 times its sigma, docs/benchmarks.md).
-STRATEGY_PARAMS: dict[str, dict[str, Any]] = {LEAN: {"short_frames": 2, "skip_sigma_scale": 1.5}}
+#: spread 1.4 times its sigma, docs/benchmarks.md); the laser scan measures with pairs too
+#: (its skip sigma stays the filter's, as in the drift bench).
+STRATEGY_PARAMS: dict[str, dict[str, Any]] = {
+    LEAN: {"short_frames": 2, "skip_sigma_scale": 1.5},
+    LASER: {"short_frames": 2},
+}
 #: The second pass: kf-rescan with the first pass's map, after the slide's focus moved by
 #: RESCAN_OFFSET_UM (10 minutes of drift at 0.02 um/s).
 RESCAN = "kf-rescan"

@@ -24,7 +24,7 @@ def _acquisitions(scan_dir: Path) -> list[dict]:
 @pytest.mark.timeout(600)
 def test_the_demo_scans_a_tissue_slide_with_a_laser_and_scores_its_tissue(tmp_path: Path) -> None:
     assert LASER in DEFAULT_STRATEGIES and LEAN in DEFAULT_STRATEGIES
-    assert STRATEGY_PARAMS[LEAN]["short_frames"] == 2
+    assert STRATEGY_PARAMS[LEAN]["short_frames"] == STRATEGY_PARAMS[LASER]["short_frames"] == 2
     out_json = tmp_path / "demo.json"
     command = [
         sys.executable, "-m", "focustrack", "demo", "--tissue-slide", "--seed", "4",
@@ -43,6 +43,9 @@ def test_the_demo_scans_a_tissue_slide_with_a_laser_and_scores_its_tissue(tmp_pa
     laser = _acquisitions(tmp_path / "demo" / LASER)
     readings = [entry for entry in laser if entry["purpose"] == "laser"]
     assert len(readings) == 12 and all(entry["n_frames"] == 0 for entry in readings)
+    # its start is the reading plus the instrument's calibrated offset: no coarse search
+    # over the start's unknown height (13-15 frames 4 um apart), a pair or a short stack
+    assert max(entry["n_frames"] for entry in laser if entry["purpose"] == "scan") <= 5
     # the lean scan's short stacks are pairs, read by the focus service with the slide's curve
     # (three frames only where a coarse search's peak centres them, on the slide's first tiles)
     frames = [entry["n_frames"] for entry in _acquisitions(tmp_path / "demo" / LEAN)

@@ -15,7 +15,17 @@ the risk rule (`lean.choose_stack`) then images the tile once at that prior wher
 is sure enough, and measures a short stack only where it is not (the first tiles,
 and wherever the offset bends). A measurement z corrects the offset field with
 z - laser (variance R + the reading's) and the tile's focus as a scalar update.
-The smoothed layers are the readings plus the smoothed offsets. Heights in um.
+The smoothed layers are the readings plus the smoothed offsets.
+
+The slide's start needs no blind search: the instrument's calibration of the offset
+(`offset_um` +/- `offset_sigma_um` from slide to slide; the simulator's 4 +/- 0.4 um,
+`focustrack_core.laser.LaserSpec`) is taken as a measurement of the first tile's offset,
+so the first tile's prior is its reading plus the calibration, about 0.4 um unsure where
+the slide's start height is 10 um unsure, and the lean rule measures it with a short
+stack instead of a coarse search of 13-15 frames. The bank's tilts are the offset's
+(`tilt_sigmas_um_per_tile`, 0.03 and 0.3 um/tile: the offset's own gradient, its spread
+over its correlation length, and ten times it), not a surface's (kf-2d's 0.3 and 1.5),
+so the tiles after the first widen from it by what an offset can do. Heights in um.
 """
 
 from __future__ import annotations
@@ -35,14 +45,15 @@ from focustrack_core.domain import (
     ZRangePolicy,
 )
 from focustrack_core.geometry import Tile
+from focustrack_core.laser import LaserSpec
 from focustrack_estimator.filter_params import LeanParams, MaxKeptPlanes, RiskOutOfFocus
 from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
 from focustrack_estimator.serpentine import Gaussian
-from focustrack_estimator.spatial import RowBankFilter, RowBankParams, kf_2d_cost
+from focustrack_estimator.spatial import BankGrid, RowBankFilter, RowBankParams, kf_2d_cost
 from focustrack_estimator.strategy import Cost, StrategyEntry
 
 
-class Kf2dLaserParams(LeanParams):
+class Kf2dLaserParams(RowBankParams, LeanParams):
     """kf-2d-laser: a laser reading on every tile, the offset to the tissue learned by kf-2d's
     bank, each tile's frames chosen by the risk rule."""
 
@@ -54,13 +65,36 @@ class Kf2dLaserParams(LeanParams):
     laser_reading_s: float = Field(
         0.001, ge=0.0, description="Time of one laser reading (the scan's clock), s"
     )
+    tilt_sigmas_um_per_tile: BankGrid = Field(
+        (0.03, 0.3),
+        description="The members' prior std of each tilt of the offset's plane, um/tile: the "
+        "offset's own gradient (its spread over its correlation length, 0.4 um over about 14 "
+        "tiles) and ten times it (a coverslip's wedge)",
+    )
+    offset_um: float = Field(
+        LaserSpec.offset_um,
+        description="The instrument's calibrated offset from the laser's reading to the "
+        "tissue's focus, over slides, um (the simulator's: `focustrack_core.laser.LaserSpec`)",
+    )
+    offset_sigma_um: float = Field(
+        LaserSpec.offset_sigma_um,
+        gt=0.0,
+        description="Its spread from slide to slide, um: the prior of a slide's offset",
+    )
 
 
 class LaserFilter(RowBankFilter):
     """kf-2d's bank over the offset from the laser's reading to the focus (module docstring)."""
 
     def __init__(self, settings: SlideSettings, params: Kf2dLaserParams) -> None:
-        super().__init__(settings, RowBankParams(), params, name="kf-2d-laser")
+        super().__init__(settings, params, params, name="kf-2d-laser")
+        # the instrument's calibration of the offset, taken as a measurement of the first
+        # tile's: its prior is the calibration's, not the slide's unknown start height, and
+        # the tiles after it widen from there by the bank's field and tilt; the members'
+        # weights are the bank's own (the calibration tells none of them apart)
+        self.x[:, 0] = params.offset_um  # the plane's offset (state 0): no innovation then
+        self._update(self.grid.serpentine[0], params.offset_um, params.offset_sigma_um**2)
+        self.log_weights[:] = 0.0
         self.laser_sigma_um = params.laser_sigma_um
         self.laser_reading_s = params.laser_reading_s
         self.laser_um = np.full(self.grid.shape, np.nan)  # each tile's reading
@@ -124,8 +158,8 @@ class LaserFilter(RowBankFilter):
 
 
 def kf_2d_laser_cost(settings: SlideSettings, params: Kf2dLaserParams) -> Cost:
-    """kf-2d's at its default bank (the readings: two more floats a tile)."""
-    return kf_2d_cost(settings, RowBankParams())
+    """kf-2d's with the offset's bank (the readings: two more floats a tile)."""
+    return kf_2d_cost(settings, params)
 
 
 STRATEGIES: dict[str, StrategyEntry[Any]] = {

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -66,6 +68,29 @@ def test_a_laser_reading_comes_before_each_tiles_frames() -> None:
             strategy.record(acquisition, Measurement(z_um=float(truth[tile]), sigma_um=0.1))
         else:
             strategy.record(acquisition, Measurement(z_um=None))
+
+
+@pytest.mark.parametrize(
+    ("params", "offset_um", "offset_sigma_um"),
+    [
+        ({}, LaserSpec.offset_um, LaserSpec.offset_sigma_um),
+        ({"offset_um": -7.0, "offset_sigma_um": 0.2}, -7.0, 0.2),
+    ],
+)
+def test_the_first_tile_is_predicted_from_the_calibrated_offset(
+    params: dict[str, float], offset_um: float, offset_sigma_um: float
+) -> None:
+    strategy = registry.create("kf-2d-laser", _settings(), params)
+    reading = strategy.next_acquisition()
+    assert reading is not None and reading.purpose is Purpose.LASER
+    strategy.record(reading, Measurement(z_um=-3.0, sigma_um=0.05))
+    first = strategy.next_acquisition()
+    assert first is not None and first.purpose is Purpose.SCAN and first.measure
+    # the reading plus the calibration, as unsure as the calibration and the reading
+    assert first.predicted_um == pytest.approx(-3.0 + offset_um, abs=1e-9)
+    assert first.predicted_sigma_um == pytest.approx(math.hypot(offset_sigma_um, 0.05), rel=0.02)
+    # a short stack there, not a coarse search of the start's 10 um (4 um apart)
+    assert first.z.n_frames <= 3 and first.z.step_um == _settings().policy.z_step_um
 
 
 def test_a_missing_reading_leaves_the_tile_to_its_images() -> None:
