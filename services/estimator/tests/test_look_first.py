@@ -28,12 +28,26 @@ def test_a_short_stack_is_its_lowest_frame_then_the_rest() -> None:
     assert with_look(None, rest) == rest and with_look(look, short) == short
 
 
-def test_a_wide_stack_or_one_after_another_look_is_taken_whole() -> None:
+def test_a_wide_stack_is_looked_at_its_centre_then_taken_whole() -> None:
+    """Where the height is unsure (a wide or coarse stack: a slide's first tile) the look is
+    one frame at the prediction, and the whole stack follows where something is in view."""
     wide = ZRange.centred(0.0, 7, 0.5)  # its lowest frame 1.5 um from its centre
-    assert wide.center_um - wide.low_um > LOOK_REACH_UM and first_part(wide, None) == wide
-    assert first_part(ZRange(0.0, 0.5, 2), None) == ZRange(0.0, 0.5, 2)  # no rest to read
+    assert wide.center_um - wide.low_um > LOOK_REACH_UM
+    look = first_part(wide, None)
+    assert look == ZRange(0.0, 0.5, 1) and first_part(wide, look) == wide
+    coarse = ZRange.centred(3.0, 15, 4.0)
+    assert first_part(coarse, None) == ZRange(3.0, 4.0, 1)
+    assert first_part(ZRange(0.0, 0.5, 1), None) == ZRange(0.0, 0.5, 1)  # one frame: as is
     glass_look = ZRange(0.0, 0.5, 1)  # at the prediction, not the stack's lowest frame
     assert first_part(ZRange(-0.5, 0.5, 3), glass_look) == ZRange(-0.5, 0.5, 3)
+
+
+def test_a_pair_is_its_lower_frame_then_the_upper() -> None:
+    pair = ZRange(-0.25, 0.5, 2)
+    look = first_part(pair, None)
+    assert look == ZRange(-0.25, 0.5, 1)
+    rest = first_part(pair, look)
+    assert rest == ZRange(0.25, 0.5, 1) and with_look(look, rest) == pair
 
 
 def lean_with_look_first(cols: int) -> SerpentineFilter:

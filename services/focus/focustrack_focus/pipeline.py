@@ -260,7 +260,7 @@ def focus_stack(
         raise ValueError("pixels must be finite (NaN or infinity found)")
     scan = scan_stack(frames, settings)
     if z.size == 1:
-        snr = look_snr(scan.sharpest, scan.blurriest_raw, settings.preprocess)
+        snr = look_snr(settings.preprocess.region(frames[0]))
         return look_result(z, scan.scores, snr, settings, started_s)
     snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
     result = focus_from_curve(
@@ -327,6 +327,7 @@ class FrameByFrame:
         self._metric = get_metric(settings.metric)
         self._top = self._low = -1
         self._sharpest = self._blurriest = self._blurriest_raw = np.empty(0, np.float32)
+        self._look_snr = math.nan  # a look's statistic (`look.look_snr`), read as it comes
         self._busy_s = 0.0
 
     @property
@@ -364,6 +365,8 @@ class FrameByFrame:
         raw = preprocess.crop(frame)
         image = preprocess.smooth(raw)
         score = self._metric(image)
+        if self.z_um.size == 1:  # a look reads every colour of its frame
+            self._look_snr = look_snr(preprocess.region(frame))
         self.scores[index] = score
         self._agreement[index] = agreement_scores(image)
         if self._top < 0 or score > self.scores[self._top]:
@@ -380,8 +383,7 @@ class FrameByFrame:
             raise ValueError(f"frames {missing} have not arrived")
         started_s = time.perf_counter() - self._busy_s
         if self.z_um.size == 1:
-            snr = look_snr(self._sharpest, self._blurriest_raw, self.settings.preprocess)
-            return look_result(self.z_um, self.scores, snr, self.settings, started_s)
+            return look_result(self.z_um, self.scores, self._look_snr, self.settings, started_s)
         snr = structure_snr(
             self._sharpest, self._blurriest, self._blurriest_raw, self.settings.preprocess
         )
@@ -400,14 +402,18 @@ class FrameByFrame:
             return result
         return unflattened(result, self._agreement, self.settings, prior)
 
-    def continued(self, z_um: np.ndarray) -> FrameByFrame:
+    def continued(self, z_um: np.ndarray, *, pairs: bool = False) -> FrameByFrame:
         """This look (one frame, added) as the first frame of a stack whose other frames lie
-        at z_um (n,), um, one step above it and on (`continues`): they are added as frames
-        1..n of the curve it returns. Its frame was answered as a look already (its compute
-        time counted there)."""
-        if self.z_um.size != 1 or not self.complete or not continues(float(self.z_um[0]), z_um):
+        at z_um (n,), um, one step above it and on (`continues`; with `pairs`, one frame
+        makes a pair): they are added as frames 1..n of the curve it returns. Its frame was
+        answered as a look already (its compute time counted there)."""
+        if (
+            self.z_um.size != 1
+            or not self.complete
+            or not continues(float(self.z_um[0]), z_um, pairs=pairs)
+        ):
             raise ValueError(f"frames at {z_um.tolist()} do not continue a look at {self.z_um}")
-        joined = FrameByFrame(np.concatenate([self.z_um, z_um]), self.settings)
+        joined = FrameByFrame(np.concatenate([self.z_um, z_um]), self.settings, pairs=pairs)
         joined.scores[0], joined._agreement[0] = self.scores[0], self._agreement[0]
         joined._top = joined._low = 0
         joined._sharpest, joined._blurriest = self._sharpest, self._blurriest
@@ -415,10 +421,11 @@ class FrameByFrame:
         return joined
 
 
-def continues(look_z_um: float, z_um: np.ndarray) -> bool:
-    """Whether frames at z_um (n,), um, continue a look at `look_z_um`: two at least, evenly
-    stepped upwards, the first one step above the look (to 1 nm)."""
-    if z_um.size < 2:
+def continues(look_z_um: float, z_um: np.ndarray, *, pairs: bool = False) -> bool:
+    """Whether frames at z_um (n,), um, continue a look at `look_z_um`: two at least (one,
+    above it, with `pairs`: a pair), evenly stepped upwards, the first one step above the
+    look (to 1 nm)."""
+    if z_um.size < (PAIR_FRAMES - 1 if pairs else 2):
         return False
     steps_um = np.diff(np.concatenate([[look_z_um], z_um]))
     return bool(steps_um[0] > 0 and np.all(np.abs(steps_um - steps_um[0]) < 1e-3))
@@ -463,6 +470,6 @@ class LastLooks:
         tile_and_look = self._last.pop(slide, None)
         if tile_and_look is not None:
             looked, look = tile_and_look
-            if looked == tile and continues(float(look.z_um[0]), z_um):
-                return look.continued(z_um)
+            if looked == tile and continues(float(look.z_um[0]), z_um, pairs=pairs):
+                return look.continued(z_um, pairs=pairs)
         return FrameByFrame(z_um, settings, pairs=pairs)
