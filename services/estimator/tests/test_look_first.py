@@ -88,3 +88,23 @@ def test_an_empty_tile_costs_one_frame_and_a_tile_in_view_its_stack() -> None:
     assert total == 3 and not strategy.empty[0, 1]
     # the look's frame is one of the tile's: the one nearest its focus here
     assert strategy.map.z_used_um[0, 1] == pytest.approx(look.z.low_um)
+
+
+def test_where_the_height_is_unknown_glass_costs_one_frame_and_tissue_one_more() -> None:
+    """A slide's first tiles (10 um unsure: a coarse stack) are looked at the prediction
+    first: glass is done with that frame, a tile in view takes its coarse stack whole."""
+    settings = default_settings(
+        ScanGrid(1, 3), start_z_um=0.0, start_sigma_um=10.0, noise_sigma_um=0.1
+    )
+    strategy = registry.create("kf-2d-lean", settings, {"look_first": True})
+    assert isinstance(strategy, SerpentineFilter)
+    look = strategy.next_acquisition()
+    assert look is not None and look.z.n_frames == 1 and look.z.low_um == pytest.approx(0.0)
+    strategy.record(look, EMPTY)
+    assert strategy.empty[0, 0] and strategy.scanned[0, 0]  # one frame in all
+    look = strategy.next_acquisition()
+    assert look is not None and look.col == 1 and look.z.n_frames == 1
+    strategy.record(look, IN_VIEW)
+    coarse = strategy.next_acquisition()
+    assert coarse is not None and coarse.col == 1 and coarse.z.n_frames > 5
+    assert coarse.z.step_um > 1.0 and coarse.purpose is Purpose.SCAN  # the coarse search

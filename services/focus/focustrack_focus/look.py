@@ -39,7 +39,6 @@ import math
 
 import numpy as np
 
-from focustrack_focus import filters
 from focustrack_focus.preprocess import lowpass, pyramid_levels_for
 from focustrack_focus.structure import pixel_noise_std, unit_noise_patch
 

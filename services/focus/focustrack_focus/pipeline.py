@@ -133,6 +133,7 @@ def focus_from_curve(
     structure_snr: float = math.inf,
     prior: Prior | None = None,
     curve: CurveModel | None = None,
+    beside_layers: bool = False,
 ) -> FocusResult:
     """Read a curve of scores (n,) at z_um (n,); `started_s` (perf_counter) times the whole job.
 
@@ -142,7 +143,8 @@ def focus_from_curve(
     `prior`: the estimator's belief (um); it weighs the choice between peaks and
     gives the posterior. `curve`: the slide's learnt curve; a short stack (at most
     SHORT_MAX_FRAMES frames) is read with it once it is ready (`curve_model`), and a top
-    broader than its tops is two layers (`layers`: the sigma widens).
+    broader than its tops is two layers (`layers`: the sigma widens; sooner where the tile
+    lies `beside_layers`, a tile read so).
     """
     started_s = time.perf_counter() if started_s is None else started_s
     z, s = validate_curve(z_um, scores)
@@ -154,7 +156,9 @@ def focus_from_curve(
             fit = fit_short_stack(z, s, curve, fit)
         if curve is not None and fit.z_um is not None and fit.sigma_um is not None:
             # a top broader than the slide's: two layers (a fold), the vertex between them
-            layers_um = layers_sigma_um(curve.top_widths_um, z, s, fit.z_um)
+            layers_um = layers_sigma_um(
+                curve.top_widths_um, z, s, fit.z_um, beside_layers=beside_layers
+            )
             fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
     return _answer(z, s, fit, settings, started_s, prior)
 
@@ -375,9 +379,16 @@ class FrameByFrame:
             self._low, self._blurriest, self._blurriest_raw = index, image, raw
         self._busy_s += time.perf_counter() - started_s
 
-    def result(self, curve: CurveModel | None = None, prior: Prior | None = None) -> FocusResult:
-        """The focus of the stack (a short one read with `curve`, where given and ready;
-        its peaks weighed with `prior`, where given); ValueError while frames are missing."""
+    def result(
+        self,
+        curve: CurveModel | None = None,
+        prior: Prior | None = None,
+        *,
+        beside_layers: bool = False,
+    ) -> FocusResult:
+        """The focus of the stack (a short one read with `curve`, where given and ready, and
+        `beside_layers` as `focus_from_curve`; its peaks weighed with `prior`, where given);
+        ValueError while frames are missing."""
         if not self.complete:
             missing = np.flatnonzero(np.isnan(self.scores)).tolist()
             raise ValueError(f"frames {missing} have not arrived")
@@ -397,6 +408,7 @@ class FrameByFrame:
             structure_snr=snr,
             prior=prior,
             curve=curve,
+            beside_layers=beside_layers,
         )
         if result.flags != {FocusFlag.FLAT}:
             return result
