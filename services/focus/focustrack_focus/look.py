@@ -23,13 +23,14 @@ frame). As in `structure`, its spread on pure noise is at most sqrt(2 / (N g)) f
 pixels; `look_snr` is the excess over 1 in units of that spread, and a frame below
 `MIN_LOOK_SNR` shows nothing in view.
 
-Chosen on virtual slides of seeds 1 and 2 (256 px tiles of 0.108 um, 10x10, every tile of
-glass, every tile under 5% of tissue and a quarter of the others, frames 0-12 um from the
-section either way, and glass with dust at its dust's height): clean glass -2.4 to 2.2,
-glass with dust in view (in focus or not) -0.7 to 1.5, tiles with 0.2% to 1% of their area
-in section 268 and more within 4 um of focus and 20 and more 8-12 um away, fuller tiles 266
-and more at any of these distances. A tissue tile taken for glass would be imaged unmeasured,
-a glass tile taken for tissue costs a stack: the threshold lies nearer the glass.
+Chosen on virtual slides of seeds 1 and 2 (256 px tiles of 0.108 um, 10x10: every tile of
+glass, every tile under 5% of tissue and a quarter of the others, frames 0 to 12 um from the
+section either way): clean glass -2.1 to 2.7, glass with dust in view -0.3 to 2.1, tiles
+with 0.2% to 1% of their area in section 266 and more within 4 um of focus and 20 and more
+8 to 12 um away, fuller tiles 266 and more at any of these distances (`tests/test_look.py`
+checks seeds 3 and 4, glass with its dust in focus included). A tissue tile taken for glass
+would be imaged unmeasured, a glass tile taken for tissue costs a stack: the threshold lies
+nearer the glass.
 """
 
 from __future__ import annotations

@@ -232,7 +232,7 @@ def look_result(
     z_um: np.ndarray, scores: np.ndarray, snr: float, settings: FocusSettings, started_s: float
 ) -> FocusResult:
     """The answer to a look, one frame at z_um (1,) with its score (1,): no focus (one frame
-    has no curve), and flat and empty where its structure test (`look.look_snr`, `snr`)
+    has no curve), and flat and empty where its stain test (`look.look_snr`, `snr`)
     sees nothing in view; no flag where it does (a stack there will find the focus)."""
     empty = snr < MIN_LOOK_SNR
     return FocusResult(
