@@ -132,10 +132,10 @@ def in_glass(empty: np.ndarray, scanned: np.ndarray, tile: Tile) -> bool:
     return found_empty >= 1 and found_empty >= GLASS_SHARE * int(scanned[window].sum())
 
 
-def is_pair(acquisition: Acquisition) -> bool:
+def is_pair(acquisition: Acquisition, look: ZRange | None) -> bool:
     """Whether `acquisition` is a pair (two measured frames: the lean rule's short stack with
-    `short_frames` 2)."""
-    return acquisition.measure and acquisition.z.n_frames == PAIR_FRAMES
+    `short_frames` 2), alone or the rest of one after `look`, its tile's look (`look_first`)."""
+    return acquisition.measure and with_look(look, acquisition.z).n_frames == PAIR_FRAMES
 
 
 def is_look(acquisition: Acquisition) -> bool:
@@ -330,7 +330,7 @@ class SerpentineFilter(Strategy):
         stated = self.options.risk_out_of_focus
         if not stated or risk <= stated or acquisition.purpose == Purpose.PLANES:
             return None
-        if is_pair(acquisition):
+        if is_pair(acquisition, self._look):
             # a pair places a peak beyond its frames: one more frame there, where that is
             # enough (`lean.frame_at_peak`)
             at_peak = frame_at_peak(
@@ -377,7 +377,7 @@ class SerpentineFilter(Strategy):
             return outcome
         if not acquisition.measure:  # the kept image only: a missing measurement, predict only
             return self._finish_tile(acquisition, outcome, self._correct(tile, prior, None, 0.0))
-        if is_look(acquisition) and FocusFlag.EMPTY not in measurement.flags:
+        if self._look is None and is_look(acquisition) and FocusFlag.EMPTY not in measurement.flags:
             self._look = acquisition.z  # something is in view: the tile's stack follows
             return outcome
         if acquisition.z.step_um > self.settings.policy.z_step_um and measurement.is_observation:

@@ -28,12 +28,26 @@ def test_a_short_stack_is_its_lowest_frame_then_the_rest() -> None:
     assert with_look(None, rest) == rest and with_look(look, short) == short
 
 
-def test_a_wide_stack_or_one_after_another_look_is_taken_whole() -> None:
+def test_a_wide_stack_is_looked_at_its_centre_then_taken_whole() -> None:
+    """Where the height is unsure (a wide or coarse stack: a slide's first tile) the look is
+    one frame at the prediction, and the whole stack follows where something is in view."""
     wide = ZRange.centred(0.0, 7, 0.5)  # its lowest frame 1.5 um from its centre
-    assert wide.center_um - wide.low_um > LOOK_REACH_UM and first_part(wide, None) == wide
-    assert first_part(ZRange(0.0, 0.5, 2), None) == ZRange(0.0, 0.5, 2)  # no rest to read
+    assert wide.center_um - wide.low_um > LOOK_REACH_UM
+    look = first_part(wide, None)
+    assert look == ZRange(0.0, 0.5, 1) and first_part(wide, look) == wide
+    coarse = ZRange.centred(3.0, 15, 4.0)
+    assert first_part(coarse, None) == ZRange(3.0, 4.0, 1)
+    assert first_part(ZRange(0.0, 0.5, 1), None) == ZRange(0.0, 0.5, 1)  # one frame: as is
     glass_look = ZRange(0.0, 0.5, 1)  # at the prediction, not the stack's lowest frame
     assert first_part(ZRange(-0.5, 0.5, 3), glass_look) == ZRange(-0.5, 0.5, 3)
+
+
+def test_a_pair_is_its_lower_frame_then_the_upper() -> None:
+    pair = ZRange(-0.25, 0.5, 2)
+    look = first_part(pair, None)
+    assert look == ZRange(-0.25, 0.5, 1)
+    rest = first_part(pair, look)
+    assert rest == ZRange(0.25, 0.5, 1) and with_look(look, rest) == pair
 
 
 def lean_with_look_first(cols: int) -> SerpentineFilter:
@@ -74,3 +88,23 @@ def test_an_empty_tile_costs_one_frame_and_a_tile_in_view_its_stack() -> None:
     assert total == 3 and not strategy.empty[0, 1]
     # the look's frame is one of the tile's: the one nearest its focus here
     assert strategy.map.z_used_um[0, 1] == pytest.approx(look.z.low_um)
+
+
+def test_where_the_height_is_unknown_glass_costs_one_frame_and_tissue_one_more() -> None:
+    """A slide's first tiles (10 um unsure: a coarse stack) are looked at the prediction
+    first: glass is done with that frame, a tile in view takes its coarse stack whole."""
+    settings = default_settings(
+        ScanGrid(1, 3), start_z_um=0.0, start_sigma_um=10.0, noise_sigma_um=0.1
+    )
+    strategy = registry.create("kf-2d-lean", settings, {"look_first": True})
+    assert isinstance(strategy, SerpentineFilter)
+    look = strategy.next_acquisition()
+    assert look is not None and look.z.n_frames == 1 and look.z.low_um == pytest.approx(0.0)
+    strategy.record(look, EMPTY)
+    assert strategy.empty[0, 0] and strategy.scanned[0, 0]  # one frame in all
+    look = strategy.next_acquisition()
+    assert look is not None and look.col == 1 and look.z.n_frames == 1
+    strategy.record(look, IN_VIEW)
+    coarse = strategy.next_acquisition()
+    assert coarse is not None and coarse.col == 1 and coarse.z.n_frames > 5
+    assert coarse.z.step_um > 1.0 and coarse.purpose is Purpose.SCAN  # the coarse search

@@ -123,6 +123,14 @@ class CurveModel:
     misfit_shares: list[float] = field(default_factory=list)
     #: the widths of the slide's clean tops, um (`layers.learn_top`): any stack, short ones too
     top_widths_um: list[float] = field(default_factory=list)
+    #: the tiles (row, col) whose top was read as two layers (`layers`: a fold's band)
+    layered_tiles: set[tuple[int, int]] = field(default_factory=set)
+
+    def beside_layers(self, tile: tuple[int, int]) -> bool:
+        """Whether `tile` (row, col) or one of the eight around it was read as two layers."""
+        return any(
+            abs(row - tile[0]) <= 1 and abs(col - tile[1]) <= 1 for row, col in self.layered_tiles
+        )
 
     @property
     def ready(self) -> bool:

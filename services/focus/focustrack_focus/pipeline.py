@@ -133,6 +133,7 @@ def focus_from_curve(
     structure_snr: float = math.inf,
     prior: Prior | None = None,
     curve: CurveModel | None = None,
+    beside_layers: bool = False,
 ) -> FocusResult:
     """Read a curve of scores (n,) at z_um (n,); `started_s` (perf_counter) times the whole job.
 
@@ -142,7 +143,8 @@ def focus_from_curve(
     `prior`: the estimator's belief (um); it weighs the choice between peaks and
     gives the posterior. `curve`: the slide's learnt curve; a short stack (at most
     SHORT_MAX_FRAMES frames) is read with it once it is ready (`curve_model`), and a top
-    broader than its tops is two layers (`layers`: the sigma widens).
+    broader than its tops is two layers (`layers`: the sigma widens; sooner where the tile
+    lies `beside_layers`, a tile read so).
     """
     started_s = time.perf_counter() if started_s is None else started_s
     z, s = validate_curve(z_um, scores)
@@ -154,7 +156,9 @@ def focus_from_curve(
             fit = fit_short_stack(z, s, curve, fit)
         if curve is not None and fit.z_um is not None and fit.sigma_um is not None:
             # a top broader than the slide's: two layers (a fold), the vertex between them
-            layers_um = layers_sigma_um(curve.top_widths_um, z, s, fit.z_um)
+            layers_um = layers_sigma_um(
+                curve.top_widths_um, z, s, fit.z_um, beside_layers=beside_layers
+            )
             fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
     return _answer(z, s, fit, settings, started_s, prior)
 
@@ -228,7 +232,7 @@ def look_result(
     z_um: np.ndarray, scores: np.ndarray, snr: float, settings: FocusSettings, started_s: float
 ) -> FocusResult:
     """The answer to a look, one frame at z_um (1,) with its score (1,): no focus (one frame
-    has no curve), and flat and empty where its structure test (`look.look_snr`, `snr`)
+    has no curve), and flat and empty where its stain test (`look.look_snr`, `snr`)
     sees nothing in view; no flag where it does (a stack there will find the focus)."""
     empty = snr < MIN_LOOK_SNR
     return FocusResult(
@@ -260,7 +264,7 @@ def focus_stack(
         raise ValueError("pixels must be finite (NaN or infinity found)")
     scan = scan_stack(frames, settings)
     if z.size == 1:
-        snr = look_snr(scan.sharpest, scan.blurriest_raw, settings.preprocess)
+        snr = look_snr(settings.preprocess.region(frames[0]))
         return look_result(z, scan.scores, snr, settings, started_s)
     snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
     result = focus_from_curve(
@@ -327,6 +331,7 @@ class FrameByFrame:
         self._metric = get_metric(settings.metric)
         self._top = self._low = -1
         self._sharpest = self._blurriest = self._blurriest_raw = np.empty(0, np.float32)
+        self._look_snr = math.nan  # a look's statistic (`look.look_snr`), read as it comes
         self._busy_s = 0.0
 
     @property
@@ -364,6 +369,8 @@ class FrameByFrame:
         raw = preprocess.crop(frame)
         image = preprocess.smooth(raw)
         score = self._metric(image)
+        if self.z_um.size == 1:  # a look reads every colour of its frame
+            self._look_snr = look_snr(preprocess.region(frame))
         self.scores[index] = score
         self._agreement[index] = agreement_scores(image)
         if self._top < 0 or score > self.scores[self._top]:
@@ -372,16 +379,22 @@ class FrameByFrame:
             self._low, self._blurriest, self._blurriest_raw = index, image, raw
         self._busy_s += time.perf_counter() - started_s
 
-    def result(self, curve: CurveModel | None = None, prior: Prior | None = None) -> FocusResult:
-        """The focus of the stack (a short one read with `curve`, where given and ready;
-        its peaks weighed with `prior`, where given); ValueError while frames are missing."""
+    def result(
+        self,
+        curve: CurveModel | None = None,
+        prior: Prior | None = None,
+        *,
+        beside_layers: bool = False,
+    ) -> FocusResult:
+        """The focus of the stack (a short one read with `curve`, where given and ready, and
+        `beside_layers` as `focus_from_curve`; its peaks weighed with `prior`, where given);
+        ValueError while frames are missing."""
         if not self.complete:
             missing = np.flatnonzero(np.isnan(self.scores)).tolist()
             raise ValueError(f"frames {missing} have not arrived")
         started_s = time.perf_counter() - self._busy_s
         if self.z_um.size == 1:
-            snr = look_snr(self._sharpest, self._blurriest_raw, self.settings.preprocess)
-            return look_result(self.z_um, self.scores, snr, self.settings, started_s)
+            return look_result(self.z_um, self.scores, self._look_snr, self.settings, started_s)
         snr = structure_snr(
             self._sharpest, self._blurriest, self._blurriest_raw, self.settings.preprocess
         )
@@ -395,19 +408,24 @@ class FrameByFrame:
             structure_snr=snr,
             prior=prior,
             curve=curve,
+            beside_layers=beside_layers,
         )
         if result.flags != {FocusFlag.FLAT}:
             return result
         return unflattened(result, self._agreement, self.settings, prior)
 
-    def continued(self, z_um: np.ndarray) -> FrameByFrame:
+    def continued(self, z_um: np.ndarray, *, pairs: bool = False) -> FrameByFrame:
         """This look (one frame, added) as the first frame of a stack whose other frames lie
-        at z_um (n,), um, one step above it and on (`continues`): they are added as frames
-        1..n of the curve it returns. Its frame was answered as a look already (its compute
-        time counted there)."""
-        if self.z_um.size != 1 or not self.complete or not continues(float(self.z_um[0]), z_um):
+        at z_um (n,), um, one step above it and on (`continues`; with `pairs`, one frame
+        makes a pair): they are added as frames 1..n of the curve it returns. Its frame was
+        answered as a look already (its compute time counted there)."""
+        if (
+            self.z_um.size != 1
+            or not self.complete
+            or not continues(float(self.z_um[0]), z_um, pairs=pairs)
+        ):
             raise ValueError(f"frames at {z_um.tolist()} do not continue a look at {self.z_um}")
-        joined = FrameByFrame(np.concatenate([self.z_um, z_um]), self.settings)
+        joined = FrameByFrame(np.concatenate([self.z_um, z_um]), self.settings, pairs=pairs)
         joined.scores[0], joined._agreement[0] = self.scores[0], self._agreement[0]
         joined._top = joined._low = 0
         joined._sharpest, joined._blurriest = self._sharpest, self._blurriest
@@ -415,10 +433,11 @@ class FrameByFrame:
         return joined
 
 
-def continues(look_z_um: float, z_um: np.ndarray) -> bool:
-    """Whether frames at z_um (n,), um, continue a look at `look_z_um`: two at least, evenly
-    stepped upwards, the first one step above the look (to 1 nm)."""
-    if z_um.size < 2:
+def continues(look_z_um: float, z_um: np.ndarray, *, pairs: bool = False) -> bool:
+    """Whether frames at z_um (n,), um, continue a look at `look_z_um`: two at least (one,
+    above it, with `pairs`: a pair), evenly stepped upwards, the first one step above the
+    look (to 1 nm)."""
+    if z_um.size < (PAIR_FRAMES - 1 if pairs else 2):
         return False
     steps_um = np.diff(np.concatenate([[look_z_um], z_um]))
     return bool(steps_um[0] > 0 and np.all(np.abs(steps_um - steps_um[0]) < 1e-3))
@@ -463,6 +482,6 @@ class LastLooks:
         tile_and_look = self._last.pop(slide, None)
         if tile_and_look is not None:
             looked, look = tile_and_look
-            if looked == tile and continues(float(look.z_um[0]), z_um):
-                return look.continued(z_um)
+            if looked == tile and continues(float(look.z_um[0]), z_um, pairs=pairs):
+                return look.continued(z_um, pairs=pairs)
         return FrameByFrame(z_um, settings, pairs=pairs)

@@ -72,11 +72,8 @@ class Preprocess:
 
     @property
     def pyramid_levels(self) -> int:
-        """How many pyrDown levels fit inside the requested low-pass (variance (4**L - 1) / 3)."""
-        levels = 0
-        while (4 ** (levels + 1) - 1) / 3 <= self.lowpass_sigma_px**2:
-            levels += 1
-        return levels
+        """How many pyrDown levels fit inside the requested low-pass (`pyramid_levels_for`)."""
+        return pyramid_levels_for(self.lowpass_sigma_px)
 
     def __call__(self, frame: np.ndarray) -> np.ndarray:
         """Preprocess one frame, (H, W) or (H, W, C), any real dtype -> (h, w) float32."""
@@ -87,14 +84,7 @@ class Preprocess:
 
         ValueError if it has no pixels, or too few for the low-pass (`MIN_SMOOTHED_PX`).
         """
-        if frame.size == 0:
-            raise ValueError(f"the frames have no pixels (shape {frame.shape})")
-        image = select_channel(frame, self.channel)
-        if self.roi is not None:
-            y0, x0, height, width = self.roi
-            if y0 + height > image.shape[0] or x0 + width > image.shape[1]:
-                raise ValueError(f"roi {self.roi} does not fit in a {image.shape} frame")
-            image = image[y0 : y0 + height, x0 : x0 + width]
+        image = select_channel(self.region(frame), self.channel)
         smoothed_px = min(image.shape) // 2**self.pyramid_levels
         if smoothed_px < MIN_SMOOTHED_PX and self.lowpass_sigma_px > 0:
             raise ValueError(
@@ -103,6 +93,20 @@ class Preprocess:
                 f"the {MIN_SMOOTHED_PX} needed): use a smaller lowpass_sigma_px or larger frames"
             )
         return image
+
+    def region(self, frame: np.ndarray) -> np.ndarray:
+        """The region of interest of a frame (H, W) or (H, W, C), every channel: a view.
+
+        ValueError if it has no pixels or the region does not fit in it.
+        """
+        if frame.size == 0:
+            raise ValueError(f"the frames have no pixels (shape {frame.shape})")
+        if self.roi is None:
+            return frame
+        y0, x0, height, width = self.roi
+        if y0 + height > frame.shape[0] or x0 + width > frame.shape[1]:
+            raise ValueError(f"roi {self.roi} does not fit in a {frame.shape[:2]} frame")
+        return frame[y0 : y0 + height, x0 : x0 + width]
 
     def smooth(self, image: np.ndarray) -> np.ndarray:
         """The low-pass of a cropped 2-D image: (H, W) -> about (H, W) / 2**levels, float32."""
@@ -132,6 +136,15 @@ def select_channel(frame: np.ndarray, channel: int | None) -> np.ndarray:
     if not 0 <= channel < frame.shape[2]:
         raise ValueError(f"channel {channel} does not exist in a frame of shape {frame.shape}")
     return frame[:, :, channel]
+
+
+def pyramid_levels_for(sigma_px: float) -> int:
+    """How many pyrDown levels fit inside a Gaussian low-pass of `sigma_px` (px): L levels
+    are a binomial low-pass of variance (4**L - 1) / 3 px^2."""
+    levels = 0
+    while (4 ** (levels + 1) - 1) / 3 <= sigma_px**2:
+        levels += 1
+    return levels
 
 
 def lowpass(image: np.ndarray, sigma_px: float, levels: int) -> np.ndarray:

@@ -290,14 +290,18 @@ class FrameAnalyser:
                 return None
             parent = header.trace if header.HasField("trace") else None
             with tracing.joined("focus stack", parent, SpanKind.CONSUMER, sequence=header.sequence):
-                model = self._curve(tile.slide)
-                result = curve.result(model, prior_of(header))
+                model, place = self._curve(tile.slide), (tile.row, tile.col)
+                beside = model.beside_layers(place)  # a fold's band: its tops read sooner
+                result = curve.result(model, prior_of(header), beside_layers=beside)
                 if curve.held_bytes <= self.budget_bytes - self.open_bytes:
-                    self._looks.keep(tile.slide, (tile.row, tile.col), curve)
+                    self._looks.keep(tile.slide, place, curve)
                 model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
-                learn_top(
-                    model.top_widths_um, result.z_um, result.scores, result.best_z_um, result.flags
-                )
+                z_um, scores = result.z_um, result.scores
+                flags, best_z_um = result.flags, result.best_z_um
+                if learn_top(
+                    model.top_widths_um, z_um, scores, best_z_um, flags, beside_layers=beside
+                ):
+                    model.layered_tiles.add(place)
                 return result_message(tile, header, result)  # with this span's context
         except Exception as error:  # a bad frame is answered with an error, never a crash
             log.warning("frame on %s: %s", key, error)

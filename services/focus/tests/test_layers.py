@@ -65,3 +65,20 @@ def test_the_service_reads_a_fold_with_a_wider_sigma() -> None:
     assert fold.sigma_um > alone.sigma_um + 1.0
     single = focus_from_curve(Z_UM, 1.0 + top(), settings, curve=curve)
     assert single.sigma_um == focus_from_curve(Z_UM, 1.0 + top(), settings).sigma_um
+
+
+def test_beside_a_tile_read_as_two_layers_a_less_broad_top_is_two_layers_too() -> None:
+    """A fold is a band: beside a tile read as two layers, a top 1.5 to 2 times the slide's
+    (a short stack's noisy width of a fold tile) is read as two layers; away from it, not."""
+    widths = learnt()
+    broad = top(width_um=1.75 * WIDTH_UM)
+    assert layers_sigma_um(widths, Z_UM, broad, 0.0) == 0.0
+    assert layers_sigma_um(widths, Z_UM, broad, 0.0, beside_layers=True) > 1.0
+    assert layers_sigma_um(widths, Z_UM, top(), 0.0, beside_layers=True) == 0.0  # one layer
+    curve = CurveModel(top_widths_um=widths)
+    assert not learn_top(widths, Z_UM, broad, 0.0, frozenset())  # learnt as a clean top
+    assert learn_top(widths, Z_UM, two_layers(2.8), 0.0, frozenset())
+    assert learn_top(widths, Z_UM, broad, 0.0, frozenset(), beside_layers=True)
+    curve.layered_tiles.add((4, 5))
+    assert curve.beside_layers((5, 6)) and curve.beside_layers((4, 5))
+    assert not curve.beside_layers((6, 5))
