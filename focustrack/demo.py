@@ -96,10 +96,12 @@ DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, LASER, "survey-delaunay", "af-every-til
 #: and images a tile without measuring it only where its prediction is sure with a sigma
 #: 1.5 times the filter's (`skip_sigma_scale`: on the tissue slide kf-2d's prior errors
 #: spread 1.4 times its sigma, docs/benchmarks.md); the laser scan measures with pairs too
-#: (its skip sigma stays the filter's, as in the drift bench).
+#: (its skip sigma stays the filter's, as in the drift bench). Both look first
+#: (`look_first`): a tile of glass costs one frame, and on tissue the look is the pair's
+#: lower frame, so it costs nothing there (docs/benchmarks.md, the demo's slide).
 STRATEGY_PARAMS: dict[str, dict[str, Any]] = {
-    LEAN: {"short_frames": 2, "skip_sigma_scale": 1.5},
-    LASER: {"short_frames": 2},
+    LEAN: {"short_frames": 2, "skip_sigma_scale": 1.5, "look_first": True},
+    LASER: {"short_frames": 2, "look_first": True},
 }
 #: The second pass: kf-rescan with the first pass's map, after the slide's focus moved by
 #: RESCAN_OFFSET_UM (10 minutes of drift at 0.02 um/s).

@@ -46,9 +46,15 @@ def test_the_demo_scans_a_tissue_slide_with_a_laser_and_scores_its_tissue(tmp_pa
     # its start is the reading plus the instrument's calibrated offset: no coarse search
     # over the start's unknown height (13-15 frames 4 um apart), a pair or a short stack
     assert max(entry["n_frames"] for entry in laser if entry["purpose"] == "scan") <= 5
-    # the lean scan's short stacks are pairs, read by the focus service with the slide's curve
-    # (three frames only where a coarse search's peak centres them, on the slide's first tiles)
-    frames = [entry["n_frames"] for entry in _acquisitions(tmp_path / "demo" / LEAN)
-              if entry["purpose"] == "scan"]  # fmt: skip
-    assert frames.count(2) > 0
+    # both look first: each tile's first frame is a look (one frame), and on tissue the look
+    # is the lower frame of the lean scan's pair, read by the focus service with the
+    # slide's curve (three frames only where a coarse search's peak centres them)
+    assert STRATEGY_PARAMS[LEAN]["look_first"] and STRATEGY_PARAMS[LASER]["look_first"]
+    per_tile: dict[tuple[int, int], list[int]] = {}
+    for entry in _acquisitions(tmp_path / "demo" / LEAN):
+        if entry["purpose"] == "scan":
+            per_tile.setdefault((entry["row"], entry["col"]), []).append(entry["n_frames"])
+    assert all(frames[0] == 1 for frames in per_tile.values())
+    assert [1, 1] in per_tile.values()
+    frames = [n for tile_frames in per_tile.values() for n in tile_frames]
     assert frames.count(3) <= sum(n >= 7 for n in frames)
