@@ -469,8 +469,10 @@ def scan_on(
     label: str,
     live: LiveServer | None,
 ) -> dict[str, Any]:
-    """Run one scan of `request` on the stack (outputs in `scan_dir`); its report."""
+    """Run one scan of `request` on the stack (outputs in `scan_dir`, a previous scan's there
+    removed first); its report."""
     assert stack.session is not None
+    _clear(scan_dir)
     job = ScanJob(
         request=request,
         estimator_url=stack.estimator_url,
@@ -508,7 +510,6 @@ def phase_pass(
         "--specimen", PHASE_PASS_SPECIMEN,
     ]  # fmt: skip
     scan_dir = out_dir / PHASE_PASS
-    _clear(scan_dir)
     with LocalStack(
         out_dir / "phase-stack", instrument_args, phase=True,
         focus_args=("--focus-mode", "valley"),
@@ -620,7 +621,6 @@ def second_pass(
         base_um, base_sigma_um = table.smoothed_um, table.smoothed_sigma_um
     stack.restart_with("instrument", ["--z-offset-um", str(args.rescan_offset_um)])
     scan_dir = out_dir / RESCAN
-    _clear(scan_dir)
     params = {
         "prior_map_um": base_um.ravel().tolist(),
         "prior_map_sigma_um": base_sigma_um.ravel().tolist(),
@@ -703,7 +703,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"live view at {live.url}", flush=True)
             for name in names:
                 scan_dir = out_dir / name
-                _clear(scan_dir)
                 params = STRATEGY_PARAMS.get(name)
                 request = strategies_options.request(INSTRUMENT, SLIDE, name, params)
                 reports[name] = scan_on(stack, options, request, scan_dir, name, live)

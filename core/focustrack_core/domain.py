@@ -65,6 +65,12 @@ NOT_AN_OBSERVATION = frozenset(
 )
 
 
+#: Frames a stack needs, at least, to teach the focus service the slide's curve: the width
+#: and background it reads pairs and 3-frame stacks with (`focustrack_focus.curve_model`).
+CURVE_LEARN_FRAMES = 7
+#: Curves the focus service learns before it measures the spread of the slide's widths; until
+#: then it takes a default spread, and pairs read with it come back with a sigma of about a um.
+CURVE_SPREAD_CURVES = 3
 #: Frames of a pair: a lean scan's short stack with `short_frames` 2, two frames one z step
 #: apart whose scores' ratio places the peak (`focustrack_focus.pair`).
 PAIR_FRAMES = 2

@@ -50,7 +50,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
-from focustrack_core.domain import PAIR_FRAMES, PAIR_REACH_UM, ZRange, ZRangePolicy
+from focustrack_core.domain import (
+    CURVE_LEARN_FRAMES,
+    PAIR_FRAMES,
+    PAIR_REACH_UM,
+    ZRange,
+    ZRangePolicy,
+)
 
 #: Frames of a short stack: the fewest that locate a peak of known shape (curve_model).
 SHORT_FRAMES = 3
@@ -152,6 +158,17 @@ def coarse_stack(
         return None
     n_frames = min(2 * math.ceil(reach_um / coarse_step_um) + 1, policy.max_frames)
     return ZRange.centred(mean_um, n_frames, coarse_step_um)
+
+
+def teaching_stack(mean_um: float, policy: ZRangePolicy, curve_width_um: float) -> ZRange:
+    """Fine frames over +/- `curve_width_um` (the curve's full width at half maximum, at
+    most) about `mean_um`: a stack whose curve teaches the focus service the slide's shape,
+    both flanks and the background beside them (at least CURVE_LEARN_FRAMES frames, at most
+    the policy's). A scan whose short stacks come back vague for want of that shape (the
+    slide's first, on a focus service that has not seen the slide) takes one."""
+    n_frames = 2 * math.ceil(curve_width_um / policy.z_step_um) + 1
+    n_frames = min(max(n_frames, CURVE_LEARN_FRAMES), policy.max_frames)
+    return ZRange.centred(mean_um, n_frames, policy.z_step_um)
 
 
 def search_cost(

@@ -58,6 +58,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from focustrack_core.domain import (
+    CURVE_LEARN_FRAMES,
+    CURVE_SPREAD_CURVES,
     PAIR_FRAMES,
     Acquisition,
     FocusFlag,
@@ -77,6 +79,7 @@ from focustrack_estimator.lean import (
     kept_planes,
     planes_risk,
     planes_stack,
+    teaching_stack,
 )
 from focustrack_estimator.look_first import first_part, with_look
 from focustrack_estimator.peaks import between_peaks_var_um2
@@ -98,6 +101,10 @@ GLASS_SHARE = 0.5
 #: ... or where this many tiles the scan imaged last were found empty: a row of glass along
 #: tissue (each of its tiles has more tissue than glass beside it).
 GLASS_IN_A_ROW = 2
+#: Short stacks in a row whose peaks come with a sigma over half the depth of field that
+#: show the focus service lacks the slide's curve (`SerpentineFilter._note_curve`): with the
+#: curve, such a sigma is a peak far from the frames, one tile's; without it, every pair's.
+VAGUE_IN_A_ROW = 2
 
 
 @dataclass(frozen=True)
@@ -188,6 +195,8 @@ class SerpentineFilter(Strategy):
         self._look: ZRange | None = None  # the current tile's look, once it saw something
         self._blurred: ZRange | None = None  # its unmeasured frame, once found out of focus
         self.clock = ScanClock()  # the scan's time, for filters with a time state
+        self._long_stacks = 0  # stacks measured that could teach the slide's curve
+        self._vague_in_a_row = 0  # short stacks read with a sigma over half the depth of field
 
     @abstractmethod
     def _predict(self, tile: Tile) -> Gaussian:
@@ -261,7 +270,34 @@ class SerpentineFilter(Strategy):
             self.options.short_frames,
         )
         self._skip_risk = choice.skip_risk
+        wanted = self._vague_in_a_row >= VAGUE_IN_A_ROW
+        if choice.measure and wanted and self._long_stacks < CURVE_SPREAD_CURVES:
+            return teaching_stack(prior.mean_um, policy, self.options.coarse_step_um), True
         return choice.z, choice.measure
+
+    def _note_curve(self, measured: ZRange, measurement: Measurement) -> None:
+        """Whether the focus service knows the slide's curve, as its answers show. A stack of
+        CURVE_LEARN_FRAMES frames or more can teach it; VAGUE_IN_A_ROW short stacks in a row
+        whose peaks come with a sigma over half the depth of field (empty fields and edges
+        not counted) ask for one (`lean.teaching_stack`) on the next tile the rule
+        measures, up to CURVE_SPREAD_CURVES of them in a scan (what the service needs to
+        know the curve's spread). A scan's first stacks teach it where the start is unsure
+        (a coarse or a full stack); a sure start (the laser's) takes pairs, which a focus
+        service new to the slide reads as edges (the retry's wide stack then teaches one
+        curve), then with a default spread of the widths: a sigma of about a um each."""
+        if FocusFlag.EMPTY in measurement.flags:
+            return
+        if measured.n_frames >= CURVE_LEARN_FRAMES:
+            self._long_stacks += 1
+            self._vague_in_a_row = 0
+        elif (
+            measured.n_frames >= PAIR_FRAMES
+            and measured.step_um <= self.settings.policy.z_step_um  # not a coarse search
+            and measurement.is_observation
+        ):
+            sigma_um = measurement.sigma_um  # None: the default R, as the filter's own
+            vague = sigma_um is not None and sigma_um > self.settings.dof_um / 2.0
+            self._vague_in_a_row = self._vague_in_a_row + 1 if vague else 0
 
     def _in_glass(self, tile: Tile) -> bool:
         """Whether `tile` is to be looked at first: glass beside it (`in_glass`), or the
@@ -380,14 +416,15 @@ class SerpentineFilter(Strategy):
         if self._look is None and is_look(acquisition) and FocusFlag.EMPTY not in measurement.flags:
             self._look = acquisition.z  # something is in view: the tile's stack follows
             return outcome
+        # a first stack after a look at its lowest frame is read with that frame
+        measured = with_look(None if self._search else self._look, acquisition.z)
+        self._note_curve(measured, measurement)
         if acquisition.z.step_um > self.settings.policy.z_step_um and measurement.is_observation:
             # found, but too coarsely to image the tile or correct the filter: a short stack
             # centred there follows, and measures the tile
             self._centre_um = measurement.z_um
             return outcome
         if measurement.z_um is None or not measurement.is_observation:
-            # the first stack after a look at its lowest frame was read with that frame
-            measured = with_look(None if self._search else self._look, acquisition.z)
             if self._search.failed(measured, measurement):
                 return outcome  # another stack of this tile follows
             self.gave_up[tile.row, tile.col] = True

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from focustrack_core.domain import FocusFlag
+from focustrack_core.domain import CURVE_LEARN_FRAMES, CURVE_SPREAD_CURVES, FocusFlag
 from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, score_noise
 
 #: Stacks of at most this many frames are read with the model (when it is ready).
@@ -51,12 +51,9 @@ SHORT_MAX_FRAMES = 3
 #: enough: a lean scan takes a full (or coarse) stack on its first tile and few after it.
 MIN_CURVES = 1
 MAX_CURVES = 50
-#: Until this many curves, the spread of the widths is taken as DEFAULT_WIDTH_SPREAD of the
+#: Until CURVE_SPREAD_CURVES curves, the spread of the widths is taken as this share of the
 #: width (a median absolute deviation of fewer curves says little).
-SPREAD_CURVES = 3
 DEFAULT_WIDTH_SPREAD = 0.15
-#: A full stack teaches the model only with this many frames or more.
-MIN_LEARN_FRAMES = 7
 #: A short stack whose fit leaves more than this many noise sigmas (rms) disagrees.
 MAX_RESIDUAL_SIGMAS = 4.0
 #: The relative score noise never counts as less than this (a noiseless simulator curve
@@ -143,8 +140,8 @@ class CurveModel:
     @property
     def gamma_spread_um(self) -> float:
         """The spread of the learnt widths (MAD as a std; `DEFAULT_WIDTH_SPREAD` of the width
-        until SPREAD_CURVES curves)."""
-        if len(self.gammas_um) < SPREAD_CURVES:
+        until CURVE_SPREAD_CURVES curves)."""
+        if len(self.gammas_um) < CURVE_SPREAD_CURVES:
             return DEFAULT_WIDTH_SPREAD * self.gamma_um
         return MAD_TO_SIGMA * float(np.median(np.abs(np.array(self.gammas_um) - self.gamma_um)))
 
@@ -171,7 +168,7 @@ class CurveModel:
     ) -> bool:
         """Learn from a full curve (n,) read (`find_peak`) as one clean peak at best_z_um;
         True if it was used."""
-        if z_um.size < MIN_LEARN_FRAMES or flags or best_z_um is None:
+        if z_um.size < CURVE_LEARN_FRAMES or flags or best_z_um is None:
             return False
         inside = int(np.count_nonzero(z_um < best_z_um)), int(np.count_nonzero(z_um > best_z_um))
         if min(inside) < 2:  # the peak needs both flanks
