@@ -103,7 +103,8 @@ GLASS_SHARE = 0.5
 GLASS_IN_A_ROW = 2
 #: Short stacks in a row whose peaks come with a sigma over half the depth of field that
 #: show the focus service lacks the slide's curve (`SerpentineFilter._note_curve`): with the
-#: curve, such a sigma is a peak far from the frames, one tile's; without it, every pair's.
+#: curve, such a sigma is mostly one tile's (a peak far from its frames); without it, every
+#: pair's (docs/lean.md, teaching stacks).
 VAGUE_IN_A_ROW = 2
 
 

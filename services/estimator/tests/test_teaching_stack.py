@@ -57,7 +57,7 @@ def _measured_in_a_scan(short: Callable[[Acquisition], Measurement]) -> list[Acq
 
 def test_vague_pairs_in_a_row_ask_for_teaching_stacks_up_to_the_curves_the_service_needs() -> None:
     measured = _measured_in_a_scan(lambda pair: Measurement(pair.z.center_um, VAGUE_SIGMA_UM))
-    long = [i for i, acquisition in enumerate(measured) if acquisition.z.n_frames >= 7]
+    long = [i for i, a in enumerate(measured) if a.z.n_frames >= CURVE_LEARN_FRAMES]
     assert len(long) == CURVE_SPREAD_CURVES
     for i in long:
         teaching, before = measured[i], measured[i - VAGUE_IN_A_ROW : i]
