@@ -29,9 +29,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from scipy import stats
-
 from focustrack_core.domain import Measurement, Outcome
+from focustrack_estimator.diagnostics import chi2_quantile
 
 #: Pseudo-measurements at scale 1 that the estimate starts from.
 PRIOR_COUNT = 5
@@ -82,4 +81,4 @@ class SigmaScale:
         self.n += 1
         if not self.engaged:
             self.sum_nis += min(nis, MAX_EVIDENCE_NIS)
-            self.engaged = self.sum_nis > float(stats.chi2.ppf(EVIDENCE, self.n))
+            self.engaged = self.sum_nis > chi2_quantile(EVIDENCE, self.n)

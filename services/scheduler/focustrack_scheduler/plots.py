@@ -13,16 +13,6 @@ from matplotlib.figure import Figure
 from focustrack_core.domain import FocusMap
 
 
-def save_image(path: Path, image: np.ndarray) -> None:
-    """`image` (height, width, channels) as a PNG of the same size, pixel for pixel."""
-    figure = Figure(figsize=(image.shape[1] / 100, image.shape[0] / 100), dpi=100)
-    FigureCanvasAgg(figure)
-    axes = figure.add_axes((0, 0, 1, 1))
-    axes.imshow(np.asarray(image).squeeze(), cmap="gray", interpolation="nearest")
-    axes.set_axis_off()
-    figure.savefig(path, dpi=100)
-
-
 def write_plots(
     path: Path,
     focus_map: FocusMap,
@@ -31,9 +21,22 @@ def write_plots(
     title: str,
 ) -> Path:
     """True surface, estimated (posterior) map, error map and images per tile, as one PNG."""
-    figure = Figure(figsize=(11, 9), layout="constrained")
+    figure = Figure(figsize=(11, 9))
     FigureCanvasAgg(figure)
-    axes = figure.subplots(2, 2).ravel()
+    # Fixed margins rather than a layout engine: "constrained" took 0.75 s of the plot's
+    # 1.5 s, every scan, and four panels of one size need no solver.
+    axes = figure.subplots(
+        2,
+        2,
+        gridspec_kw={
+            "left": 0.06,
+            "right": 0.97,
+            "bottom": 0.06,
+            "top": 0.91,
+            "wspace": 0.3,
+            "hspace": 0.3,
+        },
+    ).ravel()
     posterior_um = np.ma.masked_invalid(focus_map.posterior_um)
     heights = [posterior_um] + ([truth_um] if truth_um is not None else [])
     low_um = float(min(np.ma.min(h) for h in heights))
