@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from pathlib import Path
 
 import pytest
 
@@ -16,10 +15,11 @@ from focustrack_estimator.service import spawn
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
 
 
-@pytest.fixture
-def estimator(tmp_path: Path) -> Iterator[EstimatorClient]:
+@pytest.fixture(scope="module")
+def estimator(tmp_path_factory: pytest.TempPathFactory) -> Iterator[EstimatorClient]:
+    """One service per test file: each test makes slides of its own (3 s of CPU a start)."""
     port = free_port()
-    process = spawn(tmp_path / "estimator.sqlite", port, timeout_s=120)
+    process = spawn(tmp_path_factory.mktemp("estimator") / "estimator.sqlite", port, timeout_s=120)
     try:
         with EstimatorClient(f"http://127.0.0.1:{port}") as client:
             yield client
