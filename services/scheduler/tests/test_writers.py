@@ -88,6 +88,16 @@ def test_the_plots_and_the_preview_are_pngs_the_preview_pixel_for_pixel(tmp_path
     np.testing.assert_array_equal(pixels, scan.mosaic)
 
 
+def test_a_one_channel_mosaic_previews_as_a_grey_png_pixel_for_pixel(tmp_path: Path) -> None:
+    scan = finished_scan(tmp_path)
+    assert scan.mosaic is not None
+    grey = np.ascontiguousarray(scan.mosaic[..., :1])  # a monochrome camera's mosaic
+    (preview,) = MosaicPreviewWriter().write(replace(scan, mosaic=grey))
+    pixels = imread(preview)
+    assert pixels.ndim == 2  # one channel in the file, not three copies
+    np.testing.assert_array_equal(np.rint(pixels * 255).astype(np.uint8), grey[..., 0])
+
+
 def test_the_mosaic_writer_writes_the_mosaic_in_the_scans_format(tmp_path: Path) -> None:
     scan = finished_scan(tmp_path)
     assert MosaicWriter().write(scan) == [tmp_path / outputs.MOSAIC_ZARR]
