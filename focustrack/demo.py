@@ -11,9 +11,9 @@ focus-map surveying and autofocus on every tile by default; then a second pass o
 kf-rescan with the lean scan's map after the slide's focus moved by 12 um) and prints,
 per strategy, images per tile, simulated scan time, in-focus fraction and MAE against
 the instrument's truth (on a virtual slide, the tissue tiles in focus too), and where
-the wall time went. While it scans it serves the
-live web view of the scan and prints its address; at the end it saves a screenshot
-of it (live_view.png, where chromium is installed), and each scan's mosaic is an
+the wall time went. While it scans it serves the live web view of the scan and
+prints its address; at the end it saves a screenshot of it (live_view.png, where
+chromium is installed; not with `--no-screenshot`), and each scan's mosaic is an
 OME-Zarr (`--mosaic-format ome-tiff` for the OME-TIFF). A service that dies is
 started again, and the demo says so; the instrument tags its frames and the focus
 service its results with keys made for the run, the focus service scores only tagged
@@ -594,6 +594,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-rescan", action="store_true", help="no second pass")
     parser.add_argument(
+        "--no-screenshot",
+        action="store_true",
+        help=f"no {LIVE_VIEW_PNG} at the end (saves starting a headless chromium)",
+    )
+    parser.add_argument(
         "--shared-memory",
         type=int,
         metavar="MB",
@@ -627,6 +632,14 @@ def second_pass(
     }
     request = options.request(INSTRUMENT, SLIDE, RESCAN, params)
     return scan_on(stack, options, request, scan_dir, f"{RESCAN} (2nd pass)", live)
+
+
+def save_screenshot(live_url: str, path: Path) -> None:
+    """The last scan's live view as a PNG, for a person to look at (where chromium is)."""
+    try:
+        print(f"live view screenshot: {screenshot_live_view(live_url, path)}", flush=True)
+    except NoBrowserError as error:
+        print(f"no live view screenshot: {error}", flush=True)
 
 
 def stop_on_sigterm() -> None:
@@ -729,11 +742,8 @@ def run(args: argparse.Namespace) -> int:
                     flush=True,
                 )
                 phased = phase_pass(args, options, out_dir, live)
-            try:  # the last scan's live view, for a person to look at
-                shot = screenshot_live_view(live.url, out_dir / LIVE_VIEW_PNG)
-                print(f"live view screenshot: {shot}", flush=True)
-            except NoBrowserError as error:
-                print(f"no live view screenshot: {error}", flush=True)
+            if not args.no_screenshot:
+                save_screenshot(live.url, out_dir / LIVE_VIEW_PNG)
     except KeyboardInterrupt:
         print("focustrack demo: interrupted; services stopped", file=sys.stderr)
         return 130

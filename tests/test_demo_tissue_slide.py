@@ -29,7 +29,8 @@ def test_the_demo_scans_a_tissue_slide_with_a_laser_and_scores_its_tissue(tmp_pa
     command = [
         sys.executable, "-m", "focustrack", "demo", "--tissue-slide", "--seed", "4",
         "--rows", "3", "--cols", "4", "--size", "128", "--strategies", LEAN, LASER,
-        "--no-rescan", "--no-progress", "--out", str(tmp_path / "demo"), "--json", str(out_json),
+        "--no-rescan", "--no-progress", "--no-screenshot", "--out", str(tmp_path / "demo"),
+        "--json", str(out_json),
     ]  # fmt: skip
     demo = subprocess.run(command, capture_output=True, text=True, timeout=540)
     assert demo.returncode == 0, demo.stderr

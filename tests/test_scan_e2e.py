@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import zarr
 
-from focustrack.demo import SECOND_PASS, LocalStack
+from focustrack.demo import LIVE_VIEW_PNG, SECOND_PASS, LocalStack
 from focustrack_core import health
 from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
@@ -217,7 +217,7 @@ def test_demo_compares_strategies_and_writes_json(tmp_path: Path) -> None:
     command = [
         sys.executable, "-m", "focustrack", "demo", "--rows", "3", "--cols", "3",
         "--size", "64", "--strategies", BEST_KALMAN, "af-every-tile", "--no-progress",
-        "--out", str(tmp_path / "demo"), "--json", str(out_json),
+        "--no-screenshot", "--out", str(tmp_path / "demo"), "--json", str(out_json),
     ]  # fmt: skip
     demo = subprocess.run(command, capture_output=True, text=True, timeout=180)
     assert demo.returncode == 0, demo.stderr
@@ -231,6 +231,7 @@ def test_demo_compares_strategies_and_writes_json(tmp_path: Path) -> None:
     for figures in strategies.values():
         assert set(figures) >= {"images_per_tile", "scan_time_s", "in_focus_fraction", "mae_um"}
     assert strategies["af-every-tile"]["images_per_tile"] >= 41
+    assert not (tmp_path / "demo" / LIVE_VIEW_PNG).exists()  # --no-screenshot: no browser
     assert (
         strategies[SECOND_PASS]["images_per_tile"]
         < strategies[BEST_KALMAN]["images_per_tile"]
