@@ -26,7 +26,7 @@ import pytest
 import zenoh
 
 from focustrack.bus_secrets import ROLES, client_config, write_bus_files
-from focustrack.demo import Service
+from focustrack.local_stack import Service
 from focustrack_core.health import instrument_answers
 from focustrack_core.v1 import focus_pb2, instrument_pb2
 from focustrack_core.wire import keys, rpc

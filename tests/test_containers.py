@@ -44,7 +44,7 @@ import pytest
 from compose_runner import Topology, acquired, ensure_base_image, ensure_engine, podman, say
 
 from focustrack.bus_secrets import restrict, write_bus_files
-from focustrack.demo import LocalStack
+from focustrack.local_stack import LocalStack
 from focustrack_core.wire.session import free_port
 from focustrack_scheduler import outputs
 

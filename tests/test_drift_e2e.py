@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 import pytest
 
-from focustrack.demo import LocalStack
+from focustrack.local_stack import LocalStack
 from focustrack_core.drift import ThermalDrift
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc

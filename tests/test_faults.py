@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from focustrack.demo import LocalStack
+from focustrack.local_stack import LocalStack
 from focustrack_scheduler import outputs
 
 pytestmark = pytest.mark.slow  # services in processes

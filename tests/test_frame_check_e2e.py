@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from focustrack.demo import LocalStack
+from focustrack.local_stack import LocalStack
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc

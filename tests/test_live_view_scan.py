@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from focustrack.demo import INSTRUMENT, SLIDE, LocalStack
+from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack_core.domain import kept_in_focus
 from focustrack_scheduler.clients import InstrumentClient, truth_empty
 from focustrack_scheduler.live import BY_TRUTH

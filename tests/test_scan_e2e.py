@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import zarr
 
-from focustrack.demo import LIVE_VIEW_PNG, SECOND_PASS, LocalStack
+from focustrack.demo import LIVE_VIEW_PNG, SECOND_PASS
+from focustrack.local_stack import LocalStack
 from focustrack_core import health
 from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid

@@ -12,7 +12,7 @@ from typing import Any
 import mm_test_adapters
 import pytest
 
-from focustrack.demo import INSTRUMENT, SLIDE, LocalStack
+from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack_scheduler import outputs
 from focustrack_scheduler.scan import ScanJob, run_scan, summary_line
 from focustrack_scheduler.settings import ScanOptions

@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import zarr
 
-from focustrack.demo import INSTRUMENT, PHASE_PASS_TILES, SLIDE, LocalStack, phase_pass
+from focustrack.demo import PHASE_PASS_TILES, phase_pass
+from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire.trust import new_nonce
 from focustrack_scheduler import outputs

@@ -26,7 +26,7 @@ from opentelemetry.proto.collector.trace.v1.trace_service_pb2 import (
 )
 from opentelemetry.proto.trace.v1.trace_pb2 import Span
 
-from focustrack.demo import INSTRUMENT, LocalStack
+from focustrack.local_stack import INSTRUMENT, LocalStack
 from focustrack_core.tracing import OTLP_VARIABLES, TRACES_PATH
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys

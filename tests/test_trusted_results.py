@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from focustrack.bench.chaos import RoguePeer
-from focustrack.demo import INSTRUMENT, SLIDE, LocalStack
+from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack_scheduler import outputs
 from focustrack_scheduler.engine import ScanRefusedError
 from focustrack_scheduler.scan import ScanJob, run_scan

@@ -62,7 +62,7 @@ import httpx
 import zenoh
 
 from focustrack.bench import bus_attacks
-from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
+from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.rpc import protobuf_encoding

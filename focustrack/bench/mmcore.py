@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from pymmcore_plus import CMMCorePlus
 
-from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
+from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack_instrument_sim.instrument import StackRequest
 from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, core_from_config
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions

@@ -4,7 +4,7 @@ real services.
 Each seed is one continuous tissue section (`--tissue-slide` of the simulator: empty glass,
 holes, folds, tilt, a wedged coverslip with dust 10-170 um above the section, bubbles),
 cut into tiles that overlap. The instrument, focus and estimator services run as
-processes on loopback (`focustrack.demo.LocalStack`); every strategy scans every slide,
+processes on loopback (`focustrack.local_stack.LocalStack`); every strategy scans every slide,
 and the instrument's truth (evaluation only) says per tile the section's height, whether
 the tile is empty glass and where its dust lies. Per strategy:
 
@@ -39,7 +39,8 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.demo import INSTRUMENT, SLIDE, LocalStack, scan_on
+from focustrack.demo import scan_on
+from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack.slide_scores import scored_scan
 from focustrack_estimator import registry
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
