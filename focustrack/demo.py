@@ -49,10 +49,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.surfaces import FAMILIES
 from focustrack_core.timing import TimingModel
-from focustrack_core.wire.session import (
-    SHARED_MEMORY_MB,
-    shared_memory_room_mb,
-)
+from focustrack_core.wire.session import SHARED_MEMORY_MB, shared_memory_room_mb
 from focustrack_estimator import registry
 from focustrack_estimator.replay import limit_time_s
 from focustrack_instrument_sim.simulated import microscope_from_options

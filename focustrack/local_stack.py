@@ -30,6 +30,7 @@ from focustrack_scheduler.clients import wait_for_instrument
 #: The name the stack's instrument serves under, and its first slide.
 INSTRUMENT = "sim"
 SLIDE = "slide-0"
+#: Seconds a service may take to answer once started.
 READY_TIMEOUT_S = 60.0
 #: How often the stack looks for a service that died.
 SUPERVISE_PERIOD_S = 0.5
