@@ -25,9 +25,8 @@ $(STAMP): $(MANIFESTS)
 demo: $(STAMP)
 	$(BIN)/focustrack demo --tissue-slide --out out/demo --json out/demo/demo.json
 
-# One pytest worker per core; a test file's tests stay on one worker (they share fixtures),
-# the files in collection order, which puts the slow ones first (conftest.py).
-PYTEST := $(BIN)/pytest -n auto --dist loadfile --no-loadscope-reorder
+# One pytest worker per core; a test file's tests stay on one worker (they share fixtures).
+PYTEST := $(BIN)/pytest -n auto --dist loadfile
 
 ## Lint, format check, types, import boundaries, the docs and the whole test suite (what CI runs).
 # The type check (40 s of one core without its cache, as in a clean clone) runs beside the
