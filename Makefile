@@ -29,13 +29,8 @@ demo: $(STAMP)
 PYTEST := $(BIN)/pytest -n auto --dist loadfile
 
 ## Lint, format check, types, import boundaries, the docs and the whole test suite (what CI runs).
-# The type check (40 s of one core without its cache, as in a clean clone) runs beside the
-# tests; its report comes after theirs, and either failing fails the target.
-test: lint docs
-	$(BIN)/mypy > $(VENV)/mypy.log 2>&1 & mypy=$$!; \
-	$(PYTEST); tests=$$?; \
-	wait $$mypy; types=$$?; cat $(VENV)/mypy.log; \
-	[ $$tests -eq 0 ] && [ $$types -eq 0 ]
+test: lint typecheck docs
+	$(PYTEST)
 
 ## The same without the slow end-to-end tests (for a quick look while developing).
 test-fast: lint typecheck docs
