@@ -40,11 +40,13 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy import fft, special
+from scipy import fft
 
-from focustrack_phase.propagation import FoldedGrid, fresnel_transfer
+from focustrack_phase.background import anchor_to_background
+from focustrack_phase.propagation import FoldedGrid, coherence_envelope, fresnel_transfer
 
 Update = Literal["phase_frame", "paper"]
+Background = Literal["anchor", "none"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,11 @@ class AcekfOptions:
         an object whose phase varies over about L (beyond the paper; still diagonal, so
         Theorem 1 holds). It takes the error on the paper's Data Set 1 from 0.110 to
         about 0.100 rad (`focustrack bench phase`).
+    background: "anchor" (the default) re-estimates the lowest frequencies, which the
+        stack barely sees, so that the slide's empty background has zero phase
+        (`focustrack_phase.background`, beyond the paper: it removes the low-frequency
+        shadow), or, where the image has too little background, sets the phase's zero at
+        its mean; "none" keeps the filter's own field, as the paper does.
 
     The defaults hold at every photon count we tried, on the instrument simulator's phase
     specimens up to 2 rad (cells in culture, red cells) at 10^4 photons a pixel, where
@@ -85,6 +92,7 @@ class AcekfOptions:
     condenser_na: float = 0.0
     amplitude_floor: float = 0.05
     prior_length_um: float = 0.0
+    background: Background = "anchor"
 
     def __post_init__(self) -> None:
         if not self.q0 > 0:
@@ -99,6 +107,8 @@ class AcekfOptions:
             raise ValueError(f"prior_length_um must be >= 0, got {self.prior_length_um}")
         if not self.amplitude_floor > 0:
             raise ValueError(f"amplitude_floor must be > 0, got {self.amplitude_floor}")
+        if self.background not in ("anchor", "none"):
+            raise ValueError(f"background must be 'anchor' or 'none', got {self.background!r}")
 
 
 @dataclass(frozen=True)
@@ -233,22 +243,6 @@ def initial_covariances(
     return Q0.astype(np.float32), P0.astype(np.complex64)
 
 
-def coherence_envelope(
-    freq_sq_per_um2: np.ndarray, z_um: float, condenser_na: float
-) -> np.ndarray | None:
-    """2 J1(v)/v, v = 2 pi |z| condenser_na |f|: a disk source's damping of the intensity's
-    linear response at defocus z (float32, the shape of `freq_sq_per_um2`; None for
-    coherent light, where it is 1)."""
-    if condenser_na == 0:
-        return None
-    v = (2.0 * np.pi * abs(z_um) * condenser_na) * np.sqrt(freq_sq_per_um2)
-    envelope = np.ones_like(v)
-    nonzero = v > 1e-12
-    envelope[nonzero] = 2.0 * special.j1(v[nonzero]) / v[nonzero]
-    return envelope.astype(np.float32)
-
-
-@np.errstate(over="ignore", invalid="ignore", divide="ignore")  # a runaway is caught below
 def reconstruct(
     stack_counts: np.ndarray,
     z_um: np.ndarray | list[float] | tuple[float, ...],
@@ -283,6 +277,39 @@ def reconstruct(
     """
     opts = options or AcekfOptions()
     z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
+    field = _filtered_field(stack_counts, z, gamma, wavelength_um, pixel_um, photons_per_count,
+                            opts, workers, prior)  # fmt: skip
+    # The EKF can run away (a prior far wider than the object at a high photon count): its
+    # field then overflows. Propagation keeps the mean intensity at 1; say so rather than
+    # answer noise.
+    mean_intensity = float(np.mean(np.abs(field) ** 2, dtype=np.float64))
+    if not 0.25 < mean_intensity < 4.0:
+        raise FilterDivergedError(
+            f"the filter diverged (mean intensity {mean_intensity:.3g} of the stack's, not 1): "
+            f"a smaller prior (q0 below {opts.q0:g}) keeps it stable at {gamma:.3g} photons "
+            "per pixel"
+        )
+    # (5) Beyond the paper: the lowest frequencies anchored to the empty background, once
+    # the filter's working images are freed.
+    if opts.background == "anchor":
+        anchored = anchor_to_background(field, z, wavelength_um, pixel_um, opts.condenser_na)
+        field = np.abs(field) * np.exp(1j * anchored.phase_rad)
+    return FieldEstimate(field, gamma)
+
+
+@np.errstate(over="ignore", invalid="ignore", divide="ignore")  # a runaway is caught above
+def _filtered_field(
+    stack_counts: np.ndarray,
+    z: np.ndarray,
+    gamma: float,
+    wavelength_um: float,
+    pixel_um: float,
+    photons_per_count: float,
+    opts: AcekfOptions,
+    workers: int,
+    prior: tuple[np.ndarray, np.ndarray] | None,
+) -> np.ndarray:
+    """The filter itself (Table 1) on a checked stack: the field at z = 0, complex64."""
     shape = stack_counts.shape[1:]
     grid = FoldedGrid(shape, pixel_um)
     freq_sq = grid.freq_sq_per_um2.astype(np.float32)
@@ -371,18 +398,7 @@ def reconstruct(
         b = _fft2(a_hat, workers)
     # Back-propagation to the focal plane: H(-z_last) = H(z_last)^*.
     b *= transfer.of(-z_prev)[1]
-    field = _ifft2(b, workers)
-    # The EKF can run away (a prior far wider than the object at a high photon count): its
-    # field then overflows. Propagation keeps the mean intensity at 1; say so rather than
-    # answer noise.
-    mean_intensity = float(np.mean(np.abs(field) ** 2, dtype=np.float64))
-    if not 0.25 < mean_intensity < 4.0:
-        raise FilterDivergedError(
-            f"the filter diverged (mean intensity {mean_intensity:.3g} of the stack's, not 1): "
-            f"a smaller prior (q0 below {opts.q0:g}) keeps it stable at {gamma:.3g} photons "
-            "per pixel"
-        )
-    return FieldEstimate(field, gamma)
+    return _ifft2(b, workers)
 
 
 class FilterDivergedError(ValueError):
