@@ -3,8 +3,10 @@
 On `focustrack_phase.simulate.data_set_1` (100 planes of 100x100 px, 532 nm, 0.5 um
 steps over 50 um, gamma = 0.998 photons per pixel, our documented weak object), the
 sparse ACEKF (with our phase-frame update, and with the paper's eq. 33 as printed) and
-the two baselines of `focustrack_phase.baselines` are scored by phase RMSE (rad, after
-removing the mean offset), intensity RMSE (relative to the mean intensity) and time
+the two baselines of `focustrack_phase.baselines` are scored (ours also anchored to the
+slide's empty background, `focustrack_phase.background`, with the same prior) by phase
+RMSE (rad, after removing the mean offset), intensity RMSE (relative to the mean
+intensity) and time
 (median of `--repeats` runs, wall-clock and the process's CPU time `cpu_s`, one core:
 scipy.fft with one worker and numpy's element-wise loops are single-threaded). Every
 method's regularisation (the filter's prior q0, p0; the baselines' Tikhonov weight) is
@@ -26,17 +28,21 @@ planes and 5..100 planes at the paper's gamma. Four more sections always run:
 - partial coherence: the same object lit by a disk source (condenser NA 0.05, Abbe's
   method in `focustrack_phase.simulate.partially_coherent_stack`), 50 planes of 1 um,
   100 photons, reconstructed with the coherent model (the paper's) and with the filter's
-  coherence envelope; the phase RMSE of each and the part of it below 0.05 cycles/um
-  (the paper's low-frequency "shadow"), and a figure;
+  coherence envelope, each alone and anchored to the background; the phase RMSE of each
+  and the part of it below 0.05 cycles/um (the paper's low-frequency "shadow"), and a
+  figure;
 - the instrument simulator's own phase stacks (`--specimen phase-cells` and
   `phase-blood`, the default condenser NA 0.2 by Abbe's method with 19 source points,
   through the objective's pupil and the camera: not the filter's model), 32 frames
-  0.25-8 um above the tile's true focus, reconstructed with and without the coherence
-  envelope; the correlation with the true phase after removing periods over ~6 um (a
-  Gaussian of 10 pixels), and a figure;
+  0.25-8 um above the tile's true focus on the slides of SIMULATOR_SEEDS (which the
+  background anchoring was not tuned on), reconstructed with and without the coherence
+  envelope and anchored to the background; the correlation with the true phase after
+  removing periods over ~6 um (a Gaussian of 10 pixels), the phase RMSE with its part
+  below 0.05 cycles/um, the mean phase on the glass, and a figure;
 - speed and memory on one core: 21 planes of `--speed-size-px` (2048) squared, both
   updates, in wall time and CPU time beside their FFTs' alone, and peak memory
-  (`focustrack.bench.phase_speed`).
+  (`focustrack.bench.phase_speed`); and the background anchoring's CPU time on a field
+  of that size (`anchoring_speed`).
 
 `--json OUT` writes the scores and PNGs beside OUT (true phase, each method's phase and
 its error; the partial-coherence figure).
@@ -45,11 +51,13 @@ its error; the partial-coherence figure).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 import time
+import tracemalloc
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +70,7 @@ from focustrack_instrument_sim.instrument import Purpose
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
 from focustrack_phase import acekf, baselines, simulate
 from focustrack_phase.acekf import FieldEstimate
+from focustrack_phase.background import anchor_to_background
 from focustrack_phase.propagation import frequency_sq_per_um2
 
 COHERENCE_CONDENSER_NA = 0.05
@@ -70,6 +79,10 @@ COHERENCE_Z_UM = np.arange(1, 51) * 1.0
 SHADOW_BELOW_PER_UM = 0.05
 SIMULATOR_OFFSETS_UM = 0.25 * np.arange(1, 33)
 SIMULATOR_TILES = (("phase-cells", 512), ("phase-blood", 256))
+#: Seeds of the simulator's slides the background anchoring was not tuned on.
+SIMULATOR_SEEDS = (1, 3)
+#: The true phase below which a pixel is glass (the simulator's medium has none).
+GLASS_PHASE_RAD = 1e-6
 HIGH_PASS_SIGMA_PX = 10.0
 FILTER_Q0 = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 FILTER_P0_RATIO = (0.0, -0.5, -0.9)
@@ -130,7 +143,8 @@ def _best_prior(
     lengths_um: tuple[float, ...] = (0.0,),
 ) -> acekf.AcekfOptions:
     """The filter's (q0, p0, prior length) with the lowest phase RMSE on the training stack
-    (a prior under which it diverges counts as infinitely wrong)."""
+    (a prior under which it diverges counts as infinitely wrong); the filter alone, its
+    field not anchored to the background (`anchored` adds that to the options found)."""
 
     def phase_rmse(options: acekf.AcekfOptions) -> float:
         try:
@@ -140,7 +154,12 @@ def _best_prior(
 
     grid = [
         acekf.AcekfOptions(
-            q0=q0, p0=ratio * q0, update=update, condenser_na=condenser_na, prior_length_um=length
+            q0=q0,
+            p0=ratio * q0,
+            update=update,
+            condenser_na=condenser_na,
+            prior_length_um=length,
+            background="none",
         )
         for q0 in FILTER_Q0
         for ratio in FILTER_P0_RATIO
@@ -229,7 +248,7 @@ def filter_known_spectra(data: simulate.SyntheticStack, update: acekf.Update) ->
         (power_amplitude + power_phase)[quarter],
         (power_amplitude - power_phase)[quarter],
     )
-    options = acekf.AcekfOptions(update=update)
+    options = acekf.AcekfOptions(update=update, background="none")
     return errors(acekf.reconstruct(*_args(data), options=options, prior=prior), data.field)[0]
 
 
@@ -255,9 +274,15 @@ def score_known_spectra(seed: int, size_px: int) -> list[dict[str, Any]]:
     return rows
 
 
+def anchored(options: acekf.AcekfOptions) -> acekf.AcekfOptions:
+    """`options` with the field anchored to the background (`focustrack_phase.background`)."""
+    return replace(options, background="anchor")
+
+
 def methods(train: simulate.SyntheticStack) -> dict[str, Method]:
-    """The four methods on one setting, each regularised on `train`; ours may take a
-    smooth prior, the paper's filter keeps its white one."""
+    """The four methods on one setting, each regularised on `train`, and ours anchored to
+    the background with the same prior; ours may take a smooth prior, the paper's filter
+    keeps its white one."""
     ours = _best_prior("phase_frame", train, lengths_um=FILTER_PRIOR_LENGTH_UM)
     paper = _best_prior("paper", train)
     tie_alpha, tie_dz = _best_tie(train)
@@ -265,6 +290,9 @@ def methods(train: simulate.SyntheticStack) -> dict[str, Method]:
     return {
         f"sparse ACEKF ours q0={ours.q0:g} p0={ours.p0:g} L={ours.prior_length_um:g}": (
             lambda d: acekf.reconstruct(*_args(d), options=ours)
+        ),
+        "sparse ACEKF ours + background anchoring": (
+            lambda d: acekf.reconstruct(*_args(d), options=anchored(ours))
         ),
         f"sparse ACEKF eq.33 q0={paper.q0:g} p0={paper.p0:g}": lambda d: acekf.reconstruct(
             *_args(d), options=paper
@@ -331,6 +359,9 @@ def score_objects(seed: int, size_px: int) -> list[dict[str, Any]]:
             {"peak_phase_rad": peak_rad, "smooth_um": smooth_um,
              "flat_rad": errors(flat, data.field)[0], "oracle_rad": oracle_phase_rmse(data),
              "ours_rad": errors(acekf.reconstruct(*_args(data), options=ours), data.field)[0],
+             "ours_anchored_rad": errors(
+                 acekf.reconstruct(*_args(data), options=anchored(ours)), data.field
+             )[0],
              "weak_object_ls_rad": errors(
                  baselines.weak_object_least_squares(*_args(data), alpha=wols_alpha), data.field
              )[0]}
@@ -418,7 +449,8 @@ def score_coherence(
     seed: int, size_px: int
 ) -> tuple[list[dict[str, Any]], np.ndarray, dict[str, np.ndarray]]:
     """Rows (model, phase RMSE, its low-frequency part), the truth and each model's phase;
-    each model's prior chosen on a training stack of another seed."""
+    each model's prior chosen on a training stack of another seed, then used as it is and
+    anchored to the background."""
     data = coherence_stack(seed, size_px)
     train = coherence_stack(seed + 1000, size_px)
     rows: list[dict[str, Any]] = []
@@ -427,16 +459,18 @@ def score_coherence(
         ("coherent model (paper)", 0.0),
         ("coherence envelope (ours)", COHERENCE_CONDENSER_NA),
     ):
-        options = _best_prior("phase_frame", train, condenser_na)
-        estimate = acekf.reconstruct(*_args(data), options=options)
-        error = np.angle(estimate.field * np.conj(data.field))
-        rows.append(
-            {"model": name, "condenser_na": COHERENCE_CONDENSER_NA, "gamma": COHERENCE_GAMMA,
-             "planes": len(COHERENCE_Z_UM), "q0": options.q0, "p0": options.p0,
-             "phase_rmse_rad": errors(estimate, data.field)[0],
-             "low_frequency_rmse_rad": band_rmse(error, data.pixel_um, SHADOW_BELOW_PER_UM)}
-        )  # fmt: skip
-        phases[name] = estimate.phase_rad
+        tuned = _best_prior("phase_frame", train, condenser_na)
+        for label, options in ((name, tuned), (f"{name} + anchoring", anchored(tuned))):
+            estimate = acekf.reconstruct(*_args(data), options=options)
+            error = np.angle(estimate.field * np.conj(data.field))
+            rows.append(
+                {"model": label, "condenser_na": COHERENCE_CONDENSER_NA,
+                 "gamma": COHERENCE_GAMMA, "planes": len(COHERENCE_Z_UM), "q0": options.q0,
+                 "p0": options.p0, "background": options.background,
+                 "phase_rmse_rad": errors(estimate, data.field)[0],
+                 "low_frequency_rmse_rad": band_rmse(error, data.pixel_um, SHADOW_BELOW_PER_UM)}
+            )  # fmt: skip
+            phases[label] = estimate.phase_rad
     return rows, np.angle(data.field), phases
 
 
@@ -485,6 +519,14 @@ def simulator_phase_stack(
     )
 
 
+@functools.cache
+def simulator_tile(kind: str, size_px: int, seed: int) -> SimulatorStack:
+    """`simulator_phase_stack` of a `kind` specimen's size_px^2 tile (kept: the speed run
+    reads the first again)."""
+    spec = MicroscopeSpec(height=size_px, width=size_px, max_frames=64, specimen_kind=kind)
+    return simulator_phase_stack(spec, seed=seed)
+
+
 def high_pass_correlation(estimate_rad: np.ndarray, truth_rad: np.ndarray) -> float:
     """Correlation of two phase images once periods over ~6 sigma are removed (a Gaussian
     of HIGH_PASS_SIGMA_PX): a through-focus stack pins the lowest frequencies poorly."""
@@ -496,32 +538,68 @@ def high_pass_correlation(estimate_rad: np.ndarray, truth_rad: np.ndarray) -> fl
 
 
 def score_simulator() -> tuple[list[dict[str, Any]], np.ndarray, dict[str, np.ndarray]]:
-    """Rows (specimen, model, correlation), and the first specimen's truth and phases."""
+    """Rows (seed, specimen, model: correlation, phase RMSE, its low-frequency part, the
+    phase on the glass), and the first tile's truth and phases.
+
+    The background anchoring's settings were chosen on seeds 2 and 4
+    (`focustrack_phase.background`); these are seeds it was not tuned on.
+    """
     rows: list[dict[str, Any]] = []
     figure_truth = np.zeros((0, 0))
     figure_phases: dict[str, np.ndarray] = {}
-    for kind, size_px in SIMULATOR_TILES:
-        data = simulator_phase_stack(
-            MicroscopeSpec(height=size_px, width=size_px, max_frames=64, specimen_kind=kind)
-        )
-        for model, condenser_na in (
-            ("coherent model (paper)", 0.0),
-            ("coherence envelope (ours)", data.condenser_na),
-        ):
-            estimate = acekf.reconstruct(
-                data.photons, data.z_um, data.wavelength_um, data.pixel_um,
-                options=acekf.AcekfOptions(condenser_na=condenser_na),
-            )  # fmt: skip
-            rows.append(
-                {"specimen": kind, "model": model, "condenser_na": data.condenser_na,
-                 "planes": len(data.z_um),
-                 "correlation": high_pass_correlation(estimate.phase_rad, data.true_phase_rad)}
-            )  # fmt: skip
-            if not figure_phases or kind == SIMULATOR_TILES[0][0]:
-                figure_phases[model] = estimate.phase_rad
-        if figure_truth.size == 0:
-            figure_truth = data.true_phase_rad
+    for seed in SIMULATOR_SEEDS:
+        for kind, size_px in SIMULATOR_TILES:
+            data = simulator_tile(kind, size_px, seed)
+            glass = np.abs(data.true_phase_rad) < GLASS_PHASE_RAD
+            for model, options in (
+                ("coherent model (paper)", acekf.AcekfOptions(background="none")),
+                ("coherence envelope (ours)", acekf.AcekfOptions(
+                    condenser_na=data.condenser_na, background="none")),
+                ("envelope + anchoring (ours)", acekf.AcekfOptions(
+                    condenser_na=data.condenser_na, background="anchor")),
+            ):  # fmt: skip
+                estimate = acekf.reconstruct(
+                    data.photons, data.z_um, data.wavelength_um, data.pixel_um, options=options
+                )
+                error = estimate.phase_rad - data.true_phase_rad
+                rows.append(
+                    {"seed": seed, "specimen": kind, "model": model,
+                     "condenser_na": data.condenser_na, "planes": len(data.z_um),
+                     "correlation": high_pass_correlation(
+                         estimate.phase_rad, data.true_phase_rad),
+                     "phase_rmse_rad": float(np.std(error)),
+                     "low_frequency_rmse_rad": band_rmse(
+                         error, data.pixel_um, SHADOW_BELOW_PER_UM),
+                     "glass_phase_rad": float(np.mean(estimate.phase_rad[glass]))}
+                )  # fmt: skip
+                if (seed, kind) == (SIMULATOR_SEEDS[0], SIMULATOR_TILES[0][0]):
+                    figure_truth, figure_phases[model] = data.true_phase_rad, estimate.phase_rad
     return rows, figure_truth, figure_phases
+
+
+def anchoring_speed(size_px: int) -> dict[str, Any]:
+    """CPU seconds of `anchor_to_background` alone on a size_px^2 field with glass and
+    cells (the first simulator tile's filtered field, repeated to size_px), and its peak
+    memory on that tile (tracemalloc) in complex64 images of the tile's size."""
+    data = simulator_tile(*SIMULATOR_TILES[0], SIMULATOR_SEEDS[0])
+    options = acekf.AcekfOptions(condenser_na=data.condenser_na, background="none")
+    tile = acekf.reconstruct(
+        data.photons, data.z_um, data.wavelength_um, data.pixel_um, options=options
+    ).field
+    repeats = -(-size_px // tile.shape[0])
+    field = np.tile(tile, (repeats, repeats))[:size_px, :size_px]
+    start_cpu = time.process_time()
+    anchored_field = anchor_to_background(
+        field, data.z_um, data.wavelength_um, data.pixel_um, data.condenser_na
+    )
+    cpu_s = time.process_time() - start_cpu
+    tracemalloc.start()
+    anchor_to_background(tile, data.z_um, data.wavelength_um, data.pixel_um, data.condenser_na)
+    peak_bytes = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return {"size_px": size_px, "cpu_s": cpu_s,
+            "background_share": float(anchored_field.background.mean()),
+            "peak_memory_images": peak_bytes / (8 * tile.size)}  # fmt: skip
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -568,12 +646,15 @@ def run(args: argparse.Namespace) -> int:
     if args.sweep:
         print("Data Set 1, weaker and smoother objects (gamma 0.998, 100 planes)...", flush=True)
         objects = score_objects(args.seed, args.size_px)
-        print(f"  {'peak rad':>8} {'smooth um':>9} {'flat':>7} {'oracle':>7} {'ours':>7} {'LS':>7}")
+        print(
+            f"  {'peak rad':>8} {'smooth um':>9} {'flat':>7} {'oracle':>7} {'ours':>7} "
+            f"{'anchored':>8} {'LS':>7}"
+        )
         for row in objects:
             print(
                 f"  {row['peak_phase_rad']:>8g} {row['smooth_um']:>9g} {row['flat_rad']:>7.4f} "
                 f"{row['oracle_rad']:>7.4f} {row['ours_rad']:>7.4f} "
-                f"{row['weak_object_ls_rad']:>7.4f}"
+                f"{row['ours_anchored_rad']:>8.4f} {row['weak_object_ls_rad']:>7.4f}"
             )
         settings = [(g, simulate.DATA_SET_1_PLANES) for g in SWEEP_GAMMAS]
         settings += [(simulate.DATA_SET_1_GAMMA, n) for n in SWEEP_PLANES]
@@ -595,7 +676,12 @@ def run(args: argparse.Namespace) -> int:
     print("the instrument simulator's phase stacks (condenser NA 0.2)...", flush=True)
     simulator, simulator_truth, simulator_phases = score_simulator()
     for row in simulator:
-        print(f"  {row['specimen']:<12} {row['model']:<28} correlation {row['correlation']:.3f}")
+        print(
+            f"  seed {row['seed']} {row['specimen']:<12} {row['model']:<28} correlation "
+            f"{row['correlation']:.3f}, phase {row['phase_rmse_rad']:.3f} rad (below "
+            f"{SHADOW_BELOW_PER_UM} cycles/um {row['low_frequency_rmse_rad']:.3f}), glass at "
+            f"{row['glass_phase_rad']:+.3f} rad"
+        )
     print(f"speed: {SPEED_PLANES} planes of {args.speed_size_px}^2 on one core...", flush=True)
     speed = measure_speed(args.speed_size_px)
     for row in speed:
@@ -604,6 +690,12 @@ def run(args: argparse.Namespace) -> int:
             f"FFTs alone {row['fft_cpu_s']:.2f} s), peak memory "
             f"{row['peak_memory_images']:.1f} complex64 images"
         )
+    anchoring = anchoring_speed(args.speed_size_px)
+    print(
+        f"  anchoring to the background: {anchoring['cpu_s']:.2f} s of CPU on "
+        f"{args.speed_size_px}^2 ({anchoring['background_share']:.0%} glass), peak memory "
+        f"{anchoring['peak_memory_images']:.1f} complex64 images"
+    )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         figure = args.json.with_suffix(".png")
@@ -616,7 +708,8 @@ def run(args: argparse.Namespace) -> int:
             json.dumps(
                 {"data_set_1": rows, "objects": objects, "known_spectra": known,
                  "sweep": sweep, "coherence": coherence,
-                 "simulator": simulator, "speed": speed, "figure": figure.name,
+                 "simulator": simulator, "speed": speed, "anchoring_speed": anchoring,
+                 "figure": figure.name,
                  "coherence_figure": coherence_figure.name,
                  "simulator_figure": simulator_figure.name,
                  "paper": {name: {"time_s": t, "intensity_rmse": i, "phase_rmse_rad": p}

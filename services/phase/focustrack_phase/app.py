@@ -5,9 +5,9 @@
   to the plane to reconstruct, um: a JSON list or comma-separated numbers),
   ``wavelength_um``, ``pixel_um``; optional ``photons_per_count`` (1) and the filter's
   settings ``q0``, ``p0``, ``update``, ``condenser_na``, ``amplitude_floor``,
-  ``prior_length_um`` (`AcekfOptions`). ``?format=npy`` (the default) answers a float32
-  .npy of shape (2, H, W): the phase (rad) and the amplitude (relative to the stack's
-  mean) at z = 0; ``?format=png`` a picture of the phase with
+  ``prior_length_um``, ``background`` (`AcekfOptions`). ``?format=npy`` (the default)
+  answers a float32 .npy of shape (2, H, W): the phase (rad) and the amplitude (relative
+  to the stack's mean) at z = 0; ``?format=png`` a picture of the phase with
   a colour bar in radians.
 - ``GET /healthz``. OpenAPI docs at ``/docs``.
 
@@ -35,7 +35,7 @@ from fastapi.responses import Response
 from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
 from focustrack_core.web import bearer_token, guarded_app, read_upload
-from focustrack_phase.acekf import AcekfOptions, FieldEstimate, Update, reconstruct
+from focustrack_phase.acekf import AcekfOptions, Background, FieldEstimate, Update, reconstruct
 
 #: Bounds of the filter's settings a request may set: wide around the defaults, finite.
 MAX_Q0 = 1e6
@@ -189,6 +189,13 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
                 description="the prior's correlation length, um (0: white, the paper's)",
             ),
         ] = defaults.prior_length_um,
+        background: Annotated[
+            Background,
+            Form(
+                description="anchor (the lowest frequencies set so the empty background is "
+                "zero) or none (the filter's own, as the paper)"
+            ),
+        ] = defaults.background,
         format: Annotated[PhaseFormat, Query(description="npy or png")] = PhaseFormat.NPY,
     ) -> Response:
         data = await read_upload(stack, limits.max_upload_bytes)
@@ -201,6 +208,7 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
                 condenser_na=condenser_na,
                 amplitude_floor=amplitude_floor,
                 prior_length_um=prior_length_um,
+                background=background,
             )
             frames = await run_in_threadpool(
                 decode_stack, data, limits.max_frames, limits.max_decoded_bytes

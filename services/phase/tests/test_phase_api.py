@@ -98,6 +98,7 @@ def test_the_filter_settings_and_gain_reach_the_maths(
         "condenser_na": 0.2,
         "amplitude_floor": 0.1,
         "prior_length_um": 2.0,
+        "background": "none",
     }
     fields = form(stack, photons_per_count=2.0, **options)
     answer = read_npy(post(client, npy_bytes(stack.stack_counts), fields))  # npy: the default
@@ -142,6 +143,7 @@ def one_frame(stack: SyntheticStack) -> bytes:
         (None, {"update": "sideways"}, 422, "phase_frame"),
         (None, {"condenser_na": "-0.1"}, 422, "condenser_na"),
         (None, {"prior_length_um": "-1"}, 422, "prior_length_um"),
+        (None, {"background": "flat"}, 422, "'anchor' or 'none'"),
         (one_frame, {"z_um": "[1]"}, 422, "at least 2 frames; got 1"),
         (lambda s: npy_bytes(np.ones((4, 8))), {}, 422, "(frames, height, width)"),
         (lambda s: npy_bytes(np.full((4, 8, 8), np.nan)), {}, 422, "stack must be finite"),
