@@ -36,6 +36,7 @@ import logging
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -201,14 +202,27 @@ PHASE_PASS_TILES = 4
 PHASE_PASS_SPECIMEN = "phase-blood"
 
 
+@dataclass(frozen=True)
+class PhaseScores:
+    """The phase pass against the simulator's truth, one value per tile with phase.
+
+    correlations: of the tile's phase with the true phase, periods over about 6 um
+        removed (`focustrack.bench.phase.high_pass_correlation`).
+    glass_rad: the tile's mean phase (rad) where the slide is empty glass (true phase 0):
+        zero when the phase is anchored to the background, as the services do by default.
+    """
+
+    correlations: list[float]
+    glass_rad: list[float]
+
+
 def phase_pass(
     args: argparse.Namespace, options: ScanOptions, out_dir: Path, live: LiveServer | None
-) -> tuple[dict[str, Any], list[float]]:
+) -> tuple[dict[str, Any], PhaseScores]:
     """The demo's own phase pass: a small slide of unstained red cells on a stack of its own
     whose focus service looks for the contrast minimum (a phase object is faintest in
     focus), scanned with kf-2d-lean and a phase stack on every tile. Returns the report
-    and each tile's correlation of its phase with the simulator's true phase (periods over
-    about 6 um removed: `focustrack.bench.phase.high_pass_correlation`)."""
+    and how each tile's phase compares with the simulator's true phase."""
     simulator = SimulatorOptions(
         seed=args.seed, slides=1, rows=PHASE_PASS_TILES, cols=PHASE_PASS_TILES,
         width=args.size, height=args.size, specimen=PHASE_PASS_SPECIMEN,
@@ -225,32 +239,38 @@ def phase_pass(
     ) as stack:  # fmt: skip
         request = options.request(INSTRUMENT, SLIDE, LEAN)
         report = scan_on(stack, options, request, scan_dir, PHASE_PASS, live)
+    scores = PhaseScores([], [])
     scope = microscope_from_options(simulator)
     try:
-        correlations = [
-            high_pass_correlation(
-                np.load(scan_dir / PHASE / f"r{row}_c{col}.npy")[0].astype(np.float64),
-                scope.true_phase(SLIDE, row, col).phase_rad,
-            )
-            for row in range(PHASE_PASS_TILES)
-            for col in range(PHASE_PASS_TILES)
-            if (scan_dir / PHASE / f"r{row}_c{col}.npy").exists()
-        ]
+        for row in range(PHASE_PASS_TILES):
+            for col in range(PHASE_PASS_TILES):
+                file = scan_dir / PHASE / f"r{row}_c{col}.npy"
+                if not file.exists():
+                    continue
+                phase_rad = np.load(file)[0].astype(np.float64)
+                true_rad = scope.true_phase(SLIDE, row, col).phase_rad
+                scores.correlations.append(high_pass_correlation(phase_rad, true_rad))
+                glass = true_rad == 0
+                if glass.any():
+                    scores.glass_rad.append(float(np.mean(phase_rad[glass])))
     finally:
         scope.close()
-    return report, correlations
+    return report, scores
 
 
-def phase_line(report: dict[str, Any], correlations: list[float]) -> str:
+def phase_line(report: dict[str, Any], scores: PhaseScores) -> str:
     """One line on the phase pass: tiles in focus and with phase, phase frames, accuracy."""
     tiles = report["rows"] * report["cols"]
     in_focus = round(report["in_focus_fraction"] * tiles)
-    accuracy = (
-        f"correlation with the true phase median {np.median(correlations):.2f}, "
-        f"lowest {min(correlations):.2f}"
-        if correlations
-        else "no phase to compare"
-    )
+    accuracy = "no phase to compare"
+    if scores.correlations:
+        accuracy = (
+            f"correlation with the true phase median {np.median(scores.correlations):.2f}, "
+            f"lowest {min(scores.correlations):.2f}"
+        )
+    if scores.glass_rad:
+        farthest = max(scores.glass_rad, key=abs)
+        accuracy += f"; the glass at {farthest:+.2f} rad at most"
     return (
         f"Phase pass (unstained red cells, {report['rows']}x{report['cols']} tiles, focus at "
         f"the contrast minimum): {in_focus} of {tiles} tiles in focus, "
@@ -395,7 +415,7 @@ def run(args: argparse.Namespace) -> int:
         flush=True,
     )
     reports: dict[str, dict[str, Any]] = {}
-    phased: tuple[dict[str, Any], list[float]] | None = None
+    phased: tuple[dict[str, Any], PhaseScores] | None = None
     # the strategies scan the stained slide without phase stacks; --phase adds a pass of its own
     strategies_options = options.model_copy(update={"phase": False})
     try:

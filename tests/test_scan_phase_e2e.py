@@ -121,8 +121,11 @@ def test_the_demo_s_phase_pass_recovers_the_true_phase_of_unstained_cells(
     args = argparse.Namespace(seed=1, size=256)  # the demo's seed (seed 2 starts on empty tiles)
     flags = argparse.Namespace(phase=True, no_progress=True)
     options = ScanOptions.from_args(flags, environment=False)
-    report, correlations = phase_pass(args, options, tmp_path, live=None)
+    report, scores = phase_pass(args, options, tmp_path, live=None)
     tiles = PHASE_PASS_TILES * PHASE_PASS_TILES
     assert report["in_focus_fraction"] == 1.0
-    assert report["tiles_with_phase"] == len(correlations) == tiles
-    assert min(correlations) > 0.9, correlations  # 0.97-0.98 measured
+    assert report["tiles_with_phase"] == len(scores.correlations) == tiles
+    assert min(scores.correlations) > 0.9, scores.correlations  # 0.97-0.98 measured
+    # Every tile's phase is anchored to its glass, so the tiles share their zero.
+    assert len(scores.glass_rad) == tiles
+    assert max(map(abs, scores.glass_rad)) < 0.05, scores.glass_rad

@@ -84,7 +84,7 @@ def background_mask(field: np.ndarray, pixel_um: float) -> np.ndarray:
     (TEXTURE_UM), averaged over ENERGY_UM (neither below its pixel floor), is two
     populations on a slide of cells, and Otsu's threshold on its logarithm splits them.
     Cells are grown by MARGIN_UM (their fringes) and their holes filled (a red cell's flat
-    centre is cell, not glass). All
+    centre is cell, not glass), the image's outermost pixels left open. All
     False when the background is under MIN_BACKGROUND of the image or not much flatter
     than the cells (MAX_TEXTURE_RATIO): no two populations to tell apart.
     """
@@ -99,7 +99,13 @@ def background_mask(field: np.ndarray, pixel_um: float) -> np.ndarray:
     log_power = np.log(np.maximum(power, FLAT_POWER_SHARE * power.max()))
     cells = log_power > otsu_threshold(log_power)
     cells = ndimage.binary_dilation(cells, iterations=round(max(MARGIN_UM / pixel_um, MARGIN_PX)))
-    background = ~ndimage.binary_fill_holes(cells)
+    # Holes are filled with the image's outermost pixels open: the filter's periodic model
+    # leaves texture along the edges (a slide does not wrap around), which would otherwise
+    # enclose the glass that reaches them as a hole. (A wider open band, tried, took the
+    # centres of red cells cut by the edge for glass.)
+    opened = cells.copy()
+    opened[[0, -1], :] = opened[:, [0, -1]] = False
+    background = ~(ndimage.binary_fill_holes(opened) | cells)
     if background.mean() < MIN_BACKGROUND or not (~background).any():
         return np.zeros(field.shape, dtype=bool)
     if np.median(power[background]) > MAX_TEXTURE_RATIO * np.median(power[~background]):
