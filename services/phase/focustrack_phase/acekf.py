@@ -14,7 +14,7 @@ The planes are filtered from focus outward, the side above focus first (`plane_o
 so the result does not depend on the order they are given in, and the last estimate is
 propagated back to z = 0.
 
-Beyond the paper, three changes, each measured by `focustrack bench phase`:
+Beyond the paper, four changes, each measured by `focustrack bench phase`:
 - the update in the field's own phase frame (`AcekfOptions.update`): eq. 33 divides the
   residual by a_hat^*, which matches Theorem 1's diagonal gain only where the phase is
   small; applying the gain to the residual over |a_hat| and rotating the correction by
@@ -25,7 +25,11 @@ Beyond the paper, three changes, each measured by `focustrack bench phase`:
   drops, so a confident early plane cannot blow up the update at high photon counts;
 - partial coherence (`AcekfOptions.condenser_na`): a disk source damps the intensity's
   linear response at defocus z by 2 J1(v)/v, v = 2 pi z NA_c |f|; the gain and the
-  predicted intensity carry that envelope.
+  predicted intensity carry that envelope;
+- the lowest frequencies, which the stack barely sees, anchored after the filter to the
+  slide's empty background (`AcekfOptions.background`, `focustrack_phase.background`):
+  where there is glass, most of the low-frequency shadow the paper shows goes, and the
+  phase's zero is the medium's.
 
 Memory: the filter holds b, H and three float32 images at the image's size, and a_hat
 (eq. 33: a copy of b; ours: b itself, transformed in place and back) or the filtered
@@ -272,13 +276,16 @@ def reconstruct(
     forward back to the state: three and a half complex FFTs' worth, the least that update
     allows (docs/phase.md, "The cost of an update"): each transform's input needs the
     previous one's output, so no two can share one FFT. Q, P and the gain depend on |f|
-    alone, so they live on a quarter of the grid (`FoldedGrid`). Raises ValueError for bad
-    input, FilterDivergedError (a ValueError) when the filter ran away.
+    alone, so they live on a quarter of the grid (`FoldedGrid`). With `options.background`
+    "anchor" (the default) the phase's lowest frequencies are then set so that the empty
+    background is zero (`focustrack_phase.background`). Raises ValueError for bad input,
+    FilterDivergedError (a ValueError) when the filter ran away.
     """
     opts = options or AcekfOptions()
     z, gamma = validate_stack(stack_counts, z_um, wavelength_um, pixel_um, photons_per_count)
-    field = _filtered_field(stack_counts, z, gamma, wavelength_um, pixel_um, photons_per_count,
-                            opts, workers, prior)  # fmt: skip
+    field = _filtered_field(
+        stack_counts, z, gamma, wavelength_um, pixel_um, photons_per_count, opts, workers, prior
+    )
     # The EKF can run away (a prior far wider than the object at a high photon count): its
     # field then overflows. Propagation keeps the mean intensity at 1; say so rather than
     # answer noise.
@@ -289,7 +296,7 @@ def reconstruct(
             f"a smaller prior (q0 below {opts.q0:g}) keeps it stable at {gamma:.3g} photons "
             "per pixel"
         )
-    # (5) Beyond the paper: the lowest frequencies anchored to the empty background, once
+    # (4) Beyond the paper: the lowest frequencies anchored to the empty background, once
     # the filter's working images are freed.
     if opts.background == "anchor":
         anchored = anchor_to_background(field, z, wavelength_um, pixel_um, opts.condenser_na)
