@@ -85,6 +85,7 @@ def test_scan_phase_writes_the_phase_in_radians_beside_the_mosaic(
     kept = {(e["row"], e["col"]): e["z_um"] for e in logged(tmp_path, "kept")}
     for entry in logged(tmp_path, "phase"):  # each centred on the z the tile is imaged at
         assert entry["error"] is None and entry["n_frames"] == 7
+        assert 0.0 <= entry["background_share"] <= 1.0  # the share of the tile taken as glass
         assert entry["reference_z_um"] == kept[(entry["row"], entry["col"])]
     root = zarr.open_group(tmp_path / outputs.MOSAIC_ZARR, mode="r")
     phase = root[outputs.ZARR_PHASE]

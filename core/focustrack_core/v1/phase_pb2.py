@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from focustrack_core.v1 import common_pb2 as focustrack_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19\x66ocustrack/v1/phase.proto\x12\rfocustrack.v1\x1a\x1a\x66ocustrack/v1/common.proto\"\xaa\x02\n\x0bPhaseResult\x12\x12\n\ninstrument\x18\x01 \x01(\t\x12\r\n\x05slide\x18\x02 \x01(\t\x12\x0b\n\x03row\x18\x03 \x01(\x05\x12\x0b\n\x03\x63ol\x18\x04 \x01(\x05\x12\x10\n\x08sequence\x18\x05 \x01(\x04\x12\r\n\x05nonce\x18\x06 \x01(\x0c\x12\x16\n\x0ereference_z_um\x18\x07 \x01(\x01\x12\x15\n\rpixel_size_um\x18\x08 \x01(\x01\x12\x12\n\nstage_x_um\x18\t \x01(\x01\x12\x12\n\nstage_y_um\x18\n \x01(\x01\x12\r\n\x05shape\x18\x0b \x03(\r\x12\r\n\x05\x64type\x18\x0c \x01(\t\x12\x16\n\x0e\x63ompute_time_s\x18\r \x01(\x01\x12#\n\x05\x65rror\x18\x0e \x01(\x0b\x32\x14.focustrack.v1.Error\x12\x0b\n\x03tag\x18\x0f \x01(\x0c\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19\x66ocustrack/v1/phase.proto\x12\rfocustrack.v1\x1a\x1a\x66ocustrack/v1/common.proto\"\xc4\x02\n\x0bPhaseResult\x12\x12\n\ninstrument\x18\x01 \x01(\t\x12\r\n\x05slide\x18\x02 \x01(\t\x12\x0b\n\x03row\x18\x03 \x01(\x05\x12\x0b\n\x03\x63ol\x18\x04 \x01(\x05\x12\x10\n\x08sequence\x18\x05 \x01(\x04\x12\r\n\x05nonce\x18\x06 \x01(\x0c\x12\x16\n\x0ereference_z_um\x18\x07 \x01(\x01\x12\x15\n\rpixel_size_um\x18\x08 \x01(\x01\x12\x12\n\nstage_x_um\x18\t \x01(\x01\x12\x12\n\nstage_y_um\x18\n \x01(\x01\x12\r\n\x05shape\x18\x0b \x03(\r\x12\r\n\x05\x64type\x18\x0c \x01(\t\x12\x16\n\x0e\x63ompute_time_s\x18\r \x01(\x01\x12#\n\x05\x65rror\x18\x0e \x01(\x0b\x32\x14.focustrack.v1.Error\x12\x0b\n\x03tag\x18\x0f \x01(\x0c\x12\x18\n\x10\x62\x61\x63kground_share\x18\x10 \x01(\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -33,5 +33,5 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'focustrack.v1.phase_pb2', _
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_PHASERESULT']._serialized_start=73
-  _globals['_PHASERESULT']._serialized_end=371
+  _globals['_PHASERESULT']._serialized_end=397
 # @@protoc_insertion_point(module_scope)

@@ -8,7 +8,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class PhaseResult(_message.Message):
-    __slots__ = ("instrument", "slide", "row", "col", "sequence", "nonce", "reference_z_um", "pixel_size_um", "stage_x_um", "stage_y_um", "shape", "dtype", "compute_time_s", "error", "tag")
+    __slots__ = ("instrument", "slide", "row", "col", "sequence", "nonce", "reference_z_um", "pixel_size_um", "stage_x_um", "stage_y_um", "shape", "dtype", "compute_time_s", "error", "tag", "background_share")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDE_FIELD_NUMBER: _ClassVar[int]
     ROW_FIELD_NUMBER: _ClassVar[int]
@@ -24,6 +24,7 @@ class PhaseResult(_message.Message):
     COMPUTE_TIME_S_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     TAG_FIELD_NUMBER: _ClassVar[int]
+    BACKGROUND_SHARE_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slide: str
     row: int
@@ -39,4 +40,5 @@ class PhaseResult(_message.Message):
     compute_time_s: float
     error: _common_pb2.Error
     tag: bytes
-    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., nonce: _Optional[bytes] = ..., reference_z_um: _Optional[float] = ..., pixel_size_um: _Optional[float] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[str] = ..., compute_time_s: _Optional[float] = ..., error: _Optional[_Union[_common_pb2.Error, _Mapping]] = ..., tag: _Optional[bytes] = ...) -> None: ...
+    background_share: float
+    def __init__(self, instrument: _Optional[str] = ..., slide: _Optional[str] = ..., row: _Optional[int] = ..., col: _Optional[int] = ..., sequence: _Optional[int] = ..., nonce: _Optional[bytes] = ..., reference_z_um: _Optional[float] = ..., pixel_size_um: _Optional[float] = ..., stage_x_um: _Optional[float] = ..., stage_y_um: _Optional[float] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[str] = ..., compute_time_s: _Optional[float] = ..., error: _Optional[_Union[_common_pb2.Error, _Mapping]] = ..., tag: _Optional[bytes] = ..., background_share: _Optional[float] = ...) -> None: ...

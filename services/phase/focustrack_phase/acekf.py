@@ -122,10 +122,14 @@ class FieldEstimate:
     field: complex64 (height, width), dimensionless: |field|^2 is the intensity relative
         to the stack's mean intensity, angle(field) the phase in radians.
     gamma_photons: gamma of eq. 5, the mean photons per pixel of the stack.
+    background_share: the share of the image taken as empty glass, whose phase is zero
+        (`AcekfOptions.background` "anchor": 0 when there was too little, the zero then
+        the phase of the field's mean); None when the field is the filter's own.
     """
 
     field: np.ndarray
     gamma_photons: float
+    background_share: float | None = None
 
     @property
     def phase_rad(self) -> np.ndarray:
@@ -298,10 +302,11 @@ def reconstruct(
         )
     # (4) Beyond the paper: the lowest frequencies anchored to the empty background, once
     # the filter's working images are freed.
-    if opts.background == "anchor":
-        anchored = anchor_to_background(field, z, wavelength_um, pixel_um, opts.condenser_na)
-        field = np.abs(field) * np.exp(1j * anchored.phase_rad)
-    return FieldEstimate(field, gamma)
+    if opts.background == "none":
+        return FieldEstimate(field, gamma)
+    anchored = anchor_to_background(field, z, wavelength_um, pixel_um, opts.condenser_na)
+    field = np.abs(field) * np.exp(1j * anchored.phase_rad)
+    return FieldEstimate(field, gamma, float(np.mean(anchored.background)))
 
 
 @np.errstate(over="ignore", invalid="ignore", divide="ignore")  # a runaway is caught above

@@ -7,8 +7,9 @@
   settings ``q0``, ``p0``, ``update``, ``condenser_na``, ``amplitude_floor``,
   ``prior_length_um``, ``background`` (`AcekfOptions`). ``?format=npy`` (the default)
   answers a float32 .npy of shape (2, H, W): the phase (rad) and the amplitude (relative
-  to the stack's mean) at z = 0; ``?format=png`` a picture of the phase with
-  a colour bar in radians.
+  to the stack's mean) at z = 0, its header ``X-Background-Share`` the share of the image
+  taken as glass (zero phase); ``?format=png`` a picture of the phase with a colour bar in
+  radians.
 - ``GET /healthz``. OpenAPI docs at ``/docs``.
 
 Bad input is a 4xx whose detail names the problem, as the focus service's: 413 for an
@@ -37,6 +38,9 @@ from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_s
 from focustrack_core.web import bearer_token, guarded_app, read_upload
 from focustrack_phase.acekf import AcekfOptions, Background, FieldEstimate, Update, reconstruct
 
+#: The .npy answer's header with the share of the image taken as empty glass, whose phase
+#: is zero (`FieldEstimate.background_share`; absent with ``background=none``).
+BACKGROUND_SHARE_HEADER = "X-Background-Share"
 #: Bounds of the filter's settings a request may set: wide around the defaults, finite.
 MAX_Q0 = 1e6
 MAX_AMPLITUDE_FLOOR = 1.0
@@ -232,10 +236,13 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
             return Response(
                 await run_in_threadpool(phase_png, estimate.phase_rad), media_type="image/png"
             )
+        headers = {"Content-Disposition": 'attachment; filename="phase.npy"'}
+        if estimate.background_share is not None:
+            headers[BACKGROUND_SHARE_HEADER] = f"{estimate.background_share:.4f}"
         return Response(
             await run_in_threadpool(field_npy, estimate),
             media_type="application/octet-stream",
-            headers={"Content-Disposition": 'attachment; filename="phase.npy"'},
+            headers=headers,
         )
 
     return app

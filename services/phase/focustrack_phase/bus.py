@@ -303,6 +303,7 @@ def reconstruct_stack(
         return result_message(stack.header, stack.tile, error=why), b""
     payload = result_pixels(estimate)
     message = result_message(stack.header, stack.tile, shape=stack.counts.shape[1:])
+    message.background_share = estimate.background_share or 0.0
     message.compute_time_s = time.perf_counter() - started_s
     return message, payload
 

@@ -88,6 +88,18 @@ def test_phase_and_amplitude_are_the_maths_own(
     np.testing.assert_allclose(answer[1], direct.amplitude, rtol=1e-6)
 
 
+def test_the_answer_says_how_much_of_the_image_is_glass(
+    client: TestClient, stack: SyntheticStack
+) -> None:
+    anchored = post(client, npy_bytes(stack.stack_counts), form(stack))
+    direct = reconstruct(stack.stack_counts, stack.z_um, stack.wavelength_um, stack.pixel_um)
+    assert direct.background_share is not None
+    share = float(anchored.headers["X-Background-Share"])
+    assert share == pytest.approx(direct.background_share, abs=1e-4)
+    own = post(client, npy_bytes(stack.stack_counts), form(stack, background="none"))
+    assert own.status_code == 200 and "X-Background-Share" not in own.headers
+
+
 def test_the_filter_settings_and_gain_reach_the_maths(
     client: TestClient, stack: SyntheticStack
 ) -> None:

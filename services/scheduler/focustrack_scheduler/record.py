@@ -148,11 +148,13 @@ class ScanRecord:
         scan_time_s: float,
         reference_z_um: float,
         field: np.ndarray | None,
+        background_share: float | None,
         error: str | None,
     ) -> None:
         """A phase stack of tile (row, col) was taken (`n_frames` images, `scan_time_s`
         simulated seconds) for the plane at `reference_z_um`; its `field`, float32 (2, h, w):
-        the phase (rad) and amplitude, is kept, or `error` says why there is none."""
+        the phase (rad) and amplitude, is kept, with the share of the tile the phase
+        service took as glass (zero phase), or `error` says why there is none."""
         file = None if field is None else self.mosaic.save_phase(row, col, field)
         spread_rad = None if field is None else finite_or_none(float(np.std(field[0])))
         self._append(
@@ -166,6 +168,7 @@ class ScanRecord:
                 "reference_z_um": reference_z_um,
                 "file": file,
                 "phase_std_rad": spread_rad,
+                "background_share": background_share,
                 "error": error,
             }
         )

@@ -61,8 +61,11 @@ def test_a_tiles_phase_shows_as_its_spread_in_radians(tmp_path: Path) -> None:
     field[0, :, 4:] = 1.0  # half the tile a radian ahead: a spread of 0.5 rad
     grid = ScanGrid(2, 2)
     common = {"sequence": 1 << 40, "n_frames": 11, "scan_time_s": 0.3, "reference_z_um": 1.5}
-    record.phase(grid, 0, 0, **common, field=field, error=None)
-    record.phase(grid, 0, 1, **common, field=None, error="no phase result within 15 s")
+    record.phase(grid, 0, 0, **common, field=field, background_share=0.4, error=None)
+    record.phase(
+        grid, 0, 1, **common, field=None, background_share=None,
+        error="no phase result within 15 s",
+    )  # fmt: skip
     tiles = {(t[0], t[1]): t for t in live.changes()["tiles"]}
     assert tiles[(0, 0)][7] == pytest.approx(0.5) and tiles[(0, 1)][7] is None
     again = LiveScan.follow(ScanRecord(tmp_path), GRID, "kf-2d")  # read back from the log

@@ -185,8 +185,14 @@ def test_the_phase_of_the_tiles_is_an_image_in_radians_over_the_mosaic(tmp_path:
     record, _ = scanned_record(tmp_path)
     common = {"n_frames": 11, "scan_time_s": 0.4, "reference_z_um": 10.0}
     for index, tile in enumerate([(0, 0), (0, 2), (1, 1)]):
-        record.phase(GRID, *tile, sequence=100 + index, **common, field=phase_of(tile), error=None)
-    record.phase(GRID, 1, 2, sequence=103, **common, field=None, error="no phase result")
+        record.phase(
+            GRID, *tile, sequence=100 + index, **common, field=phase_of(tile),
+            background_share=0.4, error=None,
+        )  # fmt: skip
+    record.phase(
+        GRID, 1, 2, sequence=103, **common, field=None, background_share=None,
+        error="no phase result",
+    )  # fmt: skip
     record.close()
     again = ScanRecord(tmp_path)  # read back from the log, as a restarted scheduler does
     report = finish(again)
