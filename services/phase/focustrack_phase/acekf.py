@@ -293,7 +293,8 @@ def reconstruct(
     # The EKF can run away (a prior far wider than the object at a high photon count): its
     # field then overflows. Propagation keeps the mean intensity at 1; say so rather than
     # answer noise.
-    mean_intensity = float(np.mean(np.abs(field) ** 2, dtype=np.float64))
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflowed field: said below
+        mean_intensity = float(np.mean(np.abs(field) ** 2, dtype=np.float64))
     if not 0.25 < mean_intensity < 4.0:
         raise FilterDivergedError(
             f"the filter diverged (mean intensity {mean_intensity:.3g} of the stack's, not 1): "
