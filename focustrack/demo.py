@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.bench.phase import high_pass_correlation
+from focustrack.bench.phase import GLASS_PHASE_RAD, high_pass_correlation
 from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack.local_stack import INSTRUMENT, READY_TIMEOUT_S, SLIDE, LocalStack, stop_on_sigterm
 from focustrack.slide_scores import scored_scan
@@ -250,7 +250,7 @@ def phase_pass(
                 phase_rad = np.load(file)[0].astype(np.float64)
                 true_rad = scope.true_phase(SLIDE, row, col).phase_rad
                 scores.correlations.append(high_pass_correlation(phase_rad, true_rad))
-                glass = true_rad == 0
+                glass = np.abs(true_rad) < GLASS_PHASE_RAD
                 if glass.any():
                     scores.glass_rad.append(float(np.mean(phase_rad[glass])))
     finally:
