@@ -521,10 +521,22 @@ def simulator_phase_stack(
 
 @functools.cache
 def simulator_tile(kind: str, size_px: int, seed: int) -> SimulatorStack:
-    """`simulator_phase_stack` of a `kind` specimen's size_px^2 tile (kept: the speed run
-    reads the first again)."""
+    """`simulator_phase_stack` of a `kind` specimen's size_px^2 tile (kept: it is read
+    again)."""
     spec = MicroscopeSpec(height=size_px, width=size_px, max_frames=64, specimen_kind=kind)
     return simulator_phase_stack(spec, seed=seed)
+
+
+@functools.cache
+def simulator_estimate(
+    kind: str, size_px: int, seed: int, options: acekf.AcekfOptions
+) -> FieldEstimate:
+    """`acekf.reconstruct` of `simulator_tile(kind, size_px, seed)` with `options` (kept:
+    the speed run anchors the first tile's filtered field again)."""
+    data = simulator_tile(kind, size_px, seed)
+    return acekf.reconstruct(
+        data.photons, data.z_um, data.wavelength_um, data.pixel_um, options=options
+    )
 
 
 def high_pass_correlation(estimate_rad: np.ndarray, truth_rad: np.ndarray) -> float:
@@ -558,9 +570,7 @@ def score_simulator() -> tuple[list[dict[str, Any]], np.ndarray, dict[str, np.nd
                 ("envelope + anchoring (ours)", acekf.AcekfOptions(
                     condenser_na=data.condenser_na, background="anchor")),
             ):  # fmt: skip
-                estimate = acekf.reconstruct(
-                    data.photons, data.z_um, data.wavelength_um, data.pixel_um, options=options
-                )
+                estimate = simulator_estimate(kind, size_px, seed, options)
                 error = estimate.phase_rad - data.true_phase_rad
                 rows.append(
                     {"seed": seed, "specimen": kind, "model": model,
@@ -581,11 +591,10 @@ def anchoring_speed(size_px: int) -> dict[str, Any]:
     """CPU seconds of `anchor_to_background` alone on a size_px^2 field with glass and
     cells (the first simulator tile's filtered field, repeated to size_px), and its peak
     memory on that tile (tracemalloc) in complex64 images of the tile's size."""
-    data = simulator_tile(*SIMULATOR_TILES[0], SIMULATOR_SEEDS[0])
+    kind, tile_px = SIMULATOR_TILES[0]
+    data = simulator_tile(kind, tile_px, SIMULATOR_SEEDS[0])
     options = acekf.AcekfOptions(condenser_na=data.condenser_na, background="none")
-    tile = acekf.reconstruct(
-        data.photons, data.z_um, data.wavelength_um, data.pixel_um, options=options
-    ).field
+    tile = simulator_estimate(kind, tile_px, SIMULATOR_SEEDS[0], options).field
     repeats = -(-size_px // tile.shape[0])
     field = np.tile(tile, (repeats, repeats))[:size_px, :size_px]
     start_cpu = time.process_time()

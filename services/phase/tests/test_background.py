@@ -3,6 +3,8 @@ it does to the filter's field on partially coherent stacks of a red-cell smear."
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from scipy import fft
@@ -16,6 +18,7 @@ Z_UM = np.arange(1, 21) * 2.5
 CONDENSER_NA = 0.05
 
 
+@functools.cache  # the Abbe simulation is most of each test's time
 def _smear(seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A 64 px smear of red cells (1 rad) and its partially coherent stack at 1000 photons."""
     truth = simulate.weak_object(64, seed=seed, peak_phase_rad=1.0)
