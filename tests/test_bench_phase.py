@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from focustrack.bench import phase
+from focustrack.bench.focus import REAL_DIR
 from focustrack.bench.phase import OBJECTS, run
 from focustrack_phase import simulate
 
@@ -23,12 +24,15 @@ def test_the_bench_writes_its_table_json_and_figure(
     monkeypatch.setattr(phase, "FILTER_PRIOR_LENGTH_UM", (0.0, 2.0))
     monkeypatch.setattr(phase, "SIMULATOR_SEEDS", (1,))  # one slide: the bench, not the seeds
     out = tmp_path / "phase.json"
-    args = argparse.Namespace(json=out, sweep=True, seed=1, size_px=16, repeats=1, speed_size_px=32)
+    args = argparse.Namespace(
+        json=out, sweep=True, seed=1, size_px=16, repeats=1, speed_size_px=32, real_dir=tmp_path
+    )  # no real data there: that section is skipped, and said so
     assert run(args) == 0
     result = json.loads(out.read_text())
     assert set(result) == {
         "data_set_1", "objects", "known_spectra", "sweep", "coherence", "simulator", "speed",
-        "anchoring_speed", "figure", "coherence_figure", "simulator_figure", "paper",
+        "anchoring_speed", "real_yeast", "figure", "coherence_figure", "simulator_figure",
+        "yeast_figure", "paper",
     }  # fmt: skip
     methods = [row["method"] for row in result["data_set_1"]]
     assert methods[0].startswith("sparse ACEKF ours") and len(methods) == 7
@@ -79,7 +83,23 @@ def test_the_bench_writes_its_table_json_and_figure(
     assert all(0 < row["peak_memory_images"] < 40 and row["time_s"] > 0 for row in speed.values())
     assert all(row["cpu_s"] > 0 for row in speed.values())
     assert all(row["fft_cpu_s"] > 0 for row in speed.values())
-    assert "sparse ACEKF (paper)" in capsys.readouterr().out
+    assert result["real_yeast"] is None and result["yeast_figure"] is None
+    printed = capsys.readouterr().out
+    assert "sparse ACEKF (paper)" in printed and "the real yeast z-stack: skipped" in printed
+
+
+@pytest.mark.skipif(not REAL_DIR.is_dir(), reason=f"{REAL_DIR} is missing")
+def test_the_phase_of_real_yeast_agrees_with_itself(tmp_path: Path) -> None:
+    row, images = phase.score_real_yeast(REAL_DIR)
+    # Measured: 0.998 between the even and the odd planes, 0.689 between the two sides of
+    # focus; the phase spans about +-0.5 rad; too little glass to anchor to.
+    assert row["planes"] == 34 and row["even_odd_correlation"] > 0.95
+    assert row["above_below_correlation"] > 0.5
+    assert 0.2 < row["phase_p99_rad"] - row["phase_p1_rad"] < 3.0
+    assert 0.0 <= row["background_share"] <= 1.0
+    assert all(image.shape == (63, 60) for image in images.values())
+    phase.write_images(tmp_path / "yeast.png", images)
+    assert (tmp_path / "yeast.png").stat().st_size > 1000
 
 
 def test_the_filter_knowing_the_object_s_spectra_comes_within_a_tenth_of_the_wiener_estimate() -> (

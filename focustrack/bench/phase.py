@@ -19,7 +19,7 @@ on average): it says how far down this object and photon count allow.
 
 `--sweep` adds the smear weaker and smoothed (OBJECTS: flat, oracle, ours and the
 weak-object least squares at the paper's setting), gamma in (1, 10, 100, 1000) on 100
-planes and 5..100 planes at the paper's gamma. Four more sections always run:
+planes and 5..100 planes at the paper's gamma. Five more sections run by default:
 
 - the filter against the Wiener estimate with the same knowledge (`known_spectra`): on
   Data Set 1's object and OBJECTS, the Wiener estimate of amplitude and phase that knows
@@ -39,6 +39,9 @@ planes and 5..100 planes at the paper's gamma. Four more sections always run:
   envelope and anchored to the background; the correlation with the true phase after
   removing periods over ~6 um (a Gaussian of 10 pixels), the phase RMSE with its part
   below 0.05 cycles/um, the mean phase on the glass, and a figure;
+- a real brightfield z-stack of unstained fission yeast (`--real-dir`, skipped where
+  missing): no true phase, so how the phase agrees with itself (even against odd planes,
+  above against below focus), its spread and the glass found, and a figure;
 - speed and memory on one core: 21 planes of `--speed-size-px` (2048) squared, both
   updates, in wall time and CPU time beside their FFTs' alone, and peak memory
   (`focustrack.bench.phase_speed`); and the background anchoring's CPU time on a field
@@ -64,8 +67,10 @@ from typing import Any
 import numpy as np
 from scipy import fft, ndimage
 
+from focustrack.bench.focus import REAL_DIR
 from focustrack.bench.phase_speed import SPEED_PLANES, measure_speed
 from focustrack_core.surfaces import SurfaceSpec
+from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_yeast
 from focustrack_instrument_sim.instrument import Purpose
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
 from focustrack_phase import acekf, baselines, simulate
@@ -83,6 +88,10 @@ SIMULATOR_TILES = (("phase-cells", 512), ("phase-blood", 256))
 SIMULATOR_SEEDS = (1, 3)
 #: The true phase below which a pixel is glass (the simulator's medium has none).
 GLASS_PHASE_RAD = 1e-6
+#: The real yeast stack's illumination: white light, whose wavelength its source does not
+#: give; the middle of the visible (`score_real_yeast`).
+YEAST_WAVELENGTH_UM = 0.55
+YEAST_PIXEL_UM = 0.1075
 HIGH_PASS_SIGMA_PX = 10.0
 FILTER_Q0 = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 FILTER_P0_RATIO = (0.0, -0.5, -0.9)
@@ -611,6 +620,65 @@ def anchoring_speed(size_px: int) -> dict[str, Any]:
             "peak_memory_images": peak_bytes / (8 * tile.size)}  # fmt: skip
 
 
+def score_real_yeast(real_dir: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The filter (its defaults) on a real brightfield z-stack of unstained fission yeast
+    (`yeast_brightfield_zstack` of ../shared/data/real: 34 planes 0.3 um apart, 0.1075 um
+    pixels, the source's focus at plane 17, white light taken as YEAST_WAVELENGTH_UM, the
+    camera's gain unknown: 1 photon a count). No true phase is known, so the row says how
+    the phase agrees with itself: from the even planes against the odd ones (the same
+    heights, independent noise), and from the planes above focus against those below (the
+    two sides of the weak-object transfer); its spread; and the share taken as glass. The
+    images: the focal plane (counts) and the phases."""
+    frames, z_um = load_yeast(real_dir / "yeast_brightfield_zstack")
+    z_um = z_um - z_um[YEAST_FOCUS_PLANE]
+    planes = np.arange(len(z_um))
+
+    def phase_of(chosen: np.ndarray) -> acekf.FieldEstimate:
+        return acekf.reconstruct(frames[chosen], z_um[chosen], YEAST_WAVELENGTH_UM, YEAST_PIXEL_UM)
+
+    whole = phase_of(planes)
+    parts = {
+        "even planes": phase_of(planes[::2]), "odd planes": phase_of(planes[1::2]),
+        "above focus": phase_of(planes[z_um >= 0]), "below focus": phase_of(planes[z_um <= 0]),
+    }  # fmt: skip
+
+    def agreement(a: str, b: str) -> float:
+        return float(np.corrcoef(parts[a].phase_rad.ravel(), parts[b].phase_rad.ravel())[0, 1])
+
+    low, high = np.percentile(whole.phase_rad, [1, 99])
+    row = {
+        "planes": len(z_um), "z_um": [float(z_um[0]), float(z_um[-1])],
+        "wavelength_um": YEAST_WAVELENGTH_UM, "pixel_um": YEAST_PIXEL_UM,
+        "even_odd_correlation": agreement("even planes", "odd planes"),
+        "above_below_correlation": agreement("above focus", "below focus"),
+        "phase_p1_rad": float(low), "phase_p99_rad": float(high),
+        "background_share": whole.background_share,
+    }  # fmt: skip
+    images = {"focal plane (counts)": frames[YEAST_FOCUS_PLANE].astype(np.float64)}
+    images["phase, every plane (rad)"] = whole.phase_rad
+    images |= {f"phase, {name} (rad)": estimate.phase_rad for name, estimate in parts.items()}
+    return row, images
+
+
+def write_images(path: Path, images: dict[str, np.ndarray]) -> None:
+    """The images side by side, each on its own scale with a colour bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(images), figsize=(3.2 * len(images), 3.2))
+    for axis, (name, image) in zip(axes, images.items(), strict=True):
+        shown = axis.imshow(image, cmap="gray" if "counts" in name else "viridis")
+        axis.set_title(name, fontsize=9)
+        axis.set_xticks([])
+        axis.set_yticks([])
+        fig.colorbar(shown, ax=axis, fraction=0.046)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
     parser.add_argument("--sweep", action="store_true", help="also sweep gamma and planes")
@@ -622,6 +690,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--speed-size-px", type=int, default=2048, help="image side of the speed run (2048)"
     )
+    parser.add_argument(
+        "--real-dir", type=Path, default=REAL_DIR,
+        help="the real data's folder (its yeast z-stack; skipped where missing)",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -691,6 +763,20 @@ def run(args: argparse.Namespace) -> int:
             f"{SHADOW_BELOW_PER_UM} cycles/um {row['low_frequency_rmse_rad']:.3f}), glass at "
             f"{row['glass_phase_rad']:+.3f} rad"
         )
+    yeast: dict[str, Any] | None = None
+    yeast_images: dict[str, np.ndarray] = {}
+    if (args.real_dir / "yeast_brightfield_zstack").is_dir():
+        print("a real brightfield z-stack: unstained fission yeast...", flush=True)
+        yeast, yeast_images = score_real_yeast(args.real_dir)
+        print(
+            f"  {yeast['planes']} planes: phase from the even and the odd planes correlate "
+            f"{yeast['even_odd_correlation']:.3f}, from above and below focus "
+            f"{yeast['above_below_correlation']:.3f}; phase from {yeast['phase_p1_rad']:.2f} "
+            f"to {yeast['phase_p99_rad']:.2f} rad (1st-99th percentiles), "
+            f"{yeast['background_share']:.0%} taken as glass"
+        )
+    else:
+        print(f"the real yeast z-stack: skipped ({args.real_dir} has none)", flush=True)
     print(f"speed: {SPEED_PLANES} planes of {args.speed_size_px}^2 on one core...", flush=True)
     speed = measure_speed(args.speed_size_px)
     for row in speed:
@@ -710,6 +796,9 @@ def run(args: argparse.Namespace) -> int:
         figure = args.json.with_suffix(".png")
         coherence_figure = args.json.with_name(args.json.stem + "-coherence.png")
         simulator_figure = args.json.with_name(args.json.stem + "-simulator.png")
+        yeast_figure = args.json.with_name(args.json.stem + "-yeast.png")
+        if yeast_images:
+            write_images(yeast_figure, yeast_images)
         write_figure(figure, truth, phases)
         write_figure(coherence_figure, coherence_truth, coherence_phases, error_rad=0.15)
         write_figure(simulator_figure, simulator_truth, simulator_phases, error_rad=0.5)
@@ -717,14 +806,19 @@ def run(args: argparse.Namespace) -> int:
             json.dumps(
                 {"data_set_1": rows, "objects": objects, "known_spectra": known,
                  "sweep": sweep, "coherence": coherence,
-                 "simulator": simulator, "speed": speed, "anchoring_speed": anchoring,
+                 "simulator": simulator, "real_yeast": yeast, "speed": speed,
+                 "anchoring_speed": anchoring,
                  "figure": figure.name,
                  "coherence_figure": coherence_figure.name,
                  "simulator_figure": simulator_figure.name,
+                 "yeast_figure": yeast_figure.name if yeast_images else None,
                  "paper": {name: {"time_s": t, "intensity_rmse": i, "phase_rmse_rad": p}
                            for name, (t, i, p) in PAPER.items()}},
                 indent=2,
             )
         )  # fmt: skip
-        print(f"wrote {args.json} and its figures {figure}, {coherence_figure}, {simulator_figure}")
+        figures = [figure, coherence_figure, simulator_figure] + (
+            [yeast_figure] * bool(yeast_images)
+        )
+        print(f"wrote {args.json} and its figures {', '.join(map(str, figures))}")
     return 0
