@@ -76,7 +76,7 @@ from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, sli
 from focustrack_phase import acekf, baselines, simulate
 from focustrack_phase.acekf import FieldEstimate
 from focustrack_phase.background import anchor_to_background
-from focustrack_phase.propagation import frequency_sq_per_um2
+from focustrack_phase.propagation import frequency_sq_per_um2, phase_transfer_power
 
 COHERENCE_CONDENSER_NA = 0.05
 COHERENCE_GAMMA = 100.0
@@ -188,9 +188,7 @@ def oracle_phase_rmse(data: simulate.SyntheticStack) -> float:
     phase = np.angle(data.field)
     power = np.abs(fft.fft2(phase - phase.mean(), norm="ortho")) ** 2
     freq_sq = frequency_sq_per_um2(phase.shape, data.pixel_um)
-    information = np.zeros(phase.shape)
-    for z in data.z_um:
-        information += 4.0 * np.sin(np.pi * data.wavelength_um * z * freq_sq) ** 2
+    information = len(data.z_um) * phase_transfer_power(freq_sq, data.z_um, data.wavelength_um)
     posterior = power / (1.0 + power * data.gamma_photons * information)
     return float(np.sqrt(posterior.sum() / phase.size))
 
