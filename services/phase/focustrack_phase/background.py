@@ -85,9 +85,9 @@ def background_mask(field: np.ndarray, pixel_um: float) -> np.ndarray:
     (TEXTURE_UM), averaged over ENERGY_UM (neither below its pixel floor), is two
     populations on a slide of cells, and Otsu's threshold on its logarithm splits them.
     Cells are grown by MARGIN_UM (their fringes) and their holes filled (a red cell's flat
-    centre is cell, not glass), the image's outermost pixels left open. All
-    False when the background is under MIN_BACKGROUND of the image or not much flatter
-    than the cells (MAX_TEXTURE_RATIO): no two populations to tell apart.
+    centre is cell, not glass), the image's outermost pixels left open. All False when
+    the background is under MIN_BACKGROUND of the image or not much flatter than the
+    cells (MAX_TEXTURE_RATIO): no two populations to tell apart.
     """
     if field.ndim != 2:
         raise ValueError(f"field must be 2-D (height, width), got shape {field.shape}")
