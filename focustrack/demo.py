@@ -239,7 +239,8 @@ def phase_pass(
     ) as stack:  # fmt: skip
         request = options.request(INSTRUMENT, SLIDE, LEAN)
         report = scan_on(stack, options, request, scan_dir, PHASE_PASS, live)
-    scores = PhaseScores([], [])
+    correlations: list[float] = []
+    glass_rad: list[float] = []
     scope = microscope_from_options(simulator)
     try:
         for row in range(PHASE_PASS_TILES):
@@ -249,13 +250,13 @@ def phase_pass(
                     continue
                 phase_rad = np.load(file)[0].astype(np.float64)
                 true_rad = scope.true_phase(SLIDE, row, col).phase_rad
-                scores.correlations.append(high_pass_correlation(phase_rad, true_rad))
+                correlations.append(high_pass_correlation(phase_rad, true_rad))
                 glass = np.abs(true_rad) < GLASS_PHASE_RAD
                 if glass.any():
-                    scores.glass_rad.append(float(np.mean(phase_rad[glass])))
+                    glass_rad.append(float(np.mean(phase_rad[glass])))
     finally:
         scope.close()
-    return report, scores
+    return report, PhaseScores(correlations, glass_rad)
 
 
 def phase_line(report: dict[str, Any], scores: PhaseScores) -> str:

@@ -815,8 +815,8 @@ def run(args: argparse.Namespace) -> int:
                 indent=2,
             )
         )  # fmt: skip
-        figures = [figure, coherence_figure, simulator_figure] + (
-            [yeast_figure] * bool(yeast_images)
-        )
+        figures = [figure, coherence_figure, simulator_figure]
+        if yeast_images:
+            figures.append(yeast_figure)
         print(f"wrote {args.json} and its figures {', '.join(map(str, figures))}")
     return 0

@@ -141,13 +141,14 @@ def anchor_to_background(
     z_um, wavelength_um, condenser_na: the stack the field came from (what it saw, T(f)).
     """
     background = background_mask(field, pixel_um)
+    found = bool(background.any())
     # The phase is read relative to the background's mean phasor (the whole image's where
     # there is no background), so a phase offset of the field cannot wrap the background
     # across +-pi.
-    reference = np.mean(field[background] if background.any() else field, dtype=np.complex128)
+    reference = np.mean(field[background] if found else field, dtype=np.complex128)
     turn = np.complex64(np.conj(reference) / max(abs(reference), np.finfo(np.float32).tiny))
     phase_rad = np.angle(field * turn).astype(np.float32)
-    if not background.any():
+    if not found:
         return Anchored(phase_rad, background)
     phase_rad += low_frequency_correction(
         phase_rad, background, z_um, wavelength_um, pixel_um, condenser_na, weight
@@ -198,10 +199,9 @@ def low_frequency_correction(
     mask = background.astype(np.float32)
     small = (fft.next_fast_len(4 * reach_y + 1), fft.next_fast_len(4 * reach_x + 1))
     differences = np.ix_(_bins(2 * reach_y, height), _bins(2 * reach_x, width))
+    cropped = fft.fft2(mask)[differences] * (small[0] * small[1] / mask.size)
     mask_spectrum = np.zeros(small, dtype=complex)
-    mask_spectrum[np.ix_(_bins(2 * reach_y, small[0]), _bins(2 * reach_x, small[1]))] = fft.fft2(
-        mask
-    )[differences] * (small[0] * small[1] / mask.size)
+    mask_spectrum[np.ix_(_bins(2 * reach_y, small[0]), _bins(2 * reach_x, small[1]))] = cropped
     small_mask = fft.ifft2(mask_spectrum)
     where = np.ix_(_bins(reach_y, small[0]), _bins(reach_x, small[1]))
 
@@ -245,16 +245,20 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
     """`image` (height, width) convolved with a periodic Gaussian of `sigma_px`, by FFT
     (one forward and one inverse transform whatever the width); complex64 for a complex
     image, float32 otherwise."""
-    spectrum_of, back = (fft.fft2, fft.ifft2) if np.iscomplexobj(image) else (fft.rfft2, None)
-    spectrum = spectrum_of(image.astype(np.complex64 if back else np.float32))
-    fy = fft.fftfreq(image.shape[0])[:, None]
-    fx = (fft.fftfreq if back else fft.rfftfreq)(image.shape[1])[None, :]
-    # the Gaussian's transform, exp(-2 pi^2 sigma^2 f^2), separable: two small factors
-    spectrum *= np.exp(-2 * (np.pi * sigma_px) ** 2 * fy**2).astype(np.float32)
-    spectrum *= np.exp(-2 * (np.pi * sigma_px) ** 2 * fx**2).astype(np.float32)
-    if back is not None:
-        return back(spectrum, overwrite_x=True)
-    return fft.irfft2(spectrum, s=image.shape, overwrite_x=True)
+
+    def gaussian(freqs: np.ndarray) -> np.ndarray:  # its transform, exp(-2 pi^2 s^2 f^2)
+        return np.exp(-2 * (np.pi * sigma_px) ** 2 * freqs**2).astype(np.float32)
+
+    rows = gaussian(fft.fftfreq(image.shape[0]))[:, None]  # separable: two small factors
+    if np.iscomplexobj(image):
+        spectrum = fft.fft2(image.astype(np.complex64))
+        spectrum *= rows
+        spectrum *= gaussian(fft.fftfreq(image.shape[1]))
+        return fft.ifft2(spectrum, overwrite_x=True)
+    half = fft.rfft2(image.astype(np.float32))
+    half *= rows
+    half *= gaussian(fft.rfftfreq(image.shape[1]))
+    return fft.irfft2(half, s=image.shape, overwrite_x=True)
 
 
 def _bins(reach: int, size: int) -> np.ndarray:

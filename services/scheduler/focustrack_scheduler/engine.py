@@ -432,7 +432,9 @@ class Engine:
             scan_time_s=reply.timing.total_s,
             reference_z_um=step.reference_z_um,
             field=None if received is None else received.field,
-            background_share=None if received is None else received.result.background_share,
+            background_share=None
+            if received is None or received.field is None
+            else received.result.background_share,
             error=error,
         )
         return error is None
