@@ -45,6 +45,7 @@ import os
 import secrets
 import socket
 import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import ClassVar, Literal, get_args
@@ -65,6 +66,16 @@ MODES: tuple[str, ...] = get_args(Mode)
 
 #: How long opening a session waits for a connect endpoint to come up.
 CONNECT_TIMEOUT_S = 30.0
+
+#: Zenoh's pauses between attempts to reach a connect endpoint that went away (ms): from
+#: the first to the longest, doubling. An open session reconnects to a restarted router
+#: within the longest pause of its return.
+CONNECT_RETRY_MS = (250, 2000)
+
+#: How long after its own session is back a `LinkWatch` gives the other services to be
+#: back too (the longest connect retry pause, and half a second to declare their
+#: subscribers again).
+RECONNECT_GRACE_S = CONNECT_RETRY_MS[1] / 1000 + 0.5
 
 #: How long one attempt of `BackgroundSession` waits for the router before the next.
 ATTEMPT_TIMEOUT_S = 2.0
@@ -168,7 +179,10 @@ def session_config(
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
-    config.insert_json5("connect/retry", "{period_init_ms: 250, period_max_ms: 2000}")
+    first_ms, longest_ms = CONNECT_RETRY_MS
+    config.insert_json5(
+        "connect/retry", f"{{period_init_ms: {first_ms}, period_max_ms: {longest_ms}}}"
+    )
     config.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory))
     return config
 
@@ -259,6 +273,45 @@ class ZenohSettings(ServiceSettings):
             shared_memory=self.shared_memory > 0,
             config_file=self.zenoh_config,
         )
+
+
+class LinkWatch:
+    """Whether a client session's link to the bus (its router, or the peer it connects to)
+    went down since the watch began, and has been back for `grace_s`: what was in flight
+    then is lost.
+
+    Zenoh keeps nothing for a link that is gone, so a message published while the router
+    was away (a focus result, the frames it would have come from) never arrives, and a
+    wait for it can end once the bus is back rather than at its timeout. A watch begun
+    while the session has no link counts that as the link down. A router that came back
+    under the same id between two calls of `lost` goes unseen (the wait then runs to its
+    timeout). Meant for client sessions, whose links all go to one node: a peer-mode
+    session also counts any other peer that leaves.
+    """
+
+    def __init__(self, session: zenoh.Session, grace_s: float = RECONNECT_GRACE_S) -> None:
+        self._session = session
+        self._grace_s = grace_s
+        self._links = self._connected()
+        self._dropped = not self._links
+        self._back_s: float | None = None
+
+    def _connected(self) -> frozenset[str]:
+        """The ids of the nodes the session has a link to."""
+        info = self._session.info
+        return frozenset(str(zid) for zid in (*info.routers_zid(), *info.peers_zid()))
+
+    def lost(self) -> bool:
+        """True once the link was down and has been up again for `grace_s`."""
+        links = self._connected()
+        self._dropped = self._dropped or not self._links <= links
+        if not self._dropped or not links:
+            self._back_s = None
+            return False
+        now_s = time.monotonic()
+        if self._back_s is None:
+            self._back_s = now_s
+        return now_s - self._back_s >= self._grace_s
 
 
 class BackgroundSession:

@@ -277,6 +277,10 @@ A = TypeVar("A")
 R = TypeVar("R")
 
 
+#: How often `Inbox.wait` asks whether its result was lost (s).
+LOST_POLL_S = 0.25
+
+
 class Inbox(Generic[A, R]):
     """The results the engine awaits, each taken once; filled from a Zenoh callback
     thread, read by the engine's thread.
@@ -319,20 +323,27 @@ class Inbox(Generic[A, R]):
                 self._changed.notify_all()
             return why
 
-    def wait(self, sequence: int, timeout_s: float) -> R | None:
+    def wait(
+        self, sequence: int, timeout_s: float, lost: Callable[[], bool] = lambda: False
+    ) -> R | None:
         """The result taken for stack `sequence` (awaited by `expect`), or None after
-        `timeout_s`; either way it is awaited no longer."""
+        `timeout_s` or once `lost()` says it will not come (asked every LOST_POLL_S, outside
+        the lock the Zenoh callbacks take: a `session.LinkWatch`'s); either way it is
+        awaited no longer."""
         deadline_s = time.monotonic() + timeout_s
-        with self._changed:
-            try:
-                while (result := self._taken.get(sequence)) is None:
+        try:
+            while True:
+                with self._changed:
                     remaining_s = deadline_s - time.monotonic()
-                    if remaining_s <= 0:
-                        return None
-                    self._changed.wait(remaining_s)
-                return result
-            finally:
-                self.forget(sequence)
+                    if sequence not in self._taken and remaining_s > 0:
+                        self._changed.wait(min(remaining_s, LOST_POLL_S))
+                    result = self._taken.get(sequence)
+                if result is not None:
+                    return result
+                if time.monotonic() >= deadline_s or lost():
+                    return None
+        finally:
+            self.forget(sequence)
 
     def forget(self, sequence: int) -> None:
         """Await stack `sequence` no longer (a result for it, taken or to come, is dropped)."""

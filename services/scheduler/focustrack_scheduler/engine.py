@@ -15,13 +15,15 @@ URL, when one stays gone longer than that:
   any instrument query; the scheduler does not receive the other frames;
 - focus results: each acquisition is asked for under a fresh nonce, and only a result
   with that nonce (and its sequence, tile and frames) is taken, once (`clients.Inbox`);
-  waited for `focus_timeout_s`; a timeout goes back to the plan, which acquires the
-  stack again (under a new nonce);
+  waited for `focus_timeout_s`, or until the scan's link to the bus went down and has
+  been back for a grace (`session.LinkWatch`: Zenoh keeps nothing for a link that is
+  gone, so a result in flight then is lost); either goes back to the plan, which
+  acquires the stack again (under a new nonce);
 - phase stacks (`AcquirePhase`, with ``--phase``): acquired as any stack, their result
-  taken the same way and waited for `phase_timeout_s`; a result that does not come, or
-  one that reports an error, leaves the tile without phase (logged), never stops the
-  scan; an instrument that takes a phase stack as a focus stack (it predates the field)
-  is not waited for;
+  taken the same way and waited for `phase_timeout_s` (or until the link came back); a
+  result that does not come, or one that reports an error, leaves the tile without
+  phase (logged), never stops the scan; an instrument that takes a phase stack as a
+  focus stack (it predates the field) is not waited for;
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
@@ -46,6 +48,7 @@ from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc
+from focustrack_core.wire.session import LinkWatch
 from focustrack_core.wire.trust import new_nonce
 from focustrack_scheduler.clients import (
     InstrumentClient,
@@ -285,14 +288,20 @@ class Engine:
     def _await_focus(self, step: AwaitFocus) -> Any:
         acquisition = step.acquisition
         started_s = time.perf_counter()
-        received = self.listener.focus.wait(acquisition.index, self.policy.focus_timeout_s)
+        link = LinkWatch(self.instrument.session)
+        received = self.listener.focus.wait(
+            acquisition.index, self.policy.focus_timeout_s, lost=link.lost
+        )
         waited_s = time.perf_counter() - started_s
         if received is None:
-            self.metrics.faults.labels("focus_timeout").inc()
+            lost = link.lost()  # the bus went down meanwhile and is back
+            self.metrics.faults.labels("focus_lost" if lost else "focus_timeout").inc()
             log.warning(
-                "no focus result for acquisition %d within %.0f s: acquiring it again",
+                "no focus result for acquisition %d %s: acquiring it again",
                 acquisition.index,
-                self.policy.focus_timeout_s,
+                "(the bus went down and is back)"
+                if lost
+                else f"within {self.policy.focus_timeout_s:.0f} s",
             )
             self.wall.waiting_s += waited_s
             return None
@@ -416,9 +425,14 @@ class Engine:
             self.listener.phase.forget(step.sequence)
             error = "the instrument took it as a focus stack (it predates phase stacks)"
         else:
-            received = self.listener.phase.wait(step.sequence, self.policy.phase_timeout_s)
+            link = LinkWatch(self.instrument.session)
+            received = self.listener.phase.wait(
+                step.sequence, self.policy.phase_timeout_s, lost=link.lost
+            )
             if received is None:
                 error = f"no phase result within {self.policy.phase_timeout_s:g} s"
+                if link.lost():
+                    error = "no phase result: the bus went down meanwhile"
             elif received.field is None:
                 error = f"the phase service: {received.result.error.message}"
         if error is not None:

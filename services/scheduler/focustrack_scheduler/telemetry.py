@@ -44,6 +44,7 @@ STEP_BUCKETS_S = (*LATENCY_BUCKETS_S, 5.0, 10.0, 30.0, 60.0)
 #: The faults a scan counts (`ScanMetrics.faults`), each a label value.
 FAULTS = (
     "focus_timeout",  # no focus result in time: the stack is acquired again
+    "focus_lost",  # the bus went down while it was awaited, and is back: acquired again
     "result_rejected",  # a focus or phase result refused (no tag, another nonce, a copy)
     "frames_gone",  # the instrument no longer held a stack's frames: taken again
 )

@@ -9,6 +9,7 @@ now goes out under a fresh nonce that its frames and its result carry.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -196,3 +197,53 @@ def test_a_result_of_another_slide_tile_or_frames_is_refused_an_error_of_its_til
     assert "no acquisition 4" in why(result(sequence=4)) and "slide" in why(result(slide="s2"))
     unreadable = result(z_um=[], error=common_pb2.Error(code=common_pb2.ERROR_CODE_BAD_STACK))
     assert why(unreadable) == "taken"  # a stack the focus service could not read
+
+
+@pytest.mark.timeout(60)
+def test_a_result_lost_with_the_bus_is_acquired_again_once_the_bus_is_back(
+    tmp_path: Path,
+) -> None:
+    """The node the scheduler connects to goes down while a focus result is awaited and
+    comes back on the same endpoint: the wait ends then (`session.LinkWatch`), not at
+    its 60 s timeout, and the fault is counted as lost, not as a timeout."""
+    endpoint = session.loopback_endpoint()
+    bus = session.open_session(listen=[endpoint])
+    asked = threading.Event()
+
+    class Silent(StandIns):  # answers the acquisition; its focus result never comes
+        def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
+            reply = super()._acquire(query)
+            asked.set()
+            return reply
+
+    stand_ins = Silent(bus)
+    stand_ins.copies = 0
+    with session.open_session(connect=[endpoint]) as scheduler:
+        listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
+        engine = Engine(
+            InstrumentClient(scheduler, "sim", timeout_s=10),
+            listener,
+            EstimatorClient("http://127.0.0.1:9"),
+            ScanRecord(tmp_path),
+            RetryPolicy(focus_timeout_s=60.0),
+        )
+        received: list[focus_pb2.FocusResult | None] = []
+        scan = threading.Thread(target=lambda: received.append(scan_once(engine)))
+        started_s = time.monotonic()
+        scan.start()
+        try:
+            assert asked.wait(10)
+            stand_ins.close()
+            bus.close()  # the bus goes down with the result in flight ...
+            assert until(lambda: not scheduler.info.peers_zid())
+            bus = session.open_session(listen=[endpoint])  # ... and comes back
+            scan.join(30)
+            assert not scan.is_alive() and received == [None]
+            assert time.monotonic() - started_s < 30  # not the 60 s timeout
+            faults = "focustrack_scan_faults_total"
+            registry = engine.metrics.registry
+            assert registry.get_sample_value(faults, {"kind": "focus_lost"}) == 1
+            assert registry.get_sample_value(faults, {"kind": "focus_timeout"}) == 0
+        finally:
+            listener.close()
+            bus.close()

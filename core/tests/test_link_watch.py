@@ -1,0 +1,61 @@
+"""`LinkWatch` on real sessions: a client's router closed and opened again on the same
+loopback port (a router restart), the watch begun before or during the outage."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import pytest
+
+from focustrack_core.wire.session import LinkWatch, loopback_endpoint, open_session
+
+GRACE_S = 0.3
+
+
+def within(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Whether `condition` holds within `timeout_s`, asked every 50 ms."""
+    deadline_s = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline_s:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def never_within(condition: Callable[[], bool], duration_s: float) -> bool:
+    """Whether `condition` stays false for `duration_s`, asked every 50 ms."""
+    return not within(condition, duration_s)
+
+
+@pytest.mark.timeout(60)
+def test_a_router_restart_is_seen_once_the_link_has_been_back_for_the_grace() -> None:
+    endpoint = loopback_endpoint()
+    router = open_session(listen=[endpoint], mode="router")
+    with open_session(connect=[endpoint]) as client:
+        assert within(lambda: bool(client.info.routers_zid()))
+        watch, unbroken = LinkWatch(client, GRACE_S), LinkWatch(client, GRACE_S)
+        assert never_within(unbroken.lost, 2 * GRACE_S)  # nothing happened: nothing lost
+        router.close()
+        assert never_within(watch.lost, 2 * GRACE_S)  # down: nothing to do but wait
+        router = open_session(listen=[endpoint], mode="router")
+        try:
+            assert within(watch.lost)  # back: what was in flight is lost
+            started = LinkWatch(client, GRACE_S)  # begun on the new link, which holds
+            assert never_within(started.lost, 2 * GRACE_S)
+        finally:
+            router.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_watch_begun_while_the_router_is_down_counts_the_link_as_down() -> None:
+    endpoint = loopback_endpoint()
+    router = open_session(listen=[endpoint], mode="router")
+    with open_session(connect=[endpoint]) as client:
+        assert within(lambda: bool(client.info.routers_zid()))
+        router.close()
+        assert within(lambda: not client.info.routers_zid())
+        watch = LinkWatch(client, GRACE_S)
+        assert never_within(watch.lost, 2 * GRACE_S)
+        with open_session(listen=[endpoint], mode="router"):
+            assert within(watch.lost)
