@@ -1,0 +1,91 @@
+"""How soon a scan goes on after its router restarts with a focus result in flight
+(docs/benchmarks.md).
+
+    .venv/bin/python scripts/router_restart_recovery.py [--runs 3] [--json OUT]
+
+Each run starts the demo's stack on loopback with the router in a process of its own
+(`LocalStack(router_process=True)`; a 4x4 slide of 512 px tiles) and `focustrack scan`
+on it with the default timeouts (a focus result is awaited 15 s). As soon as the scan's
+fourth acquisition is logged (its stack's focus result then still on its way) the router
+is killed (SIGKILL) and started again DOWN_S later. Printed per run, in seconds: from
+the restart to the second acquisition after the kill (the first may have been made
+before it), and to the scan's end. Before a scan noticed the lost link it waited out
+the focus result's timeout: about 10 s to that acquisition instead of about 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from focustrack.local_stack import LocalStack
+from focustrack_scheduler import outputs
+
+DOWN_S = 5.0
+KILL_AFTER = 4  # acquisitions logged
+INSTRUMENT_ARGS = ["--seed", "5", "--rows", "4", "--cols", "4", "--width", "512", "--height", "512"]
+
+
+def acquisitions(out_dir: Path) -> int:
+    path = out_dir / outputs.LOG_FILE
+    return path.read_text().count('"event": "acquired"') if path.exists() else 0
+
+
+def one_run(work: Path) -> dict[str, float]:
+    """One scan with the router restarted under it; seconds from the restart."""
+    with LocalStack(work / "stack", INSTRUMENT_ARGS, router_process=True) as stack:
+        out_dir = work / "scan"
+        command = [
+            sys.executable, "-m", "focustrack", "scan", "--no-progress",
+            "--estimator", stack.estimator_url, "--connect", stack.endpoint,
+            "--result-key-file", str(stack.result_key_file), "--out", str(out_dir),
+        ]  # fmt: skip
+        scan = subprocess.Popen(
+            command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+            env=os.environ | {"PYTHONUNBUFFERED": "1"},
+        )  # fmt: skip
+        while acquisitions(out_dir) < KILL_AFTER:
+            if scan.poll() is not None:
+                raise RuntimeError(f"the scan ended early: {scan.communicate()[1]}")
+            time.sleep(0.002)
+        killed_at = acquisitions(out_dir)
+        stack.services["router"].kill()
+        time.sleep(DOWN_S)
+        stack.restart("router")
+        restarted_s = time.monotonic()
+        while acquisitions(out_dir) < killed_at + 2 and scan.poll() is None:
+            time.sleep(0.01)
+        next_s = time.monotonic() - restarted_s
+        _, stderr = scan.communicate(timeout=300)
+        if scan.returncode != 0:
+            raise RuntimeError(f"the scan failed: {stderr[-2000:]}")
+        return {
+            "to_second_acquisition_s": round(next_s, 2),
+            "to_scan_end_s": round(time.monotonic() - restarted_s, 2),
+            "lost_results_noticed": stderr.count("the bus went down and is back"),
+        }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=3, help="scans, each with a restart (3)")
+    parser.add_argument("--json", type=Path, metavar="OUT", help="write the runs as JSON")
+    args = parser.parse_args()
+    runs = []
+    for run in range(args.runs):
+        with tempfile.TemporaryDirectory() as work:
+            runs.append(one_run(Path(work)))
+        print(f"run {run + 1}/{args.runs}: {runs[-1]}", flush=True)
+    if args.json:
+        args.json.write_text(json.dumps({"down_s": DOWN_S, "runs": runs}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
