@@ -93,6 +93,22 @@ def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
         yield bus, scheduler
 
 
+def engine_on(
+    scheduler: zenoh.Session,
+    listener: SlideListener,
+    out_dir: Path,
+    focus_timeout_s: float = RetryPolicy.focus_timeout_s,
+) -> Engine:
+    """An engine on the scheduler's session, with no estimator (these plans ask none)."""
+    return Engine(
+        InstrumentClient(scheduler, "sim", timeout_s=10),
+        listener,
+        EstimatorClient("http://127.0.0.1:9"),
+        ScanRecord(out_dir),
+        RetryPolicy(focus_timeout_s=focus_timeout_s),
+    )
+
+
 def scan_once(engine: Engine) -> focus_pb2.FocusResult | None:
     """Acquire `ACQUISITION` and wait for its focus result, with the engine."""
     received: list[focus_pb2.FocusResult | None] = []
@@ -123,13 +139,7 @@ def test_a_replayed_result_is_not_taken_and_a_duplicate_is_taken_once(
     bus, scheduler = sessions
     stand_ins = StandIns(bus)
     listener = SlideListener(scheduler, SLIDE, trust)
-    engine = Engine(
-        InstrumentClient(scheduler, "sim", timeout_s=10),
-        listener,
-        EstimatorClient("http://127.0.0.1:9"),  # not asked by these plans
-        ScanRecord(tmp_path),
-        RetryPolicy(focus_timeout_s=10.0),
-    )
+    engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=10.0)
     try:
         time.sleep(0.5)  # let the subscription reach the stand-ins
         # A first scan: its result comes twice; the second copy is dropped.
@@ -161,12 +171,7 @@ def test_an_instrument_that_drops_the_nonce_is_refused_at_once(
     bus, scheduler = sessions
     stand_ins = StandIns(bus, echo_nonce=False)
     listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
-    engine = Engine(
-        InstrumentClient(scheduler, "sim", timeout_s=10),
-        listener,
-        EstimatorClient("http://127.0.0.1:9"),
-        ScanRecord(tmp_path),
-    )
+    engine = engine_on(scheduler, listener, tmp_path)
     try:
         with pytest.raises(ScanRefusedError, match="without its nonce"):
             scan_once(engine)
@@ -220,13 +225,7 @@ def test_a_result_lost_with_the_bus_is_acquired_again_once_the_bus_is_back(
     stand_ins.copies = 0
     with session.open_session(connect=[endpoint]) as scheduler:
         listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
-        engine = Engine(
-            InstrumentClient(scheduler, "sim", timeout_s=10),
-            listener,
-            EstimatorClient("http://127.0.0.1:9"),
-            ScanRecord(tmp_path),
-            RetryPolicy(focus_timeout_s=60.0),
-        )
+        engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=60.0)
         received: list[focus_pb2.FocusResult | None] = []
         scan = threading.Thread(target=lambda: received.append(scan_once(engine)))
         started_s = time.monotonic()
