@@ -430,9 +430,11 @@ class Engine:
                 step.sequence, self.policy.phase_timeout_s, lost=link.lost
             )
             if received is None:
-                error = f"no phase result within {self.policy.phase_timeout_s:g} s"
-                if link.lost():
-                    error = "no phase result: the bus went down meanwhile"
+                error = (
+                    "no phase result: the bus went down meanwhile"
+                    if link.lost()
+                    else f"no phase result within {self.policy.phase_timeout_s:g} s"
+                )
             elif received.field is None:
                 error = f"the phase service: {received.result.error.message}"
         if error is not None:
