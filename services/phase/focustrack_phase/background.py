@@ -56,6 +56,12 @@ MARGIN_UM, MARGIN_PX = 0.5, 1.0
 #: Chosen on seeds 2 and 4 with MARGIN_UM as the cells' growth (3 and 4 did as well on
 #: them, 4 kept as the farther from 2, at which noise speckles join up and enclose glass).
 CELL_NOISE_SIGMAS = 4.0
+#: How far (in the same spreads) the rest of the image must lie above the first background
+#: on average for the phase to find the background again, or below it to refuse it (the
+#: simulator's tiles and the smears lie 12 to 34 above, a conjugated field as far below;
+#: the real yeast stack's side above focus, whose texture took the flat insides of cells
+#: for glass, 0.7 below: too little to say, so its first background stays).
+EVIDENCE_SIGMAS = 2.0
 #: Texture power below this share of the strongest counts as none (round-off).
 FLAT_POWER_SHARE = 1e-6
 #: Least share of the image that must be background to anchor to it.
@@ -120,23 +126,30 @@ def background_from_phase(
     phase_rad: np.ndarray, background: np.ndarray, pixel_um: float
 ) -> np.ndarray:
     """The background found again in a phase image anchored to a first `background`, bool
-    (height, width): the first where too little would be left (MIN_BACKGROUND), none
-    where the first was no background.
+    (height, width): the first where the phase does not say clearly, none where it says
+    the first was no background.
 
     A cell's optical path is longer than the medium's, so its phase stands above the
-    glass's. Cells are where the phase does so by more than CELL_NOISE_SIGMAS times the
-    first background's spread, grown and their holes filled as in `background_mask`:
-    unlike texture, which spreads a fringe's width and more past a cell's edge, a cell's
-    phase ends at its edge. Where the rest of the image lies below the first background
-    on average, that was no glass but the flat inside of cells (texture cannot tell the
+    glass's. Where the rest of the image lies above the first background on average by
+    more than EVIDENCE_SIGMAS times that background's spread, cells are where the phase
+    stands above it by more than CELL_NOISE_SIGMAS spreads, grown and their holes filled
+    as in `background_mask` (unlike texture, which spreads a fringe's width and more past
+    a cell's edge, a cell's phase ends at its edge), and the background is what is left
+    (the first, where that would be under MIN_BACKGROUND). Where the rest lies below it
+    by as much, that was no glass but the flat inside of cells (texture cannot tell the
     two apart), or the stack's heights were given with the wrong sign (which conjugates
-    the field): no background is taken.
+    the field): no background.
     """
+    if not background.any() or background.all():
+        return background
     glass_rad = phase_rad[background]
     level_rad = np.median(glass_rad)
-    if np.mean(phase_rad[~background]) < level_rad:
-        return np.zeros(phase_rad.shape, dtype=bool)
     spread_rad = 1.4826 * np.median(np.abs(glass_rad - level_rad))  # a Gaussian's sigma
+    above_rad = np.mean(phase_rad[~background]) - level_rad
+    if not np.isfinite(above_rad + spread_rad) or abs(above_rad) <= EVIDENCE_SIGMAS * spread_rad:
+        return background
+    if above_rad < 0:
+        return np.zeros(phase_rad.shape, dtype=bool)
     found = _around(phase_rad - level_rad > CELL_NOISE_SIGMAS * spread_rad, pixel_um)
     return found if found.mean() >= MIN_BACKGROUND else background
 

@@ -109,7 +109,7 @@ def test_a_background_that_the_rest_lies_below_is_no_background() -> None:
     )
 
 
-def test_the_glass_found_again_reaches_the_cells_margin_and_is_never_too_little() -> None:
+def test_the_glass_found_again_reaches_the_cells_margin_where_the_phase_says_so() -> None:
     rng = np.random.default_rng(5)
     phase_rad = rng.normal(0.0, 0.01, (64, 64))
     phase_rad[:, 8:] += np.linspace(0.5, 1.0, 56)  # cells from column 8 on
@@ -123,6 +123,16 @@ def test_the_glass_found_again_reaches_the_cells_margin_and_is_never_too_little(
     np.testing.assert_array_equal(
         background.background_from_phase(phase_rad, first, PIXEL_UM), first
     )
+    # Everything else below that glass: no cells above it, so no glass at all.
+    assert not background.background_from_phase(-phase_rad, first, PIXEL_UM).any()
+    # The rest as high as the glass, within its noise: the phase cannot say, the first
+    # stays; and so does a first that is all or nothing.
+    noise_rad = rng.normal(0.0, 0.01, phase_rad.shape)
+    np.testing.assert_array_equal(
+        background.background_from_phase(noise_rad, first, PIXEL_UM), first
+    )
+    for whole in (np.zeros_like(first), np.ones_like(first)):
+        assert background.background_from_phase(phase_rad, whole, PIXEL_UM) is whole
 
 
 def test_no_glass_no_mask_and_the_zero_at_the_mean() -> None:
