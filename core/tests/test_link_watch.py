@@ -45,6 +45,8 @@ def test_a_router_restart_is_seen_once_the_link_has_been_back_for_the_grace() ->
             assert never_within(started.lost, 2 * GRACE_S)
         finally:
             router.close()
+        assert within(lambda: not client.info.routers_zid())
+        assert watch.lost()  # once lost, lost: down again changes nothing
 
 
 @pytest.mark.timeout(60)

@@ -295,6 +295,7 @@ class LinkWatch:
         self._links = self._connected()
         self._dropped = not self._links
         self._back_s: float | None = None
+        self._fired = False
 
     def _connected(self) -> frozenset[str]:
         """The ids of the nodes the session has a link to."""
@@ -302,7 +303,10 @@ class LinkWatch:
         return frozenset(str(zid) for zid in (*info.routers_zid(), *info.peers_zid()))
 
     def lost(self) -> bool:
-        """True once the link was down and has been up again for `grace_s`."""
+        """True once the link was down and has been up again for `grace_s` (and from then
+        on, whatever the link does next)."""
+        if self._fired:
+            return True
         links = self._connected()
         self._dropped = self._dropped or not self._links <= links
         if not self._dropped or not links:
@@ -311,7 +315,8 @@ class LinkWatch:
         now_s = time.monotonic()
         if self._back_s is None:
             self._back_s = now_s
-        return now_s - self._back_s >= self._grace_s
+        self._fired = now_s - self._back_s >= self._grace_s
+        return self._fired
 
 
 class BackgroundSession:

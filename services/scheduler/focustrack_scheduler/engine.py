@@ -20,10 +20,11 @@ URL, when one stays gone longer than that:
   gone, so a result in flight then is lost); either goes back to the plan, which
   acquires the stack again (under a new nonce);
 - phase stacks (`AcquirePhase`, with ``--phase``): acquired as any stack, their result
-  taken the same way and waited for `phase_timeout_s` (or until the link came back); a
-  result that does not come, or one that reports an error, leaves the tile without
-  phase (logged), never stops the scan; an instrument that takes a phase stack as a
-  focus stack (it predates the field) is not waited for;
+  taken the same way and waited for `phase_timeout_s` (the whole of it: a phase takes
+  seconds to compute, so one on its way may still come after the bus is back, and a
+  phase stack is not acquired again); a result that does not come, or one that reports
+  an error, leaves the tile without phase (logged), never stops the scan; an instrument
+  that takes a phase stack as a focus stack (it predates the field) is not waited for;
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
@@ -425,16 +426,9 @@ class Engine:
             self.listener.phase.forget(step.sequence)
             error = "the instrument took it as a focus stack (it predates phase stacks)"
         else:
-            link = LinkWatch(self.instrument.session)
-            received = self.listener.phase.wait(
-                step.sequence, self.policy.phase_timeout_s, lost=link.lost
-            )
+            received = self.listener.phase.wait(step.sequence, self.policy.phase_timeout_s)
             if received is None:
-                error = (
-                    "no phase result: the bus went down meanwhile"
-                    if link.lost()
-                    else f"no phase result within {self.policy.phase_timeout_s:g} s"
-                )
+                error = f"no phase result within {self.policy.phase_timeout_s:g} s"
             elif received.field is None:
                 error = f"the phase service: {received.result.error.message}"
         if error is not None:

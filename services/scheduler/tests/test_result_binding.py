@@ -13,6 +13,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
@@ -213,25 +214,25 @@ def test_a_result_lost_with_the_bus_is_acquired_again_once_the_bus_is_back(
     its 60 s timeout, and the fault is counted as lost, not as a timeout."""
     endpoint = session.loopback_endpoint()
     bus = session.open_session(listen=[endpoint])
-    asked = threading.Event()
-
-    class Silent(StandIns):  # answers the acquisition; its focus result never comes
-        def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
-            reply = super()._acquire(query)
-            asked.set()
-            return reply
-
-    stand_ins = Silent(bus)
-    stand_ins.copies = 0
+    stand_ins = StandIns(bus)
+    stand_ins.copies = 0  # it answers the acquisition; the focus result never comes
     with session.open_session(connect=[endpoint]) as scheduler:
         listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
         engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=60.0)
+        waiting = threading.Event()  # the engine awaits the result: the acquisition is over
+        inbox_wait = listener.focus.wait
+
+        def wait(*args: Any, **kwargs: Any) -> focus_pb2.FocusResult | None:
+            waiting.set()
+            return inbox_wait(*args, **kwargs)
+
+        listener.focus.wait = wait  # type: ignore[method-assign]
         received: list[focus_pb2.FocusResult | None] = []
         scan = threading.Thread(target=lambda: received.append(scan_once(engine)))
         started_s = time.monotonic()
         scan.start()
         try:
-            assert asked.wait(10)
+            assert waiting.wait(10)
             stand_ins.close()
             bus.close()  # the bus goes down with the result in flight ...
             assert until(lambda: not scheduler.info.peers_zid())
