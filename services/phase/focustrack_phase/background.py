@@ -194,41 +194,26 @@ def anchor_to_background(
 
     z_um, wavelength_um, condenser_na: the stack the field came from (what it saw, T(f)).
     """
+
+    def anchored(glass: np.ndarray) -> np.ndarray:
+        """The phase (float32, radians) corrected so that `glass` is zero, or relative to
+        the phase of its mean where `glass` is empty."""
+        found = bool(glass.any())
+        # The phase is read relative to the glass's mean phasor (the whole image's where
+        # there is none), so a phase offset of the field cannot wrap the glass across +-pi.
+        reference = np.mean(field[glass] if found else field, dtype=np.complex128)
+        turn = np.complex64(np.conj(reference) / max(abs(reference), np.finfo(np.float32).tiny))
+        phase_rad = np.angle(field * turn).astype(np.float32)
+        if found:
+            phase_rad += low_frequency_correction(
+                phase_rad, glass, z_um, wavelength_um, pixel_um, condenser_na, weight
+            )
+        return phase_rad
+
     background = background_mask(field, pixel_um)
     if background.any():  # anchored to the texture's background, then to the phase's
-        first_rad = _anchored_phase(
-            field, background, z_um, wavelength_um, pixel_um, condenser_na, weight
-        )
-        background = background_from_phase(first_rad, background, pixel_um)
-    return Anchored(
-        _anchored_phase(field, background, z_um, wavelength_um, pixel_um, condenser_na, weight),
-        background,
-    )
-
-
-def _anchored_phase(
-    field: np.ndarray,
-    background: np.ndarray,
-    z_um: np.ndarray | list[float] | tuple[float, ...],
-    wavelength_um: float,
-    pixel_um: float,
-    condenser_na: float,
-    weight: float,
-) -> np.ndarray:
-    """The phase of `field` (float32, radians) corrected so that `background` is zero, or
-    relative to the phase of its mean where `background` is empty."""
-    found = bool(background.any())
-    # The phase is read relative to the background's mean phasor (the whole image's where
-    # there is no background), so a phase offset of the field cannot wrap the background
-    # across +-pi.
-    reference = np.mean(field[background] if found else field, dtype=np.complex128)
-    turn = np.complex64(np.conj(reference) / max(abs(reference), np.finfo(np.float32).tiny))
-    phase_rad = np.angle(field * turn).astype(np.float32)
-    if found:
-        phase_rad += low_frequency_correction(
-            phase_rad, background, z_um, wavelength_um, pixel_um, condenser_na, weight
-        )
-    return phase_rad
+        background = background_from_phase(anchored(background), background, pixel_um)
+    return Anchored(anchored(background), background)
 
 
 def low_frequency_correction(
