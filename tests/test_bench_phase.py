@@ -67,7 +67,7 @@ def test_the_bench_writes_its_table_json_and_figure(
         assert 0 < row["low_frequency_rmse_rad"] <= row["phase_rmse_rad"]
     assert (tmp_path / result["simulator_figure"]).stat().st_size > 1000
     simulator = {(row["specimen"], row["model"]): row for row in result["simulator"]}
-    assert len(simulator) == 8 and all(0.8 < r["correlation"] <= 1 for r in simulator.values())
+    assert len(simulator) == 6 and all(0.8 < r["correlation"] <= 1 for r in simulator.values())
     for specimen in ("phase-cells", "phase-blood"):
         # The full-size tiles: measured on seed 1, RMSE 0.312 -> 0.180 (cells), 0.126 ->
         # 0.113 (red cells); glass at -0.04 and -0.40 rad -> within 0.01 of zero.
@@ -76,11 +76,6 @@ def test_the_bench_writes_its_table_json_and_figure(
         assert anchored["phase_rmse_rad"] < 0.95 * own["phase_rmse_rad"]
         assert anchored["low_frequency_rmse_rad"] < own["low_frequency_rmse_rad"]
         assert abs(anchored["glass_phase_rad"]) < 0.03
-        # The pupil: measured on seed 1, correlation 0.939 -> 0.959 (cells), 0.967 -> 0.970
-        # (red cells); RMSE 0.065 -> 0.064, 0.109 -> 0.104.
-        pupil = simulator[(specimen, "envelope + pupil + anchoring (ours)")]
-        assert pupil["correlation"] > anchored["correlation"]
-        assert pupil["phase_rmse_rad"] < anchored["phase_rmse_rad"]
     anchoring = result["anchoring_speed"]
     assert anchoring["cpu_s"] > 0 and 0 < anchoring["peak_memory_images"] < 10
     speed = {row["update"]: row for row in result["speed"]}

@@ -14,7 +14,7 @@ The planes are filtered from focus outward, the side above focus first (`plane_o
 so the result does not depend on the order they are given in, and the last estimate is
 propagated back to z = 0.
 
-Beyond the paper, five changes, each measured by `focustrack bench phase`:
+Beyond the paper, four changes, each measured by `focustrack bench phase`:
 - the update in the field's own phase frame (`AcekfOptions.update`): eq. 33 divides the
   residual by a_hat^*, which matches Theorem 1's diagonal gain only where the phase is
   small; applying the gain to the residual over |a_hat| and rotating the correction by
@@ -26,10 +26,6 @@ Beyond the paper, five changes, each measured by `focustrack bench phase`:
 - partial coherence (`AcekfOptions.condenser_na`): a disk source damps the intensity's
   linear response at defocus z by 2 J1(v)/v, v = 2 pi z NA_c |f|; the gain and the
   predicted intensity carry that envelope;
-- the objective's pupil (`AcekfOptions.objective_na`): the images carry nothing about
-  the object past (objective NA + condenser NA) / wavelength, so the prior is zero there
-  and the filter no longer fits those coefficients to noise (on the instrument
-  simulator's oversampled tiles, 0.108 um pixels at NA 0.85, most of the grid);
 - the lowest frequencies, which the stack barely sees, anchored after the filter to the
   slide's empty background (`AcekfOptions.background`, `focustrack_phase.background`):
   where there is glass, most of the low-frequency shadow the paper shows goes, and the
@@ -54,8 +50,6 @@ from focustrack_phase.background import anchor_to_background
 from focustrack_phase.propagation import FoldedGrid, coherence_envelope, fresnel_transfer
 
 Update = Literal["phase_frame", "paper"]
-#: Past the highest numerical aperture an objective has (oil and TIRF lenses reach 1.65).
-MAX_OBJECTIVE_NA = 1.7
 Background = Literal["anchor", "none"]
 
 
@@ -75,12 +69,6 @@ class AcekfOptions:
         A disk source multiplies the intensity's linear response at defocus z by
         2 J1(v)/v, v = 2 pi z condenser_na |f| (the source average of exp(2 pi i lambda z
         f.s)); the filter's measurement model carries that envelope (beyond the paper).
-    objective_na: the objective's numerical aperture (0: not stated). The objective passes
-        the field's spatial frequencies up to objective_na / wavelength, and a disk source
-        tilts the light by up to condenser_na / wavelength, so no image of the stack holds
-        anything of the object past (objective_na + condenser_na) / wavelength: the prior
-        (Q_0, P_0) is zero there (beyond the paper, whose model has no pupil), so the filter
-        does not fit those coefficients to the noise alone.
     amplitude_floor: |a_hat| below this is clipped before dividing by it (eq. 33's
         J_n^-1), so a dark pixel cannot blow up the update.
     prior_length_um: 0 (the paper's white prior) or the correlation length L (um) of a
@@ -106,7 +94,6 @@ class AcekfOptions:
     p0: float = 0.0
     update: Update = "phase_frame"
     condenser_na: float = 0.0
-    objective_na: float = 0.0
     amplitude_floor: float = 0.05
     prior_length_um: float = 0.0
     background: Background = "anchor"
@@ -120,10 +107,6 @@ class AcekfOptions:
             raise ValueError(f"update must be 'phase_frame' or 'paper', got {self.update!r}")
         if not 0 <= self.condenser_na < 1.5:
             raise ValueError(f"condenser_na must be in [0, 1.5), got {self.condenser_na}")
-        if not 0 <= self.objective_na < MAX_OBJECTIVE_NA:
-            raise ValueError(
-                f"objective_na must be in [0, {MAX_OBJECTIVE_NA}), got {self.objective_na}"
-            )
         if not (np.isfinite(self.prior_length_um) and self.prior_length_um >= 0):
             raise ValueError(f"prior_length_um must be >= 0, got {self.prior_length_um}")
         if not self.amplitude_floor > 0:
@@ -352,10 +335,6 @@ def _filtered_field(
     b = np.zeros(shape, dtype=np.complex64)
     b[0, 0] = np.sqrt(b.size)  # the unitary FFT of a field of ones
     Q, P = initial_covariances(opts, freq_sq, prior)
-    if opts.objective_na > 0:  # nothing in the images past the pupil (AcekfOptions)
-        beyond = freq_sq > np.float32((opts.objective_na + opts.condenser_na) / wavelength_um) ** 2
-        Q[beyond] = 0
-        P[beyond] = 0
     # The working images, reused every plane (no allocation in the loop): eq. 33's a_hat,
     # a copy of b_hat transformed in place (ours transforms b_hat itself, below); |a_hat|,
     # the residual and a scratch image; our update's filtered residual.

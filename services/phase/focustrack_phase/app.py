@@ -4,12 +4,12 @@
   raw counts, frames first: (n, H, W), n >= 2), ``z_um`` (each frame's height relative
   to the plane to reconstruct, um: a JSON list or comma-separated numbers),
   ``wavelength_um``, ``pixel_um``; optional ``photons_per_count`` (1) and the filter's
-  settings ``q0``, ``p0``, ``update``, ``condenser_na``, ``objective_na``,
-  ``amplitude_floor``, ``prior_length_um``, ``background`` (`AcekfOptions`).
-  ``?format=npy`` (the default) answers a float32 .npy of shape (2, H, W): the phase
-  (rad) and the amplitude (relative to the stack's mean) at z = 0, its header
-  ``X-Background-Share`` the share of the image taken as glass (zero phase);
-  ``?format=png`` a picture of the phase with a colour bar in radians.
+  settings ``q0``, ``p0``, ``update``, ``condenser_na``, ``amplitude_floor``,
+  ``prior_length_um``, ``background`` (`AcekfOptions`). ``?format=npy`` (the default)
+  answers a float32 .npy of shape (2, H, W): the phase (rad) and the amplitude (relative
+  to the stack's mean) at z = 0, its header ``X-Background-Share`` the share of the image
+  taken as glass (zero phase); ``?format=png`` a picture of the phase with a colour bar in
+  radians.
 - ``GET /healthz``. OpenAPI docs at ``/docs``.
 
 Bad input is a 4xx whose detail names the problem, as the focus service's: 413 for an
@@ -36,14 +36,7 @@ from fastapi.responses import Response
 from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
 from focustrack_core.web import bearer_token, guarded_app, read_upload
-from focustrack_phase.acekf import (
-    MAX_OBJECTIVE_NA,
-    AcekfOptions,
-    Background,
-    FieldEstimate,
-    Update,
-    reconstruct,
-)
+from focustrack_phase.acekf import AcekfOptions, Background, FieldEstimate, Update, reconstruct
 
 #: The .npy answer's header with the share of the image taken as empty glass, whose phase
 #: is zero (`FieldEstimate.background_share`; absent with ``background=none``).
@@ -188,15 +181,6 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
         condenser_na: Annotated[
             float, Form(ge=0, lt=1.5, allow_inf_nan=False, description="0: coherent light")
         ] = defaults.condenser_na,
-        objective_na: Annotated[
-            float,
-            Form(
-                ge=0,
-                lt=MAX_OBJECTIVE_NA,
-                allow_inf_nan=False,
-                description="the objective's NA (0: not stated; no pupil in the model)",
-            ),
-        ] = defaults.objective_na,
         amplitude_floor: Annotated[
             float, Form(gt=0, le=MAX_AMPLITUDE_FLOOR, allow_inf_nan=False)
         ] = defaults.amplitude_floor,
@@ -226,7 +210,6 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
                 p0=p0,
                 update=update,
                 condenser_na=condenser_na,
-                objective_na=objective_na,
                 amplitude_floor=amplitude_floor,
                 prior_length_um=prior_length_um,
                 background=background,

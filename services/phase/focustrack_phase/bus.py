@@ -84,14 +84,12 @@ def phase_input(
     header: the counts above the camera's offset (`dark_counts`) with the camera's gain
     (`photons_per_count`, 0: 1), the heights from `reference_z_um`, the header's
     wavelength (0: `optics`'), and `options` with the header's condenser NA (its partial
-    coherence) and objective NA (its pupil), each where stated (0: `options`' own).
-    ValueError where the header gives no pixel size."""
+    coherence; 0, not stated: `options`' own). ValueError where the header gives no pixel
+    size."""
     if not header.pixel_size_um > 0:
         raise ValueError(f"the stack's header gives no pixel size ({header.pixel_size_um} um)")
     if header.condenser_na > 0:
         options = replace(options, condenser_na=header.condenser_na)
-    if header.objective_na > 0:
-        options = replace(options, objective_na=header.objective_na)
     return PhaseInput(
         counts=counts - np.float32(header.dark_counts),
         z_um=np.asarray(header.z_um, dtype=np.float64) - header.reference_z_um,

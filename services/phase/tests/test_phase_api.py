@@ -108,7 +108,6 @@ def test_the_filter_settings_and_gain_reach_the_maths(
         "p0": -0.01,
         "update": "paper",
         "condenser_na": 0.2,
-        "objective_na": 0.05,  # with the condenser's, a pupil inside the 1 um pixels' grid
         "amplitude_floor": 0.1,
         "prior_length_um": 2.0,
         "background": "none",
@@ -155,7 +154,6 @@ def one_frame(stack: SyntheticStack) -> bytes:
         (None, {"amplitude_floor": "2"}, 422, "amplitude_floor"),
         (None, {"update": "sideways"}, 422, "phase_frame"),
         (None, {"condenser_na": "-0.1"}, 422, "condenser_na"),
-        (None, {"objective_na": "1.7"}, 422, "objective_na"),
         (None, {"prior_length_um": "-1"}, 422, "prior_length_um"),
         (None, {"background": "flat"}, 422, "'anchor' or 'none'"),
         (one_frame, {"z_um": "[1]"}, 422, "at least 2 frames; got 1"),
