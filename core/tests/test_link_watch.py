@@ -1,5 +1,6 @@
 """`LinkWatch` on real sessions: a client's router closed and opened again on the same
-loopback port (a router restart), the watch begun before or during the outage."""
+loopback port (a router restart), the watch begun before or during the outage; and
+`AliveTokens` and `TokenWatch`: focus services' liveliness tokens coming and going."""
 
 from __future__ import annotations
 
@@ -8,7 +9,14 @@ from collections.abc import Callable
 
 import pytest
 
-from focustrack_core.wire.session import LinkWatch, loopback_endpoint, open_session
+from focustrack_core.wire import keys
+from focustrack_core.wire.session import (
+    AliveTokens,
+    LinkWatch,
+    TokenWatch,
+    loopback_endpoint,
+    open_session,
+)
 
 GRACE_S = 0.3
 
@@ -61,3 +69,38 @@ def test_a_watch_begun_while_the_router_is_down_counts_the_link_as_down() -> Non
         assert never_within(watch.lost, 2 * GRACE_S)
         with open_session(listen=[endpoint], mode="router"):
             assert within(watch.lost)
+
+
+@pytest.mark.timeout(60)
+def test_a_focus_service_that_goes_is_seen_once_another_is_there() -> None:
+    endpoint = loopback_endpoint()
+    with (
+        open_session(listen=[endpoint], mode="router"),
+        open_session(connect=[endpoint]) as scheduler,
+    ):
+        tokens = AliveTokens(scheduler, keys.focus_alive_pattern("slide-0"))
+        first = open_session(connect=[endpoint])
+        every_slide = keys.focus_alive_key("*", str(first.info.zid()))
+        held = [first.liveliness().declare_token(every_slide)]  # a dropped token goes
+        other = open_session(connect=[endpoint])  # another scanner's focus service
+        held.append(other.liveliness().declare_token(keys.focus_alive_key("scanner-2-*", "x")))
+        try:
+            assert within(lambda: tokens.alive() == {every_slide})  # not the other slides'
+            watch = TokenWatch(tokens)
+            other.close()  # another scanner's service going changes nothing here
+            assert never_within(watch.lost, 0.5)
+            first.close()
+            assert within(lambda: not tokens.alive())
+            assert never_within(watch.lost, 0.5)  # gone, and none to take the stack again
+            with open_session(connect=[endpoint]) as second:
+                held.append(
+                    second.liveliness().declare_token(keys.focus_alive_key("slide-0", "second"))
+                )
+                assert within(watch.lost)
+                assert not TokenWatch(tokens).lost()  # begun with the second alive
+            assert watch.lost()  # once lost, lost
+            assert never_within(TokenWatch(tokens).lost, 0.5)  # none alive at its start
+        finally:
+            tokens.close()
+            first.close()
+            other.close()

@@ -46,7 +46,8 @@ class FrameWorker(Generic[T]):
     """Frame samples of `session` (those on `subscription`, a key expression: every frame by
     default) to `take` on a thread of its own (module docstring); `name` names the threads.
     A ValueError from `take` (the key names no tile: nowhere to answer) is logged and the
-    sample skipped."""
+    sample skipped. With `alive_key`, a liveliness token is declared there once the
+    subscription is (`keys.focus_alive_key`): while it lives, frames reach this worker."""
 
     def __init__(
         self,
@@ -57,6 +58,7 @@ class FrameWorker(Generic[T]):
         expire: Callable[[], None],
         expire_period_s: float,
         subscription: str = ZFRAME_SUBSCRIPTION,
+        alive_key: str | None = None,
     ) -> None:
         self._take = take
         self._publish = publish
@@ -71,6 +73,7 @@ class FrameWorker(Generic[T]):
         self._thread.start()
         self._expiry = threading.Thread(target=self._expire, name=f"{name}-expiry", daemon=True)
         self._expiry.start()
+        self._token = None if alive_key is None else session.liveliness().declare_token(alive_key)
 
     def _expire(self) -> None:
         while not self._closed.wait(self._expire_period_s):
@@ -91,7 +94,9 @@ class FrameWorker(Generic[T]):
                 self._publish(done)
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Undeclare the subscription and end both threads."""
+        """Undeclare the token and the subscription, and end both threads."""
+        if self._token is not None:
+            self._token.undeclare()
         self._subscriber.undeclare()
         self._closed.set()
         self._thread.join(timeout_s)

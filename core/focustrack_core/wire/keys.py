@@ -18,6 +18,11 @@
 - ``focustrack/v1/eval/phase/{instrument}/{slide}/{row}/{col}``: queryable; the true phase
   of a tile (float32 payload, PhaseTruth attachment), for evaluation code only.
 - ``focustrack/v1/bench/{name}``: the instrument benchmark's own traffic.
+- ``focustrack/v1/alive/focus/{slides}/{zid}``: a liveliness token each focus service
+  declares once it reads frames (``{slides}`` the slides it reads, ``*`` for every slide;
+  ``{zid}`` its session's id). A scheduler watches the tokens of its slide
+  (``focustrack/v1/alive/focus/{slide}/*``): a token that goes takes with it the results
+  that service had yet to publish.
 
 Names (instrument, slide) are single key chunks: letters, digits, ``_``, ``-``, ``.``.
 """
@@ -147,6 +152,18 @@ def focus_pattern(slide: str | None = None) -> str:
 def phase_pattern(slide: str | None = None) -> str:
     """Key expression matching the phase results of one slide (or of every slide when None)."""
     return f"{PREFIX}/phase/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
+
+
+def focus_alive_key(slides: str, zid: str) -> str:
+    """The liveliness token of a focus service reading the stacks of the slides `slides`
+    names (`slides_chunk`), its session's id `zid`."""
+    return f"{PREFIX}/alive/focus/{slides_chunk(slides)}/{check_name(zid, 'zid')}"
+
+
+def focus_alive_pattern(slide: str) -> str:
+    """Key expression matching the tokens of the focus services that read slide `slide`
+    (a token's ``*`` or ``$*`` matches it too)."""
+    return f"{PREFIX}/alive/focus/{check_name(slide, 'slide')}/*"
 
 
 def _parse_tile_key(key: str, kind: str) -> TileKey:

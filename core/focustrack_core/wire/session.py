@@ -319,6 +319,62 @@ class LinkWatch:
         return self._fired
 
 
+class AliveTokens:
+    """The liveliness tokens on `key_expr` alive now, as `session` sees them: a liveliness
+    subscriber (with the tokens already declared, `history=True`) keeps the set; close it
+    when done.
+
+    A token goes when its process undeclares it, closes its session or dies (its link
+    closes, or its lease runs out where the link just goes silent).
+    """
+
+    def __init__(self, session: zenoh.Session, key_expr: str) -> None:
+        self._lock = threading.Lock()
+        self._alive: set[str] = set()
+        self._subscriber = session.liveliness().declare_subscriber(
+            key_expr, handler=self._on_sample, history=True
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(str(sample.key_expr))
+            else:
+                self._alive.discard(str(sample.key_expr))
+
+    def alive(self) -> frozenset[str]:
+        with self._lock:
+            return frozenset(self._alive)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+class TokenWatch:
+    """Whether a process whose token (`AliveTokens`) was alive when the watch began has
+    gone while another one is alive: what the one that went had yet to publish is lost,
+    and one that can do it again is there.
+
+    A focus service declares its token once its subscription is declared, so a stack
+    acquired again once `lost` says so reaches the one alive. With no token alive at the
+    start (services that declare none) the watch never fires. A process that goes and
+    comes back under the same token between two calls of `lost` goes unseen.
+    """
+
+    def __init__(self, tokens: AliveTokens) -> None:
+        self._tokens = tokens
+        self._started = tokens.alive()
+        self._fired = False
+
+    def lost(self) -> bool:
+        """True once a token alive at the start has gone and another is alive (and from
+        then on)."""
+        if not self._fired:
+            alive = self._tokens.alive()
+            self._fired = bool(self._started - alive) and bool(alive)
+        return self._fired
+
+
 class BackgroundSession:
     """A Zenoh session opened on a thread of its own, tried again until the router answers.
 

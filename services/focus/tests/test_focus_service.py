@@ -18,7 +18,7 @@ import zenoh
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys
 from focustrack_core.wire.codec import PixelPublisher, describe_pixels, frame_header, raw_payload
-from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_core.wire.session import AliveTokens, free_port, loopback_endpoint, open_session
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_focus.service import FrameAnalyser, ZenohFocusWorker
 
@@ -128,8 +128,15 @@ def test_focus_services_of_two_scanners_each_answer_their_own_slides_once(
         keys.focus_pattern(), lambda sample: results.put(str(sample.key_expr))
     )
     slides = ("scanner-1-slide-0", "scanner-2-slide-0", "scanner-1-slide-1", "scanner-3-slide-0")
+    # what a scheduler of each slide watches: the liveliness tokens of its focus services
+    alive = {slide: AliveTokens(publisher, keys.focus_alive_pattern(slide)) for slide in slides}
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
+        first, second = (
+            [keys.focus_alive_key(slides, str(session.info.zid()))]
+            for session, slides in zip(services, ("scanner-1-*", "scanner-2-*"), strict=True)
+        )
+        assert [sorted(alive[slide].alive()) for slide in slides] == [first, second, first, []]
         frames = render(96, Z_UM, TRUTH_UM, 4)[..., None]
         for sequence, slide in enumerate(slides):
             publish_stack(publisher, frames, Z_UM, sequence=sequence, slide=slide)
@@ -141,6 +148,10 @@ def test_focus_services_of_two_scanners_each_answer_their_own_slides_once(
         for worker, session in zip(workers, services, strict=True):
             worker.close()
             session.close()
+    time.sleep(0.5)
+    assert not any(tokens.alive() for tokens in alive.values())  # closed: their tokens went
+    for tokens in alive.values():
+        tokens.close()
     assert answered == sorted(keys.focus_key(slide, 2, 3) for slide in slides[:3])
     assert [worker.n_published for worker in workers] == [2, 1]
 

@@ -29,6 +29,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.logs import worth_logging
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys, rpc
+from focustrack_core.wire.session import AliveTokens
 from focustrack_core.wire.trust import ResultSigner
 from focustrack_scheduler.plan import AcquirePhase, SlideGeometry
 
@@ -363,7 +364,8 @@ def phase_inbox() -> Inbox[PhaseAwaited, PhaseReceived]:
 
 
 class SlideListener:
-    """Subscribes to the focus results of one slide (and with `phase`, its phase results);
+    """Subscribes to the focus results of one slide (and with `phase`, its phase results),
+    and keeps the liveliness tokens of the focus services that read it (`focus_services`);
     close it when done.
 
     With a `trust` key, a result is read only when it carries that key's tag
@@ -388,6 +390,7 @@ class SlideListener:
         self.n_rejected = 0
         self.n_phase_rejected = 0
         self.on_rejected = on_rejected
+        self.focus_services = AliveTokens(session, keys.focus_alive_pattern(slide))
         self._subscribers = [session.declare_subscriber(keys.focus_pattern(slide), self._on_focus)]
         if phase:
             self._subscribers.append(
@@ -453,3 +456,4 @@ class SlideListener:
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._subscribers = []
+        self.focus_services.close()

@@ -49,7 +49,7 @@ from focustrack_core.domain import Acquisition, Measurement, Outcome
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc
-from focustrack_core.wire.session import LinkWatch
+from focustrack_core.wire.session import LinkWatch, TokenWatch
 from focustrack_core.wire.trust import new_nonce
 from focustrack_scheduler.clients import (
     InstrumentClient,
@@ -289,20 +289,30 @@ class Engine:
     def _await_focus(self, step: AwaitFocus) -> Any:
         acquisition = step.acquisition
         started_s = time.perf_counter()
+        # Zenoh keeps nothing for a link or a process that is gone: a result in flight
+        # when the bus went down, or not yet published when its focus service died, will
+        # not come, so the wait ends once the bus or a focus service is back.
         link = LinkWatch(self.instrument.session)
+        service = TokenWatch(self.listener.focus_services)
         received = self.listener.focus.wait(
-            acquisition.index, self.policy.focus_timeout_s, lost=link.lost
+            acquisition.index,
+            self.policy.focus_timeout_s,
+            lost=lambda: link.lost() or service.lost(),
         )
         waited_s = time.perf_counter() - started_s
         if received is None:
-            lost = link.lost()  # the bus went down meanwhile and is back
-            self.metrics.faults.labels("focus_lost" if lost else "focus_timeout").inc()
+            fault, why = (
+                ("focus_lost", "(the bus went down and is back)")
+                if link.lost()
+                else ("focus_service_lost", "(its focus service went, another is there)")
+                if service.lost()
+                else ("focus_timeout", f"within {self.policy.focus_timeout_s:.0f} s")
+            )
+            self.metrics.faults.labels(fault).inc()
             log.warning(
                 "no focus result for acquisition %d %s: acquiring it again",
                 acquisition.index,
-                "(the bus went down and is back)"
-                if lost
-                else f"within {self.policy.focus_timeout_s:.0f} s",
+                why,
             )
             self.wall.waiting_s += waited_s
             return None

@@ -45,6 +45,7 @@ STEP_BUCKETS_S = (*LATENCY_BUCKETS_S, 5.0, 10.0, 30.0, 60.0)
 FAULTS = (
     "focus_timeout",  # no focus result in time: the stack is acquired again
     "focus_lost",  # the bus went down while it was awaited, and is back: acquired again
+    "focus_service_lost",  # the focus service went while it was awaited, one is there
     "result_rejected",  # a focus or phase result refused (no tag, another nonce, a copy)
     "frames_gone",  # the instrument no longer held a stack's frames: taken again
 )

@@ -123,6 +123,19 @@ def scan_once(engine: Engine) -> focus_pb2.FocusResult | None:
     return received[0]
 
 
+def awaiting(listener: SlideListener) -> threading.Event:
+    """An event set once the engine awaits a focus result (its acquisition is over)."""
+    waiting = threading.Event()
+    inbox_wait = listener.focus.wait
+
+    def wait(*args: Any, **kwargs: Any) -> focus_pb2.FocusResult | None:
+        waiting.set()
+        return inbox_wait(*args, **kwargs)
+
+    listener.focus.wait = wait  # type: ignore[method-assign]
+    return waiting
+
+
 def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
     """Whether `condition` holds within `timeout_s` (the listener runs on Zenoh's thread)."""
     deadline_s = time.monotonic() + timeout_s
@@ -219,14 +232,7 @@ def test_a_result_lost_with_the_bus_is_acquired_again_once_the_bus_is_back(
     with session.open_session(connect=[endpoint]) as scheduler:
         listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
         engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=60.0)
-        waiting = threading.Event()  # the engine awaits the result: the acquisition is over
-        inbox_wait = listener.focus.wait
-
-        def wait(*args: Any, **kwargs: Any) -> focus_pb2.FocusResult | None:
-            waiting.set()
-            return inbox_wait(*args, **kwargs)
-
-        listener.focus.wait = wait  # type: ignore[method-assign]
+        waiting = awaiting(listener)
         received: list[focus_pb2.FocusResult | None] = []
         scan = threading.Thread(target=lambda: received.append(scan_once(engine)))
         started_s = time.monotonic()
@@ -247,3 +253,55 @@ def test_a_result_lost_with_the_bus_is_acquired_again_once_the_bus_is_back(
         finally:
             listener.close()
             bus.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_there(
+    tmp_path: Path,
+) -> None:
+    """The focus service dies with the awaited result unpublished while the bus stays up,
+    and one starts again: the wait ends then (`session.TokenWatch` on the services'
+    liveliness tokens), not at its 60 s timeout, and the fault is counted as the
+    service's."""
+    endpoint = session.loopback_endpoint()
+    with (
+        session.open_session(listen=[endpoint]) as bus,
+        session.open_session(connect=[endpoint]) as scheduler,
+    ):
+        stand_ins = StandIns(bus)
+        stand_ins.copies = 0  # it answers the acquisition; the focus result never comes
+        dying = session.open_session(connect=[endpoint])
+        # a token undeclares itself once dropped: they are held here
+        tokens = [dying.liveliness().declare_token(keys.focus_alive_key("*", "dying"))]
+        listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
+        engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=60.0)
+        waiting = awaiting(listener)
+        received: list[focus_pb2.FocusResult | None] = []
+        scan = threading.Thread(target=lambda: received.append(scan_once(engine)))
+        try:
+            assert until(lambda: bool(listener.focus_services.alive()))
+            started_s = time.monotonic()
+            scan.start()
+            assert waiting.wait(10)
+            dying.close()  # the service dies with the stack's result unpublished ...
+            assert until(lambda: not listener.focus_services.alive())
+            time.sleep(1.0)  # (none there to take the stack again: the wait goes on)
+            assert scan.is_alive()
+            with session.open_session(connect=[endpoint]) as started_again:  # ... and is back
+                tokens.append(
+                    started_again.liveliness().declare_token(
+                        keys.focus_alive_key(SLIDE, "started-again")
+                    )
+                )
+                scan.join(30)
+            assert not scan.is_alive() and received == [None]
+            assert time.monotonic() - started_s < 30  # not the 60 s timeout
+            faults = "focustrack_scan_faults_total"
+            registry = engine.metrics.registry
+            assert registry.get_sample_value(faults, {"kind": "focus_service_lost"}) == 1
+            assert registry.get_sample_value(faults, {"kind": "focus_lost"}) == 0
+            assert registry.get_sample_value(faults, {"kind": "focus_timeout"}) == 0
+        finally:
+            listener.close()
+            stand_ins.close()
+            dying.close()

@@ -1,16 +1,17 @@
-"""How soon a scan goes on after its router restarts with a focus result in flight
-(docs/benchmarks.md).
+"""How soon a scan goes on after its router or its focus service restarts with a focus
+result in flight (docs/benchmarks.md).
 
-    .venv/bin/python scripts/router_restart_recovery.py [--runs 3] [--json OUT]
+    .venv/bin/python scripts/restart_recovery.py [--service router|focus] [--runs 3] [--json OUT]
 
 Each run starts the demo's stack on loopback with the router in a process of its own
 (`LocalStack(router_process=True)`; a 4x4 slide of 512 px tiles) and `focustrack scan`
 on it with the default timeouts (a focus result is awaited 15 s). As soon as the scan's
-fourth acquisition is logged (its stack's focus result then still on its way) the router
-is killed (SIGKILL) and started again DOWN_S later. Printed per run, in seconds: from
-the restart to the second acquisition after the kill (the first may have been made
-before it), and to the scan's end. Before a scan noticed the lost link it waited out
-the focus result's timeout: about 10 s to that acquisition instead of about 3.
+fourth acquisition is logged (its stack's focus result then still on its way) the
+`--service` is killed (SIGKILL) and started again DOWN_S later. Printed per run, in
+seconds: from the restart to the second acquisition after the kill (the first may have
+been made before it), and to the scan's end. Before a scan noticed the lost link (the
+router) or the lost service (its liveliness token) it waited out the focus result's
+timeout: about 10 s to that acquisition instead of about 3.
 """
 
 from __future__ import annotations
@@ -37,8 +38,12 @@ def acquisitions(out_dir: Path) -> int:
     return path.read_text().count('"event": "acquired"') if path.exists() else 0
 
 
-def one_run(work: Path) -> dict[str, float]:
-    """One scan with the router restarted under it; seconds from the restart."""
+#: What the scan logs when it takes a result for lost, by the service restarted.
+NOTICED = {"router": "the bus went down and is back", "focus": "its focus service went"}
+
+
+def one_run(work: Path, service: str) -> dict[str, float]:
+    """One scan with `service` restarted under it; seconds from the restart."""
     with LocalStack(work / "stack", INSTRUMENT_ARGS, router_process=True) as stack:
         out_dir = work / "scan"
         command = [
@@ -55,9 +60,9 @@ def one_run(work: Path) -> dict[str, float]:
                 raise RuntimeError(f"the scan ended early: {scan.communicate()[1]}")
             time.sleep(0.002)
         killed_at = acquisitions(out_dir)
-        stack.services["router"].kill()
+        stack.services[service].kill()
         time.sleep(DOWN_S)
-        stack.restart("router")
+        stack.restart(service)
         restarted_s = time.monotonic()
         while acquisitions(out_dir) < killed_at + 2 and scan.poll() is None:
             time.sleep(0.01)
@@ -68,22 +73,26 @@ def one_run(work: Path) -> dict[str, float]:
         return {
             "to_second_acquisition_s": round(next_s, 2),
             "to_scan_end_s": round(time.monotonic() - restarted_s, 2),
-            "lost_results_noticed": stderr.count("the bus went down and is back"),
+            "lost_results_noticed": stderr.count(NOTICED[service]),
         }
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--service", choices=sorted(NOTICED), default="router", help="what restarts (router)"
+    )
     parser.add_argument("--runs", type=int, default=3, help="scans, each with a restart (3)")
     parser.add_argument("--json", type=Path, metavar="OUT", help="write the runs as JSON")
     args = parser.parse_args()
     runs = []
     for run in range(args.runs):
         with tempfile.TemporaryDirectory() as work:
-            runs.append(one_run(Path(work)))
+            runs.append(one_run(Path(work), args.service))
         print(f"run {run + 1}/{args.runs}: {runs[-1]}", flush=True)
     if args.json:
-        args.json.write_text(json.dumps({"down_s": DOWN_S, "runs": runs}, indent=2) + "\n")
+        report = {"service": args.service, "down_s": DOWN_S, "runs": runs}
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
 
 
