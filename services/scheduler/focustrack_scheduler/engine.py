@@ -159,6 +159,9 @@ class Engine:
         self._slide = ""  # the slide being scanned (DescribeSlide)
         #: the acquisitions of the tile being scanned, by sequence: to take one again
         self._taken: dict[int, tuple[str, Acquisition]] = {}
+        #: the focus services of the latest acquisition (by index), watched from before its
+        #: request: one that dies before its result is awaited counts too
+        self._services: tuple[int, TokenWatch] | None = None
         self._tile_format_saved = "tile" in (record.state.read() or {})
         self.metrics = metrics or ScanMetrics()
         self.metrics.follow(record.tally.kept)
@@ -256,6 +259,7 @@ class Engine:
         request = self._offset(acquire_request(slide, acquisition, new_nonce()))
         # its result may come first
         self.listener.focus.expect(acquisition.index, (slide, acquisition, request.nonce))
+        self._services = (acquisition.index, TokenWatch(self.listener.focus_services))
         key_expr = keys.acquire_key(self.instrument.name)
         what = f"acquisition {acquisition.index} of tile ({acquisition.row}, {acquisition.col})"
         sent_s = time.time()
@@ -293,7 +297,12 @@ class Engine:
         # when the bus went down, or not yet published when its focus service died, will
         # not come, so the wait ends once the bus or a focus service is back.
         link = LinkWatch(self.instrument.session)
-        service = TokenWatch(self.listener.focus_services)
+        watched = self._services
+        service = (
+            watched[1]
+            if watched is not None and watched[0] == acquisition.index
+            else TokenWatch(self.listener.focus_services)
+        )
         received = self.listener.focus.wait(
             acquisition.index,
             self.policy.focus_timeout_s,

@@ -49,6 +49,7 @@ class StandIns:
         self.copies = 1
         self.replays: list[Sent] = []
         self.sent: list[Sent] = []  # every genuine result put
+        self.on_acquire: Callable[[], None] = lambda: None  # called before it replies
         self._queryable = bus.declare_queryable(
             keys.acquire_key("sim"),
             lambda query: rpc.answer(query, keys.acquire_key("sim"), self._acquire),
@@ -74,6 +75,7 @@ class StandIns:
         for _ in range(self.copies):
             self._put(key_expr, payload, RESULT_KEY.tag(key_expr, payload))
             self.sent.append((key_expr, payload, RESULT_KEY.tag(key_expr, payload)))
+        self.on_acquire()
         return instrument_pb2.AcquireReply(header=header)
 
     def _put(self, key_expr: str, payload: bytes, tag: bytes) -> None:
@@ -256,13 +258,14 @@ def test_a_result_lost_with_the_bus_is_acquired_again_once_the_bus_is_back(
 
 
 @pytest.mark.timeout(60)
+@pytest.mark.parametrize("dies", ["awaited", "acquiring"])
 def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_there(
-    tmp_path: Path,
+    tmp_path: Path, dies: str
 ) -> None:
-    """The focus service dies with the awaited result unpublished while the bus stays up,
-    and one starts again: the wait ends then (`session.TokenWatch` on the services'
-    liveliness tokens), not at its 60 s timeout, and the fault is counted as the
-    service's."""
+    """The focus service dies with the result unpublished (while it is awaited, or before,
+    as the stack is acquired) while the bus stays up, and one starts again: the wait ends
+    then (`session.TokenWatch` on the services' liveliness tokens, from before the
+    acquisition), not at its 60 s timeout, and the fault is counted as the service's."""
     endpoint = session.loopback_endpoint()
     with (
         session.open_session(listen=[endpoint]) as bus,
@@ -273,6 +276,8 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
         dying = session.open_session(connect=[endpoint])
         # a token undeclares itself once dropped: they are held here
         tokens = [dying.liveliness().declare_token(keys.focus_alive_key("*", "dying"))]
+        if dies == "acquiring":
+            stand_ins.on_acquire = dying.close
         listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
         engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=60.0)
         waiting = awaiting(listener)
@@ -283,7 +288,7 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
             started_s = time.monotonic()
             scan.start()
             assert waiting.wait(10)
-            dying.close()  # the service dies with the stack's result unpublished ...
+            dying.close()  # the service dies with the stack's result unpublished (if not yet) ...
             assert until(lambda: not listener.focus_services.alive())
             time.sleep(1.0)  # (none there to take the stack again: the wait goes on)
             assert scan.is_alive()
