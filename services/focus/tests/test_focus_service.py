@@ -133,8 +133,8 @@ def test_focus_services_of_two_scanners_each_answer_their_own_slides_once(
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
         first, second = (
-            [keys.focus_alive_key(slides, str(session.info.zid()))]
-            for session, slides in zip(services, ("scanner-1-*", "scanner-2-*"), strict=True)
+            [keys.focus_alive_key(pattern, str(session.info.zid()))]
+            for session, pattern in zip(services, ("scanner-1-*", "scanner-2-*"), strict=True)
         )
         assert [sorted(alive[slide].alive()) for slide in slides] == [first, second, first, []]
         frames = render(96, Z_UM, TRUTH_UM, 4)[..., None]

@@ -453,7 +453,8 @@ class SlideListener:
             )
 
     def close(self) -> None:
+        if self._subscribers:  # not closed yet
+            self.focus_services.close()
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._subscribers = []
-        self.focus_services.close()
