@@ -72,26 +72,32 @@ def test_a_watch_begun_while_the_router_is_down_counts_the_link_as_down() -> Non
 
 
 @pytest.mark.timeout(60)
-def test_a_focus_service_that_goes_is_seen_once_another_is_there() -> None:
+def test_focus_services_that_all_went_are_seen_once_another_is_there() -> None:
     endpoint = loopback_endpoint()
     with (
         open_session(listen=[endpoint], mode="router"),
         open_session(connect=[endpoint]) as scheduler,
     ):
         tokens = AliveTokens(scheduler, keys.focus_alive_pattern("slide-0"))
-        first = open_session(connect=[endpoint])
+        first, also, other = (open_session(connect=[endpoint]) for _ in range(3))
         every_slide = keys.focus_alive_key("*", str(first.info.zid()))
-        held = [first.liveliness().declare_token(every_slide)]  # a dropped token goes
-        other = open_session(connect=[endpoint])  # another scanner's focus service
-        held.append(other.liveliness().declare_token(keys.focus_alive_key("scanner-2-*", "x")))
+        this_slide = keys.focus_alive_key("slide-0", "also")
+        held = [  # a dropped token goes
+            first.liveliness().declare_token(every_slide),
+            also.liveliness().declare_token(this_slide),
+            other.liveliness().declare_token(keys.focus_alive_key("scanner-2-*", "x")),
+        ]
         try:
-            assert within(lambda: tokens.alive() == {every_slide})  # not the other slides'
+            # another scanner's service is not watched
+            assert within(lambda: tokens.alive() == {every_slide, this_slide})
             watch = TokenWatch(tokens)
-            other.close()  # another scanner's service going changes nothing here
+            other.close()
+            first.close()  # gone, but the other one of this slide may still publish
+            assert within(lambda: tokens.alive() == {this_slide})
             assert never_within(watch.lost, 0.5)
-            first.close()
+            also.close()
             assert within(lambda: not tokens.alive())
-            assert never_within(watch.lost, 0.5)  # gone, and none to take the stack again
+            assert never_within(watch.lost, 0.5)  # all gone, and none to take the stack again
             with open_session(connect=[endpoint]) as second:
                 held.append(
                     second.liveliness().declare_token(keys.focus_alive_key("slide-0", "second"))
@@ -102,5 +108,5 @@ def test_a_focus_service_that_goes_is_seen_once_another_is_there() -> None:
             assert never_within(TokenWatch(tokens).lost, 0.5)  # none alive at its start
         finally:
             tokens.close()
-            first.close()
-            other.close()
+            for service in (first, also, other):
+                service.close()

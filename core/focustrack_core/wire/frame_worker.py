@@ -94,7 +94,10 @@ class FrameWorker(Generic[T]):
                 self._publish(done)
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Undeclare the token and the subscription, and end both threads."""
+        """Undeclare the token and the subscription, and end both threads (once: closing
+        again does nothing)."""
+        if self._closed.is_set():
+            return
         if self._token is not None:
             self._token.undeclare()
         self._subscriber.undeclare()

@@ -351,14 +351,15 @@ class AliveTokens:
 
 
 class TokenWatch:
-    """Whether a process whose token (`AliveTokens`) was alive when the watch began has
-    gone while another one is alive: what the one that went had yet to publish is lost,
-    and one that can do it again is there.
+    """Whether every process whose token (`AliveTokens`) was alive when the watch began has
+    gone while another one is alive: what they had yet to publish is lost, and one that
+    can do it again is there.
 
-    A focus service declares its token once its subscription is declared, so a stack
-    acquired again once `lost` says so reaches the one alive. With no token alive at the
-    start (services that declare none) the watch never fires. A process that goes and
-    comes back under the same token between two calls of `lost` goes unseen.
+    While one of them is alive it may still publish, so the watch waits; a token that goes
+    and comes back under the same key (its process's router restarted) is taken as never
+    gone. A focus service declares its token once its subscription is declared, so a
+    stack acquired again once `lost` says so reaches the one alive. With no token alive at
+    the start (no service, or services that declare none) the watch never fires.
     """
 
     def __init__(self, tokens: AliveTokens) -> None:
@@ -367,11 +368,11 @@ class TokenWatch:
         self._fired = False
 
     def lost(self) -> bool:
-        """True once a token alive at the start has gone and another is alive (and from
-        then on)."""
+        """True once no token alive at the start is alive and another is (and from then
+        on)."""
         if not self._fired:
             alive = self._tokens.alive()
-            self._fired = bool(self._started - alive) and bool(alive)
+            self._fired = bool(self._started) and not self._started & alive and bool(alive)
         return self._fired
 
 

@@ -143,15 +143,17 @@ def test_focus_services_of_two_scanners_each_answer_their_own_slides_once(
         answered = sorted(results.get(timeout=20) for _ in range(3))
         time.sleep(1.0)  # time for a second answer to any of them, or one to scanner 3's
         assert results.empty()
+        for worker in workers:
+            worker.close()
+        time.sleep(0.5)
+        assert not any(tokens.alive() for tokens in alive.values())  # closed: no token left
     finally:
         subscriber.undeclare()
+        for tokens in alive.values():
+            tokens.close()
         for worker, session in zip(workers, services, strict=True):
-            worker.close()
+            worker.close()  # (again, where the test got that far)
             session.close()
-    time.sleep(0.5)
-    assert not any(tokens.alive() for tokens in alive.values())  # closed: their tokens went
-    for tokens in alive.values():
-        tokens.close()
     assert answered == sorted(keys.focus_key(slide, 2, 3) for slide in slides[:3])
     assert [worker.n_published for worker in workers] == [2, 1]
 

@@ -160,7 +160,7 @@ class Engine:
         #: the acquisitions of the tile being scanned, by sequence: to take one again
         self._taken: dict[int, tuple[str, Acquisition]] = {}
         #: the focus services of the latest acquisition (by index), watched from before its
-        #: request: one that dies before its result is awaited counts too
+        #: request (its last attempt): one that dies before its result is awaited counts too
         self._services: tuple[int, TokenWatch] | None = None
         self._tile_format_saved = "tile" in (record.state.read() or {})
         self.metrics = metrics or ScanMetrics()
@@ -259,11 +259,15 @@ class Engine:
         request = self._offset(acquire_request(slide, acquisition, new_nonce()))
         # its result may come first
         self.listener.focus.expect(acquisition.index, (slide, acquisition, request.nonce))
-        self._services = (acquisition.index, TokenWatch(self.listener.focus_services))
         key_expr = keys.acquire_key(self.instrument.name)
         what = f"acquisition {acquisition.index} of tile ({acquisition.row}, {acquisition.col})"
+
+        def send() -> instrument_pb2.AcquireReply:
+            self._services = (acquisition.index, TokenWatch(self.listener.focus_services))
+            return self.instrument.acquire(request)
+
         sent_s = time.time()
-        reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
+        reply = self._instrument_call(what, key_expr, send)
         replied_s = time.time()
         if reply.header.nonce != request.nonce:  # its frames, so its result, would not match
             raise ScanRefusedError(
@@ -303,20 +307,22 @@ class Engine:
             if watched is not None and watched[0] == acquisition.index
             else TokenWatch(self.listener.focus_services)
         )
+        ended: list[tuple[str, str]] = []  # the fault that ended the wait, and why
+
+        def lost() -> bool:
+            if link.lost():
+                ended.append(("focus_lost", "(the bus went down and is back)"))
+            elif service.lost():
+                ended.append(("focus_service_lost", "(its focus service went, another is there)"))
+            return bool(ended)
+
         received = self.listener.focus.wait(
-            acquisition.index,
-            self.policy.focus_timeout_s,
-            lost=lambda: link.lost() or service.lost(),
+            acquisition.index, self.policy.focus_timeout_s, lost=lost
         )
         waited_s = time.perf_counter() - started_s
         if received is None:
-            fault, why = (
-                ("focus_lost", "(the bus went down and is back)")
-                if link.lost()
-                else ("focus_service_lost", "(its focus service went, another is there)")
-                if service.lost()
-                else ("focus_timeout", f"within {self.policy.focus_timeout_s:.0f} s")
-            )
+            timeout = ("focus_timeout", f"within {self.policy.focus_timeout_s:.0f} s")
+            fault, why = ended[0] if ended else timeout
             self.metrics.faults.labels(fault).inc()
             log.warning(
                 "no focus result for acquisition %d %s: acquiring it again",

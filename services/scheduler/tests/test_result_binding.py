@@ -284,9 +284,14 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
         dying = session.open_session(connect=[endpoint])
         # a token undeclares itself once dropped: they are held here
         tokens = [dying.liveliness().declare_token(keys.focus_alive_key("*", "dying"))]
-        if dies == "acquiring":
-            stand_ins.on_acquire = dying.close
         listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
+        if dies == "acquiring":  # gone, as the scan sees it, before the instrument replies
+
+            def die() -> None:
+                dying.close()
+                assert until(lambda: not listener.focus_services.alive())
+
+            stand_ins.on_acquire = die
         engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=60.0)
         waiting = awaiting(listener)
         received: list[focus_pb2.FocusResult | None] = []
