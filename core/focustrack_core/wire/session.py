@@ -321,19 +321,24 @@ class LinkWatch:
 
 class AliveTokens:
     """The liveliness tokens on `key_expr` alive now, as `session` sees them: a liveliness
-    subscriber (with the tokens already declared, `history=True`) keeps the set; close it
-    when done.
+    subscriber keeps the set, seeded with the tokens alive when it is made by a liveliness
+    query (up to `seed_timeout_s`; the subscriber's history, which comes later, fills in
+    what the query missed); close it when done.
 
     A token goes when its process undeclares it, closes its session or dies (its link
     closes, or its lease runs out where the link just goes silent).
     """
 
-    def __init__(self, session: zenoh.Session, key_expr: str) -> None:
+    def __init__(self, session: zenoh.Session, key_expr: str, seed_timeout_s: float = 2.0) -> None:
         self._lock = threading.Lock()
         self._alive: set[str] = set()
         self._subscriber = session.liveliness().declare_subscriber(
             key_expr, handler=self._on_sample, history=True
         )
+        for reply in session.liveliness().get(key_expr, timeout=seed_timeout_s):
+            if reply.ok is not None:
+                with self._lock:
+                    self._alive.add(str(reply.ok.key_expr))
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         with self._lock:
@@ -352,14 +357,14 @@ class AliveTokens:
 
 class TokenWatch:
     """Whether every process whose token (`AliveTokens`) was alive when the watch began has
-    gone while another one is alive: what they had yet to publish is lost, and one that
-    can do it again is there.
+    gone (or none was) while another is alive now: what was asked of them is lost (a
+    service that was not there missed it), and one that can do it again is there.
 
     While one of them is alive it may still publish, so the watch waits; a token that goes
     and comes back under the same key (its process's router restarted) is taken as never
     gone. A focus service declares its token once its subscription is declared, so a
-    stack acquired again once `lost` says so reaches the one alive. With no token alive at
-    the start (no service, or services that declare none) the watch never fires.
+    stack acquired again once `lost` says so reaches the one alive. Where no process
+    declares a token (services that predate them) the watch never fires.
     """
 
     def __init__(self, tokens: AliveTokens) -> None:
@@ -368,11 +373,11 @@ class TokenWatch:
         self._fired = False
 
     def lost(self) -> bool:
-        """True once no token alive at the start is alive and another is (and from then
-        on)."""
+        """True once none of the tokens alive at the start is alive and another is (and
+        from then on)."""
         if not self._fired:
             alive = self._tokens.alive()
-            self._fired = bool(self._started) and not self._started & alive and bool(alive)
+            self._fired = bool(alive) and not self._started & alive
         return self._fired
 
 
