@@ -69,11 +69,17 @@ class FrameWorker(Generic[T]):
         self._subscriber = session.declare_subscriber(
             subscription, zenoh.handlers.FifoChannel(QUEUE_FRAMES)
         )
+        try:  # declared once the subscription is: frames reach this worker from then on
+            self._token = (
+                None if alive_key is None else session.liveliness().declare_token(alive_key)
+            )
+        except BaseException:
+            self._subscriber.undeclare()
+            raise
         self._thread = threading.Thread(target=self._serve, name=f"{name}-zenoh", daemon=True)
         self._thread.start()
         self._expiry = threading.Thread(target=self._expire, name=f"{name}-expiry", daemon=True)
         self._expiry.start()
-        self._token = None if alive_key is None else session.liveliness().declare_token(alive_key)
 
     def _expire(self) -> None:
         while not self._closed.wait(self._expire_period_s):

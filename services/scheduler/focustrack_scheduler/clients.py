@@ -390,12 +390,17 @@ class SlideListener:
         self.n_rejected = 0
         self.n_phase_rejected = 0
         self.on_rejected = on_rejected
-        self.focus_services = AliveTokens(session, keys.focus_alive_pattern(slide))
         self._subscribers = [session.declare_subscriber(keys.focus_pattern(slide), self._on_focus)]
-        if phase:
-            self._subscribers.append(
-                session.declare_subscriber(keys.phase_pattern(slide), self._on_phase)
-            )
+        try:
+            if phase:
+                self._subscribers.append(
+                    session.declare_subscriber(keys.phase_pattern(slide), self._on_phase)
+                )
+            self.focus_services = AliveTokens(session, keys.focus_alive_pattern(slide))
+        except BaseException:
+            for subscriber in self._subscribers:
+                subscriber.undeclare()
+            raise
 
     def _on_focus(self, sample: zenoh.Sample) -> None:
         key_expr = str(sample.key_expr)
