@@ -332,6 +332,7 @@ class AliveTokens:
     def __init__(self, session: zenoh.Session, key_expr: str, seed_timeout_s: float = 2.0) -> None:
         self._lock = threading.Lock()
         self._alive: set[str] = set()
+        self._closed = False
         self._subscriber = session.liveliness().declare_subscriber(
             key_expr, handler=self._on_sample, history=True
         )
@@ -352,7 +353,10 @@ class AliveTokens:
             return frozenset(self._alive)
 
     def close(self) -> None:
-        self._subscriber.undeclare()
+        """Undeclare the subscriber (once: closing again does nothing)."""
+        if not self._closed:
+            self._closed = True
+            self._subscriber.undeclare()
 
 
 class TokenWatch:

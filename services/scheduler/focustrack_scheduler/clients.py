@@ -458,8 +458,7 @@ class SlideListener:
             )
 
     def close(self) -> None:
-        if self._subscribers:  # not closed yet
-            self.focus_services.close()
+        self.focus_services.close()
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._subscribers = []
