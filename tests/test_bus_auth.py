@@ -18,7 +18,8 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from pathlib import Path
 
 import httpx
@@ -30,11 +31,13 @@ from focustrack.local_stack import Service
 from focustrack_core.health import instrument_answers
 from focustrack_core.v1 import focus_pb2, instrument_pb2
 from focustrack_core.wire import keys, rpc
-from focustrack_core.wire.session import free_port, open_session
+from focustrack_core.wire.session import AliveTokens, free_port, open_session
 
 pytestmark = pytest.mark.slow  # real services in processes
 
 INTRUDER = ("intruder", "pw-intruder")  # a valid user that no ACL rule names
+#: The roles that declare a focus and a phase token each in the token test.
+ROLES_TOKENS = ("intruder", "instrument", "focus", "phase", "scheduler", "health")
 
 
 class Bus:
@@ -133,6 +136,16 @@ def stack(bus: Bus, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[s
                 service.stop()
 
 
+def within(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Whether `condition` holds within `timeout_s` (tokens come on Zenoh's thread)."""
+    deadline_s = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline_s:
+            return False
+        time.sleep(0.05)
+    return True
+
+
 def _http_ok(url: str) -> bool:
     try:
         return httpx.get(url, timeout=1.0).status_code == 200
@@ -215,6 +228,42 @@ def test_only_the_phase_service_publishes_phase_results_and_the_scheduler_reads_
             time.sleep(0.5)
         subscriber.undeclare()
     assert received == ["phase"]
+
+
+def test_the_scheduler_sees_the_focus_and_phase_services_tokens_and_no_other_roles(
+    bus: Bus, stack: dict[str, str]
+) -> None:
+    """A scan learns that a focus or phase service went from its liveliness token
+    (`session.TokenWatch`): the ACL passes the tokens of those roles, on their own keys
+    only, to the scheduler, and no other role's (a forged token would hold a lost
+    result's wait open, or end it)."""
+    with bus.open("scheduler") as scheduler:
+        focus_services = AliveTokens(scheduler, keys.alive_pattern("focus", "slide-0"))
+        phase_services = AliveTokens(scheduler, keys.alive_pattern("phase", "slide-0"))
+        try:
+            assert within(lambda: len(focus_services.alive()) == 1)  # the stack's service
+            (served,) = focus_services.alive()
+            with ExitStack() as sessions:
+                roles = {role: sessions.enter_context(bus.open(role)) for role in ROLES_TOKENS}
+                tokens = [
+                    roles[role].liveliness().declare_token(keys.alive_key(service, "*", role))
+                    for role in roles
+                    for service in ("focus", "phase")
+                ]  # held: a token undeclares itself once dropped
+                assert within(lambda: len(phase_services.alive()) == 1)
+                assert phase_services.alive() == {keys.alive_key("phase", "*", "phase")}
+                time.sleep(0.5)  # the other roles' tokens, had they passed, would be there
+                assert focus_services.alive() == {served, keys.alive_key("focus", "*", "focus")}
+                assert phase_services.alive() == {keys.alive_key("phase", "*", "phase")}
+                # A scheduler that starts now finds the same by its liveliness query.
+                pattern = keys.alive_pattern("focus", "slide-0")
+                replies = scheduler.liveliness().get(pattern, timeout=5.0)
+                found = {str(reply.ok.key_expr) for reply in replies if reply.ok is not None}
+                assert found == focus_services.alive()
+                del tokens
+        finally:
+            focus_services.close()
+            phase_services.close()
 
 
 def test_a_scan_through_the_secured_router_completes(

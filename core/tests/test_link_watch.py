@@ -78,14 +78,14 @@ def test_focus_services_that_all_went_are_seen_once_another_is_there() -> None:
         open_session(listen=[endpoint], mode="router"),
         open_session(connect=[endpoint]) as scheduler,
     ):
-        tokens = AliveTokens(scheduler, keys.focus_alive_pattern("slide-0"))
+        tokens = AliveTokens(scheduler, keys.alive_pattern("focus", "slide-0"))
         first, also, other = (open_session(connect=[endpoint]) for _ in range(3))
-        every_slide = keys.focus_alive_key("*", str(first.info.zid()))
-        this_slide = keys.focus_alive_key("slide-0", "also")
+        every_slide = keys.alive_key("focus", "*", str(first.info.zid()))
+        this_slide = keys.alive_key("focus", "slide-0", "also")
         held = [  # a dropped token goes
             first.liveliness().declare_token(every_slide),
             also.liveliness().declare_token(this_slide),
-            other.liveliness().declare_token(keys.focus_alive_key("scanner-2-*", "x")),
+            other.liveliness().declare_token(keys.alive_key("focus", "scanner-2-*", "x")),
         ]
         try:
             # another scanner's service is not watched
@@ -101,11 +101,11 @@ def test_focus_services_that_all_went_are_seen_once_another_is_there() -> None:
             missed = TokenWatch(tokens)  # a stack asked for with no service there
             with open_session(connect=[endpoint]) as second:
                 held.append(
-                    second.liveliness().declare_token(keys.focus_alive_key("slide-0", "second"))
+                    second.liveliness().declare_token(keys.alive_key("focus", "slide-0", "second"))
                 )
                 assert within(watch.lost) and missed.lost()
                 assert not TokenWatch(tokens).lost()  # begun with the second alive
-                late = AliveTokens(scheduler, keys.focus_alive_pattern("slide-0"))
+                late = AliveTokens(scheduler, keys.alive_pattern("focus", "slide-0"))
                 assert within(lambda: late.alive() == tokens.alive() != frozenset())
                 late.close()
             assert watch.lost()  # once lost, lost

@@ -47,7 +47,7 @@ class FrameWorker(Generic[T]):
     default) to `take` on a thread of its own (module docstring); `name` names the threads.
     A ValueError from `take` (the key names no tile: nowhere to answer) is logged and the
     sample skipped. With `alive_key`, a liveliness token is declared there once the
-    subscription is (`keys.focus_alive_key`): while it lives, frames reach this worker."""
+    subscription is (`keys.alive_key`): while it lives, frames reach this worker."""
 
     def __init__(
         self,

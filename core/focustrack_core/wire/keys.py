@@ -18,11 +18,12 @@
 - ``focustrack/v1/eval/phase/{instrument}/{slide}/{row}/{col}``: queryable; the true phase
   of a tile (float32 payload, PhaseTruth attachment), for evaluation code only.
 - ``focustrack/v1/bench/{name}``: the instrument benchmark's own traffic.
-- ``focustrack/v1/alive/focus/{slides}/{zid}``: a liveliness token each focus service
-  declares once it reads frames (``{slides}`` the slides it reads, ``*`` for every slide;
-  ``{zid}`` its session's id). A scheduler watches the tokens of its slide
-  (``focustrack/v1/alive/focus/{slide}/*``): a token that goes takes with it the results
-  that service had yet to publish.
+- ``focustrack/v1/alive/{service}/{slides}/{zid}``: a liveliness token each focus
+  (``{service}`` ``focus``) and phase service (``phase``) declares once it reads frames
+  (``{slides}`` the slides it reads, ``*`` for every slide; ``{zid}`` its session's id).
+  A scheduler watches the tokens of its slide (``focustrack/v1/alive/focus/{slide}/*``,
+  and ``.../alive/phase/{slide}/*`` with phase stacks): a token that goes takes with it
+  the results that service had yet to publish.
 
 Names (instrument, slide) are single key chunks: letters, digits, ``_``, ``-``, ``.``.
 """
@@ -30,9 +31,12 @@ Names (instrument, slide) are single key chunks: letters, digits, ``_``, ``-``, 
 from __future__ import annotations
 
 import re
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 PREFIX = "focustrack/v1"
+
+#: The services that declare a liveliness token while they read frames (`alive_key`).
+AliveService = Literal["focus", "phase"]
 
 _NAME = re.compile(r"[A-Za-z0-9_.-]+")
 _SLIDES = re.compile(r"[A-Za-z0-9_.*-]+")
@@ -154,16 +158,16 @@ def phase_pattern(slide: str | None = None) -> str:
     return f"{PREFIX}/phase/{'*' if slide is None else check_name(slide, 'slide')}/*/*"
 
 
-def focus_alive_key(slides: str, zid: str) -> str:
-    """The liveliness token of a focus service reading the stacks of the slides `slides`
-    names (`slides_chunk`), its session's id `zid`."""
-    return f"{PREFIX}/alive/focus/{slides_chunk(slides)}/{check_name(zid, 'zid')}"
+def alive_key(service: AliveService, slides: str, zid: str) -> str:
+    """The liveliness token of a `service` ("focus" or "phase") reading the stacks of the
+    slides `slides` names (`slides_chunk`), its session's id `zid`."""
+    return f"{PREFIX}/alive/{service}/{slides_chunk(slides)}/{check_name(zid, 'zid')}"
 
 
-def focus_alive_pattern(slide: str) -> str:
-    """Key expression matching the tokens of the focus services that read slide `slide`
-    (a token's ``*`` or ``$*`` matches it too)."""
-    return f"{PREFIX}/alive/focus/{check_name(slide, 'slide')}/*"
+def alive_pattern(service: AliveService, slide: str) -> str:
+    """Key expression matching the tokens of the `service`s ("focus" or "phase") that read
+    slide `slide` (a token's ``*`` or ``$*`` matches it too)."""
+    return f"{PREFIX}/alive/{service}/{check_name(slide, 'slide')}/*"
 
 
 def _parse_tile_key(key: str, kind: str) -> TileKey:

@@ -388,7 +388,7 @@ class ZenohFocusWorker:
             self.analyser.expire,
             min(1.0, self.analyser.timeout_s / 4),
             keys.zframe_pattern(slides),
-            keys.focus_alive_key(slides, str(session.info.zid())),
+            keys.alive_key("focus", slides, str(session.info.zid())),
         )
 
     def _publish(self, message: focus_pb2.FocusResult) -> None:

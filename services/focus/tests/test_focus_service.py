@@ -129,11 +129,11 @@ def test_focus_services_of_two_scanners_each_answer_their_own_slides_once(
     )
     slides = ("scanner-1-slide-0", "scanner-2-slide-0", "scanner-1-slide-1", "scanner-3-slide-0")
     # what a scheduler of each slide watches: the liveliness tokens of its focus services
-    alive = {slide: AliveTokens(publisher, keys.focus_alive_pattern(slide)) for slide in slides}
+    alive = {slide: AliveTokens(publisher, keys.alive_pattern("focus", slide)) for slide in slides}
     try:
         time.sleep(0.5)  # let the subscriptions reach each other
         first, second = (
-            [keys.focus_alive_key(pattern, str(session.info.zid()))]
+            [keys.alive_key("focus", pattern, str(session.info.zid()))]
             for session, pattern in zip(services, ("scanner-1-*", "scanner-2-*"), strict=True)
         )
         assert [sorted(alive[slide].alive()) for slide in slides] == [first, second, first, []]

@@ -13,6 +13,8 @@ stack and its header into what the filter takes; `result_sample` is the PhaseRes
 pixels; `ZenohPhaseWorker` is the shell: one thread takes the frames from a bounded FIFO
 (back pressure to the publisher while a stack is reconstructed), reconstructs each stack
 when its last frame is in, and publishes the result on ``focustrack/v1/phase/{slide}/{row}/{col}``.
+While it reads frames it holds the liveliness token ``focustrack/v1/alive/phase/*/{zid}``:
+a scan that sees it go knows the results it had yet to publish will not come.
 """
 
 from __future__ import annotations
@@ -335,6 +337,7 @@ class ZenohPhaseWorker:
             self._answer,
             stacks.expire,
             min(1.0, stacks.timeout_s / 4),
+            alive_key=keys.alive_key("phase", "*", str(session.info.zid())),
         )
 
     def _answer(self, done: PhaseStack | phase_pb2.PhaseResult) -> None:

@@ -20,7 +20,7 @@ import zenoh
 from focustrack_core.v1 import common_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.codec import PixelPublisher, describe_stack
-from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
+from focustrack_core.wire.session import AliveTokens, free_port, loopback_endpoint, open_session
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_phase.acekf import AcekfOptions
 from focustrack_phase.app import PhaseLimits
@@ -166,6 +166,30 @@ def test_focus_stacks_are_ignored_and_a_bad_phase_stack_gets_an_error(bus) -> No
     assert result.sequence == 4 and not result.HasField("error")
     assert worker.stacks.n_not_phase == len(z_um) * 3  # every part of every frame
     assert worker.stacks.n_untagged == len(z_um) * 3
+
+
+def test_the_worker_holds_a_liveliness_token_for_every_slide_until_it_closes() -> None:
+    """A scan watches the phase services of its slide (`session.AliveTokens`): the worker's
+    token is there once it reads frames, matches any slide, and goes when it closes."""
+    endpoint = loopback_endpoint()
+    with open_session(listen=[endpoint]) as scheduler, open_session(connect=[endpoint]) as service:
+        watched = [AliveTokens(scheduler, keys.alive_pattern("phase", slide)) for slide in "ab"]
+        worker = ZenohPhaseWorker(service, PhaseStacks(PhaseLimits()))
+        try:
+            token = keys.alive_key("phase", "*", str(service.info.zid()))
+            deadline_s = time.monotonic() + 10
+            while not all(tokens.alive() for tokens in watched) and time.monotonic() < deadline_s:
+                time.sleep(0.05)
+            assert [tokens.alive() for tokens in watched] == [{token}, {token}]
+            assert not AliveTokens(scheduler, keys.alive_pattern("focus", "a")).alive()
+            worker.close()
+            while any(tokens.alive() for tokens in watched) and time.monotonic() < deadline_s:
+                time.sleep(0.05)
+            assert not any(tokens.alive() for tokens in watched)  # gone before the session
+        finally:
+            worker.close()  # (again, where the test did not get that far)
+            for tokens in watched:
+                tokens.close()
 
 
 def test_a_header_without_wavelength_or_gain_takes_the_service_defaults() -> None:

@@ -396,7 +396,7 @@ class SlideListener:
                 self._subscribers.append(
                     session.declare_subscriber(keys.phase_pattern(slide), self._on_phase)
                 )
-            self.focus_services = AliveTokens(session, keys.focus_alive_pattern(slide))
+            self.focus_services = AliveTokens(session, keys.alive_pattern("focus", slide))
         except BaseException:
             for subscriber in self._subscribers:
                 subscriber.undeclare()

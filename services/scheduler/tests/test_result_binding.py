@@ -283,7 +283,7 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
         stand_ins.copies = 0  # it answers the acquisition; the focus result never comes
         dying = session.open_session(connect=[endpoint])
         # a token undeclares itself once dropped: they are held here
-        tokens = [dying.liveliness().declare_token(keys.focus_alive_key("*", "dying"))]
+        tokens = [dying.liveliness().declare_token(keys.alive_key("focus", "*", "dying"))]
         listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
         if dies == "acquiring":  # gone, as the scan sees it, before the instrument replies
 
@@ -308,7 +308,7 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
             with session.open_session(connect=[endpoint]) as started_again:  # ... and is back
                 tokens.append(
                     started_again.liveliness().declare_token(
-                        keys.focus_alive_key(SLIDE, "started-again")
+                        keys.alive_key("focus", SLIDE, "started-again")
                     )
                 )
                 scan.join(30)
