@@ -373,7 +373,8 @@ class TokenWatch:
 
     def __init__(self, tokens: AliveTokens) -> None:
         self._tokens = tokens
-        self._started = tokens.alive()
+        #: the tokens alive when the watch began
+        self.started = tokens.alive()
         self._fired = False
 
     def lost(self) -> bool:
@@ -381,7 +382,7 @@ class TokenWatch:
         from then on)."""
         if not self._fired:
             alive = self._tokens.alive()
-            self._fired = bool(alive) and not self._started & alive
+            self._fired = bool(alive) and not self.started & alive
         return self._fired
 
 

@@ -365,8 +365,8 @@ def phase_inbox() -> Inbox[PhaseAwaited, PhaseReceived]:
 
 class SlideListener:
     """Subscribes to the focus results of one slide (and with `phase`, its phase results),
-    and keeps the liveliness tokens of the focus services that read it (`focus_services`);
-    close it when done.
+    and keeps the liveliness tokens of the focus services that read it (`focus_services`;
+    with `phase`, of the phase services too: `phase_services`); close it when done.
 
     With a `trust` key, a result is read only when it carries that key's tag
     (`focustrack_core.wire.trust`: a focus result's attachment is its tag, a phase
@@ -400,6 +400,13 @@ class SlideListener:
         except BaseException:
             for subscriber in self._subscribers:
                 subscriber.undeclare()
+            raise
+        self.phase_services: AliveTokens | None = None
+        try:
+            if phase:
+                self.phase_services = AliveTokens(session, keys.alive_pattern("phase", slide))
+        except BaseException:
+            self.close()
             raise
 
     def _on_focus(self, sample: zenoh.Sample) -> None:
@@ -459,6 +466,8 @@ class SlideListener:
 
     def close(self) -> None:
         self.focus_services.close()
+        if self.phase_services is not None:
+            self.phase_services.close()
         for subscriber in self._subscribers:
             subscriber.undeclare()
         self._subscribers = []

@@ -25,6 +25,9 @@ URL, when one stays gone longer than that:
   phase stack is not acquired again); a result that does not come, or one that reports
   an error, leaves the tile without phase (logged), never stops the scan; an instrument
   that takes a phase stack as a focus stack (it predates the field) is not waited for;
+  with no phase service's liveliness token on the bus the stack is not acquired, and the
+  wait ends once the phase services alive at the request have gone and another is there
+  (`session.TokenWatch`);
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
@@ -46,6 +49,7 @@ import numpy as np
 
 from focustrack_client import EstimatorClient, EstimatorError
 from focustrack_core.domain import Acquisition, Measurement, Outcome
+from focustrack_core.logs import worth_logging
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc
@@ -53,6 +57,7 @@ from focustrack_core.wire.session import LinkWatch, TokenWatch
 from focustrack_core.wire.trust import new_nonce
 from focustrack_scheduler.clients import (
     InstrumentClient,
+    PhaseReceived,
     SlideListener,
     acquire_request,
     phase_request,
@@ -163,6 +168,7 @@ class Engine:
         #: request (its last attempt): one that dies before its result is awaited counts too
         self._services: tuple[int, TokenWatch] | None = None
         self._tile_format_saved = "tile" in (record.state.read() or {})
+        self._n_without_phase = 0  # tiles whose phase stack brought no phase (logged)
         self.metrics = metrics or ScanMetrics()
         self.metrics.follow(record.tally.kept)
         record.listeners.add(self.metrics.take)
@@ -433,11 +439,21 @@ class Engine:
             self.wall.phase_s += time.perf_counter() - started_s
 
     def _take_phase(self, step: AcquirePhase) -> bool:
-        """Acquire the phase stack, await its result and keep it; True when it was kept."""
+        """Acquire the phase stack, await its result and keep it; True when it was kept.
+
+        Not acquired when no phase service reads the slide (their liveliness tokens): no
+        one would reconstruct it. The wait ends early once every phase service alive at
+        the request has gone and another is there: the result went with its service."""
         assert self.geometry is not None
+        assert self.listener.phase_services is not None, "phase stacks need SlideListener(phase=)"
+        what = f"the phase stack of tile ({step.row}, {step.col})"
+        services = TokenWatch(self.listener.phase_services)
+        if not services.started:
+            nobody = "no phase service on the bus reads this slide (`focustrack serve phase`)"
+            self._keep_phase(step, n_frames=0, scan_time_s=0.0, received=None, error=nobody)
+            return False
         request = self._offset(phase_request(step, new_nonce()))
         self.listener.phase.expect(step.sequence, (step, request.nonce))  # it may come first
-        what = f"the phase stack of tile ({step.row}, {step.col})"
         key_expr = keys.acquire_key(self.instrument.name)
         reply = self._instrument_call(what, key_expr, lambda: self.instrument.acquire(request))
         if reply.header.nonce != request.nonce:
@@ -445,26 +461,52 @@ class Engine:
                 f"instrument {self.instrument.name!r} took {what} without its nonce: it "
                 "predates acquisition nonces (update it), or is not the instrument asked"
             )
-        error = None
+        error: str | None = None
         received = None
         if reply.header.purpose != instrument_pb2.ACQUISITION_PURPOSE_PHASE:
             self.listener.phase.forget(step.sequence)
             error = "the instrument took it as a focus stack (it predates phase stacks)"
         else:
-            received = self.listener.phase.wait(step.sequence, self.policy.phase_timeout_s)
-            if received is None:
-                error = f"no phase result within {self.policy.phase_timeout_s:g} s"
+            timeout_s = self.policy.phase_timeout_s
+            received = self.listener.phase.wait(step.sequence, timeout_s, lost=services.lost)
+            if received is None and services.lost():
+                self.metrics.faults.labels("phase_service_lost").inc()
+                error = "its phase service went before it published the result"
+            elif received is None:
+                error = f"no phase result within {timeout_s:g} s"
             elif received.field is None:
                 error = f"the phase service: {received.result.error.message}"
+        n_frames = len(reply.header.z_um)
+        self._keep_phase(step, n_frames, reply.timing.total_s, received, error)
+        return error is None
+
+    def _keep_phase(
+        self,
+        step: AcquirePhase,
+        n_frames: int,
+        scan_time_s: float,
+        received: PhaseReceived | None,
+        error: str | None,
+    ) -> None:
+        """Record the phase of `step`'s tile (`received`), or `error`: why it has none."""
+        assert self.geometry is not None
         if error is not None:
-            log.warning("%s: no phase: %s", what, error)
+            self._n_without_phase += 1
+            if worth_logging(self._n_without_phase):  # one a tile: thousands on a slide
+                log.warning(
+                    "tile (%d, %d) has no phase (%d tiles so far): %s",
+                    step.row,
+                    step.col,
+                    self._n_without_phase,
+                    error,
+                )
         self.record.phase(
             self.geometry.grid,
             step.row,
             step.col,
             sequence=step.sequence,
-            n_frames=len(reply.header.z_um),
-            scan_time_s=reply.timing.total_s,
+            n_frames=n_frames,
+            scan_time_s=scan_time_s,
             reference_z_um=step.reference_z_um,
             field=None if received is None else received.field,
             background_share=None
@@ -472,7 +514,6 @@ class Engine:
             else received.result.background_share,
             error=error,
         )
-        return error is None
 
     def _offset(self, request: instrument_pb2.AcquireRequest) -> instrument_pb2.AcquireRequest:
         """`request` at the pass's lateral offset, where it is known."""

@@ -46,6 +46,7 @@ FAULTS = (
     "focus_timeout",  # no focus result in time: the stack is acquired again
     "focus_lost",  # the bus went down while it was awaited, and is back: acquired again
     "focus_service_lost",  # the focus service went while it was awaited, one is there
+    "phase_service_lost",  # the phase service went while it was awaited: the tile has no phase
     "result_rejected",  # a focus or phase result refused (no tag, another nonce, a copy)
     "frames_gone",  # the instrument no longer held a stack's frames: taken again
 )

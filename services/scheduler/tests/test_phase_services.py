@@ -1,0 +1,187 @@
+"""A scan's phase stacks and the phase services that read them (real Zenoh on loopback,
+the engine's own code, stand-ins for the instrument and the phase services).
+
+Each phase service holds a liveliness token while it reads frames (`keys.alive_key`): with
+none there, a tile's phase stack is not acquired at all (no one would reconstruct it),
+where the scan used to take it and wait out `phase_timeout_s` on every tile; one that
+dies with the result unpublished ends the wait once another is there.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from focustrack_client import EstimatorClient
+from focustrack_core.domain import ZRange
+from focustrack_core.v1 import instrument_pb2
+from focustrack_core.wire import keys, rpc, session
+from focustrack_scheduler import outputs
+from focustrack_scheduler.clients import InstrumentClient, SlideListener
+from focustrack_scheduler.engine import Engine
+from focustrack_scheduler.plan import AcquirePhase, DescribeSlide, Plan
+from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.retry import RetryPolicy
+
+SLIDE = "s1"
+PHASE_STACK = AcquirePhase(SLIDE, 1, 2, ZRange(-1.0, 0.25, 9), 0.0, sequence=2**40 + 5)
+
+
+class Instrument:
+    """Answers the info query (a 3x3 slide) and every acquisition, counting them."""
+
+    def __init__(self, bus: zenoh.Session) -> None:
+        self.acquired = 0
+        self._queryables = [
+            bus.declare_queryable(
+                keys.info_key("sim"),
+                lambda query: rpc.answer(query, keys.info_key("sim"), self._info),
+            ),
+            bus.declare_queryable(
+                keys.acquire_key("sim"),
+                lambda query: rpc.answer(query, keys.acquire_key("sim"), self._acquire),
+            ),
+        ]
+
+    def _info(self, query: zenoh.Query) -> instrument_pb2.InstrumentInfo:
+        slide = instrument_pb2.SlideInfo(slide=SLIDE, rows=3, cols=3, pitch_um=100.0)
+        return instrument_pb2.InstrumentInfo(instrument="sim", slides=[slide])
+
+    def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
+        request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
+        self.acquired += 1
+        z_um = [request.z_low_um + i * request.z_step_um for i in range(request.n_frames)]
+        header = instrument_pb2.ZStackHeader(
+            instrument="sim", slide=request.slide, row=request.row, col=request.col,
+            sequence=request.sequence, z_um=z_um, nonce=request.nonce,
+            purpose=request.purpose,
+        )  # fmt: skip
+        return instrument_pb2.AcquireReply(header=header)
+
+    def close(self) -> None:
+        for queryable in self._queryables:
+            queryable.undeclare()
+
+
+@pytest.fixture
+def bus() -> Iterator[tuple[str, zenoh.Session, zenoh.Session]]:
+    """(the endpoint, the stand-ins' session that listens on it, the scheduler's)."""
+    endpoint = session.loopback_endpoint()
+    with (
+        session.open_session(listen=[endpoint]) as stand_ins,
+        session.open_session(connect=[endpoint]) as scheduler,
+    ):
+        yield endpoint, stand_ins, scheduler
+
+
+def take_phase(scheduler: zenoh.Session, listener: SlideListener, out_dir: Path) -> Engine:
+    """Describe the slide and take `PHASE_STACK` with an engine (phase timeout 60 s); the
+    engine, once its plan is over."""
+    engine = Engine(
+        InstrumentClient(scheduler, "sim", timeout_s=10),
+        listener,
+        EstimatorClient("http://127.0.0.1:9"),  # these plans ask no estimator
+        ScanRecord(out_dir),
+        RetryPolicy(phase_timeout_s=60.0),
+    )
+
+    def plan() -> Plan:
+        yield DescribeSlide("sim", SLIDE)
+        kept = yield PHASE_STACK
+        assert kept is False  # no phase service publishes here
+        return "scanned"
+
+    engine.run(plan())
+    engine.record.close()
+    return engine
+
+
+def logged_phase(out_dir: Path) -> list[dict]:
+    """The scan log's phase entries."""
+    lines = (out_dir / outputs.LOG_FILE).read_text().splitlines()
+    return [entry for entry in map(json.loads, lines) if entry["event"] == "phase"]
+
+
+def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    """Whether `condition` holds within `timeout_s` (tokens come on Zenoh's thread)."""
+    deadline_s = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline_s:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+@pytest.mark.timeout(60)
+def test_with_no_phase_service_on_the_bus_the_phase_stack_is_not_acquired(
+    bus: tuple[str, zenoh.Session, zenoh.Session], tmp_path: Path
+) -> None:
+    _, stand_ins, scheduler = bus
+    instrument = Instrument(stand_ins)
+    # a focus service's token is not a phase service's
+    token = stand_ins.liveliness().declare_token(keys.alive_key("focus", "*", "focus"))
+    listener = SlideListener(scheduler, SLIDE, phase=True)
+    try:
+        started_s = time.monotonic()
+        engine = take_phase(scheduler, listener, tmp_path)
+        assert time.monotonic() - started_s < 30  # not the 60 s timeout
+    finally:
+        listener.close()
+        instrument.close()
+        token.undeclare()
+    assert instrument.acquired == 0
+    (entry,) = logged_phase(tmp_path)
+    assert entry["n_frames"] == 0 and entry["file"] is None
+    assert "no phase service" in entry["error"]
+    assert engine.wall.phase_s < 30
+
+
+@pytest.mark.timeout(60)
+def test_a_result_lost_with_its_phase_service_ends_the_wait_once_another_is_there(
+    bus: tuple[str, zenoh.Session, zenoh.Session], tmp_path: Path
+) -> None:
+    endpoint, stand_ins, scheduler = bus
+    instrument = Instrument(stand_ins)
+    dying = session.open_session(connect=[endpoint])
+    tokens = [dying.liveliness().declare_token(keys.alive_key("phase", "*", "dying"))]
+    listener = SlideListener(scheduler, SLIDE, phase=True)
+    assert listener.phase_services is not None
+    phase_services = listener.phase_services
+    done: list[Engine] = []
+    scan = threading.Thread(target=lambda: done.append(take_phase(scheduler, listener, tmp_path)))
+    try:
+        assert until(lambda: bool(phase_services.alive()))
+        started_s = time.monotonic()
+        scan.start()
+        assert until(lambda: instrument.acquired == 1)
+        dying.close()  # the service dies with the stack's result unpublished ...
+        assert until(lambda: not phase_services.alive())
+        # None there: the wait goes on, as through a router's restart, where every token
+        # goes and comes back, and a phase computed meanwhile still comes.
+        time.sleep(1.0)
+        assert scan.is_alive()
+        with session.open_session(connect=[endpoint]) as started_again:  # ... and one is back
+            tokens.append(
+                started_again.liveliness().declare_token(
+                    keys.alive_key("phase", "*", "started-again")
+                )
+            )
+            scan.join(30)
+        assert not scan.is_alive() and time.monotonic() - started_s < 30  # not the 60 s
+    finally:
+        listener.close()
+        instrument.close()
+        dying.close()
+    (engine,) = done
+    lost = engine.metrics.registry.get_sample_value(
+        "focustrack_scan_faults_total", {"kind": "phase_service_lost"}
+    )
+    assert lost == 1
+    (entry,) = logged_phase(tmp_path)
+    assert entry["n_frames"] == 9 and "its phase service went" in entry["error"]
