@@ -330,7 +330,7 @@ class AliveTokens:
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, seed_timeout_s: float = 2.0) -> None:
-        self._lock = threading.Lock()
+        self._changed = threading.Condition()
         self._alive: set[str] = set()
         self._closed = False
         self._subscriber = session.liveliness().declare_subscriber(
@@ -338,19 +338,28 @@ class AliveTokens:
         )
         for reply in session.liveliness().get(key_expr, timeout=seed_timeout_s):
             if reply.ok is not None:
-                with self._lock:
-                    self._alive.add(str(reply.ok.key_expr))
+                self._add(str(reply.ok.key_expr))
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._alive.add(str(sample.key_expr))
-            else:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._add(str(sample.key_expr))
+        else:
+            with self._changed:
                 self._alive.discard(str(sample.key_expr))
 
+    def _add(self, key_expr: str) -> None:
+        with self._changed:
+            self._alive.add(key_expr)
+            self._changed.notify_all()
+
     def alive(self) -> frozenset[str]:
-        with self._lock:
+        with self._changed:
             return frozenset(self._alive)
+
+    def wait_alive(self, timeout_s: float) -> bool:
+        """Whether a token is alive, waiting up to `timeout_s` (s) for one to come."""
+        with self._changed:
+            return self._changed.wait_for(lambda: bool(self._alive), timeout_s)
 
     def close(self) -> None:
         """Undeclare the subscriber (once: closing again does nothing)."""

@@ -25,8 +25,9 @@ URL, when one stays gone longer than that:
   phase stack is not acquired again); a result that does not come, or one that reports
   an error, leaves the tile without phase (logged), never stops the scan; an instrument
   that takes a phase stack as a focus stack (it predates the field) is not waited for;
-  with no phase service's liveliness token on the bus the stack is not acquired, and the
-  wait ends once the phase services alive at the request have gone and another is there
+  with no phase service's liveliness token on the bus one is awaited `phase_timeout_s`
+  (once: while none came, the next stacks are not acquired), and the result's wait ends
+  once the phase services alive at the request have gone and another is there
   (`session.TokenWatch`);
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
@@ -169,6 +170,8 @@ class Engine:
         self._services: tuple[int, TokenWatch] | None = None
         self._tile_format_saved = "tile" in (record.state.read() or {})
         self._n_without_phase = 0  # tiles whose phase stack brought no phase (logged)
+        #: no phase service came within the phase timeout; none is waited for again
+        self._no_phase_service = False
         self.metrics = metrics or ScanMetrics()
         self.metrics.follow(record.tally.kept)
         record.listeners.add(self.metrics.take)
@@ -441,17 +444,24 @@ class Engine:
     def _take_phase(self, step: AcquirePhase) -> bool:
         """Acquire the phase stack, await its result and keep it; True when it was kept.
 
-        Not acquired when no phase service reads the slide (their liveliness tokens): no
-        one would reconstruct it. The wait ends early once every phase service alive at
-        the request has gone and another is there: the result went with its service."""
+        No phase service reading the slide (their liveliness tokens): one is waited for up
+        to `phase_timeout_s` (one restarting comes back within seconds), and if none comes
+        the stack is not acquired (no one would reconstruct it), nor is one waited for
+        again until one is there. The result's wait ends early once every phase service
+        alive at the request has gone and another is there: the result went with its
+        service."""
         assert self.geometry is not None
-        assert self.listener.phase_services is not None, "phase stacks need SlideListener(phase=)"
+        phase_services = self.listener.phase_services
+        assert phase_services is not None, "phase stacks need SlideListener(phase=True)"
         what = f"the phase stack of tile ({step.row}, {step.col})"
-        services = TokenWatch(self.listener.phase_services)
-        if not services.started:
-            nobody = "no phase service on the bus reads this slide (`focustrack serve phase`)"
+        waited_s = 0.0 if self._no_phase_service else self.policy.phase_timeout_s
+        if not phase_services.wait_alive(waited_s):
+            self._no_phase_service = True
+            nobody = f"no phase service on the bus reads this slide (waited {waited_s:g} s)"
             self._keep_phase(step, n_frames=0, scan_time_s=0.0, received=None, error=nobody)
             return False
+        self._no_phase_service = False
+        services = TokenWatch(phase_services)
         request = self._offset(phase_request(step, new_nonce()))
         self.listener.phase.expect(step.sequence, (step, request.nonce))  # it may come first
         key_expr = keys.acquire_key(self.instrument.name)
