@@ -18,7 +18,7 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -29,6 +29,7 @@ import zenoh
 from focustrack.bus_secrets import ROLES, client_config, write_bus_files
 from focustrack.local_stack import Service
 from focustrack_core.health import instrument_answers
+from focustrack_core.testing import within
 from focustrack_core.v1 import focus_pb2, instrument_pb2
 from focustrack_core.wire import keys, rpc
 from focustrack_core.wire.session import AliveTokens, free_port, open_session
@@ -134,16 +135,6 @@ def stack(bus: Bus, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[s
         finally:
             for service in services:
                 service.stop()
-
-
-def within(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    """Whether `condition` holds within `timeout_s` (tokens come on Zenoh's thread)."""
-    deadline_s = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline_s:
-            return False
-        time.sleep(0.05)
-    return True
 
 
 def _http_ok(url: str) -> bool:

@@ -4,11 +4,11 @@ loopback port (a router restart), the watch begun before or during the outage; a
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 import pytest
 
+from focustrack_core.testing import within
 from focustrack_core.wire import keys
 from focustrack_core.wire.session import (
     AliveTokens,
@@ -19,16 +19,6 @@ from focustrack_core.wire.session import (
 )
 
 GRACE_S = 0.3
-
-
-def within(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    """Whether `condition` holds within `timeout_s`, asked every 50 ms."""
-    deadline_s = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline_s:
-            return False
-        time.sleep(0.05)
-    return True
 
 
 def never_within(condition: Callable[[], bool], duration_s: float) -> bool:

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from focustrack_core.testing import within
 from focustrack_core.v1 import common_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.codec import PixelPublisher, describe_stack
@@ -177,15 +178,15 @@ def test_the_worker_holds_a_liveliness_token_for_every_slide_until_it_closes() -
         worker = ZenohPhaseWorker(service, PhaseStacks(PhaseLimits()))
         try:
             token = keys.alive_key("phase", "*", str(service.info.zid()))
-            deadline_s = time.monotonic() + 10
-            while not all(tokens.alive() for tokens in watched) and time.monotonic() < deadline_s:
-                time.sleep(0.05)
+            assert within(lambda: all(tokens.alive() for tokens in watched))
             assert [tokens.alive() for tokens in watched] == [{token}, {token}]
-            assert not AliveTokens(scheduler, keys.alive_pattern("focus", "a")).alive()
+            focus_services = AliveTokens(scheduler, keys.alive_pattern("focus", "a"))
+            assert not focus_services.alive()
+            focus_services.close()
             worker.close()
-            while any(tokens.alive() for tokens in watched) and time.monotonic() < deadline_s:
-                time.sleep(0.05)
-            assert not any(tokens.alive() for tokens in watched)  # gone before the session
+            assert within(
+                lambda: not any(tokens.alive() for tokens in watched)
+            )  # before the session
         finally:
             worker.close()  # (again, where the test did not get that far)
             for tokens in watched:

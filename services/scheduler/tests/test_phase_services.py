@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,6 +23,7 @@ import zenoh
 
 from focustrack_client import EstimatorClient
 from focustrack_core.domain import ZRange
+from focustrack_core.testing import within
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc, session
 from focustrack_scheduler import outputs
@@ -118,16 +119,6 @@ def logged_phase(out_dir: Path) -> list[dict]:
     return [entry for entry in map(json.loads, lines) if entry["event"] == "phase"]
 
 
-def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    """Whether `condition` holds within `timeout_s` (tokens come on Zenoh's thread)."""
-    deadline_s = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline_s:
-            return False
-        time.sleep(0.05)
-    return True
-
-
 @pytest.mark.timeout(60)
 def test_with_no_phase_service_one_is_awaited_once_and_no_phase_stack_is_taken(
     bus: tuple[str, zenoh.Session, zenoh.Session], tmp_path: Path
@@ -175,9 +166,9 @@ def test_a_phase_service_that_comes_is_given_the_stack_and_its_loss_ends_the_wai
         time.sleep(1.0)
         assert instrument.acquired == 0  # none there: the stack waits
         tokens.append(dying.liveliness().declare_token(keys.alive_key("phase", "*", "dying")))
-        assert until(lambda: instrument.acquired == 1)  # one came: it gets the stack
+        assert within(lambda: instrument.acquired == 1)  # one came: it gets the stack
         dying.close()  # ... and dies with the stack's result unpublished
-        assert until(lambda: not phase_services.alive())
+        assert within(lambda: not phase_services.alive())
         # None there: the wait goes on, as through a router's restart, where every token
         # goes and comes back, and a phase computed meanwhile still comes.
         time.sleep(1.0)

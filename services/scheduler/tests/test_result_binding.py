@@ -20,6 +20,7 @@ import zenoh
 
 from focustrack_client import EstimatorClient
 from focustrack_core.domain import Acquisition, Purpose, ZRange
+from focustrack_core.testing import within
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
 from focustrack_core.wire import keys, rpc, session
 from focustrack_core.wire.trust import NONCE_BYTES, ResultSigner
@@ -149,16 +150,6 @@ def lost_results(engine: Engine) -> dict[str, float]:
     return {kind: count for kind, count in counts.items() if count}
 
 
-def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    """Whether `condition` holds within `timeout_s` (the listener runs on Zenoh's thread)."""
-    deadline_s = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline_s:
-            return False
-        time.sleep(0.05)
-    return True
-
-
 @pytest.mark.parametrize("trust", [RESULT_KEY, None], ids=["result-key", "no-key"])
 def test_a_replayed_result_is_not_taken_and_a_duplicate_is_taken_once(
     sessions: tuple[zenoh.Session, zenoh.Session], trust: ResultSigner | None, tmp_path: Path
@@ -173,7 +164,7 @@ def test_a_replayed_result_is_not_taken_and_a_duplicate_is_taken_once(
         stand_ins.copies = 2
         first = scan_once(engine)
         assert first is not None and first.best_z_um == 1.0 and len(first.nonce) == NONCE_BYTES
-        assert until(lambda: listener.n_rejected == 1)
+        assert within(lambda: listener.n_rejected == 1)
 
         # The focus moved by 8 um; a peer replays the first scan's genuine results (right
         # slide, tile, sequence and frames, a valid tag) before each new one.
@@ -182,11 +173,11 @@ def test_a_replayed_result_is_not_taken_and_a_duplicate_is_taken_once(
         second = scan_once(engine)
         assert second is not None and second.best_z_um == 9.0
         assert second.nonce not in (b"", first.nonce)
-        assert until(lambda: listener.n_rejected == 3)
+        assert within(lambda: listener.n_rejected == 3)
 
         # A copy after the wait is over is dropped as well.
         bus.put(*stand_ins.sent[-1][:2], attachment=stand_ins.sent[-1][2])
-        assert until(lambda: listener.n_rejected == 4)
+        assert within(lambda: listener.n_rejected == 4)
     finally:
         listener.close()
         stand_ins.close()
@@ -254,7 +245,7 @@ def test_a_result_lost_with_the_bus_is_acquired_again_once_the_bus_is_back(
             assert waiting.wait(10)
             stand_ins.close()
             bus.close()  # the bus goes down with the result in flight ...
-            assert until(lambda: not scheduler.info.peers_zid())
+            assert within(lambda: not scheduler.info.peers_zid())
             bus = session.open_session(listen=[endpoint])  # ... and comes back
             scan.join(30)
             assert not scan.is_alive() and received == [None]
@@ -289,7 +280,7 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
 
             def die() -> None:
                 dying.close()
-                assert until(lambda: not listener.focus_services.alive())
+                assert within(lambda: not listener.focus_services.alive())
 
             stand_ins.on_acquire = die
         engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=60.0)
@@ -297,12 +288,12 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
         received: list[focus_pb2.FocusResult | None] = []
         scan = threading.Thread(target=lambda: received.append(scan_once(engine)))
         try:
-            assert until(lambda: bool(listener.focus_services.alive()))
+            assert within(lambda: bool(listener.focus_services.alive()))
             started_s = time.monotonic()
             scan.start()
             assert waiting.wait(10)
             dying.close()  # the service dies with the stack's result unpublished (if not yet) ...
-            assert until(lambda: not listener.focus_services.alive())
+            assert within(lambda: not listener.focus_services.alive())
             time.sleep(1.0)  # (none there to take the stack again: the wait goes on)
             assert scan.is_alive()
             with session.open_session(connect=[endpoint]) as started_again:  # ... and is back
