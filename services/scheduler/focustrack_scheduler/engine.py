@@ -455,6 +455,8 @@ class Engine:
         assert phase_services is not None, "phase stacks need SlideListener(phase=True)"
         what = f"the phase stack of tile ({step.row}, {step.col})"
         waited_s = 0.0 if self._no_phase_service else self.policy.phase_timeout_s
+        if waited_s and not phase_services.alive():
+            log.info("%s: no phase service on the bus; waiting up to %g s for one", what, waited_s)
         if not phase_services.wait_alive(waited_s):
             self._no_phase_service = True
             nobody = f"no phase service on the bus reads this slide (waited {waited_s:g} s)"
