@@ -184,9 +184,8 @@ def test_the_worker_holds_a_liveliness_token_for_every_slide_until_it_closes() -
             assert not focus_services.alive()
             focus_services.close()
             worker.close()
-            assert within(
-                lambda: not any(tokens.alive() for tokens in watched)
-            )  # before the session
+            # gone with the worker, before its session
+            assert within(lambda: not any(tokens.alive() for tokens in watched))
         finally:
             worker.close()  # (again, where the test did not get that far)
             for tokens in watched:
