@@ -38,6 +38,7 @@ import httpx
 import pytest
 from compose_runner import Topology, acquired, ensure_base_image, ensure_engine, podman, say
 
+from focustrack_core.testing import within
 from focustrack_core.wire.session import free_port
 from focustrack_estimator.event_store import open_store
 from focustrack_scheduler import outputs
@@ -181,6 +182,21 @@ def database_url(topology: Topology) -> str:
     return f"postgresql://focustrack:{POSTGRES_PASSWORD}@{address}:5432/focustrack"
 
 
+def slide_state(url: str) -> dict[str, Any]:
+    """The slide's JSON through HAProxy, asked again while HAProxy answers 503 (up to 10 s):
+    with one replica killed, the other is out for 2 s whenever it misses two health checks
+    (`inter 1s fall 2`), which a loaded machine can make it do."""
+    answers: list[httpx.Response] = []
+
+    def served() -> bool:
+        answers.append(httpx.get(url, headers=AUTH))
+        return answers[-1].status_code != 503
+
+    within(served, timeout_s=10.0)
+    answers[-1].raise_for_status()
+    return dict(answers[-1].json())
+
+
 def test_three_scans_at_once_ride_out_a_killed_replica_and_a_killed_router(
     facility: tuple[Topology, str], pytestconfig: pytest.Config
 ) -> None:
@@ -220,7 +236,7 @@ def test_three_scans_at_once_ride_out_a_killed_replica_and_a_killed_router(
         for n, out_dir in scans.out_dirs.items():
             report = dict(json.loads((out_dir / outputs.REPORT).read_text()))
             slide_id = report["estimator_slide_id"]
-            slide = httpx.get(f"{estimator_url}/v1/slides/{slide_id}", headers=AUTH).json()
+            slide = slide_state(f"{estimator_url}/v1/slides/{slide_id}")
             logged = {entry["sequence"] for entry in acquired(out_dir)}
             stored = [event.sequence for event in store.events(slide_id)]
             figures[f"scanner-{n}"] = {
