@@ -37,7 +37,7 @@ def test_the_bench_writes_its_table_json_and_figure(
     methods = [row["method"] for row in result["data_set_1"]]
     assert methods[0].startswith("sparse ACEKF ours") and len(methods) == 7
     assert methods[1] == "sparse ACEKF ours + background anchoring"
-    assert methods[-2:] == ["zero phase (reference)", "oracle Wiener (reference)"]
+    assert methods[-2:] == ["flat field (reference)", "oracle Wiener (reference)"]
     row = result["data_set_1"][0]
     assert set(row) == {
         "method", "gamma", "planes", "phase_rmse_rad", "intensity_rmse", "time_s", "cpu_s"
