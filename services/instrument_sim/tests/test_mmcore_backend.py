@@ -262,11 +262,15 @@ def test_a_stage_that_stops_short_is_target_not_reached(demo: CMMCorePlus) -> No
 
 
 def test_a_sequence_slower_than_its_deadline_is_a_timeout(demo: CMMCorePlus) -> None:
-    # the demo camera streams far slower than 1 ms frames; the deadline is exposures + 50 ms
-    instrument = _sequenced(demo, mm_timeout_s=0.05)
+    # The demo camera drawing noise streams far slower than 1 ms frames (about 20 ms
+    # here); the deadline is the exposures + 10 ms: 74 ms. It is checked while a frame is
+    # awaited, not while frames wait to be read, so the sequence is long (over 1 s): a
+    # reader descheduled on a loaded machine could otherwise find every frame there.
+    demo.setProperty(demo.getCameraDevice(), "Mode", "Noise")
+    instrument = _sequenced(demo, mm_timeout_s=0.01)
     try:
-        plan = instrument.plan(StackRequest("slide-0", 0, 0, 0.0, 0.5, 40, exposure_s=0.001))
-        with pytest.raises(DeviceTimeoutError, match="of 40 frames by the sequence's deadline"):
+        plan = instrument.plan(StackRequest("slide-0", 0, 0, 0.0, 0.1, 64, exposure_s=0.001))
+        with pytest.raises(DeviceTimeoutError, match="of 64 frames by the sequence's deadline"):
             _frames(instrument, plan)
         assert not demo.isSequenceRunning()  # stopped on the way out
     finally:
