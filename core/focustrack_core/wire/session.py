@@ -330,6 +330,7 @@ class AliveTokens:
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, seed_timeout_s: float = 2.0) -> None:
+        self.key_expr = key_expr
         self._changed = threading.Condition()
         self._alive: set[str] = set()
         self._closed = False

@@ -74,6 +74,7 @@ from focustrack_scheduler.plan import (
     CompareFrame,
     CreateOrResumeSlide,
     DescribeSlide,
+    FocusUnavailableError,
     Frame,
     KeepPlanes,
     KeepTile,
@@ -200,6 +201,15 @@ class Engine:
         self.metrics.running.set(1)
         try:
             return execute(plan, self._answer)
+        except FocusUnavailableError as error:
+            if self.listener.focus_services.alive():
+                raise
+            # What the focus services' liveliness tokens say: none reads this slide.
+            raise FocusUnavailableError(
+                f"{error} No focus service on the bus reads this slide: none holds a "
+                f"liveliness token on {self.listener.focus_services.key_expr} (start "
+                "`focustrack serve focus`, its --slides matching the slide)"
+            ) from error
         finally:
             self._tiles.close()
             self.metrics.running.set(0)

@@ -26,7 +26,7 @@ from focustrack_core.wire import keys, rpc, session
 from focustrack_core.wire.trust import NONCE_BYTES, ResultSigner
 from focustrack_scheduler.clients import InstrumentClient, SlideListener, refusal
 from focustrack_scheduler.engine import Engine, ScanRefusedError
-from focustrack_scheduler.plan import Acquire, AwaitFocus, Plan
+from focustrack_scheduler.plan import Acquire, AwaitFocus, FocusUnavailableError, Plan
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.retry import RetryPolicy
 
@@ -310,3 +310,38 @@ def test_a_result_lost_with_its_focus_service_is_acquired_again_once_one_is_ther
             listener.close()
             stand_ins.close()
             dying.close()
+
+
+@pytest.mark.parametrize("served", [False, True], ids=["no-focus-service", "focus-service"])
+def test_a_scan_without_focus_results_says_whether_a_focus_service_reads_the_slide(
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path, served: bool
+) -> None:
+    """No result, however often the stack is taken: the error says when no focus service's
+    liveliness token is on the bus for the slide (none reads its frames)."""
+    bus, scheduler = sessions
+    stand_ins = StandIns(bus)
+    stand_ins.copies = 0  # no focus result ever comes
+    focus_token = keys.alive_key("focus", "*", "focus")
+    tokens = [bus.liveliness().declare_token(focus_token)] if served else []
+    listener = SlideListener(scheduler, SLIDE, RESULT_KEY)
+    engine = engine_on(scheduler, listener, tmp_path, focus_timeout_s=0.5)
+
+    def plan() -> Plan:
+        for attempt in (1, 2):
+            yield Acquire(SLIDE, ACQUISITION, attempt)
+            assert (yield AwaitFocus(SLIDE, ACQUISITION)) is None
+        raise FocusUnavailableError("no focus result after 2 attempt(s).")
+
+    try:
+        assert within(lambda: len(listener.focus_services.alive()) == len(tokens))
+        with pytest.raises(FocusUnavailableError) as raised:
+            engine.run(plan())
+    finally:
+        listener.close()
+        stand_ins.close()
+        for token in tokens:
+            token.undeclare()
+    said = str(raised.value)
+    assert said.startswith("no focus result after 2 attempt(s).")
+    assert ("No focus service on the bus reads this slide" in said) is not served
+    assert (keys.alive_pattern("focus", SLIDE) in said) is not served
