@@ -383,8 +383,7 @@ class TokenWatch:
 
     def __init__(self, tokens: AliveTokens) -> None:
         self._tokens = tokens
-        #: the tokens alive when the watch began
-        self.started = tokens.alive()
+        self._started = tokens.alive()
         self._fired = False
 
     def lost(self) -> bool:
@@ -392,7 +391,7 @@ class TokenWatch:
         from then on)."""
         if not self._fired:
             alive = self._tokens.alive()
-            self._fired = bool(alive) and not self.started & alive
+            self._fired = bool(alive) and not self._started & alive
         return self._fired
 
 
