@@ -44,8 +44,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy import fft
 
+from focustrack_phase import transforms
 from focustrack_phase.background import anchor_to_background
 from focustrack_phase.propagation import FoldedGrid, coherence_envelope, fresnel_transfer
 
@@ -330,30 +330,33 @@ def _filtered_field(
     photons_to_relative = np.float32(photons_per_count / gamma)
     transfer = _Transfer(grid, freq_sq, wavelength_um)
     floor = np.float32(opts.amplitude_floor)
+    # Every working image is a padded buffer (`transforms.padded_zeros`): the FFTs run on
+    # its image proper, [inside]; the element-wise passes on the whole buffer.
+    inside = np.s_[:, : shape[1]]
 
     # (1) Initialisation: a plane wave of unit intensity, Q_0 = q0 U, P_0 = p0 U.
-    b = np.zeros(shape, dtype=np.complex64)
-    b[0, 0] = np.sqrt(b.size)  # the unitary FFT of a field of ones
+    b = transforms.padded_zeros(shape, np.complex64)
+    b[0, 0] = np.sqrt(shape[0] * shape[1])  # the unitary FFT of a field of ones
     Q, P = initial_covariances(opts, freq_sq, prior)
     # The working images, reused every plane (no allocation in the loop): eq. 33's a_hat,
     # a copy of b_hat transformed in place (ours transforms b_hat itself, below); |a_hat|,
     # the residual and a scratch image; our update's filtered residual.
-    a_hat = np.empty(shape if opts.update == "paper" else 0, dtype=np.complex64)
-    modulus = np.empty(shape, dtype=np.float32)
-    residual = np.empty(shape, dtype=np.float32)
-    scratch = np.empty(shape, dtype=np.float32)
-    filtered = np.empty(shape if opts.update == "phase_frame" else 0, dtype=np.complex64)
+    image = transforms.padded_zeros
+    a_hat = image(shape if opts.update == "paper" else (0, 0), np.complex64)
+    modulus = image(shape, np.float32)
+    residual = image(shape, np.float32)
+    scratch = image(shape, np.float32)
+    filtered = image(shape if opts.update == "phase_frame" else (0, 0), np.complex64)
     z_prev = 0.0
     for k in plane_order(z):
         dz_um = float(z[k]) - z_prev
         z_prev = float(z[k])
         # (2) Prediction; a plane at the previous one's height has H = 1 (eq. 3), none.
         if dz_um != 0:
-            H, H_full = transfer.of(dz_um)  # eq. 3
+            H_squared, H_full = transfer.of(dz_um)  # eq. 3
             b *= H_full  # eq. 27: b_hat = H b
             # eq. 28: Q_hat = Q (H Q H^H with |H| = 1)
-            P *= H  # eq. 29: P_hat = H P H (two products: no H^2 kept)
-            P *= H
+            P *= H_squared  # eq. 29: P_hat = H P H = H(2 dz) P (H is diagonal)
         # (3) Update. The measurement noise: eq. 31's q, plus the variance of the term the
         # linearisation drops, |a - a_hat|^2, whose per-pixel variance is (mean Q)^2 for a
         # complex Gaussian error (a second-order EKF's correction; without it a confident
@@ -365,11 +368,11 @@ def _filtered_field(
         # on b_hat itself for ours, which rebuilds b from the corrected field.
         if opts.update == "paper":
             np.copyto(a_hat, b)
-            a_hat = _ifft2(a_hat, workers)
         else:
-            a_hat = _ifft2(b, workers)
+            a_hat = b
+        transforms.ifft2(a_hat[inside], workers)
         np.abs(a_hat, out=modulus)
-        np.multiply(stack_counts[k], photons_to_relative, out=residual)
+        np.multiply(stack_counts[k], photons_to_relative, out=residual[inside])
         np.square(modulus, out=scratch)
         residual -= scratch  # I / gamma - |a_hat|^2
         # The partially coherent prediction is 1 + E (|a_hat|^2 - 1) in Fourier space, so
@@ -384,81 +387,51 @@ def _filtered_field(
             residual /= scratch
             weighted_excess = None if excess is None else a_hat * (excess / scratch)
             a_hat *= residual
-            innovation = _with_excess(
-                _fft2(a_hat, workers), weighted_excess, envelope, grid, workers
-            )
+            innovation = transforms.fft2(a_hat[inside], workers)
+            _add_excess(innovation, weighted_excess, envelope, grid, workers)
             grid.multiply(innovation, gain)
-            b += innovation
+            b += a_hat  # the innovation, in a_hat's buffer
             continue
         # Ours: J^-1 = diag(e^{i theta}) diag(1/|a_hat|); applying the gain between the two
         # factors is eq. 33 for the field e^{-i theta} a, which is real and positive at
         # a_hat: Theorem 1's weak object, whatever the phase theta.
         residual /= scratch  # real: its spectrum is Hermitian, so rfft2 computes half
         real_excess = None if excess is None else (excess / scratch).astype(np.complex64)
-        spectrum = _with_excess(
-            _real_fft2(residual, filtered, workers), real_excess, envelope, grid, workers
-        )
+        spectrum = transforms.real_fft2(residual[inside], filtered[inside], workers)
+        _add_excess(spectrum, real_excess, envelope, grid, workers)
         grid.multiply(spectrum, gain)
-        correction = _ifft2(spectrum, workers)
+        transforms.ifft2(spectrum, workers)  # the correction, in `filtered`
         # e^{i theta} = a_hat / |a_hat|: the correction in the field's own phase frame.
         np.maximum(modulus, _TINY, out=modulus)
         np.reciprocal(modulus, out=modulus)
-        correction *= modulus
-        correction *= a_hat
+        filtered *= modulus
+        filtered *= a_hat
         # b_n = b_hat + K (e^{i theta} correction) = K (a_hat + e^{i theta} correction): the
         # sum taken in space, where a_hat is, so b_hat needs no copy (K is linear).
-        a_hat += correction
-        b = _fft2(a_hat, workers)
+        a_hat += filtered
+        transforms.fft2(a_hat[inside], workers)
     # Back-propagation to the focal plane: H(-z_last) = H(z_last)^*.
     b *= transfer.of(-z_prev)[1]
-    return _ifft2(b, workers)
+    return transforms.ifft2(b[inside], workers)
 
 
 class FilterDivergedError(ValueError):
     """The sparse ACEKF ran away: its field's intensity left any plausible range."""
 
 
-def _fft2(x: np.ndarray, workers: int) -> np.ndarray:
-    """The unitary FFT of a complex64 image, in place."""
-    return fft.fft2(x, norm="ortho", workers=workers, overwrite_x=True)
-
-
-def _real_fft2(image: np.ndarray, out: np.ndarray, workers: int) -> np.ndarray:
-    """The unitary FFT of a real float32 image (height, width), written into the complex64
-    `out` of the same shape and returned: rfft2 computes the bins with fx >= 0 for about
-    half a complex FFT's time, and a real image's spectrum gives the others,
-    F(-fy, -fx) = F(fy, fx)^*."""
-    half = fft.rfft2(image, norm="ortho", workers=workers)
-    width = image.shape[1]
-    columns = half.shape[1]  # width // 2 + 1
-    out[:, :columns] = half
-    # Bin (row, col) with col >= columns is bin (-row, width - col) conjugated: the half's
-    # columns width - columns .. 1 reversed, its rows 0 then height - 1 .. 1.
-    mirrored = half[:, width - columns : 0 : -1]
-    np.conjugate(mirrored[:1], out=out[:1, columns:])
-    np.conjugate(mirrored[:0:-1], out=out[1:, columns:])
-    return out
-
-
-def _ifft2(x: np.ndarray, workers: int) -> np.ndarray:
-    """The unitary inverse FFT of a complex64 image, in place."""
-    return fft.ifft2(x, norm="ortho", workers=workers, overwrite_x=True)
-
-
-def _with_excess(
+def _add_excess(
     spectrum: np.ndarray,
     weighted_excess: np.ndarray | None,
     envelope: np.ndarray | None,
     grid: FoldedGrid,
     workers: int,
-) -> np.ndarray:
-    """A residual's spectrum plus (1 - E) FFT(excess) with partial coherence (complex64
-    (height, width), `spectrum` updated in place; `weighted_excess` is spent)."""
+) -> None:
+    """spectrum += (1 - E) FFT(excess) with partial coherence, in place (complex64 (height,
+    width); `weighted_excess`, a padded buffer, is spent)."""
     if weighted_excess is not None and envelope is not None:
-        excess_spectrum = _fft2(weighted_excess, workers)
+        excess_spectrum = transforms.fft2(weighted_excess[:, : spectrum.shape[1]], workers)
         grid.multiply(excess_spectrum, 1 - envelope)
         spectrum += excess_spectrum
-    return spectrum
 
 
 def _update_covariances(
@@ -501,8 +474,9 @@ class _Transfer:
     """H(dz) (complex64, eq. 3) of the latest step length, computed again only when it changes.
 
     `plane_order` makes equally spaced planes take one step length per side of focus, so
-    one exponential serves nearly every step. It is held twice: on the folded grid for
-    P (eq. 29) and expanded for b (eq. 27), whose product runs faster on a contiguous H.
+    one exponential serves nearly every step. It is held as P needs it, H^2 = H(2 dz) on
+    the folded grid (eq. 29), and expanded for b (eq. 27), padded as b is, whose product
+    runs faster on a contiguous H.
     """
 
     def __init__(self, grid: FoldedGrid, freq_sq_per_um2: np.ndarray, wavelength_um: float):
@@ -510,16 +484,18 @@ class _Transfer:
         self._freq_sq = freq_sq_per_um2
         self._wavelength_um = wavelength_um
         self._dz_um: float | None = None
-        self._H = self._full = np.empty(0, dtype=np.complex64)
+        self._squared = self._full = np.empty(0, dtype=np.complex64)
 
     def of(self, dz_um: float) -> tuple[np.ndarray, np.ndarray]:
-        """H(dz) on the folded grid and on the full grid."""
+        """H(dz)^2 on the folded grid and H(dz) on the full grid (padded)."""
         if dz_um != self._dz_um:
-            self._H = self._full = np.empty(0, dtype=np.complex64)  # free the old ones first
-            self._H = fresnel_transfer(self._freq_sq, self._wavelength_um, dz_um)
-            self._full = self._grid.expand(self._H)
+            self._squared = self._full = np.empty(0, dtype=np.complex64)  # free the old ones
+            self._squared = fresnel_transfer(self._freq_sq, self._wavelength_um, 2 * dz_um)
+            H = fresnel_transfer(self._freq_sq, self._wavelength_um, dz_um)
+            self._full = transforms.padded_zeros(self._grid.shape, np.complex64)
+            self._grid.expand(H, out=self._full[:, : self._grid.shape[1]])
             self._dz_um = dz_um
-        return self._H, self._full
+        return self._squared, self._full
 
 
 _TINY = np.finfo(np.float32).tiny

@@ -127,9 +127,10 @@ class FoldedGrid:
                 block = spectrum[spectrum_rows, spectrum_cols]
                 block *= quarter[quarter_rows, quarter_cols]
 
-    def expand(self, quarter: np.ndarray) -> np.ndarray:
-        """The full (height, width) array of a quarter's values."""
-        full = np.empty(self.shape, dtype=quarter.dtype)
+    def expand(self, quarter: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """The full (height, width) array of a quarter's values (written into `out`, of
+        that shape, when given)."""
+        full = np.empty(self.shape, dtype=quarter.dtype) if out is None else out
         for full_rows, quarter_rows in self._rows:
             for full_cols, quarter_cols in self._cols:
                 full[full_rows, full_cols] = quarter[quarter_rows, quarter_cols]
@@ -138,7 +139,10 @@ class FoldedGrid:
     def mean(self, quarter: np.ndarray) -> float:
         """The mean over the full grid of a quarter's values (each counted as often as it
         appears)."""
-        total = self._row_weights @ quarter.astype(np.float64) @ self._col_weights
+        # Weights of the quarter's own precision: a float32 quarter (the filter's) takes
+        # BLAS's sgemv, no float64 copy; its noise term needs no more than float32's sum.
+        dtype = quarter.real.dtype
+        total = self._row_weights.astype(dtype) @ quarter @ self._col_weights.astype(dtype)
         return float(total) / (self.shape[0] * self.shape[1])
 
 

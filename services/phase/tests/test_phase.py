@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import special
 
-from focustrack_phase import acekf, baselines, simulate
+from focustrack_phase import acekf, baselines, simulate, transforms
 from focustrack_phase.propagation import (
     FoldedGrid,
     coherence_envelope,
@@ -97,9 +97,26 @@ def test_a_smooth_prior_helps_on_a_smooth_object() -> None:
 def test_the_real_fft_gives_the_full_spectrum_of_a_real_image(shape: tuple[int, int]) -> None:
     image = np.random.default_rng(5).normal(size=shape).astype(np.float32)
     out = np.empty(shape, dtype=np.complex64)
-    spectrum = acekf._real_fft2(image, out, workers=1)
+    spectrum = transforms.real_fft2(image, out, workers=1)
     assert spectrum is out
     np.testing.assert_allclose(spectrum, np.fft.fft2(image, norm="ortho"), atol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(16, 16), (7, 10)])
+def test_the_transforms_work_in_place_on_a_padded_image_and_leave_its_padding_zero(
+    shape: tuple[int, int],
+) -> None:
+    rng = np.random.default_rng(6)
+    image = (rng.normal(size=shape) + 1j * rng.normal(size=shape)).astype(np.complex64)
+    buffer = transforms.padded_zeros(shape, np.complex64)
+    assert buffer.shape == (shape[0], shape[1] + transforms.ROW_PAD_PX)
+    view = buffer[:, : shape[1]]
+    view[...] = image
+    assert transforms.fft2(view) is view
+    np.testing.assert_allclose(view, np.fft.fft2(image, norm="ortho"), atol=1e-5)
+    assert transforms.ifft2(view) is view
+    np.testing.assert_allclose(view, image, atol=1e-5)
+    assert not buffer[:, shape[1] :].any()
 
 
 def _table_1_field(
