@@ -32,6 +32,7 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.sparse.linalg import LinearOperator, cg
 
+from focustrack_phase import transforms
 from focustrack_phase.propagation import phase_transfer_power
 
 #: The band re-estimated: the frequencies below the lowest at which the transfer power T(f)
@@ -255,22 +256,26 @@ def low_frequency_correction(
     transfer = phase_transfer_power(freq_sq[band], z_um, wavelength_um, condenser_na)
     penalty = weight * transfer + RIDGE
     # M's spectrum at the differences of two band bins, on the small grid; scaled so that
-    # the small grid's (unnormalised) circular convolution is the full grid's.
+    # the small grid's (unnormalised) circular convolution is the full grid's (the unitary
+    # spectrum times sqrt(mask.size) is the unnormalised one).
     mask = background.astype(np.float32)
     small = (fft.next_fast_len(4 * reach_y + 1), fft.next_fast_len(4 * reach_x + 1))
     differences = np.ix_(_bins(2 * reach_y, height), _bins(2 * reach_x, width))
-    cropped = fft.fft2(mask)[differences] * (small[0] * small[1] / mask.size)
-    mask_spectrum = np.zeros(small, dtype=complex)
+    cropped = _spectrum(mask)[differences] * (small[0] * small[1] / np.sqrt(mask.size))
+    mask_spectrum = np.zeros(small, dtype=np.complex64)
     mask_spectrum[np.ix_(_bins(2 * reach_y, small[0]), _bins(2 * reach_x, small[1]))] = cropped
-    small_mask = fft.ifft2(mask_spectrum)
-    where = np.ix_(_bins(reach_y, small[0]), _bins(reach_x, small[1]))
+    small_mask = fft.ifft2(mask_spectrum, overwrite_x=True)
+    # The band's bins as flat indices of the small grid: theta goes in and comes out in one
+    # put and one take. The products run in single precision, ample for CG_RTOL.
+    on_small = np.add.outer(_bins(reach_y, small[0]) * small[1], _bins(reach_x, small[1]))[band]
 
     def normal(theta: np.ndarray) -> np.ndarray:
-        spectrum = np.zeros(small, dtype=complex)
-        spectrum[where] = _scatter(theta, band)
-        return fft.fft2(small_mask * fft.ifft2(spectrum))[where][band] + penalty * theta
+        spectrum = np.zeros(small, dtype=np.complex64)
+        spectrum.ravel()[on_small] = theta
+        product = fft.fft2(small_mask * fft.ifft2(spectrum, overwrite_x=True), overwrite_x=True)
+        return product.ravel()[on_small] + penalty * theta
 
-    rhs = -fft.fft2(np.where(background, phase_rad, np.float32(0)), norm="ortho")[within][band]
+    rhs = -_spectrum(np.where(background, phase_rad, np.float32(0)))[within][band]
     size = int(band.sum())
     diagonal = float(mask.mean()) + penalty  # B^H diag(M) B's diagonal is M's mean
     theta, _ = cg(
@@ -280,9 +285,9 @@ def low_frequency_correction(
         maxiter=CG_MAX_ITERATIONS,
         M=LinearOperator((size, size), matvec=lambda r: r / diagonal, dtype=complex),
     )
-    correction = np.zeros((height, width), dtype=np.complex64)
+    correction = transforms.padded_zeros((height, width), np.complex64)
     correction[within] = _scatter(theta, band)
-    return fft.ifft2(correction, norm="ortho", overwrite_x=True).real
+    return transforms.ifft2(correction[:, :width]).real
 
 
 def band_edge_per_um(
@@ -311,14 +316,22 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
 
     rows = gaussian(fft.fftfreq(image.shape[0]))[:, None]  # separable: two small factors
     if np.iscomplexobj(image):
-        spectrum = fft.fft2(image.astype(np.complex64))
+        spectrum = transforms.padded_zeros(image.shape, np.complex64)[:, : image.shape[1]]
+        spectrum[...] = image
+        transforms.fft2(spectrum)
         spectrum *= rows
         spectrum *= gaussian(fft.fftfreq(image.shape[1]))
-        return fft.ifft2(spectrum, overwrite_x=True)
+        return transforms.ifft2(spectrum)
     half = fft.rfft2(image.astype(np.float32))
     half *= rows
     half *= gaussian(fft.rfftfreq(image.shape[1]))
     return fft.irfft2(half, s=image.shape, overwrite_x=True)
+
+
+def _spectrum(image: np.ndarray) -> np.ndarray:
+    """The unitary FFT (complex64, (height, width)) of a real float32 image."""
+    out = transforms.padded_zeros(image.shape, np.complex64)[:, : image.shape[1]]
+    return transforms.real_fft2(image, out)
 
 
 def _bins(reach: int, size: int) -> np.ndarray:
