@@ -30,20 +30,19 @@ def update_ffts_cpu_s(update: acekf.Update, size_px: int, planes: int) -> float:
     focus."""
     rng = np.random.default_rng(1)
     shape = (size_px, size_px)
-    inside = np.s_[:, :size_px]
-    field = transforms.padded_zeros(shape, np.complex64)
-    field[inside] = rng.normal(size=shape)
-    residual = transforms.padded_zeros(shape, np.float32)
-    residual[inside] = rng.normal(size=shape)
-    spectrum = transforms.padded_zeros(shape, np.complex64)
+    field = transforms.padded_image(shape, np.complex64)
+    field[...] = rng.normal(size=shape)
+    residual = transforms.padded_image(shape, np.float32)
+    residual[...] = rng.normal(size=shape)
+    spectrum = transforms.padded_image(shape, np.complex64)
     start_cpu = time.process_time()
     for _ in range(planes):
-        transforms.ifft2(field[inside])
+        transforms.ifft2(field)
         if update == "phase_frame":
-            transforms.real_fft2(residual[inside], spectrum[inside])
-            transforms.ifft2(spectrum[inside])
-        transforms.fft2(field[inside])
-    transforms.ifft2(field[inside])
+            transforms.real_fft2(residual, spectrum)
+            transforms.ifft2(spectrum)
+        transforms.fft2(field)
+    transforms.ifft2(field)
     return time.process_time() - start_cpu
 
 

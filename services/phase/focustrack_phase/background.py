@@ -285,9 +285,9 @@ def low_frequency_correction(
         maxiter=CG_MAX_ITERATIONS,
         M=LinearOperator((size, size), matvec=lambda r: r / diagonal, dtype=complex),
     )
-    correction = transforms.padded_zeros((height, width), np.complex64)
+    correction = transforms.padded_image((height, width), np.complex64)
     correction[within] = _scatter(theta, band)
-    return transforms.ifft2(correction[:, :width]).real
+    return transforms.ifft2(correction).real
 
 
 def band_edge_per_um(
@@ -316,7 +316,7 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
 
     rows = gaussian(fft.fftfreq(image.shape[0]))[:, None]  # separable: two small factors
     if np.iscomplexobj(image):
-        spectrum = transforms.padded_zeros(image.shape, np.complex64)[:, : image.shape[1]]
+        spectrum = transforms.padded_image(image.shape, np.complex64)
         spectrum[...] = image
         transforms.fft2(spectrum)
         spectrum *= rows
@@ -330,8 +330,7 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
 
 def _spectrum(image: np.ndarray) -> np.ndarray:
     """The unitary FFT (complex64, (height, width)) of a real float32 image."""
-    out = transforms.padded_zeros(image.shape, np.complex64)[:, : image.shape[1]]
-    return transforms.real_fft2(image, out)
+    return transforms.real_fft2(image, transforms.padded_image(image.shape, np.complex64))
 
 
 def _bins(reach: int, size: int) -> np.ndarray:

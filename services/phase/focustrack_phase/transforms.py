@@ -25,6 +25,12 @@ def padded_zeros(shape: tuple[int, int], dtype: type[np.generic]) -> np.ndarray:
     return np.zeros((shape[0], shape[1] + ROW_PAD_PX), dtype=dtype)
 
 
+def padded_image(shape: tuple[int, int], dtype: type[np.generic]) -> np.ndarray:
+    """Zeros of `shape` (height, width) in a padded buffer (`padded_zeros`): the view of
+    its image proper, whose FFTs run at the padded speed."""
+    return padded_zeros(shape, dtype)[:, : shape[1]]
+
+
 def fft2(image: np.ndarray, workers: int = 1) -> np.ndarray:
     """The unitary FFT of a complex64 image (height, width), in place (a strided view
     too); returns image."""
