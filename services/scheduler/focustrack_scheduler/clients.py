@@ -324,6 +324,11 @@ class Inbox(Generic[A, R]):
                 self._changed.notify_all()
             return why
 
+    def ready(self, sequence: int) -> bool:
+        """Whether a result for stack `sequence` was taken (`wait` then hands it over at once)."""
+        with self._changed:
+            return sequence in self._taken
+
     def wait(
         self, sequence: int, timeout_s: float, lost: Callable[[], bool] = lambda: False
     ) -> R | None:

@@ -20,15 +20,18 @@ URL, when one stays gone longer than that:
   gone, so a result in flight then is lost); either goes back to the plan, which
   acquires the stack again (under a new nonce);
 - phase stacks (`AcquirePhase`, with ``--phase``): acquired as any stack, their result
-  taken the same way and waited for `phase_timeout_s` (the whole of it: a phase takes
-  seconds to compute, so one on its way may still come after the bus is back, and a
-  phase stack is not acquired again); a result that does not come, or one that reports
-  an error, leaves the tile without phase (logged), never stops the scan; an instrument
-  that takes a phase stack as a focus stack (it predates the field) is not waited for;
-  with no phase service's liveliness token on the bus one is awaited `phase_timeout_s`
-  (once: while none came, the next stacks are not acquired), and the result's wait ends
-  once the phase services alive at the request have gone and another is there
-  (`session.TokenWatch`);
+  taken the same way and waited for `phase_timeout_s` from the acquisition (the whole of
+  it: a phase takes seconds to compute, so one on its way may still come after the bus is
+  back); the scan goes on without the last `phase_in_flight` results (it images the next
+  tile while the phase service reconstructs), and awaits every one still to come before
+  it ends (a scan that stops keeps those tiles without phase); a result that does not
+  come, or one that reports an error, leaves the tile without phase (logged), never stops
+  the scan; an instrument that takes a phase stack as a focus stack (it predates the
+  field) is not waited for; with no phase service's liveliness token on the bus one is
+  awaited `phase_timeout_s` (once: while none came, the next stacks are not acquired),
+  and once the phase services alive at a stack's request have all gone and another is
+  there (`session.TokenWatch`), the result went with them: the stack is acquired again,
+  once, for the one there now;
 - estimator (HTTP): connection errors and 5xx answers are retried the same way
   for up to `estimator_outage_s` (a restarted estimator rebuilds its slides from
   its log, and a measurement posted twice is recorded once); a 4xx is a refusal
@@ -42,7 +45,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import httpx
@@ -133,6 +138,24 @@ class ScanProgress:
         self.bar.close()
 
 
+@dataclass(frozen=True)
+class PendingPhase:
+    """A phase stack acquired whose result the scan has yet to take.
+
+    n_frames, scan_time_s: its images and the instrument's (simulated) seconds for them.
+    services: the phase services alive at its request (the result goes with them).
+    deadline_s: `time.monotonic()` after which its result is awaited no longer.
+    attempt: 1, or 2 for a stack taken again because its result went with its service.
+    """
+
+    step: AcquirePhase
+    n_frames: int
+    scan_time_s: float
+    services: TokenWatch
+    deadline_s: float
+    attempt: int
+
+
 class Engine:
     """Runs a plan: each step against the instrument, the focus results or the estimator."""
 
@@ -173,6 +196,8 @@ class Engine:
         self._n_without_phase = 0  # tiles whose phase stack brought no phase (logged)
         #: no phase service came within the phase timeout; none is waited for again
         self._no_phase_service = False
+        #: phase stacks acquired whose results are still to come, oldest first
+        self._pending_phase: deque[PendingPhase] = deque()
         self.metrics = metrics or ScanMetrics()
         self.metrics.follow(record.tally.kept)
         record.listeners.add(self.metrics.take)
@@ -200,7 +225,9 @@ class Engine:
         started_s = time.perf_counter()
         self.metrics.running.set(1)
         try:
-            return execute(plan, self._answer)
+            slide_id = execute(plan, self._answer)
+            self._take_pending_phase(in_flight=0)  # the last tiles' phase
+            return slide_id
         except FocusUnavailableError as error:
             if self.listener.focus_services.alive():
                 raise
@@ -211,6 +238,7 @@ class Engine:
                 "`focustrack serve focus`, its --slides matching the slide)"
             ) from error
         finally:
+            self._drop_pending_phase()
             self._tiles.close()
             self.metrics.running.set(0)
             self.wall.close(time.perf_counter() - started_s)
@@ -442,24 +470,23 @@ class Engine:
         stacked = np.stack([pixels[frame] for frame in step.planes])
         self.record.keep_planes(self.geometry.grid, step.row, step.col, z_um, stacked, bit_depth)
 
-    def _acquire_phase(self, step: AcquirePhase) -> bool:
+    def _acquire_phase(self, step: AcquirePhase) -> None:
         if self.geometry is None:  # described before any acquisition
-            return False
+            return
         started_s = time.perf_counter()
         try:
-            return self._take_phase(step)
+            self._take_phase(step)
         finally:
             self.wall.phase_s += time.perf_counter() - started_s
+        self._take_pending_phase(self.policy.phase_in_flight)
 
-    def _take_phase(self, step: AcquirePhase) -> bool:
-        """Acquire the phase stack, await its result and keep it; True when it was kept.
+    def _take_phase(self, step: AcquirePhase, attempt: int = 1) -> None:
+        """Acquire the phase stack; its result is awaited later (`_take_pending_phase`).
 
         No phase service reading the slide (their liveliness tokens): one is waited for up
         to `phase_timeout_s` (one restarting comes back within seconds), and if none comes
         the stack is not acquired (no one would reconstruct it), nor is one waited for
-        again until one is there. The result's wait ends early once every phase service
-        alive at the request has gone and another is there: the result went with its
-        service."""
+        again until one is there."""
         assert self.geometry is not None
         phase_services = self.listener.phase_services
         assert phase_services is not None, "phase stacks need SlideListener(phase=True)"
@@ -471,7 +498,7 @@ class Engine:
             self._no_phase_service = True
             nobody = f"no phase service on the bus reads this slide (waited {waited_s:g} s)"
             self._keep_phase(step, n_frames=0, scan_time_s=0.0, received=None, error=nobody)
-            return False
+            return
         self._no_phase_service = False
         services = TokenWatch(phase_services)
         request = self._offset(phase_request(step, new_nonce()))
@@ -483,24 +510,71 @@ class Engine:
                 f"instrument {self.instrument.name!r} took {what} without its nonce: it "
                 "predates acquisition nonces (update it), or is not the instrument asked"
             )
-        error: str | None = None
-        received = None
+        n_frames = len(reply.header.z_um)
         if reply.header.purpose != instrument_pb2.ACQUISITION_PURPOSE_PHASE:
             self.listener.phase.forget(step.sequence)
             error = "the instrument took it as a focus stack (it predates phase stacks)"
-        else:
-            timeout_s = self.policy.phase_timeout_s
-            received = self.listener.phase.wait(step.sequence, timeout_s, lost=services.lost)
-            if received is None and services.lost():
-                self.metrics.faults.labels("phase_service_lost").inc()
-                error = "its phase service went before it published the result"
-            elif received is None:
-                error = f"no phase result within {timeout_s:g} s"
-            elif received.field is None:
-                error = f"the phase service: {received.result.error.message}"
-        n_frames = len(reply.header.z_um)
-        self._keep_phase(step, n_frames, reply.timing.total_s, received, error)
-        return error is None
+            self._keep_phase(step, n_frames, reply.timing.total_s, None, error)
+            return
+        deadline_s = time.monotonic() + self.policy.phase_timeout_s
+        self._pending_phase.append(
+            PendingPhase(step, n_frames, reply.timing.total_s, services, deadline_s, attempt)
+        )
+
+    def _take_pending_phase(self, in_flight: int) -> None:
+        """Keep the results of the phase stacks pending, oldest first, that have come, and
+        wait for the oldest until no more than `in_flight` are left. A result's wait ends
+        at its deadline, or once every phase service alive at its request has gone and
+        another is there: the result went with its service, and the stack is taken again
+        (once) for the one there now."""
+        if not self._pending_phase:  # a scan without phase spends no time here
+            return
+        started_s = time.perf_counter()
+        try:
+            while self._pending_phase:
+                pending = self._pending_phase[0]
+                sequence = pending.step.sequence
+                if len(self._pending_phase) <= in_flight and not (
+                    self.listener.phase.ready(sequence)
+                    or time.monotonic() >= pending.deadline_s
+                    or pending.services.lost()
+                ):
+                    return
+                self._pending_phase.popleft()
+                remaining_s = max(pending.deadline_s - time.monotonic(), 0.0)
+                received = self.listener.phase.wait(
+                    sequence, remaining_s, lost=pending.services.lost
+                )
+                error = None
+                if received is None and pending.services.lost():
+                    self.metrics.faults.labels("phase_service_lost").inc()
+                    if pending.attempt == 1:
+                        log.info(
+                            "tile (%d, %d): its phase service went; taking its phase stack again",
+                            pending.step.row,
+                            pending.step.col,
+                        )
+                        self._take_phase(pending.step, attempt=2)
+                        continue
+                    error = "its phase service went before it published the result"
+                elif received is None:
+                    error = f"no phase result within {self.policy.phase_timeout_s:g} s"
+                elif received.field is None:
+                    error = f"the phase service: {received.result.error.message}"
+                self._keep_phase(
+                    pending.step, pending.n_frames, pending.scan_time_s, received, error
+                )
+        finally:
+            self.wall.phase_s += time.perf_counter() - started_s
+
+    def _drop_pending_phase(self) -> None:
+        """The tiles whose phase results were still to come when the scan stopped: kept
+        without phase (say so), their results awaited no longer."""
+        while self._pending_phase:
+            pending = self._pending_phase.popleft()
+            self.listener.phase.forget(pending.step.sequence)
+            stopped = "the scan stopped before its phase result came"
+            self._keep_phase(pending.step, pending.n_frames, pending.scan_time_s, None, stopped)
 
     def _keep_phase(
         self,

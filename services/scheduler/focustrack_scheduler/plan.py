@@ -242,9 +242,10 @@ class KeepPlanes:
 
 @dataclass(frozen=True)
 class AcquirePhase:
-    """-> True when the tile's phase was kept. A phase stack of tile (row, col) at `z`, for
-    the phase service to reconstruct at `reference_z_um` (the z of the tile's image), under
-    wire sequence `sequence`; its result is awaited and kept beside the tile's image."""
+    """-> None. A phase stack of tile (row, col) at `z`, for the phase service to
+    reconstruct at `reference_z_um` (the z of the tile's image), under wire sequence
+    `sequence`; its result is kept beside the tile's image when it comes (the engine may
+    go on to the next tiles meanwhile, and awaits it before the scan ends)."""
 
     slide: str
     row: int

@@ -1,8 +1,9 @@
 """How the scan waits for a service that is gone: timeouts, back-off and what is retried.
 
 `RetryPolicy` holds the timeouts and the outages waited out (tenacity's exponential
-back-off); the predicates say which errors mean "nobody answered" (retried) and which
-are refusals (not retried). The engine (`engine.py`) applies them to every call.
+back-off), and how many phase results the scan goes on without; the predicates say which
+errors mean "nobody answered" (retried) and which are refusals (not retried). The engine
+(`engine.py`) applies them to every call.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ class RetryPolicy:
     instrument_outage_s: float = 60.0  # keep retrying a gone (or busy) instrument this long
     focus_timeout_s: float = 15.0
     phase_timeout_s: float = 15.0  # a phase stack's result; none by then: the tile has no phase
+    #: phase stacks whose results the scan goes on without: it images the next tile while
+    #: the phase service reconstructs (0: it waits for each result before going on)
+    phase_in_flight: int = 1
     estimator_timeout_s: float = 10.0  # one HTTP request
     estimator_outage_s: float = 60.0  # keep retrying a gone estimator this long
     backoff_initial_s: float = 0.25  # the first pause between retries; it doubles ...
@@ -46,6 +50,8 @@ class RetryPolicy:
         )
         if min(times) <= 0:
             raise ValueError(f"timeouts must be positive, got {times}")
+        if self.phase_in_flight < 0:
+            raise ValueError(f"phase_in_flight must be >= 0, got {self.phase_in_flight}")
 
     def retrying(
         self,

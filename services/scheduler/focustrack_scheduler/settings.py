@@ -126,6 +126,13 @@ class ScanOptions(ServiceSettings):
         gt=0,
         description="the wait for a phase stack's result, s; none by then: the tile has no phase",
     )
+    phase_in_flight: int = Field(
+        _RETRY.phase_in_flight,
+        ge=0,
+        description="phase stacks whose results the scan goes on without: it images the next "
+        "tile while the phase service reconstructs the last (0: it waits for each result; "
+        "the scan waits for every result still to come before it ends)",
+    )
     # outputs and trust
     mosaic_format: MosaicFormat = Field(
         MosaicFormat.OME_ZARR,
@@ -174,6 +181,7 @@ class ScanOptions(ServiceSettings):
             instrument_outage_s=self.instrument_outage_s,
             focus_timeout_s=self.focus_timeout_s,
             phase_timeout_s=self.phase_timeout_s,
+            phase_in_flight=self.phase_in_flight,
             estimator_outage_s=self.estimator_outage_s,
         )
 

@@ -54,6 +54,7 @@ OPTIONS = {
     "phase_planes": 11,
     "phase_step_um": None,
     "phase_timeout_s": RetryPolicy().phase_timeout_s,
+    "phase_in_flight": RetryPolicy().phase_in_flight,
     "mosaic_format": MosaicFormat.OME_ZARR,
     "no_progress": False,
     "result_key_file": None,
