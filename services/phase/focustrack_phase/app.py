@@ -137,9 +137,11 @@ def checked_stack(frames: np.ndarray, z_um: np.ndarray, limits: PhaseLimits) -> 
 Positive = Annotated[float, Form(gt=0, allow_inf_nan=False)]
 
 
-def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> FastAPI:
+def create_app(
+    limits: PhaseLimits | None = None, token: str | None = None, fft_workers: int = 1
+) -> FastAPI:
     """The REST app; `limits` what one request may ask, `token` the bearer token /v1
-    requires (None: open)."""
+    requires (None: open), `fft_workers` the threads of each of the filter's FFTs."""
     limits = limits or PhaseLimits()
     defaults = AcekfOptions()
 
@@ -225,6 +227,7 @@ def create_app(limits: PhaseLimits | None = None, token: str | None = None) -> F
                 pixel_um,
                 photons_per_count,
                 options,
+                fft_workers,
             )
         except UnsupportedFileError as error:
             raise HTTPException(415, str(error)) from None

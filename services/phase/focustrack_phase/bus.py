@@ -284,10 +284,11 @@ class PhaseStacks:
 
 
 def reconstruct_stack(
-    stack: PhaseStack, optics: PhaseOptics, options: AcekfOptions
+    stack: PhaseStack, optics: PhaseOptics, options: AcekfOptions, fft_workers: int = 1
 ) -> tuple[phase_pb2.PhaseResult, bytes]:
     """The PhaseResult of a whole stack and its payload (the field's pixels); an error
-    result (naming the exception) and no pixels where the filter refuses the stack or fails."""
+    result (naming the exception) and no pixels where the filter refuses the stack or fails.
+    `fft_workers`: the threads of each of the filter's FFTs."""
     started_s = time.perf_counter()
     try:
         given = phase_input(stack.header, stack.counts, optics, options)
@@ -298,6 +299,7 @@ def reconstruct_stack(
             pixel_um=given.pixel_um,
             photons_per_count=given.photons_per_count,
             options=given.options,
+            workers=fft_workers,
         )
     except Exception as error:  # refused by the filter (ValueError) or not: answered, never a crash
         log.warning("phase stack %d of %s: %s", stack.header.sequence, stack.tile, error)
@@ -321,12 +323,14 @@ class ZenohPhaseWorker:
         optics: PhaseOptics | None = None,
         options: AcekfOptions | None = None,
         signer: ResultSigner | None = None,
+        fft_workers: int = 1,
     ) -> None:
         self.session = session
         self.stacks = stacks
         self.optics = optics or PhaseOptics()
         self.options = options or AcekfOptions()
         self.signer = signer
+        self.fft_workers = fft_workers
         self.n_published = 0
         self._frames: FrameWorker[PhaseStack | phase_pb2.PhaseResult] = FrameWorker(
             session,
@@ -343,7 +347,7 @@ class ZenohPhaseWorker:
     def _answer(self, done: PhaseStack | phase_pb2.PhaseResult) -> None:
         """Reconstruct a whole stack and publish its result, or publish an error result."""
         if isinstance(done, PhaseStack):
-            self.publish(*reconstruct_stack(done, self.optics, self.options))
+            self.publish(*reconstruct_stack(done, self.optics, self.options, self.fft_workers))
         else:
             self.publish(done, b"")
 

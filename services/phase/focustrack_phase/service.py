@@ -78,6 +78,13 @@ class PhaseServiceSettings(FrameReaderSettings):
         "instrument that predates the field)",
     )
 
+    fft_workers: int = Field(
+        1,
+        ge=1,
+        description="threads of each of the filter's FFTs (scipy.fft's workers): on a machine "
+        "with cores to spare, more reconstruct a big stack sooner",
+    )
+
     def limits(self) -> PhaseLimits:
         """What one REST request may ask (ValueError if a limit admits nothing)."""
         return PhaseLimits(
@@ -114,6 +121,7 @@ def run(settings: PhaseServiceSettings) -> int:
             ),
             optics,
             signer=signer,
+            fft_workers=settings.fft_workers,
         ),
     )
     log.info(
@@ -129,7 +137,9 @@ def run(settings: PhaseServiceSettings) -> int:
     )
     started_s = time.perf_counter()
     try:
-        app = with_bus_health(create_app(limits, settings.token or None), bus.health)
+        app = with_bus_health(
+            create_app(limits, settings.token or None, settings.fft_workers), bus.health
+        )
         uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
     finally:
         bus.close()

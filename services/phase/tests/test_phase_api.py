@@ -88,6 +88,16 @@ def test_phase_and_amplitude_are_the_maths_own(
     np.testing.assert_allclose(answer[1], direct.amplitude, rtol=1e-6)
 
 
+def test_an_app_whose_ffts_run_on_two_threads_gives_the_same_answer(
+    stack: SyntheticStack,
+) -> None:
+    threaded = TestClient(create_app(PhaseLimits(max_frames=8), fft_workers=2))
+    answer = read_npy(post(threaded, npy_bytes(stack.stack_counts), form(stack), "?format=npy"))
+    direct = reconstruct(stack.stack_counts, stack.z_um, stack.wavelength_um, stack.pixel_um)
+    np.testing.assert_allclose(answer[0], direct.phase_rad, atol=1e-5)
+    np.testing.assert_allclose(answer[1], direct.amplitude, rtol=1e-5)
+
+
 def test_the_answer_says_how_much_of_the_image_is_glass(
     client: TestClient, stack: SyntheticStack
 ) -> None:
@@ -253,6 +263,10 @@ def test_settings_from_a_file_and_the_environment_and_heavy_modules_left_for_lat
     assert settings.limits() == PhaseLimits(max_frames=21, max_pixels=4096)
     with pytest.raises(ValueError, match="must be positive"):
         PhaseServiceSettings.load(max_frames=0).limits()
+    assert settings.fft_workers == 1
+    assert PhaseServiceSettings.load(fft_workers=4).fft_workers == 4
+    with pytest.raises(ValueError, match="--fft-workers"):
+        PhaseServiceSettings.load(fft_workers=0)
     # matplotlib (the PNG) and tifffile (TIFF uploads) wait for the first request needing them
     loaded = subprocess.run(
         [
