@@ -185,7 +185,8 @@ def database_url(topology: Topology) -> str:
 def slide_state(url: str) -> dict[str, Any]:
     """The slide's JSON through HAProxy, asked again while HAProxy answers 503 (up to 10 s):
     with one replica killed, the other is out for 2 s whenever it misses two health checks
-    (`inter 1s fall 2`), which a loaded machine can make it do."""
+    (`inter 1s fall 2`, each answered within `timeout check 3s`), which a machine loaded
+    enough can still make it do."""
     answers: list[httpx.Response] = []
 
     def served() -> bool:
