@@ -18,9 +18,9 @@ Beyond the paper, four changes, each measured by `focustrack bench phase`:
 - the update in the field's own phase frame (`AcekfOptions.update`): eq. 33 divides the
   residual by a_hat^*, which matches Theorem 1's diagonal gain only where the phase is
   small; applying the gain to the residual over |a_hat| and rotating the correction by
-  the field's local phase afterwards keeps the weak-object condition true locally (one
-  complex FFT and a real one, half the cost, more per plane; on a 0.5 rad object at 1000
-  photons it takes the phase error from 0.062 to 0.022 rad);
+  the field's local phase afterwards keeps the weak-object condition true locally (three
+  real DFTs, about one and a half complex ones, more per plane; on a 0.5 rad object at
+  1000 photons it takes the phase error from 0.062 to 0.022 rad);
 - the measurement noise gains the variance of the second-order term the linearisation
   drops, so a confident early plane cannot blow up the update at high photon counts;
 - partial coherence (`AcekfOptions.condenser_na`): a disk source damps the intensity's
@@ -32,12 +32,13 @@ Beyond the paper, four changes, each measured by `focustrack bench phase`:
   phase's zero is the medium's.
 
 Memory: the filter holds b, H and three float32 images at the image's size, and a_hat
-(eq. 33: a copy of b; ours: b itself, transformed in place and back) or the filtered
-residual (ours, and for a moment the real residual's half spectrum), and Q, P, the gain
-and fx^2+fy^2 on a quarter of the grid (`FoldedGrid`): under ten arrays of the image's
-size, besides the stack it reads one frame at a time. Each full-size image's rows are
-padded by a few pixels (`focustrack_phase.transforms`), which makes its FFTs a third
-cheaper.
+(eq. 33: a copy of b; ours: b itself, transformed in place and back) or the turned
+correction (ours, whose real and imaginary parts are filtered in two of the float32
+images), and Q, P, the gain and fx^2+fy^2 on a quarter of the grid (`FoldedGrid`): under
+ten arrays of the image's size, besides the stack it reads one frame at a time. Each
+full-size image's rows are padded by a few pixels, and its transforms are OpenCV's where
+it is installed (`focustrack_phase.transforms`): together they make the FFTs less than
+half as costly as scipy.fft's on unpadded images.
 """
 
 from __future__ import annotations
@@ -270,18 +271,19 @@ def reconstruct(
     wavelength_um, pixel_um: the illumination's wavelength and the pixel pitch in the
         object's plane (um).
     photons_per_count: the camera's gain (photons per count), which sets the noise (q).
-    workers: threads of each FFT (scipy.fft's `workers`).
+    workers: threads of each FFT: 1 takes OpenCV's DFT where it is installed, more
+        scipy.fft's with that many threads (`focustrack_phase.transforms`).
     prior: (Q_0, P_0) on the folded grid instead of the options' q0, p0 and prior length
         (`initial_covariances`): a prior that knows the object's spectra, for references.
 
     The filter runs in single precision (complex64): a phase error of 1e-6 rad is far
     below any noise a camera leaves, and it halves the memory and the time. Per plane the
     paper's update takes one inverse FFT (eq. 30) and one forward (eq. 33). Ours takes the
-    same inverse, then the forward FFT of the real residual (`_real_fft2`, half the cost
-    of a complex one), an inverse to apply the gain in the field's phase frame and a
-    forward back to the state: three and a half complex FFTs' worth, the least that update
-    allows (docs/phase.md, "The cost of an update"): each transform's input needs the
-    previous one's output, so no two can share one FFT. Q, P and the gain depend on |f|
+    same inverse, then filters the real residual by the gain in the field's phase frame
+    (`transforms.filter_real`: a real forward DFT and two real inverses, each about half a
+    complex one) and takes a forward DFT back to the state: three and a half complex FFTs'
+    worth, the least that update allows (docs/phase.md, "The cost of an update"): each
+    transform's input needs the previous one's output. Q, P and the gain depend on |f|
     alone, so they live on a quarter of the grid (`FoldedGrid`). With `options.background`
     "anchor" (the default) the phase's lowest frequencies are then set so that the empty
     background is zero (`focustrack_phase.background`). Raises ValueError for bad input,
@@ -332,23 +334,27 @@ def _filtered_field(
     photons_to_relative = np.float32(photons_per_count / gamma)
     transfer = _Transfer(grid, freq_sq, wavelength_um)
     floor = np.float32(opts.amplitude_floor)
+    # The transforms are unnormalised (`transforms.dft2`, N the pixels): b, the unitary
+    # spectrum, is held as dft2(a) / N = b / sqrt(N), which `idft2` turns into a with no
+    # product, and the gain's products carry the rest of the unitary pair's 1/N.
+    pixels = shape[0] * shape[1]
     # Every working image is a padded buffer (`transforms.padded_zeros`): the FFTs run on
     # its image proper, [inside]; the element-wise passes on the whole buffer.
     inside = np.s_[:, : shape[1]]
 
     # (1) Initialisation: a plane wave of unit intensity, Q_0 = q0 U, P_0 = p0 U.
     b = transforms.padded_zeros(shape, np.complex64)
-    b[0, 0] = np.sqrt(shape[0] * shape[1])  # the unitary FFT of a field of ones
+    b[0, 0] = 1  # dft2 of a field of ones, over N
     Q, P = initial_covariances(opts, freq_sq, prior)
     # The working images, reused every plane (no allocation in the loop): eq. 33's a_hat,
     # a copy of b_hat transformed in place (ours transforms b_hat itself, below); |a_hat|,
-    # the residual and a scratch image; our update's filtered residual.
+    # the residual and a scratch image; our update's turned correction.
     image = transforms.padded_zeros
     a_hat = image(shape if opts.update == "paper" else (0, 0), np.complex64)
     modulus = image(shape, np.float32)
     residual = image(shape, np.float32)
     scratch = image(shape, np.float32)
-    filtered = image(shape if opts.update == "phase_frame" else (0, 0), np.complex64)
+    turn = image(shape if opts.update == "phase_frame" else (0, 0), np.complex64)
     z_prev = 0.0
     for k in plane_order(z):
         dz_um = float(z[k]) - z_prev
@@ -372,7 +378,7 @@ def _filtered_field(
             np.copyto(a_hat, b)
         else:
             a_hat = b
-        transforms.ifft2(a_hat[inside], workers)
+        transforms.idft2(a_hat[inside], workers)
         np.abs(a_hat, out=modulus)
         np.multiply(stack_counts[k], photons_to_relative, out=residual[inside])
         np.square(modulus, out=scratch)
@@ -389,32 +395,37 @@ def _filtered_field(
             residual /= scratch
             weighted_excess = None if excess is None else a_hat * (excess / scratch)
             a_hat *= residual
-            innovation = transforms.fft2(a_hat[inside], workers)
+            innovation = transforms.dft2(a_hat[inside], workers)
             _add_excess(innovation, weighted_excess, envelope, grid, workers)
+            gain *= np.float32(1 / pixels)  # K's 1/sqrt(N), and b's
             grid.multiply(innovation, gain)
             b += a_hat  # the innovation, in a_hat's buffer
             continue
         # Ours: J^-1 = diag(e^{i theta}) diag(1/|a_hat|); applying the gain between the two
         # factors is eq. 33 for the field e^{-i theta} a, which is real and positive at
         # a_hat: Theorem 1's weak object, whatever the phase theta.
-        residual /= scratch  # real: its spectrum is Hermitian, so rfft2 computes half
-        real_excess = None if excess is None else (excess / scratch).astype(np.complex64)
-        spectrum = transforms.real_fft2(residual[inside], filtered[inside], workers)
-        _add_excess(spectrum, real_excess, envelope, grid, workers)
-        grid.multiply(spectrum, gain)
-        transforms.ifft2(spectrum, workers)  # the correction, in `filtered`
-        # e^{i theta} = a_hat / |a_hat|: the correction in the field's own phase frame.
+        residual /= scratch
+        added = None
+        if excess is not None and envelope is not None:
+            excess /= scratch
+            added = (excess[inside], 1 - envelope)
+        # The correction c = K^H gain K (residual) (K's pair: 1/N), as c_re + i c_im in the
+        # residual and scratch images, over N once more (b's scale, below).
+        gain *= np.float32(1 / pixels) ** 2
+        transforms.filter_real(residual[inside], scratch[inside], gain, grid, added, workers)
+        # e^{i theta} = a_hat / |a_hat|: the corrected field a_hat + e^{i theta} c is a_hat
+        # (1 + c / |a_hat|), and b_n = K (that field) (K is linear: b_hat needs no copy),
+        # held over N.
         np.maximum(modulus, _TINY, out=modulus)
         np.reciprocal(modulus, out=modulus)
-        filtered *= modulus
-        filtered *= a_hat
-        # b_n = b_hat + K (e^{i theta} correction) = K (a_hat + e^{i theta} correction): the
-        # sum taken in space, where a_hat is, so b_hat needs no copy (K is linear).
-        a_hat += filtered
-        transforms.fft2(a_hat[inside], workers)
+        residual *= modulus
+        np.add(residual, np.float32(1 / pixels), out=turn.real)
+        np.multiply(scratch, modulus, out=turn.imag)
+        a_hat *= turn
+        transforms.dft2(a_hat[inside], workers)
     # Back-propagation to the focal plane: H(-z_last) = H(z_last)^*.
     b *= transfer.of(-z_prev)[1]
-    return transforms.ifft2(b[inside], workers)
+    return transforms.idft2(b[inside], workers)
 
 
 class FilterDivergedError(ValueError):
@@ -431,7 +442,7 @@ def _add_excess(
     """spectrum += (1 - E) FFT(excess) with partial coherence, in place (complex64 (height,
     width); `weighted_excess`, a padded buffer, is spent)."""
     if weighted_excess is not None and envelope is not None:
-        excess_spectrum = transforms.fft2(weighted_excess[:, : spectrum.shape[1]], workers)
+        excess_spectrum = transforms.dft2(weighted_excess[:, : spectrum.shape[1]], workers)
         grid.multiply(excess_spectrum, 1 - envelope)
         spectrum += excess_spectrum
 

@@ -257,11 +257,11 @@ def low_frequency_correction(
     penalty = weight * transfer + RIDGE
     # M's spectrum at the differences of two band bins, on the small grid; scaled so that
     # the small grid's (unnormalised) circular convolution is the full grid's (the unitary
-    # spectrum times sqrt(mask.size) is the unnormalised one).
+    # spectrum times sqrt(mask.size) is the unnormalised one, which `_spectrum` gives).
     mask = background.astype(np.float32)
     small = (fft.next_fast_len(4 * reach_y + 1), fft.next_fast_len(4 * reach_x + 1))
     differences = np.ix_(_bins(2 * reach_y, height), _bins(2 * reach_x, width))
-    cropped = _spectrum(mask)[differences] * (small[0] * small[1] / np.sqrt(mask.size))
+    cropped = _spectrum(mask)[differences] * (small[0] * small[1] / mask.size)
     mask_spectrum = np.zeros(small, dtype=np.complex64)
     mask_spectrum[np.ix_(_bins(2 * reach_y, small[0]), _bins(2 * reach_x, small[1]))] = cropped
     small_mask = fft.ifft2(mask_spectrum, overwrite_x=True)
@@ -275,7 +275,8 @@ def low_frequency_correction(
         product = fft.fft2(small_mask * fft.ifft2(spectrum, overwrite_x=True), overwrite_x=True)
         return product.ravel()[on_small] + penalty * theta
 
-    rhs = -_spectrum(np.where(background, phase_rad, np.float32(0)))[within][band]
+    unitary = 1 / np.sqrt(mask.size)  # the unitary FFT's factor on the unnormalised DFT
+    rhs = -_spectrum(np.where(background, phase_rad, np.float32(0)))[within][band] * unitary
     size = int(band.sum())
     diagonal = float(mask.mean()) + penalty  # B^H diag(M) B's diagonal is M's mean
     theta, _ = cg(
@@ -286,8 +287,8 @@ def low_frequency_correction(
         M=LinearOperator((size, size), matvec=lambda r: r / diagonal, dtype=complex),
     )
     correction = transforms.padded_image((height, width), np.complex64)
-    correction[within] = _scatter(theta, band)
-    return transforms.ifft2(correction).real
+    correction[within] = _scatter(theta * unitary, band)
+    return transforms.idft2(correction).real
 
 
 def band_edge_per_um(
@@ -316,12 +317,10 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
 
     rows = gaussian(fft.fftfreq(image.shape[0]))[:, None]  # separable: two small factors
     if np.iscomplexobj(image):
-        spectrum = transforms.padded_image(image.shape, np.complex64)
-        spectrum[...] = image
-        transforms.fft2(spectrum)
-        spectrum *= rows
+        spectrum = transforms.dft2(_padded_copy(image))
+        spectrum *= rows / np.float32(image.size)  # and the DFT pair's 1/N
         spectrum *= gaussian(fft.fftfreq(image.shape[1]))
-        return transforms.ifft2(spectrum)
+        return transforms.idft2(spectrum)
     half = fft.rfft2(image.astype(np.float32))
     half *= rows
     half *= gaussian(fft.rfftfreq(image.shape[1]))
@@ -329,8 +328,15 @@ def _blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
 
 
 def _spectrum(image: np.ndarray) -> np.ndarray:
-    """The unitary FFT (complex64, (height, width)) of a real float32 image."""
-    return transforms.real_fft2(image, transforms.padded_image(image.shape, np.complex64))
+    """The unnormalised DFT (complex64, (height, width)) of a real float32 image."""
+    return transforms.dft2(_padded_copy(image))
+
+
+def _padded_copy(image: np.ndarray) -> np.ndarray:
+    """A complex64 copy of an image (height, width) in a padded working image."""
+    copy = transforms.padded_image(image.shape, np.complex64)
+    copy[...] = image
+    return copy
 
 
 def _bins(reach: int, size: int) -> np.ndarray:

@@ -81,8 +81,9 @@ class PhaseServiceSettings(FrameReaderSettings):
     fft_workers: int = Field(
         1,
         ge=1,
-        description="threads of each of the filter's FFTs (scipy.fft's workers): on a machine "
-        "with cores to spare, more reconstruct a big stack sooner",
+        description="threads of each of the filter's FFTs: 1 runs them on OpenCV's DFT (one "
+        "thread, the fastest here), more on scipy.fft's pocketfft threads, which pays only on a "
+        "machine with more than two cores to spare",
     )
 
     def limits(self) -> PhaseLimits:

@@ -93,18 +93,23 @@ def test_a_smooth_prior_helps_on_a_smooth_object() -> None:
     assert phase_rmse(acekf.AcekfOptions(q0=1.0, prior_length_um=2.0)) < 0.8 * best_white
 
 
-@pytest.mark.parametrize("shape", [(8, 8), (7, 10), (9, 5), (2, 3)])
-def test_the_real_fft_gives_the_full_spectrum_of_a_real_image(shape: tuple[int, int]) -> None:
-    image = np.random.default_rng(5).normal(size=shape).astype(np.float32)
-    out = np.empty(shape, dtype=np.complex64)
-    spectrum = transforms.real_fft2(image, out, workers=1)
-    assert spectrum is out
-    np.testing.assert_allclose(spectrum, np.fft.fft2(image, norm="ortho"), atol=1e-5)
+@pytest.fixture(params=["opencv", "scipy"])
+def fft_backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Each test that takes it runs on OpenCV's DFT and on scipy.fft's."""
+    if request.param == "scipy":
+        monkeypatch.setattr(transforms, "OPENCV", None)
+    elif transforms.OPENCV is None:
+        pytest.skip("OpenCV is not installed")
+    return str(request.param)
 
 
-@pytest.mark.parametrize("shape", [(16, 16), (7, 10)])
+# 5-smooth sizes (OpenCV's, when it is installed), odd ones, and a prime factor (scipy's).
+TRANSFORM_SHAPES = [(16, 16), (9, 5), (6, 10), (3, 4), (2, 2), (7, 10), (45, 52)]
+
+
+@pytest.mark.parametrize("shape", TRANSFORM_SHAPES)
 def test_the_transforms_work_in_place_on_a_padded_image_and_leave_its_padding_zero(
-    shape: tuple[int, int],
+    shape: tuple[int, int], fft_backend: str
 ) -> None:
     rng = np.random.default_rng(6)
     image = (rng.normal(size=shape) + 1j * rng.normal(size=shape)).astype(np.complex64)
@@ -112,11 +117,35 @@ def test_the_transforms_work_in_place_on_a_padded_image_and_leave_its_padding_ze
     assert buffer.shape == (shape[0], shape[1] + transforms.ROW_PAD_PX)
     view = buffer[:, : shape[1]]
     view[...] = image
-    assert transforms.fft2(view) is view
-    np.testing.assert_allclose(view, np.fft.fft2(image, norm="ortho"), atol=1e-5)
-    assert transforms.ifft2(view) is view
-    np.testing.assert_allclose(view, image, atol=1e-5)
+    assert transforms.dft2(view) is view
+    np.testing.assert_allclose(view, np.fft.fft2(image), atol=2e-5 * image.size)
+    assert transforms.idft2(view) is view  # unnormalised: N times the image
+    np.testing.assert_allclose(view, image.size * image, atol=2e-5 * image.size)
     assert not buffer[:, shape[1] :].any()
+
+
+@pytest.mark.parametrize("shape", TRANSFORM_SHAPES)
+def test_a_real_image_filtered_by_a_kernel_of_the_frequency_s_modulus_is_the_full_product(
+    shape: tuple[int, int], fft_backend: str
+) -> None:
+    rng = np.random.default_rng(7)
+    grid = FoldedGrid(shape, 0.1)
+    quarter_shape = grid.freq_sq_per_um2.shape
+    kernel = (rng.normal(size=quarter_shape) + 1j * rng.normal(size=quarter_shape)).astype(
+        np.complex64
+    )
+    weight = rng.normal(size=quarter_shape).astype(np.float32)
+    image, added = rng.normal(size=(2, *shape)).astype(np.float32)
+    expected = np.fft.ifft2(
+        grid.expand(kernel) * (np.fft.fft2(image) + grid.expand(weight) * np.fft.fft2(added)),
+        norm="forward",
+    )
+    real, imaginary, added_image = (transforms.padded_image(shape, np.float32) for _ in "abc")
+    real[...], added_image[...] = image, added
+    transforms.filter_real(real, imaginary, kernel, grid, (added_image, weight))
+    assert np.abs(expected.imag).max() > 0.1 * np.abs(expected).max()  # a complex answer
+    np.testing.assert_allclose(real + 1j * imaginary, expected, atol=1e-5 * np.abs(expected).max())
+    assert not real.base[:, shape[1] :].any() and not imaginary.base[:, shape[1] :].any()
 
 
 def _table_1_field(
@@ -165,7 +194,7 @@ def _table_1_field(
 @pytest.mark.parametrize("condenser_na", [0.0, 0.3])
 @pytest.mark.parametrize("shape", [(32, 32), (27, 34)])
 def test_the_fast_filter_is_the_plain_one_to_single_precision(
-    update: acekf.Update, condenser_na: float, shape: tuple[int, int]
+    update: acekf.Update, condenser_na: float, shape: tuple[int, int], fft_backend: str
 ) -> None:
     truth = simulate.weak_object(max(shape), seed=6, peak_phase_rad=1.5)[: shape[0], : shape[1]]
     # Both sides of focus, out of order, a repeated height and the focal plane itself.
