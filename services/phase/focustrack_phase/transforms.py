@@ -82,50 +82,66 @@ def idft2(image: np.ndarray, workers: int = 1) -> np.ndarray:
 
 def filter_real(
     image: np.ndarray,
-    imaginary: np.ndarray,
+    scratch: np.ndarray,
+    out: np.ndarray,
     kernel: np.ndarray,
     grid: FoldedGrid,
     added: tuple[np.ndarray, np.ndarray] | None = None,
     workers: int = 1,
-) -> None:
-    """A real image filtered by a kernel that depends on |f| alone: idft2(K dft2(image)).
+) -> np.ndarray:
+    """A real image filtered by a kernel that depends on |f| alone: idft2(K dft2(image)),
+    written into `out` and returned.
 
-    image: float32 (height, width), a strided view too; overwritten with the result's real
-        part. imaginary: float32 of the same shape, overwritten with its imaginary part.
+    image: float32 (height, width), a strided view too; spent. scratch: float32 of the same
+        shape, overwritten. out: complex64 of the same shape.
     kernel: K, complex64 on `grid`'s folded quarter.
     added: (x, m): a real float32 image of the same shape (spent) and a real quarter;
-        dft2(image) + m dft2(x) is filtered instead (the same for both images).
+        dft2(image) + m dft2(x) is filtered instead.
 
-    A real image's spectrum S is Hermitian and K(f) = K(-f), so Re(K) S and Im(K) S are
-    Hermitian too: each inverse is real, and the complex result costs one real forward DFT
-    and two real inverses (OpenCV's on its packed CCS spectrum, scipy's rfft2/irfft2),
-    about half a complex FFT each, in place of a complex DFT's mirrored half spectrum and
-    a complex inverse.
+    A real image's spectrum S is Hermitian (half of it gives the rest) and K(f) = K(-f).
+    With OpenCV: Re(K) S and Im(K) S are Hermitian too, so each inverse is real: a real
+    forward DFT into OpenCV's packed (CCS) spectrum, the kernel's two parts multiplied into
+    it as it is, and two real inverses, about half a complex DFT each. scipy's real
+    inverse (irfft2) costs a complex one, so with scipy the half spectrum is mirrored into
+    `out` and taken back by one complex inverse.
     """
     cv2 = _backend(image.shape, workers)
-    kernel_parts = (np.ascontiguousarray(kernel.real), np.ascontiguousarray(kernel.imag))
     if cv2 is None:
-        spectrum = fft.rfft2(image, workers=workers)
+        _full_spectrum(image, out, workers)
         if added is not None:
-            added_spectrum = fft.rfft2(added[0], workers=workers)
+            added_spectrum = _full_spectrum(added[0], np.empty_like(out), workers)
             grid.multiply(added_spectrum, added[1])
-            spectrum += added_spectrum
-        for out, kernel_part in zip((image, imaginary), kernel_parts, strict=True):
-            product = spectrum.copy()
-            grid.multiply(product, kernel_part)
-            out[...] = fft.irfft2(
-                product, s=image.shape, norm="forward", workers=workers, overwrite_x=True
-            )
-        return
+            out += added_spectrum
+        grid.multiply(out, kernel)
+        return idft2(out, workers)
     cv2.dft(image, dst=image)  # the packed (CCS) spectrum, in place
     if added is not None:
         cv2.dft(added[0], dst=added[0])
         _multiply_packed(added[0], added[1], grid)
         image += added[0]
-    np.copyto(imaginary, image)
-    for out, kernel_part in zip((image, imaginary), kernel_parts, strict=True):
-        _multiply_packed(out, kernel_part, grid)
-        cv2.dft(out, dst=out, flags=cv2.DFT_INVERSE | cv2.DFT_REAL_OUTPUT)
+    np.copyto(scratch, image)
+    for part, kernel_part in zip((image, scratch), (kernel.real, kernel.imag), strict=True):
+        _multiply_packed(part, kernel_part, grid)
+        cv2.dft(part, dst=part, flags=cv2.DFT_INVERSE | cv2.DFT_REAL_OUTPUT)
+    np.copyto(out.real, image)
+    np.copyto(out.imag, scratch)
+    return out
+
+
+def _full_spectrum(image: np.ndarray, out: np.ndarray, workers: int) -> np.ndarray:
+    """dft2 of a real float32 image (height, width) written into the complex64 `out` of
+    its shape, with scipy: rfft2 computes the bins with fx >= 0 for about half a complex
+    FFT's time, and a real image's spectrum gives the others, F(-fy, -fx) = F(fy, fx)^*."""
+    half = fft.rfft2(image, workers=workers)
+    width = image.shape[1]
+    columns = half.shape[1]  # width // 2 + 1
+    out[:, :columns] = half
+    # Bin (row, col) with col >= columns is bin (-row, width - col) conjugated: the half's
+    # columns width - columns .. 1 reversed, its rows 0 then height - 1 .. 1.
+    mirrored = half[:, width - columns : 0 : -1]
+    np.conjugate(mirrored[:1], out=out[:1, columns:])
+    np.conjugate(mirrored[:0:-1], out=out[1:, columns:])
+    return out
 
 
 def _multiply_packed(packed: np.ndarray, quarter: np.ndarray, grid: FoldedGrid) -> None:
