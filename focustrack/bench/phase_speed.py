@@ -36,8 +36,7 @@ def update_ffts_cpu_s(update: acekf.Update, size_px: int, planes: int) -> float:
     field = transforms.padded_image(shape, np.complex64)
     field[...] = rng.normal(size=shape)
     residual = transforms.padded_image(shape, np.float32)
-    scratch = transforms.padded_image(shape, np.float32)
-    correction = transforms.padded_image(shape, np.complex64)
+    imaginary = transforms.padded_image(shape, np.float32)
     grid = FoldedGrid(shape, 1.0)
     gain = np.full(grid.freq_sq_per_um2.shape, 1 / size_px**2, dtype=np.complex64)
     cpu_s = 0.0
@@ -52,7 +51,7 @@ def update_ffts_cpu_s(update: acekf.Update, size_px: int, planes: int) -> float:
         timed(transforms.idft2, field)
         if update == "phase_frame":
             residual[...] = field.real
-            timed(transforms.filter_real, residual, scratch, correction, gain, grid)
+            timed(transforms.filter_real, residual, imaginary, gain, grid)
         timed(transforms.dft2, field)
         field *= np.float32(1 / size_px**2)  # keeps it finite, as the filter's products do
     timed(transforms.idft2, field)

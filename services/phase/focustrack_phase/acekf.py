@@ -409,19 +409,20 @@ def _filtered_field(
         if excess is not None and envelope is not None:
             excess /= scratch
             added = (excess[inside], 1 - envelope)
-        # The correction c = K^H gain K (residual) (K's pair: 1/N) in `turn`, over N once
-        # more (b's scale, below).
+        # The correction c = K^H gain K (residual) (K's pair: 1/N), as c_re + i c_im in the
+        # residual and scratch images, over N once more (b's scale, below).
         gain *= np.float32(1 / pixels) ** 2
         transforms.filter_real(
-            residual[inside], scratch[inside], turn[inside], gain, grid, added, workers
+            residual[inside], scratch[inside], gain, grid, added, workers, turn[inside]
         )
         # e^{i theta} = a_hat / |a_hat|: the corrected field a_hat + e^{i theta} c is a_hat
         # (1 + c / |a_hat|), and b_n = K (that field) (K is linear: b_hat needs no copy),
         # held over N.
         np.maximum(modulus, _TINY, out=modulus)
         np.reciprocal(modulus, out=modulus)
-        turn *= modulus
-        turn += np.float32(1 / pixels)
+        residual *= modulus
+        np.add(residual, np.float32(1 / pixels), out=turn.real)
+        np.multiply(scratch, modulus, out=turn.imag)
         a_hat *= turn
         transforms.dft2(a_hat[inside], workers)
     # Back-propagation to the focal plane: H(-z_last) = H(z_last)^*.

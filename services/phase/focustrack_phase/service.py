@@ -82,8 +82,8 @@ class PhaseServiceSettings(FrameReaderSettings):
         1,
         ge=1,
         description="threads of each of the filter's FFTs: 1 runs them on OpenCV's DFT (one "
-        "thread, the fastest here), more on scipy.fft's pocketfft threads, which pays only on a "
-        "machine with more than two cores to spare",
+        "thread), more on scipy.fft's pocketfft threads, which can pay only on a machine with "
+        "more than two cores to spare (on two, it is slower than OpenCV on one)",
     )
 
     def limits(self) -> PhaseLimits:

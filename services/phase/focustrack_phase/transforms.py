@@ -82,50 +82,52 @@ def idft2(image: np.ndarray, workers: int = 1) -> np.ndarray:
 
 def filter_real(
     image: np.ndarray,
-    scratch: np.ndarray,
-    out: np.ndarray,
+    imaginary: np.ndarray,
     kernel: np.ndarray,
     grid: FoldedGrid,
     added: tuple[np.ndarray, np.ndarray] | None = None,
     workers: int = 1,
-) -> np.ndarray:
-    """A real image filtered by a kernel that depends on |f| alone: idft2(K dft2(image)),
-    written into `out` and returned.
+    workspace: np.ndarray | None = None,
+) -> None:
+    """A real image filtered by a kernel that depends on |f| alone: idft2(K dft2(image)).
 
-    image: float32 (height, width), a strided view too; spent. scratch: float32 of the same
-        shape, overwritten. out: complex64 of the same shape.
+    image: float32 (height, width), a strided view too; overwritten with the result's real
+        part. imaginary: float32 of the same shape, overwritten with its imaginary part.
     kernel: K, complex64 on `grid`'s folded quarter.
     added: (x, m): a real float32 image of the same shape (spent) and a real quarter;
         dft2(image) + m dft2(x) is filtered instead.
+    workspace: a complex64 image of the same shape the scipy path may overwrite (one is
+        allocated otherwise).
 
     A real image's spectrum S is Hermitian (half of it gives the rest) and K(f) = K(-f).
     With OpenCV: Re(K) S and Im(K) S are Hermitian too, so each inverse is real: a real
     forward DFT into OpenCV's packed (CCS) spectrum, the kernel's two parts multiplied into
     it as it is, and two real inverses, about half a complex DFT each. scipy's real
     inverse (irfft2) costs a complex one, so with scipy the half spectrum is mirrored into
-    `out` and taken back by one complex inverse.
+    a full one and taken back by one complex inverse.
     """
     cv2 = _backend(image.shape, workers)
     if cv2 is None:
-        _full_spectrum(image, out, workers)
+        spectrum = np.empty(image.shape, np.complex64) if workspace is None else workspace
+        _full_spectrum(image, spectrum, workers)
         if added is not None:
-            added_spectrum = _full_spectrum(added[0], np.empty_like(out), workers)
+            added_spectrum = _full_spectrum(added[0], np.empty_like(spectrum), workers)
             grid.multiply(added_spectrum, added[1])
-            out += added_spectrum
-        grid.multiply(out, kernel)
-        return idft2(out, workers)
+            spectrum += added_spectrum
+        grid.multiply(spectrum, kernel)
+        idft2(spectrum, workers)
+        np.copyto(image, spectrum.real)
+        np.copyto(imaginary, spectrum.imag)
+        return
     cv2.dft(image, dst=image)  # the packed (CCS) spectrum, in place
     if added is not None:
         cv2.dft(added[0], dst=added[0])
         _multiply_packed(added[0], added[1], grid)
         image += added[0]
-    np.copyto(scratch, image)
-    for part, kernel_part in zip((image, scratch), (kernel.real, kernel.imag), strict=True):
+    np.copyto(imaginary, image)
+    for part, kernel_part in zip((image, imaginary), (kernel.real, kernel.imag), strict=True):
         _multiply_packed(part, kernel_part, grid)
         cv2.dft(part, dst=part, flags=cv2.DFT_INVERSE | cv2.DFT_REAL_OUTPUT)
-    np.copyto(out.real, image)
-    np.copyto(out.imag, scratch)
-    return out
 
 
 def _full_spectrum(image: np.ndarray, out: np.ndarray, workers: int) -> np.ndarray:
