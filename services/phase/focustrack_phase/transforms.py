@@ -9,17 +9,18 @@ takes anyway (H, the gain), which saves a pass over the image per transform.
 Why padded: a row of 2048 complex64 pixels is 16 KiB, a multiple of the L1 cache's 4 KiB
 way, so the column pass of an FFT over an unpadded image (a column's pixels, each a row
 apart) maps them all to one cache set, which evicts itself. With every row 8 pixels
-longer, a 2048 x 2048 complex64 FFT takes 25-27 ms of CPU here instead of 38-47 ms
-(docs/benchmarks.md). One pad in pixels for every dtype keeps a complex and a float32
-working image's pixels at the same flat index, so element-wise passes run over whole
-contiguous buffers, padding included (numpy's passes over a strided view take about twice
-as long); the padding starts at zero and stays finite.
+longer, a 2048 x 2048 complex64 FFT takes 23-27 ms of CPU here instead of 37-47 ms with
+scipy.fft, 13.5-14 ms instead of 21-22 ms with OpenCV (docs/benchmarks.md). One pad in
+pixels for every dtype keeps a complex and a float32 working image's pixels at the same
+flat index, so element-wise passes run over whole contiguous buffers, padding included
+(numpy's passes over a strided view take about twice as long); the padding starts at zero
+and stays finite.
 
-Why OpenCV: its DFT takes a padded 2048 x 2048 complex64 image in 15-17 ms of CPU against
-pocketfft's 24-27 ms, and a real image in 6.6 ms (packed "CCS" spectrum) against rfft2's
-15.6 ms (docs/benchmarks.md). OpenCV is an accelerator, not a dependency, as for the focus
-maths (`focustrack_focus.filters`): the phase service installs it (extra `service`), and
-both backends give the same numbers to single precision's round-off
+Why OpenCV: its DFT takes a padded 2048 x 2048 complex64 image in 13.5-17 ms of CPU
+against pocketfft's 23-27 ms, and a real image in 6.5 ms (packed "CCS" spectrum) against
+rfft2's 12.5-15.6 ms (docs/benchmarks.md). OpenCV is an accelerator, not a dependency, as
+for the focus maths (`focustrack_focus.filters`): the phase service installs it (extra
+`service`), and both backends give the same numbers to single precision's round-off
 (`services/phase/tests/test_phase.py` checks them against each other). scipy.fft serves
 when OpenCV is missing, when a transform is to run on several threads (OpenCV's DFT of
 one image runs on one), and for sizes with a prime factor above 5, where OpenCV's DFT
