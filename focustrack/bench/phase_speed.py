@@ -29,8 +29,8 @@ def update_ffts_cpu_s(update: acekf.Update, size_px: int, planes: int) -> float:
     size_px^2, alone (one worker), on working images padded as the filter's: per plane an
     inverse and a forward complex DFT (eqs. 30 and 33), ours also a real image filtered by
     the gain (a real forward DFT and two real inverses: the gain in the field's phase
-    frame); then the inverse back at focus. Each transform is timed alone: the products
-    between them are not counted."""
+    frame, its products in the packed spectrum included); then the inverse back at focus.
+    Each transform is timed alone: the products between them are not counted."""
     rng = np.random.default_rng(1)
     shape = (size_px, size_px)
     field = transforms.padded_image(shape, np.complex64)

@@ -397,7 +397,7 @@ def _filtered_field(
             a_hat *= residual
             innovation = transforms.dft2(a_hat[inside], workers)
             _add_excess(innovation, weighted_excess, envelope, grid, workers)
-            gain *= np.float32(1 / pixels)  # K's 1/sqrt(N), and b's
+            gain *= np.float32(1 / pixels)  # the unitary K's 1/sqrt(N), and b's held scale
             grid.multiply(innovation, gain)
             b += a_hat  # the innovation, in a_hat's buffer
             continue
