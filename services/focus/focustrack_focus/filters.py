@@ -13,7 +13,6 @@ so the service keeps OpenCV. The one thing only OpenCV does is JPEG encoding (th
 from __future__ import annotations
 
 import importlib
-import importlib.util
 from types import ModuleType
 from typing import Protocol
 
@@ -138,9 +137,10 @@ def _binomial_half(image: np.ndarray) -> np.ndarray:
 
 def _best_backend() -> Filters:
     """OpenCV's filters where `cv2` imports, else scipy's."""
-    if importlib.util.find_spec("cv2") is None:
+    try:
+        return OpenCVFilters(importlib.import_module("cv2"))
+    except ImportError:  # not installed, or installed without its system libraries (libGL)
         return ScipyFilters()
-    return OpenCVFilters(importlib.import_module("cv2"))
 
 
 #: The backend the focus maths uses (tests swap it to compare the two).

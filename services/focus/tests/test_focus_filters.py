@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
 import cv2
@@ -18,6 +19,13 @@ SCIPY = filters.ScipyFilters()
 
 def test_the_service_installs_opencv_and_uses_it() -> None:
     assert filters.BACKEND.name == "opencv"
+
+
+def test_an_opencv_that_does_not_import_leaves_scipy(monkeypatch: pytest.MonkeyPatch) -> None:
+    # None in sys.modules makes `import cv2` raise ImportError, as a wheel without its
+    # system libraries (libGL) does.
+    monkeypatch.setitem(sys.modules, "cv2", None)
+    assert filters._best_backend().name == "scipy"
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])

@@ -30,7 +30,6 @@ has no fast algorithm.
 from __future__ import annotations
 
 import importlib
-import importlib.util
 from types import ModuleType
 
 import numpy as np
@@ -42,7 +41,10 @@ ROW_PAD_PX = 8
 
 
 def _opencv() -> ModuleType | None:
-    return importlib.import_module("cv2") if importlib.util.find_spec("cv2") else None
+    try:
+        return importlib.import_module("cv2")
+    except ImportError:  # not installed, or installed without its system libraries (libGL)
+        return None
 
 
 #: OpenCV's module where it imports, else None (tests set None to compare the backends).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 from scipy import special
@@ -101,6 +103,13 @@ def fft_backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch)
     elif transforms.OPENCV is None:
         pytest.skip("OpenCV is not installed")
     return str(request.param)
+
+
+def test_an_opencv_that_does_not_import_leaves_scipy_fft(monkeypatch: pytest.MonkeyPatch) -> None:
+    # None in sys.modules makes `import cv2` raise ImportError, as a wheel without its
+    # system libraries (libGL) does.
+    monkeypatch.setitem(sys.modules, "cv2", None)
+    assert transforms._opencv() is None
 
 
 # 5-smooth sizes (OpenCV's, when it is installed), odd ones, and a prime factor (scipy's).
