@@ -68,7 +68,7 @@ def dft2(image: np.ndarray, workers: int = 1) -> np.ndarray:
     too); returns image. `workers`: threads (scipy.fft's; OpenCV's only for 1)."""
     cv2 = _backend(image.shape, workers)
     if cv2 is not None:
-        cv2.dft(_channels(image), dst=_channels(image))
+        _opencv_dft(cv2, _channels(image), 0)
         return image
     return _in_place(image, fft.fft2(image, workers=workers, overwrite_x=True))
 
@@ -78,7 +78,7 @@ def idft2(image: np.ndarray, workers: int = 1) -> np.ndarray:
     place (a strided view too); returns image."""
     cv2 = _backend(image.shape, workers)
     if cv2 is not None:
-        cv2.dft(_channels(image), dst=_channels(image), flags=cv2.DFT_INVERSE)
+        _opencv_dft(cv2, _channels(image), cv2.DFT_INVERSE)
         return image
     return _in_place(image, fft.ifft2(image, norm="forward", workers=workers, overwrite_x=True))
 
@@ -122,15 +122,15 @@ def filter_real(
         np.copyto(image, spectrum.real)
         np.copyto(imaginary, spectrum.imag)
         return
-    cv2.dft(image, dst=image)  # the packed (CCS) spectrum, in place
+    _opencv_dft(cv2, image, 0)  # the packed (CCS) spectrum, in place
     if added is not None:
-        cv2.dft(added[0], dst=added[0])
+        _opencv_dft(cv2, added[0], 0)
         _multiply_packed(added[0], added[1], grid)
         image += added[0]
     np.copyto(imaginary, image)
     for part, kernel_part in zip((image, imaginary), (kernel.real, kernel.imag), strict=True):
         _multiply_packed(part, kernel_part, grid)
-        cv2.dft(part, dst=part, flags=cv2.DFT_INVERSE | cv2.DFT_REAL_OUTPUT)
+        _opencv_dft(cv2, part, cv2.DFT_INVERSE | cv2.DFT_REAL_OUTPUT)
 
 
 def _full_spectrum(image: np.ndarray, out: np.ndarray, workers: int) -> np.ndarray:
@@ -172,6 +172,16 @@ def _backend(shape: tuple[int, ...], workers: int) -> ModuleType | None:
     if OPENCV is None or workers != 1:
         return None
     return OPENCV if all(OPENCV.getOptimalDFTSize(n) == n for n in shape) else None
+
+
+def _opencv_dft(cv2: ModuleType, array: np.ndarray, flags: int) -> None:
+    """cv2.dft of a float32 array (height, width), or (height, width, 2) for a complex
+    one, written into it."""
+    result = cv2.dft(array, dst=array, flags=flags)
+    # OpenCV writes into `dst` when it wraps the array's memory; should a version copy a
+    # strided view instead, the working image must still hold the result.
+    if result.ctypes.data != array.ctypes.data:
+        np.copyto(array, result)
 
 
 def _channels(image: np.ndarray) -> np.ndarray:
