@@ -177,11 +177,7 @@ def _backend(shape: tuple[int, ...], workers: int) -> ModuleType | None:
 def _opencv_dft(cv2: ModuleType, array: np.ndarray, flags: int) -> None:
     """cv2.dft of a float32 array (height, width), or (height, width, 2) for a complex
     one, written into it."""
-    result = cv2.dft(array, dst=array, flags=flags)
-    # OpenCV writes into `dst` when it wraps the array's memory; should a version copy a
-    # strided view instead, the working image must still hold the result.
-    if result.ctypes.data != array.ctypes.data:
-        np.copyto(array, result)
+    _in_place(array, cv2.dft(array, dst=array, flags=flags))
 
 
 def _channels(image: np.ndarray) -> np.ndarray:
@@ -191,8 +187,9 @@ def _channels(image: np.ndarray) -> np.ndarray:
 
 
 def _in_place(image: np.ndarray, transformed: np.ndarray) -> np.ndarray:
-    # scipy.fft writes into a complex64 image it may overwrite; should a version not, the
-    # working image must still hold the result.
+    # scipy.fft writes into a complex64 image it may overwrite, OpenCV into a `dst` whose
+    # memory it wraps; should a version copy a strided view instead, the working image
+    # must still hold the result.
     if transformed.ctypes.data != image.ctypes.data:
         np.copyto(image, transformed)
     return image
