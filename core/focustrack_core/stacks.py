@@ -4,8 +4,9 @@ The focus and phase services take the same uploads, so they read them here, with
 limits and the same errors: `UnsupportedFileError` (HTTP 415) for a file that is neither,
 `TooLargeError` (413) for one that would decode to more than the limits allow, checked
 from the file's header before its pixels are decoded (a 3.5 MB zlib TIFF can hold
-3.6 GB), and ValueError (422) for the rest. TIFF files need tifffile (in the services'
-``service`` extras), imported on the first TIFF, not at start-up.
+3.6 GB), and ValueError (422) for the rest. TIFF files need tifffile, and compressed ones
+(LZW, as OpenCV writes them, JPEG, zstd) imagecodecs (both in the services' ``service``
+extras), imported on the first TIFF, not at start-up.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import io
 import json
 import math
+from typing import Any
 
 import numpy as np
 
@@ -43,16 +45,27 @@ def parse_z_list(text: str) -> np.ndarray:
         raise ValueError(f"z_um must be a JSON list or comma-separated numbers: {error}") from None
     if z.ndim != 1:
         raise ValueError(f"z_um must be a flat list of numbers, got shape {z.shape}")
+    # numpy reads true as 1 and "2.5" as 2.5: a list of them is a script's mistake
+    not_numbers = [value for value in values if isinstance(value, bool | str)]
+    if not_numbers:
+        raise ValueError(f"z_um must list numbers; got {not_numbers[0]!r}")
     return z
 
 
 def _check_size(
     shape: tuple[int, ...], itemsize: int, max_frames: int, max_decoded_bytes: int
 ) -> None:
-    """Refuse a stack of `shape` before its pixels are decoded: too many frames or bytes, none."""
-    if any(side == 0 for side in shape[1:]) or not shape:
+    """Refuse a stack of `shape` before its pixels are decoded: too many frames or bytes, none.
+
+    A 2-D array is one frame (height, width); more dimensions are frames first.
+    """
+    if len(shape) < 2:
+        raise ValueError(
+            f"the stack must be frames of pixels, (frames, height, width); got shape {shape}"
+        )
+    if any(side == 0 for side in shape[1:]):
         raise ValueError(f"the stack's frames have no pixels (shape {shape})")
-    if shape[0] > max_frames:
+    if len(shape) > 2 and shape[0] > max_frames:
         raise TooLargeError(f"the stack has {shape[0]} frames; the limit is {max_frames}")
     decoded = math.prod(shape) * itemsize
     if decoded > max_decoded_bytes:
@@ -77,22 +90,30 @@ def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
 
 
 def _read_tiff(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndarray:
-    """The pages of a TIFF, once their count and the largest page's shape and item size, read
-    from the TIFF's tags alone, are within the limits (TooLargeError)."""
+    """Every page of a TIFF, frames first: (pages, height, width) or (pages, height, width,
+    samples), once the pages' count, shape and type, read from the TIFF's tags alone, are
+    within the limits (TooLargeError) and the same on every page (ValueError).
+
+    Each page is a frame, however a writer grouped them into series (one page at a time
+    makes a series of each, which tifffile's `imread` would cut to the first).
+    """
     import tifffile  # imported on first use, not at start-up
 
     with tifffile.TiffFile(io.BytesIO(data)) as tiff:
-        n_pages, itemsize = 0, 1
-        largest: tuple[int, ...] = (0,)
-        for page in tiff.pages:
-            n_pages += 1
-            if n_pages > max_frames:
-                break
-            shape = tuple(int(side) for side in page.shape)
-            if math.prod(shape) >= math.prod(largest):
-                largest, itemsize = shape, np.dtype(page.dtype).itemsize
-    _check_size((n_pages, *largest), itemsize, max_frames, max_decoded_bytes)
-    return tifffile.imread(io.BytesIO(data))
+        pages: list[Any] = []  # TiffPage or TiffFrame
+        for page in tiff.pages:  # a file of millions of pages is refused at max_frames + 1
+            if len(pages) == max_frames:
+                raise TooLargeError(
+                    f"the stack has more than {max_frames} frames; the limit is {max_frames}"
+                )
+            pages.append(page)
+        kinds = {(tuple(int(side) for side in page.shape), np.dtype(page.dtype)) for page in pages}
+        if len(kinds) > 1:
+            described = ", ".join(sorted(f"{shape} {dtype}" for shape, dtype in kinds))
+            raise ValueError(f"the TIFF's pages must share one shape and type; got {described}")
+        ((shape, dtype),) = kinds
+        _check_size((len(pages), *shape), dtype.itemsize, max_frames, max_decoded_bytes)
+        return tiff.asarray(key=range(len(pages))).reshape(len(pages), *shape)
 
 
 def decode_stack(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndarray:

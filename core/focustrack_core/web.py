@@ -1,7 +1,7 @@
 """The FastAPI edge the stack services share (extra `web`): one app with the house's body
 limits, 422 shape and Prometheus metrics at ``/metrics``, the bearer-token check of `/v1`,
-an upload read within a limit, and the ``/healthz`` of a service that is on Zenoh too
-(`with_bus_health`).
+a form's fields given once, an upload read within a limit, and the ``/healthz`` of a
+service that is on Zenoh too (`with_bus_health`).
 
 `serving` holds what needs no web framework (plain ASGI); this module is for the
 services built on FastAPI (the focus and phase services), which import it.
@@ -72,6 +72,17 @@ def guarded_app(
         return PlainTextResponse(metrics.render(), media_type=CONTENT_TYPE)
 
     return app
+
+
+async def fields_once(request: Request) -> None:
+    """A dependency that refuses (422) a multipart form giving a field more than once:
+    which of two stacks, or of two lists of heights, was meant is not for us to guess."""
+    form = await request.form()  # parsed already for the route's own fields: read again
+    repeated = sorted({name for name in form if len(form.getlist(name)) > 1})
+    if repeated:
+        raise HTTPException(
+            422, f"form field {', '.join(repeated)} given more than once; send each field once"
+        )
 
 
 async def read_upload(upload: UploadFile, limit_bytes: int) -> bytes:

@@ -42,7 +42,7 @@ from focustrack_core.stacks import (
     decode_stack,
     parse_z_list,
 )
-from focustrack_core.web import bearer_token, guarded_app, read_upload
+from focustrack_core.web import bearer_token, fields_once, guarded_app, read_upload
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
@@ -228,7 +228,9 @@ def create_app(
         return result.to_json() | {"metric": request.metric}
 
     @app.post(
-        "/v1/focus/stack", response_model=FocusResponse, dependencies=[Depends(require_token)]
+        "/v1/focus/stack",
+        response_model=FocusResponse,
+        dependencies=[Depends(require_token), Depends(fields_once)],
     )
     async def focus_stack_endpoint(
         stack: Annotated[UploadFile, File(description="multi-page TIFF or .npy, frames first")],

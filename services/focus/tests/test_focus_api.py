@@ -66,6 +66,23 @@ def test_stack_as_npy_or_tiff(client: TestClient, frames: np.ndarray, encode) ->
     assert body["metric"] == "normalised_variance" and len(body["scores"]) == Z_UM.size
 
 
+def test_a_stack_or_its_heights_given_twice_is_refused(
+    client: TestClient, frames: np.ndarray
+) -> None:
+    """Which of two stacks, or of two lists of heights, was meant is not for us to guess."""
+    data = npy_bytes(frames)
+    twice = client.post(
+        "/v1/focus/stack",
+        files=[("stack", ("a.npy", data)), ("stack", ("b.npy", data))],
+        data={"z_um": z_text()},
+    )
+    assert twice.status_code == 422 and "stack given more than once" in twice.text
+    twice = client.post(
+        "/v1/focus/stack", files={"stack": ("a.npy", data)}, data={"z_um": [z_text(), z_text()]}
+    )
+    assert twice.status_code == 422 and "z_um given more than once" in twice.text
+
+
 def test_stack_options_and_json_z(client: TestClient, frames: np.ndarray) -> None:
     rgb = np.stack([frames // 2, frames, frames // 3], axis=-1)
     response = post_stack(
