@@ -55,6 +55,10 @@ from focustrack_phase.propagation import FoldedGrid, coherence_envelope, fresnel
 Update = Literal["phase_frame", "paper"]
 Background = Literal["anchor", "none"]
 
+#: The largest defocus phase at the image's highest frequency a stack may ask (rad; eq. 3
+#: at the grid's corner for the farthest plane, `validate_stack`).
+MAX_DEFOCUS_PHASE_RAD = 1e5
+
 
 @dataclass(frozen=True)
 class AcekfOptions:
@@ -200,6 +204,21 @@ def validate_stack(
     ):
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {value}")
+    # Eq. 3's phase pi lambda |z| |f|^2 at the grid's corner, |f|^2 = 1 / (2 pixel^2): past
+    # MAX_DEFOCUS_PHASE_RAD (over a millimetre of defocus at 0.1 um pixels) the planes'
+    # fringes are finer than anything a stack resolves, and the transfer, in single
+    # precision, would keep no digit of it; such numbers are a unit gone wrong.
+    with np.errstate(over="ignore", divide="ignore"):
+        corner_phase_rad = (
+            np.pi * wavelength_um * np.max(np.abs(z)) / (2 * np.float64(pixel_um) ** 2)
+        )
+    if not corner_phase_rad <= MAX_DEFOCUS_PHASE_RAD:
+        raise ValueError(
+            f"z_um (up to {np.max(np.abs(z)):.3g} um), wavelength_um ({wavelength_um:.3g}) and "
+            f"pixel_um ({pixel_um:.3g}) make a defocus phase of {corner_phase_rad:.3g} rad at "
+            f"the image's highest frequency, over the {MAX_DEFOCUS_PHASE_RAD:.0e} rad any "
+            "stack resolves: are they all in um, the pixel in the object's plane?"
+        )
     # One pass over the stack: a NaN or an inf makes the mean so; only then is every
     # value checked, to say which (finite values whose sum overflows float64).
     with np.errstate(over="ignore", invalid="ignore"):  # said below, in words
@@ -302,8 +321,8 @@ def reconstruct(
     if not 0.25 < mean_intensity < 4.0:
         raise FilterDivergedError(
             f"the filter diverged (mean intensity {mean_intensity:.3g} of the stack's, not 1): "
-            f"a smaller prior (q0 below {opts.q0:g}) keeps it stable at {gamma:.3g} photons "
-            "per pixel"
+            f"if the heights and optics are right, a smaller prior (q0 below {opts.q0:g}) "
+            f"keeps it stable at {gamma:.3g} photons per pixel"
         )
     # (4) Beyond the paper: the lowest frequencies anchored to the empty background, once
     # the filter's working images are freed.

@@ -35,7 +35,7 @@ from fastapi.responses import Response
 
 from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
-from focustrack_core.web import bearer_token, guarded_app, read_upload
+from focustrack_core.web import bearer_token, fields_once, guarded_app, read_upload
 from focustrack_phase.acekf import AcekfOptions, Background, FieldEstimate, Update, reconstruct
 
 #: The .npy answer's header with the share of the image taken as empty glass, whose phase
@@ -45,6 +45,10 @@ BACKGROUND_SHARE_HEADER = "X-Background-Share"
 MAX_Q0 = 1e6
 MAX_AMPLITUDE_FLOOR = 1.0
 MAX_PRIOR_LENGTH_UM = 1e4
+#: The picture's height over its width at most (and its width over its height): a frame
+#: beyond, a strip of 20000 x 2 pixels say, is drawn stretched to this, not on a canvas
+#: of millions of pixels (which took minutes, then crashed matplotlib).
+MAX_PICTURE_ASPECT = 4.0
 
 
 @dataclass(frozen=True)
@@ -88,17 +92,24 @@ def field_npy(estimate: FieldEstimate) -> bytes:
 
 def phase_png(phase_rad: np.ndarray) -> bytes:
     """A PNG of `phase_rad` (H, W), on a cyclic colour map over [-pi, pi] with a colour bar
-    labelled in radians."""
+    labelled in radians; square pixels unless H / W is beyond `MAX_PICTURE_ASPECT`."""
     # matplotlib takes about a second to import: the first picture pays it, not start-up.
     # A Figure of its own (no pyplot) is safe on the worker threads.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     height, width = phase_rad.shape
-    figure = Figure(figsize=(6.0, 5.0 * height / width + 0.5), dpi=100)
+    aspect = min(max(height / width, 1.0 / MAX_PICTURE_ASPECT), MAX_PICTURE_ASPECT)
+    figure = Figure(figsize=(6.0, 5.0 * aspect + 0.5), dpi=100)
     FigureCanvasAgg(figure)
     axes = figure.add_subplot()
-    image = axes.imshow(phase_rad, cmap="twilight", vmin=-math.pi, vmax=math.pi)
+    image = axes.imshow(
+        phase_rad,
+        cmap="twilight",
+        vmin=-math.pi,
+        vmax=math.pi,
+        aspect="equal" if aspect == height / width else "auto",
+    )
     axes.set_axis_off()
     bar = figure.colorbar(image, ax=axes, ticks=[-math.pi, -math.pi / 2, 0, math.pi / 2, math.pi])
     bar.ax.set_yticklabels(["-π", "-π/2", "0", "π/2", "π"])
@@ -118,7 +129,7 @@ def checked_stack(frames: np.ndarray, z_um: np.ndarray, limits: PhaseLimits) -> 
         )
     if frames.shape[0] < 2:
         raise ValueError(f"stack must hold at least 2 frames; got {frames.shape[0]}")
-    if not (np.issubdtype(frames.dtype, np.integer) or np.issubdtype(frames.dtype, np.floating)):
+    if frames.dtype.kind not in "uif":  # not bool, complex, timedelta (an integer to numpy)
         raise ValueError(f"stack must hold real numbers (counts); got dtype {frames.dtype}")
     pixels = frames.shape[1] * frames.shape[2]
     if pixels > limits.max_pixels:
@@ -160,7 +171,7 @@ def create_app(
 
     @app.post(
         "/v1/phase/stack",
-        dependencies=[Depends(require_token)],
+        dependencies=[Depends(require_token), Depends(fields_once)],
         response_class=Response,
         responses={
             200: {

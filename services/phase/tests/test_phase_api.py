@@ -10,6 +10,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import cv2
 import httpx
 import numpy as np
 import pytest
@@ -50,6 +51,22 @@ def tiff_bytes(array: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
+def tiff_pages(array: np.ndarray) -> bytes:
+    """A TIFF written a page at a time (each page a series of its own, to tifffile)."""
+    buffer = io.BytesIO()
+    with tifffile.TiffWriter(buffer) as tiff:
+        for frame in array:
+            tiff.write(frame.astype(np.uint16))
+    return buffer.getvalue()
+
+
+def opencv_tiff(array: np.ndarray) -> bytes:
+    """A multi-page TIFF as OpenCV writes one: LZW-compressed."""
+    ok, encoded = cv2.imencodemulti(".tiff", list(array.astype(np.uint16)))
+    assert ok
+    return encoded.tobytes()
+
+
 def form(stack: SyntheticStack, **fields: object) -> dict[str, str]:
     """The form of a request for `stack` (its z, wavelength and pixel), `fields` added."""
     values: dict[str, object] = {
@@ -77,7 +94,7 @@ def test_healthz(client: TestClient) -> None:
     assert response.status_code == 200 and response.json() == {"status": "ok"}
 
 
-@pytest.mark.parametrize("encode", [npy_bytes, tiff_bytes])
+@pytest.mark.parametrize("encode", [npy_bytes, tiff_bytes, tiff_pages, opencv_tiff])
 def test_phase_and_amplitude_are_the_maths_own(
     client: TestClient, stack: SyntheticStack, encode
 ) -> None:
@@ -142,6 +159,15 @@ def test_png_is_a_picture(client: TestClient, stack: SyntheticStack) -> None:
     assert response.content.startswith(b"\x89PNG\r\n\x1a\n")
 
 
+@pytest.mark.parametrize("shape", [(4000, 2), (2, 4000)])
+def test_a_strip_of_a_frame_is_a_picture_of_bounded_size(shape: tuple[int, int]) -> None:
+    """A frame's aspect once set the canvas' (here 200,000 pixels tall): now bounded."""
+    png = app_module.phase_png(np.zeros(shape, dtype=np.float32))
+    width, height = (int.from_bytes(png[offset : offset + 4], "big") for offset in (16, 20))
+    assert max(width, height) < 2500
+    assert max(width / height, height / width) < app_module.MAX_PICTURE_ASPECT + 0.5
+
+
 def one_frame(stack: SyntheticStack) -> bytes:
     return npy_bytes(stack.stack_counts[:1])
 
@@ -170,6 +196,13 @@ def one_frame(stack: SyntheticStack) -> bytes:
         (lambda s: npy_bytes(np.ones((4, 8))), {}, 422, "(frames, height, width)"),
         (lambda s: npy_bytes(np.full((4, 8, 8), np.nan)), {}, 422, "stack must be finite"),
         (lambda s: npy_bytes(np.ones((4, 8, 8), complex)), {}, 422, "real numbers"),
+        (lambda s: npy_bytes(np.ones((4, 8, 8), "m8[s]")), {}, 422, "real numbers"),
+        (lambda s: npy_bytes(np.ones(4096)), {}, 422, "frames of pixels"),
+        (lambda s: tiff_pages(np.ones((9, 8, 8))), {}, 413, "more than 8 frames"),
+        (lambda s: tiff_pages([np.ones((8, 8)), np.ones((8, 7))]), {}, 422, "one shape"),
+        (None, {"z_um": "[true, false, true, false]"}, 422, "must list numbers"),
+        (None, {"z_um": "[1e100, 1, 2, 3]"}, 422, "defocus phase of 8.36e+99 rad"),
+        (None, {"wavelength_um": "1e300"}, 422, "are they all in um"),
     ],
 )
 def test_bad_requests_say_what_is_wrong(
@@ -179,6 +212,19 @@ def test_bad_requests_say_what_is_wrong(
     response = post(client, body, form(stack, **fields))
     assert response.status_code == status, response.text
     assert needle in response.text, response.text
+
+
+def test_a_field_given_twice_is_refused(client: TestClient, stack: SyntheticStack) -> None:
+    data = npy_bytes(stack.stack_counts)
+    response = client.post(
+        "/v1/phase/stack",
+        files=[("stack", ("a.npy", data)), ("stack", ("b.npy", data))],
+        data=form(stack),
+    )
+    assert response.status_code == 422 and "stack given more than once" in response.text
+    fields: dict[str, Any] = form(stack) | {"wavelength_um": ["0.532", "0.633"]}
+    response = client.post("/v1/phase/stack", files={"stack": ("a.npy", data)}, data=fields)
+    assert response.status_code == 422 and "wavelength_um given more than once" in response.text
 
 
 def test_bad_format_and_missing_field(client: TestClient, stack: SyntheticStack) -> None:
