@@ -31,21 +31,18 @@ class TooLargeError(ValueError):
 
 
 def parse_z_list(text: str) -> np.ndarray:
-    """z (um) from a form field: a JSON list or comma-separated numbers; ValueError if not."""
+    """z (um) from a form field: a JSON list of numbers, its brackets optional (``-1, 0,
+    2.5``); ValueError if not. JSON's numbers, not Python's: ``1_0`` and full-width digits,
+    which `float` reads, are refused, as are ``true`` and strings, which numpy would read."""
     text = text.strip()
     try:
-        values = (
-            json.loads(text)
-            if text.startswith("[")
-            else [float(part) for part in text.split(",") if part.strip()]
-        )
+        values = json.loads(text if text.startswith("[") else f"[{text}]")
         z = np.asarray(values, dtype=np.float64)
     # RecursionError: lists nested thousands deep, which the JSON parser recurses into
     except (ValueError, TypeError, RecursionError) as error:
         raise ValueError(f"z_um must be a JSON list or comma-separated numbers: {error}") from None
     if z.ndim != 1:
         raise ValueError(f"z_um must be a flat list of numbers, got shape {z.shape}")
-    # numpy reads true as 1 and "2.5" as 2.5: a list of them is a script's mistake
     not_numbers = [value for value in values if isinstance(value, bool | str)]
     if not_numbers:
         raise ValueError(f"z_um must list numbers; got {not_numbers[0]!r}")
@@ -101,11 +98,15 @@ def _read_tiff(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndarr
 
     with tifffile.TiffFile(io.BytesIO(data)) as tiff:
         pages: list[Any] = []  # TiffPage or TiffFrame
+        offsets: set[int] = set()
         for page in tiff.pages:  # a file of millions of pages is refused at max_frames + 1
+            if page.offset in offsets:  # tifffile would follow the loop to the limit
+                raise ValueError("its pages loop back to an earlier one (a corrupt file)")
             if len(pages) == max_frames:
                 raise TooLargeError(
                     f"the stack has more than {max_frames} frames; the limit is {max_frames}"
                 )
+            offsets.add(page.offset)
             pages.append(page)
         kinds = {(tuple(int(side) for side in page.shape), np.dtype(page.dtype)) for page in pages}
         if len(kinds) > 1:

@@ -1,7 +1,7 @@
 """The FastAPI edge the stack services share (extra `web`): one app with the house's body
 limits, 422 shape and Prometheus metrics at ``/metrics``, the bearer-token check of `/v1`,
-a form's fields given once, an upload read within a limit, and the ``/healthz`` of a
-service that is on Zenoh too (`with_bus_health`).
+a form of the route's own fields, each once, an upload read within a limit, and the
+``/healthz`` of a service that is on Zenoh too (`with_bus_health`).
 
 `serving` holds what needs no web framework (plain ASGI); this module is for the
 services built on FastAPI (the focus and phase services), which import it.
@@ -74,10 +74,20 @@ def guarded_app(
     return app
 
 
-async def fields_once(request: Request) -> None:
-    """A dependency that refuses (422) a multipart form giving a field more than once:
-    which of two stacks, or of two lists of heights, was meant is not for us to guess."""
+async def form_as_declared(request: Request) -> None:
+    """A dependency that refuses (422) a multipart form with a field its route does not take
+    (a misspelt ``photons_per_count`` would silently be its default) or with a field given
+    twice (which of two stacks was meant is not for us to guess)."""
     form = await request.form()  # parsed already for the route's own fields: read again
+    route: APIRoute = request.scope["route"]
+    declared = {param.alias for param in route.dependant.body_params}
+    unknown = sorted(set(form) - declared)
+    if unknown:
+        raise HTTPException(
+            422,
+            f"unknown form field {', '.join(unknown)}; this route takes "
+            f"{', '.join(sorted(declared))}",
+        )
     repeated = sorted({name for name in form if len(form.getlist(name)) > 1})
     if repeated:
         raise HTTPException(

@@ -70,6 +70,17 @@ def test_tiff_pages_of_other_shapes_are_named() -> None:
         decode_stack(buffer.getvalue(), **ROOMY)
 
 
+def test_a_tiff_whose_pages_loop_back_is_corrupt_not_long() -> None:
+    data = bytearray(tiff_bytes(STACK))
+    with tifffile.TiffFile(io.BytesIO(bytes(data))) as tiff:
+        first, last = tiff.pages[0], tiff.pages[-1]
+        next_at = last.offset + 2 + 12 * len(last.tags)  # classic TIFF: the IFD's last word
+        data[next_at : next_at + 4] = first.offset.to_bytes(4, "little")
+    with pytest.raises(ValueError, match="loop back") as caught:
+        decode_stack(bytes(data), max_frames=1000, max_decoded_bytes=1 << 20)
+    assert not isinstance(caught.value, TooLargeError)
+
+
 @pytest.mark.parametrize("shape", [(4096,), (300, 64)])
 def test_an_array_of_fewer_dimensions_is_not_counted_in_frames(shape: tuple[int, ...]) -> None:
     """A flat array is no stack; a 2-D one is a single frame, however many its rows."""
@@ -126,6 +137,10 @@ def test_z_lists(text: str, expected: list[float]) -> None:
         ("[[1, 2]]", "flat list"),
         ("[" * 100_000, "JSON"),
         ("[true, false, 1]", "must list numbers; got True"),
+        ("true, 1, 2", "must list numbers; got True"),
+        ("1_0, 2", "JSON list"),  # Python's float reads 10
+        ("\uff11, 2", "JSON list"),  # a full-width 1, which float reads too
+        ("1,,2", "JSON list"),
         ('[1, "2.5"]', "must list numbers; got '2.5'"),
     ],
 )

@@ -42,7 +42,7 @@ from focustrack_core.stacks import (
     decode_stack,
     parse_z_list,
 )
-from focustrack_core.web import bearer_token, fields_once, guarded_app, read_upload
+from focustrack_core.web import bearer_token, form_as_declared, guarded_app, read_upload
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode, Prior
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
@@ -230,7 +230,7 @@ def create_app(
     @app.post(
         "/v1/focus/stack",
         response_model=FocusResponse,
-        dependencies=[Depends(require_token), Depends(fields_once)],
+        dependencies=[Depends(require_token), Depends(form_as_declared)],
     )
     async def focus_stack_endpoint(
         stack: Annotated[UploadFile, File(description="multi-page TIFF or .npy, frames first")],

@@ -83,6 +83,13 @@ def test_a_stack_or_its_heights_given_twice_is_refused(
     assert twice.status_code == 422 and "z_um given more than once" in twice.text
 
 
+def test_a_misspelt_field_is_refused_not_left_at_its_default(
+    client: TestClient, frames: np.ndarray
+) -> None:
+    response = post_stack(client, npy_bytes(frames), z_text(), Mode="valley")
+    assert response.status_code == 422 and "unknown form field Mode" in response.text
+
+
 def test_stack_options_and_json_z(client: TestClient, frames: np.ndarray) -> None:
     rgb = np.stack([frames // 2, frames, frames // 3], axis=-1)
     response = post_stack(

@@ -35,7 +35,7 @@ from fastapi.responses import Response
 
 from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
-from focustrack_core.web import bearer_token, fields_once, guarded_app, read_upload
+from focustrack_core.web import bearer_token, form_as_declared, guarded_app, read_upload
 from focustrack_phase.acekf import AcekfOptions, Background, FieldEstimate, Update, reconstruct
 
 #: The .npy answer's header with the share of the image taken as empty glass, whose phase
@@ -171,7 +171,7 @@ def create_app(
 
     @app.post(
         "/v1/phase/stack",
-        dependencies=[Depends(require_token), Depends(fields_once)],
+        dependencies=[Depends(require_token), Depends(form_as_declared)],
         response_class=Response,
         responses={
             200: {

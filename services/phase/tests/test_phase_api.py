@@ -227,6 +227,15 @@ def test_a_field_given_twice_is_refused(client: TestClient, stack: SyntheticStac
     assert response.status_code == 422 and "wavelength_um given more than once" in response.text
 
 
+def test_a_misspelt_field_is_refused_not_left_at_its_default(
+    client: TestClient, stack: SyntheticStack
+) -> None:
+    response = post(client, npy_bytes(stack.stack_counts), form(stack, photons_per_cont="4"))
+    assert response.status_code == 422, response.text
+    assert "unknown form field photons_per_cont" in response.text
+    assert "photons_per_count" in response.text  # what the route takes
+
+
 def test_bad_format_and_missing_field(client: TestClient, stack: SyntheticStack) -> None:
     response = post(client, npy_bytes(stack.stack_counts), form(stack), "?format=tiff")
     assert response.status_code == 422 and "format" in response.text
