@@ -44,7 +44,13 @@ from focustrack_core.stacks import (
 )
 from focustrack_core.web import bearer_token, form_as_declared, guarded_app, read_upload
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
-from focustrack_focus.peak import PeakMode, Prior
+from focustrack_focus.peak import (
+    MAX_ABS_Z_UM,
+    MAX_PRIOR_SIGMA_UM,
+    MIN_PRIOR_SIGMA_UM,
+    PeakMode,
+    Prior,
+)
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
 from focustrack_focus.profile import MicroscopeProfile
 
@@ -80,8 +86,9 @@ class PriorModel(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    z_um: float = Field(allow_inf_nan=False)
-    sigma_um: float = Field(gt=0, allow_inf_nan=False)
+    # the bounds `Prior` computes within (`peak.MIN_PRIOR_SIGMA_UM` says why)
+    z_um: float = Field(ge=-MAX_ABS_Z_UM, le=MAX_ABS_Z_UM, allow_inf_nan=False)
+    sigma_um: float = Field(ge=MIN_PRIOR_SIGMA_UM, le=MAX_PRIOR_SIGMA_UM, allow_inf_nan=False)
 
 
 class CurveRequest(BaseModel):
@@ -218,8 +225,10 @@ def create_app(
     def _curve(request: CurveRequest) -> dict[str, Any]:
         for_metric = profile.settings_for(request.metric, base)
         chosen = replace(for_metric, peak=replace(for_metric.peak, mode=request.mode))
-        prior = None if request.prior is None else Prior(request.prior.z_um, request.prior.sigma_um)
         try:
+            prior = (
+                None if request.prior is None else Prior(request.prior.z_um, request.prior.sigma_um)
+            )
             result = focus_from_curve(
                 np.array(request.z_um), np.array(request.scores), chosen, prior=prior
             )

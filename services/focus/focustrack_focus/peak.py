@@ -170,6 +170,15 @@ class PeakSettings:
     own_noise_confidence: float = 0.0
 
 
+#: Largest |z| of a curve, um: a metre either way is no microscope (the estimator's bound).
+MAX_ABS_Z_UM = 1e6
+#: A prior's sigma, um, from a picometre (a thousandth of a piezo stage's nanometre step: a
+#: belief no stage can act on) to a metre (MAX_ABS_Z_UM: no belief at all). Within these
+#: the maths stays in a float's range: 1 / sigma**2 <= 1e12, (z - z_prior)**2 <= 4e12.
+MIN_PRIOR_SIGMA_UM = 1e-6
+MAX_PRIOR_SIGMA_UM = 1e6
+
+
 @dataclass(frozen=True)
 class Prior:
     """The estimator's belief about a tile's focus before its stack: mean and std, um."""
@@ -178,8 +187,16 @@ class Prior:
     sigma_um: float
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.z_um) and math.isfinite(self.sigma_um) and self.sigma_um > 0):
-            raise ValueError(f"a prior needs a finite z and a sigma > 0, got {self}")
+        # comparisons that NaN fails: a NaN is refused too
+        if not abs(self.z_um) <= MAX_ABS_Z_UM:
+            raise ValueError(
+                f"a prior's z_um must be finite and within +/-{MAX_ABS_Z_UM:g} um, got {self.z_um}"
+            )
+        if not MIN_PRIOR_SIGMA_UM <= self.sigma_um <= MAX_PRIOR_SIGMA_UM:
+            raise ValueError(
+                f"a prior's sigma_um must be within [{MIN_PRIOR_SIGMA_UM:g}, "
+                f"{MAX_PRIOR_SIGMA_UM:g}] um, got {self.sigma_um}"
+            )
 
 
 @dataclass(frozen=True)
@@ -214,8 +231,6 @@ class PeakFit:
         return z, math.sqrt(1.0 / precision)
 
 
-#: Largest |z| of a curve, um: a metre either way is no microscope (the estimator's bound).
-MAX_ABS_Z_UM = 1e6
 #: Largest |score|: the fit squares scores, and a square beyond a float's range is NaN.
 MAX_ABS_SCORE = 1e150
 

@@ -96,8 +96,8 @@ def settings_for(
 
 
 def prior_of(header: instrument_pb2.ZStackHeader) -> Prior | None:
-    """The estimator's prediction the stack came with (None: none); ValueError for one that
-    is not a finite z with a positive sigma."""
+    """The estimator's prediction the stack came with (None: none); ValueError for one
+    `Prior` refuses (a z or sigma out of its bounds)."""
     if not (header.HasField("prior_z_um") and header.HasField("prior_sigma_um")):
         return None
     return Prior(header.prior_z_um, header.prior_sigma_um)

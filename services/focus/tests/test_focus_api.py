@@ -137,16 +137,33 @@ def test_curve_with_a_prior_picks_its_peak_and_returns_the_posterior(client: Tes
         ({"z_um": [0, 1, 1], "scores": [1, 2, 1]}, 422, "distinct"),
         ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "mode": "sideways"}, 422, "mode"),
         ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "prior": {"z_um": 1}}, 422, "sigma_um"),
-        (
-            {"z_um": [0, 1, 2], "scores": [1, 2, 1], "prior": {"z_um": 1, "sigma_um": 0}},
-            422,
-            "greater than 0",
-        ),
     ],
 )
 def test_bad_curves(client: TestClient, body: dict, status: int, needle: str) -> None:
     response = client.post("/v1/focus/curve", json=body)
     assert response.status_code == status and needle in response.text, response.text
+
+
+@pytest.mark.parametrize(
+    ("prior", "field", "needle"),
+    [
+        ({"z_um": 2, "sigma_um": 0}, "sigma_um", "greater than or equal to 0.000001"),
+        ({"z_um": 2, "sigma_um": 1e-200}, "sigma_um", "greater than or equal to 0.000001"),
+        ({"z_um": 2, "sigma_um": 1e200}, "sigma_um", "less than or equal to 1000000"),
+        ({"z_um": 1e300, "sigma_um": 1}, "z_um", "less than or equal to 1000000"),
+        ({"z_um": -1e300, "sigma_um": 1}, "z_um", "greater than or equal to -1000000"),
+    ],
+)
+def test_a_prior_out_of_bounds_is_a_422_naming_its_field(
+    client: TestClient, prior: dict, field: str, needle: str
+) -> None:
+    """A prior the maths cannot compute (1 / sigma**2 overflowing) was a 500."""
+    response = client.post(
+        "/v1/focus/curve", json={"z_um": [1, 2, 3], "scores": [1, 2, 1], "prior": prior}
+    )
+    assert response.status_code == 422, response.text
+    [error] = response.json()["detail"]
+    assert error["loc"] == ["body", "prior", field] and needle in error["msg"], error
 
 
 def test_non_finite_curve_is_refused(client: TestClient) -> None:

@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from focustrack_core.domain import FocusFlag
-from focustrack_focus.peak import PeakMode, PeakSettings, Prior, find_peak
+from focustrack_focus.peak import (
+    MAX_ABS_Z_UM,
+    MAX_PRIOR_SIGMA_UM,
+    MIN_PRIOR_SIGMA_UM,
+    PeakMode,
+    PeakSettings,
+    Prior,
+    find_peak,
+)
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 
@@ -83,8 +91,39 @@ def test_posterior_is_the_product_of_prior_and_measurement() -> None:
     )
     edge = find_peak(Z_UM, gaussian(Z_UM, 5.0))
     assert edge.posterior(Prior(1.0, 1.0)) is None
-    with pytest.raises(ValueError, match="sigma > 0"):
+    with pytest.raises(ValueError, match="sigma_um must be within"):
         Prior(0.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("z_um", "sigma_um", "field"),
+    [
+        (2.0, 1e-200, "sigma_um"),
+        (2.0, 1e200, "sigma_um"),
+        (1e300, 1.0, "z_um"),
+        (np.nan, 1, "z_um"),
+    ],
+)
+def test_a_prior_the_maths_cannot_compute_is_refused(z_um: float, sigma_um: float, field: str):
+    with pytest.raises(ValueError, match=f"prior's {field}"):
+        Prior(z_um, sigma_um)
+
+
+@pytest.mark.parametrize(
+    "prior",
+    [
+        Prior(MAX_ABS_Z_UM, MIN_PRIOR_SIGMA_UM),
+        Prior(-MAX_ABS_Z_UM, MAX_PRIOR_SIGMA_UM),
+        Prior(0.3, MIN_PRIOR_SIGMA_UM),
+    ],
+)
+def test_a_prior_at_its_bounds_gives_a_finite_posterior(prior: Prior) -> None:
+    fit = find_peak(Z_UM, gaussian(Z_UM, 0.3), prior=prior)
+    assert fit.z_um == pytest.approx(0.3, abs=0.05)
+    posterior = fit.posterior(prior)
+    assert posterior is not None and all(np.isfinite(posterior)) and posterior[1] > 0
+    # the posterior lies between the prior and the measurement
+    assert min(fit.z_um, prior.z_um) <= posterior[0] <= max(fit.z_um, prior.z_um)
 
 
 def test_an_interior_peak_beside_a_rising_end_is_measured_and_flagged() -> None:

@@ -67,8 +67,19 @@ def test_without_a_prior_the_curve_alone_chooses(
     assert min(abs(plain.best_z_um - LOW_UM), abs(plain.best_z_um - HIGH_UM)) < 0.5
 
 
-def test_a_bad_prior_is_answered_with_an_error(render: Callable[..., np.ndarray]) -> None:
+@pytest.mark.parametrize(
+    ("z_um", "sigma_um", "field"),
+    [
+        (0.0, -1.0, "sigma_um"),
+        (0.0, 1e-200, "sigma_um"),
+        (0.0, 1e200, "sigma_um"),
+        (1e300, 1, "z_um"),
+    ],
+)
+def test_a_bad_prior_is_answered_with_an_error(
+    render: Callable[..., np.ndarray], z_um: float, sigma_um: float, field: str
+) -> None:
     frames = render(96, Z_UM, 0.0, 3)[..., None]
-    result = _analyse(frames, 3, prior_z_um=0.0, prior_sigma_um=-1.0)
+    result = _analyse(frames, 3, prior_z_um=z_um, prior_sigma_um=sigma_um)
     assert result.error.code == common_pb2.ERROR_CODE_BAD_STACK
-    assert "prior" in result.error.message
+    assert f"prior's {field}" in result.error.message
