@@ -231,8 +231,16 @@ class PeakFit:
         return z, math.sqrt(1.0 / precision)
 
 
-#: Largest |score|: the fit squares scores, and a square beyond a float's range is NaN.
+#: Largest |score|: the slide's curve model (`curve_model`) squares scores as they come, and
+#: a square beyond a float's range is NaN (`find_peak` reads them scaled to 1).
 MAX_ABS_SCORE = 1e150
+#: Smallest z step of a curve, um: a picometre, a thousandth of a piezo stage's nanometre
+#: step. A finer one is a unit gone wrong, and its powers in the fit (dz**4) underflow.
+MIN_Z_STEP_UM = 1e-6
+#: How far a step between two z of at most MAX_ABS_Z_UM may be rounded (an ulp of each):
+#: a step of MIN_Z_STEP_UM passes however its z were rounded (1e6 - 1e-6 and 1e6 are
+#: 9.99891e-07 apart in floats).
+_Z_STEP_ROUNDING_UM = 2.0 * float(np.spacing(MAX_ABS_Z_UM))
 
 
 def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -251,8 +259,14 @@ def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np
         raise ValueError(f"scores must be finite and within +/-{MAX_ABS_SCORE:g}")
     order = np.argsort(z, kind="stable")
     z, s = z[order], s[order]
-    if np.any(np.diff(z) <= 0):
-        raise ValueError("z values must be distinct (a z appears twice)")
+    steps_um = np.diff(z)
+    too_fine = steps_um < MIN_Z_STEP_UM - _Z_STEP_ROUNDING_UM
+    if np.any(too_fine):
+        at = int(np.argmax(too_fine))
+        raise ValueError(
+            f"z values must be distinct and at least {MIN_Z_STEP_UM:g} um apart: "
+            f"{z[at]} and {z[at + 1]} um are {steps_um[at]:.3g} um apart"
+        )
     return z, s
 
 
@@ -292,6 +306,9 @@ def find_peak(
     """
     settings = settings or PeakSettings()
     z, s = validate_curve(z_um, scores)
+    # read on a scale of 1, the same for any scale of scores: scores of 1e-160 squared in
+    # the fit's weights underflow to a singular matrix
+    s = s / (float(np.abs(s).max()) or 1.0)
     top, span = abs(float(s.max())), float(s.max() - s.min())
     if settings.mode is PeakMode.VALLEY:
         # the valley is the peak of the curve turned upside down (lifted to stay

@@ -166,6 +166,45 @@ def test_a_prior_out_of_bounds_is_a_422_naming_its_field(
     assert error["loc"] == ["body", "prior", field] and needle in error["msg"], error
 
 
+#: The numbers of a curve's reply that say where its focus is.
+READING = ("best_z_um", "sigma_um", "runner_up_z_um", "chosen_probability")
+
+
+def test_a_curve_reads_the_same_at_any_scale_of_its_scores(client: TestClient) -> None:
+    """Scores of 1e-160 underflowed in the fit: a wrong 200 (best 1.5, sigma 0.5), or a
+    422 "Singular matrix" for [1e-200, 2e-200, 1e-200]."""
+    z = np.arange(-5.0, 5.01, 0.5)
+    rng = np.random.default_rng(4)
+    clean = np.exp(-0.5 * ((z - 1.3) / 1.0) ** 2)
+    noisy_two_peaks = 1 + 4 * clean + 3 * np.exp(-0.5 * ((z + 3) / 0.8) ** 2)
+    noisy_two_peaks += 0.05 * rng.standard_normal(z.size)
+    for scores in (clean, noisy_two_peaks):
+        replies = [
+            client.post("/v1/focus/curve", json={"z_um": z.tolist(), "scores": s}).json()
+            for s in (scores.tolist(), (scores * 1e-160).tolist(), (scores * 1e100).tolist())
+        ]
+        first = replies[0]
+        assert first["best_z_um"] == pytest.approx(1.3, abs=0.05) and first["sigma_um"] < 0.2
+        for scaled in replies[1:]:
+            assert scaled["flags"] == first["flags"]
+            for key in READING:
+                expected = first[key]
+                assert scaled[key] == (expected and pytest.approx(expected, rel=1e-9)), key
+    tiny = client.post(
+        "/v1/focus/curve", json={"z_um": [1, 2, 3], "scores": [1e-200, 2e-200, 1e-200]}
+    )
+    assert tiny.status_code == 200 and tiny.json()["best_z_um"] == 2.0, tiny.text
+
+
+def test_z_steps_below_a_picometre_are_refused(client: TestClient) -> None:
+    body = {"z_um": [1e-300, 2e-300, 3e-300], "scores": [1, 2, 1]}
+    response = client.post("/v1/focus/curve", json=body)
+    assert response.status_code == 422
+    assert "at least 1e-06 um apart: 1e-300 and 2e-300 um" in response.json()["detail"]
+    body["z_um"] = [0.0, 1e-6, 2e-6]  # a picometre is fine
+    assert client.post("/v1/focus/curve", json=body).json()["best_z_um"] == 1e-6
+
+
 def test_non_finite_curve_is_refused(client: TestClient) -> None:
     text = '{"z_um": [0, 1, 2], "scores": [1, NaN, 1]}'
     response = client.post(

@@ -172,11 +172,22 @@ def test_valley_mode_finds_the_contrast_minimum() -> None:
         ([0, 1, np.nan], [1, 2, 1], "z values must be finite"),
         ([0, 1, 2], [1, np.inf, 1], "scores must be finite"),
         ([0, 1, 1], [1, 2, 1], "distinct"),
+        ([1e-300, 2e-300, 3e-300], [1, 2, 1], "at least 1e-06 um apart"),
     ],
 )
 def test_bad_curves_are_refused_with_the_reason(z_um, scores, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         find_peak(np.array(z_um, float), np.array(scores, float))
+
+
+@pytest.mark.parametrize("origin_um", [0.0, MAX_ABS_Z_UM - 1.0])
+def test_a_peak_sampled_every_picometre_is_read(origin_um: float) -> None:
+    """The finest step allowed, rounded as floats round it, even 1e6 um away."""
+    step_um = 1e-6
+    z = origin_um + np.arange(-10, 11) * step_um
+    fit = find_peak(z, gaussian(z, float(z[10]) + 0.3 * step_um, 3 * step_um))
+    assert fit.flags == frozenset() and fit.z_um is not None
+    assert (fit.z_um - z[10]) / step_um == pytest.approx(0.3, abs=0.05)
 
 
 @pytest.mark.parametrize("slope_per_um", [-0.4, 0.25, 0.5])
