@@ -321,8 +321,7 @@ def find_peak(
     floor = settings.min_relative_noise * top
     judged_noise = max(own if clean else 0.0, floor)
     noise = max(own, floor)
-    contrast_flat = low_contrast_flat(s, top, noise, clean, settings.min_contrast, settings.min_snr)
-    if contrast_flat or span <= settings.min_snr * judged_noise:
+    if _flat(s, top, noise, judged_noise, clean, settings):
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     # sigma and the top's chances: the own estimate's upper bound where asked (`noise_bound`)
     bound = own * bound_factor(s.size, int(np.argmax(s)), settings.own_noise_confidence)
@@ -333,6 +332,12 @@ def find_peak(
         judged_noise,
         narrowest_peak_sigma_um(settings.min_peak_sigma_um, settings.curve_fwhm_um),
     )
+    # a curve whose contrast was a one-frame outlier is flat (a spike on a zero baseline
+    # left zeros, read as an edge); where the outlier was the maximum, the top is the rest's
+    if settings.mode is PeakMode.MAX:
+        top = abs(float(s.max()))
+    if _flat(s, top, noise, judged_noise, clean, settings):
+        return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     fit = _read_peaks(z, s, read_noise, settings, prior)
     valley_z = phase_valley(z, s) if settings.mode is PeakMode.MAX else None
     if valley_z is None:
@@ -343,6 +348,28 @@ def find_peak(
     return replace(
         fit, flags=frozenset(flags), runner_up_z_um=valley_z, chosen_probability=probability
     )
+
+
+#: A range of scores read on a scale of 1 (`find_peak`) that is float round-off, not
+#: contrast: what is left of a curve of one value once `despike` has replaced a frame
+#: with its neighbours' weighted sum (about 1e-16, where there is no noise to judge by).
+_ROUND_OFF = 1e-12
+
+
+def _flat(
+    s: np.ndarray,
+    top: float,
+    noise: float,
+    judged_noise: float,
+    clean: bool,
+    settings: PeakSettings,
+) -> bool:
+    """Whether the curve `s` (n,) as read holds no peak (`find_peak`'s noise estimates): its
+    contrast too low for its maximum `top` (`curve_checks.low_contrast_flat`), or its range
+    within `min_snr` sigmas of the noise where that is judged, or within float round-off."""
+    contrast_flat = low_contrast_flat(s, top, noise, clean, settings.min_contrast, settings.min_snr)
+    span = float(s.max() - s.min())
+    return contrast_flat or span <= max(settings.min_snr * judged_noise, _ROUND_OFF)
 
 
 @dataclass(frozen=True)

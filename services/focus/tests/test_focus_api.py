@@ -205,6 +205,21 @@ def test_z_steps_below_a_picometre_are_refused(client: TestClient) -> None:
     assert client.post("/v1/focus/curve", json=body).json()["best_z_um"] == 1e-6
 
 
+def test_a_one_frame_spike_on_a_zero_baseline_is_flat(client: TestClient) -> None:
+    """Through the curve and through a stack of black frames with one hot pixel in one:
+    both were read as `edge_low` at the first frame."""
+    z = np.arange(-5.0, 5.01, 0.5)
+    spike = [0.0] * 10 + [1.0] + [0.0] * 10
+    curve = client.post("/v1/focus/curve", json={"z_um": z.tolist(), "scores": spike})
+    assert curve.status_code == 200 and curve.json()["flags"] == ["flat"], curve.text
+    black = np.zeros((z.size, 64, 64), np.uint16)
+    black[10, 20, 30] = 4000
+    stack = post_stack(client, npy_bytes(black), z_text(z))
+    assert stack.status_code == 200, stack.text
+    assert stack.json()["best_z_um"] is None and "flat" in stack.json()["flags"]
+    assert "edge_low" not in stack.json()["flags"]
+
+
 def test_non_finite_curve_is_refused(client: TestClient) -> None:
     text = '{"z_um": [0, 1, 2], "scores": [1, NaN, 1]}'
     response = client.post(

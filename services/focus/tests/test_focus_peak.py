@@ -145,6 +145,27 @@ def test_a_one_frame_spike_on_a_slope_is_not_a_peak() -> None:
     assert FocusFlag.EDGE_HIGH in fit.flags and fit.sigma_um is None
 
 
+@pytest.mark.parametrize("baseline", [0.0, 2.0])
+@pytest.mark.parametrize("mode", list(PeakMode))
+def test_a_curve_flat_but_for_a_one_frame_spike_is_flat(baseline: float, mode: PeakMode) -> None:
+    """Despiked, the curve was all baseline, and its first frame was read as an edge."""
+    z = np.arange(-5.0, 5.01, 0.5)
+    scores = np.full(z.size, baseline)
+    scores[10] += 1.0 if mode is PeakMode.MAX else -1.0
+    fit = find_peak(z, scores, PeakSettings(mode=mode))
+    assert fit.flags == {FocusFlag.FLAT} and fit.z_um is None
+
+
+def test_a_spike_far_above_a_faint_peak_leaves_the_peak_read() -> None:
+    """Once the spike is gone, the contrast is judged against the other frames' maximum,
+    not against the spike's (which made this short curve's 3 % contrast flat)."""
+    z = np.arange(5) * 0.5
+    scores = 1.0 + 0.03 * np.exp(-0.5 * ((z - 1.0) / 0.8) ** 2)
+    scores[3] += 10.0
+    fit = find_peak(z, scores)
+    assert fit.flags == frozenset() and fit.z_um == pytest.approx(1.0, abs=0.05)
+
+
 def test_a_narrow_peak_sampled_coarsely_is_a_peak_not_flat() -> None:
     # 3 um apart, a real peak shows in one frame only above a plateau with a little noise
     z = np.arange(0.0, 30.01, 3.0)
