@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from focustrack_core.domain import PAIR_FRAMES, FocusFlag, Measurement
+from focustrack_focus import filters
 from focustrack_focus.agreement import agreed_peak, agreement_scores
 from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
 from focustrack_focus.layers import layers_sigma_um
@@ -103,14 +104,32 @@ class StackScan:
     blurriest_raw: np.ndarray
 
 
+def check_intensities(image: np.ndarray, index: int) -> None:
+    """ValueError unless frame `index`, preprocessed to (h, w), holds intensities: a positive
+    mean, or no light at all (every pixel 0, which every metric scores 0).
+
+    The metrics are contrasts: they divide by a power of the frame's mean (`metrics`). A
+    background-subtracted or signed frame has a mean near or below 0, and its scores are
+    large and meaningless: a confident, wrong peak with no flag.
+    """
+    mean = filters.BACKEND.mean(image)
+    if not mean > 0 and np.any(image):
+        raise ValueError(
+            f"frame {index} has a mean intensity of {mean:.4g}: the focus metrics take "
+            "intensities (raw counts), not background-subtracted or signed frames"
+        )
+
+
 def scan_stack(frames: np.ndarray, settings: FocusSettings) -> StackScan:
-    """Preprocess and score every frame of a stack (n, H, W) or (n, H, W, C), n >= 1."""
+    """Preprocess and score every frame of a stack (n, H, W) or (n, H, W, C), n >= 1;
+    ValueError at the first frame that is not of intensities (`check_intensities`)."""
     metric, preprocess = get_metric(settings.metric), settings.preprocess
     scores = np.empty(len(frames), dtype=np.float64)
     top = low = 0
     for i, frame in enumerate(frames):
         raw = preprocess.crop(frame)
         image = preprocess.smooth(raw)
+        check_intensities(image, i)
         scores[i] = metric(image)
         if i == 0 or scores[i] > scores[top]:
             top, sharpest = i, image
@@ -352,7 +371,8 @@ class FrameByFrame:
         return curves + sum(buffers.values())
 
     def add(self, index: int, frame: np.ndarray) -> None:
-        """Score frame `index` (H, W) or (H, W, C); ValueError for a bad or repeated frame."""
+        """Score frame `index` (H, W) or (H, W, C); ValueError for a bad or repeated frame, or
+        one not of intensities (`check_intensities`)."""
         started_s = time.perf_counter()
         if not 0 <= index < self.scores.size:
             raise ValueError(f"frame {index} of a stack of {self.scores.size} frames")
@@ -368,6 +388,7 @@ class FrameByFrame:
         preprocess = self.settings.preprocess
         raw = preprocess.crop(frame)
         image = preprocess.smooth(raw)
+        check_intensities(image, index)
         score = self._metric(image)
         if self.z_um.size == 1:  # a look reads every colour of its frame
             self._look_snr = look_snr(preprocess.region(frame))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 from collections.abc import Callable
 
 import httpx
@@ -218,6 +219,24 @@ def test_a_one_frame_spike_on_a_zero_baseline_is_flat(client: TestClient) -> Non
     assert stack.status_code == 200, stack.text
     assert stack.json()["best_z_um"] is None and "flat" in stack.json()["flags"]
     assert "edge_low" not in stack.json()["flags"]
+
+
+def test_a_background_subtracted_stack_is_refused_not_read(
+    client: TestClient, frames: np.ndarray
+) -> None:
+    """The metrics divide by each frame's mean: minus the stack's mean, a clean stack gave
+    a confident, wrong focus with no flag."""
+    signed = frames.astype(np.float32) - np.float32(frames.mean())
+    response = post_stack(client, npy_bytes(signed), z_text())
+    assert response.status_code == 422, response.text
+    detail = response.json()["detail"]
+    assert re.fullmatch(
+        r"frame \d+ has a mean intensity of -[\d.e+-]+: the focus metrics take intensities "
+        r"\(raw counts\), not background-subtracted or signed frames",
+        detail,
+    ), detail
+    lifted = post_stack(client, npy_bytes(signed - signed.min()), z_text())  # offset, >= 0
+    assert lifted.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15), lifted.text
 
 
 def test_non_finite_curve_is_refused(client: TestClient) -> None:

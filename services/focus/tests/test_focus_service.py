@@ -286,6 +286,23 @@ def test_frame_analyser_answers_on_the_last_frame_and_tells_acquisitions_apart(
     assert lost is not None and lost.sequence == 6 and "a part was lost" in lost.error.message
 
 
+def test_a_signed_frame_on_zenoh_ends_its_stack_with_an_error_naming_it(
+    render: Callable[..., np.ndarray],
+) -> None:
+    """Background-subtracted frames: the metrics divide by the mean, so they are refused."""
+    frames = render(96, Z_UM, TRUTH_UM, 3)[..., None].astype(np.float32)
+    frames[2] -= 2.0 * frames[2].mean()  # its mean now minus what it was
+    analyser = FrameAnalyser(FocusSettings(), na=0.85, clock=_Clock())
+    key = keys.zframe_key("s1", 2, 3)
+    samples = _frame_samples(frames, 4, 1.0)
+    assert [analyser.add(key, *sample) for sample in samples[:2]] == [None, None]
+    refused = analyser.add(key, *samples[2])
+    assert refused is not None and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+    assert "frame 2 has a mean intensity of -" in refused.error.message
+    assert "intensities (raw counts)" in refused.error.message
+    assert all(analyser.add(key, *sample) is None for sample in samples[3:])  # answered once
+
+
 def test_a_look_and_the_rest_of_its_stack_are_answered_as_one_curve(
     render: Callable[..., np.ndarray],
 ) -> None:

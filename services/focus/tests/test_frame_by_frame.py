@@ -45,6 +45,22 @@ def test_frames_in_any_order_give_the_whole_stack_result() -> None:
     assert result.compute_time_s > 0
 
 
+def test_frames_that_are_not_intensities_are_refused_on_both_paths() -> None:
+    """A background-subtracted frame, whose mean the metrics divide by, is refused by name;
+    a black frame (no light) is one of intensities."""
+    frames, z_um = _stack()
+    signed = frames.astype(np.float32)
+    signed[3] -= 2.0 * signed[3].mean()
+    needle = r"frame 3 has a mean intensity of -1\d{3}(\.\d+)?: .* intensities \(raw counts\)"
+    with pytest.raises(ValueError, match=needle):
+        focus_stack(signed, z_um, FocusSettings())
+    incremental = FrameByFrame(z_um, FocusSettings())
+    incremental.add(2, signed[2])
+    with pytest.raises(ValueError, match=needle):
+        incremental.add(3, signed[3])
+    incremental.add(4, np.zeros_like(signed[4]))
+
+
 def test_missing_repeated_and_bad_frames_are_refused() -> None:
     frames, z_um = _stack()
     incremental = FrameByFrame(z_um, FocusSettings())
