@@ -23,6 +23,7 @@ decoding), frames, JSON size and nesting.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
@@ -81,14 +82,19 @@ class FocusLimits:
             raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
 
 
+#: A number of a curve's JSON: a finite JSON number, integer or not; never true or "1"
+#: (pydantic's lax mode reads those as 1.0).
+Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+
+
 class PriorModel(BaseModel):
     """The estimator's belief about the focus before this stack (um)."""
 
     model_config = ConfigDict(extra="forbid")
 
     # the bounds `Prior` computes within (`peak.MIN_PRIOR_SIGMA_UM` says why)
-    z_um: float = Field(ge=-MAX_ABS_Z_UM, le=MAX_ABS_Z_UM, allow_inf_nan=False)
-    sigma_um: float = Field(ge=MIN_PRIOR_SIGMA_UM, le=MAX_PRIOR_SIGMA_UM, allow_inf_nan=False)
+    z_um: Annotated[Number, Field(ge=-MAX_ABS_Z_UM, le=MAX_ABS_Z_UM)]
+    sigma_um: Annotated[Number, Field(ge=MIN_PRIOR_SIGMA_UM, le=MAX_PRIOR_SIGMA_UM)]
 
 
 class CurveRequest(BaseModel):
@@ -96,8 +102,8 @@ class CurveRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    z_um: list[Annotated[float, Field(allow_inf_nan=False)]] = Field(min_length=3)
-    scores: list[Annotated[float, Field(allow_inf_nan=False)]] = Field(min_length=3)
+    z_um: list[Number] = Field(min_length=3)
+    scores: list[Number] = Field(min_length=3)
     metric: str = Field(
         DEFAULT_METRIC,
         description="label of the metric that made the scores (picks its profile entry)",
@@ -132,6 +138,21 @@ class FocusResponse(BaseModel):
     )
     posterior_z_um: float | None = Field(None, description="prior and measurement combined")
     posterior_sigma_um: float | None = None
+
+
+class RepeatedKeyError(ValueError):
+    """A JSON object gives a key twice (`members_once`)."""
+
+
+def members_once(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object's members as a dict (json's `object_pairs_hook`); RepeatedKeyError
+    naming a key given twice, of which json would keep the last, silently."""
+    members: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in members:
+            raise RepeatedKeyError(f"JSON key {key!r} given more than once; send each key once")
+        members[key] = value
+    return members
 
 
 def json_depth_exceeds(text: bytes, max_depth: int) -> bool:
@@ -212,7 +233,13 @@ def create_app(
         if json_depth_exceeds(body, limits.max_json_depth):
             raise HTTPException(422, f"the JSON nests deeper than {limits.max_json_depth} levels")
         try:
-            request = CurveRequest.model_validate_json(body)
+            document = json.loads(body, object_pairs_hook=members_once)
+        except RepeatedKeyError as error:
+            raise HTTPException(422, str(error)) from None
+        except ValueError as error:  # json's errors, and bytes that are not UTF-8
+            raise HTTPException(422, f"the body is not JSON: {error}") from None
+        try:
+            request = CurveRequest.model_validate(document)
         except ValidationError as error:
             errors = [{**item, "loc": ("body", *item["loc"])} for item in error.errors()]
             raise RequestValidationError(errors) from None
@@ -247,7 +274,9 @@ def create_app(
         metric: Annotated[str, Form()] = base.metric,
         mode: Annotated[PeakMode, Form()] = base.peak.mode,
         channel: Annotated[int | None, Form(ge=0)] = base.preprocess.channel,
-        lowpass_sigma_px: Annotated[float, Form(ge=0, le=64)] = base.preprocess.lowpass_sigma_px,
+        lowpass_sigma_px: Annotated[
+            float, Form(ge=0, le=64, allow_inf_nan=False)
+        ] = base.preprocess.lowpass_sigma_px,
     ) -> dict[str, Any]:
         data = await read_upload(stack, limits.max_upload_bytes)
         try:

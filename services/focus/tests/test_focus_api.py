@@ -239,11 +239,70 @@ def test_a_background_subtracted_stack_is_refused_not_read(
     assert lifted.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15), lifted.text
 
 
-def test_non_finite_curve_is_refused(client: TestClient) -> None:
-    text = '{"z_um": [0, 1, 2], "scores": [1, NaN, 1]}'
-    response = client.post(
+def post_json(client: TestClient, text: str | bytes) -> httpx.Response:
+    """POST `text` as it is (a body json= could not write: a key twice, NaN)."""
+    return client.post(
         "/v1/focus/curve", content=text, headers={"content-type": "application/json"}
     )
+
+
+@pytest.mark.parametrize(
+    ("body", "loc"),
+    [
+        ({"z_um": ["1", "2", "3"], "scores": [1, 2, 1]}, ["body", "z_um", 0]),
+        ({"z_um": [1, 2, 3], "scores": [True, False, True]}, ["body", "scores", 0]),
+        (
+            {"z_um": [1, 2, 3], "scores": [1, 2, 1], "prior": {"z_um": "2", "sigma_um": 1}},
+            ["body", "prior", "z_um"],
+        ),
+        (
+            {"z_um": [1, 2, 3], "scores": [1, 2, 1], "prior": {"z_um": 2, "sigma_um": True}},
+            ["body", "prior", "sigma_um"],
+        ),
+    ],
+)
+def test_strings_and_booleans_are_not_numbers(client: TestClient, body: dict, loc: list) -> None:
+    response = client.post("/v1/focus/curve", json=body)
+    assert response.status_code == 422, response.text
+    assert {"loc": loc, "msg": "Input should be a valid number"} in [
+        {"loc": error["loc"], "msg": error["msg"]} for error in response.json()["detail"]
+    ]
+
+
+def test_integers_are_numbers(client: TestClient) -> None:
+    body = {"z_um": [1, 2, 3], "scores": [1, 2, 1], "prior": {"z_um": 2, "sigma_um": 1}}
+    response = client.post("/v1/focus/curve", json=body)
+    assert response.status_code == 200 and response.json()["best_z_um"] == 2.0, response.text
+
+
+@pytest.mark.parametrize(
+    ("text", "detail"),
+    [
+        (
+            '{"z_um": [1, 2, 3], "scores": [1, 2, 1], "scores": [3, 2, 1]}',
+            "JSON key 'scores' given more than once; send each key once",
+        ),
+        (
+            '{"z_um": [1, 2, 3], "scores": [1, 2, 1], "prior": {"z_um": 1, "sigma_um": 1, '
+            '"z_um": 3}}',
+            "JSON key 'z_um' given more than once; send each key once",
+        ),
+        ('{"z_um": [1, 2, 3], "scores": [1, 2, 1]', "the body is not JSON: Expecting"),
+        (b'{"metric": "\xff"}', "the body is not JSON"),  # not UTF-8
+    ],
+)
+def test_a_key_given_twice_or_a_body_not_json_is_refused(
+    client: TestClient, text: str | bytes, detail: str
+) -> None:
+    """json keeps the last of two keys, silently: which was meant is not for us to guess."""
+    response = post_json(client, text)
+    assert response.status_code == 422 and response.json()["detail"].startswith(detail), (
+        response.text
+    )
+
+
+def test_non_finite_curve_is_refused(client: TestClient) -> None:
+    response = post_json(client, '{"z_um": [0, 1, 2], "scores": [1, NaN, 1]}')
     assert response.status_code == 422 and "finite" in response.text, response.text
 
 
@@ -261,6 +320,11 @@ def test_bad_stacks(client: TestClient, frames: np.ndarray) -> None:
     check(npy_bytes(nan), z_text(), 422, "finite")
     check(npy_bytes(frames), "0,1,x", 422, "z_um must be")
     check(npy_bytes(frames), z_text(), 422, "unknown focus metric", metric="nope")
+    for not_finite in ("nan", "inf"):  # nan was "Input should be less than or equal to 64"
+        response = post_stack(client, npy_bytes(frames), z_text(), lowpass_sigma_px=not_finite)
+        [error] = response.json()["detail"]
+        assert error["loc"] == ["body", "lowpass_sigma_px"], response.text
+        assert error["msg"] == "Input should be a finite number", response.text
     check(b"GIF89a not a stack", z_text(), 415, "TIFF or a .npy")
     check(b"\x93NUMPY broken", z_text(), 422, ".npy file cannot be read")
     big = np.zeros((20, 400, 400), np.uint16)  # 6.4 MB > the 4 MB limit of this app
