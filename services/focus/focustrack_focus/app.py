@@ -140,6 +140,22 @@ class FocusResponse(BaseModel):
     posterior_sigma_um: float | None = None
 
 
+class ErrorReply(BaseModel):
+    """A refusal (4xx): what is wrong."""
+
+    detail: str | list[dict[str, Any]] = Field(
+        description="a sentence naming the problem, or each invalid field with its location"
+    )
+
+
+def curve_schemas() -> dict[str, Any]:
+    """The OpenAPI components of `CurveRequest`: its schema and those it refers to (as
+    ``#/components/schemas/...``), for the document's components; FastAPI does not see the
+    body, which `focus_curve` reads by hand."""
+    schema = CurveRequest.model_json_schema(ref_template="#/components/schemas/{model}")
+    return {**schema.pop("$defs", {}), CurveRequest.__name__: schema}
+
+
 class RepeatedKeyError(ValueError):
     """A JSON object gives a key twice (`members_once`)."""
 
@@ -205,6 +221,19 @@ def create_app(
         detail = cut(error.detail) if isinstance(error.detail, str) else error.detail
         return JSONResponse({"detail": detail}, error.status_code, headers=error.headers)
 
+    def refusals(statuses: dict[int, str]) -> dict[int | str, dict[str, Any]]:
+        """A /v1 route's OpenAPI `responses` besides its 200: `statuses` (status -> when it
+        is answered), the 408 of a slow body, and the 401 without the token where one is set."""
+        every = {408: f"the body did not arrive within {limits.body_timeout_s:g} s"}
+        if token is not None:
+            every[401] = "without the bearer token"
+        return {
+            status: {"model": ErrorReply, "description": text}
+            for status, text in sorted((every | statuses).items())
+        }
+
+    max_body = limits.max_upload_bytes  # of every route (`guarded_app`)
+
     @app.get("/healthz")
     def healthz() -> dict[str, Any]:
         return {"status": "ok", "metrics": list(METRICS), "default_metric": base.metric}
@@ -213,10 +242,21 @@ def create_app(
         "/v1/focus/curve",
         response_model=FocusResponse,
         dependencies=[Depends(require_token)],
+        responses=refusals(
+            {
+                413: f"the body is over {min(limits.max_json_bytes, max_body)} bytes",
+                422: "not JSON, a key given twice, a field missing, unknown or invalid, or a "
+                "curve the maths refuses: the detail names the problem",
+            }
+        ),
         openapi_extra={
             "requestBody": {
                 "required": True,
-                "content": {"application/json": {"schema": CurveRequest.model_json_schema()}},
+                "content": {
+                    "application/json": {
+                        "schema": {"$ref": f"#/components/schemas/{CurveRequest.__name__}"}
+                    }
+                },
             }
         },
     )
@@ -267,6 +307,15 @@ def create_app(
         "/v1/focus/stack",
         response_model=FocusResponse,
         dependencies=[Depends(require_token), Depends(form_as_declared)],
+        responses=refusals(
+            {
+                413: f"the body is over {max_body} bytes, or the stack would "
+                f"decode to over {limits.max_decoded_bytes} bytes",
+                415: "the stack is neither a TIFF nor a .npy file",
+                422: "a form field missing, unknown, given twice or invalid, or a stack the "
+                "maths refuses: the detail names the problem",
+            }
+        ),
     )
     async def focus_stack_endpoint(
         stack: Annotated[UploadFile, File(description="multi-page TIFF or .npy, frames first")],
@@ -304,4 +353,13 @@ def create_app(
             raise HTTPException(422, str(error)) from None
         return result.to_json()
 
+    build_openapi = app.openapi  # FastAPI's: built once, then kept
+    schemas = curve_schemas()
+
+    def openapi() -> dict[str, Any]:
+        document = build_openapi()
+        document.setdefault("components", {}).setdefault("schemas", {}).update(schemas)
+        return document
+
+    app.openapi = openapi  # type: ignore[method-assign]
     return app

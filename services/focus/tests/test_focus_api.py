@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import io
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import httpx
 import numpy as np
@@ -343,6 +343,53 @@ def test_real_uvicorn_server(frames: np.ndarray, serve: Callable[[FastAPI], str]
     assert response.status_code == 200, response.text
     assert response.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
     assert "/v1/focus/stack" in httpx.get(f"{base}/openapi.json").json()["paths"]
+
+
+def _refs(node: object) -> Iterator[str]:
+    """Every "$ref" in a JSON document."""
+    if isinstance(node, dict):
+        for key, value in node.items():
+            if key == "$ref":
+                yield value
+            else:
+                yield from _refs(value)
+    elif isinstance(node, list):
+        for item in node:
+            yield from _refs(item)
+
+
+def test_every_reference_of_the_openapi_document_resolves() -> None:
+    """The curve's request schema referred to "#/$defs/PeakMode" from the document's root."""
+    document = TestClient(create_app(token="secret")).get("/openapi.json").json()
+    refs = set(_refs(document))
+    assert "#/components/schemas/PriorModel" in refs and "#/components/schemas/PeakMode" in refs
+    for ref in refs:
+        assert ref.startswith("#/"), ref
+        node = document
+        for part in ref[2:].split("/"):
+            assert part in node, f"{ref} does not resolve"
+            node = node[part]
+    body = document["paths"]["/v1/focus/curve"]["post"]["requestBody"]
+    assert body["content"]["application/json"]["schema"] == {
+        "$ref": "#/components/schemas/CurveRequest"
+    }
+    curve = document["components"]["schemas"]["CurveRequest"]
+    assert curve["required"] == ["z_um", "scores"] and "prior" in curve["properties"]
+
+
+def test_the_openapi_document_says_what_each_route_refuses() -> None:
+    open_app = TestClient(create_app()).get("/openapi.json").json()["paths"]
+    with_token = TestClient(create_app(token="secret")).get("/openapi.json").json()["paths"]
+    for paths, token in ((open_app, []), (with_token, ["401"])):
+        curve = paths["/v1/focus/curve"]["post"]["responses"]
+        stack = paths["/v1/focus/stack"]["post"]["responses"]
+        assert sorted(curve) == ["200", *token, "408", "413", "422"]
+        assert sorted(stack) == ["200", *token, "408", "413", "415", "422"]
+        for refusal in (*token, "408", "413", "422"):
+            for responses in (curve, stack):
+                schema = responses[refusal]["content"]["application/json"]["schema"]
+                assert schema == {"$ref": "#/components/schemas/ErrorReply"}
+    assert "1048576 bytes" in open_app["/v1/focus/curve"]["post"]["responses"]["413"]["description"]
 
 
 def test_metrics_count_and_time_each_route_and_status() -> None:
