@@ -52,7 +52,12 @@ from focustrack_focus.peak import (
     PeakMode,
     Prior,
 )
-from focustrack_focus.pipeline import FocusSettings, focus_from_curve, focus_stack
+from focustrack_focus.pipeline import (
+    STACK_LAYOUT,
+    FocusSettings,
+    focus_from_curve,
+    focus_stack,
+)
 from focustrack_focus.profile import MicroscopeProfile
 
 
@@ -342,8 +347,11 @@ def create_app(
             frames = await run_in_threadpool(
                 decode_stack, data, limits.max_frames, limits.max_decoded_bytes
             )
-            if frames.ndim == 2:
-                raise ValueError(f"the stack holds a single {frames.shape} frame; need >= 3")
+            if frames.ndim == 2:  # a .npy of one frame (a TIFF's page is a frame of its own)
+                raise ValueError(
+                    f"the .npy is a single {frames.shape} frame: {STACK_LAYOUT}; "
+                    "send one frame (a look) as (1, H, W)"
+                )
             result = await run_in_threadpool(focus_stack, frames, z, chosen)
         except UnsupportedFileError as error:
             raise HTTPException(415, str(error)) from None

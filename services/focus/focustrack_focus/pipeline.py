@@ -265,6 +265,10 @@ def look_result(
     )
 
 
+#: How a stack's array is laid out, as the errors say it.
+STACK_LAYOUT = "a stack is frames first, (n, H, W) or (n, H, W, C)"
+
+
 def focus_stack(
     frames: np.ndarray, z_um: np.ndarray, settings: FocusSettings, prior: Prior | None = None
 ) -> FocusResult:
@@ -272,10 +276,13 @@ def focus_stack(
     frame is a look (`look_result`)."""
     started_s = time.perf_counter()
     if frames.ndim not in (3, 4):
-        raise ValueError(f"a z-stack is (n, H, W) or (n, H, W, C), got shape {frames.shape}")
+        raise ValueError(f"{STACK_LAYOUT}; got shape {frames.shape}")
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 1 or z.size != frames.shape[0]:
-        raise ValueError(f"{frames.shape[0]} frames but {z.size} z values: one z per frame needed")
+        raise ValueError(
+            f"{frames.shape[0]} frames but {z.size} z values: one z per frame needed "
+            f"({STACK_LAYOUT}; got shape {frames.shape})"
+        )
     check_z(z)  # frame count and z values, before any pixel work
     if frames.dtype.kind not in "uif":
         raise ValueError(f"pixels must be integers or floats, got dtype {frames.dtype}")

@@ -67,6 +67,14 @@ def test_stack_as_npy_or_tiff(client: TestClient, frames: np.ndarray, encode) ->
     assert body["metric"] == "normalised_variance" and len(body["scores"]) == Z_UM.size
 
 
+def test_one_frame_is_a_look(client: TestClient, frames: np.ndarray) -> None:
+    """A (1, H, W) stack is answered, with no focus (one frame has no curve): cells in view."""
+    look = post_stack(client, npy_bytes(frames[:1]), z_text(Z_UM[:1]))
+    assert look.status_code == 200, look.text
+    assert look.json()["best_z_um"] is None and look.json()["flags"] == []
+    assert look.json()["z_um"] == [Z_UM[0]] and len(look.json()["scores"]) == 1
+
+
 def test_a_stack_or_its_heights_given_twice_is_refused(
     client: TestClient, frames: np.ndarray
 ) -> None:
@@ -313,7 +321,21 @@ def test_bad_stacks(client: TestClient, frames: np.ndarray) -> None:
         assert needle in response.json()["detail"], response.text
 
     check(npy_bytes(frames), z_text(Z_UM[:-1]), 422, "13 frames but 12 z values")
-    check(npy_bytes(frames[0]), z_text(Z_UM[:1]), 422, "single")
+    check(
+        npy_bytes(frames[0]),
+        z_text(Z_UM[:1]),
+        422,
+        "the .npy is a single (96, 96) frame: a stack is frames first, (n, H, W) or "
+        "(n, H, W, C); send one frame (a look) as (1, H, W)",
+    )
+    rgb_frame = np.stack([frames[0]] * 3, axis=-1)  # (H, W, 3): 96 frames of 3 pixels?
+    check(
+        npy_bytes(rgb_frame),
+        z_text(Z_UM[:1]),
+        422,
+        "96 frames but 1 z values: one z per frame needed (a stack is frames first, "
+        "(n, H, W) or (n, H, W, C); got shape (96, 96, 3))",
+    )
     check(npy_bytes(frames[:2]), z_text(Z_UM[:2]), 422, "at least 3")
     nan = frames.astype(np.float32)
     nan[3, 5, 5] = np.nan
