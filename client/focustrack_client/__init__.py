@@ -25,6 +25,7 @@ if TYPE_CHECKING:
         SlideLogCorruptError,
         SlideNotFoundError,
         StorageFullError,
+        StrategyNotServedError,
         UnauthorizedError,
     )
     from focustrack_client.models import Grid, MeasurementIn, SlideCreate, ZRangePolicy
@@ -42,6 +43,7 @@ _HOMES = {
     "SlideLogCorruptError": "errors",
     "SlideNotFoundError": "errors",
     "StorageFullError": "errors",
+    "StrategyNotServedError": "errors",
     "UnauthorizedError": "errors",
     "Grid": "models",
     "MeasurementIn": "models",
@@ -64,6 +66,7 @@ __all__ = [
     "SlideNotFoundError",
     "SlidePage",
     "StorageFullError",
+    "StrategyNotServedError",
     "UnauthorizedError",
     "ZRangePolicy",
 ]

@@ -46,6 +46,11 @@ class SlideLogCorruptError(ConflictError):
     stops (asking again will not help) while the others are served."""
 
 
+class StrategyNotServedError(ConflictError):
+    """409 `strategy_not_served`: the slide's strategy is not among those the service was
+    started to serve (`--strategies-from`); that slide waits for a service that does."""
+
+
 class PayloadTooLargeError(EstimatorError):
     """413: the request body is over the service's limit."""
 
@@ -64,6 +69,7 @@ _BY_CODE: dict[ErrorCode, type[EstimatorError]] = {
     ErrorCode.NOT_FOUND: SlideNotFoundError,
     ErrorCode.CONFLICT: ConflictError,
     ErrorCode.SLIDE_LOG_CORRUPT: SlideLogCorruptError,
+    ErrorCode.STRATEGY_NOT_SERVED: StrategyNotServedError,
     ErrorCode.PAYLOAD_TOO_LARGE: PayloadTooLargeError,
     ErrorCode.REPLAY_MISMATCH: ServerError,
     ErrorCode.INTERNAL: ServerError,

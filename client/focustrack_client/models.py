@@ -328,6 +328,7 @@ class ErrorCode(StrEnum):
     NOT_FOUND = "not_found"  # 404: no such slide (or route)
     CONFLICT = "conflict"  # 409: contradicts the slide's state
     SLIDE_LOG_CORRUPT = "slide_log_corrupt"  # 409: the slide's stored log fails its checks
+    STRATEGY_NOT_SERVED = "strategy_not_served"  # 409: the service does not serve its strategy
     PAYLOAD_TOO_LARGE = "payload_too_large"  # 413: the body is over the limit
     REPLAY_MISMATCH = "replay_mismatch"  # 500: the stored log no longer replays
     INTERNAL = "internal"  # 500: the service failed

@@ -7,11 +7,12 @@ thread hop per dependency per request (it tripled the latency of /next).
 from __future__ import annotations
 
 import secrets
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, HTTPException, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from focustrack_client import models as api
 from focustrack_estimator.metrics import EstimatorMetrics
 from focustrack_estimator.slides import Slides
 
@@ -32,6 +33,30 @@ async def require_token(
         raise HTTPException(
             401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
         )
+
+
+def media_type(request: Request) -> str:
+    """The request's media type, lower case, without its parameters ('' if it has none)."""
+    return request.headers.get("content-type", "").partition(";")[0].strip().lower()
+
+
+async def json_body(request: Request) -> None:
+    """A 415 for a body sent as anything but JSON (FastAPI reads no other media type, nor a
+    body without one, as JSON): curl's ``-d`` sends a form's media type unless told
+    otherwise, and FastAPI would then say only that the body is no object."""
+    media = media_type(request)
+    if media != "application/json" and not media.endswith("+json"):
+        raise HTTPException(
+            415,
+            f"the body is JSON, sent as application/json; got {media or 'no Content-Type'} "
+            "(curl: -H 'Content-Type: application/json')",
+        )
+
+
+#: The 415 of a route whose body is JSON (OpenAPI).
+JSON_BODY_RESPONSES: dict[int | str, dict[str, Any]] = {
+    415: {"model": api.Error, "description": "The body not sent as application/json"}
+}
 
 
 async def _slides(request: Request) -> Slides:

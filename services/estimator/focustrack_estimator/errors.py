@@ -30,6 +30,11 @@ class SlideConflictError(SlideError):
     with a different value, a finished scan, a log another writer moved on)."""
 
 
+class StrategyNotServedError(SlideConflictError):
+    """The slide's strategy is not among those this service was started to serve (a slide
+    made under `--strategies-from MODULE`, the service started again without it)."""
+
+
 class ReplayMismatchError(SlideError):
     """The stored log no longer replays to the logged outcomes (the strategy changed)."""
 

@@ -13,6 +13,7 @@ from typing import Annotated
 
 from pydantic import Field
 
+from focustrack_client.models import MAX_FRAMES
 from focustrack_core.domain import PAIR_FRAMES
 from focustrack_estimator.lean import COARSE_STEP_UM, SHORT_FRAMES
 from focustrack_estimator.strategy import MAX_RETRIES, StrategyParams
@@ -77,9 +78,11 @@ MaxKeptPlanes = Annotated[
     int,
     Field(
         ge=1,
+        le=MAX_FRAMES,
         description="With risk_out_of_focus set, most frames a measured tile keeps where its "
         "kept frame alone would exceed that risk, each within a depth of field of the next "
-        "(`lean.kept_planes`): the tile is in focus when one of them is",
+        "(`lean.kept_planes`): the tile is in focus when one of them is. A stack taken for "
+        "them has at most the slide's max_frames",
     ),
 ]
 GateNis = Annotated[

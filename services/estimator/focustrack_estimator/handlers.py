@@ -30,6 +30,7 @@ from focustrack_estimator.errors import (
     SlideConflictError,
     SlideError,
     SlideNotFoundError,
+    StrategyNotServedError,
 )
 from focustrack_estimator.event_store import (
     CorruptLogError,
@@ -48,6 +49,7 @@ DOMAIN_ERRORS: dict[type[SlideError], tuple[int, api.ErrorCode]] = {
     SlideError: (422, api.ErrorCode.INVALID_REQUEST),
     SlideNotFoundError: (404, api.ErrorCode.NOT_FOUND),
     SlideConflictError: (409, api.ErrorCode.CONFLICT),
+    StrategyNotServedError: (409, api.ErrorCode.STRATEGY_NOT_SERVED),
     ReplayMismatchError: (500, api.ErrorCode.REPLAY_MISMATCH),
 }
 

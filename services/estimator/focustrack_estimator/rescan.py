@@ -47,17 +47,20 @@ from focustrack_estimator.filter_params import FilterParams, MaxKeptPlanes, Risk
 from focustrack_estimator.kalman_strategies import path_cost
 from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
 from focustrack_estimator.serpentine import Gaussian, SerpentineFilter
-from focustrack_estimator.strategy import StrategyEntry
+from focustrack_estimator.strategy import Z_LIMIT_UM, StrategyEntry
 from focustrack_estimator.time_state import ScanClock
 
 #: The sigma of a prior map given without one (um).
 DEFAULT_MAP_SIGMA_UM = 0.05
 
 
-#: Lists of numbers, as the REST API's parameters are (any length, possibly empty).
-Heights = Annotated[tuple[float, ...], Strict(False)]
+#: Lists of numbers, as the REST API's parameters are (any length, possibly empty), each
+#: within the API's bound on every height (as `PUT /prior`'s .npy map).
+Heights = Annotated[
+    tuple[Annotated[float, Field(ge=-Z_LIMIT_UM, le=Z_LIMIT_UM)], ...], Strict(False)
+]
 #: A sigma of zero would claim a tile's height exactly known (its gain 0 with no local change).
-Sigmas = Annotated[tuple[Annotated[float, Field(gt=0.0)], ...], Strict(False)]
+Sigmas = Annotated[tuple[Annotated[float, Field(gt=0.0, le=Z_LIMIT_UM)], ...], Strict(False)]
 
 
 class KfRescanParams(FilterParams):

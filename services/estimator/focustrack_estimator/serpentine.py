@@ -381,14 +381,16 @@ class SerpentineFilter(Strategy):
                 return at_peak
         if len(planes_um) >= self.options.max_kept_planes:
             return None
+        policy = self.settings.policy
         return planes_stack(
             posterior.mean_um,
             posterior.sigma_um,
             z_used_um,
             self.settings.dof_um,
-            self.settings.policy.z_step_um,
+            policy.z_step_um,
             stated,
-            self.options.max_kept_planes,
+            # a stack of planes is a stack: within the slide's own bound on one
+            min(self.options.max_kept_planes, policy.max_frames),
         )
 
     def _take(self, acquisition: Acquisition, measurement: Measurement) -> Outcome:

@@ -36,6 +36,7 @@ from focustrack_estimator.errors import (
     ReplayMismatchError,
     SlideConflictError,
     SlideError,
+    StrategyNotServedError,
 )
 from focustrack_estimator.event_store import (
     CorruptSnapshotError,
@@ -167,6 +168,13 @@ class Slide:
         longer replays, CorruptLogError if a record of it fails its own checks."""
         slide_id, config = record.id, api.SlideCreate.model_validate(record.config)
         strategies = served(catalogue)
+        if config.strategy not in strategies.strategies:
+            raise StrategyNotServedError(
+                f"slide {slide_id} scans with strategy {config.strategy!r}, which this "
+                "estimator does not serve: start it with the catalogue the slide was made "
+                "under (--strategies-from MODULE); it serves "
+                f"{', '.join(sorted(strategies.strategies))}"
+            )
         try:
             params = resolved_params(config, strategies)
         except SlideError as error:  # stored as valid: this version's strategy refuses them

@@ -28,6 +28,7 @@ from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
 from focustrack_estimator.app import create_app
 from focustrack_estimator.event_store import open_store
+from focustrack_estimator.registry import Catalogue
 from focustrack_estimator.replay import replay, simulated_measurement
 from focustrack_estimator.settings import EstimatorSettings
 
@@ -65,12 +66,14 @@ def assert_same_maps(served: FocusMap, local: FocusMap) -> None:
 
 
 @contextmanager
-def estimator(location: Path | str, **settings: Any) -> Iterator[FastAPI]:
+def estimator(
+    location: Path | str, catalogue: Catalogue | None = None, **settings: Any
+) -> Iterator[FastAPI]:
     """The app over the store at `location` (an SQLite file, or a PostgreSQL URL) with these
-    settings; the store closed after."""
+    settings, serving `catalogue` (None: the estimator's own); the store closed after."""
     store = open_store(str(location))
     try:
-        yield create_app(store, EstimatorSettings(**settings))
+        yield create_app(store, EstimatorSettings(**settings), catalogue)
     finally:
         store.close()
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 from pathlib import Path
 from typing import Any
 
@@ -128,6 +129,12 @@ INVALID = [
     ("parameter type", "post", None, _slide_body(params={"q": "big"}), 422, "a valid number"),
     ("bool for int", "post", None, _slide_body(params={"max_retries": True}), 422, "int"),
     ("unknown field", "post", None, _slide_body(colour="red"), 422, "colour"),
+    ("prior map beyond the API's heights", "post", None,
+     {**slide_config("kf-rescan", SETTINGS), "params": {"prior_map_um": [1e30] * ROWS * COLS}},
+     422, "prior_map_um"),
+    ("kept planes beyond a stack's frames", "post", None,
+     {**slide_config("kf-2d-lean", SETTINGS), "params": {"max_kept_planes": 10**6}}, 422,
+     "max_kept_planes"),
     ("grid too large", "post", None, _slide_body(grid=_grid(rows=1000, cols=1000)), 422, "tiles"),
     ("empty grid", "post", None, _slide_body(grid=_grid(rows=0)), 422, "rows"),
     ("negative pitch", "post", None, _slide_body(grid=_grid(pitch_um=-1)), 422, "pitch_um"),
@@ -174,6 +181,55 @@ def test_bad_input_gets_a_4xx_naming_the_problem(
             response = await http.request(method.upper(), url, json=body)
             assert response.status_code == status, response.text
             assert text in str(response.json()["detail"])
+
+    run(go())
+
+
+def test_a_body_not_sent_as_json_is_a_415_that_says_so(app: FastAPI) -> None:
+    """curl's -d sends a form's media type; FastAPI alone said the body was no object."""
+
+    async def go() -> None:
+        async with client(app) as http:
+            form = {"Content-Type": "application/x-www-form-urlencoded"}
+            created = await http.post("/v1/slides", content=_json(_slide_body()), headers=form)
+            assert created.status_code == 415, created.text
+            assert created.json()["detail"].startswith("the body is JSON, sent as application/json")
+            slide_id = await create(http)
+            measured = await http.post(
+                f"/v1/slides/{slide_id}/measurements",
+                content=_json({"row": 0, "col": 0, "sequence": 0, "z_um": 1.0}),
+                headers={"Content-Type": "text/plain"},
+            )
+            assert measured.status_code == 415 and "text/plain" in measured.text
+            untyped = await http.post(
+                f"/v1/slides/{slide_id}/measurements",
+                content=_json({"row": 0, "col": 0, "sequence": 0, "z_um": 1.0}),
+            )
+            assert untyped.status_code == 415 and "no Content-Type" in untyped.text
+
+    run(go())
+
+
+def _json(body: dict[str, Any]) -> bytes:
+    return json.dumps(body).encode()
+
+
+def test_a_stack_of_kept_planes_stays_within_the_slides_frames(app: FastAPI) -> None:
+    """max_kept_planes above the slide's max_frames once asked for a stack of that many
+    frames (999,999 after a wild measurement); a planes stack is a stack, within bounds."""
+
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http, "kf-2d-lean", params={"max_kept_planes": 1001})
+            for z_um, sigma_um in ((30.0, 0.5), (1e6, 0.001)):  # the second, wild, is kept
+                step = (await http.get(f"/v1/slides/{slide_id}/next")).json()
+                where = {key: step[key] for key in ("row", "col", "sequence")}
+                measurement = {**where, "z_um": z_um, "sigma_um": sigma_um}
+                posted = await http.post(f"/v1/slides/{slide_id}/measurements", json=measurement)
+                assert posted.status_code == 200, posted.text
+            step = (await http.get(f"/v1/slides/{slide_id}/next")).json()
+            assert step["purpose"] == "planes", step
+            assert step["n_frames"] == SETTINGS.policy.max_frames, step
 
     run(go())
 

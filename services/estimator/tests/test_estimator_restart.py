@@ -26,6 +26,8 @@ from estimator_in_process import (
 from focustrack_core.domain import FocusMap
 from focustrack_estimator.event_store import Event
 from focustrack_estimator.records import outcome_of
+from focustrack_estimator.registry import Catalogue
+from focustrack_estimator.service import catalogue_from
 from focustrack_estimator.slide import Slide
 from focustrack_estimator.sqlite_store import SQLiteStore
 
@@ -85,6 +87,36 @@ def test_a_log_that_no_longer_replays_is_reported(tmp_path: Path) -> None:
     response = run(restart())
     assert response.status_code == 500
     assert "outcome 1 no longer replays" in response.json()["detail"]
+
+
+def test_a_slide_whose_strategy_is_no_longer_served_is_a_409_naming_the_catalogue(
+    tmp_path: Path,
+) -> None:
+    """A slide made under --strategies-from, the service started again without it: its
+    requests were 500s (a log that no longer replays) while nothing had changed but that."""
+    path = tmp_path / "estimator.sqlite"
+    catalogue = catalogue_from("focustrack.bench.strategies")  # --strategies-from's
+
+    async def start() -> str:
+        with estimator(path, catalogue) as app:
+            async with client(app) as http:
+                slide_id = await create(http, "gp-oracle")
+                await scan(http, slide_id, maps(2)[1], limit=3)
+        return slide_id
+
+    slide_id = run(start())
+
+    async def restart(served: Catalogue | None) -> httpx.Response:
+        with estimator(path, served) as app:
+            async with client(app) as http:
+                return await http.get(f"/v1/slides/{slide_id}/next")
+
+    refused = run(restart(None))
+    assert refused.status_code == 409, refused.text
+    assert refused.json()["code"] == "strategy_not_served"
+    assert "'gp-oracle', which this estimator does not serve" in refused.json()["detail"]
+    assert "--strategies-from" in refused.json()["detail"]
+    assert run(restart(catalogue)).status_code == 200  # served again
 
 
 SNAPSHOTTED = "kf-2d"  # the restart tests' strategy

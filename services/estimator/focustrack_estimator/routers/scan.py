@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends
 
 from focustrack_client import models as api
 from focustrack_core.rest import to_api
-from focustrack_estimator.dependencies import MetricsDep, SlideId, SlidesDep
+from focustrack_estimator.dependencies import (
+    JSON_BODY_RESPONSES,
+    MetricsDep,
+    SlideId,
+    SlidesDep,
+    json_body,
+)
 
 router = APIRouter(prefix="/v1", tags=["scan"])
 
@@ -17,7 +23,11 @@ async def next_acquisition(slide_id: SlideId, slides: SlidesDep) -> api.Next:
     return await slides.run(slide_id, lambda slide: to_api.next_step(slide.next(), slide.grid))
 
 
-@router.post("/slides/{slide_id}/measurements")
+@router.post(
+    "/slides/{slide_id}/measurements",
+    dependencies=[Depends(json_body)],
+    responses=JSON_BODY_RESPONSES,
+)
 async def post_measurement(
     slide_id: SlideId,
     measurement: api.MeasurementIn,

@@ -6,10 +6,16 @@ from __future__ import annotations
 from typing import Annotated
 from urllib.parse import urlencode
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from focustrack_client import models as api
-from focustrack_estimator.dependencies import SlideId, SlidesDep
+from focustrack_estimator.dependencies import (
+    JSON_BODY_RESPONSES,
+    SlideId,
+    SlidesDep,
+    json_body,
+    media_type,
+)
 from focustrack_estimator.event_store import SlideRecord
 from focustrack_estimator.paging import decode_cursor, encode_cursor
 from focustrack_estimator.prior import PRIOR_MEDIA_TYPE
@@ -66,7 +72,12 @@ def _summary(record: SlideRecord) -> api.SlideSummary:
     )
 
 
-@router.post("/slides", status_code=201)
+@router.post(
+    "/slides",
+    status_code=201,
+    dependencies=[Depends(json_body)],
+    responses=JSON_BODY_RESPONSES,
+)
 async def create_slide(config: api.SlideCreate, slides: SlidesDep) -> api.Slide:
     """Create a slide scan; its strategy is built (and its parameters checked) at once."""
     slide_id = await slides.create(config)
@@ -131,7 +142,7 @@ async def put_prior(slide_id: SlideId, request: Request, slides: SlidesDep) -> R
     """The slide's prior map (kf-rescan), before its first acquisition: an .npy file of
     float64 or float32 heights, um, of shape (rows, cols), or (2, rows, cols) with their
     sigmas. It replaces the `prior_map_um` (and `prior_map_sigma_um`) parameters."""
-    media = request.headers.get("content-type", "").partition(";")[0].strip().lower()
+    media = media_type(request)
     if media != PRIOR_MEDIA_TYPE:
         raise HTTPException(
             415,
