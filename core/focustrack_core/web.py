@@ -28,20 +28,26 @@ _bearer = HTTPBearer(auto_error=False, description="Required when the service ha
 
 def bearer_token(token: str | None) -> Callable[..., Awaitable[None]]:
     """A dependency that lets a request through only with `token` as its bearer token
-    (401 otherwise; None: every request), compared in constant time."""
+    (401 otherwise; None: every request, and the OpenAPI document asks for no token),
+    compared in constant time."""
+    if token is None:
+        return _open
 
     async def require_token(
         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
     ) -> None:
-        if token is not None and (
-            credentials is None
-            or not secrets.compare_digest(credentials.credentials.encode(), token.encode())
+        if credentials is None or not secrets.compare_digest(
+            credentials.credentials.encode(), token.encode()
         ):
             raise HTTPException(
                 401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
             )
 
     return require_token
+
+
+async def _open() -> None:
+    """The dependency of a service without a token: every request passes."""
 
 
 def guarded_app(

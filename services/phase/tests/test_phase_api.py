@@ -253,6 +253,14 @@ def test_a_token_is_required_when_set(stack: SyntheticStack) -> None:
     assert post(guarded, body, form(stack)).status_code == 200
 
 
+@pytest.mark.parametrize("token", [None, "secret"])
+def test_the_openapi_document_asks_for_a_token_only_when_one_is_set(token: str | None) -> None:
+    document = create_app(token=token).openapi()
+    schemes = document.get("components", {}).get("securitySchemes", {})
+    assert ("security" in document["paths"]["/v1/phase/stack"]["post"]) == (token is not None)
+    assert bool(schemes) == (token is not None)
+
+
 def test_end_to_end_on_uvicorn_healthz_answers_while_a_stack_is_reconstructed(
     stack: SyntheticStack, monkeypatch: pytest.MonkeyPatch
 ) -> None:
