@@ -216,6 +216,16 @@ class MeasurementIn(_Model):
         "tile is then measured",
     )
 
+    @model_validator(mode="after")
+    def _one_edge(self) -> Self:
+        # each says where the next stack goes: both at once is a broken focus reader
+        if {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH} <= set(self.flags):
+            raise ValueError(
+                "flags edge_low and edge_high contradict each other: a peak lies beyond one "
+                "end of the stack, not both"
+            )
+        return self
+
 
 class OutcomeOut(BaseModel):
     """What the measurement did to its tile's estimate (heights in um)."""
