@@ -109,6 +109,8 @@ def _read_tiff(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndarr
             offsets.add(page.offset)
             pages.append(page)
         kinds = {(tuple(int(side) for side in page.shape), np.dtype(page.dtype)) for page in pages}
+        if not kinds:
+            raise ValueError("it has no pages")
         if len(kinds) > 1:
             described = ", ".join(sorted(f"{shape} {dtype}" for shape, dtype in kinds))
             raise ValueError(f"the TIFF's pages must share one shape and type; got {described}")
