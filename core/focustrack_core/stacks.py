@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import math
+import threading
 from typing import Any
 
 import numpy as np
@@ -86,7 +88,36 @@ def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
     return tuple(int(side) for side in shape), dtype.itemsize
 
 
+class _Complaints(logging.Handler):
+    """The errors tifffile logs on this thread while it reads a file. Where a file is cut
+    short, tifffile reads the pages before the damage and says so only in its log."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.ERROR)
+        self.thread = threading.get_ident()  # the services read uploads on several threads
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.thread == self.thread:
+            self.messages.append(record.getMessage())
+
+
 def _read_tiff(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndarray:
+    """`_read_pages`, refused (ValueError) where tifffile logs an error as it reads: a
+    truncated file would otherwise be the frames before the cut."""
+    complaints = _Complaints()
+    logger = logging.getLogger("tifffile")
+    logger.addHandler(complaints)
+    try:
+        frames = _read_pages(data, max_frames, max_decoded_bytes)
+    finally:
+        logger.removeHandler(complaints)
+    if complaints.messages:
+        raise ValueError(f"it is damaged (cut short?): {complaints.messages[0]}")
+    return frames
+
+
+def _read_pages(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndarray:
     """Every page of a TIFF, frames first: (pages, height, width) or (pages, height, width,
     samples), once the pages' count, shape and type, read from the TIFF's tags alone, are
     within the limits (TooLargeError) and the same on every page (ValueError).

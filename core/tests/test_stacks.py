@@ -81,6 +81,14 @@ def test_a_tiff_whose_pages_loop_back_is_corrupt_not_long() -> None:
     assert not isinstance(caught.value, TooLargeError)
 
 
+def test_a_tiff_cut_short_is_damaged_not_its_first_pages() -> None:
+    """tifffile reads the pages before the cut and says so only in its log."""
+    frames = np.arange(10 * 64 * 64, dtype=np.uint16).reshape(10, 64, 64)
+    data = tiff_bytes(frames)
+    with pytest.raises(ValueError, match="damaged"):
+        decode_stack(data[:-8000], **ROOMY | {"max_decoded_bytes": 1 << 22})
+
+
 @pytest.mark.parametrize("shape", [(4096,), (300, 64)])
 def test_an_array_of_fewer_dimensions_is_not_counted_in_frames(shape: tuple[int, ...]) -> None:
     """A flat array is no stack; a 2-D one is a single frame, however many its rows."""
