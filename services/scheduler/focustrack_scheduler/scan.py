@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
+from pydantic import ValidationError
 
 from focustrack_client import EstimatorClient
 from focustrack_core import tracing
@@ -83,8 +84,8 @@ class ScanJob:
 def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
     """The estimator slide id to resume, if `out_dir` holds an earlier run of this scan."""
     state = record.state.read()
-    if state is None:
-        return None
+    if state is None or state.get("slide_id") is None:
+        return None  # nor did an earlier run that failed before its slide was made
     wanted = {
         "estimator": job.estimator_url,
         "instrument": job.request.instrument,
@@ -199,8 +200,8 @@ def run(settings: ScanSettings) -> int:
             mosaic_format=settings.mosaic_format,
             trust=signer_of(settings.result_key_file),
         )
-        config = settings.zenoh()  # a Zenoh config file it cannot use: exit 2
-    except ValueError as error:
+        config = settings.zenoh()  # a Zenoh config file or endpoint it cannot use: exit 2
+    except (ValueError, zenoh.ZError) as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 2
     tracing.configure("focustrack-scheduler", settings.otlp_endpoint)
@@ -215,6 +216,12 @@ def run(settings: ScanSettings) -> int:
             report = run_scan(session, replace(job, live=live))
     except SCAN_ERRORS as error:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
+        return 1
+    except ValidationError as error:  # a --param the slide's model refuses (NaN, 1e400)
+        print(f"focustrack scan: error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:  # the outputs' folder or a file in it (a file, unwritable)
+        print(f"focustrack scan: error: cannot write the outputs: {error}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(

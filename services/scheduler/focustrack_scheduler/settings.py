@@ -19,6 +19,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Self
+from urllib.parse import urlsplit
 
 from pydantic import BaseModel, Field, field_validator
 from pydantic_settings import CliToggleFlag, NoDecode, SettingsConfigDict
@@ -241,6 +242,15 @@ class ScanSettings(ZenohSettings, ScanOptions, MetricsPortSettings, TracingSetti
         description="the address the live web view listens on (0.0.0.0: every interface, "
         "as in a container whose port is published)",
     )
+
+    @field_validator("estimator")
+    @classmethod
+    def _http_url(cls, url: str) -> str:
+        """An http(s) URL with a host: anything else would be retried as an outage."""
+        parsed = urlsplit(url)
+        if parsed.scheme not in ("http", "https") or not parsed.hostname:
+            raise ValueError(f"must be an http:// or https:// URL with a host, got {url!r}")
+        return url
 
     @field_validator("param", mode="before")
     @classmethod

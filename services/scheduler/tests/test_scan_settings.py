@@ -11,9 +11,12 @@ import pytest
 
 from focustrack_client import models as api
 from focustrack_core.settings import parse
+from focustrack_core.wire.session import free_port
 from focustrack_scheduler import scan
+from focustrack_scheduler.engine import ScanRefusedError
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.realign import Realign
+from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.retry import RetryPolicy
 from focustrack_scheduler.settings import BEST_KALMAN, TOKEN_ENV, ScanOptions, ScanSettings
 
@@ -130,6 +133,9 @@ def test_the_token_defaults_to_the_estimators_variable(monkeypatch: pytest.Monke
         (["--k-sigma", "0"], "--k-sigma (FOCUSTRACK_SCAN_K_SIGMA): Input should be greater"),
         (["--mosaic-format", "png"], "invalid choice: 'png'"),
         (["--lateral-max-um", "0"], "--lateral-max-um (FOCUSTRACK_SCAN_LATERAL_MAX_UM)"),
+        # anything but an http(s) URL was retried as an outage for a minute
+        (["--estimator", "ftp://127.0.0.1:8100"], "must be an http:// or https:// URL"),
+        (["--estimator", "notaurl"], "--estimator (FOCUSTRACK_SCAN_ESTIMATOR)"),
     ],
 )
 def test_a_refused_value_exits_2_naming_its_option(
@@ -146,7 +152,8 @@ def test_a_bad_name_or_policy_exits_2_before_any_connection(
 ) -> None:
     assert scan.run(settings("--instrument", "no/slash")) == 2
     assert scan.run(settings("--min-frames", "30", "--max-frames", "10")) == 2
-    assert capsys.readouterr().err.count("focustrack scan: error:") == 2
+    assert scan.run(settings("--connect", "foo")) == 2  # an endpoint Zenoh cannot read
+    assert capsys.readouterr().err.count("focustrack scan: error:") == 3
 
 
 def test_the_demo_takes_the_scan_options_beside_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -182,3 +189,33 @@ def test_a_first_pass_makes_the_scan_a_realigned_second_pass(tmp_path: Path) -> 
     assert settings().scan_request().realign is None
     request = settings("--first-pass", str(tmp_path), "--lateral-tiles", "3").scan_request()
     assert request.realign == Realign(tmp_path, tiles=3, max_offset_um=10.0)
+
+
+def _job(out: Path, *argv: str) -> scan.ScanJob:
+    chosen = settings("--out", str(out), *argv)
+    return scan.ScanJob(chosen.scan_request(), chosen.estimator, chosen.out)
+
+
+def test_an_output_folder_of_a_run_that_never_made_its_slide_is_reused(tmp_path: Path) -> None:
+    """A first run refused at its start (a strategy the estimator does not know) left its
+    record without a slide: the corrected run takes the folder, where it was refused."""
+    record = ScanRecord(tmp_path)
+    try:
+        record.state.save(estimator="http://127.0.0.1:8100", strategy="nope", slide="slide-0")
+        assert scan._check_same_scan(record, _job(tmp_path)) is None
+        record.state.save(slide_id="abc")  # a slide made: only the same scan resumes it
+        with pytest.raises(ScanRefusedError, match="holds another scan"):
+            scan._check_same_scan(record, _job(tmp_path))
+    finally:
+        record.close()
+
+
+def test_an_output_folder_that_cannot_be_written_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    taken = tmp_path / "a-file"
+    taken.write_text("not a folder")
+    alone = ["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect"]
+    assert scan.run(settings("--out", str(taken), *alone)) == 1
+    err = capsys.readouterr().err
+    assert "focustrack scan: error: cannot write the outputs" in err and "Traceback" not in err
