@@ -194,7 +194,9 @@ class InstrumentService:
         self._acquire_key = keys.acquire_key(name)
         self._laser_key = keys.laser_key(name)
         self.laser: LaserSensor | None = getattr(instrument, "laser", None)
-        self._pending: queue.Queue[zenoh.Query] = queue.Queue(maxsize=queue_depth)
+        # each query with whether the laser's queryable took it: a wildcard query reaches
+        # both queryables, and its key expression alone would make it two acquisitions
+        self._pending: queue.Queue[tuple[zenoh.Query, bool]] = queue.Queue(maxsize=queue_depth)
         self.metrics = InstrumentMetrics(self._pending.qsize)
         self._declared: list = []
         self.recent = RecentStacks(keep_frames_bytes)
@@ -219,7 +221,11 @@ class InstrumentService:
                 )
             )
         if self.laser is not None:  # its readings queue for the stage, as acquisitions do
-            self._declared.append(self.session.declare_queryable(self._laser_key, self._enqueue))
+            self._declared.append(
+                self.session.declare_queryable(
+                    self._laser_key, lambda query: self._enqueue(query, for_laser=True)
+                )
+            )
         if self.phase_truth is not None:
             self._declared.append(
                 self.session.declare_queryable(
@@ -228,13 +234,14 @@ class InstrumentService:
                 )
             )
 
-    def _enqueue(self, query: zenoh.Query) -> None:
-        """Queue an acquisition for the stage, or refuse it BUSY when the queue is full."""
+    def _enqueue(self, query: zenoh.Query, for_laser: bool = False) -> None:
+        """Queue an acquisition (or, `for_laser`, a laser reading) for the stage, or refuse
+        it BUSY when the queue is full."""
         try:
-            self._pending.put_nowait(query)
+            self._pending.put_nowait((query, for_laser))
         except queue.Full:
             self.metrics.busy.inc()
-            rpc.answer(query, self._acquire_key, self._busy)
+            rpc.answer(query, self._laser_key if for_laser else self._acquire_key, self._busy)
 
     def _busy(self, _query: zenoh.Query) -> instrument_pb2.AcquireReply:
         raise rpc.RequestError(
@@ -246,10 +253,10 @@ class InstrumentService:
         """Answer acquisition requests, one at a time, until `stop` is set."""
         while not self.stop.is_set():
             try:
-                query = self._pending.get(timeout=0.1)
+                query, for_laser = self._pending.get(timeout=0.1)
             except queue.Empty:
                 continue
-            if self.laser is not None and str(query.key_expr) == self._laser_key:
+            if for_laser:
                 rpc.answer(query, self._laser_key, self._read_laser)
             else:
                 rpc.answer(query, self._acquire_key, self.metrics.observed(self._acquire))

@@ -344,3 +344,36 @@ def test_the_metrics_port_counts_stacks_frames_and_errors_by_code(client: zenoh.
     assert grown["focustrack_instrument_acquisition_duration_seconds_count"] == 2
     assert after["focustrack_instrument_busy_total"] == 0
     assert after["focustrack_instrument_queued"] == 0
+
+
+def test_a_wildcard_query_is_one_acquisition_on_an_instrument_with_a_laser() -> None:
+    """A query for probe/* reaches the acquisition's queryable and the laser's: each used to
+    read its key expression, not its queryable, and both acquired (6 frames for 3)."""
+    endpoint = session.loopback_endpoint()
+    command = [
+        sys.executable, "-m", "focustrack_instrument_sim", "--listen", endpoint, "--name",
+        "probe", "--rows", "2", "--cols", "2", "--width", "64", "--height", "64", "--laser",
+    ]  # fmt: skip
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
+    try:
+        with session.open_session(connect=[endpoint], connect_timeout_s=60) as client:
+            wait_until_it_answers(client, "probe", process)
+            frames: list[zenoh.Sample] = []
+            with client.declare_subscriber(keys.zframe_pattern("slide-0"), frames.append):
+                time.sleep(0.5)  # let the subscription reach the instrument
+                request = _request(row=0, col=0, n_frames=3, nonce=b"w" * 16)
+                replies = list(
+                    client.get(
+                        "focustrack/v1/instrument/probe/*",
+                        payload=request.SerializeToString(),
+                        timeout=20,
+                    )
+                )
+                time.sleep(0.5)  # the frames' samples after the replies
+            headers = [codec.zframe_header(s.attachment.to_bytes()) for s in frames]  # type: ignore[union-attr]
+            assert len(replies) >= 1
+            # one stack of 3 frames (of one part each), not two
+            assert sorted((h.index, h.part_offset) for h in headers) == [(0, 0), (1, 0), (2, 0)]
+    finally:
+        process.terminate()
+        assert process.wait(timeout=20) == 0
