@@ -191,6 +191,8 @@ def validate_stack(
     frames, height, width = stack_counts.shape
     if frames < 1 or height < 2 or width < 2:
         raise ValueError(f"stack needs >= 1 frame of >= 2x2 pixels, got shape {stack_counts.shape}")
+    if stack_counts.dtype.kind not in "uif":  # not bool, complex, timedelta (an integer to numpy)
+        raise ValueError(f"stack must hold real numbers (counts); got dtype {stack_counts.dtype}")
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 1 or z.shape[0] != frames:
         got = z.shape[0] if z.ndim == 1 else z.shape

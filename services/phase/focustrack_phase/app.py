@@ -120,8 +120,9 @@ def phase_png(phase_rad: np.ndarray) -> bytes:
 
 
 def checked_stack(frames: np.ndarray, z_um: np.ndarray, limits: PhaseLimits) -> np.ndarray:
-    """`frames` once it is a stack the filter can take: (n >= 2, H, W) of real numbers, one
-    z per frame, within `limits.max_pixels`; ValueError naming what is wrong."""
+    """`frames` once it is a stack the service takes: (n >= 2, H, W), one z per frame, within
+    `limits.max_pixels`; ValueError naming what is wrong (the maths checks the rest,
+    `acekf.validate_stack`)."""
     if frames.ndim != 3:
         raise ValueError(
             f"stack must be frames of one channel, (frames, height, width); got shape "
@@ -129,8 +130,6 @@ def checked_stack(frames: np.ndarray, z_um: np.ndarray, limits: PhaseLimits) -> 
         )
     if frames.shape[0] < 2:
         raise ValueError(f"stack must hold at least 2 frames; got {frames.shape[0]}")
-    if frames.dtype.kind not in "uif":  # not bool, complex, timedelta (an integer to numpy)
-        raise ValueError(f"stack must hold real numbers (counts); got dtype {frames.dtype}")
     pixels = frames.shape[1] * frames.shape[2]
     if pixels > limits.max_pixels:
         raise TooLargeError(
