@@ -31,9 +31,22 @@ from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys, rpc
 from focustrack_core.wire.session import AliveTokens
 from focustrack_core.wire.trust import ResultSigner
-from focustrack_scheduler.plan import AcquirePhase, SlideGeometry
+from focustrack_scheduler.plan import AcquirePhase, SlideGeometry, StageLimits
 
 log = logging.getLogger(__name__)
+
+
+def stage_limits(info: instrument_pb2.InstrumentInfo) -> StageLimits:
+    """The travel and frame limit the instrument's info states; a travel that is not a finite
+    z_min_um < z_max_um, or a frame limit below 1, as not stated (an instrument older than
+    them sends zeros)."""
+    stated = math.isfinite(info.z_min_um) and math.isfinite(info.z_max_um)
+    travel = stated and info.z_min_um < info.z_max_um
+    return StageLimits(
+        info.z_min_um if travel else None,
+        info.z_max_um if travel else None,
+        info.max_frames if info.max_frames >= 1 else None,
+    )
 
 
 def acquire_request(
@@ -173,7 +186,7 @@ class InstrumentClient:
                     described.origin_x_um,
                     described.origin_y_um,
                 )
-                return SlideGeometry(grid, info.depth_of_field_um)
+                return SlideGeometry(grid, info.depth_of_field_um, stage_limits(info))
         known = ", ".join(described.slide for described in info.slides) or "none"
         raise ValueError(f"instrument {self.name!r} has no slide {slide!r} (it has: {known})")
 

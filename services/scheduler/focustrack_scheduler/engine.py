@@ -277,6 +277,11 @@ class Engine:
             )
         except ValueError as error:
             raise ScanRefusedError(str(error)) from error
+        if (max_frames := geometry.stage.max_frames) is not None and max_frames < 2:
+            raise ScanRefusedError(
+                f"instrument {step.instrument!r} takes at most {max_frames} frame a stack; "
+                "a focus curve needs 2"
+            )
         self.geometry, self._slide = geometry, step.slide
         if self._realign is not None:
             try:
@@ -298,6 +303,14 @@ class Engine:
         if any((a.row, a.col) != tile for _, a in self._taken.values()):
             self._taken = {}  # a new tile: the frames of the last are no longer asked for
         self._taken[acquisition.index] = (step.slide, acquisition)
+        if step.asked is not None and step.attempt == 1:
+            z, asked = acquisition.z, step.asked
+            log.warning(
+                "acquisition %d of tile (%d, %d): the estimator asked for %d frames at z "
+                "%.3f..%.3f um; the stage takes %d at %.3f..%.3f um (its travel and frame limit)",
+                acquisition.index, acquisition.row, acquisition.col, asked.n_frames,
+                asked.low_um, asked.high_um, z.n_frames, z.low_um, z.high_um,
+            )  # fmt: skip
         return self._take(step.slide, acquisition)
 
     def _take(self, slide: str, acquisition: Acquisition) -> tuple[float, ...]:

@@ -139,11 +139,62 @@ class ScanRequest:
 
 
 @dataclass(frozen=True)
+class StageLimits:
+    """What the instrument's stage and camera allow a stack: frames within z_min_um..z_max_um
+    (its travel, um) and at most `max_frames` of them. None: not stated (an instrument whose
+    info predates them), no limit."""
+
+    z_min_um: float | None = None
+    z_max_um: float | None = None
+    max_frames: int | None = None
+
+    def fit(self, z: ZRange) -> ZRange:
+        """`z` cut to `max_frames` (about its centre) and moved inside the travel, frames and
+        step unchanged; a stack longer than the travel keeps the frames that fit, from the
+        bottom. The instrument refuses a stack that reaches beyond either (Z_OUT_OF_RANGE,
+        TOO_MANY_FRAMES), while a stack at the limit still finds a focus near it (or
+        flags the edge, and the estimator's retries are bounded)."""
+        n_frames = z.n_frames if self.max_frames is None else min(z.n_frames, self.max_frames)
+        low_um = z.low_um + (z.n_frames - n_frames) / 2.0 * z.step_um
+        if self.z_min_um is None or self.z_max_um is None:
+            return ZRange(low_um, z.step_um, n_frames)
+        span_um = self.z_max_um - self.z_min_um
+        n_frames = min(n_frames, 1 + math.floor(span_um / z.step_um))
+        low_um = max(min(low_um, self.z_max_um - (n_frames - 1) * z.step_um), self.z_min_um)
+        # Rounding may leave the top frame a hair above the travel, which the instrument
+        # refuses like any other frame beyond it.
+        while low_um + (n_frames - 1) * z.step_um > self.z_max_um:
+            if low_um > self.z_min_um:
+                low_um = max(math.nextafter(low_um, -math.inf), self.z_min_um)
+            else:
+                n_frames -= 1
+        return ZRange(low_um, z.step_um, n_frames)
+
+    def limit_policy(self, policy: ZRangePolicy) -> ZRangePolicy:
+        """`policy` with no stack larger than the instrument takes (ValueError when it takes
+        fewer than the two frames a focus curve needs)."""
+        if self.max_frames is None or policy.max_frames <= self.max_frames:
+            return policy
+        if self.max_frames < 2:
+            raise ValueError(
+                f"the instrument takes at most {self.max_frames} frame a stack; "
+                "a focus curve needs 2"
+            )
+        return dataclasses.replace(
+            policy,
+            max_frames=self.max_frames,
+            min_frames=min(policy.min_frames, self.max_frames),
+        )
+
+
+@dataclass(frozen=True)
 class SlideGeometry:
-    """What the instrument says about a slide: its tile grid and the depth of field (um)."""
+    """What the instrument says about a slide: its tile grid, the depth of field (um) and
+    what its stage and camera allow a stack."""
 
     grid: ScanGrid
     dof_um: float
+    stage: StageLimits = StageLimits()
 
 
 # --- Steps: each is a request to the engine; the comment says what it sends back. ---
@@ -177,11 +228,14 @@ class Acquire:
     """-> the z (um) of every frame of the stack, once the instrument has published them.
 
     `attempt` counts from 1; a later attempt repeats a stack whose focus result was lost.
+    `asked` is the estimator's z-range where the stage's limits moved or cut it
+    (`StageLimits.fit`; the acquisition holds the stack as taken), None where they did not.
     """
 
     slide: str
     acquisition: Acquisition
     attempt: int = 1
+    asked: ZRange | None = None
 
 
 @dataclass(frozen=True)
@@ -328,7 +382,7 @@ def slide_config(request: ScanRequest, geometry: SlideGeometry) -> api.SlideCrea
         start_sigma_um=request.start_sigma_um,
         dof_um=geometry.dof_um,
         noise_sigma_um=request.noise_sigma_um,
-        policy=request.policy,
+        policy=geometry.stage.limit_policy(request.policy),
     )
     return to_api.slide_create(request.strategy, settings, request.params)
 
@@ -391,11 +445,11 @@ def nearest_frame(frames: list[Frame], z_um: float) -> Frame:
 
 
 def _acquire_and_measure(
-    request: ScanRequest, acquisition: Acquisition
+    request: ScanRequest, acquisition: Acquisition, asked: ZRange | None
 ) -> Generator[Step, Any, tuple[Measurement, tuple[float, ...]]]:
     """Acquire the stack and read its focus; (measurement, z of its frames)."""
     for attempt in range(1, request.focus_attempts + 1):
-        z_um = yield Acquire(request.slide, acquisition, attempt)
+        z_um = yield Acquire(request.slide, acquisition, attempt, asked)
         if not acquisition.measure:  # only image the tile: no focus result is expected
             return Measurement(z_um=None), z_um
         result = yield AwaitFocus(request.slide, acquisition)
@@ -415,9 +469,12 @@ def scan_plan(request: ScanRequest) -> Plan:
     tile: tuple[int, int] | None = None
     frames: list[Frame] = []  # every frame acquired on `tile` so far
     phased: set[int] = set()  # the tiles (row-major index) whose phase stack was taken
-    while (acquisition := (yield AskNext(slide_id))) is not None:
+    while (asked := (yield AskNext(slide_id))) is not None:
+        acquisition, asked_z = asked, None
+        if (fitted := geometry.stage.fit(asked.z)) != asked.z:
+            acquisition, asked_z = dataclasses.replace(asked, z=fitted), asked.z
         if acquisition.purpose is Purpose.REVISIT:  # a measured tile again, for the drift:
-            measurement, _ = yield from _acquire_and_measure(request, acquisition)
+            measurement, _ = yield from _acquire_and_measure(request, acquisition, asked_z)
             yield PostMeasurement(slide_id, acquisition, measurement)  # its image stays
             continue
         if acquisition.purpose is Purpose.LASER:  # a reading of the coverslip: no frame
@@ -426,7 +483,7 @@ def scan_plan(request: ScanRequest) -> Plan:
             continue
         if (acquisition.row, acquisition.col) != tile:
             tile, frames = (acquisition.row, acquisition.col), []
-        measurement, z_um = yield from _acquire_and_measure(request, acquisition)
+        measurement, z_um = yield from _acquire_and_measure(request, acquisition, asked_z)
         frames += [Frame(acquisition.index, index, z) for index, z in enumerate(z_um)]
         # Keep an image before posting: a scheduler killed right after the post (the
         # estimator has moved on) still leaves this tile with its best guess.
@@ -469,7 +526,7 @@ def scan_plan(request: ScanRequest) -> Plan:
                     request.slide,
                     acquisition.row,
                     acquisition.col,
-                    request.phase.z_range(final.z_um, geometry.dof_um),
+                    geometry.stage.fit(request.phase.z_range(final.z_um, geometry.dof_um)),
                     final.z_um,
                     PHASE_SEQUENCE_BASE + tile_index,
                 )

@@ -39,6 +39,7 @@ from focustrack_scheduler.plan import (
     Retake,
     ScanRequest,
     SlideGeometry,
+    StageLimits,
     Step,
     execute,
     measurement_of,
@@ -248,6 +249,84 @@ def test_a_phase_stack_needs_two_planes_and_a_positive_step() -> None:
         PhaseStacks(1)
     with pytest.raises(ValueError, match="positive"):
         PhaseStacks(5, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("asked", "limits", "taken"),
+    [
+        # within the travel and the frame limit: unchanged
+        (ZRange(-1.0, 0.5, 5), StageLimits(-10.0, 10.0, 8), ZRange(-1.0, 0.5, 5)),
+        # across the top of the travel: moved down, frames kept
+        (ZRange(9.0, 0.5, 5), StageLimits(-10.0, 10.0, 8), ZRange(8.0, 0.5, 5)),
+        # below the bottom: moved up
+        (ZRange(-12.0, 0.5, 5), StageLimits(-10.0, 10.0, 8), ZRange(-10.0, 0.5, 5)),
+        # more frames than the camera takes: cut about the centre
+        (ZRange(-5.0, 0.5, 21), StageLimits(-10.0, 10.0, 7), ZRange(-1.5, 0.5, 7)),
+        # longer than the travel: the frames that fit, from the bottom
+        (ZRange(-3.0, 0.5, 13), StageLimits(-1.0, 1.0, 64), ZRange(-1.0, 0.5, 5)),
+        # one frame beyond the travel: at its edge
+        (ZRange(50.0, 0.5, 1), StageLimits(-10.0, 10.0, 8), ZRange(10.0, 0.5, 1)),
+        # nothing stated: unchanged
+        (ZRange(500.0, 0.5, 90), StageLimits(), ZRange(500.0, 0.5, 90)),
+    ],
+)
+def test_a_stack_is_fitted_to_the_stage_travel_and_frame_limit(
+    asked: ZRange, limits: StageLimits, taken: ZRange
+) -> None:
+    fitted = limits.fit(asked)
+    assert fitted.n_frames == taken.n_frames and fitted.step_um == asked.step_um
+    assert fitted.low_um == pytest.approx(taken.low_um)
+
+
+@pytest.mark.parametrize("step_um", [0.1, 0.3, 0.7, 1 / 3])
+def test_a_fitted_stack_never_reaches_a_hair_beyond_the_travel(step_um: float) -> None:
+    """The instrument refuses a frame a rounding error above its travel like any other."""
+    limits = StageLimits(-0.7, 0.9, 64)
+    for center_um in np.linspace(-3.0, 3.0, 61):
+        for n_frames in (1, 2, 5, 17, 40):
+            fitted = limits.fit(ZRange.centred(float(center_um), n_frames, step_um))
+            assert fitted.n_frames >= 1
+            assert limits.z_min_um is not None and limits.z_max_um is not None
+            assert fitted.low_um >= limits.z_min_um and fitted.high_um <= limits.z_max_um
+
+
+def test_stacks_are_kept_within_what_the_instrument_takes() -> None:
+    """The slide's policy asks for no more frames than the instrument takes, and every stack,
+    phase stacks too, lies within the stage's travel, even where the estimator asks beyond
+    it (a focus near its top)."""
+    grid = ScanGrid(2, 3)
+    truth_um = np.array([[0.0, 0.8, 1.6], [0.9, 1.5, 1.95]])
+    limits = StageLimits(-2.0, 2.0, 4)
+    geometry = SlideGeometry(grid, dof_um=0.9, stage=limits)
+    request = replace(REQUEST, phase=PhaseStacks(planes=11))
+    fake = FakeEstimator(grid, truth_um, frozenset())
+
+    steps, _ = drive(request, fake.answer(geometry))
+    (create,) = [s for s in steps if isinstance(s, CreateOrResumeSlide)]
+    assert create.config.z_range.max_frames == 4
+    assert create.config.z_range.min_frames <= 4
+    acquired = [s for s in steps if isinstance(s, Acquire)]
+    for step in acquired:
+        z = step.acquisition.z
+        assert z.n_frames <= 4 and z.low_um >= -2.0 and z.high_um <= 2.0
+    # the fake asks for 5 frames: every stack was cut, and some moved down from above 2 um
+    assert all(s.asked is not None and s.asked.n_frames == 5 for s in acquired)
+    assert any(s.asked is not None and s.asked.high_um > 2.0 for s in acquired)
+    for step in (s for s in steps if isinstance(s, AcquirePhase)):
+        assert step.z.n_frames == 4 and step.z.low_um >= -2.0 and step.z.high_um <= 2.0
+    # every tile still imaged at its focus
+    last_kept = {(s.row, s.col): s.z_um for s in steps if isinstance(s, KeepTile)}
+    for (row, col), z_um in last_kept.items():
+        assert abs(z_um - truth_um[row, col]) <= STEP_UM / 2
+
+
+def test_a_policy_asks_for_no_more_frames_than_the_instrument_takes() -> None:
+    policy = REQUEST.policy
+    assert StageLimits(max_frames=policy.max_frames + 5).limit_policy(policy) == policy
+    assert StageLimits().limit_policy(policy) == policy
+    limited = StageLimits(max_frames=2).limit_policy(policy)
+    assert (limited.min_frames, limited.max_frames) == (2, 2)
+    assert limited.k_sigma == policy.k_sigma and limited.z_step_um == policy.z_step_um
 
 
 def test_a_tile_too_unsure_for_one_frame_keeps_the_frames_its_outcome_names() -> None:
