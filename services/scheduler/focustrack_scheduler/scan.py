@@ -12,6 +12,7 @@ the scan (the message names it), 2 for bad arguments.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import sys
 from collections.abc import Iterator, Sequence
@@ -81,8 +82,31 @@ class ScanJob:
     metrics: ScanMetrics = field(default_factory=ScanMetrics)  # the live view serves them
 
 
+def _slide_settings(request: ScanRequest) -> dict[str, Any]:
+    """What the scan's estimator slide is made with, beyond its strategy, as JSON keeps it:
+    the strategy's parameters, the start and the z-stack policy."""
+    policy = request.policy
+    settings = {
+        "params": dict(request.params),
+        "start_z_um": request.start_z_um,
+        "start_sigma_um": request.start_sigma_um,
+        "noise_sigma_um": request.noise_sigma_um,
+        "z_range": {
+            "k_sigma": policy.k_sigma,
+            "z_step_um": policy.z_step_um,
+            "min_frames": policy.min_frames,
+            "max_frames": policy.max_frames,
+        },
+    }
+    return dict(json.loads(json.dumps(settings)))
+
+
 def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
-    """The estimator slide id to resume, if `out_dir` holds an earlier run of this scan."""
+    """The estimator slide id to resume, if `out_dir` holds an earlier run of this scan.
+
+    A run on the folder of another scan is refused, and so is one with other slide
+    settings: the estimator's slide keeps those it was made with, while the folder would
+    say the new ones. Settings a folder predates are not compared."""
     state = record.state.read()
     if state is None or state.get("slide_id") is None:
         return None  # nor did an earlier run that failed before its slide was made
@@ -98,7 +122,28 @@ def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
             f"{record.out_dir} holds another scan ({different}, not "
             f"{ {name: wanted[name] for name in different} }): use another output folder"
         )
+    settings = _slide_settings(job.request)
+    changed = {
+        name: state[name] for name in settings if state.get(name, settings[name]) != settings[name]
+    }
+    if changed:
+        raise ScanRefusedError(
+            f"{record.out_dir} holds a scan whose slide was made with {changed}, not "
+            f"{ {name: settings[name] for name in changed} }; its estimator slide keeps "
+            "them: resume it with them, or use another output folder"
+        )
     return state.get("slide_id")
+
+
+def _record_scan(record: ScanRecord, job: ScanJob) -> None:
+    """Say in the folder's state which scan it holds (what `_check_same_scan` compares)."""
+    record.state.save(
+        estimator=job.estimator_url,
+        instrument=job.request.instrument,
+        slide=job.request.slide,
+        strategy=job.request.strategy,
+        **_slide_settings(job.request),
+    )
 
 
 def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
@@ -117,13 +162,7 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
     try:
         resume_id = _check_same_scan(record, job)
         request = replace(job.request, resume_slide_id=resume_id)
-        record.state.save(
-            estimator=job.estimator_url,
-            instrument=request.instrument,
-            slide=request.slide,
-            strategy=request.strategy,
-            params=dict(request.params),
-        )
+        _record_scan(record, job)
         instrument = InstrumentClient(session, request.instrument, job.retry.instrument_timeout_s)
         truth: dict[str, np.ndarray | None] = {"um": None, "empty": None}
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -206,6 +207,45 @@ def test_an_output_folder_of_a_run_that_never_made_its_slide_is_reused(tmp_path:
         record.state.save(slide_id="abc")  # a slide made: only the same scan resumes it
         with pytest.raises(ScanRefusedError, match="holds another scan"):
             scan._check_same_scan(record, _job(tmp_path))
+    finally:
+        record.close()
+
+
+def test_a_scan_resumes_only_with_the_settings_its_slide_was_made_with(tmp_path: Path) -> None:
+    """The estimator's slide keeps the settings it was made with: a run with other ones is
+    refused by name (it used to go on with the old ones and write the new into scan.json);
+    a folder from before the settings were kept resumes as it did."""
+    made = _job(tmp_path, "--param", "q_um=0.2", "--max-frames", "21")
+    record = ScanRecord(tmp_path)
+    try:
+        scan._record_scan(record, made)
+        record.state.save(slide_id="abc")
+        before = record.state.read()
+        assert scan._check_same_scan(record, made) == "abc"
+        assert (
+            scan._check_same_scan(
+                record, _job(tmp_path, "--max-frames", "21", "--param", "q_um=0.2")
+            )
+            == "abc"
+        )
+        for argv, named in [
+            (("--param", "q_um=0.3", "--max-frames", "21"), "'params': {'q_um': 0.2}"),
+            (("--param", "q_um=0.2"), "'max_frames': 21"),
+            (
+                ("--param", "q_um=0.2", "--max-frames", "21", "--start-z-um", "3"),
+                "'start_z_um': 0.0",
+            ),
+        ]:
+            with pytest.raises(ScanRefusedError, match="made with") as refused:
+                scan._check_same_scan(record, _job(tmp_path, *argv))
+            assert named in str(refused.value) and "resume it with them" in str(refused.value)
+        assert record.state.read() == before  # nothing rewritten
+        older = {
+            name: before[name]
+            for name in ("estimator", "instrument", "slide", "strategy", "slide_id")
+        }
+        record.state.path.write_text(json.dumps(older))
+        assert scan._check_same_scan(record, _job(tmp_path, "--max-frames", "9")) == "abc"
     finally:
         record.close()
 
