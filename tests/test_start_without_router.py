@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import queue
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -120,3 +121,31 @@ def test_focus_and_instrument_start_without_the_router_and_join_it_later(tmp_pat
     assert instrument.returncode == 0 and focus.returncode in (0, -signal.SIGTERM)
     assert "Traceback" not in focus_log + instrument_log
     assert "still trying" in focus_log  # it said what it waited for
+
+
+def test_a_scan_waiting_for_its_router_stops_at_ctrl_c(tmp_path: Path) -> None:
+    """Ctrl-C while `focustrack scan` waits for its router ends it at once with its line and
+    status 130. Zenoh waits for a connect endpoint in native code, where Python runs no
+    signal handler: the scan used to go on to Zenoh's timeout and then end in a traceback.
+    A socket that takes the connection and says nothing shows when the scan is waiting."""
+    with socket.create_server(("127.0.0.1", 0)) as silent:
+        port = silent.getsockname()[1]
+        command = [
+            sys.executable, "-m", "focustrack", "scan", "--no-progress",
+            "--estimator", "http://127.0.0.1:9", "--connect", f"tcp/127.0.0.1:{port}",
+            "--instrument", "sim", "--slide", "slide-0", "--out", str(tmp_path / "scan"),
+        ]  # fmt: skip
+        scan = subprocess.Popen(
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        silent.settimeout(60)
+        connection, _ = silent.accept()  # the scan is in Zenoh's open now
+        with connection:
+            scan.send_signal(signal.SIGINT)
+            _, err = scan.communicate(timeout=60)
+    assert scan.returncode == 130, err
+    assert "focustrack scan: interrupted" in err and "Traceback" not in err
+    assert not (tmp_path / "scan" / "scan.json").exists()  # nothing was started

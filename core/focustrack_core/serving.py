@@ -21,6 +21,8 @@ import asyncio
 import contextlib
 import ipaddress
 import json
+import os
+import socket
 import threading
 import time
 from collections.abc import Awaitable, Callable, Mapping, MutableMapping, Sequence
@@ -240,10 +242,31 @@ class BodyLimit:
             await self._refuse(send, f"more than {received} bytes")
 
 
+class ListenError(OSError):
+    """A server cannot listen on its address (in use, or not permitted)."""
+
+    @classmethod
+    def of(cls, name: str, host: str, port: int, error: OSError) -> ListenError:
+        """The error of the `name` server that `error` kept from `host`:`port`, in words."""
+        reason = os.strerror(error.errno) if error.errno else str(error)
+        return cls(f"the {name} server cannot listen on {host}:{port}: {reason}")
+
+
+def listening_socket(host: str, port: int, name: str) -> socket.socket:
+    """A TCP socket listening on `host`:`port` for the `name` server; ListenError, which
+    names the server and the address, when it cannot be had."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        return socket.create_server((host, port), family=family)
+    except OSError as error:
+        raise ListenError.of(name, host, port, error) from error
+
+
 class BackgroundServer:
     """`app` served on http://`host`:`port`/ by uvicorn in a daemon thread; a context manager.
 
-    `port` 0 takes a free one (`url` says which, once started).
+    `port` 0 takes a free one (`url` says which, once started). The socket is bound in the
+    caller's thread, so an address in use is a ListenError there.
     """
 
     def __init__(
@@ -254,7 +277,13 @@ class BackgroundServer:
         self._server = uvicorn.Server(
             uvicorn.Config(app, host=host, port=port, log_level="warning")
         )
-        self._thread = threading.Thread(target=self._server.run, name=name, daemon=True)
+        self._address = (host, port)
+        self._thread = threading.Thread(target=self._serve, name=name, daemon=True)
+        self._socket: socket.socket | None = None
+
+    def _serve(self) -> None:
+        assert self._socket is not None  # `start` bound it
+        self._server.run(sockets=[self._socket])
 
     @property
     def url(self) -> str:
@@ -262,7 +291,9 @@ class BackgroundServer:
         return f"http://{host}:{port}/"
 
     def start(self, timeout_s: float = 30.0) -> BackgroundServer:
-        """Start serving; RuntimeError if the server is not up within `timeout_s`."""
+        """Start serving; ListenError if its address cannot be had, RuntimeError if the
+        server is not up within `timeout_s`."""
+        self._socket = listening_socket(*self._address, self._thread.name)
         self._thread.start()
         deadline_s = time.monotonic() + timeout_s
         while not self._server.started:
@@ -274,6 +305,8 @@ class BackgroundServer:
     def stop(self, timeout_s: float = 10.0) -> None:
         self._server.should_exit = True
         self._thread.join(timeout_s)
+        if self._socket is not None:
+            self._socket.close()
 
     def __enter__(self) -> BackgroundServer:
         return self.start()

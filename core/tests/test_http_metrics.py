@@ -3,11 +3,14 @@ which have no HTTP server of their own, serve their registry so."""
 
 from __future__ import annotations
 
+import socket
+
 import httpx
 import pytest
 from prometheus_client import Counter
 
 from focustrack_core.http_metrics import RegistryMetrics, metrics_server
+from focustrack_core.serving import BackgroundServer, ListenError
 
 
 def test_metrics_are_served_on_a_port_of_their_own_only_when_asked() -> None:
@@ -20,3 +23,21 @@ def test_metrics_are_served_on_a_port_of_their_own_only_when_asked() -> None:
         assert "focustrack_test_things_total 3.0" in httpx.get(url).text.splitlines()
     with pytest.raises(httpx.TransportError):
         httpx.get(url)
+
+
+def test_a_port_in_use_is_a_listen_error_that_names_the_server_and_the_address() -> None:
+    """Both the metrics server and a `BackgroundServer` (the scan's live view) bind in the
+    caller's thread: a port in use is one error there, not a server thread that died."""
+
+    async def app(scope: dict, receive: object, send: object) -> None:  # never called
+        raise AssertionError
+
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        with (
+            pytest.raises(ListenError, match=rf"metrics server .* 127.0.0.1:{port}: .*in use"),
+            metrics_server(RegistryMetrics().registry, "127.0.0.1", port),
+        ):
+            pass
+        with pytest.raises(ListenError, match=rf"live-view server .* 127.0.0.1:{port}: .*in use"):
+            BackgroundServer(app, port=port, name="live-view").start()

@@ -47,6 +47,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from pathlib import Path
 from typing import ClassVar, Literal, get_args
 
@@ -187,6 +188,30 @@ def session_config(
     return config
 
 
+def open_config(config: zenoh.Config) -> zenoh.Session:
+    """`zenoh.open(config)`, with Ctrl-C heard while it waits for a connect endpoint.
+
+    Zenoh waits in native code, where Python runs no signal handler: a KeyboardInterrupt
+    would wait for its connect timeout (30 s). It opens in a thread of its own while this
+    one waits for it; an open that is interrupted is left to end there (a daemon thread:
+    the process does not wait for it).
+    """
+    opened: Future[zenoh.Session] = Future()
+
+    def open_in_thread() -> None:
+        try:
+            opened.set_result(zenoh.open(config))
+        except BaseException as error:  # the caller's thread raises it
+            opened.set_exception(error)
+
+    threading.Thread(target=open_in_thread, name="zenoh-open", daemon=True).start()
+    while True:
+        try:
+            return opened.result(timeout=0.1)
+        except TimeoutError:
+            continue
+
+
 def open_session(
     connect: Sequence[str] = (),
     listen: Sequence[str] = (),
@@ -200,7 +225,7 @@ def open_session(
     Raises zenoh.ZError when no connect endpoint answers within `connect_timeout_s`
     (or the router refuses the session: wrong credentials or certificates).
     """
-    return zenoh.open(
+    return open_config(
         session_config(connect, listen, mode, connect_timeout_s, shared_memory, config_file)
     )
 

@@ -28,8 +28,10 @@ from focustrack_client import EstimatorClient
 from focustrack_core import tracing
 from focustrack_core.http_metrics import metrics_server
 from focustrack_core.maps import focus_map_of_npy
+from focustrack_core.serving import ListenError
 from focustrack_core.settings import command_main
 from focustrack_core.wire import rpc
+from focustrack_core.wire.session import open_config
 from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_scheduler.clients import InstrumentClient, SlideListener, truth_empty
 from focustrack_scheduler.engine import (
@@ -246,7 +248,7 @@ def run(settings: ScanSettings) -> int:
     tracing.configure("focustrack-scheduler", settings.otlp_endpoint)
     try:
         with (
-            zenoh.open(config) as session,
+            open_config(config) as session,
             live_server(settings.live_port, settings.live_host) as live,
             metrics_server(job.metrics.registry, settings.metrics_host, settings.metrics_port),
         ):
@@ -257,6 +259,9 @@ def run(settings: ScanSettings) -> int:
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 1
     except ValidationError as error:  # a --param the slide's model refuses (NaN, 1e400)
+        print(f"focustrack scan: error: {error}", file=sys.stderr)
+        return 2
+    except ListenError as error:  # --live-port or --metrics-port taken
         print(f"focustrack scan: error: {error}", file=sys.stderr)
         return 2
     except OSError as error:  # the outputs' folder or a file in it (a file, unwritable)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -259,3 +260,15 @@ def test_an_output_folder_that_cannot_be_written_is_one_line(
     assert scan.run(settings("--out", str(taken), *alone)) == 1
     err = capsys.readouterr().err
     assert "focustrack scan: error: cannot write the outputs" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("flag", ["--live-port", "--metrics-port"])
+def test_a_port_in_use_is_one_line(
+    flag: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    alone = ["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect"]
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = str(taken.getsockname()[1])
+        assert scan.run(settings("--out", str(tmp_path / "out"), flag, port, *alone)) == 2
+    err = capsys.readouterr().err
+    assert f"cannot listen on 127.0.0.1:{port}" in err and "Traceback" not in err
