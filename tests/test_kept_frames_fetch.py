@@ -18,11 +18,12 @@ from focustrack_client import EstimatorClient
 from focustrack_core.domain import Acquisition, Purpose, ZRange
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.wire import session
+from focustrack_core.wire.trust import new_nonce
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
 from focustrack_instrument_sim.service import InstrumentService
 from focustrack_instrument_sim.simulated import SimulatedInstrument
 from focustrack_scheduler import outputs
-from focustrack_scheduler.clients import InstrumentClient, SlideListener
+from focustrack_scheduler.clients import InstrumentClient, SlideListener, acquire_request
 from focustrack_scheduler.engine import Engine, ScanRefusedError
 from focustrack_scheduler.mosaic_store import to_uint8
 from focustrack_scheduler.plan import (
@@ -123,6 +124,33 @@ def test_a_kept_frame_is_fetched_and_a_stack_no_longer_held_is_taken_again(
     mosaic = np.load(tmp_path / outputs.PARTIAL_MOSAIC)
     np.testing.assert_array_equal(mosaic[64:128, 128:192], to_uint8(frame, header.bit_depth))
     assert service.recent.budget_bytes == 0
+
+
+def test_a_stack_another_scan_took_under_the_same_sequence_is_not_kept(
+    bus: tuple[zenoh.Session, zenoh.Session, InstrumentService], tmp_path: Path
+) -> None:
+    """Another scan of the slide takes a stack of the same tile under the same sequence (at
+    other heights) between this engine's stack and its keeping a frame of it: the frames the
+    instrument then holds carry the other's nonce, so the engine takes its own stack again
+    and keeps its frame, not the other's."""
+    _, scheduler, _ = bus
+    ours = _acquisition(1, -2.0)  # frames -2.0 .. 0.0
+    theirs = replace(ours, z=ZRange(20.0, 0.5, 5))
+
+    def plan() -> Plan:
+        yield DescribeSlide("sim", SLIDE)
+        z_um = yield Acquire(SLIDE, ours)
+        InstrumentClient(scheduler, "sim").acquire(acquire_request(SLIDE, theirs, new_nonce()))
+        yield KeepTile(1, 2, ours.index, 3, z_um[3])
+        return "scanned"
+
+    record = ScanRecord(tmp_path)
+    with _engine(scheduler, record) as engine:
+        assert engine.run(plan()) == "scanned"
+    assert record.tally.kept == {(1, 2): pytest.approx(-0.5)}
+    assert [entry["sequence"] for entry in record.tally.acquisitions] == [1, 1]  # ours again
+    header, _ = InstrumentClient(scheduler, "sim").frames(SLIDE, 1, 2, 1, [3])
+    assert header.z_um[3] == pytest.approx(-0.5)  # the stack whose frame was kept is ours
 
 
 def test_a_stack_fitted_to_the_limits_the_instrument_states_is_taken(

@@ -189,6 +189,7 @@ class Engine:
         self._slide = ""  # the slide being scanned (DescribeSlide)
         #: the acquisitions of the tile being scanned, by sequence: to take one again
         self._taken: dict[int, tuple[str, Acquisition]] = {}
+        self._nonces: dict[int, bytes] = {}  # of each stack this engine took, by sequence
         #: the focus services of the latest acquisition (by index), watched from before its
         #: request (its last attempt): one that dies before its result is awaited counts too
         self._services: tuple[int, TokenWatch] | None = None
@@ -301,7 +302,7 @@ class Engine:
         acquisition = step.acquisition
         tile = (acquisition.row, acquisition.col)
         if any((a.row, a.col) != tile for _, a in self._taken.values()):
-            self._taken = {}  # a new tile: the frames of the last are no longer asked for
+            self._taken, self._nonces = {}, {}  # a new tile: the last's frames are not asked for
         self._taken[acquisition.index] = (step.slide, acquisition)
         if step.asked is not None and step.attempt == 1:
             z, asked = acquisition.z, step.asked
@@ -317,6 +318,7 @@ class Engine:
         """Acquire `acquisition`'s stack of `slide`, under a fresh nonce whose focus result
         alone the listener takes from now on; the z (um) of its frames."""
         request = self._offset(acquire_request(slide, acquisition, new_nonce()))
+        self._nonces[acquisition.index] = request.nonce
         # its result may come first
         self.listener.focus.expect(acquisition.index, (slide, acquisition, request.nonce))
         key_expr = keys.acquire_key(self.instrument.name)
@@ -407,8 +409,10 @@ class Engine:
         (row, col), from the instrument (its frames query, retried as any instrument call).
 
         A stack of this tile that the instrument no longer holds (it restarted, or its
-        budget ran out) is taken again, once. None (logged) when it is still gone, or was
-        taken before this scheduler started (a resumed scan).
+        budget ran out) is taken again, once; so is one the instrument holds under another
+        nonce than this engine's (another scan of the slide took a stack under the same
+        sequence since). None (logged) when it is still gone, or was taken before this
+        scheduler started (a resumed scan).
         """
         started_s = time.perf_counter()
         what = f"frames {indices} of acquisition {sequence}"
@@ -416,11 +420,16 @@ class Engine:
 
         def fetch() -> tuple[Any, list[np.ndarray]] | None:
             try:
-                return self.instrument.frames(self._slide, row, col, sequence, indices)
+                found = self.instrument.frames(self._slide, row, col, sequence, indices)
             except rpc.RemoteError as error:
                 if error.error.code == rpc.ErrorCode.ERROR_CODE_FRAMES_GONE:
                     return None
                 raise
+            ours = self._nonces.get(sequence)
+            if ours is not None and found[0].nonce != ours:
+                log.warning("%s: the instrument holds another stack under this sequence", what)
+                return None
+            return found
 
         found = self._instrument_call(what, key_expr, fetch)
         if found is None:
@@ -660,6 +669,7 @@ class Engine:
             slide=step.slide, row=step.row, col=step.col, z_low_um=step.z_um, n_frames=1,
             sequence=step.sequence, nonce=new_nonce(),
         )  # fmt: skip
+        self._nonces[step.sequence] = request.nonce
         what = f"tile ({step.row}, {step.col}) again at the lateral offset"
         key_expr = keys.acquire_key(self.instrument.name)
         reply = self._instrument_call(
