@@ -14,6 +14,12 @@ from functools import cached_property
 
 import numpy as np
 
+#: The largest grid side and tile count a slide may have: the estimator API's own
+#: (`focustrack_client.models.MAX_GRID_SIDE`, `MAX_TILES`; a test keeps them equal),
+#: restated for what does not speak it (the simulated instrument's slides).
+MAX_GRID_SIDE = 1000
+MAX_TILES = 250_000
+
 
 class Step(StrEnum):
     """Direction of the move that brought the stage to a tile."""
@@ -43,6 +49,11 @@ class ScanGrid:
     def __post_init__(self) -> None:
         if self.rows < 1 or self.cols < 1:
             raise ValueError(f"grid must have at least one tile, got {self.rows}x{self.cols}")
+        if max(self.rows, self.cols) > MAX_GRID_SIDE or self.n_tiles > MAX_TILES:
+            raise ValueError(
+                f"grid {self.rows}x{self.cols} is too large: at most {MAX_GRID_SIDE} tiles a "
+                f"side and {MAX_TILES} in all"
+            )
         if not self.pitch_um > 0:
             raise ValueError(f"pitch_um must be positive, got {self.pitch_um}")
 

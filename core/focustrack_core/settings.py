@@ -279,7 +279,10 @@ def _describe(cls: type[ServiceSettings], error: ValidationError) -> str:
     """One line per refused option: its flag, its variable and what is wrong."""
     lines = []
     for problem in error.errors(include_url=False):
-        name = str(problem["loc"][0]) if problem["loc"] else ""
+        if not problem["loc"]:  # the settings together (a model validator): its words alone
+            lines.append(str(problem["msg"]).removeprefix("Value error, "))
+            continue
+        name = str(problem["loc"][0])
         flag = "--" + name.replace("_", "-")
         lines.append(f"{flag} ({cls.variable(name)}): {problem['msg']}")
     return "; ".join(lines)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack_core.geometry import ScanGrid, Step, Tile
+from focustrack_client import models as api
+from focustrack_core.geometry import MAX_GRID_SIDE, MAX_TILES, ScanGrid, Step, Tile
 
 
 def test_serpentine_alternates_row_direction() -> None:
@@ -56,3 +57,11 @@ def test_positions_and_distances_in_um() -> None:
 def test_invalid_grids_are_refused(kwargs: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         ScanGrid(**kwargs)
+
+
+def test_the_grid_bounds_are_the_estimator_apis() -> None:
+    assert (MAX_GRID_SIDE, MAX_TILES) == (api.MAX_GRID_SIDE, api.MAX_TILES)
+    with pytest.raises(ValueError, match="too large"):
+        ScanGrid(1, MAX_GRID_SIDE + 1)
+    with pytest.raises(ValueError, match="too large"):
+        ScanGrid(MAX_GRID_SIDE, MAX_GRID_SIDE)

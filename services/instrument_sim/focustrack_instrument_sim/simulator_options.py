@@ -15,9 +15,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, model_validator
 
-from focustrack_core.geometry import ScanGrid
+from focustrack_core.geometry import MAX_GRID_SIDE, MAX_TILES, ScanGrid
 from focustrack_core.settings import one_of
 from focustrack_core.surfaces import FAMILIES, SurfaceSpec
 
@@ -41,8 +41,12 @@ class SimulatorOptions(BaseModel):
     # the slides
     seed: int = Field(0, ge=0, description="seed of surfaces and specimens")
     slides: int = Field(1, ge=1, description="generated slides (slide-0, ...)")
-    rows: int = Field(SurfaceSpec.rows, description="tiles per column of a slide")
-    cols: int = Field(SurfaceSpec.cols, description="tiles per row of a slide")
+    rows: int = Field(
+        SurfaceSpec.rows, ge=1, le=MAX_GRID_SIDE, description="tiles per column of a slide"
+    )
+    cols: int = Field(
+        SurfaceSpec.cols, ge=1, le=MAX_GRID_SIDE, description="tiles per row of a slide"
+    )
     family: FamilyName = Field("standard", description="the map family of generated slides")
     map: Path | None = Field(
         None, description="true focus map(s) in um (.npy, .csv, .tif) to use instead"
@@ -120,6 +124,17 @@ class SimulatorOptions(BaseModel):
     laser_offset_sigma_um: float = Field(
         0.4, ge=0, description="the spatial std of that offset (smooth over 10 tiles), um"
     )
+
+    @model_validator(mode="after")
+    def _grid_within_bounds(self) -> SimulatorOptions:
+        # Checked here, before a slide's surface is drawn: a grid of 10^10 tiles used to
+        # end in a MemoryError from the surface generator.
+        if self.rows * self.cols > MAX_TILES:
+            raise ValueError(
+                f"--rows {self.rows} x --cols {self.cols} is {self.rows * self.cols} tiles; "
+                f"a slide has at most {MAX_TILES} (the estimator's limit)"
+            )
+        return self
 
 
 def default(option: str) -> Any:

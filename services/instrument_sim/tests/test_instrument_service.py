@@ -17,6 +17,7 @@ import zenoh
 from instrument_process import wait_until_it_answers
 
 from focustrack_core import health
+from focustrack_core.geometry import MAX_TILES
 from focustrack_core.v1 import common_pb2, instrument_pb2
 from focustrack_core.wire import codec, keys, rpc, session
 from focustrack_core.wire.trust import NONCE_BYTES, FrameSigner
@@ -148,6 +149,8 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
         ["--queue-depth", "0"],
         ["--shared-memory", "-1"],
         ["--workers", "0"],
+        ["--rows", "0"],
+        ["--cols", "1001"],
     ],
 )
 def test_a_refused_option_ends_the_command_naming_it(
@@ -165,7 +168,6 @@ def test_a_refused_option_ends_the_command_naming_it(
     [
         (["--width", "33"], "frame sides must be even"),
         (["--na", "1.2"], "NA must lie in (0, n=1.0)"),
-        (["--rows", "0"], "surface must have at least one tile"),
     ],
 )
 def test_a_value_the_simulator_refuses_ends_the_command_before_it_serves(
@@ -173,6 +175,21 @@ def test_a_value_the_simulator_refuses_ends_the_command_before_it_serves(
 ) -> None:
     assert service.main(["--connect", session.loopback_endpoint(), *option]) == 2
     assert message in caplog.text
+
+
+def test_a_grid_beyond_the_estimators_tiles_ends_the_command_before_a_surface_is_drawn(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """1000 x 1000 tiles: each side allowed, their product not (it is the estimator's
+    limit). A grid of 10^10 tiles used to end in a MemoryError from the surface generator."""
+    with pytest.raises(SystemExit) as refused:
+        service.main(["--connect", session.loopback_endpoint(), "--rows", "1000", "--cols", "1000"])
+    assert refused.value.code == 2
+    err = capsys.readouterr().err
+    assert (
+        f"error: --rows 1000 x --cols 1000 is 1000000 tiles; a slide has at most {MAX_TILES}" in err
+    )
+    assert "Traceback" not in err and "FOCUSTRACK_INSTRUMENT_)" not in err  # no flag of its own
 
 
 #: Every option of `focustrack serve instrument`: the users' contract (added to, never renamed).
