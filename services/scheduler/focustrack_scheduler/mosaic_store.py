@@ -24,6 +24,11 @@ def to_uint8(frame: np.ndarray, bit_depth: int) -> np.ndarray:
     return np.clip(np.rint(frame * scale), 0, 255).astype(np.uint8)
 
 
+class MosaicError(ValueError):
+    """The partial mosaic of an earlier run cannot be carried on: damaged, or made for
+    another grid or tile size."""
+
+
 class MosaicStore:
     """The partial mosaic and the planes files of the scan in `out_dir`."""
 
@@ -82,18 +87,51 @@ class MosaicStore:
         if mosaic is None:  # nothing kept by this process yet: the tiles of an earlier run
             if not self.path.exists():
                 return None
+            self.check()
             mosaic = np.load(self.path, mmap_mode="r")
         height, width = mosaic.shape[0] // grid.rows, mosaic.shape[1] // grid.cols
         return mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width]
+
+    def check(self) -> None:
+        """MosaicError unless the partial mosaic of an earlier run, if there is one, is
+        whole: an .npy of uint8 (height, width, channels) whose file holds every byte its
+        header promises. A file cut short would be mapped all the same, and writing a tile
+        past its end kills the process (SIGBUS)."""
+        if not self.path.exists():
+            return
+        try:
+            with self.path.open("rb") as file:
+                version = np.lib.format.read_magic(file)
+                read_header = (
+                    np.lib.format.read_array_header_1_0
+                    if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0
+                )
+                shape, fortran_order, dtype = read_header(file)
+                data_start = file.tell()
+        except (OSError, ValueError) as error:
+            raise self._damaged(f"its header cannot be read ({error})") from error
+        if dtype != np.uint8 or len(shape) != 3 or fortran_order:
+            raise self._damaged(f"it holds {dtype} {shape}, not uint8 (height, width, channels)")
+        size = self.path.stat().st_size
+        if (wanted := data_start + int(np.prod(shape))) != size:
+            raise self._damaged(f"it has {size} bytes, where its header promises {wanted}")
+
+    def _damaged(self, why: str) -> MosaicError:
+        return MosaicError(
+            f"{self.path} is damaged: {why}. The images of the tiles kept before are in it: "
+            "move it away to carry on without them, or scan into a new output folder"
+        )
 
     def _open(self, grid: ScanGrid, tile_shape: tuple[int, ...]) -> np.memmap:
         if self._mosaic is None:
             height, width, channels = tile_shape
             shape = (grid.rows * height, grid.cols * width, channels)
             if self.path.exists():
+                self.check()
                 self._mosaic = np.lib.format.open_memmap(self.path, mode="r+")
                 if self._mosaic.shape != shape:
-                    raise ValueError(
+                    raise MosaicError(
                         f"{self.path} holds a {self._mosaic.shape} mosaic; tiles of "
                         f"{tile_shape} on a {grid.rows}x{grid.cols} grid need {shape}: use a "
                         "new output folder"

@@ -42,6 +42,7 @@ from focustrack_scheduler.engine import (
 )
 from focustrack_scheduler.finished import FinishedScan, OutputWriter, write_outputs
 from focustrack_scheduler.live import LiveScan
+from focustrack_scheduler.mosaic_store import MosaicError
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.plan import FocusUnavailableError, ScanRequest, SlideGeometry, scan_plan
 from focustrack_scheduler.record import ScanRecord
@@ -60,6 +61,7 @@ SCAN_ERRORS = (
     ServiceUnavailableError,
     ScanRefusedError,
     FocusUnavailableError,
+    MosaicError,
     zenoh.ZError,
 )
 
@@ -163,6 +165,7 @@ def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         job.live.metrics = job.metrics
     try:
         resume_id = _check_same_scan(record, job)
+        record.mosaic.check()  # before a stack is taken, not at the first tile kept
         request = replace(job.request, resume_slide_id=resume_id)
         _record_scan(record, job)
         instrument = InstrumentClient(session, request.instrument, job.retry.instrument_timeout_s)

@@ -15,7 +15,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler import outputs
 from focustrack_scheduler.in_focus import InFocusScore
 from focustrack_scheduler.listeners import Listeners
-from focustrack_scheduler.mosaic_store import MosaicStore, to_uint8
+from focustrack_scheduler.mosaic_store import MosaicError, MosaicStore, to_uint8
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.scan_log import ScanLog
 from focustrack_scheduler.scan_state import ScanState
@@ -108,6 +108,55 @@ def test_the_mosaic_store_places_tiles_keeps_planes_and_carries_on_after_a_resta
     assert not mosaic.flags.writeable
     with pytest.raises(ValueError, match="use a new output folder"):
         MosaicStore(tmp_path).write_tile(GRID, 0, 0, np.zeros((8, 8, 3)), BIT_DEPTH)
+
+
+def _cut_short(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[:-7])
+
+
+def _garbled(path: Path) -> None:
+    path.write_bytes(b"not an npy file at all" * 4)
+
+
+def _of_floats(path: Path) -> None:
+    np.save(path, np.zeros((2 * TILE_PX, 3 * TILE_PX, 3), np.float32))
+
+
+@pytest.mark.parametrize(
+    ("damage", "why"),
+    [
+        (_cut_short, "it has 409 bytes, where its header promises 416"),
+        (_garbled, "its header cannot be read"),
+        (_of_floats, "it holds float32"),
+    ],
+)
+def test_a_damaged_partial_mosaic_is_named_not_written_into(
+    tmp_path: Path, damage: Any, why: str
+) -> None:
+    """An earlier run's partial mosaic cut short, garbled or of another type is a
+    MosaicError that says so and what to do, before a tile is written; a file cut short
+    used to be mapped all the same (a tile written past its end kills the process)."""
+    store = MosaicStore(tmp_path)
+    store.write_tile(GRID, 0, 0, image(100), BIT_DEPTH)
+    store.close()
+    store.check()  # whole
+    damage(store.path)
+    resumed = MosaicStore(tmp_path)
+    for attempt in (
+        resumed.check,
+        lambda: resumed.write_tile(GRID, 1, 2, image(7), BIT_DEPTH),
+        lambda: resumed.tile(GRID, 0, 0),
+    ):
+        with pytest.raises(MosaicError, match=f"is damaged: {why}.*move it away"):
+            attempt()
+
+
+def test_a_partial_mosaic_of_another_grid_is_refused(tmp_path: Path) -> None:
+    store = MosaicStore(tmp_path)
+    store.write_tile(GRID, 0, 0, image(100), BIT_DEPTH)
+    store.close()
+    with pytest.raises(MosaicError, match="use a new output folder"):
+        MosaicStore(tmp_path).write_tile(ScanGrid(3, 3), 0, 0, image(100), BIT_DEPTH)
 
 
 def test_listeners_are_called_in_the_order_they_came() -> None:

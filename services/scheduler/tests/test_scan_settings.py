@@ -14,7 +14,7 @@ import pytest
 from focustrack_client import models as api
 from focustrack_core.settings import parse
 from focustrack_core.wire.session import free_port
-from focustrack_scheduler import scan
+from focustrack_scheduler import outputs, scan
 from focustrack_scheduler.engine import ScanRefusedError
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.realign import Realign
@@ -272,3 +272,24 @@ def test_a_port_in_use_is_one_line(
         assert scan.run(settings("--out", str(tmp_path / "out"), flag, port, *alone)) == 2
     err = capsys.readouterr().err
     assert f"cannot listen on 127.0.0.1:{port}" in err and "Traceback" not in err
+
+
+def test_a_damaged_partial_mosaic_stops_the_resumed_scan_before_a_stack_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    record = ScanRecord(out)
+    try:
+        scan._record_scan(record, _job(out))
+        record.state.save(slide_id="abc")
+    finally:
+        record.close()
+    (out / outputs.PARTIAL_MOSAIC).write_bytes(b"\x93NUMPY cut")
+    alone = ["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect"]
+    assert scan.run(settings("--out", str(out), *alone)) == 1
+    err = capsys.readouterr().err
+    assert "mosaic.partial.npy is damaged" in err and "Traceback" not in err
+    assert (
+        not (out / outputs.LOG_FILE).exists()
+        or "acquired" not in (out / outputs.LOG_FILE).read_text()
+    )
