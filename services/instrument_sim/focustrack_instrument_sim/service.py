@@ -52,6 +52,7 @@ import zenoh
 
 from focustrack_core import tracing
 from focustrack_core.http_metrics import metrics_server
+from focustrack_core.serving import ListenError
 from focustrack_core.settings import command_main
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, rpc
@@ -531,6 +532,9 @@ def run(settings: InstrumentSettings) -> int:
             session = bus.wait(1.0)
         if session is not None:
             serve(instrument, session, settings, stop, frame_signer)
+    except ListenError as error:  # --metrics-port in use
+        log.error("%s", error)
+        return 2
     finally:
         bus.close()
         instrument.close()
@@ -559,24 +563,25 @@ def serve(
         frame_signer=frame_signer,
     )
     service.stop = stop
-    service.start()
-    description = instrument.describe()
-    first = description.slides[0]
-    log.info(
-        "instrument %r ready: %d slide(s) of %dx%d tiles, %dx%d px frames, DoF %.2f um, "
-        "queue %d, truth %s, frames %s",
-        service.name,
-        len(description.slides),
-        first.grid.rows,
-        first.grid.cols,
-        description.frame.width,
-        description.frame.height,
-        description.optics.depth_of_field_um,
-        settings.queue_depth,
-        "served" if settings.serve_truth else "off",
-        "untagged" if frame_signer is None else "tagged",
-    )
+    # The metrics' port first: one in use ends the command before the instrument is seen.
     with metrics_server(service.metrics.registry, settings.metrics_host, settings.metrics_port):
+        service.start()
+        description = instrument.describe()
+        first = description.slides[0]
+        log.info(
+            "instrument %r ready: %d slide(s) of %dx%d tiles, %dx%d px frames, DoF %.2f um, "
+            "queue %d, truth %s, frames %s",
+            service.name,
+            len(description.slides),
+            first.grid.rows,
+            first.grid.cols,
+            description.frame.width,
+            description.frame.height,
+            description.optics.depth_of_field_um,
+            settings.queue_depth,
+            "served" if settings.serve_truth else "off",
+            "untagged" if frame_signer is None else "tagged",
+        )
         service.serve()
     service.close()
 

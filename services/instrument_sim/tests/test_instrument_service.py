@@ -4,6 +4,7 @@ and every frame and stack tagged with its frame key."""
 from __future__ import annotations
 
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -175,6 +176,17 @@ def test_a_value_the_simulator_refuses_ends_the_command_before_it_serves(
 ) -> None:
     assert service.main(["--connect", session.loopback_endpoint(), *option]) == 2
     assert message in caplog.text
+
+
+def test_a_metrics_port_in_use_ends_the_command_before_the_instrument_is_seen(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        port = taken.getsockname()[1]
+        listen = ["--mode", "peer", "--listen", session.loopback_endpoint()]
+        argv = [*listen, "--rows", "2", "--cols", "2", "--metrics-port", str(port)]
+        assert service.main(argv) == 2
+    assert f"the metrics server cannot listen on 127.0.0.1:{port}" in caplog.text
 
 
 def test_a_grid_beyond_the_estimators_tiles_ends_the_command_before_a_surface_is_drawn(
