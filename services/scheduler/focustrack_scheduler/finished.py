@@ -34,7 +34,8 @@ class FinishedScan:
     `state` is the folder's scan.json (estimator, instrument, slide, strategy, params,
     slide_id, and `tile`: the tile images' height, width, channels and pixel_size_um);
     `kept` the z of each tile's image, `planes` the z of the frames a tile keeps besides,
-    `measured` each tile's last measurement as logged; `images_per_tile` (rows, cols);
+    `measured` each tile's last measurement of a measured stack as logged (not an
+    image-only acquisition's); `images_per_tile` (rows, cols);
     `mosaic` the kept images side by side, (rows * h, cols * w, channels) uint8, read-only
     (None when no tile was kept); `report` the figures of ``report.json``; `phase` the
     file (relative to `out_dir`) of each tile's phase and amplitude, float32 (2, h, w),
@@ -108,7 +109,7 @@ class FinishedScan:
             state=MappingProxyType(state),
             kept=MappingProxyType(dict(tally.kept)),
             planes=MappingProxyType({tile: tuple(z) for tile, z in tally.planes.items()}),
-            measured=MappingProxyType(dict(tally.measured)),
+            measured=MappingProxyType(dict(tally.focus_measured)),
             phase=MappingProxyType(dict(tally.phase)),
             images_per_tile=images_per_tile,
             mosaic=mosaic,

@@ -79,6 +79,7 @@ class ScanRecord:
                 "row": acquisition.row,
                 "col": acquisition.col,
                 "sequence": acquisition.index,
+                "measure": acquisition.measure,  # False: an image-only acquisition's post
                 "z_um": measurement.z_um,
                 "sigma_um": measurement.sigma_um,
                 "flags": sorted(str(flag) for flag in measurement.flags),

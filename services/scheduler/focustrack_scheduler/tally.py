@@ -27,6 +27,9 @@ class ScanTally:
         self.kept: dict[Tile, float] = {}  # tile -> z (um) of its image
         self.planes: dict[Tile, list[float]] = {}  # tile -> z (um) of its frames
         self.measured: dict[Tile, dict[str, Any]] = {}  # tile -> its last measurement
+        #: tile -> its last measurement of a stack that was measured: an image-only
+        #: acquisition (one frame at a sure prediction, more frames to keep) posts none
+        self.focus_measured: dict[Tile, dict[str, Any]] = {}
         self.phase_stacks: list[dict[str, Any]] = []  # every phase stack taken
         self.phase: dict[Tile, str] = {}  # tile -> the file of its phase (where it has one)
 
@@ -41,6 +44,8 @@ class ScanTally:
             self.planes[(entry["row"], entry["col"])] = entry["z_um"]
         elif event == "measured":
             self.measured[(entry["row"], entry["col"])] = entry
+            if entry.get("measure", True):  # logs before the field: every entry
+                self.focus_measured[(entry["row"], entry["col"])] = entry
         elif event == "phase":
             self.phase_stacks.append(entry)
             if entry["file"] is not None:
@@ -60,14 +65,14 @@ class ScanTally:
         return len(self.kept) + sum(len(z_um) - 1 for z_um in self.planes.values())
 
     def flag_counts(self) -> dict[str, int]:
-        """How many tiles' last measurement carries each flag (flags none carries: absent)."""
-        counts = Counter(flag for entry in self.measured.values() for flag in entry["flags"])
+        """How many tiles' last measured stack carries each flag (flags none carries: absent)."""
+        counts = Counter(flag for entry in self.focus_measured.values() for flag in entry["flags"])
         return dict(sorted(counts.items()))
 
     def tiles_without_focus(self) -> list[Tile]:
-        """The tiles whose stacks found no focus (their last measurement has no z: a flat
-        or empty stack), row-major."""
-        return sorted(tile for tile, entry in self.measured.items() if entry["z_um"] is None)
+        """The tiles whose stacks found no focus (the last stack measured has no z: a flat
+        or empty stack), row-major. A tile only imaged, at a sure prediction, is not one."""
+        return sorted(tile for tile, entry in self.focus_measured.items() if entry["z_um"] is None)
 
     def images_per_tile(self, grid: ScanGrid) -> np.ndarray:
         """Images acquired on each tile, (rows, cols)."""

@@ -86,6 +86,31 @@ def test_the_tally_folds_the_log_entries() -> None:
         tally.take({"event": "kept", "row": 0})
 
 
+def test_a_tile_only_imaged_is_not_a_tile_without_focus() -> None:
+    """An image-only acquisition (one frame at a sure prediction, or more frames to keep)
+    posts no best focus: it is not a stack that found none. It used to be counted among
+    the tiles without focus, and the summary warned of most tiles of a good lean scan."""
+    tally = ScanTally()
+    entries: list[dict[str, Any]] = [
+        # one frame at the prediction
+        {"event": "measured", "row": 0, "col": 0, "measure": False, "z_um": None, "flags": []},
+        # measured, then more frames to keep
+        {"event": "measured", "row": 0, "col": 1, "measure": True, "z_um": 0.4, "flags": []},
+        {"event": "measured", "row": 0, "col": 1, "measure": False, "z_um": None, "flags": []},
+        # empty glass: found none
+        {"event": "measured", "row": 1, "col": 0, "measure": True, "z_um": None,
+         "flags": ["empty", "flat"]},
+        # a log from before the field: every entry measured, as before
+        {"event": "measured", "row": 1, "col": 1, "z_um": None, "flags": ["flat"]},
+    ]  # fmt: skip
+    for entry in entries:
+        tally.take(entry)
+    assert tally.tiles_without_focus() == [(1, 0), (1, 1)]
+    assert tally.flag_counts() == {"empty": 1, "flat": 2}
+    assert tally.focus_measured[(0, 1)]["z_um"] == 0.4  # the best focus posted for it
+    assert tally.measured[(0, 1)]["z_um"] is None  # its last post, as logged
+
+
 def test_the_mosaic_store_places_tiles_keeps_planes_and_carries_on_after_a_restart(
     tmp_path: Path,
 ) -> None:
@@ -198,9 +223,9 @@ def test_the_record_logs_tallies_and_tells_its_listeners_and_is_read_back(
 
     logged = [json.loads(line) for line in (tmp_path / outputs.LOG_FILE).read_text().splitlines()]
     assert logged[1] == {
-        "event": "measured", "row": 1, "col": 2, "sequence": 7, "z_um": 0.0, "sigma_um": 0.05,
-        "flags": [], "posterior_um": 0.1, "posterior_sigma_um": None, "curve_z_um": [0.0],
-        "curve_scores": [1.0],
+        "event": "measured", "row": 1, "col": 2, "sequence": 7, "measure": True, "z_um": 0.0,
+        "sigma_um": 0.05, "flags": [], "posterior_um": 0.1, "posterior_sigma_um": None,
+        "curve_z_um": [0.0], "curve_scores": [1.0],
     }  # fmt: skip
     assert logged[3]["file"] == "planes/r1_c2.npy"
     again = ScanRecord(tmp_path)  # a restarted scheduler reads the record back
