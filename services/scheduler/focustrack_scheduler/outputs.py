@@ -40,6 +40,8 @@ from enum import StrEnum
 
 STATE_FILE = "scan.json"
 LOG_FILE = "scan_log.jsonl"
+#: Held (an advisory lock, with the holder's process id) while a scan runs in the folder.
+LOCK_FILE = "scan.lock"
 PARTIAL_MOSAIC = "mosaic.partial.npy"
 MOSAIC = "mosaic.ome.tif"
 MOSAIC_ZARR = "mosaic.ome.zarr"
@@ -54,6 +56,7 @@ PHASE = "phase"
 SCAN_FILES = (
     STATE_FILE,
     LOG_FILE,
+    LOCK_FILE,
     PARTIAL_MOSAIC,
     MOSAIC,
     MOSAIC_ZARR,

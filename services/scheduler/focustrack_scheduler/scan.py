@@ -12,8 +12,10 @@ the scan (the message names it), 2 for bad arguments.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
+import os
 import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -43,7 +45,7 @@ from focustrack_scheduler.engine import (
 from focustrack_scheduler.finished import FinishedScan, OutputWriter, write_outputs
 from focustrack_scheduler.live import LiveScan
 from focustrack_scheduler.mosaic_store import MosaicError
-from focustrack_scheduler.outputs import MosaicFormat
+from focustrack_scheduler.outputs import LOCK_FILE, MosaicFormat
 from focustrack_scheduler.plan import FocusUnavailableError, ScanRequest, SlideGeometry, scan_plan
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.retry import RetryPolicy
@@ -84,6 +86,29 @@ class ScanJob:
     live: LiveServer | None = None  # the live web view that shows this scan, if any
     trust: ResultSigner | None = None  # focus results count only with this key's tag
     metrics: ScanMetrics = field(default_factory=ScanMetrics)  # the live view serves them
+
+
+@contextlib.contextmanager
+def _holding(out_dir: Path) -> Iterator[None]:
+    """The output folder for this process alone while the block runs: a second scan into it
+    is refused (ScanRefusedError, naming the process that holds it), where the two used to
+    write into one log, one mosaic and one state. An advisory lock, which the system
+    releases when the process ends, however it ends."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with (out_dir / LOCK_FILE).open("a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.seek(0)
+            holder = lock.read().strip() or "another process"
+            raise ScanRefusedError(
+                f"{out_dir} is in use by another scan ({holder}): wait for it to end, or use "
+                "another output folder"
+            ) from None
+        lock.truncate(0)
+        lock.write(f"process {os.getpid()}\n")
+        lock.flush()
+        yield  # the lock goes with the file's closing
 
 
 def _slide_settings(request: ScanRequest) -> dict[str, Any]:
@@ -152,6 +177,12 @@ def _record_scan(record: ScanRecord, job: ScanJob) -> None:
 
 def run_scan(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
     """Scan (or resume) the slide, write the job's outputs, and return the report."""
+    with _holding(job.out_dir):
+        return _scan_held(session, job)
+
+
+def _scan_held(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
+    """`run_scan`'s work, once the output folder is this process's."""
     record = ScanRecord(job.out_dir)
     estimator = EstimatorClient(job.estimator_url, job.token, job.retry.estimator_timeout_s)
     listener = SlideListener(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import subprocess
 import sys
@@ -293,3 +294,19 @@ def test_a_damaged_partial_mosaic_stops_the_resumed_scan_before_a_stack_in_one_l
         not (out / outputs.LOG_FILE).exists()
         or "acquired" not in (out / outputs.LOG_FILE).read_text()
     )
+
+
+def test_a_second_scan_into_a_folder_in_use_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two scans into one folder at once used to write one log, one mosaic and one state
+    between them, and both ended "complete"."""
+    out = tmp_path / "out"
+    alone = ["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect"]
+    with scan._holding(out):  # as a running scan holds it
+        assert scan.run(settings("--out", str(out), *alone)) == 1
+    err = capsys.readouterr().err
+    assert f"{out} is in use by another scan (process {os.getpid()})" in err
+    assert "Traceback" not in err and not (out / outputs.STATE_FILE).exists()
+    with scan._holding(out):  # released when the scan ends: the folder is free again
+        pass
