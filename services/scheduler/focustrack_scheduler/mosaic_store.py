@@ -15,18 +15,13 @@ import numpy as np
 
 from focustrack_core.fusion import fuse_planes
 from focustrack_core.geometry import ScanGrid
-from focustrack_scheduler.outputs import PARTIAL_MOSAIC, PHASE, PLANES
+from focustrack_scheduler.outputs import PARTIAL_MOSAIC, PHASE, PLANES, OutputFolderError
 
 
 def to_uint8(frame: np.ndarray, bit_depth: int) -> np.ndarray:
     """A camera frame (h, w, channels) of `bit_depth` bits as 8 bits per channel."""
     scale = 255.0 / (2**bit_depth - 1)
     return np.clip(np.rint(frame * scale), 0, 255).astype(np.uint8)
-
-
-class MosaicError(ValueError):
-    """The partial mosaic of an earlier run cannot be carried on: damaged, or made for
-    another grid or tile size."""
 
 
 class MosaicStore:
@@ -93,7 +88,7 @@ class MosaicStore:
         return mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width]
 
     def check(self) -> None:
-        """MosaicError unless the partial mosaic of an earlier run, if there is one, is
+        """OutputFolderError unless the partial mosaic of an earlier run, if there is one, is
         whole: an .npy of uint8 (height, width, channels) whose file holds every byte its
         header promises. A file cut short would be mapped all the same, and writing a tile
         past its end kills the process (SIGBUS)."""
@@ -117,8 +112,8 @@ class MosaicStore:
         if (wanted := data_start + int(np.prod(shape))) != size:
             raise self._damaged(f"it has {size} bytes, where its header promises {wanted}")
 
-    def _damaged(self, why: str) -> MosaicError:
-        return MosaicError(
+    def _damaged(self, why: str) -> OutputFolderError:
+        return OutputFolderError(
             f"{self.path} is damaged: {why}. The images of the tiles kept before are in it: "
             "move it away to carry on without them, or scan into a new output folder"
         )
@@ -131,7 +126,7 @@ class MosaicStore:
                 self.check()
                 self._mosaic = np.lib.format.open_memmap(self.path, mode="r+")
                 if self._mosaic.shape != shape:
-                    raise MosaicError(
+                    raise OutputFolderError(
                         f"{self.path} holds a {self._mosaic.shape} mosaic; tiles of "
                         f"{tile_shape} on a {grid.rows}x{grid.cols} grid need {shape}: use a "
                         "new output folder"

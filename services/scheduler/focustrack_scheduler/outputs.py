@@ -38,6 +38,12 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from enum import StrEnum
 
+
+class OutputFolderError(ValueError):
+    """What an output folder holds from an earlier run cannot be carried on: damaged, or
+    made for another grid or tile size. The message says which file and what to do."""
+
+
 STATE_FILE = "scan.json"
 LOG_FILE = "scan_log.jsonl"
 #: Held (an advisory lock, with the holder's process id) while a scan runs in the folder.

@@ -44,8 +44,7 @@ from focustrack_scheduler.engine import (
 )
 from focustrack_scheduler.finished import FinishedScan, OutputWriter, write_outputs
 from focustrack_scheduler.live import LiveScan
-from focustrack_scheduler.mosaic_store import MosaicError
-from focustrack_scheduler.outputs import LOCK_FILE, MosaicFormat
+from focustrack_scheduler.outputs import LOCK_FILE, MosaicFormat, OutputFolderError
 from focustrack_scheduler.plan import FocusUnavailableError, ScanRequest, SlideGeometry, scan_plan
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.retry import RetryPolicy
@@ -63,7 +62,7 @@ SCAN_ERRORS = (
     ServiceUnavailableError,
     ScanRefusedError,
     FocusUnavailableError,
-    MosaicError,
+    OutputFolderError,
     zenoh.ZError,
 )
 
@@ -140,12 +139,13 @@ def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
     if state is None or state.get("slide_id") is None:
         return None  # nor did an earlier run that failed before its slide was made
     wanted = {
-        "estimator": job.estimator_url,
+        "estimator": job.estimator_url.rstrip("/"),  # http://host:8100/ is http://host:8100
         "instrument": job.request.instrument,
         "slide": job.request.slide,
         "strategy": job.request.strategy,
     }
-    different = {name: state.get(name) for name in wanted if state.get(name) != wanted[name]}
+    saved = {**state, "estimator": str(state.get("estimator", "")).rstrip("/")}
+    different = {name: saved.get(name) for name in wanted if saved.get(name) != wanted[name]}
     if different:
         raise ScanRefusedError(
             f"{record.out_dir} holds another scan ({different}, not "

@@ -11,6 +11,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from focustrack_scheduler.outputs import OutputFolderError
+
 
 class ScanState:
     """The JSON object in the file at `path`, merged into and written whole."""
@@ -19,8 +21,23 @@ class ScanState:
         self.path = Path(path)
 
     def read(self) -> dict[str, Any] | None:
-        """The entries saved so far; None when the folder holds no scan yet."""
-        return json.loads(self.path.read_text()) if self.path.exists() else None
+        """The entries saved so far; None when the folder holds no scan yet.
+        OutputFolderError when the file is not a JSON object (damaged, or not a scan's)."""
+        if not self.path.exists():
+            return None
+        try:
+            state = json.loads(self.path.read_text())
+        except ValueError as error:  # not JSON, or not text
+            raise self._damaged(f"it is not JSON ({error})") from error
+        if not isinstance(state, dict):
+            raise self._damaged(f"it holds a JSON {type(state).__name__}, not an object")
+        return state
+
+    def _damaged(self, why: str) -> OutputFolderError:
+        return OutputFolderError(
+            f"{self.path} is damaged: {why}. It says which estimator slide the folder's scan "
+            "resumes: move it away to start the folder afresh, or scan into a new output folder"
+        )
 
     def save(self, **entries: Any) -> None:
         """Merge `entries` into the file (written whole, then renamed: never half a file)."""

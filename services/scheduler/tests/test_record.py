@@ -15,7 +15,8 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_scheduler import outputs
 from focustrack_scheduler.in_focus import InFocusScore
 from focustrack_scheduler.listeners import Listeners
-from focustrack_scheduler.mosaic_store import MosaicError, MosaicStore, to_uint8
+from focustrack_scheduler.mosaic_store import MosaicStore, to_uint8
+from focustrack_scheduler.outputs import OutputFolderError
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.scan_log import ScanLog
 from focustrack_scheduler.scan_state import ScanState
@@ -55,6 +56,19 @@ def test_the_state_is_merged_and_written_whole(tmp_path: Path) -> None:
     state.save(slide_id="abc", slide="slide-1")
     assert state.read() == {"strategy": "kf-2d", "slide": "slide-1", "slide_id": "abc"}
     assert [path.name for path in tmp_path.iterdir()] == [outputs.STATE_FILE]  # no .tmp left
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [("[1,2", "it is not JSON"), ("[1, 2]", "it holds a JSON list, not an object")],
+)
+def test_a_damaged_state_is_named_not_merged_into(tmp_path: Path, text: str, why: str) -> None:
+    state = ScanState(tmp_path / outputs.STATE_FILE)
+    state.path.write_text(text)
+    for attempt in (state.read, lambda: state.save(slide_id="abc")):
+        with pytest.raises(OutputFolderError, match=f"scan.json is damaged: {why}.*move it away"):
+            attempt()
+    assert state.path.read_text() == text
 
 
 def test_the_tally_folds_the_log_entries() -> None:
@@ -159,7 +173,7 @@ def test_a_damaged_partial_mosaic_is_named_not_written_into(
     tmp_path: Path, damage: Any, why: str
 ) -> None:
     """An earlier run's partial mosaic cut short, garbled or of another type is a
-    MosaicError that says so and what to do, before a tile is written; a file cut short
+    OutputFolderError that says so and what to do, before a tile is written; a file cut short
     used to be mapped all the same (a tile written past its end kills the process)."""
     store = MosaicStore(tmp_path)
     store.write_tile(GRID, 0, 0, image(100), BIT_DEPTH)
@@ -172,7 +186,7 @@ def test_a_damaged_partial_mosaic_is_named_not_written_into(
         lambda: resumed.write_tile(GRID, 1, 2, image(7), BIT_DEPTH),
         lambda: resumed.tile(GRID, 0, 0),
     ):
-        with pytest.raises(MosaicError, match=f"is damaged: {why}.*move it away"):
+        with pytest.raises(OutputFolderError, match=f"is damaged: {why}.*move it away"):
             attempt()
 
 
@@ -180,7 +194,7 @@ def test_a_partial_mosaic_of_another_grid_is_refused(tmp_path: Path) -> None:
     store = MosaicStore(tmp_path)
     store.write_tile(GRID, 0, 0, image(100), BIT_DEPTH)
     store.close()
-    with pytest.raises(MosaicError, match="use a new output folder"):
+    with pytest.raises(OutputFolderError, match="use a new output folder"):
         MosaicStore(tmp_path).write_tile(ScanGrid(3, 3), 0, 0, image(100), BIT_DEPTH)
 
 

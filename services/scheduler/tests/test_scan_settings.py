@@ -8,6 +8,7 @@ import os
 import socket
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -224,6 +225,8 @@ def test_a_scan_resumes_only_with_the_settings_its_slide_was_made_with(tmp_path:
         record.state.save(slide_id="abc")
         before = record.state.read()
         assert scan._check_same_scan(record, made) == "abc"
+        slash = replace(made, estimator_url=made.estimator_url + "/")  # the same estimator
+        assert scan._check_same_scan(record, slash) == "abc"
         assert (
             scan._check_same_scan(
                 record, _job(tmp_path, "--max-frames", "21", "--param", "q_um=0.2")
@@ -273,6 +276,18 @@ def test_a_port_in_use_is_one_line(
         assert scan.run(settings("--out", str(tmp_path / "out"), flag, port, *alone)) == 2
     err = capsys.readouterr().err
     assert f"cannot listen on 127.0.0.1:{port}" in err and "Traceback" not in err
+
+
+def test_a_damaged_state_stops_the_scan_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / outputs.STATE_FILE).write_text("[1,2")
+    alone = ["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect"]
+    assert scan.run(settings("--out", str(out), *alone)) == 1
+    err = capsys.readouterr().err
+    assert "scan.json is damaged: it is not JSON" in err and "Traceback" not in err
 
 
 def test_a_damaged_partial_mosaic_stops_the_resumed_scan_before_a_stack_in_one_line(
