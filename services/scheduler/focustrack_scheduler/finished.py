@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
@@ -23,7 +24,13 @@ from focustrack_core.maps import finite_or_none, map_layers
 from focustrack_scheduler.outputs import PARTIAL_MOSAIC, MosaicFormat, WallTimes
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.report import scan_report
-from focustrack_scheduler.stitch import Placement, overlapping, place_tiles, tiles_of_mosaic
+from focustrack_scheduler.stitch import (
+    Placement,
+    compose,
+    overlapping,
+    place_tiles,
+    tiles_of_mosaic,
+)
 from focustrack_scheduler.tally import Tile
 
 
@@ -117,6 +124,19 @@ class FinishedScan:
             report=MappingProxyType(report),
             placement=placement,
         )
+
+    @cached_property
+    def shown_mosaic(self) -> tuple[np.ndarray, tuple[float, float] | None] | None:
+        """The mosaic as the outputs show it, with its corner: the tiles side by side as the
+        record holds them (`mosaic`; corner None), or, where they overlap, stitched at their
+        `placement`, with the place (y, x px) of its corner relative to tile (0, 0)'s first
+        pixel. None when no tile was kept."""
+        if self.mosaic is None:
+            return None
+        if self.placement is None:
+            return self.mosaic, None
+        tiles = tiles_of_mosaic(self.mosaic, self.grid, self.kept)
+        return compose(tiles, self.placement.places_px)
 
     @property
     def title(self) -> str:

@@ -22,6 +22,8 @@ from focustrack_scheduler.pyramid import TIFF_TILE_PX, half, n_levels
 
 #: Colours of the mosaic's channels in OME-Zarr's "omero" rendering settings.
 _CHANNEL_COLOURS = (("red", "FF0000"), ("green", "00FF00"), ("blue", "0000FF"))
+#: The one channel of a monochrome camera's mosaic.
+_GREY = ("grey", "FFFFFF")
 _SPACE = {"type": "space", "unit": "micrometer"}
 #: NGFF version written (https://ngff.openmicroscopy.org/0.5/).
 NGFF_VERSION = "0.5"
@@ -40,9 +42,10 @@ def write_mosaic(
     levels = [mosaic]
     for _ in range(n_levels(mosaic.shape)):
         levels.append(half(np.asarray(levels[-1])))
+    grey = mosaic.shape[-1] == 1  # a monochrome camera's
     channels = [
         {"label": label, "color": colour, "window": {"start": 0, "end": 255, "min": 0, "max": 255}}
-        for label, colour in _CHANNEL_COLOURS[: mosaic.shape[-1]]
+        for label, colour in ((_GREY,) if grey else _CHANNEL_COLOURS[: mosaic.shape[-1]])
     ]
     _write_ngff_image(
         root,
@@ -50,15 +53,21 @@ def write_mosaic(
         [level.transpose(2, 0, 1) for level in levels],
         pixel_um=(pixel_size_um, pixel_size_um),
         origin_um=origin_um,
-        omero={"channels": channels, "rdefs": {"model": "color"}},
+        omero={"channels": channels, "rdefs": {"model": "greyscale" if grey else "color"}},
     )
 
 
-def write_phase(path: Path, phase_rad: np.ndarray, pixel_size_um: float) -> None:
+def write_phase(
+    path: Path,
+    phase_rad: np.ndarray,
+    pixel_size_um: float,
+    origin_um: tuple[float, float] = (0.0, 0.0),
+) -> None:
     """Into the OME-Zarr mosaic at `path`: `phase_rad` (height, width) float32, the phase in
     radians over the whole mosaic (NaN where a tile has none), as an NGFF image (c, y, x) of
-    one channel in `ZARR_PHASE`, with the mosaic's pixels, placement and halvings; its
-    rendering window is [-pi, pi] and its unit ``radian`` (`ZARR_ATTRS`)."""
+    one channel in `ZARR_PHASE`, with the mosaic's pixels and halvings, its first pixel's
+    centre at `origin_um` (y, x: the mosaic's, `write_mosaic`); its rendering window is
+    [-pi, pi] and its unit ``radian`` (`ZARR_ATTRS`)."""
     root = zarr.open_group(path, mode="r+", zarr_format=3)
     levels = [phase_rad[..., None]]
     for _ in range(n_levels(phase_rad.shape)):
@@ -70,7 +79,7 @@ def write_phase(path: Path, phase_rad: np.ndarray, pixel_size_um: float) -> None
         ZARR_PHASE,
         [level.transpose(2, 0, 1) for level in levels],
         pixel_um=(pixel_size_um, pixel_size_um),
-        origin_um=(0.0, 0.0),
+        origin_um=origin_um,
         omero={
             "channels": [{"label": "phase (rad)", "color": "FFFFFF", "window": window}],
             "rdefs": {"model": "greyscale"},

@@ -217,20 +217,28 @@ def place_tiles(
 
 
 def compose(
-    tiles: Mapping[Tile, np.ndarray], places_px: Mapping[Tile, tuple[float, float]]
+    tiles: Mapping[Tile, np.ndarray],
+    places_px: Mapping[Tile, tuple[float, float]],
+    canvas_tiles: Iterable[Tile] | None = None,
+    fill: float = 0,
 ) -> tuple[np.ndarray, tuple[float, float]]:
-    """The mosaic of `tiles` (h, w, c each) at their places (rounded to whole pixels; a later
-    tile in row-major order covers an earlier one's overlap), zero where no tile lies, and
-    the place (y, x px) of its corner relative to tile (0, 0)'s."""
+    """The mosaic of `tiles` (h, w, ... each) at their places (rounded to whole pixels; a
+    later tile in row-major order covers an earlier one's overlap), `fill` where no tile
+    lies, and the place (y, x px) of its corner relative to tile (0, 0)'s.
+
+    The mosaic spans `canvas_tiles` (by default `tiles` themselves), all of the same size:
+    a layer of some tiles (their phase) then lies pixel for pixel over the mosaic of all
+    (their images)."""
     first = next(iter(tiles.values()))
     height, width = first.shape[:2]
-    corners = {tile: (round(places_px[tile][0]), round(places_px[tile][1])) for tile in tiles}
+    spanned = list(tiles if canvas_tiles is None else canvas_tiles)
+    corners = {tile: (round(places_px[tile][0]), round(places_px[tile][1])) for tile in spanned}
     y0 = min(y for y, _ in corners.values())
     x0 = min(x for _, x in corners.values())
     y1 = max(y for y, _ in corners.values()) + height
     x1 = max(x for _, x in corners.values()) + width
-    mosaic = np.zeros((y1 - y0, x1 - x0, *first.shape[2:]), dtype=first.dtype)
+    mosaic = np.full((y1 - y0, x1 - x0, *first.shape[2:]), fill, dtype=first.dtype)
     for tile in sorted(tiles):
-        y, x = corners[tile]
+        y, x = round(places_px[tile][0]), round(places_px[tile][1])
         mosaic[y - y0 : y - y0 + height, x - x0 : x - x0 + width] = tiles[tile]
     return mosaic, (float(y0), float(x0))

@@ -28,7 +28,7 @@ from focustrack_scheduler.outputs import (
     ZARR_MAPS,
     MosaicFormat,
 )
-from focustrack_scheduler.stitch import compose, tiles_of_mosaic
+from focustrack_scheduler.stitch import compose
 
 #: Longest side of the PNG preview of the mosaic, in pixels.
 PREVIEW_PX = 1600
@@ -58,12 +58,13 @@ class MosaicPreviewWriter:
     """``mosaic.png``: the mosaic at most `PREVIEW_PX` on its longest side (where there is one)."""
 
     def write(self, scan: FinishedScan) -> list[Path]:
-        if scan.mosaic is None:
+        if scan.shown_mosaic is None:
             return []
         from PIL import Image
 
-        step = max(1, math.ceil(max(scan.mosaic.shape[:2]) / PREVIEW_PX))
-        preview = scan.mosaic[::step, ::step]
+        mosaic, _ = scan.shown_mosaic
+        step = max(1, math.ceil(max(mosaic.shape[:2]) / PREVIEW_PX))
+        preview = mosaic[::step, ::step]
         if preview.shape[2] == 1:  # one channel: a grey PNG
             preview = preview[..., 0]
         path = scan.out_dir / MOSAIC_PREVIEW
@@ -78,23 +79,19 @@ class MosaicWriter:
     replaces the partial mosaic of the record (`finished.write_outputs` removes it)."""
 
     def write(self, scan: FinishedScan) -> list[Path]:
-        if scan.mosaic is None:
+        if scan.shown_mosaic is None:
             return []
+        mosaic, corner_px = scan.shown_mosaic
         path = scan.out_dir / scan.mosaic_format.file_name
         pixel_size_um = float(scan.state["tile"]["pixel_size_um"])
         if scan.mosaic_format is MosaicFormat.OME_TIFF:
             from focustrack_scheduler.ome_tiff import write_ome_tiff
 
-            write_ome_tiff(path, scan.mosaic, pixel_size_um, scan.description)
+            write_ome_tiff(path, mosaic, pixel_size_um, scan.description)
         else:
             from focustrack_scheduler.ome_zarr import write_mosaic
 
-            if scan.placement is None:
-                write_mosaic(path, scan.mosaic, pixel_size_um)
-            else:  # stitched at the stage's positions, in its micrometres
-                tiles = tiles_of_mosaic(scan.mosaic, scan.grid, scan.kept)
-                mosaic, corner_px = compose(tiles, scan.placement.places_px)
-                write_mosaic(path, mosaic, pixel_size_um, stage_origin_um(scan, corner_px))
+            write_mosaic(path, mosaic, pixel_size_um, origin_um(scan, corner_px))
         return [path]
 
 
@@ -127,6 +124,13 @@ class OmeZarrMetadataWriter:
             stage = (grid.pitch_um, (y_um, x_um))
         write_metadata(path, scan.mosaic.shape, pixel_size_um, attributes, layers, stage)
         return [path]
+
+
+def origin_um(scan: FinishedScan, corner_px: tuple[float, float] | None) -> tuple[float, float]:
+    """Where (y, x, um) a layer whose corner is `corner_px` (`FinishedScan.shown_mosaic`)
+    puts its first pixel's centre: at the stage's coordinates where the tiles were stitched,
+    at (0, 0) where they lie side by side (corner None)."""
+    return (0.0, 0.0) if corner_px is None else stage_origin_um(scan, corner_px)
 
 
 def stage_origin_um(scan: FinishedScan, corner_px: tuple[float, float]) -> tuple[float, float]:
@@ -169,16 +173,24 @@ class PlanesWriter:
         return [path]
 
 
-def phase_mosaic(scan: FinishedScan) -> np.ndarray:
-    """The tiles' phase (rad) side by side as the mosaic places their images: float32
-    (rows * h, cols * w), NaN where a tile has none."""
+def phase_mosaic(scan: FinishedScan) -> tuple[np.ndarray, tuple[float, float] | None]:
+    """The tiles' phase (rad) where the mosaic shows their images, float32 (height, width)
+    pixel for pixel over it, NaN where a tile has none; with the mosaic's corner
+    (`FinishedScan.shown_mosaic`): side by side, or stitched where the tiles overlap."""
+    tiles = {
+        tile: np.load(scan.out_dir / file, mmap_mode="r")[0].astype(np.float32)
+        for tile, file in scan.phase.items()
+    }
+    if scan.placement is not None:
+        places_px = scan.placement.places_px
+        placed = {tile: phase for tile, phase in tiles.items() if tile in places_px}
+        return compose(placed, places_px, canvas_tiles=scan.kept, fill=np.nan)
     tile = scan.state["tile"]
     height, width = int(tile["height"]), int(tile["width"])
     mosaic = np.full((scan.grid.rows * height, scan.grid.cols * width), np.nan, np.float32)
-    for (row, col), file in scan.phase.items():
-        phase_rad = np.load(scan.out_dir / file, mmap_mode="r")[0]
+    for (row, col), phase_rad in tiles.items():
         mosaic[row * height : (row + 1) * height, col * width : (col + 1) * width] = phase_rad
-    return mosaic
+    return mosaic, None
 
 
 class PhaseWriter:
@@ -193,7 +205,9 @@ class PhaseWriter:
         from focustrack_scheduler.ome_zarr import write_phase
 
         path = scan.out_dir / scan.mosaic_format.file_name
-        write_phase(path, phase_mosaic(scan), float(scan.state["tile"]["pixel_size_um"]))
+        phase_rad, corner_px = phase_mosaic(scan)
+        pixel_size_um = float(scan.state["tile"]["pixel_size_um"])
+        write_phase(path, phase_rad, pixel_size_um, origin_um(scan, corner_px))
         return [path]
 
 

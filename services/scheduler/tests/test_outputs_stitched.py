@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 import zarr
 from ome_zarr_models import open_ome_zarr
 from ome_zarr_models.v05 import Image
@@ -32,8 +33,14 @@ def _specimen() -> np.ndarray:
     return field.astype(np.uint16)
 
 
-def _scan(out_dir: Path) -> dict:
-    specimen = _specimen()
+def _phase_specimen() -> np.ndarray:
+    """A phase (rad) over the same field as `_specimen`, float32 (y, x)."""
+    field = np.random.default_rng(8).uniform(-1.0, 1.0, (STEP_PX + TILE_PX, 2 * STEP_PX + TILE_PX))
+    return field.astype(np.float32)
+
+
+def _scan(out_dir: Path, mosaic_format: MosaicFormat = MosaicFormat.OME_ZARR) -> dict:
+    specimen, phase = _specimen(), _phase_specimen()
     record = ScanRecord(out_dir)
     record.state.save(strategy="kf-2d", slide="slide-0", instrument="sim")
     record.state.save(
@@ -51,11 +58,20 @@ def _scan(out_dir: Path) -> dict:
             row * STEP_PX : row * STEP_PX + TILE_PX, col * STEP_PX : col * STEP_PX + TILE_PX
         ]
         record.keep(GRID, row, col, 0.0, image, BIT_DEPTH)
+        if (row, col) != (1, 1):  # a tile whose phase did not come
+            tile_rad = phase[
+                row * STEP_PX : row * STEP_PX + TILE_PX, col * STEP_PX : col * STEP_PX + TILE_PX
+            ]
+            record.phase(
+                GRID, row, col, sequence=100 + index, n_frames=11, scan_time_s=0.4,
+                reference_z_um=0.0, field=np.stack([tile_rad, np.ones_like(tile_rad)]),
+                background_share=0.0, error=None,
+            )  # fmt: skip
     planes = np.stack([specimen[:TILE_PX, STEP_PX : STEP_PX + TILE_PX]] * 3)
     record.keep_planes(GRID, 0, 1, [-0.5, 0.0, 0.5], planes, BIT_DEPTH)
     rng = np.random.default_rng(4)
     focus_map = FocusMap(*[rng.normal(0.0, 1.0, GRID.shape) for _ in range(5)])
-    scan = FinishedScan.of(record, GRID, focus_map, None, 1.0, WallTimes(), MosaicFormat.OME_ZARR)
+    scan = FinishedScan.of(record, GRID, focus_map, None, 1.0, WallTimes(), mosaic_format)
     write_outputs(scan, DEFAULT_WRITERS)
     record.close()
     return dict(scan.report)
@@ -80,6 +96,33 @@ def test_the_mosaic_is_stitched_where_the_stage_put_the_tiles(tmp_path: Path) ->
     assert translation == pytest.approx([0.0, 500.0 - half_um, 1000.0 - half_um])
     mosaic = np.asarray(zarr.open_group(path, mode="r")["s0"])
     np.testing.assert_array_equal(mosaic.transpose(1, 2, 0), _specimen().astype(np.uint8))
+
+
+def test_the_phase_lies_pixel_for_pixel_over_the_stitched_mosaic(tmp_path: Path) -> None:
+    """The phase layer has the stitched mosaic's shape and placement: each tile's phase where
+    its image is (it used to lie side by side, at the tiles' full size, from (0, 0))."""
+    _scan(tmp_path)
+    path = tmp_path / outputs.MOSAIC_ZARR
+    mosaic = open_ome_zarr(path)
+    phase = Image.from_zarr(zarr.open_group(path / outputs.ZARR_PHASE, mode="r"))
+    assert isinstance(mosaic, Image)
+    assert _transforms(phase) == _transforms(mosaic)
+    phase_rad = np.asarray(zarr.open_group(path / outputs.ZARR_PHASE, mode="r")["s0"])[0]
+    assert phase_rad.shape == _specimen().shape[:2]
+    expected = np.where(np.isnan(phase_rad), np.nan, _phase_specimen())
+    np.testing.assert_array_equal(phase_rad, expected)  # every phase pixel at its place
+    assert np.isnan(phase_rad[TILE_PX:, STEP_PX + 16 : 2 * STEP_PX]).all()  # (1, 1) alone
+    assert not np.isnan(phase_rad[:STEP_PX]).any()  # the first row's tiles all have one
+
+
+def test_the_preview_and_the_ome_tiff_are_stitched_too(tmp_path: Path) -> None:
+    from PIL import Image as PillowImage
+
+    _scan(tmp_path, MosaicFormat.OME_TIFF)
+    specimen = _specimen().astype(np.uint8)
+    preview = np.asarray(PillowImage.open(tmp_path / outputs.MOSAIC_PREVIEW))
+    np.testing.assert_array_equal(preview, specimen)  # not tiles side by side, overlaps twice
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / outputs.MOSAIC), specimen)
 
 
 def test_the_map_layers_and_planes_are_images_at_the_stage_positions(tmp_path: Path) -> None:

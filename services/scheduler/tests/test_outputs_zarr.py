@@ -27,6 +27,7 @@ from focustrack_scheduler import outputs
 from focustrack_scheduler.finished import FinishedScan, write_outputs
 from focustrack_scheduler.in_focus import InFocusScore
 from focustrack_scheduler.mosaic_store import to_uint8
+from focustrack_scheduler.ome_zarr import write_mosaic
 from focustrack_scheduler.outputs import MosaicFormat, WallTimes
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.writers import DEFAULT_WRITERS
@@ -220,3 +221,17 @@ def test_without_phase_the_ome_zarr_has_no_phase_image(tmp_path: Path) -> None:
     report, _, _ = write(tmp_path, MosaicFormat.OME_ZARR)
     assert report["tiles_with_phase"] == 0
     assert outputs.ZARR_PHASE not in zarr.open_group(tmp_path / outputs.MOSAIC_ZARR, mode="r")
+
+
+def test_a_monochrome_cameras_mosaic_is_one_grey_channel(tmp_path: Path) -> None:
+    """Micro-Manager's monochrome cameras give one channel: grey, not "red"."""
+    path = tmp_path / "mono.ome.zarr"
+    write_mosaic(path, np.zeros((600, 520, 1), np.uint8), 0.5)
+    omero = zarr.open_group(path, mode="r").attrs["ome"]["omero"]
+    assert [(c["label"], c["color"]) for c in omero["channels"]] == [("grey", "FFFFFF")]
+    assert omero["rdefs"]["model"] == "greyscale"
+    rgb = tmp_path / "rgb.ome.zarr"
+    write_mosaic(rgb, np.zeros((600, 520, 3), np.uint8), 0.5)
+    omero = zarr.open_group(rgb, mode="r").attrs["ome"]["omero"]
+    assert [c["label"] for c in omero["channels"]] == ["red", "green", "blue"]
+    assert omero["rdefs"]["model"] == "color"
