@@ -8,8 +8,10 @@ import argparse
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -53,16 +55,25 @@ def takes_phase_stacks(stack: LocalStack) -> bool:
     return reply.header.purpose == instrument_pb2.ACQUISITION_PURPOSE_PHASE
 
 
-def scan(stack: LocalStack, out_dir: Path, *extra: str) -> dict:
-    """Run `focustrack scan` on the stack's slide (results checked with its key); its report."""
-    command = [
+def scan_command(stack: LocalStack, out_dir: Path, *extra: str) -> list[str]:
+    """`focustrack scan` on the stack's slide, its results checked with the stack's key."""
+    return [
         sys.executable, "-m", "focustrack", "scan", "--no-progress",
         "--estimator", stack.estimator_url, "--connect", stack.endpoint,
         "--instrument", INSTRUMENT, "--slide", SLIDE, "--out", str(out_dir),
         "--result-key-file", str(stack.result_key_file), *extra,
     ]  # fmt: skip
+
+
+def scan(stack: LocalStack, out_dir: Path, *extra: str) -> dict:
+    """Run `focustrack scan` on the stack's slide; its report."""
     done = subprocess.run(
-        command, capture_output=True, text=True, timeout=300, env=os.environ, check=False
+        scan_command(stack, out_dir, *extra),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=os.environ,
+        check=False,
     )
     assert done.returncode == 0, done.stderr
     return json.loads((out_dir / outputs.REPORT).read_text())
@@ -102,6 +113,34 @@ def test_scan_phase_writes_the_phase_in_radians_beside_the_mosaic(
     transforms = phase.attrs["ome"]["multiscales"][0]["datasets"][0]["coordinateTransformations"]
     mosaic = root.attrs["ome"]["multiscales"][0]["datasets"][0]["coordinateTransformations"]
     assert transforms == mosaic
+
+
+def test_a_scan_killed_before_its_phase_results_came_takes_them_when_resumed(
+    stack: LocalStack, tmp_path: Path
+) -> None:
+    """SIGKILL once the first tile is kept (its phase stack is yet to come back), then the
+    same command: every tile ends with its phase. The tiles the killed run kept without
+    phase used to stay without it, and nothing said so."""
+    if not takes_phase_stacks(stack):
+        pytest.skip("this instrument takes phase stacks as focus stacks (it predates them)")
+    first = subprocess.Popen(
+        scan_command(stack, tmp_path, "--phase", "--phase-planes", "5"),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    deadline_s = time.monotonic() + 120
+    while not (tmp_path / outputs.LOG_FILE).exists() or not logged(tmp_path, "kept"):
+        assert first.poll() is None, "the scan ended before it kept a tile"
+        assert time.monotonic() < deadline_s, "the scan kept no tile"
+        time.sleep(0.01)
+    os.killpg(first.pid, signal.SIGKILL)
+    first.wait()
+    report = scan(stack, tmp_path, "--phase", "--phase-planes", "5")
+    assert report["tiles_imaged"] == ROWS * COLS
+    assert report["tiles_with_phase"] == ROWS * COLS
+    with_phase = {(e["row"], e["col"]) for e in logged(tmp_path, "phase") if e["file"]}
+    assert with_phase == {(row, col) for row in range(ROWS) for col in range(COLS)}
 
 
 def test_a_scan_without_phase_takes_no_phase_stack(stack: LocalStack, tmp_path: Path) -> None:

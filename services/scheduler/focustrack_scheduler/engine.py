@@ -89,6 +89,7 @@ from focustrack_scheduler.plan import (
     ReadLaser,
     Retake,
     SlideGeometry,
+    TilesWithoutPhase,
     execute,
     prior_upload,
 )
@@ -215,6 +216,7 @@ class Engine:
             KeepTile: self._keep,
             KeepPlanes: self._keep_planes,
             AcquirePhase: self._acquire_phase,
+            TilesWithoutPhase: self._tiles_without_phase,
             ReadLaser: self._read_laser,
             MatchTile: self._match_tile,
             CompareFrame: self._compare_frame,
@@ -588,6 +590,15 @@ class Engine:
                 )
         finally:
             self.wall.phase_s += time.perf_counter() - started_s
+
+    def _tiles_without_phase(self, _: TilesWithoutPhase) -> list[tuple[int, int, float]]:
+        self._take_pending_phase(in_flight=0)  # a result still to come is not missing
+        tally = self.record.tally
+        return [
+            (row, col, z_um)
+            for (row, col), z_um in tally.kept.items()
+            if (row, col) not in tally.phase
+        ]
 
     def _drop_pending_phase(self) -> None:
         """The tiles whose phase results were still to come when the scan stopped: kept

@@ -38,7 +38,9 @@ The loop (docs/scheduler.md):
 With `ScanRequest.phase` (``focustrack scan --phase``), once a tile's image is final
 (`KeepTile` at the posterior), `AcquirePhase` takes a short phase stack of the tile
 centred on the z of that image, for the phase service, and keeps its phase beside the
-tile's image (a tile whose phase does not come is reported without it).
+tile's image (a tile whose phase does not come is reported without it). At the end,
+`TilesWithoutPhase` names the tiles an earlier run of a resumed scan left without phase
+(killed before their results came), and each gets its phase stack then.
 
 An edge peak or a flat curve is posted as it is; the estimator then asks for
 another stack of the same tile, so a retry is just the next `AskNext`. A focus
@@ -310,6 +312,13 @@ class AcquirePhase:
 
 
 @dataclass(frozen=True)
+class TilesWithoutPhase:
+    """-> the tiles with an image but no phase, (row, col, z um of the image) each, once the
+    phase results still to come have come: a resumed scan's tiles whose phase stack an
+    earlier run never took, or never heard of again (it was stopped first)."""
+
+
+@dataclass(frozen=True)
 class MatchTile:
     """-> the tiles to take again, (row, col, z um) each. The tile's image (`image`: the frame
     its last `KeepTile` kept) is final: compared with the first pass's, it may make the
@@ -350,6 +359,7 @@ Step = (
     | KeepTile
     | KeepPlanes
     | AcquirePhase
+    | TilesWithoutPhase
     | ReadLaser
     | MatchTile
     | CompareFrame
@@ -522,15 +532,24 @@ def scan_plan(request: ScanRequest) -> Plan:
                 and tile_index not in phased
             ):
                 phased.add(tile_index)
-                yield AcquirePhase(
-                    request.slide,
-                    acquisition.row,
-                    acquisition.col,
-                    geometry.stage.fit(request.phase.z_range(final.z_um, geometry.dof_um)),
-                    final.z_um,
-                    PHASE_SEQUENCE_BASE + tile_index,
-                )
+                yield _phase_stack(request, geometry, acquisition.row, acquisition.col, final.z_um)
+    if request.phase is not None:  # what an earlier run of this scan left without phase
+        for row, col, z_um in (yield TilesWithoutPhase()):
+            if (tile_index := row * geometry.grid.cols + col) not in phased:
+                phased.add(tile_index)
+                yield _phase_stack(request, geometry, row, col, z_um)
     return slide_id
+
+
+def _phase_stack(
+    request: ScanRequest, geometry: SlideGeometry, row: int, col: int, z_um: float
+) -> AcquirePhase:
+    """The phase stack of tile (row, col), centred on its image's `z_um`, within the stage."""
+    assert request.phase is not None
+    z = geometry.stage.fit(request.phase.z_range(z_um, geometry.dof_um))
+    return AcquirePhase(
+        request.slide, row, col, z, z_um, PHASE_SEQUENCE_BASE + row * geometry.grid.cols + col
+    )
 
 
 def _checked(request: ScanRequest, acquisition: Acquisition) -> bool:

@@ -41,6 +41,7 @@ from focustrack_scheduler.plan import (
     SlideGeometry,
     StageLimits,
     Step,
+    TilesWithoutPhase,
     execute,
     measurement_of,
     scan_plan,
@@ -104,6 +105,8 @@ class FakeEstimator:
         self.pending: Acquisition | None = None
         self.frames_um: list[float] = []  # every frame of the tile being scanned
         self.outcomes: list[Outcome] = []
+        #: what the engine says an earlier run left without phase (row, col, z um)
+        self.without_phase: list[tuple[int, int, float]] = []
 
     def _acquisition(self, tile: tuple[int, int], z: ZRange, purpose: Purpose) -> Acquisition:
         self.index += 1
@@ -179,6 +182,8 @@ class FakeEstimator:
                     return None
                 case AcquirePhase():
                     return True
+                case TilesWithoutPhase():
+                    return self.without_phase
 
         return answer
 
@@ -238,7 +243,32 @@ def test_with_phase_each_tile_takes_one_phase_stack_centred_on_its_image() -> No
         )
     # without it, the same scan takes the same steps and no phase stack
     plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset({(1, 1)})).answer(geometry))
-    assert plain == [s for s in steps if not isinstance(s, AcquirePhase)]
+    assert plain == [s for s in steps if not isinstance(s, AcquirePhase | TilesWithoutPhase)]
+
+
+def test_a_resumed_scan_takes_the_phase_an_earlier_run_left_out_at_its_end() -> None:
+    """Tiles an earlier run imaged but left without phase (killed before their results came)
+    get their phase stack at the end, centred on their image; a tile this run took a phase
+    stack of is not taken twice, and without --phase nothing is asked."""
+    grid = ScanGrid(2, 2)
+    truth_um = np.zeros(grid.shape)
+    geometry = SlideGeometry(grid, dof_um=0.9)
+    fake = FakeEstimator(grid, truth_um, frozenset())
+    fake.tiles = iter([(1, 0), (1, 1)])  # the earlier run finished row 0
+    fake.without_phase = [(0, 0, 0.25), (0, 1, -0.5), (1, 1, 0.0)]  # (1, 1): this run's
+    request = replace(REQUEST, phase=PhaseStacks(planes=5))
+
+    steps, _ = drive(request, fake.answer(geometry))
+    asked = steps.index(TilesWithoutPhase())
+    assert not any(isinstance(s, AskNext | Acquire) for s in steps[asked:])  # at the end
+    late = [s for s in steps[asked:] if isinstance(s, AcquirePhase)]
+    assert [(s.row, s.col, s.reference_z_um) for s in late] == [(0, 0, 0.25), (0, 1, -0.5)]
+    assert late[0].z.center_um == pytest.approx(0.25)
+    assert late[1].sequence == PHASE_SEQUENCE_BASE + 1
+    phased = [(s.row, s.col) for s in steps if isinstance(s, AcquirePhase)]
+    assert sorted(phased) == [(0, 0), (0, 1), (1, 0), (1, 1)]  # each tile once
+    plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset()).answer(geometry))
+    assert TilesWithoutPhase() not in plain
 
 
 def test_a_phase_stack_needs_two_planes_and_a_positive_step() -> None:
