@@ -9,6 +9,7 @@ given (`scan.ScanJob.writers`).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -32,6 +33,8 @@ from focustrack_scheduler.stitch import (
     tiles_of_mosaic,
 )
 from focustrack_scheduler.tally import Tile
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -85,7 +88,16 @@ class FinishedScan:
         state = record.state.read() or {}
         tally = record.tally
         mosaic = record.mosaic.read() if "tile" in state else None
-        has_mosaic = mosaic is not None or (record.out_dir / mosaic_format.file_name).exists()
+        mosaic_file = mosaic_format.file_name if mosaic is not None else None
+        if mosaic is None:  # a finished scan run again: its mosaic was written before
+            names = dict.fromkeys(f.file_name for f in (mosaic_format, *MosaicFormat))
+            mosaic_file = next((n for n in names if (record.out_dir / n).exists()), None)
+            if mosaic_file not in (None, mosaic_format.file_name):
+                log.warning(
+                    "the scan in %s was finished before, its mosaic written as %s: it cannot "
+                    "be written again as %s (the tiles' images are in the mosaic alone)",
+                    record.out_dir, mosaic_file, mosaic_format.file_name,
+                )  # fmt: skip
         images_per_tile = tally.images_per_tile(grid)
         images_per_tile.setflags(write=False)
         placement = None
@@ -103,7 +115,7 @@ class FinishedScan:
             dof_um,
             wall.as_dict(),
             focus_results_rejected,
-            mosaic_format.file_name if has_mosaic else None,
+            mosaic_file,
         )
         if placement is not None:
             report["seam_error_px"] = placement.seam_error_px

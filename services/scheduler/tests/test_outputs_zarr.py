@@ -235,3 +235,20 @@ def test_a_monochrome_cameras_mosaic_is_one_grey_channel(tmp_path: Path) -> None
     omero = zarr.open_group(rgb, mode="r").attrs["ome"]["omero"]
     assert [c["label"] for c in omero["channels"]] == ["red", "green", "blue"]
     assert omero["rdefs"]["model"] == "color"
+
+
+def test_a_finished_scan_run_again_names_the_mosaic_it_wrote(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Run again on a finished folder (its partial mosaic gone), in another format: the
+    report names the mosaic written before, and a warning says the other cannot be written
+    (the report used to say `"mosaic": null`, silently)."""
+    report, record, _ = write(tmp_path, MosaicFormat.OME_ZARR)
+    assert report["mosaic"] == outputs.MOSAIC_ZARR
+    assert not (tmp_path / outputs.PARTIAL_MOSAIC).exists()
+    again = finish(record, mosaic_format=MosaicFormat.OME_TIFF)
+    assert again["mosaic"] == outputs.MOSAIC_ZARR
+    assert not (tmp_path / outputs.MOSAIC).exists()
+    assert "cannot be written again as mosaic.ome.tif" in caplog.text
+    assert finish(record)["mosaic"] == outputs.MOSAIC_ZARR  # the same format: named, quiet
+    record.close()
