@@ -22,6 +22,7 @@ import contextlib
 import ipaddress
 import json
 import os
+import signal
 import socket
 import threading
 import time
@@ -260,6 +261,28 @@ def listening_socket(host: str, port: int, name: str) -> socket.socket:
         return socket.create_server((host, port), family=family)
     except OSError as error:
         raise ListenError.of(name, host, port, error) from error
+
+
+def serve_until_stopped(app: ASGIApp, listening: socket.socket, **options: Any) -> None:
+    """`app` served by uvicorn on the socket `listening` (`listening_socket`: bound before the
+    service says where it is, so a port in use is a ListenError, not uvicorn's exit 3 after
+    that line), in this thread, until SIGINT or SIGTERM (`docker stop`). `options` go to
+    `uvicorn.Config` (log_level, access_log, ...).
+
+    uvicorn shuts down gracefully on SIGTERM and then raises the signal again, which with
+    the default handler kills the process (status -15) before the caller's `finally` has
+    closed its store or its Zenoh session: a handler of ours takes that second delivery.
+    """
+    import uvicorn
+
+    host, port = listening.getsockname()[:2]
+    server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, **options))
+    previous = signal.signal(signal.SIGTERM, lambda *_: None)
+    try:
+        server.run(sockets=[listening])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        listening.close()
 
 
 class BackgroundServer:

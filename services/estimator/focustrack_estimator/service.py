@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib
 import os
-import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -22,10 +21,13 @@ from pathlib import Path
 from subprocess import DEVNULL, Popen
 from typing import TYPE_CHECKING
 
-import uvicorn
-
 from focustrack_core import tracing
-from focustrack_core.serving import refuse_open_network
+from focustrack_core.serving import (
+    ListenError,
+    listening_socket,
+    refuse_open_network,
+    serve_until_stopped,
+)
 from focustrack_core.settings import command_main
 from focustrack_estimator.app import create_app
 from focustrack_estimator.event_store import EventStore, StoreError, open_store
@@ -69,34 +71,35 @@ def run(settings: EstimatorSettings) -> int:
         catalogue = None
         if settings.strategies_from is not None:
             catalogue = catalogue_from(settings.strategies_from)
+        listening = listening_socket(settings.host, settings.port, "estimator")
+    except (ListenError, ValueError) as error:
+        print(f"estimator not started: {error}", file=sys.stderr)
+        return 2
+    try:
         store = open_store(settings.store)  # last: a bad setting touches no file
-    except (StoreError, ValueError) as error:
+    except StoreError as error:
+        listening.close()
         print(f"estimator not started: {error}", file=sys.stderr)
         return 2
     if store.created:
         print(new_store_note(store), flush=True)
     traced = tracing.configure("focustrack-estimator", settings.otlp_endpoint)
+    port = listening.getsockname()[1]  # --port 0: the one the system chose
     print(
-        f"estimator on http://{settings.host}:{settings.port} (store {store.address}, "
+        f"estimator on http://{settings.host}:{port} (store {store.address}, "
         f"auth {'on' if settings.token else 'off'}, traces {'on' if traced else 'off'})",
         flush=True,
     )
-    # uvicorn shuts down gracefully on SIGTERM and then raises the signal again, which
-    # with the default handler kills the process (-15) before the store is closed and its
-    # WAL checkpointed: this handler takes that second delivery, so `finally` runs.
-    previous = signal.signal(signal.SIGTERM, lambda *_: None)
-    try:
-        uvicorn.run(
+    try:  # until SIGINT or SIGTERM; then the store is closed and its WAL checkpointed
+        serve_until_stopped(
             create_app(store, settings, catalogue),
-            host=settings.host,
-            port=settings.port,
+            listening,
             log_level="warning",
             access_log=settings.access_log,
             ws="none",  # no WebSocket routes: importing a WebSocket library would slow the start
         )
     finally:
         store.close()
-        signal.signal(signal.SIGTERM, previous)
     return 0
 
 

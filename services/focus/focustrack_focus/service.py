@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Annotated, ClassVar
 
 import numpy as np
-import uvicorn
 import zenoh
 from google.protobuf.message import DecodeError
 from opentelemetry.trace import SpanKind
@@ -48,7 +47,12 @@ from pydantic_settings import SettingsConfigDict
 
 from focustrack_core import tracing
 from focustrack_core.logs import worth_logging
-from focustrack_core.serving import refuse_open_network
+from focustrack_core.serving import (
+    ListenError,
+    listening_socket,
+    refuse_open_network,
+    serve_until_stopped,
+)
 from focustrack_core.settings import command_main, one_of
 from focustrack_core.tracing import TracingSettings
 from focustrack_core.v1 import common_pb2, focus_pb2, instrument_pb2
@@ -547,7 +551,9 @@ def run(settings: FocusServiceSettings) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         signer, frame_signer = settings.signers()
-    except ValueError as error:
+        # bound before the bus and the log say where it is: a port in use is one line
+        listening = listening_socket(settings.host, settings.port, "focus")
+    except (ValueError, ListenError) as error:
         log.error("%s", error)
         return 2
     tracing.configure("focustrack-focus", settings.otlp_endpoint)
@@ -571,7 +577,7 @@ def run(settings: FocusServiceSettings) -> int:
         keys.PREFIX,
         "tagged" if signer is not None else "untagged",
         settings.host,
-        settings.port,
+        listening.getsockname()[1],  # --port 0: the one the system chose
         focus.metric,
     )
     started = time.perf_counter()
@@ -581,7 +587,7 @@ def run(settings: FocusServiceSettings) -> int:
     try:
         app = create_app(focus, limits, settings.token or None, profile)
         app = with_bus_health(app, bus.health)
-        uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+        serve_until_stopped(app, listening, log_level="info")
     finally:
         bus.close()
         published = sum(worker.n_published for worker in bus.workers)

@@ -21,11 +21,15 @@ import time
 from dataclasses import fields
 from typing import ClassVar
 
-import uvicorn
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from focustrack_core.serving import refuse_open_network
+from focustrack_core.serving import (
+    ListenError,
+    listening_socket,
+    refuse_open_network,
+    serve_until_stopped,
+)
 from focustrack_core.settings import command_main
 from focustrack_core.web import with_bus_health
 from focustrack_core.wire import keys
@@ -106,7 +110,9 @@ def run(settings: PhaseServiceSettings) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         signer, frame_signer = settings.signers()
-    except ValueError as error:
+        # bound before the bus and the log say where it is: a port in use is one line
+        listening = listening_socket(settings.host, settings.port, "phase")
+    except (ValueError, ListenError) as error:
         log.error("%s", error)
         return 2
     optics = PhaseOptics(settings.wavelength_um)
@@ -133,7 +139,7 @@ def run(settings: PhaseServiceSettings) -> int:
         keys.PREFIX,
         "tagged" if signer is not None else "untagged",
         settings.host,
-        settings.port,
+        listening.getsockname()[1],  # --port 0: the one the system chose
         "on" if settings.token else "off",
     )
     started_s = time.perf_counter()
@@ -141,7 +147,7 @@ def run(settings: PhaseServiceSettings) -> int:
         app = with_bus_health(
             create_app(limits, settings.token or None, settings.fft_workers), bus.health
         )
-        uvicorn.run(app, host=settings.host, port=settings.port, log_level="info")
+        serve_until_stopped(app, listening, log_level="info")
     finally:
         bus.close()
         log.info(

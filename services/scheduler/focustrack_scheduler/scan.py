@@ -16,6 +16,7 @@ import fcntl
 import json
 import logging
 import os
+import signal
 import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -261,8 +262,24 @@ def _scan_held(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         record.close()
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (`docker stop`, a job scheduler's end): the scan stops as at Ctrl-C."""
+
+
+def _terminate(*_: object) -> None:
+    raise _Terminated
+
+
 def run(settings: ScanSettings) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        return _run(settings)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run(settings: ScanSettings) -> int:
     try:
         job = ScanJob(
             request=settings.scan_request(),
@@ -301,11 +318,11 @@ def run(settings: ScanSettings) -> int:
     except OSError as error:  # the outputs' folder or a file in it (a file, unwritable)
         print(f"focustrack scan: error: cannot write the outputs: {error}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (`_Terminated`)
         print(
             f"focustrack scan: interrupted; the same --out {settings.out} resumes", file=sys.stderr
         )
-        return 130
+        return 143 if isinstance(stop, _Terminated) else 130
     print(summary_line(report))
     print(f"outputs in {settings.out}")
     return 0
