@@ -45,6 +45,7 @@ import numpy as np
 from focustrack.bench.phase import GLASS_PHASE_RAD, high_pass_correlation
 from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack.local_stack import INSTRUMENT, READY_TIMEOUT_S, SLIDE, LocalStack, stop_on_sigterm
+from focustrack.paths import output_file, output_folder
 from focustrack.slide_scores import scored_scan
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import focus_map_of_npy
@@ -306,9 +307,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"strategies to compare (default: {' '.join(DEFAULT_STRATEGIES)})",
     )
     parser.add_argument(
-        "--out", type=Path, default=Path("out/demo"), help="output folder (out/demo)"
+        "--out", type=output_folder, default=Path("out/demo"), help="output folder (out/demo)"
     )
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the comparison as JSON")
+    parser.add_argument(
+        "--json", type=output_file, metavar="OUT", help="write the comparison as JSON"
+    )
     parser.add_argument(
         "--live-port",
         type=port_number,

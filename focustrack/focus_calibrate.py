@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from focustrack.paths import output_file
 from focustrack_core.stacks import decode_stack
 from focustrack_focus import calibration
 from focustrack_focus.labelled_curves import CurvesFileError, LabelledCurve, load_curves
@@ -60,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="z-stacks (TIFF or .npy, frames first) and DIR/labels.json: "
         '{"FILE": {"z_um": [...], "focus_z_um": z}}',
     )
-    parser.add_argument("--out", type=Path, required=True, metavar="PROFILE.json")
+    parser.add_argument("--out", type=output_file, required=True, metavar="PROFILE.json")
     parser.add_argument(
         "--metrics", nargs="*", help="calibrate these metrics only (default: every one given)"
     )
@@ -68,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--folds", type=int, default=5, help="cross-validation folds over fields (default 5)"
     )
     parser.add_argument(
-        "--plot", type=Path, metavar="PNG", help="the fits' figure (default: beside --out)"
+        "--plot", type=output_file, metavar="PNG", help="the fits' figure (default: beside --out)"
     )
 
 

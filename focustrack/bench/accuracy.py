@@ -30,6 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from focustrack.bench import strategies as registry
+from focustrack.paths import output_file, output_folder
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import (
@@ -390,8 +391,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="NAME",
         help="strategies to run, space- or comma-separated (default: all registered)",
     )
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
-    parser.add_argument("--plots", type=Path, metavar="DIR", help="write PNG plots to DIR")
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the scores as JSON")
+    parser.add_argument("--plots", type=output_folder, metavar="DIR", help="write PNG plots to DIR")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 

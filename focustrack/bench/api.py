@@ -34,6 +34,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from focustrack.paths import output_file
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.rest import to_api, to_domain
@@ -236,7 +237,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the estimator's store: a PostgreSQL database's URL (postgresql://...; its "
         "tables must not hold other slides) or an SQLite file (default: a new one)",
     )
-    parser.add_argument("--json", type=Path, help="write the results here")
+    parser.add_argument("--json", type=output_file, help="write the results here")
 
 
 def run(args: argparse.Namespace) -> int:

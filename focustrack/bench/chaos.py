@@ -63,6 +63,7 @@ import zenoh
 
 from focustrack.bench import bus_attacks
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
+from focustrack.paths import output_file, output_folder
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.rpc import protobuf_encoding
@@ -375,8 +376,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="slides the hostile REST requests create one after another (2000; a quick "
         "run: a dozen)",
     )
-    parser.add_argument("--out", type=Path, default=Path("out/chaos"), help="work folder")
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the report as JSON")
+    parser.add_argument("--out", type=output_folder, default=Path("out/chaos"), help="work folder")
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the report as JSON")
 
 
 def run(args: argparse.Namespace) -> int:

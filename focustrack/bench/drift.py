@@ -57,6 +57,7 @@ import numpy as np
 from focustrack.bench import frame_check, lateral_drift, stream_ekf
 from focustrack.bench import strategies as registry
 from focustrack.bench.focus import REAL_DIR
+from focustrack.paths import output_file
 from focustrack_core.domain import SlideSettings
 from focustrack_core.drift import ThermalDrift
 from focustrack_core.geometry import ScanGrid
@@ -168,7 +169,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--real-dir", type=Path, default=REAL_DIR, help="EKF: the shared real data's folder"
     )
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the scores as JSON")
 
 
 def _run_scenario(

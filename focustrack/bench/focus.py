@@ -37,6 +37,7 @@ import numpy as np
 from tqdm import tqdm
 
 from focustrack.bench import focus_real
+from focustrack.paths import output_file, output_folder
 from focustrack_core.domain import FocusFlag
 from focustrack_core.geometry import ScanGrid
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
@@ -308,8 +309,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--metrics", nargs="*", default=list(METRICS), choices=list(METRICS))
     parser.add_argument("--real-dir", type=Path, default=REAL_DIR)
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
-    parser.add_argument("--plots", type=Path, metavar="DIR", help="write PNG plots here")
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the figures as JSON")
+    parser.add_argument("--plots", type=output_folder, metavar="DIR", help="write PNG plots here")
     parser.add_argument(
         "--real",
         action="store_true",

@@ -20,12 +20,12 @@ import statistics
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import cv2
 import numpy as np
 import zenoh
 
+from focustrack.paths import output_file
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=2, help="render threads to compare with 1")
     parser.add_argument("--repeats", type=int, default=10, help="stacks published per encoding")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
+    parser.add_argument("--json", type=output_file, help="write the figures to this JSON file")
 
 
 def _timed(action: Callable[[], object]) -> tuple[float, float]:

@@ -38,6 +38,7 @@ import numpy as np
 from pymmcore_plus import CMMCorePlus
 
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
+from focustrack.paths import output_file, output_folder
 from focustrack_instrument_sim.instrument import StackRequest
 from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, core_from_config
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
@@ -71,9 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=1, help="the slide's seed")
     parser.add_argument("--strategy", default="kf-2d-lean", help="the scan's strategy")
     parser.add_argument(
-        "--out", type=Path, default=Path("out/bench-mmcore"), help="the scans' work folder"
+        "--out", type=output_folder, default=Path("out/bench-mmcore"), help="the scans' work folder"
     )
-    parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
+    parser.add_argument("--json", type=output_file, help="write the figures to this JSON file")
 
 
 def _demo() -> tuple[Path, list[Path]]:

@@ -70,6 +70,7 @@ from scipy import fft, ndimage
 
 from focustrack.bench.focus import REAL_DIR
 from focustrack.bench.phase_speed import SPEED_PLANES, measure_speed
+from focustrack.paths import output_file
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_yeast
 from focustrack_instrument_sim.instrument import Purpose
@@ -680,7 +681,7 @@ def write_images(path: Path, images: dict[str, np.ndarray]) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the scores as JSON")
     parser.add_argument("--sweep", action="store_true", help="also sweep gamma and planes")
     parser.add_argument("--seed", type=int, default=1, help="the object's seed (default 1)")
     parser.add_argument(

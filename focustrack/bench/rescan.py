@@ -17,12 +17,12 @@ import argparse
 import json
 import sys
 from dataclasses import asdict
-from pathlib import Path
 
 import numpy as np
 
 from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import format_reliability
+from focustrack.paths import output_file
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--compare", nargs="*", default=["kf-2d", "kf-2d-lean"], help="pass 2 without a prior"
     )
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the scores as JSON")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from focustrack.paths import output_file
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator.replay import simulated_measurement
@@ -271,9 +272,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="measurements after the last snapshot when the server is killed",
     )
     parser.add_argument("--jobs", type=int, default=2, help="cases run at once")
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the figures as JSON")
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the figures as JSON")
     parser.add_argument(
-        "--plot", type=Path, metavar="PNG", help="time per tile against width (default: beside OUT)"
+        "--plot",
+        type=output_file,
+        metavar="PNG",
+        help="time per tile against width (default: beside OUT)",
     )
 
 

@@ -41,6 +41,7 @@ import numpy as np
 
 from focustrack.demo import scan_on
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
+from focustrack.paths import output_file, output_folder
 from focustrack.slide_scores import scored_scan
 from focustrack_estimator import registry
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
@@ -100,8 +101,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-look-first", dest="look_first", action="store_false",
         help="whole first stacks (strategies that take look_first otherwise scan with it)",
     )  # fmt: skip
-    parser.add_argument("--out", type=Path, default=Path("out/bench-slide"), help="work folder")
-    parser.add_argument("--json", type=Path, metavar="OUT", help="write the scores as JSON")
+    parser.add_argument(
+        "--out", type=output_folder, default=Path("out/bench-slide"), help="work folder"
+    )
+    parser.add_argument("--json", type=output_file, metavar="OUT", help="write the scores as JSON")
 
 
 def look_first_params(strategy: str, look_first: bool) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import format_table
+from focustrack.paths import output_file
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import add_measurement_noise, family_spec, generate_surfaces
@@ -108,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--family", default="standard")
     parser.add_argument("--noise-um", type=float, default=1.5)
     parser.add_argument("--strategies", default=",".join(DEFAULT_NAMES))
-    parser.add_argument("--plot", type=Path, help="write a PNG bar chart here")
+    parser.add_argument("--plot", type=output_file, help="write a PNG bar chart here")
     args = parser.parse_args(argv)
     try:
         names = [n for n in args.strategies.split(",") if n]

@@ -38,6 +38,7 @@ from pathlib import Path
 import httpx
 import zenoh
 
+from focustrack.paths import output_file
 from focustrack_core.health import instrument_answers
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 
@@ -59,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="PYTHON",
         help="also time the services of another checkout: its virtualenv's python",
     )
-    parser.add_argument("--json", type=Path, help="write the figures to this JSON file")
+    parser.add_argument("--json", type=output_file, help="write the figures to this JSON file")
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from focustrack.paths import output_file
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
 from focustrack_focus.pipeline import FocusSettings
@@ -85,7 +86,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--json",
-        type=Path,
+        type=output_file,
         metavar="OUT",
         help="write the figures as JSON, and a chart beside it (OUT with .png)",
     )

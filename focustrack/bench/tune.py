@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from focustrack.bench.strategies import create, parameters
+from focustrack.paths import output_folder
 from focustrack_core.domain import ZRangePolicy
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
@@ -295,7 +296,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="map families of the training set, pooled (default standard)",
     )
     parser.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
-    parser.add_argument("--plots", type=Path, default=None, help="write k_sigma.png here")
+    parser.add_argument("--plots", type=output_folder, default=None, help="write k_sigma.png here")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,0 +1,53 @@
+"""Output paths given on a command line, checked when the command starts.
+
+The benchmarks, the demo and `focus calibrate` write their outputs at the end of a run
+that takes minutes to hours: an output that cannot be written is an argparse error at
+once (exit 2, one line), not a traceback after the work. Used as argparse types.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+
+def _nearest_existing(path: Path) -> Path:
+    """`path`, or the nearest of its parents that exists."""
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            return candidate
+    return Path.cwd()
+
+
+def _check_writable_folder(folder: Path, text: str) -> None:
+    """ArgumentTypeError unless `folder` is, or can be made, a folder this process writes
+    into. It is made now (the run would make it at its end): only making it tells whether
+    it can be (under /proc, say, even root cannot)."""
+    existing = _nearest_existing(folder)
+    if not existing.is_dir():
+        raise argparse.ArgumentTypeError(f"cannot write {text}: {existing} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise argparse.ArgumentTypeError(f"cannot write {text}: {error.strerror}") from error
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"cannot write {text}: {folder} is not writable")
+
+
+def output_file(text: str) -> Path:
+    """A file the command writes: not a folder, and in a folder it can make and write to."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"cannot write {text}: it is a folder")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise argparse.ArgumentTypeError(f"cannot write {text}: it is not writable")
+    _check_writable_folder(path.parent, text)
+    return path
+
+
+def output_folder(text: str) -> Path:
+    """A folder the command writes into: one it can make (or has) and write to."""
+    path = Path(text)
+    _check_writable_folder(path, text)
+    return path

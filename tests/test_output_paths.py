@@ -1,0 +1,57 @@
+"""Output paths on the command line are checked when a command starts (`focustrack.paths`):
+a long benchmark or demo used to run to its end and then fail writing, in a traceback."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from focustrack.paths import output_file, output_folder
+
+
+def test_a_file_in_a_folder_that_can_be_made_is_taken_and_the_folder_made(
+    tmp_path: Path,
+) -> None:
+    assert output_file(str(tmp_path / "new" / "out.json")) == tmp_path / "new" / "out.json"
+    assert (tmp_path / "new").is_dir() and not (tmp_path / "new" / "out.json").exists()
+    assert output_folder(str(tmp_path / "a" / "b")) == tmp_path / "a" / "b"
+
+
+@pytest.mark.parametrize(
+    ("kind", "where", "why"),
+    [
+        (output_file, "folder", "it is a folder"),
+        (output_file, "file/out.json", "is not a folder"),
+        (output_file, "/proc/no-such/out.json", "No such file or directory"),
+        (output_folder, "file", "is not a folder"),
+        (output_folder, "file/below", "is not a folder"),
+    ],
+)
+def test_an_output_that_cannot_be_written_is_refused(
+    tmp_path: Path, kind: object, where: str, why: str
+) -> None:
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "file").write_text("taken")
+    path = where if where.startswith("/") else str(tmp_path / where)
+    with pytest.raises(argparse.ArgumentTypeError, match=why):
+        kind(path)  # type: ignore[operator]
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["bench", "accuracy", "--json", "/proc/no-such/out.json"],
+        ["demo", "--json", "/proc/no-such/out.json"],
+        ["focus", "calibrate", "--curves", "c.jsonl", "--out", "/proc/no-such/p.json"],
+    ],
+)
+def test_a_command_with_an_output_it_cannot_write_stops_at_once(command: list[str]) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "focustrack", *command], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2, done.stderr
+    assert "cannot write /proc/no-such/" in done.stderr and "Traceback" not in done.stderr
