@@ -178,6 +178,33 @@ def test_session_settings_default_and_override() -> None:
         session.session_config()
 
 
+@pytest.mark.parametrize(
+    ("connect", "listen", "message"),
+    [
+        ([], ["bogus-endpoint"], "--listen: Endpoints must be of the form"),
+        (["tcp/127.0.0.1:99999"], [], "--connect tcp/127.0.0.1:99999: the port must be"),
+        ([], ["tcp/[::1]:x"], "--listen tcp/.::1.:x: the port must be"),
+        (["udp/127.0.0.1:-1"], [], "the port must be a number"),
+    ],
+)
+def test_an_endpoint_zenoh_cannot_use_is_a_value_error_naming_its_flag(
+    connect: list[str], listen: list[str], message: str
+) -> None:
+    """Zenoh refused a malformed endpoint with its Rust source's path (a traceback in the
+    services), and took a port out of range, failing at every attempt after."""
+    with pytest.raises(ValueError, match=message) as refused:
+        session.session_config(connect, listen)
+    assert "/root/.cargo" not in str(refused.value)
+
+
+def test_ip_endpoints_with_ports_in_range_are_taken() -> None:
+    config = session.session_config(["tcp/127.0.0.1:7447", "udp/[::1]:0"], ["tcp/0.0.0.0:65535"])
+    assert json.loads(config.get_json("connect/endpoints")) == [
+        "tcp/127.0.0.1:7447",
+        "udp/[::1]:0",
+    ]
+
+
 def test_pixel_array_is_sent_from_its_own_buffer_and_frames_round_trip() -> None:
     header, pixels = _stack()
     own = codec.pixel_array(pixels.shape, pixels.dtype)

@@ -147,6 +147,19 @@ def zenoh_message(error: zenoh.ZError) -> str:
     return str(error).split(" at /", 1)[0]
 
 
+def check_port(flag: str, endpoint: str) -> None:
+    """ValueError unless an IP endpoint's port (`tcp/127.0.0.1:7447`, `udp/[::1]:7447`) is a
+    number from 0 to 65535. Zenoh takes `tcp/host:99999` and then fails at each attempt to
+    connect or listen, which a service would retry for ever as a router that does not
+    answer."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol not in ("tcp", "udp", "tls", "quic", "ws"):
+        return
+    port = address.split("?", 1)[0].split("#", 1)[0].rpartition(":")[2]
+    if not (port.isascii() and port.isdigit() and int(port) <= 65535):
+        raise ValueError(f"{flag} {endpoint}: the port must be a number from 0 to 65535")
+
+
 def session_config(
     connect: Sequence[str] = (),
     listen: Sequence[str] = (),
@@ -177,8 +190,17 @@ def session_config(
             config.insert_json5(key, json.dumps(value))
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    for flag, key, endpoints in (
+        ("--connect", "connect/endpoints", connect),
+        ("--listen", "listen/endpoints", listen),
+    ):
+        for endpoint in endpoints:
+            check_port(flag, endpoint)
+        try:
+            config.insert_json5(key, json.dumps(list(endpoints)))
+        except zenoh.ZError as error:  # Zenoh's words, which name the endpoint
+            reason = zenoh_message(error).split('msg: "', 1)[-1]
+            raise ValueError(f"{flag}: {reason}") from error
     config.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
     first_ms, longest_ms = CONNECT_RETRY_MS
     config.insert_json5(

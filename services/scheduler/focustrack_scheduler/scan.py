@@ -34,7 +34,7 @@ from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.serving import ListenError
 from focustrack_core.settings import command_main
 from focustrack_core.wire import rpc
-from focustrack_core.wire.session import open_config
+from focustrack_core.wire.session import open_config, zenoh_message
 from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_scheduler.clients import InstrumentClient, SlideListener, truth_empty
 from focustrack_scheduler.engine import (
@@ -262,6 +262,11 @@ def _scan_held(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         record.close()
 
 
+def _said(error: Exception) -> str:
+    """What went wrong, in words: Zenoh's without the path of its Rust source."""
+    return zenoh_message(error) if isinstance(error, zenoh.ZError) else str(error)
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM (`docker stop`, a job scheduler's end): the scan stops as at Ctrl-C."""
 
@@ -294,7 +299,7 @@ def _run(settings: ScanSettings) -> int:
         )
         config = settings.zenoh()  # a Zenoh config file or endpoint it cannot use: exit 2
     except (ValueError, zenoh.ZError) as error:
-        print(f"focustrack scan: error: {error}", file=sys.stderr)
+        print(f"focustrack scan: error: {_said(error)}", file=sys.stderr)
         return 2
     tracing.configure("focustrack-scheduler", settings.otlp_endpoint)
     try:
@@ -307,7 +312,7 @@ def _run(settings: ScanSettings) -> int:
                 print(f"live view at {live.url}", flush=True)
             report = run_scan(session, replace(job, live=live))
     except SCAN_ERRORS as error:
-        print(f"focustrack scan: error: {error}", file=sys.stderr)
+        print(f"focustrack scan: error: {_said(error)}", file=sys.stderr)
         return 1
     except ValidationError as error:  # a --param the slide's model refuses (NaN, 1e400)
         print(f"focustrack scan: error: {error}", file=sys.stderr)
