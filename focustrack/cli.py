@@ -100,7 +100,17 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    """Run the command `argv` names (the process's own by default); its exit status. Ctrl-C
+    before the command has a handler of its own (in its imports, its parsing) is status
+    130 with one line, not a traceback."""
+    try:
+        return _main(sys.argv[1:] if argv is None else argv)
+    except KeyboardInterrupt:
+        print("focustrack: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str]) -> int:
     for n_words in (2, 1):
         name = " ".join(argv[:n_words])
         if name in COMMANDS:
@@ -113,5 +123,9 @@ def main(argv: list[str] | None = None) -> int:
                 return module.run(parse(parser, settings_cls, argv[n_words:]))
             module.add_arguments(parser)
             return module.run(parser.parse_args(argv[n_words:]))
-    print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
-    return 0 if not argv or argv[0] in ("-h", "--help") else 2
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    words = " ".join(word for word in argv[:2] if not word.startswith("-"))
+    print(f"{_usage()}\n\nfocustrack: error: unknown command {words!r}", file=sys.stderr)
+    return 2

@@ -1,6 +1,6 @@
 """The REST services' ports and their end: a port in use is one line (exit 2) before the
 service says where it is, and SIGTERM (`docker stop`) ends them gracefully, their bus
-closed and their last line logged (real processes, loopback)."""
+closed and their last line logged, and so does Ctrl-C (real processes, loopback)."""
 
 from __future__ import annotations
 
@@ -47,10 +47,14 @@ def test_a_rest_port_in_use_is_one_line_before_the_service_says_where_it_is(
     assert not (tmp_path / "e.sqlite").exists()
 
 
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT])
 @pytest.mark.parametrize(("service", "last_line"), [("focus", "published"), ("phase", "published")])
-def test_sigterm_ends_a_service_gracefully(service: str, last_line: str, tmp_path: Path) -> None:
-    """uvicorn raises SIGTERM again after its graceful shutdown: the focus and phase
-    services used to die of it (status -15) before closing their bus."""
+def test_sigterm_or_ctrl_c_ends_a_service_gracefully(
+    service: str, last_line: str, stop: signal.Signals, tmp_path: Path
+) -> None:
+    """uvicorn raises the signal again after its graceful shutdown: the focus and phase
+    services used to die of SIGTERM (status -15), and of Ctrl-C in a traceback, before
+    closing their bus."""
     port = free_port()
     process = subprocess.Popen(
         peer(service, port, tmp_path), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
@@ -65,7 +69,7 @@ def test_sigterm_ends_a_service_gracefully(service: str, last_line: str, tmp_pat
                 break
             except httpx.TransportError:
                 time.sleep(0.2)
-        process.send_signal(signal.SIGTERM)
+        process.send_signal(stop)
         out, err = process.communicate(timeout=60)
     finally:
         process.kill()

@@ -269,19 +269,23 @@ def serve_until_stopped(app: ASGIApp, listening: socket.socket, **options: Any) 
     that line), in this thread, until SIGINT or SIGTERM (`docker stop`). `options` go to
     `uvicorn.Config` (log_level, access_log, ...).
 
-    uvicorn shuts down gracefully on SIGTERM and then raises the signal again, which with
-    the default handler kills the process (status -15) before the caller's `finally` has
-    closed its store or its Zenoh session: a handler of ours takes that second delivery.
+    uvicorn shuts down gracefully on SIGINT or SIGTERM and then raises the signal again,
+    which with the default handlers kills the process (status -15) or raises a
+    KeyboardInterrupt (a traceback) before the caller's `finally` has closed its store or
+    its Zenoh session: handlers of ours take that second delivery, and the service ends
+    with status 0.
     """
     import uvicorn
 
     host, port = listening.getsockname()[:2]
     server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, **options))
-    previous = signal.signal(signal.SIGTERM, lambda *_: None)
+    stops = (signal.SIGINT, signal.SIGTERM)
+    previous = {stop: signal.signal(stop, lambda *_: None) for stop in stops}
     try:
         server.run(sockets=[listening])
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for stop, handler in previous.items():
+            signal.signal(stop, handler)
         listening.close()
 
 
