@@ -6,14 +6,14 @@ Flags, ``FOCUSTRACK_INSTRUMENT_<OPTION>`` or a settings file (`focustrack_core.s
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
-from pydantic import Field
+from pydantic import AfterValidator, Field
 from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.http_metrics import MetricsPortSettings
 from focustrack_core.tracing import TracingSettings
-from focustrack_core.wire import codec
+from focustrack_core.wire import codec, keys
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
 from focustrack_instrument_sim.backends import BACKENDS, BackendName
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
@@ -34,7 +34,9 @@ class InstrumentShellSettings(ZenohSettings, MetricsPortSettings, TracingSetting
     model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_INSTRUMENT_")
     default_listen: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)
 
-    name: str = Field("sim", description="instrument name in the key space")
+    name: Annotated[str, AfterValidator(keys.check_name)] = Field(
+        "sim", description="instrument name in the key space"
+    )
     backend: BackendName = Field(
         "sim",
         description="the instrument served: "

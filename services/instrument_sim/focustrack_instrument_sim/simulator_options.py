@@ -12,10 +12,9 @@ when it opens, which ends the command with exit status 2 and their message.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, FilePath, model_validator
 
 from focustrack_core.geometry import MAX_GRID_SIDE, MAX_TILES, ScanGrid
 from focustrack_core.settings import one_of
@@ -48,7 +47,7 @@ class SimulatorOptions(BaseModel):
         SurfaceSpec.cols, ge=1, le=MAX_GRID_SIDE, description="tiles per row of a slide"
     )
     family: FamilyName = Field("standard", description="the map family of generated slides")
-    map: Path | None = Field(
+    map: FilePath | None = Field(
         None, description="true focus map(s) in um (.npy, .csv, .tif) to use instead"
     )
     pitch_um: float = Field(ScanGrid.pitch_um, description="tile centre spacing, um")

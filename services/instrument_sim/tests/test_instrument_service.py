@@ -152,6 +152,8 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
         ["--workers", "0"],
         ["--rows", "0"],
         ["--cols", "1001"],
+        ["--name", "a/b"],  # not one key chunk: a traceback once the bus was open
+        ["--map", "/no/such/map.npy"],  # a traceback once the options were taken
     ],
 )
 def test_a_refused_option_ends_the_command_naming_it(
