@@ -103,7 +103,7 @@ class ScanOptions(ServiceSettings):
         description="how long to keep retrying an estimator that does not answer",
     )
     # phase
-    phase: CliToggleFlag[bool] = Field(
+    phase: bool = Field(
         False,
         description="also take a phase stack of every tile, centred on the z its image is "
         "taken at, for the phase service (`focustrack serve phase`), and keep its phase in "

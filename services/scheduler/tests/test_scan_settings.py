@@ -325,3 +325,11 @@ def test_a_second_scan_into_a_folder_in_use_is_refused_in_one_line(
     assert "Traceback" not in err and not (out / outputs.STATE_FILE).exists()
     with scan._holding(out):  # released when the scan ends: the folder is free again
         pass
+
+
+def test_no_phase_wins_over_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A flag wins over the environment: `--no-phase` turns off FOCUSTRACK_SCAN_PHASE=1
+    (there was no flag to do it)."""
+    monkeypatch.setenv("FOCUSTRACK_SCAN_PHASE", "1")
+    assert settings().phase and settings("--phase").phase
+    assert not settings("--no-phase").phase
