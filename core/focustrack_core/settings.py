@@ -60,6 +60,9 @@ class ServiceSettings(BaseSettings):
         cli_implicit_flags=True,  # --insecure, not --insecure true
         cli_hide_none_type=True,
         validate_default=True,
+        # No option means infinity or NaN: `--pitch-um inf`, `--z-offset-um nan` and
+        # `--body-timeout-s inf` were taken, and broke the service later or silently.
+        allow_inf_nan=False,
     )
 
     #: The heading of this model's own fields in `--help` (None: among the options).

@@ -29,6 +29,7 @@ the router answers, so the service starts before the router (``/healthz`` says
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import threading
 import time
@@ -444,6 +445,8 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
     )
     min_structure_snr: float = Field(
         FocusSettings.min_structure_snr,
+        allow_inf_nan=True,  # -inf: never flat (no other option takes infinity)
+        ge=-math.inf,  # NaN: refused
         description="a stack whose through-focus change stands fewer noise spreads than this "
         "above its pixel noise is flat (--min-structure-snr=-inf: never)",
     )

@@ -20,6 +20,10 @@ from focustrack_core.geometry import MAX_GRID_SIDE, MAX_TILES, ScanGrid
 from focustrack_core.settings import one_of
 from focustrack_core.surfaces import FAMILIES, SurfaceSpec
 
+#: The longest frame side the simulator renders, px: a scientific camera's sensor is at
+#: most about 10000 px wide; 100000 px was taken, and each frame was then 10^10 pixels.
+MAX_FRAME_SIDE_PX = 16384
+
 #: A map family's name (--family): one of `FAMILIES`.
 FamilyName = Annotated[str, one_of(FAMILIES)]
 
@@ -82,8 +86,8 @@ class SimulatorOptions(BaseModel):
         description="share of a tile's side its neighbours share (--tissue-slide)",
     )
     # the microscope
-    width: int = Field(1024, description="frame width in pixels (even)")
-    height: int = Field(1024, description="frame height in pixels (even)")
+    width: int = Field(1024, le=MAX_FRAME_SIDE_PX, description="frame width in pixels (even)")
+    height: int = Field(1024, le=MAX_FRAME_SIDE_PX, description="frame height in pixels (even)")
     max_frames: int = Field(64, ge=1, description="largest z-stack accepted")
     workers: int = Field(2, ge=1, description="threads rendering the frames of a stack")
     cache_mb: float = Field(

@@ -154,6 +154,9 @@ def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
         ["--cols", "1001"],
         ["--name", "a/b"],  # not one key chunk: a traceback once the bus was open
         ["--map", "/no/such/map.npy"],  # a traceback once the options were taken
+        ["--width", "100000"],  # 10^10 pixels a frame, taken
+        ["--pitch-um", "inf"],  # no option means infinity or NaN
+        ["--z-offset-um", "nan"],
     ],
 )
 def test_a_refused_option_ends_the_command_naming_it(
