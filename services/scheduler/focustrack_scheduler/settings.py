@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Annotated, Any, ClassVar, Self
 from urllib.parse import urlsplit
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 from pydantic_settings import CliToggleFlag, NoDecode, SettingsConfigDict
 
 from focustrack_client import models as api
@@ -145,6 +145,16 @@ class ScanOptions(ServiceSettings):
         description="the focus (and phase) service's shared key: accept only results tagged "
         "with it (docs/security.md; default: any result with the awaited acquisition's nonce)",
     )
+
+    @model_validator(mode="after")
+    def _frames_in_order(self) -> Self:
+        # Said here, in the options' words: the z-stack policy's own check is a pydantic
+        # dump of the estimator API's model.
+        if self.min_frames > self.max_frames:
+            raise ValueError(
+                f"--min-frames {self.min_frames} is above --max-frames {self.max_frames}"
+            )
+        return self
 
     @classmethod
     def defaults(cls, **changes: Any) -> ScanOptions:
