@@ -286,6 +286,9 @@ def _describe(cls: type[ServiceSettings], error: ValidationError) -> str:
             lines.append(str(problem["msg"]).removeprefix("Value error, "))
             continue
         name = str(problem["loc"][0])
+        if problem["type"] == "extra_forbidden":  # only a settings file can name one
+            lines.append(f"the settings file has {name!r}, which is no setting (see --help)")
+            continue
         flag = "--" + name.replace("_", "-")
         lines.append(f"{flag} ({cls.variable(name)}): {problem['msg']}")
     return "; ".join(lines)

@@ -122,7 +122,8 @@ def test_an_unknown_key_or_a_bad_file_is_refused(
 ) -> None:
     typo = tmp_path / "typo.toml"
     typo.write_text("prot = 1\n")
-    with pytest.raises(SettingsError, match="--prot"):
+    # named as the file's key, not as a flag and a variable that do not exist
+    with pytest.raises(SettingsError, match="the settings file has 'prot', which is no setting"):
         settings(["--settings", str(typo)], monkeypatch)
     broken = tmp_path / "broken.json"
     broken.write_text("{")
