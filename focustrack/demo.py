@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from focustrack.bench.phase import GLASS_PHASE_RAD, high_pass_correlation
 from focustrack.browser import NoBrowserError, screenshot_live_view
@@ -375,6 +376,32 @@ def save_screenshot(live_url: str, path: Path) -> None:
         print(f"no live view screenshot: {error}", flush=True)
 
 
+#: The demo's flag of each of the simulator's options it sets.
+_DEMO_FLAGS = {"rows": "--rows", "cols": "--cols", "width": "--size", "height": "--size"}
+
+
+def slide_problem(args: argparse.Namespace) -> str | None:
+    """What the simulated instrument would refuse in the demo's slide (rows, cols, --size,
+    --overlap), in the demo's flags; None when it takes it. Said before the stack starts:
+    the instrument's refusal used to come as "instrument exited with status 2", with a log
+    to read."""
+    if args.size < 2 or args.size % 2:
+        return f"--size must be even and at least 2, got {args.size}"
+    try:
+        SimulatorOptions(
+            rows=args.rows, cols=args.cols, width=args.size, height=args.size, overlap=args.overlap
+        )
+    except ValidationError as error:
+        problems = []
+        for problem in error.errors(include_url=False):
+            name = str(problem["loc"][0]) if problem["loc"] else ""
+            flag = _DEMO_FLAGS.get(name, f"--{name}")
+            message = str(problem["msg"]).removeprefix("Value error, ")
+            problems.append(f"{flag}: {message}" if name else message)
+        return "; ".join(dict.fromkeys(problems))
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     names = [name for item in args.strategies for name in item.split(",") if name]
@@ -383,12 +410,15 @@ def run(args: argparse.Namespace) -> int:
         print("focustrack demo: error: --shared-memory must be 0 (TCP) or a pool size in MB, "
               f"got {args.shared_memory}", file=sys.stderr)  # fmt: skip
         return 2
-    if unknown or not names or min(args.rows, args.cols, args.size) < 1:
+    if unknown or not names:
         print(
-            f"focustrack demo: error: unknown strategy {', '.join(unknown) or '(none)'} or a "
-            f"size below 1; known strategies: {', '.join(registry.STRATEGIES)}",
+            f"focustrack demo: error: unknown strategy {', '.join(unknown) or '(none)'}; "
+            f"known strategies: {', '.join(registry.STRATEGIES)}",
             file=sys.stderr,
         )
+        return 2
+    if (problem := slide_problem(args)) is not None:
+        print(f"focustrack demo: error: {problem}", file=sys.stderr)
         return 2
     try:
         options = ScanOptions.from_args(args, environment=False)
