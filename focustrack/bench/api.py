@@ -42,6 +42,7 @@ from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_core.wire.session import free_port
+from focustrack_estimator import registry
 from focustrack_estimator.replay import simulated_measurement
 from focustrack_estimator.service import spawn
 
@@ -220,7 +221,12 @@ async def run_case(
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--slides", type=int, default=100, help="concurrent slides (default 100)")
     parser.add_argument("--size", type=int, default=20, help="grid side in tiles (default 20)")
-    parser.add_argument("--strategy", default="kf-wiener0", help="strategy of every slide")
+    parser.add_argument(
+        "--strategy",
+        default="kf-wiener0",
+        choices=list(registry.STRATEGIES),
+        help="strategy of every slide",
+    )
     parser.add_argument("--noise-um", type=float, default=1.5, help="measurement noise std, um")
     parser.add_argument("--seed", type=int, default=2000, help="seed of the focus maps")
     parser.add_argument(

@@ -68,6 +68,7 @@ from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import open_session
+from focustrack_estimator import registry
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
 from focustrack_scheduler.retry import RetryPolicy
@@ -337,7 +338,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=2,
         help="scans at least, one after the other, and more while the faults go on (2)",
     )
-    parser.add_argument("--strategy", default=BEST_KALMAN, help=f"strategy ({BEST_KALMAN})")
+    parser.add_argument(
+        "--strategy",
+        default=BEST_KALMAN,
+        choices=list(registry.STRATEGIES),  # a refused one was retried as a stop
+        help=f"strategy ({BEST_KALMAN})",
+    )
     parser.add_argument(
         "--seed",
         type=int,

@@ -39,6 +39,7 @@ from pymmcore_plus import CMMCorePlus
 
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack.paths import output_file, output_folder
+from focustrack_estimator import registry
 from focustrack_instrument_sim.instrument import StackRequest
 from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, core_from_config
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
@@ -70,7 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cols", type=int, default=10, help="tiles per row of the slide")
     parser.add_argument("--size", type=int, default=512, help="frame side, px")
     parser.add_argument("--seed", type=int, default=1, help="the slide's seed")
-    parser.add_argument("--strategy", default="kf-2d-lean", help="the scan's strategy")
+    parser.add_argument(
+        "--strategy",
+        default="kf-2d-lean",
+        choices=list(registry.STRATEGIES),
+        help="the scan's strategy",
+    )
     parser.add_argument(
         "--out", type=output_folder, default=Path("out/bench-mmcore"), help="the scans' work folder"
     )

@@ -53,6 +53,7 @@ import numpy as np
 from focustrack.paths import output_file
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
+from focustrack_estimator import registry
 from focustrack_estimator.replay import simulated_measurement
 
 DEFAULT_SIZES = (20, 50, 100, 200)
@@ -87,8 +88,6 @@ def _surface(size: int) -> tuple[np.ndarray, Any]:
 
 def case_in_process(strategy_name: str, size: int) -> dict[str, Any]:
     """One in-process scan: per-tile times, final-map time, peak memory (run in a child)."""
-    from focustrack_estimator import registry
-
     measured_um, settings = _surface(size)
     rss_before_mb = _peak_rss_mb()
     strategy = registry.create(strategy_name, settings)
@@ -260,7 +259,12 @@ def _child(arguments: list[str]) -> dict[str, Any]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES))
-    parser.add_argument("--strategies", nargs="+", default=list(DEFAULT_STRATEGIES))
+    parser.add_argument(
+        "--strategies",
+        nargs="+",
+        default=list(DEFAULT_STRATEGIES),
+        choices=list(registry.STRATEGIES),
+    )
     parser.add_argument(
         "--rest", nargs="*", default=list(DEFAULT_REST), help="strategies also served and restarted"
     )
