@@ -43,10 +43,10 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from focustrack.arguments import output_file, output_folder
 from focustrack.bench.phase import GLASS_PHASE_RAD, high_pass_correlation
 from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack.local_stack import INSTRUMENT, READY_TIMEOUT_S, SLIDE, LocalStack, stop_on_sigterm
-from focustrack.paths import output_file, output_folder
 from focustrack.slide_scores import scored_scan
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import focus_map_of_npy

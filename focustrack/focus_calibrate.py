@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.paths import output_file
+from focustrack.arguments import output_file
 from focustrack_core.stacks import decode_stack
 from focustrack_focus import calibration
 from focustrack_focus.labelled_curves import CurvesFileError, LabelledCurve, load_curves

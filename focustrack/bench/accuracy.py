@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from focustrack.arguments import output_file, output_folder
 from focustrack.bench import strategies as registry
-from focustrack.paths import output_file, output_folder
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import (

@@ -34,7 +34,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from focustrack.paths import output_file
+from focustrack.arguments import output_file, positive_float, positive_int
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.rest import to_api, to_domain
@@ -219,8 +219,12 @@ async def run_case(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--slides", type=int, default=100, help="concurrent slides (default 100)")
-    parser.add_argument("--size", type=int, default=20, help="grid side in tiles (default 20)")
+    parser.add_argument(
+        "--slides", type=positive_int, default=100, help="concurrent slides (default 100)"
+    )
+    parser.add_argument(
+        "--size", type=positive_int, default=20, help="grid side in tiles (default 20)"
+    )
     parser.add_argument(
         "--strategy",
         default="kf-wiener0",
@@ -230,11 +234,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise-um", type=float, default=1.5, help="measurement noise std, um")
     parser.add_argument("--seed", type=int, default=2000, help="seed of the focus maps")
     parser.add_argument(
-        "--duration-s", type=float, default=15.0, help="how long each case runs (default 15 s)"
+        "--duration-s",
+        type=positive_float,
+        default=15.0,
+        help="how long each case runs (default 15 s)",
     )
     parser.add_argument(
         "--time-scale",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="acquisition time of the paced case, as a multiple of the TimingModel's (default 1)",
     )

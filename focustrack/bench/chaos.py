@@ -61,9 +61,9 @@ from typing import Any
 import httpx
 import zenoh
 
+from focustrack.arguments import output_file, output_folder
 from focustrack.bench import bus_attacks
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
-from focustrack.paths import output_file, output_folder
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.rpc import protobuf_encoding

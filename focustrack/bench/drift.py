@@ -54,10 +54,10 @@ from typing import Any
 
 import numpy as np
 
+from focustrack.arguments import output_file
 from focustrack.bench import frame_check, lateral_drift, stream_ekf
 from focustrack.bench import strategies as registry
 from focustrack.bench.focus import REAL_DIR
-from focustrack.paths import output_file
 from focustrack_core.domain import SlideSettings
 from focustrack_core.drift import ThermalDrift
 from focustrack_core.geometry import ScanGrid

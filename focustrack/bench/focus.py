@@ -36,8 +36,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from focustrack.arguments import output_file, output_folder, positive_int
 from focustrack.bench import focus_real
-from focustrack.paths import output_file, output_folder
 from focustrack_core.domain import FocusFlag
 from focustrack_core.geometry import ScanGrid
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
@@ -297,7 +297,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="fewer stacks, fewer repeats")
     parser.add_argument(
         "--reps",
-        type=int,
+        type=positive_int,
         default=None,
         help="stacks per field, size, exposure and stack shape (default 4, quick 1)",
     )

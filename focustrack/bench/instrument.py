@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import zenoh
 
-from focustrack.paths import output_file
+from focustrack.arguments import output_file, positive_int
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
@@ -41,10 +41,12 @@ RAW_PATTERN = keys.zstack_pattern("bench")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--size", type=int, default=1024, help="frame side in pixels")
-    parser.add_argument("--frames", type=int, default=21, help="frames per stack")
+    parser.add_argument("--size", type=positive_int, default=1024, help="frame side in pixels")
+    parser.add_argument("--frames", type=positive_int, default=21, help="frames per stack")
     parser.add_argument("--stacks", type=int, default=5, help="stacks rendered (cold and warm)")
-    parser.add_argument("--workers", type=int, default=2, help="render threads to compare with 1")
+    parser.add_argument(
+        "--workers", type=positive_int, default=2, help="render threads to compare with 1"
+    )
     parser.add_argument("--repeats", type=int, default=10, help="stacks published per encoding")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=output_file, help="write the figures to this JSON file")

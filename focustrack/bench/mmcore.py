@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 from pymmcore_plus import CMMCorePlus
 
+from focustrack.arguments import output_file, output_folder
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
-from focustrack.paths import output_file, output_folder
 from focustrack_estimator import registry
 from focustrack_instrument_sim.instrument import StackRequest
 from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, core_from_config

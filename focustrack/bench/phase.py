@@ -68,9 +68,9 @@ from typing import Any
 import numpy as np
 from scipy import fft, ndimage
 
+from focustrack.arguments import output_file
 from focustrack.bench.focus import REAL_DIR
 from focustrack.bench.phase_speed import SPEED_PLANES, measure_speed
-from focustrack.paths import output_file
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_yeast
 from focustrack_instrument_sim.instrument import Purpose

@@ -20,9 +20,9 @@ from dataclasses import asdict
 
 import numpy as np
 
+from focustrack.arguments import output_file
 from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import format_reliability
-from focustrack.paths import output_file
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces

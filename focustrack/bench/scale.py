@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.paths import output_file
+from focustrack.arguments import output_file, positive_int
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
@@ -258,7 +258,7 @@ def _child(arguments: list[str]) -> dict[str, Any]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES))
+    parser.add_argument("--sizes", type=positive_int, nargs="+", default=list(DEFAULT_SIZES))
     parser.add_argument(
         "--strategies",
         nargs="+",
@@ -268,14 +268,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rest", nargs="*", default=list(DEFAULT_REST), help="strategies also served and restarted"
     )
-    parser.add_argument("--snapshot-every", type=int, default=200)
+    parser.add_argument("--snapshot-every", type=positive_int, default=200)
     parser.add_argument(
         "--unsnapshotted",
         type=int,
         default=150,
         help="measurements after the last snapshot when the server is killed",
     )
-    parser.add_argument("--jobs", type=int, default=2, help="cases run at once")
+    parser.add_argument("--jobs", type=positive_int, default=2, help="cases run at once")
     parser.add_argument("--json", type=output_file, metavar="OUT", help="write the figures as JSON")
     parser.add_argument(
         "--plot",

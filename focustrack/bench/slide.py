@@ -39,9 +39,9 @@ from typing import Any
 
 import numpy as np
 
+from focustrack.arguments import output_file, output_folder
 from focustrack.demo import scan_on
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
-from focustrack.paths import output_file, output_folder
 from focustrack.slide_scores import scored_scan
 from focustrack_estimator import registry
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions

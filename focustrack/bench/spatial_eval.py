@@ -18,9 +18,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from focustrack.arguments import output_file
 from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import format_table
-from focustrack.paths import output_file
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import add_measurement_noise, family_spec, generate_surfaces

@@ -38,7 +38,7 @@ from pathlib import Path
 import httpx
 import zenoh
 
-from focustrack.paths import output_file
+from focustrack.arguments import output_file
 from focustrack_core.health import instrument_answers
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 

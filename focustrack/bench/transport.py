@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from focustrack.paths import output_file
+from focustrack.arguments import output_file
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
 from focustrack_focus.pipeline import FocusSettings

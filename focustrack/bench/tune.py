@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from focustrack.arguments import output_folder, positive_int
 from focustrack.bench.strategies import create, parameters
-from focustrack.paths import output_folder
 from focustrack_core.domain import ZRangePolicy
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_policy, default_settings
@@ -282,7 +282,7 @@ def plot_k_sigma(results: dict[str, dict[str, Any]], path: Path) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seeds", type=int, default=5, help="training seeds 0..N-1")
+    parser.add_argument("--seeds", type=positive_int, default=5, help="training seeds 0..N-1")
     parser.add_argument("--maps-per-seed", type=int, default=16)
     parser.add_argument("--noise-um", type=float, default=1.5)
     parser.add_argument(
@@ -295,7 +295,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=sorted(FAMILIES),
         help="map families of the training set, pooled (default standard)",
     )
-    parser.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
+    parser.add_argument(
+        "--workers", type=positive_int, default=None, help="processes (default: cores)"
+    )
     parser.add_argument("--plots", type=output_folder, default=None, help="write k_sigma.png here")
 
 

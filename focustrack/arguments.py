@@ -1,13 +1,15 @@
-"""Output paths given on a command line, checked when the command starts.
+"""argparse types that check a command's arguments when it starts.
 
-The benchmarks, the demo and `focus calibrate` write their outputs at the end of a run
-that takes minutes to hours: an output that cannot be written is an argparse error at
-once (exit 2, one line), not a traceback after the work. Used as argparse types.
+The benchmarks, the demo and `focus calibrate` run for minutes to hours and write their
+outputs at the end: an output that cannot be written, or a count that admits no work
+(`--seeds 0`, `--size 0`), is an argparse error at once (exit 2, one line), not a
+traceback after the work or a value silently replaced.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 from pathlib import Path
 
@@ -51,3 +53,25 @@ def output_folder(text: str) -> Path:
     path = Path(text)
     _check_writable_folder(path, text)
     return path
+
+
+def positive_int(text: str) -> int:
+    """A whole number of at least 1 (frames, seeds, workers, repeats)."""
+    try:
+        value = int(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from error
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number above 0 (seconds, scales)."""
+    try:
+        value = float(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from error
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
+    return value

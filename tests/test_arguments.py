@@ -1,4 +1,4 @@
-"""Output paths on the command line are checked when a command starts (`focustrack.paths`):
+"""Output paths on the command line are checked when a command starts (`focustrack.arguments`):
 a long benchmark or demo used to run to its end and then fail writing, in a traceback."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from focustrack.paths import output_file, output_folder
+from focustrack.arguments import output_file, output_folder, positive_float, positive_int
 
 
 def test_a_file_in_a_folder_that_can_be_made_is_taken_and_the_folder_made(
@@ -47,6 +47,8 @@ def test_an_output_that_cannot_be_written_is_refused(
         ["bench", "accuracy", "--json", "/proc/no-such/out.json"],
         ["demo", "--json", "/proc/no-such/out.json"],
         ["focus", "calibrate", "--curves", "c.jsonl", "--out", "/proc/no-such/p.json"],
+        ["bench", "tune", "--seeds", "0"],  # a traceback after the first phase
+        ["bench", "focus", "--reps", "0"],  # ran with 4
     ],
 )
 def test_a_command_with_an_output_it_cannot_write_stops_at_once(command: list[str]) -> None:
@@ -54,4 +56,20 @@ def test_a_command_with_an_output_it_cannot_write_stops_at_once(command: list[st
         [sys.executable, "-m", "focustrack", *command], capture_output=True, text=True, timeout=60
     )
     assert done.returncode == 2, done.stderr
-    assert "cannot write /proc/no-such/" in done.stderr and "Traceback" not in done.stderr
+    assert "error: argument --" in done.stderr and "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("text", ["0", "-3", "1.5", "x"])
+def test_a_count_below_one_is_refused(text: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError):
+        positive_int(text)
+
+
+@pytest.mark.parametrize("text", ["0", "-1", "inf", "nan", "x"])
+def test_a_duration_that_is_not_above_zero_is_refused(text: str) -> None:
+    with pytest.raises(argparse.ArgumentTypeError):
+        positive_float(text)
+
+
+def test_counts_and_durations_above_zero_are_taken() -> None:
+    assert positive_int("3") == 3 and positive_float("0.25") == 0.25
