@@ -173,15 +173,11 @@ class StageLimits:
         return ZRange(low_um, z.step_um, n_frames)
 
     def limit_policy(self, policy: ZRangePolicy) -> ZRangePolicy:
-        """`policy` with no stack larger than the instrument takes (ValueError when it takes
-        fewer than the two frames a focus curve needs)."""
+        """`policy` with no stack larger than the instrument takes (ValueError, the policy's
+        own, when it takes fewer than the two frames a focus curve needs: the engine refuses
+        such an instrument first)."""
         if self.max_frames is None or policy.max_frames <= self.max_frames:
             return policy
-        if self.max_frames < 2:
-            raise ValueError(
-                f"the instrument takes at most {self.max_frames} frame a stack; "
-                "a focus curve needs 2"
-            )
         return dataclasses.replace(
             policy,
             max_frames=self.max_frames,
