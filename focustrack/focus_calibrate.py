@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -222,16 +223,20 @@ def run(args: argparse.Namespace) -> int:
         else:
             curves = stack_curves(args.stacks, args.metrics or list(METRICS))
     except (CurvesFileError, OSError) as error:
-        print(f"focustrack focus calibrate: {error}")
+        print(f"focustrack focus calibrate: error: {error}", file=sys.stderr)
         return 2
     given = set.intersection(*(set(c.scores) for c in curves))
     metrics = args.metrics or sorted(given)
     missing = [m for m in metrics if m not in given]
     if missing or not metrics:
-        print(f"focustrack focus calibrate: not every field has {', '.join(missing) or 'a metric'}")
+        named = ", ".join(missing) or "a metric"
+        print(f"focustrack focus calibrate: error: not every field has {named}", file=sys.stderr)
         return 2
     if not 2 <= args.folds <= len(curves):
-        print(f"focustrack focus calibrate: --folds must be 2 .. {len(curves)} (the fields)")
+        print(
+            f"focustrack focus calibrate: error: --folds must be 2 .. {len(curves)} (the fields)",
+            file=sys.stderr,
+        )
         return 2
     print(
         f"{len(curves)} labelled fields, {len(metrics)} metrics, {args.folds}-fold "

@@ -50,4 +50,4 @@ def test_a_slide_scans_alike_through_the_simulator_and_through_mmcore(
 
 def test_bench_mmcore_refuses_bad_settings(capsys) -> None:
     assert cli.main(["bench", "mmcore", "--frames", "0"]) == 2
-    assert "at least 1" in capsys.readouterr().out
+    assert "at least 1" in capsys.readouterr().err

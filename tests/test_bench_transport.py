@@ -41,4 +41,4 @@ def test_bench_transport_measures_tcp_and_shared_memory(tmp_path: Path, capsys) 
 
 def test_bench_transport_refuses_bad_sizes(capsys) -> None:
     assert cli.main(["bench", "transport", "--frames", "2"]) == 2
-    assert "at least 3" in capsys.readouterr().out
+    assert "at least 3" in capsys.readouterr().err

@@ -61,10 +61,10 @@ def test_calibrate_refuses_bad_input_with_status_2(
     curves.write_text('{"z_um": [0, 1], "scores": {"M": [1, 2]}, "focus_z_um": 0}\n')
     out = tmp_path / "p.json"
     assert main(["focus", "calibrate", "--curves", str(curves), "--out", str(out)]) == 2
-    assert "line 1" in capsys.readouterr().out and not out.exists()
+    assert "line 1" in capsys.readouterr().err and not out.exists()
     write_curves(curves, biased_curves(3, 0.0, 1))
     assert main(["focus", "calibrate", "--curves", str(curves), "--out", str(out)]) == 2
-    assert "--folds must be 2 .. 3" in capsys.readouterr().out
+    assert "--folds must be 2 .. 3" in capsys.readouterr().err
     argv = ["focus", "calibrate", "--curves", str(curves), "--out", str(out), "--folds", "3"]
     assert main([*argv, "--metrics", "NOPE"]) == 2
 

@@ -29,6 +29,7 @@ import argparse
 import json
 import shutil
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -215,19 +216,23 @@ def scan_table(figures: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _error(message: str) -> None:
+    print(f"focustrack bench mmcore: error: {message}", file=sys.stderr)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.frames < 1 or args.stacks < 1 or not args.exposure_ms > 0:
-        print("--frames and --stacks must be at least 1, --exposure-ms positive")
+        _error("--frames and --stacks must be at least 1, --exposure-ms positive")
         return 2
     if min(args.rows, args.cols, args.size) < 1:
-        print("--rows, --cols and --size must be at least 1")
+        _error("--rows, --cols and --size must be at least 1")
         return 2
     if args.mm_config is None:
         try:
             config, adapters = _demo()
         except ImportError:
-            print("the demo devices need mm-test-adapters (pip install mm-test-adapters), or "
-                  "give --mm-config and --mm-adapter-path")  # fmt: skip
+            _error("the demo devices need mm-test-adapters (pip install mm-test-adapters), or "
+                   "give --mm-config and --mm-adapter-path")  # fmt: skip
             return 2
     else:
         config, adapters = args.mm_config, args.mm_adapter_path

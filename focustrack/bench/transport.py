@@ -46,6 +46,7 @@ import json
 import multiprocessing
 import socket
 import statistics
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -372,7 +373,7 @@ def _line(report: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     if min(args.size, args.frames - 2, args.stacks, args.fps) <= 0:
         print("focustrack bench transport: error: --size, --stacks, --fps must be positive "
-              "and --frames at least 3")  # fmt: skip
+              "and --frames at least 3", file=sys.stderr)  # fmt: skip
         return 2
     frames = _random_frames(args.size, args.frames)
     stack_bytes = sum(frame.nbytes for frame in frames)
