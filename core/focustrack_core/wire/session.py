@@ -176,7 +176,8 @@ def session_config(
     shared-memory buffers with peers on this host (off: every byte goes over the
     network, also from a peer that sends shared memory). `config_file` (Zenoh's
     JSON5) is the base that these options are written over (see the module's doc);
-    `PIXEL_TUNING` applies where the file keeps Zenoh's default.
+    `PIXEL_TUNING` applies where the file keeps Zenoh's default. ValueError, naming
+    `--connect` or `--listen`, for an endpoint Zenoh cannot read or a port out of range.
     """
     if not connect and not listen:
         raise ValueError("a Zenoh session needs at least one --connect or --listen endpoint")
