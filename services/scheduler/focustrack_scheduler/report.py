@@ -75,6 +75,8 @@ def scan_report(
         else mean_abs_error_um(focus_map.prior_um, truth_um),
         # phase stacks (--phase): not in the figures above, which compare focus strategies
         "tiles_with_phase": len(tally.phase),
+        # tiles whose phase was asked for, taken or not (no phase service, no result)
+        "tiles_phase_asked": len({(entry["row"], entry["col"]) for entry in tally.phase_stacks}),
         "phase_images_acquired": sum(entry["n_frames"] for entry in tally.phase_stacks),
         "phase_scan_time_s": float(sum(entry["scan_time_s"] for entry in tally.phase_stacks)),
         "wall_time_s": dict(wall_time_s),

@@ -347,8 +347,8 @@ def live_server(port: int | None, host: str = "127.0.0.1") -> Iterator[LiveServe
 
 def summary_line(report: dict[str, Any]) -> str:
     """One line: the strategy's images per tile, scan time, in-focus fraction and MAE, the
-    tiles with phase (where phase stacks were taken), and the tiles whose focus was not
-    found, where there are some."""
+    tiles with phase (where phase was asked for; a warning for those without), and the
+    tiles whose focus was not found, where there are some."""
 
     def number(value: float | None, form: str) -> str:
         return "n/a" if value is None else format(value, form)
@@ -360,10 +360,12 @@ def summary_line(report: dict[str, Any]) -> str:
         f"in focus {number(report['in_focus_fraction'], '.1%')}, "
         f"MAE {number(report['mae_um'], '.3f')} um"
     )
-    if report["phase_images_acquired"]:
+    if report["tiles_phase_asked"]:
         line += (
             f", phase on {report['tiles_with_phase']} of {report['rows'] * report['cols']} tiles"
         )
+        if (missing := report["tiles_phase_asked"] - report["tiles_with_phase"]) > 0:
+            line += f"; WARNING: no phase on {missing} tiles (the scan's log says why)"
     if report["tiles_without_focus"]:
         flags = ", ".join(f"{flag} {n}" for flag, n in report["tiles_flagged"].items())
         line += (

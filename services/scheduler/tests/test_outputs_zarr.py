@@ -30,6 +30,7 @@ from focustrack_scheduler.mosaic_store import to_uint8
 from focustrack_scheduler.ome_zarr import write_mosaic
 from focustrack_scheduler.outputs import MosaicFormat, WallTimes
 from focustrack_scheduler.record import ScanRecord
+from focustrack_scheduler.scan import summary_line
 from focustrack_scheduler.writers import DEFAULT_WRITERS
 
 GRID = ScanGrid(2, 3, pitch_um=150.0)
@@ -198,6 +199,9 @@ def test_the_phase_of_the_tiles_is_an_image_in_radians_over_the_mosaic(tmp_path:
     again = ScanRecord(tmp_path)  # read back from the log, as a restarted scheduler does
     report = finish(again)
     assert report["tiles_with_phase"] == 3 and report["phase_images_acquired"] == 44
+    assert report["tiles_phase_asked"] == 4  # (1, 2): asked, no result
+    line = summary_line(report)  # a tile without phase used to go unsaid
+    assert f"phase on 3 of {GRID.n_tiles} tiles; WARNING: no phase on 1 tiles" in line
     assert report["phase_scan_time_s"] == pytest.approx(1.6)
     assert report["images_acquired"] == 9 * (GRID.n_tiles + 1)  # the focus figures alone
 
