@@ -417,3 +417,17 @@ def test_frames_travel_through_shared_memory_or_fall_back_to_the_network(
     assert through_shm is shared_memory
     assert frame_header.index == 1 and frame_header.stack.row == 1
     np.testing.assert_array_equal(frame, pixels[1])
+
+
+def test_a_wait_for_the_bus_is_said_once_after_its_patience() -> None:
+    """`open_config` calls `on_wait` once while Zenoh still waits for its endpoint (the scan
+    used to wait 30 s for a missing router in silence), and not at all for a quick open."""
+    said: list[str] = []
+    nowhere = session.session_config(connect=[session.loopback_endpoint()], connect_timeout_s=1.0)
+    with pytest.raises(zenoh.ZError):
+        session.open_config(nowhere, lambda: said.append("waiting"), patience_s=0.2)
+    assert said == ["waiting"]
+    alone = session.session_config(listen=[session.loopback_endpoint()])
+    with session.open_config(alone, lambda: said.append("again"), patience_s=0.2):
+        pass
+    assert said == ["waiting"]

@@ -211,13 +211,17 @@ def session_config(
     return config
 
 
-def open_config(config: zenoh.Config) -> zenoh.Session:
-    """`zenoh.open(config)`, with Ctrl-C heard while it waits for a connect endpoint.
+def open_config(
+    config: zenoh.Config, on_wait: Callable[[], None] | None = None, patience_s: float = 2.0
+) -> zenoh.Session:
+    """`zenoh.open(config)`, with Ctrl-C heard while it waits for a connect endpoint, and
+    `on_wait` called once when that wait has lasted `patience_s` (to say what it waits for:
+    a wait of Zenoh's connect timeout, 30 s, in silence looks like a hang).
 
     Zenoh waits in native code, where Python runs no signal handler: a KeyboardInterrupt
-    would wait for its connect timeout (30 s). It opens in a thread of its own while this
-    one waits for it; an open that is interrupted is left to end there (a daemon thread:
-    the process does not wait for it).
+    would wait for its connect timeout. It opens in a thread of its own while this one
+    waits for it; an open that is interrupted is left to end there (a daemon thread: the
+    process does not wait for it).
     """
     opened: Future[zenoh.Session] = Future()
 
@@ -228,11 +232,14 @@ def open_config(config: zenoh.Config) -> zenoh.Session:
             opened.set_exception(error)
 
     threading.Thread(target=open_in_thread, name="zenoh-open", daemon=True).start()
+    patience_ends_s = time.monotonic() + patience_s
     while True:
         try:
             return opened.result(timeout=0.1)
         except TimeoutError:
-            continue
+            if on_wait is not None and time.monotonic() >= patience_ends_s:
+                on_wait()
+                on_wait = None
 
 
 def open_session(

@@ -34,7 +34,7 @@ from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.serving import ListenError
 from focustrack_core.settings import command_main
 from focustrack_core.wire import rpc
-from focustrack_core.wire.session import open_config, zenoh_message
+from focustrack_core.wire.session import CONNECT_TIMEOUT_S, open_config, zenoh_message
 from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_scheduler.clients import InstrumentClient, SlideListener, truth_empty
 from focustrack_scheduler.engine import (
@@ -262,6 +262,16 @@ def _scan_held(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         record.close()
 
 
+def _waiting_for_the_bus(settings: ScanSettings) -> None:
+    connect, _ = settings.endpoints()
+    print(
+        f"focustrack scan: no Zenoh router answers at {', '.join(connect) or 'its endpoints'} "
+        f"yet; trying for {CONNECT_TIMEOUT_S:g} s (Ctrl-C stops)",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
 def _said(error: Exception) -> str:
     """What went wrong, in words: Zenoh's without the path of its Rust source."""
     return zenoh_message(error) if isinstance(error, zenoh.ZError) else str(error)
@@ -304,7 +314,7 @@ def _run(settings: ScanSettings) -> int:
     tracing.configure("focustrack-scheduler", settings.otlp_endpoint)
     try:
         with (
-            open_config(config) as session,
+            open_config(config, lambda: _waiting_for_the_bus(settings)) as session,
             live_server(settings.live_port, settings.live_host) as live,
             metrics_server(job.metrics.registry, settings.metrics_host, settings.metrics_port),
         ):
