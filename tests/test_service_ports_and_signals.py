@@ -75,3 +75,19 @@ def test_sigterm_or_ctrl_c_ends_a_service_gracefully(
         process.kill()
     assert process.returncode == 0, err
     assert last_line in out + err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("service", ["focus", "phase", "instrument"])
+def test_a_zenoh_listen_port_in_use_is_one_line_not_a_wait_for_ever(
+    service: str, tmp_path: Path
+) -> None:
+    """Zenoh fails at each attempt to listen on a port in use: the services that wait for
+    their bus retried for ever, logging "the Zenoh router does not answer"."""
+    with socket.create_server(("127.0.0.1", 0)) as taken:
+        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        rest = [] if service == "instrument" else ["--port", str(free_port())]
+        command = [*SERVE, service, "--mode", "peer", "--listen", endpoint, *rest]
+        done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    said = done.stdout + done.stderr
+    assert done.returncode == 2, said
+    assert f"(--listen {endpoint}) server cannot listen" in said and "Traceback" not in said

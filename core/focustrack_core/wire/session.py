@@ -54,6 +54,7 @@ from typing import ClassVar, Literal, get_args
 import zenoh
 from pydantic import Field
 
+from focustrack_core.serving import listening_socket
 from focustrack_core.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
@@ -316,6 +317,19 @@ class ZenohSettings(ServiceSettings):
     def shared_memory_bytes(self) -> int:
         """The shared-memory pool of a pixel publisher, bytes (0: off)."""
         return self.shared_memory * 1_000_000
+
+    def check_listen(self) -> None:
+        """ListenError unless every TCP port this service is to listen on is free now. Zenoh
+        fails at each attempt to listen on a port in use, which a service that waits for
+        its bus would retry for ever, as "the Zenoh router does not answer"."""
+        _, listen = self.endpoints()
+        for endpoint in listen:
+            protocol, _, address = endpoint.partition("/")
+            host, _, port = address.split("?", 1)[0].split("#", 1)[0].rpartition(":")
+            if protocol == "tcp" and port.isdigit() and int(port) > 0:
+                listening_socket(
+                    host.strip("[]"), int(port), f"Zenoh (--listen {endpoint})"
+                ).close()
 
     def zenoh(self, connect_timeout_s: float = CONNECT_TIMEOUT_S) -> zenoh.Config:
         """The Zenoh config these options describe (ValueError if it cannot be used)."""

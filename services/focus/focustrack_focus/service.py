@@ -554,6 +554,7 @@ def run(settings: FocusServiceSettings) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         signer, frame_signer = settings.signers()
+        settings.check_listen()  # a Zenoh port in use: one line, not a wait for ever
         # bound before the bus and the log say where it is: a port in use is one line
         listening = listening_socket(settings.host, settings.port, "focus")
     except (ValueError, ListenError) as error:

@@ -512,9 +512,10 @@ def run(settings: InstrumentSettings) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     try:
         settings.zenoh()  # a bad option or config file ends the command here, not later
+        settings.check_listen()  # so does a Zenoh port in use, not a wait for ever
         frame_signer = frame_signer_of(settings.frame_key_file)
         instrument = open_instrument(settings)
-    except ValueError as error:
+    except (ValueError, ListenError) as error:
         log.error("%s", error)
         return 2
     except InstrumentError as error:

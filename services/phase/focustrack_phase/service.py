@@ -110,6 +110,7 @@ def run(settings: PhaseServiceSettings) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         signer, frame_signer = settings.signers()
+        settings.check_listen()  # a Zenoh port in use: one line, not a wait for ever
         # bound before the bus and the log say where it is: a port in use is one line
         listening = listening_socket(settings.host, settings.port, "phase")
     except (ValueError, ListenError) as error:
