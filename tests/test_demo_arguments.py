@@ -23,7 +23,7 @@ def demo_args(*argv: str) -> argparse.Namespace:
         (["--size", "63"], "--size must be even and at least 2, got 63"),
         (["--size", "100000"], "--size: Input should be less than or equal to 16384"),
         (["--rows", "2000"], "--rows: Input should be less than or equal to 1000"),
-        (["--rows", "600", "--cols", "600"], "--rows 600 x --cols 600 is 360000 tiles"),
+        (["--rows", "600", "--cols", "600"], "grid 600x600 is too large"),
         (["--overlap", "0.9", "--tissue-slide"], "--overlap: Input should be less than 0.5"),
         (["--cols", "0"], "--cols: Input should be greater than or equal to 1"),
     ],

@@ -16,7 +16,7 @@ from typing import Annotated, Any, ClassVar
 
 from pydantic import BaseModel, Field, FilePath, model_validator
 
-from focustrack_core.geometry import MAX_GRID_SIDE, MAX_TILES, ScanGrid
+from focustrack_core.geometry import MAX_GRID_SIDE, ScanGrid
 from focustrack_core.settings import one_of
 from focustrack_core.surfaces import FAMILIES, SurfaceSpec
 
@@ -130,13 +130,9 @@ class SimulatorOptions(BaseModel):
 
     @model_validator(mode="after")
     def _grid_within_bounds(self) -> SimulatorOptions:
-        # Checked here, before a slide's surface is drawn: a grid of 10^10 tiles used to
-        # end in a MemoryError from the surface generator.
-        if self.rows * self.cols > MAX_TILES:
-            raise ValueError(
-                f"--rows {self.rows} x --cols {self.cols} is {self.rows * self.cols} tiles; "
-                f"a slide has at most {MAX_TILES} (the estimator's limit)"
-            )
+        # The grid's own bounds (the estimator's), checked here, before a slide's surface
+        # is drawn: a grid of 10^10 tiles used to end in a MemoryError from the generator.
+        ScanGrid(self.rows, self.cols)
         return self
 
 

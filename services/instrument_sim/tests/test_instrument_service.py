@@ -203,9 +203,7 @@ def test_a_grid_beyond_the_estimators_tiles_ends_the_command_before_a_surface_is
         service.main(["--connect", session.loopback_endpoint(), "--rows", "1000", "--cols", "1000"])
     assert refused.value.code == 2
     err = capsys.readouterr().err
-    assert (
-        f"error: --rows 1000 x --cols 1000 is 1000000 tiles; a slide has at most {MAX_TILES}" in err
-    )
+    assert f"error: grid 1000x1000 is too large: at most 1000 tiles a side and {MAX_TILES}" in err
     assert "Traceback" not in err and "FOCUSTRACK_INSTRUMENT_)" not in err  # no flag of its own
 
 
