@@ -66,6 +66,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def user_id(text: str) -> int:
+    """A user id: a whole number of at least 0."""
+    try:
+        value = int(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from error
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a user id is at least 0, got {value}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """A finite number above 0 (seconds, scales)."""
     try:

@@ -41,6 +41,8 @@ from pathlib import Path
 
 import zenoh
 
+from focustrack.arguments import user_id
+
 ACL_FILE = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "acl.json5"
 
 #: The roles of the bus: each a user of the router's password file and a subject of its ACL.
@@ -163,7 +165,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--owner",
-        type=int,
+        type=user_id,  # a negative one was a traceback, with half the files written
         metavar="UID",
         help="give the files to this user (and group): the services' own, 10001 in the "
         "FocusTrack images; needs root (default: whoever runs the command)",

@@ -10,7 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from focustrack.arguments import output_file, output_folder, positive_float, positive_int
+from focustrack.arguments import (
+    output_file,
+    output_folder,
+    positive_float,
+    positive_int,
+    user_id,
+)
 
 
 def test_a_file_in_a_folder_that_can_be_made_is_taken_and_the_folder_made(
@@ -73,3 +79,20 @@ def test_a_duration_that_is_not_above_zero_is_refused(text: str) -> None:
 
 def test_counts_and_durations_above_zero_are_taken() -> None:
     assert positive_int("3") == 3 and positive_float("0.25") == 0.25
+
+
+def test_a_user_id_is_a_whole_number_from_zero() -> None:
+    """`bus secrets --owner -5` was a traceback after writing half its files."""
+    assert user_id("0") == 0 and user_id("10001") == 10001
+    for text in ("-5", "x", "1.5"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            user_id(text)
+
+
+def test_bench_instrument_with_an_odd_frame_side_stops_at_once(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from focustrack import cli
+
+    assert cli.main(["bench", "instrument", "--size", "63"]) == 2  # it was a traceback
+    assert "--size must be even, got 63" in capsys.readouterr().err

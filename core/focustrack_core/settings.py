@@ -199,12 +199,17 @@ class SettingsError(ValueError):
 
 
 def read_settings_file(path: Path) -> dict[str, Any]:
-    """The settings in a TOML (``.toml``) or JSON file, by field name; SettingsError if bad."""
+    """The settings in a TOML (``.toml``, in any case) or JSON file, by field name;
+    SettingsError if bad."""
+    is_toml = path.suffix.lower() == ".toml"
     try:
         text = path.read_text()
-        values = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+        values = tomllib.loads(text) if is_toml else json.loads(text)
     except (OSError, ValueError) as error:
-        raise SettingsError(f"settings file {path}: {error}") from None
+        hint = ""
+        if not is_toml and path.suffix.lower() != ".json":  # a .yaml, a .ini
+            hint = " (read as JSON: a TOML file's name ends in .toml)"
+        raise SettingsError(f"settings file {path}: {error}{hint}") from None
     if not isinstance(values, dict):
         raise SettingsError(f"settings file {path}: expected a table of settings by name")
     return values

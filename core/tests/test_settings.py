@@ -86,13 +86,13 @@ def test_the_environment_sets_what_no_flag_does(monkeypatch: pytest.MonkeyPatch)
     assert settings([], monkeypatch, FOCUSTRACK_DEMO_INSECURE="").insecure is False
 
 
-@pytest.mark.parametrize("suffix", [".toml", ".json"])
+@pytest.mark.parametrize("suffix", [".toml", ".json", ".TOML"])
 def test_a_settings_file_is_under_the_environment_and_flags(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, suffix: str
 ) -> None:
     file = tmp_path / f"demo{suffix}"
     values = {"port": 7000, "max_tile_seconds": 0.3, "token": "from-file"}
-    if suffix == ".toml":
+    if suffix.lower() == ".toml":  # .TOML too: it used to be read as JSON
         file.write_text("port = 7000\nmax_tile_seconds = 0.3\ntoken = 'from-file'\n")
     else:
         file.write_text(json.dumps(values))
@@ -129,6 +129,10 @@ def test_an_unknown_key_or_a_bad_file_is_refused(
     broken.write_text("{")
     with pytest.raises(SettingsError, match=r"broken\.json"):
         settings(["--settings", str(broken)], monkeypatch)
+    yaml = tmp_path / "demo.yaml"
+    yaml.write_text("port: 7000\n")
+    with pytest.raises(SettingsError, match=r"read as JSON: a TOML file's name ends in \.toml"):
+        settings(["--settings", str(yaml)], monkeypatch)
     with pytest.raises(SettingsError, match=r"missing\.toml"):
         settings(["--settings", str(tmp_path / "missing.toml")], monkeypatch)
 

@@ -17,6 +17,7 @@ import functools
 import json
 import multiprocessing
 import statistics
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -158,6 +159,12 @@ def bench_publish(pixels: np.ndarray, repeats: int) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.size % 2:  # the simulator's frames have even sides (a traceback at the first)
+        print(
+            f"focustrack bench instrument: error: --size must be even, got {args.size}",
+            file=sys.stderr,
+        )
+        return 2
     cv2.setNumThreads(1)  # threads are the renderer's own, not OpenCV's
     figures: dict = {"size": args.size, "frames": args.frames}
     for workers in sorted({1, args.workers}):

@@ -437,7 +437,9 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
         description="Gaussian low-pass sigma, px (default: matched to each stack's pixel size "
         f"and --na; {Preprocess.lowpass_sigma_px:g} px where a stack gives no pixel size)",
     )
-    na: float = Field(0.85, gt=0, description="numerical aperture of the objective")
+    na: float = Field(
+        0.85, gt=0, le=1.7, description="numerical aperture of the objective (at most 1.7)"
+    )
     slides: str = Field(
         "*",
         description="read the stacks of these slides only: a name, '*' standing for any "

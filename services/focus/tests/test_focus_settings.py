@@ -87,6 +87,8 @@ def test_values_the_focus_maths_refuse_stop_the_command_with_status_2(
     [
         (["--port", "70000"], "--port (FOCUSTRACK_FOCUS_PORT): Input should be less than"),
         (["--na", "0"], "--na (FOCUSTRACK_FOCUS_NA): Input should be greater than 0"),
+        (["--na", "5"], "--na (FOCUSTRACK_FOCUS_NA): Input should be less than or equal to 1.7"),
+        (["--min-structure-snr", "nan"], "--min-structure-snr (FOCUSTRACK_FOCUS_MIN_STRUCTURE"),
         (["--metric", "nope"], "argument --metric: invalid choice: 'nope'"),
         (["--focus-mode", "min"], "argument --focus-mode: invalid choice: 'min'"),
         (["--slides", "scanner-1/*"], "--slides (FOCUSTRACK_FOCUS_SLIDES): Value error, slides"),
