@@ -55,24 +55,23 @@ def output_folder(text: str) -> Path:
     return path
 
 
-def positive_int(text: str) -> int:
-    """A whole number of at least 1 (frames, seeds, workers, repeats)."""
+def _whole_number(text: str) -> int:
     try:
-        value = int(text)
+        return int(text)
     except ValueError as error:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from error
-    if value < 1:
+
+
+def positive_int(text: str) -> int:
+    """A whole number of at least 1 (frames, seeds, workers, repeats)."""
+    if (value := _whole_number(text)) < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
 
 
 def user_id(text: str) -> int:
     """A user id: a whole number of at least 0."""
-    try:
-        value = int(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from error
-    if value < 0:
+    if (value := _whole_number(text)) < 0:
         raise argparse.ArgumentTypeError(f"a user id is at least 0, got {value}")
     return value
 
