@@ -148,15 +148,22 @@ def zenoh_message(error: zenoh.ZError) -> str:
     return str(error).split(" at /", 1)[0]
 
 
+def endpoint_parts(endpoint: str) -> tuple[str, str, str]:
+    """(protocol, host, port) of a Zenoh endpoint as written (`tcp/[::1]:7447?x#y` is
+    ("tcp", "::1", "7447")); the port is the text after the last colon, checked by no one."""
+    protocol, _, address = endpoint.partition("/")
+    host, _, port = address.split("?", 1)[0].split("#", 1)[0].rpartition(":")
+    return protocol, host.strip("[]"), port
+
+
 def check_port(flag: str, endpoint: str) -> None:
     """ValueError unless an IP endpoint's port (`tcp/127.0.0.1:7447`, `udp/[::1]:7447`) is a
     number from 0 to 65535. Zenoh takes `tcp/host:99999` and then fails at each attempt to
     connect or listen, which a service would retry for ever as a router that does not
     answer."""
-    protocol, _, address = endpoint.partition("/")
+    protocol, _, port = endpoint_parts(endpoint)
     if protocol not in ("tcp", "udp", "tls", "quic", "ws"):
         return
-    port = address.split("?", 1)[0].split("#", 1)[0].rpartition(":")[2]
     if not (port.isascii() and port.isdigit() and int(port) <= 65535):
         raise ValueError(f"{flag} {endpoint}: the port must be a number from 0 to 65535")
 
@@ -324,12 +331,9 @@ class ZenohSettings(ServiceSettings):
         its bus would retry for ever, as "the Zenoh router does not answer"."""
         _, listen = self.endpoints()
         for endpoint in listen:
-            protocol, _, address = endpoint.partition("/")
-            host, _, port = address.split("?", 1)[0].split("#", 1)[0].rpartition(":")
+            protocol, host, port = endpoint_parts(endpoint)
             if protocol == "tcp" and port.isdigit() and int(port) > 0:
-                listening_socket(
-                    host.strip("[]"), int(port), f"Zenoh (--listen {endpoint})"
-                ).close()
+                listening_socket(host, int(port), f"Zenoh (--listen {endpoint})").close()
 
     def zenoh(self, connect_timeout_s: float = CONNECT_TIMEOUT_S) -> zenoh.Config:
         """The Zenoh config these options describe (ValueError if it cannot be used)."""
