@@ -177,9 +177,8 @@ def phase_mosaic(scan: FinishedScan) -> tuple[np.ndarray, tuple[float, float] | 
     """The tiles' phase (rad) where the mosaic shows their images, float32 (height, width)
     pixel for pixel over it, NaN where a tile has none; with the mosaic's corner
     (`FinishedScan.shown_mosaic`): side by side, or stitched where the tiles overlap."""
-    tiles = {
-        tile: np.load(scan.out_dir / file, mmap_mode="r")[0].astype(np.float32)
-        for tile, file in scan.phase.items()
+    tiles = {  # mapped, not read: each tile is read once, into the canvas
+        tile: np.load(scan.out_dir / file, mmap_mode="r")[0] for tile, file in scan.phase.items()
     }
     if scan.placement is not None:
         places_px = scan.placement.places_px
