@@ -457,11 +457,14 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
     # and a metric's offset from a person's focus is not in sigma
     min_relative_noise: float = Field(
         PeakSettings.min_relative_noise,
+        ge=0,
+        le=1,
         description="the metric's score noise as a share of a curve's maximum (1: the metric "
         "is unusable on this microscope, every result is flat)",
     )
     systematic_sigma_um: float = Field(
         PeakSettings.systematic_sigma_um,
+        ge=0,
         description="the metric's offset from the true focus, a std added to sigma, um",
     )
     profile: Path | None = Field(

@@ -89,6 +89,8 @@ def test_values_the_focus_maths_refuse_stop_the_command_with_status_2(
         (["--na", "0"], "--na (FOCUSTRACK_FOCUS_NA): Input should be greater than 0"),
         (["--na", "5"], "--na (FOCUSTRACK_FOCUS_NA): Input should be less than or equal to 1.7"),
         (["--min-structure-snr", "nan"], "--min-structure-snr (FOCUSTRACK_FOCUS_MIN_STRUCTURE"),
+        (["--min-relative-noise", "2"], "--min-relative-noise (FOCUSTRACK_FOCUS_MIN_RELATIVE"),
+        (["--systematic-sigma-um", "-0.1"], "--systematic-sigma-um (FOCUSTRACK_FOCUS_SYSTEMATIC"),
         (["--metric", "nope"], "argument --metric: invalid choice: 'nope'"),
         (["--focus-mode", "min"], "argument --focus-mode: invalid choice: 'min'"),
         (["--slides", "scanner-1/*"], "--slides (FOCUSTRACK_FOCUS_SLIDES): Value error, slides"),

@@ -58,6 +58,9 @@ Background = Literal["anchor", "none"]
 #: The largest defocus phase at the image's highest frequency a stack may ask (rad; eq. 3
 #: at the grid's corner for the farthest plane, `validate_stack`).
 MAX_DEFOCUS_PHASE_RAD = 1e5
+#: The longest wavelength a stack may give, um: past the near infrared of any microscope's
+#: light, and short of 532, the green laser's wavelength written in nm by mistake.
+MAX_WAVELENGTH_UM = 20.0
 
 
 @dataclass(frozen=True)
@@ -206,6 +209,11 @@ def validate_stack(
     ):
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be a finite number > 0, got {value}")
+    if not wavelength_um <= MAX_WAVELENGTH_UM:
+        raise ValueError(
+            f"wavelength_um must be at most {MAX_WAVELENGTH_UM:g} um, got {wavelength_um:g}: "
+            "is it in nm?"
+        )
     # Eq. 3's phase pi lambda |z| |f|^2 at the grid's corner, |f|^2 = 1 / (2 pixel^2): past
     # MAX_DEFOCUS_PHASE_RAD (over a millimetre of defocus at 0.1 um pixels) the planes'
     # fringes are finer than anything a stack resolves, and the transfer, in single

@@ -36,7 +36,7 @@ from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_hea
 from focustrack_core.wire.frame_worker import FrameWorker
 from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
-from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
+from focustrack_phase.acekf import MAX_WAVELENGTH_UM, AcekfOptions, FieldEstimate, reconstruct
 from focustrack_phase.app import PhaseLimits
 
 log = logging.getLogger(__name__)
@@ -55,8 +55,11 @@ class PhaseOptics:
     wavelength_um: float = 0.55
 
     def __post_init__(self) -> None:
-        if not self.wavelength_um > 0:
-            raise ValueError(f"the wavelength must be positive, got {self.wavelength_um} um")
+        if not 0 < self.wavelength_um <= MAX_WAVELENGTH_UM:
+            raise ValueError(
+                f"the wavelength must be in (0, {MAX_WAVELENGTH_UM:g}] um, "
+                f"got {self.wavelength_um} um"
+            )
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ refuses to start without one unless --insecure is given.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from dataclasses import fields
@@ -35,6 +36,7 @@ from focustrack_core.web import with_bus_health
 from focustrack_core.wire import keys
 from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameReaderSettings, WorkerBus
 from focustrack_core.wire.session import DEFAULT_ENDPOINT
+from focustrack_phase.acekf import MAX_WAVELENGTH_UM
 from focustrack_phase.app import PhaseLimits, create_app
 from focustrack_phase.bus import PhaseOptics, PhaseStacks, ZenohPhaseWorker
 
@@ -78,6 +80,7 @@ class PhaseServiceSettings(FrameReaderSettings):
     wavelength_um: float = Field(
         PhaseOptics.wavelength_um,
         gt=0,
+        le=MAX_WAVELENGTH_UM,
         description="illumination wavelength, um, for stacks whose header gives none (an "
         "instrument that predates the field)",
     )
@@ -85,9 +88,11 @@ class PhaseServiceSettings(FrameReaderSettings):
     fft_workers: int = Field(
         1,
         ge=1,
-        description="threads of each of the filter's FFTs: 1 runs them on OpenCV's DFT (one "
-        "thread), more on scipy.fft's pocketfft threads, which can pay only on a machine with "
-        "more than two cores to spare (on two, it is slower than OpenCV on one)",
+        le=os.cpu_count() or 1,
+        description="threads of each of the filter's FFTs, at most the machine's cores: 1 runs "
+        "them on OpenCV's DFT (one thread), more on scipy.fft's pocketfft threads, which can "
+        "pay only on a machine with more than two cores to spare (on two, it is slower than "
+        "OpenCV on one)",
     )
 
     def limits(self) -> PhaseLimits:

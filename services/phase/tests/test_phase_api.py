@@ -4,6 +4,7 @@ kind of bad input, the command; one stack end to end through a real uvicorn serv
 from __future__ import annotations
 
 import io
+import os
 import subprocess
 import sys
 import threading
@@ -18,6 +19,7 @@ import tifffile
 from fastapi.testclient import TestClient
 
 from focustrack_core.serving import BackgroundServer
+from focustrack_core.settings import SettingsError
 from focustrack_phase import app as app_module
 from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
 from focustrack_phase.app import PhaseLimits, create_app
@@ -202,7 +204,8 @@ def one_frame(stack: SyntheticStack) -> bytes:
         (lambda s: tiff_pages([np.ones((8, 8)), np.ones((8, 7))]), {}, 422, "one shape"),
         (None, {"z_um": "[true, false, true, false]"}, 422, "must list numbers"),
         (None, {"z_um": "[1e100, 1, 2, 3]"}, 422, "defocus phase of 8.36e+99 rad"),
-        (None, {"wavelength_um": "1e300"}, 422, "are they all in um"),
+        (None, {"pixel_um": "1e-300"}, 422, "are they all in um"),
+        (None, {"wavelength_um": "532"}, 422, "at most 20 um, got 532: is it in nm?"),
     ],
 )
 def test_bad_requests_say_what_is_wrong(
@@ -327,7 +330,12 @@ def test_settings_from_a_file_and_the_environment_and_heavy_modules_left_for_lat
     with pytest.raises(ValueError, match="must be positive"):
         PhaseServiceSettings.load(max_frames=0).limits()
     assert settings.fft_workers == 1
-    assert PhaseServiceSettings.load(fft_workers=4).fft_workers == 4
+    cores = os.cpu_count() or 1
+    assert PhaseServiceSettings.load(fft_workers=cores).fft_workers == cores
+    with pytest.raises(SettingsError, match=r"--fft-workers .*less than or equal to"):
+        PhaseServiceSettings.load(fft_workers=cores + 1)  # threads beyond the cores: no gain
+    with pytest.raises(SettingsError, match=r"--wavelength-um .*less than or equal to 20"):
+        PhaseServiceSettings.load(wavelength_um=532)  # nm, not um
     with pytest.raises(ValueError, match="--fft-workers"):
         PhaseServiceSettings.load(fft_workers=0)
     # matplotlib (the PNG) and tifffile (TIFF uploads) wait for the first request needing them
