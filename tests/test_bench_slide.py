@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from focustrack.cli import main
 from focustrack.slide_scores import SlideContents, tile_scores
 
 
@@ -87,3 +88,25 @@ def test_with_look_first_an_empty_tile_costs_one_frame_and_tissue_its_stack(
     assert joined >= 10
     score = json.loads((tmp_path / "slide.json").read_text())["scores"]["kf-2d-lean"]
     assert score["tissue_in_focus_fraction"] == 1.0 and score["tiles_focused_on_dust"] == 0
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--family", "bogus"], "argument --family: invalid choice: 'bogus'"),
+        (["--strategies", "kf-2d", "nope"], "argument --strategies: invalid choice: 'nope'"),
+        (["--overlap", "0.9"], "error: --overlap: Input should be less than 0.5"),
+        (["--size", "63"], "error: --size must be even"),
+        (["--rows", "1"], "error: a grid below 2x2 or frames below 64 px"),
+    ],
+)
+def test_a_slide_the_bench_cannot_scan_is_refused_before_any_service_starts(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    try:
+        status = main(["bench", "slide", "--out", str(tmp_path / "out"), *argv])
+    except SystemExit as exit_:  # argparse's own refusals
+        status = exit_.code
+    assert status == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out" / "seed-1").exists()  # no stack was started

@@ -40,9 +40,10 @@ from typing import Any
 import numpy as np
 
 from focustrack.arguments import output_file, output_folder
-from focustrack.demo import scan_on
+from focustrack.demo import scan_on, slide_problem
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack.slide_scores import scored_scan
+from focustrack_core.surfaces import FAMILIES
 from focustrack_estimator import registry
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
@@ -92,9 +93,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cols", type=int, default=10, help="tile columns (10)")
     parser.add_argument("--size", type=int, default=256, help="frame side in pixels (256)")
     parser.add_argument("--overlap", type=float, default=0.1, help="tiles' overlap (0.1)")
-    parser.add_argument("--family", default="standard", help="map family of the section (standard)")
+    parser.add_argument(
+        "--family", default="standard", choices=list(FAMILIES),
+        help="map family of the section (standard)",
+    )  # fmt: skip
     parser.add_argument(
         "--strategies", nargs="+", default=list(DEFAULT_STRATEGIES), metavar="NAME",
+        choices=list(registry.STRATEGIES),
         help=f"strategies (default: {' '.join(DEFAULT_STRATEGIES)})",
     )  # fmt: skip
     parser.add_argument(
@@ -125,13 +130,11 @@ def scan_slide(
 
 
 def run(args: argparse.Namespace) -> int:
-    unknown = [name for name in args.strategies if name not in registry.STRATEGIES]
-    if unknown or min(args.rows, args.cols) < 2 or args.size < 64:
-        print(
-            f"focustrack bench slide: error: unknown strategy {unknown} or a grid below 2x2 "
-            "or frames below 64 px",
-            file=sys.stderr,
-        )
+    problem = slide_problem(args)
+    if problem is None and (min(args.rows, args.cols) < 2 or args.size < 64):
+        problem = "a grid below 2x2 or frames below 64 px"
+    if problem is not None:  # said before any stack starts
+        print(f"focustrack bench slide: error: {problem}", file=sys.stderr)
         return 2
     options = ScanOptions.defaults(no_progress=True)
     parts: dict[str, list[dict[str, Any]]] = {name: [] for name in args.strategies}
