@@ -55,6 +55,7 @@ def test_an_output_that_cannot_be_written_is_refused(
         ["focus", "calibrate", "--curves", "c.jsonl", "--out", "/proc/no-such/p.json"],
         ["bench", "tune", "--seeds", "0"],  # a traceback after the first phase
         ["bench", "focus", "--reps", "0"],  # ran with 4
+        ["bench", "api", "--store", "mysql://db/x"],  # a traceback once the estimator refused
     ],
 )
 def test_a_command_with_an_output_it_cannot_write_stops_at_once(command: list[str]) -> None:
@@ -96,3 +97,16 @@ def test_bench_instrument_with_an_odd_frame_side_stops_at_once(
 
     assert cli.main(["bench", "instrument", "--size", "63"]) == 2  # it was a traceback
     assert "--size must be even, got 63" in capsys.readouterr().err
+
+
+def test_bench_api_on_a_database_that_does_not_answer_says_so_in_one_line(tmp_path: Path) -> None:
+    """The estimator starts (it serves 503 while its database is away); the bench's first
+    request is refused, and the bench ends with the estimator's words, not a traceback."""
+    done = subprocess.run(
+        [sys.executable, "-m", "focustrack", "bench", "api", "--duration-s", "1",
+         "--store", "postgresql://nobody@127.0.0.1:1/none"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    assert "error: the estimator answered 503 to /v1/slides" in done.stderr, done.stderr
+    assert "the estimator's store failed" in done.stderr and "Traceback" not in done.stderr

@@ -26,6 +26,7 @@ import argparse
 import asyncio
 import json
 import re
+import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -43,6 +44,7 @@ from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_core.timing import TimingModel
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import registry
+from focustrack_estimator.event_store import StoreError, store_address
 from focustrack_estimator.replay import simulated_measurement
 from focustrack_estimator.service import spawn
 
@@ -218,6 +220,16 @@ async def run_case(
     )
 
 
+def estimator_store(text: str) -> str:
+    """argparse type: a store the estimator can open (`store_address`), checked before it
+    is started."""
+    try:
+        store_address(text)
+    except StoreError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+    return text
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--slides", type=positive_int, default=100, help="concurrent slides (default 100)"
@@ -247,6 +259,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--store",
+        type=estimator_store,
         help="the estimator's store: a PostgreSQL database's URL (postgresql://...; its "
         "tables must not hold other slides) or an SQLite file (default: a new one)",
     )
@@ -257,7 +270,11 @@ def run(args: argparse.Namespace) -> int:
     port = free_port()
     base_url = f"http://127.0.0.1:{port}"
     with tempfile.TemporaryDirectory() as directory:
-        server = spawn(args.store or Path(directory) / "bench.sqlite", port)
+        try:
+            server = spawn(args.store or Path(directory) / "bench.sqlite", port)
+        except RuntimeError as error:  # the estimator said why on stderr
+            print(f"focustrack bench api: error: {error}", file=sys.stderr)
+            return 1
         try:
             cases = [
                 ("1-slide", 1, None),
@@ -267,7 +284,16 @@ def run(args: argparse.Namespace) -> int:
             results = []
             for name, n_slides, acquisition_s in cases:
                 print(f"{name}: {args.duration_s:.0f} s ...", flush=True)
-                result = asyncio.run(run_case(base_url, name, n_slides, args, acquisition_s))
+                try:
+                    result = asyncio.run(run_case(base_url, name, n_slides, args, acquisition_s))
+                except httpx.HTTPStatusError as error:  # a store down, say: its words
+                    answer = error.response
+                    print(
+                        f"focustrack bench api: error: the estimator answered "
+                        f"{answer.status_code} to {error.request.url.path}: {answer.text}",
+                        file=sys.stderr,
+                    )
+                    return 1
                 print(
                     f"  {result.pairs} pairs, p50 {result.p50_ms:.2f} ms,"
                     f" p99 {result.p99_ms:.2f} ms,"

@@ -25,7 +25,7 @@ import hashlib
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol
+from typing import Any, Literal, NamedTuple, Protocol
 
 
 class StoreError(Exception):
@@ -208,20 +208,16 @@ class EventStore(Protocol):
 SQLITE_SCHEME = "sqlite://"
 
 
-def open_store(location: str) -> EventStore:
-    """The store at `location`: an SQLite file's path, a ``sqlite:///PATH`` URL (the path
-    after the third slash, so ``sqlite:////data/e.sqlite`` is absolute), or a PostgreSQL
-    database's ``postgresql://USER:PASS@HOST:PORT/DB`` (shared by replicas).
+def store_address(location: str) -> tuple[Literal["sqlite", "postgresql"], str]:
+    """Which store `location` names, and its address: an SQLite file's path, a
+    ``sqlite:///PATH`` URL (the path after the third slash, so ``sqlite:////data/e.sqlite``
+    is absolute), or a PostgreSQL database's ``postgresql://USER:PASS@HOST:PORT/DB``
+    (shared by replicas), kept whole. Opens nothing.
 
-    Raises StoreError for a URL of another scheme, or a file the store refuses.
+    Raises StoreError for a URL of another scheme or one that names no file.
     """
-    # Each implementation is imported when chosen: another database brings its driver.
     if location.startswith(("postgresql://", "postgres://")):
-        from focustrack_estimator.postgres_store import PostgresStore
-
-        return PostgresStore(location)
-    from focustrack_estimator.sqlite_store import SQLiteStore
-
+        return "postgresql", location
     path = location
     if location.startswith(SQLITE_SCHEME):
         path = location.removeprefix(SQLITE_SCHEME).removeprefix("/")
@@ -232,7 +228,23 @@ def open_store(location: str) -> EventStore:
         )
     if not path:
         raise StoreError(f"store {location!r}: no file named")
-    return SQLiteStore(path)
+    return "sqlite", path
+
+
+def open_store(location: str) -> EventStore:
+    """The store at `location` (`store_address`).
+
+    Raises StoreError for a URL of another scheme, or a file the store refuses.
+    """
+    kind, address = store_address(location)
+    # Each implementation is imported when chosen: another database brings its driver.
+    if kind == "postgresql":
+        from focustrack_estimator.postgres_store import PostgresStore
+
+        return PostgresStore(address)
+    from focustrack_estimator.sqlite_store import SQLiteStore
+
+    return SQLiteStore(address)
 
 
 def json_object(text: object, slide_id: str, sequence: int | None) -> dict[str, Any]:
