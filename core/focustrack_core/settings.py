@@ -157,7 +157,7 @@ class ServiceSettings(BaseSettings):
         try:
             return cls(**values)
         except ValidationError as error:
-            raise SettingsError(_describe(cls, error)) from None
+            raise SettingsError(_describe(cls, error, environment)) from None
         finally:
             _READING.reset(token)
 
@@ -283,8 +283,9 @@ def _choices(field: FieldInfo) -> list[str] | None:
     return None
 
 
-def _describe(cls: type[ServiceSettings], error: ValidationError) -> str:
-    """One line per refused option: its flag, its variable and what is wrong."""
+def _describe(cls: type[ServiceSettings], error: ValidationError, environment: bool) -> str:
+    """One line per refused option: its flag, its variable (where the `environment` is
+    read) and what is wrong."""
     lines = []
     for problem in error.errors(include_url=False):
         if not problem["loc"]:  # the settings together (a model validator): its words alone
@@ -295,7 +296,8 @@ def _describe(cls: type[ServiceSettings], error: ValidationError) -> str:
             lines.append(f"the settings file has {name!r}, which is no setting (see --help)")
             continue
         flag = "--" + name.replace("_", "-")
-        lines.append(f"{flag} ({cls.variable(name)}): {problem['msg']}")
+        where = f" ({cls.variable(name)})" if environment else ""
+        lines.append(f"{flag}{where}: {problem['msg']}")
     return "; ".join(lines)
 
 

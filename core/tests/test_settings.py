@@ -203,6 +203,9 @@ def test_flags_alone_read_neither_the_environment_nor_a_file(
     assert (got.port, got.family) == (8100, "reduced")
     assert DemoSettings.load(environment=False).port == 8100
     assert DemoSettings.load().port == 9000  # the environment again, as before
+    with pytest.raises(SettingsError) as refused:
+        DemoSettings.from_args(parser.parse_args(["--port", "-1"]), environment=False)
+    assert str(refused.value).startswith("--port: Input should be")  # no variable it ignores
 
 
 def test_a_choice_known_at_run_time_is_checked_and_listed(
