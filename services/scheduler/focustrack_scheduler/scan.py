@@ -137,6 +137,11 @@ def _check_same_scan(record: ScanRecord, job: ScanJob) -> str | None:
     settings: the estimator's slide keeps those it was made with, while the folder would
     say the new ones. Settings a folder predates are not compared."""
     state = record.state.read()
+    if state is not None and "estimator" not in state:  # each scan's first save names it
+        raise ScanRefusedError(
+            f"{record.state.path} is no scan's (it names no estimator, as a scan's does), "
+            "and a scan would write into it: use another output folder"
+        )
     if state is None or state.get("slide_id") is None:
         return None  # nor did an earlier run that failed before its slide was made
     wanted = {

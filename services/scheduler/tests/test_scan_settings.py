@@ -289,6 +289,20 @@ def test_a_damaged_state_stops_the_scan_in_one_line(
     assert "scan.json is damaged: it is not JSON" in err and "Traceback" not in err
 
 
+def test_a_state_file_of_another_tool_is_neither_merged_into_nor_resumed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    foreign = '{"slide_id": "x", "owner": "another tool"}'
+    (out / outputs.STATE_FILE).write_text(foreign)
+    alone = ["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect"]
+    assert scan.run(settings("--out", str(out), *alone)) == 1
+    err = capsys.readouterr().err
+    assert "scan.json is no scan's (it names no estimator" in err and "Traceback" not in err
+    assert (out / outputs.STATE_FILE).read_text() == foreign
+
+
 def test_a_damaged_partial_mosaic_stops_the_resumed_scan_before_a_stack_in_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
