@@ -111,6 +111,19 @@ def _holding(out_dir: Path) -> Iterator[None]:
         yield  # the lock goes with the file's closing
 
 
+def _check_output_folder(out_dir: Path) -> None:
+    """ValueError naming --out unless `out_dir` is, or is now made, a folder this process
+    can write into (a file there, or a folder it cannot write, used to wait for the bus
+    first and fail after it)."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        why = "it is a file" if out_dir.exists() else error.strerror
+        raise ValueError(f"--out {out_dir} cannot be the output folder: {why}") from None
+    if not os.access(out_dir, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out_dir} cannot be the output folder: it is not writable")
+
+
 def _slide_settings(request: ScanRequest) -> dict[str, Any]:
     """What the scan's estimator slide is made with, beyond its strategy, as JSON keeps it:
     the strategy's parameters, the start and the z-stack policy."""
@@ -313,6 +326,7 @@ def _run(settings: ScanSettings) -> int:
             trust=signer_of(settings.result_key_file),
         )
         config = settings.zenoh()  # a Zenoh config file or endpoint it cannot use: exit 2
+        _check_output_folder(settings.out)  # before the bus, which may take a while
     except (ValueError, zenoh.ZError) as error:
         print(f"focustrack scan: error: {_said(error)}", file=sys.stderr)
         return 2

@@ -254,17 +254,6 @@ def test_a_scan_resumes_only_with_the_settings_its_slide_was_made_with(tmp_path:
         record.close()
 
 
-def test_an_output_folder_that_cannot_be_written_is_one_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    taken = tmp_path / "a-file"
-    taken.write_text("not a folder")
-    alone = ["--mode", "peer", "--listen", f"tcp/127.0.0.1:{free_port()}", "--connect"]
-    assert scan.run(settings("--out", str(taken), *alone)) == 1
-    err = capsys.readouterr().err
-    assert "focustrack scan: error: cannot write the outputs" in err and "Traceback" not in err
-
-
 @pytest.mark.parametrize("flag", ["--live-port", "--metrics-port"])
 def test_a_port_in_use_is_one_line(
     flag: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -287,6 +276,19 @@ def test_a_damaged_state_stops_the_scan_in_one_line(
     assert scan.run(settings("--out", str(out), *alone)) == 1
     err = capsys.readouterr().err
     assert "scan.json is damaged: it is not JSON" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize(("out", "why"), [("a-file", "it is a file"), ("a-file/x", "Not a")])
+def test_an_output_folder_that_cannot_be_is_refused_before_the_bus(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], out: str, why: str
+) -> None:
+    """Said at once: it used to wait for the Zenoh router first (30 s when none answers)."""
+    (tmp_path / "a-file").write_text("mine")
+    unanswered = f"tcp/127.0.0.1:{free_port()}"  # nothing listens: the bus would wait
+    assert scan.run(settings("--out", str(tmp_path / out), "--connect", unanswered)) == 2
+    err = capsys.readouterr().err
+    assert f"--out {tmp_path / out} cannot be the output folder: {why}" in err
+    assert "router" not in err and (tmp_path / "a-file").read_text() == "mine"
 
 
 def test_a_state_file_of_another_tool_is_neither_merged_into_nor_resumed(
