@@ -8,6 +8,8 @@ output in a log file of the stack's folder, and stopped on the way out.
 
 from __future__ import annotations
 
+import ctypes
+import os
 import secrets
 import signal
 import socket
@@ -54,7 +56,11 @@ class Service:
         with self.log_path.open("a") as log_file:
             # A session of its own: Ctrl-C reaches the demo only, which stops this cleanly.
             self.process = Popen(
-                self.command, stdout=log_file, stderr=STDOUT, start_new_session=True
+                self.command,
+                stdout=log_file,
+                stderr=STDOUT,
+                start_new_session=True,
+                preexec_fn=_ended_with(os.getpid()),
             )
 
     def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> None:
@@ -84,6 +90,29 @@ class Service:
             self.process.wait(timeout_s)
         except TimeoutExpired:
             self.kill()
+
+
+#: prctl's option that sends the calling process a signal when its parent ends (Linux).
+_PR_SET_PDEATHSIG = 1
+
+
+def _ended_with(parent_pid: int) -> Callable[[], None] | None:
+    """What a child runs before it starts its command so that it is sent SIGTERM when the
+    stack's process ends, even by SIGKILL, which no `finally` hears (services used to
+    outlive a killed demo or bench, holding their ports); None where there is no prctl.
+
+    Linux sends the signal when the thread that started the child ends: the stack starts
+    services from its own thread or from its supervisor, which ends with the stack."""
+    if not sys.platform.startswith("linux"):
+        return None
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here, not in the child
+
+    def set_parent_death_signal() -> None:
+        prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent_pid:  # the parent ended before the line above
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return set_parent_death_signal
 
 
 def _tcp_ready(port: int) -> Callable[[], bool]:
