@@ -16,6 +16,7 @@ import json
 import logging
 import math
 import threading
+from tokenize import TokenError
 from typing import Any
 
 import numpy as np
@@ -75,7 +76,11 @@ def _check_size(
 
 
 def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
-    """The shape and item size a .npy file declares in its header (nothing else is read)."""
+    """The shape and item size a .npy file declares in its header (nothing else is read).
+
+    ValueError for a header numpy cannot parse, or bytes beyond the data it declares (a
+    file written twice over, or two joined: the rest used to be left unread, silently).
+    """
     buffer = io.BytesIO(data)
     version = np.lib.format.read_magic(buffer)
     readers = {
@@ -84,8 +89,17 @@ def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
     }
     if version not in readers:
         raise ValueError(f".npy format version {version} is not supported (1.0 or 2.0)")
-    shape, _, dtype = readers[version](buffer)  # a header over 10 000 bytes: ValueError
-    return tuple(int(side) for side in shape), dtype.itemsize
+    try:
+        shape, _, dtype = readers[version](buffer)  # a header over 10 000 bytes: ValueError
+    except (SyntaxError, TokenError) as error:  # an unclosed bracket or quote in the header
+        raise ValueError(f"its header is not a Python literal ({error})") from None
+    shape = tuple(int(side) for side in shape)
+    declared = buffer.tell() + math.prod(shape) * dtype.itemsize
+    if len(data) > declared and not dtype.hasobject:
+        raise ValueError(
+            f"it holds {len(data) - declared} bytes beyond the {shape} array its header declares"
+        )
+    return shape, dtype.itemsize
 
 
 class _Complaints(logging.Handler):

@@ -129,6 +129,27 @@ def test_broken_files_are_value_errors(data: bytes) -> None:
     assert not isinstance(caught.value, TooLargeError | UnsupportedFileError)
 
 
+def _npy_with_header(header: bytes) -> bytes:
+    return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(64)
+
+
+@pytest.mark.parametrize(
+    ("data", "why"),
+    [
+        (_npy_with_header(b"{'descr': '<u2', 'shape': (\n"), "its header is not a Python"),
+        (_npy_with_header(b"{'descr': '<u2\n"), "its header is not a Python"),
+        (npy_bytes(STACK) + npy_bytes(STACK), r"bytes beyond the \(3, 4, 5\) array"),
+    ],
+)
+def test_a_garbled_header_or_data_beyond_it_is_said_not_a_crash_or_ignored(
+    data: bytes, why: str
+) -> None:
+    """An unclosed bracket in the header was a tokenizer error (a 500 in the services);
+    bytes beyond the declared array were left unread, silently."""
+    with pytest.raises(ValueError, match=why):
+        decode_stack(data, **ROOMY)
+
+
 @pytest.mark.parametrize(
     ("text", "expected"),
     [("[-1, 0, 2.5]", [-1.0, 0.0, 2.5]), ("-1,0, 2.5", [-1.0, 0.0, 2.5]), ("[]", [])],
