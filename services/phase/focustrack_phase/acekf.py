@@ -58,6 +58,12 @@ Background = Literal["anchor", "none"]
 #: The largest defocus phase at the image's highest frequency a stack may ask (rad; eq. 3
 #: at the grid's corner for the farthest plane, `validate_stack`).
 MAX_DEFOCUS_PHASE_RAD = 1e5
+#: The least: below it, the farthest plane shows no phase contrast at any frequency the
+#: image holds (sin of it < 0.1), and the "phase" is noise (z_um in mm, pixel_um in nm).
+MIN_DEFOCUS_PHASE_RAD = 0.1
+#: A frame's mean counts must be at least this share of its spread: a background- or
+#: mean-subtracted frame, its mean about 0, makes the filter's gamma (eq. 5) meaningless.
+MIN_MEAN_OVER_SPREAD = 0.01
 #: The longest wavelength a stack may give, um: past the near infrared of any microscope's
 #: light, and short of 532, the green laser's wavelength written in nm by mistake.
 MAX_WAVELENGTH_UM = 20.0
@@ -222,25 +228,44 @@ def validate_stack(
         corner_phase_rad = (
             np.pi * wavelength_um * np.max(np.abs(z)) / (2 * np.float64(pixel_um) ** 2)
         )
-    if not corner_phase_rad <= MAX_DEFOCUS_PHASE_RAD:
+    if not MIN_DEFOCUS_PHASE_RAD <= corner_phase_rad <= MAX_DEFOCUS_PHASE_RAD:
+        bound = (
+            f"over the {MAX_DEFOCUS_PHASE_RAD:.0e} rad any stack resolves"
+            if corner_phase_rad > MAX_DEFOCUS_PHASE_RAD
+            else f"under the {MIN_DEFOCUS_PHASE_RAD:g} rad that shows any phase contrast"
+        )
         raise ValueError(
             f"z_um (up to {np.max(np.abs(z)):.3g} um), wavelength_um ({wavelength_um:.3g}) and "
             f"pixel_um ({pixel_um:.3g}) make a defocus phase of {corner_phase_rad:.3g} rad at "
-            f"the image's highest frequency, over the {MAX_DEFOCUS_PHASE_RAD:.0e} rad any "
-            "stack resolves: are they all in um, the pixel in the object's plane?"
+            f"the image's highest frequency, {bound}: are they all in um, the pixel in the "
+            "object's plane?"
         )
     # One pass over the stack: a NaN or an inf makes the mean so; only then is every
     # value checked, to say which (finite values whose sum overflows float64).
     with np.errstate(over="ignore", invalid="ignore"):  # said below, in words
-        mean_counts = float(np.mean(stack_counts, dtype=np.float64))
+        frame_means = np.mean(stack_counts, axis=(1, 2), dtype=np.float64)
+        mean_counts = float(np.mean(frame_means))
     if not np.isfinite(mean_counts):
         if not np.all(np.isfinite(stack_counts)):
             raise ValueError("stack must be finite (no NaN or inf)")
         raise ValueError("stack's values are too large: their mean overflows")
-    gamma = mean_counts * photons_per_count
-    if not gamma > 0:
-        raise ValueError(f"stack must have a positive mean, got {gamma / photons_per_count}")
-    return z, gamma
+    _check_counts_of_light(stack_counts, frame_means)  # so the mean is positive
+    return z, mean_counts * photons_per_count
+
+
+def _check_counts_of_light(stack_counts: np.ndarray, frame_means: np.ndarray) -> None:
+    """ValueError at the first frame whose mean is not clearly above 0 against its spread
+    (`MIN_MEAN_OVER_SPREAD`): a background- or mean-subtracted frame. Negative counts
+    themselves are taken: counts above the camera's offset have them, from read noise. The
+    spread is read on every 8th row and column, so the check costs a 64th of a pass."""
+    for index, (frame, mean) in enumerate(zip(stack_counts, frame_means.tolist(), strict=True)):
+        spread = float(np.std(frame[::8, ::8], dtype=np.float64))
+        if not mean >= MIN_MEAN_OVER_SPREAD * spread or not mean > 0:
+            raise ValueError(
+                f"frame {index} has a mean of {mean:.4g} counts against a spread of "
+                f"{spread:.4g}: the filter takes counts of light (raw, or above the camera's "
+                "offset), not background-subtracted or signed frames"
+            )
 
 
 def prior_shape(freq_sq_per_um2: np.ndarray, length_um: float) -> np.ndarray:

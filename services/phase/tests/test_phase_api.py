@@ -174,6 +174,12 @@ def one_frame(stack: SyntheticStack) -> bytes:
     return npy_bytes(stack.stack_counts[:1])
 
 
+def signed(stack: SyntheticStack) -> bytes:
+    """Each frame less its mean: signed values about 0, the stack's mean a rounding error."""
+    counts = stack.stack_counts.astype(np.float32)
+    return npy_bytes(counts - counts.mean(axis=(1, 2), keepdims=True))
+
+
 @pytest.mark.parametrize(
     ("data", "fields", "status", "needle"),
     [
@@ -205,6 +211,9 @@ def one_frame(stack: SyntheticStack) -> bytes:
         (None, {"z_um": "[true, false, true, false]"}, 422, "must list numbers"),
         (None, {"z_um": "[1e100, 1, 2, 3]"}, 422, "defocus phase of 8.36e+99 rad"),
         (None, {"pixel_um": "1e-300"}, 422, "are they all in um"),
+        (None, {"z_um": "[0, 0, 0, 0]"}, 422, "under the 0.1 rad that shows any phase"),
+        (None, {"pixel_um": "1000"}, 422, "under the 0.1 rad that shows any phase"),
+        (signed, {}, 422, "not background-subtracted or signed frames"),
         (None, {"wavelength_um": "532"}, 422, "at most 20 um, got 532: is it in nm?"),
     ],
 )
