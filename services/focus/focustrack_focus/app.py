@@ -58,7 +58,18 @@ from focustrack_focus.pipeline import (
     focus_from_curve,
     focus_stack,
 )
+from focustrack_focus.preprocess import MAX_LOWPASS_SIGMA_PX
 from focustrack_focus.profile import MicroscopeProfile
+
+#: The least each limit of `FocusLimits` may be: below, a limit admits no request (a
+#: stack of one frame with its form; a curve's JSON object of two lists).
+LEAST_LIMITS = {
+    "max_upload_bytes": 4096,
+    "max_decoded_bytes": 1,
+    "max_frames": 1,
+    "max_json_bytes": 32,
+    "max_json_depth": 2,
+}
 
 
 @dataclass(frozen=True)
@@ -80,9 +91,9 @@ class FocusLimits:
     body_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
-        counts = (self.max_upload_bytes, self.max_decoded_bytes, self.max_frames)
-        if min(*counts, self.max_json_bytes, self.max_json_depth) < 1:
-            raise ValueError(f"the focus service's limits must be positive, got {self}")
+        for name, least in LEAST_LIMITS.items():
+            if getattr(self, name) < least:
+                raise ValueError(f"{name} must be at least {least}, got {getattr(self, name)}")
         if not self.body_timeout_s > 0:
             raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
 
@@ -329,7 +340,7 @@ def create_app(
         mode: Annotated[PeakMode, Form()] = base.peak.mode,
         channel: Annotated[int | None, Form(ge=0)] = base.preprocess.channel,
         lowpass_sigma_px: Annotated[
-            float, Form(ge=0, le=64, allow_inf_nan=False)
+            float, Form(ge=0, le=MAX_LOWPASS_SIGMA_PX, allow_inf_nan=False)
         ] = base.preprocess.lowpass_sigma_px,
     ) -> dict[str, Any]:
         data = await read_upload(stack, limits.max_upload_bytes)

@@ -49,6 +49,11 @@ def lowpass_sigma_for_optics(pixel_um: float, na: float, wavelength_um: float = 
     return psf_sigma_um(na, wavelength_um) / pixel_um
 
 
+#: The widest low-pass a request or the service's option may set, px: wider, no frame a
+#: scanner takes keeps detail for a focus metric.
+MAX_LOWPASS_SIGMA_PX = 64.0
+
+
 @dataclass(frozen=True)
 class Preprocess:
     """How to turn a raw frame into the 2-D float32 image a focus metric reads.

@@ -65,14 +65,18 @@ from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import DEFAULT_ENDPOINT
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
-from focustrack_focus.app import FocusLimits, create_app
+from focustrack_focus.app import LEAST_LIMITS, FocusLimits, create_app
 from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.instrument_frames import InstrumentFrameSizes
 from focustrack_focus.layers import learn_top
 from focustrack_focus.metrics import METRICS
 from focustrack_focus.peak import PeakMode, PeakSettings, Prior
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame, LastLooks
-from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
+from focustrack_focus.preprocess import (
+    MAX_LOWPASS_SIGMA_PX,
+    Preprocess,
+    lowpass_sigma_for_optics,
+)
 from focustrack_focus.profile import MicroscopeProfile
 
 log = logging.getLogger(__name__)
@@ -434,6 +438,7 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
     )
     lowpass_sigma_px: float | None = Field(
         None,
+        le=MAX_LOWPASS_SIGMA_PX,
         description="Gaussian low-pass sigma, px (default: matched to each stack's pixel size "
         f"and --na; {Preprocess.lowpass_sigma_px:g} px where a stack gives no pixel size)",
     )
@@ -479,23 +484,33 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
     )
     # the REST API's limits (`FocusLimits`)
     max_upload_bytes: int = Field(
-        FocusLimits.max_upload_bytes, description="largest request body, bytes (413)"
+        FocusLimits.max_upload_bytes,
+        ge=LEAST_LIMITS["max_upload_bytes"],
+        description="largest request body, bytes (413)",
     )
     max_decoded_bytes: int = Field(
         FocusLimits.max_decoded_bytes,
+        ge=LEAST_LIMITS["max_decoded_bytes"],
         description="largest decoded stack, bytes, read from its header (413)",
     )
     max_frames: int = Field(
-        FocusLimits.max_frames, description="most frames of a stack or points of a curve"
+        FocusLimits.max_frames,
+        ge=LEAST_LIMITS["max_frames"],
+        description="most frames of a stack or points of a curve",
     )
     max_json_bytes: int = Field(
-        FocusLimits.max_json_bytes, description="largest JSON body of /v1/focus/curve, bytes (413)"
+        FocusLimits.max_json_bytes,
+        ge=LEAST_LIMITS["max_json_bytes"],
+        description="largest JSON body of /v1/focus/curve, bytes (413)",
     )
     max_json_depth: int = Field(
-        FocusLimits.max_json_depth, description="deepest nesting of a JSON body (422)"
+        FocusLimits.max_json_depth,
+        ge=LEAST_LIMITS["max_json_depth"],
+        description="deepest nesting of a JSON body (422)",
     )
     body_timeout_s: float = Field(
         FocusLimits.body_timeout_s,
+        gt=0,
         description="seconds a request body may take to arrive (408)",
     )
     # what peers' frames on Zenoh may make the service hold (`FrameAnalyser`)
@@ -521,7 +536,7 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
         return FocusSettings(preprocess, self.metric, peak, self.min_structure_snr)
 
     def limits(self) -> FocusLimits:
-        """What one REST request may ask (ValueError if a limit admits nothing)."""
+        """What one REST request may ask (the options' bounds are the limits' own)."""
         return FocusLimits(
             **{limit.name: getattr(self, limit.name) for limit in fields(FocusLimits)}
         )

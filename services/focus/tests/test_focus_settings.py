@@ -70,8 +70,6 @@ def test_the_environment_sets_the_limits_and_a_fixed_low_pass(
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--max-frames", "0"], "focus service not started: the focus service's limits must"),
-        (["--body-timeout-s", "0"], "focus service not started: the body timeout must be"),
         (["--lowpass-sigma-px", "-1"], "focus service not started: low-pass sigma must be"),
     ],
 )
@@ -89,6 +87,10 @@ def test_values_the_focus_maths_refuse_stop_the_command_with_status_2(
         (["--na", "0"], "--na (FOCUSTRACK_FOCUS_NA): Input should be greater than 0"),
         (["--na", "5"], "--na (FOCUSTRACK_FOCUS_NA): Input should be less than or equal to 1.7"),
         (["--min-structure-snr", "nan"], "--min-structure-snr (FOCUSTRACK_FOCUS_MIN_STRUCTURE"),
+        (["--max-frames", "0"], "--max-frames (FOCUSTRACK_FOCUS_MAX_FRAMES): Input should be"),
+        (["--max-upload-bytes", "1"], "--max-upload-bytes (FOCUSTRACK_FOCUS_MAX_UPLOAD_BYTES)"),
+        (["--body-timeout-s", "0"], "--body-timeout-s (FOCUSTRACK_FOCUS_BODY_TIMEOUT_S): Input"),
+        (["--lowpass-sigma-px", "1e9"], "--lowpass-sigma-px (FOCUSTRACK_FOCUS_LOWPASS_SIGMA_PX)"),
         (["--min-relative-noise", "2"], "--min-relative-noise (FOCUSTRACK_FOCUS_MIN_RELATIVE"),
         (["--systematic-sigma-um", "-0.1"], "--systematic-sigma-um (FOCUSTRACK_FOCUS_SYSTEMATIC"),
         (["--metric", "nope"], "argument --metric: invalid choice: 'nope'"),

@@ -51,6 +51,11 @@ MAX_PRIOR_LENGTH_UM = 1e4
 MAX_PICTURE_ASPECT = 4.0
 
 
+#: The least each limit of `PhaseLimits` may be: what the smallest stack the filter takes
+#: needs (2 frames of 2x2 bytes, sent with its form), so that a limit below admits nothing.
+LEAST_LIMITS = {"max_upload_bytes": 4096, "max_decoded_bytes": 8, "max_frames": 2, "max_pixels": 4}
+
+
 @dataclass(frozen=True)
 class PhaseLimits:
     """What one request may ask of the service (its settings; each a flag of the command).
@@ -69,9 +74,9 @@ class PhaseLimits:
     body_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
-        counts = (self.max_upload_bytes, self.max_decoded_bytes, self.max_frames, self.max_pixels)
-        if min(counts) < 1:
-            raise ValueError(f"the phase service's limits must be positive, got {self}")
+        for name, least in LEAST_LIMITS.items():
+            if getattr(self, name) < least:
+                raise ValueError(f"{name} must be at least {least}, got {getattr(self, name)}")
         if not self.body_timeout_s > 0:
             raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
 

@@ -37,7 +37,7 @@ from focustrack_core.wire import keys
 from focustrack_core.wire.frame_worker import ZFRAME_SUBSCRIPTION, FrameReaderSettings, WorkerBus
 from focustrack_core.wire.session import DEFAULT_ENDPOINT
 from focustrack_phase.acekf import MAX_WAVELENGTH_UM
-from focustrack_phase.app import PhaseLimits, create_app
+from focustrack_phase.app import LEAST_LIMITS, PhaseLimits, create_app
 from focustrack_phase.bus import PhaseOptics, PhaseStacks, ZenohPhaseWorker
 
 log = logging.getLogger(__name__)
@@ -63,18 +63,29 @@ class PhaseServiceSettings(FrameReaderSettings):
     )
     # the REST API's limits (`PhaseLimits`)
     max_upload_bytes: int = Field(
-        PhaseLimits.max_upload_bytes, description="largest request body, bytes (413)"
+        PhaseLimits.max_upload_bytes,
+        ge=LEAST_LIMITS["max_upload_bytes"],
+        description="largest request body, bytes (413)",
     )
     max_decoded_bytes: int = Field(
         PhaseLimits.max_decoded_bytes,
+        ge=LEAST_LIMITS["max_decoded_bytes"],
         description="largest decoded stack, bytes, read from its header (413)",
     )
-    max_frames: int = Field(PhaseLimits.max_frames, description="most frames of a stack (413)")
+    max_frames: int = Field(
+        PhaseLimits.max_frames,
+        ge=LEAST_LIMITS["max_frames"],
+        description="most frames of a stack (413)",
+    )
     max_pixels: int = Field(
-        PhaseLimits.max_pixels, description="most pixels of one frame, height x width (413)"
+        PhaseLimits.max_pixels,
+        ge=LEAST_LIMITS["max_pixels"],
+        description="most pixels of one frame, height x width (413)",
     )
     body_timeout_s: float = Field(
-        PhaseLimits.body_timeout_s, description="seconds a request body may take to arrive (408)"
+        PhaseLimits.body_timeout_s,
+        gt=0,
+        description="seconds a request body may take to arrive (408)",
     )
     # Zenoh: phase stacks in, phase results out (`bus.py`)
     wavelength_um: float = Field(
@@ -96,7 +107,7 @@ class PhaseServiceSettings(FrameReaderSettings):
     )
 
     def limits(self) -> PhaseLimits:
-        """What one REST request may ask (ValueError if a limit admits nothing)."""
+        """What one REST request may ask."""
         return PhaseLimits(
             **{limit.name: getattr(self, limit.name) for limit in fields(PhaseLimits)}
         )
@@ -107,11 +118,7 @@ def run(settings: PhaseServiceSettings) -> int:
     if refusal:
         print(refusal, file=sys.stderr)
         return 2
-    try:
-        limits = settings.limits()
-    except ValueError as error:
-        print(f"phase service not started: {error}", file=sys.stderr)
-        return 2
+    limits = settings.limits()  # the options' bounds are the limits' own
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     try:
         signer, frame_signer = settings.signers()

@@ -336,8 +336,10 @@ def test_settings_from_a_file_and_the_environment_and_heavy_modules_left_for_lat
     settings = PhaseServiceSettings.load(file)
     assert settings.port == 8301  # from the file; the environment over it for the frames
     assert settings.limits() == PhaseLimits(max_frames=21, max_pixels=4096)
-    with pytest.raises(ValueError, match="must be positive"):
-        PhaseServiceSettings.load(max_frames=0).limits()
+    with pytest.raises(SettingsError, match=r"--max-frames .*greater than or equal to 2"):
+        PhaseServiceSettings.load(max_frames=1)  # every stack needs two: it would admit none
+    with pytest.raises(ValueError, match="max_pixels must be at least 4, got 1"):
+        PhaseLimits(max_pixels=1)
     assert settings.fft_workers == 1
     cores = os.cpu_count() or 1
     assert PhaseServiceSettings.load(fft_workers=cores).fft_workers == cores
