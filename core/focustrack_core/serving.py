@@ -249,7 +249,12 @@ class ListenError(OSError):
     @classmethod
     def of(cls, name: str, host: str, port: int, error: OSError) -> ListenError:
         """The error of the `name` server that `error` kept from `host`:`port`, in words."""
-        reason = os.strerror(error.errno) if error.errno else str(error)
+        if error.errno is None:
+            reason = str(error)
+        elif error.errno < 0:  # getaddrinfo's (EAI_NONAME is -2), which strerror does not know
+            reason = f"{host!r} does not resolve to an address"
+        else:
+            reason = os.strerror(error.errno)
         return cls(f"the {name} server cannot listen on {host}:{port}: {reason}")
 
 

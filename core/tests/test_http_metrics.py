@@ -10,7 +10,7 @@ import pytest
 from prometheus_client import Counter
 
 from focustrack_core.http_metrics import RegistryMetrics, metrics_server
-from focustrack_core.serving import BackgroundServer, ListenError
+from focustrack_core.serving import BackgroundServer, ListenError, listening_socket
 
 
 def test_metrics_are_served_on_a_port_of_their_own_only_when_asked() -> None:
@@ -41,3 +41,9 @@ def test_a_port_in_use_is_a_listen_error_that_names_the_server_and_the_address()
             pass
         with pytest.raises(ListenError, match=rf"live-view server .* 127.0.0.1:{port}: .*in use"):
             BackgroundServer(app, port=port, name="live-view").start()
+
+
+def test_a_host_that_does_not_resolve_is_said_in_words() -> None:
+    """getaddrinfo's errors have negative numbers, which strerror called "Unknown error -2"."""
+    with pytest.raises(ListenError, match=r"cannot listen on no-such-host\.invalid:0: 'no-such"):
+        listening_socket("no-such-host.invalid", 0, "phase")
