@@ -75,13 +75,19 @@ class NshpFilter(SerpentineFilter):
 
     def _support(self, tile: Tile) -> list[Tile]:
         """The already-scanned NSHP neighbours of `tile` (eq. 4-1 with M1 = M2 = M)."""
-        M = self.support
+        # M clipped to the grid: a support wider than the slide reaches every tile, and its
+        # candidates are enumerated in the grid's size, not in M^2 (M may be 10^9)
+        rows_up = min(self.support, tile.row)
+        left, right = min(self.support, tile.col), min(self.support, self.grid.cols - 1 - tile.col)
         behind = -1 if tile.row % 2 == 0 else 1  # serpentine: even rows go left to right
-        candidates = [Tile(tile.row, tile.col + behind * k) for k in range(1, M + 1)]
+        row_reach = left if behind < 0 else right
+        candidates = [Tile(tile.row, tile.col + behind * k) for k in range(1, row_reach + 1)]
         candidates += [
-            Tile(tile.row - k, tile.col + d) for k in range(1, M + 1) for d in range(-M, M + 1)
+            Tile(tile.row - k, tile.col + d)
+            for k in range(1, rows_up + 1)
+            for d in range(-left, right + 1)
         ]
-        return [t for t in candidates if self.grid.contains(t.row, t.col)]
+        return candidates
 
     def _predict(self, tile: Tile) -> Gaussian:
         if not self._tiles:

@@ -177,3 +177,18 @@ def test_the_smoother_in_column_blocks_stays_close_to_the_whole_row_smoother() -
     assert _mae(blocks.smoothed_um, truth_um) < 1.05 * _mae(whole.smoothed_um, truth_um)
     np.testing.assert_allclose(blocks.smoothed_sigma_um, whole.smoothed_sigma_um, rtol=0.1)
     np.testing.assert_array_equal(blocks.posterior_um, whole.posterior_um)  # the same scan
+
+
+def test_an_nshp_support_wider_than_the_slide_is_the_whole_slide_behind() -> None:
+    """The support's neighbours are enumerated within the grid: a support of 10^9 on 5x6
+    tiles scans as one of 5 (the widest reach there) and at once; it used to enumerate
+    10^18 candidates, until the service was killed for its memory."""
+    truth_um, measured_um = _maps(5, 6, seed=3)
+    settings = default_settings(ScanGrid(5, 6))
+    scans = [
+        replay(
+            registry.create("nshp-wiener0", settings, {"support": support}), truth_um, measured_um
+        )
+        for support in (5, 10**9)
+    ]
+    np.testing.assert_array_equal(scans[0].focus_map.prior_um, scans[1].focus_map.prior_um)
