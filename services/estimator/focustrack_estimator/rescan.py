@@ -123,6 +123,7 @@ class RescanFilter(SerpentineFilter):
         self.x = np.array([settings.start_z_um, 0.0])
         self.P = np.diag([settings.start_sigma_um**2, params.rate_sigma_um_per_s**2])
         self._state_s = 0.0
+        self._step_var_um2 = 0.0  # the current tile's own step, let through the gate
 
     @property
     def drift_um(self) -> float:
@@ -147,16 +148,23 @@ class RescanFilter(SerpentineFilter):
         mean_um = self.base_um[tile.row, tile.col] + self.x[0]
         return Gaussian(float(mean_um), float(self.P[0, 0] + self._tile_var_um2(tile)))
 
+    def _inflate(self, var_um2: float) -> None:
+        """A step the gate lets through (a fold, a moved section) is the tile's own change,
+        not the drift's: it widens this tile's local variance alone, so the drift takes
+        little of it."""
+        self._step_var_um2 = var_um2
+
     def _correct(self, tile: Tile, prior: Gaussian, z_um: float | None, R_um2: float) -> Gaussian:
+        tile_var_um2, self._step_var_um2 = prior.var_um2 + self._step_var_um2, 0.0
         if z_um is None:
             return prior
         y = z_um - prior.mean_um
-        S = prior.var_um2 + R_um2
+        S = tile_var_um2 + R_um2
         gain = self.P[:, 0] / S  # the drift's share of the innovation
         self.x = self.x + gain * y
         self.P = self.P - np.outer(gain, self.P[0, :])
-        k = prior.var_um2 / S  # the tile's height: drift, prior map and local change together
-        return Gaussian(prior.mean_um + k * y, prior.var_um2 * (1.0 - k))
+        k = tile_var_um2 / S  # the tile's height: drift, prior map and local change together
+        return Gaussian(prior.mean_um + k * y, tile_var_um2 * (1.0 - k))
 
 
 def prior_map(settings: SlideSettings, params: KfRescanParams) -> tuple[np.ndarray, np.ndarray]:

@@ -209,7 +209,10 @@ class SerpentineFilter(Strategy):
 
     def _inflate(self, var_um2: float) -> None:
         """Add `var_um2` to the current tile's height variance (gating with patience)."""
-        raise ValueError(f"{self.name} cannot take a gated step: use gate_patience=0")
+        raise ValueError(
+            f"{self.name} cannot widen its state for a step the gate lets through: leave "
+            "gate_nis at 0"
+        )
 
     def _finish(self) -> None:
         """Called once when every tile has been imaged (for final-map work)."""

@@ -126,3 +126,19 @@ def test_a_frame_out_of_focus_survives_the_log() -> None:
         record = measurement_record(measurement)
         assert ("frame_out_of_focus" in record) is flagged  # older logs read as before
         assert measurement_of(record) == measurement
+
+
+def test_a_step_the_gate_lets_through_is_the_tiles_own_not_the_drifts() -> None:
+    """With the NIS gate on, kf-rescan used to stop at the first step it let through ("cannot
+    take a gated step"), its slide jammed for good. A fold of 3 um over part of the slide:
+    the scan ends, the fold's measured tiles are taken at their height (patience 0: a step
+    at once), and the drift, which the fold is not, stays near 0."""
+    truth = np.zeros(GRID.shape)
+    truth[4:7, 2:8] += 3.0
+    params = {"prior_map_um": [0.0] * GRID.n_tiles, "gate_nis": 9.0, "gate_patience": 0}
+    strategy = registry.create("kf-rescan", SETTINGS, params)
+    run = replay(strategy, truth, truth)
+    assert np.all(strategy.scanned)
+    assert abs(strategy.drift_um) < 0.3
+    steps = [o for o in run.outcomes if o.accepted and abs(o.innovation_um or 0.0) > 2.0]
+    assert steps and all(abs(o.posterior_um - 3.0) < 0.1 for o in steps)
