@@ -75,8 +75,9 @@ def _check_size(
         )
 
 
-def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
-    """The shape and item size a .npy file declares in its header (nothing else is read).
+def npy_header(data: bytes) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype the .npy file `data` declares in its header (nothing else is
+    read: a header may promise more than any memory holds).
 
     ValueError for a header numpy cannot parse, or bytes beyond the data it declares (a
     file written twice over, or two joined: the rest used to be left unread, silently).
@@ -99,7 +100,7 @@ def _npy_shape(data: bytes) -> tuple[tuple[int, ...], int]:
         raise ValueError(
             f"it holds {len(data) - declared} bytes beyond the {shape} array its header declares"
         )
-    return shape, dtype.itemsize
+    return shape, dtype
 
 
 class _Complaints(logging.Handler):
@@ -173,7 +174,8 @@ def decode_stack(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.nda
     """
     if data.startswith(_NPY_MAGIC):
         try:
-            _check_size(*_npy_shape(data), max_frames, max_decoded_bytes)
+            shape, dtype = npy_header(data)
+            _check_size(shape, dtype.itemsize, max_frames, max_decoded_bytes)
             return np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as error:
             if isinstance(error, TooLargeError):

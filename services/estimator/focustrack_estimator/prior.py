@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from focustrack_client import models as api
+from focustrack_core.stacks import npy_header
 from focustrack_estimator.errors import SlideError
 from focustrack_estimator.maps_out import FILE_MEDIA
 
@@ -53,20 +54,23 @@ def decode_prior(body: bytes, rows: int, cols: int) -> PriorMap:
     saying what is wrong: not an .npy file, another dtype or shape, a height that is not
     finite or beyond +/- `api.MAX_ABS_UM`, a sigma that is not positive and finite."""
     try:
-        array = np.lib.format.read_array(io.BytesIO(body), allow_pickle=False)
+        shape, dtype = npy_header(body)  # checked before the header's array is made
     except (ValueError, OSError, EOFError) as error:
         raise SlideError(
             f"the body is not an .npy file (np.save writes one): {error}", BODY_LOC
         ) from None
-    if array.dtype.kind != "f" or array.dtype.itemsize not in (4, 8):
-        raise SlideError(f"the prior map must be float64 or float32, got {array.dtype}", BODY_LOC)
-    if array.shape not in ((rows, cols), (2, rows, cols)):
+    if dtype.kind != "f" or dtype.itemsize not in (4, 8):
+        raise SlideError(f"the prior map must be float64 or float32, got {dtype}", BODY_LOC)
+    if shape not in ((rows, cols), (2, rows, cols)):
         raise SlideError(
             f"the prior map of this {rows}x{cols} slide must have shape ({rows}, {cols}) "
-            f"(heights), or (2, {rows}, {cols}) (heights and their sigmas), um; got "
-            f"{array.shape}",
+            f"(heights), or (2, {rows}, {cols}) (heights and their sigmas), um; got {shape}",
             BODY_LOC,
         )
+    try:
+        array = np.lib.format.read_array(io.BytesIO(body), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as error:  # cut short
+        raise SlideError(f"the body's .npy file cannot be read: {error}", BODY_LOC) from None
     layers = array.astype(np.float64).reshape(-1, rows, cols)
     map_um = layers[0]
     bounded = np.isfinite(map_um) & (np.abs(map_um) <= api.MAX_ABS_UM)

@@ -112,6 +112,14 @@ def test_a_negative_or_zero_prior_sigma_is_refused_naming_the_field(url: str) ->
             assert "greater than 0" in error["msg"] and repr(sigma_um) in error["msg"]
 
 
+def _npy_header_only(shape: tuple[int, ...]) -> bytes:
+    """An .npy file's header for float64 `shape`, and a few bytes of its data."""
+    buffer = io.BytesIO()
+    header = {"descr": "<f8", "fortran_order": False, "shape": shape}
+    np.lib.format.write_array_header_1_0(buffer, header)
+    return buffer.getvalue() + bytes(160)
+
+
 def test_a_prior_that_does_not_fit_the_slide_is_refused_saying_why(url: str) -> None:
     with EstimatorClient(url) as estimator:
         slide = estimator.create_slide(rescan(3, 4)).id
@@ -127,6 +135,9 @@ def test_a_prior_that_does_not_fit_the_slide_is_refused_saying_why(url: str) -> 
         "(2, 3, 4)": (npy(np.zeros((3, 3, 4))), "(3, 3, 4)"),
         "float64 or float32": (npy(good.astype(np.int64)), "int64"),
         "not an .npy file": (b'{"prior_map_um": []}', ""),
+        # a header promising 4 TB: refused from the header, not a MemoryError (a 500)
+        "must have shape (3, 4)": (_npy_header_only((100_000_000_000, 5)), "(100000000000, 5)"),
+        "bytes beyond the (3, 4) array": (npy(good) + bytes(8), "8 bytes"),
         "sigma of the prior map must be finite and positive": (
             npy(np.stack([good, sigma_um])),
             "tile (2, 1) has -0.1",
