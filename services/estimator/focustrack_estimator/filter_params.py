@@ -50,8 +50,9 @@ CoarseStepUm = Annotated[
     float,
     Field(
         gt=0.0,
+        le=1e3,  # as a z-stack policy's step: beyond, a search leaves any stage's travel
         description="z step of the lean rule's coarse search where the prediction is far "
-        "too unsure for fine stacks, um (`lean.coarse_stack`)",
+        "too unsure for fine stacks, um (`lean.coarse_stack`), at most 1000",
     ),
 ]
 LookFirst = Annotated[

@@ -189,6 +189,7 @@ def test_values_are_taken_as_json_gives_them() -> None:
         ("kf-2d", {"lengths_tiles": [1e31]}, "not a physical value"),
         ("kf-2d", {"window_cols": 10**200}, "not a physical value"),
         ("kf-2d-lean", {"risk_out_of_focus": 1.0}, "less than 1"),
+        ("kf-2d-lean", {"coarse_step_um": 1e30}, "less than or equal to 1000"),
         ("kf-2d-lean", {"gate_nis": 9.0}, "unknown parameter 'gate_nis'"),
         ("kf-gm1", {"beta_per_tile": 2.0}, "beta >= 5.98"),
         ("kf-mmae", {"weight_floor": 0.25}, "less than 0.25"),
