@@ -37,6 +37,9 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 #: Characters of an input an error message may quote; the rest is left out, with a note.
 MAX_QUOTED_CHARS = 200
+#: Characters of an error's message: the service's own words (a list of what it knows, of
+#: what it serves), with the inputs they quote bounded by their models (names of 64).
+MAX_MESSAGE_CHARS = 1000
 
 
 def cut(text: str, limit: int = MAX_QUOTED_CHARS) -> str:
@@ -53,7 +56,7 @@ def quoted_errors(errors: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return [
         {
             "loc": [cut(part) if isinstance(part, str) else part for part in item["loc"]],
-            "msg": cut(item["msg"]),
+            "msg": cut(item["msg"], MAX_MESSAGE_CHARS),
             "type": item["type"],
         }
         for item in errors

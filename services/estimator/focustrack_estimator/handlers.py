@@ -24,7 +24,7 @@ from starlette.routing import Match
 from starlette.types import Scope
 
 from focustrack_client import models as api
-from focustrack_core.serving import cut
+from focustrack_core.serving import MAX_MESSAGE_CHARS, cut
 from focustrack_estimator.errors import (
     ReplayMismatchError,
     SlideConflictError,
@@ -96,14 +96,49 @@ def error_response(
 
 
 def _cut_quotes(detail: object) -> object:
-    """`detail` with every string in it (messages, locations: a key may be 1 MB) cut short."""
+    """`detail` with its messages cut at `MAX_MESSAGE_CHARS` and the parts of its locations
+    (a key of the input, which may be 1 MB) at `MAX_QUOTED_CHARS`."""
     if isinstance(detail, str):
-        return cut(detail)
+        return cut(detail, MAX_MESSAGE_CHARS)
     if isinstance(detail, list | tuple):
         return [_cut_quotes(item) for item in detail]
     if isinstance(detail, dict):
-        return {key: _cut_quotes(value) for key, value in detail.items()}
+        return {
+            key: [cut(part) if isinstance(part, str) else part for part in value]
+            if key == "loc" and isinstance(value, list | tuple)
+            else _cut_quotes(value)
+            for key, value in detail.items()
+        }
     return detail
+
+
+#: How pydantic names the members of `api.ParamValue` in the locations of its errors.
+_PARAM_VALUE_MEMBERS = frozenset({"bool", "int", "float", "str", "list[float]"})
+
+
+def _one_per_parameter(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """`errors` with those of a strategy parameter that fits no member of `api.ParamValue`
+    (one per member, located at ``params.q.bool``, ``params.q.int``, ...) made one, at the
+    parameter: a NaN is not a finite number; an item of a list, not a number; else what
+    a parameter may be."""
+    kept: list[dict[str, Any]] = []
+    by_parameter: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for item in errors:
+        loc = tuple(item["loc"])
+        if loc[:2] == ("body", "params") and len(loc) > 3 and loc[3] in _PARAM_VALUE_MEMBERS:
+            by_parameter.setdefault(loc[:3], []).append(item)
+        else:
+            kept.append(item)
+    for where, members in by_parameter.items():
+        finite = [m for m in members if m["type"] == "finite_number"]
+        items = [m for m in members if len(m["loc"]) > 4]  # a list's item
+        if finite or items:
+            chosen = (finite or items)[0]
+            kept.append({**chosen, "loc": [*where, *chosen["loc"][4:]]})
+        else:
+            message = "Input should be a number, a boolean, a string, a list of numbers or null"
+            kept.append({"loc": list(where), "msg": message, "type": "value_error"})
+    return kept
 
 
 def _storage_full(detail: str) -> JSONResponse:
@@ -188,5 +223,7 @@ def install(app: FastAPI) -> None:
     async def invalid_request(_: Request, error: RequestValidationError) -> JSONResponse:
         # FastAPI's own handler echoes the input, which fails to render when it is NaN or
         # infinite (a 500 for the very values it rejects): say where and what, not the value.
-        detail = [{"loc": e["loc"], "msg": e["msg"], "type": e["type"]} for e in error.errors()]
+        detail = _one_per_parameter(
+            [{"loc": e["loc"], "msg": e["msg"], "type": e["type"]} for e in error.errors()]
+        )
         return error_response(422, api.ErrorCode.INVALID_REQUEST, detail)

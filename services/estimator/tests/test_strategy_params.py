@@ -4,6 +4,7 @@ JSON gives values, one resolution per slide, and the models in the OpenAPI docum
 from __future__ import annotations
 
 import asyncio
+import json
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -317,3 +318,36 @@ def test_a_slide_stored_by_the_previous_version_loads(app: FastAPI) -> None:
     response = _request(app, "GET", "/v1/slides/old/next")
     assert response.status_code == 200, response.text
     assert response.json()["done"] is False
+
+
+def test_an_unknown_parameter_is_answered_with_every_known_one(app: FastAPI) -> None:
+    """The list used to be cut at 200 characters, as a quoted input is."""
+    response = _request(app, "POST", "/v1/slides", json=_body("kf-2d-laser", {"qq": 1.0}))
+    assert response.status_code == 422, response.text
+    (detail,) = response.json()["detail"]
+    known = registry.STRATEGIES["kf-2d-laser"].params.model_fields
+    assert len(", ".join(known)) > 200 and "(cut: " not in detail["msg"]
+    assert detail["msg"].endswith(f"known: {', '.join(known)}")
+
+
+@pytest.mark.parametrize(
+    ("value", "loc", "msg"),
+    [
+        ("NaN", ["body", "params", "q"], "Input should be a finite number"),
+        ('{"a": 1}', ["body", "params", "q"], "Input should be a number, a boolean, a string"),
+        ('[1, "x"]', ["body", "params", "q", 1], "Input should be a valid number"),
+    ],
+)
+def test_a_parameter_of_no_value_type_is_one_error_at_it(
+    app: FastAPI, value: str, loc: list[Any], msg: str
+) -> None:
+    """It was five, one per type a parameter may have (``params.q.bool``, ``.int``, ...)."""
+    body = json.dumps(_body("kf-wiener0", {})).replace(
+        '"params": {}', f'"params": {{"q": {value}}}'
+    )
+    response = _request(
+        app, "POST", "/v1/slides", content=body, headers={"content-type": "application/json"}
+    )
+    assert response.status_code == 422, response.text
+    (detail,) = response.json()["detail"]
+    assert detail["loc"] == loc and detail["msg"].startswith(msg)
