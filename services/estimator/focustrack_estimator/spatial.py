@@ -359,7 +359,9 @@ class RowBankFilter(SerpentineFilter):
         focus when it was imaged); the drift's own uncertainty is not in the variances.
         """
         weights = self.weights
-        kept = weights >= SMOOTH_MIN_WEIGHT
+        # the best are always kept: in a bank of over 1 / SMOOTH_MIN_WEIGHT members of like
+        # weight every one is below it, and the blend of none failed
+        kept = weights >= min(SMOOTH_MIN_WEIGHT, weights.max())
         reached = self._row + 1
         drift_um = self.tile_drift_um[:reached]
         smoothed = [

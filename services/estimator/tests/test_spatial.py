@@ -192,3 +192,16 @@ def test_an_nshp_support_wider_than_the_slide_is_the_whole_slide_behind() -> Non
         for support in (5, 10**9)
     ]
     np.testing.assert_array_equal(scans[0].focus_map.prior_um, scans[1].focus_map.prior_um)
+
+
+def test_a_bank_of_members_each_below_the_smoothers_share_still_has_a_map() -> None:
+    """1200 members alike, each of weight 1/1200, are under the smoother's 1/1000 share:
+    the smoothed map blended none of them and failed ("operands could not be broadcast")."""
+    truth_um, measured_um = _maps(3, 3, seed=2)
+    strategy = registry.create(
+        "kf-2d",
+        default_settings(ScanGrid(3, 3)),
+        {"lengths_tiles": [4.0] * 1200, "sigmas_um": [1.0], "tilt_sigmas_um_per_tile": [0.3]},
+    )
+    run = replay(strategy, truth_um, measured_um)
+    assert np.all(np.isfinite(run.focus_map.posterior_um))
