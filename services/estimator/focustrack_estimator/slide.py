@@ -19,6 +19,7 @@ measurement is committed before its outcome is returned.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -369,7 +370,8 @@ class Slide:
             raise SlideConflictError(
                 f"acquisition {request.sequence} was already recorded for tile "
                 f"({logged.acquisition.row}, {logged.acquisition.col}) with "
-                f"{measurement_record(logged.measurement)}; a different value cannot replace it"
+                f"{json.dumps(measurement_record(logged.measurement))}; a different value "
+                "cannot replace it"
             )
         return logged
 

@@ -108,6 +108,7 @@ def test_idempotent_repost_and_conflicting_values(app: FastAPI) -> None:
 
             changed = await http.post(url, json={**body, "z_um": 1.5})
             assert changed.status_code == 409 and "already recorded" in changed.json()["detail"]
+            assert '{"z_um": 1.25, "sigma_um": ' in changed.json()["detail"]  # JSON, no reprs
             moved = await http.post(url, json={**body, "col": 1})
             assert moved.status_code == 409
 
