@@ -243,7 +243,7 @@ def validate_stack(
     # One pass over the stack: a NaN or an inf makes the mean so; only then is every
     # value checked, to say which (finite values whose sum overflows float64).
     with np.errstate(over="ignore", invalid="ignore"):  # said below, in words
-        frame_means = np.mean(stack_counts, axis=(1, 2), dtype=np.float64)
+        frame_means = np.asarray(np.mean(stack_counts, axis=(1, 2), dtype=np.float64))
         mean_counts = float(np.mean(frame_means))
     if not np.isfinite(mean_counts):
         if not np.all(np.isfinite(stack_counts)):
