@@ -397,6 +397,11 @@ class FrameByFrame:
         image = preprocess.smooth(raw)
         check_intensities(image, index)
         score = self._metric(image)
+        if not np.isfinite(score):  # pixels past float32 (1e307 as counts): NaN marks "to come"
+            raise ValueError(
+                f"frame {index} scores {score} with the focus metric: its values (up to "
+                f"{float(np.max(frame)):.3g}) overflow the metric's float32 arithmetic"
+            )
         if self.z_um.size == 1:  # a look reads every colour of its frame
             self._look_snr = look_snr(preprocess.region(frame))
         self.scores[index] = score

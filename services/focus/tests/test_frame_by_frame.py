@@ -71,6 +71,12 @@ def test_missing_repeated_and_bad_frames_are_refused() -> None:
         incremental.add(9, frames[0])
     with pytest.raises(ValueError, match="finite"):
         incremental.add(1, np.full((64, 64), np.nan))
+    huge = np.random.default_rng(0).uniform(1e307, 1.7e308, (64, 64))  # finite, past float32
+    with (
+        pytest.raises(ValueError, match=r"frame 1 scores nan .* overflow"),
+        np.errstate(all="ignore"),
+    ):
+        incremental.add(1, huge)  # its NaN score read as "still to come": no result, ever
     with pytest.raises(ValueError, match="have not arrived"):
         incremental.result()
     with pytest.raises(ValueError):
