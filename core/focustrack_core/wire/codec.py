@@ -160,10 +160,15 @@ def green_channel(header: instrument_pb2.ZStackHeader) -> int | None:
 
 
 def _dtype_of(header: instrument_pb2.ZStackHeader) -> np.dtype:
+    """The stack's pixel dtype: ValueError unless numpy knows it and it is one number (a
+    structured "u2,u2" passed, and failed later where only a ValueError was expected)."""
     try:
-        return np.dtype(header.dtype)
+        dtype = np.dtype(header.dtype)
     except TypeError as error:
         raise ValueError(f"z-stack header has an unknown dtype {header.dtype!r}") from error
+    if dtype.fields is not None or dtype.subdtype is not None:
+        raise ValueError(f"z-stack header's dtype {header.dtype!r} is not of one number a pixel")
+    return dtype
 
 
 def _view(
@@ -209,10 +214,17 @@ def decode_zstack(
 
 def zframe_header(attachment: bytes | None) -> instrument_pb2.ZFrameHeader:
     """The frame header of a sample's attachment; ValueError when it is missing or does
-    not describe a frame of its stack."""
+    not describe a frame of its stack (`check_frame_header`)."""
     if not attachment:
         raise ValueError("frame sample has no header attachment")
     header = instrument_pb2.ZFrameHeader.FromString(attachment)
+    check_frame_header(header)
+    return header
+
+
+def check_frame_header(header: instrument_pb2.ZFrameHeader) -> None:
+    """ValueError unless `header` describes a frame of its stack: a 4-D shape (frames,
+    height, width, channels), one z per frame, an index among the frames."""
     stack = header.stack
     if len(stack.shape) != 4 or len(stack.z_um) != stack.shape[0]:
         raise ValueError(
@@ -221,7 +233,6 @@ def zframe_header(attachment: bytes | None) -> instrument_pb2.ZFrameHeader:
         )
     if header.index >= stack.shape[0]:
         raise ValueError(f"frame {header.index} of a stack of {stack.shape[0]} frames")
-    return header
 
 
 def _frame_view(header: instrument_pb2.ZFrameHeader, data: bytes | np.ndarray) -> np.ndarray:

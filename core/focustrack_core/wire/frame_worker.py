@@ -93,8 +93,11 @@ class FrameWorker(Generic[T]):
             try:
                 with self._lock:
                     done = self._take(key, sample.payload, attachment)
-            except ValueError as error:
+            except ValueError as error:  # a key that names no tile: nowhere to answer
                 log.warning("ignored sample on %s: %s", key, error)
+                continue
+            except Exception:  # a defect of ours: logged whole, and the thread goes on
+                log.exception("sample on %s failed", key)
                 continue
             if done is not None:
                 self._publish(done)

@@ -32,7 +32,7 @@ from google.protobuf.message import DecodeError
 from focustrack_core.logs import worth_logging
 from focustrack_core.v1 import common_pb2, instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys
-from focustrack_core.wire.codec import FrameAssembler, payload_bytes, zframe_header
+from focustrack_core.wire.codec import FrameAssembler, check_frame_header, payload_bytes
 from focustrack_core.wire.frame_worker import FrameWorker
 from focustrack_core.wire.open_stacks import OpenStacks, stack_id
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
@@ -225,8 +225,8 @@ class PhaseStacks:
         names no tile (there is nowhere to answer)."""
         tile = keys.parse_zframe_key(key)
         try:
-            frame_header = zframe_header(attachment)
-        except (ValueError, DecodeError):
+            frame_header = instrument_pb2.ZFrameHeader.FromString(attachment or b"")
+        except DecodeError:
             return None  # no stack header: no purpose, nothing of ours (and no one to answer)
         header = frame_header.stack
         if header.purpose != PHASE:
@@ -246,6 +246,7 @@ class PhaseStacks:
             return None
         stack = stack_id(key, header)
         try:
+            check_frame_header(frame_header)  # a phase stack's: answered from here on
             self.expire()
             if self._open.failed(stack):
                 return None
@@ -260,7 +261,7 @@ class PhaseStacks:
                 return None
             self._open.pop(stack)
             return PhaseStack(tile, header, under_way.counts)
-        except ValueError as error:  # a bad frame or stack: answered, never a crash
+        except Exception as error:  # a bad frame or stack: answered, never a crash
             log.warning("phase stack on %s: %s", key, error)
             self._open.fail(stack)
             return result_message(header, tile, error=f"{type(error).__name__}: {error}")

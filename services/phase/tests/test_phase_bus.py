@@ -310,3 +310,28 @@ def test_phase_stacks_are_bounded_in_frames_pixels_bytes_and_time() -> None:
     clock.now_s = 10.5
     stacks.expire()
     assert stacks.n_expired == 1 and stacks.open_bytes == 0
+
+
+def test_a_phase_frame_that_does_not_fit_its_header_gets_an_error_result() -> None:
+    """A structured dtype raised a TypeError that killed the worker's thread (no phase again,
+    and the instrument's publisher stalled on its queue); a 3-D shape or an index beyond
+    the frames was dropped without a word. Each is answered."""
+    stacks = PhaseStacks(PhaseLimits(), budget_bytes=1 << 24, timeout_s=10.0)
+    key = keys.zframe_key("s1", 1, 2)
+    z_um = REFERENCE_Z_UM + np.array([-2.0, 0.0, 2.0])
+    good = frame_samples(header_of(1, z_um), np.zeros((3, 8, 8, 1), np.uint16))[0]
+    wrong = {
+        "not of one number": lambda frame: (  # 8 x 4 pixels of two uint16: the frame's bytes
+            setattr(frame.stack, "dtype", "u2,u2"),
+            frame.stack.shape.__setitem__(2, 4),
+        ),
+        "expected (frames, height, width, channels)": lambda frame: frame.stack.shape.pop(),
+        "frame 7 of a stack of 3 frames": lambda frame: setattr(frame, "index", 7),
+    }
+    for sequence, (message, spoil) in enumerate(wrong.items(), start=2):
+        frame = instrument_pb2.ZFrameHeader.FromString(good[1])
+        frame.stack.sequence = sequence
+        spoil(frame)
+        answer = stacks.add(key, lambda: good[0], frame.SerializeToString())
+        assert isinstance(answer, phase_pb2.PhaseResult), message
+        assert message in answer.error.message
