@@ -25,6 +25,35 @@ import numpy as np
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.v1 import common_pb2
 
+#: Largest |z| of a curve or a prior, um: a metre either way is no microscope (the
+#: estimator's bound, the focus service's).
+MAX_ABS_Z_UM = 1e6
+#: A prior's sigma, um, from a picometre (a thousandth of a piezo stage's nanometre step: a
+#: belief no stage can act on) to a metre (MAX_ABS_Z_UM: no belief at all). Within these
+#: the maths stays in a float's range: 1 / sigma**2 <= 1e12, (z - z_prior)**2 <= 4e12.
+MIN_PRIOR_SIGMA_UM = 1e-6
+MAX_PRIOR_SIGMA_UM = 1e6
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The estimator's belief about a tile's focus before its stack: mean and std, um."""
+
+    z_um: float
+    sigma_um: float
+
+    def __post_init__(self) -> None:
+        # comparisons that NaN fails: a NaN is refused too
+        if not abs(self.z_um) <= MAX_ABS_Z_UM:
+            raise ValueError(
+                f"a prior's z_um must be finite and within +/-{MAX_ABS_Z_UM:g} um, got {self.z_um}"
+            )
+        if not MIN_PRIOR_SIGMA_UM <= self.sigma_um <= MAX_PRIOR_SIGMA_UM:
+            raise ValueError(
+                f"a prior's sigma_um must be within [{MIN_PRIOR_SIGMA_UM:g}, "
+                f"{MAX_PRIOR_SIGMA_UM:g}] um, got {self.sigma_um}"
+            )
+
 
 class FocusFlag(StrEnum):
     """Quality flags of a best-focus measurement (set by the focus service).

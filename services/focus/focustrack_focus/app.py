@@ -35,6 +35,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from focustrack_core.domain import MAX_ABS_Z_UM, MAX_PRIOR_SIGMA_UM, MIN_PRIOR_SIGMA_UM, Prior
 from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.serving import cut
 from focustrack_core.stacks import (
@@ -45,13 +46,7 @@ from focustrack_core.stacks import (
 )
 from focustrack_core.web import bearer_token, form_as_declared, guarded_app, read_upload
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
-from focustrack_focus.peak import (
-    MAX_ABS_Z_UM,
-    MAX_PRIOR_SIGMA_UM,
-    MIN_PRIOR_SIGMA_UM,
-    PeakMode,
-    Prior,
-)
+from focustrack_focus.peak import PeakMode
 from focustrack_focus.pipeline import (
     STACK_LAYOUT,
     FocusSettings,
@@ -108,7 +103,7 @@ class PriorModel(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    # the bounds `Prior` computes within (`peak.MIN_PRIOR_SIGMA_UM` says why)
+    # the bounds `Prior` computes within (`domain.MIN_PRIOR_SIGMA_UM` says why)
     z_um: Annotated[Number, Field(ge=-MAX_ABS_Z_UM, le=MAX_ABS_Z_UM)]
     sigma_um: Annotated[Number, Field(ge=MIN_PRIOR_SIGMA_UM, le=MAX_PRIOR_SIGMA_UM)]
 

@@ -73,7 +73,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from focustrack_core.domain import FocusFlag
+from focustrack_core.domain import MAX_ABS_Z_UM, FocusFlag, Prior
 from focustrack_focus.curve_checks import (
     SHORT_STACK_FRAMES,
     broader_than_window,
@@ -168,35 +168,6 @@ class PeakSettings:
     curve_fwhm_um: float | None = None
     broad_top_exempt_frames: int = SHORT_STACK_FRAMES
     own_noise_confidence: float = 0.0
-
-
-#: Largest |z| of a curve, um: a metre either way is no microscope (the estimator's bound).
-MAX_ABS_Z_UM = 1e6
-#: A prior's sigma, um, from a picometre (a thousandth of a piezo stage's nanometre step: a
-#: belief no stage can act on) to a metre (MAX_ABS_Z_UM: no belief at all). Within these
-#: the maths stays in a float's range: 1 / sigma**2 <= 1e12, (z - z_prior)**2 <= 4e12.
-MIN_PRIOR_SIGMA_UM = 1e-6
-MAX_PRIOR_SIGMA_UM = 1e6
-
-
-@dataclass(frozen=True)
-class Prior:
-    """The estimator's belief about a tile's focus before its stack: mean and std, um."""
-
-    z_um: float
-    sigma_um: float
-
-    def __post_init__(self) -> None:
-        # comparisons that NaN fails: a NaN is refused too
-        if not abs(self.z_um) <= MAX_ABS_Z_UM:
-            raise ValueError(
-                f"a prior's z_um must be finite and within +/-{MAX_ABS_Z_UM:g} um, got {self.z_um}"
-            )
-        if not MIN_PRIOR_SIGMA_UM <= self.sigma_um <= MAX_PRIOR_SIGMA_UM:
-            raise ValueError(
-                f"a prior's sigma_um must be within [{MIN_PRIOR_SIGMA_UM:g}, "
-                f"{MAX_PRIOR_SIGMA_UM:g}] um, got {self.sigma_um}"
-            )
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from focustrack_core.domain import PAIR_FRAMES, FocusFlag, Measurement
+from focustrack_core.domain import MAX_ABS_Z_UM, PAIR_FRAMES, FocusFlag, Measurement, Prior
 from focustrack_focus import filters
 from focustrack_focus.agreement import agreed_peak, agreement_scores
 from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
@@ -18,14 +18,7 @@ from focustrack_focus.layers import layers_sigma_um
 from focustrack_focus.look import MIN_LOOK_SNR, look_snr
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
 from focustrack_focus.pair import read_pair
-from focustrack_focus.peak import (
-    MAX_ABS_Z_UM,
-    PeakFit,
-    PeakSettings,
-    Prior,
-    find_peak,
-    validate_curve,
-)
+from focustrack_focus.peak import PeakFit, PeakSettings, find_peak, validate_curve
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import structure_snr
 

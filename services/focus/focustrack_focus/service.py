@@ -47,6 +47,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from focustrack_core import tracing
+from focustrack_core.domain import Prior
 from focustrack_core.logs import worth_logging
 from focustrack_core.serving import (
     ListenError,
@@ -70,7 +71,7 @@ from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.instrument_frames import InstrumentFrameSizes
 from focustrack_focus.layers import learn_top
 from focustrack_focus.metrics import METRICS
-from focustrack_focus.peak import PeakMode, PeakSettings, Prior
+from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame, LastLooks
 from focustrack_focus.preprocess import (
     MAX_LOWPASS_SIGMA_PX,

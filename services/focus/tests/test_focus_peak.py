@@ -5,16 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from focustrack_core.domain import FocusFlag
-from focustrack_focus.peak import (
+from focustrack_core.domain import (
     MAX_ABS_Z_UM,
     MAX_PRIOR_SIGMA_UM,
     MIN_PRIOR_SIGMA_UM,
-    PeakMode,
-    PeakSettings,
+    FocusFlag,
     Prior,
-    find_peak,
 )
+from focustrack_focus.peak import PeakMode, PeakSettings, find_peak
 
 Z_UM = np.arange(-3.0, 3.01, 0.5)
 

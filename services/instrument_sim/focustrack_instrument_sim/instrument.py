@@ -289,6 +289,9 @@ MAX_EXPOSURE_S = 10.0
 #: The farthest a request may send the stage from its tile's place, um (a lateral
 #: correction is a few um; more is a mistake, not drift).
 MAX_STAGE_OFFSET_UM = 1000.0
+#: The finest z step a stack may ask, um: a nanometre, a piezo stage's step (the REST API's
+#: least z step too); finer, its frames are at one z and no curve can be read from them.
+MIN_Z_STEP_UM = 1e-3
 
 
 def check_tile(slide: str, row: int, col: int, grids: Mapping[str, ScanGrid]) -> ScanGrid:
@@ -346,10 +349,11 @@ def check_request(
     z_low_um, z_step_um = request.z_low_um, request.z_step_um
     if not np.isfinite(z_low_um):
         raise AcquisitionRefusedError(Refusal.MALFORMED, "z_low_um must be finite", "z_low_um")
-    if n_frames > 1 and not (np.isfinite(z_step_um) and z_step_um > 0):
+    if n_frames > 1 and not (np.isfinite(z_step_um) and z_step_um >= MIN_Z_STEP_UM):
         raise AcquisitionRefusedError(
             Refusal.MALFORMED,
-            f"z_step_um must be positive for {n_frames} frames, got {z_step_um}",
+            f"z_step_um must be at least {MIN_Z_STEP_UM:g} um for {n_frames} frames, got "
+            f"{z_step_um}",
             "z_step_um",
         )
     z_high_um = z_low_um + (n_frames - 1) * z_step_um

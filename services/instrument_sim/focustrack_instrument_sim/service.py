@@ -51,6 +51,7 @@ import numpy as np
 import zenoh
 
 from focustrack_core import tracing
+from focustrack_core.domain import MAX_ABS_Z_UM, MAX_PRIOR_SIGMA_UM, MIN_PRIOR_SIGMA_UM
 from focustrack_core.http_metrics import metrics_server
 from focustrack_core.serving import ListenError
 from focustrack_core.settings import command_main
@@ -149,6 +150,24 @@ def purpose_of(value: int) -> Purpose:
     raise rpc.RequestError(
         rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST, f"unknown purpose {value}", "purpose"
     )
+
+
+def check_prior(request: instrument_pb2.AcquireRequest) -> None:
+    """RequestError(MALFORMED) naming a prediction the stack would carry to the focus
+    service that `Prior` refuses there (a NaN, a sigma of 0): the whole stack was taken,
+    then answered with an error."""
+    bounds = {
+        "prior_z_um": (-MAX_ABS_Z_UM, MAX_ABS_Z_UM),
+        "prior_sigma_um": (MIN_PRIOR_SIGMA_UM, MAX_PRIOR_SIGMA_UM),
+    }
+    for name, (low, high) in bounds.items():
+        value = getattr(request, name)
+        if request.HasField(name) and not low <= value <= high:  # NaN fails it too
+            raise rpc.RequestError(
+                rpc.ErrorCode.ERROR_CODE_MALFORMED_REQUEST,
+                f"{name} must be within [{low:g}, {high:g}] um, got {value}",
+                name,
+            )
 
 
 def truth_source(instrument: Instrument, serve_truth: bool) -> TruthSource | None:
@@ -283,6 +302,7 @@ class InstrumentService:
                 "nonce",
             )
         purpose = purpose_of(request.purpose)
+        check_prior(request)
         with replies_for_instrument_errors():
             plan = self.instrument.plan(
                 StackRequest(

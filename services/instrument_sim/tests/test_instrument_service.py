@@ -261,6 +261,11 @@ def test_truth_is_apart_and_matches_the_slide(client: zenoh.Session) -> None:
         ({"n_frames": 26}, common_pb2.ERROR_CODE_TOO_MANY_FRAMES, "n_frames"),
         ({"n_frames": 0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "n_frames"),
         ({"z_step_um": 0.0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "z_step_um"),
+        ({"z_step_um": 1e-7}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "z_step_um"),
+        # predictions the focus service refuses: they cost a whole stack, then an error
+        ({"prior_z_um": float("nan")}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "prior_z_um"),
+        ({"prior_sigma_um": 0.0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "prior_sigma_um"),
+        ({"prior_sigma_um": -1.0}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "prior_sigma_um"),
         ({"nonce": b"n" * 65}, common_pb2.ERROR_CODE_MALFORMED_REQUEST, "nonce"),
     ],
 )
