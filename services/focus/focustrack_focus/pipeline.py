@@ -352,6 +352,7 @@ class FrameByFrame:
         self._sharpest = self._blurriest = self._blurriest_raw = np.empty(0, np.float32)
         self._look_snr = math.nan  # a look's statistic (`look.look_snr`), read as it comes
         self._busy_s = 0.0
+        self._frame_shape: tuple[int, ...] = ()  # the first frame's
 
     @property
     def complete(self) -> bool:
@@ -383,6 +384,11 @@ class FrameByFrame:
                 f"a frame is (H, W) or (H, W, C) of integers or floats, got {frame.shape} "
                 f"{frame.dtype}"
             )
+        if self._frame_shape and frame.shape != self._frame_shape:  # one curve, one field
+            raise ValueError(
+                f"frame {index} is {frame.shape}; the stack's first was {self._frame_shape}"
+            )
+        self._frame_shape = frame.shape
         if frame.dtype.kind == "f" and not np.all(np.isfinite(frame)):
             raise ValueError("pixels must be finite (NaN or infinity found)")
         preprocess = self.settings.preprocess

@@ -71,6 +71,8 @@ def test_missing_repeated_and_bad_frames_are_refused() -> None:
         incremental.add(9, frames[0])
     with pytest.raises(ValueError, match="finite"):
         incremental.add(1, np.full((64, 64), np.nan))
+    with pytest.raises(ValueError, match=r"frame 1 is \(32, 128\); the stack's first was"):
+        incremental.add(1, frames[1].reshape(32, 128))  # the same pixels, another field
     huge = np.random.default_rng(0).uniform(1e307, 1.7e308, (64, 64))  # finite, past float32
     with (
         pytest.raises(ValueError, match=r"frame 1 scores nan .* overflow"),
