@@ -101,9 +101,13 @@ def _ended_with(parent_pid: int) -> Callable[[], None] | None:
     stack's process ends, even by SIGKILL, which no `finally` hears (services used to
     outlive a killed demo or bench, holding their ports); None where there is no prctl.
 
-    Linux sends the signal when the thread that started the child ends: the stack starts
-    services from its own thread or from its supervisor, which ends with the stack."""
-    if not sys.platform.startswith("linux"):
+    Linux sends the signal when the *thread* that started the child ends, so only children
+    started on the main thread are given it: a service restarted by a thread of its own
+    (the stack's supervisor, `bench chaos`'s faults) would be stopped when that thread ends.
+    """
+    if not sys.platform.startswith("linux") or threading.current_thread() is not (
+        threading.main_thread()
+    ):
         return None
     prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here, not in the child
 
