@@ -155,6 +155,18 @@ def _place(curve: FrameByFrame, frame: instrument_pb2.ZFrameHeader) -> int:
     return frame.index + curve.z_um.size - len(frame.stack.z_um)
 
 
+def _check_same_stack(curve: FrameByFrame, frame: instrument_pb2.ZFrameHeader) -> None:
+    """ValueError unless `frame`'s header gives its stack the heights the stack's first
+    frame gave (the tail of `curve`'s, after a joined look): a frame saying 3 frames after
+    one saying 21 was placed among the 21, and the stack never answered."""
+    z_um = np.asarray(frame.stack.z_um)
+    if z_um.size > curve.z_um.size or not np.array_equal(curve.z_um[-z_um.size :], z_um):
+        raise ValueError(
+            f"frame {frame.index}'s header gives its stack {z_um.size} frames at other "
+            "heights than its first frame's"
+        )
+
+
 def _no_frame_size(_instrument: str) -> int | None:
     return None
 
@@ -277,6 +289,8 @@ class FrameAnalyser:
             if frame is None:
                 return None  # a part of the frame: more to come
             curve = self._open.pop(stack)
+            if curve is not None:
+                _check_same_stack(curve, frame_header)
             if curve is not None and not np.isnan(curve.scores[_place(curve, frame_header)]):
                 log.warning(
                     "frame %d on %s came again: stack started over", frame_header.index, key

@@ -439,3 +439,22 @@ def test_the_worker_learns_the_instruments_frame_size_and_expires_stacks_on_its_
         queryable.undeclare()
         worker.close()
         service.close()
+
+
+def test_a_frame_whose_header_gives_its_stack_other_heights_ends_it_with_an_error(
+    render: Callable[..., np.ndarray],
+) -> None:
+    """Frame 0 said 13 frames, frame 1 of the same acquisition 3: it was placed among the
+    13, and the stack was never answered."""
+    frames = render(96, Z_UM, TRUTH_UM, 3)[..., None]
+    analyser = FrameAnalyser(FocusSettings(), na=0.85, clock=_Clock())
+    key = keys.zframe_key("s1", 2, 3)
+    samples = _frame_samples(frames, 4, 1.0)
+    assert analyser.add(key, *samples[0]) is None
+    payload, attachment = samples[1]
+    other = instrument_pb2.ZFrameHeader.FromString(attachment)
+    del other.stack.z_um[3:]
+    other.stack.shape[0] = 3
+    refused = analyser.add(key, payload, other.SerializeToString())
+    assert refused is not None and refused.error.code == common_pb2.ERROR_CODE_BAD_STACK
+    assert "frame 1's header gives its stack 3 frames at other heights" in refused.error.message
