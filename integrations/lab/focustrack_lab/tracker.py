@@ -18,6 +18,7 @@ on it.
 from __future__ import annotations
 
 import math
+import operator
 from collections import Counter
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
@@ -166,6 +167,7 @@ class FocusTracker:
         Yields the z of every frame of each stack to take, (n,) in um; is sent its
         frames (n, H, W[, C]); returns the TileFocus.
         """
+        row, col = _tile_index(row, "row"), _tile_index(col, "col")
         n_frames = n_stacks = 0
         last: FocusResult | None = None
         z_um: float | None = None
@@ -174,7 +176,12 @@ class FocusTracker:
         while (step := self.estimator.next(self.slide_id)).row == row and step.col == col:
             frames_z_um = _frames_z_um(step)
             self.stack_sequence = _required(step.sequence)
-            frames = yield frames_z_um
+            frames = np.asarray((yield frames_z_um))
+            if frames.dtype == object:  # None, or what is no array of numbers
+                raise ValueError(
+                    "acquire must give the stack's frames, (n, H, W[, C]) numbers: an array "
+                    f"or a list of frames of one shape; got {frames.dtype} {frames.shape}"
+                )
             n_frames += len(frames_z_um)
             n_stacks += 1
             measurement = Measurement(None)
@@ -230,3 +237,13 @@ def _best(*candidates: tuple[float | None, float | None]) -> tuple[float | None,
         if z_um is not None and math.isfinite(z_um):
             return z_um, sigma_um
     return None, None
+
+
+def _tile_index(value: object, name: str) -> int:
+    """`value` as a tile index: an int, a numpy integer; TypeError naming `name` for a str,
+    a float or None (they used to reach the estimator's model after the stack was taken,
+    or a TileOrderError saying "expects (0, 0), not tile (0, 0)")."""
+    try:
+        return operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        raise TypeError(f"{name} must be an integer, got {value!r}") from None

@@ -45,3 +45,24 @@ def test_a_focus_measure_too_noisy_for_the_depth_of_field_gets_several_frames_to
         assert 3 <= planes.size <= 5 and np.all(np.diff(planes) > 0)
         assert np.all(np.diff(planes) <= dof_um + 1e-9)  # their depths of field join
         assert planes[0] <= tile.z_um <= planes[-1]
+
+
+def test_a_tile_index_of_another_type_and_frames_that_are_no_array_are_named(
+    estimator: EstimatorClient, scope: SimScope, scope_slide: Callable[[str, float], SlideCreate]
+) -> None:
+    """numpy integers are tile indices; a str is refused before any stack (it was "expects
+    (0, 0) next, not tile (0, 0)"); None for frames is a ValueError, not an AttributeError
+    deep in the focus maths."""
+    tracker = FocusTracker.create(estimator, scope_slide("kf-2d", 1.5), FocusSettings())
+    taken: list[int] = []
+
+    def acquire(z_um: np.ndarray) -> None:
+        taken.append(len(z_um))
+        return None
+
+    with pytest.raises(TypeError, match="row must be an integer, got '0'"):
+        tracker.focus("0", 0, acquire)  # type: ignore[arg-type]
+    assert taken == []  # refused before any stack
+    with pytest.raises(ValueError, match="acquire must give the stack's frames"):
+        tracker.focus(np.int64(0), np.int64(0), acquire)  # type: ignore[arg-type]
+    assert taken  # a numpy integer reached the stack
