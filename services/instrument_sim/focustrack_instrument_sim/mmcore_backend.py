@@ -76,17 +76,19 @@ def device_errors(device: str, *, image: bool = False) -> Iterator[None]:
         raise DeviceError(device, message) from error
 
 
-def core_from_config(config: Path, adapter_paths: Sequence[Path] = ()) -> CMMCorePlus:
+def core_from_config(config: Path | str, adapter_paths: Sequence[Path | str] = ()) -> CMMCorePlus:
     """A core with the devices of the Micro-Manager configuration `config`, from the device
     adapters in `adapter_paths` (none: those of the Micro-Manager installation pymmcore-plus
-    finds). ValueError for a missing file or folder; DeviceError when the configuration
-    does not load (a device that does not initialise, a line MMCore refuses)."""
+    finds); paths or their text. ValueError for a missing file or folder; DeviceError when
+    the configuration does not load (a device that does not initialise, a line MMCore
+    refuses)."""
+    config, adapters = Path(config), [Path(folder) for folder in adapter_paths]
     if not config.is_file():
         raise ValueError(f"--mm-config {config}: no such file")
-    for folder in adapter_paths:
+    for folder in adapters:
         if not folder.is_dir():
             raise ValueError(f"--mm-adapter-path {folder}: no such folder")
-    folders = [str(folder) for folder in adapter_paths]
+    folders = [str(folder) for folder in adapters]
     # Given adapter folders, pymmcore-plus need not look for an installation (and log an
     # error when it finds none): the first folder stands for it.
     core = CMMCorePlus(mm_path=folders[0] if folders else None, adapter_paths=folders)

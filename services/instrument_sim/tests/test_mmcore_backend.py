@@ -60,7 +60,7 @@ def _frames(instrument: MMCoreInstrument, plan: StackPlan) -> list[np.ndarray]:
 @pytest.fixture
 def demo() -> CMMCorePlus:
     """A core with the demo configuration (the instrument made of it releases it)."""
-    return core_from_config(DEMO_CONFIG, [ADAPTERS])
+    return core_from_config(str(DEMO_CONFIG), [str(ADAPTERS)])  # paths or their text
 
 
 @pytest.fixture
