@@ -208,8 +208,19 @@ def _pauses(call: _Call[T], retry_pauses_s: tuple[float, ...]) -> tuple[float | 
     return (*(retry_pauses_s if call.idempotent else ()), None)
 
 
-def _headers(token: str | None) -> dict[str, str]:
-    return {"Authorization": f"Bearer {token}"} if token else {}
+def _checked(base_url: str, token: str | None) -> tuple[str, dict[str, str]]:
+    """The base URL and the headers of a client; ValueError, at once, for what no attempt
+    can send (they were httpx's errors at the first request, after its retries): a URL
+    with no http(s) scheme, a token with characters a header cannot hold. A token read from
+    a file keeps its line's end: the whitespace around it is left out."""
+    if not base_url.lower().startswith(("http://", "https://")):
+        raise ValueError(f"base_url must start with http:// or https://, got {base_url!r}")
+    token = token.strip() if token else token
+    if not token:
+        return base_url, {}
+    if not token.isascii() or not token.isprintable():
+        raise ValueError("the token holds characters an HTTP header cannot carry")
+    return base_url, {"Authorization": f"Bearer {token}"}
 
 
 class EstimatorClient:
@@ -229,8 +240,9 @@ class EstimatorClient:
         transport: httpx.BaseTransport | None = None,
         retry_pauses_s: Sequence[float] = RETRY_PAUSES_S,
     ) -> None:
+        base_url, headers = _checked(base_url, token)
         self.http = httpx.Client(
-            base_url=base_url, headers=_headers(token), timeout=timeout_s, transport=transport
+            base_url=base_url, headers=headers, timeout=timeout_s, transport=transport
         )
         self.retry_pauses_s = tuple(retry_pauses_s)
 
@@ -326,8 +338,9 @@ class AsyncEstimatorClient:
         transport: httpx.AsyncBaseTransport | None = None,
         retry_pauses_s: Sequence[float] = RETRY_PAUSES_S,
     ) -> None:
+        base_url, headers = _checked(base_url, token)
         self.http = httpx.AsyncClient(
-            base_url=base_url, headers=_headers(token), timeout=timeout_s, transport=transport
+            base_url=base_url, headers=headers, timeout=timeout_s, transport=transport
         )
         self.retry_pauses_s = tuple(retry_pauses_s)
 

@@ -128,3 +128,15 @@ def test_a_lost_reply_is_asked_again_only_where_a_repeat_is_harmless(url: str) -
             assert len(estimator.list_slides()) == n_slides + 1
     finally:
         relay.close()
+
+
+@pytest.mark.parametrize("client_type", [EstimatorClient, AsyncEstimatorClient])
+def test_what_no_request_can_send_is_refused_when_the_client_is_made(client_type: type) -> None:
+    """A URL without its scheme and a token with a control character inside were httpx's
+    errors at the first request, after its retries; a token's line end is left out."""
+    with pytest.raises(ValueError, match="must start with http:// or https://"):
+        client_type("127.0.0.1:8100")
+    with pytest.raises(ValueError, match="characters an HTTP header cannot carry"):
+        client_type("http://127.0.0.1:8100", token="s3c\nret")
+    client = client_type("http://127.0.0.1:8100", token="s3cret\n")  # as read from a file
+    assert client.http.headers["Authorization"] == "Bearer s3cret"
