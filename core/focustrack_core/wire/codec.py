@@ -167,7 +167,7 @@ def _dtype_of(header: instrument_pb2.ZStackHeader) -> np.dtype:
     except TypeError as error:
         raise ValueError(f"z-stack header has an unknown dtype {header.dtype!r}") from error
     if dtype.fields is not None or dtype.subdtype is not None:
-        raise ValueError(f"z-stack header's dtype {header.dtype!r} is not of one number a pixel")
+        raise ValueError(f"z-stack header's dtype {header.dtype!r} is not one number per pixel")
     return dtype
 
 

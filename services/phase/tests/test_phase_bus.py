@@ -321,7 +321,7 @@ def test_a_phase_frame_that_does_not_fit_its_header_gets_an_error_result() -> No
     z_um = REFERENCE_Z_UM + np.array([-2.0, 0.0, 2.0])
     good = frame_samples(header_of(1, z_um), np.zeros((3, 8, 8, 1), np.uint16))[0]
     wrong = {
-        "not of one number": lambda frame: (  # 8 x 4 pixels of two uint16: the frame's bytes
+        "not one number per pixel": lambda frame: (  # 8 x 4 pixels of two uint16: the bytes
             setattr(frame.stack, "dtype", "u2,u2"),
             frame.stack.shape.__setitem__(2, 4),
         ),
