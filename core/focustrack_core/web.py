@@ -10,7 +10,7 @@ services built on FastAPI (the focus and phase services), which import it.
 from __future__ import annotations
 
 import secrets
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile
@@ -24,6 +24,15 @@ from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout, qu
 from focustrack_core.tracing import TraceRequests
 
 _bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
+
+
+def check_least(limits: object, least: Mapping[str, int]) -> None:
+    """ValueError naming the first of `limits`' fields (a service's request limits) below
+    its `least`: a limit that admits no request is a configuration error, not a service
+    that answers nothing."""
+    for name, floor in least.items():
+        if (value := getattr(limits, name)) < floor:
+            raise ValueError(f"{name} must be at least {floor}, got {value}")
 
 
 def bearer_token(token: str | None) -> Callable[..., Awaitable[None]]:

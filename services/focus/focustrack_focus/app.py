@@ -44,7 +44,13 @@ from focustrack_core.stacks import (
     decode_stack,
     parse_z_list,
 )
-from focustrack_core.web import bearer_token, form_as_declared, guarded_app, read_upload
+from focustrack_core.web import (
+    bearer_token,
+    check_least,
+    form_as_declared,
+    guarded_app,
+    read_upload,
+)
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
 from focustrack_focus.peak import PeakMode
 from focustrack_focus.pipeline import (
@@ -86,9 +92,7 @@ class FocusLimits:
     body_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
-        for name, least in LEAST_LIMITS.items():
-            if getattr(self, name) < least:
-                raise ValueError(f"{name} must be at least {least}, got {getattr(self, name)}")
+        check_least(self, LEAST_LIMITS)
         if not self.body_timeout_s > 0:
             raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
 

@@ -260,7 +260,7 @@ def _check_counts_of_light(stack_counts: np.ndarray, frame_means: np.ndarray) ->
     spread is read on every 8th row and column, so the check costs a 64th of a pass."""
     for index, (frame, mean) in enumerate(zip(stack_counts, frame_means.tolist(), strict=True)):
         spread = float(np.std(frame[::8, ::8], dtype=np.float64))
-        if not mean >= MIN_MEAN_OVER_SPREAD * spread or not mean > 0:
+        if not (mean > 0 and mean >= MIN_MEAN_OVER_SPREAD * spread):
             raise ValueError(
                 f"frame {index} has a mean of {mean:.4g} counts against a spread of "
                 f"{spread:.4g}: the filter takes counts of light (raw, or above the camera's "

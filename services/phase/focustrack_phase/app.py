@@ -35,7 +35,13 @@ from fastapi.responses import Response
 
 from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
-from focustrack_core.web import bearer_token, form_as_declared, guarded_app, read_upload
+from focustrack_core.web import (
+    bearer_token,
+    check_least,
+    form_as_declared,
+    guarded_app,
+    read_upload,
+)
 from focustrack_phase.acekf import AcekfOptions, Background, FieldEstimate, Update, reconstruct
 
 #: The .npy answer's header with the share of the image taken as empty glass, whose phase
@@ -74,9 +80,7 @@ class PhaseLimits:
     body_timeout_s: float = 60.0
 
     def __post_init__(self) -> None:
-        for name, least in LEAST_LIMITS.items():
-            if getattr(self, name) < least:
-                raise ValueError(f"{name} must be at least {least}, got {getattr(self, name)}")
+        check_least(self, LEAST_LIMITS)
         if not self.body_timeout_s > 0:
             raise ValueError(f"the body timeout must be positive, got {self.body_timeout_s} s")
 
