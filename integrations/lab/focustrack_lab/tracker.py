@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from focustrack_client import EstimatorClient
+from focustrack_client import EstimatorClient, EstimatorError, ServerError
 from focustrack_client.models import FocusFlag, MeasurementIn, Next, SlideCreate
 from focustrack_core.domain import FocusFlag as DomainFlag
 from focustrack_core.domain import Measurement
@@ -123,6 +123,8 @@ class FocusTracker:
         # The estimator's sequence number of the stack `tile` last yielded (None before
         # the first): a plan that records its frames can say which acquisition they are.
         self.stack_sequence: int | None = None
+        # The tile whose last call raised, to go on with (see `tile`).
+        self._progress: _TileProgress | None = None
 
     @classmethod
     def create(
@@ -166,13 +168,20 @@ class FocusTracker:
 
         Yields the z of every frame of each stack to take, (n,) in um; is sent its
         frames (n, H, W[, C]); returns the TileFocus.
+
+        Called again for a tile whose call raised, it goes on where that one stopped: a
+        measurement whose post met a connection error or a server error (recorded or not,
+        no one knows) is posted again first, as the estimator answers a repeat as the
+        first; the stacks already taken stay counted. Without that, a reply lost after
+        the estimator recorded the tile's last stack lost the tile: the estimator had
+        moved on to the next one.
         """
         row, col = _tile_index(row, "row"), _tile_index(col, "col")
-        n_frames = n_stacks = 0
-        last: FocusResult | None = None
-        z_um: float | None = None
-        sigma_um: float | None = None
-        planes_um: tuple[float, ...] = ()
+        progress = self._progress
+        if progress is None or (progress.row, progress.col) != (row, col):
+            progress = self._progress = _TileProgress(row, col)
+        if progress.unposted is not None:
+            self._post(progress, progress.unposted)
         while (step := self.estimator.next(self.slide_id)).row == row and step.col == col:
             frames_z_um = _frames_z_um(step)
             self.stack_sequence = _required(step.sequence)
@@ -182,39 +191,91 @@ class FocusTracker:
                     "acquire must give the stack's frames, (n, H, W[, C]) numbers: an array "
                     f"or a list of frames of one shape; got {frames.dtype} {frames.shape}"
                 )
-            n_frames += len(frames_z_um)
-            n_stacks += 1
+            progress.n_frames += len(frames_z_um)
+            progress.n_stacks += 1
             measurement = Measurement(None)
             if step.measure:
-                last = focus_stack(frames, frames_z_um, self.settings)
-                measurement = last.measurement()
-            outcome = self.estimator.measure(
-                self.slide_id,
-                MeasurementIn(
-                    row=row,
-                    col=col,
-                    sequence=self.stack_sequence,
-                    z_um=measurement.z_um,
-                    sigma_um=measurement.sigma_um,
-                    flags=[FocusFlag(flag.value) for flag in sorted(measurement.flags)],
-                ),
-            )
-            planes_um = tuple(outcome.planes_um)
-            z_um, sigma_um = _best(
-                (outcome.posterior_um, outcome.posterior_sigma_um),
-                (measurement.z_um, measurement.sigma_um),
-                (step.predicted_z_um, step.predicted_sigma_um),
-                (step.z_center_um, None),
-            )
-        if z_um is None:
+                progress.last = focus_stack(frames, frames_z_um, self.settings)
+                measurement = progress.last.measurement()
+            progress.unposted = _Unposted(step, self.stack_sequence, measurement)
+            self._post(progress, progress.unposted)
+        self._progress = None
+        if progress.z_um is None:
             expected = "nothing: the scan is done" if step.done else f"({step.row}, {step.col})"
             raise TileOrderError(
                 f"the estimator expects {expected} next, not tile ({row}, {col}): visit the "
                 "tiles in its serpentine order (row 0 left to right, row 1 right to left, ...)"
             )
-        tile = TileFocus(row, col, z_um, sigma_um, n_frames, n_stacks, last, planes_um)
+        tile = TileFocus(
+            row,
+            col,
+            progress.z_um,
+            progress.sigma_um,
+            progress.n_frames,
+            progress.n_stacks,
+            progress.last,
+            progress.planes_um,
+        )
         self.tiles.append(tile)
         return tile
+
+    def _post(self, progress: _TileProgress, unposted: _Unposted) -> None:
+        """Post the tile's `unposted` measurement; where to image the tile, from its outcome.
+
+        Keeps it unposted when the post's fate is unknown (a connection error, a server
+        error), so that the tile's next call posts it again; drops it when the estimator
+        refused it (a 4xx: nothing recorded, it asks for the stack again).
+        """
+        measurement = unposted.measurement
+        try:
+            outcome = self.estimator.measure(
+                self.slide_id,
+                MeasurementIn(
+                    row=progress.row,
+                    col=progress.col,
+                    sequence=unposted.sequence,
+                    z_um=measurement.z_um,
+                    sigma_um=measurement.sigma_um,
+                    flags=[FocusFlag(flag.value) for flag in sorted(measurement.flags)],
+                ),
+            )
+        except EstimatorError as error:
+            if not isinstance(error, ServerError):
+                progress.unposted = None
+            raise
+        progress.unposted = None
+        progress.planes_um = tuple(outcome.planes_um)
+        step = unposted.step
+        progress.z_um, progress.sigma_um = _best(
+            (outcome.posterior_um, outcome.posterior_sigma_um),
+            (measurement.z_um, measurement.sigma_um),
+            (step.predicted_z_um, step.predicted_sigma_um),
+            (step.z_center_um, None),
+        )
+
+
+@dataclass(frozen=True)
+class _Unposted:
+    """A measurement of stack `sequence`, asked for by `step`, not yet acknowledged."""
+
+    step: Next
+    sequence: int
+    measurement: Measurement
+
+
+@dataclass
+class _TileProgress:
+    """A tile's focus so far (heights in um): what `FocusTracker.tile` resumes from."""
+
+    row: int
+    col: int
+    n_frames: int = 0
+    n_stacks: int = 0
+    last: FocusResult | None = None
+    unposted: _Unposted | None = None
+    z_um: float | None = None
+    sigma_um: float | None = None
+    planes_um: tuple[float, ...] = ()
 
 
 def _required(value: int | None) -> int:
