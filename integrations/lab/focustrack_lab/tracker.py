@@ -154,6 +154,7 @@ class FocusTracker:
         """Every stack the estimator asks of tile (row, col), taken by `acquire`; where to image it.
 
         Raises TileOrderError when the estimator expects another tile (or none) first.
+        Called again for a tile whose call raised, it goes on where that one stopped (`tile`).
         """
         steps = self.tile(row, col)
         try:
