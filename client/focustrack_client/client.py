@@ -35,6 +35,7 @@ from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Generic, Literal, NamedTuple, Self, TypeVar
+from urllib.parse import quote
 
 import httpx
 from opentelemetry import propagate, trace
@@ -92,11 +93,13 @@ class _Call(Generic[T]):
     body: BaseModel | bytes | None = None
     params: dict[str, str] = field(default_factory=dict)
     idempotent: bool = True
-    slide_id: str = ""
+    slide_id: str | None = None
 
     @property
     def path(self) -> str:
-        return self.route.format(slide_id=self.slide_id)
+        if self.slide_id is None:
+            return self.route
+        return self.route.format(slide_id=_path_segment(self.slide_id))
 
     def span(self) -> AbstractContextManager[trace.Span]:
         """A client span of one attempt, current while the block runs: in the caller's trace,
@@ -127,6 +130,16 @@ class _Call(Generic[T]):
         trace.get_current_span().set_attribute("http.response.status_code", response.status_code)
         raise_for_error(response)
         return self.read(response)
+
+
+def _path_segment(slide_id: str) -> str:
+    """`slide_id` as one segment of a path, quoted: a "?" or "#" in it names no query or
+    fragment (`delete_slide("abc?x")` deleted slide abc). ValueError for an id that no
+    request can carry: empty, or with a "/" (the service routes on the decoded path, so
+    "abc%2Fmap" is slide abc's map; its own ids are 32 hex digits)."""
+    if not slide_id or "/" in slide_id:
+        raise ValueError(f"a slide id is one non-empty path segment, got {slide_id!r}")
+    return quote(slide_id, safe="")
 
 
 def _model(model: type[M]) -> Callable[[httpx.Response], M]:

@@ -105,6 +105,23 @@ def test_refusals_are_typed_by_their_code(url: str) -> None:
             estimator.measure(slide.id, MeasurementIn(row=0, col=1, sequence=5, z_um=1.0))
 
 
+def test_a_slide_id_is_one_path_segment_whatever_it_holds(url: str) -> None:
+    """An id is quoted whole ("abc?x" deleted slide abc); one with a "/" is refused, as the
+    service routes on the decoded path ("abc/map" read the map as a slide: a pydantic
+    error, not the estimator's)."""
+    with EstimatorClient(url, token=TOKEN) as estimator:
+        slide = estimator.create_slide(SlideCreate(strategy="tile-skip", grid=Grid(rows=1, cols=2)))
+        for other in (f"{slide.id}?x=1", f"{slide.id}#x", f"{slide.id} ", f"{slide.id}%2Fmap"):
+            with pytest.raises(SlideNotFoundError):
+                estimator.delete_slide(other)
+            with pytest.raises(SlideNotFoundError):
+                estimator.slide(other)
+        for other in (f"{slide.id}/map", f"{slide.id}/..", ""):
+            with pytest.raises(ValueError, match="one non-empty path segment"):
+                estimator.delete_slide(other)
+        assert estimator.slide(slide.id).id == slide.id  # still there
+
+
 def test_a_lost_reply_is_asked_again_only_where_a_repeat_is_harmless(url: str) -> None:
     relay = TcpRelay(int(url.rpartition(":")[2]))
     try:
