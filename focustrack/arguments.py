@@ -13,28 +13,16 @@ import math
 import os
 from pathlib import Path
 
-
-def _nearest_existing(path: Path) -> Path:
-    """`path`, or the nearest of its parents that exists."""
-    for candidate in (path, *path.parents):
-        if candidate.exists():
-            return candidate
-    return Path.cwd()
+from focustrack_core.settings import make_writable_folder
 
 
 def _check_writable_folder(folder: Path, text: str) -> None:
-    """ArgumentTypeError unless `folder` is, or can be made, a folder this process writes
-    into. It is made now (the run would make it at its end): only making it tells whether
-    it can be (under /proc, say, even root cannot)."""
-    existing = _nearest_existing(folder)
-    if not existing.is_dir():
-        raise argparse.ArgumentTypeError(f"cannot write {text}: {existing} is not a folder")
+    """ArgumentTypeError unless `folder` is, or can now be made, a folder this process
+    writes into (the run would make it at its end)."""
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise argparse.ArgumentTypeError(f"cannot write {text}: {error.strerror}") from error
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"cannot write {text}: {folder} is not writable")
+        make_writable_folder(folder)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"cannot write {text}: {error}") from None
 
 
 def output_file(text: str) -> Path:

@@ -198,6 +198,23 @@ class SettingsError(ValueError):
     """Settings the model refuses (a bad value, an unreadable file); the message says which."""
 
 
+def make_writable_folder(folder: Path) -> None:
+    """Make `folder` (and its parents) unless it exists; ValueError saying why it cannot be
+    a folder this process writes into: a file in its path, the system's refusal, no write
+    permission. Only making it tells whether it can be (under /proc, say, even root
+    cannot), so a command checks its output folder this way when it starts, not after
+    its work."""
+    existing = next((path for path in (folder, *folder.parents) if path.exists()), Path.cwd())
+    if not existing.is_dir():
+        raise ValueError(f"{existing} is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ValueError(error.strerror or str(error)) from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"{folder} is not writable")
+
+
 def read_settings_file(path: Path) -> dict[str, Any]:
     """The settings in a TOML (``.toml``, in any case) or JSON file, by field name;
     SettingsError if bad."""

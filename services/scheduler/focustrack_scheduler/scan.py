@@ -32,7 +32,7 @@ from focustrack_core import tracing
 from focustrack_core.http_metrics import metrics_server
 from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.serving import ListenError
-from focustrack_core.settings import command_main
+from focustrack_core.settings import command_main, make_writable_folder
 from focustrack_core.wire import rpc
 from focustrack_core.wire.session import CONNECT_TIMEOUT_S, open_config, zenoh_message
 from focustrack_core.wire.trust import ResultSigner, signer_of
@@ -116,12 +116,9 @@ def _check_output_folder(out_dir: Path) -> None:
     can write into (a file there, or a folder it cannot write, used to wait for the bus
     first and fail after it)."""
     try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        why = "it is a file" if out_dir.exists() else error.strerror
-        raise ValueError(f"--out {out_dir} cannot be the output folder: {why}") from None
-    if not os.access(out_dir, os.W_OK | os.X_OK):
-        raise ValueError(f"--out {out_dir} cannot be the output folder: it is not writable")
+        make_writable_folder(out_dir)
+    except ValueError as error:
+        raise ValueError(f"--out {out_dir} cannot be the output folder: {error}") from None
 
 
 def _slide_settings(request: ScanRequest) -> dict[str, Any]:

@@ -278,15 +278,16 @@ def test_a_damaged_state_stops_the_scan_in_one_line(
     assert "scan.json is damaged: it is not JSON" in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize(("out", "why"), [("a-file", "it is a file"), ("a-file/x", "Not a")])
+@pytest.mark.parametrize("out", ["a-file", "a-file/x"])
 def test_an_output_folder_that_cannot_be_is_refused_before_the_bus(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], out: str, why: str
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], out: str
 ) -> None:
     """Said at once: it used to wait for the Zenoh router first (30 s when none answers)."""
     (tmp_path / "a-file").write_text("mine")
     unanswered = f"tcp/127.0.0.1:{free_port()}"  # nothing listens: the bus would wait
     assert scan.run(settings("--out", str(tmp_path / out), "--connect", unanswered)) == 2
     err = capsys.readouterr().err
+    why = f"{tmp_path / 'a-file'} is not a folder"
     assert f"--out {tmp_path / out} cannot be the output folder: {why}" in err
     assert "router" not in err and (tmp_path / "a-file").read_text() == "mine"
 
