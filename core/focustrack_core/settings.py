@@ -157,7 +157,7 @@ class ServiceSettings(BaseSettings):
         try:
             return cls(**values)
         except ValidationError as error:
-            raise SettingsError(_describe(cls, error, environment)) from None
+            raise SettingsError(_describe(cls, error, _Reading(file, environment))) from None
         finally:
             _READING.reset(token)
 
@@ -300,9 +300,10 @@ def _choices(field: FieldInfo) -> list[str] | None:
     return None
 
 
-def _describe(cls: type[ServiceSettings], error: ValidationError, environment: bool) -> str:
-    """One line per refused option: its flag, its variable (where the `environment` is
-    read) and what is wrong."""
+def _describe(cls: type[ServiceSettings], error: ValidationError, reading: _Reading) -> str:
+    """One line per refused option: its flag, its variable (where the environment is
+    read), its key in the settings file (where the file holds it) and what is wrong."""
+    in_file = read_settings_file(reading.file) if reading.file is not None else {}
     lines = []
     for problem in error.errors(include_url=False):
         if not problem["loc"]:  # the settings together (a model validator): its words alone
@@ -312,9 +313,11 @@ def _describe(cls: type[ServiceSettings], error: ValidationError, environment: b
         if problem["type"] == "extra_forbidden":  # only a settings file can name one
             lines.append(f"the settings file has {name!r}, which is no setting (see --help)")
             continue
-        flag = "--" + name.replace("_", "-")
-        where = f" ({cls.variable(name)})" if environment else ""
-        lines.append(f"{flag}{where}: {problem['msg']}")
+        sources = [cls.variable(name)] if reading.environment else []
+        if name in in_file:
+            sources.append(f"{name!r} in {reading.file}")
+        where = f" ({', '.join(sources)})" if sources else ""
+        lines.append(f"--{name.replace('_', '-')}{where}: {problem['msg']}")
     return "; ".join(lines)
 
 

@@ -117,6 +117,19 @@ def test_a_refused_value_names_its_option(
         settings(argv, monkeypatch, **environ)
 
 
+def test_a_refused_value_from_the_settings_file_names_its_key_there(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The user looks in the file: the message names its key there beside the flag and the
+    variable (it named only those two, neither of which was set)."""
+    file = tmp_path / "demo.toml"
+    file.write_text("port = 70000\nmax_tile_seconds = 0.2\n")
+    with pytest.raises(SettingsError) as refused:
+        settings(["--settings", str(file)], monkeypatch)
+    assert f"--port (FOCUSTRACK_DEMO_PORT, 'port' in {file}): Input should be" in str(refused.value)
+    assert "max_tile_seconds" not in str(refused.value)  # a good value is not named
+
+
 def test_an_unknown_key_or_a_bad_file_is_refused(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
