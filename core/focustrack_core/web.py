@@ -90,9 +90,19 @@ def guarded_app(
 
 
 async def form_as_declared(request: Request) -> None:
-    """A dependency that refuses (422) a multipart form with a field its route does not take
-    (a misspelt ``photons_per_count`` would silently be its default) or with a field given
-    twice (which of two stacks was meant is not for us to guess)."""
+    """A dependency that refuses (415) a body that is no form (a JSON body was a 422 listing
+    every field as missing; a form without its file is the 422 that names it), and (422) a
+    form with a field its route does not take (a misspelt ``photons_per_count`` would
+    silently be its default) or with a field given twice (which of two stacks was meant
+    is not for us to guess)."""
+    media_type = request.headers.get("content-type", "").partition(";")[0].strip().lower()
+    if media_type not in ("multipart/form-data", "application/x-www-form-urlencoded"):
+        raise HTTPException(
+            415,
+            f"the body is {media_type or 'of no media type'}; this route takes "
+            "multipart/form-data: the stack as a file field and the others as form fields "
+            "(curl -F stack=@stack.npy -F 'z_um=[...]')",
+        )
     form = await request.form()  # parsed already for the route's own fields: read again
     route: APIRoute = request.scope["route"]
     declared = {param.alias for param in route.dependant.body_params}

@@ -15,8 +15,8 @@
 
 Bad input is a 4xx whose detail names the problem: 413 for an oversized body
 (or a stack that would decode to more than the limit), 415 for a file that is
-neither TIFF nor .npy, 408 for a body that arrives too slowly, 401 without the
-token (when one is set), 422 for the rest. What a request may ask is bounded
+neither TIFF nor .npy or a body that is no form, 408 for a body that arrives too
+slowly, 401 without the token (when one is set), 422 for the rest. What a request may ask is bounded
 (`FocusLimits`): bytes, decoded pixels (checked from the file's header, before
 decoding), frames, JSON size and nesting.
 """
@@ -326,7 +326,7 @@ def create_app(
             {
                 413: f"the body is over {max_body} bytes, or the stack would "
                 f"decode to over {limits.max_decoded_bytes} bytes",
-                415: "the stack is neither a TIFF nor a .npy file",
+                415: "the stack is neither a TIFF nor a .npy file, or the body is no form",
                 422: "a form field missing, unknown, given twice or invalid, or a stack the "
                 "maths refuses: the detail names the problem",
             }

@@ -348,6 +348,8 @@ def test_bad_stacks(client: TestClient, frames: np.ndarray) -> None:
         assert error["loc"] == ["body", "lowpass_sigma_px"], response.text
         assert error["msg"] == "Input should be a finite number", response.text
     check(b"GIF89a not a stack", z_text(), 415, "TIFF or a .npy")
+    as_json = client.post("/v1/focus/stack", json={"z_um": z_text()})  # was a 422: 2 missing
+    assert as_json.status_code == 415 and "takes multipart/form-data" in as_json.text
     check(b"\x93NUMPY broken", z_text(), 422, ".npy file cannot be read")
     big = np.zeros((20, 400, 400), np.uint16)  # 6.4 MB > the 4 MB limit of this app
     check(npy_bytes(big), z_text(np.arange(20.0)), 413, "exceeds")

@@ -14,10 +14,10 @@
 
 Bad input is a 4xx whose detail names the problem, as the focus service's: 413 for an
 oversized body or a stack that would decode to more than the limits (read from the
-file's header), 415 for a file that is neither TIFF nor .npy, 408 for a body that
-arrives too slowly, 401 without the token (when one is set), 422 for the rest, naming
-the field. The reconstruction (and the picture) run on a worker thread, so ``/healthz``
-answers while a stack is being reconstructed.
+file's header), 415 for a file that is neither TIFF nor .npy or a body that is no
+form, 408 for a body that arrives too slowly, 401 without the token (when one is set),
+422 for the rest, naming the field. The reconstruction (and the picture) run on a
+worker thread, so ``/healthz`` answers while a stack is being reconstructed.
 """
 
 from __future__ import annotations

@@ -226,6 +226,15 @@ def test_bad_requests_say_what_is_wrong(
     assert needle in response.text, response.text
 
 
+def test_a_body_that_is_no_form_is_a_415(client: TestClient, stack: SyntheticStack) -> None:
+    """JSON (the estimator's way) or a bare file was a 422 listing every field as missing."""
+    response = client.post("/v1/phase/stack", json=form(stack))
+    assert response.status_code == 415, response.text
+    assert "the body is application/json; this route takes multipart/form-data" in response.text
+    bare = client.post("/v1/phase/stack", content=npy_bytes(stack.stack_counts))
+    assert bare.status_code == 415 and "of no media type" in bare.text, bare.text
+
+
 def test_a_field_given_twice_is_refused(client: TestClient, stack: SyntheticStack) -> None:
     data = npy_bytes(stack.stack_counts)
     response = client.post(
