@@ -34,6 +34,7 @@ Every data key FocusTrack adds states its `units` (None for indices and labels) 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Generator, Mapping, Sequence
 from typing import Any
 
@@ -228,7 +229,17 @@ def focustrack_grid(
 
     camera: a triggerable, readable device whose reading is the image (H, W[, C]);
     x, y, z: movable motors in um. Returns the TileFocus of every tile, in scan order.
+    ValueError, before any message, when the tracker's slide at the estimator has another
+    grid (rows, cols, pitch) than the plan's: its map would be of another slide, and the
+    plan would stop at the first tile past the smaller grid.
     """
+    grid = tracker.estimator.slide(tracker.slide_id).config.grid
+    if (grid.rows, grid.cols) != (rows, cols) or not math.isclose(grid.pitch_um, pitch_um):
+        raise ValueError(
+            f"the plan's grid is {rows}x{cols} tiles {pitch_um:g} um apart, the estimator's "
+            f"slide {tracker.slide_id} {grid.rows}x{grid.cols} tiles {grid.pitch_um:g} um "
+            "apart: make the slide with the plan's grid"
+        )
     reading = TileFocusReading(name="focustrack")
     maps = focus_map_signals(rows, cols)
     metadata: dict[str, Any] = {

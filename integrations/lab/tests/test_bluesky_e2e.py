@@ -66,6 +66,25 @@ def events_by_stream(documents: list[tuple[str, dict[str, Any]]]) -> dict[str, l
     return events
 
 
+def test_a_plan_whose_grid_is_not_the_slide_s_is_refused_before_any_move(
+    estimator: EstimatorClient,
+    small_scope: SimScope,
+    slide_of: Callable[[SimScope, str, float], SlideCreate],
+) -> None:
+    """It ran, then stopped at the first tile past the smaller grid (a TileOrderError) or
+    put a 3x3 map into a 4x3 signal."""
+    tracker = FocusTracker.create(estimator, slide_of(small_scope, "kf-2d", 0.1))
+    camera, x, y, z = simulated_ophyd(small_scope)
+    RE = RunEngine({})
+    documents: list[str] = []
+    RE.subscribe(lambda name, _: documents.append(name))
+    for rows, pitch_um in ((4, 200.0), (3, 150.0)):
+        plan = focustrack_grid(camera, x, y, z, tracker, rows=rows, cols=3, pitch_um=pitch_um)
+        with pytest.raises(ValueError, match=r"the plan's grid is .* the estimator's slide"):
+            RE(plan)
+    assert documents == [] and small_scope.n_frames == 0
+
+
 @pytest.mark.slow
 def test_the_plan_images_every_tile_in_focus_and_the_documents_carry_the_focus_map(
     estimator: EstimatorClient,
