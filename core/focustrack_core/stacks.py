@@ -138,7 +138,9 @@ def _read_pages(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndar
     within the limits (TooLargeError) and the same on every page (ValueError).
 
     Each page is a frame, however a writer grouped them into series (one page at a time
-    makes a series of each, which tifffile's `imread` would cut to the first).
+    makes a series of each, which tifffile's `imread` would cut to the first), and its
+    samples come last whether they were stored interleaved or as separate planes (which
+    tifffile reads as (samples, height, width)).
     """
     import tifffile  # imported on first use, not at start-up
 
@@ -162,7 +164,10 @@ def _read_pages(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndar
             raise ValueError(f"the TIFF's pages must share one shape and type; got {described}")
         ((shape, dtype),) = kinds
         _check_size((len(pages), *shape), dtype.itemsize, max_frames, max_decoded_bytes)
-        return tiff.asarray(key=range(len(pages))).reshape(len(pages), *shape)
+        frames = tiff.asarray(key=range(len(pages))).reshape(len(pages), *shape)
+        if pages[0].axes.startswith("S"):  # colour planes stored apart: (samples, H, W) a page
+            return np.moveaxis(frames, 1, -1)
+        return frames
 
 
 def decode_stack(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndarray:

@@ -50,6 +50,17 @@ def test_a_tiff_written_a_page_at_a_time_is_every_page() -> None:
     np.testing.assert_array_equal(decode_stack(buffer.getvalue(), **ROOMY), STACK)
 
 
+@pytest.mark.parametrize("planarconfig", ["contig", "separate"])
+def test_colour_frames_are_frames_first_samples_last_however_stored(planarconfig: str) -> None:
+    """Colour planes stored apart were read (pages, samples, H, W): 5 RGB frames of 4x5 px
+    came out as 5 frames of 3x4 px with 5 channels."""
+    frames = np.arange(5 * 4 * 5 * 3, dtype=np.uint8).reshape(5, 4, 5, 3)
+    stored = frames if planarconfig == "contig" else np.moveaxis(frames, -1, 1)
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, stored, photometric="rgb", planarconfig=planarconfig)
+    np.testing.assert_array_equal(decode_stack(buffer.getvalue(), **ROOMY), frames)
+
+
 def test_a_compressed_tiff_is_read() -> None:
     """LZW, as OpenCV writes a multi-page TIFF by default (imagecodecs decodes it)."""
     buffer = io.BytesIO()
