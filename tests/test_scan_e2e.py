@@ -168,6 +168,14 @@ def test_a_scan_completes_as_the_benchmark_predicts_and_resumes_after_a_kill(
     wall = report["wall_time_s"]
     assert wall["total_s"] > 0 and wall["rendering_s"] > 0 and wall["estimation_s"] > 0
 
+    # Run again, finished: the same scan, its wall time that of every run (it was the
+    # last run's alone, 0.1 s of nothing to do).
+    finish(start_scan(stack, tmp_path))
+    again = json.loads((tmp_path / outputs.REPORT).read_text())
+    assert again["images_acquired"] == report["images_acquired"]
+    assert again["wall_time_s"]["total_s"] > wall["total_s"]
+    assert again["wall_time_s"]["rendering_s"] == pytest.approx(wall["rendering_s"])
+
 
 @pytest.mark.parametrize("service", ["estimator", "focus"])
 def test_a_service_killed_and_restarted_mid_scan_ends_in_a_complete_correct_scan(

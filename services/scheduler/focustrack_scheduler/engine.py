@@ -43,6 +43,7 @@ the wall-time split, the scan's metrics and each tile's trace (`telemetry`).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections import deque
@@ -70,7 +71,7 @@ from focustrack_scheduler.clients import (
 )
 from focustrack_scheduler.in_focus import InFocusScore
 from focustrack_scheduler.laser import read_laser
-from focustrack_scheduler.outputs import WallTimes
+from focustrack_scheduler.outputs import WALL_STATE_KEY, OutputFolderError, WallTimes
 from focustrack_scheduler.plan import (
     Acquire,
     AcquirePhase,
@@ -180,6 +181,8 @@ class Engine:
         self.policy = policy or RetryPolicy()
         self.estimator_url = estimator_url
         self.wall = WallTimes()
+        # The earlier runs of a resumed scan: the report's split is of the whole scan.
+        self._wall_before = WallTimes.of_dict((record.state.read() or {}).get(WALL_STATE_KEY))
         self.geometry: SlideGeometry | None = None
         self._on_geometry = on_geometry
         self._realign = realign
@@ -245,8 +248,16 @@ class Engine:
             self._tiles.close()
             self.metrics.running.set(0)
             self.wall.close(time.perf_counter() - started_s)
+            with contextlib.suppress(OSError, OutputFolderError):  # the scan's own error first
+                self.record.state.save(**{WALL_STATE_KEY: self.scan_wall.as_dict()})
             if self._progress is not None:
                 self._progress.close()
+
+    @property
+    def scan_wall(self) -> WallTimes:
+        """Where the whole scan's wall time went: this run's and every earlier run's of a
+        scan resumed (`wall` is this run's alone)."""
+        return self._wall_before.plus(self.wall)
 
     def _answer(self, step: Any) -> Any:
         with self._tiles.step(step, self._slide):

@@ -22,9 +22,16 @@ import numpy as np
 from focustrack_core.domain import FocusMap
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.maps import finite_or_none, map_layers
-from focustrack_scheduler.outputs import PARTIAL_MOSAIC, MosaicFormat, WallTimes
+from focustrack_scheduler.outputs import (
+    PARTIAL_MOSAIC,
+    SEAM_STATE_KEY,
+    STATE_FILE,
+    MosaicFormat,
+    WallTimes,
+)
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.report import scan_report
+from focustrack_scheduler.scan_state import ScanState
 from focustrack_scheduler.stitch import (
     Placement,
     compose,
@@ -119,6 +126,8 @@ class FinishedScan:
         )
         if placement is not None:
             report["seam_error_px"] = placement.seam_error_px
+        elif mosaic is None and SEAM_STATE_KEY in state:  # a finished scan run again
+            report["seam_error_px"] = state[SEAM_STATE_KEY]
         return cls(
             out_dir=record.out_dir,
             grid=grid,
@@ -212,9 +221,13 @@ def write_outputs(scan: FinishedScan, writers: Sequence[OutputWriter]) -> list[P
 
     Once they all have, and the mosaic file is among what they wrote, the record's
     partial mosaic goes: a writer that fails leaves it, so that running the scan again
-    on its folder writes every output again from it.
+    on its folder writes every output again from it. What only the tiles could tell, the
+    stitched mosaic's seam error, is kept in the scan's state first, for the report of
+    the finished scan run again.
     """
     paths = [path for writer in writers for path in writer.write(scan)]
     if scan.out_dir / scan.mosaic_format.file_name in paths:
+        if (seam_error_px := scan.report.get("seam_error_px")) is not None:
+            ScanState(scan.out_dir / STATE_FILE).save(**{SEAM_STATE_KEY: seam_error_px})
         (scan.out_dir / PARTIAL_MOSAIC).unlink(missing_ok=True)
     return paths

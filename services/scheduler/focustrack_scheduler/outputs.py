@@ -97,6 +97,13 @@ class MosaicFormat(StrEnum):
         return MOSAIC_ZARR if self is MosaicFormat.OME_ZARR else MOSAIC
 
 
+#: The scan state's entry of the wall-time split of the scan's runs so far (`WallTimes`).
+WALL_STATE_KEY = "wall_time_s"
+#: The scan state's entry of the stitched mosaic's seam error (px), for a finished scan
+#: run again, whose mosaic is no longer in tiles to place.
+SEAM_STATE_KEY = "seam_error_px"
+
+
 @dataclass
 class WallTimes:
     """Where the scan's wall-clock seconds went, as the scheduler saw them (they add up to total).
@@ -128,3 +135,22 @@ class WallTimes:
 
     def as_dict(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def of_dict(cls, saved: object) -> WallTimes:
+        """The split `as_dict` gave (a scan state's entry): every part it has that is a
+        number; none (an older state, another tool's) is zero."""
+        saved = saved if isinstance(saved, dict) else {}
+        return cls(
+            **{
+                f.name: float(saved[f.name])
+                for f in fields(cls)
+                if isinstance(saved.get(f.name), int | float)
+            }
+        )
+
+    def plus(self, other: WallTimes) -> WallTimes:
+        """The split of two runs of one scan (a scan interrupted and resumed), part by part."""
+        return WallTimes(
+            **{f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self)}
+        )

@@ -45,7 +45,11 @@ from focustrack_scheduler.engine import (
 )
 from focustrack_scheduler.finished import FinishedScan, OutputWriter, write_outputs
 from focustrack_scheduler.live import LiveScan
-from focustrack_scheduler.outputs import LOCK_FILE, MosaicFormat, OutputFolderError
+from focustrack_scheduler.outputs import (
+    LOCK_FILE,
+    MosaicFormat,
+    OutputFolderError,
+)
 from focustrack_scheduler.plan import FocusUnavailableError, ScanRequest, SlideGeometry, scan_plan
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.retry import RetryPolicy
@@ -265,7 +269,7 @@ def _scan_held(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
             focus_map,
             truth["um"],
             geometry.dof_um,
-            engine.wall,
+            engine.scan_wall,
             job.mosaic_format,
             focus_results_rejected=listener.n_rejected,
         )

@@ -98,6 +98,17 @@ def test_the_mosaic_is_stitched_where_the_stage_put_the_tiles(tmp_path: Path) ->
     np.testing.assert_array_equal(mosaic.transpose(1, 2, 0), _specimen().astype(np.uint8))
 
 
+def test_a_finished_scan_run_again_reports_its_seam_error_still(tmp_path: Path) -> None:
+    """Its tiles are in the mosaic alone by then: the report said `seam_error_px: null`."""
+    first = _scan(tmp_path)
+    assert not (tmp_path / outputs.PARTIAL_MOSAIC).exists()
+    record = ScanRecord(tmp_path)
+    again = FinishedScan.of(record, GRID, FocusMap(*[np.zeros(GRID.shape)] * 5), None, 1.0,
+                            WallTimes(), MosaicFormat.OME_ZARR)  # fmt: skip
+    record.close()
+    assert again.report["seam_error_px"] == first["seam_error_px"] is not None
+
+
 def test_the_phase_lies_pixel_for_pixel_over_the_stitched_mosaic(tmp_path: Path) -> None:
     """The phase layer has the stitched mosaic's shape and placement: each tile's phase where
     its image is (it used to lie side by side, at the tiles' full size, from (0, 0))."""
