@@ -169,3 +169,19 @@ def test_the_demo_s_phase_pass_recovers_the_true_phase_of_unstained_cells(
     # Every tile's phase is anchored to its glass, so the tiles share their zero.
     assert len(scores.glass_rad) == tiles
     assert max(map(abs, scores.glass_rad)) < 0.05, scores.glass_rad
+
+
+def test_phase_stacks_beyond_the_instrument_s_frame_limit_are_cut_and_said_once(
+    stack: LocalStack, tmp_path: Path
+) -> None:
+    """They were cut to the camera's limit without a word."""
+    if not takes_phase_stacks(stack):
+        pytest.skip("this instrument takes phase stacks as focus stacks (it predates them)")
+    done = subprocess.run(
+        scan_command(stack, tmp_path, "--phase", "--phase-planes", "500"),
+        capture_output=True, text=True, timeout=300, env=os.environ, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    taken = {entry["n_frames"] for entry in logged(tmp_path, "phase")}
+    assert len(taken) == 1 and taken.pop() < 500
+    assert done.stderr.count("phase stacks of 500 planes (--phase-planes) are cut to") == 1

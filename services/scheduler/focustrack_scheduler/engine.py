@@ -198,6 +198,7 @@ class Engine:
         #: request (its last attempt): one that dies before its result is awaited counts too
         self._services: tuple[int, TokenWatch] | None = None
         self._tile_format_saved = "tile" in (record.state.read() or {})
+        self._phase_cut_said = False  # the phase stacks' cut to the frame limit, said once
         self._n_without_phase = 0  # tiles whose phase stack brought no phase (logged)
         #: no phase service came within the phase timeout; none is waited for again
         self._no_phase_service = False
@@ -508,12 +509,26 @@ class Engine:
     def _acquire_phase(self, step: AcquirePhase) -> None:
         if self.geometry is None:  # described before any acquisition
             return
+        if step.asked is not None and step.asked.n_frames != step.z.n_frames:
+            self._say_phase_cut(step.asked.n_frames, step.z.n_frames)
         started_s = time.perf_counter()
         try:
             self._take_phase(step)
         finally:
             self.wall.phase_s += time.perf_counter() - started_s
         self._take_pending_phase(self.policy.phase_in_flight)
+
+    def _say_phase_cut(self, asked_frames: int, taken_frames: int) -> None:
+        """Warn, once a scan, that the phase stacks are cut to the stage's frame limit (it
+        is the same for every tile; a stack moved inside the travel keeps its frames)."""
+        if self._phase_cut_said:
+            return
+        self._phase_cut_said = True
+        log.warning(
+            "phase stacks of %d planes (--phase-planes) are cut to %d, the most the "
+            "instrument's frame limit and z travel allow",
+            asked_frames, taken_frames,
+        )  # fmt: skip
 
     def _take_phase(self, step: AcquirePhase, attempt: int = 1) -> None:
         """Acquire the phase stack; its result is awaited later (`_take_pending_phase`).

@@ -305,6 +305,7 @@ class AcquirePhase:
     z: ZRange
     reference_z_um: float
     sequence: int
+    asked: ZRange | None = None  # the stack --phase-planes asks, where the stage cut it
 
 
 @dataclass(frozen=True)
@@ -540,12 +541,13 @@ def scan_plan(request: ScanRequest) -> Plan:
 def _phase_stack(
     request: ScanRequest, geometry: SlideGeometry, row: int, col: int, z_um: float
 ) -> AcquirePhase:
-    """The phase stack of tile (row, col), centred on its image's `z_um`, within the stage."""
+    """The phase stack of tile (row, col), centred on its image's `z_um`, within the stage
+    (`asked` says what it was before the stage's travel or frame limit cut it)."""
     assert request.phase is not None
-    z = geometry.stage.fit(request.phase.z_range(z_um, geometry.dof_um))
-    return AcquirePhase(
-        request.slide, row, col, z, z_um, PHASE_SEQUENCE_BASE + row * geometry.grid.cols + col
-    )
+    asked = request.phase.z_range(z_um, geometry.dof_um)
+    z = geometry.stage.fit(asked)
+    sequence = PHASE_SEQUENCE_BASE + row * geometry.grid.cols + col
+    return AcquirePhase(request.slide, row, col, z, z_um, sequence, None if z == asked else asked)
 
 
 def _checked(request: ScanRequest, acquisition: Acquisition) -> bool:

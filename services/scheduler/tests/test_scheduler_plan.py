@@ -271,6 +271,23 @@ def test_a_resumed_scan_takes_the_phase_an_earlier_run_left_out_at_its_end() -> 
     assert TilesWithoutPhase() not in plain
 
 
+def test_a_phase_stack_cut_by_the_stage_says_what_was_asked() -> None:
+    """--phase-planes beyond the camera's frame limit: the stack is cut, and the step says
+    what was asked, so the engine warns (the cut was silent)."""
+    grid = ScanGrid(1, 2)
+    geometry = SlideGeometry(grid, dof_um=0.9, stage=StageLimits(-10.0, 10.0, 4))
+    fake = FakeEstimator(grid, np.zeros(grid.shape), frozenset())
+    steps, _ = drive(replace(REQUEST, phase=PhaseStacks(planes=9)), fake.answer(geometry))
+    phase = [s for s in steps if isinstance(s, AcquirePhase)]
+    assert len(phase) == 2
+    for step in phase:
+        assert step.asked is not None and (step.asked.n_frames, step.z.n_frames) == (9, 4)
+    fake = FakeEstimator(grid, np.zeros(grid.shape), frozenset())
+    steps, _ = drive(replace(REQUEST, phase=PhaseStacks(planes=3)), fake.answer(geometry))
+    phase = [s for s in steps if isinstance(s, AcquirePhase)]
+    assert len(phase) == 2 and all(s.asked is None for s in phase)
+
+
 def test_a_phase_stack_needs_two_planes_and_a_positive_step() -> None:
     assert PhaseStacks(3, 0.2).z_range(1.0, dof_um=0.9).z_um().tolist() == pytest.approx(
         [0.8, 1.0, 1.2]
