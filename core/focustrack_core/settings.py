@@ -306,8 +306,9 @@ def _describe(cls: type[ServiceSettings], error: ValidationError, reading: _Read
     in_file = read_settings_file(reading.file) if reading.file is not None else {}
     lines = []
     for problem in error.errors(include_url=False):
+        said = str(problem["msg"]).removeprefix("Value error, ")  # pydantic's, of a validator
         if not problem["loc"]:  # the settings together (a model validator): its words alone
-            lines.append(str(problem["msg"]).removeprefix("Value error, "))
+            lines.append(said)
             continue
         name = str(problem["loc"][0])
         if problem["type"] == "extra_forbidden":  # only a settings file can name one
@@ -317,7 +318,7 @@ def _describe(cls: type[ServiceSettings], error: ValidationError, reading: _Read
         if name in in_file:
             sources.append(f"{name!r} in {reading.file}")
         where = f" ({', '.join(sources)})" if sources else ""
-        lines.append(f"--{name.replace('_', '-')}{where}: {problem['msg']}")
+        lines.append(f"--{name.replace('_', '-')}{where}: {said}")
     return "; ".join(lines)
 
 

@@ -63,6 +63,18 @@ class Realign:
             )
 
 
+def first_pass_mosaic(folder: Path) -> Path:
+    """The OME-Zarr mosaic of the first pass's output `folder`; ValueError when it has none
+    (checked when the scan's settings are read, and again when the mosaic is opened)."""
+    path = Path(folder) / MOSAIC_ZARR
+    if not path.exists():
+        raise ValueError(
+            f"{path} does not exist: --first-pass takes the output folder of a finished scan "
+            "whose mosaic is OME-Zarr"
+        )
+    return path
+
+
 class FirstPassImages:
     """The first pass's image of each tile's place, cut from its mosaic (OME-Zarr: tiles side
     by side, or stitched in the stage's micrometres where they overlap)."""
@@ -70,10 +82,7 @@ class FirstPassImages:
     def __init__(self, folder: Path, grid: ScanGrid) -> None:
         import zarr
 
-        path = Path(folder) / MOSAIC_ZARR
-        if not path.exists():
-            raise ValueError(f"{path} does not exist: --first-pass takes the output folder of "
-                             "a finished scan whose mosaic is OME-Zarr")  # fmt: skip
+        path = first_pass_mosaic(folder)
         try:
             root = zarr.open_group(path, mode="r")
             attributes: dict[str, Any] = dict(root.attrs)

@@ -32,7 +32,7 @@ from focustrack_core.tracing import TracingSettings
 from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.plan import PhaseStacks, ScanRequest
-from focustrack_scheduler.realign import Realign
+from focustrack_scheduler.realign import Realign, first_pass_mosaic
 from focustrack_scheduler.retry import RetryPolicy
 
 #: The best Kalman strategy we have, the demo's headline. kf-2d has the lowest prior MAE at
@@ -261,6 +261,15 @@ class ScanSettings(ZenohSettings, ScanOptions, MetricsPortSettings, TracingSetti
         if parsed.scheme not in ("http", "https") or not parsed.hostname:
             raise ValueError(f"must be an http:// or https:// URL with a host, got {url!r}")
         return url
+
+    @field_validator("first_pass")
+    @classmethod
+    def _a_finished_scan(cls, folder: Path | None) -> Path | None:
+        """A folder holding a mosaic, said before the bus (it was said once the first tile's
+        grid was known, exit 1, a scan record left in --out)."""
+        if folder is not None:
+            first_pass_mosaic(folder)
+        return folder
 
     @field_validator("param", mode="before")
     @classmethod

@@ -129,7 +129,7 @@ def test_the_token_defaults_to_the_estimators_variable(monkeypatch: pytest.Monke
     [
         (
             ["--param", "no-equals"],
-            "--param (FOCUSTRACK_SCAN_PARAM): Value error, takes NAME=VALUE",
+            "--param (FOCUSTRACK_SCAN_PARAM): takes NAME=VALUE",
         ),
         (["--live-port", "70000"], "--live-port (FOCUSTRACK_SCAN_LIVE_PORT)"),
         (["--focus-attempts", "0"], "--focus-attempts (FOCUSTRACK_SCAN_FOCUS_ATTEMPTS)"),
@@ -190,6 +190,7 @@ def test_the_scan_command_loads_no_plotting_image_or_web_library() -> None:
 
 def test_a_first_pass_makes_the_scan_a_realigned_second_pass(tmp_path: Path) -> None:
     assert settings().scan_request().realign is None
+    (tmp_path / "mosaic.ome.zarr").mkdir()  # the first pass's output folder
     request = settings("--first-pass", str(tmp_path), "--lateral-tiles", "3").scan_request()
     assert request.realign == Realign(tmp_path, tiles=3, max_offset_um=10.0)
 
@@ -290,6 +291,23 @@ def test_an_output_folder_that_cannot_be_is_refused_before_the_bus(
     why = f"{tmp_path / 'a-file'} is not a folder"
     assert f"--out {tmp_path / out} cannot be the output folder: {why}" in err
     assert "router" not in err and (tmp_path / "a-file").read_text() == "mine"
+
+
+def test_a_first_pass_folder_without_a_mosaic_is_refused_before_the_bus(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It was said once the slide's grid was known (exit 1, after 30 s without a router),
+    a scan record left in --out."""
+    unanswered = f"tcp/127.0.0.1:{free_port()}"
+    out = tmp_path / "second"
+    argv = ("--out", str(out), "--connect", unanswered, "--first-pass", str(tmp_path / "none"))
+    with pytest.raises(SystemExit) as refused:  # argparse's exit 2, as for any bad flag
+        scan.run(settings(*argv))
+    assert refused.value.code == 2
+    missing = tmp_path / "none" / "mosaic.ome.zarr"
+    said = f"--first-pass (FOCUSTRACK_SCAN_FIRST_PASS): {missing} does not exist"
+    assert said in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_a_state_file_of_another_tool_is_neither_merged_into_nor_resumed(
