@@ -77,7 +77,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "serve focus": ("focustrack_focus.service", "the focus service (Zenoh and REST)"),
     "serve estimator": ("focustrack_estimator.service", "the estimator REST service"),
-    "serve phase": ("focustrack_phase.service", "the phase service (REST)"),
+    "serve phase": ("focustrack_phase.service", "the phase service (REST and Zenoh)"),
     "scan": ("focustrack_scheduler.scan", "scan one slide through the services"),
     "demo": ("focustrack.demo", "embedded stack: scan a simulated slide"),
     "focus calibrate": (

@@ -1,4 +1,4 @@
-"""`python -m focustrack_phase`: the phase service (REST)."""
+"""`python -m focustrack_phase`: the phase service (REST and Zenoh)."""
 
 from focustrack_phase.command import main
 
