@@ -222,9 +222,16 @@ def compose(
     canvas_tiles: Iterable[Tile] | None = None,
     fill: float = 0,
 ) -> tuple[np.ndarray, tuple[float, float]]:
-    """The mosaic of `tiles` (h, w, ... each) at their places (rounded to whole pixels; a
-    later tile in row-major order covers an earlier one's overlap), `fill` where no tile
-    lies, and the place (y, x px) of its corner relative to tile (0, 0)'s.
+    """The mosaic of `tiles` (h, w, ... each) at their places (rounded to whole pixels),
+    `fill` where no tile lies, and the place (y, x px) of its corner relative to tile
+    (0, 0)'s.
+
+    Where neighbours overlap, each gives the half of the overlap nearer its own centre, so
+    the seams run down the overlaps' middles: a frame's outermost pixels (a camera's
+    vignetting, a lens' edge) differ from the same place seen in the middle of the next
+    frame, and pasting whole tiles put that step on every seam. Each tile is pasted whole
+    first, so a place no neighbour's half reaches (a missing tile, a stage's jitter)
+    still shows it.
 
     The mosaic spans `canvas_tiles` (by default `tiles` themselves), all of the same size:
     a layer of some tiles (their phase) then lies pixel for pixel over the mosaic of all
@@ -239,6 +246,38 @@ def compose(
     x1 = max(x for _, x in corners.values()) + width
     mosaic = np.full((y1 - y0, x1 - x0, *first.shape[2:]), fill, dtype=first.dtype)
     for tile in sorted(tiles):
-        y, x = round(places_px[tile][0]), round(places_px[tile][1])
+        y, x = corners[tile]
         mosaic[y - y0 : y - y0 + height, x - x0 : x - x0 + width] = tiles[tile]
+    present = set(tiles)
+    for tile in sorted(tiles):
+        y, x = corners[tile]
+        top, bottom, left, right = _own_part(tile, corners, present, height, width)
+        mosaic[y - y0 + top : y - y0 + bottom, x - x0 + left : x - x0 + right] = tiles[tile][
+            top:bottom, left:right
+        ]
     return mosaic, (float(y0), float(x0))
+
+
+def _own_part(
+    tile: Tile,
+    corners: Mapping[Tile, tuple[int, int]],
+    present: set[Tile],
+    height: int,
+    width: int,
+) -> tuple[int, int, int, int]:
+    """The rows [top, bottom) and columns [left, right) of `tile` (px of the tile) nearer its
+    centre than its grid neighbours' among `present`: each side ends at the middle of the
+    overlap with the neighbour there (the tile's edge where it has none or they do not
+    overlap)."""
+    row, col = tile
+    y, x = corners[tile]
+    top, bottom, left, right = 0, height, 0, width
+    if (up := (row - 1, col)) in present:
+        top = max(top, min(height, (corners[up][0] + height - y) // 2))
+    if (down := (row + 1, col)) in present:
+        bottom = min(bottom, max(0, (corners[down][0] - y + height) // 2))
+    if (before := (row, col - 1)) in present:
+        left = max(left, min(width, (corners[before][1] + width - x) // 2))
+    if (after := (row, col + 1)) in present:
+        right = min(right, max(0, (corners[after][1] - x + width) // 2))
+    return top, max(top, bottom), left, max(left, right)

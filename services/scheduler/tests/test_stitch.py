@@ -82,3 +82,27 @@ def test_tiles_of_a_side_by_side_mosaic() -> None:
     mosaic = np.arange(2 * 3 * 4 * 5 * 3).reshape(2 * 4, 3 * 5, 3)
     tiles = tiles_of_mosaic(mosaic, ScanGrid(2, 3), [(1, 2)])
     np.testing.assert_array_equal(tiles[(1, 2)], mosaic[4:8, 10:15])
+
+
+def test_the_seams_run_down_the_overlaps_middles_not_a_tiles_edge() -> None:
+    """Frames whose outermost pixels are darker (vignetting): pasting whole tiles put each
+    tile's dark edge on every seam; the middle of an overlap shows neither's edge."""
+    tiles = _cut(_specimen(), GRID)
+    edge = 3
+    dimmed = {}
+    for tile, pixels in tiles.items():
+        frame = pixels.astype(np.int16)
+        frame[:edge] -= 40
+        frame[-edge:] -= 40
+        frame[:, :edge] -= 40
+        frame[:, -edge:] -= 40
+        dimmed[tile] = np.clip(frame, 0, 255).astype(np.uint8)
+    mosaic, _ = compose(dimmed, stage_places_px(GRID, PIXEL_UM))
+    truth = _specimen()[20 : 20 + 2 * STEP + SIDE, 20 : 20 + 3 * STEP + SIDE]
+    inner = np.s_[edge:-edge, edge:-edge]  # the mosaic's own border is a tile's edge
+    np.testing.assert_array_equal(mosaic[inner], truth[inner])
+    # a tile missing: its neighbours give the whole of their overlaps with its place
+    del dimmed[(1, 1)]
+    gapped, _ = compose(dimmed, stage_places_px(GRID, PIXEL_UM))
+    below_0_1 = np.s_[STEP + 2 : SIDE - edge, SIDE : 2 * STEP]  # (0, 1)'s, past its half
+    np.testing.assert_array_equal(gapped[below_0_1], truth[below_0_1])
