@@ -239,11 +239,13 @@ def compose(
     first = next(iter(tiles.values()))
     height, width = first.shape[:2]
     spanned = list(tiles if canvas_tiles is None else canvas_tiles)
-    corners = {tile: (round(places_px[tile][0]), round(places_px[tile][1])) for tile in spanned}
-    y0 = min(y for y, _ in corners.values())
-    x0 = min(x for _, x in corners.values())
-    y1 = max(y for y, _ in corners.values()) + height
-    x1 = max(x for _, x in corners.values()) + width
+    corners = {
+        tile: (round(places_px[tile][0]), round(places_px[tile][1])) for tile in {*spanned, *tiles}
+    }
+    y0 = min(corners[tile][0] for tile in spanned)
+    x0 = min(corners[tile][1] for tile in spanned)
+    y1 = max(corners[tile][0] for tile in spanned) + height
+    x1 = max(corners[tile][1] for tile in spanned) + width
     mosaic = np.full((y1 - y0, x1 - x0, *first.shape[2:]), fill, dtype=first.dtype)
     for tile in sorted(tiles):
         y, x = corners[tile]
