@@ -16,9 +16,9 @@
 Bad input is a 4xx whose detail names the problem: 413 for an oversized body
 (or a stack that would decode to more than the limit), 415 for a file that is
 neither TIFF nor .npy or a body that is no form, 408 for a body that arrives too
-slowly, 401 without the token (when one is set), 422 for the rest. What a request may ask is bounded
-(`FocusLimits`): bytes, decoded pixels (checked from the file's header, before
-decoding), frames, JSON size and nesting.
+slowly, 401 without the token (when one is set), 422 for the rest. What a request may
+ask is bounded (`FocusLimits`): bytes, decoded pixels (checked from the file's header,
+before decoding), frames, JSON size and nesting.
 """
 
 from __future__ import annotations

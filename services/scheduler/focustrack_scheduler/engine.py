@@ -181,8 +181,9 @@ class Engine:
         self.policy = policy or RetryPolicy()
         self.estimator_url = estimator_url
         self.wall = WallTimes()
+        saved = record.state.read() or {}  # a resumed scan's state, read once
         # The earlier runs of a resumed scan: the report's split is of the whole scan.
-        self._wall_before = WallTimes.of_dict((record.state.read() or {}).get(WALL_STATE_KEY))
+        self._wall_before = WallTimes.of_dict(saved.get(WALL_STATE_KEY))
         self.geometry: SlideGeometry | None = None
         self._on_geometry = on_geometry
         self._realign = realign
@@ -197,7 +198,7 @@ class Engine:
         #: the focus services of the latest acquisition (by index), watched from before its
         #: request (its last attempt): one that dies before its result is awaited counts too
         self._services: tuple[int, TokenWatch] | None = None
-        self._tile_format_saved = "tile" in (record.state.read() or {})
+        self._tile_format_saved = "tile" in saved
         self._phase_cut_said = False  # the phase stacks' cut to the frame limit, said once
         self._n_without_phase = 0  # tiles whose phase stack brought no phase (logged)
         #: no phase service came within the phase timeout; none is waited for again

@@ -45,11 +45,7 @@ from focustrack_scheduler.engine import (
 )
 from focustrack_scheduler.finished import FinishedScan, OutputWriter, write_outputs
 from focustrack_scheduler.live import LiveScan
-from focustrack_scheduler.outputs import (
-    LOCK_FILE,
-    MosaicFormat,
-    OutputFolderError,
-)
+from focustrack_scheduler.outputs import LOCK_FILE, MosaicFormat, OutputFolderError
 from focustrack_scheduler.plan import FocusUnavailableError, ScanRequest, SlideGeometry, scan_plan
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.retry import RetryPolicy
