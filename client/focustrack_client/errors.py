@@ -67,6 +67,7 @@ _BY_CODE: dict[ErrorCode, type[EstimatorError]] = {
     ErrorCode.INVALID_REQUEST: InvalidRequestError,
     ErrorCode.UNAUTHORIZED: UnauthorizedError,
     ErrorCode.NOT_FOUND: SlideNotFoundError,
+    ErrorCode.METHOD_NOT_ALLOWED: InvalidRequestError,
     ErrorCode.CONFLICT: ConflictError,
     ErrorCode.SLIDE_LOG_CORRUPT: SlideLogCorruptError,
     ErrorCode.STRATEGY_NOT_SERVED: StrategyNotServedError,

@@ -336,6 +336,7 @@ class ErrorCode(StrEnum):
     INVALID_REQUEST = "invalid_request"  # 422: malformed or refused input
     UNAUTHORIZED = "unauthorized"  # 401: no or a wrong bearer token
     NOT_FOUND = "not_found"  # 404: no such slide (or route)
+    METHOD_NOT_ALLOWED = "method_not_allowed"  # 405: the route takes other methods (`Allow`)
     CONFLICT = "conflict"  # 409: contradicts the slide's state
     SLIDE_LOG_CORRUPT = "slide_log_corrupt"  # 409: the slide's stored log fails its checks
     STRATEGY_NOT_SERVED = "strategy_not_served"  # 409: the service does not serve its strategy

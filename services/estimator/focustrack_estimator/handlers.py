@@ -18,7 +18,6 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import Scope
@@ -74,7 +73,7 @@ ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
 _CODE_OF_STATUS = {
     401: api.ErrorCode.UNAUTHORIZED,
     404: api.ErrorCode.NOT_FOUND,
-    405: api.ErrorCode.NOT_FOUND,
+    405: api.ErrorCode.METHOD_NOT_ALLOWED,
     409: api.ErrorCode.CONFLICT,
     413: api.ErrorCode.PAYLOAD_TOO_LARGE,
     422: api.ErrorCode.INVALID_REQUEST,
@@ -154,16 +153,21 @@ def status_of(error: SlideError) -> tuple[int, api.ErrorCode]:
     return DOMAIN_ERRORS[kind]
 
 
+#: The methods a path may take, for the `Allow` header of a 405.
+_HTTP_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
+
+
 def _allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
-    """Every method some route of the app serves at the request's path."""
-    return sorted(
-        {
-            method
-            for route in app.routes
-            if isinstance(route, APIRoute) and route.matches(scope)[0] is not Match.NONE
-            for method in route.methods or ()
-        }
-    )
+    """Every method some route of the app serves at the request's path.
+
+    Each method is tried on the routes' own matching: since FastAPI 0.165 an included
+    router is one route of the app, not its routes, and a route's `methods` hide there.
+    """
+    return [
+        method
+        for method in _HTTP_METHODS
+        if any(route.matches({**scope, "method": method})[0] is Match.FULL for route in app.routes)
+    ]
 
 
 def install(app: FastAPI) -> None:

@@ -214,6 +214,19 @@ def test_a_body_not_sent_as_json_is_a_415_that_says_so(app: FastAPI) -> None:
     run(go())
 
 
+def test_a_method_the_path_does_not_take_is_a_405_with_its_own_code(app: FastAPI) -> None:
+    """The client raises on the code: a wrong method is no unknown slide."""
+
+    async def go() -> None:
+        async with client(app) as http:
+            refused = await http.delete("/v1/slides")
+            assert refused.status_code == 405, refused.text
+            assert refused.json()["code"] == "method_not_allowed"
+            assert set(refused.headers["Allow"].split(", ")) == {"GET", "POST"}
+
+    run(go())
+
+
 def _json(body: dict[str, Any]) -> bytes:
     return json.dumps(body).encode()
 
