@@ -34,7 +34,7 @@ from focustrack_core.maps import focus_map_of_npy
 from focustrack_core.serving import ListenError
 from focustrack_core.settings import command_main, make_writable_folder
 from focustrack_core.wire import rpc
-from focustrack_core.wire.session import CONNECT_TIMEOUT_S, open_config, zenoh_message
+from focustrack_core.wire.session import open_config, zenoh_message
 from focustrack_core.wire.trust import ResultSigner, signer_of
 from focustrack_scheduler.clients import InstrumentClient, SlideListener, truth_empty
 from focustrack_scheduler.engine import (
@@ -281,7 +281,7 @@ def _waiting_for_the_bus(settings: ScanSettings) -> None:
     connect, _ = settings.endpoints()
     print(
         f"focustrack scan: no Zenoh router answers at {', '.join(connect) or 'its endpoints'} "
-        f"yet; trying for {CONNECT_TIMEOUT_S:g} s (Ctrl-C stops)",
+        f"yet; trying for {settings.bus_timeout_s:g} s (--bus-timeout-s; Ctrl-C stops)",
         file=sys.stderr,
         flush=True,
     )
@@ -322,7 +322,8 @@ def _run(settings: ScanSettings) -> int:
             mosaic_format=settings.mosaic_format,
             trust=signer_of(settings.result_key_file),
         )
-        config = settings.zenoh()  # a Zenoh config file or endpoint it cannot use: exit 2
+        # a Zenoh config file or endpoint it cannot use: exit 2
+        config = settings.zenoh(settings.bus_timeout_s)
         _check_output_folder(settings.out)  # before the bus, which may take a while
     except (ValueError, zenoh.ZError) as error:
         print(f"focustrack scan: error: {_said(error)}", file=sys.stderr)

@@ -29,7 +29,7 @@ from focustrack_core.http_metrics import MetricsPortSettings
 from focustrack_core.rest.to_domain import default_policy
 from focustrack_core.settings import ServiceSettings
 from focustrack_core.tracing import TracingSettings
-from focustrack_core.wire.session import DEFAULT_ENDPOINT, ZenohSettings
+from focustrack_core.wire.session import CONNECT_TIMEOUT_S, DEFAULT_ENDPOINT, ZenohSettings
 from focustrack_scheduler.outputs import MosaicFormat
 from focustrack_scheduler.plan import PhaseStacks, ScanRequest
 from focustrack_scheduler.realign import Realign, first_pass_mosaic
@@ -203,6 +203,13 @@ class ScanSettings(ZenohSettings, ScanOptions, MetricsPortSettings, TracingSetti
     model_config = SettingsConfigDict(env_prefix="FOCUSTRACK_SCAN_")
     default_connect: ClassVar[tuple[str, ...]] = (DEFAULT_ENDPOINT,)
 
+    bus_timeout_s: float = Field(
+        CONNECT_TIMEOUT_S,
+        gt=0,
+        le=86400,
+        description="how long the scan waits for a Zenoh router (or peer) at --connect before "
+        "it gives up (exit 1), s",
+    )
     estimator: str = Field("http://127.0.0.1:8100", description="estimator URL")
     token: str | None = Field(
         default_factory=_estimator_token,

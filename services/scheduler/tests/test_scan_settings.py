@@ -293,6 +293,19 @@ def test_an_output_folder_that_cannot_be_is_refused_before_the_bus(
     assert "router" not in err and (tmp_path / "a-file").read_text() == "mine"
 
 
+def test_the_wait_for_the_bus_is_the_scans_to_choose(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It was 30 s, whatever a script wanted: --bus-timeout-s ends it, in exit 1."""
+    unanswered = f"tcp/127.0.0.1:{free_port()}"
+    out = tmp_path / "out"
+    argv = ("--out", str(out), "--connect", unanswered, "--bus-timeout-s", "2.5")
+    assert scan.run(settings(*argv)) == 1
+    err = capsys.readouterr().err
+    assert f"no Zenoh router answers at {unanswered} yet; trying for 2.5 s" in err
+    assert "focustrack scan: error:" in err and "Traceback" not in err
+
+
 def test_a_first_pass_folder_without_a_mosaic_is_refused_before_the_bus(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
