@@ -208,6 +208,9 @@ class Slide:
                 slide, replace_snapshot = built(), True
         if not slide.restored:
             slide._replay(slide._read(0))
+        # As `measure` leaves a live slide: its next acquisition asked for, which sets that
+        # tile's prior in the map (a restarted service, or another replica, served none).
+        slide.strategy.next_acquisition()
         if replace_snapshot:  # the log's state in the place of a snapshot found wanting
             slide.save_snapshot()
         return slide

@@ -9,6 +9,7 @@ import sqlite3
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from estimator_in_process import (
     SETTINGS,
@@ -59,6 +60,31 @@ def test_a_new_app_on_the_same_store_continues_every_slide(tmp_path: Path) -> No
 
     for i, (name, served) in enumerate(run(second_half(run(first_half()))).items()):
         assert_same_maps(served, local_map(name, SETTINGS, 7 + i))
+
+
+@pytest.mark.parametrize("snapshot_every", [5, 1000], ids=["snapshot", "log alone"])
+def test_a_slide_loaded_from_its_store_serves_the_map_the_live_one_did(
+    tmp_path: Path, snapshot_every: int
+) -> None:
+    """The pending tile's prior was missing after a restart, or on another replica."""
+    path = tmp_path / "estimator.sqlite"
+
+    async def live() -> tuple[str, FocusMap]:
+        with estimator(path, snapshot_every=snapshot_every) as app:
+            async with client(app) as http:
+                slide_id = await create(http, SNAPSHOTTED)
+                await scan(http, slide_id, maps(5)[1], limit=13)
+                return slide_id, await served_map(http, slide_id)
+
+    slide_id, served = run(live())
+    store = SQLiteStore(path)
+    record = store.slide(slide_id)
+    assert record is not None
+    loaded = Slide.load(record, store, snapshot_every=snapshot_every)
+    assert loaded.restored == (snapshot_every == 5)
+    assert np.isfinite(served.prior_um).sum() == 14  # the 13 measured and the pending one
+    assert_same_maps(loaded.focus_map(), served)
+    store.close()
 
 
 def test_a_log_that_no_longer_replays_is_reported(tmp_path: Path) -> None:
