@@ -94,7 +94,12 @@ class DriftModel:
         """The model `params` state, None where they hold none or all of it is 0 (off)."""
         if not isinstance(params, TimeStateParams):
             return None
-        if not (params.drift_walk_um2_per_s or params.drift_rate_sigma_um_per_s):
+        moves = (
+            params.drift_walk_um2_per_s,
+            params.drift_rate_sigma_um_per_s,
+            params.drift_rate_q_um2_per_s3,  # alone: a rate that starts at 0 and walks
+        )
+        if not any(moves):
             return None
         return cls(
             params.drift_walk_um2_per_s,

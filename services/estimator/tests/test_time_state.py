@@ -52,6 +52,9 @@ def test_process_noise_is_positive_semidefinite_and_grows_with_time() -> None:
 
 def test_the_time_state_is_off_by_default_and_adds_two_states_when_on() -> None:
     assert DriftModel.of(TimeStateParams()) is None
+    # Each of the three alone moves the drift: a rate walk alone was once ignored.
+    for moves in ("drift_walk_um2_per_s", "drift_rate_sigma_um_per_s", "drift_rate_q_um2_per_s3"):
+        assert DriftModel.of(TimeStateParams(**{moves: 1e-4})) is not None
     settings = default_settings(ScanGrid(4, 5))
     off = registry.create("kf-2d-lean", settings)
     on = registry.create("kf-2d-lean", settings, TIME)
