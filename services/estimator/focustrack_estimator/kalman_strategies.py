@@ -54,6 +54,22 @@ from focustrack_estimator.strategy import (
 from focustrack_estimator.time_state import N_DRIFT, DriftModel, TimeStateParams
 
 
+def rts_gains(FP: np.ndarray, P_next: np.ndarray) -> np.ndarray:
+    """The Rauch-Tung-Striebel gains C = P+_k F' (P-_{k+1})^-1 of a stack of steps, from
+    `FP` = F P+_k and the next step's prior covariance `P_next`, both (..., d, d).
+
+    A solve of the symmetric P- against F P+; where some P- is singular, its
+    pseudo-inverse (for all: one batched eigendecomposition, slower than the solve). A
+    state the model never lets vary (a drift rate of zero prior sigma beside a drift walk,
+    a correlation length so long that the grid sees none) leaves P- singular, and a
+    direction of zero variance teaches the smoother nothing.
+    """
+    try:
+        return np.linalg.solve(P_next, FP).swapaxes(-1, -2)
+    except np.linalg.LinAlgError:
+        return FP.swapaxes(-1, -2) @ np.linalg.pinv(P_next, hermitian=True)
+
+
 def rts_smooth(
     x_prior: np.ndarray, P_prior: np.ndarray, x_post: np.ndarray, P_post: np.ndarray, F: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -66,9 +82,10 @@ def rts_smooth(
     smoothed estimate is its filtered one.
     """
     xs, Ps = x_post.copy(), P_post.copy()
+    # Every gain at once: they depend on the filter's covariances only.
+    gains = rts_gains(F[1:] @ P_post[:-1], P_prior[1:])
     for k in range(x_post.shape[0] - 2, -1, -1):
-        # C = P+ F' (P-)^-1, as the solve of the symmetric P- against F P+.
-        C = np.linalg.solve(P_prior[k + 1], F[k + 1] @ P_post[k]).T
+        C = gains[k]
         xs[k] = x_post[k] + C @ (xs[k + 1] - x_prior[k + 1])
         Ps[k] = P_post[k] + C @ (Ps[k + 1] - P_prior[k + 1]) @ C.T
     return xs, Ps

@@ -17,6 +17,7 @@ import numpy as np
 import scipy.linalg
 
 from focustrack_core.domain import SlideSettings
+from focustrack_estimator.kalman_strategies import rts_gains
 
 #: State elements of the plane in `RowModel`: offset (um), tilt along x and y (um/tile).
 N_PLANE = 3
@@ -249,7 +250,7 @@ def _smooth_windows(
         x_next, P_next = predict(x_post[k], P_post[k])  # row k+1's prior
         FP = P_post[k].copy()
         step_rows(FP, window.step_y)  # F P+_k
-        C = np.linalg.solve(P_next, FP).transpose(0, 2, 1)  # P+_k F' (P-_{k+1})^-1
+        C = rts_gains(FP, P_next)  # P+_k F' (P-_{k+1})^-1
         xs = x_post[k] + np.einsum("bij,bj->bi", C, xs - x_next)
         Ps = P_post[k] + C @ (Ps - P_next) @ C.transpose(0, 2, 1)
         read(k, xs, Ps)

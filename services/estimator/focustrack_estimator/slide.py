@@ -361,7 +361,12 @@ class Slide:
         self.store.append(self.id, event_of(logged), accepted=outcome.accepted, done=done)
         self.history.append(logged)
         if done:  # the final map (smoothed layers included) once, so that its snapshot has it
-            self.strategy.focus_map()
+            try:
+                self.strategy.focus_map()
+            except STRATEGY_ERRORS as error:
+                # The measurement is stored: its reply must say so. The map is asked for
+                # again when read, and fails there, where the failure belongs.
+                log.error("slide %s: its final map failed: %r", self.id, error)
         if done or len(self.history) - self.n_snapshot >= self.snapshot_every:
             self.save_snapshot()
         return logged, True

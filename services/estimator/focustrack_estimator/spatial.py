@@ -402,9 +402,17 @@ class RowBankFilter(SerpentineFilter):
 # --- kf-2d's parameters, factory and cost model ---------------------------------------------
 # Defaults chosen on training seeds 0..9 (docs/spatial.md), never on the reported maps.
 
-#: A bank's grid of one quantity: at least one value, each positive.
+#: The largest value of a bank's grid (a field std in um, a length in tiles, a tilt in
+#: um/tile): beyond any slide (1 cm), and where the filter's arithmetic starts to lose its
+#: digits (a length of 1e6 tiles smoothed a 30x30 map to 1e4 um; 1e8 um/tile of tilt
+#: failed the bank's weights).
+BANK_VALUE_MAX = 1e4
+
+#: A bank's grid of one quantity: at least one value, each positive, at most `BANK_VALUE_MAX`.
 BankGrid = Annotated[
-    tuple[Annotated[float, Field(gt=0.0)], ...], Strict(False), Field(min_length=1)
+    tuple[Annotated[float, Field(gt=0.0, le=BANK_VALUE_MAX)], ...],
+    Strict(False),
+    Field(min_length=1),
 ]
 
 

@@ -136,6 +136,8 @@ INVALID = [
     ("kept planes beyond a stack's frames", "post", None,
      {**slide_config("kf-2d-lean", SETTINGS), "params": {"max_kept_planes": 10**6}}, 422,
      "max_kept_planes"),
+    ("bank length beyond any slide", "post", None,
+     _slide_body(strategy="kf-2d", params={"lengths_tiles": [4.0, 1e29]}), 422, "10000"),
     ("grid too large", "post", None, _slide_body(grid=_grid(rows=1000, cols=1000)), 422, "tiles"),
     ("empty grid", "post", None, _slide_body(grid=_grid(rows=0)), 422, "rows"),
     ("negative pitch", "post", None, _slide_body(grid=_grid(pitch_um=-1)), 422, "pitch_um"),
@@ -210,6 +212,25 @@ def test_a_body_not_sent_as_json_is_a_415_that_says_so(app: FastAPI) -> None:
                 content=_json({"row": 0, "col": 0, "sequence": 0, "z_um": 1.0}),
             )
             assert untyped.status_code == 415 and "no Content-Type" in untyped.text
+
+    run(go())
+
+
+def test_the_last_measurement_is_acknowledged_when_the_final_map_fails(app: FastAPI) -> None:
+    """It was stored, then answered with a 422 (the final smoother's "Singular matrix"):
+    a client told nothing was recorded drops a measurement the log holds. No value the
+    API takes makes that map fail now, so the failure is injected."""
+
+    def failing_map() -> FocusMap:
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http)
+            await scan(http, slide_id, maps(3)[1], limit=1)
+            app.state.slides._live[slide_id].strategy.focus_map = failing_map
+            await scan(http, slide_id, maps(3)[1])  # each post answered 200
+            assert (await http.get(f"/v1/slides/{slide_id}")).json()["done"] is True
 
     run(go())
 

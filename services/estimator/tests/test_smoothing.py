@@ -11,7 +11,7 @@ from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
 from focustrack_estimator import registry
-from focustrack_estimator.kalman_strategies import STRATEGIES, rts_smooth
+from focustrack_estimator.kalman_strategies import STRATEGIES, rts_gains, rts_smooth
 from focustrack_estimator.replay import replay
 
 
@@ -70,3 +70,32 @@ def test_smoothed_layers_cover_the_tiles_finished_so_far() -> None:
     # The first tile's smoothed height learns from the later measurements; the last does not.
     assert mid.smoothed_um[0, 0] > mid.posterior_um[0, 0]
     assert mid.smoothed_um[0, 2] == pytest.approx(mid.posterior_um[0, 2])
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"drift_walk_um2_per_s": 0.0015},
+        {"drift_rate_sigma_um_per_s": 0.001},
+        {"drift_rate_q_um2_per_s3": 1e-6},
+    ],
+    ids=["drift walk alone", "drift rate alone", "rate walk alone"],
+)
+@pytest.mark.parametrize("name", ["kf-wiener1", "kf-gm2"])
+def test_a_drift_state_that_never_varies_leaves_the_smoother_finite(
+    name: str, params: dict[str, float]
+) -> None:
+    """One drift component at zero variance left P- singular: "Singular matrix" at the
+    trial scan, for the drift settings docs/drift.md recommends."""
+    truth = generate_surfaces(SurfaceSpec(rows=8, cols=8), 1, seed=3)[0]
+    strategy = registry.create(name, default_settings(ScanGrid(8, 8)), params)
+    noise = np.random.default_rng(3).normal(0.0, 0.5, truth.shape)
+    fm = replay(strategy, truth, truth + noise).focus_map
+    assert np.isfinite(fm.smoothed_um).all() and np.isfinite(fm.smoothed_sigma_um).all()
+    assert np.abs(fm.smoothed_um - truth).mean() < np.abs(fm.posterior_um - truth).mean()
+
+
+def test_rts_gains_of_a_singular_prior_take_its_pseudo_inverse() -> None:
+    P_next = np.array([[[2.0, 0.0], [0.0, 0.0]]])  # the second state never varies
+    FP = np.array([[[1.0, 0.0], [0.0, 0.0]]])
+    np.testing.assert_allclose(rts_gains(FP, P_next), [[[0.5, 0.0], [0.0, 0.0]]])
