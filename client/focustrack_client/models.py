@@ -68,6 +68,9 @@ MAX_PAGE_SLIDES = 1000
 #: The header of a page of `GET /v1/slides` that holds the cursor of the next page (absent
 #: on the last page), beside the `Link: <...>; rel="next"` header (RFC 8288) with its URL.
 NEXT_CURSOR_HEADER = "X-Next-Cursor"
+#: The header of a page of slides naming those left out because this version of the
+#: service cannot read their stored configuration (another version's, or a damaged one).
+UNREADABLE_SLIDES_HEADER = "X-Unreadable-Slides"
 #: Most values a list parameter may hold to be shown in the slide listing: a longer one
 #: (a prior map) is left out of it and named in `omitted_params`.
 MAX_LISTED_VALUES = 16

@@ -13,10 +13,13 @@ import dataclasses
 import math
 from typing import Any
 
+from pydantic import ValidationError
+
+from focustrack_client import models as api
 from focustrack_client.models import MAX_ABS_UM, MIN_SIGMA_UM
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
-from focustrack_estimator.event_store import CorruptLogError, Event
+from focustrack_estimator.event_store import CorruptLogError, Event, SlideRecord
 
 
 @dataclasses.dataclass(frozen=True)
@@ -26,6 +29,20 @@ class Logged:
     acquisition: Acquisition
     measurement: Measurement
     outcome: Outcome
+
+
+def config_of(record: SlideRecord, params: dict[str, Any] | None = None) -> api.SlideCreate:
+    """The slide's stored configuration (its parameters replaced by `params` where given);
+    CorruptLogError if this version refuses it (another version's, or a damaged one)."""
+    config = record.config if params is None else {**record.config, "params": params}
+    try:
+        return api.SlideCreate.model_validate(config)
+    except ValidationError as error:
+        problems = "; ".join(
+            f"{'.'.join(map(str, e['loc'])) or 'the whole'}: {e['msg']}"
+            for e in error.errors(include_url=False)
+        )
+        raise CorruptLogError(record.id, None, problems) from None
 
 
 def acquisition_record(acquisition: Acquisition) -> dict[str, Any]:

@@ -51,6 +51,7 @@ from focustrack_estimator.records import (
     Logged,
     acquisition_record,
     checked_logged_of,
+    config_of,
     event_of,
     measurement_record,
     outcome_record,
@@ -167,7 +168,7 @@ class Slide:
         not `use_snapshot`: then its log's state replaces the stored snapshot). `discarded`
         is called for each snapshot found wanting. ReplayMismatchError if the log no
         longer replays, CorruptLogError if a record of it fails its own checks."""
-        slide_id, config = record.id, api.SlideCreate.model_validate(record.config)
+        slide_id, config = record.id, config_of(record)
         strategies = served(catalogue)
         if config.strategy not in strategies.strategies:
             raise StrategyNotServedError(
@@ -299,26 +300,28 @@ class Slide:
 
         self.history = History(load, n_events)
 
-    def save_snapshot(self) -> None:
-        """Store the strategy's state as the snapshot after the history's events.
+    def save_snapshot(self) -> bool:
+        """Store the strategy's state as the snapshot after the history's events; False
+        if the store failed.
 
         Never fails the request: a state that cannot be encoded turns snapshots
         off for this slide (it is then rebuilt from its whole log), a store error
         leaves the older snapshot (the log has every event either way).
         """
         if not self._snapshots or len(self.history) <= self.n_snapshot:
-            return
+            return True
         try:
             blob = encode(self.strategy)
             self.store.put_snapshot(self.id, len(self.history), blob)
         except SnapshotError as error:
             self._snapshots = False
             log.warning("slide %s: no snapshots for its strategy: %s", self.id, error)
-            return
+            return True
         except StoreError as error:
             log.warning("slide %s: snapshot not stored: %s", self.id, error)
-            return
+            return False
         self.n_snapshot = len(self.history)
+        return True
 
     def measure(self, request: api.MeasurementIn) -> tuple[Logged, bool]:
         """Record a measurement (durably) or return the one already recorded for it.

@@ -49,6 +49,7 @@ from focustrack_estimator.event_store import (
 )
 from focustrack_estimator.memory import release_memory
 from focustrack_estimator.prior import BODY_LOC, decode_prior, takes_prior, with_prior
+from focustrack_estimator.records import config_of
 
 if TYPE_CHECKING:
     from focustrack_estimator.registry import Catalogue
@@ -324,7 +325,7 @@ class Slides:
             raise SlideNotFoundError(f"no slide {slide_id!r}")
         if record.n_events:
             raise _not_before_the_first(slide_id, record.n_events)
-        config = api.SlideCreate.model_validate(record.config)
+        config = config_of(record)
         takes = [name for name, entry in self.catalogue().strategies.items() if takes_prior(entry)]
         if config.strategy not in takes:
             raise SlideError(
@@ -339,9 +340,18 @@ class Slides:
         return slide
 
     def save_snapshots(self) -> None:
-        """Snapshot every live slide that has events since its last snapshot (at shutdown)."""
-        for slide in list(self._live.values()):
-            slide.save_snapshot()
+        """Snapshot every live slide that has events since its last snapshot (at shutdown),
+        until the store fails: each slide would wait out the store's timeout in turn (5 s
+        each on PostgreSQL, minutes for a hundred slides), and the logs hold every event."""
+        slides = list(self._live.values())
+        for done, slide in enumerate(slides):
+            if not slide.save_snapshot():
+                log.warning(
+                    "the store failed: %d slides' snapshots not stored (each is rebuilt from "
+                    "its log when next asked for)",
+                    len(slides) - done,
+                )
+                return
 
     async def delete(self, slide_id: str) -> None:
         async with self._lock(slide_id):

@@ -71,3 +71,69 @@ def test_stored_parameters_this_version_refuses_are_a_replay_mismatch(tmp_path: 
     assert response.status_code == 500, response.text
     assert response.json()["code"] == "replay_mismatch"
     assert "slope_sigma_um_per_tile" in response.json()["detail"]
+
+
+def test_a_stored_configuration_this_version_refuses_stops_that_slide_not_the_listing(
+    tmp_path: Path,
+) -> None:
+    """A slide stored by another version (a field this one does not know) made the whole
+    listing a 500, and that slide's own requests a 500 or a 422 with no location."""
+    path = tmp_path / "estimator.sqlite"
+
+    async def make() -> list[str]:
+        with estimator(path) as app:
+            async with client(app) as http:
+                return [await create(http) for _ in range(3)]
+
+    first, other, last = run(make())
+    with sqlite3.connect(path) as db:
+        (text,) = db.execute("SELECT config FROM slides WHERE id = ?", (other,)).fetchone()
+        config = {**json.loads(text), "colour": "red"}
+        db.execute("UPDATE slides SET config = ? WHERE id = ?", (json.dumps(config), other))
+
+    async def read() -> tuple[httpx.Response, httpx.Response, httpx.Response]:
+        with estimator(path) as app:
+            async with client(app) as http:
+                return (
+                    await http.get("/v1/slides"),
+                    await http.get(f"/v1/slides/{other}"),
+                    await http.get(f"/v1/slides/{other}/next"),
+                )
+
+    listed, slide, pending = run(read())
+    assert listed.status_code == 200, listed.text
+    assert [s["id"] for s in listed.json()] == [first, last]
+    assert listed.headers["X-Unreadable-Slides"] == other
+    for response in (slide, pending):
+        assert response.status_code == 409, response.text
+        assert response.json()["code"] == "slide_log_corrupt"
+        assert "colour" in response.json()["detail"]
+
+
+class SnapshotsFail(SQLiteStore):
+    """A store whose snapshots fail (as a database gone away), counting the attempts."""
+
+    attempts = 0
+
+    def put_snapshot(self, slide_id: str, n_events: int, state: bytes) -> None:
+        SnapshotsFail.attempts += 1
+        raise StoreUnavailableError(f"store {self.path}: couldn't get a connection")
+
+
+def test_the_snapshots_at_shutdown_stop_at_the_first_store_failure(tmp_path: Path) -> None:
+    """Each slide waited out the store's timeout in turn: minutes to stop a replica whose
+    database was gone, past any container's stop timeout."""
+    store = SnapshotsFail(tmp_path / "estimator.sqlite")
+    try:
+        app = create_app(store, EstimatorSettings(snapshot_every=1000))
+
+        async def go() -> None:
+            async with client(app) as http:
+                for _ in range(3):
+                    await scan(http, await create(http), maps(3)[1], limit=2)
+
+        run(go())
+        app.state.slides.save_snapshots()  # what the service does at shutdown
+    finally:
+        store.close()
+    assert SnapshotsFail.attempts == 1

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated
 from urllib.parse import urlencode
 
@@ -16,11 +17,13 @@ from focustrack_estimator.dependencies import (
     json_body,
     media_type,
 )
-from focustrack_estimator.event_store import SlideRecord
+from focustrack_estimator.event_store import CorruptLogError, SlideRecord
 from focustrack_estimator.paging import decode_cursor, encode_cursor
 from focustrack_estimator.prior import PRIOR_MEDIA_TYPE
+from focustrack_estimator.records import config_of
 
 router = APIRouter(prefix="/v1", tags=["slides"])
+log = logging.getLogger(__name__)
 
 #: The OpenAPI schema of a body that is a file.
 _FILE = {"type": "string", "format": "binary"}
@@ -36,13 +39,18 @@ _PAGE_HEADERS = {
         "description": "The next page's `cursor`, opaque; absent on the last page",
         "schema": {"type": "string"},
     },
+    api.UNREADABLE_SLIDES_HEADER: {
+        "description": "Slides of this page left out: this version cannot read their stored "
+        "configuration (each one's own requests answer 409 `slide_log_corrupt`)",
+        "schema": {"type": "string"},
+    },
 }
 
 
 def _slide_out(record: SlideRecord) -> api.Slide:
     return api.Slide(
         id=record.id,
-        config=api.SlideCreate.model_validate(record.config),
+        config=config_of(record),
         n_acquisitions=record.n_events,
         n_accepted=record.n_accepted,
         done=record.done,
@@ -62,7 +70,7 @@ def _summary(record: SlideRecord) -> api.SlideSummary:
     kept = {name: value for name, value in params.items() if name not in omitted}
     return api.SlideSummary(
         id=record.id,
-        config=api.SlideCreate.model_validate({**record.config, "params": kept}),
+        config=config_of(record, kept),
         n_acquisitions=record.n_events,
         n_accepted=record.n_accepted,
         done=record.done,
@@ -116,7 +124,16 @@ async def list_slides(
         query = urlencode({"limit": limit, "cursor": next_cursor})
         response.headers["Link"] = f'<{request.url.path}?{query}>; rel="next"'
         response.headers[api.NEXT_CURSOR_HEADER] = next_cursor
-    return [_summary(record) for record in page]
+    summaries, unreadable = [], []
+    for record in page:
+        try:
+            summaries.append(_summary(record))
+        except CorruptLogError as error:  # that slide's own requests say so (409); not the page's
+            log.error("%s", error)
+            unreadable.append(record.id)
+    if unreadable:
+        response.headers[api.UNREADABLE_SLIDES_HEADER] = ", ".join(unreadable)
+    return summaries
 
 
 @router.get("/slides/{slide_id}")
