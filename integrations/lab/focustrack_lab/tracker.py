@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from focustrack_client import EstimatorClient, EstimatorError, ServerError
-from focustrack_client.models import FocusFlag, MeasurementIn, Next, SlideCreate
+from focustrack_client.models import FocusFlag, MeasurementIn, Next, Purpose, SlideCreate
 from focustrack_core.domain import FocusFlag as DomainFlag
 from focustrack_core.domain import Measurement
 from focustrack_focus.pipeline import FocusResult, FocusSettings, focus_stack
@@ -192,16 +192,24 @@ class FocusTracker:
                     "acquire must give the stack's frames, (n, H, W[, C]) numbers: an array "
                     f"or a list of frames of one shape; got {frames.dtype} {frames.shape}"
                 )
-            progress.n_frames += len(frames_z_um)
-            progress.n_stacks += 1
             measurement = Measurement(None)
             if step.measure:
                 progress.last = focus_stack(frames, frames_z_um, self.settings)
                 measurement = progress.last.measurement()
+            # Counted once taken as frames: a stack refused (None, the wrong count, NaN) is not.
+            progress.n_frames += len(frames_z_um)
+            progress.n_stacks += 1
             progress.unposted = _Unposted(step, self.stack_sequence, measurement)
             self._post(progress, progress.unposted)
         self._progress = None
         if progress.z_um is None:
+            if step.purpose == Purpose.SURVEY:
+                raise TileOrderError(
+                    f"the estimator surveys tile ({step.row}, {step.col}) next, not tile "
+                    f"({row}, {col}): a survey strategy visits its survey points first, then "
+                    "every tile, two passes a tile-by-tile loop cannot follow; scan this "
+                    "slide with a Kalman strategy (kf-2d, kf-2d-lean, ...)"
+                )
             expected = "nothing: the scan is done" if step.done else f"({step.row}, {step.col})"
             raise TileOrderError(
                 f"the estimator expects {expected} next, not tile ({row}, {col}): visit the "

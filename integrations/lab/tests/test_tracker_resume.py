@@ -10,8 +10,8 @@ import pytest
 
 from focustrack.lab_sim import SimScope
 from focustrack_client import EstimatorClient
-from focustrack_client.models import SlideCreate
-from focustrack_lab.tracker import FocusTracker
+from focustrack_client.models import Grid, SlideCreate
+from focustrack_lab.tracker import FocusTracker, TileOrderError
 
 
 class LosesReplies(httpx.HTTPTransport):
@@ -68,3 +68,14 @@ def test_a_tile_whose_reply_was_lost_is_taken_up_where_it_stopped(
     assert recorded.n_measured >= 1  # the lost reply's measurement had been recorded
     after = estimator.next(tracker.slide_id)
     assert (after.row, after.col) == (0, 1)  # the scan goes on from the next tile
+
+
+def test_a_survey_strategy_is_refused_saying_why(estimator: EstimatorClient) -> None:
+    """Its survey points come first, in their own order: the tracker said "visit the tiles
+    in its serpentine order" to a loop that did."""
+    config = SlideCreate(strategy="survey-bilinear", grid=Grid(rows=12, cols=12))
+    tracker = FocusTracker.create(estimator, config)
+    rng = np.random.default_rng(0)
+    with pytest.raises(TileOrderError, match="a survey strategy visits its survey points"):
+        for col in range(12):
+            tracker.focus(0, col, lambda z_um: rng.random((len(z_um), 8, 8)))

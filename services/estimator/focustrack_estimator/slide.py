@@ -356,6 +356,14 @@ class Slide:
                 f"not asked for: the pending one is {pending.index} at tile "
                 f"({pending.row}, {pending.col})"
             )
+        if not pending.measure and measurement.z_um is not None:
+            # A height for a tile that was only to be imaged would be dropped unseen.
+            raise SlideError(
+                f"acquisition {pending.index} only images tile ({pending.row}, {pending.col}) "
+                "(measure: false): post z_um null, with frame_out_of_focus true if its frame "
+                "was out of focus",
+                ("body", "z_um"),
+            )
         start_s = time.perf_counter()
         outcome = self.strategy.record(pending, measurement)
         done = self.strategy.next_acquisition() is None

@@ -216,6 +216,31 @@ def test_a_body_not_sent_as_json_is_a_415_that_says_so(app: FastAPI) -> None:
     run(go())
 
 
+def test_a_height_for_a_tile_only_to_be_imaged_is_refused(app: FastAPI) -> None:
+    """It was taken (200, accepted false) and dropped unseen."""
+
+    async def go() -> None:
+        async with client(app) as http:
+            slide_id = await create(http, "survey-bilinear")
+            for _ in range(ROWS * COLS * 3):
+                pending = (await http.get(f"/v1/slides/{slide_id}/next")).json()
+                assert not pending["done"]
+                body = {key: pending[key] for key in ("row", "col", "sequence")}
+                if not pending["measure"]:
+                    break
+                response = await http.post(
+                    f"/v1/slides/{slide_id}/measurements", json={**body, "z_um": 0.5}
+                )
+                assert response.status_code == 200, response.text
+            url = f"/v1/slides/{slide_id}/measurements"
+            refused = await http.post(url, json={**body, "z_um": 1.23})
+            assert refused.status_code == 422, refused.text
+            assert "measure: false" in refused.text and "z_um" in refused.text
+            assert (await http.post(url, json={**body, "z_um": None})).status_code == 200
+
+    run(go())
+
+
 def test_the_last_measurement_is_acknowledged_when_the_final_map_fails(app: FastAPI) -> None:
     """It was stored, then answered with a 422 (the final smoother's "Singular matrix"):
     a client told nothing was recorded drops a measurement the log holds. No value the
