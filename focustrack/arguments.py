@@ -1,4 +1,5 @@
-"""argparse types that check a command's arguments when it starts.
+"""argparse types that check a command's arguments when it starts, and `refuse` for
+arguments each valid but not together.
 
 The benchmarks, the demo and `focus calibrate` run for minutes to hours and write their
 outputs at the end: an output that cannot be written, or a count that admits no work
@@ -11,6 +12,8 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from focustrack_core.settings import make_writable_folder
@@ -50,11 +53,19 @@ def _whole_number(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from error
 
 
-def positive_int(text: str) -> int:
-    """A whole number of at least 1 (frames, seeds, workers, repeats)."""
-    if (value := _whole_number(text)) < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+def whole_number(low: int) -> Callable[[str], int]:
+    """The argparse type of a whole number of at least `low` (a seed: 0, a side: 2)."""
+
+    def parse(text: str) -> int:
+        if (value := _whole_number(text)) < low:
+            raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+        return value
+
+    return parse
+
+
+#: A whole number of at least 1 (frames, seeds, workers, repeats).
+positive_int = whole_number(1)
 
 
 def user_id(text: str) -> int:
@@ -73,3 +84,44 @@ def positive_float(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
     return value
+
+
+def finite_number(
+    low: float = -math.inf, high: float = math.inf, *, below_high: bool = False
+) -> Callable[[str], float]:
+    """The argparse type of a finite number in [`low`, `high`] (or [`low`, `high`) with
+    `below_high`); the bounds in the flag's own unit."""
+    if math.isinf(low) and math.isinf(high):
+        allowed = "a finite number"
+    elif math.isinf(high):
+        allowed = f"a finite number >= {low:g}"
+    else:
+        allowed = f"a number in [{low:g}, {high:g}{')' if below_high else ']'}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        above_high = value >= high if below_high else value > high
+        if not math.isfinite(value) or value < low or above_high:
+            raise argparse.ArgumentTypeError(f"must be {allowed}, got {text}")
+        return value
+
+    return parse
+
+
+def existing_folder(text: str) -> Path:
+    """A folder the command reads: it must be there (a data folder given by hand that is
+    not is a typo, not a reason to leave its rows out)."""
+    path = Path(text)
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is not a folder")
+    return path
+
+
+def refuse(command: str, message: str) -> int:
+    """Refuse arguments that are each valid but not together, as argparse refuses one: a
+    line on stderr naming `command` (`bench focus`); the exit status 2 to return."""
+    print(f"focustrack {command}: error: {message}", file=sys.stderr)
+    return 2

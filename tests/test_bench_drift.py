@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -45,8 +47,58 @@ def test_every_scenario_is_scored_and_written(
     assert out.with_suffix(".png").stat().st_size > 0
 
 
-def test_bad_sizes_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["bench", "drift", "--size", "1"]) == 2
-    assert "bad sizes" in capsys.readouterr().err
-    assert main(["bench", "drift", "--frame-check-ratio", "1"]) == 2
-    assert "first-frame check" in capsys.readouterr().err
+#: Small enough that a bench run by mistake (a value not refused) ends in seconds.
+TINY = ["--size", "6", "--maps", "1", "--ekf-trials", "5", "--check-textures", "1"]
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "allowed"),
+    [
+        ("--settle-tau-s", "0", "above 0"),  # these were tracebacks
+        ("--settle-tau-s", "-5", "above 0"),
+        ("--walk-um-per-sqrt-min", "-1", ">= 0"),
+        ("--lateral-tiles", "0", "at least 1"),
+        ("--ekf-trials", "0", "at least 1"),
+        ("--laser-noise-um", "inf", ">= 0"),
+        ("--seed", "-1", "at least 0"),
+        ("--maps", "0", "at least 1"),  # these four shared one message naming no flag
+        ("--size", "1", "at least 2"),
+        ("--noise-um", "nan", "above 0"),
+        ("--dof-um", "0", "above 0"),
+        ("--frame-check-ratio", "1", "[0, 1)"),
+        ("--check-textures", "0", "at least 1"),
+    ],
+)
+def test_a_bad_value_is_refused_before_any_work_naming_its_flag_and_range(
+    flag: str, value: str, allowed: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        main(["bench", "drift", *TINY, flag, value])
+    assert stopped.value.code == 2
+    captured = capsys.readouterr()
+    assert f"argument {flag}: " in captured.err and allowed in captured.err
+    assert captured.out == ""  # no scenario began
+
+
+def test_a_real_dir_that_is_not_there_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    """It was taken, and the real-data rows left out without a word."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["bench", "drift", *TINY, "--real-dir", "/nonexistent"])
+    assert stopped.value.code == 2
+    assert "argument --real-dir: /nonexistent is not a folder" in capsys.readouterr().err
+
+
+def test_the_command_line_refuses_a_bad_value_in_one_line(tmp_path: Path) -> None:
+    """The installed command, as a user runs it: exit status 2 and a usage line, no
+    traceback."""
+    command = Path(sys.executable).with_name("focustrack")
+    done = subprocess.run(
+        [str(command), "bench", "drift", *TINY, "--settle-tau-s", "0"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert done.returncode == 2
+    assert "focustrack bench drift: error: argument --settle-tau-s: must be" in done.stderr
+    assert "Traceback" not in done.stderr

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from focustrack.bench import focus, focus_real
+from focustrack.cli import main
 
 
 def test_quick_bench_writes_every_figure_per_metric(tmp_path: Path, capsys) -> None:
@@ -105,3 +106,79 @@ def test_calibrate_on_none_reads_each_half_with_no_profile_alone(tmp_path: Path)
         assert set(run["no_profile"]) == set(focus_real.HOLDOUT_METRICS)
         assert set(run["no_profile_targets"]) == {t[0] for t in focus_real.NO_PROFILE_TARGETS}
         assert run["no_profile"]["BRENNER"]["windows"]["n_inside"] > 0
+
+
+@pytest.fixture
+def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make a bench that starts its work by mistake (an argument not refused) fail at once
+    rather than run for minutes."""
+
+    def work(*_: object, **__: object) -> None:
+        raise AssertionError("the bench began its work")
+
+    monkeypatch.setattr(focus, "simulate", work)
+    monkeypatch.setattr(focus_real.calibration, "calibrate", work)
+    monkeypatch.setattr(focus_real, "calibrate_and_hold_out", work)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--seed", "-1", "--quick"], "argument --seed: must be at least 0, got -1"),
+        (["--real", "--real-dir", "/nonexistent"], "argument --real-dir: /nonexistent is not"),
+        (
+            ["--real", "--calibrate-on", "odd", "--folds", "1"],
+            "argument --folds: must be at least 2, got 1",
+        ),
+        (["--metrics"], "argument --metrics: expected at least one argument"),
+    ],
+)
+def test_a_bad_value_is_refused_before_any_work(
+    argv: list[str], message: str, no_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each was a traceback, a status of 1 or a calibration failing after the work began."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["bench", "focus", *argv])
+    assert stopped.value.code == 2
+    assert f"focustrack bench focus: error: {message}" in capsys.readouterr().err
+
+
+def test_calibrate_on_without_real_is_refused(
+    no_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It was ignored, and the simulator's bench run instead."""
+    assert main(["bench", "focus", "--quick", "--calibrate-on", "odd"]) == 2
+    assert "focustrack bench focus: error: --calibrate-on needs --real" in capsys.readouterr().err
+
+
+def test_real_without_the_curves_folder_is_refused(
+    tmp_path: Path, no_work: None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A --real-dir that is there but holds no wsi_focus_curves: status 2 (it was 1)."""
+    assert main(["bench", "focus", "--real", "--real-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "focustrack bench focus: error: --real needs" in err and "wsi_focus_curves" in err
+
+
+def test_figures_with_nothing_measured_are_written_as_null(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A measure that measured nothing has NaN figures: the bench's JSON holds them as null
+    (it held a bare NaN, which JSON.parse refuses)."""
+    keys = [key for key, _, _ in focus_real._COLUMNS]
+    keys += [key for _, _, key, _, _ in focus_real.NO_PROFILE_TARGETS]
+    nothing = {part: dict.fromkeys(keys, np.nan) for part in ("full", "windows", "windows_11x3")}
+    monkeypatch.setattr(focus_real, "half_fields", lambda *_: [])
+    monkeypatch.setattr(
+        focus_real, "read_without_profile", lambda _, metrics: dict.fromkeys(metrics, nothing)
+    )
+    (tmp_path / "real" / "wsi_focus_curves").mkdir(parents=True)
+    out = tmp_path / "none.json"
+    argv = ["--real", "--calibrate-on", "none", "--real-dir", str(tmp_path / "real")]
+    assert main(["bench", "focus", *argv, "--json", str(out)]) == 0
+
+    def refuse(constant: str) -> None:
+        raise AssertionError(f"{constant} in the JSON")
+
+    runs = json.loads(out.read_text(), parse_constant=refuse)["runs"]
+    assert runs[0]["no_profile"]["BRENNER"]["windows"]["edge_right"] is None

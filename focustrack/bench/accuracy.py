@@ -20,7 +20,6 @@ focuses once when a slide is loaded.
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import sys
 from dataclasses import asdict, dataclass, replace
@@ -31,6 +30,7 @@ from tqdm import tqdm
 
 from focustrack.arguments import output_file, output_folder
 from focustrack.bench import strategies as registry
+from focustrack.bench.json_report import write_json
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import (
@@ -478,7 +478,6 @@ def run(args: argparse.Namespace) -> int:
         "seed": args.seed,
     }
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report)
         print(f"wrote {args.json}")
     return 0

@@ -36,6 +36,7 @@ import httpx
 import numpy as np
 
 from focustrack.arguments import output_file, positive_float, positive_int
+from focustrack.bench.json_report import write_json
 from focustrack_client import models as api
 from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_core.rest import to_api, to_domain
@@ -306,8 +307,7 @@ def run(args: argparse.Namespace) -> int:
             server.terminate()
             server.wait(timeout=10)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {r.case: {k: v for k, v in asdict(r).items() if k != "case"} for r in results}
-        args.json.write_text(json.dumps(payload, indent=2) + "\n")
+        write_json(args.json, payload)
         print(f"wrote {args.json}")
     return 0

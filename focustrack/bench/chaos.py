@@ -63,6 +63,7 @@ import zenoh
 
 from focustrack.arguments import output_file, output_folder
 from focustrack.bench import bus_attacks
+from focustrack.bench.json_report import write_json
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
@@ -465,8 +466,7 @@ def run(args: argparse.Namespace) -> int:
     }
     print(summary(report))
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report)
         chart(report, args.json.with_suffix(".png"))
         print(f"wrote {args.json}, {args.json.with_suffix('.png')}")
     ok = (

@@ -45,8 +45,6 @@ Per scenario and strategy: `in_focus_fraction`, `frames_per_tile`, `time_over_li
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -54,10 +52,18 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.arguments import output_file
+from focustrack.arguments import (
+    existing_folder,
+    finite_number,
+    output_file,
+    positive_float,
+    positive_int,
+    whole_number,
+)
 from focustrack.bench import frame_check, lateral_drift, stream_ekf
 from focustrack.bench import strategies as registry
 from focustrack.bench.focus import REAL_DIR
+from focustrack.bench.json_report import write_json
 from focustrack_core.domain import SlideSettings
 from focustrack_core.drift import ThermalDrift
 from focustrack_core.geometry import ScanGrid
@@ -126,48 +132,75 @@ def drift_score(runs: list[Replay], dof_um: float) -> DriftScore:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The bench's flags, each typed with the range it takes (`focustrack.arguments`):
+    a value out of it is refused before any map is drawn."""
     parser.add_argument("--family", default="standard", choices=sorted(FAMILIES))
-    parser.add_argument("--maps", type=int, default=4, help="number of maps (default 4)")
-    parser.add_argument("--size", type=int, default=50, help="tiles per side (default 50)")
-    parser.add_argument("--seed", type=int, default=3000, help="seed (default 3000)")
-    parser.add_argument("--noise-um", type=float, default=0.1, help="measurement noise (0.1)")
-    parser.add_argument("--dof-um", type=float, default=0.89, help="depth of field (0.89)")
-    parser.add_argument("--settle-um", type=float, default=2.0, help="drift settling (2 um)")
+    parser.add_argument("--maps", type=positive_int, default=4, help="number of maps (default 4)")
     parser.add_argument(
-        "--settle-tau-s", type=float, default=200.0, help="settling time constant (200 s)"
+        "--size", type=whole_number(2), default=50, help="tiles per side, >= 2 (default 50)"
+    )
+    # the seeds of numpy's generators are whole numbers from 0
+    parser.add_argument("--seed", type=whole_number(0), default=3000, help="seed (default 3000)")
+    parser.add_argument(
+        "--noise-um", type=positive_float, default=0.1, help="measurement noise (0.1)"
+    )
+    parser.add_argument("--dof-um", type=positive_float, default=0.89, help="depth of field (0.89)")
+    parser.add_argument(
+        "--settle-um", type=finite_number(), default=2.0, help="drift settling (2 um)"
     )
     parser.add_argument(
-        "--walk-um-per-sqrt-min", type=float, default=0.3, help="random walk (0.3 um/sqrt min)"
+        "--settle-tau-s", type=positive_float, default=200.0, help="settling time constant (200 s)"
     )
     parser.add_argument(
-        "--laser-noise-um", type=float, default=0.05, help="laser reading noise (0.05 um)"
+        "--walk-um-per-sqrt-min",
+        type=finite_number(0.0),
+        default=0.3,
+        help="random walk, >= 0 (0.3 um/sqrt min)",
     )
     parser.add_argument(
-        "--axial-offset-um", type=float, default=12.0, help="second pass: z offset (12 um)"
+        "--laser-noise-um",
+        type=finite_number(0.0),
+        default=0.05,
+        help="laser reading noise, >= 0 (0.05 um)",
     )
     parser.add_argument(
-        "--lateral-offset-um", type=float, default=5.0, help="second pass: xy offset (5 um)"
+        "--axial-offset-um",
+        type=finite_number(),
+        default=12.0,
+        help="second pass: z offset (12 um)",
     )
     parser.add_argument(
-        "--lateral-tiles", type=int, default=8, help="second pass: tiles correlated (8)"
+        "--lateral-offset-um",
+        type=finite_number(0.0),
+        default=5.0,
+        help="second pass: xy offset, a distance >= 0 in a random direction (5 um)",
+    )
+    parser.add_argument(
+        "--lateral-tiles", type=positive_int, default=8, help="second pass: tiles correlated (8)"
     )
     parser.add_argument(
         "--frame-check-ratio",
-        type=float,
+        type=finite_number(0.0, 1.0, below_high=True),
         default=MIN_SHARPNESS_RATIO,
-        help=f"second pass: the first-frame check's least sharpness ratio ({MIN_SHARPNESS_RATIO})",
+        help=f"second pass: the first-frame check's least sharpness ratio, in [0, 1) "
+        f"({MIN_SHARPNESS_RATIO})",
     )
     parser.add_argument(
         "--check-textures",
-        type=int,
+        type=positive_int,
         default=8,
         help="second pass: the simulator's tiles the first-frame check's frames show (8)",
     )
     parser.add_argument(
-        "--ekf-trials", type=int, default=200, help="EKF: simulator-shaped streams (200)"
+        "--ekf-trials", type=positive_int, default=200, help="EKF: simulator-shaped streams (200)"
     )
+    # typed only when given: the default folder may be absent, and its rows are then left
+    # out, but a folder given by hand that is not there is a mistake
     parser.add_argument(
-        "--real-dir", type=Path, default=REAL_DIR, help="EKF: the shared real data's folder"
+        "--real-dir",
+        type=existing_folder,
+        default=REAL_DIR,
+        help="EKF: the shared real data's folder",
     )
     parser.add_argument("--json", type=output_file, metavar="OUT", help="write the scores as JSON")
 
@@ -195,16 +228,6 @@ def _run_scenario(
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.maps < 1 or args.size < 2 or not (args.noise_um > 0 and args.dof_um > 0):
-        print("focustrack bench drift: error: bad sizes, noise or depth of field", file=sys.stderr)
-        return 2
-    if args.check_textures < 1 or not 0 <= args.frame_check_ratio < 1:
-        print(
-            "focustrack bench drift: error: the first-frame check needs a texture and a "
-            "ratio in [0, 1)",
-            file=sys.stderr,
-        )
-        return 2
     size = args.size
     grid = ScanGrid(size, size)
     settings = default_settings(grid, dof_um=args.dof_um, noise_sigma_um=args.noise_um)
@@ -261,8 +284,7 @@ def run(args: argparse.Namespace) -> int:
                 for source, scores in streams.items()
             },
         }
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report)
         figure = args.json.with_suffix(".png")
         plot_traces(traces, figure)
         print(f"wrote {args.json} and {figure}")

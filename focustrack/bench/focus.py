@@ -24,7 +24,6 @@ machine slow it less than they would a wall-clock figure.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import time
@@ -36,8 +35,16 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from focustrack.arguments import output_file, output_folder, positive_int
+from focustrack.arguments import (
+    existing_folder,
+    output_file,
+    output_folder,
+    positive_int,
+    refuse,
+    whole_number,
+)
 from focustrack.bench import focus_real
+from focustrack.bench.json_report import write_json
 from focustrack_core.domain import FocusFlag
 from focustrack_core.geometry import ScanGrid
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
@@ -303,12 +310,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--seed",
-        type=int,
+        type=whole_number(0),  # numpy's generators take whole numbers from 0
         default=1,
         help="simulation seed (default 1; the sigma model was fitted on seeds 100-102)",
     )
-    parser.add_argument("--metrics", nargs="*", default=list(METRICS), choices=list(METRICS))
-    parser.add_argument("--real-dir", type=Path, default=REAL_DIR)
+    parser.add_argument("--metrics", nargs="+", default=list(METRICS), choices=list(METRICS))
+    # typed only when given: the default folder may be absent (the simulator's figures
+    # leave its rows out), a folder given by hand that is not there is a mistake
+    parser.add_argument("--real-dir", type=existing_folder, default=REAL_DIR)
     parser.add_argument("--json", type=output_file, metavar="OUT", help="write the figures as JSON")
     parser.add_argument("--plots", type=output_folder, metavar="DIR", help="write PNG plots here")
     parser.add_argument(
@@ -325,17 +334,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "command, each half with no profile alone, about a minute)",
     )
     parser.add_argument(
-        "--folds", type=int, default=5, help="with --calibrate-on: the command's --folds"
+        "--folds",
+        type=whole_number(2),  # a cross-validation needs a fold to hold out and one to fit
+        default=5,
+        help="with --calibrate-on: the command's --folds, >= 2 (default 5)",
     )
 
 
 def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)  # the target: a 100 frames/s camera kept up with on one core
+    if args.calibrate_on and not args.real:
+        return refuse("bench focus", "--calibrate-on needs --real")
     if args.real:
         return focus_real.run(args)
     reps = args.reps or (1 if args.quick else 4)
-    if reps < 1 or not args.metrics:
-        raise SystemExit("focustrack bench focus: --reps must be >= 1 and --metrics not empty")
     print(
         f"source: the instrument simulator (docs/instrument.md), fields {'/'.join(FIELDS)}, "
         f"{'/'.join(map(str, SIZES_PX))} px, exposures "
@@ -369,7 +381,6 @@ def run(args: argparse.Namespace) -> int:
     by_group = {name: breakdown(t) for name, t in trials.items()}
     print_report(summary, by_group, real, copy_grey, copy_rgb, load)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             "source": "instrument_sim",
             "seed": args.seed,
@@ -382,7 +393,7 @@ def run(args: argparse.Namespace) -> int:
                 for n in args.metrics
             },
         }
-        args.json.write_text(json.dumps(payload, indent=2))
+        write_json(args.json, payload)
         print(f"wrote {args.json}")
     if args.plots:
         write_plots(args.plots, trials, real_settings, args.real_dir)

@@ -21,7 +21,6 @@ calibrate` on it, the other half read with the profile it wrote and without one;
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import asdict
@@ -30,6 +29,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from focustrack.arguments import refuse
+from focustrack.bench.json_report import write_json
 from focustrack_focus import calibration
 from focustrack_focus.calibration import MEDIAN_SIGMA_TARGET_STEPS, parts, read_fields
 from focustrack_focus.labelled_curves import LabelledCurve, write_curves, wsi_curves
@@ -319,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
     """`--real`: the WSI curves' figures on the report fields (and the fit fields), targets."""
     folder = args.real_dir / "wsi_focus_curves"
     if not folder.is_dir():
-        raise SystemExit(f"focustrack bench focus --real: {folder} is missing (see its README)")
+        return refuse("bench focus", f"--real needs {folder}, which is missing (see its README)")
     if args.calibrate_on == "none":
         return run_without_profile(args)
     if args.calibrate_on:
@@ -367,7 +368,6 @@ def run(args: argparse.Namespace) -> int:
             "or sigma to cover, and a measure that points nowhere never points the right way)"
         )
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             "source": "wsi_focus_curves",
             "step_um": WSI_STEP_UM,
@@ -381,7 +381,7 @@ def run(args: argparse.Namespace) -> int:
                 m: {"because": unusable[m]} | verdict for m, verdict in unusable_met.items()
             },
         }
-        args.json.write_text(json.dumps(payload, indent=2))
+        write_json(args.json, payload)
         print(f"wrote {args.json}")
     if args.plots:
         write_plot(args.plots / "real_curves.png", report)
@@ -404,8 +404,7 @@ def run_calibrated(args: argparse.Namespace) -> int:
         for result in results:
             print_holdout(result)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"source": "wsi_focus_curves", "runs": results}, indent=2))
+        write_json(args.json, {"source": "wsi_focus_curves", "runs": results})
         png = args.json.with_suffix(".png")
         write_holdout_plot(png, results)
         print(f"wrote {args.json}, {png}")
@@ -425,7 +424,6 @@ def run_without_profile(args: argparse.Namespace) -> int:
             print(f"    {'NOT met' if missed else 'met    '}  {target}  {' '.join(missed)}")
         results.append({"held_out": half, "no_profile": figures, "no_profile_targets": misses})
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"source": "wsi_focus_curves", "runs": results}, indent=2))
+        write_json(args.json, {"source": "wsi_focus_curves", "runs": results})
         print(f"wrote {args.json}")
     return 0

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import multiprocessing
 import statistics
 import sys
@@ -27,6 +26,7 @@ import numpy as np
 import zenoh
 
 from focustrack.arguments import output_file, positive_int
+from focustrack.bench.json_report import write_json
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
@@ -184,6 +184,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"  publish to another process, {label}: {figures[f'publish_{label}_ms']:.1f} ms "
               f"({figures[f'publish_{label}_gb_per_s']:.2f} GB/s)")  # fmt: skip
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(figures, indent=2))
+        write_json(args.json, figures)
     return 0

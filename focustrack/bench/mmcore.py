@@ -26,7 +26,6 @@ within the noise; the wall time says what the device path costs in a scan.
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import statistics
 import sys
@@ -39,6 +38,7 @@ import numpy as np
 from pymmcore_plus import CMMCorePlus
 
 from focustrack.arguments import output_file, output_folder
+from focustrack.bench.json_report import write_json
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
 from focustrack_estimator import registry
 from focustrack_instrument_sim.instrument import StackRequest
@@ -269,6 +269,5 @@ def run(args: argparse.Namespace) -> int:
         } | scan_backends(args)  # fmt: skip
         print(scan_table({backend: figures["scan"][backend] for backend in SCAN_BACKENDS}))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(figures, indent=2))
+        write_json(args.json, figures)
     return 0

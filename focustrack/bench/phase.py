@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import sys
 import time
 import tracemalloc
@@ -70,6 +69,7 @@ from scipy import fft, ndimage
 
 from focustrack.arguments import output_file
 from focustrack.bench.focus import REAL_DIR
+from focustrack.bench.json_report import write_json
 from focustrack.bench.phase_speed import SPEED_PLANES, measure_speed
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_yeast
@@ -803,20 +803,18 @@ def run(args: argparse.Namespace) -> int:
         write_figure(figure, truth, phases)
         write_figure(coherence_figure, coherence_truth, coherence_phases, error_rad=0.15)
         write_figure(simulator_figure, simulator_truth, simulator_phases, error_rad=0.5)
-        args.json.write_text(
-            json.dumps(
-                {"data_set_1": rows, "objects": objects, "known_spectra": known,
-                 "sweep": sweep, "coherence": coherence,
-                 "simulator": simulator, "real_yeast": yeast, "speed": speed,
-                 "anchoring_speed": anchoring,
-                 "figure": figure.name,
-                 "coherence_figure": coherence_figure.name,
-                 "simulator_figure": simulator_figure.name,
-                 "yeast_figure": yeast_figure.name if yeast_images else None,
-                 "paper": {name: {"time_s": t, "intensity_rmse": i, "phase_rmse_rad": p}
-                           for name, (t, i, p) in PAPER.items()}},
-                indent=2,
-            )
+        write_json(
+            args.json,
+            {"data_set_1": rows, "objects": objects, "known_spectra": known,
+             "sweep": sweep, "coherence": coherence,
+             "simulator": simulator, "real_yeast": yeast, "speed": speed,
+             "anchoring_speed": anchoring,
+             "figure": figure.name,
+             "coherence_figure": coherence_figure.name,
+             "simulator_figure": simulator_figure.name,
+             "yeast_figure": yeast_figure.name if yeast_images else None,
+             "paper": {name: {"time_s": t, "intensity_rmse": i, "phase_rmse_rad": p}
+                       for name, (t, i, p) in PAPER.items()}},
         )  # fmt: skip
         figures = [figure, coherence_figure, simulator_figure]
         if yeast_images:

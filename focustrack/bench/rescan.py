@@ -14,7 +14,6 @@ strategy (start 0 um, start sigma 10 um).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import asdict
 
@@ -23,6 +22,7 @@ import numpy as np
 from focustrack.arguments import output_file
 from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import format_reliability
+from focustrack.bench.json_report import write_json
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
@@ -124,8 +124,7 @@ def run(args: argparse.Namespace) -> int:
             "reliability": [asdict(b) for b in bins],
             "drift_error_um": drift_error_um,
         }
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report)
         print(f"wrote {args.json}")
     return 0
 

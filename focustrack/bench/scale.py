@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from focustrack.arguments import output_file, positive_int
+from focustrack.bench.json_report import write_json
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
@@ -408,7 +409,7 @@ def run(args: argparse.Namespace) -> int:
             "jobs": args.jobs,
             "load_average": os.getloadavg(),
         }
-        args.json.write_text(json.dumps(figures, indent=2))
+        write_json(args.json, figures)
     plot = args.plot or (args.json.with_suffix(".png") if args.json else None)
     if plot and in_process:
         _plot(in_process, plot)

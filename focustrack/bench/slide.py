@@ -30,7 +30,6 @@ is its lowest frame alone, then the rest where the focus service sees something 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -40,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from focustrack.arguments import output_file, output_folder
+from focustrack.bench.json_report import write_json
 from focustrack.demo import scan_on, slide_problem
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack.slide_scores import scored_scan
@@ -164,9 +164,8 @@ def run(args: argparse.Namespace) -> int:
     )
     print(format_scores(title, scores))
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         report = {"title": title, "scores": {name: asdict(s) for name, s in scores.items()}}
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        write_json(args.json, report)
         print(f"wrote {args.json}")
         figure(scores, args.json.with_suffix(".png"), title)
     return 0

@@ -24,7 +24,6 @@ serves it. The figures are medians and ranges over the runs, in seconds.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import subprocess
 import sys
@@ -39,6 +38,7 @@ import httpx
 import zenoh
 
 from focustrack.arguments import output_file
+from focustrack.bench.json_report import write_json
 from focustrack_core.health import instrument_answers
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 
@@ -212,13 +212,12 @@ def run(args: argparse.Namespace) -> int:
                 f"{figures['max_s']:>8.2f}  {met}"
             )
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             "runs": args.runs,
             "target_s": TARGET_S,
             "services": results[THIS],
             "compared": {label: figures for label, figures in results.items() if label != THIS},
         }
-        args.json.write_text(json.dumps(payload, indent=2) + "\n")
+        write_json(args.json, payload)
         print(f"wrote {args.json}")
     return 0

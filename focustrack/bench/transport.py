@@ -57,6 +57,7 @@ import numpy as np
 import zenoh
 
 from focustrack.arguments import output_file
+from focustrack.bench.json_report import write_json
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
 from focustrack_focus.pipeline import FocusSettings
@@ -420,8 +421,7 @@ def run(args: argparse.Namespace) -> int:
     }
     print(table(figures))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+        write_json(args.json, figures)
         chart(figures, args.json.with_suffix(".png"))
         print(f"wrote {args.json}, {args.json.with_suffix('.png')}")
     return 0
