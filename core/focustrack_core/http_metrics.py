@@ -20,7 +20,7 @@ from prometheus_client.exposition import start_http_server
 from prometheus_client.metrics import disable_created_metrics
 from pydantic import Field
 
-from focustrack_core.serving import ListenError
+from focustrack_core.serving import ListenError, http_url
 from focustrack_core.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ def metrics_server(
         server, thread = start_http_server(port, host, registry)
     except OSError as error:
         raise ListenError.of("metrics", host, port, error) from error
-    url = f"http://{host}:{server.server_port}/metrics"
+    url = http_url(host, server.server_port, "/metrics")
     log.info("metrics at %s", url)
     try:
         yield url

@@ -73,6 +73,12 @@ def is_loopback(host: str) -> bool:
         return False
 
 
+def http_url(host: str, port: int, path: str = "") -> str:
+    """The URL of `path` on an HTTP server at `host`:`port`; an IPv6 address in brackets
+    (RFC 3986: ``http://[::1]:8100``, where ``http://::1:8100`` is no URL)."""
+    return f"http://[{host}]:{port}{path}" if ":" in host else f"http://{host}:{port}{path}"
+
+
 def refuse_open_network(service: str, host: str, token: str | None, insecure: bool) -> str | None:
     """Why `service` must not start on `host` without a token (None: it may start).
 
@@ -323,7 +329,7 @@ class BackgroundServer:
     @property
     def url(self) -> str:
         host, port = self._server.servers[0].sockets[0].getsockname()[:2]
-        return f"http://{host}:{port}/"
+        return http_url(host, port, "/")
 
     def start(self, timeout_s: float = 30.0) -> BackgroundServer:
         """Start serving; ListenError if its address cannot be had, RuntimeError if the

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING
 from focustrack_core import tracing
 from focustrack_core.serving import (
     ListenError,
+    http_url,
     listening_socket,
     refuse_open_network,
     serve_until_stopped,
@@ -86,7 +87,7 @@ def run(settings: EstimatorSettings) -> int:
     traced = tracing.configure("focustrack-estimator", settings.otlp_endpoint)
     port = listening.getsockname()[1]  # --port 0: the one the system chose
     print(
-        f"estimator on http://{settings.host}:{port} (store {store.address}, "
+        f"estimator on {http_url(settings.host, port)} (store {store.address}, "
         f"auth {'on' if settings.token else 'off'}, traces {'on' if traced else 'off'})",
         flush=True,
     )

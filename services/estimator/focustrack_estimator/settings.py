@@ -12,6 +12,10 @@ from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.tracing import TracingSettings
 
+#: The smallest request-body limit: a slide's configuration with its fields spelt out
+#: (about 400 bytes) under it with room; a smaller one would refuse every slide.
+MIN_BODY_BYTES = 1024
+
 
 class EstimatorSettings(TracingSettings):
     """How the estimator service runs: where, on which store, with which limits, and where
@@ -34,9 +38,10 @@ class EstimatorSettings(TracingSettings):
     )
     max_body_bytes: int = Field(
         64 * 1024,
-        ge=1,
-        description="largest request body accepted (a prior map's .npy: its own limit, the "
-        "largest grid's map and sigmas)",
+        ge=MIN_BODY_BYTES,
+        description="largest request body accepted, at least 1 KiB, a slide's configuration "
+        "with its fields spelt out (a prior map's .npy: its own limit, the largest grid's map "
+        "and sigmas)",
     )
     max_grid_side: int = Field(
         500, ge=1, description="most tiles per side a slide's grid may have (larger: 422)"
@@ -86,3 +91,17 @@ class EstimatorSettings(TracingSettings):
     def _empty_is_unset(cls, value: str | None) -> str | None:
         """An empty token is no token (`--token ''`), as an empty module is none."""
         return value or None
+
+    @field_validator("token")
+    @classmethod
+    def _sendable(cls, token: str | None) -> str | None:
+        """A token a client can send: in an HTTP header a token of blanks, or with a blank
+        or a control character at an end or a line break inside, cannot be sent whole."""
+        if token is not None and (
+            token != token.strip() or not token.isprintable() or not token.isascii()
+        ):
+            raise ValueError(
+                "must be printable ASCII without blanks at either end (no client could "
+                "send it in the Authorization header)"
+            )
+        return token

@@ -49,6 +49,11 @@ def test_the_environment_sets_and_an_empty_token_unsets(monkeypatch: pytest.Monk
         (["--max-tile-seconds", "-1"], "--max-tile-seconds"),
         (["--snapshot-every", "0"], "--snapshot-every"),
         (["--port", "70000"], "--port"),
+        # a limit that admits no slide's configuration: every creation was a 413
+        (["--max-body-bytes", "10"], "--max-body-bytes"),
+        # a token no client can send in a header: every request was a 401
+        (["--token", " "], "Authorization header"),
+        (["--token", "secret\n"], "Authorization header"),
     ],
 )
 def test_a_refused_value_exits_2_naming_the_option(

@@ -27,6 +27,7 @@ from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.serving import (
     ListenError,
+    http_url,
     listening_socket,
     refuse_open_network,
     serve_until_stopped,
@@ -145,14 +146,12 @@ def run(settings: PhaseServiceSettings) -> int:
         ),
     )
     log.info(
-        "phase service: zenoh %s (%s) -> %s/phase/... (results %s), "
-        "http://%s:%d/v1/phase/stack (auth %s)",
+        "phase service: zenoh %s (%s) -> %s/phase/... (results %s), %s (auth %s)",
         ZFRAME_SUBSCRIPTION,
         "any frames" if frame_signer is None else "tagged frames only",
         keys.PREFIX,
         "tagged" if signer is not None else "untagged",
-        settings.host,
-        listening.getsockname()[1],  # --port 0: the one the system chose
+        http_url(settings.host, listening.getsockname()[1], "/v1/phase/stack"),  # --port 0: chosen
         "on" if settings.token else "off",
     )
     started_s = time.perf_counter()
