@@ -80,7 +80,7 @@ def stack_curves(folder: Path, metrics: list[str]) -> list[LabelledCurve]:
     labels_path = folder / "labels.json"
     try:
         labels = json.loads(labels_path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as error:
+    except (OSError, ValueError) as error:  # ValueError: not JSON, or not UTF-8 text
         raise CurvesFileError(f"{labels_path}: {error}") from None
     if not isinstance(labels, dict) or not labels:
         raise CurvesFileError(f'{labels_path}: want {{"FILE": {{"z_um": [...], "focus_z_um": z}}}}')
@@ -138,12 +138,12 @@ def print_folds(metric: str, constants: calibration.Calibration, folds: list, fw
 
 def write_plot(
     path: Path,
-    curves: list[LabelledCurve],
+    fields: dict[str, list[LabelledCurve]],
     results: dict[str, tuple[calibration.Calibration, list]],
 ) -> None:
-    """Per metric: its curves aligned on their labels (scaled to their range), and the
-    held-out readings' error over the coverage's bound (2 sigma + half a step; inside
-    +-1: covered)."""
+    """Per metric: its curves (in `fields`, the metric's) aligned on their labels (scaled
+    to their range), and the held-out readings' error over the coverage's bound (2 sigma +
+    half a step; inside +-1: covered)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -153,7 +153,7 @@ def write_plot(
     fig, axes = plt.subplots(2, len(names), figsize=(4 * len(names), 7), squeeze=False)
     for column, metric in enumerate(names):
         top, bottom = axes[0, column], axes[1, column]
-        for curve in curves:
+        for curve in fields[metric]:
             s = curve.scores[metric]
             top.plot(curve.z_um - curve.focus_z_um, (s - s.min()) / np.ptp(s), lw=0.6, alpha=0.5)
         top.axvline(0.0, color="k", ls="--", lw=0.8)
@@ -182,11 +182,12 @@ def write_plot(
 
 
 def calibrate_profile(
-    curves: list[LabelledCurve], metrics: list[str], n_folds: int, source: str
+    fields: dict[str, list[LabelledCurve]], n_folds: int, source: str
 ) -> tuple[MicroscopeProfile, dict[str, tuple[calibration.Calibration, list]]]:
-    """Every metric's entry (cross-validated, printed as it goes) and the folds behind it."""
+    """Every metric's entry, learnt on its fields (`fields`: metric -> the fields it is
+    calibrated on; cross-validated, printed as it goes) and the folds behind it."""
     entries, results = {}, {}
-    for metric in metrics:
+    for metric, curves in fields.items():
         constants, folds = calibration.cross_validate(curves, metric, n_folds)
         widths = calibration.curve_widths_um(curves, metric)
         # the narrowest tenth of the peaks still has a frame above its half maximum
@@ -216,6 +217,17 @@ def _finite(value: Any) -> Any:
     return None if isinstance(value, float) and math.isnan(value) else value
 
 
+def _fields(numbers: list[int]) -> str:
+    """Field numbers as a user reads them ("field 3", "fields 3, 7"): a field is numbered by
+    its "field", else by its line (`labelled_curves`)."""
+    return f"field{'s' if len(numbers) > 1 else ''} {', '.join(map(str, numbers))}"
+
+
+def _refuse(why: str) -> int:
+    print(f"focustrack focus calibrate: error: {why}", file=sys.stderr)
+    return 2
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         if args.curves is not None:
@@ -223,30 +235,48 @@ def run(args: argparse.Namespace) -> int:
         else:
             curves = stack_curves(args.stacks, args.metrics or list(METRICS))
     except (CurvesFileError, OSError) as error:
-        print(f"focustrack focus calibrate: error: {error}", file=sys.stderr)
-        return 2
-    given = set.intersection(*(set(c.scores) for c in curves))
-    metrics = args.metrics or sorted(given)
-    missing = [m for m in metrics if m not in given]
-    if missing or not metrics:
-        named = ", ".join(missing) or "a metric"
-        print(f"focustrack focus calibrate: error: not every field has {named}", file=sys.stderr)
-        return 2
+        return _refuse(str(error))
+    source = str(args.curves or args.stacks)
+    # metric -> the fields without its scores: a metric asked for must be in every field,
+    # and one not asked for that some field lacks is left out, with a line saying so
+    named = args.metrics or sorted({metric for curve in curves for metric in curve.scores})
+    lacking = {m: [c.number for c in curves if m not in c.scores] for m in named}
+    for metric, numbers in lacking.items():
+        if numbers and args.metrics:
+            return _refuse(f"{source}: no {metric} scores in {_fields(numbers)}")
+    metrics = [metric for metric in named if not lacking[metric]]
+    if not metrics:
+        return _refuse(f"{source}: no metric is scored in every field")
+    if len(curves) < 2:
+        return _refuse(f"{source} has only 1 field: cross-validation over fields needs at least 2")
     if not 2 <= args.folds <= len(curves):
-        print(
-            f"focustrack focus calibrate: error: --folds must be 2 .. {len(curves)} (the fields)",
-            file=sys.stderr,
+        return _refuse(
+            f"--folds must be 2 .. {len(curves)} (the fields of {source}), got {args.folds}"
         )
-        return 2
+    # metric -> the fields it is calibrated on, and those where it scores nothing above 0
+    fields, blank = {}, {}
+    for metric in metrics:
+        fields[metric], blank[metric] = calibration.scored_fields(curves, metric)
+        if len(fields[metric]) < args.folds:
+            return _refuse(
+                f"{metric} scores above 0 in only {len(fields[metric])} of the {len(curves)} "
+                f"fields ({_fields(blank[metric])}: every score 0 or below), fewer than "
+                f"--folds {args.folds}: lower --folds, or leave {metric} out (--metrics)"
+            )
     print(
         f"{len(curves)} labelled fields, {len(metrics)} metrics, {args.folds}-fold "
         "cross-validation over fields (each fold's constants learnt on the others); errors "
         "and sigma in z steps"
     )
-    source = str(args.curves or args.stacks)
-    profile, results = calibrate_profile(curves, metrics, args.folds, source)
+    for metric, numbers in lacking.items():
+        if numbers:
+            print(f"{metric} left out: no {metric} scores in {_fields(numbers)}")
+    for metric, numbers in blank.items():
+        if numbers:
+            print(f"{metric}: {_fields(numbers)} left out, every score 0 or below there")
+    profile, results = calibrate_profile(fields, args.folds, source)
     profile.save(args.out)
     plot = args.plot or args.out.with_suffix(".png")
-    write_plot(plot, curves, results)
+    write_plot(plot, fields, results)
     print(f"\nwrote {args.out} (serve focus --profile {args.out}) and {plot}")
     return 0

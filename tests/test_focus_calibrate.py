@@ -69,6 +69,74 @@ def test_calibrate_refuses_bad_input_with_status_2(
     assert main([*argv, "--metrics", "NOPE"]) == 2
 
 
+def test_calibrate_leaves_out_a_field_whose_scores_of_a_metric_are_all_zero(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A metric that sees nothing in a field cannot be calibrated there: the field is left
+    out of that metric, with a line saying so (it was a traceback, exit 1)."""
+    fields = biased_curves(6, 0.5, 2)
+    blank = fields[2]
+    scores = {"M": np.zeros(blank.z_um.size), "CLEAN": blank.scores["CLEAN"]}
+    fields[2] = LabelledCurve(blank.number, blank.z_um, scores, blank.focus_z_um)
+    curves, out = tmp_path / "curves.jsonl", tmp_path / "scope.json"
+    write_curves(curves, fields)
+    argv = ["focus", "calibrate", "--curves", str(curves), "--out", str(out), "--folds", "2"]
+    assert main(argv) == 0
+    assert "M: field 3 left out, every score 0 or below there" in capsys.readouterr().out
+    profile = MicroscopeProfile.load(out)
+
+    def held_out(metric: str) -> list[int]:
+        folds = profile.metrics[metric].cross_validation["folds"]
+        return sorted(field for fold in folds for field in fold["held_out"])
+
+    assert held_out("M") == [1, 2, 4, 5, 6] and held_out("CLEAN") == [1, 2, 3, 4, 5, 6]
+    # too few fields left for the folds: refused up front, naming the metric and fields
+    for field in fields[1:]:
+        field.scores["M"][:] = 0.0
+    write_curves(curves, fields)
+    assert main(argv) == 2
+    assert "M scores above 0 in only 1 of the 6 fields (fields 2, 3, 4, 5, 6" in (
+        capsys.readouterr().err
+    )
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        # each was a traceback (exit 1) or a message that did not say what was wrong
+        (b"\x89PNG\r\n\x1a\n\x00\x00", "curves.jsonl: not UTF-8 text"),
+        ('{"z_um": [0, 1, 2]}'.encode("utf-16"), "curves.jsonl: not UTF-8 text"),
+        (b'{"z_um": [0, 1, 2], "scores": {"M": [1, 2, 1]}, "focus_z_um": 1}',
+         "curves.jsonl has only 1 field: cross-validation over fields needs at least 2"),
+        (b'{"z_um": ["0", "1", "2"], "scores": {"M": [1, 2, 1]}, "focus_z_um": 1}',
+         'line 1: "z_um" must be numbers, got \'0\''),
+    ],
+)  # fmt: skip
+def test_calibrate_says_what_is_wrong_with_a_curves_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes, message: str
+) -> None:
+    curves = tmp_path / "curves.jsonl"
+    curves.write_bytes(content)
+    out = tmp_path / "p.json"
+    assert main(["focus", "calibrate", "--curves", str(curves), "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err and not out.exists()
+
+
+def test_calibrate_names_the_fields_a_metric_is_missing_from(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    fields = biased_curves(4, 0.0, 1)
+    del fields[1].scores["M"]
+    curves, out = tmp_path / "curves.jsonl", tmp_path / "p.json"
+    write_curves(curves, fields)
+    argv = ["focus", "calibrate", "--curves", str(curves), "--out", str(out), "--folds", "2"]
+    assert main([*argv, "--metrics", "M"]) == 2  # was "not every field has M"
+    assert f"{curves}: no M scores in field 2" in capsys.readouterr().err
+    assert main(argv) == 0  # every metric given: M is left out, with a line saying so
+    assert "M left out: no M scores in field 2" in capsys.readouterr().out
+    assert set(MicroscopeProfile.load(out).metrics) == {"CLEAN"}
+
+
 @needs_real
 def test_calibrate_on_odd_fields_then_hold_out_the_even_ones(tmp_path: Path) -> None:
     """The bench's loop, tiny: the command on the odd fields' BRENNER curves, the even fields

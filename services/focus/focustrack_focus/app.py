@@ -24,6 +24,7 @@ before decoding), frames, JSON size and nesting.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
@@ -52,7 +53,7 @@ from focustrack_core.web import (
     read_upload,
 )
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS
-from focustrack_focus.peak import PeakMode
+from focustrack_focus.peak import MIN_CURVE_FRAMES, PeakMode
 from focustrack_focus.pipeline import (
     STACK_LAYOUT,
     FocusSettings,
@@ -60,14 +61,15 @@ from focustrack_focus.pipeline import (
     focus_stack,
 )
 from focustrack_focus.preprocess import MAX_LOWPASS_SIGMA_PX
-from focustrack_focus.profile import MicroscopeProfile
+from focustrack_focus.profile import MAX_METRIC_NAME_CHARS, MicroscopeProfile
 
 #: The least each limit of `FocusLimits` may be: below, a limit admits no request (a
-#: stack of one frame with its form; a curve's JSON object of two lists).
+#: stack of one frame with its form; a curve's JSON object of two lists), or, for frames,
+#: no curve or stack with a peak to find (a look of one frame alone).
 LEAST_LIMITS = {
     "max_upload_bytes": 4096,
     "max_decoded_bytes": 1,
-    "max_frames": 1,
+    "max_frames": MIN_CURVE_FRAMES,
     "max_json_bytes": 32,
     "max_json_depth": 2,
 }
@@ -117,10 +119,11 @@ class CurveRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    z_um: list[Number] = Field(min_length=3)
-    scores: list[Number] = Field(min_length=3)
+    z_um: list[Number] = Field(min_length=MIN_CURVE_FRAMES)
+    scores: list[Number] = Field(min_length=MIN_CURVE_FRAMES)
     metric: str = Field(
         DEFAULT_METRIC,
+        max_length=MAX_METRIC_NAME_CHARS,
         description="label of the metric that made the scores (picks its profile entry)",
     )
     mode: PeakMode = PeakMode.MAX
@@ -169,6 +172,33 @@ def curve_schemas() -> dict[str, Any]:
     body, which `focus_curve` reads by hand."""
     schema = CurveRequest.model_json_schema(ref_template="#/components/schemas/{model}")
     return {**schema.pop("$defs", {}), CurveRequest.__name__: schema}
+
+
+def z_from_form(text: str) -> np.ndarray:
+    """The z (um) of a stack's `z_um` form field (`parse_z_list`); ValueError saying what is
+    wrong. Where the list does not parse, the first item that is no finite JSON number is
+    named (``inf``, a word, an empty item): the JSON parser's own message only gives the
+    column it stopped at."""
+    try:
+        return parse_z_list(text)
+    except ValueError:
+        items = text.strip().removeprefix("[").removesuffix("]").split(",")
+        bad = next((item.strip() for item in items if not _finite_number(item)), None)
+        if bad is None or any(bracket in bad for bracket in "[]{}"):
+            raise  # nested lists or objects: parse_z_list's message says so
+        raise ValueError(
+            "z_um must be finite numbers (um), a JSON list or comma-separated: "
+            f"{cut(bad)!r} is not one"
+        ) from None
+
+
+def _finite_number(item: str) -> bool:
+    """Whether `item` is one finite JSON number (not a boolean, a string or NaN)."""
+    try:
+        value = json.loads(item)
+    except ValueError:
+        return False
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 class RepeatedKeyError(ValueError):
@@ -344,7 +374,7 @@ def create_app(
     ) -> dict[str, Any]:
         data = await read_upload(stack, limits.max_upload_bytes)
         try:
-            z = parse_z_list(z_um)
+            z = z_from_form(z_um)
             if metric not in METRICS:
                 raise ValueError(f"unknown focus metric {metric!r}; known: {', '.join(METRICS)}")
             chosen = FocusSettings(

@@ -46,7 +46,7 @@ from focustrack_core.domain import FocusFlag
 from focustrack_focus.labelled_curves import LabelledCurve, wsi_curves
 from focustrack_focus.peak import PeakSettings, score_noise
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve
-from focustrack_focus.profile import MetricProfile
+from focustrack_focus.profile import UNUSABLE_RELATIVE_NOISE, MetricProfile
 from focustrack_focus.real_data import WSI_STEP_UM, load_wsi_fields
 
 #: (samples, spacing in steps) of the windows.
@@ -227,11 +227,23 @@ def real_curves(
     }
 
 
+def scored_fields(
+    fields: Sequence[LabelledCurve], metric: str
+) -> tuple[list[LabelledCurve], list[int]]:
+    """The fields whose curve of `metric` rises above 0, and the numbers of the others (every
+    score 0 or below): a metric that sees nothing in a field cannot be calibrated there, its
+    noise being a share of the curve's maximum (`learn_relative_noise`)."""
+    kept = [f for f in fields if f.scores[metric].max() > 0.0]
+    return kept, [f.number for f in fields if f.scores[metric].max() <= 0.0]
+
+
 def learn_relative_noise(fields: Sequence[LabelledCurve], metric: str) -> float:
     """The metric's score noise as a share of a curve's maximum: the median over these
-    fields' full curves (long enough for a clean estimate: `score_noise`), 2 digits."""
+    fields' full curves (long enough for a clean estimate: `score_noise`), 2 digits; at
+    most `UNUSABLE_RELATIVE_NOISE` (noise above the maximum turns the metric off all the
+    same). Pass fields whose curves rise above 0 (`scored_fields`)."""
     shares = [score_noise(f.scores[metric])[0] / abs(f.scores[metric].max()) for f in fields]
-    return float(f"{np.median(shares):.2g}")
+    return min(UNUSABLE_RELATIVE_NOISE, float(f"{np.median(shares):.2g}"))
 
 
 def label_free(fields: Sequence[LabelledCurve], metric: str) -> Calibration:

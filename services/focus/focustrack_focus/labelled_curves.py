@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from focustrack_focus.peak import validate_curve
+from focustrack_focus.profile import MAX_METRIC_NAME_CHARS
 from focustrack_focus.real_data import WSI_STEP_UM, WsiField
 
 
@@ -54,6 +55,11 @@ class LabelledCurve:
         }
 
 
+def _is_number(value: object) -> bool:
+    """Whether `value` is a JSON number (json reads a boolean as one of Python's ints)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 def parse_curve(record: object, line: int) -> LabelledCurve:
     """One JSONL record as a curve; CurvesFileError naming `line` and the fault."""
 
@@ -72,8 +78,22 @@ def parse_curve(record: object, line: int) -> LabelledCurve:
     if not isinstance(number, int) or isinstance(number, bool):
         raise fail(f'"field" must be an integer, got {number!r}')
     focus = record["focus_z_um"]
-    if not isinstance(focus, int | float) or isinstance(focus, bool) or not math.isfinite(focus):
+    if not _is_number(focus) or not math.isfinite(focus):
         raise fail(f'"focus_z_um" must be a finite number, got {focus!r}')
+    long_names = [name for name in scores if len(name) > MAX_METRIC_NAME_CHARS]
+    if long_names:
+        raise fail(
+            f"metric {long_names[0][:MAX_METRIC_NAME_CHARS]!r}...: a metric's name is at most "
+            f"{MAX_METRIC_NAME_CHARS} characters (a curve's label names it)"
+        )
+    # numpy would read "1.5" and true as numbers: a column written as text, said here
+    lists = {'"z_um"': record["z_um"]} | {f"{name!r} scores": v for name, v in scores.items()}
+    for what, values in lists.items():
+        if not isinstance(values, list):
+            raise fail(f"{what} must be a list of numbers, got {type(values).__name__}")
+        strays = [value for value in values if not _is_number(value)]
+        if strays:
+            raise fail(f"{what} must be numbers, got {strays[0]!r}")
     try:
         raw_z = np.asarray(record["z_um"], dtype=np.float64)
         curves = {}
@@ -87,18 +107,22 @@ def parse_curve(record: object, line: int) -> LabelledCurve:
 
 
 def load_curves(path: Path) -> list[LabelledCurve]:
-    """Every field of a JSONL curves file; CurvesFileError on the first bad line, or when two
-    lines name the same field."""
+    """Every field of a JSONL curves file; CurvesFileError on the first bad line, when the
+    file is not UTF-8 text, or when two lines name the same field."""
     curves: list[LabelledCurve] = []
     with path.open(encoding="utf-8") as lines:
-        for line, text in enumerate(lines, start=1):
-            if not text.strip():
-                continue
-            try:
-                record = json.loads(text)
-            except json.JSONDecodeError as error:
-                raise CurvesFileError(f"line {line}: not JSON ({error.msg})") from None
-            curves.append(parse_curve(record, line))
+        try:
+            numbered = list(enumerate(lines, start=1))
+        except UnicodeDecodeError:  # a binary file (an image), or text in another encoding
+            raise CurvesFileError(f"{path}: not UTF-8 text (a curves file is JSON lines)") from None
+    for line, text in numbered:
+        if not text.strip():
+            continue
+        try:
+            record = json.loads(text)
+        except json.JSONDecodeError as error:
+            raise CurvesFileError(f"line {line}: not JSON ({error.msg})") from None
+        curves.append(parse_curve(record, line))
     numbers = [curve.number for curve in curves]
     if len(set(numbers)) != len(numbers):
         raise CurvesFileError(f"{path}: a field number appears twice")

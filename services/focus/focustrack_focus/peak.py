@@ -132,7 +132,8 @@ class PeakSettings:
         the eye peaks a fraction of the depth of field away from the plane a person
         picks, by an amount no single curve shows. It belongs to a metric on a
         microscope: 0 unless learnt from labelled curves (`focustrack bench focus --real`
-        learns it per metric on its fit fields; docs/focus.md).
+        learns it per metric on its fit fields; docs/focus.md); at most
+        `MAX_SYSTEMATIC_SIGMA_UM`.
     curve_fwhm_um: the metric's usual peak width on this microscope (full width at half
         maximum, um; a microscope profile's, `focustrack focus calibrate`), or None. A peak
         read next to a window's end whose fit is far narrower rests on that one end frame
@@ -202,6 +203,13 @@ class PeakFit:
         return z, math.sqrt(1.0 / precision)
 
 
+#: Fewest frames (or points) of a curve a peak is located on: a top and a frame either side.
+MIN_CURVE_FRAMES = 3
+#: Largest systematic sigma of a metric, um (`PeakSettings.systematic_sigma_um`): a
+#: millimetre, thousands of times the depth of field of the lowest-power objective; a
+#: metric offset further from a person's focus is no focus metric, and a value beyond
+#: it is a unit gone wrong (its square, added to every sigma's, overflows near 1e154).
+MAX_SYSTEMATIC_SIGMA_UM = 1000.0
 #: Largest |score|: the slide's curve model (`curve_model`) squares scores as they come, and
 #: a square beyond a float's range is NaN (`find_peak` reads them scaled to 1).
 MAX_ABS_SCORE = 1e150
@@ -215,15 +223,18 @@ _Z_STEP_ROUNDING_UM = 2.0 * float(np.spacing(MAX_ABS_Z_UM))
 
 
 def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Check a curve and sort it by z; ValueError saying what is wrong. Shapes (n,), n >= 3."""
+    """Check a curve and sort it by z; ValueError saying what is wrong. Shapes (n,), n >=
+    MIN_CURVE_FRAMES."""
     z = np.asarray(z_um, dtype=np.float64)
     s = np.asarray(scores, dtype=np.float64)
     if z.ndim != 1 or s.ndim != 1:
         raise ValueError(f"z and scores must be 1-D, got shapes {z.shape} and {s.shape}")
     if z.size != s.size:
         raise ValueError(f"{z.size} z values but {s.size} scores: one score per z needed")
-    if z.size < 3:
-        raise ValueError(f"a focus curve needs at least 3 frames to locate a peak, got {z.size}")
+    if z.size < MIN_CURVE_FRAMES:
+        raise ValueError(
+            f"a focus curve needs at least {MIN_CURVE_FRAMES} frames to locate a peak, got {z.size}"
+        )
     if not np.all(np.abs(z) <= MAX_ABS_Z_UM):
         raise ValueError(f"z values must be finite and within +/-{MAX_ABS_Z_UM:g} um")
     if not np.all(np.abs(s) <= MAX_ABS_SCORE):

@@ -14,12 +14,12 @@ folds' figures) is a record for the reader; the service reads only the constants
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from focustrack_focus.peak import PeakSettings
+from focustrack_core.domain import MAX_ABS_Z_UM
+from focustrack_focus.peak import MAX_SYSTEMATIC_SIGMA_UM, PeakSettings
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_focus.unprofiled import settings_without_entry
 
@@ -28,6 +28,26 @@ PROFILE_VERSION = 1
 #: noise as large as the maximum, no non-negative curve rises the `min_snr` (10) noise
 #: sigmas a peak needs, so every result is `flat`. `serve focus --min-relative-noise 1`.
 UNUSABLE_RELATIVE_NOISE = 1.0
+#: Longest metric name, characters: a curve's `metric` label picks an entry, and the REST
+#: app refuses a longer label (a name longer than this is an entry no curve could pick).
+MAX_METRIC_NAME_CHARS = 64
+#: Widest peak (`curve_fwhm_um`) or coarse step (`coarse_step_um`), um: the widest z range
+#: of any curve (z within +/-`MAX_ABS_Z_UM`); a wider one is a unit gone wrong.
+MAX_CURVE_WIDTH_UM = 2.0 * MAX_ABS_Z_UM
+
+
+def _check_number(name: str, value: object, low: float, high: float, *, above: bool) -> None:
+    """ValueError naming `name` unless `value` is a number (a boolean is not one) within
+    [low, high], or (low, high] when `above`; NaN and infinity fail the comparisons."""
+    in_range = (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and (low < value if above else low <= value)
+        and value <= high
+    )
+    if not in_range:
+        interval = f"{'(' if above else '['}{low:g}, {high:g}]"
+        raise ValueError(f"{name} must be a number in {interval}, got {value!r}")
 
 
 class ProfileError(ValueError):
@@ -38,13 +58,16 @@ class ProfileError(ValueError):
 class MetricProfile:
     """One metric's constants on the microscope.
 
-    relative_noise: its score noise, share of a curve's maximum (`PeakSettings`).
-    systematic_sigma_um: its offset from the plane a person picks, a std, um.
+    relative_noise: its score noise, share of a curve's maximum (`PeakSettings`), 0 .. 1.
+    systematic_sigma_um: its offset from the plane a person picks, a std, um, 0 ..
+        `MAX_SYSTEMATIC_SIGMA_UM`.
     unusable_because: why it cannot serve on this microscope ("" when it can): then
         every curve it scores reads flat.
-    curve_fwhm_um: the median full width at half maximum of its curves' peaks, um.
+    curve_fwhm_um: the median full width at half maximum of its curves' peaks, um, above 0
+        (None: not measured).
     coarse_step_um: the largest coarse-search step that keeps a frame above half the
-        narrowest peaks (the estimator's lean search; `lean.COARSE_STEP_UM`), um.
+        narrowest peaks (the estimator's lean search; `lean.COARSE_STEP_UM`), um, above 0
+        (None: not measured).
     cross_validation: the folds' figures, for the reader.
     """
 
@@ -56,10 +79,27 @@ class MetricProfile:
     cross_validation: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.relative_noise) and 0.0 <= self.relative_noise <= 1.0):
-            raise ValueError(f"relative_noise must be in [0, 1], got {self.relative_noise}")
-        if not (math.isfinite(self.systematic_sigma_um) and self.systematic_sigma_um >= 0.0):
-            raise ValueError(f"systematic_sigma_um must be >= 0, got {self.systematic_sigma_um}")
+        """ValueError naming the first field of the wrong type or out of its range: a file
+        is read here, and a value the peak maths cannot take would fail every curve."""
+        _check_number("relative_noise", self.relative_noise, 0.0, 1.0, above=False)
+        _check_number(
+            "systematic_sigma_um (um)",
+            self.systematic_sigma_um,
+            0.0,
+            MAX_SYSTEMATIC_SIGMA_UM,
+            above=False,
+        )
+        if not isinstance(self.unusable_because, str):
+            raise ValueError(
+                f'unusable_because must be a string ("" when usable), got {self.unusable_because!r}'
+            )
+        for name in ("curve_fwhm_um", "coarse_step_um"):
+            if (width := getattr(self, name)) is not None:
+                _check_number(f"{name} (um, or null)", width, 0.0, MAX_CURVE_WIDTH_UM, above=True)
+        if not isinstance(self.cross_validation, dict):
+            raise ValueError(
+                f"cross_validation must be an object, got {type(self.cross_validation).__name__}"
+            )
 
     @property
     def usable(self) -> bool:
@@ -109,6 +149,13 @@ class MicroscopeProfile:
             raise ProfileError(f"profile version {data.get('version')!r}; this reads 1")
         metrics = {}
         for name, entry in data["metrics"].items():
+            if len(name) > MAX_METRIC_NAME_CHARS:
+                raise ProfileError(
+                    f"metric {name[:MAX_METRIC_NAME_CHARS]!r}...: a metric's name is at most "
+                    f"{MAX_METRIC_NAME_CHARS} characters (a curve's label names it)"
+                )
+            if not isinstance(entry, dict):
+                raise ProfileError(f"metric {name!r}: an entry is an object of its constants")
             try:
                 metrics[name] = MetricProfile(**entry)
             except (TypeError, ValueError) as error:
@@ -121,11 +168,17 @@ class MicroscopeProfile:
 
     @classmethod
     def load(cls, path: Path) -> MicroscopeProfile:
-        """The profile in `path`; ProfileError when it is missing or not a profile."""
+        """The profile in `path`; ProfileError naming `path` when it is missing or not a
+        profile."""
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
         except OSError as error:
             raise ProfileError(f"cannot read the profile {path}: {error.strerror}") from None
+        except UnicodeDecodeError:  # a binary file (a PNG), or text in another encoding
+            raise ProfileError(f"the profile {path} is not UTF-8 text (JSON)") from None
         except json.JSONDecodeError as error:
             raise ProfileError(f"the profile {path} is not JSON: {error.msg}") from None
-        return cls.from_json(data)
+        try:
+            return cls.from_json(data)
+        except ProfileError as error:
+            raise ProfileError(f"the profile {path}: {error}") from None

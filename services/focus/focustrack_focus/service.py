@@ -71,7 +71,7 @@ from focustrack_focus.curve_model import CurveModel
 from focustrack_focus.instrument_frames import InstrumentFrameSizes
 from focustrack_focus.layers import learn_top
 from focustrack_focus.metrics import METRICS
-from focustrack_focus.peak import PeakMode, PeakSettings
+from focustrack_focus.peak import MAX_SYSTEMATIC_SIGMA_UM, PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusResult, FocusSettings, FrameByFrame, LastLooks
 from focustrack_focus.preprocess import (
     MAX_LOWPASS_SIGMA_PX,
@@ -485,7 +485,9 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
     systematic_sigma_um: float = Field(
         PeakSettings.systematic_sigma_um,
         ge=0,
-        description="the metric's offset from the true focus, a std added to sigma, um",
+        le=MAX_SYSTEMATIC_SIGMA_UM,
+        description="the metric's offset from the true focus, a std added to sigma, um "
+        f"(at most {MAX_SYSTEMATIC_SIGMA_UM:g})",
     )
     profile: Path | None = Field(
         None,

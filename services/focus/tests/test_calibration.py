@@ -12,13 +12,18 @@ from focustrack_focus.calibration import (
     Calibration,
     Reading,
     coverage_with,
+    cross_validate,
     field_offsets_covered,
+    learn_relative_noise,
     learn_systematic_sigma,
+    scored_fields,
     summarise,
     usability,
     windows,
 )
+from focustrack_focus.labelled_curves import LabelledCurve
 from focustrack_focus.pipeline import focus_from_curve
+from focustrack_focus.profile import UNUSABLE_RELATIVE_NOISE
 
 
 def test_real_summary_counts_edges_coverage_and_silent_misses() -> None:
@@ -92,3 +97,30 @@ def test_the_systematic_sigma_alone_covers_each_fields_offset() -> None:
     assert learn_systematic_sigma(fields + windows_near) == 0.0
     assert field_offsets_covered([*fields, offset], 0.15) == 0.9
     assert learn_systematic_sigma([*fields, offset, *windows_near]) == 0.2
+
+
+def labelled(number: int, scores: np.ndarray) -> LabelledCurve:
+    """A field of 0.5 um steps labelled at 10 um."""
+    return LabelledCurve(number, 0.5 * np.arange(scores.size), {"M": scores}, 10.0)
+
+
+def test_a_field_whose_scores_are_all_zero_is_left_out_of_its_metric() -> None:
+    """Its noise is no share of a maximum (0 / 0): it made the profile entry refuse NaN."""
+    z_um = 0.5 * np.arange(40)
+    peak = 50.0 + 1000.0 * np.exp(-0.5 * ((z_um - 10.0) / 1.8) ** 2)
+    fields = [labelled(n, peak) for n in (1, 2, 3)] + [labelled(4, np.zeros(40))]
+    kept, blank = scored_fields(fields, "M")
+    assert [f.number for f in kept] == [1, 2, 3] and blank == [4]
+    constants, folds = cross_validate(kept, "M", 3)
+    assert constants.usable and len(folds) == 3
+    assert constants.entry().relative_noise == constants.relative_noise  # a profile takes it
+
+
+def test_noise_above_a_curves_maximum_is_the_unusable_floor_not_above_it() -> None:
+    """Scores below 0 but a hair: the noise is hundreds of times their maximum, a share the
+    profile refused (relative_noise above 1); it reads as the floor that turns it off."""
+    noise = np.random.default_rng(4).normal(0.0, 1.0, 40)
+    fields = [labelled(n, noise - noise.max() + 0.01) for n in (1, 2)]
+    assert learn_relative_noise(fields, "M") == UNUSABLE_RELATIVE_NOISE
+    constants, _ = cross_validate(fields, "M", 2)
+    assert not constants.usable and constants.entry().relative_noise == UNUSABLE_RELATIVE_NOISE

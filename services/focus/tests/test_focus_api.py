@@ -146,11 +146,32 @@ def test_curve_with_a_prior_picks_its_peak_and_returns_the_posterior(client: Tes
         ({"z_um": [0, 1, 1], "scores": [1, 2, 1]}, 422, "distinct"),
         ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "mode": "sideways"}, 422, "mode"),
         ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "prior": {"z_um": 1}}, 422, "sigma_um"),
+        # a label is echoed back: 100 000 characters were, whole
+        ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "metric": "M" * 100_000}, 422, "at most 64"),
     ],
 )
 def test_bad_curves(client: TestClient, body: dict, status: int, needle: str) -> None:
     response = client.post("/v1/focus/curve", json=body)
     assert response.status_code == status and needle in response.text, response.text
+    assert len(response.text) < 1000  # what is wrong, not the input
+
+
+@pytest.mark.parametrize(
+    ("z", "needle"),
+    [
+        # was "z_um must be a JSON list or comma-separated numbers: Expecting value: line 1 ..."
+        ("0,1,2,inf", "z_um must be finite numbers (um), a JSON list or comma-separated: 'inf'"),
+        ("[0, 1, 2, -inf]", "'-inf' is not one"),
+        ("0,1,,2", "'' is not one"),
+        ("0, 1, 2 um", "'2 um' is not one"),
+        ("[[0, 1], [2, 3]]", "z_um must be a flat list of numbers"),  # parse_z_list's own
+    ],
+)
+def test_z_that_are_no_finite_numbers_are_named(
+    client: TestClient, frames: np.ndarray, z: str, needle: str
+) -> None:
+    response = post_stack(client, npy_bytes(frames[:4]), z)
+    assert response.status_code == 422 and needle in response.json()["detail"], response.text
 
 
 @pytest.mark.parametrize(

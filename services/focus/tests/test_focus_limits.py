@@ -117,7 +117,7 @@ def test_curves_with_values_beyond_the_floats_range_are_422(serve: Serve) -> Non
 
 def test_limits_that_admit_nothing_are_a_configuration_error() -> None:
     for bad, message in (
-        ({"max_frames": 0}, "max_frames must be at least 1, got 0"),
+        ({"max_frames": 2}, "max_frames must be at least 3, got 2"),  # no curve has 2
         ({"max_json_depth": 1}, "max_json_depth must be at least 2, got 1"),
         ({"max_upload_bytes": 100}, "max_upload_bytes must be at least 4096, got 100"),
         ({"body_timeout_s": 0.0}, "the body timeout must be positive"),

@@ -88,11 +88,18 @@ def test_values_the_focus_maths_refuse_stop_the_command_with_status_2(
         (["--na", "5"], "--na (FOCUSTRACK_FOCUS_NA): Input should be less than or equal to 1.7"),
         (["--min-structure-snr", "nan"], "--min-structure-snr (FOCUSTRACK_FOCUS_MIN_STRUCTURE"),
         (["--max-frames", "0"], "--max-frames (FOCUSTRACK_FOCUS_MAX_FRAMES): Input should be"),
+        # a curve needs 3 points: 2 started a service that refused every curve and stack
+        (["--max-frames", "2"], "MAX_FRAMES): Input should be greater than or equal to 3"),
         (["--max-upload-bytes", "1"], "--max-upload-bytes (FOCUSTRACK_FOCUS_MAX_UPLOAD_BYTES)"),
         (["--body-timeout-s", "0"], "--body-timeout-s (FOCUSTRACK_FOCUS_BODY_TIMEOUT_S): Input"),
         (["--lowpass-sigma-px", "1e9"], "--lowpass-sigma-px (FOCUSTRACK_FOCUS_LOWPASS_SIGMA_PX)"),
         (["--min-relative-noise", "2"], "--min-relative-noise (FOCUSTRACK_FOCUS_MIN_RELATIVE"),
         (["--systematic-sigma-um", "-0.1"], "--systematic-sigma-um (FOCUSTRACK_FOCUS_SYSTEMATIC"),
+        # 1e308 started a service whose every curve was a 500 (sigma**2 overflowed)
+        (
+            ["--systematic-sigma-um", "1e308"],
+            "SIGMA_UM): Input should be less than or equal to 1000",
+        ),
         (["--metric", "nope"], "argument --metric: invalid choice: 'nope'"),
         (["--focus-mode", "min"], "argument --focus-mode: invalid choice: 'min'"),
         (["--slides", "scanner-1/*"], "--slides (FOCUSTRACK_FOCUS_SLIDES): slides"),

@@ -4,6 +4,7 @@ with the entry its metric label names."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -52,12 +53,27 @@ def test_curves_round_trip_through_the_jsonl_form(tmp_path: Path) -> None:
         ('{"z_um": [0, 1, 1], "scores": {"B": [1, 2, 3]}, "focus_z_um": 1}', "distinct"),
         ('{"z_um": [0, 1, 2], "scores": {"B": [1, 2, 3]}, "focus_z_um": true}', "finite"),
         ("[1, 2]", "line 1: a field is a JSON object"),
+        # numpy read these as numbers
+        ('{"z_um": ["0", "1", "2"], "scores": {"B": [1, 2, 3]}, "focus_z_um": 1}', 'z_um" must'),
+        ('{"z_um": [0, 1, 2], "scores": {"B": [1, true, 3]}, "focus_z_um": 1}', "'B' scores must"),
+        ('{"z_um": 5, "scores": {"B": [1, 2, 3]}, "focus_z_um": 1}', "must be a list of numbers"),
+        ('{"z_um": [0, 1, 2], "scores": {"%s": [1, 2, 3]}, "focus_z_um": 1}' % ("M" * 65), "64"),
     ],
 )
 def test_a_bad_line_is_refused_with_its_number(tmp_path: Path, line: str, message: str) -> None:
     path = tmp_path / "bad.jsonl"
     path.write_text(line + "\n")
     with pytest.raises(CurvesFileError, match=message):
+        load_curves(path)
+
+
+@pytest.mark.parametrize(
+    "content", [b"\x89PNG\r\n\x1a\n\x00\x00", '{"z_um": [0, 1, 2]}\n'.encode("utf-16")]
+)
+def test_a_file_that_is_not_utf8_text_is_refused_naming_it(tmp_path: Path, content: bytes) -> None:
+    path = tmp_path / "curves.png"
+    path.write_bytes(content)  # was a UnicodeDecodeError
+    with pytest.raises(CurvesFileError, match=f"{path}: not UTF-8 text"):
         load_curves(path)
 
 
@@ -83,6 +99,36 @@ def test_a_profile_round_trips_and_a_bad_one_says_why(tmp_path: Path) -> None:
         MicroscopeProfile.load(path)
     with pytest.raises(ProfileError, match="cannot read"):
         MicroscopeProfile.load(tmp_path / "missing.json")
+
+
+GOOD_ENTRY = {"relative_noise": 0.001, "systematic_sigma_um": 0.1, "curve_fwhm_um": 4.4}
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "needle"),
+    [
+        ("curve_fwhm_um", "wide", "curve_fwhm_um (um, or null) must be a number in (0, 2e+06]"),
+        ("curve_fwhm_um", float("nan"), "curve_fwhm_um"),
+        ("curve_fwhm_um", -4, "curve_fwhm_um"),
+        ("curve_fwhm_um", 0, "curve_fwhm_um"),
+        ("coarse_step_um", 0.0, "coarse_step_um"),
+        ("systematic_sigma_um", 1e308, "systematic_sigma_um (um) must be a number in [0, 1000]"),
+        ("systematic_sigma_um", True, "got True"),
+        ("relative_noise", False, "relative_noise"),
+        ("unusable_because", None, 'unusable_because must be a string ("" when usable)'),
+        ("unusable_because", 5, "got 5"),
+        ("cross_validation", [], "cross_validation must be an object"),
+    ],
+)
+def test_a_profile_value_the_maths_cannot_take_is_refused_naming_metric_and_field(
+    tmp_path: Path, field: str, value: object, needle: str
+) -> None:
+    """Each of these was loaded, then made every curve of the metric a 500."""
+    path = tmp_path / "profile.json"
+    path.write_text(json.dumps({"version": 1, "metrics": {"BRENNER": GOOD_ENTRY | {field: value}}}))
+    with pytest.raises(ProfileError, match=re.escape(f"{path}: metric 'BRENNER': ")) as refused:
+        MicroscopeProfile.load(path)
+    assert needle in str(refused.value)
 
 
 def test_the_curve_endpoint_reads_a_curve_with_its_metric_labels_entry() -> None:
@@ -113,3 +159,17 @@ def test_serve_focus_refuses_a_profile_it_cannot_read(
     bad.write_text("{")
     assert main(["--profile", str(bad)]) == 2
     assert "is not JSON" in capsys.readouterr().err
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n")  # was "'utf-8' codec can't decode byte 0x89 ..."
+    assert main(["--profile", str(bad)]) == 2
+    assert f"the profile {bad} is not UTF-8 text" in capsys.readouterr().err
+    entry = GOOD_ENTRY | {"systematic_sigma_um": 1e308}  # was a 500 on every BRENNER curve
+    bad.write_text(json.dumps({"version": 1, "metrics": {"BRENNER": entry}}))
+    assert main(["--profile", str(bad)]) == 2
+    assert "metric 'BRENNER': systematic_sigma_um" in capsys.readouterr().err
+
+
+def test_a_profile_of_a_metric_name_no_label_can_give_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "profile.json"
+    path.write_text(json.dumps({"version": 1, "metrics": {"M" * 65: GOOD_ENTRY}}))
+    with pytest.raises(ProfileError, match="at most 64 characters"):
+        MicroscopeProfile.load(path)
