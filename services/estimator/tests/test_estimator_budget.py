@@ -83,7 +83,7 @@ def _measured_peak_bytes(config: api.SlideCreate, store: SQLiteStore) -> int:
                 row=acquisition.row,
                 col=acquisition.col,
                 sequence=acquisition.index,
-                z_um=z_um,
+                z_um=z_um if acquisition.measure else None,  # an image-only tile: no z
                 sigma_um=1.0,
             )
             slide.measure(measurement)

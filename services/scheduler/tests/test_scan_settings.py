@@ -27,6 +27,7 @@ from focustrack_scheduler.settings import BEST_KALMAN, TOKEN_ENV, ScanOptions, S
 #: Every option of `focustrack scan` (flag -> default): those before its settings model,
 #: and the phase stacks'.
 OPTIONS = {
+    "bus_timeout_s": 30.0,
     "estimator": "http://127.0.0.1:8100",
     "token": None,
     "connect": None,
