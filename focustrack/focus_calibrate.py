@@ -16,13 +16,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from focustrack.arguments import output_file
+from focustrack.arguments import output_file, refuse
 from focustrack_core.stacks import decode_stack
 from focustrack_focus import calibration
 from focustrack_focus.labelled_curves import CurvesFileError, LabelledCurve, load_curves
@@ -223,11 +222,6 @@ def _fields(numbers: list[int]) -> str:
     return f"field{'s' if len(numbers) > 1 else ''} {', '.join(map(str, numbers))}"
 
 
-def _refuse(why: str) -> int:
-    print(f"focustrack focus calibrate: error: {why}", file=sys.stderr)
-    return 2
-
-
 def run(args: argparse.Namespace) -> int:
     try:
         if args.curves is not None:
@@ -235,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             curves = stack_curves(args.stacks, args.metrics or list(METRICS))
     except (CurvesFileError, OSError) as error:
-        return _refuse(str(error))
+        return refuse("focus calibrate", str(error))
     source = str(args.curves or args.stacks)
     # metric -> the fields without its scores: a metric asked for must be in every field,
     # and one not asked for that some field lacks is left out, with a line saying so
@@ -243,25 +237,30 @@ def run(args: argparse.Namespace) -> int:
     lacking = {m: [c.number for c in curves if m not in c.scores] for m in named}
     for metric, numbers in lacking.items():
         if numbers and args.metrics:
-            return _refuse(f"{source}: no {metric} scores in {_fields(numbers)}")
+            return refuse("focus calibrate", f"{source}: no {metric} scores in {_fields(numbers)}")
     metrics = [metric for metric in named if not lacking[metric]]
     if not metrics:
-        return _refuse(f"{source}: no metric is scored in every field")
+        return refuse("focus calibrate", f"{source}: no metric is scored in every field")
     if len(curves) < 2:
-        return _refuse(f"{source} has only 1 field: cross-validation over fields needs at least 2")
+        return refuse(
+            "focus calibrate",
+            f"{source} has only 1 field: cross-validation over fields needs at least 2",
+        )
     if not 2 <= args.folds <= len(curves):
-        return _refuse(
-            f"--folds must be 2 .. {len(curves)} (the fields of {source}), got {args.folds}"
+        return refuse(
+            "focus calibrate",
+            f"--folds must be 2 .. {len(curves)} (the fields of {source}), got {args.folds}",
         )
     # metric -> the fields it is calibrated on, and those where it scores nothing above 0
     fields, blank = {}, {}
     for metric in metrics:
         fields[metric], blank[metric] = calibration.scored_fields(curves, metric)
         if len(fields[metric]) < args.folds:
-            return _refuse(
+            return refuse(
+                "focus calibrate",
                 f"{metric} scores above 0 in only {len(fields[metric])} of the {len(curves)} "
                 f"fields ({_fields(blank[metric])}: every score 0 or below), fewer than "
-                f"--folds {args.folds}: lower --folds, or leave {metric} out (--metrics)"
+                f"--folds {args.folds}: lower --folds, or leave {metric} out (--metrics)",
             )
     print(
         f"{len(curves)} labelled fields, {len(metrics)} metrics, {args.folds}-fold "
