@@ -123,6 +123,7 @@ class CurveRequest(BaseModel):
     scores: list[Number] = Field(min_length=MIN_CURVE_FRAMES)
     metric: str = Field(
         DEFAULT_METRIC,
+        min_length=1,
         max_length=MAX_METRIC_NAME_CHARS,
         description="label of the metric that made the scores (picks its profile entry)",
     )

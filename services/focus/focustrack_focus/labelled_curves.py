@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from focustrack_focus.peak import validate_curve
-from focustrack_focus.profile import MAX_METRIC_NAME_CHARS
+from focustrack_focus.profile import metric_name_problem
 from focustrack_focus.real_data import WSI_STEP_UM, WsiField
 
 
@@ -80,12 +80,9 @@ def parse_curve(record: object, line: int) -> LabelledCurve:
     focus = record["focus_z_um"]
     if not _is_number(focus) or not math.isfinite(focus):
         raise fail(f'"focus_z_um" must be a finite number, got {focus!r}')
-    long_names = [name for name in scores if len(name) > MAX_METRIC_NAME_CHARS]
-    if long_names:
-        raise fail(
-            f"metric {long_names[0][:MAX_METRIC_NAME_CHARS]!r}...: a metric's name is at most "
-            f"{MAX_METRIC_NAME_CHARS} characters (a curve's label names it)"
-        )
+    for name in scores:
+        if problem := metric_name_problem(name):
+            raise fail(problem)
     # numpy would read "1.5" and true as numbers: a column written as text, said here
     lists = {'"z_um"': record["z_um"]} | {f"{name!r} scores": v for name, v in scores.items()}
     for what, values in lists.items():

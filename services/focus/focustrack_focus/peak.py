@@ -170,6 +170,35 @@ class PeakSettings:
     broad_top_exempt_frames: int = SHORT_STACK_FRAMES
     own_noise_confidence: float = 0.0
 
+    def __post_init__(self) -> None:
+        """ValueError naming the first setting out of its range: lab code builds these
+        directly, and a value the peak maths cannot take (a negative sigma, a sigma whose
+        square overflows) would fail, or silently mislead, every curve read with it."""
+        if self.mode not in tuple(PeakMode):
+            modes = ", ".join(repr(mode.value) for mode in PeakMode)
+            raise ValueError(f"mode must be one of {modes}, got {self.mode!r:.40}")
+        object.__setattr__(self, "mode", PeakMode(self.mode))  # "max" reads as PeakMode.MAX
+        for name, low, high, above in (
+            ("min_contrast", 0.0, 1.0, False),
+            ("min_snr", 0.0, math.inf, False),
+            ("multi_peak_share", 0.0, 1.0, True),
+            ("consistency_sigmas", 0.0, math.inf, True),
+            ("model_floor_steps", 0.0, math.inf, False),
+            ("min_peak_sigma_um", 0.0, MAX_SYSTEMATIC_SIGMA_UM, False),
+            ("ambiguous_below", 0.0, 1.0, False),
+            ("end_rise_share", 0.0, 1.0, False),
+            ("min_relative_noise", 0.0, 1.0, False),
+            ("systematic_sigma_um", 0.0, MAX_SYSTEMATIC_SIGMA_UM, False),
+            ("own_noise_confidence", 0.0, 1.0, False),
+        ):
+            check_number(name, getattr(self, name), low, high, above=above)
+        if self.curve_fwhm_um is not None:
+            check_number("curve_fwhm_um", self.curve_fwhm_um, 0.0, math.inf, above=True)
+        for name, least in (("max_reach", 1), ("broad_top_exempt_frames", 0)):
+            count = getattr(self, name)
+            if not (isinstance(count, int) and not isinstance(count, bool) and count >= least):
+                raise ValueError(f"{name} must be a whole number >= {least}, got {count!r}")
+
 
 @dataclass(frozen=True)
 class PeakFit:
@@ -201,6 +230,24 @@ class PeakFit:
         precision = 1.0 / prior.sigma_um**2 + 1.0 / self.sigma_um**2
         z = (prior.z_um / prior.sigma_um**2 + self.z_um / self.sigma_um**2) / precision
         return z, math.sqrt(1.0 / precision)
+
+
+def check_number(name: str, value: object, low: float, high: float, *, above: bool) -> None:
+    """ValueError naming `name` unless `value` is a number (a boolean is not one) within
+    [low, high], or (low, high] when `above`, and finite (NaN fails the comparisons)."""
+    in_range = (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and (low < value if above else low <= value)
+        and value <= high
+        and -math.inf < value < math.inf
+    )
+    if not in_range:
+        if high == math.inf:
+            wanted = f"a finite number {'>' if above else '>='} {low:g}"
+        else:
+            wanted = f"a number in {'(' if above else '['}{low:g}, {high:g}]"
+        raise ValueError(f"{name} must be {wanted}, got {value!r:.40}")
 
 
 #: Fewest frames (or points) of a curve a peak is located on: a top and a frame either side.

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from focustrack_core.domain import MAX_ABS_Z_UM
-from focustrack_focus.peak import MAX_SYSTEMATIC_SIGMA_UM, PeakSettings
+from focustrack_focus.peak import MAX_SYSTEMATIC_SIGMA_UM, PeakSettings, check_number
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_focus.unprofiled import settings_without_entry
 
@@ -36,18 +36,18 @@ MAX_METRIC_NAME_CHARS = 64
 MAX_CURVE_WIDTH_UM = 2.0 * MAX_ABS_Z_UM
 
 
-def _check_number(name: str, value: object, low: float, high: float, *, above: bool) -> None:
-    """ValueError naming `name` unless `value` is a number (a boolean is not one) within
-    [low, high], or (low, high] when `above`; NaN and infinity fail the comparisons."""
-    in_range = (
-        isinstance(value, int | float)
-        and not isinstance(value, bool)
-        and (low < value if above else low <= value)
-        and value <= high
-    )
-    if not in_range:
-        interval = f"{'(' if above else '['}{low:g}, {high:g}]"
-        raise ValueError(f"{name} must be a number in {interval}, got {value!r}")
+def metric_name_problem(name: str) -> str | None:
+    """What is wrong with a metric's name in a profile or a file of labelled curves (None:
+    nothing): a curve's label picks its entry, and no label is empty or over
+    MAX_METRIC_NAME_CHARS characters (the REST app refuses those)."""
+    if not name:
+        return "a metric's name is not empty (a curve's label names it)"
+    if len(name) > MAX_METRIC_NAME_CHARS:
+        return (
+            f"metric {name[:MAX_METRIC_NAME_CHARS]!r}...: a metric's name is at most "
+            f"{MAX_METRIC_NAME_CHARS} characters (a curve's label names it)"
+        )
+    return None
 
 
 class ProfileError(ValueError):
@@ -81,8 +81,8 @@ class MetricProfile:
     def __post_init__(self) -> None:
         """ValueError naming the first field of the wrong type or out of its range: a file
         is read here, and a value the peak maths cannot take would fail every curve."""
-        _check_number("relative_noise", self.relative_noise, 0.0, 1.0, above=False)
-        _check_number(
+        check_number("relative_noise", self.relative_noise, 0.0, 1.0, above=False)
+        check_number(
             "systematic_sigma_um (um)",
             self.systematic_sigma_um,
             0.0,
@@ -95,7 +95,7 @@ class MetricProfile:
             )
         for name in ("curve_fwhm_um", "coarse_step_um"):
             if (width := getattr(self, name)) is not None:
-                _check_number(f"{name} (um, or null)", width, 0.0, MAX_CURVE_WIDTH_UM, above=True)
+                check_number(f"{name} (um, or null)", width, 0.0, MAX_CURVE_WIDTH_UM, above=True)
         if not isinstance(self.cross_validation, dict):
             raise ValueError(
                 f"cross_validation must be an object, got {type(self.cross_validation).__name__}"
@@ -149,11 +149,8 @@ class MicroscopeProfile:
             raise ProfileError(f"profile version {data.get('version')!r}; this reads 1")
         metrics = {}
         for name, entry in data["metrics"].items():
-            if len(name) > MAX_METRIC_NAME_CHARS:
-                raise ProfileError(
-                    f"metric {name[:MAX_METRIC_NAME_CHARS]!r}...: a metric's name is at most "
-                    f"{MAX_METRIC_NAME_CHARS} characters (a curve's label names it)"
-                )
+            if problem := metric_name_problem(name):
+                raise ProfileError(problem)
             if not isinstance(entry, dict):
                 raise ProfileError(f"metric {name!r}: an entry is an object of its constants")
             try:

@@ -148,6 +148,8 @@ def test_curve_with_a_prior_picks_its_peak_and_returns_the_posterior(client: Tes
         ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "prior": {"z_um": 1}}, 422, "sigma_um"),
         # a label is echoed back: 100 000 characters were, whole
         ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "metric": "M" * 100_000}, 422, "at most 64"),
+        # an empty label picked no profile entry, unseen
+        ({"z_um": [0, 1, 2], "scores": [1, 2, 1], "metric": ""}, 422, "at least 1 character"),
     ],
 )
 def test_bad_curves(client: TestClient, body: dict, status: int, needle: str) -> None:

@@ -297,6 +297,30 @@ def test_a_noise_floor_of_the_maximum_turns_a_metric_off() -> None:
     assert find_peak(Z_UM, gaussian(Z_UM, 0.3), PeakSettings(min_relative_noise=0.01)).z_um
 
 
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        # lab code built these directly, unchecked: a sigma whose square overflows
+        ({"systematic_sigma_um": 1e308}, r"systematic_sigma_um must be a number in \[0, 1000\]"),
+        ({"systematic_sigma_um": -0.1}, "systematic_sigma_um"),
+        ({"min_snr": float("inf")}, "min_snr must be a finite number >= 0"),
+        ({"min_relative_noise": float("nan")}, "min_relative_noise"),
+        ({"curve_fwhm_um": 0.0}, "curve_fwhm_um must be a finite number > 0"),
+        ({"max_reach": 0}, "max_reach must be a whole number >= 1"),
+        ({"broad_top_exempt_frames": 2.5}, "broad_top_exempt_frames"),
+        ({"mode": "top"}, "mode must be one of 'max', 'valley'"),
+        ({"ambiguous_below": True}, "ambiguous_below"),
+    ],
+)
+def test_settings_out_of_range_are_refused_naming_them(settings: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        PeakSettings(**settings)
+
+
+def test_a_mode_given_as_its_name_is_the_mode() -> None:
+    assert PeakSettings(mode="valley").mode is PeakMode.VALLEY  # type: ignore[arg-type]
+
+
 def test_a_systematic_sigma_is_added_in_quadrature() -> None:
     plain = find_peak(Z_UM, gaussian(Z_UM, 0.3))
     biased = find_peak(Z_UM, gaussian(Z_UM, 0.3), PeakSettings(systematic_sigma_um=0.15))

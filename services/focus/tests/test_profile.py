@@ -58,6 +58,7 @@ def test_curves_round_trip_through_the_jsonl_form(tmp_path: Path) -> None:
         ('{"z_um": [0, 1, 2], "scores": {"B": [1, true, 3]}, "focus_z_um": 1}', "'B' scores must"),
         ('{"z_um": 5, "scores": {"B": [1, 2, 3]}, "focus_z_um": 1}', "must be a list of numbers"),
         ('{"z_um": [0, 1, 2], "scores": {"%s": [1, 2, 3]}, "focus_z_um": 1}' % ("M" * 65), "64"),
+        ('{"z_um": [0, 1, 2], "scores": {"": [1, 2, 3]}, "focus_z_um": 1}', "not empty"),
     ],
 )
 def test_a_bad_line_is_refused_with_its_number(tmp_path: Path, line: str, message: str) -> None:
@@ -168,8 +169,13 @@ def test_serve_focus_refuses_a_profile_it_cannot_read(
     assert "metric 'BRENNER': systematic_sigma_um" in capsys.readouterr().err
 
 
-def test_a_profile_of_a_metric_name_no_label_can_give_is_refused(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("name", "message"), [("M" * 65, "at most 64 characters"), ("", "not empty")]
+)
+def test_a_profile_of_a_metric_name_no_label_can_give_is_refused(
+    tmp_path: Path, name: str, message: str
+) -> None:
     path = tmp_path / "profile.json"
-    path.write_text(json.dumps({"version": 1, "metrics": {"M" * 65: GOOD_ENTRY}}))
-    with pytest.raises(ProfileError, match="at most 64 characters"):
+    path.write_text(json.dumps({"version": 1, "metrics": {name: GOOD_ENTRY}}))
+    with pytest.raises(ProfileError, match=message):
         MicroscopeProfile.load(path)
