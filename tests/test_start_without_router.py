@@ -30,6 +30,7 @@ from focustrack_core.wire import keys
 from focustrack_core.wire.codec import PixelPublisher, describe_pixels
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
 from focustrack_core.wire.trust import ResultSigner
+from focustrack_estimator.service import spawn
 
 pytestmark = pytest.mark.slow  # services in processes
 
@@ -154,3 +155,38 @@ def test_a_scan_waiting_for_its_router_stops_at_ctrl_c(
     assert scan.returncode == status, err
     assert "focustrack scan: interrupted" in err and "Traceback" not in err
     assert not (tmp_path / "scan" / "scan.json").exists()  # nothing was started
+
+
+@pytest.mark.parametrize(
+    ("flags", "needle"),
+    [
+        (["--strategy", "kf-2dd"], "serves no strategy 'kf-2dd'; it serves af-every-tile, "),
+        (["--strategy", "kf-wiener0", "--param", "qq=0.2"], "kf-wiener0 has no parameter 'qq'"),
+    ],
+)
+def test_a_strategy_the_estimator_does_not_serve_is_refused_before_the_bus(
+    tmp_path: Path, flags: list[str], needle: str
+) -> None:
+    """A misspelt --strategy or --param was refused only once the router answered (up to
+    --bus-timeout-s later): the estimator's list of strategies refuses it first, exit 2.
+    A socket that takes connections and says nothing stands for the router."""
+    port = free_port()
+    estimator = spawn(tmp_path / "estimator.sqlite", port)
+    try:
+        with socket.create_server(("127.0.0.1", 0)) as silent:
+            command = [
+                sys.executable, "-m", "focustrack", "scan", "--no-progress",
+                "--estimator", f"http://127.0.0.1:{port}",
+                "--connect", f"tcp/127.0.0.1:{silent.getsockname()[1]}",
+                "--instrument", "sim", "--slide", "slide-0", "--out", str(tmp_path / "scan"),
+                *flags,
+            ]  # fmt: skip
+            scan = subprocess.run(command, capture_output=True, text=True, timeout=120)
+            silent.settimeout(0)
+            with pytest.raises(BlockingIOError):
+                silent.accept()  # the scan never reached for the bus
+    finally:
+        estimator.terminate()
+        estimator.wait(timeout=10)
+    assert scan.returncode == 2, scan.stderr
+    assert needle in scan.stderr and "Traceback" not in scan.stderr

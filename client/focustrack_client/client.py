@@ -53,6 +53,7 @@ from focustrack_client.models import (
     Slide,
     SlideCreate,
     SlideSummary,
+    StrategyInfo,
 )
 
 #: Formats of `GET /v1/slides/{id}/map` other than JSON, as raw bytes.
@@ -65,6 +66,7 @@ RETRY_PAUSES_S = (0.1, 0.3, 1.0)
 FILE_MEDIA_TYPE = "application/octet-stream"
 
 _SUMMARIES = TypeAdapter(list[SlideSummary])
+_STRATEGIES = TypeAdapter(list[StrategyInfo])
 
 _tracer = trace.get_tracer("focustrack_client")
 
@@ -212,6 +214,10 @@ class _Endpoints:
         return _Call("GET", route, _model(Diagnostics), slide_id=slide_id)
 
     @staticmethod
+    def strategies() -> _Call[list[StrategyInfo]]:
+        return _Call("GET", "/v1/strategies", lambda r: _STRATEGIES.validate_json(r.content))
+
+    @staticmethod
     def health() -> _Call[Health]:
         return _Call("GET", "/healthz", _model(Health))
 
@@ -336,6 +342,11 @@ class EstimatorClient:
     def diagnostics(self, slide_id: str) -> Diagnostics:
         return self._send(_Endpoints.diagnostics(slide_id))
 
+    def strategies(self) -> list[StrategyInfo]:
+        """The strategies the service serves, each with its parameters' JSON schema and
+        defaults (what `SlideCreate.strategy` and `.params` take)."""
+        return self._send(_Endpoints.strategies())
+
     def health(self) -> Health:
         return self._send(_Endpoints.health())
 
@@ -425,6 +436,9 @@ class AsyncEstimatorClient:
 
     async def diagnostics(self, slide_id: str) -> Diagnostics:
         return await self._send(_Endpoints.diagnostics(slide_id))
+
+    async def strategies(self) -> list[StrategyInfo]:
+        return await self._send(_Endpoints.strategies())
 
     async def health(self) -> Health:
         return await self._send(_Endpoints.health())

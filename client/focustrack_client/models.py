@@ -15,7 +15,7 @@ grid, the sequence asked for) are the estimator's, in its `slide.py` (`Slide.mea
 from __future__ import annotations
 
 from enum import StrEnum
-from typing import Annotated, Self
+from typing import Annotated, Any, Self
 
 from pydantic import BaseModel, ConfigDict, Field, Strict, model_validator
 
@@ -324,6 +324,19 @@ class Diagnostics(BaseModel):
         1.0,
         description="The slide's factor on the focus service's sigmas, learnt from the "
         "innovations (1 until they show the sigmas too small; at most 5)",
+    )
+
+
+class StrategyInfo(BaseModel):
+    """A served strategy and its parameters (`GET /v1/strategies`)."""
+
+    name: str = Field(description="The strategy's name, as `SlideCreate.strategy` takes it")
+    parameters: dict[str, Any] = Field(
+        description="The JSON schema of its parameters: each one's type, default, unit (in "
+        "its name or its description) and bounds"
+    )
+    defaults: dict[str, Any] = Field(
+        description="Every parameter at its default: a slide created without `params` has these"
     )
 
 

@@ -14,9 +14,9 @@ from typing import Any
 
 from pydantic.json_schema import models_json_schema
 
+from focustrack_client.models import StrategyInfo
 from focustrack_estimator import registry
 from focustrack_estimator.errors import SlideError
-from focustrack_estimator.routers.strategies import StrategyInfo
 from focustrack_estimator.strategy import StrategyParams
 
 

@@ -52,8 +52,8 @@ from focustrack_estimator.prior import BODY_LOC, decode_prior, takes_prior, with
 from focustrack_estimator.records import config_of
 
 if TYPE_CHECKING:
+    from focustrack_client.models import StrategyInfo
     from focustrack_estimator.registry import Catalogue
-    from focustrack_estimator.routers.strategies import StrategyInfo
     from focustrack_estimator.slide import Slide
 
 T = TypeVar("T")

@@ -87,10 +87,22 @@ def test_the_async_client_speaks_the_same_api(url: str) -> None:
                 steps += 1
             health = await estimator.health()
             await estimator.delete_slide(slide.id)
-            return steps, health.slides
+            served = await estimator.strategies()
+            return steps, health.slides, {info.name for info in served}
 
-    steps, n_slides = asyncio.run(scan())
-    assert steps == 4 and n_slides >= 1
+    steps, n_slides, served = asyncio.run(scan())
+    assert steps == 4 and n_slides >= 1 and {"kf-2d", "af-every-tile"} <= served
+
+
+def test_the_client_lists_the_strategies_served_with_their_defaults(url: str) -> None:
+    with EstimatorClient(url, token=TOKEN) as estimator:
+        served = {info.name: info for info in estimator.strategies()}
+        slide = estimator.create_slide(
+            SlideCreate(strategy="kf-wiener0", grid=Grid(rows=1, cols=1))
+        )
+        estimator.delete_slide(slide.id)
+    assert served["kf-wiener0"].defaults == slide.config.params  # what a slide is made with
+    assert "q" in served["kf-wiener0"].parameters["properties"]
 
 
 def test_refusals_are_typed_by_their_code(url: str) -> None:

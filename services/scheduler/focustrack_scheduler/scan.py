@@ -23,11 +23,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import httpx
 import numpy as np
 import zenoh
 from pydantic import ValidationError
 
-from focustrack_client import EstimatorClient
+from focustrack_client import EstimatorClient, EstimatorError
 from focustrack_core import tracing
 from focustrack_core.http_metrics import metrics_server
 from focustrack_core.maps import focus_map_of_npy
@@ -277,6 +278,43 @@ def _scan_held(session: zenoh.Session, job: ScanJob) -> dict[str, Any]:
         record.close()
 
 
+#: How long the scan asks the estimator for its strategies before the bus (s): a check, not
+#: the scan's own wait for an estimator that is still starting (the engine's, later).
+STRATEGY_CHECK_TIMEOUT_S = 3.0
+
+
+def check_strategy(settings: ScanSettings) -> None:
+    """ValueError for a strategy, or a parameter of it, that the estimator does not serve.
+
+    Asked before the bus, which may take up to `--bus-timeout-s` to open: a misspelt
+    `--strategy` was refused only once the router answered. An estimator that does not
+    answer yet (or an older one without `GET /v1/strategies`) is no refusal: the scan
+    meets it later, with its own waits and errors.
+    """
+    try:
+        with EstimatorClient(
+            settings.estimator,
+            settings.token or None,
+            timeout_s=STRATEGY_CHECK_TIMEOUT_S,
+            retry_pauses_s=(),
+        ) as estimator:
+            served = {info.name: info for info in estimator.strategies()}
+    except (httpx.HTTPError, EstimatorError):
+        return
+    info = served.get(settings.strategy)
+    if info is None:
+        raise ValueError(
+            f"the estimator at {settings.estimator} serves no strategy "
+            f"{settings.strategy!r}; it serves {', '.join(sorted(served))}"
+        )
+    unknown = sorted(set(settings.params) - set(info.defaults))
+    if unknown:
+        raise ValueError(
+            f"{settings.strategy} has no parameter {', '.join(map(repr, unknown))}; "
+            f"its parameters: {', '.join(sorted(info.defaults)) or 'none'}"
+        )
+
+
 def _waiting_for_the_bus(settings: ScanSettings) -> None:
     connect, _ = settings.endpoints()
     print(
@@ -325,6 +363,7 @@ def _run(settings: ScanSettings) -> int:
         # a Zenoh config file or endpoint it cannot use: exit 2
         config = settings.zenoh(settings.bus_timeout_s)
         _check_output_folder(settings.out)  # before the bus, which may take a while
+        check_strategy(settings)  # as much
     except (ValueError, zenoh.ZError) as error:
         print(f"focustrack scan: error: {_said(error)}", file=sys.stderr)
         return 2
