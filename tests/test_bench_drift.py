@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from focustrack.bench.focus import REAL_DIR
 from focustrack.cli import main
 
 
@@ -102,3 +103,17 @@ def test_the_command_line_refuses_a_bad_value_in_one_line(tmp_path: Path) -> Non
     assert done.returncode == 2
     assert "focustrack bench drift: error: argument --settle-tau-s: must be" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.skipif(
+    not (REAL_DIR / "wsi_focus_curves").is_dir(), reason="no real whole-slide focus curves here"
+)
+def test_few_ekf_trials_keep_the_real_rows(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Below 20 trials a real field got none (trials // 20 = 0) and its rows went unsaid."""
+    out = tmp_path / "drift.json"
+    assert main(["bench", "drift", *TINY, "--json", str(out)]) == 0
+    capsys.readouterr()
+    sources = json.loads(out.read_text())["ekf"]
+    assert any(source.startswith("real wsi") for source in sources), sources

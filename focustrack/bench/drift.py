@@ -192,7 +192,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="second pass: the simulator's tiles the first-frame check's frames show (8)",
     )
     parser.add_argument(
-        "--ekf-trials", type=positive_int, default=200, help="EKF: simulator-shaped streams (200)"
+        "--ekf-trials",
+        type=positive_int,
+        default=200,
+        help="EKF: simulator-shaped streams, and a twentieth of it (at least 1) per real "
+        "field (200)",
     )
     # typed only when given: the default folder may be absent, and its rows are then left
     # out, but a folder given by hand that is not there is a mistake
@@ -269,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
     }
     print(format_scores(results))
     streams = stream_ekf.compare(
-        args.seed, args.real_dir, n_sim=args.ekf_trials, per_field=args.ekf_trials // 20
+        args.seed, args.real_dir, n_sim=args.ekf_trials, per_field=max(1, args.ekf_trials // 20)
     )
     print(format_streams(streams))
     if args.json is not None:
