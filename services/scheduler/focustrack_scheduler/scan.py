@@ -299,7 +299,7 @@ def check_strategy(settings: ScanSettings) -> None:
             retry_pauses_s=(),
         ) as estimator:
             served = {info.name: info for info in estimator.strategies()}
-    except (httpx.HTTPError, EstimatorError):
+    except (httpx.HTTPError, EstimatorError, ValidationError):  # the last: a reply unread
         return
     info = served.get(settings.strategy)
     if info is None:
