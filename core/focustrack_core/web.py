@@ -1,6 +1,6 @@
 """The FastAPI edge the stack services share (extra `web`): one app with the house's body
 limits, 422 shape and Prometheus metrics at ``/metrics``, the bearer-token check of `/v1`,
-a form of the route's own fields, each once, an upload read within a limit, and the
+a query and a form of the route's own fields, each once, an upload read within a limit, and the
 ``/healthz`` of a service that is on Zenoh too (`with_bus_health`).
 
 `serving` holds what needs no web framework (plain ASGI); this module is for the
@@ -14,6 +14,7 @@ from collections.abc import Awaitable, Callable, Mapping
 from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile
+from fastapi.dependencies.models import Dependant
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.routing import APIRoute
@@ -70,7 +71,12 @@ def guarded_app(
     `body_timeout_s` to arrive (408), answers invalid requests with the quoted 422, counts
     and times every request into `metrics`, served at ``GET /metrics`` (Prometheus text, no
     token: as ``/healthz``), and serves each in a span of the caller's trace (`TraceRequests`)."""
-    app = FastAPI(title=title, version="1", description=description)
+    app = FastAPI(
+        title=title,
+        version="1",
+        description=description,
+        dependencies=[Depends(query_as_declared)],
+    )
     app.add_middleware(BodyLimit, max_bytes=max_upload_bytes, error_body=lambda d: {"detail": d})
     timeout = f"the request body did not arrive within {body_timeout_s:g} s"
     app.add_middleware(SlowBodyTimeout, timeout_s=body_timeout_s, error_body={"detail": timeout})
@@ -118,6 +124,40 @@ async def form_as_declared(request: Request) -> None:
         raise HTTPException(
             422, f"form field {', '.join(repeated)} given more than once; send each field once"
         )
+
+
+def _declared_query(dependant: Dependant) -> set[str]:
+    """The query parameters a route (its dependant and theirs, recursively) takes, by name."""
+    names = {param.alias for param in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _declared_query(sub)
+    return names
+
+
+async def query_as_declared(request: Request) -> None:
+    """A dependency that refuses (422, as any invalid request: each app's own shape) a query
+    parameter its route does not take (``?fromat=png`` answered JSON, ``?limt=10`` a page
+    of the default size) or one given twice (``?format=png&format=npy`` answered the last:
+    which was meant is not for us to guess), as the JSON bodies refuse an unknown field."""
+    route = request.scope.get("route")
+    if not isinstance(route, APIRoute) or not request.query_params:
+        return
+    declared = _declared_query(route.dependant)
+    takes = ", ".join(sorted(declared)) or "none"
+    problems = [
+        {
+            "loc": ("query", name),
+            "msg": f"unknown query parameter; this route takes {takes}",
+            "type": "extra_forbidden",
+        }
+        for name in sorted(set(request.query_params) - declared)
+    ] + [
+        {"loc": ("query", name), "msg": "given more than once; give it once", "type": "value_error"}
+        for name in sorted(set(request.query_params) & declared)
+        if len(request.query_params.getlist(name)) > 1
+    ]
+    if problems:
+        raise RequestValidationError(problems)
 
 
 async def read_upload(upload: UploadFile, limit_bytes: int) -> bytes:

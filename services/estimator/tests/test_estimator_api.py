@@ -169,6 +169,11 @@ INVALID = [
     ("huge z", "post", "measurements", {"row": 0, "col": 0, "sequence": 0, "z_um": 1e300}, 422,
      "z_um"),
     ("unknown map format", "get", "map?format=tiff", None, 422, "format"),
+    # these answered JSON: a misspelt parameter was left at its default, a second one won
+    ("misspelt map format", "get", "map?fromat=png", None, 422,
+     "'loc': ['query', 'fromat'], 'msg': 'unknown query parameter; this route takes format'"),
+    ("map format twice", "get", "map?format=png&format=npy", None, 422,
+     "'loc': ['query', 'format'], 'msg': 'given more than once"),
 ]  # fmt: skip
 
 

@@ -453,3 +453,12 @@ def test_metrics_count_and_time_each_route_and_status() -> None:
             in lines
         )
     assert f"focustrack_focus_request_duration_seconds_count{{{route}}} 2.0" in lines
+
+
+def test_a_query_parameter_the_route_does_not_take_is_refused(client: TestClient) -> None:
+    """`?metric=tenengrad` is no way to pick a metric (a form field is): it was ignored."""
+    body = {"z_um": [0, 1, 2], "scores": [1, 2, 1]}
+    response = client.post("/v1/focus/curve?metric=tenengrad", json=body)
+    assert response.status_code == 422, response.text
+    assert "unknown query parameter; this route takes none" in response.text
+    assert client.post("/v1/focus/curve", json=body).status_code == 200

@@ -260,6 +260,12 @@ def test_a_misspelt_field_is_refused_not_left_at_its_default(
 def test_bad_format_and_missing_field(client: TestClient, stack: SyntheticStack) -> None:
     response = post(client, npy_bytes(stack.stack_counts), form(stack), "?format=tiff")
     assert response.status_code == 422 and "format" in response.text
+    # these answered a .npy: a misspelt format was left at its default, a second one won
+    response = post(client, npy_bytes(stack.stack_counts), form(stack), "?fromat=png")
+    assert response.status_code == 422, response.text
+    assert "unknown query parameter; this route takes format" in response.text
+    response = post(client, npy_bytes(stack.stack_counts), form(stack), "?format=png&format=npy")
+    assert response.status_code == 422 and "given more than once" in response.text
     fields = form(stack)
     del fields["wavelength_um"]
     response = post(client, npy_bytes(stack.stack_counts), fields)

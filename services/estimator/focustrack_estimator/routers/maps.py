@@ -6,10 +6,11 @@ import asyncio
 from dataclasses import asdict
 from typing import TYPE_CHECKING, Annotated
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Depends, Query, Response
 
 from focustrack_client import models as api
 from focustrack_core.maps import MAP_LAYERS
+from focustrack_core.web import query_as_declared
 from focustrack_estimator.dependencies import SlideId, SlidesDep
 from focustrack_estimator.maps_out import FILE_MEDIA, MapFormat, render_map
 
@@ -21,6 +22,7 @@ router = APIRouter(prefix="/v1", tags=["maps"])
 
 @router.get(
     "/slides/{slide_id}/map",
+    dependencies=[Depends(query_as_declared)],
     response_model=api.FocusMapOut,
     responses={
         200: {

@@ -10,6 +10,7 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
 
 from focustrack_client import models as api
+from focustrack_core.web import query_as_declared
 from focustrack_estimator.dependencies import (
     JSON_BODY_RESPONSES,
     SlideId,
@@ -94,6 +95,7 @@ async def create_slide(config: api.SlideCreate, slides: SlidesDep) -> api.Slide:
 
 @router.get(
     "/slides",
+    dependencies=[Depends(query_as_declared)],
     responses={
         200: {
             "description": "The page's slides; the next page's URL and cursor in headers",
