@@ -26,7 +26,7 @@ from collections.abc import Callable
 from typing import Any
 
 from focustrack_client import models as api
-from focustrack_core.domain import Acquisition, FocusMap, Measurement
+from focustrack_core.domain import Acquisition, FocusMap, Measurement, Purpose
 from focustrack_core.geometry import ScanGrid
 from focustrack_core.rest import to_domain
 from focustrack_estimator import registry
@@ -364,6 +364,7 @@ class Slide:
                 "was out of focus",
                 ("body", "z_um"),
             )
+        _check_within_reach(pending, measurement)
         start_s = time.perf_counter()
         outcome = self.strategy.record(pending, measurement)
         done = self.strategy.next_acquisition() is None
@@ -401,3 +402,30 @@ class Slide:
     def diagnose(self) -> SlideDiagnostics:
         """Counts, innovation statistics and the predicted risk of the scan so far."""
         return diagnose(self.history, self.strategy)
+
+
+#: How far outside its stack a best focus may lie, um, at least: a stack's own reading
+#: (a peak fitted past its last frame, a pair's or a single frame's estimate) reaches a
+#: little beyond it, never this far; a height this far off is a unit gone wrong (nm, mm)
+#: or another tile's, and one such value would move the next tiles' stacks with it.
+MIN_REACH_OUTSIDE_UM = 50.0
+#: ... or this many times the stack's span, for a wide stack.
+REACH_OUTSIDE_SPANS = 4.0
+
+
+def _check_within_reach(pending: Acquisition, measurement: Measurement) -> None:
+    """SlideError (422) for a best focus far outside the stack it was read from (a laser
+    reading has no stack: its height is the sensor's)."""
+    z_um = measurement.z_um
+    if z_um is None or pending.purpose is Purpose.LASER:
+        return
+    low_um, high_um = pending.z.low_um, pending.z.high_um
+    reach_um = max(MIN_REACH_OUTSIDE_UM, REACH_OUTSIDE_SPANS * (high_um - low_um))
+    if not low_um - reach_um <= z_um <= high_um + reach_um:
+        raise SlideError(
+            f"z_um {z_um:g} lies {max(low_um - z_um, z_um - high_um):g} um outside the stack "
+            f"of acquisition {pending.index} ({low_um:g} to {high_um:g} um), beyond the "
+            f"{reach_um:g} um a stack's reading can reach: a unit gone wrong (nm or mm for "
+            "um), or another tile's height?",
+            ("body", "z_um"),
+        )

@@ -168,6 +168,9 @@ INVALID = [
     ("missing z", "post", "measurements", {"row": 0, "col": 0, "sequence": 0}, 422, "z_um"),
     ("huge z", "post", "measurements", {"row": 0, "col": 0, "sequence": 0, "z_um": 1e300}, 422,
      "z_um"),
+    # a height in nm for um was taken, and the next tiles' stacks went 2 mm away
+    ("z far outside its stack", "post", "measurements",
+     {"row": 0, "col": 0, "sequence": 0, "z_um": 2000}, 422, "um outside the stack of"),
     ("unknown map format", "get", "map?format=tiff", None, 422, "format"),
     # these answered JSON: a misspelt parameter was left at its default, a second one won
     ("misspelt map format", "get", "map?fromat=png", None, 422,
@@ -289,7 +292,8 @@ def test_a_stack_of_kept_planes_stays_within_the_slides_frames(app: FastAPI) -> 
     async def go() -> None:
         async with client(app) as http:
             slide_id = await create(http, "kf-2d-lean", params={"max_kept_planes": 1001})
-            for z_um, sigma_um in ((30.0, 0.5), (1e6, 0.001)):  # the second, wild, is kept
+            # the second, wild but within its stack's reach (`slide.MIN_REACH_OUTSIDE_UM`), is kept
+            for z_um, sigma_um in ((30.0, 0.5), (79.0, 0.001)):
                 step = (await http.get(f"/v1/slides/{slide_id}/next")).json()
                 where = {key: step[key] for key in ("row", "col", "sequence")}
                 measurement = {**where, "z_um": z_um, "sigma_um": sigma_um}

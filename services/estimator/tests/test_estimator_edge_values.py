@@ -15,6 +15,7 @@ from focustrack_core.domain import ZRange
 from focustrack_core.wire.session import free_port
 from focustrack_estimator import strategy
 from focustrack_estimator.service import spawn
+from focustrack_estimator.slide import MIN_REACH_OUTSIDE_UM
 
 
 @pytest.fixture(scope="module")
@@ -114,7 +115,8 @@ def test_no_slide_gets_stuck_with_the_sharpest_measurements_allowed(url: str, na
 
 def _scan_with_sharp_jumps(url: str, slide_id: str) -> None:
     """Scan a slide to its end with measurements as certain as the schema allows (1 nm),
-    jumping by 1 mm between tiles; every answer a 200, and its map too."""
+    jumping between tiles as far as a stack's reading may reach, either side of it
+    (`slide.MIN_REACH_OUTSIDE_UM`; farther is refused); every answer a 200, and its map too."""
     for _ in range(500):  # a few per tile at most: a slide that never ends fails the test
         pending = httpx.get(f"{url}/v1/slides/{slide_id}/next").json()
         if pending["done"]:
@@ -123,7 +125,9 @@ def _scan_with_sharp_jumps(url: str, slide_id: str) -> None:
             "row": pending["row"],
             "col": pending["col"],
             "sequence": pending["sequence"],
-            "z_um": 0.0 if pending["sequence"] % 2 else 1e3,
+            "z_um": pending["z_low_um"] - MIN_REACH_OUTSIDE_UM
+            if pending["sequence"] % 2
+            else pending["z_high_um"] + MIN_REACH_OUTSIDE_UM,
             "sigma_um": api.MIN_SIGMA_UM,
         }
         response = httpx.post(f"{url}/v1/slides/{slide_id}/measurements", json=body)
