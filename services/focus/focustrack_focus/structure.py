@@ -88,11 +88,14 @@ def structure_snr(
     sharpest, blurriest: the preprocessed frames with the highest and lowest
     score, (h, w) float32; blurriest_raw: the raw 2-D crop the latter came from.
     Returns (ratio - 1) / spread; infinity when the frames show no pixel noise
-    (noise-free or coarsely quantised data: the test cannot judge them).
+    (noise-free or coarsely quantised data: the test cannot judge them), minus infinity
+    when even the sharpest frame is uniform (all black: exposure 0, a closed shutter).
     """
     noise_std = pixel_noise_std(blurriest_raw)
     shape = blurriest_raw.shape
     gain = lowpass_noise_gain(shape, preprocess.lowpass_sigma_px, preprocess.pyramid_levels)
+    if noise_std == 0.0 and filters.BACKEND.mean_std(sharpest)[1] == 0.0:
+        return -math.inf  # no frame shows anything: nothing in view (it read flat alone)
     if noise_std == 0.0 or gain == 0.0:  # gain 0: a frame the low-pass leaves one pixel of
         return math.inf
     _, std = filters.BACKEND.mean_std(sharpest - blurriest)

@@ -8,6 +8,8 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
+from focustrack_core.domain import FocusFlag
+from focustrack_focus.pipeline import FocusSettings, focus_stack
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import (
     lowpass_noise_gain,
@@ -59,3 +61,12 @@ def test_static_structure_cancels_and_noise_free_frames_cannot_be_judged() -> No
     frames = shading + rng.normal(0.0, 15.0, (2, 128, 128))
     assert snr_of(frames) < 5.0
     assert snr_of(np.stack([shading, shading + 1.0])) == math.inf
+
+
+@pytest.mark.parametrize("level", [0, 7])
+def test_uniform_frames_are_flat_and_empty(level: int) -> None:
+    """An all-black stack (exposure 0) read `flat` alone: with no pixel noise the structure
+    test could not judge it, though nothing is in view."""
+    z_um = np.arange(41) * 0.5 - 10.0
+    frames = np.full((41, 64, 64), level, np.uint16)
+    assert focus_stack(frames, z_um, FocusSettings()).flags == {FocusFlag.FLAT, FocusFlag.EMPTY}
