@@ -19,9 +19,10 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from focustrack_core.http_metrics import CONTENT_TYPE, HttpMetrics
-from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout, quoted_errors
+from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout, cut, quoted_errors
 from focustrack_core.tracing import TraceRequests
 
 _bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
@@ -87,6 +88,21 @@ def guarded_app(
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, error: RequestValidationError) -> JSONResponse:
         return JSONResponse({"detail": quoted_errors(error.errors())}, status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(_: Request, error: StarletteHTTPException) -> JSONResponse:
+        # A form the multipart parser refuses is a 400 of its own words: a text field over
+        # its 1 MB part limit (a million heights in z_um) is an oversized request (413, as
+        # documented); its other refusals (a broken boundary, too many fields) are input
+        # that cannot be read (422), as every other.
+        if error.status_code == 400:
+            oversized = str(error.detail).startswith("Part exceeded maximum size")
+            detail = f"the form cannot be read: {error.detail}"
+            if oversized:
+                detail += " (a form field other than the stack's file is short text)"
+            return JSONResponse({"detail": detail}, status_code=413 if oversized else 422)
+        detail = cut(error.detail) if isinstance(error.detail, str) else error.detail
+        return JSONResponse({"detail": detail}, error.status_code, headers=error.headers)
 
     @app.get("/metrics", response_class=PlainTextResponse, include_in_schema=False)
     async def _metrics() -> PlainTextResponse:

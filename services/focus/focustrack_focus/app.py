@@ -32,9 +32,7 @@ import numpy as np
 from fastapi import Depends, FastAPI, File, Form, HTTPException, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from focustrack_core.domain import MAX_ABS_Z_UM, MAX_PRIOR_SIGMA_UM, MIN_PRIOR_SIGMA_UM, Prior
 from focustrack_core.http_metrics import HttpMetrics
@@ -261,11 +259,6 @@ def create_app(
         limits.body_timeout_s,
         HttpMetrics("focustrack_focus"),
     )
-
-    @app.exception_handler(StarletteHTTPException)
-    async def _http_error(_: Request, error: StarletteHTTPException) -> JSONResponse:
-        detail = cut(error.detail) if isinstance(error.detail, str) else error.detail
-        return JSONResponse({"detail": detail}, error.status_code, headers=error.headers)
 
     def refusals(statuses: dict[int, str]) -> dict[int | str, dict[str, Any]]:
         """A /v1 route's OpenAPI `responses` besides its 200: `statuses` (status -> when it

@@ -4,6 +4,7 @@ kind of bad input, the command; one stack end to end through a real uvicorn serv
 from __future__ import annotations
 
 import io
+import json
 import os
 import subprocess
 import sys
@@ -387,3 +388,13 @@ def test_metrics_count_each_route_and_status() -> None:
         'focustrack_phase_requests_total{method="POST",route="/v1/phase/stack",status="422"} 1.0'
     )
     assert expected in lines
+
+
+def test_a_form_field_over_the_parsers_part_limit_is_a_413(stack: SyntheticStack) -> None:
+    """A million heights in z_um were a 400 "Part exceeded maximum size of 1024KB.", a
+    status the API does not document."""
+    client = TestClient(create_app(PhaseLimits(max_frames=8)))  # a body of 256 MB at most
+    fields = form(stack) | {"z_um": json.dumps(list(range(300_000)))}
+    response = post(client, npy_bytes(stack.stack_counts), fields)
+    assert response.status_code == 413, response.text
+    assert "the form cannot be read: Part exceeded maximum size" in response.json()["detail"]
