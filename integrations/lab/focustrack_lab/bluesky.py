@@ -46,7 +46,7 @@ from ophyd import Component, Device, Signal
 
 from focustrack_core.domain import FocusFlag
 from focustrack_core.geometry import ScanGrid
-from focustrack_lab.tracker import FocusTracker, TileFocus
+from focustrack_lab.tracker import FocusTracker, TileFocus, check_slide
 
 Plan = Generator[Msg, Any, Any]
 
@@ -231,15 +231,25 @@ def focustrack_grid(
     x, y, z: movable motors in um. Returns the TileFocus of every tile, in scan order.
     ValueError, before any message, when the tracker's slide at the estimator has another
     grid (rows, cols, pitch) than the plan's: its map would be of another slide, and the
-    plan would stop at the first tile past the smaller grid.
+    plan would stop at the first tile past the smaller grid. TileOrderError, before any
+    message, when the slide asks for what the tracker cannot take (`check_slide`).
+    ValueError, before any message, when the camera's description shows no one reading to
+    take as its image (`_image_key`).
     """
-    grid = tracker.estimator.slide(tracker.slide_id).config.grid
+    config = tracker.estimator.slide(tracker.slide_id).config
+    check_slide(config)
+    grid = config.grid
     if (grid.rows, grid.cols) != (rows, cols) or not math.isclose(grid.pitch_um, pitch_um):
         raise ValueError(
             f"the plan's grid is {rows}x{cols} tiles {pitch_um:g} um apart, the estimator's "
             f"slide {tracker.slide_id} {grid.rows}x{grid.cols} tiles {grid.pitch_um:g} um "
             "apart: make the slide with the plan's grid"
         )
+    # Found from the camera's description now, so that a camera without one image fails
+    # before the run opens and the motors move; None: its reading says (a camera that
+    # declares no shapes).
+    described = _described_shapes(camera)
+    image_key = _image_key(camera, described, final=False) or frozenset(described)
     reading = TileFocusReading(name="focustrack")
     maps = focus_map_signals(rows, cols)
     metadata: dict[str, Any] = {
@@ -270,7 +280,7 @@ def focustrack_grid(
         for tile in ScanGrid(rows, cols).serpentine:
             yield from bps.mv(x, x0_um + tile.col * pitch_um, y, y0_um - tile.row * pitch_um)
             yield from bps.mv(reading.row, tile.row, reading.col, tile.col)
-            focus = yield from _focus_tile(camera, z, tracker, reading)
+            focus = yield from _focus_tile(camera, z, tracker, reading, image_key)
             yield from reading.show(focus)
             for plane_um in focus.planes_um:
                 yield from bps.mv(z, plane_um)
@@ -288,9 +298,42 @@ def _fields(motor: Any) -> list[str]:
     return list(getattr(motor, "hints", {}).get("fields", [motor.name]))
 
 
-def _focus_tile(camera: Any, z: Any, tracker: FocusTracker, reading: TileFocusReading) -> Plan:
+def _described_shapes(camera: Any) -> dict[str, tuple[int, ...]]:
+    """The shape of every data key the camera describes (its `describe()`)."""
+    return {key: tuple(entry.get("shape") or ()) for key, entry in camera.describe().items()}
+
+
+def _image_key(camera: Any, shapes: Mapping[str, Sequence[int]], *, final: bool) -> str | None:
+    """The key of the camera's image among its data keys (key -> shape): its name where it
+    has that key (an ophyd Signal), else its one key of 2 dimensions or more (an ophyd
+    Device: an area detector's is e.g. `cam_image`). ValueError naming the keys where
+    several are, or none is and `final`; None where none is and not `final`."""
+    if camera.name in shapes:
+        return str(camera.name)
+    images = [key for key, shape in shapes.items() if len(shape) >= 2]
+    if len(images) == 1:
+        return images[0]
+    if not images and not final:  # a description may leave shapes out: the reading says
+        return None
+    found = ", ".join(f"{key} {tuple(shape)}" for key, shape in shapes.items())
+    raise ValueError(
+        f"cannot tell which reading of camera {camera.name!r} is its image: it has no key "
+        f"{camera.name!r} and {len(images)} readings of 2 dimensions or more, not one "
+        f"(its readings: {found}); give the plan a camera whose reading holds one image"
+    )
+
+
+def _focus_tile(
+    camera: Any,
+    z: Any,
+    tracker: FocusTracker,
+    reading: TileFocusReading,
+    image_key: str | frozenset[str],
+) -> Plan:
     """The stacks the estimator asks of the tile `reading` names, read through the RunEngine,
-    each focus_stack event with the tile, the run's stack number and the frame's in it."""
+    each focus_stack event with the tile, the run's stack number and the frame's in it.
+    `image_key`: the camera's image among its readings, or the camera's data keys (its
+    description did not say which is the image) to find it among in each reading."""
     steps = tracker.tile(reading.row.get(), reading.col.get())
     try:
         z_um = next(steps)
@@ -313,7 +356,11 @@ def _focus_tile(camera: Any, z: Any, tracker: FocusTracker, reading: TileFocusRe
                     ],
                     name=STACK_STREAM,
                 )
-                frames.append(readings[camera.name]["value"])
+                key = image_key
+                if not isinstance(key, str):  # the camera's own readings, not z's or the tile's
+                    shapes = {k: np.shape(readings[k]["value"]) for k in key if k in readings}
+                    key = str(_image_key(camera, shapes, final=True))  # final: never None
+                frames.append(readings[key]["value"])
             z_um = steps.send(np.stack(frames))
     except StopIteration as done:
         return done.value

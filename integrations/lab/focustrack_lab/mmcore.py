@@ -109,6 +109,8 @@ class FocusTrackEngine(MDAEngine):
         self._focused: dict[int, TileFocus] = {}  # grid index "g" -> its focus
         self._base_z_um = 0.0  # what the events' z is relative to: the stage position's z
         self._z_stack = False  # the sequence has a (relative) z plan: the lab's own z-stack
+        # The (row, col) whose stack `_snap_stack` takes, to name it where the stage fails.
+        self._snapping: tuple[int, int] | None = None
 
     def setup_sequence(self, sequence: MDASequence) -> Any:
         summary = super().setup_sequence(sequence)  # sets the grid's field of view
@@ -155,6 +157,7 @@ class FocusTrackEngine(MDAEngine):
             return
         if index not in self._focused:
             row, col = self._tiles[index]
+            self._snapping = (row, col)
             self._focused[index] = self.tracker.focus(row, col, self._snap_stack)
         self.mmcore.setZPosition(self._focused[index].z_um + self._z_offset_um(event))
         self.mmcore.waitForDevice(self.mmcore.getFocusDevice())
@@ -172,6 +175,7 @@ class FocusTrackEngine(MDAEngine):
         if self._z_stack or not focus.planes_um:
             yield from super().exec_single_event(event)
             return
+        self._snapping = (focus.row, focus.col)
         planes = self._snap_stack(np.asarray(focus.planes_um))
         runner_t0 = event.metadata.get("runner_t0") or time.perf_counter()  # as the base's
         self.mmcore.setZPosition(focus.z_um)  # where the next event of this position starts
@@ -202,12 +206,27 @@ class FocusTrackEngine(MDAEngine):
         return 0.0 if event.z_pos is None else event.z_pos - self._base_z_um
 
     def _snap_stack(self, z_um: np.ndarray) -> np.ndarray:
-        """Frames (n, H, W[, C]) snapped at z_um (n,) with the core's focus stage and camera."""
+        """Frames (n, H, W[, C]) snapped at z_um (n,) with the core's focus stage and camera.
+
+        A move the focus stage refuses (Micro-Manager's RuntimeError, "Position out of
+        range" past its travel) is raised again naming the tile, the z and the stack: the
+        core's message alone says none of them.
+        """
         core = self.mmcore
         frames = []
         for z in z_um:
-            core.setZPosition(float(z))
-            core.waitForDevice(core.getFocusDevice())
+            try:
+                core.setZPosition(float(z))
+                core.waitForDevice(core.getFocusDevice())
+            except RuntimeError as error:
+                tile = "" if self._snapping is None else f" at tile {self._snapping}"
+                raise RuntimeError(
+                    f"the focus stage could not move to z = {float(z):g} um{tile}, a frame of "
+                    f"a {len(z_um)}-frame stack from {float(np.min(z_um)):g} to "
+                    f"{float(np.max(z_um)):g} um: {error}. Check the stage's travel limits "
+                    "against the slide's start_z_um and start_sigma_um (the first stacks span "
+                    "z_range.k_sigma start sigmas either side of start_z_um)"
+                ) from error
             core.snapImage()
             frames.append(core.getImage())
         return np.stack(frames)

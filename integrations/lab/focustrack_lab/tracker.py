@@ -22,21 +22,63 @@ import operator
 from collections import Counter
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
+from typing import TypeVar
 
+import httpx
 import numpy as np
+from pydantic import TypeAdapter, ValidationError
 
 from focustrack_client import EstimatorClient, EstimatorError, ServerError
-from focustrack_client.models import FocusFlag, MeasurementIn, Next, Purpose, SlideCreate
+from focustrack_client.models import FocusFlag, Grid, MeasurementIn, Next, Purpose, SlideCreate
 from focustrack_core.domain import FocusFlag as DomainFlag
 from focustrack_core.domain import Measurement
+from focustrack_focus.peak import MIN_CURVE_FRAMES
 from focustrack_focus.pipeline import FocusResult, FocusSettings, focus_stack
+
+T = TypeVar("T")
 
 #: Takes a z-stack at the current tile: z of every frame (n,) in um -> frames (n, H, W[, C]).
 AcquireStack = Callable[[np.ndarray], np.ndarray]
 
 
 class TileOrderError(RuntimeError):
-    """The lab visited a tile other than the one the estimator expects next."""
+    """The lab visited a tile other than the one the estimator expects next, or the slide
+    asks for acquisitions a tile-by-tile loop cannot take (`check_slide`)."""
+
+
+#: Strategies whose acquisitions include readings of a laser (reflection) autofocus: the
+#: tracker takes camera stacks only, and a frame posted as a laser reading wastes a stack.
+LASER_STRATEGIES = frozenset({"kf-2d-laser"})
+
+
+def check_slide(config: SlideCreate) -> None:
+    """Raise TileOrderError when the estimator would ask this slide for an acquisition the
+    tracker cannot take or read: a laser reading, or a measured stack of fewer than
+    MIN_CURVE_FRAMES frames (the focus maths here locates a peak between the outer two of
+    three frames at least; a pair needs the focus service's learnt curve).
+
+    Checked before the scan: such a stack used to be taken, then fail to read, and every
+    retry of it failed alike, so the slide could never finish.
+    """
+    params = config.params
+    problems = []
+    if config.strategy in LASER_STRATEGIES:
+        problems.append(f"strategy {config.strategy} asks for laser autofocus readings")
+    if config.z_range.min_frames < MIN_CURVE_FRAMES:
+        problems.append(f"z_range.min_frames is {config.z_range.min_frames}")
+    short_frames = _as(int, params.get("short_frames"))
+    if short_frames is not None and short_frames < MIN_CURVE_FRAMES:
+        problems.append(f"params short_frames is {short_frames} (a 2-frame pair)")
+    if _as(bool, params.get("look_first")):
+        problems.append("params look_first is true (a tile's first stack starts with 1 frame)")
+    if problems:
+        raise TileOrderError(
+            f"the tracker cannot scan this slide: {'; '.join(problems)}. It reads a focus "
+            f"from camera stacks of {MIN_CURVE_FRAMES} frames or more (or a 1-frame look); "
+            "create the slide with "
+            f"z_range.min_frames >= {MIN_CURVE_FRAMES}, without short_frames below "
+            f"{MIN_CURVE_FRAMES} or look_first, and a camera strategy (kf-2d, kf-2d-lean, ...)"
+        )
 
 
 @dataclass(frozen=True)
@@ -133,8 +175,25 @@ class FocusTracker:
         slide: SlideCreate,
         settings: FocusSettings | None = None,
     ) -> FocusTracker:
-        """A tracker of a new estimator slide scanned as `slide` says."""
+        """A tracker of a new estimator slide scanned as `slide` says.
+
+        Raises TileOrderError, creating nothing, where the slide would ask for what the
+        tracker cannot take (`check_slide`).
+        """
+        check_slide(slide)
         return cls(estimator, estimator.create_slide(slide).id, settings)
+
+    @classmethod
+    def open(
+        cls,
+        estimator: EstimatorClient,
+        slide_id: str,
+        settings: FocusSettings | None = None,
+    ) -> FocusTracker:
+        """A tracker of an existing estimator slide, checked as `create` checks a new one
+        (the constructor asks the estimator nothing)."""
+        check_slide(estimator.slide(slide_id).config)
+        return cls(estimator, slide_id, settings)
 
     @property
     def n_frames(self) -> int:
@@ -184,6 +243,7 @@ class FocusTracker:
         if progress.unposted is not None:
             self._post(progress, progress.unposted)
         while (step := self.estimator.next(self.slide_id)).row == row and step.col == col:
+            _check_step(step)  # before `_frames_z_um`: a laser reading may have no z-range
             frames_z_um = _frames_z_um(step)
             self.stack_sequence = _required(step.sequence)
             frames = np.asarray((yield frames_z_um))
@@ -210,11 +270,7 @@ class FocusTracker:
                     "every tile, two passes a tile-by-tile loop cannot follow; scan this "
                     "slide with a Kalman strategy (kf-2d, kf-2d-lean, ...)"
                 )
-            expected = "nothing: the scan is done" if step.done else f"({step.row}, {step.col})"
-            raise TileOrderError(
-                f"the estimator expects {expected} next, not tile ({row}, {col}): visit the "
-                "tiles in its serpentine order (row 0 left to right, row 1 right to left, ...)"
-            )
+            raise TileOrderError(self._order_problem(step, row, col))
         tile = TileFocus(
             row,
             col,
@@ -227,6 +283,32 @@ class FocusTracker:
         )
         self.tiles.append(tile)
         return tile
+
+    def _order_problem(self, step: Next, row: int, col: int) -> str:
+        """Why tile (row, col) is not the one to visit: the scan is over, the tile is off
+        the slide's grid, or another tile comes first."""
+        if step.done:
+            return f"the scan is done: no tile is pending (tile ({row}, {col}) was asked for)"
+        grid = self._grid()
+        if grid is not None and not (0 <= row < grid.rows and 0 <= col < grid.cols):
+            return (
+                f"tile ({row}, {col}) is outside the {grid.rows}x{grid.cols} grid: rows run "
+                f"0..{grid.rows - 1}, columns 0..{grid.cols - 1}; the estimator expects "
+                f"tile ({step.row}, {step.col}) next"
+            )
+        return (
+            f"the estimator expects tile ({step.row}, {step.col}) next, not tile ({row}, {col}): "
+            "visit the tiles in its serpentine order (row 0 left to right, row 1 right to "
+            "left, ...)"
+        )
+
+    def _grid(self) -> Grid | None:
+        """The slide's grid, or None where the estimator cannot say (the error being
+        explained matters more than this detail)."""
+        try:
+            return self.estimator.slide(self.slide_id).config.grid
+        except (EstimatorError, httpx.HTTPError):
+            return None
 
     def _post(self, progress: _TileProgress, unposted: _Unposted) -> None:
         """Post the tile's `unposted` measurement; where to image the tile, from its outcome.
@@ -287,10 +369,43 @@ class _TileProgress:
     planes_um: tuple[float, ...] = ()
 
 
+def _as(kind: type[T], value: object) -> T | None:
+    """`value` read as the estimator's parameter models read it (1 and "true" are True, "2"
+    is 2); None where it is absent or they would refuse it (the estimator then says why)."""
+    if value is None:
+        return None
+    try:
+        return TypeAdapter(kind).validate_python(value)
+    except ValidationError:
+        return None
+
+
 def _required(value: int | None) -> int:
     if value is None:
         raise ValueError("the estimator's next acquisition has no sequence number")
     return value
+
+
+def _check_step(step: Next) -> None:
+    """TileOrderError, before anything is acquired, for an acquisition the tracker cannot
+    take or read (`check_slide` refuses the slides known to ask for them): a laser reading,
+    or a measured stack of 2 to MIN_CURVE_FRAMES - 1 frames."""
+    where = f"at tile ({step.row}, {step.col})"
+    if step.purpose == Purpose.LASER:
+        raise TileOrderError(
+            f"the estimator asks for a laser autofocus reading {where}; the tracker takes "
+            "camera stacks only: scan this slide with a camera strategy (kf-2d, kf-2d-lean, ...)"
+        )
+    # One frame is a look (`focus_stack` reads whether anything is in view: the estimator
+    # asks for one in glass); two are a pair, which needs the focus service's learnt curve.
+    n = step.n_frames
+    if step.measure and n is not None and 1 < n < MIN_CURVE_FRAMES:
+        raise TileOrderError(
+            f"the estimator asks for a {n}-frame stack {where} ({step.purpose}); the tracker "
+            f"reads a focus from 1 frame (a look) or {MIN_CURVE_FRAMES} frames or more: create the "
+            f"slide with z_range.min_frames >= {MIN_CURVE_FRAMES}, without short_frames below "
+            f"{MIN_CURVE_FRAMES} or look_first"
+        )
 
 
 def _frames_z_um(step: Next) -> np.ndarray:
