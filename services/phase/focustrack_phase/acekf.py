@@ -67,6 +67,18 @@ MIN_MEAN_OVER_SPREAD = 0.01
 #: The longest wavelength a stack may give, um: past the near infrared of any microscope's
 #: light, and short of 532, the green laser's wavelength written in nm by mistake.
 MAX_WAVELENGTH_UM = 20.0
+#: The widest prior, q0 (AcekfOptions): the field's mean intensity is 1, so a departure from
+#: the plane wave of variance 1 per Fourier coefficient is already as strong as the field
+#: itself. Wider, the gain's denominator q + mean(Q)^2 (`_filtered_field`) grows as q0^2
+#: and swamps the update: the phase comes out flat (a 128-pixel weak object's phase
+#: spread, 0.36 rad, falls to under 0.09 at q0 = 30 and under 0.003 at 1000). 10 is the
+#: widest that `focustrack bench phase` tunes (FILTER_Q0).
+MAX_Q0 = 10.0
+#: The fewest photons a pixel may detect per frame on average (gamma, eq. 5): below, the
+#: noise variance 1/gamma (eq. 31) dwarfs any phase contrast and the filter's gain, in
+#: single precision, is nothing (a flat phase) or runs away. The bench's sparsest setting,
+#: the paper's, is gamma = 0.998.
+MIN_GAMMA_PHOTONS = 1e-3
 
 
 @dataclass(frozen=True)
@@ -115,8 +127,11 @@ class AcekfOptions:
     background: Background = "anchor"
 
     def __post_init__(self) -> None:
-        if not self.q0 > 0:
-            raise ValueError(f"q0 must be > 0, got {self.q0}")
+        if not 0 < self.q0 <= MAX_Q0:
+            raise ValueError(
+                f"q0 must be in (0, {MAX_Q0:g}] (a departure from the plane wave wider than "
+                f"the field itself flattens the phase), got {self.q0}"
+            )
         if not abs(self.p0) <= self.q0:
             raise ValueError(f"|p0| must be <= q0 (a covariance), got p0={self.p0}, q0={self.q0}")
         if self.update not in ("phase_frame", "paper"):
@@ -250,7 +265,15 @@ def validate_stack(
             raise ValueError("stack must be finite (no NaN or inf)")
         raise ValueError("stack's values are too large: their mean overflows")
     _check_counts_of_light(stack_counts, frame_means)  # so the mean is positive
-    return z, mean_counts * photons_per_count
+    gamma = mean_counts * photons_per_count
+    if not gamma >= MIN_GAMMA_PHOTONS:
+        raise ValueError(
+            f"the stack's mean counts ({mean_counts:.3g}) times photons_per_count "
+            f"({photons_per_count:.3g}) make {gamma:.3g} photons per pixel per frame, under the "
+            f"{MIN_GAMMA_PHOTONS:g} that carries any phase: check photons_per_count (the "
+            "camera's gain)"
+        )
+    return z, gamma
 
 
 def _check_counts_of_light(stack_counts: np.ndarray, frame_means: np.ndarray) -> None:

@@ -42,13 +42,20 @@ from focustrack_core.web import (
     guarded_app,
     read_upload,
 )
-from focustrack_phase.acekf import AcekfOptions, Background, FieldEstimate, Update, reconstruct
+from focustrack_phase.acekf import (
+    MAX_Q0,
+    AcekfOptions,
+    Background,
+    FieldEstimate,
+    Update,
+    reconstruct,
+)
 
 #: The .npy answer's header with the share of the image taken as empty glass, whose phase
 #: is zero (`FieldEstimate.background_share`; absent with ``background=none``).
 BACKGROUND_SHARE_HEADER = "X-Background-Share"
-#: Bounds of the filter's settings a request may set: wide around the defaults, finite.
-MAX_Q0 = 1e6
+#: Bounds of the filter's settings a request may set: wide around the defaults, finite
+#: (q0's, MAX_Q0, is the filter's own: wider priors flatten the phase).
 MAX_AMPLITUDE_FLOOR = 1.0
 MAX_PRIOR_LENGTH_UM = 1e4
 #: The picture's height over its width at most (and its width over its height): a frame

@@ -26,6 +26,7 @@ is left as the filter gave it, its zero the phase of its mean.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +35,8 @@ from scipy.sparse.linalg import LinearOperator, cg
 
 from focustrack_phase import transforms
 from focustrack_phase.propagation import phase_transfer_power
+
+log = logging.getLogger(__name__)
 
 #: The band re-estimated: the frequencies below the lowest at which the transfer power T(f)
 #: reaches this share of its highest (partial coherence damps it at high frequencies).
@@ -71,9 +74,22 @@ MIN_BACKGROUND = 0.05
 #: field is not two populations (cells and glass) and nothing is anchored.
 MAX_TEXTURE_RATIO = 0.25
 #: Conjugate gradients' relative residual and its most iterations: 1e-4 leaves the phase
-#: within 5e-3 rad of a dense solve (a test holds it there).
+#: within 5e-3 rad of a dense solve (a test holds it there). The cap bounds the cost (each
+#: iteration is two FFTs of a grid of at most about 4 MAX_BAND_BINS bins, so 1000 of them
+#: take a few tenths of a second at most). Not lower: on Data Set 1 (437 band bins) CG
+#: needs more than 100 iterations, and stopped at 100 its phase was 0.085 rad against 0.058
+#: converged. Where the glass pins the band loosely CG may still stop at the cap (a 512 px
+#: smear at 1.5 rad, 11 planes over +-2 um, 0.5 um pixels, 1000 photons); its partial
+#: answer is kept, with a warning (`low_frequency_correction`).
 CG_RTOL = 1e-4
 CG_MAX_ITERATIONS = 1000
+#: The most bins the band's box (2 reach + 1 a side) may hold: past it the band's edge is
+#: lowered until it fits. The band is the frequencies the stack barely sees; its lowest
+#: (the widest shadows) matter most, and above the lowered edge the filter's estimate
+#: stands. Without the cap a tall, narrow or large image (a 512 px field over +-2 um, a
+#: 40000 x 2 strip) made the "small" grid the image's size and conjugate gradients ran to
+#: its cap: seconds against the filter's tens of milliseconds.
+MAX_BAND_BINS = 4096
 
 
 @dataclass(frozen=True)
@@ -243,10 +259,12 @@ def low_frequency_correction(
     """
     height, width = phase_rad.shape
     edge_per_um = band_edge_per_um((height, width), z_um, wavelength_um, pixel_um, condenser_na)
-    # The band's reach in bins from zero frequency (a band past a quarter of the grid, which
-    # only a stack of a few um on a small image has, is cut there).
-    reach_y = min(int(edge_per_um * height * pixel_um), (height - 1) // 4)
-    reach_x = min(int(edge_per_um * width * pixel_um), (width - 1) // 4)
+    reach_y, reach_x = _reaches(edge_per_um, (height, width), pixel_um)
+    while (box := (2 * reach_y + 1) * (2 * reach_x + 1)) > MAX_BAND_BINS:
+        # Lower the edge (MAX_BAND_BINS): by the square root of the excess, as both reaches
+        # scale with it (the loop finishes what a reach cut at a quarter leaves).
+        edge_per_um *= np.sqrt(MAX_BAND_BINS / box)
+        reach_y, reach_x = _reaches(edge_per_um, (height, width), pixel_um)
     within = np.ix_(_bins(reach_y, height), _bins(reach_x, width))
     freq_sq = np.add.outer(
         fft.fftfreq(height, pixel_um)[within[0].ravel()] ** 2,
@@ -279,13 +297,26 @@ def low_frequency_correction(
     rhs = -_spectrum(np.where(background, phase_rad, np.float32(0)))[within][band] * unitary
     size = int(band.sum())
     diagonal = float(mask.mean()) + penalty  # B^H diag(M) B's diagonal is M's mean
-    theta, _ = cg(
+    theta, info = cg(
         LinearOperator((size, size), matvec=normal, dtype=complex),
         rhs,
         rtol=CG_RTOL,
         maxiter=CG_MAX_ITERATIONS,
         M=LinearOperator((size, size), matvec=lambda r: r / diagonal, dtype=complex),
     )
+    if info != 0:
+        # Kept, not dropped: from theta = 0 (no correction) every conjugate-gradient step
+        # lowers the least squares' objective (the module docstring's; CG minimises it over
+        # a growing Krylov space), so an unfinished solve is still nearer the answer than
+        # no correction is. Said, so a slow solve is seen.
+        log.warning(
+            "the background anchoring's conjugate gradients stopped unconverged after %d "
+            "iterations (%d band bins, %.3g of the image background): its correction is "
+            "partial",
+            info,
+            size,
+            float(mask.mean()),
+        )
     correction = transforms.padded_image((height, width), np.complex64)
     correction[within] = _scatter(theta * unitary, band)
     return transforms.idft2(correction).real
@@ -337,6 +368,17 @@ def _padded_copy(image: np.ndarray) -> np.ndarray:
     copy = transforms.padded_image(image.shape, np.complex64)
     copy[...] = image
     return copy
+
+
+def _reaches(edge_per_um: float, shape: tuple[int, int], pixel_um: float) -> tuple[int, int]:
+    """The band's reach in bins from zero frequency along each axis of an image of `shape`
+    (a band past a quarter of the grid, which only a stack of a few um on a small image
+    has, is cut there, so the small grid's 4 reach + 1 bins fit in the image's)."""
+    height, width = shape
+    return (
+        min(int(edge_per_um * height * pixel_um), (height - 1) // 4),
+        min(int(edge_per_um * width * pixel_um), (width - 1) // 4),
+    )
 
 
 def _bins(reach: int, size: int) -> np.ndarray:

@@ -224,3 +224,72 @@ def test_the_band_edge_is_where_the_stack_starts_to_see_the_phase() -> None:
 def test_a_bad_background_option_is_refused() -> None:
     with pytest.raises(ValueError, match="background must be 'anchor' or 'none'"):
         acekf.AcekfOptions(background="flat")  # type: ignore[arg-type]
+
+
+def _recording_cg(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, int]]:
+    """Patches the module's conjugate gradients to record (unknowns, iterations) per solve."""
+    solves: list[tuple[int, int]] = []
+    solve = background.cg
+
+    def recorded(operator, rhs, **kwargs):  # type: ignore[no-untyped-def]
+        iterations = [0]
+        kwargs["callback"] = lambda _: iterations.__setitem__(0, iterations[0] + 1)
+        result = solve(operator, rhs, **kwargs)
+        solves.append((operator.shape[0], iterations[0]))
+        return result
+
+    monkeypatch.setattr(background, "cg", recorded)
+    return solves
+
+
+def test_a_tall_narrow_strip_s_band_is_capped_and_its_solve_bounded(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A 40000 x 2 strip once made a band as big as the image (20000 unknowns, CG to its
+    1000-iteration cap: 20 s); now at most MAX_BAND_BINS unknowns, CG_MAX_ITERATIONS steps."""
+    solves = _recording_cg(monkeypatch)
+    rng = np.random.default_rng(0)
+    phase_rad = rng.normal(0, 0.1, (40000, 2)).astype(np.float32)
+    glass = np.zeros(phase_rad.shape, dtype=bool)
+    glass[::3] = True
+    correction = background.low_frequency_correction(phase_rad, glass, [-1.0, 1.0], 0.532, 0.5)
+    (size, iterations), *_ = solves
+    assert 0 < size <= background.MAX_BAND_BINS
+    assert iterations <= background.CG_MAX_ITERATIONS
+    assert correction.shape == phase_rad.shape and np.all(np.isfinite(correction))
+
+
+def test_a_large_frame_s_band_is_capped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 512 px frame over +-2 um at 0.5 um pixels once re-estimated ~50000 bins."""
+    solves = _recording_cg(monkeypatch)
+    phase_rad = np.zeros((512, 512), dtype=np.float32)
+    glass = np.zeros(phase_rad.shape, dtype=bool)
+    glass[:100] = True
+    phase_rad[glass] = 0.3
+    correction = background.low_frequency_correction(
+        phase_rad, glass, np.linspace(-2, 2, 11), 0.532, 0.5
+    )
+    assert solves[0][0] <= background.MAX_BAND_BINS
+    assert abs(float(np.mean(correction[glass])) + 0.3) < 0.05  # the glass is taken to zero
+
+
+def test_an_unconverged_solve_is_kept_and_said(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Not silently: a warning; and kept, as every CG step from zero lowers the objective."""
+    _, stack = _smear(1)
+    field = _reconstruct(stack, "none").field
+    mask = background.background_mask(field, PIXEL_UM)
+    phase_rad = np.angle(field).astype(np.float32)
+
+    def objective(correction: np.ndarray) -> float:  # its background part
+        return float(np.sum((phase_rad[mask] + correction[mask]) ** 2))
+
+    monkeypatch.setattr(background, "CG_MAX_ITERATIONS", 2)
+    with caplog.at_level("WARNING", logger=background.__name__):
+        partial = background.low_frequency_correction(
+            phase_rad, mask, Z_UM, WAVELENGTH_UM, PIXEL_UM, CONDENSER_NA
+        )
+    assert "stopped unconverged after 2 iterations" in caplog.text
+    assert np.abs(partial).max() > 0.01  # kept, not dropped
+    assert objective(partial) < objective(np.zeros_like(partial))

@@ -406,3 +406,33 @@ def test_a_run_away_filter_says_so_instead_of_answering_noise() -> None:
     assert issubclass(acekf.FilterDivergedError, ValueError)  # a 422 on REST
     stable = acekf.reconstruct(data.stack_counts, data.z_um, data.wavelength_um, data.pixel_um)
     assert _phase_rmse(stable, data.field) < 0.5 * float(np.std(np.angle(data.field)))
+
+
+def test_q0_is_bounded_where_the_prior_would_flatten_the_phase() -> None:
+    """q0 of 1e3 (once allowed, up to 1e6) swamped the gain: a flat phase and a 200."""
+    from focustrack.bench.phase import FILTER_Q0
+
+    assert max(FILTER_Q0) <= acekf.MAX_Q0  # the bench's grid stays allowed
+    acekf.AcekfOptions(q0=acekf.MAX_Q0)
+    with pytest.raises(ValueError, match=r"q0 must be in \(0, 10\]"):
+        acekf.AcekfOptions(q0=1e3)
+
+
+@pytest.mark.parametrize(
+    ("counts", "photons_per_count"), [(1e-300, 1.0), (1000.0, 1e-30), (1e-4, 1.0)]
+)
+def test_a_stack_of_almost_no_photons_is_refused_naming_the_gain(
+    counts: float, photons_per_count: float
+) -> None:
+    """Once a flat phase or a 'smaller prior' 422 that sent the user the wrong way."""
+    rng = np.random.default_rng(0)
+    stack = counts * (1 + 0.1 * rng.random((2, 8, 8)))
+    with pytest.raises(ValueError, match=r"check photons_per_count \(the camera's gain\)"):
+        acekf.reconstruct(stack, [1.0, 2.0], WAVELENGTH_UM, PIXEL_UM, photons_per_count)
+
+
+def test_the_paper_s_photon_count_is_above_the_floor() -> None:
+    assert acekf.MIN_GAMMA_PHOTONS < 0.998 / 10  # the bench's sparsest, with room
+    stack = np.random.default_rng(0).poisson(0.998, (2, 16, 16)).astype(float)
+    _, gamma = acekf.validate_stack(stack, [1.0, 2.0], WAVELENGTH_UM, PIXEL_UM, 1.0)
+    assert gamma > acekf.MIN_GAMMA_PHOTONS
