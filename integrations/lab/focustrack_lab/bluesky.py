@@ -45,7 +45,7 @@ from bluesky.utils import Msg
 from ophyd import Component, Device, Signal
 
 from focustrack_core.domain import FocusFlag
-from focustrack_core.geometry import ScanGrid
+from focustrack_core.geometry import ScanGrid, Tile
 from focustrack_lab.tracker import FocusTracker, TileFocus, check_slide
 
 Plan = Generator[Msg, Any, Any]
@@ -277,7 +277,7 @@ def focustrack_grid(
 
     @bpp.run_decorator(md=metadata)
     def run() -> Plan:
-        for tile in ScanGrid(rows, cols).serpentine:
+        for tile in _tiles_left(tracker, rows, cols):
             yield from bps.mv(x, x0_um + tile.col * pitch_um, y, y0_um - tile.row * pitch_um)
             yield from bps.mv(reading.row, tile.row, reading.col, tile.col)
             focus = yield from _focus_tile(camera, z, tracker, reading, image_key)
@@ -291,6 +291,19 @@ def focustrack_grid(
         return tracker.tiles[-rows * cols :]
 
     return (yield from run())
+
+
+def _tiles_left(tracker: FocusTracker, rows: int, cols: int) -> tuple[Tile, ...]:
+    """The serpentine's tiles from the one the estimator expects next: a plan run again on
+    a slide an aborted run left part-scanned picks up where it stopped (the tracker resumes
+    a tile cut short), where it once moved to tile (0, 0) and stopped at a TileOrderError.
+    None where the scan is done (the plan then reads the map alone)."""
+    pending = tracker.estimator.next(tracker.slide_id)
+    tiles = ScanGrid(rows, cols).serpentine
+    if pending.done:
+        return ()
+    first = next(i for i, t in enumerate(tiles) if (t.row, t.col) == (pending.row, pending.col))
+    return tiles[first:]
 
 
 def _fields(motor: Any) -> list[str]:

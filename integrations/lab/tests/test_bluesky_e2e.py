@@ -365,3 +365,39 @@ def test_bluesky_s_own_viewer_draws_the_grid_with_row_0_at_the_top_as_the_mosaic
     low_y, high_y = image.axes.get_ylim()
     assert first_row_y > last_row_y and low_y < high_y
     plt.close("all")
+
+
+def test_a_plan_run_again_after_an_abort_picks_up_where_it_stopped(
+    estimator: EstimatorClient,
+    scope: SimScope,
+    scope_slide: Callable[[str, float], SlideCreate],
+) -> None:
+    """A run aborted mid-scan (a camera failing) and the plan run again: it moved to tile
+    (0, 0) and stopped at a TileOrderError; it goes on from the tile the estimator expects,
+    the one cut short resumed by the tracker, and the slide is finished."""
+    grid = scope.microscope.slides[scope.slide].grid
+    tracker = FocusTracker.create(estimator, scope_slide("kf-2d", 0.1))
+    frame = scope.frame
+
+    def failing_frame() -> np.ndarray:
+        if scope.n_frames >= 60:
+            raise RuntimeError("the camera lost its connection")
+        return frame()
+
+    scope.frame = failing_frame  # type: ignore[method-assign]
+    documents: list[tuple[str, dict[str, Any]]] = []
+    RE = RunEngine({})
+    RE.subscribe(lambda name, document: documents.append((name, document)))
+    with pytest.raises(RuntimeError, match="lost its connection"):
+        scan(RE, scope, tracker)
+    tiles_before = {(t.row, t.col) for t in tracker.tiles}
+    assert 0 < len(tiles_before) < grid.n_tiles
+    scope.frame = frame  # type: ignore[method-assign]
+    documents.clear()
+    scan(RE, scope, tracker)
+    assert documents[-1][1]["exit_status"] == "success"
+    primary = events_by_stream(documents)["primary"]
+    again = [(data["focustrack_row"], data["focustrack_col"]) for data in primary]
+    assert not tiles_before & set(again)  # no finished tile is scanned twice
+    assert len(again) == grid.n_tiles - len(tiles_before)
+    assert estimator.next(tracker.slide_id).done
