@@ -107,3 +107,16 @@ def simulated_ophyd(scope: SimScope) -> tuple[SynSignal, SynAxis, SynAxis, SynAx
     scope.n_frames -= 1  # SynSignal reads its function once when it is made
     camera = SimCameraSignal(scope, func=image, name="camera")
     return camera, x, y, z
+
+
+def grid_placement(scope: SimScope) -> dict[str, Any]:
+    """`focustrack_grid`'s grid keywords (rows, cols, pitch_um, x0_um, y0_um) for the
+    scope's slide at these stage coordinates: tile (0, 0) top left, the grid centred on 0."""
+    grid = scope.microscope.slides[scope.slide].grid
+    return {
+        "rows": grid.rows,
+        "cols": grid.cols,
+        "pitch_um": grid.pitch_um,
+        "x0_um": -(grid.cols - 1) / 2 * grid.pitch_um,
+        "y0_um": (grid.rows - 1) / 2 * grid.pitch_um,
+    }

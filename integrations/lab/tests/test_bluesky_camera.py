@@ -11,7 +11,7 @@ from bluesky import RunEngine
 from ophyd import Component, Device, Signal
 from ophyd.status import StatusBase
 
-from focustrack.lab_sim import SimScope, simulated_ophyd
+from focustrack.lab_sim import SimScope, grid_placement, simulated_ophyd
 from focustrack_client import EstimatorClient
 from focustrack_client.models import SlideCreate
 from focustrack_lab.bluesky import focustrack_grid
@@ -43,19 +43,7 @@ class TwoImageCamera(AreaCamera):
 
 
 def plan(camera: Any, scope: SimScope, tracker: FocusTracker, x: Any, y: Any, z: Any) -> Any:
-    grid = scope.microscope.slides[scope.slide].grid
-    return focustrack_grid(
-        camera,
-        x,
-        y,
-        z,
-        tracker,
-        rows=grid.rows,
-        cols=grid.cols,
-        pitch_um=grid.pitch_um,
-        x0_um=-(grid.cols - 1) / 2 * grid.pitch_um,
-        y0_um=(grid.rows - 1) / 2 * grid.pitch_um,
-    )
+    return focustrack_grid(camera, x, y, z, tracker, **grid_placement(scope))
 
 
 def test_a_device_camera_s_one_image_reading_is_taken_as_its_image(

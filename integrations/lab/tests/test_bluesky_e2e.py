@@ -17,7 +17,7 @@ from bluesky.callbacks.best_effort import BestEffortCallback
 from event_model import DocumentNames, NumpyEncoder, schema_validators
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-from focustrack.lab_sim import SimScope, simulated_ophyd
+from focustrack.lab_sim import SimScope, grid_placement, simulated_ophyd
 from focustrack_client import EstimatorClient
 from focustrack_client.models import FocusFlag, SlideCreate
 from focustrack_focus.peak import PeakSettings
@@ -36,23 +36,8 @@ matplotlib.use("Agg")  # BestEffortCallback's figures, off screen
 
 def scan(RE: RunEngine, scope: SimScope, tracker: FocusTracker) -> str:
     """Runs the plan over the scope's slide with ophyd.sim devices; the run's uid."""
-    grid = scope.microscope.slides[scope.slide].grid
     camera, x, y, z = simulated_ophyd(scope)
-    (run_uid,) = RE(
-        focustrack_grid(
-            camera,
-            x,
-            y,
-            z,
-            tracker,
-            rows=grid.rows,
-            cols=grid.cols,
-            pitch_um=grid.pitch_um,
-            # Tile (row, col) at the simulator's stage coordinates (lab_sim: centred on 0, y up).
-            x0_um=-(grid.cols - 1) / 2 * grid.pitch_um,
-            y0_um=(grid.rows - 1) / 2 * grid.pitch_um,
-        )
-    )
+    (run_uid,) = RE(focustrack_grid(camera, x, y, z, tracker, **grid_placement(scope)))
     return str(run_uid)
 
 
