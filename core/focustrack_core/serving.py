@@ -9,6 +9,8 @@
   view of a scan, tests).
 - `RequestTimer`: an ASGI middleware that hands each request's method, route template,
   status and seconds to a callback (the services' Prometheus metrics).
+- `BearerGate`: an ASGI middleware that refuses (401) a request under a path prefix
+  without the service's bearer token, before anything reads its body.
 
 No web framework is imported: the middleware speaks plain ASGI, and uvicorn is
 imported by `BackgroundServer` alone (what serves an app has it), so the core gains
@@ -22,6 +24,7 @@ import contextlib
 import ipaddress
 import json
 import os
+import secrets
 import signal
 import socket
 import threading
@@ -95,6 +98,28 @@ def refuse_open_network(service: str, host: str, token: str | None, insecure: bo
     )
 
 
+async def send_json_and_close(
+    send: Send, status: int, body: Any, headers: Sequence[tuple[bytes, bytes]] = ()
+) -> None:
+    """Answer `status` with `body` as JSON and close the connection: the middleware's
+    refusals, sent before (or instead of) reading the request's body, which would
+    otherwise be left unread on a connection kept alive."""
+    payload = json.dumps(body).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(payload)).encode()),
+                (b"connection", b"close"),
+                *headers,
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": payload})
+
+
 class SlowBodyTimeout:
     """ASGI middleware: a request body must arrive whole within `timeout_s` of the request.
 
@@ -111,7 +136,7 @@ class SlowBodyTimeout:
         if not timeout_s > 0:
             raise ValueError(f"the body timeout must be positive, got {timeout_s}")
         self.app, self.timeout_s, self.status = app, timeout_s, status
-        self.error = json.dumps(error_body).encode()
+        self.error = error_body
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         headers = dict(scope.get("headers") or ()) if scope["type"] == "http" else {}
@@ -147,18 +172,7 @@ class SlowBodyTimeout:
             route.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await route
-            await send(
-                {
-                    "type": "http.response.start",
-                    "status": self.status,
-                    "headers": [
-                        (b"content-type", b"application/json"),
-                        (b"content-length", str(len(self.error)).encode()),
-                        (b"connection", b"close"),
-                    ],
-                }
-            )
-            await send({"type": "http.response.body", "body": self.error})
+            await send_json_and_close(send, self.status, self.error)
             return
         await route
 
@@ -166,10 +180,20 @@ class SlowBodyTimeout:
 class RequestTimer:
     """ASGI middleware: `observe(method, route, status, seconds)` after every HTTP request,
     with the route's template (``/v1/slides/{slide_id}``, not the id; ``unmatched`` where
-    no route matched) and the status sent (500 if none was)."""
+    no route matched) and the status sent (500 if none was).
 
-    def __init__(self, app: ASGIApp, observe: Callable[[str, str, int, float], None]) -> None:
-        self.app, self.observe = app, observe
+    A request the middleware refused before routing (a 413 by its declared length, a 401
+    without the token) has no route in its scope: `route_of(scope)`, where given, finds the
+    template it was addressed to, so a refusal counts against its route too.
+    """
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        observe: Callable[[str, str, int, float], None],
+        route_of: Callable[[Scope], str | None] | None = None,
+    ) -> None:
+        self.app, self.observe, self.route_of = app, observe, route_of
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -187,8 +211,12 @@ class RequestTimer:
         try:
             await self.app(scope, receive, send_status)
         finally:
-            route = getattr(scope.get("route"), "path", "unmatched")
-            self.observe(scope["method"], route, status, time.perf_counter() - start_s)
+            route = getattr(scope.get("route"), "path", None)
+            if route is None and self.route_of is not None:
+                route = self.route_of(scope)
+            self.observe(
+                scope["method"], route or "unmatched", status, time.perf_counter() - start_s
+            )
 
 
 class _BodyTooLargeError(Exception):
@@ -211,11 +239,7 @@ class BodyLimit:
 
     async def _refuse(self, send: Send, size: str) -> None:
         message = f"request body of {size} exceeds the limit of {self.max_bytes} bytes"
-        body = json.dumps(self.error_body(message)).encode()
-        headers = [(b"content-type", b"application/json"), (b"connection", b"close")]
-        headers.append((b"content-length", str(len(body)).encode()))
-        await send({"type": "http.response.start", "status": 413, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+        await send_json_and_close(send, 413, self.error_body(message))
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -250,6 +274,44 @@ class BodyLimit:
                 raise
         if over and not started:
             await self._refuse(send, f"more than {received} bytes")
+
+
+class BearerGate:
+    """ASGI middleware: a 401 for a request under `prefix` (``/v1``: the path itself or
+    below it) unless its ``Authorization`` is ``Bearer`` and `token`, compared in constant
+    time; other paths (``/healthz``, ``/metrics``, the OpenAPI document) pass.
+
+    The check runs before anything reads the body: a framework parses a route's body (a
+    multipart stack of hundreds of MB, spooled to disk) before its dependencies run, so a
+    token checked there lets anyone without it make the service read that much.
+    `error_body(message)` is the JSON of the reply, in the service's error shape.
+    """
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        token: str,
+        error_body: Callable[[str], dict[str, Any]],
+        prefix: str = "/v1",
+    ) -> None:
+        self.app, self.token, self.error_body = app, token.encode(), error_body
+        self.prefix = prefix.rstrip("/")
+
+    def _guarded(self, path: str) -> bool:
+        return path == self.prefix or path.startswith(self.prefix + "/")
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or not self._guarded(scope["path"]):
+            await self.app(scope, receive, send)
+            return
+        authorization = dict(scope["headers"]).get(b"authorization", b"")
+        scheme, _, credentials = authorization.partition(b" ")
+        if scheme.lower() == b"bearer" and secrets.compare_digest(credentials.strip(), self.token):
+            await self.app(scope, receive, send)
+            return
+        body = self.error_body("missing or wrong bearer token")
+        await send_json_and_close(send, 401, body, [(b"www-authenticate", b"Bearer")])
 
 
 class ListenError(OSError):

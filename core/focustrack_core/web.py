@@ -1,7 +1,8 @@
 """The FastAPI edge the stack services share (extra `web`): one app with the house's body
-limits, 422 shape and Prometheus metrics at ``/metrics``, the bearer-token check of `/v1`,
-a query and a form of the route's own fields, each once, an upload read within a limit, and the
-``/healthz`` of a service that is on Zenoh too (`with_bus_health`).
+limits, 422 shape and Prometheus metrics at ``/metrics``, the bearer-token check of ``/v1``
+(before the body is read), a query and a form of the route's own fields, each once, an
+upload read within a limit, and the ``/healthz`` of a service that is on Zenoh too
+(`with_bus_health`).
 
 `serving` holds what needs no web framework (plain ASGI); this module is for the
 services built on FastAPI (the focus and phase services), which import it.
@@ -9,20 +10,28 @@ services built on FastAPI (the focus and phase services), which import it.
 
 from __future__ import annotations
 
-import secrets
-from collections.abc import Awaitable, Callable, Mapping
-from typing import Annotated, Any
+from collections.abc import Callable, Mapping
+from typing import Any
 
 from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile
 from fastapi.dependencies.models import Dependant
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
 from fastapi.routing import APIRoute
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.security import HTTPBearer
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from focustrack_core.http_metrics import CONTENT_TYPE, HttpMetrics
-from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout, cut, quoted_errors
+from focustrack_core.serving import (
+    BearerGate,
+    BodyLimit,
+    RequestTimer,
+    Scope,
+    SlowBodyTimeout,
+    cut,
+    quoted_errors,
+)
 from focustrack_core.tracing import TraceRequests
 
 _bearer = HTTPBearer(auto_error=False, description="Required when the service has a token")
@@ -37,28 +46,29 @@ def check_least(limits: object, least: Mapping[str, int]) -> None:
             raise ValueError(f"{name} must be at least {floor}, got {value}")
 
 
-def bearer_token(token: str | None) -> Callable[..., Awaitable[None]]:
-    """A dependency that lets a request through only with `token` as its bearer token
-    (401 otherwise; None: every request, and the OpenAPI document asks for no token),
-    compared in constant time."""
-    if token is None:
-        return _open
-
-    async def require_token(
-        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-    ) -> None:
-        if credentials is None or not secrets.compare_digest(
-            credentials.credentials.encode(), token.encode()
-        ):
-            raise HTTPException(
-                401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"}
-            )
-
-    return require_token
+def bearer_scheme(token: str | None) -> Callable[..., Any]:
+    """The dependency that shows a route's bearer token in the OpenAPI document when the
+    service has one (`token`; None: no token, the document asks for none). It checks
+    nothing: `guarded_app`'s `BearerGate` refuses a request without the token before its
+    body is read, which a dependency, run after the body is parsed, cannot."""
+    return _open if token is None else _bearer
 
 
 async def _open() -> None:
     """The dependency of a service without a token: every request passes."""
+
+
+def route_of(app: FastAPI) -> Callable[[Scope], str | None]:
+    """For `RequestTimer`: the template of the route a request was addressed to (method
+    and path), for a request the middleware refused before routing."""
+
+    def template(scope: Scope) -> str | None:
+        for route in app.router.routes:
+            if isinstance(route, APIRoute) and route.matches(scope)[0] is Match.FULL:
+                return route.path
+        return None
+
+    return template
 
 
 def guarded_app(
@@ -67,11 +77,14 @@ def guarded_app(
     max_upload_bytes: int,
     body_timeout_s: float,
     metrics: HttpMetrics,
+    token: str | None = None,
 ) -> FastAPI:
-    """A FastAPI app that refuses a body over `max_upload_bytes` (413) or slower than
-    `body_timeout_s` to arrive (408), answers invalid requests with the quoted 422, counts
-    and times every request into `metrics`, served at ``GET /metrics`` (Prometheus text, no
-    token: as ``/healthz``), and serves each in a span of the caller's trace (`TraceRequests`)."""
+    """A FastAPI app that refuses a request under ``/v1`` without `token` as its bearer
+    token (401, before its body is read; None: open), a body over `max_upload_bytes` (413)
+    or slower than `body_timeout_s` to arrive (408), answers invalid requests with the
+    quoted 422, counts and times every request into `metrics`, served at ``GET /metrics``
+    (Prometheus text, no token: as ``/healthz``), and serves each in a span of the caller's
+    trace (`TraceRequests`). Its routes declare the token with `bearer_scheme`."""
     app = FastAPI(
         title=title,
         version="1",
@@ -81,8 +94,10 @@ def guarded_app(
     app.add_middleware(BodyLimit, max_bytes=max_upload_bytes, error_body=lambda d: {"detail": d})
     timeout = f"the request body did not arrive within {body_timeout_s:g} s"
     app.add_middleware(SlowBodyTimeout, timeout_s=body_timeout_s, error_body={"detail": timeout})
-    # outermost: it counts the 413s and 408s too
-    app.add_middleware(RequestTimer, observe=metrics.observe_request)
+    if token is not None:
+        app.add_middleware(BearerGate, token=token, error_body=lambda d: {"detail": d})
+    # outermost: it counts the 401s, 413s and 408s too
+    app.add_middleware(RequestTimer, observe=metrics.observe_request, route_of=route_of(app))
     app.add_middleware(TraceRequests)  # each request in a span, the caller's its parent
 
     @app.exception_handler(RequestValidationError)

@@ -24,11 +24,11 @@ from fastapi import Depends, FastAPI
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from focustrack_client import models as api
-from focustrack_core.serving import BodyLimit, RequestTimer, SlowBodyTimeout
+from focustrack_core.serving import BearerGate, BodyLimit, RequestTimer, SlowBodyTimeout
 from focustrack_core.tracing import TraceRequests
+from focustrack_core.web import bearer_scheme, route_of
 from focustrack_estimator import handlers
 from focustrack_estimator.budget import Budget, GridLimits
-from focustrack_estimator.dependencies import require_token
 from focustrack_estimator.event_store import EventStore, StoreUnavailableError
 from focustrack_estimator.metrics import EstimatorMetrics
 from focustrack_estimator.prior import max_prior_bytes
@@ -129,11 +129,12 @@ def create_app(
         lifespan=lifespan,
     )
     app.state.settings, app.state.slides, app.state.metrics = settings, live, metrics
-    # The token check is only installed when there is a token (it costs a dependency per request).
+    # The token is checked by `BearerGate`, before a body is read; the routes only declare it
+    # (OpenAPI), and only when there is one (a dependency costs a little per request).
     # /healthz first: FastAPI prepares a route when a request is first matched against it,
     # in order, so the health probe right after start does not wait for the others'.
     app.include_router(operations.router)
-    token = [Depends(require_token)] if settings.token else []
+    token = [Depends(bearer_scheme(settings.token))] if settings.token else []
     for router in (slides.router, scan.router, maps.router, strategies.router):
         app.include_router(router, dependencies=token, responses=handlers.ERROR_RESPONSES)
     app.add_middleware(
@@ -147,8 +148,14 @@ def create_app(
         timeout_s=settings.body_timeout_s,
         error_body={"code": api.ErrorCode.INVALID_REQUEST, "detail": timeout},
     )
-    # outermost: it counts the 413s too
-    app.add_middleware(RequestTimer, observe=metrics.observe_request)
+    if settings.token:
+        app.add_middleware(
+            BearerGate,
+            token=settings.token,
+            error_body=lambda d: {"code": api.ErrorCode.UNAUTHORIZED, "detail": d},
+        )
+    # outermost: it counts the 401s and 413s too
+    app.add_middleware(RequestTimer, observe=metrics.observe_request, route_of=route_of(app))
     app.add_middleware(TraceRequests)  # each request in a span, the caller's its parent
     handlers.install(app)
     _publish_params_on_first_ask(app, live)

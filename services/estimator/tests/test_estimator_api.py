@@ -543,6 +543,15 @@ def test_bearer_token_when_configured(tmp_path: Path) -> None:
             assert refused.status_code == 401 and refused.headers["www-authenticate"] == "Bearer"
             wrong = await http.get("/v1/slides", headers={"Authorization": "Bearer nope"})
             assert wrong.status_code == 401
+            assert wrong.json() == {
+                "code": "unauthorized",
+                "detail": "missing or wrong bearer token",
+            }
+            # the token before the body: a body that is no JSON was a 422 to anyone
+            unread = await http.post(
+                "/v1/slides", content=b"{", headers={"content-type": "application/json"}
+            )
+            assert unread.status_code == 401, unread.text
             assert (await http.get("/healthz")).status_code == 200
         async with client(app, token="s3cret") as http:
             assert (await http.get("/v1/slides")).status_code == 200

@@ -44,7 +44,7 @@ from focustrack_core.stacks import (
     parse_z_list,
 )
 from focustrack_core.web import (
-    bearer_token,
+    bearer_scheme,
     check_least,
     form_as_declared,
     guarded_app,
@@ -251,13 +251,14 @@ def create_app(
     limits = limits or FocusLimits()
     profile = profile or MicroscopeProfile({})
 
-    require_token = bearer_token(token)
+    token_scheme = bearer_scheme(token)
     app = guarded_app(
         "focustrack focus service",
         "Best focus (with an uncertainty and flags) from a z-stack or a focus curve.",
         limits.max_upload_bytes,
         limits.body_timeout_s,
         HttpMetrics("focustrack_focus"),
+        token,
     )
 
     def refusals(statuses: dict[int, str]) -> dict[int | str, dict[str, Any]]:
@@ -280,7 +281,7 @@ def create_app(
     @app.post(
         "/v1/focus/curve",
         response_model=FocusResponse,
-        dependencies=[Depends(require_token)],
+        dependencies=[Depends(token_scheme)],
         responses=refusals(
             {
                 413: f"the body is over {min(limits.max_json_bytes, max_body)} bytes",
@@ -345,7 +346,7 @@ def create_app(
     @app.post(
         "/v1/focus/stack",
         response_model=FocusResponse,
-        dependencies=[Depends(require_token), Depends(form_as_declared)],
+        dependencies=[Depends(token_scheme), Depends(form_as_declared)],
         responses=refusals(
             {
                 413: f"the body is over {max_body} bytes, or the stack would "

@@ -36,7 +36,7 @@ from fastapi.responses import Response
 from focustrack_core.http_metrics import HttpMetrics
 from focustrack_core.stacks import TooLargeError, UnsupportedFileError, decode_stack, parse_z_list
 from focustrack_core.web import (
-    bearer_token,
+    bearer_scheme,
     check_least,
     form_as_declared,
     guarded_app,
@@ -171,13 +171,14 @@ def create_app(
     limits = limits or PhaseLimits()
     defaults = AcekfOptions()
 
-    require_token = bearer_token(token)
+    token_scheme = bearer_scheme(token)
     app = guarded_app(
         "focustrack phase service",
         "Quantitative phase and amplitude from a through-focus stack (sparse ACEKF).",
         limits.max_upload_bytes,
         limits.body_timeout_s,
         HttpMetrics("focustrack_phase"),
+        token,
     )
 
     @app.get("/healthz")
@@ -186,7 +187,7 @@ def create_app(
 
     @app.post(
         "/v1/phase/stack",
-        dependencies=[Depends(require_token), Depends(form_as_declared)],
+        dependencies=[Depends(token_scheme), Depends(form_as_declared)],
         response_class=Response,
         responses={
             200: {

@@ -23,7 +23,7 @@ from focustrack_core.serving import BackgroundServer
 from focustrack_core.settings import SettingsError
 from focustrack_phase import app as app_module
 from focustrack_phase.acekf import AcekfOptions, FieldEstimate, reconstruct
-from focustrack_phase.app import PhaseLimits, create_app
+from focustrack_phase.app import LEAST_LIMITS, PhaseLimits, create_app
 from focustrack_phase.service import PhaseServiceSettings
 from focustrack_phase.simulate import SyntheticStack, data_set_1
 
@@ -283,6 +283,22 @@ def test_a_token_is_required_when_set(stack: SyntheticStack) -> None:
     assert post(guarded, body, form(stack)).status_code == 200
 
 
+def test_without_the_token_the_body_is_not_read(stack: SyntheticStack) -> None:
+    """The token is checked before the form is parsed: a broken form was a 422 of the
+    parser's words to a client without the token, whose whole upload the service read."""
+    guarded = TestClient(create_app(token="secret"))
+    broken = {"content-type": "multipart/form-data; boundary=x"}
+    refused = guarded.post("/v1/phase/stack", content=b"--x\r\nnot a part", headers=broken)
+    assert refused.status_code == 401, refused.text
+    assert refused.json() == {"detail": "missing or wrong bearer token"}
+    assert refused.headers["www-authenticate"] == "Bearer"
+    guarded.headers["Authorization"] = "Bearer secret"
+    assert (
+        guarded.post("/v1/phase/stack", content=b"--x\r\nnot a part", headers=broken).status_code
+        == 422
+    )
+
+
 @pytest.mark.parametrize("token", [None, "secret"])
 def test_the_openapi_document_asks_for_a_token_only_when_one_is_set(token: str | None) -> None:
     document = create_app(token=token).openapi()
@@ -390,6 +406,24 @@ def test_metrics_count_each_route_and_status() -> None:
         'focustrack_phase_requests_total{method="POST",route="/v1/phase/stack",status="422"} 1.0'
     )
     assert expected in lines
+
+
+def test_refusals_before_routing_count_against_their_route() -> None:
+    """A 401 (no token) and a 413 (a declared length over the limit) are answered by the
+    middleware before the router runs: they were counted as route "unmatched"."""
+    limits = PhaseLimits(max_upload_bytes=LEAST_LIMITS["max_upload_bytes"])
+    client = TestClient(create_app(limits, token="secret"))
+    assert client.post("/v1/phase/stack", content=b"x").status_code == 401
+    client.headers["Authorization"] = "Bearer secret"
+    assert client.post("/v1/phase/stack", content=b"x" * 5000).status_code == 413
+    assert client.get("/v1/nothing/here").status_code == 404
+    lines = client.get("/metrics").text.splitlines()
+    for status in (401, 413):
+        line = f'requests_total{{method="POST",route="/v1/phase/stack",status="{status}"}} 1.0'
+        assert f"focustrack_phase_{line}" in lines, line
+    assert (
+        'focustrack_phase_requests_total{method="GET",route="unmatched",status="404"} 1.0' in lines
+    )
 
 
 def test_a_form_field_over_the_parsers_part_limit_is_a_413(stack: SyntheticStack) -> None:
