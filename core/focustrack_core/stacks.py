@@ -79,8 +79,9 @@ def npy_header(data: bytes) -> tuple[tuple[int, ...], np.dtype]:
     """The shape and dtype the .npy file `data` declares in its header (nothing else is
     read: a header may promise more than any memory holds).
 
-    ValueError for a header numpy cannot parse, or bytes beyond the data it declares (a
-    file written twice over, or two joined: the rest used to be left unread, silently).
+    ValueError for a header numpy cannot parse, an array of Python objects (a pickle, never
+    loaded), or bytes beyond the data it declares (a file written twice over, or two
+    joined: the rest used to be left unread, silently).
     """
     buffer = io.BytesIO(data)
     version = np.lib.format.read_magic(buffer)
@@ -95,8 +96,13 @@ def npy_header(data: bytes) -> tuple[tuple[int, ...], np.dtype]:
     except (SyntaxError, TokenError) as error:  # an unclosed bracket or quote in the header
         raise ValueError(f"its header is not a Python literal ({error})") from None
     shape = tuple(int(side) for side in shape)
+    if dtype.hasobject:  # numpy's words: "Object arrays cannot be loaded when allow_pickle=False"
+        raise ValueError(
+            f"it holds Python objects (dtype {dtype}, stored as a pickle), which are never "
+            "loaded: save the counts as numbers"
+        )
     declared = buffer.tell() + math.prod(shape) * dtype.itemsize
-    if len(data) > declared and not dtype.hasobject:
+    if len(data) > declared:
         raise ValueError(
             f"it holds {len(data) - declared} bytes beyond the {shape} array its header declares"
         )

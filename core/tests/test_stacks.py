@@ -140,6 +140,15 @@ def test_broken_files_are_value_errors(data: bytes) -> None:
     assert not isinstance(caught.value, TooLargeError | UnsupportedFileError)
 
 
+def test_an_array_of_python_objects_is_refused_in_our_words() -> None:
+    """numpy's "Object arrays cannot be loaded when allow_pickle=False" named its own
+    argument, not what is wrong with the file."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.array([[[1, "a"]]], dtype=object), allow_pickle=True)
+    with pytest.raises(ValueError, match=r"Python objects \(dtype object, stored as a pickle\)"):
+        decode_stack(buffer.getvalue(), **ROOMY)
+
+
 def _npy_with_header(header: bytes) -> bytes:
     return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + bytes(64)
 
