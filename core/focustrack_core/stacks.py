@@ -15,14 +15,19 @@ import io
 import json
 import logging
 import math
+import struct
 import threading
 from tokenize import TokenError
 from typing import Any
 
 import numpy as np
 
+from focustrack_core.serving import cut
+
 _NPY_MAGIC = b"\x93NUMPY"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+#: The longest .npy header read, bytes (numpy's own limit for untrusted files).
+MAX_NPY_HEADER_BYTES = 10_000
 
 
 class UnsupportedFileError(ValueError):
@@ -34,22 +39,53 @@ class TooLargeError(ValueError):
 
 
 def parse_z_list(text: str) -> np.ndarray:
-    """z (um) from a form field: a JSON list of numbers, its brackets optional (``-1, 0,
-    2.5``); ValueError if not. JSON's numbers, not Python's: ``1_0`` and full-width digits,
-    which `float` reads, are refused, as are ``true`` and strings, which numpy would read."""
+    """z (um) from a form field: a JSON list of finite numbers, its brackets optional
+    (``-1, 0, 2.5``); ValueError naming the first item that is not one. JSON's numbers,
+    not Python's: ``1_0`` and full-width digits, which `float` reads, are refused, as are
+    ``true``, strings, nested lists and numbers past float64 (``1e400``, 400 digits)."""
     text = text.strip()
     try:
         values = json.loads(text if text.startswith("[") else f"[{text}]")
-        z = np.asarray(values, dtype=np.float64)
     # RecursionError: lists nested thousands deep, which the JSON parser recurses into
-    except (ValueError, TypeError, RecursionError) as error:
-        raise ValueError(f"z_um must be a JSON list or comma-separated numbers: {error}") from None
-    if z.ndim != 1:
-        raise ValueError(f"z_um must be a flat list of numbers, got shape {z.shape}")
-    not_numbers = [value for value in values if isinstance(value, bool | str)]
-    if not_numbers:
-        raise ValueError(f"z_um must list numbers; got {not_numbers[0]!r}")
-    return z
+    except (ValueError, RecursionError) as error:
+        # The parser's own message only gives the column it stopped at: name the item.
+        items = text.removeprefix("[").removesuffix("]").split(",")
+        bad = next((item.strip() for item in items if not _finite_number(_json_value(item))), None)
+        if bad is None or any(bracket in bad for bracket in "[]{}"):
+            raise ValueError(
+                f"z_um must be a JSON list or comma-separated numbers: {cut(str(error))}"
+            ) from None
+        raise ValueError(
+            "z_um must be finite numbers (um), a JSON list or comma-separated: "
+            f"{cut(bad)!r} is not one"
+        ) from None
+    for value in values:
+        if isinstance(value, list | dict):
+            raise ValueError(f"z_um must be a flat list of numbers; got {cut(json.dumps(value))}")
+        if isinstance(value, bool | str) or value is None:
+            raise ValueError(f"z_um must list numbers; got {cut(repr(value))}")
+        if not _finite_number(value):
+            raise ValueError(f"z_um must be finite numbers (um); got {cut(str(value))}")
+    return np.array(values, dtype=np.float64)
+
+
+def _finite_number(value: object) -> bool:
+    """Whether `value` is one finite number: not a boolean, NaN or Infinity (JSON
+    extensions that Python reads), or an integer too large for float64."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer of over 308 digits
+        return False
+
+
+def _json_value(text: str) -> object:
+    """The value the JSON `text` gives, None where it is not JSON."""
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError):
+        return None
 
 
 def _check_size(
@@ -65,48 +101,87 @@ def _check_size(
         )
     if any(side == 0 for side in shape[1:]):
         raise ValueError(f"the stack's frames have no pixels (shape {shape})")
+    # A header may declare sides of hundreds of digits: the numbers said are cut.
     if len(shape) > 2 and shape[0] > max_frames:
-        raise TooLargeError(f"the stack has {shape[0]} frames; the limit is {max_frames}")
+        raise TooLargeError(
+            f"the stack has {cut(str(shape[0]), 40)} frames; the limit is {max_frames}"
+        )
     decoded = math.prod(shape) * itemsize
     if decoded > max_decoded_bytes:
         raise TooLargeError(
-            f"the stack would decode to {decoded} bytes (shape {shape}); the limit is "
-            f"{max_decoded_bytes} bytes"
+            f"the stack would decode to {cut(str(decoded), 40)} bytes (shape "
+            f"{cut(str(shape))}); the limit is {max_decoded_bytes} bytes"
         )
 
 
 def npy_header(data: bytes) -> tuple[tuple[int, ...], np.dtype]:
     """The shape and dtype the .npy file `data` declares in its header (nothing else is
-    read: a header may promise more than any memory holds).
+    read: a header may promise more than any memory holds; `npy_array` reads the array).
 
-    ValueError for a header numpy cannot parse, an array of Python objects (a pickle, never
+    ValueError, in our words rather than numpy's, for a header over MAX_NPY_HEADER_BYTES
+    or one numpy cannot parse, a negative side, an array of Python objects (a pickle, never
     loaded), or bytes beyond the data it declares (a file written twice over, or two
     joined: the rest used to be left unread, silently).
     """
+    shape, dtype, _ = _npy_layout(data)
+    return shape, dtype
+
+
+def npy_array(data: bytes) -> np.ndarray:
+    """The array of the .npy file `data`, once `npy_header` has shown it is one of a size
+    to read; ValueError for data cut short (numpy's words: "EOF: reading array data,
+    expected 65536 bytes got 65436")."""
+    shape, dtype, data_offset = _npy_layout(data)
+    declared = data_offset + math.prod(shape) * dtype.itemsize
+    if len(data) < declared:
+        raise ValueError(
+            f"it is cut short: {len(data)} bytes of the {declared} that its header and "
+            f"{shape} array of {dtype} take"
+        )
+    return np.load(io.BytesIO(data), allow_pickle=False)
+
+
+def _npy_layout(data: bytes) -> tuple[tuple[int, ...], np.dtype, int]:
+    """The shape, dtype and data offset (bytes) of the .npy file `data` (`npy_header`)."""
     buffer = io.BytesIO(data)
     version = np.lib.format.read_magic(buffer)
-    readers = {
-        (1, 0): np.lib.format.read_array_header_1_0,
-        (2, 0): np.lib.format.read_array_header_2_0,
-    }
-    if version not in readers:
+    length_formats = {(1, 0): "<H", (2, 0): "<I"}  # the header's length, after the magic
+    if version not in length_formats:
         raise ValueError(f".npy format version {version} is not supported (1.0 or 2.0)")
+    (header_bytes,) = struct.unpack_from(length_formats[version], data, buffer.tell())
+    if header_bytes > MAX_NPY_HEADER_BYTES:  # numpy's words: "... use allow_pickle=True"
+        raise ValueError(
+            f"its header is {header_bytes} bytes long; at most {MAX_NPY_HEADER_BYTES} are "
+            "read (a plain array's header takes under 200)"
+        )
+    reader = np.lib.format.read_array_header_1_0
+    if version == (2, 0):
+        reader = np.lib.format.read_array_header_2_0
     try:
-        shape, _, dtype = readers[version](buffer)  # a header over 10 000 bytes: ValueError
+        shape, _, dtype = reader(buffer, max_header_size=MAX_NPY_HEADER_BYTES)
     except (SyntaxError, TokenError) as error:  # an unclosed bracket or quote in the header
         raise ValueError(f"its header is not a Python literal ({error})") from None
+    except ValueError as error:
+        if str(error).startswith("malformed node"):  # literal_eval's: "<ast.BinOp at 0x..>"
+            raise ValueError(
+                "its header is not a Python literal (it holds an expression)"
+            ) from None
+        raise ValueError(f"its header is not a .npy array's ({cut(str(error))})") from None
     shape = tuple(int(side) for side in shape)
+    if any(side < 0 for side in shape):
+        raise ValueError(f"its header declares a negative side (shape {shape})")
     if dtype.hasobject:  # numpy's words: "Object arrays cannot be loaded when allow_pickle=False"
         raise ValueError(
             f"it holds Python objects (dtype {dtype}, stored as a pickle), which are never "
             "loaded: save the counts as numbers"
         )
-    declared = buffer.tell() + math.prod(shape) * dtype.itemsize
+    data_offset = buffer.tell()
+    declared = data_offset + math.prod(shape) * dtype.itemsize
     if len(data) > declared:
         raise ValueError(
             f"it holds {len(data) - declared} bytes beyond the {shape} array its header declares"
         )
-    return shape, dtype
+    return shape, dtype, data_offset
 
 
 class _Complaints(logging.Handler):
@@ -187,7 +262,7 @@ def decode_stack(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.nda
         try:
             shape, dtype = npy_header(data)
             _check_size(shape, dtype.itemsize, max_frames, max_decoded_bytes)
-            return np.load(io.BytesIO(data), allow_pickle=False)
+            return npy_array(data)
         except ValueError as error:
             if isinstance(error, TooLargeError):
                 raise

@@ -128,6 +128,9 @@ def test_too_many_frames_or_bytes(encode) -> None:
 def test_a_header_promising_gigabytes_is_refused_unread() -> None:
     with pytest.raises(TooLargeError, match="the limit is 1048576 bytes"):
         decode_stack(npy_header_only((5, 8192, 8192)), **ROOMY)
+    with pytest.raises(TooLargeError, match=r"\(cut: 402 characters in all\) bytes") as caught:
+        decode_stack(npy_header_only((2, 8, 10**400)), **ROOMY)
+    assert len(str(caught.value)) < 400  # the number said, not its 400 digits
 
 
 @pytest.mark.parametrize(
@@ -159,6 +162,14 @@ def _npy_with_header(header: bytes) -> bytes:
         (_npy_with_header(b"{'descr': '<u2', 'shape': (\n"), "its header is not a Python"),
         (_npy_with_header(b"{'descr': '<u2\n"), "its header is not a Python"),
         (npy_bytes(STACK) + npy_bytes(STACK), r"bytes beyond the \(3, 4, 5\) array"),
+        # numpy's words named its own arguments, the AST, or its chunk sizes:
+        (_npy_with_header(b"{" + b" " * 20_000), "header is 20001 bytes long; at most 10000"),
+        (
+            _npy_with_header(b"{'descr': '<u2', 'fortran_order': False, 'shape': (2, 2*3)}"),
+            r"not a Python literal \(it holds an expression\)",
+        ),
+        (npy_header_only((2, -4, 5)) + bytes(8), r"negative side \(shape \(2, -4, 5\)\)"),
+        (npy_bytes(STACK)[:-7], r"cut short: \d+ bytes of the \d+ that its header and"),
     ],
 )
 def test_a_garbled_header_or_data_beyond_it_is_said_not_a_crash_or_ignored(
@@ -191,6 +202,13 @@ def test_z_lists(text: str, expected: list[float]) -> None:
         ("\uff11, 2", "JSON list"),  # a full-width 1, which float reads too
         ("1,,2", "JSON list"),
         ('[1, "2.5"]', "must list numbers; got '2.5'"),
+        ("[1, null]", "must list numbers; got None"),
+        ("1, inf", "'inf' is not one"),
+        ("[1, NaN]", "must be finite numbers \\(um\\); got nan"),  # JSON extensions json reads
+        ("[Infinity, 1]", "must be finite numbers \\(um\\); got inf"),
+        (f"[0, 1{'0' * 400}]", "must be finite numbers \\(um\\); got 1000"),  # past float64
+        (f"[0, 1{'0' * 5000}]", "'10000.*' is not one"),  # past Python's int parsing
+        ('[1, {"z": 2}]', 'flat list of numbers; got {"z": 2}'),
     ],
 )
 def test_bad_z_lists(text: str, needle: str) -> None:

@@ -11,14 +11,13 @@ um, float64 or float32: what `np.save` writes of the arrays a map's .npy gives
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from focustrack_client import models as api
-from focustrack_core.stacks import npy_header
+from focustrack_core.stacks import npy_array, npy_header
 from focustrack_estimator.errors import SlideError
 from focustrack_estimator.maps_out import FILE_MEDIA
 
@@ -68,8 +67,8 @@ def decode_prior(body: bytes, rows: int, cols: int) -> PriorMap:
             BODY_LOC,
         )
     try:
-        array = np.lib.format.read_array(io.BytesIO(body), allow_pickle=False)
-    except (ValueError, OSError, EOFError) as error:  # cut short
+        array = npy_array(body)
+    except ValueError as error:  # cut short
         raise SlideError(f"the body's .npy file cannot be read: {error}", BODY_LOC) from None
     layers = array.astype(np.float64).reshape(-1, rows, cols)
     map_um = layers[0]

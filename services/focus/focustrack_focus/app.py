@@ -24,7 +24,6 @@ before decoding), frames, JSON size and nesting.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, replace
 from typing import Annotated, Any
 
@@ -36,7 +35,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from focustrack_core.domain import MAX_ABS_Z_UM, MAX_PRIOR_SIGMA_UM, MIN_PRIOR_SIGMA_UM, Prior
 from focustrack_core.http_metrics import HttpMetrics
-from focustrack_core.serving import cut
 from focustrack_core.stacks import (
     TooLargeError,
     UnsupportedFileError,
@@ -171,33 +169,6 @@ def curve_schemas() -> dict[str, Any]:
     body, which `focus_curve` reads by hand."""
     schema = CurveRequest.model_json_schema(ref_template="#/components/schemas/{model}")
     return {**schema.pop("$defs", {}), CurveRequest.__name__: schema}
-
-
-def z_from_form(text: str) -> np.ndarray:
-    """The z (um) of a stack's `z_um` form field (`parse_z_list`); ValueError saying what is
-    wrong. Where the list does not parse, the first item that is no finite JSON number is
-    named (``inf``, a word, an empty item): the JSON parser's own message only gives the
-    column it stopped at."""
-    try:
-        return parse_z_list(text)
-    except ValueError:
-        items = text.strip().removeprefix("[").removesuffix("]").split(",")
-        bad = next((item.strip() for item in items if not _finite_number(item)), None)
-        if bad is None or any(bracket in bad for bracket in "[]{}"):
-            raise  # nested lists or objects: parse_z_list's message says so
-        raise ValueError(
-            "z_um must be finite numbers (um), a JSON list or comma-separated: "
-            f"{cut(bad)!r} is not one"
-        ) from None
-
-
-def _finite_number(item: str) -> bool:
-    """Whether `item` is one finite JSON number (not a boolean, a string or NaN)."""
-    try:
-        value = json.loads(item)
-    except ValueError:
-        return False
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 class RepeatedKeyError(ValueError):
@@ -369,7 +340,7 @@ def create_app(
     ) -> dict[str, Any]:
         data = await read_upload(stack, limits.max_upload_bytes)
         try:
-            z = z_from_form(z_um)
+            z = parse_z_list(z_um)
             if metric not in METRICS:
                 raise ValueError(f"unknown focus metric {metric!r}; known: {', '.join(METRICS)}")
             chosen = FocusSettings(
