@@ -126,7 +126,10 @@ def background_mask(field: np.ndarray, pixel_um: float) -> np.ndarray:
         raise ValueError(f"field must be 2-D (height, width), got shape {field.shape}")
     detail = field - _blur(field, max(TEXTURE_UM / pixel_um, TEXTURE_PX))
     power = _blur(np.abs(detail) ** 2, max(ENERGY_UM / pixel_um, ENERGY_PX))
-    if not power.max() > 0:  # a flat field: nothing tells glass from cells
+    # A flat field, nothing to tell glass from cells, or one whose texture is so faint (a
+    # prior longer than the image flattens it) that its floor below would underflow in
+    # single precision (log(0)): round-off of a field of unit intensity either way.
+    if not power.max() > np.finfo(power.dtype).tiny / FLAT_POWER_SHARE:
         return np.zeros(field.shape, dtype=bool)
     # Below a millionth of the strongest texture is the FFT blur's round-off in single
     # precision (even below zero): flat, as far as the field can tell.

@@ -148,6 +148,18 @@ def test_no_glass_no_mask_and_the_zero_at_the_mean() -> None:
     assert not background.background_mask(flat, PIXEL_UM).any()
 
 
+def test_a_texture_of_round_off_is_flat_not_an_error() -> None:
+    # A prior far longer than a small image flattens its phase to 1e-19 rad, the texture's
+    # power under float32's smallest normal: its floor used to underflow to 0, and log(0)
+    # made Otsu's histogram fail ("autodetected range of [-inf, ...] is not finite").
+    data = simulate.data_set_1(seed=2)
+    stack = data.stack_counts[:10, :32, :32] * 1000.0 + 5.0
+    options = acekf.AcekfOptions(prior_length_um=10_000.0)
+    estimate = acekf.reconstruct(stack, data.z_um[:10], WAVELENGTH_UM, PIXEL_UM, options=options)
+    assert estimate.background_share == 0.0
+    assert float(np.ptp(estimate.phase_rad)) < 1e-6
+
+
 def test_a_phase_offset_of_the_field_changes_nothing() -> None:
     _, stack = _smear(2)
     field = _reconstruct(stack, "none").field
