@@ -74,6 +74,15 @@ MAX_WAVELENGTH_UM = 20.0
 #: spread, 0.36 rad, falls to under 0.09 at q0 = 30 and under 0.003 at 1000). 10 is the
 #: widest that `focustrack bench phase` tunes (FILTER_Q0).
 MAX_Q0 = 10.0
+#: The narrowest: a departure of 1e-4 (rad, for the phase) per pixel, the shot noise of the
+#: best stack (10^6 photons a pixel, 201 frames); narrower, the prior holds the field to
+#: the plane wave, and below about 1e-38 (float32's smallest) its phase is exactly flat.
+MIN_Q0 = 1e-8
+#: The highest amplitude floor (AcekfOptions): the field's mean amplitude is 1, so above it
+#: every pixel would be clipped and the update divided by the floor alone.
+MAX_AMPLITUDE_FLOOR = 1.0
+#: The longest prior correlation length, um: a centimetre, past any slide's field of view.
+MAX_PRIOR_LENGTH_UM = 1e4
 #: The fewest photons a pixel may detect per frame on average (gamma, eq. 5): below, the
 #: noise variance 1/gamma (eq. 31) dwarfs any phase contrast and the filter's gain, in
 #: single precision, is nothing (a flat phase) or runs away. The bench's sparsest setting,
@@ -127,10 +136,11 @@ class AcekfOptions:
     background: Background = "anchor"
 
     def __post_init__(self) -> None:
-        if not 0 < self.q0 <= MAX_Q0:
+        if not MIN_Q0 <= self.q0 <= MAX_Q0:
             raise ValueError(
-                f"q0 must be in (0, {MAX_Q0:g}] (a departure from the plane wave wider than "
-                f"the field itself flattens the phase), got {self.q0}"
+                f"q0 must be in [{MIN_Q0:g}, {MAX_Q0:g}] (a departure from the plane wave "
+                "wider than the field itself, or narrower than any stack measures, flattens "
+                f"the phase), got {self.q0}"
             )
         if not abs(self.p0) <= self.q0:
             raise ValueError(f"|p0| must be <= q0 (a covariance), got p0={self.p0}, q0={self.q0}")
@@ -138,10 +148,16 @@ class AcekfOptions:
             raise ValueError(f"update must be 'phase_frame' or 'paper', got {self.update!r}")
         if not 0 <= self.condenser_na < 1.5:
             raise ValueError(f"condenser_na must be in [0, 1.5), got {self.condenser_na}")
-        if not (np.isfinite(self.prior_length_um) and self.prior_length_um >= 0):
-            raise ValueError(f"prior_length_um must be >= 0, got {self.prior_length_um}")
-        if not self.amplitude_floor > 0:
-            raise ValueError(f"amplitude_floor must be > 0, got {self.amplitude_floor}")
+        if not 0 <= self.prior_length_um <= MAX_PRIOR_LENGTH_UM:
+            raise ValueError(
+                f"prior_length_um must be in [0, {MAX_PRIOR_LENGTH_UM:g}], got "
+                f"{self.prior_length_um}"
+            )
+        if not 0 < self.amplitude_floor <= MAX_AMPLITUDE_FLOOR:
+            raise ValueError(
+                f"amplitude_floor must be in (0, {MAX_AMPLITUDE_FLOOR:g}] (the field's mean "
+                f"amplitude is 1), got {self.amplitude_floor}"
+            )
         if self.background not in ("anchor", "none"):
             raise ValueError(f"background must be 'anchor' or 'none', got {self.background!r}")
 
@@ -213,11 +229,17 @@ def validate_stack(
         shape = getattr(stack_counts, "shape", None)
         raise ValueError(f"stack must be a 3-D array (frames, height, width), got shape {shape}")
     frames, height, width = stack_counts.shape
-    if frames < 1 or height < 2 or width < 2:
-        raise ValueError(f"stack needs >= 1 frame of >= 2x2 pixels, got shape {stack_counts.shape}")
+    if frames < 1:
+        raise ValueError(f"stack has no frames (shape {stack_counts.shape})")
+    if height < 2 or width < 2:
+        raise ValueError(f"stack frames must be at least 2x2 pixels, got {height}x{width}")
     if stack_counts.dtype.kind not in "uif":  # not bool, complex, timedelta (an integer to numpy)
         raise ValueError(f"stack must hold real numbers (counts); got dtype {stack_counts.dtype}")
-    z = np.asarray(z_um, dtype=np.float64)
+    try:
+        z = np.asarray(z_um, dtype=np.float64)
+    # ragged lists, strings, integers past float64: numpy's words would name none of them
+    except (ValueError, TypeError, OverflowError):
+        raise ValueError("z_um must be a flat list of finite numbers (um), one per frame") from None
     if z.ndim != 1 or z.shape[0] != frames:
         got = z.shape[0] if z.ndim == 1 else z.shape
         raise ValueError(f"z_um must list one height per frame: {frames} frames, got {got}")
@@ -379,8 +401,9 @@ def reconstruct(
     if not 0.25 < mean_intensity < 4.0:
         raise FilterDivergedError(
             f"the filter diverged (mean intensity {mean_intensity:.3g} of the stack's, not 1): "
-            f"if the heights and optics are right, a smaller prior (q0 below {opts.q0:g}) "
-            f"keeps it stable at {gamma:.3g} photons per pixel"
+            f"if the heights, the optics and photons_per_count (which make {gamma:.3g} "
+            f"photons per pixel) are right, a smaller prior (q0 below {opts.q0:g}) keeps "
+            "it stable"
         )
     # (4) Beyond the paper: the lowest frequencies anchored to the empty background, once
     # the filter's working images are freed.

@@ -43,7 +43,10 @@ from focustrack_core.web import (
     read_upload,
 )
 from focustrack_phase.acekf import (
+    MAX_AMPLITUDE_FLOOR,
+    MAX_PRIOR_LENGTH_UM,
     MAX_Q0,
+    MIN_Q0,
     AcekfOptions,
     Background,
     FieldEstimate,
@@ -54,10 +57,6 @@ from focustrack_phase.acekf import (
 #: The .npy answer's header with the share of the image taken as empty glass, whose phase
 #: is zero (`FieldEstimate.background_share`; absent with ``background=none``).
 BACKGROUND_SHARE_HEADER = "X-Background-Share"
-#: Bounds of the filter's settings a request may set: wide around the defaults, finite
-#: (q0's, MAX_Q0, is the filter's own: wider priors flatten the phase).
-MAX_AMPLITUDE_FLOOR = 1.0
-MAX_PRIOR_LENGTH_UM = 1e4
 #: The picture's height over its width at most (and its width over its height): a frame
 #: beyond, a strip of 20000 x 2 pixels say, is drawn stretched to this, not on a canvas
 #: of millions of pixels (which took minutes, then crashed matplotlib).
@@ -202,7 +201,7 @@ def create_app(
         wavelength_um: Positive,
         pixel_um: Positive,
         photons_per_count: Positive = 1.0,
-        q0: Annotated[float, Form(gt=0, le=MAX_Q0, allow_inf_nan=False)] = defaults.q0,
+        q0: Annotated[float, Form(ge=MIN_Q0, le=MAX_Q0, allow_inf_nan=False)] = defaults.q0,
         p0: Annotated[float, Form(ge=-MAX_Q0, le=MAX_Q0, allow_inf_nan=False)] = defaults.p0,
         update: Annotated[
             Update, Form(description="phase_frame (ours) or paper (eq. 33 as printed)")

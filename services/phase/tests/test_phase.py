@@ -287,6 +287,8 @@ def test_the_paper_s_data_set_1_has_its_photon_count_and_planes() -> None:
         (np.ones((4, 8)), [1.0] * 4, "3-D array"),
         (np.ones((3, 8, 8)), [1.0, 2.0], "one height per frame"),
         (np.ones((2, 8, 8)), [1.0, np.nan], "finite"),
+        (np.ones((2, 8, 8)), [1.0, 10**400], "flat list of finite numbers"),  # past float64
+        (np.ones((2, 8, 8)), [1.0, [2.0, 3.0]], "flat list of finite numbers"),  # ragged
         (np.zeros((2, 8, 8)), [1.0, 2.0], "frame 0 has a mean of 0 counts"),
         (np.stack([np.ones((8, 8)), -np.ones((8, 8))]), [1.0, 2.0], "frame 1 has a mean of -1"),
         (np.full((2, 8, 8), np.inf), [1.0, 2.0], "finite"),
@@ -409,13 +411,26 @@ def test_a_run_away_filter_says_so_instead_of_answering_noise() -> None:
 
 
 def test_q0_is_bounded_where_the_prior_would_flatten_the_phase() -> None:
-    """q0 of 1e3 (once allowed, up to 1e6) swamped the gain: a flat phase and a 200."""
+    """q0 of 1e3 (once allowed, up to 1e6) swamped the gain, and 5e-324 held the field to
+    the plane wave: a flat phase and a 200 either way."""
     from focustrack.bench.phase import FILTER_Q0
 
-    assert max(FILTER_Q0) <= acekf.MAX_Q0  # the bench's grid stays allowed
+    assert acekf.MIN_Q0 <= min(FILTER_Q0) <= max(FILTER_Q0) <= acekf.MAX_Q0  # the bench's grid
     acekf.AcekfOptions(q0=acekf.MAX_Q0)
-    with pytest.raises(ValueError, match=r"q0 must be in \(0, 10\]"):
-        acekf.AcekfOptions(q0=1e3)
+    acekf.AcekfOptions(q0=acekf.MIN_Q0)
+    for q0 in (1e3, 5e-324, 1e-9):
+        with pytest.raises(ValueError, match=r"q0 must be in \[1e-08, 10\]"):
+            acekf.AcekfOptions(q0=q0)
+
+
+@pytest.mark.parametrize(
+    ("setting", "value"),
+    [("amplitude_floor", np.inf), ("amplitude_floor", 1.5), ("prior_length_um", np.inf)],
+)
+def test_settings_past_their_bounds_are_refused(setting: str, value: float) -> None:
+    """An amplitude floor of inf clipped every pixel: a flat phase and a 200."""
+    with pytest.raises(ValueError, match=f"{setting} must be in"):
+        acekf.AcekfOptions(**{setting: value})
 
 
 @pytest.mark.parametrize(

@@ -196,6 +196,7 @@ def signed(stack: SyntheticStack) -> bytes:
         (None, {"photons_per_count": "nan"}, 422, "photons_per_count"),
         (None, {"q0": "inf"}, 422, "q0"),
         (None, {"q0": "1000"}, 422, "q0"),  # a prior that flattens the phase
+        (None, {"q0": "5e-324"}, 422, "q0"),  # a prior that holds the phase flat
         (None, {"photons_per_count": "1e-30"}, 422, "check photons_per_count"),
         (None, {"p0": "0.5"}, 422, "|p0| must be <= q0"),
         (None, {"amplitude_floor": "2"}, 422, "amplitude_floor"),
