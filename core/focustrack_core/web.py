@@ -26,6 +26,7 @@ from focustrack_core.http_metrics import CONTENT_TYPE, HttpMetrics
 from focustrack_core.serving import (
     BearerGate,
     BodyLimit,
+    ConcurrencyLimit,
     RequestTimer,
     Scope,
     SlowBodyTimeout,
@@ -78,13 +79,16 @@ def guarded_app(
     body_timeout_s: float,
     metrics: HttpMetrics,
     token: str | None = None,
+    max_concurrent: int | None = None,
 ) -> FastAPI:
     """A FastAPI app that refuses a request under ``/v1`` without `token` as its bearer
-    token (401, before its body is read; None: open), a body over `max_upload_bytes` (413)
-    or slower than `body_timeout_s` to arrive (408), answers invalid requests with the
-    quoted 422, counts and times every request into `metrics`, served at ``GET /metrics``
-    (Prometheus text, no token: as ``/healthz``), and serves each in a span of the caller's
-    trace (`TraceRequests`). Its routes declare the token with `bearer_scheme`."""
+    token (401, before its body is read; None: open), one beyond `max_concurrent` under way
+    (503 with Retry-After, before its body is read; None: no bound), a body over
+    `max_upload_bytes` (413) or slower than `body_timeout_s` to arrive (408), answers
+    invalid requests with the quoted 422, counts and times every request into `metrics`,
+    served at ``GET /metrics`` (Prometheus text, no token: as ``/healthz``), and serves
+    each in a span of the caller's trace (`TraceRequests`). Its routes declare the token
+    with `bearer_scheme`."""
     app = FastAPI(
         title=title,
         version="1",
@@ -94,7 +98,11 @@ def guarded_app(
     app.add_middleware(BodyLimit, max_bytes=max_upload_bytes, error_body=lambda d: {"detail": d})
     timeout = f"the request body did not arrive within {body_timeout_s:g} s"
     app.add_middleware(SlowBodyTimeout, timeout_s=body_timeout_s, error_body={"detail": timeout})
-    if token is not None:
+    if max_concurrent is not None:
+        app.add_middleware(
+            ConcurrencyLimit, max_concurrent=max_concurrent, error_body=lambda d: {"detail": d}
+        )
+    if token is not None:  # outside the bound: a request without the token takes no place
         app.add_middleware(BearerGate, token=token, error_body=lambda d: {"detail": d})
     # outermost: it counts the 401s, 413s and 408s too
     app.add_middleware(RequestTimer, observe=metrics.observe_request, route_of=route_of(app))

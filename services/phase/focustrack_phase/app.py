@@ -16,7 +16,8 @@ Bad input is a 4xx whose detail names the problem, as the focus service's: 413 f
 oversized body or a stack that would decode to more than the limits (read from the
 file's header), 415 for a file that is neither TIFF nor .npy or a body that is no
 form, 408 for a body that arrives too slowly, 401 without the token (when one is set),
-422 for the rest, naming the field. The reconstruction (and the picture) run on a
+503 with Retry-After while `PhaseLimits.max_concurrent` stacks are under way, 422 for
+the rest, naming the field. The reconstruction (and the picture) run on a
 worker thread, so ``/healthz`` answers while a stack is being reconstructed.
 """
 
@@ -65,7 +66,13 @@ MAX_PICTURE_ASPECT = 4.0
 
 #: The least each limit of `PhaseLimits` may be: what the smallest stack the filter takes
 #: needs (2 frames of 2x2 bytes, sent with its form), so that a limit below admits nothing.
-LEAST_LIMITS = {"max_upload_bytes": 4096, "max_decoded_bytes": 8, "max_frames": 2, "max_pixels": 4}
+LEAST_LIMITS = {
+    "max_upload_bytes": 4096,
+    "max_decoded_bytes": 8,
+    "max_frames": 2,
+    "max_pixels": 4,
+    "max_concurrent": 1,
+}
 
 
 @dataclass(frozen=True)
@@ -76,7 +83,9 @@ class PhaseLimits:
     decodes to, read from its header before decoding; max_frames: of a stack (the time
     of a reconstruction grows with them); max_pixels: of one frame, height x width (the
     filter holds about ten arrays of that size); body_timeout_s: how long a body may
-    take to arrive.
+    take to arrive; max_concurrent: the reconstructions under way at once (one more is
+    a 503, before its body is read): each may hold its upload, its decoded stack and the
+    filter's arrays, so these bound the service's memory.
     """
 
     max_upload_bytes: int = 256 << 20
@@ -84,6 +93,7 @@ class PhaseLimits:
     max_frames: int = 201
     max_pixels: int = 2048 * 2048
     body_timeout_s: float = 60.0
+    max_concurrent: int = 2
 
     def __post_init__(self) -> None:
         check_least(self, LEAST_LIMITS)
@@ -178,6 +188,7 @@ def create_app(
         limits.body_timeout_s,
         HttpMetrics("focustrack_phase"),
         token,
+        limits.max_concurrent,
     )
 
     @app.get("/healthz")

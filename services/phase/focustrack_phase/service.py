@@ -88,6 +88,13 @@ class PhaseServiceSettings(FrameReaderSettings):
         gt=0,
         description="seconds a request body may take to arrive (408)",
     )
+    max_concurrent: int = Field(
+        PhaseLimits.max_concurrent,
+        ge=LEAST_LIMITS["max_concurrent"],
+        description="stacks reconstructed over REST at once; one more is answered 503 with "
+        "Retry-After before its body is read (each holds up to its upload, the stack "
+        "decoded and the filter's arrays: this bounds the memory)",
+    )
     # Zenoh: phase stacks in, phase results out (`bus.py`)
     wavelength_um: float = Field(
         PhaseOptics.wavelength_um,

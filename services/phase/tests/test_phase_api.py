@@ -308,11 +308,12 @@ def test_the_openapi_document_asks_for_a_token_only_when_one_is_set(token: str |
     assert bool(schemes) == (token is not None)
 
 
-def test_end_to_end_on_uvicorn_healthz_answers_while_a_stack_is_reconstructed(
+def test_end_to_end_on_uvicorn_healthz_answers_and_a_stack_more_is_a_503_while_one_is_held(
     stack: SyntheticStack, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """A TIFF through a real server on a free loopback port gets the maths' answer, and
-    /healthz answers while the reconstruction is held on its worker thread."""
+    """A TIFF through a real server on a free loopback port gets the maths' answer; while
+    its reconstruction is held on its worker thread, /healthz answers and a second stack,
+    beyond max_concurrent, is a 503 at once (six stacks at once had taken 4.5 GB)."""
     under_way, release = threading.Event(), threading.Event()
 
     def held_reconstruct(*args: Any) -> FieldEstimate:
@@ -322,19 +323,26 @@ def test_end_to_end_on_uvicorn_healthz_answers_while_a_stack_is_reconstructed(
 
     monkeypatch.setattr(app_module, "reconstruct", held_reconstruct)
     responses: list[httpx.Response] = []
+    body = tiff_bytes(stack.stack_counts)
     with (
-        BackgroundServer(create_app()) as server,
+        BackgroundServer(create_app(PhaseLimits(max_concurrent=1))) as server,
         httpx.Client(base_url=server.url, timeout=30.0) as http,
     ):
-        worker = threading.Thread(
-            target=lambda: responses.append(post(http, tiff_bytes(stack.stack_counts), form(stack)))
-        )
+        worker = threading.Thread(target=lambda: responses.append(post(http, body, form(stack))))
         worker.start()
         assert under_way.wait(30.0)
         health = httpx.get(server.url + "healthz", timeout=5.0)
+        with httpx.Client(base_url=server.url, timeout=5.0) as other:
+            busy = post(other, body, form(stack))
         release.set()
         worker.join(30.0)
+        metrics = http.get("metrics").text.splitlines()
+        assert post(http, body, form(stack)).status_code == 200  # the place is free again
     assert health.status_code == 200 and health.json() == {"status": "ok"}
+    assert busy.status_code == 503 and busy.headers["retry-after"] == "1", busy.text
+    assert "the most requests it takes at once (1)" in busy.json()["detail"]
+    counted = 'focustrack_phase_requests_total{method="POST",route="/v1/phase/stack",status="503"}'
+    assert f"{counted} 1.0" in metrics
     answer = read_npy(responses[0])
     direct = reconstruct(stack.stack_counts, stack.z_um, stack.wavelength_um, stack.pixel_um)
     np.testing.assert_allclose(answer[0], direct.phase_rad, atol=1e-6)
@@ -352,7 +360,7 @@ def run_command(*args: str) -> subprocess.CompletedProcess[str]:
 def test_the_command_helps_and_refuses_a_bad_option() -> None:
     helped = run_command("--help")
     assert helped.returncode == 0, helped.stderr
-    for option in ("--port", "--max-upload-bytes", "--max-frames", "--max-pixels", "--settings"):
+    for option in ("--port", "--max-frames", "--max-pixels", "--max-concurrent", "--settings"):
         assert option in helped.stdout
     assert "FOCUSTRACK_PHASE_PORT" in helped.stdout
     refused = run_command("--port", "70000")
@@ -375,6 +383,9 @@ def test_settings_from_a_file_and_the_environment_and_heavy_modules_left_for_lat
         PhaseServiceSettings.load(max_frames=1)  # every stack needs two: it would admit none
     with pytest.raises(ValueError, match="max_pixels must be at least 4, got 1"):
         PhaseLimits(max_pixels=1)
+    assert PhaseServiceSettings.load(max_concurrent=3).limits().max_concurrent == 3
+    with pytest.raises(SettingsError, match=r"--max-concurrent .*greater than or equal to 1"):
+        PhaseServiceSettings.load(max_concurrent=0)  # no stack would ever be taken
     assert settings.fft_workers == 1
     cores = os.cpu_count() or 1
     assert PhaseServiceSettings.load(fft_workers=cores).fft_workers == cores

@@ -1,14 +1,25 @@
-"""`BearerGate`: a request under /v1 without the token is refused before its body is read."""
+"""The gates in front of /v1, each refusing before the body is read: `BearerGate`, a request
+without the token; `ConcurrencyLimit`, one more than the service takes at once."""
 
 from __future__ import annotations
 
 import json
+import socket
 from collections.abc import Iterator
+from urllib.parse import urlsplit
 
 import httpx
 import pytest
 
-from focustrack_core.serving import BackgroundServer, BearerGate, Message, Receive, Scope, Send
+from focustrack_core.serving import (
+    BackgroundServer,
+    BearerGate,
+    ConcurrencyLimit,
+    Message,
+    Receive,
+    Scope,
+    Send,
+)
 
 
 class RecordingApp:
@@ -69,3 +80,41 @@ def test_the_token_lets_a_request_through_and_other_paths_are_open(
         "/v10/anything",
         "/openapi.json",
     ]
+
+
+def _start_slow_request(url: str, path: str, body_bytes: int) -> socket.socket:
+    """A connection whose request to `path` has sent its headers and half of its body:
+    under way until the rest is sent."""
+    parts = urlsplit(url)
+    connection = socket.create_connection((parts.hostname, parts.port), timeout=10)
+    head = f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Length: {body_bytes}\r\n\r\n"
+    connection.sendall(head.encode() + b"\0" * (body_bytes // 2))
+    return connection
+
+
+def test_one_request_beyond_the_bound_is_refused_at_once_and_the_place_freed_after() -> None:
+    inner = RecordingApp()
+    limit = ConcurrencyLimit(inner, max_concurrent=1, error_body=lambda d: {"detail": d})
+    with BackgroundServer(limit) as server:
+        slow = _start_slow_request(server.url, "/v1/phase/stack", 10)
+        with slow:
+            refused = httpx.post(f"{server.url}v1/phase/stack", content=b"\0" * (4 << 20))
+            assert refused.status_code == 503, refused.text
+            assert refused.headers["retry-after"] == "1"
+            assert "the most requests it takes at once (1)" in refused.json()["detail"]
+            assert httpx.get(f"{server.url}healthz").status_code == 200  # not under /v1
+            slow.sendall(b"\0" * 5)
+            answer = b""
+            while not answer.endswith(b"0\r\n\r\n"):  # the chunked body's end
+                chunk = slow.recv(4096)
+                assert chunk, answer  # closed before the whole answer
+                answer += chunk
+        assert answer.startswith(b"HTTP/1.1 200") and b'{"read_bytes": 10}' in answer
+        again = httpx.post(f"{server.url}v1/phase/stack", content=b"123")
+        assert again.status_code == 200 and again.json() == {"read_bytes": 3}
+    assert inner.paths == ["/v1/phase/stack", "/healthz", "/v1/phase/stack"]
+
+
+def test_a_bound_below_one_is_refused() -> None:
+    with pytest.raises(ValueError, match="max_concurrent must be at least 1, got 0"):
+        ConcurrencyLimit(RecordingApp(), max_concurrent=0, error_body=lambda d: {"detail": d})
