@@ -148,11 +148,20 @@ def _npy_layout(data: bytes) -> tuple[tuple[int, ...], np.dtype, int]:
     length_formats = {(1, 0): "<H", (2, 0): "<I"}  # the header's length, after the magic
     if version not in length_formats:
         raise ValueError(f".npy format version {version} is not supported (1.0 or 2.0)")
-    (header_bytes,) = struct.unpack_from(length_formats[version], data, buffer.tell())
+    length_format = length_formats[version]
+    header_start = buffer.tell() + struct.calcsize(length_format)
+    if len(data) < header_start:
+        raise ValueError(f"it is cut short within its header ({len(data)} bytes in all)")
+    (header_bytes,) = struct.unpack_from(length_format, data, buffer.tell())
     if header_bytes > MAX_NPY_HEADER_BYTES:  # numpy's words: "... use allow_pickle=True"
         raise ValueError(
             f"its header is {header_bytes} bytes long; at most {MAX_NPY_HEADER_BYTES} are "
             "read (a plain array's header takes under 200)"
+        )
+    if len(data) < header_start + header_bytes:  # numpy's words: "EOF: ... expected 80 bytes"
+        raise ValueError(
+            f"it is cut short within its header ({len(data)} bytes in all, the header ends "
+            f"at byte {header_start + header_bytes})"
         )
     reader = np.lib.format.read_array_header_1_0
     if version == (2, 0):

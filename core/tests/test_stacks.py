@@ -170,6 +170,8 @@ def _npy_with_header(header: bytes) -> bytes:
         ),
         (npy_header_only((2, -4, 5)) + bytes(8), r"negative side \(shape \(2, -4, 5\)\)"),
         (npy_bytes(STACK)[:-7], r"cut short: \d+ bytes of the \d+ that its header and"),
+        (b"\x93NUMPY\x01\x00\x05", r"cut short within its header \(9 bytes in all\)"),
+        (b"\x93NUMPY\x02\x00\x50\x00\x00\x00{", "the header ends at byte 92"),
     ],
 )
 def test_a_garbled_header_or_data_beyond_it_is_said_not_a_crash_or_ignored(
