@@ -80,10 +80,12 @@ def guarded_app(
     metrics: HttpMetrics,
     token: str | None = None,
     max_concurrent: int | None = None,
+    bounded_prefix: str = "/v1",
 ) -> FastAPI:
     """A FastAPI app that refuses a request under ``/v1`` without `token` as its bearer
-    token (401, before its body is read; None: open), one beyond `max_concurrent` under way
-    (503 with Retry-After, before its body is read; None: no bound), a body over
+    token (401, before its body is read; None: open), one under `bounded_prefix` beyond
+    `max_concurrent` under way there (503 with Retry-After, before its body is read; None:
+    no bound), a body over
     `max_upload_bytes` (413) or slower than `body_timeout_s` to arrive (408), answers
     invalid requests with the quoted 422, counts and times every request into `metrics`,
     served at ``GET /metrics`` (Prometheus text, no token: as ``/healthz``), and serves
@@ -100,7 +102,10 @@ def guarded_app(
     app.add_middleware(SlowBodyTimeout, timeout_s=body_timeout_s, error_body={"detail": timeout})
     if max_concurrent is not None:
         app.add_middleware(
-            ConcurrencyLimit, max_concurrent=max_concurrent, error_body=lambda d: {"detail": d}
+            ConcurrencyLimit,
+            max_concurrent=max_concurrent,
+            error_body=lambda d: {"detail": d},
+            prefix=bounded_prefix,
         )
     if token is not None:  # outside the bound: a request without the token takes no place
         app.add_middleware(BearerGate, token=token, error_body=lambda d: {"detail": d})

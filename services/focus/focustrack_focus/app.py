@@ -59,6 +59,8 @@ from focustrack_focus.pipeline import (
 from focustrack_focus.preprocess import MAX_LOWPASS_SIGMA_PX
 from focustrack_focus.profile import MAX_METRIC_NAME_CHARS, MicroscopeProfile
 
+#: The route of a stack's upload, the one whose requests `FocusLimits.max_concurrent` counts.
+STACK_PATH = "/v1/focus/stack"
 #: The least each limit of `FocusLimits` may be: below, a limit admits no request (a
 #: stack of one frame with its form; a curve's JSON object of two lists), or, for frames,
 #: no curve or stack with a peak to find (a look of one frame alone).
@@ -68,6 +70,7 @@ LEAST_LIMITS = {
     "max_frames": MIN_CURVE_FRAMES,
     "max_json_bytes": 32,
     "max_json_depth": 2,
+    "max_concurrent": 1,
 }
 
 
@@ -79,7 +82,10 @@ class FocusLimits:
     uint16 is 176 MB); max_decoded_bytes: the pixels a stack decodes to, read from
     its header before decoding (a 3.5 MB zlib TIFF can hold 3.6 GB); max_frames: of
     a stack or curve; max_json_bytes and max_json_depth: a curve's JSON body and
-    how deeply it may nest; body_timeout_s: how long a body may take to arrive.
+    how deeply it may nest; body_timeout_s: how long a body may take to arrive;
+    max_concurrent: the stacks read at once (one more is a 503, before its body is read):
+    each may hold its upload and its decoded frames, so these bound the service's memory
+    (curves, of 1 MB at most, are not counted).
     """
 
     max_upload_bytes: int = 256 << 20
@@ -88,6 +94,7 @@ class FocusLimits:
     max_json_bytes: int = 1 << 20
     max_json_depth: int = 32
     body_timeout_s: float = 60.0
+    max_concurrent: int = 2
 
     def __post_init__(self) -> None:
         check_least(self, LEAST_LIMITS)
@@ -230,6 +237,8 @@ def create_app(
         limits.body_timeout_s,
         HttpMetrics("focustrack_focus"),
         token,
+        limits.max_concurrent,
+        bounded_prefix=STACK_PATH,
     )
 
     def refusals(statuses: dict[int, str]) -> dict[int | str, dict[str, Any]]:
@@ -315,7 +324,7 @@ def create_app(
         return result.to_json() | {"metric": request.metric}
 
     @app.post(
-        "/v1/focus/stack",
+        STACK_PATH,
         response_model=FocusResponse,
         dependencies=[Depends(token_scheme), Depends(form_as_declared)],
         responses=refusals(
@@ -323,6 +332,8 @@ def create_app(
                 413: f"the body is over {max_body} bytes, or the stack would "
                 f"decode to over {limits.max_decoded_bytes} bytes",
                 415: "the stack is neither a TIFF nor a .npy file, or the body is no form",
+                503: f"{limits.max_concurrent} stacks are being read already: ask again after "
+                "the Retry-After header's seconds",
                 422: "a form field missing, unknown, given twice or invalid, or a stack the "
                 "maths refuses: the detail names the problem",
             }

@@ -530,6 +530,13 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
         gt=0,
         description="seconds a request body may take to arrive (408)",
     )
+    max_concurrent: int = Field(
+        FocusLimits.max_concurrent,
+        ge=LEAST_LIMITS["max_concurrent"],
+        description="stacks read over REST at once; one more is answered 503 with "
+        "Retry-After before its body is read (each holds up to its upload and its decoded "
+        "frames: this bounds the memory)",
+    )
     # what peers' frames on Zenoh may make the service hold (`FrameAnalyser`)
 
     @field_validator("slides")

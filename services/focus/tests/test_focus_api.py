@@ -431,7 +431,7 @@ def test_the_openapi_document_says_what_each_route_refuses() -> None:
         curve = paths["/v1/focus/curve"]["post"]["responses"]
         stack = paths["/v1/focus/stack"]["post"]["responses"]
         assert sorted(curve) == ["200", *token, "408", "413", "422"]
-        assert sorted(stack) == ["200", *token, "408", "413", "415", "422"]
+        assert sorted(stack) == ["200", *token, "408", "413", "415", "422", "503"]
         for refusal in (*token, "408", "413", "422"):
             for responses in (curve, stack):
                 schema = responses[refusal]["content"]["application/json"]["schema"]

@@ -5,7 +5,10 @@ here."""
 from __future__ import annotations
 
 import io
+import socket
+import time
 from collections.abc import Callable
+from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
@@ -121,6 +124,33 @@ def test_limits_that_admit_nothing_are_a_configuration_error() -> None:
         ({"max_json_depth": 1}, "max_json_depth must be at least 2, got 1"),
         ({"max_upload_bytes": 100}, "max_upload_bytes must be at least 4096, got 100"),
         ({"body_timeout_s": 0.0}, "the body timeout must be positive"),
+        ({"max_concurrent": 0}, "max_concurrent must be at least 1, got 0"),
     ):
         with pytest.raises(ValueError, match=message):
             FocusLimits(**bad)  # type: ignore[arg-type]
+
+
+def test_a_stack_beyond_max_concurrent_is_a_503_and_curves_are_not_counted(serve: Serve) -> None:
+    """Stacks of up to 256 MB each were read and decoded however many came at once."""
+    url = serve(create_app(limits=FocusLimits(max_concurrent=1)))
+    parts = urlsplit(url)
+    with socket.create_connection((parts.hostname, parts.port), timeout=10) as held:
+        # a stack's upload under way: its headers and the start of its form sent
+        held.sendall(
+            b"POST /v1/focus/stack HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n"
+            b"Content-Type: multipart/form-data; boundary=x\r\n\r\n--x\r\n"
+            b'Content-Disposition: form-data; name="stack"; filename="s.npy"\r\n\r\n' + b"\0" * 50
+        )
+        frames = np.zeros((5, 8, 8), np.uint16)
+        for _ in range(100):  # until the server has taken the held upload in
+            busy = _post_stack(url, _npy(frames), 5)
+            if busy.status_code == 503:
+                break
+            time.sleep(0.05)
+        _refused(busy, 503, "busy with the most requests it takes at once (1)")
+        assert busy.headers["retry-after"] == "1"
+        curve = {"z_um": [0, 1, 2], "scores": [1, 2, 1]}
+        assert httpx.post(f"{url}/v1/focus/curve", json=curve).status_code == 200
+    # the held upload's connection closed: its place is free again
+    frames = np.random.default_rng(0).integers(0, 4000, (5, 32, 32)).astype(np.uint16)
+    assert _post_stack(url, _npy(frames), 5).status_code in (200, 422)
