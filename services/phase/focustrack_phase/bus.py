@@ -93,6 +93,10 @@ def phase_input(
     size."""
     if not header.pixel_size_um > 0:
         raise ValueError(f"the stack's header gives no pixel size ({header.pixel_size_um} um)")
+    if not header.condenser_na >= 0:  # NaN or negative: REST refuses them too
+        raise ValueError(
+            f"the stack's header gives a condenser NA of {header.condenser_na} (0: not stated)"
+        )
     if header.condenser_na > 0:
         options = replace(options, condenser_na=header.condenser_na)
     return PhaseInput(
@@ -246,10 +250,10 @@ class PhaseStacks:
             return None
         stack = stack_id(key, header)
         try:
-            check_frame_header(frame_header)  # a phase stack's: answered from here on
             self.expire()
-            if self._open.failed(stack):
+            if self._open.failed(stack):  # answered once: its later frames too are ignored
                 return None
+            check_frame_header(frame_header)  # a phase stack's: answered from here on
             under_way = self._open.pop(stack) or self._start(header)
             self._open.put(stack, under_way, under_way.counts.nbytes)  # counted meanwhile
             frame = self._frames.add(key, frame_header, data)

@@ -203,6 +203,11 @@ def test_a_header_without_wavelength_or_gain_takes_the_service_defaults() -> Non
     assert given.options == options  # the header states no condenser NA
     header.condenser_na = 0.35  # partially coherent light: the filter is told
     assert phase_input(header, counts, PhaseOptics(), options).options.condenser_na == 0.35
+    for bad_na in (np.nan, -1.0):  # taken as coherent light, where REST refuses them
+        header.condenser_na = bad_na
+        with pytest.raises(ValueError, match="gives a condenser NA of"):
+            phase_input(header, counts, PhaseOptics(), options)
+    header.condenser_na = 0.0
     header.pixel_size_um = 0.0
     with pytest.raises(ValueError, match="no pixel size"):
         phase_input(header, counts, PhaseOptics(), options)
@@ -335,3 +340,6 @@ def test_a_phase_frame_that_does_not_fit_its_header_gets_an_error_result() -> No
         answer = stacks.add(key, lambda: good[0], frame.SerializeToString())
         assert isinstance(answer, phase_pb2.PhaseResult), message
         assert message in answer.error.message
+        # once: the stack's later frames are ignored (a malformed header was answered for
+        # every frame of its stack, 201 results for 201 frames)
+        assert stacks.add(key, lambda: good[0], frame.SerializeToString()) is None, message
