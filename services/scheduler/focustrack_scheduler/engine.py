@@ -73,6 +73,7 @@ from focustrack_scheduler.in_focus import InFocusScore
 from focustrack_scheduler.laser import read_laser
 from focustrack_scheduler.outputs import WALL_STATE_KEY, OutputFolderError, WallTimes
 from focustrack_scheduler.plan import (
+    MIN_PHASE_REACH_DOF,
     Acquire,
     AcquirePhase,
     AskNext,
@@ -85,6 +86,7 @@ from focustrack_scheduler.plan import (
     KeepPlanes,
     KeepTile,
     MatchTile,
+    PhaseStacks,
     Plan,
     PostMeasurement,
     ReadLaser,
@@ -298,6 +300,8 @@ class Engine:
                 f"instrument {step.instrument!r} takes at most {max_frames} frame a stack; "
                 "a focus curve needs 2"
             )
+        if step.phase is not None:
+            self._check_phase_stacks(step.phase, geometry)
         self.geometry, self._slide = geometry, step.slide
         if self._realign is not None:
             try:
@@ -519,6 +523,26 @@ class Engine:
             self.wall.phase_s += time.perf_counter() - started_s
         self._take_pending_phase(self.policy.phase_in_flight)
 
+    def _check_phase_stacks(self, phase: PhaseStacks, geometry: SlideGeometry) -> None:
+        """Refuse phase stacks the stage cuts to fewer than the 2 frames a phase needs (a
+        step longer than its z travel: every tile's stack was taken, and refused by the
+        phase service); warn, once, of stacks too close to focus to show phase."""
+        asked = phase.z_range(0.0, geometry.dof_um)
+        if geometry.stage.fit(asked).n_frames < 2:  # the same on every tile, wherever centred
+            stage = geometry.stage
+            raise ScanRefusedError(
+                f"phase stack frames {asked.step_um:g} um apart (--phase-step-um) fit in the "
+                f"instrument's z travel ({stage.z_min_um:g} to {stage.z_max_um:g} um) only "
+                "once; a phase stack needs 2 frames"
+            )
+        if phase.too_close_to_focus(geometry.dof_um):
+            log.warning(
+                "phase stacks of %d planes %g um apart reach less than %g of the objective's "
+                "depth of field (%g um) either side of focus: too near focus to show the phase "
+                "(the default step is half the depth of field)",
+                asked.n_frames, asked.step_um, MIN_PHASE_REACH_DOF, geometry.dof_um,
+            )  # fmt: skip
+
     def _say_phase_cut(self, asked_frames: int, taken_frames: int) -> None:
         """Warn, once a scan, that the phase stacks are cut to the stage's frame limit (it
         is the same for every tile; a stack moved inside the travel keeps its frames)."""
@@ -543,8 +567,10 @@ class Engine:
         assert phase_services is not None, "phase stacks need SlideListener(phase=True)"
         what = f"the phase stack of tile ({step.row}, {step.col})"
         waited_s = 0.0 if self._no_phase_service else self.policy.phase_timeout_s
-        if waited_s and not phase_services.alive():
-            log.info("%s: no phase service on the bus; waiting up to %g s for one", what, waited_s)
+        if waited_s and not phase_services.alive():  # said: a silent wait looks like a hang
+            log.warning(
+                "%s: no phase service on the bus; waiting up to %g s for one", what, waited_s
+            )
         if not phase_services.wait_alive(waited_s):
             self._no_phase_service = True
             nobody = f"no phase service on the bus reads this slide (waited {waited_s:g} s)"

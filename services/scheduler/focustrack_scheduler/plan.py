@@ -87,6 +87,13 @@ PHASE_SEQUENCE_BASE = 1 << 40
 RETAKE_SEQUENCE_BASE = 1 << 41
 
 
+#: The least reach of a phase stack either side of its centre, in depths of field of the
+#: objective (`PhaseStacks.too_close_to_focus`): the default, 11 planes half a depth of
+#: field apart, reaches 2.5; 2 planes at that step, 0.25, still give a phase; 0.005 um
+#: either side (a step of 0.001 um) gave a spread of 0.02 rad where the cells have 0.5.
+MIN_PHASE_REACH_DOF = 0.2
+
+
 @dataclass(frozen=True)
 class PhaseStacks:
     """The phase stack of each tile: `planes` frames `step_um` apart, centred on the z the
@@ -106,6 +113,13 @@ class PhaseStacks:
         """The stack's frames around `center_um` on an objective of depth of field `dof_um`."""
         step_um = self.step_um if self.step_um is not None else dof_um / 2.0
         return ZRange.centred(center_um, self.planes, step_um)
+
+    def too_close_to_focus(self, dof_um: float) -> bool:
+        """Whether the stack reaches less than MIN_PHASE_REACH_DOF depths of field either
+        side of its centre: nearer focus a plane shows little phase contrast, and the phase
+        comes out flat and noisy (the service takes the stack all the same)."""
+        z = self.z_range(0.0, dof_um)
+        return (z.n_frames - 1) / 2.0 * z.step_um < MIN_PHASE_REACH_DOF * dof_um
 
 
 @dataclass(frozen=True)
@@ -200,10 +214,12 @@ class SlideGeometry:
 
 @dataclass(frozen=True)
 class DescribeSlide:
-    """-> SlideGeometry of `slide` on `instrument`."""
+    """-> SlideGeometry of `slide` on `instrument`, whose stage must take `phase`'s stacks
+    (None: no phase)."""
 
     instrument: str
     slide: str
+    phase: PhaseStacks | None = None
 
 
 @dataclass(frozen=True)
@@ -471,7 +487,7 @@ def _acquire_and_measure(
 
 def scan_plan(request: ScanRequest) -> Plan:
     """The steps of one slide scan; returns the estimator's slide id when the scan is done."""
-    geometry = yield DescribeSlide(request.instrument, request.slide)
+    geometry = yield DescribeSlide(request.instrument, request.slide, request.phase)
     slide_id = yield CreateOrResumeSlide(slide_config(request, geometry), request.resume_slide_id)
     tile: tuple[int, int] | None = None
     frames: list[Frame] = []  # every frame acquired on `tile` so far

@@ -367,6 +367,11 @@ def _run(settings: ScanSettings) -> int:
     except (ValueError, zenoh.ZError) as error:
         print(f"focustrack scan: error: {_said(error)}", file=sys.stderr)
         return 2
+    if ignored := settings.ignored_phase_options():
+        print(
+            f"focustrack scan: note: {', '.join(ignored)} change nothing without --phase",
+            file=sys.stderr,
+        )
     tracing.configure("focustrack-scheduler", settings.otlp_endpoint)
     try:
         with (

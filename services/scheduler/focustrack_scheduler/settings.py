@@ -60,6 +60,10 @@ def _estimator_token() -> str | None:
     return os.environ.get(TOKEN_ENV) or None
 
 
+#: The options of the phase stacks, which only `--phase` takes.
+_PHASE_OPTIONS = ("phase_planes", "phase_step_um", "phase_timeout_s", "phase_in_flight")
+
+
 class ScanOptions(ServiceSettings):
     """How a scan is made, shared by `focustrack scan` and `focustrack demo`."""
 
@@ -184,6 +188,14 @@ class ScanOptions(ServiceSettings):
             focus_attempts=self.focus_attempts,
             phase=PhaseStacks(self.phase_planes, self.phase_step_um) if self.phase else None,
         )
+
+    def ignored_phase_options(self) -> list[str]:
+        """The phase stacks' options given (flags, environment or settings file) without
+        `--phase`, which they change nothing without."""
+        if self.phase:
+            return []
+        given = self.model_fields_set & set(_PHASE_OPTIONS)
+        return [f"--{name.replace('_', '-')}" for name in _PHASE_OPTIONS if name in given]
 
     def retry(self) -> RetryPolicy:
         """The timeouts and retries these options set (the others as `RetryPolicy` has them)."""

@@ -15,6 +15,7 @@ tiles whose phase was still to come without it.
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -32,8 +33,8 @@ from focustrack_core.v1 import instrument_pb2, phase_pb2
 from focustrack_core.wire import codec, keys, rpc, session
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
-from focustrack_scheduler.engine import Engine
-from focustrack_scheduler.plan import AcquirePhase, DescribeSlide, Plan
+from focustrack_scheduler.engine import Engine, ScanRefusedError
+from focustrack_scheduler.plan import AcquirePhase, DescribeSlide, PhaseStacks, Plan
 from focustrack_scheduler.record import ScanRecord
 from focustrack_scheduler.retry import RetryPolicy
 
@@ -47,8 +48,14 @@ class Instrument:
     2x4x4 field of its sequence) is published that long after the stack, and `events`
     says in which order stacks were acquired and results published."""
 
-    def __init__(self, bus: zenoh.Session, phase_after_s: float | None = None) -> None:
+    def __init__(
+        self,
+        bus: zenoh.Session,
+        phase_after_s: float | None = None,
+        stage: instrument_pb2.InstrumentInfo | None = None,
+    ) -> None:
         self.acquired = 0
+        self._stage = stage or instrument_pb2.InstrumentInfo()  # its travel, depth of field
         self.events: list[str] = []
         self._bus = bus
         self._phase_after_s = phase_after_s
@@ -66,7 +73,9 @@ class Instrument:
 
     def _info(self, query: zenoh.Query) -> instrument_pb2.InstrumentInfo:
         slide = instrument_pb2.SlideInfo(slide=SLIDE, rows=3, cols=3, pitch_um=100.0)
-        return instrument_pb2.InstrumentInfo(instrument="sim", slides=[slide])
+        info = instrument_pb2.InstrumentInfo(instrument="sim", slides=[slide])
+        info.MergeFrom(self._stage)
+        return info
 
     def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
         request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
@@ -156,6 +165,53 @@ def logged_phase(out_dir: Path) -> list[dict]:
     """The scan log's phase entries."""
     lines = (out_dir / outputs.LOG_FILE).read_text().splitlines()
     return [entry for entry in map(json.loads, lines) if entry["event"] == "phase"]
+
+
+@pytest.mark.parametrize(
+    ("step_um", "refused", "warned"),
+    [(1000.0, "fit in the instrument's z travel (-100 to 100 um) only once", None),
+     (0.001, None, "reach less than 0.2 of the objective's depth of field (0.9 um)"),
+     (None, None, None)],
+)  # fmt: skip
+def test_phase_stacks_the_stage_cuts_to_one_frame_are_refused_and_ones_too_near_focus_said(
+    bus: tuple[str, zenoh.Session, zenoh.Session],
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    step_um: float | None,
+    refused: str | None,
+    warned: str | None,
+) -> None:
+    """Frames 1000 um apart on a stage of 200 um of travel were cut to 1 on every tile, each
+    stack taken and refused by the phase service, and the scan ended with no phase and
+    exit 0; a step of 0.001 um gave a flat phase, said nowhere."""
+    _, stand_ins, scheduler = bus
+    stage = instrument_pb2.InstrumentInfo(
+        z_min_um=-100.0, z_max_um=100.0, max_frames=64, depth_of_field_um=0.9
+    )
+    instrument = Instrument(stand_ins, stage=stage)
+    engine = engine_for(scheduler, SlideListener(scheduler, SLIDE), tmp_path, RetryPolicy())
+
+    def plan() -> Plan:
+        yield DescribeSlide("sim", SLIDE, PhaseStacks(11, step_um))
+        return "described"
+
+    try:
+        if refused is not None:
+            with pytest.raises(ScanRefusedError, match=re.escape(refused)):
+                engine.run(plan())
+        else:
+            engine.run(plan())
+    finally:
+        engine.listener.close()
+        engine.record.close()
+        instrument.close()
+    assert instrument.acquired == 0
+    said = [record.getMessage() for record in caplog.records if record.levelname == "WARNING"]
+    near_focus = [line for line in said if "too near focus" in line]
+    if warned is None:
+        assert near_focus == [], said
+    else:
+        assert len(near_focus) == 1 and warned in near_focus[0], said
 
 
 @pytest.mark.timeout(60)

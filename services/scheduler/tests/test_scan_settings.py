@@ -383,6 +383,20 @@ def test_no_phase_wins_over_the_environment(monkeypatch: pytest.MonkeyPatch) -> 
     assert not settings("--no-phase").phase
 
 
+def test_phase_options_without_phase_are_named(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--phase-planes 5` without `--phase` was taken in silence, and no phase came."""
+    monkeypatch.setenv("FOCUSTRACK_SCAN_PHASE_TIMEOUT_S", "30")
+    given = settings("--phase-planes", "5", "--phase-step-um", "0.3")
+    assert given.ignored_phase_options() == [
+        "--phase-planes",
+        "--phase-step-um",
+        "--phase-timeout-s",
+    ]
+    assert settings("--phase", "--phase-planes", "5").ignored_phase_options() == []
+    monkeypatch.delenv("FOCUSTRACK_SCAN_PHASE_TIMEOUT_S")
+    assert settings().ignored_phase_options() == []
+
+
 def test_min_frames_above_max_frames_is_one_line_in_the_options_words(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

@@ -241,9 +241,13 @@ def test_with_phase_each_tile_takes_one_phase_stack_centred_on_its_image() -> No
             and (a.acquisition.row, a.acquisition.col) == (step.row, step.col)
             for a in later
         )
-    # without it, the same scan takes the same steps and no phase stack
+    # without it, the same scan takes the same steps and no phase stack (its description
+    # of the slide asks for none)
+    assert steps[0] == DescribeSlide(REQUEST.instrument, REQUEST.slide, request.phase)
     plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset({(1, 1)})).answer(geometry))
-    assert plain == [s for s in steps if not isinstance(s, AcquirePhase | TilesWithoutPhase)]
+    assert plain == [replace(steps[0], phase=None)] + [
+        s for s in steps[1:] if not isinstance(s, AcquirePhase | TilesWithoutPhase)
+    ]
 
 
 def test_a_resumed_scan_takes_the_phase_an_earlier_run_left_out_at_its_end() -> None:
