@@ -91,10 +91,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def _usage() -> str:
-    width = max(len(name) for name in COMMANDS)
-    lines = ["usage: focustrack COMMAND [options]", "", "commands:"]
-    lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
+def _usage(group: str = "") -> str:
+    """The commands (those of `group`, the first word of several: ``bench``), a line each."""
+    names = [name for name in COMMANDS if name.startswith(f"{group} ")] or list(COMMANDS)
+    width = max(len(name) for name in names)
+    command = f"{group} COMMAND" if group else "COMMAND"
+    lines = [f"usage: focustrack {command} [options]", "", "commands:"]
+    lines += [f"  {name:<{width}}  {COMMANDS[name][1]}" for name in names]
     lines += ["", "`focustrack COMMAND --help` shows the options of one command."]
     return "\n".join(lines)
 
@@ -123,9 +126,10 @@ def _main(argv: list[str]) -> int:
                 return module.run(parse(parser, settings_cls, argv[n_words:]))
             module.add_arguments(parser)
             return module.run(parser.parse_args(argv[n_words:]))
-    if not argv or argv[0] in ("-h", "--help"):
-        print(_usage())
+    group = argv[0] if argv and any(name.startswith(f"{argv[0]} ") for name in COMMANDS) else ""
+    if not argv or argv[0] in ("-h", "--help") or (group and argv[1:2] in ([], ["-h"], ["--help"])):
+        print(_usage(group))  # `focustrack bench`: the benchmarks
         return 0
     words = " ".join(word for word in argv[:2] if not word.startswith("-"))
-    print(f"{_usage()}\n\nfocustrack: error: unknown command {words!r}", file=sys.stderr)
+    print(f"{_usage(group)}\n\nfocustrack: error: unknown command {words!r}", file=sys.stderr)
     return 2

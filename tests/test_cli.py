@@ -13,6 +13,18 @@ def test_no_command_or_help_prints_the_usage(capsys: pytest.CaptureFixture[str])
         assert capsys.readouterr().out.startswith("usage: focustrack COMMAND")
 
 
+@pytest.mark.parametrize("argv", [["bench"], ["bench", "--help"], ["serve", "-h"]])
+def test_a_group_of_commands_lists_its_own(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`focustrack bench --help` said "unknown command 'bench'", status 2."""
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: focustrack {argv[0]} COMMAND")
+    listed = [line.split()[0:2] for line in out.splitlines() if line.startswith("  ")]
+    assert listed == [name.split() for name in cli.COMMANDS if name.startswith(f"{argv[0]} ")]
+
+
 @pytest.mark.parametrize(
     ("argv", "named"), [(["bogus"], "'bogus'"), (["bench", "nope", "--x"], "'bench nope'")]
 )
