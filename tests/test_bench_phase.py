@@ -64,7 +64,9 @@ def test_the_bench_writes_its_table_json_and_figure(
         "coherence envelope (ours)", "coherence envelope (ours) + anchoring",
     ]  # fmt: skip
     for row in result["coherence"]:
-        assert 0 < row["low_frequency_rmse_rad"] <= row["phase_rmse_rad"]
+        # 16 px of 1 um: below 0.05 cycles/um there is only the mean, which is removed, so
+        # the band's error is round-off (1e-18, or exactly 0: asserting > 0 was flaky)
+        assert 0 <= row["low_frequency_rmse_rad"] < 1e-12 < row["phase_rmse_rad"]
     assert (tmp_path / result["simulator_figure"]).stat().st_size > 1000
     simulator = {(row["specimen"], row["model"]): row for row in result["simulator"]}
     assert len(simulator) == 6 and all(0.8 < r["correlation"] <= 1 for r in simulator.values())

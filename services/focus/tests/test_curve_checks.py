@@ -208,6 +208,29 @@ def test_despike_replaces_the_dip_not_the_end_frame_its_dip_spoils() -> None:
     assert narrowest_peak_sigma_um(0.25, 4.3) == pytest.approx(SPIKE_SHARE * 4.3 / 2.3548, 1e-3)
 
 
+@pytest.mark.parametrize(
+    ("step_um", "scores", "best_z_um"),
+    [
+        (5.0, [1, 5, 1, 1, 1], 5.0),  # was the low end, edge_low: the end frame "an outlier"
+        (1.0, [1, 5, 1, 1, 1], 1.0),  # was flat: the peak removed as a spike
+        (2.0, [1, 1, 5, 1, 1, 1, 1], 4.0),  # was flat
+        (1.0, [2, 5, 1, 2, 1], 1.0),  # was the low end, the peak not even the runner-up
+    ],
+)
+def test_a_one_frame_peak_between_frames_four_sigmas_apart_is_read_there(
+    step_um: float, scores: list[float], best_z_um: float
+) -> None:
+    """Where frames are 4 or more of the narrowest peak's sigmas apart (0.25 um), a peak
+    on one frame is possible (docs/focus.md, "Outliers"): it is read, not removed; at
+    0.5 um steps it is impossible, a spike, and the curve is flat."""
+    z = step_um * np.arange(len(scores))
+    fit = find_peak(z, np.array(scores, dtype=float))
+    assert fit.z_um == pytest.approx(best_z_um, abs=0.15 * step_um), fit
+    assert not fit.flags & {FocusFlag.FLAT, FocusFlag.EDGE_LOW}, fit
+    spike = find_peak(0.5 * np.arange(5), np.array([1.0, 5.0, 1.0, 1.0, 1.0]))
+    assert spike.flags == {FocusFlag.FLAT}
+
+
 def test_a_top_broader_than_its_window_is_ambiguous_anywhere_in_it() -> None:
     """A window of 9 frames on a gentle bump whose Gaussian std is twice the window's span
     sees curvature and no top of its own: ambiguous, its sigma at least that of a focus
