@@ -46,8 +46,9 @@ def parse_z_list(text: str) -> np.ndarray:
     text = text.strip()
     try:
         values = json.loads(text if text.startswith("[") else f"[{text}]")
-    # RecursionError: lists nested thousands deep, which the JSON parser recurses into
-    except (ValueError, RecursionError) as error:
+    except RecursionError:  # lists nested thousands deep, which the parser recurses into
+        raise ValueError("z_um must be a flat list of numbers; it nests lists deeply") from None
+    except ValueError as error:
         # The parser's own message only gives the column it stopped at: name the item.
         items = text.removeprefix("[").removesuffix("]").split(",")
         bad = next((item.strip() for item in items if not _finite_number(_json_value(item))), None)
@@ -254,7 +255,12 @@ def _read_pages(data: bytes, max_frames: int, max_decoded_bytes: int) -> np.ndar
             raise ValueError(f"the TIFF's pages must share one shape and type; got {described}")
         ((shape, dtype),) = kinds
         _check_size((len(pages), *shape), dtype.itemsize, max_frames, max_decoded_bytes)
-        frames = tiff.asarray(key=range(len(pages))).reshape(len(pages), *shape)
+        try:
+            frames = tiff.asarray(key=range(len(pages))).reshape(len(pages), *shape)
+        except Exception as error:  # the codec's own words ("LIBDEFLATE_BAD_DATA"), framed
+            raise ValueError(
+                f"its pixels do not decode (cut short or damaged?): {cut(str(error))}"
+            ) from None
         if pages[0].axes.startswith("S"):  # colour planes stored apart: (samples, H, W) a page
             return np.moveaxis(frames, 1, -1)
         return frames

@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile
+from fastapi import Depends, FastAPI, HTTPException, Request, UploadFile, params
 from fastapi.dependencies.models import Dependant
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, PlainTextResponse
@@ -168,6 +168,17 @@ async def form_as_declared(request: Request) -> None:
         raise HTTPException(
             422, f"form field {', '.join(repeated)} given more than once; send each field once"
         )
+    files = {param.alias for param in route.dependant.body_params if _is_file(param)}
+    for name in sorted(files & set(form)):
+        if isinstance(form[name], str):  # FastAPI's words: "Expected UploadFile, received: str"
+            raise HTTPException(
+                422, f"form field {name} must be a file (curl -F {name}=@FILE), not text"
+            )
+
+
+def _is_file(param: Any) -> bool:
+    """Whether the body parameter `param` (a route's `ModelField`) takes an uploaded file."""
+    return isinstance(param.field_info, params.File)
 
 
 def _declared_query(dependant: Dependant) -> set[str]:

@@ -143,6 +143,15 @@ def test_broken_files_are_value_errors(data: bytes) -> None:
     assert not isinstance(caught.value, TooLargeError | UnsupportedFileError)
 
 
+def test_a_compressed_tiff_cut_short_is_said_to_be_so() -> None:
+    """The codec's words alone: "libdeflate_zlib_decompress returned LIBDEFLATE_BAD_DATA"."""
+    buffer = io.BytesIO()
+    noise = np.random.default_rng(0).integers(0, 4096, (3, 64, 64), dtype=np.uint16)
+    tifffile.imwrite(buffer, noise, photometric="minisblack", compression="zlib")
+    with pytest.raises(ValueError, match=r"its pixels do not decode \(cut short or damaged\?\)"):
+        decode_stack(buffer.getvalue()[:-100], **ROOMY)
+
+
 def test_an_array_of_python_objects_is_refused_in_our_words() -> None:
     """numpy's "Object arrays cannot be loaded when allow_pickle=False" named its own
     argument, not what is wrong with the file."""
@@ -197,7 +206,8 @@ def test_z_lists(text: str, expected: list[float]) -> None:
         ("[1, 2", "JSON list"),
         ("1,a", "JSON list"),
         ("[[1, 2]]", "flat list"),
-        ("[" * 100_000, "JSON"),
+        ("[" * 100_000, "flat list of numbers; it nests lists deeply"),
+        ("[" * 3000 + "]" * 3000, "it nests lists deeply"),  # "maximum recursion depth"
         ("[true, false, 1]", "must list numbers; got True"),
         ("true, 1, 2", "must list numbers; got True"),
         ("1_0, 2", "JSON list"),  # Python's float reads 10

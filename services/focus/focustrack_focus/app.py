@@ -293,7 +293,10 @@ def create_app(
         if json_depth_exceeds(body, limits.max_json_depth):
             raise HTTPException(422, f"the JSON nests deeper than {limits.max_json_depth} levels")
         try:
-            document = json.loads(body, object_pairs_hook=members_once)
+            # Every number of a curve is a float: integers read as floats, so one of 400 or
+            # 5000 digits is an infinite number (a 422 saying so), not "Input should be a
+            # valid number" or Python's advice on sys.set_int_max_str_digits.
+            document = json.loads(body, object_pairs_hook=members_once, parse_int=float)
         except RepeatedKeyError as error:
             raise HTTPException(422, str(error)) from None
         except ValueError as error:  # json's errors, and bytes that are not UTF-8

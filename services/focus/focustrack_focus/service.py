@@ -467,8 +467,7 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
     )
     min_structure_snr: float = Field(
         FocusSettings.min_structure_snr,
-        allow_inf_nan=True,  # -inf: never flat (no other option takes infinity)
-        ge=-math.inf,  # NaN: refused
+        allow_inf_nan=True,  # -inf: never flat (no other option takes infinity); NaN: refused
         description="a stack whose through-focus change stands fewer noise spreads than this "
         "above its pixel noise is flat (--min-structure-snr=-inf: never)",
     )
@@ -538,6 +537,14 @@ class FocusServiceSettings(FrameReaderSettings, TracingSettings):
         "frames: this bounds the memory)",
     )
     # what peers' frames on Zenoh may make the service hold (`FrameAnalyser`)
+
+    @field_validator("min_structure_snr")
+    @classmethod
+    def _snr_not_nan(cls, snr: float) -> float:
+        # `ge=-inf` refused NaN in words that did not say so ("greater than or equal to -inf")
+        if math.isnan(snr):
+            raise ValueError("a number of noise spreads, or -inf (never flat); got NaN")
+        return snr
 
     @field_validator("slides")
     @classmethod

@@ -112,6 +112,15 @@ def test_curves_with_values_beyond_the_floats_range_are_422(serve: Serve) -> Non
     for body, needle in cases:
         response = httpx.post(f"{url}/v1/focus/curve", json=body)
         _refused(response, 422, needle)
+    # integers of 400 and 5000 digits: "Input should be a valid number" (it is one) and
+    # Python's "Exceeds the limit (4300 digits) ... use sys.set_int_max_str_digits()"
+    for digits in (400, 5000):
+        body = f'{{"z_um": [0, 1, {"9" * digits}], "scores": [1, 2, 1]}}'
+        response = httpx.post(
+            f"{url}/v1/focus/curve", content=body, headers={"content-type": "application/json"}
+        )
+        _refused(response, 422, "Input should be a finite number")
+        assert "set_int_max_str_digits" not in response.text
     good = httpx.post(f"{url}/v1/focus/curve", json={"z_um": [0, 1, 2], "scores": [1, 2, 1]})
     assert good.status_code == 200 and good.json()["best_z_um"] == pytest.approx(1.0)
     too_many = {"z_um": list(range(2000)), "scores": [1.0] * 2000}

@@ -86,7 +86,8 @@ def test_values_the_focus_maths_refuse_stop_the_command_with_status_2(
         (["--port", "70000"], "--port (FOCUSTRACK_FOCUS_PORT): Input should be less than"),
         (["--na", "0"], "--na (FOCUSTRACK_FOCUS_NA): Input should be greater than 0"),
         (["--na", "5"], "--na (FOCUSTRACK_FOCUS_NA): Input should be less than or equal to 1.7"),
-        (["--min-structure-snr", "nan"], "--min-structure-snr (FOCUSTRACK_FOCUS_MIN_STRUCTURE"),
+        # "Input should be greater than or equal to -inf", which did not say NaN was wrong
+        (["--min-structure-snr", "nan"], "SNR): a number of noise spreads, or -inf (never flat);"),
         (["--max-frames", "0"], "--max-frames (FOCUSTRACK_FOCUS_MAX_FRAMES): Input should be"),
         # a curve needs 3 points: 2 started a service that refused every curve and stack
         (["--max-frames", "2"], "MAX_FRAMES): Input should be greater than or equal to 3"),

@@ -230,6 +230,17 @@ def test_bad_requests_say_what_is_wrong(
     assert needle in response.text, response.text
 
 
+def test_a_stack_sent_as_text_is_said_to_be_no_file(
+    client: TestClient, stack: SyntheticStack
+) -> None:
+    """`-F stack=hello` (no @) was FastAPI's "Expected UploadFile, received: <class 'str'>"."""
+    response = client.post("/v1/phase/stack", data=form(stack) | {"stack": "hello"})
+    assert response.status_code == 422, response.text
+    assert response.json() == {
+        "detail": "form field stack must be a file (curl -F stack=@FILE), not text"
+    }
+
+
 def test_a_body_that_is_no_form_is_a_415(client: TestClient, stack: SyntheticStack) -> None:
     """JSON (the estimator's way) or a bare file was a 422 listing every field as missing."""
     response = client.post("/v1/phase/stack", json=form(stack))
