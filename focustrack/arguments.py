@@ -53,12 +53,15 @@ def _whole_number(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from error
 
 
-def whole_number(low: int) -> Callable[[str], int]:
-    """The argparse type of a whole number of at least `low` (a seed: 0, a side: 2)."""
+def whole_number(low: int, high: int | None = None) -> Callable[[str], int]:
+    """The argparse type of a whole number of at least `low` (a seed: 0, a side: 2) and,
+    given `high`, at most `high` (where more would overflow or run for days)."""
+    allowed = f"at least {low}" if high is None else f"in [{low}, {high}]"
 
     def parse(text: str) -> int:
-        if (value := _whole_number(text)) < low:
-            raise argparse.ArgumentTypeError(f"must be at least {low}, got {value}")
+        value = _whole_number(text)
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {allowed}, got {value}")
         return value
 
     return parse
@@ -66,6 +69,16 @@ def whole_number(low: int) -> Callable[[str], int]:
 
 #: A whole number of at least 1 (frames, seeds, workers, repeats).
 positive_int = whole_number(1)
+
+#: The most repeats, runs, stacks or maps a benchmark takes: far more than a realistic
+#: run, far fewer than one that would run for days or fill the memory.
+MAX_COUNT = 10_000
+
+#: A count of repeats, runs, stacks or maps: 1 to `MAX_COUNT`.
+count_number = whole_number(1, MAX_COUNT)
+
+#: A seed every numpy generator takes (the legacy `RandomState` wants one below 2**32).
+seed_number = whole_number(0, 2**32 - 1)
 
 
 def user_id(text: str) -> int:

@@ -59,11 +59,11 @@ TINY = ["--size", "6", "--maps", "1", "--ekf-trials", "5", "--check-textures", "
         ("--settle-tau-s", "-5", "above 0"),
         ("--walk-um-per-sqrt-min", "-1", ">= 0"),
         ("--lateral-tiles", "0", "at least 1"),
-        ("--ekf-trials", "0", "at least 1"),
+        ("--ekf-trials", "0", "[1, 10000]"),
         ("--laser-noise-um", "inf", ">= 0"),
-        ("--seed", "-1", "at least 0"),
-        ("--maps", "0", "at least 1"),  # these four shared one message naming no flag
-        ("--size", "1", "at least 2"),
+        ("--seed", "-1", "[0, 4294967295]"),
+        ("--maps", "0", "[1, 10000]"),  # these four shared one message naming no flag
+        ("--size", "1", "[2, 1000]"),
         ("--noise-um", "nan", "above 0"),
         ("--dof-um", "0", "above 0"),
         ("--frame-check-ratio", "1", "[0, 1)"),

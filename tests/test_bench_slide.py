@@ -96,8 +96,9 @@ def test_with_look_first_an_empty_tile_costs_one_frame_and_tissue_its_stack(
         (["--family", "bogus"], "argument --family: invalid choice: 'bogus'"),
         (["--strategies", "kf-2d", "nope"], "argument --strategies: invalid choice: 'nope'"),
         (["--overlap", "0.9"], "error: --overlap: Input should be less than 0.5"),
-        (["--size", "63"], "error: --size must be even"),
-        (["--rows", "1"], "error: a grid below 2x2 or frames below 64 px"),
+        (["--size", "65"], "error: --size must be even"),
+        (["--size", "62"], "argument --size: must be in [64, 16384], got 62"),
+        (["--rows", "1"], "argument --rows: must be in [2, 1000], got 1"),
     ],
 )
 def test_a_slide_the_bench_cannot_scan_is_refused_before_any_service_starts(

@@ -23,6 +23,8 @@ def test_every_service_is_timed_to_its_first_answer(tmp_path: Path) -> None:
 
 
 def test_a_run_count_below_one_or_a_missing_python_is_refused(tmp_path: Path) -> None:
-    assert cli.main(["bench", "startup", "--runs", "0"]) == 2
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["bench", "startup", "--runs", "0"])
+    assert stopped.value.code == 2
     missing = str(tmp_path / "python")
     assert cli.main(["bench", "startup", "--runs", "1", "--compare", missing]) == 2

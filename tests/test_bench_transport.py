@@ -40,5 +40,7 @@ def test_bench_transport_measures_tcp_and_shared_memory(tmp_path: Path, capsys) 
 
 
 def test_bench_transport_refuses_bad_sizes(capsys) -> None:
-    assert cli.main(["bench", "transport", "--frames", "2"]) == 2
-    assert "at least 3" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["bench", "transport", "--frames", "2"])
+    assert stopped.value.code == 2
+    assert "argument --frames: must be in [3, 10000], got 2" in capsys.readouterr().err

@@ -28,10 +28,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from focustrack.arguments import output_file, output_folder
+from focustrack.arguments import (
+    count_number,
+    output_file,
+    output_folder,
+    positive_float,
+    seed_number,
+    whole_number,
+)
 from focustrack.bench import strategies as registry
 from focustrack.bench.json_report import write_json
-from focustrack_core.geometry import ScanGrid
+from focustrack_core.geometry import MAX_GRID_SIDE, ScanGrid
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import (
     FAMILIES,
@@ -351,8 +358,15 @@ def _scores_json(scores: dict[str, Scores]) -> dict[str, dict[str, float | None]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     generated = parser.add_argument_group("generated maps")
-    generated.add_argument("--maps", type=int, default=None, help="number of maps (default 16)")
-    generated.add_argument("--size", type=int, default=None, help="tiles per side (default 20)")
+    generated.add_argument(
+        "--maps", type=count_number, default=None, help="number of maps (default 16)"
+    )
+    generated.add_argument(
+        "--size",
+        type=whole_number(2, MAX_GRID_SIDE),
+        default=None,
+        help="tiles per side, >= 2 (default 20)",
+    )
     generated.add_argument(
         "--family",
         action="extend",
@@ -373,17 +387,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="measured best focus of every tile, replayed as given (shape of --truth-map)",
     )
     parser.add_argument(
-        "--seed", type=int, default=1000, help="seed of the maps and the noise (default 1000)"
+        "--seed",
+        type=seed_number,
+        default=1000,
+        help="seed of the maps and the noise (default 1000)",
     )
     parser.add_argument(
         "--noise-um",
-        type=float,
+        type=positive_float,
         default=1.5,
         help="std of simulated measurement noise in um; also the noise the filters assume "
         "(default 1.5)",
     )
     parser.add_argument(
-        "--dof-um", type=float, default=1.0, help="depth of field in um (default 1.0)"
+        "--dof-um", type=positive_float, default=1.0, help="depth of field in um (default 1.0)"
     )
     parser.add_argument(
         "--strategies",
@@ -403,8 +420,6 @@ def _map_sets(args: argparse.Namespace) -> list[MapSet]:
             raise ValueError("--measured-map needs --truth-map")
         n_maps = 16 if args.maps is None else args.maps
         size = 20 if args.size is None else args.size
-        if n_maps < 1 or size < 2:
-            raise ValueError(f"need --maps >= 1 and --size >= 2, got {n_maps} and {size}")
         families = list(dict.fromkeys(args.family or [DEFAULT_FAMILY]))
         return generated_map_sets(families, n_maps, size, args.seed, args.noise_um)
     generated_only = {"--maps": args.maps, "--size": args.size, "--family": args.family}
@@ -416,10 +431,6 @@ def _map_sets(args: argparse.Namespace) -> list[MapSet]:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        if not (args.noise_um > 0 and args.dof_um > 0):
-            raise ValueError(
-                f"--noise-um and --dof-um must be positive, got {args.noise_um}, {args.dof_um}"
-            )
         default = [name for name in registry.STRATEGIES if name not in ELSEWHERE]
         names = [n for item in args.strategies or default for n in item.split(",")]
         names = list(dict.fromkeys(n for n in names if n))

@@ -35,10 +35,17 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from focustrack.arguments import output_file, positive_float, positive_int
+from focustrack.arguments import (
+    count_number,
+    finite_number,
+    output_file,
+    positive_float,
+    seed_number,
+    whole_number,
+)
 from focustrack.bench.json_report import write_json
 from focustrack_client import models as api
-from focustrack_core.geometry import ScanGrid, Tile
+from focustrack_core.geometry import MAX_GRID_SIDE, ScanGrid, Tile
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import SurfaceSpec, generate_surfaces
@@ -233,10 +240,10 @@ def estimator_store(text: str) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--slides", type=positive_int, default=100, help="concurrent slides (default 100)"
+        "--slides", type=count_number, default=100, help="concurrent slides (default 100)"
     )
     parser.add_argument(
-        "--size", type=positive_int, default=20, help="grid side in tiles (default 20)"
+        "--size", type=whole_number(1, MAX_GRID_SIDE), default=20, help="grid side in tiles (20)"
     )
     parser.add_argument(
         "--strategy",
@@ -244,8 +251,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=list(registry.STRATEGIES),
         help="strategy of every slide",
     )
-    parser.add_argument("--noise-um", type=float, default=1.5, help="measurement noise std, um")
-    parser.add_argument("--seed", type=int, default=2000, help="seed of the focus maps")
+    parser.add_argument(
+        "--noise-um",
+        type=finite_number(api.MIN_SIGMA_UM, api.MAX_ABS_UM),  # what the API takes
+        default=1.5,
+        help="measurement noise std, um",
+    )
+    parser.add_argument("--seed", type=seed_number, default=2000, help="seed of the focus maps")
     parser.add_argument(
         "--duration-s",
         type=positive_float,

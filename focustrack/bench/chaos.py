@@ -61,15 +61,26 @@ from typing import Any
 import httpx
 import zenoh
 
-from focustrack.arguments import output_file, output_folder
+from focustrack.arguments import (
+    MAX_COUNT,
+    count_number,
+    finite_number,
+    output_file,
+    output_folder,
+    positive_float,
+    seed_number,
+    whole_number,
+)
 from focustrack.bench import bus_attacks
 from focustrack.bench.json_report import write_json
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
+from focustrack_core.geometry import MAX_GRID_SIDE
 from focustrack_core.v1 import focus_pb2
 from focustrack_core.wire import codec, keys
 from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import open_session
 from focustrack_estimator import registry
+from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 from focustrack_scheduler import outputs
 from focustrack_scheduler.clients import InstrumentClient
 from focustrack_scheduler.retry import RetryPolicy
@@ -84,6 +95,9 @@ MAX_RUNS = 6
 
 #: Scans at most, however long the fault script runs.
 MAX_SCANS = 50
+
+#: The shortest outage of a killed service, s: `--down-max-s` is at least this.
+MIN_DOWN_S = 1.0
 
 #: Ride out a minute without a service: the target is a scan that survives any service's
 #: restart within a minute.
@@ -277,7 +291,7 @@ class FaultScript:
             if self.stop.wait(gap_s) or time.monotonic() - self.started_s > self.duration_s:
                 return
             victim = self.rng.choice(VICTIMS)
-            down_s = self.rng.uniform(1.0, self.down_max_s)
+            down_s = self.rng.uniform(MIN_DOWN_S, self.down_max_s)
             at_s = time.monotonic() - self.started_s
             self.memory.sample(victim)
             self.stack.services[victim].kill()
@@ -330,12 +344,18 @@ def hostile_requests(stack: LocalStack, memory: MemoryWatch, n_slides: int) -> d
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rows", type=int, default=6, help="tile rows of each slide (6)")
-    parser.add_argument("--cols", type=int, default=6, help="tile columns of each slide (6)")
-    parser.add_argument("--size", type=int, default=128, help="frame side in pixels (128)")
+    grid_side = whole_number(1, MAX_GRID_SIDE)
+    parser.add_argument("--rows", type=grid_side, default=6, help="tile rows of each slide (6)")
+    parser.add_argument("--cols", type=grid_side, default=6, help="tile columns of each slide (6)")
+    parser.add_argument(
+        "--size",
+        type=whole_number(1, MAX_FRAME_SIDE_PX),
+        default=128,
+        help="frame side in pixels (128)",
+    )
     parser.add_argument(
         "--scans",
-        type=int,
+        type=count_number,
         default=2,
         help="scans at least, one after the other, and more while the faults go on (2)",
     )
@@ -347,24 +367,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--seed",
-        type=int,
+        type=seed_number,
         default=3,
         help="seed of the fault script (3: its first kills are the estimator, the focus "
         "service, the router)",
     )
-    parser.add_argument("--faults", type=int, default=6, help="kills at most (6)")
     parser.add_argument(
-        "--duration-s", type=float, default=180.0, help="no kill after this long (180 s)"
+        "--faults", type=whole_number(0, MAX_COUNT), default=6, help="kills at most (6)"
     )
     parser.add_argument(
-        "--gap-max-s", type=float, default=10.0, help="longest pause between kills (10 s)"
+        "--duration-s", type=positive_float, default=180.0, help="no kill after this long (180 s)"
     )
     parser.add_argument(
-        "--down-max-s", type=float, default=8.0, help="longest outage of a killed service (8 s)"
+        "--gap-max-s", type=positive_float, default=10.0, help="longest pause between kills (10 s)"
+    )
+    parser.add_argument(
+        "--down-max-s",
+        type=finite_number(MIN_DOWN_S),
+        default=8.0,
+        help=f"longest outage of a killed service, >= {MIN_DOWN_S:g} s (8 s)",
     )
     parser.add_argument(
         "--replay-offset-um",
-        type=float,
+        type=finite_number(),  # the focus may move either way, or not at all
         default=8.0,
         help="the slide's focus moves by this much between the recorded scan and the one "
         "the results are replayed into (8 um)",
@@ -378,7 +403,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--hostile-slides",
-        type=int,
+        type=count_number,
         default=2000,
         help="slides the hostile REST requests create one after another (2000; a quick "
         "run: a dozen)",
@@ -388,12 +413,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if min(args.rows, args.cols, args.size, args.scans, args.hostile_slides) < 1 or args.faults < 0:
-        print(
-            "focustrack bench chaos: error: sizes, --scans and --hostile-slides must be >= 1",
-            file=sys.stderr,
-        )
-        return 2
     instrument_args = [
         "--seed", "1", "--slides", "1", "--rows", str(args.rows),
         "--cols", str(args.cols), "--width", str(args.size), "--height", str(args.size),

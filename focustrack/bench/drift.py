@@ -53,11 +53,13 @@ from typing import Any
 import numpy as np
 
 from focustrack.arguments import (
+    count_number,
     existing_folder,
     finite_number,
     output_file,
     positive_float,
     positive_int,
+    seed_number,
     whole_number,
 )
 from focustrack.bench import frame_check, lateral_drift, stream_ekf
@@ -66,7 +68,7 @@ from focustrack.bench.focus import REAL_DIR
 from focustrack.bench.json_report import write_json
 from focustrack_core.domain import SlideSettings
 from focustrack_core.drift import ThermalDrift
-from focustrack_core.geometry import ScanGrid
+from focustrack_core.geometry import MAX_GRID_SIDE, ScanGrid
 from focustrack_core.laser import LaserSpec, coverslip_offsets
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_core.surfaces import FAMILIES, add_measurement_noise, family_spec, generate_surfaces
@@ -135,17 +137,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The bench's flags, each typed with the range it takes (`focustrack.arguments`):
     a value out of it is refused before any map is drawn."""
     parser.add_argument("--family", default="standard", choices=sorted(FAMILIES))
-    parser.add_argument("--maps", type=positive_int, default=4, help="number of maps (default 4)")
+    parser.add_argument("--maps", type=count_number, default=4, help="number of maps (default 4)")
     parser.add_argument(
-        "--size", type=whole_number(2), default=50, help="tiles per side, >= 2 (default 50)"
+        "--size",
+        type=whole_number(2, MAX_GRID_SIDE),
+        default=50,
+        help="tiles per side, >= 2 (default 50)",
     )
-    # the seeds of numpy's generators are whole numbers from 0
-    parser.add_argument("--seed", type=whole_number(0), default=3000, help="seed (default 3000)")
+    parser.add_argument("--seed", type=seed_number, default=3000, help="seed (default 3000)")
     parser.add_argument(
         "--noise-um", type=positive_float, default=0.1, help="measurement noise (0.1)"
     )
     parser.add_argument("--dof-um", type=positive_float, default=0.89, help="depth of field (0.89)")
-    parser.add_argument(
+    parser.add_argument(  # the drift may settle up or down
         "--settle-um", type=finite_number(), default=2.0, help="drift settling (2 um)"
     )
     parser.add_argument(
@@ -193,7 +197,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--ekf-trials",
-        type=positive_int,
+        type=count_number,
         default=200,
         help="EKF: simulator-shaped streams, and a twentieth of it (at least 1) per real "
         "field (200)",

@@ -36,10 +36,10 @@ import numpy as np
 from tqdm import tqdm
 
 from focustrack.arguments import (
+    count_number,
     existing_folder,
     output_file,
     output_folder,
-    positive_int,
     refuse,
     whole_number,
 )
@@ -304,7 +304,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="fewer stacks, fewer repeats")
     parser.add_argument(
         "--reps",
-        type=positive_int,
+        type=count_number,
         default=None,
         help="stacks per field, size, exposure and stack shape (default 4, quick 1)",
     )

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import zenoh
 
-from focustrack.arguments import output_file, positive_int
+from focustrack.arguments import count_number, output_file, positive_int, seed_number, whole_number
 from focustrack.bench.json_report import write_json
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.v1 import instrument_pb2
@@ -35,6 +35,7 @@ from focustrack_instrument_sim.microscope import (
     MicroscopeSpec,
     slides_from_seed,
 )
+from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 
 ACK_KEY = keys.bench_key("ack")
 MESSAGE_KEY = keys.bench_key("zstack-message")
@@ -42,14 +43,28 @@ RAW_PATTERN = keys.zstack_pattern("bench")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--size", type=positive_int, default=1024, help="frame side in pixels")
-    parser.add_argument("--frames", type=positive_int, default=21, help="frames per stack")
-    parser.add_argument("--stacks", type=int, default=5, help="stacks rendered (cold and warm)")
+    parser.add_argument(
+        "--size",
+        type=whole_number(1, MAX_FRAME_SIDE_PX),
+        default=1024,
+        help="frame side in pixels, even",
+    )
+    parser.add_argument(
+        "--frames",
+        type=whole_number(1, MicroscopeSpec.max_frames),  # the most the microscope takes
+        default=21,
+        help=f"frames per stack, at most {MicroscopeSpec.max_frames}",
+    )
+    parser.add_argument(
+        "--stacks", type=count_number, default=5, help="stacks rendered (cold and warm)"
+    )
     parser.add_argument(
         "--workers", type=positive_int, default=2, help="render threads to compare with 1"
     )
-    parser.add_argument("--repeats", type=int, default=10, help="stacks published per encoding")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--repeats", type=count_number, default=10, help="stacks published per encoding"
+    )
+    parser.add_argument("--seed", type=seed_number, default=0)
     parser.add_argument("--json", type=output_file, help="write the figures to this JSON file")
 
 

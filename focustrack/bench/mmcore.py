@@ -37,13 +37,22 @@ from typing import Any
 import numpy as np
 from pymmcore_plus import CMMCorePlus
 
-from focustrack.arguments import output_file, output_folder
+from focustrack.arguments import (
+    count_number,
+    output_file,
+    output_folder,
+    positive_float,
+    seed_number,
+    whole_number,
+)
 from focustrack.bench.json_report import write_json
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack, stop_on_sigterm
+from focustrack_core.geometry import MAX_GRID_SIDE
 from focustrack_estimator import registry
 from focustrack_instrument_sim.instrument import StackRequest
 from focustrack_instrument_sim.mmcore_backend import MMCoreInstrument, core_from_config
 from focustrack_instrument_sim.mmcore_options import MMCoreOptions
+from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 from focustrack_scheduler.scan import ScanJob, run_scan
 from focustrack_scheduler.settings import ScanOptions
 
@@ -57,9 +66,11 @@ SCAN_FIGURES = ("images_per_tile", "in_focus_fraction", "mae_um", "scan_time_s")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--frames", type=int, default=21, help="planes per stack")
-    parser.add_argument("--stacks", type=int, default=10, help="stacks per kind and mode")
-    parser.add_argument("--exposure-ms", type=float, default=1.0, help="exposure per plane")
+    parser.add_argument("--frames", type=count_number, default=21, help="planes per stack")
+    parser.add_argument("--stacks", type=count_number, default=10, help="stacks per kind and mode")
+    parser.add_argument(
+        "--exposure-ms", type=positive_float, default=1.0, help="exposure per plane"
+    )
     parser.add_argument(
         "--mm-config", type=Path, help="a Micro-Manager configuration (default: the demo's)"
     )
@@ -68,10 +79,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-scan", action="store_true", help="time the planes only")
     # the demo's slide (`focustrack demo`), so that the figures compare with its table
-    parser.add_argument("--rows", type=int, default=10, help="tiles per column of the slide")
-    parser.add_argument("--cols", type=int, default=10, help="tiles per row of the slide")
-    parser.add_argument("--size", type=int, default=512, help="frame side, px")
-    parser.add_argument("--seed", type=int, default=1, help="the slide's seed")
+    grid_side = whole_number(1, MAX_GRID_SIDE)
+    parser.add_argument("--rows", type=grid_side, default=10, help="tiles per column of the slide")
+    parser.add_argument("--cols", type=grid_side, default=10, help="tiles per row of the slide")
+    parser.add_argument(
+        "--size", type=whole_number(1, MAX_FRAME_SIDE_PX), default=512, help="frame side, px"
+    )
+    parser.add_argument("--seed", type=seed_number, default=1, help="the slide's seed")
     parser.add_argument(
         "--strategy",
         default="kf-2d-lean",
@@ -221,12 +235,6 @@ def _error(message: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.frames < 1 or args.stacks < 1 or not args.exposure_ms > 0:
-        _error("--frames and --stacks must be at least 1, --exposure-ms positive")
-        return 2
-    if min(args.rows, args.cols, args.size) < 1:
-        _error("--rows, --cols and --size must be at least 1")
-        return 2
     if args.mm_config is None:
         try:
             config, adapters = _demo()

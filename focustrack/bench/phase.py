@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import sys
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -67,7 +66,7 @@ from typing import Any
 import numpy as np
 from scipy import fft, ndimage
 
-from focustrack.arguments import output_file
+from focustrack.arguments import count_number, output_file, seed_number, whole_number
 from focustrack.bench.focus import REAL_DIR
 from focustrack.bench.json_report import write_json
 from focustrack.bench.phase_speed import SPEED_PLANES, measure_speed
@@ -75,11 +74,14 @@ from focustrack_core.surfaces import SurfaceSpec
 from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_yeast
 from focustrack_instrument_sim.instrument import Purpose
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
+from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 from focustrack_phase import acekf, baselines, simulate
 from focustrack_phase.acekf import FieldEstimate
 from focustrack_phase.background import anchor_to_background
 from focustrack_phase.propagation import frequency_sq_per_um2, phase_transfer_power
 
+#: The smallest image side the benchmark takes, px.
+MIN_SIDE_PX = 16
 COHERENCE_CONDENSER_NA = 0.05
 COHERENCE_GAMMA = 100.0
 COHERENCE_Z_UM = np.arange(1, 51) * 1.0
@@ -683,13 +685,20 @@ def write_images(path: Path, images: dict[str, np.ndarray]) -> None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=output_file, metavar="OUT", help="write the scores as JSON")
     parser.add_argument("--sweep", action="store_true", help="also sweep gamma and planes")
-    parser.add_argument("--seed", type=int, default=1, help="the object's seed (default 1)")
+    parser.add_argument("--seed", type=seed_number, default=1, help="the object's seed (default 1)")
+    image_side_px = whole_number(MIN_SIDE_PX, MAX_FRAME_SIDE_PX)
     parser.add_argument(
-        "--size-px", type=int, default=simulate.DATA_SET_1_SIZE_PX, help="image side (100)"
+        "--size-px",
+        type=image_side_px,
+        default=simulate.DATA_SET_1_SIZE_PX,
+        help=f"image side, >= {MIN_SIDE_PX} (100)",
     )
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per method (5)")
+    parser.add_argument("--repeats", type=count_number, default=5, help="timed runs per method (5)")
     parser.add_argument(
-        "--speed-size-px", type=int, default=2048, help="image side of the speed run (2048)"
+        "--speed-size-px",
+        type=image_side_px,
+        default=2048,
+        help=f"image side of the speed run, >= {MIN_SIDE_PX} (2048)",
     )
     parser.add_argument(
         "--real-dir", type=Path, default=REAL_DIR,
@@ -698,12 +707,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.size_px < 16 or args.repeats < 1 or args.speed_size_px < 16:
-        print(
-            "focustrack bench phase: error: --size-px and --speed-size-px >= 16, --repeats >= 1",
-            file=sys.stderr,
-        )
-        return 2
     print("Data Set 1 (gamma 0.998, 100 planes)...", flush=True)
     rows, phases, truth = score_setting(
         simulate.DATA_SET_1_GAMMA, simulate.DATA_SET_1_PLANES, args.seed, args.size_px,

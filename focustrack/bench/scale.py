@@ -50,8 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.arguments import output_file, positive_int
+from focustrack.arguments import output_file, positive_int, whole_number
 from focustrack.bench.json_report import write_json
+from focustrack_core.geometry import MAX_GRID_SIDE
 from focustrack_core.rest import to_api, to_domain
 from focustrack_core.rest.to_domain import default_settings
 from focustrack_estimator import registry
@@ -259,7 +260,9 @@ def _child(arguments: list[str]) -> dict[str, Any]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", type=positive_int, nargs="+", default=list(DEFAULT_SIZES))
+    parser.add_argument(
+        "--sizes", type=whole_number(1, MAX_GRID_SIDE), nargs="+", default=list(DEFAULT_SIZES)
+    )
     parser.add_argument(
         "--strategies",
         nargs="+",
@@ -272,7 +275,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--snapshot-every", type=positive_int, default=200)
     parser.add_argument(
         "--unsnapshotted",
-        type=int,
+        type=whole_number(0),
         default=150,
         help="measurements after the last snapshot when the server is killed",
     )

@@ -38,18 +38,28 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.arguments import output_file, output_folder
+from focustrack.arguments import (
+    finite_number,
+    output_file,
+    output_folder,
+    seed_number,
+    whole_number,
+)
 from focustrack.bench.json_report import write_json
 from focustrack.demo import scan_on, slide_problem
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
 from focustrack.slide_scores import scored_scan
+from focustrack_core.geometry import MAX_GRID_SIDE
 from focustrack_core.surfaces import FAMILIES
 from focustrack_estimator import registry
+from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
 DEFAULT_STRATEGIES = (BEST_KALMAN, "kf-2d-lean", "survey-delaunay", "af-every-tile")
 #: Kalman strategies: the best of them is held to the targets.
 KALMAN_PREFIX = "kf-"
+#: The smallest frame side the bench takes, px: tissue and dust to score need some pixels.
+MIN_SIZE_PX = 64
 
 
 @dataclass(frozen=True)
@@ -88,11 +98,21 @@ def combine(parts: list[dict[str, Any]]) -> SlideScore:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2], help="slides' seeds (1 2)")
-    parser.add_argument("--rows", type=int, default=10, help="tile rows (10)")
-    parser.add_argument("--cols", type=int, default=10, help="tile columns (10)")
-    parser.add_argument("--size", type=int, default=256, help="frame side in pixels (256)")
-    parser.add_argument("--overlap", type=float, default=0.1, help="tiles' overlap (0.1)")
+    parser.add_argument(
+        "--seeds", type=seed_number, nargs="+", default=[1, 2], help="slides' seeds (1 2)"
+    )
+    grid_side = whole_number(2, MAX_GRID_SIDE)
+    parser.add_argument("--rows", type=grid_side, default=10, help="tile rows, >= 2 (10)")
+    parser.add_argument("--cols", type=grid_side, default=10, help="tile columns, >= 2 (10)")
+    parser.add_argument(
+        "--size",
+        type=whole_number(MIN_SIZE_PX, MAX_FRAME_SIDE_PX),
+        default=256,
+        help=f"frame side in pixels, even, >= {MIN_SIZE_PX} (256)",
+    )
+    parser.add_argument(  # its range is the simulator's, checked by `slide_problem`
+        "--overlap", type=finite_number(), default=0.1, help="tiles' overlap (0.1)"
+    )
     parser.add_argument(
         "--family", default="standard", choices=list(FAMILIES),
         help="map family of the section (standard)",
@@ -131,8 +151,6 @@ def scan_slide(
 
 def run(args: argparse.Namespace) -> int:
     problem = slide_problem(args)
-    if problem is None and (min(args.rows, args.cols) < 2 or args.size < 64):
-        problem = "a grid below 2x2 or frames below 64 px"
     if problem is not None:  # said before any stack starts
         print(f"focustrack bench slide: error: {problem}", file=sys.stderr)
         return 2

@@ -37,7 +37,7 @@ from pathlib import Path
 import httpx
 import zenoh
 
-from focustrack.arguments import output_file
+from focustrack.arguments import count_number, output_file
 from focustrack.bench.json_report import write_json
 from focustrack_core.health import instrument_answers
 from focustrack_core.wire.session import free_port, loopback_endpoint, open_session
@@ -53,7 +53,7 @@ THIS = "this checkout"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=int, default=5, help="starts per service (5)")
+    parser.add_argument("--runs", type=count_number, default=5, help="starts per service (5)")
     parser.add_argument(
         "--compare",
         type=Path,
@@ -191,9 +191,6 @@ def measure(pythons: dict[str, Path], runs: int) -> dict[str, dict[str, dict[str
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.runs < 1:
-        print("focustrack bench startup: --runs must be at least 1", file=sys.stderr)
-        return 2
     pythons = {THIS: Path(sys.executable)}
     if args.compare is not None:
         if not args.compare.is_file():

@@ -46,7 +46,6 @@ import json
 import multiprocessing
 import socket
 import statistics
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -56,12 +55,19 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from focustrack.arguments import output_file
+from focustrack.arguments import (
+    MAX_COUNT,
+    count_number,
+    output_file,
+    positive_float,
+    whole_number,
+)
 from focustrack.bench.json_report import write_json
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import codec, keys, session
 from focustrack_focus.pipeline import FocusSettings
 from focustrack_focus.service import FrameAnalyser
+from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 
 TRANSPORT_SLIDE = "bench-transport"  # stacks the child only receives
 FOCUS_SLIDE = "bench-focus"  # stacks the child also runs the focus analysis on
@@ -80,11 +86,21 @@ FOCUS_MAX_LATENCY_S = 0.020
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--size", type=int, default=2048, help="frame side in pixels (2048)")
-    parser.add_argument("--frames", type=int, default=21, help="frames per stack (21)")
-    parser.add_argument("--stacks", type=int, default=10, help="stacks sent per path (10)")
     parser.add_argument(
-        "--fps", type=float, default=100.0, help="camera frame rate of the focus run (100)"
+        "--size",
+        type=whole_number(1, MAX_FRAME_SIDE_PX),
+        default=2048,
+        help="frame side in pixels (2048)",
+    )
+    parser.add_argument(
+        "--frames",
+        type=whole_number(3, MAX_COUNT),  # the focus run fits a curve to 3 frames at least
+        default=21,
+        help="frames per stack, >= 3 (21)",
+    )
+    parser.add_argument("--stacks", type=count_number, default=10, help="stacks sent per path (10)")
+    parser.add_argument(
+        "--fps", type=positive_float, default=100.0, help="camera frame rate of the focus run (100)"
     )
     parser.add_argument(
         "--json",
@@ -372,10 +388,6 @@ def _line(report: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    if min(args.size, args.frames - 2, args.stacks, args.fps) <= 0:
-        print("focustrack bench transport: error: --size, --stacks, --fps must be positive "
-              "and --frames at least 3", file=sys.stderr)  # fmt: skip
-        return 2
     frames = _random_frames(args.size, args.frames)
     stack_bytes = sum(frame.nbytes for frame in frames)
     copy_s = memcpy_s(frames)

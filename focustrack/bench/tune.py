@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from focustrack.arguments import output_folder, positive_int
+from focustrack.arguments import count_number, output_folder, positive_float, positive_int
 from focustrack.bench.strategies import create, parameters
 from focustrack_core.domain import ZRangePolicy
 from focustrack_core.geometry import ScanGrid
@@ -282,9 +282,9 @@ def plot_k_sigma(results: dict[str, dict[str, Any]], path: Path) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seeds", type=positive_int, default=5, help="training seeds 0..N-1")
-    parser.add_argument("--maps-per-seed", type=int, default=16)
-    parser.add_argument("--noise-um", type=float, default=1.5)
+    parser.add_argument("--seeds", type=count_number, default=5, help="training seeds 0..N-1")
+    parser.add_argument("--maps-per-seed", type=count_number, default=16)
+    parser.add_argument("--noise-um", type=positive_float, default=1.5)
     parser.add_argument(
         "--strategies", nargs="+", default=list(SEARCH_SPACE), choices=list(SEARCH_SPACE)
     )
