@@ -85,12 +85,11 @@ def guarded_app(
     """A FastAPI app that refuses a request under ``/v1`` without `token` as its bearer
     token (401, before its body is read; None: open), one under `bounded_prefix` beyond
     `max_concurrent` under way there (503 with Retry-After, before its body is read; None:
-    no bound), a body over
-    `max_upload_bytes` (413) or slower than `body_timeout_s` to arrive (408), answers
-    invalid requests with the quoted 422, counts and times every request into `metrics`,
-    served at ``GET /metrics`` (Prometheus text, no token: as ``/healthz``), and serves
-    each in a span of the caller's trace (`TraceRequests`). Its routes declare the token
-    with `bearer_scheme`."""
+    no bound), a body over `max_upload_bytes` (413) or slower than `body_timeout_s` to
+    arrive (408), answers invalid requests with the quoted 422, counts and times every
+    request into `metrics`, served at ``GET /metrics`` (Prometheus text, no token: as
+    ``/healthz``), and serves each in a span of the caller's trace (`TraceRequests`). Its
+    routes declare the token with `bearer_scheme`."""
     app = FastAPI(
         title=title,
         version="1",

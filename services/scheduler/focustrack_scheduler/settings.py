@@ -194,7 +194,7 @@ class ScanOptions(ServiceSettings):
         `--phase`, which they change nothing without."""
         if self.phase:
             return []
-        given = self.model_fields_set & set(_PHASE_OPTIONS)
+        given = self.model_fields_set
         return [f"--{name.replace('_', '-')}" for name in _PHASE_OPTIONS if name in given]
 
     def retry(self) -> RetryPolicy:
