@@ -209,13 +209,16 @@ class PhaseScores:
     """The phase pass against the simulator's truth, one value per tile with phase.
 
     correlations: of the tile's phase with the true phase, periods over about 6 um
-        removed (`focustrack.bench.phase.high_pass_correlation`).
+        removed (`focustrack.bench.phase.high_pass_correlation`); none for a tile of bare
+        glass (its true phase is 0 throughout: nothing to correlate with).
     glass_rad: the tile's mean phase (rad) where the slide is empty glass (true phase 0):
         zero when the phase is anchored to the background, as the services do by default.
+    bare_glass_tiles: tiles with phase and no cell in view.
     """
 
     correlations: list[float]
     glass_rad: list[float]
+    bare_glass_tiles: int
 
 
 def phase_pass(
@@ -243,6 +246,7 @@ def phase_pass(
         report = scan_on(stack, options, request, scan_dir, PHASE_PASS, live)
     correlations: list[float] = []
     glass_rad: list[float] = []
+    bare_glass_tiles = 0
     scope = microscope_from_options(simulator)
     try:
         for row in range(PHASE_PASS_TILES):
@@ -252,13 +256,16 @@ def phase_pass(
                     continue
                 phase_rad = np.load(file)[0].astype(np.float64)
                 true_rad = scope.true_phase(SLIDE, row, col).phase_rad
-                correlations.append(high_pass_correlation(phase_rad, true_rad))
                 glass = np.abs(true_rad) < GLASS_PHASE_RAD
+                if glass.all():
+                    bare_glass_tiles += 1
+                else:
+                    correlations.append(high_pass_correlation(phase_rad, true_rad))
                 if glass.any():
                     glass_rad.append(float(np.mean(phase_rad[glass])))
     finally:
         scope.close()
-    return report, PhaseScores(correlations, glass_rad)
+    return report, PhaseScores(correlations, glass_rad, bare_glass_tiles)
 
 
 def phase_line(report: dict[str, Any], scores: PhaseScores) -> str:
@@ -271,6 +278,8 @@ def phase_line(report: dict[str, Any], scores: PhaseScores) -> str:
             f"correlation with the true phase median {np.median(scores.correlations):.2f}, "
             f"lowest {min(scores.correlations):.2f}"
         )
+    if scores.bare_glass_tiles:
+        accuracy += f" ({scores.bare_glass_tiles} of bare glass left out)"
     if scores.glass_rad:
         farthest = max(scores.glass_rad, key=abs)
         accuracy += f"; the glass at {farthest:+.2f} rad at most"

@@ -23,14 +23,19 @@ def test_the_wall_time_table_shows_phase_only_for_scans_that_took_it() -> None:
     assert "phase" not in plain and plain.splitlines()[0].split()[-1] == "total"
     with_phase = wall_time_table({"kf-2d": report(1.5, 6, 66)})
     assert with_phase.splitlines()[0].split()[-3:] == ["phase", "scheduler", "total"]
-    scores = PhaseScores([0.97, 0.93, 0.99], [0.004, -0.012, 0.003])
+    scores = PhaseScores([0.97, 0.93, 0.99], [0.004, -0.012, 0.003], 0)
     line = phase_line(report(1.5, 5, 66) | {"in_focus_fraction": 1.0}, scores)
     assert line.startswith("Phase pass (unstained red cells, 2x3 tiles, focus at the contrast")
     assert "6 of 6 tiles in focus, 5 with phase, 66 phase frames" in line
     assert line.endswith(
         "correlation with the true phase median 0.97, lowest 0.93; the glass at -0.01 rad at most"
     )
-    none = phase_line(report(1.5, 0, 66) | {"in_focus_fraction": 0.5}, PhaseScores([], []))
+    none = phase_line(report(1.5, 0, 66) | {"in_focus_fraction": 0.5}, PhaseScores([], [], 0))
     assert none.endswith(
         "3 of 6 tiles in focus, 0 with phase, 66 phase frames, no phase to compare"
+    )
+    # a tile of bare glass has no cell to correlate with: left out, and said
+    glass = PhaseScores([0.97, 0.99], [0.004, -0.002, 0.003], 1)
+    assert phase_line(report(1.5, 3, 66) | {"in_focus_fraction": 1.0}, glass).endswith(
+        "median 0.98, lowest 0.97 (1 of bare glass left out); the glass at +0.00 rad at most"
     )

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from focustrack_core.domain import FocusFlag
+from focustrack_focus.peak import PeakMode, PeakSettings
 from focustrack_focus.pipeline import FocusSettings, FrameByFrame, focus_stack
 from focustrack_focus.preprocess import Preprocess, lowpass_sigma_for_optics
 from focustrack_instrument_sim.microscope import Microscope
@@ -68,3 +69,35 @@ def test_a_look_tells_empty_glass_from_tissue_at_any_defocus(seed: int) -> None:
     # a sliver of tissue (under the 0.2% the truth calls empty) may pass for glass or not;
     # more never does, at any of these distances
     assert not called_empty[~truth.empty].any()
+
+
+def test_a_look_at_unstained_cells_in_focus_is_not_called_empty_in_valley_mode() -> None:
+    """An unstained smear has no stain for the look to see: in max mode every look at its
+    red cells in focus reads empty (a scan then gives up each such tile unmeasured, and the
+    glass it believes in spreads to the neighbours' looks); in valley mode, the mode for
+    such specimens, no look is empty and each tile's stack decides."""
+    options = SimulatorOptions(
+        seed=0, slides=1, rows=4, cols=4, width=256, height=256, specimen="phase-blood"
+    )
+    microscope = microscope_from_options(options)
+    slide = microscope.slides["slide-0"]
+    optics = microscope.spec.optics
+    preprocess = Preprocess(
+        lowpass_sigma_px=lowpass_sigma_for_optics(optics.pixel_size_um, optics.numerical_aperture)
+    )
+    max_mode = FocusSettings(preprocess)
+    valley_mode = FocusSettings(preprocess, peak=PeakSettings(mode=PeakMode.VALLEY))
+    for row in range(slide.grid.rows):
+        for col in range(slide.grid.cols):
+            z_um = float(slide.focus_um[row, col])
+            plan = microscope.plan("slide-0", row, col, z_um, 0.5, 1)
+            frame = next(iter(microscope.render(plan)))[None]
+            assert focus_stack(frame, np.array([z_um]), max_mode).flags == {
+                FocusFlag.EMPTY,
+                FocusFlag.FLAT,
+            }
+            valley = focus_stack(frame, np.array([z_um]), valley_mode)
+            assert valley.flags == frozenset() and valley.best_z_um is None
+            curve = FrameByFrame(np.array([z_um]), valley_mode)  # the Zenoh path alike
+            curve.add(0, frame[0])
+            assert curve.result().flags == frozenset()

@@ -5,6 +5,11 @@
   at focus between two maxima, below the contrast of the far-out frames. A maximum-
   contrast reading of it lands one or two depths of field away; the curve is flagged
   `valley` (with `ambiguous`), and the minimum's z is given as the runner-up.
+- The frames between a valley's two maxima (`twin_maxima`): read in valley mode, a curve
+  far wider than the defocus contrast (a first tile's coarse search) falls again beyond
+  its two maxima, and turned upside down those far-out frames rise towards the ends like
+  a peak beyond the window. The valley mode reads the frames from one maximum to the
+  other, where the focus lies.
 - An oversampled curve's sigma floor (`oversampled_floor_um`): where frames are far
   closer than the optics' depth of field, the fit's sub-step precision (a fraction of a
   tiny step) says nothing of how far the metric's own peak lies from the true focus,
@@ -90,6 +95,29 @@ def phase_valley(z: np.ndarray, s: np.ndarray) -> float | None:
     if z[right_edge] - z[left_edge] > VALLEY_WIDTH_SHARE * (z[right_top] - z[left_top]):
         return None
     return float(z[low])
+
+
+def twin_maxima(s: np.ndarray) -> tuple[int, int] | None:
+    """The first and last index of the frames from one maximum of a valley to the other, or
+    None where the curve s (n,) has no such valley (module docstring).
+
+    One maximum is the highest frame; the other is the frame, on either side of it, over
+    which the curve dipped deepest between the two (the depth measured below the lower of
+    them). A valley must sink at least `VALLEY_RISE_SHARE` of the curve's range: a short
+    stack on one side of the focus has none, and one about it, the V alone, is read whole
+    (its end frames are its maxima)."""
+    top = int(np.argmax(s))
+    deepest, other = 0.0, top
+    for step in (1, -1):  # outward from the top on each side
+        side = s[top::step]
+        # at each frame: how far the curve dipped on its way there, below the lower end
+        depth = np.minimum(side[0], side) - np.minimum.accumulate(side)
+        far = int(np.argmax(depth))
+        if depth[far] > deepest:
+            deepest, other = float(depth[far]), top + step * far
+    if deepest <= 0.0 or deepest < VALLEY_RISE_SHARE * float(s.max() - s.min()):
+        return None
+    return min(top, other), max(top, other)
 
 
 def oversampled_floor_um(step_um: float, min_peak_sigma_um: float) -> float:

@@ -31,6 +31,12 @@ with 0.2% to 1% of their area in section 266 and more within 4 um of focus and 2
 checks seeds 3 and 4, glass with its dust in focus included). A tissue tile taken for glass
 would be imaged unmeasured, a glass tile taken for tissue costs a stack: the threshold lies
 nearer the glass.
+
+An unstained specimen (cells in culture, a smear's red cells read for phase) has no stain:
+no colour at any defocus (a colour look reads it as grey dust), and in focus, where a
+look is taken, hardly any contrast at all (a monochrome look reads it as glass there). So
+the focus service reading peaks in valley mode, as for such specimens, never calls a look
+empty (`pipeline.look_result`).
 """
 
 from __future__ import annotations

@@ -84,6 +84,7 @@ from focustrack_focus.curve_checks import (
     phase_valley,
     shoulder,
     tied_with_end,
+    twin_maxima,
     uniform_sigma_um,
 )
 from focustrack_focus.despike import despike
@@ -335,6 +336,9 @@ def find_peak(
     """
     settings = settings or PeakSettings()
     z, s = validate_curve(z_um, scores)
+    if settings.mode is PeakMode.VALLEY and (between := twin_maxima(s)) is not None:
+        first, last = between
+        z, s = z[first : last + 1], s[first : last + 1]
     # read on a scale of 1, the same for any scale of scores: scores of 1e-160 squared in
     # the fit's weights underflow to a singular matrix
     s = s / (float(np.abs(s).max()) or 1.0)

@@ -18,7 +18,7 @@ from focustrack_focus.layers import layers_sigma_um
 from focustrack_focus.look import MIN_LOOK_SNR, look_snr
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
 from focustrack_focus.pair import read_pair
-from focustrack_focus.peak import PeakFit, PeakSettings, find_peak, validate_curve
+from focustrack_focus.peak import PeakFit, PeakMode, PeakSettings, find_peak, validate_curve
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import structure_snr
 
@@ -245,8 +245,12 @@ def look_result(
 ) -> FocusResult:
     """The answer to a look, one frame at z_um (1,) with its score (1,): no focus (one frame
     has no curve), and flat and empty where its stain test (`look.look_snr`, `snr`)
-    sees nothing in view; no flag where it does (a stack there will find the focus)."""
-    empty = snr < MIN_LOOK_SNR
+    sees nothing in view; no flag where it does (a stack there will find the focus).
+
+    Never empty when the peak is read in valley mode, as for unstained specimens: the stain
+    test cannot see them (`look` says why), so a look cannot tell their cells from glass;
+    the stack that follows can (`structure.structure_snr`)."""
+    empty = snr < MIN_LOOK_SNR and settings.peak.mode is not PeakMode.VALLEY
     return FocusResult(
         z_um=z_um,
         scores=scores,

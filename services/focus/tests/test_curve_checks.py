@@ -19,6 +19,7 @@ from focustrack_focus.curve_checks import (
     oversampled_floor_um,
     phase_valley,
     tied_with_end,
+    twin_maxima,
     uniform_sigma_um,
 )
 from focustrack_focus.despike import despike
@@ -61,6 +62,57 @@ def test_the_real_unstained_yeast_is_recognised_as_a_valley(metric: str) -> None
     assert {FocusFlag.VALLEY, FocusFlag.AMBIGUOUS} <= result.flags
     assert result.runner_up_z_um is not None
     assert abs(result.runner_up_z_um / 0.3 - YEAST_FOCUS_PLANE) <= 1.0  # within a frame
+
+
+#: Two scans' first stacks on the simulator's unstained red cells (4 um steps from -24 to
+#: 24 um, Tenengrad; focus at -0.08 um on both tiles): far out of focus the defocus contrast
+#: fades again, so each end frame is low (seed 2's ends lower than the far side of the
+#: valley's own maxima by little; seed 0's far end the curve's lowest frame).
+COARSE_Z_UM = np.arange(-24.0, 24.1, 4.0)
+COARSE_UNSTAINED = {
+    0: [0.014, 0.0171, 0.017, 0.028, 0.0527, 0.046, 0.01256, 0.0517, 0.032, 0.0206, 0.0158,
+        0.0105, 0.00703],
+    2: [0.0117, 0.0144, 0.0135, 0.0216, 0.0436, 0.043, 0.0004, 0.0431, 0.0315, 0.0187, 0.0164,
+        0.0116, 0.0077],
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", sorted(COARSE_UNSTAINED))
+def test_a_coarse_stack_read_as_a_valley_finds_the_minimum_between_its_maxima(seed: int) -> None:
+    scores = np.array(COARSE_UNSTAINED[seed])
+    assert twin_maxima(scores) == (4, 7)  # -8 and 4 um, the valley at 0 between them
+    fit = find_peak(COARSE_Z_UM, scores, PeakSettings(mode=PeakMode.VALLEY))
+    # read whole, turned upside down, its fading ends rose like a peak beyond the window
+    # (seed 2: 24 um, edge_high) or its noise looked too large for any peak (seed 0: flat)
+    assert fit.z_um is not None and abs(fit.z_um + 0.08) < 0.5, fit
+    assert fit.sigma_um is not None and fit.sigma_um > abs(fit.z_um + 0.08)
+    assert not fit.flags
+
+
+def test_only_a_dip_of_half_the_range_between_two_maxima_is_a_valley_to_crop_to() -> None:
+    z = np.arange(-3.0, 3.01, 0.5)
+    v_alone = np.abs(z) + 0.1  # a short stack about the focus: the V, its ends its maxima
+    assert twin_maxima(v_alone) == (0, z.size - 1)  # read whole
+    assert twin_maxima(z + 5.0) is None  # one side of it
+    assert twin_maxima(0.05 + gaussian(z, 0.0, 1.0)) is None  # a stained specimen's peak
+    shallow = 1.0 - 0.15 * gaussian(z, 0.0, 0.5) - 0.5 * gaussian(np.abs(z), 3.0, 0.5)
+    assert twin_maxima(shallow) is None  # a dip of under half the range (the ends lower)
+    fading = np.abs(z) * np.exp(-np.abs(z) / 1.5)  # maxima at +-1.5 um, fading beyond
+    assert twin_maxima(fading) == (3, 9)
+    valley = find_peak(z, fading, PeakSettings(mode=PeakMode.VALLEY))
+    assert valley.z_um == pytest.approx(0.0, abs=0.05) and not valley.flags
+
+
+@needs_real
+@pytest.mark.parametrize("metric", ["tenengrad", "brenner", "vollath_f4"])
+def test_the_real_unstained_yeast_read_as_a_valley_is_in_focus(metric: str) -> None:
+    frames, z_um = load_yeast(REAL / "yeast_brightfield_zstack")
+    valley = PeakSettings(mode=PeakMode.VALLEY)
+    result = focus_stack(frames, z_um, FocusSettings(metric=metric, peak=valley))
+    assert not result.flags  # the faded far-out frames are no second peak
+    assert result.best_z_um is not None and result.sigma_um is not None
+    assert abs(result.best_z_um / 0.3 - YEAST_FOCUS_PLANE) <= 1.0  # within a frame
+    assert abs(result.best_z_um - 0.3 * YEAST_FOCUS_PLANE) < 2.0 * result.sigma_um
 
 
 @needs_real
