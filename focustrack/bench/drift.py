@@ -58,7 +58,6 @@ from focustrack.arguments import (
     finite_number,
     output_file,
     positive_float,
-    positive_int,
     seed_number,
     whole_number,
 )
@@ -180,7 +179,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="second pass: xy offset, a distance >= 0 in a random direction (5 um)",
     )
     parser.add_argument(
-        "--lateral-tiles", type=positive_int, default=8, help="second pass: tiles correlated (8)"
+        "--lateral-tiles", type=count_number, default=8, help="second pass: tiles correlated (8)"
     )
     parser.add_argument(
         "--frame-check-ratio",
@@ -191,7 +190,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--check-textures",
-        type=positive_int,
+        type=count_number,
         default=8,
         help="second pass: the simulator's tiles the first-frame check's frames show (8)",
     )

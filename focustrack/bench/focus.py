@@ -41,6 +41,7 @@ from focustrack.arguments import (
     output_file,
     output_folder,
     refuse,
+    seed_number,
     whole_number,
 )
 from focustrack.bench import focus_real
@@ -310,7 +311,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--seed",
-        type=whole_number(0),  # numpy's generators take whole numbers from 0
+        type=seed_number,
         default=1,
         help="simulation seed (default 1; the sigma model was fitted on seeds 100-102)",
     )

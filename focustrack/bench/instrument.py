@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import zenoh
 
-from focustrack.arguments import count_number, output_file, positive_int, seed_number, whole_number
+from focustrack.arguments import count_number, output_file, seed_number, whole_number
 from focustrack.bench.json_report import write_json
 from focustrack_core.surfaces import SurfaceSpec
 from focustrack_core.v1 import instrument_pb2
@@ -40,6 +40,10 @@ from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 ACK_KEY = keys.bench_key("ack")
 MESSAGE_KEY = keys.bench_key("zstack-message")
 RAW_PATTERN = keys.zstack_pattern("bench")
+
+
+#: The most render threads compared with one (more than a machine's cores show nothing more).
+MAX_WORKERS = 256
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +63,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--stacks", type=count_number, default=5, help="stacks rendered (cold and warm)"
     )
     parser.add_argument(
-        "--workers", type=positive_int, default=2, help="render threads to compare with 1"
+        "--workers",
+        type=whole_number(1, MAX_WORKERS),
+        default=2,
+        help=f"render threads to compare with 1, at most {MAX_WORKERS}",
     )
     parser.add_argument(
         "--repeats", type=count_number, default=10, help="stacks published per encoding"

@@ -259,6 +259,10 @@ def _child(arguments: list[str]) -> dict[str, Any]:
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
+#: The most cases run at once (each a process with its own estimator).
+MAX_JOBS = 64
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sizes", type=whole_number(1, MAX_GRID_SIDE), nargs="+", default=list(DEFAULT_SIZES)
@@ -279,7 +283,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=150,
         help="measurements after the last snapshot when the server is killed",
     )
-    parser.add_argument("--jobs", type=positive_int, default=2, help="cases run at once")
+    parser.add_argument(
+        "--jobs",
+        type=whole_number(1, MAX_JOBS),
+        default=2,
+        help=f"cases run at once, at most {MAX_JOBS}",
+    )
     parser.add_argument("--json", type=output_file, metavar="OUT", help="write the figures as JSON")
     parser.add_argument(
         "--plot",

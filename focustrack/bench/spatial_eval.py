@@ -18,7 +18,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from focustrack.arguments import output_file
+from focustrack.arguments import count_number, output_file, seed_number
 from focustrack.bench import strategies as registry
 from focustrack.bench.accuracy import format_table
 from focustrack_core.geometry import ScanGrid
@@ -104,8 +104,8 @@ def plot(scores: dict[str, Scores], path: Path, title: str) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--maps", type=int, default=16)
-    parser.add_argument("--seed", type=int, default=1000)
+    parser.add_argument("--maps", type=count_number, default=16)
+    parser.add_argument("--seed", type=seed_number, default=1000)
     parser.add_argument("--family", default="standard")
     parser.add_argument("--noise-um", type=float, default=1.5)
     parser.add_argument("--strategies", default=",".join(DEFAULT_NAMES))
