@@ -124,7 +124,7 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--seed", "-1", "--quick"], "argument --seed: must be at least 0, got -1"),
+        (["--seed", "-1", "--quick"], "argument --seed: must be in [0, 4294967295], got -1"),
         (["--real", "--real-dir", "/nonexistent"], "argument --real-dir: /nonexistent is not"),
         (
             ["--real", "--calibrate-on", "odd", "--folds", "1"],
