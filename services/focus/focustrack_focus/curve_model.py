@@ -43,7 +43,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from focustrack_core.domain import CURVE_LEARN_FRAMES, CURVE_SPREAD_CURVES, FocusFlag
-from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, score_noise
+from focustrack_focus.curve_checks import twin_maxima
+from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, PeakMode, score_noise
 
 #: Stacks of at most this many frames are read with the model (when it is ready).
 SHORT_MAX_FRAMES = 3
@@ -59,6 +60,31 @@ MAX_RESIDUAL_SIGMAS = 4.0
 #: The relative score noise never counts as less than this (a noiseless simulator curve
 #: would otherwise give a sigma of zero).
 MIN_NOISE_SHARE = 1e-3
+
+
+def as_modelled(
+    z_um: np.ndarray, scores: np.ndarray, mode: PeakMode
+) -> tuple[np.ndarray, np.ndarray]:
+    """A curve, z (n,) in um ascending and scores (n,), as the model reads it: a peak.
+
+    MAX: as it is. VALLEY (an unstained specimen): the frames from one of the valley's
+    maxima to the other (`curve_checks.twin_maxima`; all of them where it has none), each
+    score's reciprocal. Near focus a phase object's contrast grows as the square of the
+    defocus, s = s0 + k (z - mu)**2, whose reciprocal is this model's peak: a Lorentzian of
+    half width sqrt(s0 / k) on no background. Unlike the curve turned upside down, as
+    `peak.find_peak` reads a valley on its own, the reciprocal does not depend on the
+    frames' range, so one stack's shape holds for the next. Scores not all above zero (a
+    metric that can go negative on noise) are turned upside down all the same: max - s +
+    span.
+    """
+    if mode is PeakMode.MAX:
+        return z_um, scores
+    if (between := twin_maxima(scores)) is not None:
+        first, last = between
+        z_um, scores = z_um[first : last + 1], scores[first : last + 1]
+    if np.all(scores > 0):
+        return z_um, 1.0 / scores
+    return z_um, float(scores.max()) - scores + float(scores.max() - scores.min())
 
 
 def lorentzian(z_um: np.ndarray, mu_um: float, gamma_um: float, background: float) -> np.ndarray:

@@ -13,12 +13,23 @@ import numpy as np
 from focustrack_core.domain import MAX_ABS_Z_UM, PAIR_FRAMES, FocusFlag, Measurement, Prior
 from focustrack_focus import filters
 from focustrack_focus.agreement import agreed_peak, agreement_scores
-from focustrack_focus.curve_model import SHORT_MAX_FRAMES, CurveModel, fit_short_stack
+from focustrack_focus.curve_model import (
+    SHORT_MAX_FRAMES,
+    CurveModel,
+    as_modelled,
+    fit_short_stack,
+)
 from focustrack_focus.layers import layers_sigma_um
 from focustrack_focus.look import MIN_LOOK_SNR, look_snr
 from focustrack_focus.metrics import DEFAULT_METRIC, METRICS, get_metric
 from focustrack_focus.pair import read_pair
-from focustrack_focus.peak import PeakFit, PeakMode, PeakSettings, find_peak, validate_curve
+from focustrack_focus.peak import (
+    PeakFit,
+    PeakMode,
+    PeakSettings,
+    find_peak,
+    validate_curve,
+)
 from focustrack_focus.preprocess import Preprocess
 from focustrack_focus.structure import structure_snr
 
@@ -164,12 +175,13 @@ def focus_from_curve(
         fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
     else:
         fit = find_peak(z, s, settings.peak, prior)
+        peak_z, peak_s = as_modelled(z, s, settings.peak.mode)  # as the slide's curve reads
         if curve is not None and curve.ready and z.size <= SHORT_MAX_FRAMES:
-            fit = fit_short_stack(z, s, curve, fit)
+            fit = fit_short_stack(peak_z, peak_s, curve, fit)
         if curve is not None and fit.z_um is not None and fit.sigma_um is not None:
             # a top broader than the slide's: two layers (a fold), the vertex between them
             layers_um = layers_sigma_um(
-                curve.top_widths_um, z, s, fit.z_um, beside_layers=beside_layers
+                curve.top_widths_um, peak_z, peak_s, fit.z_um, beside_layers=beside_layers
             )
             fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
     return _answer(z, s, fit, settings, started_s, prior)
@@ -227,15 +239,17 @@ def pair_result(
     """The answer to a pair, two frames at z_um (2,) with their scores (2,): flat and empty
     where the structure test (`snr`) sees nothing in view; else the peak their scores' ratio
     gives with the slide's learnt curve (`pair.read_pair`), or without one an edge flag
-    towards the higher frame (a retry continues that way)."""
+    towards the higher frame as the curve reads it (`curve_model.as_modelled`: the lower one
+    in valley mode; a retry continues that way)."""
     order = np.argsort(z_um)
     z, s = z_um[order], scores[order]
+    peak_s = as_modelled(z, s, settings.peak.mode)[1]  # two frames: no valley to crop to
     if snr < settings.min_structure_snr:
         fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
     elif curve is not None and curve.ready:
-        fit = read_pair(z, s, curve)
+        fit = read_pair(z, peak_s, curve)
     else:
-        higher = int(np.argmax(s))
+        higher = int(np.argmax(peak_s))
         fit = PeakFit(float(z[higher]), None, frozenset({_PAIR_EDGES[higher]}))
     return _answer(z, s, fit, settings, started_s, prior)
 

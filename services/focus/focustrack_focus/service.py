@@ -67,7 +67,7 @@ from focustrack_core.wire.rpc import protobuf_encoding
 from focustrack_core.wire.session import DEFAULT_ENDPOINT
 from focustrack_core.wire.trust import FrameSigner, ResultSigner
 from focustrack_focus.app import LEAST_LIMITS, FocusLimits, create_app
-from focustrack_focus.curve_model import CurveModel
+from focustrack_focus.curve_model import CurveModel, as_modelled
 from focustrack_focus.instrument_frames import InstrumentFrameSizes
 from focustrack_focus.layers import learn_top
 from focustrack_focus.metrics import METRICS
@@ -319,9 +319,11 @@ class FrameAnalyser:
                 result = curve.result(model, prior_of(header), beside_layers=beside)
                 if curve.held_bytes <= self.budget_bytes - self.open_bytes:
                     self._looks.keep(tile.slide, place, curve)
-                model.learn(result.z_um, result.scores, result.best_z_um, result.flags)
-                z_um, scores = result.z_um, result.scores
+                # learnt as the slide's curve reads (a valley's reciprocal: `as_modelled`)
+                mode = curve.settings.peak.mode
+                z_um, scores = as_modelled(result.z_um, result.scores, mode)
                 flags, best_z_um = result.flags, result.best_z_um
+                model.learn(z_um, scores, best_z_um, flags)
                 if learn_top(
                     model.top_widths_um, z_um, scores, best_z_um, flags, beside_layers=beside
                 ):
