@@ -120,6 +120,15 @@ def twin_maxima(s: np.ndarray) -> tuple[int, int] | None:
     return min(top, other), max(top, other)
 
 
+def between_maxima(z_um: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frames of a curve, z (n,) and s (n,), from one maximum of its valley to the other
+    (`twin_maxima`), or all of them where it has no valley."""
+    if (between := twin_maxima(s)) is None:
+        return z_um, s
+    first, last = between
+    return z_um[first : last + 1], s[first : last + 1]
+
+
 def oversampled_floor_um(step_um: float, min_peak_sigma_um: float) -> float:
     """The sigma floor (um) of a peak read from frames `step_um` apart by optics whose
     narrowest peak has std `min_peak_sigma_um`: OVERSAMPLED_FLOOR_SHARE of it where the

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from focustrack_core.domain import CURVE_LEARN_FRAMES, CURVE_SPREAD_CURVES, FocusFlag
-from focustrack_focus.curve_checks import twin_maxima
+from focustrack_focus.curve_checks import between_maxima
 from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, PeakMode, score_noise
 
 #: Stacks of at most this many frames are read with the model (when it is ready).
@@ -68,7 +68,7 @@ def as_modelled(
     """A curve, z (n,) in um ascending and scores (n,), as the model reads it: a peak.
 
     MAX: as it is. VALLEY (an unstained specimen): the frames from one of the valley's
-    maxima to the other (`curve_checks.twin_maxima`; all of them where it has none), each
+    maxima to the other (`curve_checks.between_maxima`; all of them where it has none), each
     score's reciprocal. Near focus a phase object's contrast grows as the square of the
     defocus, s = s0 + k (z - mu)**2, whose reciprocal is this model's peak: a Lorentzian of
     half width sqrt(s0 / k) on no background. Unlike the curve turned upside down, as
@@ -79,9 +79,7 @@ def as_modelled(
     """
     if mode is PeakMode.MAX:
         return z_um, scores
-    if (between := twin_maxima(scores)) is not None:
-        first, last = between
-        z_um, scores = z_um[first : last + 1], scores[first : last + 1]
+    z_um, scores = between_maxima(z_um, scores)
     if np.all(scores > 0):
         return z_um, 1.0 / scores
     return z_um, float(scores.max()) - scores + float(scores.max() - scores.min())

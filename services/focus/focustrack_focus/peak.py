@@ -76,6 +76,7 @@ import numpy as np
 from focustrack_core.domain import MAX_ABS_Z_UM, FocusFlag, Prior
 from focustrack_focus.curve_checks import (
     SHORT_STACK_FRAMES,
+    between_maxima,
     broader_than_window,
     low_contrast_flat,
     narrow_at_end,
@@ -84,7 +85,6 @@ from focustrack_focus.curve_checks import (
     phase_valley,
     shoulder,
     tied_with_end,
-    twin_maxima,
     uniform_sigma_um,
 )
 from focustrack_focus.despike import despike
@@ -336,9 +336,8 @@ def find_peak(
     """
     settings = settings or PeakSettings()
     z, s = validate_curve(z_um, scores)
-    if settings.mode is PeakMode.VALLEY and (between := twin_maxima(s)) is not None:
-        first, last = between
-        z, s = z[first : last + 1], s[first : last + 1]
+    if settings.mode is PeakMode.VALLEY:
+        z, s = between_maxima(z, s)
     # read on a scale of 1, the same for any scale of scores: scores of 1e-160 squared in
     # the fit's weights underflow to a singular matrix
     s = s / (float(np.abs(s).max()) or 1.0)
