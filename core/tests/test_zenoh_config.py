@@ -86,6 +86,18 @@ def test_shared_memory_room_is_what_the_file_system_has_free(tmp_path: Path) -> 
     assert 0 < session.shared_memory_room_mb(tmp_path) == pytest.approx(free_mb, abs=100)
 
 
+def test_a_port_handed_out_and_not_yet_bound_is_not_handed_out_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A stack picks its services' ports before any binds: the same port twice had one
+    service fail with "address already in use"."""
+    first = session.free_port()
+    picks = iter([first, first, *range(first + 1, first + 100)])
+    monkeypatch.setattr(session.secrets, "choice", lambda _: next(picks))
+    again = session.free_port()  # `first` is free to a probe, and not handed out again
+    assert first < again < first + 100
+
+
 def test_a_free_port_is_below_the_ephemeral_range_and_bindable() -> None:
     low, high = session.ephemeral_port_range()
     assert 1024 <= low < high

@@ -46,6 +46,7 @@ import secrets
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from pathlib import Path
@@ -99,6 +100,11 @@ SHARED_MEMORY_MB = 256
 
 #: The lowest port `free_port` picks.
 LOWEST_FREE_PORT = 10000
+#: How many of the ports it handed out last `free_port` never hands out again: a stack
+#: picks each of its services' ports before any of them binds one.
+RECENT_PORTS = 1000
+_recent_ports: deque[int] = deque(maxlen=RECENT_PORTS)
+_recent_ports_lock = threading.Lock()
 
 
 def ephemeral_port_range() -> tuple[int, int]:
@@ -116,17 +122,23 @@ def free_port() -> int:
     Picked at random below the kernel's ephemeral range: a port the kernel hands out (as
     binding port 0 does) may be given again as the source port of an outgoing connection
     (a Zenoh link, an HTTP request) before the server meant to listen there binds it,
-    which failed a test now and then with "address already in use".
+    which failed a test now and then with "address already in use". Nor is a port this
+    process was handed lately (`RECENT_PORTS`) handed out again: a port picked and not yet
+    bound is free to the probe, and two services of one stack were once given the same.
     """
     low = ephemeral_port_range()[0]
     for _ in range(200):
         port = secrets.choice(range(LOWEST_FREE_PORT, low)) if low > LOWEST_FREE_PORT else 0
-        with socket.socket() as probe:
+        with _recent_ports_lock, socket.socket() as probe:
+            if port in _recent_ports:
+                continue
             try:
                 probe.bind(("127.0.0.1", port))
             except OSError:  # taken: another
                 continue
-            return int(probe.getsockname()[1])
+            port = int(probe.getsockname()[1])
+            _recent_ports.append(port)
+            return port
     raise OSError(f"no free port found between {LOWEST_FREE_PORT} and {low}")
 
 
