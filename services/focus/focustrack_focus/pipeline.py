@@ -175,15 +175,16 @@ def focus_from_curve(
         fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
     else:
         fit = find_peak(z, s, settings.peak, prior)
-        peak_z, peak_s = as_modelled(z, s, settings.peak.mode)  # as the slide's curve reads
-        if curve is not None and curve.ready and z.size <= SHORT_MAX_FRAMES:
-            fit = fit_short_stack(peak_z, peak_s, curve, fit)
-        if curve is not None and fit.z_um is not None and fit.sigma_um is not None:
-            # a top broader than the slide's: two layers (a fold), the vertex between them
-            layers_um = layers_sigma_um(
-                curve.top_widths_um, peak_z, peak_s, fit.z_um, beside_layers=beside_layers
-            )
-            fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
+        if curve is not None:  # the slide's curve reads the stack as it learnt it
+            peak_z, peak_s = as_modelled(z, s, settings.peak.mode)
+            if curve.ready and z.size <= SHORT_MAX_FRAMES:
+                fit = fit_short_stack(peak_z, peak_s, curve, fit)
+            if fit.z_um is not None and fit.sigma_um is not None:
+                # a top broader than the slide's: two layers (a fold), the vertex between them
+                layers_um = layers_sigma_um(
+                    curve.top_widths_um, peak_z, peak_s, fit.z_um, beside_layers=beside_layers
+                )
+                fit = replace(fit, sigma_um=math.hypot(fit.sigma_um, layers_um))
     return _answer(z, s, fit, settings, started_s, prior)
 
 
