@@ -190,7 +190,7 @@ class SlideInfo(_message.Message):
     def __init__(self, slide: _Optional[str] = ..., rows: _Optional[int] = ..., cols: _Optional[int] = ..., pitch_um: _Optional[float] = ..., origin_x_um: _Optional[float] = ..., origin_y_um: _Optional[float] = ...) -> None: ...
 
 class InstrumentInfo(_message.Message):
-    __slots__ = ("instrument", "slides", "z_min_um", "z_max_um", "max_frames", "pixel_size_um", "width", "height", "channel_order", "bit_depth", "numerical_aperture", "magnification", "wavelength_um", "refractive_index", "depth_of_field_um", "default_exposure_s", "hardware_sequenced")
+    __slots__ = ("instrument", "slides", "z_min_um", "z_max_um", "max_frames", "pixel_size_um", "width", "height", "channel_order", "bit_depth", "numerical_aperture", "magnification", "wavelength_um", "refractive_index", "depth_of_field_um", "default_exposure_s", "hardware_sequenced", "laser")
     INSTRUMENT_FIELD_NUMBER: _ClassVar[int]
     SLIDES_FIELD_NUMBER: _ClassVar[int]
     Z_MIN_UM_FIELD_NUMBER: _ClassVar[int]
@@ -208,6 +208,7 @@ class InstrumentInfo(_message.Message):
     DEPTH_OF_FIELD_UM_FIELD_NUMBER: _ClassVar[int]
     DEFAULT_EXPOSURE_S_FIELD_NUMBER: _ClassVar[int]
     HARDWARE_SEQUENCED_FIELD_NUMBER: _ClassVar[int]
+    LASER_FIELD_NUMBER: _ClassVar[int]
     instrument: str
     slides: _containers.RepeatedCompositeFieldContainer[SlideInfo]
     z_min_um: float
@@ -225,7 +226,8 @@ class InstrumentInfo(_message.Message):
     depth_of_field_um: float
     default_exposure_s: float
     hardware_sequenced: bool
-    def __init__(self, instrument: _Optional[str] = ..., slides: _Optional[_Iterable[_Union[SlideInfo, _Mapping]]] = ..., z_min_um: _Optional[float] = ..., z_max_um: _Optional[float] = ..., max_frames: _Optional[int] = ..., pixel_size_um: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., numerical_aperture: _Optional[float] = ..., magnification: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., refractive_index: _Optional[float] = ..., depth_of_field_um: _Optional[float] = ..., default_exposure_s: _Optional[float] = ..., hardware_sequenced: _Optional[bool] = ...) -> None: ...
+    laser: bool
+    def __init__(self, instrument: _Optional[str] = ..., slides: _Optional[_Iterable[_Union[SlideInfo, _Mapping]]] = ..., z_min_um: _Optional[float] = ..., z_max_um: _Optional[float] = ..., max_frames: _Optional[int] = ..., pixel_size_um: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., channel_order: _Optional[str] = ..., bit_depth: _Optional[int] = ..., numerical_aperture: _Optional[float] = ..., magnification: _Optional[float] = ..., wavelength_um: _Optional[float] = ..., refractive_index: _Optional[float] = ..., depth_of_field_um: _Optional[float] = ..., default_exposure_s: _Optional[float] = ..., hardware_sequenced: _Optional[bool] = ..., laser: _Optional[bool] = ...) -> None: ...
 
 class SlideTruth(_message.Message):
     __slots__ = ("instrument", "slide", "rows", "cols", "best_focus_um", "drift_um", "clock_s", "tissue_share", "empty", "dust_z_um", "fold_z_um", "lateral_offset_x_um", "lateral_offset_y_um")

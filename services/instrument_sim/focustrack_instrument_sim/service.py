@@ -457,6 +457,7 @@ class InstrumentService:
             depth_of_field_um=optics.depth_of_field_um,
             default_exposure_s=description.default_exposure_s,
             hardware_sequenced=description.hardware_sequenced,
+            laser=self.laser is not None,
         )
 
     def _truth(self, query: zenoh.Query) -> instrument_pb2.SlideTruth:

@@ -81,6 +81,7 @@ def test_info_describes_slides_and_optics(client: zenoh.Session) -> None:
     assert (info.slides[0].rows, info.slides[0].cols) == (4, 5)
     assert info.width == SIZE and info.max_frames == 25 and info.channel_order == "RGB"
     assert 0.7 < info.depth_of_field_um < 1.1
+    assert info.HasField("laser") and not info.laser  # said, so a laser scan is refused at once
 
 
 def test_acquire_publishes_frames_and_the_stack_and_replies_with_timing(
@@ -395,6 +396,9 @@ def test_a_wildcard_query_is_one_acquisition_on_an_instrument_with_a_laser() -> 
     try:
         with session.open_session(connect=[endpoint], connect_timeout_s=60) as client:
             wait_until_it_answers(client, "probe", process)
+            info = rpc.call(client, keys.info_key("probe"), instrument_pb2.AcquireRequest(),
+                            instrument_pb2.InstrumentInfo)  # fmt: skip
+            assert info.laser
             frames: list[zenoh.Sample] = []
             with client.declare_subscriber(keys.zframe_pattern("slide-0"), frames.append):
                 time.sleep(0.5)  # let the subscription reach the instrument

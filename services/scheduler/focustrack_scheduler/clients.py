@@ -175,7 +175,8 @@ class InstrumentClient:
         )
 
     def geometry(self, slide: str, timeout_s: float | None = None) -> SlideGeometry:
-        """The grid of `slide` and the depth of field; ValueError if the slide is unknown."""
+        """The grid of `slide`, the depth of field, the stage's limits and whether the
+        instrument has a laser; ValueError if the slide is unknown."""
         info = self.info(timeout_s)
         for described in info.slides:
             if described.slide == slide:
@@ -186,7 +187,8 @@ class InstrumentClient:
                     described.origin_x_um,
                     described.origin_y_um,
                 )
-                return SlideGeometry(grid, info.depth_of_field_um, stage_limits(info))
+                laser = info.laser if info.HasField("laser") else None
+                return SlideGeometry(grid, info.depth_of_field_um, stage_limits(info), laser)
         known = ", ".join(described.slide for described in info.slides) or "none"
         raise ValueError(f"instrument {self.name!r} has no slide {slide!r} (it has: {known})")
 

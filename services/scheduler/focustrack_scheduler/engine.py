@@ -367,6 +367,13 @@ class Engine:
     def _read_laser(self, step: ReadLaser) -> Measurement:
         acquisition = step.acquisition
         what = f"the laser reading of tile ({acquisition.row}, {acquisition.col})"
+        if self.geometry is not None and self.geometry.laser is False:
+            # Its info says so: no use waiting out an outage for a queryable that is not there.
+            raise ScanRefusedError(
+                f"the strategy asks for {what}, and instrument {self.instrument.name!r} has "
+                "no laser autofocus: start it with one (`focustrack serve instrument "
+                "--laser`) or scan with a strategy that reads the camera only"
+            )
         measurement, seconds = self._instrument_call(
             what,
             keys.laser_key(self.instrument.name),

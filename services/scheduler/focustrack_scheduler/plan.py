@@ -201,12 +201,14 @@ class StageLimits:
 
 @dataclass(frozen=True)
 class SlideGeometry:
-    """What the instrument says about a slide: its tile grid, the depth of field (um) and
-    what its stage and camera allow a stack."""
+    """What the instrument says about a slide: its tile grid, the depth of field (um), what
+    its stage and camera allow a stack, and whether it has a laser (reflection) autofocus
+    (None: not stated, an instrument whose info predates it)."""
 
     grid: ScanGrid
     dof_um: float
     stage: StageLimits = StageLimits()
+    laser: bool | None = None
 
 
 # --- Steps: each is a request to the engine; the comment says what it sends back. ---
