@@ -252,7 +252,12 @@ def information_sigma_um(
 
 
 def fit_short_stack(
-    z_um: np.ndarray, scores: np.ndarray, model: CurveModel, free: PeakFit
+    z_um: np.ndarray,
+    scores: np.ndarray,
+    model: CurveModel,
+    free: PeakFit,
+    *,
+    floor_sigma_um: float = 0.0,
 ) -> PeakFit:
     """Read a short stack (n <= SHORT_MAX_FRAMES, sorted by z) with a ready model.
 
@@ -264,6 +269,10 @@ def fit_short_stack(
     stack is a measurement with the model's sigma (noise, misfit and the spread of
     widths), one outside an edge flag that way (the retry policy takes over).
     Where the frames disagree with the model, or `free` found no curve, `free` stands.
+    `floor_sigma_um` is added to the model's sigma: what `find_peak` adds to its own
+    (the sampling floor and the metric's systematic offset, `peak_floor_sigma_um`). A
+    narrow model (a valley's reciprocal is 0.1-0.2 um wide) states sigmas under a
+    nanometre without it, finer than any stage moves and than the estimator takes.
     """
     gamma_um, b = model.gamma_um, model.background
     s = np.asarray(scores, dtype=float)
@@ -294,7 +303,7 @@ def fit_short_stack(
         wider = _fit_mu(z_um, s, gamma_um + spread, b)
         narrower = _fit_mu(z_um, s, max(gamma_um - spread, 1e-3), b)
         shape_sigma_um = abs(wider - narrower) / 2.0
-    sigma_um = math.hypot(misfit_sigma_um, shape_sigma_um)
+    sigma_um = math.hypot(misfit_sigma_um, shape_sigma_um, floor_sigma_um)
     if sigma_um > high - low:  # located nowhere in particular: no measurement
         return free
     return PeakFit(mu_um, sigma_um, frozenset(), chosen_probability=1.0)

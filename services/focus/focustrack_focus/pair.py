@@ -67,10 +67,13 @@ def pair_mu_um(z_um: np.ndarray, scores: np.ndarray, gamma_um: float, b: float) 
     return float(np.interp(measured, values, branch))
 
 
-def read_pair(z_um: np.ndarray, scores: np.ndarray, model: CurveModel) -> PeakFit:
+def read_pair(
+    z_um: np.ndarray, scores: np.ndarray, model: CurveModel, *, floor_sigma_um: float = 0.0
+) -> PeakFit:
     """The peak of a pair (z (2,) ascending, scores (2,)) read with the slide's ready curve
     `model` (module docstring): a measurement within PAIR_REACH_UM of the frames, else an
-    edge flag towards it (FLAT where the scores are not positive)."""
+    edge flag towards it (FLAT where the scores are not positive). `floor_sigma_um` is
+    added to the sigma, as to a short stack's (`curve_model.fit_short_stack`)."""
     gamma_um, b = model.gamma_um, model.background
     mu_um = pair_mu_um(z_um, scores, gamma_um, b)
     if mu_um is None:
@@ -91,6 +94,5 @@ def read_pair(z_um: np.ndarray, scores: np.ndarray, model: CurveModel) -> PeakFi
         finite = [mu for mu in readings if mu is not None and math.isfinite(mu)]
         # a width at which the ratio leaves the branch: the reading is that width's doubt
         shape_sigma_um = abs(finite[0] - finite[1]) / 2.0 if len(finite) == 2 else PAIR_REACH_UM
-    return PeakFit(
-        mu_um, math.hypot(misfit_sigma_um, shape_sigma_um), frozenset(), chosen_probability=1.0
-    )
+    sigma_um = math.hypot(misfit_sigma_um, shape_sigma_um, floor_sigma_um)
+    return PeakFit(mu_um, sigma_um, frozenset(), chosen_probability=1.0)

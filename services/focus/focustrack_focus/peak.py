@@ -630,13 +630,19 @@ def _fit_vertex(
     asymmetry_um = _log_slope_about(z, s, fit.z_um) * fit.width_var_um2
     variance = (
         fit.noise_sigma_um**2
-        + (settings.model_floor_steps * step_um) ** 2
+        + peak_floor_sigma_um(step_um, settings) ** 2
         + window_um**2
         + asymmetry_um**2
-        + settings.systematic_sigma_um**2
     )
     sigma = max(math.sqrt(variance), oversampled_floor_um(step_um, settings.min_peak_sigma_um))
     return fit.z_um, sigma, fit.width_var_um2
+
+
+def peak_floor_sigma_um(step_um: float, settings: PeakSettings) -> float:
+    """The part of a peak's sigma (um) that no curve's noise shows, for frames `step_um`
+    apart: the sampling floor (`model_floor_steps` steps) and the metric's systematic
+    offset (module docstring)."""
+    return math.hypot(settings.model_floor_steps * step_um, settings.systematic_sigma_um)
 
 
 def _log_slope_about(z: np.ndarray, s: np.ndarray, z0: float) -> float:

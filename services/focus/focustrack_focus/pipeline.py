@@ -28,6 +28,7 @@ from focustrack_focus.peak import (
     PeakMode,
     PeakSettings,
     find_peak,
+    peak_floor_sigma_um,
     validate_curve,
 )
 from focustrack_focus.preprocess import Preprocess
@@ -178,7 +179,9 @@ def focus_from_curve(
         if curve is not None:  # the slide's curve reads the stack as it learnt it
             peak_z, peak_s = as_modelled(z, s, settings.peak.mode)
             if curve.ready and z.size <= SHORT_MAX_FRAMES:
-                fit = fit_short_stack(peak_z, peak_s, curve, fit)
+                step_um = float(np.median(np.diff(z)))
+                floor_um = peak_floor_sigma_um(step_um, settings.peak)
+                fit = fit_short_stack(peak_z, peak_s, curve, fit, floor_sigma_um=floor_um)
             if fit.z_um is not None and fit.sigma_um is not None:
                 # a top broader than the slide's: two layers (a fold), the vertex between them
                 layers_um = layers_sigma_um(
@@ -248,7 +251,8 @@ def pair_result(
     if snr < settings.min_structure_snr:
         fit = PeakFit(None, None, frozenset({FocusFlag.FLAT, FocusFlag.EMPTY}))
     elif curve is not None and curve.ready:
-        fit = read_pair(z, peak_s, curve)
+        floor_um = peak_floor_sigma_um(float(z[1] - z[0]), settings.peak)
+        fit = read_pair(z, peak_s, curve, floor_sigma_um=floor_um)
     else:
         higher = int(np.argmax(peak_s))
         fit = PeakFit(float(z[higher]), None, frozenset({_PAIR_EDGES[higher]}))

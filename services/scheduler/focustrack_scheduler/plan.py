@@ -440,26 +440,38 @@ def prior_upload(config: api.SlideCreate) -> tuple[api.SlideCreate, bytes | None
 def measurement_of(result: focus_pb2.FocusResult) -> Measurement:
     """The measurement a focus result reports.
 
-    No best focus (a flat curve, or a stack the service could not read) is a
-    measurement without z, which the estimator answers with another stack.
-    Flags this version does not know are dropped; a sigma that is not a
-    positive finite number is left for the estimator's default.
+    No best focus (a flat curve, or a stack the service could not read, or a z that is
+    no height: not finite, or beyond the API's bounds) is a measurement without z, which
+    the estimator answers with another stack. Flags this version does not know are
+    dropped; a sigma that is not a positive finite number is left for the estimator's
+    default, and one outside the API's bounds is taken at the nearer (a focus service
+    that states a picometre must not end the scan).
     """
     flags = frozenset(
         flag for value in result.flags if (flag := FocusFlag.of_proto(value)) is not None
     )
-    if result.HasField("error") or not result.HasField("best_z_um"):
+    if (
+        result.HasField("error")
+        or not result.HasField("best_z_um")
+        or not _is_height(result.best_z_um)
+    ):
         return Measurement(z_um=None, flags=flags)
     sigma_um = result.sigma_um if result.HasField("sigma_um") else None
-    if sigma_um is not None and not (math.isfinite(sigma_um) and sigma_um > 0):
-        sigma_um = None
+    if sigma_um is not None:
+        valid = math.isfinite(sigma_um) and sigma_um > 0
+        sigma_um = min(max(sigma_um, api.MIN_SIGMA_UM), api.MAX_ABS_UM) if valid else None
     runner_up_um = result.runner_up_z_um if result.HasField("runner_up_z_um") else None
-    if runner_up_um is not None and not math.isfinite(runner_up_um):
+    if runner_up_um is not None and not _is_height(runner_up_um):
         runner_up_um = None
     probability = result.chosen_probability if result.HasField("chosen_probability") else None
     if probability is not None and not 0.0 <= probability <= 1.0:
         probability = None
     return Measurement(result.best_z_um, sigma_um, flags, runner_up_um, probability)
+
+
+def _is_height(z_um: float) -> bool:
+    """Whether `z_um` is a height the estimator's API takes."""
+    return math.isfinite(z_um) and abs(z_um) <= api.MAX_ABS_UM
 
 
 def nearest_frame(frames: list[Frame], z_um: float) -> Frame:

@@ -17,8 +17,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from focustrack_client import models as api
 from focustrack_core.domain import Acquisition, FocusFlag, Measurement, Outcome, Purpose, ZRange
 from focustrack_core.geometry import ScanGrid
+from focustrack_core.rest import to_api
 from focustrack_core.v1 import common_pb2, focus_pb2
 from focustrack_scheduler.plan import (
     PHASE_SEQUENCE_BASE,
@@ -555,6 +557,25 @@ def test_measurement_of_focus_results() -> None:
     broken = focus(acq, 0.8)
     broken.error.CopyFrom(common_pb2.Error(code=common_pb2.ERROR_CODE_BAD_STACK, message="x"))
     assert measurement_of(broken) == Measurement(None)
+
+
+def test_a_focus_result_out_of_the_apis_bounds_is_posted_within_them() -> None:
+    """A focus service in valley mode stated a sigma of 0.00084 um; posting it failed the
+    API's model (sigma >= 0.001 um) and ended the scan with a traceback."""
+    acq = acquisition(0, 0, 0, low_um=0.0)
+    cases = [
+        (focus(acq, 0.8, sigma_um=0.00084), Measurement(0.8, api.MIN_SIGMA_UM)),
+        (focus(acq, 0.8, sigma_um=1e9), Measurement(0.8, api.MAX_ABS_UM)),
+        (focus(acq, float("inf")), Measurement(None)),
+        (focus(acq, -2e6), Measurement(None)),
+    ]
+    for result, expected in cases:
+        measurement = measurement_of(result)
+        assert measurement == expected
+        to_api.measurement_in(acq, measurement)  # what the engine posts: valid
+    beyond = focus(acq, 0.8, FocusFlag.MULTI_PEAK.proto)
+    beyond.runner_up_z_um = 2e6
+    assert measurement_of(beyond).runner_up_z_um is None
 
 
 def test_bad_requests_are_refused_before_any_step() -> None:
