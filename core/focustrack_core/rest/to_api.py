@@ -5,6 +5,7 @@ Heights that are not finite (NaN where a map has no value yet) are null in JSON.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -81,6 +82,20 @@ def next_step(acquisition: Acquisition | None, scan_grid: ScanGrid) -> api.Next:
         purpose=api.Purpose(acquisition.purpose),
         measure=acquisition.measure,
     )
+
+
+def is_height(z_um: float) -> bool:
+    """Whether `z_um` is a height the API takes (finite, within +/-MAX_ABS_UM)."""
+    return math.isfinite(z_um) and abs(z_um) <= api.MAX_ABS_UM
+
+
+def sigma_within_bounds(sigma_um: float) -> float | None:
+    """A sigma (um) another service stated, as the API takes it: None where it is no
+    positive finite number (the slide's noise sigma stands in), else within MIN_SIGMA_UM
+    ..MAX_ABS_UM (a focus service or a laser stating a picometre must not end a scan)."""
+    if not (math.isfinite(sigma_um) and sigma_um > 0):
+        return None
+    return min(max(sigma_um, api.MIN_SIGMA_UM), api.MAX_ABS_UM)
 
 
 def measurement_in(acquisition: Acquisition, measurement: Measurement) -> api.MeasurementIn:

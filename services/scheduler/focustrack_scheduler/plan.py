@@ -453,25 +453,17 @@ def measurement_of(result: focus_pb2.FocusResult) -> Measurement:
     if (
         result.HasField("error")
         or not result.HasField("best_z_um")
-        or not _is_height(result.best_z_um)
+        or not to_api.is_height(result.best_z_um)
     ):
         return Measurement(z_um=None, flags=flags)
-    sigma_um = result.sigma_um if result.HasField("sigma_um") else None
-    if sigma_um is not None:
-        valid = math.isfinite(sigma_um) and sigma_um > 0
-        sigma_um = min(max(sigma_um, api.MIN_SIGMA_UM), api.MAX_ABS_UM) if valid else None
+    sigma_um = to_api.sigma_within_bounds(result.sigma_um) if result.HasField("sigma_um") else None
     runner_up_um = result.runner_up_z_um if result.HasField("runner_up_z_um") else None
-    if runner_up_um is not None and not _is_height(runner_up_um):
+    if runner_up_um is not None and not to_api.is_height(runner_up_um):
         runner_up_um = None
     probability = result.chosen_probability if result.HasField("chosen_probability") else None
     if probability is not None and not 0.0 <= probability <= 1.0:
         probability = None
     return Measurement(result.best_z_um, sigma_um, flags, runner_up_um, probability)
-
-
-def _is_height(z_um: float) -> bool:
-    """Whether `z_um` is a height the estimator's API takes."""
-    return math.isfinite(z_um) and abs(z_um) <= api.MAX_ABS_UM
 
 
 def nearest_frame(frames: list[Frame], z_um: float) -> Frame:

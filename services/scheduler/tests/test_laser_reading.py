@@ -17,7 +17,9 @@ import pytest
 import zenoh
 
 from focustrack_client import EstimatorClient
+from focustrack_client import models as api
 from focustrack_core.domain import Acquisition, Measurement, Purpose, ZRange
+from focustrack_core.rest import to_api
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc, session
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
@@ -32,10 +34,12 @@ READING = ReadLaser(SLIDE, Acquisition(0, 1, 2, ZRange(0.0, 1.0, 1), Purpose.LAS
 
 class Instrument:
     """Answers the info query (a 3x3 slide, `laser` as given: None leaves it unset) and, with
-    a laser, laser readings of 1.5 +- 0.2 um."""
+    a laser, laser readings of `reading` (z um, sigma um)."""
 
-    def __init__(self, bus: zenoh.Session, laser: bool | None) -> None:
-        self._laser = laser
+    def __init__(
+        self, bus: zenoh.Session, laser: bool | None, reading: tuple[float, float] = (1.5, 0.2)
+    ) -> None:
+        self._laser, self._reading = laser, reading
         self._queryables = [
             bus.declare_queryable(
                 keys.info_key("sim"),
@@ -61,7 +65,8 @@ class Instrument:
         request = rpc.parse_request(query, instrument_pb2.LaserRequest)
         return instrument_pb2.LaserReading(
             instrument="sim", slide=request.slide, row=request.row, col=request.col,
-            z_um=1.5, sigma_um=0.2, timing=instrument_pb2.Timing(total_s=0.01),
+            z_um=self._reading[0], sigma_um=self._reading[1],
+            timing=instrument_pb2.Timing(total_s=0.01),
         )  # fmt: skip
 
     def close(self) -> None:
@@ -81,12 +86,16 @@ def bus() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
 
 
 def read_one(
-    bus: tuple[zenoh.Session, zenoh.Session], out_dir: Path, laser: bool | None, outage_s: float
+    bus: tuple[zenoh.Session, zenoh.Session],
+    out_dir: Path,
+    laser: bool | None,
+    outage_s: float,
+    reading: tuple[float, float] = (1.5, 0.2),
 ) -> Measurement:
-    """Describe the slide and read the laser over one tile, with an engine that retries a
-    silent instrument for `outage_s`; the reading."""
+    """Describe the slide and read the laser over one tile (it reads `reading`), with an
+    engine that retries a silent instrument for `outage_s`; the measurement to post."""
     stand_in, scheduler = bus
-    instrument = Instrument(stand_in, laser)
+    instrument = Instrument(stand_in, laser, reading)
     engine = Engine(
         InstrumentClient(scheduler, "sim", timeout_s=5),
         SlideListener(scheduler, SLIDE),
@@ -119,10 +128,22 @@ def test_an_instrument_that_says_it_has_no_laser_refuses_the_reading_at_once(
         read_one(bus, tmp_path, laser=False, outage_s=3600.0)
 
 
-def test_an_instrument_with_a_laser_gives_its_reading(
-    bus: tuple[zenoh.Session, zenoh.Session], tmp_path: Path
+@pytest.mark.parametrize(
+    ("reading", "posted"),
+    [((1.5, 0.2), Measurement(1.5, 0.2)),
+     ((1.5, 0.0), Measurement(1.5)),  # no sigma: the strategy's own for its laser
+     ((1.5, 1e-6), Measurement(1.5, api.MIN_SIGMA_UM)),  # the API refused it: a traceback
+     ((float("nan"), 0.2), Measurement(None))],  # no reading: the images decide
+)  # fmt: skip
+def test_an_instrument_with_a_laser_gives_its_reading_within_the_apis_bounds(
+    bus: tuple[zenoh.Session, zenoh.Session],
+    tmp_path: Path,
+    reading: tuple[float, float],
+    posted: Measurement,
 ) -> None:
-    assert read_one(bus, tmp_path, laser=True, outage_s=10.0) == Measurement(1.5, 0.2)
+    measurement = read_one(bus, tmp_path, laser=True, outage_s=10.0, reading=reading)
+    assert measurement == posted
+    to_api.measurement_in(READING.acquisition, measurement)  # the engine's post: valid
 
 
 def test_an_instrument_that_does_not_say_is_retried_as_an_outage(
