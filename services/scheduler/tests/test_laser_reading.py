@@ -10,7 +10,6 @@ than the field) is still retried as before.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,7 +20,7 @@ from focustrack_client import models as api
 from focustrack_core.domain import Acquisition, Measurement, Purpose, ZRange
 from focustrack_core.rest import to_api
 from focustrack_core.v1 import instrument_pb2
-from focustrack_core.wire import keys, rpc, session
+from focustrack_core.wire import keys, rpc
 from focustrack_scheduler.clients import InstrumentClient, SlideListener
 from focustrack_scheduler.engine import Engine, ScanRefusedError, ServiceUnavailableError
 from focustrack_scheduler.plan import DescribeSlide, Plan, ReadLaser
@@ -74,19 +73,8 @@ class Instrument:
             queryable.undeclare()
 
 
-@pytest.fixture
-def bus() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    """(the stand-in's session that listens, the scheduler's)."""
-    endpoint = session.loopback_endpoint()
-    with (
-        session.open_session(listen=[endpoint]) as stand_in,
-        session.open_session(connect=[endpoint]) as scheduler,
-    ):
-        yield stand_in, scheduler
-
-
 def read_one(
-    bus: tuple[zenoh.Session, zenoh.Session],
+    sessions: tuple[zenoh.Session, zenoh.Session],
     out_dir: Path,
     laser: bool | None,
     outage_s: float,
@@ -94,7 +82,7 @@ def read_one(
 ) -> Measurement:
     """Describe the slide and read the laser over one tile (it reads `reading`), with an
     engine that retries a silent instrument for `outage_s`; the measurement to post."""
-    stand_in, scheduler = bus
+    stand_in, scheduler = sessions
     instrument = Instrument(stand_in, laser, reading)
     engine = Engine(
         InstrumentClient(scheduler, "sim", timeout_s=5),
@@ -121,11 +109,11 @@ def read_one(
 
 @pytest.mark.timeout(30)
 def test_an_instrument_that_says_it_has_no_laser_refuses_the_reading_at_once(
-    bus: tuple[zenoh.Session, zenoh.Session], tmp_path: Path
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path
 ) -> None:
     """Refused before any retry: with an hour of outage allowed, a retry would time out."""
     with pytest.raises(ScanRefusedError, match="instrument 'sim' has no laser autofocus"):
-        read_one(bus, tmp_path, laser=False, outage_s=3600.0)
+        read_one(sessions, tmp_path, laser=False, outage_s=3600.0)
 
 
 @pytest.mark.parametrize(
@@ -136,20 +124,20 @@ def test_an_instrument_that_says_it_has_no_laser_refuses_the_reading_at_once(
      ((float("nan"), 0.2), Measurement(None))],  # no reading: the images decide
 )  # fmt: skip
 def test_an_instrument_with_a_laser_gives_its_reading_within_the_apis_bounds(
-    bus: tuple[zenoh.Session, zenoh.Session],
+    sessions: tuple[zenoh.Session, zenoh.Session],
     tmp_path: Path,
     reading: tuple[float, float],
     posted: Measurement,
 ) -> None:
-    measurement = read_one(bus, tmp_path, laser=True, outage_s=10.0, reading=reading)
+    measurement = read_one(sessions, tmp_path, laser=True, outage_s=10.0, reading=reading)
     assert measurement == posted
     to_api.measurement_in(READING.acquisition, measurement)  # the engine's post: valid
 
 
 def test_an_instrument_that_does_not_say_is_retried_as_an_outage(
-    bus: tuple[zenoh.Session, zenoh.Session], tmp_path: Path
+    sessions: tuple[zenoh.Session, zenoh.Session], tmp_path: Path
 ) -> None:
     """An instrument older than the field may have a laser that is restarting: the reading
     is retried for the outage allowed, then the scan says nobody answered."""
     with pytest.raises(ServiceUnavailableError, match="did not answer the laser reading"):
-        read_one(bus, tmp_path, laser=None, outage_s=0.5)
+        read_one(sessions, tmp_path, laser=None, outage_s=0.5)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -84,17 +84,6 @@ class StandIns:
 
     def close(self) -> None:
         self._queryable.undeclare()
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session]]:
-    """(the stand-ins' session, the scheduler's), linked on loopback."""
-    endpoint = session.loopback_endpoint()
-    with (
-        session.open_session(listen=[endpoint]) as bus,
-        session.open_session(connect=[endpoint]) as scheduler,
-    ):
-        yield bus, scheduler
 
 
 def engine_on(
