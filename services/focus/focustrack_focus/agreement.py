@@ -17,7 +17,7 @@ The rule (`agreed_peak`), over the metrics of every frame's centre (`agreement_s
 most metrics (more than half, `AGREE_MIN_METRICS` at least) have their maximum on an
 interior frame within `AGREE_FRAMES` of the median of such maxima, each rising above both
 of its curve's end frames (by `AGREE_RISE_SNR` of the curve's own noise where the curve is
-long enough to measure it: `peak.score_noise`), and the noise-robust metric's maximum is
+long enough to measure it: `noise_bound.score_noise`), and the noise-robust metric's maximum is
 among them. The median frame is then the agreed peak.
 """
 
@@ -28,7 +28,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from focustrack_focus.metrics import METRICS
-from focustrack_focus.peak import score_noise
+from focustrack_focus.noise_bound import score_noise
 
 #: The metrics are compared on the centre of each frame, this many pixels square at most:
 #: 0.6 ms for all six on one core, against 8 ms for one metric on a 2048 px frame.

@@ -44,7 +44,8 @@ import numpy as np
 
 from focustrack_core.domain import FocusFlag
 from focustrack_focus.labelled_curves import LabelledCurve, wsi_curves
-from focustrack_focus.peak import PeakSettings, score_noise
+from focustrack_focus.noise_bound import score_noise
+from focustrack_focus.peak import PeakSettings
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve
 from focustrack_focus.profile import UNUSABLE_RELATIVE_NOISE, MetricProfile
 from focustrack_focus.real_data import WSI_STEP_UM, load_wsi_fields

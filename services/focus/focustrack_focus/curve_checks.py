@@ -9,7 +9,9 @@
   far wider than the defocus contrast (a first tile's coarse search) falls again beyond
   its two maxima, and turned upside down those far-out frames rise towards the ends like
   a peak beyond the window. The valley mode reads the frames from one maximum to the
-  other, where the focus lies.
+  other, where the focus lies; where it sees no two maxima (thick cells lose their
+  contrast fast on one side of focus, and a coarse step can hide the dip), the frames
+  near the strongest contrast (`VALLEY_REACH_UM`).
 - An oversampled curve's sigma floor (`oversampled_floor_um`): where frames are far
   closer than the optics' depth of field, the fit's sub-step precision (a fraction of a
   tiny step) says nothing of how far the metric's own peak lies from the true focus,
@@ -55,6 +57,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from focustrack_focus.noise_bound import score_noise
+
 #: A valley: both maxima rise at least this share of the range above the minimum, and
 #: both end frames at least `VALLEY_BELOW_ENDS` of it (the far-out frames keep contrast).
 VALLEY_RISE_SHARE = 0.5
@@ -62,6 +66,18 @@ VALLEY_BELOW_ENDS = 0.25
 #: ... and it is narrow: its width at half depth is at most this share of the distance
 #: between the two maxima (two peaks on a background leave a broad trough between them).
 VALLEY_WIDTH_SHARE = 0.5
+#: A valley to read between its maxima (`twin_maxima`) sinks half the curve's range, or,
+#: on a curve long enough to measure its own noise, this many of its noise sigmas: far out
+#: of focus the contrast fades, so the range of a first tile's coarse stack is mostly the
+#: fading, not the valley (a 25 % dip on the simulator's red cells, at 4 um steps).
+VALLEY_DIP_NOISES = 5.0
+#: Without two maxima, a valley is read within this distance (um) of the curve's highest
+#: frame: a phase object's defocus contrast is strongest a few um from its focus (4-8 um
+#: on the simulator's red cells) and fades beyond, so frames far out, the faintest of all,
+#: are no focus. Thick cells in culture lose their contrast fast on one side of focus, and
+#: at 4 um steps one first stack showed no dip at all; read whole, its faded end (+28 um)
+#: was the focus.
+VALLEY_REACH_UM = 8.0
 #: A curve is oversampled where its step is below this share of `min_peak_sigma_um` (an
 #: eighth of the depth of field: 0.06 um for a 100x oil objective, whose 0.25-0.5 um steps
 #: keep the step-based parts of sigma) ...
@@ -103,9 +119,10 @@ def twin_maxima(s: np.ndarray) -> tuple[int, int] | None:
 
     One maximum is the highest frame; the other is the frame, on either side of it, over
     which the curve dipped deepest between the two (the depth measured below the lower of
-    them). A valley must sink at least `VALLEY_RISE_SHARE` of the curve's range: a short
-    stack on one side of the focus has none, and one about it, the V alone, is read whole
-    (its end frames are its maxima)."""
+    them). A valley must sink at least `VALLEY_RISE_SHARE` of the curve's range, or, on a
+    curve long enough for a clean estimate of its own noise (`noise_bound.score_noise`),
+    `VALLEY_DIP_NOISES` of its noise sigmas: a short stack on one side of the focus has
+    none, and one about it, the V alone, is read whole (its end frames are its maxima)."""
     top = int(np.argmax(s))
     deepest, other = 0.0, top
     for step in (1, -1):  # outward from the top on each side
@@ -115,16 +132,24 @@ def twin_maxima(s: np.ndarray) -> tuple[int, int] | None:
         far = int(np.argmax(depth))
         if depth[far] > deepest:
             deepest, other = float(depth[far]), top + step * far
-    if deepest <= 0.0 or deepest < VALLEY_RISE_SHARE * float(s.max() - s.min()):
+    least = VALLEY_RISE_SHARE * float(s.max() - s.min())
+    noise, clean = score_noise(s)
+    if clean:
+        least = min(least, VALLEY_DIP_NOISES * noise)
+    if deepest <= 0.0 or deepest < least:
         return None
     return min(top, other), max(top, other)
 
 
 def between_maxima(z_um: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The frames of a curve, z (n,) and s (n,), from one maximum of its valley to the other
-    (`twin_maxima`), or all of them where it has no valley."""
+    """The frames of a curve, z (n,) ascending and s (n,), from one maximum of its valley to
+    the other (`twin_maxima`); where it has no valley, those within `VALLEY_REACH_UM` (and
+    at least two steps) of its highest frame."""
     if (between := twin_maxima(s)) is None:
-        return z_um, s
+        step_um = float(np.median(np.diff(z_um))) if z_um.size > 1 else 0.0
+        reach_um = max(VALLEY_REACH_UM, 2.0 * step_um)
+        near = np.abs(z_um - z_um[int(np.argmax(s))]) <= reach_um
+        return z_um[near], s[near]
     first, last = between
     return z_um[first : last + 1], s[first : last + 1]
 

@@ -44,7 +44,8 @@ import numpy as np
 
 from focustrack_core.domain import CURVE_LEARN_FRAMES, CURVE_SPREAD_CURVES, FocusFlag
 from focustrack_focus.curve_checks import between_maxima
-from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, PeakMode, score_noise
+from focustrack_focus.noise_bound import score_noise
+from focustrack_focus.peak import MAD_TO_SIGMA, PeakFit, PeakMode
 
 #: Stacks of at most this many frames are read with the model (when it is ready).
 SHORT_MAX_FRAMES = 3
@@ -93,7 +94,7 @@ def lorentzian(z_um: np.ndarray, mu_um: float, gamma_um: float, background: floa
 @dataclass(frozen=True)
 class CurveFit:
     """One full curve's parameters: peak mu (um), height A, width gamma (um), background b;
-    the score noise over A (`peak.score_noise`, third differences) and the fit's residual
+    the score noise over A (`noise_bound.score_noise`, third differences) and the fit's residual
     std over A (noise and the model's own misfit)."""
 
     mu_um: float

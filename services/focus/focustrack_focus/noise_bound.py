@@ -1,6 +1,6 @@
-"""How far a curve's own noise estimate may fall short of its noise: an upper confidence bound.
+"""A curve's own noise estimate, and how far it may fall short of its noise: an upper bound.
 
-`peak.score_noise` estimates a curve's score noise as the median absolute third difference
+`score_noise` estimates a curve's score noise as the median absolute third difference
 away from the top (a third difference vanishes on any locally quadratic curve). On a full
 curve that median rests on dozens of differences; on a scanner's window of 7-11 frames, on
 2-5, which overlap (the third differences of white noise are correlated: -0.75 at lag one),
@@ -36,7 +36,7 @@ _DEVIATES = 1_000_000
 def away_from_top(n_frames: int, best: int) -> np.ndarray:
     """Which third differences (n_frames - 3,) of a curve whose highest frame is `best` keep
     clear of the top: difference i spans frames i .. i + 3, and those touching the top or
-    its neighbours are left out (`peak.score_noise`)."""
+    its neighbours are left out (`score_noise`)."""
     first = np.arange(max(n_frames - 3, 0))
     return (first + 3 < best - 1) | (first > best + 1)
 
@@ -47,8 +47,31 @@ def noise_from_differences(d3: np.ndarray) -> np.ndarray:
     return MAD_TO_SIGMA * np.median(np.abs(d3), axis=-1) / math.sqrt(20.0)
 
 
+def score_noise(scores: np.ndarray) -> tuple[float, bool]:
+    """Robust std of the score noise of a curve (n,), from its third differences.
+
+    A third difference -s[i] + 3 s[i+1] - 3 s[i+2] + s[i+3] of white noise has
+    variance 20 sigma**2, and it vanishes on any locally quadratic curve, so a
+    smooth focus curve leaves it near zero except around a sharp peak. So the
+    differences that touch the highest frame or its neighbours are left out,
+    and the median of the rest ignores the few that the peak's shoulders still
+    touch. Returns (sigma, clean): clean is False when fewer than two
+    differences were away from the peak and all were used (an overestimate,
+    fine for sigma, not for deciding that a curve is flat); (0.0, False) for
+    fewer than 4 frames.
+    """
+    if scores.size < 4:
+        return 0.0, False
+    d3 = np.diff(scores, 3)
+    away = away_from_top(scores.size, int(np.argmax(scores)))
+    clean = np.count_nonzero(away) >= 2
+    if clean:
+        d3 = d3[away]
+    return float(noise_from_differences(d3)), bool(clean)
+
+
 def used_differences(n_frames: int, best: int) -> tuple[int, ...]:
-    """The runs of consecutive third differences `peak.score_noise` takes (sorted lengths):
+    """The runs of consecutive third differences `score_noise` takes (sorted lengths):
     those away from the top where at least two are (a clean estimate), else all."""
     away = away_from_top(n_frames, best)
     if np.count_nonzero(away) < 2:
@@ -67,7 +90,7 @@ def _factor(runs: tuple[int, ...], confidence: float) -> float:
 
 
 def bound_factor(n_frames: int, best: int, confidence: float) -> float:
-    """By how much to multiply `peak.score_noise`'s estimate on a curve of `n_frames` frames
+    """By how much to multiply `score_noise`'s estimate on a curve of `n_frames` frames
     whose highest is `best` for its upper bound at `confidence` (module docstring); 1 at
     confidence 0 (the estimate itself) or where there are fewer than 4 frames (no estimate)."""
     if not 0.0 <= confidence < 1.0:

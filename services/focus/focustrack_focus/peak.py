@@ -89,7 +89,7 @@ from focustrack_focus.curve_checks import (
 )
 from focustrack_focus.despike import despike
 from focustrack_focus.noise_bound import MAD_TO_SIGMA as MAD_TO_SIGMA  # its home: noise_bound
-from focustrack_focus.noise_bound import away_from_top, bound_factor, noise_from_differences
+from focustrack_focus.noise_bound import bound_factor, score_noise
 
 
 class PeakMode(StrEnum):
@@ -298,29 +298,6 @@ def validate_curve(z_um: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np
             f"{z[at]} and {z[at + 1]} um are {steps_um[at]:.3g} um apart"
         )
     return z, s
-
-
-def score_noise(scores: np.ndarray) -> tuple[float, bool]:
-    """Robust std of the score noise of a curve (n,), from its third differences.
-
-    A third difference -s[i] + 3 s[i+1] - 3 s[i+2] + s[i+3] of white noise has
-    variance 20 sigma**2, and it vanishes on any locally quadratic curve, so a
-    smooth focus curve leaves it near zero except around a sharp peak. So the
-    differences that touch the highest frame or its neighbours are left out,
-    and the median of the rest ignores the few that the peak's shoulders still
-    touch. Returns (sigma, clean): clean is False when fewer than two
-    differences were away from the peak and all were used (an overestimate,
-    fine for sigma, not for deciding that a curve is flat); (0.0, False) for
-    fewer than 4 frames.
-    """
-    if scores.size < 4:
-        return 0.0, False
-    d3 = np.diff(scores, 3)
-    away = away_from_top(scores.size, int(np.argmax(scores)))
-    clean = np.count_nonzero(away) >= 2
-    if clean:
-        d3 = d3[away]
-    return float(noise_from_differences(d3)), bool(clean)
 
 
 def find_peak(

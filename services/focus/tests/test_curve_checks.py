@@ -13,6 +13,7 @@ from focustrack_core.domain import FocusFlag
 from focustrack_focus.curve_checks import (
     OVERSAMPLED_FLOOR_SHARE,
     SPIKE_SHARE,
+    between_maxima,
     broader_than_window,
     low_contrast_flat,
     narrowest_peak_sigma_um,
@@ -87,6 +88,36 @@ def test_a_coarse_stack_read_as_a_valley_finds_the_minimum_between_its_maxima(se
     assert fit.z_um is not None and abs(fit.z_um + 0.08) < 0.5, fit
     assert fit.sigma_um is not None and fit.sigma_um > abs(fit.z_um + 0.08)
     assert not fit.flags
+
+
+#: Two more scans' first stacks (4 um steps from -28 to 28 um, Tenengrad, the focus service
+#: in valley mode, seed 1's surface: focus at -1.98 um), on 10 x 10 slides. Red cells: a
+#: valley between -8 and 4 um that sinks 25 % of the range (the rest is the contrast fading
+#: far out). Thick cells in culture: no rise again after the dip at 0 um, the contrast
+#: fading fast above focus. Read whole, turned upside down, both were their faded ends
+#: (+28 um, `edge_high`), and the scans lost the surface (36 of 100 tiles in focus).
+COARSE_28_Z_UM = np.arange(-28.0, 28.1, 4.0)
+COARSE_28 = {
+    "phase-blood": [0.01123, 0.01405, 0.01521, 0.01862, 0.03319, 0.04632, 0.02857, 0.02876,
+                    0.03868, 0.0194, 0.01469, 0.01118, 0.00702, 0.00631, 0.00601],
+    "phase-cells": [0.00329, 0.00341, 0.00352, 0.00361, 0.00397, 0.0046, 0.00461, 0.00384,
+                    0.00392, 0.00307, 0.00268, 0.00231, 0.00192, 0.0016, 0.00156],
+}  # fmt: skip
+
+
+def test_a_coarse_valley_deep_against_its_noise_or_near_the_top_is_read_not_the_faded_end() -> None:
+    blood, cells = (np.array(COARSE_28[name]) for name in ("phase-blood", "phase-cells"))
+    assert twin_maxima(blood) == (5, 8)  # 5 of its noise sigmas deep, not half the range
+    valley = PeakSettings(mode=PeakMode.VALLEY)
+    fit = find_peak(COARSE_28_Z_UM, blood, valley)
+    assert fit.z_um == pytest.approx(-1.98, abs=0.5) and not fit.flags
+    # no two maxima: read within VALLEY_REACH_UM of the strongest contrast (-4 um)
+    assert twin_maxima(cells) is None
+    near_z, _ = between_maxima(COARSE_28_Z_UM, cells)
+    assert near_z.tolist() == [-12.0, -8.0, -4.0, 0.0, 4.0]
+    fit = find_peak(COARSE_28_Z_UM, cells, valley)
+    assert fit.z_um is not None and abs(fit.z_um + 1.98) < 4.0, fit
+    assert not fit.flags & {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH}
 
 
 def test_only_a_dip_of_half_the_range_between_two_maxima_is_a_valley_to_crop_to() -> None:

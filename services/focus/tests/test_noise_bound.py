@@ -9,8 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from focustrack_focus.noise_bound import bound_factor, used_differences
-from focustrack_focus.peak import score_noise
+from focustrack_focus.noise_bound import bound_factor, score_noise, used_differences
 from focustrack_focus.pipeline import FocusSettings, focus_from_curve
 from focustrack_focus.unprofiled import UNPROFILED_NOISE_CONFIDENCE, settings_without_entry
 
