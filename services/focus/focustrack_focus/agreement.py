@@ -17,8 +17,8 @@ The rule (`agreed_peak`), over the metrics of every frame's centre (`agreement_s
 most metrics (more than half, `AGREE_MIN_METRICS` at least) have their maximum on an
 interior frame within `AGREE_FRAMES` of the median of such maxima, each rising above both
 of its curve's end frames (by `AGREE_RISE_SNR` of the curve's own noise where the curve is
-long enough to measure it: `noise_bound.score_noise`), and the noise-robust metric's maximum is
-among them. The median frame is then the agreed peak.
+long enough to measure it: `noise_bound.score_noise`), and the noise-robust metric's
+maximum is among them. The median frame is then the agreed peak.
 """
 
 from __future__ import annotations
