@@ -44,7 +44,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from focustrack.arguments import output_file, output_folder
-from focustrack.bench.phase import GLASS_PHASE_RAD, high_pass_correlation
+from focustrack.bench.phase import high_pass_correlation
 from focustrack.browser import NoBrowserError, screenshot_live_view
 from focustrack.local_stack import INSTRUMENT, READY_TIMEOUT_S, SLIDE, LocalStack, stop_on_sigterm
 from focustrack.slide_scores import scored_scan
@@ -55,6 +55,7 @@ from focustrack_core.timing import TimingModel
 from focustrack_core.wire.session import SHARED_MEMORY_MB, shared_memory_room_mb
 from focustrack_estimator import registry
 from focustrack_estimator.replay import limit_time_s
+from focustrack_instrument_sim.phase_specimen import GLASS_PHASE_RAD
 from focustrack_instrument_sim.simulated import microscope_from_options
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
 from focustrack_scheduler.clients import wait_for_instrument

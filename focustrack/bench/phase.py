@@ -74,6 +74,7 @@ from focustrack_core.surfaces import SurfaceSpec
 from focustrack_focus.real_data import YEAST_FOCUS_PLANE, load_yeast
 from focustrack_instrument_sim.instrument import Purpose
 from focustrack_instrument_sim.microscope import Microscope, MicroscopeSpec, slides_from_seed
+from focustrack_instrument_sim.phase_specimen import GLASS_PHASE_RAD
 from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
 from focustrack_phase import acekf, baselines, simulate
 from focustrack_phase.acekf import FieldEstimate
@@ -90,8 +91,6 @@ SIMULATOR_OFFSETS_UM = 0.25 * np.arange(1, 33)
 SIMULATOR_TILES = (("phase-cells", 512), ("phase-blood", 256))
 #: Seeds of the simulator's slides the background anchoring was not tuned on.
 SIMULATOR_SEEDS = (1, 3)
-#: The true phase below which a pixel is glass (the simulator's medium has none).
-GLASS_PHASE_RAD = 1e-6
 #: The real yeast stack's illumination: white light, whose wavelength its source does not
 #: give; the middle of the visible (`score_real_yeast`).
 YEAST_WAVELENGTH_UM = 0.55

@@ -48,6 +48,7 @@ from focustrack_instrument_sim.instrument import (
     check_tile,
 )
 from focustrack_instrument_sim.phase_specimen import (
+    GLASS_PHASE_RAD,
     PhaseObject,
     PhaseSpecimenSpec,
     cell_culture,
@@ -513,6 +514,19 @@ class Microscope:
             phase_rad = np.zeros(self.spec.shape, dtype=np.float32)
         focus_um, _ = self.truth_um(slide)
         return TilePhase(phase_rad, self.pixel_size_um, float(focus_um[row, col]))
+
+    def specimen_in_view(self, slide: str, row: int, col: int) -> bool:
+        """Whether tile (row, col) of `slide` shows any specimen (evaluation only): a phase
+        specimen's cells anywhere (a phase of `GLASS_PHASE_RAD` or more), a stained
+        field's anything but plasma (a uniform transmission: the smear's empty fields).
+        AcquisitionRefusedError for an unknown slide or a tile outside it."""
+        check_tile(slide, row, col, {name: s.grid for name, s in self.slides.items()})
+        specimen_seed, _ = self._tile_seeds(self.slides[slide], row, col)
+        specimen = self._specimen(specimen_seed, self.spec.shape, self.pixel_size_um)
+        if isinstance(specimen, PhaseObject):
+            phase_rad = specimen.phase_rad(self.spec.illumination.wavelength_um)
+            return bool(np.any(np.abs(phase_rad) >= GLASS_PHASE_RAD))
+        return not np.all(specimen == specimen[0, 0])  # a pixel's every channel alike
 
     @staticmethod
     def _tile_seeds(

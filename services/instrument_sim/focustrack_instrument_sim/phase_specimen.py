@@ -33,6 +33,8 @@ from focustrack_instrument_sim.specimen import _Canvas, _granules, _scatter
 
 #: Channels of the canvas a phase specimen is drawn on.
 _OPD, _DENSITY = 0, 1
+#: The true phase below which a pixel is glass (the medium around the cells has none).
+GLASS_PHASE_RAD = 1e-6
 
 
 @dataclass(frozen=True)

@@ -274,6 +274,34 @@ def test_the_true_phase_is_the_imaged_specimens_and_refuses_what_is_not_there() 
     stained.close()
 
 
+@pytest.mark.parametrize(("specimen", "defocus_um"), [("stained-smear", 0.0), ("phase-cells", 3.0)])
+def test_a_tile_with_no_specimen_in_view_shows_a_field_of_noise_alone(
+    specimen: str, defocus_um: float
+) -> None:
+    """A smear's empty fields (plasma alone) and the glass between cells in culture are
+    not in view; their frames (a phase object's out of focus, where it shows) are as flat
+    as the camera's noise leaves them, those of a tile in view are not."""
+    options = SimulatorOptions(seed=2, rows=4, cols=4, width=128, height=128, specimen=specimen)
+    scope = microscope_from_options(options)
+    in_view = np.array(
+        [[scope.specimen_in_view("slide-0", r, c) for c in range(4)] for r in range(4)]
+    )
+    assert in_view.any() and not in_view.all()
+    focus_um, _ = scope.truth_um("slide-0")
+
+    def spread(tile: tuple[int, int]) -> float:  # the frame's std over its mean
+        z_um = float(focus_um[tile]) + defocus_um
+        frame = scope.acquire("slide-0", *tile, z_um, 1.0, 1).pixels[0].astype(np.float64)
+        return float(frame.std() / frame.mean())
+
+    empty = tuple(np.argwhere(~in_view)[0])
+    full = tuple(np.argwhere(in_view)[0])
+    assert spread(full) > 5 * spread(empty)
+    with pytest.raises(AcquisitionRefusedError):
+        scope.specimen_in_view("slide-0", 4, 0)
+    scope.close()
+
+
 def test_the_true_focus_of_the_phase_truth_drifts() -> None:
     scope = _phase_scope(stage=StageSpec(drift_um_per_s=0.01))
     scope.acquire("slide-0", 0, 0, 0.0, 0.5, 5)
