@@ -4,6 +4,7 @@ a long benchmark or demo used to run to its end and then fail writing, in a trac
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -101,12 +102,15 @@ def test_bench_instrument_with_an_odd_frame_side_stops_at_once(
 
 def test_bench_api_on_a_database_that_does_not_answer_says_so_in_one_line(tmp_path: Path) -> None:
     """The estimator starts (it serves 503 while its database is away); the bench's first
-    request is refused, and the bench ends with the estimator's words, not a traceback."""
+    request is refused after the estimator's store timeout (1 s here, from its variable),
+    and the bench ends with the estimator's words, not a traceback."""
     done = subprocess.run(
         [sys.executable, "-m", "focustrack", "bench", "api", "--duration-s", "1",
          "--store", "postgresql://nobody@127.0.0.1:1/none"],
         capture_output=True, text=True, timeout=120, cwd=tmp_path,
+        env=os.environ | {"FOCUSTRACK_ESTIMATOR_STORE_TIMEOUT_S": "1"},
     )  # fmt: skip
     assert done.returncode == 1, done.stderr
     assert "error: the estimator answered 503 to /v1/slides" in done.stderr, done.stderr
     assert "the estimator's store failed" in done.stderr and "Traceback" not in done.stderr
+    assert "couldn't get a connection after 1.00 sec" in done.stderr

@@ -231,8 +231,13 @@ def store_address(location: str) -> tuple[Literal["sqlite", "postgresql"], str]:
     return "sqlite", path
 
 
-def open_store(location: str) -> EventStore:
-    """The store at `location` (`store_address`).
+#: How long a database store's call waits for a connection by default, s (then 503).
+STORE_TIMEOUT_S = 5.0
+
+
+def open_store(location: str, timeout_s: float = STORE_TIMEOUT_S) -> EventStore:
+    """The store at `location` (`store_address`); a database's calls wait `timeout_s` for
+    it (a file's do not wait).
 
     Raises StoreError for a URL of another scheme, or a file the store refuses.
     """
@@ -241,7 +246,7 @@ def open_store(location: str) -> EventStore:
     if kind == "postgresql":
         from focustrack_estimator.postgres_store import PostgresStore
 
-        return PostgresStore(address)
+        return PostgresStore(address, timeout_s=timeout_s)
     from focustrack_estimator.sqlite_store import SQLiteStore
 
     return SQLiteStore(address)

@@ -38,6 +38,7 @@ from psycopg.conninfo import conninfo_to_dict
 from psycopg_pool import ConnectionPool
 
 from focustrack_estimator.event_store import (
+    STORE_TIMEOUT_S,
     Event,
     SequenceConflictError,
     SlideRecord,
@@ -123,7 +124,9 @@ class PostgresStore:
     read; a database that is down is found (and said) by the calls.
     """
 
-    def __init__(self, conninfo: str, *, timeout_s: float = 5.0, max_connections: int = 8) -> None:
+    def __init__(
+        self, conninfo: str, *, timeout_s: float = STORE_TIMEOUT_S, max_connections: int = 8
+    ) -> None:
         self.address = redacted(conninfo)
         try:
             conninfo_to_dict(conninfo)

@@ -77,7 +77,8 @@ def run(settings: EstimatorSettings) -> int:
         print(f"estimator not started: {error}", file=sys.stderr)
         return 2
     try:
-        store = open_store(settings.store)  # last: a bad setting touches no file
+        # last: a bad setting touches no file
+        store = open_store(settings.store, settings.store_timeout_s)
     except StoreError as error:
         listening.close()
         print(f"estimator not started: {error}", file=sys.stderr)

@@ -11,6 +11,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from focustrack_core.tracing import TracingSettings
+from focustrack_estimator.event_store import STORE_TIMEOUT_S
 
 #: The smallest request-body limit: a slide's configuration with its fields spelt out
 #: (about 400 bytes) under it with room; a smaller one would refuse every slide.
@@ -31,6 +32,11 @@ class EstimatorSettings(TracingSettings):
         description="SQLite file holding every slide and its log (created if missing), "
         "its sqlite:///PATH URL, or a PostgreSQL database shared by replicas "
         "(postgresql://USER:PASS@HOST:PORT/DB; the tables are created in it)",
+    )
+    store_timeout_s: float = Field(
+        STORE_TIMEOUT_S,
+        gt=0,
+        description="seconds a request waits for a connection to a PostgreSQL store (then: 503)",
     )
     token: str | None = Field(None, description="require this bearer token on /v1 (unset: no auth)")
     insecure: bool = Field(

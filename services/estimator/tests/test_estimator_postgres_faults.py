@@ -32,6 +32,8 @@ pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` sk
 STRATEGY = "kf-wiener0"
 #: Seconds a server may take to start: imports alone took 30-45 s on a loaded 2-core machine.
 START_TIMEOUT_S = 120.0
+#: Seconds a call waits for the database: less than the default 5, room for a loaded machine.
+STORE_TIMEOUT_S = 2.0
 
 
 @pytest.fixture
@@ -47,9 +49,11 @@ def database() -> Iterator[PostgresServer]:
 
 @pytest.fixture
 def estimator(database: PostgresServer) -> Iterator[tuple[Popen, httpx.Client]]:
-    """The estimator on `database`'s default database, started while the database is down."""
+    """The estimator on `database`'s default database, started while the database is down;
+    a call waits `STORE_TIMEOUT_S` for it (each 503 while it is away costs that much)."""
     port = free_port()
-    process = spawn(database.url(), port, timeout_s=START_TIMEOUT_S)
+    options = ("--store-timeout-s", str(STORE_TIMEOUT_S))
+    process = spawn(database.url(), port, timeout_s=START_TIMEOUT_S, options=options)
     http = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30.0)
     yield process, http
     http.close()
@@ -81,7 +85,7 @@ def test_down_at_start_then_back_without_a_restart(
     refused = http.post("/v1/slides", json=slide_config(STRATEGY, SETTINGS))
     assert refused.status_code == 503
     assert int(refused.headers["Retry-After"]) > 0
-    assert "couldn't get a connection" in refused.json()["detail"]
+    assert f"couldn't get a connection after {STORE_TIMEOUT_S:.2f} sec" in refused.json()["detail"]
 
     database.start()
     _until(lambda: http.get("/healthz").json()["status"] == "ok")
