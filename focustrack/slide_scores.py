@@ -6,7 +6,10 @@ fold's upper layer. A tissue tile is in focus where its kept frame (or one of it
 planes) lies within half the depth of field of the section or of a fold's upper layer;
 it is focused on dust where its kept frame lies nearer the dust than the section.
 `focustrack bench slide` and `focustrack demo --tissue-slide` score their scans so.
-Heights in um.
+
+A slide of separate fields (a specimen's: `--specimen`) has no contents per tile in its
+truth; its bare glass comes from the simulator's specimen (`bare_glass`), and a tile with
+specimen in view counts as tissue. Heights in um.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ from focustrack_core.timing import TimingModel
 from focustrack_core.v1 import instrument_pb2
 from focustrack_core.wire import keys, rpc
 from focustrack_estimator.replay import limit_time_s
+from focustrack_instrument_sim.simulated import microscope_from_options
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
 from focustrack_scheduler.record import ScanRecord
 
 
@@ -38,10 +43,17 @@ class SlideContents:
     fold_z_um: np.ndarray
 
     @classmethod
-    def of(cls, truth: instrument_pb2.SlideTruth) -> SlideContents:
+    def of(cls, truth: instrument_pb2.SlideTruth, empty: np.ndarray | None = None) -> SlideContents:
+        """A virtual slide's contents from its truth; a slide of separate fields has none
+        there, so `empty` (rows, cols) says which of its tiles are bare glass (ValueError
+        without it): no dust, no folds."""
         shape = (truth.rows, truth.cols)
         if len(truth.empty) != truth.rows * truth.cols:
-            raise ValueError(f"slide {truth.slide!r} is no virtual slide: no contents per tile")
+            if empty is None:
+                raise ValueError(f"slide {truth.slide!r} is no virtual slide: no contents per tile")
+            none_um = np.full(shape, np.nan)
+            focus_um = np.array(truth.best_focus_um).reshape(shape)
+            return cls(focus_um, np.asarray(empty, dtype=bool).reshape(shape), none_um, none_um)
         return cls(
             np.array(truth.best_focus_um).reshape(shape),
             np.array(truth.empty, dtype=bool).reshape(shape),
@@ -57,7 +69,9 @@ def tile_scores(
     frames: np.ndarray,
     dof_um: float,
 ) -> dict[str, Any]:
-    """Per slide: tissue tiles in focus, tiles focused on dust, frames on empty tiles.
+    """Per slide: tissue tiles in focus, tiles focused on dust, frames on empty tiles, and
+    the tissue tiles' summed focus error (um: the kept frame's distance to the section or
+    a fold's upper layer, whichever is nearer; over the tiles with a kept frame).
 
     kept_z_um (rows, cols): the z of each tile's image (NaN: none); planes_um: the z of the
     frames a tile keeps besides; frames (rows, cols): frames acquired per tile.
@@ -73,6 +87,10 @@ def tile_scores(
     has_dust = np.isfinite(contents.dust_z_um)
     to_dust = np.abs(kept_z_um - np.where(has_dust, contents.dust_z_um, np.inf))
     on_dust = has_dust & (to_dust < np.abs(kept_z_um - contents.focus_um))
+    error_um = np.fmin(
+        np.abs(kept_z_um - contents.focus_um), np.abs(kept_z_um - contents.fold_z_um)
+    )
+    imaged = tissue & np.isfinite(error_um)
     return {
         "tissue_in_focus": int(np.sum(in_focus & tissue)),
         "tissue_tiles": int(tissue.sum()),
@@ -80,16 +98,38 @@ def tile_scores(
         "dust_tiles": int(has_dust.sum()),
         "empty_tiles": int(contents.empty.sum()),
         "empty_frames": int(frames[contents.empty].sum()),
+        "tissue_imaged": int(imaged.sum()),
+        "tissue_error_um": float(error_um[imaged].sum()),
     }
 
 
+def bare_glass(options: SimulatorOptions, slide: str) -> np.ndarray:
+    """(rows, cols) bool: the tiles of the simulator's slide `slide` (a slide of separate
+    fields, as `options` describe it) with no specimen in view (`specimen_in_view`: no cell
+    of a phase specimen, plasma alone on a stained smear)."""
+    scope = microscope_from_options(options)
+    try:
+        return np.array([
+            [not scope.specimen_in_view(slide, row, col) for col in range(options.cols)]
+            for row in range(options.rows)
+        ])  # fmt: skip
+    finally:
+        scope.close()
+
+
 def scored_scan(
-    session: zenoh.Session, instrument: str, slide: str, scan_dir: Path, report: dict[str, Any]
+    session: zenoh.Session,
+    instrument: str,
+    slide: str,
+    scan_dir: Path,
+    report: dict[str, Any],
+    empty: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The scan in `scan_dir` (its `report`) scored against the truth of `instrument`'s
     virtual slide `slide`, asked over `session`: `tile_scores` plus frames, tiles, scan and
-    limit time and the seam error (ValueError for a slide of separate fields: no contents
-    per tile)."""
+    limit time and the seam error. A slide of separate fields has no contents per tile:
+    `empty` (rows, cols) says which of its tiles are bare glass (`bare_glass`; ValueError
+    without it)."""
     truth = rpc.call(
         session,
         keys.truth_key(instrument, slide),
@@ -108,7 +148,7 @@ def scored_scan(
     grid = ScanGrid(
         layout.rows, layout.cols, layout.pitch_um, layout.origin_x_um, layout.origin_y_um
     )
-    contents = SlideContents.of(truth)
+    contents = SlideContents.of(truth, empty)
     record = ScanRecord(scan_dir)
     try:
         tally = record.tally

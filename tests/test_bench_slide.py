@@ -1,6 +1,6 @@
 """`focustrack bench slide`, small: a virtual slide scanned through the real services by a
-Kalman strategy and autofocus on every tile; and its scoring of tiles on dust, on folds and
-on empty glass."""
+Kalman strategy and autofocus on every tile, a slide of unstained cells in valley mode;
+and its scoring of tiles on dust, on folds and on empty glass."""
 
 from __future__ import annotations
 
@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 from focustrack.cli import main
-from focustrack.slide_scores import SlideContents, tile_scores
+from focustrack.slide_scores import SlideContents, bare_glass, tile_scores
+from focustrack_core.v1 import instrument_pb2
+from focustrack_instrument_sim.simulator_options import SimulatorOptions
 
 
 def test_tiles_are_scored_against_what_lies_in_them() -> None:
@@ -30,6 +32,26 @@ def test_tiles_are_scored_against_what_lies_in_them() -> None:
     assert scores["tissue_in_focus"] == 2 and scores["tissue_tiles"] == 3
     assert scores["on_dust"] == 2 and scores["dust_tiles"] == 3
     assert (scores["empty_tiles"], scores["empty_frames"]) == (1, 1)
+    # the section's 0.2 and 29 um, the fold's 0.1: the empty tile's 28 um counts nowhere
+    assert scores["tissue_imaged"] == 3
+    assert scores["tissue_error_um"] == pytest.approx(0.2 + 29.0 + 0.1)
+
+
+def test_a_slide_of_separate_fields_takes_its_bare_glass_from_the_caller() -> None:
+    truth = instrument_pb2.SlideTruth(slide="slide-0", rows=1, cols=2, best_focus_um=[1.0, 2.0])
+    with pytest.raises(ValueError, match="no virtual slide"):
+        SlideContents.of(truth)
+    contents = SlideContents.of(truth, np.array([[False, True]]))
+    np.testing.assert_array_equal(contents.focus_um, [[1.0, 2.0]])
+    np.testing.assert_array_equal(contents.empty, [[False, True]])
+    assert np.isnan(contents.dust_z_um).all() and np.isnan(contents.fold_z_um).all()
+
+
+def test_bare_glass_is_where_the_simulator_shows_no_specimen() -> None:
+    for specimen in ("phase-cells", "stained-smear"):  # sparse cells; a smear's empty fields
+        options = SimulatorOptions(seed=2, rows=4, cols=4, width=128, height=128, specimen=specimen)
+        glass = bare_glass(options, "slide-0")
+        assert glass.shape == (4, 4) and 0 < glass.sum() < 16
 
 
 @pytest.mark.slow
@@ -90,10 +112,40 @@ def test_with_look_first_an_empty_tile_costs_one_frame_and_tissue_its_stack(
     assert score["tissue_in_focus_fraction"] == 1.0 and score["tiles_focused_on_dust"] == 0
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_slide_of_unstained_cells_is_scanned_in_valley_mode_and_scored_on_its_cells(
+    tmp_path: Path,
+) -> None:
+    """Sparse cells in culture: the focus service looks for the contrast minimum by
+    default, every tile with a cell in view is in focus, and the bare glass is scored
+    apart."""
+    out = tmp_path / "cells.json"
+    command = [
+        sys.executable, "-m", "focustrack", "bench", "slide", "--specimen", "phase-cells",
+        "--seeds", "1", "--rows", "4", "--cols", "4", "--size", "128",
+        "--strategies", "kf-2d-lean", "--out", str(tmp_path / "work"), "--json", str(out),
+    ]  # fmt: skip
+    bench = subprocess.run(command, capture_output=True, text=True, timeout=560)
+    assert bench.returncode == 0, bench.stdout + bench.stderr
+    report = json.loads(out.read_text())
+    assert (report["specimen"], report["focus_mode"]) == ("phase-cells", "valley")
+    score = report["scores"]["kf-2d-lean"]
+    cells = SimulatorOptions(seed=1, rows=4, cols=4, width=128, height=128, specimen="phase-cells")
+    glass = bare_glass(cells, "slide-0")
+    assert (score["empty_tiles"], score["tissue_tiles"]) == (glass.sum(), 16 - glass.sum())
+    assert score["tissue_in_focus_fraction"] == 1.0
+    assert 0.0 < score["tissue_mae_um"] < 0.3  # in focus: within 0.44 um (half the DOF)
+    assert score["seam_error_px"] is None and score["tiles_focused_on_dust"] == 0
+    assert "focus mode valley" in bench.stdout
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
         (["--family", "bogus"], "argument --family: invalid choice: 'bogus'"),
+        (["--specimen", "tissues"], "argument --specimen: invalid choice: 'tissues'"),
+        (["--focus-mode", "min"], "argument --focus-mode: invalid choice: 'min'"),
         (["--strategies", "kf-2d", "nope"], "argument --strategies: invalid choice: 'nope'"),
         (["--overlap", "0.9"], "error: --overlap: Input should be less than 0.5"),
         (["--size", "65"], "error: --size must be even"),

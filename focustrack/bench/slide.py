@@ -13,6 +13,8 @@ the tile is empty glass and where its dust lies. Per strategy:
 - frames_per_tile: frames acquired over tiles;
 - time_over_limit: the simulated scan time over the physical limit (the serpentine's
   stage moves and one frame per tile);
+- tissue_mae_um: the mean distance of the tissue tiles' kept frames from their section
+  (or a fold's upper layer), um;
 - tiles_focused_on_dust: tiles whose kept frame lies nearer their dust than their tissue;
 - empty_tiles_frames: frames acquired per empty tile;
 - seam_error_px: the stitched mosaic's seams (the scan report's, `stitch.Placement`): the
@@ -23,8 +25,16 @@ parameters; not kf-2d) scan with it on: a tile's first stack
 is its lowest frame alone, then the rest where the focus service sees something in view
 (`focustrack_estimator.look_first`); `--no-look-first` takes whole stacks, as before.
 
+`--specimen` scans a slide of separate fields carrying one of the simulator's specimens
+instead (a stained smear; unstained cells in culture or red cells, imaged with partially
+coherent light), with the focus service in `--focus-mode` (by default the specimen's own:
+valley for the unstained ones). Its tissue is every tile with specimen in view; its empty
+tiles are bare glass (the true phase, `slide_scores.bare_glass`); there is no dust, fold
+or overlap to score.
+
     focustrack bench slide [--seeds 1 2] [--rows 10 --cols 10 --size 256]
-                           [--no-look-first] [--json OUT]
+                           [--specimen tissue|stained-smear|phase-cells|phase-blood]
+                           [--focus-mode max|valley] [--no-look-first] [--json OUT]
 """
 
 from __future__ import annotations
@@ -48,11 +58,16 @@ from focustrack.arguments import (
 from focustrack.bench.json_report import write_json
 from focustrack.demo import scan_on, slide_problem
 from focustrack.local_stack import INSTRUMENT, SLIDE, LocalStack
-from focustrack.slide_scores import scored_scan
+from focustrack.slide_scores import bare_glass, scored_scan
 from focustrack_core.geometry import MAX_GRID_SIDE
 from focustrack_core.surfaces import FAMILIES
 from focustrack_estimator import registry
-from focustrack_instrument_sim.simulator_options import MAX_FRAME_SIDE_PX
+from focustrack_focus.peak import PeakMode
+from focustrack_instrument_sim.simulator_options import (
+    MAX_FRAME_SIDE_PX,
+    SPECIMENS,
+    SimulatorOptions,
+)
 from focustrack_scheduler.settings import BEST_KALMAN, ScanOptions
 
 DEFAULT_STRATEGIES = (BEST_KALMAN, "kf-2d-lean", "survey-delaunay", "af-every-tile")
@@ -60,6 +75,8 @@ DEFAULT_STRATEGIES = (BEST_KALMAN, "kf-2d-lean", "survey-delaunay", "af-every-ti
 KALMAN_PREFIX = "kf-"
 #: The smallest frame side the bench takes, px: tissue and dust to score need some pixels.
 MIN_SIZE_PX = 64
+#: `--specimen`'s default: the virtual tissue slide (`--tissue-slide` of the simulator).
+TISSUE = "tissue"
 
 
 @dataclass(frozen=True)
@@ -67,6 +84,7 @@ class SlideScore:
     """One strategy on one or more slides (see the module docstring)."""
 
     tissue_in_focus_fraction: float
+    tissue_mae_um: float
     frames_per_tile: float
     time_over_limit: float
     tiles_focused_on_dust: int
@@ -84,13 +102,17 @@ def combine(parts: list[dict[str, Any]]) -> SlideScore:
     def total(key: str) -> float:
         return float(sum(part[key] for part in parts))
 
+    imaged = total("tissue_imaged")
+    seams_px = np.array([part["seam_error_px"] for part in parts])
+    seams_px = seams_px[np.isfinite(seams_px)]  # a slide of separate fields has no seams
     return SlideScore(
         tissue_in_focus_fraction=total("tissue_in_focus") / max(total("tissue_tiles"), 1.0),
+        tissue_mae_um=total("tissue_error_um") / imaged if imaged else float("nan"),
         frames_per_tile=total("frames") / total("tiles"),
         time_over_limit=total("scan_time_s") / total("limit_time_s"),
         tiles_focused_on_dust=int(total("on_dust")),
         empty_tiles_frames=total("empty_frames") / max(total("empty_tiles"), 1.0),
-        seam_error_px=float(np.sqrt(np.nanmean([part["seam_error_px"] ** 2 for part in parts]))),
+        seam_error_px=float(np.sqrt(np.mean(seams_px**2))) if seams_px.size else float("nan"),
         tissue_tiles=int(total("tissue_tiles")),
         empty_tiles=int(total("empty_tiles")),
         dust_tiles=int(total("dust_tiles")),
@@ -111,11 +133,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"frame side in pixels, even, >= {MIN_SIZE_PX} (256)",
     )
     parser.add_argument(  # its range is the simulator's, checked by `slide_problem`
-        "--overlap", type=finite_number(), default=0.1, help="tiles' overlap (0.1)"
+        "--overlap", type=finite_number(), default=0.1, help="tiles' overlap (tissue; 0.1)"
     )
     parser.add_argument(
+        "--specimen", default=TISSUE, choices=[TISSUE, *SPECIMENS],
+        help="what the slide carries: a virtual tissue section (tissue, the default) or "
+        "separate fields of one of the simulator's specimens",
+    )  # fmt: skip
+    parser.add_argument(
+        "--focus-mode", choices=[mode.value for mode in PeakMode],
+        help="the focus service's mode (default: valley for the unstained specimens, "
+        "phase-*; max otherwise)",
+    )  # fmt: skip
+    parser.add_argument(
         "--family", default="standard", choices=list(FAMILIES),
-        help="map family of the section (standard)",
+        help="map family of the section's (or the fields') heights (standard)",
     )  # fmt: skip
     parser.add_argument(
         "--strategies", nargs="+", default=list(DEFAULT_STRATEGIES), metavar="NAME",
@@ -138,15 +170,39 @@ def look_first_params(strategy: str, look_first: bool) -> dict[str, Any]:
     return {"look_first": look_first} if takes else {}
 
 
+def focus_mode(args: argparse.Namespace) -> str:
+    """The focus service's mode: `--focus-mode`, or the specimen's own (a phase object is
+    faintest in focus: valley)."""
+    if args.focus_mode is not None:
+        return str(args.focus_mode)
+    return (PeakMode.VALLEY if args.specimen.startswith("phase-") else PeakMode.MAX).value
+
+
+def instrument_arguments(args: argparse.Namespace, seed: int) -> list[str]:
+    """The simulated instrument's flags for the slide of `seed`."""
+    slide = [
+        "--seed", str(seed), "--family", args.family, "--slides", "1", "--rows", str(args.rows),
+        "--cols", str(args.cols), "--width", str(args.size), "--height", str(args.size),
+    ]  # fmt: skip
+    if args.specimen == TISSUE:
+        return ["--tissue-slide", "--overlap", str(args.overlap), *slide]
+    return ["--specimen", args.specimen, *slide]
+
+
 def scan_slide(
-    stack: LocalStack, options: ScanOptions, strategy: str, scan_dir: Path, look_first: bool
+    stack: LocalStack,
+    options: ScanOptions,
+    strategy: str,
+    scan_dir: Path,
+    look_first: bool,
+    empty: np.ndarray | None,
 ) -> dict[str, Any]:
     """Scan the stack's slide with `strategy` (`look_first` where it takes it); the part of
-    `combine` it makes."""
+    `combine` it makes (`empty`: a slide of separate fields' bare glass, as `scored_scan`)."""
     request = options.request(INSTRUMENT, SLIDE, strategy, look_first_params(strategy, look_first))
     report = scan_on(stack, options, request, scan_dir, strategy, None)
     assert stack.session is not None
-    return scored_scan(stack.session, INSTRUMENT, SLIDE, scan_dir, report)
+    return scored_scan(stack.session, INSTRUMENT, SLIDE, scan_dir, report, empty)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -157,16 +213,20 @@ def run(args: argparse.Namespace) -> int:
     options = ScanOptions.defaults(no_progress=True)
     parts: dict[str, list[dict[str, Any]]] = {name: [] for name in args.strategies}
     started_s = time.perf_counter()
+    mode = focus_mode(args)
     for seed in args.seeds:
-        instrument_args = [
-            "--tissue-slide", "--overlap", str(args.overlap), "--seed", str(seed),
-            "--family", args.family, "--slides", "1", "--rows", str(args.rows),
-            "--cols", str(args.cols), "--width", str(args.size), "--height", str(args.size),
-        ]  # fmt: skip
+        instrument_args = instrument_arguments(args, seed)
+        empty = None
+        if args.specimen != TISSUE:
+            simulator = SimulatorOptions(
+                seed=seed, rows=args.rows, cols=args.cols, width=args.size, height=args.size,
+                family=args.family, specimen=args.specimen,
+            )  # fmt: skip
+            empty = bare_glass(simulator, SLIDE)
         work = args.out / f"seed-{seed}"
-        with LocalStack(work, instrument_args) as stack:
+        with LocalStack(work, instrument_args, focus_args=("--focus-mode", mode)) as stack:
             for name in args.strategies:
-                part = scan_slide(stack, options, name, work / name, args.look_first)
+                part = scan_slide(stack, options, name, work / name, args.look_first, empty)
                 parts[name].append(part)
                 print(
                     f"seed {seed} {name}: {part['tissue_in_focus']}/{part['tissue_tiles']} "
@@ -175,14 +235,24 @@ def run(args: argparse.Namespace) -> int:
                     flush=True,
                 )
     scores = {name: combine(runs) for name, runs in parts.items()}
+    slides = (
+        f"virtual slides, overlap {args.overlap:g}"
+        if args.specimen == TISSUE
+        else f"{args.specimen} slides, focus mode {mode}"
+    )
     title = (
-        f"virtual slides of seeds {' '.join(map(str, args.seeds))}: {args.rows}x{args.cols} "
-        f"tiles of {args.size} px, overlap {args.overlap:g}, family {args.family}"
+        f"{slides}, seeds {' '.join(map(str, args.seeds))}: {args.rows}x{args.cols} "
+        f"tiles of {args.size} px, family {args.family}"
         f"{'' if args.look_first else ', without look_first'}"
     )
     print(format_scores(title, scores))
     if args.json is not None:
-        report = {"title": title, "scores": {name: asdict(s) for name, s in scores.items()}}
+        report = {
+            "title": title,
+            "specimen": args.specimen,
+            "focus_mode": mode,
+            "scores": {name: asdict(s) for name, s in scores.items()},
+        }
         write_json(args.json, report)
         print(f"wrote {args.json}")
         figure(scores, args.json.with_suffix(".png"), title)
@@ -192,14 +262,14 @@ def run(args: argparse.Namespace) -> int:
 def format_scores(title: str, scores: dict[str, SlideScore]) -> str:
     """One row per strategy."""
     header = (
-        f"{'strategy':<18}{'tissue in focus':>16}{'frames/tile':>12}{'/ limit':>9}"
+        f"{'strategy':<18}{'tissue in focus':>16}{'MAE um':>8}{'frames/tile':>12}{'/ limit':>9}"
         f"{'on dust':>9}{'empty fr':>10}{'seam px':>9}"
     )
     lines = [title, header, "-" * len(header)]
     for name, s in scores.items():
         lines.append(
-            f"{name:<18}{s.tissue_in_focus_fraction:>16.1%}{s.frames_per_tile:>12.2f}"
-            f"{s.time_over_limit:>9.2f}{s.tiles_focused_on_dust:>9d}"
+            f"{name:<18}{s.tissue_in_focus_fraction:>16.1%}{s.tissue_mae_um:>8.3f}"
+            f"{s.frames_per_tile:>12.2f}{s.time_over_limit:>9.2f}{s.tiles_focused_on_dust:>9d}"
             f"{s.empty_tiles_frames:>10.2f}{s.seam_error_px:>9.2f}"
         )
     first = next(iter(scores.values()))
