@@ -71,13 +71,17 @@ def test_a_look_tells_empty_glass_from_tissue_at_any_defocus(seed: int) -> None:
     assert not called_empty[~truth.empty].any()
 
 
-def test_a_look_at_unstained_cells_in_focus_is_not_called_empty_in_valley_mode() -> None:
-    """An unstained smear has no stain for the look to see: in max mode every look at its
-    red cells in focus reads empty (a scan then gives up each such tile unmeasured, and the
-    glass it believes in spreads to the neighbours' looks); in valley mode, the mode for
-    such specimens, no look is empty and each tile's stack decides."""
+@pytest.mark.parametrize(("specimen", "seed"), [("phase-blood", 0), ("phase-cells", 4)])
+def test_in_valley_mode_a_look_at_unstained_cells_reads_their_brightness(
+    specimen: str, seed: int
+) -> None:
+    """Unstained cells have no stain for the look to see: in max mode every look at them
+    in focus reads empty (a scan would give up each such tile unmeasured). In valley mode,
+    the mode for such specimens, a look reads the frame's brightness: empty where the tile
+    shows no cell (glass), in view where it does, in focus (where a phase object is
+    faintest) and out of it, on both of the focus service's paths."""
     options = SimulatorOptions(
-        seed=0, slides=1, rows=4, cols=4, width=256, height=256, specimen="phase-blood"
+        seed=seed, slides=1, rows=5, cols=5, width=256, height=256, specimen=specimen
     )
     microscope = microscope_from_options(options)
     slide = microscope.slides["slide-0"]
@@ -87,17 +91,21 @@ def test_a_look_at_unstained_cells_in_focus_is_not_called_empty_in_valley_mode()
     )
     max_mode = FocusSettings(preprocess)
     valley_mode = FocusSettings(preprocess, peak=PeakSettings(mode=PeakMode.VALLEY))
+    empty = {FocusFlag.EMPTY, FocusFlag.FLAT}
+    in_view = np.zeros(slide.grid.shape, dtype=bool)
     for row in range(slide.grid.rows):
         for col in range(slide.grid.cols):
-            z_um = float(slide.focus_um[row, col])
-            plan = microscope.plan("slide-0", row, col, z_um, 0.5, 1)
-            frame = next(iter(microscope.render(plan)))[None]
-            assert focus_stack(frame, np.array([z_um]), max_mode).flags == {
-                FocusFlag.EMPTY,
-                FocusFlag.FLAT,
-            }
-            valley = focus_stack(frame, np.array([z_um]), valley_mode)
-            assert valley.flags == frozenset() and valley.best_z_um is None
-            curve = FrameByFrame(np.array([z_um]), valley_mode)  # the Zenoh path alike
-            curve.add(0, frame[0])
-            assert curve.result().flags == frozenset()
+            in_view[row, col] = microscope.specimen_in_view("slide-0", row, col)
+            for dz_um in (0.0, -0.8):
+                z_um = float(slide.focus_um[row, col]) + dz_um
+                plan = microscope.plan("slide-0", row, col, z_um, 0.5, 1)
+                frame = next(iter(microscope.render(plan)))[None]
+                if dz_um == 0.0:
+                    assert focus_stack(frame, np.array([z_um]), max_mode).flags == empty
+                valley = focus_stack(frame, np.array([z_um]), valley_mode)
+                assert valley.best_z_um is None
+                assert valley.flags == (frozenset() if in_view[row, col] else empty)
+                curve = FrameByFrame(np.array([z_um]), valley_mode)  # the Zenoh path alike
+                curve.add(0, frame[0])
+                assert curve.result().flags == valley.flags
+    assert in_view.any() and not in_view.all()  # both kinds of tile were looked at

@@ -263,13 +263,9 @@ def look_result(
     z_um: np.ndarray, scores: np.ndarray, snr: float, settings: FocusSettings, started_s: float
 ) -> FocusResult:
     """The answer to a look, one frame at z_um (1,) with its score (1,): no focus (one frame
-    has no curve), and flat and empty where its stain test (`look.look_snr`, `snr`)
-    sees nothing in view; no flag where it does (a stack there will find the focus).
-
-    Never empty when the peak is read in valley mode, as for unstained specimens: the stain
-    test cannot see them (`look` says why), so a look cannot tell their cells from glass;
-    the stack that follows can (`structure.structure_snr`)."""
-    empty = snr < MIN_LOOK_SNR and settings.peak.mode is not PeakMode.VALLEY
+    has no curve), and flat and empty where its test (`look_reading`, `snr`) sees nothing
+    in view; no flag where it does (a stack there will find the focus)."""
+    empty = snr < MIN_LOOK_SNR
     return FocusResult(
         z_um=z_um,
         scores=scores,
@@ -279,6 +275,13 @@ def look_result(
         metric=settings.metric,
         compute_time_s=time.perf_counter() - started_s,
     )
+
+
+def look_reading(region: np.ndarray, settings: FocusSettings) -> float:
+    """A look's statistic (`look.look_snr`) of its frame's region (h, w) or (h, w, C): its
+    stain, or in valley mode, as for unstained specimens, its brightness (they have no
+    stain; `look` says why)."""
+    return look_snr(region, brightness=settings.peak.mode is PeakMode.VALLEY)
 
 
 #: How a stack's array is laid out, as the errors say it.
@@ -306,7 +309,7 @@ def focus_stack(
         raise ValueError("pixels must be finite (NaN or infinity found)")
     scan = scan_stack(frames, settings)
     if z.size == 1:
-        snr = look_snr(settings.preprocess.region(frames[0]))
+        snr = look_reading(settings.preprocess.region(frames[0]), settings)
         return look_result(z, scan.scores, snr, settings, started_s)
     snr = structure_snr(scan.sharpest, scan.blurriest, scan.blurriest_raw, settings.preprocess)
     result = focus_from_curve(
@@ -373,7 +376,7 @@ class FrameByFrame:
         self._metric = get_metric(settings.metric)
         self._top = self._low = -1
         self._sharpest = self._blurriest = self._blurriest_raw = np.empty(0, np.float32)
-        self._look_snr = math.nan  # a look's statistic (`look.look_snr`), read as it comes
+        self._look_snr = math.nan  # a look's statistic (`look_reading`), read as it comes
         self._busy_s = 0.0
         self._frame_shape: tuple[int, ...] = ()  # the first frame's
 
@@ -425,7 +428,7 @@ class FrameByFrame:
                 f"{float(np.max(frame)):.3g}) overflow the metric's float32 arithmetic"
             )
         if self.z_um.size == 1:  # a look reads every colour of its frame
-            self._look_snr = look_snr(preprocess.region(frame))
+            self._look_snr = look_reading(preprocess.region(frame), self.settings)
         self.scores[index] = score
         self._agreement[index] = agreement_scores(image)
         if self._top < 0 or score > self.scores[self._top]:
