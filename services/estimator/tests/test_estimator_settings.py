@@ -12,8 +12,9 @@ from focustrack_estimator.settings import EstimatorSettings
 
 #: The command's options, as its users know them (flags and FOCUSTRACK_ESTIMATOR_ variables).
 OPTIONS = [
-    "otlp-endpoint", "host", "port", "store", "token", "insecure", "max-body-bytes",
-    "max-grid-side", "max-grid-tiles", "snapshot-every", "body-timeout-s", "max-slide-bytes",
+    "otlp-endpoint", "host", "port", "store", "store-timeout-s", "token", "insecure",
+    "max-body-bytes", "max-grid-side", "max-grid-tiles", "snapshot-every", "body-timeout-s",
+    "max-slide-bytes",
     "max-tile-seconds", "max-live-slides", "max-live-bytes", "strategies-from", "access-log",
 ]  # fmt: skip
 
@@ -48,6 +49,7 @@ def test_the_environment_sets_and_an_empty_token_unsets(monkeypatch: pytest.Monk
         (["--max-live-slides", "0"], "--max-live-slides"),
         (["--max-tile-seconds", "-1"], "--max-tile-seconds"),
         (["--snapshot-every", "0"], "--snapshot-every"),
+        (["--store-timeout-s", "0"], "--store-timeout-s"),
         (["--port", "70000"], "--port"),
         # a limit that admits no slide's configuration: every creation was a 413
         (["--max-body-bytes", "10"], "--max-body-bytes"),
