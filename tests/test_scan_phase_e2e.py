@@ -31,6 +31,8 @@ pytestmark = pytest.mark.slow  # real services in processes: `make test-fast` sk
 
 ROWS = COLS = 2
 SIZE = 128
+#: The slide's field of plasma alone (the stained smear of seed 3): nothing in view.
+EMPTY_TILE = (0, 0)
 
 
 @pytest.fixture(scope="module")
@@ -84,15 +86,25 @@ def logged(out_dir: Path, event: str) -> list[dict]:
     return [entry for entry in map(json.loads, lines) if entry["event"] == event]
 
 
+def found_empty(out_dir: Path) -> set[tuple[int, int]]:
+    """The tiles whose stacks the focus service found empty (nothing in view)."""
+    return {(e["row"], e["col"]) for e in logged(out_dir, "measured") if "empty" in e["flags"]}
+
+
 def test_scan_phase_writes_the_phase_in_radians_beside_the_mosaic(
     stack: LocalStack, tmp_path: Path
 ) -> None:
+    """Every tile with something in view gets its phase, in radians, in the OME-Zarr beside
+    the mosaic; the smear's one field of plasma alone (seed 3, tile (0, 0)) takes no phase
+    stack, and its place in the phase image is NaN."""
     if not takes_phase_stacks(stack):
         pytest.skip("this instrument takes phase stacks as focus stacks (it predates them)")
     report = scan(stack, tmp_path, "--phase", "--phase-planes", "7")
     assert report["tiles_imaged"] == ROWS * COLS
-    assert report["tiles_with_phase"] == ROWS * COLS
-    assert report["phase_images_acquired"] == 7 * ROWS * COLS
+    assert found_empty(tmp_path) == {EMPTY_TILE}
+    assert report["tiles_with_phase"] == ROWS * COLS - 1
+    assert report["phase_images_acquired"] == 7 * (ROWS * COLS - 1)
+    assert EMPTY_TILE not in {(e["row"], e["col"]) for e in logged(tmp_path, "phase")}
     kept = {(e["row"], e["col"]): e["z_um"] for e in logged(tmp_path, "kept")}
     for entry in logged(tmp_path, "phase"):  # each centred on the z the tile is imaged at
         assert entry["error"] is None and entry["n_frames"] == 7
@@ -106,9 +118,12 @@ def test_scan_phase_writes_the_phase_in_radians_beside_the_mosaic(
     mosaic_pixels = root["s0"].shape[1:]
     pixels = np.asarray(phase["s0"])
     assert pixels.shape == (1, *mosaic_pixels) and pixels.dtype == np.float32
-    assert np.isfinite(pixels).all() and np.abs(pixels).max() <= math.pi + 1e-5
-    tiles = pixels[0].reshape(ROWS, SIZE, COLS, SIZE)
-    assert (tiles.std(axis=(1, 3)) > 0).all()  # every tile holds a phase image
+    tiles = pixels[0].reshape(ROWS, SIZE, COLS, SIZE).transpose(0, 2, 1, 3)
+    assert np.isnan(tiles[EMPTY_TILE]).all()  # no phase taken: none shown
+    phased = np.ones((ROWS, COLS), dtype=bool)
+    phased[EMPTY_TILE] = False
+    assert np.isfinite(tiles[phased]).all() and np.abs(tiles[phased]).max() <= math.pi + 1e-5
+    assert (tiles[phased].std(axis=(1, 2)) > 0).all()  # every other tile holds a phase image
     # the same placement as the mosaic's: same pixel size and origin
     transforms = phase.attrs["ome"]["multiscales"][0]["datasets"][0]["coordinateTransformations"]
     mosaic = root.attrs["ome"]["multiscales"][0]["datasets"][0]["coordinateTransformations"]
@@ -138,9 +153,14 @@ def test_a_scan_killed_before_its_phase_results_came_takes_them_when_resumed(
     first.wait()
     report = scan(stack, tmp_path, "--phase", "--phase-planes", "5")
     assert report["tiles_imaged"] == ROWS * COLS
-    assert report["tiles_with_phase"] == ROWS * COLS
     with_phase = {(e["row"], e["col"]) for e in logged(tmp_path, "phase") if e["file"]}
-    assert with_phase == {(row, col) for row in range(ROWS) for col in range(COLS)}
+    tiles = {(row, col) for row in range(ROWS) for col in range(COLS)}
+    # Every tile but one found empty: the field of plasma, where the log says so (a run
+    # killed after posting its stack and before logging it takes its phase when resumed,
+    # as any tile's left without).
+    assert found_empty(tmp_path) <= {EMPTY_TILE}
+    assert with_phase == tiles - found_empty(tmp_path)
+    assert report["tiles_with_phase"] == len(with_phase)
 
 
 def test_a_scan_without_phase_takes_no_phase_stack(stack: LocalStack, tmp_path: Path) -> None:
@@ -159,23 +179,24 @@ def test_the_demo_s_phase_pass_recovers_the_true_phase_of_unstained_cells(
     """Unstained red cells: focus on the contrast minimum, a phase stack centred on each
     tile's predicted focus, and the phase that comes back is the simulator's.
 
-    Seed 0 has a tile of bare glass among the cells (row 1, column 1): its neighbours
-    after it are looked at first, and the look must not take their cells for glass."""
+    Seed 0 has a tile of bare glass among the cells (row 1, column 1): it is found empty
+    and takes no phase stack; its neighbours after it are looked at first, and the look
+    must not take their cells for glass."""
     args = argparse.Namespace(seed=0, size=256)
     flags = argparse.Namespace(phase=True, no_progress=True)
     options = ScanOptions.from_args(flags, environment=False)
     report, scores = phase_pass(args, options, tmp_path, live=None)
     tiles = PHASE_PASS_TILES * PHASE_PASS_TILES
     assert report["in_focus_fraction"] == 1.0
-    assert report["tiles_flagged"].get("empty", 0) <= 1  # the bare glass alone, if any
+    assert report["tiles_flagged"].get("empty", 0) == 1  # the bare glass alone
     # the slide's curve read as a valley's reciprocal: 7.3 focus frames a tile (9.7 when it
     # was learnt as a peak where the curve has its minimum)
     assert report["images_per_tile"] < 8.5
-    assert report["tiles_with_phase"] == tiles
-    assert scores.bare_glass_tiles == 1 and len(scores.correlations) == tiles - 1
+    assert report["tiles_with_phase"] == tiles - 1  # none of the bare glass
+    assert scores.bare_glass_tiles == 0 and len(scores.correlations) == tiles - 1
     assert min(scores.correlations) > 0.9, scores.correlations  # 0.97-0.98 measured
     # Every tile's phase is anchored to its glass, so the tiles share their zero.
-    assert len(scores.glass_rad) == tiles
+    assert len(scores.glass_rad) == tiles - 1
     # measured: 15 tiles within 0.02 rad, one at 0.054 (row 0, column 1)
     glass_rad = np.abs(scores.glass_rad)
     assert np.median(glass_rad) < 0.02 and glass_rad.max() < 0.1, scores.glass_rad

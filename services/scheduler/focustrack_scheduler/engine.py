@@ -654,10 +654,11 @@ class Engine:
     def _tiles_without_phase(self, _: TilesWithoutPhase) -> list[tuple[int, int, float]]:
         self._take_pending_phase(in_flight=0)  # a result still to come is not missing
         tally = self.record.tally
+        empty = tally.tiles_found_empty()  # nothing in view: no phase to take (`scan_plan`)
         return [
             (row, col, z_um)
             for (row, col), z_um in tally.kept.items()
-            if (row, col) not in tally.phase
+            if (row, col) not in tally.phase and (row, col) not in empty
         ]
 
     def _drop_pending_phase(self) -> None:

@@ -330,7 +330,8 @@ class AcquirePhase:
 class TilesWithoutPhase:
     """-> the tiles with an image but no phase, (row, col, z um of the image) each, once the
     phase results still to come have come: a resumed scan's tiles whose phase stack an
-    earlier run never took, or never heard of again (it was stopped first)."""
+    earlier run never took, or never heard of again (it was stopped first). A tile found
+    empty is none of them: it takes no phase stack."""
 
 
 @dataclass(frozen=True)
@@ -545,9 +546,12 @@ def scan_plan(request: ScanRequest) -> Plan:
                 for row, col, z_um in again:
                     sequence = RETAKE_SEQUENCE_BASE + row * geometry.grid.cols + col
                     yield Retake(request.slide, row, col, z_um, sequence)
+            # A tile with nothing in view (`empty`: glass, plasma alone) has no phase to
+            # reconstruct: its phase stack would be that many frames of glass.
             if (
                 request.phase is not None
                 and acquisition.purpose is not Purpose.SURVEY
+                and FocusFlag.EMPTY not in measurement.flags
                 and tile_index not in phased
             ):
                 phased.add(tile_index)

@@ -74,6 +74,10 @@ class ScanTally:
         or empty stack), row-major. A tile only imaged, at a sure prediction, is not one."""
         return sorted(tile for tile, entry in self.focus_measured.items() if entry["z_um"] is None)
 
+    def tiles_found_empty(self) -> set[Tile]:
+        """The tiles whose last measured stack found nothing in view (flagged `empty`)."""
+        return {tile for tile, entry in self.focus_measured.items() if "empty" in entry["flags"]}
+
     def images_per_tile(self, grid: ScanGrid) -> np.ndarray:
         """Images acquired on each tile, (rows, cols)."""
         counts = np.zeros(grid.shape, dtype=int)

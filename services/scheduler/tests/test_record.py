@@ -121,6 +121,7 @@ def test_a_tile_only_imaged_is_not_a_tile_without_focus() -> None:
         tally.take(entry)
     assert tally.tiles_without_focus() == [(1, 0), (1, 1)]
     assert tally.flag_counts() == {"empty": 1, "flat": 2}
+    assert tally.tiles_found_empty() == {(1, 0)}  # glass: no phase stack to take
     assert tally.focus_measured[(0, 1)]["z_um"] == 0.4  # the best focus posted for it
     assert tally.measured[(0, 1)]["z_um"] is None  # its last post, as logged
 

@@ -109,6 +109,8 @@ class FakeEstimator:
         self.outcomes: list[Outcome] = []
         #: what the engine says an earlier run left without phase (row, col, z um)
         self.without_phase: list[tuple[int, int, float]] = []
+        #: tiles with nothing in view: their stack is `empty`, and the tile is done with it
+        self.empty_tiles: frozenset[tuple[int, int]] = frozenset()
 
     def _acquisition(self, tile: tuple[int, int], z: ZRange, purpose: Purpose) -> Acquisition:
         self.index += 1
@@ -125,6 +127,8 @@ class FakeEstimator:
         return self.pending
 
     def focus(self, acq: Acquisition) -> focus_pb2.FocusResult:
+        if (acq.row, acq.col) in self.empty_tiles:
+            return focus(acq, None, FocusFlag.EMPTY.proto, FocusFlag.FLAT.proto)
         truth_um = float(self.truth_um[acq.row, acq.col])
         if truth_um < acq.z.low_um:
             return focus(acq, None, FocusFlag.EDGE_LOW.proto)
@@ -142,6 +146,9 @@ class FakeEstimator:
             )
             self.pending = self._acquisition(tile, ZRange(low_um, STEP_UM, 5), Purpose.RETRY)
             return self._outcome(Outcome(*tile, accepted=False))
+        if FocusFlag.EMPTY in measurement.flags:  # done: imaged where it was looked at
+            self.pending = None
+            return self._outcome(Outcome(*tile, accepted=False, posterior_um=self.estimate_um))
         if acq.measure:
             assert measurement.z_um is not None
             self.estimate_um = measurement.z_um
@@ -275,6 +282,23 @@ def test_a_resumed_scan_takes_the_phase_an_earlier_run_left_out_at_its_end() -> 
     assert sorted(phased) == [(0, 0), (0, 1), (1, 0), (1, 1)]  # each tile once
     plain, _ = drive(REQUEST, FakeEstimator(grid, truth_um, frozenset()).answer(geometry))
     assert TilesWithoutPhase() not in plain
+
+
+def test_a_tile_found_empty_takes_no_phase_stack_now_or_when_resumed() -> None:
+    """A tile with nothing in view (glass, plasma alone) has no phase to reconstruct: it is
+    imaged and done, with no phase stack, and what the engine says is left without phase
+    (which leaves such tiles out) is all a resumed scan takes at its end."""
+    grid = ScanGrid(3, 3)
+    truth_um = np.zeros(grid.shape)
+    fake = FakeEstimator(grid, truth_um, frozenset())
+    fake.empty_tiles = frozenset({(0, 1), (2, 2)})
+    fake.without_phase = [(1, 1, 0.0)]  # not this run's: an earlier run's tile
+    request = replace(REQUEST, phase=PhaseStacks(planes=5))
+    steps, _ = drive(request, fake.answer(SlideGeometry(grid, dof_um=0.9)))
+    kept = {(s.row, s.col) for s in steps if isinstance(s, KeepTile)}
+    assert kept == {(t.row, t.col) for t in grid.serpentine}  # the empty tiles imaged too
+    phased = [(s.row, s.col) for s in steps if isinstance(s, AcquirePhase)]
+    assert sorted(phased) == sorted(kept - fake.empty_tiles)  # (1, 1) once
 
 
 def test_a_phase_stack_cut_by_the_stage_says_what_was_asked() -> None:
