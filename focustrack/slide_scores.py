@@ -48,14 +48,14 @@ class SlideContents:
         there, so `empty` (rows, cols) says which of its tiles are bare glass (ValueError
         without it): no dust, no folds."""
         shape = (truth.rows, truth.cols)
+        focus_um = np.array(truth.best_focus_um).reshape(shape)
         if len(truth.empty) != truth.rows * truth.cols:
             if empty is None:
                 raise ValueError(f"slide {truth.slide!r} is no virtual slide: no contents per tile")
             none_um = np.full(shape, np.nan)
-            focus_um = np.array(truth.best_focus_um).reshape(shape)
             return cls(focus_um, np.asarray(empty, dtype=bool).reshape(shape), none_um, none_um)
         return cls(
-            np.array(truth.best_focus_um).reshape(shape),
+            focus_um,
             np.array(truth.empty, dtype=bool).reshape(shape),
             np.array(truth.dust_z_um).reshape(shape),
             np.array(truth.fold_z_um).reshape(shape),

@@ -119,12 +119,14 @@ def test_a_slide_of_unstained_cells_is_scanned_in_valley_mode_and_scored_on_its_
 ) -> None:
     """Sparse cells in culture: the focus service looks for the contrast minimum by
     default, every tile with a cell in view is in focus, and the bare glass is scored
-    apart."""
+    apart; with --phase, a phase stack of every tile with cells and none of the glass
+    (each glass tile one frame: the look's, which sees nothing in view)."""
     out = tmp_path / "cells.json"
     command = [
         sys.executable, "-m", "focustrack", "bench", "slide", "--specimen", "phase-cells",
         "--seeds", "1", "--rows", "4", "--cols", "4", "--size", "128",
-        "--strategies", "kf-2d-lean", "--out", str(tmp_path / "work"), "--json", str(out),
+        "--strategies", "kf-2d-lean", "--phase", "--out", str(tmp_path / "work"),
+        "--json", str(out),
     ]  # fmt: skip
     bench = subprocess.run(command, capture_output=True, text=True, timeout=560)
     assert bench.returncode == 0, bench.stdout + bench.stderr
@@ -137,6 +139,10 @@ def test_a_slide_of_unstained_cells_is_scanned_in_valley_mode_and_scored_on_its_
     assert score["tissue_in_focus_fraction"] == 1.0
     assert 0.0 < score["tissue_mae_um"] < 0.3  # in focus: within 0.44 um (half the DOF)
     assert score["seam_error_px"] is None and score["tiles_focused_on_dust"] == 0
+    assert score["empty_tiles_frames"] == 1.0
+    planes = 11  # `focustrack scan --phase-planes`' default
+    assert score["tiles_with_phase"] == score["tissue_tiles"]
+    assert score["phase_frames_per_tile"] == planes * score["tissue_tiles"] / 16
     assert "focus mode valley" in bench.stdout
 
 

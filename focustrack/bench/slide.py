@@ -17,6 +17,9 @@ the tile is empty glass and where its dust lies. Per strategy:
   (or a fold's upper layer), um;
 - tiles_focused_on_dust: tiles whose kept frame lies nearer their dust than their tissue;
 - empty_tiles_frames: frames acquired per empty tile;
+- phase_frames_per_tile, tiles_with_phase: with `--phase`, the frames of the phase stacks
+  (`focustrack scan --phase`: a stack on every tile not found empty) over tiles, and the
+  tiles whose phase came back;
 - seam_error_px: the stitched mosaic's seams (the scan report's, `stitch.Placement`): the
   RMS of how far neighbours' overlaps still disagree once placed by the stage and refined.
 
@@ -29,12 +32,13 @@ is its lowest frame alone, then the rest where the focus service sees something 
 instead (a stained smear; unstained cells in culture or red cells, imaged with partially
 coherent light), with the focus service in `--focus-mode` (by default the specimen's own:
 valley for the unstained ones). Its tissue is every tile with specimen in view; its empty
-tiles are bare glass (the true phase, `slide_scores.bare_glass`); there is no dust, fold
-or overlap to score.
+tiles are those with none (the simulator's specimen says which, `slide_scores.bare_glass`);
+there is no dust, fold or overlap to score.
 
     focustrack bench slide [--seeds 1 2] [--rows 10 --cols 10 --size 256]
                            [--specimen tissue|stained-smear|phase-cells|phase-blood]
-                           [--focus-mode max|valley] [--no-look-first] [--json OUT]
+                           [--focus-mode max|valley] [--phase] [--no-look-first]
+                           [--json OUT]
 """
 
 from __future__ import annotations
@@ -90,6 +94,8 @@ class SlideScore:
     tiles_focused_on_dust: int
     empty_tiles_frames: float
     seam_error_px: float
+    phase_frames_per_tile: float
+    tiles_with_phase: int
     tissue_tiles: int
     empty_tiles: int
     dust_tiles: int
@@ -113,6 +119,8 @@ def combine(parts: list[dict[str, Any]]) -> SlideScore:
         tiles_focused_on_dust=int(total("on_dust")),
         empty_tiles_frames=total("empty_frames") / max(total("empty_tiles"), 1.0),
         seam_error_px=float(np.sqrt(np.mean(seams_px**2))) if seams_px.size else float("nan"),
+        phase_frames_per_tile=total("phase_frames") / total("tiles"),
+        tiles_with_phase=int(total("tiles_with_phase")),
         tissue_tiles=int(total("tissue_tiles")),
         empty_tiles=int(total("empty_tiles")),
         dust_tiles=int(total("dust_tiles")),
@@ -153,6 +161,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--strategies", nargs="+", default=list(DEFAULT_STRATEGIES), metavar="NAME",
         choices=list(registry.STRATEGIES),
         help=f"strategies (default: {' '.join(DEFAULT_STRATEGIES)})",
+    )  # fmt: skip
+    parser.add_argument(
+        "--phase", action="store_true",
+        help="a phase stack of every tile not found empty, reconstructed by a phase service "
+        "beside the stack (focustrack scan --phase; for the unstained specimens)",
     )  # fmt: skip
     parser.add_argument(
         "--no-look-first", dest="look_first", action="store_false",
@@ -202,7 +215,11 @@ def scan_slide(
     request = options.request(INSTRUMENT, SLIDE, strategy, look_first_params(strategy, look_first))
     report = scan_on(stack, options, request, scan_dir, strategy, None)
     assert stack.session is not None
-    return scored_scan(stack.session, INSTRUMENT, SLIDE, scan_dir, report, empty)
+    part = scored_scan(stack.session, INSTRUMENT, SLIDE, scan_dir, report, empty)
+    return part | {
+        "phase_frames": report["phase_images_acquired"],
+        "tiles_with_phase": report["tiles_with_phase"],
+    }
 
 
 def run(args: argparse.Namespace) -> int:
@@ -210,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
     if problem is not None:  # said before any stack starts
         print(f"focustrack bench slide: error: {problem}", file=sys.stderr)
         return 2
-    options = ScanOptions.defaults(no_progress=True)
+    options = ScanOptions.defaults(no_progress=True, phase=args.phase)
     parts: dict[str, list[dict[str, Any]]] = {name: [] for name in args.strategies}
     started_s = time.perf_counter()
     mode = focus_mode(args)
@@ -224,7 +241,9 @@ def run(args: argparse.Namespace) -> int:
             )  # fmt: skip
             empty = bare_glass(simulator, SLIDE)
         work = args.out / f"seed-{seed}"
-        with LocalStack(work, instrument_args, focus_args=("--focus-mode", mode)) as stack:
+        with LocalStack(
+            work, instrument_args, phase=args.phase, focus_args=("--focus-mode", mode)
+        ) as stack:
             for name in args.strategies:
                 part = scan_slide(stack, options, name, work / name, args.look_first, empty)
                 parts[name].append(part)
@@ -244,6 +263,7 @@ def run(args: argparse.Namespace) -> int:
         f"{slides}, seeds {' '.join(map(str, args.seeds))}: {args.rows}x{args.cols} "
         f"tiles of {args.size} px, family {args.family}"
         f"{'' if args.look_first else ', without look_first'}"
+        f"{', a phase stack on every tile not found empty' if args.phase else ''}"
     )
     print(format_scores(title, scores))
     if args.json is not None:
@@ -267,10 +287,15 @@ def format_scores(title: str, scores: dict[str, SlideScore]) -> str:
     )
     lines = [title, header, "-" * len(header)]
     for name, s in scores.items():
+        phase = (  # with --phase: its frames and the tiles whose phase came back
+            f"  phase: {s.phase_frames_per_tile:.2f} frames/tile, {s.tiles_with_phase} tiles"
+            if s.phase_frames_per_tile
+            else ""
+        )
         lines.append(
             f"{name:<18}{s.tissue_in_focus_fraction:>16.1%}{s.tissue_mae_um:>8.3f}"
             f"{s.frames_per_tile:>12.2f}{s.time_over_limit:>9.2f}{s.tiles_focused_on_dust:>9d}"
-            f"{s.empty_tiles_frames:>10.2f}{s.seam_error_px:>9.2f}"
+            f"{s.empty_tiles_frames:>10.2f}{s.seam_error_px:>9.2f}{phase}"
         )
     first = next(iter(scores.values()))
     lines.append(
