@@ -125,6 +125,14 @@ def test_focus_and_instrument_start_without_the_router_and_join_it_later(tmp_pat
     assert "still trying" in focus_log  # it said what it waited for
 
 
+def _ctrl_c_at_its_default() -> None:
+    """In the scan's process before it starts: SIGINT at its default, as at a terminal. A
+    shell's background job (`make test &` in a script) ignores SIGINT, the test's workers
+    and the scan inherit that, and the scan then never heard the test's Ctrl-C (it ran
+    into Zenoh's timeout instead: status 1)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize(("stop", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_a_scan_waiting_for_its_router_stops_at_ctrl_c(
     tmp_path: Path, stop: signal.Signals, status: int
@@ -149,6 +157,7 @@ def test_a_scan_waiting_for_its_router_stops_at_ctrl_c(
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            preexec_fn=_ctrl_c_at_its_default,
         )
         assert scan.stderr is not None
         waiting = scan.stderr.readline()  # the end of the file if the scan ended instead
