@@ -68,7 +68,7 @@ def test_a_query_carries_the_callers_trace_to_the_queryable(
         seen.append((query.attachment is not None, _current_traceparent()))
         return instrument_pb2.AcquireReply()
 
-    with hub.declare_queryable(KEY, lambda query: rpc.answer(query, KEY, handle)):
+    with rpc.declare_answering(hub, KEY, handle):
         request = instrument_pb2.AcquireRequest(slide="s")
         rpc.call(caller, KEY, request, instrument_pb2.AcquireReply)
         with trace.use_span(_caller_span()):

@@ -145,7 +145,7 @@ def test_call_returns_replies_and_raises_error_replies(pair) -> None:
             raise RuntimeError("boom")
         return instrument_pb2.AcquireReply(header=instrument_pb2.ZStackHeader(slide=request.slide))
 
-    with hub.declare_queryable(key, lambda query: rpc.answer(query, key, handle)):
+    with rpc.declare_answering(hub, key, handle):
         reply = rpc.call(caller, key, instrument_pb2.AcquireRequest(slide="s", n_frames=2),
                          instrument_pb2.AcquireReply)  # fmt: skip
         assert reply.header.slide == "s"

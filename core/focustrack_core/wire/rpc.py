@@ -95,6 +95,14 @@ def answer(query: zenoh.Query, key_expr: str, handle: Callable[[zenoh.Query], Me
     serve(query, key_expr, lambda query: reply_message(query, key_expr, handle(query)))
 
 
+def declare_answering(
+    session: zenoh.Session, key_expr: str, handle: Callable[[zenoh.Query], Message]
+) -> zenoh.Queryable[None]:
+    """A queryable on `key_expr` whose every query is answered with `handle(query)`
+    (`answer`)."""
+    return session.declare_queryable(key_expr, lambda query: answer(query, key_expr, handle))
+
+
 def serve(query: zenoh.Query, key_expr: str, respond: Callable[[zenoh.Query], None]) -> None:
     """Let `respond` reply to `query` (as many replies as it likes); a `RequestError` it
     raises becomes that error reply, any other exception an INTERNAL one. Always

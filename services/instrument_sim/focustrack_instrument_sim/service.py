@@ -226,9 +226,7 @@ class InstrumentService:
         info_key, frames_key = keys.info_key(self.name), keys.frames_key(self.name)
         self._declared = [
             self.session.declare_queryable(self._acquire_key, self._enqueue),
-            self.session.declare_queryable(
-                info_key, lambda query: rpc.answer(query, info_key, self._info)
-            ),
+            rpc.declare_answering(self.session, info_key, self._info),
             self.session.declare_queryable(
                 frames_key, lambda query: rpc.serve(query, frames_key, self._reply_frames)
             ),

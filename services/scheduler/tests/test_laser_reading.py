@@ -39,19 +39,9 @@ class Instrument:
         self, bus: zenoh.Session, laser: bool | None, reading: tuple[float, float] = (1.5, 0.2)
     ) -> None:
         self._laser, self._reading = laser, reading
-        self._queryables = [
-            bus.declare_queryable(
-                keys.info_key("sim"),
-                lambda query: rpc.answer(query, keys.info_key("sim"), self._info),
-            )
-        ]
+        self._queryables = [rpc.declare_answering(bus, keys.info_key("sim"), self._info)]
         if laser:
-            self._queryables.append(
-                bus.declare_queryable(
-                    keys.laser_key("sim"),
-                    lambda query: rpc.answer(query, keys.laser_key("sim"), self._read),
-                )
-            )
+            self._queryables.append(rpc.declare_answering(bus, keys.laser_key("sim"), self._read))
 
     def _info(self, query: zenoh.Query) -> instrument_pb2.InstrumentInfo:
         slide = instrument_pb2.SlideInfo(slide=SLIDE, rows=3, cols=3, pitch_um=100.0)

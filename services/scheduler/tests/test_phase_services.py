@@ -61,14 +61,8 @@ class Instrument:
         self._phase_after_s = phase_after_s
         self._timers: list[threading.Timer] = []
         self._queryables = [
-            bus.declare_queryable(
-                keys.info_key("sim"),
-                lambda query: rpc.answer(query, keys.info_key("sim"), self._info),
-            ),
-            bus.declare_queryable(
-                keys.acquire_key("sim"),
-                lambda query: rpc.answer(query, keys.acquire_key("sim"), self._acquire),
-            ),
+            rpc.declare_answering(bus, keys.info_key("sim"), self._info),
+            rpc.declare_answering(bus, keys.acquire_key("sim"), self._acquire),
         ]
 
     def _info(self, query: zenoh.Query) -> instrument_pb2.InstrumentInfo:

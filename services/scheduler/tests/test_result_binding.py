@@ -51,10 +51,7 @@ class StandIns:
         self.replays: list[Sent] = []
         self.sent: list[Sent] = []  # every genuine result put
         self.on_acquire: Callable[[], None] = lambda: None  # called before it replies
-        self._queryable = bus.declare_queryable(
-            keys.acquire_key("sim"),
-            lambda query: rpc.answer(query, keys.acquire_key("sim"), self._acquire),
-        )
+        self._queryable = rpc.declare_answering(bus, keys.acquire_key("sim"), self._acquire)
 
     def _acquire(self, query: zenoh.Query) -> instrument_pb2.AcquireReply:
         request = rpc.parse_request(query, instrument_pb2.AcquireRequest)
