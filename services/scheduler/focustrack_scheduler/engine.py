@@ -413,9 +413,10 @@ class Engine:
             fault, why = ended[0] if ended else timeout
             self.metrics.faults.labels(fault).inc()
             log.warning(
-                "no focus result for acquisition %d %s: acquiring it again",
+                "no focus result for acquisition %d %s: %s",
                 acquisition.index,
                 why,
+                "its look unknown" if step.look_only else "acquiring it again",
             )
             self.wall.waiting_s += waited_s
             return None

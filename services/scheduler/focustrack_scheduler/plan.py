@@ -38,7 +38,10 @@ The loop (docs/scheduler.md):
 With `ScanRequest.phase` (``focustrack scan --phase``), once a tile's image is final
 (`KeepTile` at the posterior), `AcquirePhase` takes a short phase stack of the tile
 centred on the z of that image, for the phase service, and keeps its phase beside the
-tile's image (a tile whose phase does not come is reported without it). At the end,
+tile's image (a tile whose phase does not come is reported without it); a tile found empty
+(glass, plasma alone) takes none. A tile imaged with one frame at its prediction is then
+`AwaitFocus`ed too, as a look (the focus service reads a frame alone as one: empty or
+not), so that glass the scan did not measure takes no phase stack either. At the end,
 `TilesWithoutPhase` names the tiles an earlier run of a resumed scan left without phase
 (killed before their results came), and each gets its phase stack then.
 
@@ -256,10 +259,15 @@ class Acquire:
 
 @dataclass(frozen=True)
 class AwaitFocus:
-    """-> the focus service's FocusResult for the acquisition's stack, or None on timeout."""
+    """-> the focus service's FocusResult for the acquisition's stack, or None on timeout.
+
+    `look_only`: the stack is a frame only imaged, awaited for its look (empty or not);
+    None leaves that unknown, where a stack's None has it acquired again.
+    """
 
     slide: str
     acquisition: Acquisition
+    look_only: bool = False
 
 
 @dataclass(frozen=True)
@@ -480,8 +488,8 @@ def _acquire_and_measure(
     """Acquire the stack and read its focus; (measurement, z of its frames)."""
     for attempt in range(1, request.focus_attempts + 1):
         z_um = yield Acquire(request.slide, acquisition, attempt, asked)
-        if not acquisition.measure:  # only image the tile: no focus result is expected
-            return Measurement(z_um=None), z_um
+        if not acquisition.measure:  # only image the tile: no focus is expected
+            return (yield from _look_at_image(request, acquisition)), z_um
         result = yield AwaitFocus(request.slide, acquisition)
         if result is not None:
             return measurement_of(result), z_um
@@ -489,6 +497,21 @@ def _acquire_and_measure(
         f"no focus result on {keys.focus_key(request.slide, acquisition.row, acquisition.col)} "
         f"for acquisition {acquisition.index} after {request.focus_attempts} attempt(s): is "
         f"the focus service running and subscribed to {keys.zframe_pattern(request.slide)}?"
+    )
+
+
+def _look_at_image(
+    request: ScanRequest, acquisition: Acquisition
+) -> Generator[Step, Any, Measurement]:
+    """What a frame only imaged measured: nothing, except on a phase scan the look's flags
+    (the focus service reads a frame alone as a look), so that a tile of glass imaged at a
+    sure prediction is known empty and takes no phase stack. A look that does not come
+    flags nothing: the phase stack is taken."""
+    if request.phase is None or acquisition.purpose is not Purpose.SCAN:
+        return Measurement(z_um=None)
+    result = yield AwaitFocus(request.slide, acquisition, look_only=True)
+    return Measurement(
+        z_um=None, flags=frozenset() if result is None else measurement_of(result).flags
     )
 
 

@@ -75,8 +75,9 @@ class ScanTally:
         return sorted(tile for tile, entry in self.focus_measured.items() if entry["z_um"] is None)
 
     def tiles_found_empty(self) -> set[Tile]:
-        """The tiles whose last measured stack found nothing in view (flagged `empty`)."""
-        return {tile for tile, entry in self.focus_measured.items() if "empty" in entry["flags"]}
+        """The tiles whose last stack or look found nothing in view (flagged `empty`; a
+        phase scan reads a frame only imaged as a look)."""
+        return {tile for tile, entry in self.measured.items() if "empty" in entry["flags"]}
 
     def images_per_tile(self, grid: ScanGrid) -> np.ndarray:
         """Images acquired on each tile, (rows, cols)."""

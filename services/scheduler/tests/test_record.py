@@ -114,6 +114,9 @@ def test_a_tile_only_imaged_is_not_a_tile_without_focus() -> None:
         # empty glass: found none
         {"event": "measured", "row": 1, "col": 0, "measure": True, "z_um": None,
          "flags": ["empty", "flat"]},
+        # one frame at the prediction, read as a look (a phase scan): glass
+        {"event": "measured", "row": 0, "col": 2, "measure": False, "z_um": None,
+         "flags": ["empty", "flat"]},
         # a log from before the field: every entry measured, as before
         {"event": "measured", "row": 1, "col": 1, "z_um": None, "flags": ["flat"]},
     ]  # fmt: skip
@@ -121,7 +124,7 @@ def test_a_tile_only_imaged_is_not_a_tile_without_focus() -> None:
         tally.take(entry)
     assert tally.tiles_without_focus() == [(1, 0), (1, 1)]
     assert tally.flag_counts() == {"empty": 1, "flat": 2}
-    assert tally.tiles_found_empty() == {(1, 0)}  # glass: no phase stack to take
+    assert tally.tiles_found_empty() == {(1, 0), (0, 2)}  # glass: no phase stack to take
     assert tally.focus_measured[(0, 1)]["z_um"] == 0.4  # the best focus posted for it
     assert tally.measured[(0, 1)]["z_um"] is None  # its last post, as logged
 

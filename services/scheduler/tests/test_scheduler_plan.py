@@ -532,6 +532,56 @@ def test_an_image_only_acquisition_waits_for_no_focus_and_keeps_its_single_frame
     assert [s for s in steps if isinstance(s, KeepTile)] == [KeepTile(1, 1, 3, 0, 0.25)]
 
 
+def test_on_a_phase_scan_a_frame_only_imaged_is_a_look_and_glass_takes_no_phase_stack() -> None:
+    """A tile imaged with one frame at a sure prediction was never measured, so nothing said
+    it was glass and it took a phase stack of glass. On a phase scan its frame is awaited as
+    the look the focus service reads it as: empty takes no phase stack; something in view,
+    or a look that does not come, takes one; the look's flags are posted and logged (a
+    resumed scan knows the glass), and a frame only imaged again is never awaited twice."""
+    grid = ScanGrid(1, 3)
+    glass, cells, lost = (
+        acquisition(i, 0, i - 1, low_um=0.25, n=1, measure=False) for i in (1, 2, 3)
+    )
+    nexts = iter([glass, cells, lost, None])
+    looks = {glass.index: (FocusFlag.EMPTY.proto, FocusFlag.FLAT.proto), cells.index: ()}
+    posted: dict[int, Measurement] = {}
+
+    def answer(step: Step) -> Any:
+        match step:
+            case DescribeSlide():
+                return SlideGeometry(grid, dof_um=0.9)
+            case CreateOrResumeSlide():
+                return "slide-id"
+            case AskNext():
+                return next(nexts)
+            case Acquire():
+                return (0.25,)
+            case AwaitFocus():
+                assert step.look_only
+                flags = looks.get(step.acquisition.index)
+                return None if flags is None else focus(step.acquisition, None, *flags)
+            case PostMeasurement():
+                posted[step.acquisition.index] = step.measurement
+                acq = step.acquisition
+                return Outcome(acq.row, acq.col, accepted=False, posterior_um=0.25)
+            case TilesWithoutPhase():
+                return []
+            case _:
+                return True
+
+    steps, _ = drive(replace(REQUEST, phase=PhaseStacks(planes=5)), answer)
+    assert [(s.row, s.col) for s in steps if isinstance(s, AcquirePhase)] == [(0, 1), (0, 2)]
+    assert sum(isinstance(s, AwaitFocus) for s in steps) == 3
+    assert posted[glass.index] == Measurement(
+        z_um=None, flags=frozenset({FocusFlag.EMPTY, FocusFlag.FLAT})
+    )
+    assert posted[cells.index] == posted[lost.index] == Measurement(z_um=None)
+    # without phase, no look is awaited: the scan does not wait on the focus service there
+    nexts = iter([glass, cells, lost, None])
+    steps, _ = drive(REQUEST, answer)
+    assert not any(isinstance(s, AwaitFocus | AcquirePhase) for s in steps)
+
+
 def test_frames_of_a_previous_tile_are_never_kept_for_the_next() -> None:
     a = acquisition(0, 0, 0, low_um=5.0)
     b = acquisition(1, 0, 1, low_um=-1.0)
