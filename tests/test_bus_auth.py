@@ -90,7 +90,9 @@ def _opens(bus: Bus) -> bool:
 
 
 @pytest.fixture(scope="module")
-def stack(bus: Bus, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, str]]:
+def stack(
+    http: httpx.Client, bus: Bus, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[dict[str, str]]:
     """The instrument, focus and estimator services on the secured bus; their addresses."""
     folder = tmp_path_factory.mktemp("services")
     serve = [sys.executable, "-m", "focustrack", "serve"]
@@ -117,13 +119,13 @@ def stack(bus: Bus, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[s
                 "focus",
                 focus,
                 folder / "focus.log",
-                lambda: _http_ok(f"http://127.0.0.1:{focus_port}/healthz"),
+                lambda: _http_ok(http, f"http://127.0.0.1:{focus_port}/healthz"),
             ),
             Service(
                 "estimator",
                 estimator,
                 folder / "estimator.log",
-                lambda: _http_ok(f"{estimator_url}/healthz"),
+                lambda: _http_ok(http, f"{estimator_url}/healthz"),
             ),
         ]
         for service in services:
@@ -137,9 +139,9 @@ def stack(bus: Bus, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[s
                 service.stop()
 
 
-def _http_ok(url: str) -> bool:
+def _http_ok(http: httpx.Client, url: str) -> bool:
     try:
-        return httpx.get(url, timeout=1.0).status_code == 200
+        return http.get(url, timeout=1.0).status_code == 200
     except httpx.TransportError:
         return False
 

@@ -190,12 +190,12 @@ def local_report(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 # --- the tests -----------------------------------------------------------------------------
 
 
-def complete_report(stack: Stack, out_dir: Path) -> dict[str, Any]:
+def complete_report(http: httpx.Client, stack: Stack, out_dir: Path) -> dict[str, Any]:
     """The scan's report, once it is checked complete: every tile imaged, the estimator's
     slide done, and every acquisition the estimator asked for in the scan's log."""
     report = dict(json.loads((out_dir / outputs.REPORT).read_text()))
     assert report["tiles_imaged"] == ROWS * COLS
-    slide = httpx.get(
+    slide = http.get(
         f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}", headers=AUTH
     ).json()
     assert slide["done"] is True
@@ -227,7 +227,7 @@ def test_services_turn_healthy_and_run_as_non_root_on_a_read_only_root(
 
 
 def test_a_scan_in_containers_matches_the_truth_and_the_same_scan_as_processes(
-    stack: Stack, local_report: dict[str, Any], pytestconfig: pytest.Config
+    http: httpx.Client, stack: Stack, local_report: dict[str, Any], pytestconfig: pytest.Config
 ) -> None:
     topology = stack.topology
     started_s = time.monotonic()
@@ -235,7 +235,7 @@ def test_a_scan_in_containers_matches_the_truth_and_the_same_scan_as_processes(
     assert topology.wait("scan-1") == 0, topology.logs("scan-1")
     wall_s = time.monotonic() - started_s
     assert topology.inspect("scan-1")["Config"]["User"] == "focustrack", scheduler
-    report = complete_report(stack, topology.volume("scans") / "scan-1")
+    report = complete_report(http, stack, topology.volume("scans") / "scan-1")
     tiles = ROWS * COLS
     figures = {
         "in_focus_fraction": report["in_focus_fraction"],
@@ -254,7 +254,10 @@ def test_a_scan_in_containers_matches_the_truth_and_the_same_scan_as_processes(
 
 
 def test_a_scan_on_the_secure_bus_in_containers_logs_in_over_tls_and_trusts_its_results(
-    secure_stack: Stack, local_report: dict[str, Any], pytestconfig: pytest.Config
+    http: httpx.Client,
+    secure_stack: Stack,
+    local_report: dict[str, Any],
+    pytestconfig: pytest.Config,
 ) -> None:
     topology = secure_stack.topology
     assert "zenoh router listening on tls/0.0.0.0:7447" in topology.logs("zenoh")
@@ -262,7 +265,7 @@ def test_a_scan_on_the_secure_bus_in_containers_logs_in_over_tls_and_trusts_its_
     assert topology.health("instrument") == "healthy"
     topology.up("scheduler", "scan-secure", SCAN_NAME="scan-secure")
     assert topology.wait("scan-secure") == 0, topology.logs("scan-secure")
-    report = complete_report(secure_stack, topology.volume("scans") / "scan-secure")
+    report = complete_report(http, secure_stack, topology.volume("scans") / "scan-secure")
     figures = {
         "frames_per_tile": report["images_acquired"] / (ROWS * COLS),
         "local_frames_per_tile": local_report["images_acquired"] / (ROWS * COLS),
@@ -278,12 +281,12 @@ def test_a_scan_on_the_secure_bus_in_containers_logs_in_over_tls_and_trusts_its_
 
 
 def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
-    stack: Stack, pytestconfig: pytest.Config
+    http: httpx.Client, stack: Stack, pytestconfig: pytest.Config
 ) -> None:
     topology = stack.topology
     before = {
         slide["id"]: slide
-        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
+        for slide in http.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
     }
     topology.up("scheduler", "scan-2", SCAN_NAME="scan-2")
     out_dir = topology.volume("scans") / "scan-2"
@@ -300,10 +303,10 @@ def test_the_estimator_killed_mid_scan_and_started_again_loses_nothing(
     podman("start", topology.name("estimator"))
     healthy_again_s = topology.wait_healthy("estimator")
     assert topology.wait("scan-2") == 0, topology.logs("scan-2")
-    report = complete_report(stack, out_dir)
+    report = complete_report(http, stack, out_dir)
     after = {
         slide["id"]: slide
-        for slide in httpx.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
+        for slide in http.get(f"{stack.estimator_url}/v1/slides", headers=AUTH).json()
     }
     # Nothing lost: the slides from before the kill are all there, as they were, and the
     # interrupted scan's slide is complete.

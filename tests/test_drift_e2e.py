@@ -88,7 +88,7 @@ def logged(out_dir: Path) -> list[dict]:
 
 
 def test_a_drifting_scan_revisits_tiles_through_the_services(
-    stack: LocalStack, tmp_path: Path
+    http: httpx.Client, stack: LocalStack, tmp_path: Path
 ) -> None:
     report = scan(
         stack, tmp_path, "kf-2d-lean",
@@ -105,7 +105,7 @@ def test_a_drifting_scan_revisits_tiles_through_the_services(
     for entry in revisits:  # a tile measured before, with a short stack
         assert first_seen[(entry["row"], entry["col"])] < entry["sequence"]
         assert entry["n_frames"] == 3
-    slide = httpx.get(f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}").json()
+    slide = http.get(f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}").json()
     assert slide["done"] is True
     # a drift of 0.6 um/s at the start: most tiles, not all, in focus when imaged
     assert in_focus_when_imaged(stack, tmp_path, report["dof_um"]) >= 0.8

@@ -23,20 +23,22 @@ def test_the_benchmarks_catalogue_states_every_cost() -> None:
     assert cost.peak_bytes > 20 * 20 and cost.seconds_per_tile >= 0
 
 
-def _post(url: str, rows: int, cols: int) -> httpx.Response:
+def _post(http: httpx.Client, url: str, rows: int, cols: int) -> httpx.Response:
     body = {"strategy": "gp-oracle", "grid": {"rows": rows, "cols": cols}}
-    return httpx.post(f"{url}/v1/slides", json=body, timeout=120)
+    return http.post(f"{url}/v1/slides", json=body, timeout=120)
 
 
-def test_gp_oracle_is_served_only_when_opted_into_and_within_the_budget(tmp_path: Path) -> None:
+def test_gp_oracle_is_served_only_when_opted_into_and_within_the_budget(
+    http: httpx.Client, tmp_path: Path
+) -> None:
     port = free_port()
     options = ["--strategies-from", "focustrack.bench.strategies"]
     process = spawn(tmp_path / "oracle.sqlite", port, timeout_s=120, options=options)
     url = f"http://127.0.0.1:{port}"
     try:
-        assert _post(url, 10, 10).status_code == 201
+        assert _post(http, url, 10, 10).status_code == 201
         for rows, cols in ((90, 90), (500, 500)):  # 1 GB and 466 GiB slides
-            refused = _post(url, rows, cols)
+            refused = _post(http, url, rows, cols)
             assert refused.status_code == 422 and "projected to need" in refused.text
     finally:
         process.terminate()

@@ -76,12 +76,14 @@ def progress(config: pytest.Config, message: str) -> None:
     say(config, message, topic="facility")
 
 
-def wait_for_balancer(topology: Topology, url: str, timeout_s: float = 60.0) -> None:
+def wait_for_balancer(
+    http: httpx.Client, topology: Topology, url: str, timeout_s: float = 60.0
+) -> None:
     """Until HAProxy answers a replica's /healthz (it checks the replicas every second)."""
     deadline_s = time.monotonic() + timeout_s
     while True:
         try:
-            if httpx.get(f"{url}/healthz").status_code == 200:
+            if http.get(f"{url}/healthz").status_code == 200:
                 return
         except httpx.TransportError:
             pass
@@ -93,7 +95,7 @@ def wait_for_balancer(topology: Topology, url: str, timeout_s: float = 60.0) -> 
 
 
 @pytest.fixture(scope="module")
-def facility(pytestconfig: pytest.Config) -> Iterator[tuple[Topology, str]]:
+def facility(http: httpx.Client, pytestconfig: pytest.Config) -> Iterator[tuple[Topology, str]]:
     """The images built and every long-running service up and healthy; the topology and
     the estimators' URL (HAProxy, published on loopback)."""
     ensure_engine()
@@ -125,7 +127,7 @@ def facility(pytestconfig: pytest.Config) -> Iterator[tuple[Topology, str]]:
         started_s = time.monotonic()
         FIGURES["healthy_s"] = running.up_services(SERVICES)
         url = f"http://127.0.0.1:{port}"
-        wait_for_balancer(running, url)
+        wait_for_balancer(http, running, url)
         FIGURES["all_healthy_s"] = round(time.monotonic() - started_s, 1)
         progress(pytestconfig, f"time to healthy (s): {FIGURES['healthy_s']}")
         yield running, url
@@ -187,7 +189,7 @@ def database_url(topology: Topology) -> str:
     return f"postgresql://focustrack:{POSTGRES_PASSWORD}@{address}:5432/focustrack"
 
 
-def slide_state(url: str) -> dict[str, Any]:
+def slide_state(http: httpx.Client, url: str) -> dict[str, Any]:
     """The slide's JSON through HAProxy, asked again while HAProxy answers 503 (up to 10 s):
     with one replica killed, the other is out for 2 s whenever it misses two health checks
     (`inter 1s fall 2`, each answered within `timeout check 3s`), which a machine loaded
@@ -195,7 +197,7 @@ def slide_state(url: str) -> dict[str, Any]:
     answers: list[httpx.Response] = []
 
     def served() -> bool:
-        answers.append(httpx.get(url, headers=AUTH))
+        answers.append(http.get(url, headers=AUTH))
         return answers[-1].status_code != 503
 
     within(served, timeout_s=10.0)
@@ -204,7 +206,7 @@ def slide_state(url: str) -> dict[str, Any]:
 
 
 def test_three_scans_at_once_ride_out_a_killed_replica_and_a_killed_router(
-    facility: tuple[Topology, str], pytestconfig: pytest.Config
+    http: httpx.Client, facility: tuple[Topology, str], pytestconfig: pytest.Config
 ) -> None:
     topology, estimator_url = facility
     started_s = time.monotonic()
@@ -242,7 +244,7 @@ def test_three_scans_at_once_ride_out_a_killed_replica_and_a_killed_router(
         for n, out_dir in scans.out_dirs.items():
             report = dict(json.loads((out_dir / outputs.REPORT).read_text()))
             slide_id = report["estimator_slide_id"]
-            slide = slide_state(f"{estimator_url}/v1/slides/{slide_id}")
+            slide = slide_state(http, f"{estimator_url}/v1/slides/{slide_id}")
             logged = {entry["sequence"] for entry in acquired(out_dir)}
             stored = [event.sequence for event in store.events(slide_id)]
             figures[f"scanner-{n}"] = {

@@ -38,7 +38,7 @@ def acquisitions_logged(out_dir: Path) -> int:
     return path.read_text().count('"event": "acquired"') if path.exists() else 0
 
 
-def test_a_scan_rides_out_a_router_restart(tmp_path: Path) -> None:
+def test_a_scan_rides_out_a_router_restart(http: httpx.Client, tmp_path: Path) -> None:
     with LocalStack(tmp_path / "stack", INSTRUMENT_ARGS, router_process=True) as stack:
         out_dir = tmp_path / "scan"
         command = [
@@ -67,7 +67,7 @@ def test_a_scan_rides_out_a_router_restart(tmp_path: Path) -> None:
         assert scan.returncode == 0, stderr
         report = json.loads((out_dir / outputs.REPORT).read_text())
         assert report["tiles_imaged"] == ROWS * COLS
-        slide = httpx.get(f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}")
+        slide = http.get(f"{stack.estimator_url}/v1/slides/{report['estimator_slide_id']}")
         assert slide.json()["done"] is True
         logged = [
             json.loads(line) for line in (out_dir / outputs.LOG_FILE).read_text().splitlines()

@@ -33,7 +33,7 @@ EXPECTED = {
 
 
 def test_every_hostile_request_is_refused_without_a_5xx(
-    tmp_path: Path, serve: Callable[[FastAPI], str]
+    http: httpx.Client, tmp_path: Path, serve: Callable[[FastAPI], str]
 ) -> None:
     port = free_port()
     process = spawn(
@@ -50,8 +50,8 @@ def test_every_hostile_request_is_refused_without_a_5xx(
         assert not [name for name, status in statuses.items() if status >= 500], statuses
         assert statuses == EXPECTED
         auth = {"Authorization": "Bearer t0ken"}
-        assert len(httpx.get(f"{estimator}/v1/slides", headers=auth).json()) == 12
-        live = re.search(r"^\w+_live_slides (\d+)", httpx.get(f"{estimator}/metrics").text, re.M)
+        assert len(http.get(f"{estimator}/v1/slides", headers=auth).json()) == 12
+        live = re.search(r"^\w+_live_slides (\d+)", http.get(f"{estimator}/metrics").text, re.M)
         assert live and int(live[1]) <= 5
     finally:
         process.terminate()

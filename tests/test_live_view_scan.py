@@ -50,7 +50,7 @@ def opaque_cells(png: bytes) -> np.ndarray:
 
 
 def test_the_live_view_shows_thumbnails_and_the_in_focus_share_during_a_real_scan(
-    stack: LocalStack, tmp_path: Path
+    http: httpx.Client, stack: LocalStack, tmp_path: Path
 ) -> None:
     assert stack.session is not None
     session = stack.session
@@ -69,17 +69,17 @@ def test_the_live_view_shows_thumbnails_and_the_in_focus_share_during_a_real_sca
         during: list[tuple[dict[str, Any], bytes]] = []  # (state, thumbnails) while it ran
         deadline_s = time.monotonic() + 180
         while scanning.is_alive() and time.monotonic() < deadline_s:
-            state = httpx.get(server.url + "live/state")
+            state = http.get(server.url + "live/state")
             if state.status_code == 200 and 0 < state.json()["tiles_done"] < ROWS * COLS:
-                png = httpx.get(server.url + "live/thumbnails.png")
+                png = http.get(server.url + "live/thumbnails.png")
                 assert png.status_code == 200 and png.headers["content-type"] == "image/png"
                 during.append((state.json(), png.content))
             time.sleep(0.05)
         scanning.join(60)
         assert reports, "the scan did not finish"
-        assert httpx.get(server.url + "healthz").json() == {"status": "ok", "scan": BEST_KALMAN}
-        final = httpx.get(server.url + "live/state").json()
-        thumbnails = httpx.get(server.url + "live/thumbnails.png").content
+        assert http.get(server.url + "healthz").json() == {"status": "ok", "scan": BEST_KALMAN}
+        final = http.get(server.url + "live/state").json()
+        thumbnails = http.get(server.url + "live/thumbnails.png").content
     assert during, "no look at the scan while it ran"
     for state, png in during:  # each tile done by then has its thumbnail, in its cell
         done = np.zeros((ROWS, COLS), bool)

@@ -95,12 +95,12 @@ def report_of(out_dir: Path) -> dict:
     return json.loads((out_dir / outputs.REPORT).read_text())
 
 
-def assert_complete(stack: LocalStack, out_dir: Path) -> dict:
+def assert_complete(http: httpx.Client, stack: LocalStack, out_dir: Path) -> dict:
     """The scan imaged every tile once, the estimator agrees, and the outputs are all there."""
     report = report_of(out_dir)
     assert report["tiles_imaged"] == ROWS * COLS
     slide_id = report["estimator_slide_id"]
-    slide = httpx.get(f"{stack.estimator_url}/v1/slides/{slide_id}").json()
+    slide = http.get(f"{stack.estimator_url}/v1/slides/{slide_id}").json()
     assert slide["done"] is True
     logged = [json.loads(line) for line in (out_dir / outputs.LOG_FILE).read_text().splitlines()]
     sequences = {entry["sequence"] for entry in logged if entry["event"] == "acquired"}
@@ -128,7 +128,7 @@ def benchmark_prediction(stack: LocalStack, dof_um: float):
 
 
 def test_a_scan_completes_as_the_benchmark_predicts_and_resumes_after_a_kill(
-    stack: LocalStack, tmp_path: Path
+    http: httpx.Client, stack: LocalStack, tmp_path: Path
 ) -> None:
     first = start_scan(stack, tmp_path)
     wait_for_acquisitions(first, tmp_path, 6)
@@ -139,9 +139,9 @@ def test_a_scan_completes_as_the_benchmark_predicts_and_resumes_after_a_kill(
 
     stdout, _ = finish(start_scan(stack, tmp_path))
     assert f"{STRATEGY}: {ROWS * COLS} tiles" in stdout
-    report = assert_complete(stack, tmp_path)
+    report = assert_complete(http, stack, tmp_path)
     assert report["estimator_slide_id"] == slide_id  # resumed, not started over
-    assert len(httpx.get(f"{stack.estimator_url}/v1/slides").json()) >= 1
+    assert len(http.get(f"{stack.estimator_url}/v1/slides").json()) >= 1
 
     predicted = benchmark_prediction(stack, report["dof_um"])
     # The benchmark's maps have no empty fields; the simulated slide has some (5%, and on
@@ -179,7 +179,7 @@ def test_a_scan_completes_as_the_benchmark_predicts_and_resumes_after_a_kill(
 
 @pytest.mark.parametrize("service", ["estimator", "focus"])
 def test_a_service_killed_and_restarted_mid_scan_ends_in_a_complete_correct_scan(
-    stack: LocalStack, tmp_path: Path, service: str
+    http: httpx.Client, stack: LocalStack, tmp_path: Path, service: str
 ) -> None:
     scan = start_scan(stack, tmp_path, "--focus-timeout-s", "4", "--focus-attempts", "6")
     wait_for_acquisitions(scan, tmp_path, 5)
@@ -188,7 +188,7 @@ def test_a_service_killed_and_restarted_mid_scan_ends_in_a_complete_correct_scan
     assert scan.poll() is None  # the scan waits for the service instead of failing
     stack.restart(service)
     _, stderr = finish(scan)
-    report = assert_complete(stack, tmp_path)
+    report = assert_complete(http, stack, tmp_path)
     assert report["in_focus_fraction"] >= 0.85 and report["mae_um"] < 0.5
     if service == "focus":
         assert "acquiring it again" in stderr  # the lost stack was taken again

@@ -50,7 +50,7 @@ def test_a_rest_port_in_use_is_one_line_before_the_service_says_where_it_is(
 @pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT])
 @pytest.mark.parametrize(("service", "last_line"), [("focus", "published"), ("phase", "published")])
 def test_sigterm_or_ctrl_c_ends_a_service_gracefully(
-    service: str, last_line: str, stop: signal.Signals, tmp_path: Path
+    http: httpx.Client, service: str, last_line: str, stop: signal.Signals, tmp_path: Path
 ) -> None:
     """uvicorn raises the signal again after its graceful shutdown: the focus and phase
     services used to die of SIGTERM (status -15), and of Ctrl-C in a traceback, before
@@ -65,7 +65,7 @@ def test_sigterm_or_ctrl_c_ends_a_service_gracefully(
             assert process.poll() is None, process.communicate()
             assert time.monotonic() < deadline_s, f"no {service} service on port {port}"
             try:
-                httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2.0)
+                http.get(f"http://127.0.0.1:{port}/healthz", timeout=2.0)
                 break
             except httpx.TransportError:
                 time.sleep(0.2)

@@ -50,26 +50,29 @@ def _trickle(url: str, path: str, declared: int, pieces: list[bytes], pause_s: f
         return reply
 
 
-def test_a_stalled_or_trickling_body_gets_408_from_the_estimator(estimator: str) -> None:
+def test_a_stalled_or_trickling_body_gets_408_from_the_estimator(
+    http: httpx.Client, estimator: str
+) -> None:
     stalled = _trickle(estimator, "/v1/slides", 1000, [b'{"strategy": '], 0.0)
     assert stalled.startswith(b"HTTP/1.1 408"), stalled
     assert b"did not arrive within 1 s" in stalled
     # A byte every 0.2 s never lets a per-read timeout fire; the whole body is timed.
     trickling = _trickle(estimator, "/v1/slides", 1000, [b" "] * 30, 0.2)
     assert trickling.startswith(b"HTTP/1.1 408"), trickling
-    assert httpx.get(f"{estimator}/healthz").status_code == 200  # and the service goes on
+    assert http.get(f"{estimator}/healthz").status_code == 200  # and the service goes on
     body = {"strategy": "kf-wiener0", "grid": {"rows": 2, "cols": 2}}
-    assert httpx.post(f"{estimator}/v1/slides", json=body).status_code == 201
+    assert http.post(f"{estimator}/v1/slides", json=body).status_code == 201
 
 
 def test_a_stalled_body_gets_408_from_the_focus_service(
+    http: httpx.Client,
     serve: Callable[[FastAPI], str],
 ) -> None:
     url = serve(create_app(limits=FocusLimits(body_timeout_s=1.0)))
     stalled = _trickle(url, "/v1/focus/curve", 1000, [b'{"z_um": [1, '], 0.0)
     assert stalled.startswith(b"HTTP/1.1 408"), stalled
     curve = {"z_um": [0, 1, 2], "scores": [1, 2, 1]}
-    assert httpx.post(f"{url}/v1/focus/curve", json=curve).status_code == 200
+    assert http.post(f"{url}/v1/focus/curve", json=curve).status_code == 200
 
 
 def _short(response: httpx.Response, needle: str, quoted: bool = True) -> None:
@@ -80,21 +83,23 @@ def _short(response: httpx.Response, needle: str, quoted: bool = True) -> None:
     assert ("(cut: " in response.text) == quoted, response.text
 
 
-def test_the_estimator_does_not_echo_a_megabyte(estimator: str) -> None:
+def test_the_estimator_does_not_echo_a_megabyte(http: httpx.Client, estimator: str) -> None:
     huge = "x" * 1_000_000
     grid = {"rows": 2, "cols": 2}
-    value = httpx.post(
+    value = http.post(
         f"{estimator}/v1/slides",
         json={"strategy": "kf-wiener0", "grid": grid, "params": {"q": huge}},
     )
     _short(value, "a valid number")
-    key = httpx.post(
+    key = http.post(
         f"{estimator}/v1/slides", json={"strategy": "kf-wiener0", "grid": grid, huge: 1}
     )
     _short(key, "Extra inputs are not permitted")
 
 
-def test_the_focus_service_does_not_echo_a_megabyte(serve: Callable[[FastAPI], str]) -> None:
+def test_the_focus_service_does_not_echo_a_megabyte(
+    http: httpx.Client, serve: Callable[[FastAPI], str]
+) -> None:
     url = serve(create_app())
     frames = np.zeros((3, 8, 8), np.uint16).tobytes()
     huge = "y" * 1_000_000
@@ -102,7 +107,7 @@ def test_the_focus_service_does_not_echo_a_megabyte(serve: Callable[[FastAPI], s
         ({"z_um": "0,1,2", "metric": huge}, "unknown focus metric", True),
         ({"z_um": huge}, "z_um must be finite numbers", True),  # the item quoted, cut
     ):
-        response = httpx.post(
+        response = http.post(
             f"{url}/v1/focus/stack", files={"stack": ("s.npy", frames)}, data=form, timeout=60
         )
         _short(response, needle, quoted)

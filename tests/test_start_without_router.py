@@ -45,14 +45,16 @@ def wait_until(condition, what: str, process: subprocess.Popen, timeout_s: float
         time.sleep(0.2)
 
 
-def health(port: int) -> dict | None:
+def health(http: httpx.Client, port: int) -> dict | None:
     try:
-        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=2.0).json()
+        return http.get(f"http://127.0.0.1:{port}/healthz", timeout=2.0).json()
     except httpx.TransportError:
         return None
 
 
-def test_focus_and_instrument_start_without_the_router_and_join_it_later(tmp_path: Path) -> None:
+def test_focus_and_instrument_start_without_the_router_and_join_it_later(
+    http: httpx.Client, tmp_path: Path
+) -> None:
     endpoint = loopback_endpoint()  # nothing listens there yet
     port = free_port()
     key_file = tmp_path / "result.key"
@@ -74,20 +76,22 @@ def test_focus_and_instrument_start_without_the_router_and_join_it_later(tmp_pat
         text=True,
     )
     try:
-        wait_until(lambda: health(port) is not None, "REST API", focus)
+        wait_until(lambda: health(http, port) is not None, "REST API", focus)
 
         def failed_once() -> bool:  # an attempt to reach the router has failed
-            return not (health(port) or {}).get("zenoh", "").endswith("...")
+            return not (health(http, port) or {}).get("zenoh", "").endswith("...")
 
         wait_until(failed_once, "a failed attempt", focus)
-        before = health(port)
+        before = health(http, port)
         assert before is not None and before["status"] == "degraded"
         assert before["zenoh"].startswith("connecting")
         assert before["metrics"]  # the REST part of the health is there too
         assert instrument.poll() is None
 
         with open_session(listen=[endpoint], mode="router") as router:
-            wait_until(lambda: (health(port) or {}).get("status") == "ok", "connection", focus)
+            wait_until(
+                lambda: (health(http, port) or {}).get("status") == "ok", "connection", focus
+            )
 
             wait_until(
                 lambda: instrument_answers(router, "sim"), "instrument on the bus", instrument

@@ -168,7 +168,7 @@ def one(trace: list[Received], service: str, name: str, parent: Span) -> Span:
 
 
 def test_each_tile_is_one_trace_across_scheduler_instrument_focus_and_estimator(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    http: httpx.Client, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     metrics_port = free_port()
     for name in OTLP_VARIABLES:
@@ -181,7 +181,7 @@ def test_each_tile_is_one_trace_across_scheduler_instrument_focus_and_estimator(
         with stack_of(tmp_path / "stack", "--metrics-port", str(metrics_port)) as stack:
             monkeypatch.delenv("OTEL_EXPORTER_OTLP_ENDPOINT")
             scan(stack, tmp_path / "scan", "--otlp-endpoint", otlp.url)
-            instrument_metrics = httpx.get(f"http://127.0.0.1:{metrics_port}/metrics").text
+            instrument_metrics = http.get(f"http://127.0.0.1:{metrics_port}/metrics").text
 
             def every_tile_traced() -> bool:
                 traces = by_trace(otlp.spans()).values()

@@ -51,12 +51,13 @@ def served() -> Iterator[tuple[RecordingApp, str]]:
 
 
 def test_a_request_without_the_token_never_reaches_the_app(
+    http: httpx.Client,
     served: tuple[RecordingApp, str],
 ) -> None:
     inner, url = served
     upload = b"\0" * (4 << 20)  # a stack's worth: the app would have read all of it
     for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic s3cret"}):
-        refused = httpx.post(f"{url}v1/phase/stack", content=upload, headers=headers)
+        refused = http.post(f"{url}v1/phase/stack", content=upload, headers=headers)
         assert refused.status_code == 401, refused.text
         assert refused.json() == {"detail": "missing or wrong bearer token"}
         assert refused.headers["www-authenticate"] == "Bearer"
@@ -64,16 +65,17 @@ def test_a_request_without_the_token_never_reaches_the_app(
 
 
 def test_the_token_lets_a_request_through_and_other_paths_are_open(
+    http: httpx.Client,
     served: tuple[RecordingApp, str],
 ) -> None:
     inner, url = served
-    passed = httpx.post(
+    passed = http.post(
         f"{url}v1/phase/stack", content=b"12345", headers={"Authorization": "bearer s3cret"}
     )
     assert passed.status_code == 200 and passed.json() == {"read_bytes": 5}
     for path in ("healthz", "metrics", "v10/anything", "openapi.json"):
-        assert httpx.get(f"{url}{path}").status_code == 200, path
-    assert httpx.get(f"{url}v1").status_code == 401  # the prefix itself is guarded
+        assert http.get(f"{url}{path}").status_code == 200, path
+    assert http.get(f"{url}v1").status_code == 401  # the prefix itself is guarded
     assert inner.paths == [
         "/v1/phase/stack",
         "/healthz",
@@ -93,21 +95,23 @@ def _start_slow_request(url: str, path: str, body_bytes: int) -> socket.socket:
     return connection
 
 
-def test_one_request_beyond_the_bound_is_refused_at_once_and_the_place_freed_after() -> None:
+def test_one_request_beyond_the_bound_is_refused_at_once_and_the_place_freed_after(
+    http: httpx.Client,
+) -> None:
     inner = RecordingApp()
     limit = ConcurrencyLimit(inner, max_concurrent=1, error_body=lambda d: {"detail": d})
     with BackgroundServer(limit) as server:
         slow = _start_slow_request(server.url, "/v1/phase/stack", 10)
         with slow:
             for _ in range(100):  # until the server has taken the slow request in
-                refused = httpx.post(f"{server.url}v1/phase/stack", content=b"\0" * (4 << 20))
+                refused = http.post(f"{server.url}v1/phase/stack", content=b"\0" * (4 << 20))
                 if refused.status_code == 503:
                     break
                 time.sleep(0.05)
             assert refused.status_code == 503, refused.text
             assert refused.headers["retry-after"] == "1"
             assert "the most requests it takes at once (1)" in refused.json()["detail"]
-            assert httpx.get(f"{server.url}healthz").status_code == 200  # not under /v1
+            assert http.get(f"{server.url}healthz").status_code == 200  # not under /v1
             slow.sendall(b"\0" * 5)
             answer = b""
             while not answer.endswith(b"0\r\n\r\n"):  # the chunked body's end
@@ -115,7 +119,7 @@ def test_one_request_beyond_the_bound_is_refused_at_once_and_the_place_freed_aft
                 assert chunk, answer  # closed before the whole answer
                 answer += chunk
         assert answer.startswith(b"HTTP/1.1 200") and b'{"read_bytes": 10}' in answer
-        again = httpx.post(f"{server.url}v1/phase/stack", content=b"123")
+        again = http.post(f"{server.url}v1/phase/stack", content=b"123")
         assert again.status_code == 200 and again.json() == {"read_bytes": 3}
     assert inner.paths[-2:] == ["/healthz", "/v1/phase/stack"]  # the 503s never reached it
 

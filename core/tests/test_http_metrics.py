@@ -13,16 +13,16 @@ from focustrack_core.http_metrics import RegistryMetrics, metrics_server
 from focustrack_core.serving import BackgroundServer, ListenError, listening_socket
 
 
-def test_metrics_are_served_on_a_port_of_their_own_only_when_asked() -> None:
+def test_metrics_are_served_on_a_port_of_their_own_only_when_asked(http: httpx.Client) -> None:
     metrics = RegistryMetrics()
     Counter("focustrack_test_things_total", "Things", registry=metrics.registry).inc(3)
     with metrics_server(metrics.registry, "127.0.0.1", None) as url:
         assert url is None
     with metrics_server(metrics.registry, "127.0.0.1", 0) as url:
         assert url is not None
-        assert "focustrack_test_things_total 3.0" in httpx.get(url).text.splitlines()
+        assert "focustrack_test_things_total 3.0" in http.get(url).text.splitlines()
     with pytest.raises(httpx.TransportError):
-        httpx.get(url)
+        http.get(url)
 
 
 def test_a_port_in_use_is_a_listen_error_that_names_the_server_and_the_address() -> None:

@@ -78,7 +78,9 @@ def test_a_query_carries_the_callers_trace_to_the_queryable(
     assert attached and traceparent.split("-")[1] == f"{TRACE_ID:032x}"
 
 
-def test_an_http_request_carries_the_callers_trace_into_the_served_route() -> None:
+def test_an_http_request_carries_the_callers_trace_into_the_served_route(
+    http: httpx.Client,
+) -> None:
     app = FastAPI()
 
     @app.get("/where")
@@ -88,8 +90,8 @@ def test_an_http_request_carries_the_callers_trace_into_the_served_route() -> No
     app.add_middleware(tracing.TraceRequests)
     with BackgroundServer(app) as server:
         url = server.url + "where"
-        assert httpx.get(url).json() == {"traceparent": ""}
-        joined = httpx.get(url, headers={"traceparent": TRACEPARENT}).json()["traceparent"]
+        assert http.get(url).json() == {"traceparent": ""}
+        joined = http.get(url, headers={"traceparent": TRACEPARENT}).json()["traceparent"]
     assert joined.split("-")[1] == f"{TRACE_ID:032x}"
 
 

@@ -131,26 +131,30 @@ def server(tmp_path: Path) -> Iterator[str]:
         process.wait(30)
 
 
-def _post(url: str, strategy: str, rows: int, cols: int, **extra: object) -> httpx.Response:
+def _post(
+    http: httpx.Client, url: str, strategy: str, rows: int, cols: int, **extra: object
+) -> httpx.Response:
     body = {"strategy": strategy, "grid": {"rows": rows, "cols": cols}, **extra}
-    return httpx.post(f"{url}/v1/slides", json=body, timeout=120)
+    return http.post(f"{url}/v1/slides", json=body, timeout=120)
 
 
-def test_creation_refuses_slides_over_the_budget_with_the_reason(server: str) -> None:
+def test_creation_refuses_slides_over_the_budget_with_the_reason(
+    http: httpx.Client, server: str
+) -> None:
     values = [round(0.1 * (i + 1), 1) for i in range(20)]
     bank = {"sigmas_um": values, "lengths_tiles": values, "tilt_sigmas_um_per_tile": values}
-    refused = _post(server, "kf-2d", 146, 146, params=bank)
+    refused = _post(http, server, "kf-2d", 146, 146, params=bank)
     assert len(refused.request.content) < 700  # a small request
     assert refused.status_code == 422, refused.text
     message = refused.json()["detail"][0]["msg"]
     assert "projected to need" in message and "--max-slide-bytes" in message
-    assert _post(server, "kf-2d", 250, 750).status_code == 422  # the docs' whole slide
-    wide = _post(server, "kf-2d", 250, 500)  # within the grid limits, not within the budget
+    assert _post(http, server, "kf-2d", 250, 750).status_code == 422  # the docs' whole slide
+    wide = _post(http, server, "kf-2d", 250, 500)  # within the grid limits, not within the budget
     assert wide.status_code == 422 and "MiB" in wide.json()["detail"][0]["msg"]
-    oracle = _post(server, "gp-oracle", 500, 500)  # a benchmark's floor: not served
+    oracle = _post(http, server, "gp-oracle", 500, 500)  # a benchmark's floor: not served
     assert oracle.status_code == 422 and "unknown strategy" in oracle.text
-    assert _post(server, "kf-2d", 200, 200).status_code == 201  # what a real scanner needs
-    assert httpx.get(f"{server}/healthz").json()["slides"] == 1
+    assert _post(http, server, "kf-2d", 200, 200).status_code == 201  # what a real scanner needs
+    assert http.get(f"{server}/healthz").json()["slides"] == 1
 
 
 def test_a_budget_that_admits_nothing_is_refused_by_the_settings() -> None:

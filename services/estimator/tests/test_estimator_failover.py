@@ -70,7 +70,7 @@ class Balanced(NamedTuple):
 
 
 @pytest.fixture
-def balanced(postgres: PostgresServer, tmp_path: Path) -> Iterator[Balanced]:
+def balanced(http: httpx.Client, postgres: PostgresServer, tmp_path: Path) -> Iterator[Balanced]:
     """Two replicas on a new database, behind HAProxy."""
     haproxy = ensure_debian_package("haproxy", lambda: shutil.which("haproxy"))
     database = postgres.new_database()
@@ -88,7 +88,7 @@ def balanced(postgres: PostgresServer, tmp_path: Path) -> Iterator[Balanced]:
     deadline = time.monotonic() + 30
     while True:
         try:
-            if httpx.get(f"{url}/healthz").status_code == 200:
+            if http.get(f"{url}/healthz").status_code == 200:
                 break
         except httpx.TransportError:
             pass
@@ -103,9 +103,9 @@ def balanced(postgres: PostgresServer, tmp_path: Path) -> Iterator[Balanced]:
             replica.wait(timeout=10)
 
 
-def _scan_requests(port: int) -> float:
+def _scan_requests(http: httpx.Client, port: int) -> float:
     """The /v1 requests a replica has answered (its /metrics)."""
-    text = httpx.get(f"http://127.0.0.1:{port}/metrics").text
+    text = http.get(f"http://127.0.0.1:{port}/metrics").text
     return sum(
         float(line.rpartition(" ")[2])
         for line in text.splitlines()
@@ -113,7 +113,7 @@ def _scan_requests(port: int) -> float:
     )
 
 
-def test_a_replica_killed_mid_scan_loses_nothing(balanced: Balanced) -> None:
+def test_a_replica_killed_mid_scan_loses_nothing(http: httpx.Client, balanced: Balanced) -> None:
     _, measured = maps(seed=7)
     with EstimatorClient(balanced.url) as estimator:
         slide = estimator.create_slide(to_api.slide_create(STRATEGY, SETTINGS))
@@ -121,7 +121,7 @@ def test_a_replica_killed_mid_scan_loses_nothing(balanced: Balanced) -> None:
         while not (step := estimator.next(slide.id)).done:
             if n_posted == 10:  # both replicas have served; one dies with no shutdown
                 # round robin: /next on one replica right after /measurements on the other
-                assert all(_scan_requests(port) >= 10 for port in balanced.ports)
+                assert all(_scan_requests(http, port) >= 10 for port in balanced.ports)
                 balanced.replicas[0].send_signal(signal.SIGKILL)
                 balanced.replicas[0].wait(timeout=10)
             acquisition = to_domain.acquisition(step)

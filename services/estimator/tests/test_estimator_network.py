@@ -33,19 +33,21 @@ def test_the_estimator_refuses_the_network_without_a_token(tmp_path: Path) -> No
     assert not Path(store).exists()  # refused before the store was touched
 
 
-def _wait_healthy(url: str, process: subprocess.Popen) -> None:
+def _wait_healthy(http: httpx.Client, url: str, process: subprocess.Popen) -> None:
     deadline_s = time.monotonic() + 120
     while time.monotonic() < deadline_s:
         assert process.poll() is None, process.communicate()
         try:
-            if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
+            if http.get(f"{url}/healthz", timeout=1).status_code == 200:
                 return
         except httpx.TransportError:
             time.sleep(0.1)
     raise AssertionError(f"{url} did not become healthy")
 
 
-def test_the_estimator_on_the_network_with_a_token_or_insecure(tmp_path: Path) -> None:
+def test_the_estimator_on_the_network_with_a_token_or_insecure(
+    http: httpx.Client, tmp_path: Path
+) -> None:
     slide = {"strategy": "kf-wiener0", "grid": {"rows": 2, "cols": 2}}
     for env, headers, status in (
         ({"FOCUSTRACK_ESTIMATOR_TOKEN": "s3cret"}, {}, 401),
@@ -57,10 +59,10 @@ def test_the_estimator_on_the_network_with_a_token_or_insecure(tmp_path: Path) -
         process = _run("--host", "0.0.0.0", "--port", str(port), "--store", store, env=env)
         try:
             url = f"http://127.0.0.1:{port}"
-            _wait_healthy(url, process)
+            _wait_healthy(http, url, process)
             # The first slide waits for the strategies, which load once the service serves:
             # on a busy machine that is longer than httpx's default 5 s.
-            reply = httpx.post(f"{url}/v1/slides", json=slide, headers=headers, timeout=60)
+            reply = http.post(f"{url}/v1/slides", json=slide, headers=headers, timeout=60)
             assert reply.status_code == status
         finally:
             process.terminate()

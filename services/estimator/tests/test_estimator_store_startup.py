@@ -66,7 +66,7 @@ def test_a_file_that_is_not_sqlite_is_refused_naming_the_file(tmp_path: Path) ->
     assert "Traceback" not in started.stderr
 
 
-def _start_and_stop(store: Path | str) -> tuple[int, str, str]:
+def _start_and_stop(http: httpx.Client, store: Path | str) -> tuple[int, str, str]:
     """Start the service on `store`, create a slide, SIGTERM it; (exit code, its stdout, its
     stderr)."""
     port = free_port()
@@ -80,14 +80,14 @@ def _start_and_stop(store: Path | str) -> tuple[int, str, str]:
         url = f"http://127.0.0.1:{port}"
         for _ in range(1200):
             try:
-                if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
+                if http.get(f"{url}/healthz", timeout=1).status_code == 200:
                     break
             except httpx.TransportError:
                 if process.poll() is not None:
                     break
                 time.sleep(0.1)
         body = {"strategy": "kf-wiener0", "grid": {"rows": 3, "cols": 3}}
-        assert httpx.post(f"{url}/v1/slides", json=body, timeout=60).status_code == 201
+        assert http.post(f"{url}/v1/slides", json=body, timeout=60).status_code == 201
         process.send_signal(signal.SIGTERM)
         out, err = process.communicate(timeout=60)
     finally:
@@ -98,13 +98,13 @@ def _start_and_stop(store: Path | str) -> tuple[int, str, str]:
     return process.returncode, out, err
 
 
-def test_an_empty_or_missing_store_is_announced_as_new(tmp_path: Path) -> None:
+def test_an_empty_or_missing_store_is_announced_as_new(http: httpx.Client, tmp_path: Path) -> None:
     empty = tmp_path / "empty.sqlite"
     empty.write_bytes(b"")
     for path in (empty, tmp_path / "missing.sqlite"):
-        code, out, _ = _start_and_stop(path)
+        code, out, _ = _start_and_stop(http, path)
         assert code == 0 and f"creating a new store at {path}" in out, out
-    code, out, _ = _start_and_stop(empty)  # now it holds a slide: no longer new
+    code, out, _ = _start_and_stop(http, empty)  # now it holds a slide: no longer new
     assert code == 0 and "creating a new store" not in out
     store = SQLiteStore(empty)
     assert store.count_slides() == 2
@@ -112,6 +112,7 @@ def test_an_empty_or_missing_store_is_announced_as_new(tmp_path: Path) -> None:
 
 
 def test_a_database_is_announced_by_its_address_never_its_password(
+    http: httpx.Client,
     postgres: PostgresServer,
 ) -> None:
     password = "never-in-the-log-8e2f"  # the test server trusts loopback: any password logs in
@@ -119,7 +120,7 @@ def test_a_database_is_announced_by_its_address_never_its_password(
     with_password = url.replace("postgres@", f"postgres:{password}@", 1)
     address = url.removeprefix("postgresql://")
     for new in (True, False):
-        code, out, err = _start_and_stop(with_password)
+        code, out, err = _start_and_stop(http, with_password)
         assert code == 0, err
         assert password not in out + err
         assert f"store postgresql://{address}," in out, out
@@ -127,22 +128,24 @@ def test_a_database_is_announced_by_its_address_never_its_password(
         assert "file" not in out, out
 
 
-def test_sigterm_closes_the_store_and_checkpoints_its_wal(tmp_path: Path) -> None:
+def test_sigterm_closes_the_store_and_checkpoints_its_wal(
+    http: httpx.Client, tmp_path: Path
+) -> None:
     path = tmp_path / "estimator.sqlite"
     port = free_port()
     process = spawn(path, port, timeout_s=120)
     url = f"http://127.0.0.1:{port}/v1/slides"
-    slide = httpx.post(
+    slide = http.post(
         url, json={"strategy": "kf-2d", "grid": {"rows": 4, "cols": 4}}, timeout=60
     ).json()
     for _ in range(3):
-        pending = httpx.get(f"{url}/{slide['id']}/next").json()
+        pending = http.get(f"{url}/{slide['id']}/next").json()
         measurement = {
             "row": pending["row"],
             "col": pending["col"],
             "sequence": pending["sequence"],
         }
-        response = httpx.post(f"{url}/{slide['id']}/measurements", json={**measurement, "z_um": 1})
+        response = http.post(f"{url}/{slide['id']}/measurements", json={**measurement, "z_um": 1})
         assert response.status_code == 200
     wal = Path(f"{path}-wal")
     assert wal.exists()

@@ -378,10 +378,12 @@ def test_bad_stacks(client: TestClient, frames: np.ndarray) -> None:
     check(npy_bytes(big), z_text(np.arange(20.0)), 413, "exceeds")
 
 
-def test_real_uvicorn_server(frames: np.ndarray, serve: Callable[[FastAPI], str]) -> None:
+def test_real_uvicorn_server(
+    http: httpx.Client, frames: np.ndarray, serve: Callable[[FastAPI], str]
+) -> None:
     base = serve(create_app())
-    assert httpx.get(f"{base}/healthz").json()["status"] == "ok"
-    response = httpx.post(
+    assert http.get(f"{base}/healthz").json()["status"] == "ok"
+    response = http.post(
         f"{base}/v1/focus/stack",
         files={"stack": ("stack.tif", tiff_bytes(frames))},
         data={"z_um": z_text()},
@@ -389,7 +391,7 @@ def test_real_uvicorn_server(frames: np.ndarray, serve: Callable[[FastAPI], str]
     )
     assert response.status_code == 200, response.text
     assert response.json()["best_z_um"] == pytest.approx(TRUTH_UM, abs=0.15)
-    assert "/v1/focus/stack" in httpx.get(f"{base}/openapi.json").json()["paths"]
+    assert "/v1/focus/stack" in http.get(f"{base}/openapi.json").json()["paths"]
 
 
 def _refs(node: object) -> Iterator[str]:

@@ -27,12 +27,14 @@ def test_the_focus_service_refuses_the_network_without_a_token() -> None:
     assert "without a token" in err and "--insecure" in err and "Traceback" not in err
 
 
-def test_the_focus_api_requires_its_token(serve: Callable[[FastAPI], str]) -> None:
+def test_the_focus_api_requires_its_token(
+    http: httpx.Client, serve: Callable[[FastAPI], str]
+) -> None:
     url = serve(create_app(token="f0cus"))
     curve = {"z_um": [0, 1, 2], "scores": [1, 2, 1]}
-    assert httpx.post(f"{url}/v1/focus/curve", json=curve).status_code == 401
+    assert http.post(f"{url}/v1/focus/curve", json=curve).status_code == 401
     wrong = {"Authorization": "Bearer nope"}
-    assert httpx.post(f"{url}/v1/focus/curve", json=curve, headers=wrong).status_code == 401
+    assert http.post(f"{url}/v1/focus/curve", json=curve, headers=wrong).status_code == 401
     right = {"Authorization": "Bearer f0cus"}
-    assert httpx.post(f"{url}/v1/focus/curve", json=curve, headers=right).status_code == 200
-    assert httpx.get(f"{url}/healthz").status_code == 200  # health checks need no token
+    assert http.post(f"{url}/v1/focus/curve", json=curve, headers=right).status_code == 200
+    assert http.get(f"{url}/healthz").status_code == 200  # health checks need no token

@@ -184,7 +184,7 @@ def test_phase_stacks_are_not_focus_stacks_the_service_ignores_them(
 
 
 def test_the_focus_command_runs_zenoh_and_http_in_one_process(
-    instrument, render: Callable[..., np.ndarray]
+    http: httpx.Client, instrument, render: Callable[..., np.ndarray]
 ) -> None:
     publisher, endpoint = instrument
     port = free_port()
@@ -205,7 +205,7 @@ def test_the_focus_command_runs_zenoh_and_http_in_one_process(
         for _ in range(200):
             assert process.poll() is None, "the focus service exited"
             try:  # HTTP answers first; "ok" once its Zenoh session is open and subscribed
-                if httpx.get(f"http://127.0.0.1:{port}/healthz").json()["status"] == "ok":
+                if http.get(f"http://127.0.0.1:{port}/healthz").json()["status"] == "ok":
                     break
             except httpx.TransportError:
                 pass
@@ -213,7 +213,7 @@ def test_the_focus_command_runs_zenoh_and_http_in_one_process(
         else:
             pytest.fail("the focus service did not come up on HTTP and Zenoh")
         time.sleep(0.5)  # let its subscription reach the instrument's side
-        curve = httpx.post(
+        curve = http.post(
             f"http://127.0.0.1:{port}/v1/focus/curve",
             json={"z_um": [0, 1, 2, 3, 4], "scores": [1, 2, 4, 2, 1]},
         )

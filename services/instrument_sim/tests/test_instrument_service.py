@@ -359,21 +359,23 @@ def test_the_frames_of_a_recent_stack_are_answered_as_they_were_published(
     assert rpc.error_of(replies[0].err).code == common_pb2.ERROR_CODE_MALFORMED_REQUEST
 
 
-def _metrics() -> dict[str, float]:
+def _metrics(http: httpx.Client) -> dict[str, float]:
     """The instrument's metrics now, by sample (name and labels)."""
-    text = httpx.get(f"http://127.0.0.1:{METRICS_PORT}/metrics").text
+    text = http.get(f"http://127.0.0.1:{METRICS_PORT}/metrics").text
     return {
         sample: float(value)
         for sample, value in (line.rsplit(" ", 1) for line in text.splitlines() if line[0] != "#")
     }
 
 
-def test_the_metrics_port_counts_stacks_frames_and_errors_by_code(client: zenoh.Session) -> None:
-    before = _metrics()
+def test_the_metrics_port_counts_stacks_frames_and_errors_by_code(
+    http: httpx.Client, client: zenoh.Session
+) -> None:
+    before = _metrics(http)
     rpc.call(client, keys.acquire_key("sim"), _request(n_frames=7), instrument_pb2.AcquireReply)
     with pytest.raises(rpc.RemoteError):
         rpc.call(client, keys.acquire_key("sim"), _request(row=4), instrument_pb2.AcquireReply)
-    after = _metrics()
+    after = _metrics(http)
     grown = {sample: after[sample] - before.get(sample, 0.0) for sample in after}
     assert grown["focustrack_instrument_acquisitions_total"] == 1
     assert grown["focustrack_instrument_frames_total"] == 7

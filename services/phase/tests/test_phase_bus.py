@@ -213,7 +213,9 @@ def test_a_header_without_wavelength_or_gain_takes_the_service_defaults() -> Non
         phase_input(header, counts, PhaseOptics(), options)
 
 
-def test_the_phase_command_serves_zenoh_and_http_in_one_process(tmp_path: Path) -> None:
+def test_the_phase_command_serves_zenoh_and_http_in_one_process(
+    http: httpx.Client, tmp_path: Path
+) -> None:
     endpoint = loopback_endpoint()
     instrument = open_session(listen=[endpoint])
     (tmp_path / "frame.key").write_bytes(FRAME_KEY)
@@ -238,7 +240,7 @@ def test_the_phase_command_serves_zenoh_and_http_in_one_process(tmp_path: Path) 
         for _ in range(300):
             assert process.poll() is None, "the phase service exited"
             try:
-                health = httpx.get(f"http://127.0.0.1:{port}/healthz").json()
+                health = http.get(f"http://127.0.0.1:{port}/healthz").json()
                 if health["status"] == "ok":  # the REST app, and the session linked
                     break
             except httpx.TransportError:

@@ -74,21 +74,23 @@ def test_a_tiles_phase_shows_as_its_spread_in_radians(tmp_path: Path) -> None:
     assert 'id="phase"' in page and "rad" in page
 
 
-def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: Path) -> None:
+def test_the_server_serves_the_page_the_state_and_server_sent_events(
+    http: httpx.Client, tmp_path: Path
+) -> None:
     record = ScanRecord(tmp_path)
     with LiveServer() as server:
-        assert httpx.get(server.url + "live/state").status_code == 503  # no scan yet
-        assert httpx.get(server.url + "healthz").json() == {"status": "ok", "scan": None}
+        assert http.get(server.url + "live/state").status_code == 503  # no scan yet
+        assert http.get(server.url + "healthz").json() == {"status": "ok", "scan": None}
         server.show(LiveScan.follow(record, GRID, "kf-2d"))
-        assert httpx.get(server.url + "healthz").json() == {"status": "ok", "scan": "kf-2d"}
+        assert http.get(server.url + "healthz").json() == {"status": "ok", "scan": "kf-2d"}
         acquire_and_measure(record, 0, 3, 4, 0.7)
-        page = httpx.get(server.url)
+        page = http.get(server.url)
         assert page.status_code == 200 and "EventSource" in page.text
-        assert httpx.get(server.url + "live/state", params={"since": -1}).status_code == 422
-        state = httpx.get(server.url + "live/state").json()
+        assert http.get(server.url + "live/state", params={"since": -1}).status_code == 422
+        state = http.get(server.url + "live/state").json()
         assert state["tiles"] == [[3, 4, 0.71, 0.2, 5, False, [], None]]
         assert (state["pitch_um"], state["origin_x_um"]) == (GRID.pitch_um, GRID.origin_x_um)
-        with httpx.stream("GET", server.url + "live/events", timeout=10) as events:
+        with http.stream("GET", server.url + "live/events", timeout=10) as events:
             lines = events.iter_lines()
             assert next(lines) == "event: update"
             data = json.loads(next(lines).removeprefix("data: "))
@@ -100,10 +102,12 @@ def test_the_server_serves_the_page_the_state_and_server_sent_events(tmp_path: P
             assert data["tiles_done"] == 1
 
 
-def follow_events(url: str, events: list[tuple[str, str]], errors: list[Exception]) -> None:
+def follow_events(
+    http: httpx.Client, url: str, events: list[tuple[str, str]], errors: list[Exception]
+) -> None:
     """A browser's part: read `url`'s event stream to its end, as (event, data) pairs."""
     try:
-        with httpx.stream("GET", url, timeout=30) as stream:
+        with http.stream("GET", url, timeout=30) as stream:
             name = ""
             for line in stream.iter_lines():
                 if line.startswith("event: "):
@@ -115,7 +119,7 @@ def follow_events(url: str, events: list[tuple[str, str]], errors: list[Exceptio
 
 
 def test_stopping_ends_every_stream_at_once_with_clients_connected(
-    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+    http: httpx.Client, tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
     """The end of a scan with three browsers still following it: the server stops cleanly."""
     record = ScanRecord(tmp_path)
@@ -125,7 +129,7 @@ def test_stopping_ends_every_stream_at_once_with_clients_connected(
     errors: list[Exception] = []
     url = server.url + "live/events"
     clients = [
-        threading.Thread(target=follow_events, args=(url, events, errors)) for events in seen
+        threading.Thread(target=follow_events, args=(http, url, events, errors)) for events in seen
     ]
     for client in clients:
         client.start()
@@ -203,20 +207,20 @@ def test_kept_tiles_are_judged_in_focus_by_the_truth_or_else_by_the_focus_servic
     }
 
 
-def test_the_server_serves_thumbnails_of_the_tiles_kept(tmp_path: Path) -> None:
+def test_the_server_serves_thumbnails_of_the_tiles_kept(http: httpx.Client, tmp_path: Path) -> None:
     """Each tile's image shows in its cell of the PNG as it is kept, and again after a
     restart (read from the partial mosaic on disk)."""
     grid = ScanGrid(3, 3, pitch_um=16.0)  # tiles of 16 px of 1 um, side by side
     record = ScanRecord(tmp_path)
     record.state.save(tile={"height": 16, "width": 16, "channels": 3, "pixel_size_um": 1.0})
     with LiveServer() as server:
-        assert httpx.get(server.url + "live/thumbnails.png").status_code == 503  # no scan yet
+        assert http.get(server.url + "live/thumbnails.png").status_code == 503  # no scan yet
         server.show(LiveScan.follow(record, grid, "kf-2d"))
-        before = httpx.get(server.url + "live/state").json()["thumbnails_version"]
+        before = http.get(server.url + "live/state").json()["thumbnails_version"]
         record.keep(grid, 1, 2, 0.5, np.full((16, 16, 3), 4095, np.uint16), 12)
-        state = httpx.get(server.url + "live/state").json()
+        state = http.get(server.url + "live/state").json()
         assert state["thumbnails_version"] == before + 1
-        response = httpx.get(server.url + "live/thumbnails.png")
+        response = http.get(server.url + "live/thumbnails.png")
         assert response.headers["content-type"] == "image/png"
         thumbnails = imread(io.BytesIO(response.content))
         cell = thumbnails.shape[0] // grid.rows

@@ -94,13 +94,13 @@ def test_each_step_is_timed_and_a_tile_lasts_until_another_begins() -> None:
     assert value(metrics, timed, step="AskNext") == 2
 
 
-def test_the_live_view_serves_the_scans_metrics() -> None:
+def test_the_live_view_serves_the_scans_metrics(http: httpx.Client) -> None:
     metrics = ScanMetrics()
     metrics.tiles.set(GRID.n_tiles)
     with LiveServer() as server:
         url = server.url + "metrics"
-        assert httpx.get(url).text == ""  # no scan yet
+        assert http.get(url).text == ""  # no scan yet
         server.metrics = metrics
-        served = httpx.get(url)
+        served = http.get(url)
     assert served.headers["content-type"].startswith("text/plain")
     assert "focustrack_scan_tiles 4.0" in served.text.splitlines()
