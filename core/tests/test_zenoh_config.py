@@ -80,6 +80,19 @@ def test_pixel_tuning_applies_unless_a_config_file_sets_its_own(tmp_path: Path) 
     assert tuned(config) == {**session.PIXEL_TUNING, "transport/link/tx/queue/size/data": 8}
 
 
+def test_a_router_opens_without_waiting_to_scout_unless_a_config_file_says_to(
+    tmp_path: Path,
+) -> None:
+    """Multicast scouting is off, so a router has nothing to scout at open: Zenoh's
+    default scouting delay (500 ms) held every router's open that long."""
+    config = session.session_config(listen=[session.loopback_endpoint()], mode="router")
+    assert json.loads(config.get_json("scouting/delay")) == 0
+    path = tmp_path / "scouting.json5"
+    path.write_text("{scouting: {delay: 200}}")
+    config = session.session_config(listen=[session.DEFAULT_ENDPOINT], config_file=path)
+    assert json.loads(config.get_json("scouting/delay")) == 200
+
+
 def test_shared_memory_room_is_what_the_file_system_has_free(tmp_path: Path) -> None:
     assert session.shared_memory_room_mb(tmp_path / "nowhere") == 0
     free_mb = shutil.disk_usage(tmp_path).free / 1e6

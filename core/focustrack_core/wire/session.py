@@ -19,7 +19,9 @@ what our options do not: TLS, user/password authentication, access control, tuni
 (docs/security.md). Precedence: the file is read first, then our options are written
 over it, always: the mode, the connect and listen endpoints (the flags', else the
 command's defaults), multicast scouting (off), the connect timeout and retry, and
-shared memory. So a file never changes where a service connects; the flags do.
+shared memory. So a file never changes where a service connects; the flags do. With
+multicast scouting off, the scouting delay is 0 unless the file sets one: Zenoh's 500 ms
+default held every router's open that long (zenoh 1.10; a peer's open did not wait).
 
 Tuning for pixels (`PIXEL_TUNING`), written where the file leaves Zenoh's default:
 Zenoh's transmit queue holds 2 batches of 64 KiB per priority and its receive pool
@@ -211,6 +213,10 @@ def session_config(
             config.insert_json5(key, json.dumps(value))
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", "false")
+    # With nothing to scout, a router still waited Zenoh's scouting delay (500 ms) at every
+    # open, before it routed anything; a file's own delay is kept.
+    if config.get_json("scouting/delay") == zenoh_defaults.get_json("scouting/delay"):
+        config.insert_json5("scouting/delay", "0")
     for flag, key, endpoints in (
         ("--connect", "connect/endpoints", connect),
         ("--listen", "listen/endpoints", listen),
