@@ -28,6 +28,7 @@ from focustrack_core.wire import keys, rpc
 from focustrack_estimator.replay import limit_time_s
 from focustrack_instrument_sim.simulated import microscope_from_options
 from focustrack_instrument_sim.simulator_options import SimulatorOptions
+from focustrack_scheduler import outputs
 from focustrack_scheduler.record import ScanRecord
 
 
@@ -68,13 +69,17 @@ def tile_scores(
     planes_um: dict[tuple[int, int], list[float]],
     frames: np.ndarray,
     dof_um: float,
+    risk: np.ndarray,
 ) -> dict[str, Any]:
-    """Per slide: tissue tiles in focus, tiles focused on dust, frames on empty tiles, and
-    the tissue tiles' summed focus error (um: the kept frame's distance to the section or
-    a fold's upper layer, whichever is nearer; over the tiles with a kept frame).
+    """Per slide: tissue tiles in focus, tiles focused on dust, frames on empty tiles, the
+    tissue tiles' summed focus error (um: the kept frame's distance to the section or a
+    fold's upper layer, whichever is nearer; over the tiles with a kept frame), and the
+    tissue tiles' summed out-of-focus risk as the estimator stated it (over those it states
+    one for): the misses it expects, to set beside those there were.
 
     kept_z_um (rows, cols): the z of each tile's image (NaN: none); planes_um: the z of the
-    frames a tile keeps besides; frames (rows, cols): frames acquired per tile.
+    frames a tile keeps besides; frames (rows, cols): frames acquired per tile; risk (rows,
+    cols): the estimator's out-of-focus risk of each tile's image (NaN: none stated).
     """
     in_focus = np.abs(kept_z_um - contents.focus_um) <= dof_um / 2.0
     # a fold is section too: a tile imaged at its upper layer is in focus as well
@@ -91,6 +96,7 @@ def tile_scores(
         np.abs(kept_z_um - contents.focus_um), np.abs(kept_z_um - contents.fold_z_um)
     )
     imaged = tissue & np.isfinite(error_um)
+    stated = tissue & np.isfinite(risk)
     return {
         "tissue_in_focus": int(np.sum(in_focus & tissue)),
         "tissue_tiles": int(tissue.sum()),
@@ -100,6 +106,8 @@ def tile_scores(
         "empty_frames": int(frames[contents.empty].sum()),
         "tissue_imaged": int(imaged.sum()),
         "tissue_error_um": float(error_um[imaged].sum()),
+        "tissue_risk_stated": int(stated.sum()),
+        "tissue_risk_sum": float(risk[stated].sum()),
     }
 
 
@@ -153,8 +161,9 @@ def scored_scan(
     try:
         tally = record.tally
         frames = tally.images_per_tile(grid)
+        risk = np.load(scan_dir / outputs.FOCUS_MAP_NPY)["out_of_focus_risk"]
         part = tile_scores(
-            contents, tally.z_kept_um(grid), tally.planes, frames, info.depth_of_field_um
+            contents, tally.z_kept_um(grid), tally.planes, frames, info.depth_of_field_um, risk
         )
     finally:
         record.close()

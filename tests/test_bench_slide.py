@@ -28,13 +28,17 @@ def test_tiles_are_scored_against_what_lies_in_them() -> None:
     )
     kept_um = np.array([[0.2, 29.0, 3.1, 28.0]])  # in focus, on dust, on the fold, empty
     frames = np.array([[5, 9, 5, 1]])
-    scores = tile_scores(contents, kept_um, {(0, 0): [0.2, 5.0]}, frames, 0.9)
+    risk = np.array([[0.01, 0.5, nan, 0.2]])  # the fold's tile: none stated
+    scores = tile_scores(contents, kept_um, {(0, 0): [0.2, 5.0]}, frames, 0.9, risk)
     assert scores["tissue_in_focus"] == 2 and scores["tissue_tiles"] == 3
     assert scores["on_dust"] == 2 and scores["dust_tiles"] == 3
     assert (scores["empty_tiles"], scores["empty_frames"]) == (1, 1)
     # the section's 0.2 and 29 um, the fold's 0.1: the empty tile's 28 um counts nowhere
     assert scores["tissue_imaged"] == 3
     assert scores["tissue_error_um"] == pytest.approx(0.2 + 29.0 + 0.1)
+    # the risk the estimator stated for the tissue's images, the empty tile's left out
+    assert scores["tissue_risk_stated"] == 2
+    assert scores["tissue_risk_sum"] == pytest.approx(0.51)
 
 
 def test_a_slide_of_separate_fields_takes_its_bare_glass_from_the_caller() -> None:
@@ -69,6 +73,8 @@ def test_a_small_slide_bench_scans_through_the_services(tmp_path: Path) -> None:
     lean, every = scores["kf-2d-lean"], scores["af-every-tile"]
     assert every["frames_per_tile"] > 4 * lean["frames_per_tile"] > 0
     assert every["time_over_limit"] > lean["time_over_limit"] > 1.0
+    # the lean rule states each image's risk, and expects most tissue in focus
+    assert 0.5 < lean["tissue_stated_in_focus_fraction"] <= 1.0
     for score in (lean, every):
         assert 0.0 <= score["tissue_in_focus_fraction"] <= 1.0
         assert score["tiles_focused_on_dust"] >= 0

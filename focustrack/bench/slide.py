@@ -10,6 +10,9 @@ the tile is empty glass and where its dust lies. Per strategy:
 
 - tissue_in_focus_fraction: tissue tiles (not empty) whose kept frame (or one of its kept
   planes) lies within half the depth of field of the section (or of a fold's upper layer);
+- tissue_stated_in_focus_fraction: the same as the estimator expected it, one minus the
+  mean out-of-focus risk it stated for the tissue tiles' images (NaN where a strategy
+  states none): a stated risk that holds is one where the two agree;
 - frames_per_tile: frames acquired over tiles;
 - time_over_limit: the simulated scan time over the physical limit (the serpentine's
   stage moves and one frame per tile);
@@ -88,6 +91,7 @@ class SlideScore:
     """One strategy on one or more slides (see the module docstring)."""
 
     tissue_in_focus_fraction: float
+    tissue_stated_in_focus_fraction: float
     tissue_mae_um: float
     frames_per_tile: float
     time_over_limit: float
@@ -108,11 +112,14 @@ def combine(parts: list[dict[str, Any]]) -> SlideScore:
     def total(key: str) -> float:
         return float(sum(part[key] for part in parts))
 
-    imaged = total("tissue_imaged")
+    imaged, stated = total("tissue_imaged"), total("tissue_risk_stated")
     seams_px = np.array([part["seam_error_px"] for part in parts])
     seams_px = seams_px[np.isfinite(seams_px)]  # a slide of separate fields has no seams
     return SlideScore(
         tissue_in_focus_fraction=total("tissue_in_focus") / max(total("tissue_tiles"), 1.0),
+        tissue_stated_in_focus_fraction=(
+            1.0 - total("tissue_risk_sum") / stated if stated else float("nan")
+        ),
         tissue_mae_um=total("tissue_error_um") / imaged if imaged else float("nan"),
         frames_per_tile=total("frames") / total("tiles"),
         time_over_limit=total("scan_time_s") / total("limit_time_s"),
@@ -282,7 +289,8 @@ def run(args: argparse.Namespace) -> int:
 def format_scores(title: str, scores: dict[str, SlideScore]) -> str:
     """One row per strategy."""
     header = (
-        f"{'strategy':<18}{'tissue in focus':>16}{'MAE um':>8}{'frames/tile':>12}{'/ limit':>9}"
+        f"{'strategy':<18}{'tissue in focus':>16}{'stated':>8}{'MAE um':>8}{'frames/tile':>12}"
+        f"{'/ limit':>9}"
         f"{'on dust':>9}{'empty fr':>10}{'seam px':>9}"
     )
     lines = [title, header, "-" * len(header)]
@@ -293,7 +301,8 @@ def format_scores(title: str, scores: dict[str, SlideScore]) -> str:
             else ""
         )
         lines.append(
-            f"{name:<18}{s.tissue_in_focus_fraction:>16.1%}{s.tissue_mae_um:>8.3f}"
+            f"{name:<18}{s.tissue_in_focus_fraction:>16.1%}"
+            f"{s.tissue_stated_in_focus_fraction:>8.1%}{s.tissue_mae_um:>8.3f}"
             f"{s.frames_per_tile:>12.2f}{s.time_over_limit:>9.2f}{s.tiles_focused_on_dust:>9d}"
             f"{s.empty_tiles_frames:>10.2f}{s.seam_error_px:>9.2f}{phase}"
         )
