@@ -311,11 +311,12 @@ class Topology:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        # One call each: Podman stops the containers side by side (and skips the missing).
         names = {self.name(service) for service in self.compose["services"]}
-        for container in sorted(names | set(self.containers)):
-            podman("rm", "-f", "-t", "2", container, check=False)
-        for volume in self.compose["volumes"]:
-            podman("volume", "rm", "-f", self.name(volume), check=False)
+        podman("rm", "-f", "-t", "2", *sorted(names | set(self.containers)), check=False)
+        volumes = [self.name(volume) for volume in self.compose["volumes"]]
+        if volumes:
+            podman("volume", "rm", "-f", *volumes, check=False)
         podman("network", "rm", "-f", self.network, check=False)
 
 
