@@ -249,7 +249,7 @@ def test_the_scheduler_sees_the_focus_and_phase_services_tokens_and_no_other_rol
                 assert focus_services.alive() == {served, keys.alive_key("focus", "*", "focus")}
                 assert phase_services.alive() == {keys.alive_key("phase", "*", "phase")}
                 # A scheduler that starts now finds the same by its liveliness query. Zenoh
-                # answers one empty now and then (1 run in about 30 here), which AliveTokens
+                # answers one empty now and then (2 runs in about 30 here), which AliveTokens
                 # covers with its subscriber's history: asked again until it is answered.
                 pattern = keys.alive_pattern("focus", "slide-0")
 
