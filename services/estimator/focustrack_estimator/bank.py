@@ -64,6 +64,19 @@ def mixture(
     return mean_um, np.tensordot(weights, vars_um2 + (means_um - mean_um) ** 2, axes=1)
 
 
+def tempered_weights(log_weights: np.ndarray, temperature: float) -> np.ndarray:
+    """Model probabilities from log likelihoods (n_members,), each raised to 1/`temperature`.
+
+    At 1 these are the bank's Bayesian weights; above, a power posterior: the evidence
+    counts 1/T as much, so members the data have not ruled out keep a share. Where no
+    member is the truth, Bayesian weights concentrate on one member faster than its
+    predictions deserve (the lean rule's risk: `lean.SKIP_MODEL_TEMPERATURE`).
+    """
+    scaled = (log_weights - log_weights.max()) / temperature
+    weights = np.exp(scaled)
+    return weights / weights.sum()
+
+
 class ModelBank(PathEstimator):
     """Several `PathFilter`s on the same measurements, blended by their likelihoods.
 

@@ -15,7 +15,7 @@ from pydantic import Field
 
 from focustrack_client.models import MAX_FRAMES
 from focustrack_core.domain import PAIR_FRAMES
-from focustrack_estimator.lean import COARSE_STEP_UM, SHORT_FRAMES
+from focustrack_estimator.lean import COARSE_STEP_UM, SHORT_FRAMES, SKIP_MODEL_TEMPERATURE
 from focustrack_estimator.strategy import MAX_RETRIES, StrategyParams
 
 MaxRetries = Annotated[
@@ -44,6 +44,17 @@ SkipSigmaScale = Annotated[
         ge=1.0,
         description="Factor by which the lean rule widens the predicted sigma of a tile it "
         "would image without measuring it (`lean.skip_risk`)",
+    ),
+]
+SkipModelTemperature = Annotated[
+    float,
+    Field(
+        ge=1.0,
+        le=1e3,
+        description="Where a bank of models predicts a tile (kf-2d), the lean rule weighs "
+        "its members for the risk of imaging the tile without measuring it by their "
+        "likelihoods to the power 1/T (`bank.tempered_weights`): T = 1 is the bank's own "
+        "blend, which trusts the best member after a row or two",
     ),
 ]
 CoarseStepUm = Annotated[
@@ -122,6 +133,7 @@ class LeanParams(RetryParams):
 
     risk_out_of_focus: RiskOutOfFocus = 0.0
     skip_sigma_scale: SkipSigmaScale = 1.0
+    skip_model_temperature: SkipModelTemperature = SKIP_MODEL_TEMPERATURE
     coarse_step_um: CoarseStepUm = COARSE_STEP_UM
     max_kept_planes: MaxKeptPlanes = 1
     look_first: LookFirst = False

@@ -136,6 +136,11 @@ class LaserFilter(RowBankFilter):
             return self._last_reading_um, self.settings.start_sigma_um**2
         return float(reading_um), float(self.laser_var_um2[tile.row, tile.col])
 
+    def _focus_members(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+        offset_um, offset_var_um2 = self._members(tile)
+        reading_um, reading_var_um2 = self._reading(tile)
+        return offset_um + reading_um, offset_var_um2 + reading_var_um2
+
     def _predict(self, tile: Tile) -> Gaussian:
         offset = super()._predict(tile)
         reading_um, reading_var_um2 = self._reading(tile)

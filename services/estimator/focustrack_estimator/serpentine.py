@@ -79,6 +79,7 @@ from focustrack_estimator.lean import (
     kept_planes,
     planes_risk,
     planes_stack,
+    skip_risk,
     teaching_stack,
 )
 from focustrack_estimator.look_first import first_part, with_look
@@ -217,6 +218,11 @@ class SerpentineFilter(Strategy):
     def _finish(self) -> None:
         """Called once when every tile has been imaged (for final-map work)."""
 
+    def _unmeasured_risk(self, tile: Tile, prior: Gaussian) -> float:
+        """The risk of imaging `tile` at its prediction `prior` without measuring it
+        (`lean.skip_risk`; a bank of models weighs its members': `RowBankFilter`)."""
+        return skip_risk(prior.sigma_um, self.settings.dof_um, self.options.skip_sigma_scale)
+
     @property
     def default_r_um2(self) -> float:
         """The variance of a measurement that comes without a sigma (estimated if `adapt_r`)."""
@@ -269,7 +275,7 @@ class SerpentineFilter(Strategy):
             self.settings.dof_um,
             self.settings.policy,
             risk,
-            self.options.skip_sigma_scale,
+            self._unmeasured_risk(self.grid.serpentine[self._position], prior),
             self.options.max_retries,
             self.options.short_frames,
         )

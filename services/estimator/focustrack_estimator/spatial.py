@@ -45,9 +45,9 @@ from focustrack_core.domain import (
     ZRange,
 )
 from focustrack_core.geometry import Tile
-from focustrack_estimator.bank import mixture
+from focustrack_estimator.bank import mixture, tempered_weights
 from focustrack_estimator.filter_params import RetryParams
-from focustrack_estimator.lean import SHORT_FRAMES, skip_risk
+from focustrack_estimator.lean import SHORT_FRAMES, mixture_skip_risk, skip_risk
 from focustrack_estimator.row_model import N_PLANE, RowModel, smooth_member, step_rows
 from focustrack_estimator.serpentine import Gaussian, SerpentineFilter
 from focustrack_estimator.strategy import (
@@ -153,8 +153,7 @@ class RowBankFilter(SerpentineFilter):
     @property
     def weights(self) -> np.ndarray:
         """Posterior probability of each active member, shape (len(active),)."""
-        w = np.exp(self.log_weights - self.log_weights.max())
-        return w / w.sum()
+        return tempered_weights(self.log_weights, 1.0)
 
     def _h(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
         """The measurement row of `tile` as its non-zero (indices, values) in the state.
@@ -189,12 +188,34 @@ class RowBankFilter(SerpentineFilter):
             elapse(self.x, self.P, self.drift, self.n_surface, t_s - self._state_s)
             self._state_s = max(self._state_s, t_s)
 
-    def _mixture(self, tile: Tile) -> Gaussian:
+    def _members(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+        """Each active member's prediction of `tile`: means (um) and variances (um^2),
+        shapes (len(active),)."""
         indices, values = self._h(tile)
         means = self.x[:, indices] @ values
         variances = np.einsum("i,mij,j->m", values, self.P[:, indices[:, None], indices], values)
-        mean, var = mixture(means, variances, self.weights)
+        return means, variances
+
+    def _mixture(self, tile: Tile) -> Gaussian:
+        mean, var = mixture(*self._members(tile), self.weights)
         return Gaussian(float(mean), float(var))
+
+    def _focus_members(self, tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+        """Each active member's prediction of `tile`'s focus, as `_members` (the surface's
+        here; `kf-2d-laser` adds the tile's reading to its offset's)."""
+        return self._members(tile)
+
+    def _unmeasured_risk(self, tile: Tile, prior: Gaussian) -> float:
+        """The risk of imaging `tile` at the bank's mean `prior.mean_um` unmeasured: its
+        members' mixture's, weighed by their tempered likelihoods (`lean.mixture_skip_risk`,
+        `bank.tempered_weights` at `skip_model_temperature`)."""
+        return mixture_skip_risk(
+            *self._focus_members(tile),
+            tempered_weights(self.log_weights, self.options.skip_model_temperature),
+            prior.mean_um,
+            self.settings.dof_um,
+            self.options.skip_sigma_scale,
+        )
 
     def _predict(self, tile: Tile) -> Gaussian:
         if tile.row != self._row:  # a new row: propagate every column one row down
@@ -292,7 +313,7 @@ class RowBankFilter(SerpentineFilter):
         prior = self._predict(tile)  # moves the state onto the tile; again in _plan: a no-op
         dof_um, sigma_scale = self.settings.dof_um, self.options.skip_sigma_scale
         if self.drift_um()[1] < self.revisit_share * prior.var_um2 or (
-            skip_risk(prior.sigma_um, dof_um, sigma_scale) <= risk
+            self._unmeasured_risk(tile, prior) <= risk
         ):
             return None
         measured = np.flatnonzero(np.isfinite(self.z_um[tile.row]))

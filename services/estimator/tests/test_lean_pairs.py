@@ -18,6 +18,7 @@ from focustrack_estimator.lean import (
     choose_stack,
     frame_at_peak,
     search_cost,
+    skip_risk,
 )
 
 POLICY = default_policy()  # z step 0.5 um, retries of at least 5 frames
@@ -25,8 +26,10 @@ DOF_UM = 1.0
 
 
 def test_a_pair_replaces_the_short_stack_where_the_rule_would_take_three_frames() -> None:
-    three = choose_stack(2.0, 0.3**2, 0.1**2, DOF_UM, POLICY, 0.01, 1.0, 3)
-    two = choose_stack(2.0, 0.3**2, 0.1**2, DOF_UM, POLICY, 0.01, 1.0, 3, PAIR_FRAMES)
+    three = choose_stack(2.0, 0.3**2, 0.1**2, DOF_UM, POLICY, 0.01, skip_risk(0.3, DOF_UM, 1.0), 3)
+    two = choose_stack(
+        2.0, 0.3**2, 0.1**2, DOF_UM, POLICY, 0.01, skip_risk(0.3, DOF_UM, 1.0), 3, PAIR_FRAMES
+    )
     assert three.measure and three.z.n_frames == SHORT_FRAMES
     assert two.measure and two.z.n_frames == PAIR_FRAMES
     assert two.z.step_um == POLICY.z_step_um and two.z.center_um == pytest.approx(2.0)
@@ -34,7 +37,9 @@ def test_a_pair_replaces_the_short_stack_where_the_rule_would_take_three_frames(
 
 
 def test_a_pair_reaches_beyond_its_frames_and_counts_the_frame_at_a_peak_out_there() -> None:
-    pair = choose_stack(0.0, 0.5**2, 0.0, DOF_UM, POLICY, 0.01, 1.0, 3, PAIR_FRAMES).z
+    pair = choose_stack(
+        0.0, 0.5**2, 0.0, DOF_UM, POLICY, 0.01, skip_risk(0.5, DOF_UM, 1.0), 3, PAIR_FRAMES
+    ).z
     sigma_um = 0.5
     reach_um = 0.25 + PAIR_REACH_UM  # then retries of 5 frames reaching 1.5 um further each
     expected = 2.0 + 2 * norm.sf((0.25 + DOF_UM / 2) / sigma_um)

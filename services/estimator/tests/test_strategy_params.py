@@ -31,6 +31,7 @@ RETRIES = {"max_retries": 3}
 LEAN = {
     "risk_out_of_focus": 0.0,
     "skip_sigma_scale": 1.0,
+    "skip_model_temperature": 3.0,
     "coarse_step_um": 4.0,
     "look_first": False,
     "short_frames": 3,
