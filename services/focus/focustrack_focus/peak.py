@@ -50,7 +50,11 @@ pointing that way (no sigma).
 
 Noise is judged (flat test, candidates, despike, the top's chances) by the
 curve's own estimate where it is clean, else by the metric's known noise floor
-alone: a short window cannot tell its noise from its peak's shape.
+alone: a short window cannot tell its noise from its peak's shape. In valley mode
+the flat test also takes the estimate on the whole stack, whose frames outside the
+window between the valley's maxima still measure the noise: a valley must stand
+`min_snr` of it, as a peak must in max mode (a coarse first stack that misses a
+narrow valley holds only noise-level wiggles between two far-out maxima).
 
 Calibration (docs/focus.md): the constants were fitted on instrument-simulator
 stacks of seeds 100-102 (`focustrack bench focus --seed 100` ...: all field
@@ -313,11 +317,17 @@ def find_peak(
     """
     settings = settings or PeakSettings()
     z, s = validate_curve(z_um, scores)
+    stack_noise, stack_clean = 0.0, False
     if settings.mode is PeakMode.VALLEY:
+        # the stack's noise, estimated on all its frames: the window between the valley's
+        # maxima is too short for a clean estimate of its own (a coarse stack's 5-6 frames
+        # with the valley in the middle leave no difference away from it)
+        stack_noise, stack_clean = score_noise(s)
         z, s = between_maxima(z, s)
     # read on a scale of 1, the same for any scale of scores: scores of 1e-160 squared in
     # the fit's weights underflow to a singular matrix
-    s = s / (float(np.abs(s).max()) or 1.0)
+    scale = float(np.abs(s).max()) or 1.0
+    s = s / scale
     top, span = abs(float(s.max())), float(s.max() - s.min())
     if settings.mode is PeakMode.VALLEY:
         # the valley is the peak of the curve turned upside down (lifted to stay
@@ -330,7 +340,11 @@ def find_peak(
     floor = settings.min_relative_noise * top
     judged_noise = max(own if clean else 0.0, floor)
     noise = max(own, floor)
-    if _flat(s, top, noise, judged_noise, clean, settings):
+    # a valley must stand `min_snr` of the stack's noise, as a peak must in max mode: the
+    # frames cropped away measure it still (a curve of noise dips somewhere between two
+    # of its maxima)
+    flat_noise = max(judged_noise, stack_noise / scale if stack_clean else 0.0)
+    if _flat(s, top, noise, flat_noise, clean, settings):
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     # sigma and the top's chances: the own estimate's upper bound where asked (`noise_bound`)
     bound = own * bound_factor(s.size, int(np.argmax(s)), settings.own_noise_confidence)
@@ -345,7 +359,7 @@ def find_peak(
     # left zeros, read as an edge); where the outlier was the maximum, the top is the rest's
     if settings.mode is PeakMode.MAX:
         top = abs(float(s.max()))
-    if _flat(s, top, noise, judged_noise, clean, settings):
+    if _flat(s, top, noise, flat_noise, clean, settings):
         return PeakFit(None, None, frozenset({FocusFlag.FLAT}))
     fit = _read_peaks(z, s, read_noise, settings, prior)
     valley_z = phase_valley(z, s) if settings.mode is PeakMode.MAX else None

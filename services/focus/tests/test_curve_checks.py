@@ -120,6 +120,25 @@ def test_a_coarse_valley_deep_against_its_noise_or_near_the_top_is_read_not_the_
     assert not fit.flags & {FocusFlag.EDGE_LOW, FocusFlag.EDGE_HIGH}
 
 
+#: A scan's first stack on a tile of sparse cells in culture (seed 4, 4 um steps, valley
+#: mode; focus at +1.60 um, a valley 1.3 um wide that no frame of it falls in): far-out
+#: contrast wandering by noise, with maxima at -24 and -4 um. Cropped to the frames between
+#: them and judged against no noise, it read as a valley at -9.98 +- 0.96 um, and the scan
+#: followed it 40 um off the cells (11 of 54 tiles in focus).
+COARSE_SPARSE_CELLS = [0.0024508, 0.0023764, 0.0022115, 0.0020014, 0.0019979, 0.002422,
+                       0.0021935, 0.0022949, 0.0019979, 0.0016029, 0.0016106, 0.0018253,
+                       0.0019671]  # fmt: skip
+
+
+def test_a_valley_no_deeper_than_the_whole_stack_s_noise_is_flat() -> None:
+    scores = np.array(COARSE_SPARSE_CELLS)
+    fit = find_peak(COARSE_Z_UM, scores, PeakSettings(mode=PeakMode.VALLEY))
+    assert fit.z_um is None and FocusFlag.FLAT in fit.flags
+    # the same stack read as a peak is flat too: a valley must stand as much noise as a peak
+    assert FocusFlag.FLAT in find_peak(COARSE_Z_UM, scores, PeakSettings()).flags
+    # (the red cells' first stacks above, whose valleys stand far deeper, are still read)
+
+
 def test_only_a_dip_of_half_the_range_between_two_maxima_is_a_valley_to_crop_to() -> None:
     z = np.arange(-3.0, 3.01, 0.5)
     v_alone = np.abs(z) + 0.1  # a short stack about the focus: the V, its ends its maxima
