@@ -46,7 +46,12 @@ from focustrack_core.domain import (
 )
 from focustrack_core.geometry import Tile
 from focustrack_core.laser import LaserSpec
-from focustrack_estimator.filter_params import LeanParams, MaxKeptPlanes, RiskOutOfFocus
+from focustrack_estimator.filter_params import (
+    LeanParams,
+    MaxKeptPlanes,
+    RiskOutOfFocus,
+    SkipModelTemperature,
+)
 from focustrack_estimator.lean_scan import DEFAULT_RISK, MAX_KEPT_PLANES
 from focustrack_estimator.serpentine import Gaussian
 from focustrack_estimator.spatial import BankGrid, RowBankFilter, RowBankParams, kf_2d_cost
@@ -59,6 +64,10 @@ class Kf2dLaserParams(RowBankParams, LeanParams):
 
     risk_out_of_focus: RiskOutOfFocus = DEFAULT_RISK
     max_kept_planes: MaxKeptPlanes = MAX_KEPT_PLANES
+    # The bank's own weights: its tiles' priors are a reading each plus the offset, whose
+    # members differ little; tempered (kf-2d-lean's 3) the demo's laser scan took 1.36
+    # frames a tile against 1.21, every tissue tile in focus either way.
+    skip_model_temperature: SkipModelTemperature = 1.0
     laser_sigma_um: float = Field(
         0.05, gt=0.0, description="Std of a laser reading that comes without its own sigma, um"
     )

@@ -113,6 +113,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         **RETRIES,
         **LEAN,
         "risk_out_of_focus": 0.01,
+        "skip_model_temperature": 1.0,
         "max_kept_planes": 5,
         "laser_sigma_um": 0.05,
         "laser_reading_s": 0.001,
