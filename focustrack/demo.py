@@ -80,15 +80,12 @@ LEAN = "kf-2d-lean"
 LASER = "kf-2d-laser"
 DEFAULT_STRATEGIES = (BEST_KALMAN, LEAN, LASER, "survey-delaunay", "af-every-tile")
 #: The demo's lean scan measures a tile with a pair of frames where the rule takes a short
-#: stack (`short_frames` 2: the focus service reads the pair with the slide's learnt curve),
-#: and images a tile without measuring it only where its prediction is sure with a sigma
-#: 1.5 times the filter's (`skip_sigma_scale`: on the tissue slide kf-2d's prior errors
-#: spread 1.4 times its sigma, docs/benchmarks.md); the laser scan measures with pairs too
-#: (its skip sigma stays the filter's, as in the drift bench). Both look first
-#: (`look_first`): a tile of glass costs one frame, and on tissue the look is the pair's
-#: lower frame, so it costs nothing there (docs/benchmarks.md, the demo's slide).
+#: stack (`short_frames` 2: the focus service reads the pair with the slide's learnt curve);
+#: the laser scan measures with pairs too. Both look first (`look_first`): a tile of glass
+#: costs one frame, and on tissue the look is the pair's lower frame, so it costs nothing
+#: there (docs/benchmarks.md, the demo's slide).
 STRATEGY_PARAMS: dict[str, dict[str, Any]] = {
-    LEAN: {"short_frames": 2, "skip_sigma_scale": 1.5, "look_first": True},
+    LEAN: {"short_frames": 2, "look_first": True},
     LASER: {"short_frames": 2, "look_first": True},
 }
 #: The second pass: kf-rescan with the first pass's map, after the slide's focus moved by
