@@ -252,8 +252,8 @@ class SerpentineFilter(Strategy):
     def measurement_sigma_um(self) -> float:
         return math.sqrt(self.expected_r_um2)
 
-    def _first_stack(self, prior: Gaussian) -> tuple[ZRange, bool]:
-        """The first acquisition of a tile with this prior: its frames and whether to measure."""
+    def _first_stack(self, tile: Tile, prior: Gaussian) -> tuple[ZRange, bool]:
+        """The first acquisition of `tile` with this prior: its frames and whether to measure."""
         risk, policy = self.options.risk_out_of_focus, self.settings.policy
         if not risk or self._blurred is not None:  # a frame out of focus: measure the tile
             innovation_sigma_um = math.sqrt(prior.var_um2 + self.default_r_um2)
@@ -275,7 +275,7 @@ class SerpentineFilter(Strategy):
             self.settings.dof_um,
             self.settings.policy,
             risk,
-            self._unmeasured_risk(self.grid.serpentine[self._position], prior),
+            self._unmeasured_risk(tile, prior),
             self.options.max_retries,
             self.options.short_frames,
         )
@@ -345,7 +345,7 @@ class SerpentineFilter(Strategy):
         prior = self._prior
         measure = True
         if not self._search:
-            (z, measure), purpose = self._first_stack(prior), Purpose.SCAN
+            (z, measure), purpose = self._first_stack(tile, prior), Purpose.SCAN
             if measure and self._blurred is None:  # a frame out of focus: its stack, whole
                 if self.options.look_first and (part := first_part(z, self._look)) != z:
                     z = part  # a look that costs no frame where something is in view
