@@ -317,9 +317,9 @@ class Topology:
         names = {self.name(service) for service in self.compose["services"]}
         podman("rm", "-f", "-i", "-t", "2", *sorted(names | set(self.containers)), check=False)
         existing = set(podman("volume", "ls", "--format", "{{.Name}}").stdout.split())
-        volumes = [self.name(volume) for volume in self.compose["volumes"]]
-        if existing.intersection(volumes):
-            podman("volume", "rm", "-f", *sorted(existing.intersection(volumes)), check=False)
+        volumes = sorted(existing.intersection(map(self.name, self.compose["volumes"])))
+        if volumes:
+            podman("volume", "rm", "-f", *volumes, check=False)
         podman("network", "rm", "-f", self.network, check=False)
 
 
